@@ -1,1 +1,25 @@
-"""gonio.fitting."""
+"""gonio.fitting: turn a dataset into a few physical numbers, and say how sure they are.
+
+- :func:`load_dataset` reads ``dataset.nc`` into :class:`Measurements` (unit directions in
+  the local frame, f_r and its 1-sigma, a usable-value mask); NaN in used values raises.
+- :func:`fit` is the constrained maximum-likelihood fit (nlopt: multi-start + SLSQP, bounds
+  from the model's declarations, albedo <= 1 for models that can break it) with a Laplace
+  covariance; :func:`sample_posterior` the emcee posterior with an autocorrelation check;
+  :func:`select` model selection by BIC ("model only what the data needs").
+- :func:`fit_document` / :func:`write_json_atomic` / :func:`load_fit`: the fit file.
+- :mod:`gonio.fitting.render`: Mitsuba re-renders the fit at the measured geometry.
+"""
+
+from ._data import DataError, Measurements, direction, load_dataset
+from ._fitfile import fit_document, load_fit, versions, write_json_atomic
+from ._loss import LOSSES
+from ._optimise import FitResult, fit
+from ._posterior import Posterior, sample_posterior
+from ._selection import CANDIDATES, Ranked, select
+from ._space import ParameterSpace
+
+__all__ = [
+    "CANDIDATES", "DataError", "FitResult", "LOSSES", "Measurements", "ParameterSpace", "Posterior", "Ranked",
+    "direction", "fit", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
+    "write_json_atomic",
+]

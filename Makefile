@@ -1,0 +1,44 @@
+# gonio: two commands on a fresh Debian machine.
+#   make demo   full loop on the simulated instrument (capture, export, fit, render, report)
+#   make test   the test suite
+# Each installs what it needs: a virtual environment with gonio and its dependencies, and
+# Debian's libllvm19 (Mitsuba's fast LLVM variants) when apt-get is available.
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.stamp-install
+
+.PHONY: demo test test-fast install llvm clean
+
+demo: $(STAMP)
+	$(VENV)/bin/gonio demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory llvm
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	@touch $@
+
+# Mitsuba's llvm_ad_* variants need a system libLLVM (Debian's 14/15 make drjit abort; 19 works).
+# Without it gonio falls back to scalar_rgb and says so.
+llvm:
+	@if ls /usr/lib/*/libLLVM*.so.19* >/dev/null 2>&1 || ls /usr/lib/*/libLLVM.so.19* >/dev/null 2>&1; then :; \
+	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	  echo "installing Debian's libllvm19 for Mitsuba's LLVM variants"; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q libllvm19 >/dev/null 2>&1 || \
+	  { apt-get update -q >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -q libllvm19 >/dev/null 2>&1; } || \
+	  echo "gonio: could not install libllvm19; Mitsuba will use scalar_rgb"; \
+	else echo "gonio: no apt-get as root; Mitsuba will use scalar_rgb unless a libLLVM is installed"; fi
+
+clean:
+	rm -rf $(VENV) gonio-out .pytest_cache

@@ -1,0 +1,214 @@
+"""The ``gonio`` command line: a thin layer over library calls.
+
+Every command has ``--help``. Errors the user can fix print one line on stderr
+(``gonio: error: ...``) and exit with status 2, without a traceback; nothing half-written is
+left behind (every file is written to a temporary name and renamed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .errors import GonioError
+
+__all__ = ["main", "build_parser"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (usage stays available through --help)."""
+
+    def error(self, message):
+        sys.stderr.write(f"gonio: error: {message} (see `{self.prog} --help`)\n")
+        raise SystemExit(2)
+
+
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("gonio")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+# --------------------------------------------------------------------------- commands
+def _cmd_demo(args):
+    from .demo import run_demo
+
+    run_demo(out=Path(args.out), seed=args.seed, plan=args.plan, posterior=args.posterior)
+
+
+def _cmd_capture(args):
+    from . import session_runner
+
+    if args.resume:
+        session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
+                                  camera=args.camera, progress=not args.quiet)
+        return
+    if args.out is None:
+        raise GonioError("capture needs --out DIR (a new session folder) or --resume DIR")
+    if not args.sim and not args.port:
+        raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
+    session_runner.capture_cli(Path(args.out), sim=args.sim, sample=args.sample, plan=args.plan, seed=args.seed,
+                               settings=args.settings, port=args.port, meter_port=args.meter_port,
+                               camera=args.camera, dry_run=args.dry_run, progress=not args.quiet)
+
+
+def _cmd_export(args):
+    from .export import export
+
+    path = export(Path(args.session))
+    print(f"wrote {path}")
+
+
+def _cmd_fit(args):
+    from .fit_runner import fit_cli
+
+    fit_cli(Path(args.dataset), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
+            loss=args.loss, posterior=args.posterior)
+
+
+def _cmd_render(args):
+    from .fit_runner import render_cli
+
+    render_cli(Path(args.fit), Path(args.dataset), Path(args.out), variant=args.variant)
+
+
+def _cmd_report(args):
+    from .report import write_report
+
+    path = write_report(Path(args.folder), Path(args.out) if args.out else None)
+    print(f"wrote {path}")
+
+
+def _cmd_sim_serve(args):
+    from . import session_runner
+
+    session_runner.serve_cli(sample=args.sample, seed=args.seed, settings=args.settings, clock=args.clock,
+                             faults=args.faults)
+
+
+def _cmd_estop(args):
+    from ._zaber import emergency_stop
+
+    emergency_stop(args.port, baudrate=args.baud)
+    print("emergency stop sent to every device")
+
+
+def _cmd_bench_models(args):
+    try:
+        from gonio.models.bench import run
+    except ImportError:
+        raise GonioError("this build of gonio.models has no benchmark") from None
+    run(n=args.n)
+
+
+# --------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="gonio", description="Physically based BRDF measurement and validation bench.")
+    p.add_argument("--version", action="version", version=f"gonio {_version()}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    d = sub.add_parser("demo", help="full loop on the simulated instrument: capture, export, fit, render, report")
+    d.add_argument("--out", default="gonio-out", help="output folder (default ./gonio-out)")
+    d.add_argument("--seed", type=int, default=1, help="seed of the simulated instrument and the fit (default 1)")
+    d.add_argument("--plan", default="standard", help="plan preset or TOML file (default standard)")
+    d.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=True,
+                   help="also sample the posterior with emcee (default on)")
+    d.set_defaults(func=_cmd_demo)
+
+    c = sub.add_parser("capture", help="run a capture session (simulated or real instrument)")
+    c.add_argument("--sim", action="store_true", help="use the simulated instrument in this process")
+    c.add_argument("--sample", help="sample TOML or measured .bsdf file (simulated instrument only)")
+    c.add_argument("--plan", default="standard", help="preset (quick, standard, dense) or plan TOML/CSV file")
+    c.add_argument("--out", help="new session folder")
+    c.add_argument("--resume", metavar="DIR", help="finish an interrupted session")
+    c.add_argument("--seed", type=int, default=0, help="seed (simulated noise and faults)")
+    c.add_argument("--settings", help="instrument settings TOML overriding bench/instrument.toml")
+    c.add_argument("--port", help="Zaber chain: serial port or pyserial URL (e.g. /dev/ttyUSB0, sim://NAME/zaber)")
+    c.add_argument("--meter-port", help="SCPI power meter: serial port or pyserial URL")
+    c.add_argument("--camera", help="camera: a serial port/URL of a simulated camera, folder:PATH, or gphoto2")
+    c.add_argument("--dry-run", action="store_true", help="print point count, duration estimate, unreachable points; move nothing")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=_cmd_capture)
+
+    e = sub.add_parser("export", help="write SESSION/dataset.nc from a session's journal")
+    e.add_argument("session", help="session folder")
+    e.set_defaults(func=_cmd_export)
+
+    f = sub.add_parser("fit", help="fit a model to a dataset")
+    f.add_argument("dataset", help="dataset.nc")
+    f.add_argument("--model", default="auto", help="model name, or auto for BIC model selection (default)")
+    f.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="model option, e.g. distribution=beckmann (repeatable)")
+    f.add_argument("--out", required=True, help="fit file to write (JSON)")
+    f.add_argument("--seed", type=int, default=0, help="seed of the multi-start and the sampler")
+    f.add_argument("--loss", default="chi2", help="chi2 (default), robust, cosine, log")
+    f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
+                   help="sample the posterior with emcee")
+    f.set_defaults(func=_cmd_fit)
+
+    r = sub.add_parser("render", help="re-render a fit in Mitsuba at the dataset's geometry and compare")
+    r.add_argument("fit", help="fit file (JSON)")
+    r.add_argument("--dataset", required=True, help="dataset.nc")
+    r.add_argument("--out", required=True, help="output folder (render.json)")
+    r.add_argument("--variant", help="Mitsuba variant (default: llvm_ad_rgb when it works, else scalar_rgb)")
+    r.set_defaults(func=_cmd_render)
+
+    rep = sub.add_parser("report", help="write a self-contained HTML report of an output folder")
+    rep.add_argument("folder", help="folder with dataset.nc (and fit.json, render/render.json)")
+    rep.add_argument("--out", help="report file (default FOLDER/report.html)")
+    rep.set_defaults(func=_cmd_report)
+
+    s = sub.add_parser("sim", help="the simulated instrument")
+    ssub = s.add_subparsers(dest="sim_command", metavar="SIMCOMMAND", parser_class=_Parser)
+    ssub.required = True
+    serve = ssub.add_parser("serve", help="serve the simulated instrument on pseudo-terminals and print their paths")
+    serve.add_argument("--sample", help="sample TOML or measured .bsdf file")
+    serve.add_argument("--seed", type=int, default=0)
+    serve.add_argument("--settings", help="instrument settings TOML")
+    serve.add_argument("--clock", default="realtime", help="instant, realtime, or a time scale factor such as 10")
+    serve.add_argument("--faults", help="fault schedule TOML")
+    serve.set_defaults(func=_cmd_sim_serve)
+
+    es = sub.add_parser("estop", help="send the emergency stop to every Zaber device at once")
+    es.add_argument("--port", required=True, help="Zaber chain port or URL")
+    es.add_argument("--baud", type=int, default=115200)
+    es.set_defaults(func=_cmd_estop)
+
+    b = sub.add_parser("bench", help="benchmarks (print figures)")
+    bsub = b.add_subparsers(dest="bench_command", metavar="WHAT", parser_class=_Parser)
+    bsub.required = True
+    bm = bsub.add_parser("models", help="model evaluations per second next to Mitsuba's bsdf.eval")
+    bm.add_argument("-n", type=int, default=1_000_000)
+    bm.set_defaults(func=_cmd_bench_models)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from gonio.fitting._data import DataError
+
+    try:
+        args.func(args)
+    except GonioError as exc:
+        sys.stderr.write(f"gonio: error: {exc}\n")
+        return 2
+    except DataError as exc:
+        sys.stderr.write(f"gonio: error: {' '.join(str(exc).split())}\n")
+        return 2
+    except FileNotFoundError as exc:
+        sys.stderr.write(f"gonio: error: {exc.filename or exc}: no such file; check the path\n")
+        return 2
+    except KeyboardInterrupt:
+        sys.stderr.write("gonio: interrupted\n")
+        return 130
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,138 @@
+"""The fit file (JSON): what was fitted, how well, how sure, and how to render it.
+
+Layout (docs/interfaces.md, architecture.md "A fit file"):
+``model`` {name, options}; ``parameters`` {name: {value, std, ci90, unit, per_channel,
+at_bound, undetermined, method}}; ``covariance`` {names, matrix}; ``constraints``;
+``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used}; ``optimiser``;
+``posterior`` (or null); ``selection`` (for ``--model auto``); ``mitsuba`` (the BSDF dict);
+``provenance`` (versions, seed, dataset path and checksum).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["fit_document", "write_json_atomic", "load_fit", "versions"]
+
+
+def versions() -> dict:
+    """Versions of gonio and the libraries whose numbers it reports."""
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for dist in ("gonio", "numpy", "scipy", "mitsuba", "drjit", "nlopt", "emcee", "xarray", "rawpy", "pyserial"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, dataset_path=None) -> dict:
+    """Build the fit file's content from a FitResult (and optional posterior and ranking)."""
+    space = result.space
+    z90 = 1.6448536269514722  # two-sided 90 % of a standard normal
+    params = {}
+    by_name = {p.name: p for p in result.model.parameters}
+    for i, name in enumerate(space.names):
+        entry = space.entries[i]
+        p = by_name[entry.param]
+        item = {"value": result.x[i], "std": result.std[i], "unit": p.unit, "parameter": entry.param,
+                "channel": space.channels[entry.channel] if entry.channel >= 0 else None,
+                "ci90": [max(result.x[i] - z90 * result.std[i], p.lower), min(result.x[i] + z90 * result.std[i], p.upper)],
+                "method": "laplace", "at_bound": name in result.at_bound, "undetermined": name in result.undetermined}
+        if posterior is not None and posterior.converged:
+            item.update(median=posterior.quantiles[50][i],
+                        std_posterior=0.5 * (posterior.quantiles[84][i] - posterior.quantiles[16][i]),
+                        ci90=[posterior.quantiles[5][i], posterior.quantiles[95][i]], method="emcee")
+        params[name] = item
+    doc = {
+        "format": "gonio-fit/1",
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "model": {"name": result.model.name, "options": dict(result.model.options)},
+        "params": _jsonable(result.params),
+        "parameters": params,
+        "covariance": {"names": space.names, "matrix": result.cov},
+        "constraints": {"energy": result.energy,
+                        "reciprocity": {"by_construction": True,
+                                        "note": "every gonio model is reciprocal (tests/models); data pairs are checked at capture"}},
+        "goodness": {"loss": result.loss, "chi2": result.chi2, "dof": result.dof, "chi2_dof": result.chi2_dof,
+                     "rmse_fr": result.rmse_fr, "rmse_cos_fr": result.rmse_cos_fr, "n_used": result.n_used,
+                     "bic": result.bic},
+        "optimiser": {"global": "multi-start (declared defaults + uniform draws in the box)",
+                      "local": "nlopt LD_SLSQP", "evaluations": result.n_evals, "time_s": result.time_s,
+                      "converged": result.converged, "message": result.message},
+        "posterior": None,
+        "selection": [r.row() for r in ranking] if ranking else None,
+        "mitsuba": result.model.to_mitsuba(result.params),
+        "scale_rel_std": meas.attrs.get("scale_rel_std"),
+        "provenance": {"versions": versions(), "seed": seed, "dataset": str(dataset_path) if dataset_path else None,
+                       "dataset_sha256": sha256_file(dataset_path) if dataset_path and Path(dataset_path).exists() else None,
+                       "dataset_seed": meas.attrs.get("seed")},
+    }
+    if posterior is not None:
+        doc["posterior"] = {"converged": posterior.converged, "walkers": posterior.n_walkers,
+                            "steps": posterior.n_steps, "tau": posterior.tau, "independent_samples": posterior.n_independent,
+                            "acceptance": posterior.acceptance, "time_s": posterior.time_s, "advice": posterior.advice}
+    return _jsonable(doc)
+
+
+def write_json_atomic(path, doc) -> Path:
+    """Write JSON to a temporary file beside ``path``, fsync, rename: never half-written."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(doc, fh, indent=2)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_fit(path):
+    """Read a fit file; return (model, params, document)."""
+    import gonio.models as gm
+
+    path = Path(path)
+    doc = json.loads(path.read_text())
+    if doc.get("format") != "gonio-fit/1":
+        raise ValueError(f"{path} is not a gonio fit file (format {doc.get('format')!r})")
+    model = gm.get(doc["model"]["name"], **doc["model"]["options"])
+    params = {k: (np.asarray(v, dtype=np.float64) if isinstance(v, list) else float(v)) for k, v in doc["params"].items()}
+    return model, params, doc

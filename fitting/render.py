@@ -1,0 +1,158 @@
+"""Close the loop: render a fitted BSDF in Mitsuba 3 at the measured geometry.
+
+The virtual gonioreflectometer is a flat square sample (normal +z) with the fitted BSDF, a
+``directional`` emitter of unit irradiance arriving from ``wi``, and a ``radiancemeter``
+aimed at the sample's centre from ``wo``, rendered with the ``direct`` integrator. For this
+scene Mitsuba returns L = f_r(wi, wo) * E * cos(theta_i) exactly (no Monte Carlo noise: the
+light is a delta and the sensor a single ray; checked in ../shared/notes/tech-facts.md to
+4e-7), so f_r_render = L / cos(theta_i) is what Mitsuba *renders* for the exported model,
+independently of gonio's own evaluation. Differences between the two are export errors;
+differences from the measurement are the model's or the measurement's.
+
+The scene is built once and re-posed per point through ``mi.traverse`` (no recompilation).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+__all__ = ["VirtualGonio", "render_brdf"]
+
+
+def _look_at_matrix(origin, target, up):
+    """4x4 camera-to-world matrix, Mitsuba's look_at convention (camera looks along +z)."""
+    origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+    d = target - origin
+    d /= np.linalg.norm(d)
+    left = np.cross(up, d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, origin
+    return m
+
+
+def _rotation_to_z(w):
+    """Rotation matrix whose rows are an orthonormal basis with the last row equal to ``w``.
+
+    ``rot @ w = (0, 0, 1)``, and ``rot.T`` maps the sample's local frame to the world.
+    """
+    w = w / np.linalg.norm(w)
+    a = np.cross(_up_for(w), w)
+    a /= np.linalg.norm(a)
+    b = np.cross(w, a)
+    return np.stack([a, b, w])
+
+
+def _up_for(direction):
+    """Any unit vector not parallel to ``direction``."""
+    return np.array([1.0, 0.0, 0.0]) if abs(direction[2]) > 0.9 else np.array([0.0, 0.0, 1.0])
+
+
+class VirtualGonio:
+    """A Mitsuba scene that measures f_r like the bench does, one pose at a time.
+
+    Parameters
+    ----------
+    bsdf : dict
+        A Mitsuba BSDF dict (``model.to_mitsuba(params)``).
+    variant : str, optional
+        Mitsuba variant; by default the one ``gonio.models.mitsuba_variant()`` picks.
+    """
+
+    def __init__(self, bsdf: dict, variant: str | None = None):
+        import mitsuba as mi
+
+        from gonio.models import mitsuba_variant
+
+        self.variant = variant or mitsuba_variant()
+        if mi.variant() != self.variant:
+            mi.set_variant(self.variant)
+        self._mi = mi
+        self.scene = mi.load_dict({
+            "type": "scene",
+            "integrator": {"type": "direct"},
+            "sample": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([10.0, 10.0, 1.0]), "bsdf": bsdf},
+            "lamp": {"type": "directional", "direction": [0.0, 0.0, -1.0], "irradiance": {"type": "rgb", "value": 1.0}},
+            "meter": {"type": "radiancemeter", "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                      "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}, "pixel_format": "rgb"}},
+        })
+        self.params = mi.traverse(self.scene)
+        self._lamp_key = next(k for k in self.params.keys() if k.startswith("lamp") and k.endswith("to_world"))
+        self._sample_key = "sample.to_world"
+
+    def radiance(self, wi, wo) -> np.ndarray:
+        """Rendered radiance (W m^-2 sr^-1 per unit irradiance), shape (3,), for one pose."""
+        mi = self._mi
+        wi, wo = np.asarray(wi, dtype=np.float64), np.asarray(wo, dtype=np.float64)
+        # The meter stays on the world z axis; the sample turns so that its local wo points
+        # at it (Mitsuba does not traverse a radiancemeter's to_world).
+        rot = _rotation_to_z(wo)
+        to_world = np.eye(4)
+        to_world[:3, :3] = rot.T @ np.diag([10.0, 10.0, 1.0])
+        self.params[self._sample_key] = mi.Transform4f(to_world)
+        # The directional emitter sends light along its frame's +z: toward the sample, i.e. -wi.
+        wi_world = rot.T @ wi
+        self.params[self._lamp_key] = mi.Transform4f(_look_at_matrix([0, 0, 0], -wi_world, _up_for(wi_world)))
+        self.params.update()
+        image = mi.render(self.scene, spp=1)
+        return np.asarray(image, dtype=np.float64).reshape(-1)[:3]
+
+    def brdf(self, wi, wo) -> np.ndarray:
+        """f_r as rendered, shape (N, 3); 0 where either direction is at or below the horizon."""
+        wi, wo = np.atleast_2d(wi), np.atleast_2d(wo)
+        out = np.zeros((wi.shape[0], 3))
+        for n in range(wi.shape[0]):
+            cos_i = wi[n, 2]
+            if cos_i <= 1e-9 or wo[n, 2] <= 1e-9:
+                continue
+            out[n] = self.radiance(wi[n], wo[n]) / cos_i
+        return out
+
+
+def render_brdf(model, params, wi, wo, variant: str | None = None):
+    """Render f_r of a gonio model in Mitsuba at each (wi, wo); returns (f_r (N, 3), seconds, variant)."""
+    t0 = time.perf_counter()
+    gonio = VirtualGonio(model.to_mitsuba(params), variant)
+    fr = gonio.brdf(wi, wo)
+    return fr, time.perf_counter() - t0, gonio.variant
+
+
+def loop_closure(model, params, meas, variant: str | None = None, n_worst: int = 5) -> dict:
+    """Render the fit at every measured pose and compare with gonio's evaluation and the data.
+
+    Returns a JSON-ready dict: the rendered f_r, the export check (render vs ``model.eval``),
+    residuals of the measurement against the render in units of its 1-sigma, and the worst
+    points with their geometry (degrees).
+    """
+    rendered, seconds, used_variant = render_brdf(model, params, meas.wi, meas.wo, variant)
+    evaluated = model.eval(meas.wi, meas.wo, params)
+    floor = 1e-6
+    mask = np.abs(evaluated) > floor
+    export_rel = np.abs(rendered - evaluated)[mask] / np.abs(evaluated)[mask]
+    resid = (meas.brdf - rendered) / meas.brdf_std
+    used = np.where(meas.use, resid, 0.0)
+    per_point = np.sqrt(np.sum(used ** 2, axis=1) / np.maximum(meas.use.sum(axis=1), 1))
+    order = np.argsort(per_point)[::-1][:n_worst]
+
+    def angles(w):
+        return np.degrees(np.arccos(np.clip(w[:, 2], -1, 1))), np.degrees(np.arctan2(w[:, 1], w[:, 0]))
+
+    ti, pi_ = angles(meas.wi)
+    to, po = angles(meas.wo)
+    worst = [{"point": int(k), "theta_i": float(ti[k]), "phi_i": float(pi_[k]), "theta_o": float(to[k]),
+              "phi_o": float(po[k]), "residual_sigma": float(per_point[k])} for k in order]
+    return {
+        "variant": used_variant, "points": int(meas.n_points), "time_s": seconds,
+        "brdf_render": rendered.tolist(), "brdf_model": evaluated.tolist(),
+        "residual_sigma": resid.tolist(),
+        "summary": {
+            "export_max_rel": float(export_rel.max()) if export_rel.size else 0.0,
+            "export_median_rel": float(np.median(export_rel)) if export_rel.size else 0.0,
+            "residual_rms_sigma": float(np.sqrt(np.mean(resid[meas.use] ** 2))),
+            "residual_max_sigma": float(np.max(np.abs(resid[meas.use]))),
+            "worst": worst,
+        },
+    }
