@@ -181,12 +181,16 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     order = np.argsort(scores)[: max(1, n_local)]
 
     # ---- local stage: SLSQP from the best starts
+    # The objective is divided by its value at the start: nlopt's SLSQP throws on objectives
+    # of order 1e5 and more (seen with nlopt 2.11), which chi^2 far from the optimum reaches.
+    norm = [1.0]
+
     def f(u, grad):
         r = problem.residuals_u(u)
         if grad.size:
             J = problem.jacobian_u(u, r)
-            grad[:] = J.T @ _loss.objective_weights(loss, r)
-        return _loss.objective(loss, r)
+            grad[:] = (J.T @ _loss.objective_weights(loss, r)) / norm[0]
+        return _loss.objective(loss, r) / norm[0]
 
     def energy_constraint(result, u, grad):
         x = space.from_unit(u)
@@ -212,14 +216,15 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         opt.set_xtol_rel(1e-9)
         opt.set_maxeval(maxeval)
         u0 = np.clip(starts[k], 1e-9, 1 - 1e-9)
+        norm[0] = max(float(scores[k]), 1.0) if np.isfinite(scores[k]) else 1.0
         try:
             u = opt.optimize(u0)
-            val = opt.last_optimum_value()
+            val = opt.last_optimum_value() * norm[0]
             status = opt.last_optimize_result()
-        except nlopt.RoundoffLimited:
-            u, val, status = u0, _loss.objective(loss, problem.residuals_u(u0)), nlopt.ROUNDOFF_LIMITED
+        except nlopt.RoundoffLimited:  # keep the start: its value is known exactly
+            u, val, status = u0, float(scores[k]), nlopt.ROUNDOFF_LIMITED
         except (RuntimeError, ValueError) as exc:  # nlopt failure: keep the start's value, say so
-            u, val, status = u0, scores[k], -1
+            u, val, status = u0, float(scores[k]), -1
             message = f"nlopt failed from start {k}: {exc}"
         if val < best_val:
             best_u, best_val = np.asarray(u), float(val)

@@ -1,0 +1,164 @@
+"""``gonio capture`` and ``gonio sim serve``: sessions on the simulated or the real instrument.
+
+A simulated session runs the production drivers against :class:`gonio.sim.Instrument` through
+``sim://NAME/PORT`` URLs (same bytes as hardware). Its ``session.toml`` records, under
+``[meta]``, what rebuilds the simulator (seed, sample, reference), so ``--resume`` can bring
+the same virtual instrument back after the capture process was killed: like a real bench
+after a power cut, it comes back un-homed and the resume re-homes it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from .errors import GonioError
+
+__all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument"]
+
+
+def _settings(path):
+    from ._settings import load_settings
+
+    return load_settings(path)
+
+
+def _plan(spec):
+    from .plans import load_plan
+
+    return load_plan(spec)
+
+
+def _reference_for(settings) -> dict:
+    return {"model": "diffuse", "params": {"reflectance": float(settings["reference"]["reflectance"])}}
+
+
+def sim_instrument(settings, sample, seed, clock="instant", faults=None, name=None):
+    """A registered simulated instrument matching the bench's settings."""
+    import gonio.sim
+
+    try:
+        inst = gonio.sim.Instrument(settings, sample=sample, reference=_reference_for(settings), seed=seed,
+                                    clock=clock, faults=faults)
+    except (ValueError, KeyError, OSError) as exc:
+        raise GonioError(f"cannot build the simulated instrument: {exc}") from None
+    return inst.register(name or f"gonio-{os.getpid()}-{id(inst):x}")
+
+
+def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, progress=True, demo=False,
+                faults=None):
+    """Capture ``plan`` of a virtual ``sample`` on the simulated instrument (instant clock)."""
+    from .capture import capture
+
+    settings = settings if isinstance(settings, dict) else _settings(settings)
+    plan = plan if hasattr(plan, "angles") else _plan(plan)
+    inst = sim_instrument(settings, sample, seed, faults=faults)
+    try:
+        return capture(session, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
+                       seed=seed, progress=progress, sample_truth=sample, sleep=inst.clock.advance,
+                       meta={"sim": True, "demo": bool(demo), "sim_name": inst.name,
+                             "sample": json.dumps(sample, sort_keys=True)})
+    finally:
+        inst.unregister()
+
+
+def _print_summary(summary):
+    lines = [f"session {summary.session_dir}: {summary.n_done}/{summary.n_points} points "
+             f"({summary.n_new} new) in {summary.wall_s:.1f} s wall"]
+    if summary.move_naive_s:
+        lines.append(f"stage moves: plan order {summary.move_naive_s:.0f} s, ordered {summary.move_ordered_s:.0f} s, "
+                     f"lower bound {summary.move_bound_s:.0f} s")
+    if summary.reciprocity:
+        lines.append(f"reciprocity: {len(summary.reciprocity)} pairs, median relative difference "
+                     f"{summary.reciprocity_error:.2e}")
+    if summary.stopped:
+        lines.append(f"stopped early: {summary.stopped}; finish with `gonio capture --resume {summary.session_dir}`")
+    print("\n".join(lines))
+
+
+def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress):
+    from ._samples import load_sample
+    from .plans import dry_run as plan_dry_run
+
+    settings_d = _settings(settings)
+    plan_obj = _plan(plan)
+    if dry_run:
+        print(plan_dry_run(plan_obj, settings_d).summary())
+        return
+    if sim:
+        if port or meter_port:
+            raise GonioError("--sim and --port/--meter-port exclude each other: pick the simulated or the real instrument")
+        summary = capture_sim(out, sample=load_sample(sample), plan=plan_obj, seed=seed, settings=settings_d,
+                              progress=progress)
+    else:
+        from .capture import capture
+
+        if sample:
+            raise GonioError("--sample names the virtual sample of --sim; on hardware, mount the sample")
+        if not meter_port or not camera:
+            raise GonioError("a hardware capture needs --port, --meter-port and --camera")
+        summary = capture(out, plan_obj, settings_d, port, meter_port, _camera(camera), seed=seed, progress=progress)
+    _print_summary(summary)
+
+
+def _camera(spec: str):
+    from ._camera import Gphoto2Camera, WatchedFolderCamera
+
+    if spec == "gphoto2":
+        return Gphoto2Camera()
+    if spec.startswith("folder:"):
+        return WatchedFolderCamera(spec[len("folder:"):])
+    return spec  # a serial port or URL of a simulated camera
+
+
+def resume_cli(session: Path, *, port, meter_port, camera, progress):
+    from ._journal import read_session
+    from .capture import resume
+
+    if not (session / "session.toml").exists():
+        raise GonioError(f"{session} holds no session (no session.toml); give the folder a capture wrote")
+    doc = read_session(session)
+    meta = doc.get("meta", {})
+    if meta.get("sim") and not port:
+        settings = doc["settings"]
+        sample = json.loads(meta["sample"])
+        inst = sim_instrument(settings, sample, int(doc["session"]["seed"]), name=meta.get("sim_name"))
+        try:
+            summary = resume(session, inst.url("zaber"), inst.url("meter"), inst.url("camera"), progress=progress,
+                             sleep=inst.clock.advance)
+        finally:
+            inst.unregister()
+    else:
+        summary = resume(session, port, meter_port, _camera(camera) if camera else None, progress=progress)
+    _print_summary(summary)
+
+
+def serve_cli(*, sample, seed, settings, clock, faults):
+    import gonio.sim
+
+    from ._samples import load_sample
+
+    settings_d = _settings(settings)
+    schedule = None
+    if faults:
+        path = Path(faults)
+        if not path.exists():
+            raise GonioError(f"fault schedule {path} does not exist")
+        try:
+            schedule = gonio.sim.FaultSchedule.from_toml(path)
+        except (ValueError, KeyError) as exc:
+            raise GonioError(f"fault schedule {path}: {exc}") from None
+    clock_spec = {"instant": "instant", "realtime": "real", "real": "real"}.get(clock)
+    if clock_spec is None:
+        try:
+            clock_spec = f"scaled:{float(clock)}"
+        except ValueError:
+            raise GonioError(f"--clock {clock!r}: use instant, realtime or a time scale factor such as 10") from None
+    print("gonio sim serve: Ctrl-C stops; connect with `gonio capture --port ZABER --meter-port METER --camera CAMERA`",
+          flush=True)
+    try:
+        gonio.sim.serve(settings_d, sample=load_sample(sample), reference=_reference_for(settings_d), seed=seed,
+                        clock=clock_spec, faults=schedule, block=True)
+    except KeyboardInterrupt:
+        pass
