@@ -1,1 +1,52 @@
-"""gonio.models."""
+"""gonio.models: physically based BRDF models that agree with Mitsuba 3.
+
+Conventions (everywhere in this package)
+----------------------------------------
+* Local shading frame, +z along the surface normal.
+* ``wi`` points from the surface to the **light**, ``wo`` from the surface to the
+  **detector**; both are unit vectors, arrays of shape (N, 3) (float32 is promoted to
+  float64). ``wm`` is a microfacet normal (the half vector for reflection).
+* ``eval`` returns f_r in sr^-1 per colour channel, shape (N, 3), *without* the cosine
+  factor; 0 where either direction is at or below the horizon.
+* Mitsuba's ``bsdf.eval(ctx, si, wo_mi)`` has ``si.wi`` = our ``wo`` (camera) and
+  ``wo_mi`` = our ``wi`` (light), and returns f_r * cos(theta of our wi).
+* Dielectric models use an exterior index of exactly 1: ``int_ior`` is the relative
+  index eta, and ``to_mitsuba`` passes ``ext_ior = 1.0``.
+
+Public API
+----------
+``get(name, **options)``, ``names()``, ``Parameter``, ``Model`` (base class),
+``mitsuba_variant()``; the pieces ``fresnel_dielectric``, ``fresnel_conductor``,
+``fresnel_schlick``, ``MicrofacetDistribution``, ``lambert``, ``oren_nayar``.
+
+Example
+-------
+>>> import gonio.models as gm
+>>> m = gm.get("roughplastic", distribution="ggx")
+>>> f = m.eval(wi, wo, {"diffuse_reflectance": [0.5, 0.4, 0.3], "alpha": 0.2})
+"""
+
+from __future__ import annotations
+
+from . import _cooktorrance, _lambertian, _orennayar, _roughconductor, _roughplastic  # noqa: F401  (register models)
+from ._base import CHANNELS, Model, Parameter, get, names
+from ._diffuse import lambert, oren_nayar
+from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
+from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
+from ._mitsuba import mitsuba_variant
+
+__all__ = [
+    "get",
+    "names",
+    "Parameter",
+    "Model",
+    "CHANNELS",
+    "mitsuba_variant",
+    "fresnel_dielectric",
+    "fresnel_conductor",
+    "fresnel_schlick",
+    "MicrofacetDistribution",
+    "DISTRIBUTIONS",
+    "lambert",
+    "oren_nayar",
+]

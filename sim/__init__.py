@@ -1,1 +1,57 @@
-"""gonio.sim."""
+"""gonio.sim: a simulated gonioreflectometer that speaks the real instrument's bytes.
+
+Physics (``_stages``, ``_lamp``, ``_sensor``, ``_scene``/``_sample``, the meter in
+``_scpi``) is kept apart from the protocol servers (``_zaber``, ``_scpi``, ``_camera_port``)
+and the transports (``protocol_sim`` for ``sim://`` URLs, ``_pty`` for pseudo-terminals)::
+
+    import serial, gonio.sim
+    inst = gonio.sim.Instrument(seed=1).register("bench")
+    zaber = serial.serial_for_url("sim://bench/zaber", timeout=1)
+    zaber.write(b"/1 0 home\r\n"); zaber.readline()    # b"@01 0 OK BUSY WR 0\r\n"
+
+Importing this package registers the ``sim://`` scheme with pyserial
+(``serial.protocol_handler_packages``). ``serve`` exposes the same ports on pseudo-terminals
+for another process.
+
+What a driver must know
+-----------------------
+* Axes power on un-homed (WR, WH) at a seeded position within 20 deg of home; every
+  ``move`` is rejected (``RJ IDLE WR BADDATA``) until ``home``.
+* ``maxspeed`` is in microsteps/s (default 40000 = 20 deg/s), ``accel`` in microsteps/s^2
+  (default 80000); ``limit.cycle.dist`` 720000; deg = pos * 360 / cycle_dist.
+* Instant clock (default): each command line costs 1 ms of simulated time; a ``BUSY`` reply
+  to a poll, ``get`` or ``warnings`` moves the clock to the end of the motion, so the next
+  poll reads ``IDLE``; an exposure advances the clock by its duration; a read that waits for
+  missing bytes advances it by the port timeout. Nothing sleeps. ``SimClock("scaled",
+  scale=s)`` runs in (scaled) wall time.
+* Replies carry ``:CC`` only after ``set comm.checksum 1`` (and in the ``bad_checksum``
+  fault); a command with a wrong ``:CC`` gets ``RJ ... BADDATA``.
+* Camera: ``SENSOR?`` -> ``64 48 14 512 16383 RGGB``; gain 2 e-/DN, read noise 3 e-, dark
+  current 20 e-/s, DSNU 1.5 e-, PRNU 1 %; a white Lambertian at normal incidence fills half
+  the well (15871 e-) in 10 ms at full flux.
+* Power meter: ``MEAS:POW?`` = lamp power * 0.1 * 550 nm / wavelength setting + noise
+  (5e-4 relative, 2e-9 W absolute, / sqrt(average count)); full flux about 1e-3 W.
+"""
+
+import serial as _serial
+
+from ._clock import SimClock
+from ._faults import FaultSchedule
+from ._instrument import (DEFAULT_REFERENCE, DEFAULT_SAMPLE, DEFAULT_SETTINGS, Instrument,
+                          lookup)
+from ._kinematics import forward
+from ._lamp import Lamp
+from ._pty import PtyServer, serve
+from ._sample import SampleTruth, mitsuba_variant
+from ._sensor import SensorModel
+from ._stages import RotaryAxis, plan_trapezoid
+
+if "gonio.sim" not in _serial.protocol_handler_packages:
+    _serial.protocol_handler_packages.append("gonio.sim")
+
+
+__all__ = [
+    "DEFAULT_REFERENCE", "DEFAULT_SAMPLE", "DEFAULT_SETTINGS", "FaultSchedule", "Instrument",
+    "Lamp", "PtyServer", "RotaryAxis", "SampleTruth", "SensorModel", "SimClock", "forward", "lookup",
+    "mitsuba_variant", "plan_trapezoid", "serve",
+]

@@ -1,0 +1,355 @@
+"""Cameras behind one interface, and RAW decoding to linear values.
+
+A camera has ``expose(seconds, path) -> sha256`` (writes one RAW file at ``path``, returns the
+SHA-256 of the bytes it wrote, verified against the file) and ``close()``. Three of them:
+
+* `SimCamera`: the tethered-camera protocol of docs/interfaces.md section 4 over a serial URL
+  (``sim://NAME/camera`` or a pty): ``*IDN?``, ``SENSOR?``, ``EXPOSE <s> <path>`` ->
+  ``OK <sha256>``.
+* `WatchedFolderCamera`: the vendor's tethering software drops RAW files in a folder; the
+  camera waits for a new file whose size has settled and copies it to ``path``.
+* `Gphoto2Camera`: a tethered camera through the ``gphoto2`` command-line tool
+  (``--set-config shutterspeed=...``, ``--capture-image-and-download --filename ...``).
+
+Every camera first writes to a temporary name beside ``path``, checks the checksum, then
+fsyncs and renames: a file with the final name is always complete and verified.
+
+`decode_raw` opens any RAW rawpy/LibRaw reads (DNG, NEF, CR2, ...) and returns linear,
+black-subtracted per-channel planes: ``raw_image_visible`` minus the per-channel black
+level, never the gamma-encoded ``postprocess`` output.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import serial
+
+from ._files import commit_file, sha256_file, tmp_name
+from .errors import CommunicationError, DeviceError, GonioError
+
+__all__ = ["SensorInfo", "RawFrame", "decode_raw", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
+           "RAW_SUFFIXES"]
+
+RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
+
+
+@dataclass(frozen=True)
+class SensorInfo:
+    """Sensor geometry and levels: pixels, ADC bits, black and white levels (DN), CFA pattern."""
+
+    width: int
+    height: int
+    bits: int
+    black: int
+    white: int
+    cfa: str = "RGGB"
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """A decoded RAW frame on the 2x2 CFA super-pixel grid.
+
+    Attributes
+    ----------
+    signal : ndarray (3, h, w) float64
+        Black-subtracted DN per channel R, G, B; G is the mean of the two greens.
+    peak : ndarray (3, h, w) float64
+        Black-subtracted DN of the brightest raw pixel behind each value (for saturation).
+    n_raw : ndarray (3,)
+        Raw pixels averaged per value (1, 2, 1): variances divide by it.
+    black : float
+        Black level, DN.
+    white : float
+        White (clipping) level, DN.
+    """
+
+    signal: np.ndarray
+    peak: np.ndarray
+    n_raw: np.ndarray
+    black: float
+    white: float
+
+    @property
+    def full_scale(self) -> float:
+        """White minus black, DN: the largest black-subtracted value."""
+        return self.white - self.black
+
+
+def decode_raw(path: str | os.PathLike) -> RawFrame:
+    """Decode a RAW file to linear black-subtracted R, G, B planes (see `RawFrame`).
+
+    Raises
+    ------
+    GonioError
+        The file is missing or not a RAW file rawpy can read.
+    """
+    import rawpy
+
+    path = Path(path)
+    if not path.is_file():
+        raise GonioError(f"RAW file {path} is missing; check the session's raw/ folder")
+    try:
+        with rawpy.imread(str(path)) as raw:
+            img = raw.raw_image_visible.astype(np.float64)
+            colors = raw.raw_colors_visible.copy()
+            blacks = np.asarray(raw.black_level_per_channel, float)
+            white = float(raw.white_level)
+            desc = raw.color_desc.decode("ascii", "replace")
+    except (rawpy.LibRawError, OSError, ValueError) as exc:
+        raise GonioError(f"cannot decode RAW file {path} ({type(exc).__name__}); "
+                         "it is corrupt or not a RAW format") from None
+    h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
+    img, colors = img[:h, :w], colors[:h, :w]
+    sub = img - blacks[colors]
+    # map LibRaw colour indices to R, G, B through color_desc (e.g. "RGBG")
+    chan = np.array([{"R": 0, "G": 1, "B": 2}.get(c, 1) for c in desc[:4].ljust(4, "G")])[colors]
+    tiles = chan[:2, :2]
+    signal = np.zeros((3, h // 2, w // 2))
+    peak = np.full((3, h // 2, w // 2), -np.inf)
+    count = np.zeros(3)
+    for dr in range(2):
+        for dc in range(2):
+            k = int(tiles[dr, dc])
+            plane = sub[dr::2, dc::2]
+            signal[k] += plane
+            peak[k] = np.maximum(peak[k], plane)
+            count[k] += 1
+    if np.any(count == 0):
+        raise GonioError(f"RAW file {path} has CFA {desc!r} without R, G and B in a 2x2 tile; "
+                         "only Bayer sensors are supported")
+    signal /= count[:, None, None]
+    black = float(np.mean(blacks))
+    return RawFrame(signal, peak, count, black, white)
+
+
+class SimCamera:
+    """The tethered camera protocol (interfaces.md section 4) over a serial URL.
+
+    Parameters
+    ----------
+    port_url : str
+        ``sim://NAME/camera`` or a pty path.
+    timeout : float
+        Seconds to wait for a reply, on top of the exposure time.
+    retries : int
+        Exposures retried after a missing, truncated or mismatching file.
+    """
+
+    def __init__(self, port_url: str, baudrate: int = 115200, timeout: float = 30.0, *, retries: int = 2):
+        self.port_url = port_url
+        self.baudrate = baudrate
+        self.timeout = timeout
+        self.retries = retries
+        self.retries_used = 0                 # exposures taken again after a bad file
+        try:
+            self._port = serial.serial_for_url(port_url, baudrate=baudrate, timeout=timeout)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise CommunicationError(f"cannot open the camera port {port_url!r} ({exc}); "
+                                     "check the connection and the camera URL") from None
+        for _ in range(3):                       # resync: the first reply may be stale
+            self.idn = self._query("*IDN?")
+            if self.idn.count(",") >= 3:
+                break
+        tok = self._query("SENSOR?").split()
+        try:
+            self.sensor = SensorInfo(int(tok[0]), int(tok[1]), int(tok[2]), int(tok[3]), int(tok[4]),
+                                     tok[5] if len(tok) > 5 else "RGGB")
+        except (IndexError, ValueError):
+            raise CommunicationError(f"camera on {port_url} answered SENSOR? with {' '.join(tok)!r}; "
+                                     "check that the URL names a camera port") from None
+
+    def _query(self, text: str, timeout: float | None = None) -> str:
+        if timeout is not None:
+            self._port.timeout = timeout
+        try:
+            if self._port.in_waiting:            # a late reply, or one a killed process left
+                self._port.reset_input_buffer()
+            self._port.write((text + "\n").encode("utf-8"))
+            line = self._port.readline()
+        except (serial.SerialException, OSError) as exc:
+            raise CommunicationError(f"camera on {self.port_url} failed ({exc}); check the connection, "
+                                     "then resume the session") from None
+        finally:
+            if timeout is not None:
+                self._port.timeout = self.timeout
+        if not line.endswith(b"\n"):
+            raise CommunicationError(f"camera on {self.port_url} did not answer {text.split()[0]!r}; "
+                                     "check it is on, then resume the session")
+        return line.decode("utf-8", "replace").strip()
+
+    def expose(self, seconds: float, path: str | os.PathLike) -> str:
+        """Expose for ``seconds`` and store the RAW file at ``path``; return its SHA-256.
+
+        Raises
+        ------
+        DeviceError
+            ``ERR`` from the camera, or a bad file after every retry.
+        """
+        path = Path(path).resolve()
+        tmp = tmp_name(path)
+        why = ""
+        for _ in range(self.retries + 1):
+            reply = self._query(f"EXPOSE {seconds:.9g} {tmp}", timeout=self.timeout + seconds)
+            if reply.startswith("ERR"):
+                raise DeviceError(f"camera refused a {seconds:g} s exposure to {path.name}: {reply[4:]}; "
+                                  "check the exposure range and the session folder")
+            if not reply.startswith("OK "):
+                why = f"unexpected reply {reply!r}"
+                continue
+            digest = reply.split()[1].lower()
+            if not tmp.exists():
+                why = "the camera reported a file it did not write"
+                self.retries_used += 1
+                continue
+            if sha256_file(tmp) != digest:
+                why = "checksum mismatch"
+                tmp.unlink()
+                self.retries_used += 1
+                continue
+            commit_file(tmp, path)
+            return digest
+        if tmp.exists():
+            tmp.unlink()
+        raise DeviceError(f"camera could not deliver {path.name} after {self.retries + 1} tries ({why}); "
+                          "check the camera and disk, then resume the session")
+
+    def close(self) -> None:
+        """Close the port."""
+        self._port.close()
+
+
+class WatchedFolderCamera:
+    """A camera whose vendor software drops RAW files into a folder.
+
+    Parameters
+    ----------
+    folder : path
+        The folder the tethering software writes to.
+    trigger : callable, optional
+        ``trigger(seconds)`` asks for an exposure (sets the shutter and fires); None when an
+        operator or the vendor software fires by itself.
+    timeout_s : float
+        How long to wait for the new file.
+    poll_s : float
+        Seconds between looks at the folder; ``sleep`` is called with it.
+    """
+
+    def __init__(self, folder: str | os.PathLike, trigger: Callable[[float], None] | None = None, *,
+                 timeout_s: float = 60.0, poll_s: float = 0.2, sleep: Callable[[float], None] = time.sleep):
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise GonioError(f"watched folder {self.folder} does not exist; create it or fix the path")
+        self.trigger = trigger
+        self.timeout_s = timeout_s
+        self.poll_s = poll_s
+        self.sleep = sleep
+        self.sensor = None
+        self._seen = self._raw_files()
+
+    def _raw_files(self) -> dict[str, int]:
+        return {p.name: p.stat().st_size for p in self.folder.iterdir()
+                if p.is_file() and p.suffix.lower() in RAW_SUFFIXES}
+
+    def expose(self, seconds: float, path: str | os.PathLike) -> str:
+        """Fire (if a trigger is given), wait for the new RAW file, copy it to ``path``."""
+        if self.trigger is not None:
+            self.trigger(seconds)
+        n = max(1, math.ceil(self.timeout_s / self.poll_s))
+        sizes: dict[str, int] = {}
+        for _ in range(n):
+            now = self._raw_files()
+            new = {k: v for k, v in now.items() if k not in self._seen}
+            settled = [k for k, v in new.items() if v > 0 and sizes.get(k) == v]
+            if settled:
+                name = sorted(settled)[0]
+                self._seen[name] = new[name]
+                src = self.folder / name
+                path = Path(path)
+                tmp = tmp_name(path)
+                shutil.copyfile(src, tmp)
+                digest = sha256_file(tmp)
+                if digest != sha256_file(src):
+                    tmp.unlink()
+                    raise DeviceError(f"{src} changed while it was copied; check the tethering software")
+                commit_file(tmp, path)
+                return digest
+            sizes = new
+            self.sleep(self.poll_s)
+        raise DeviceError(f"no new RAW file appeared in {self.folder} within {self.timeout_s:g} s; "
+                          "check the tethering software, then resume the session")
+
+    def close(self) -> None:
+        pass
+
+
+def shutter_value(seconds: float) -> str:
+    """gphoto2's shutterspeed notation: ``1/250`` below 1 s (the nearest 1/n), ``2.5`` above."""
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise GonioError(f"exposure {seconds!r} s is invalid; use a positive time")
+    if seconds >= 1.0:
+        return f"{seconds:g}"
+    return f"1/{max(1, round(1.0 / seconds))}"
+
+
+class Gphoto2Camera:
+    """A tethered camera driven through the ``gphoto2`` command-line tool.
+
+    Parameters
+    ----------
+    gphoto2 : str
+        The executable.
+    port : str, optional
+        gphoto2's ``--port`` (e.g. ``usb:001,004``), when more than one camera is attached.
+    run : callable
+        ``subprocess.run``-like; replaced in tests.
+    timeout_s : float
+        Per gphoto2 call, on top of the exposure time.
+    """
+
+    def __init__(self, gphoto2: str = "gphoto2", port: str | None = None, *,
+                 run: Callable = subprocess.run, timeout_s: float = 60.0):
+        self.gphoto2 = gphoto2
+        self.port = port
+        self.run = run
+        self.timeout_s = timeout_s
+        self.sensor = None
+        if run is subprocess.run and shutil.which(gphoto2) is None:
+            raise GonioError(f"{gphoto2!r} is not installed; install gphoto2 (apt-get install gphoto2) "
+                             "or use another camera")
+
+    def _call(self, args: list[str], timeout: float) -> None:
+        cmd = [self.gphoto2] + (["--port", self.port] if self.port else []) + args
+        try:
+            res = self.run(cmd, capture_output=True, text=True, timeout=timeout)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            raise DeviceError(f"gphoto2 failed ({type(exc).__name__}); check the camera's USB link") from None
+        if res.returncode != 0:
+            msg = (res.stderr or res.stdout or "").strip().splitlines()
+            raise DeviceError(f"gphoto2 {' '.join(args[:2])} failed: {msg[-1] if msg else res.returncode}; "
+                              "check the camera's USB link and mode")
+
+    def expose(self, seconds: float, path: str | os.PathLike) -> str:
+        """Set the shutter, capture, download to a temporary name, rename; return the SHA-256."""
+        path = Path(path)
+        tmp = tmp_name(path)
+        self._call(["--set-config", f"shutterspeed={shutter_value(seconds)}"], self.timeout_s)
+        self._call(["--capture-image-and-download", "--filename", str(tmp), "--force-overwrite"],
+                   self.timeout_s + seconds)
+        if not tmp.exists():
+            raise DeviceError(f"gphoto2 reported success but wrote no file for {path.name}; "
+                              "check the camera's capture target setting")
+        digest = sha256_file(tmp)
+        commit_file(tmp, path)
+        return digest
+
+    def close(self) -> None:
+        pass

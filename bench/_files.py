@@ -1,0 +1,76 @@
+"""Crash-safe file helpers: write to a temporary name, fsync, rename, fsync the folder."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+__all__ = ["TMP_PREFIX", "sha256_file", "atomic_write_bytes", "atomic_write_text", "fsync_dir",
+           "commit_file", "remove_orphans"]
+
+TMP_PREFIX = ".tmp-"     # temporary files start with this; a resume removes any left behind
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """SHA-256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def fsync_dir(folder: str | os.PathLike) -> None:
+    """fsync a folder, so that a rename inside it survives a power cut."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def tmp_name(path: str | os.PathLike) -> Path:
+    """The temporary name beside ``path`` (same folder, hidden, ``.tmp-`` prefix)."""
+    p = Path(path)
+    return p.with_name(TMP_PREFIX + p.name)
+
+
+def commit_file(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """fsync ``tmp``, rename it to ``path`` and fsync the folder."""
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    fsync_dir(Path(path).parent)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:
+    """Write ``data`` to ``path`` through a temporary name; return its SHA-256 (hex)."""
+    tmp = tmp_name(path)
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fsync_dir(Path(path).parent)
+    return hashlib.sha256(data).hexdigest()
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` through a temporary name."""
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def remove_orphans(folder: str | os.PathLike) -> list[Path]:
+    """Delete temporary files (``.tmp-*`` and ``*.part``) left in ``folder`` by a crash."""
+    out = []
+    folder = Path(folder)
+    if folder.is_dir():
+        for p in folder.iterdir():
+            if p.is_file() and (p.name.startswith(TMP_PREFIX) or p.name.endswith(".part")):
+                p.unlink()
+                out.append(p)
+    return out

@@ -1,0 +1,220 @@
+"""The session folder and its crash-safe journal.
+
+::
+
+    session/
+      session.toml      plan, instrument settings, ports, versions, seed, sample truth
+                        (written through a temporary name BEFORE the first move)
+      journal.sqlite    WAL, synchronous=FULL: one committed row per finished point and per
+                        dark frame, with the RAW files' SHA-256
+      raw/              RAW files (temporary name, fsync, rename)
+      dataset.nc        after export
+
+A point's row is written in one transaction after everything about it succeeded; a crash at
+any moment leaves either the whole row or none of it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+import sqlite3
+import time
+import tomllib
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from ._files import atomic_write_text, remove_orphans, sha256_file
+from .errors import SessionError
+
+__all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "Journal", "write_session", "read_session",
+           "dumps_toml", "versions"]
+
+SESSION_FILE = "session.toml"
+JOURNAL_FILE = "journal.sqlite"
+RAW_DIR = "raw"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS darks (
+    seconds REAL PRIMARY KEY,
+    file TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    finished REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS points (
+    idx INTEGER PRIMARY KEY,
+    theta_i REAL, phi_i REAL, theta_o REAL, phi_o REAL,
+    yaw REAL, tilt REAL, azimuth REAL, lamp REAL,
+    brdf TEXT NOT NULL,          -- JSON [R, G, B], sr^-1
+    brdf_std TEXT NOT NULL,      -- JSON [R, G, B], sr^-1, 1-sigma
+    saturated INTEGER NOT NULL,
+    detail TEXT NOT NULL,        -- JSON: exposures, files, checksums, monitor, region statistics
+    finished REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    time REAL NOT NULL,
+    kind TEXT NOT NULL,
+    text TEXT NOT NULL
+);
+"""
+
+
+def versions() -> dict[str, str]:
+    """Versions of gonio, Python and the packages a dataset depends on."""
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for pkg in ("gonio", "numpy", "scipy", "pyserial", "rawpy", "xarray", "h5netcdf"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "unknown"
+    return out
+
+
+class Journal:
+    """The SQLite journal of a session (WAL mode, ``synchronous=FULL``)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        try:
+            self.db = sqlite3.connect(str(self.path), isolation_level=None, timeout=30.0)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.executescript(_SCHEMA)
+        except sqlite3.DatabaseError as exc:
+            raise SessionError(f"journal {self.path} is unreadable ({exc}); the session folder is damaged") from None
+
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> "Journal":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def record_dark(self, seconds: float, file: str, sha256: str) -> None:
+        """Commit a dark frame (exposure time s, file relative to the session, checksum)."""
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("INSERT OR REPLACE INTO darks VALUES (?, ?, ?, ?)", (seconds, file, sha256, time.time()))
+
+    def darks(self) -> dict[float, tuple[str, str]]:
+        """``{seconds: (file, sha256)}`` of the committed dark frames."""
+        return {r[0]: (r[1], r[2]) for r in self.db.execute("SELECT seconds, file, sha256 FROM darks")}
+
+    def record_point(self, idx: int, angles: Iterable[float], stage: Iterable[float], brdf, brdf_std,
+                     saturated: bool, detail: Mapping[str, Any]) -> None:
+        """Commit one finished point in a single transaction."""
+        row = (int(idx), *map(float, angles), *map(float, stage),
+               json.dumps([float(v) for v in brdf]), json.dumps([float(v) for v in brdf_std]),
+               int(bool(saturated)), json.dumps(detail, sort_keys=True), time.time())
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("INSERT INTO points VALUES (" + ",".join("?" * len(row)) + ")", row)
+
+    def done(self) -> set[int]:
+        """Indices of the committed points."""
+        return {r[0] for r in self.db.execute("SELECT idx FROM points")}
+
+    def points(self) -> list[dict[str, Any]]:
+        """Every committed point as a dict (JSON columns decoded), by plan index."""
+        cur = self.db.execute("SELECT * FROM points ORDER BY idx")
+        names = [d[0] for d in cur.description]
+        out = []
+        for r in cur:
+            d = dict(zip(names, r))
+            for k in ("brdf", "brdf_std", "detail"):
+                d[k] = json.loads(d[k])
+            out.append(d)
+        return out
+
+    def event(self, kind: str, text: str) -> None:
+        """Log an event (pause, resume, warning, fault) with the wall time."""
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("INSERT INTO events (time, kind, text) VALUES (?, ?, ?)", (time.time(), kind, text))
+
+    def events(self) -> list[tuple[float, str, str]]:
+        return list(self.db.execute("SELECT time, kind, text FROM events ORDER BY id"))
+
+
+# -- session.toml ---------------------------------------------------------------------------
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if hasattr(v, "tolist"):
+        return _toml_value(v.tolist())
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dumps_toml(doc: Mapping[str, Any], _prefix: str = "") -> str:
+    """Serialise nested dicts of scalars and lists to TOML (enough for session.toml)."""
+    lines, tables = [], []
+    for k, v in doc.items():
+        if isinstance(v, Mapping):
+            tables.append((k, v))
+        else:
+            lines.append(f"{json.dumps(str(k)) if not str(k).replace('_', '').replace('-', '').isalnum() else k} = {_toml_value(v)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v in tables:
+        name = f"{_prefix}{k}"
+        out += f"\n[{name}]\n" + dumps_toml(v, name + ".")
+    return out
+
+
+def write_session(folder: str | Path, doc: Mapping[str, Any]) -> Path:
+    """Create the session folder (and ``raw/``) and write ``session.toml`` through a temporary name."""
+    folder = Path(folder)
+    try:
+        (folder / RAW_DIR).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(f"cannot create session folder {folder} ({exc.strerror}); choose another --out") from None
+    text = dumps_toml(doc)
+    tomllib.loads(text)                     # never write what cannot be read back
+    atomic_write_text(folder / SESSION_FILE, text)
+    return folder / SESSION_FILE
+
+
+def read_session(folder: str | Path) -> dict[str, Any]:
+    """Read ``session.toml``; `SessionError` (one line) if the folder is not a session."""
+    folder = Path(folder)
+    path = folder / SESSION_FILE
+    if not path.is_file():
+        raise SessionError(f"{folder} is not a gonio session (no {SESSION_FILE}); give the folder a capture wrote")
+    try:
+        return tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SessionError(f"{path} is corrupt ({exc}); the session cannot be resumed") from None
+
+
+def verify_files(folder: str | Path, journal: Journal) -> list[str]:
+    """RAW files the journal names whose checksum does not match (missing or corrupt)."""
+    folder = Path(folder)
+    bad = []
+    for _, (file, digest) in journal.darks().items():
+        p = folder / file
+        if not p.is_file() or sha256_file(p) != digest:
+            bad.append(file)
+    for row in journal.points():
+        for e in row["detail"].get("exposures", []):
+            p = folder / e["file"]
+            if not p.is_file() or sha256_file(p) != e["sha256"]:
+                bad.append(e["file"])
+    return bad

@@ -1,0 +1,161 @@
+"""SCPI power meter driver (the source monitor on its own port).
+
+Queries end with ``?`` and get one line back; set commands get nothing back, so after every
+set command the error queue (``SYST:ERR?``) is read and a non-zero code raises. Lines end
+with ``\\n``. Only ``serial.serial_for_url`` opens the port.
+"""
+
+from __future__ import annotations
+
+import math
+
+import serial
+
+from .errors import CommunicationError, DeviceError, GonioError
+
+__all__ = ["PowerMeter"]
+
+
+class PowerMeter:
+    """A SCPI optical power meter (Thorlabs PM100-like).
+
+    Parameters
+    ----------
+    port_url : str
+        ``sim://NAME/meter``, a pty path or ``/dev/ttyUSB1``.
+    baudrate : int
+    timeout : float
+        Seconds to wait for a reply line.
+    retries : int
+        Re-sends of a query that got no or a garbled answer, before a reconnect and one more
+        round; then `CommunicationError`.
+    """
+
+    def __init__(self, port_url: str, baudrate: int = 115200, timeout: float = 1.0, *, retries: int = 2):
+        self.port_url = port_url
+        self.baudrate = baudrate
+        self.timeout = timeout
+        self.retries = retries
+        self.reconnects = 0
+        self.retries_used = 0
+        self._port = None
+        self.open()
+
+    def open(self) -> None:
+        """Open the port."""
+        if self._port is not None:
+            return
+        try:
+            self._port = serial.serial_for_url(self.port_url, baudrate=self.baudrate, timeout=self.timeout)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise CommunicationError(f"cannot open the power-meter port {self.port_url!r} ({exc}); "
+                                     "check the cable and the --meter-port value") from None
+
+    def close(self) -> None:
+        """Close the port."""
+        if self._port is not None:
+            try:
+                self._port.close()
+            finally:
+                self._port = None
+
+    def __enter__(self) -> "PowerMeter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _drain(self) -> None:
+        """Drop unread input: a late answer to an earlier query, or one a killed process left."""
+        try:
+            if self._port.in_waiting:
+                self._port.reset_input_buffer()
+        except (serial.SerialException, OSError, AttributeError, NotImplementedError):
+            pass
+
+    def _write(self, text: str) -> None:
+        self._drain()
+        try:
+            self._port.write((text + "\n").encode("ascii"))
+        except (serial.SerialException, OSError) as exc:
+            raise CommunicationError(f"power meter on {self.port_url} cannot be written ({exc}); "
+                                     "check the cable, then resume the session") from None
+
+    def _read(self) -> str | None:
+        try:
+            line = self._port.readline()
+        except (serial.SerialException, OSError):
+            return None
+        if not line.endswith(b"\n"):
+            return None
+        try:
+            return line.decode("ascii").strip()
+        except UnicodeDecodeError:
+            return None
+
+    def query(self, text: str, parse=str):
+        """Send a query and return its parsed one-line answer (retries, then a reconnect)."""
+        last = "no answer"
+        for round_ in range(2):
+            if round_:
+                self.close()
+                self.reconnects += 1
+                self.open()
+            for _ in range(self.retries + 1):
+                self._write(text)
+                line = self._read()
+                if line is None:
+                    last = "no answer"
+                    self.retries_used += 1
+                    continue
+                try:
+                    return parse(line)
+                except ValueError:
+                    last = f"garbled answer {line!r}"
+                    self.retries_used += 1
+        raise CommunicationError(f"power meter on {self.port_url} gave {last} to {text!r} after retries and "
+                                 "a reconnect; check it is on and connected, then resume the session")
+
+    def command(self, text: str) -> None:
+        """Send a set command, then read the error queue; raise `DeviceError` on an error."""
+        self._write(text)
+        code, msg = self.error()
+        if code != 0:
+            raise DeviceError(f"power meter rejected {text!r}: {code} {msg}; check the [meter] settings")
+
+    def error(self) -> tuple[int, str]:
+        """Pop one entry of the error queue: ``(code, message)``; ``(0, "No error")`` if empty."""
+        def parse(line: str) -> tuple[int, str]:
+            code, _, msg = line.partition(",")
+            return int(code), msg.strip().strip('"')
+        return self.query("SYST:ERR?", parse)
+
+    def identify(self) -> str:
+        """``*IDN?``: ``Vendor,Model,Serial,Firmware``."""
+        def parse(line: str) -> str:
+            if line.count(",") < 3:
+                raise ValueError(line)
+            return line
+        return self.query("*IDN?", parse)
+
+    def configure(self, wavelength_nm: float, averaging: int) -> None:
+        """Set the correction wavelength (nm) and the samples averaged per reading."""
+        if not (math.isfinite(wavelength_nm) and wavelength_nm > 0):
+            raise GonioError(f"meter wavelength {wavelength_nm!r} nm is invalid; fix [meter] wavelength_nm")
+        if int(averaging) < 1:
+            raise GonioError(f"meter averaging {averaging!r} is invalid; fix [meter] averaging")
+        self.command(f"SENS:CORR:WAV {wavelength_nm:g}")
+        self.command(f"SENS:AVER:COUN {int(averaging)}")
+
+    def wavelength(self) -> float:
+        """The correction wavelength (nm)."""
+        return self.query("SENS:CORR:WAV?", float)
+
+    def power(self) -> float:
+        """``MEAS:POW?``: optical power in W."""
+        def parse(line: str) -> float:
+            value = float(line)
+            if not math.isfinite(value):
+                raise ValueError(line)
+            return value
+        return self.query("MEAS:POW?", parse)

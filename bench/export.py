@@ -1,0 +1,102 @@
+"""Export a session's journal to ``dataset.nc`` (docs/interfaces.md section 5).
+
+Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i``,
+``theta_o``, ``phi_o`` (degrees); variables ``brdf`` and ``brdf_std`` (sr^-1, 1-sigma),
+``saturated``, ``reciprocal_partner`` (dataset index, -1 if none), ``plan_index`` and the
+stage angles; attributes ``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``,
+``sample_truth`` (simulated sessions), ``scale_rel_std`` (the reference certificate's relative
+1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``), ``complete``.
+Written with xarray's h5netcdf engine to a temporary name, fsynced, then renamed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ._files import commit_file, tmp_name
+from ._journal import JOURNAL_FILE, Journal, read_session
+from .errors import SessionError
+
+__all__ = ["export", "to_dataset", "DATASET_FILE"]
+
+DATASET_FILE = "dataset.nc"
+
+
+def to_dataset(session_dir):
+    """The session's journalled points as an `xarray.Dataset` (see the module docstring)."""
+    import xarray as xr
+
+    folder = Path(session_dir)
+    doc = read_session(folder)
+    if not (folder / JOURNAL_FILE).is_file():
+        raise SessionError(f"{folder} has no journal: no point was measured; run the capture first")
+    with Journal(folder / JOURNAL_FILE) as j:
+        rows = j.points()
+    if not rows:
+        raise SessionError(f"{folder} has no measured point yet; resume the capture first")
+    n_plan = len(doc["plan"]["points"])
+    idx = np.array([r["idx"] for r in rows], int)
+    where = np.full(n_plan, -1, int)
+    where[idx] = np.arange(len(idx))
+    from .plans import find_partners
+    partner_plan = find_partners(np.asarray(doc["plan"]["points"], float))
+    partner = np.array([where[p] if p >= 0 else -1 for p in partner_plan[idx]], int)
+    deg = {"units": "degree"}
+    coords = {
+        "point": np.arange(len(rows)),
+        "channel": ["R", "G", "B"],
+        **{k: ("point", np.array([r[k] for r in rows], float), deg) for k in ("theta_i", "phi_i", "theta_o", "phi_o")},
+    }
+    sr = {"units": "sr^-1"}
+    data = {
+        "brdf": (("point", "channel"), np.array([r["brdf"] for r in rows], float),
+                 {**sr, "long_name": "bidirectional reflectance distribution function f_r (no cosine factor)"}),
+        "brdf_std": (("point", "channel"), np.array([r["brdf_std"] for r in rows], float),
+                     {**sr, "long_name": "1-sigma of brdf from shot and read noise (scale uncertainty: scale_rel_std)"}),
+        "saturated": ("point", np.array([bool(r["saturated"]) for r in rows]),
+                      {"long_name": "some region pixel was saturated in every exposure (value less reliable)"}),
+        "reciprocal_partner": ("point", partner, {"long_name": "index of the point with wi and wo swapped, -1 if none"}),
+        "plan_index": ("point", idx, {"long_name": "index of the point in the session's plan"}),
+        **{k: ("point", np.array([r[k] for r in rows], float), {**deg, "long_name": f"stage angle {k}"})
+           for k in ("yaw", "tilt", "azimuth", "lamp")},
+    }
+    sess = doc.get("session", {})
+    attrs = {
+        "gonio_version": str(sess.get("gonio", "unknown")),
+        "seed": int(sess.get("seed", -1)),
+        "plan": json.dumps(doc["plan"], sort_keys=True),
+        "settings": json.dumps(doc["settings"], sort_keys=True),
+        "versions": json.dumps(sess, sort_keys=True),
+        "scale_rel_std": float(doc["settings"]["reference"].get("rel_std", 0.0)),
+        "reference_reflectance": json.dumps(doc["settings"]["reference"]["reflectance"]),
+        "complete": int(len(rows) == n_plan),
+        "title": "gonio BRDF measurement",
+    }
+    if "sample_truth" in doc:
+        attrs["sample_truth"] = str(doc["sample_truth"]["json"])
+    return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def export(session_dir) -> Path:
+    """Write ``session_dir/dataset.nc`` from the journal; return its path.
+
+    Raises
+    ------
+    SessionError
+        Not a session folder, or no point measured yet.
+    """
+    folder = Path(session_dir)
+    ds = to_dataset(folder)
+    path = folder / DATASET_FILE
+    tmp = tmp_name(path)
+    try:
+        ds.to_netcdf(tmp, engine="h5netcdf")
+        commit_file(tmp, path)
+    finally:
+        if tmp.exists():
+            os.unlink(tmp)
+    return path

@@ -1,0 +1,248 @@
+"""Model base class, :class:`Parameter` declaration and the model registry."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._geometry import as_directions
+
+__all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS"]
+
+#: Number of colour channels (linear camera RGB).
+CHANNELS = 3
+
+#: Points per block in :meth:`Model.eval` (bounds temporaries: ~10 MB per array).
+_BLOCK = 1 << 16
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """Declaration of one fit parameter of a model.
+
+    Attributes
+    ----------
+    name : str
+        Key in the ``params`` dict.
+    default : float
+        Default value (per channel parameters: the same value in every channel).
+    lower, upper : float
+        Closed bounds; :meth:`Model.validate` rejects values outside them.
+    unit : str
+        Unit ("1" for dimensionless).
+    description : str
+        Meaning, one line.
+    per_channel : bool
+        True if the parameter has one value per colour channel (shape (3,)).
+    """
+
+    name: str
+    default: float
+    lower: float
+    upper: float
+    unit: str
+    description: str
+    per_channel: bool = False
+
+
+_REGISTRY: dict[str, type] = {}
+
+
+def register(cls):
+    """Class decorator: add a :class:`Model` subclass to the registry under ``cls.name``."""
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def names():
+    """Names of the registered models, sorted."""
+    return tuple(sorted(_REGISTRY))
+
+
+def get(name, **options):
+    """Return the model ``name`` configured with discrete ``options``.
+
+    Raises
+    ------
+    ValueError
+        Unknown model name or option.
+    """
+    try:
+        cls = _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown model {name!r}; known models: {', '.join(names())}") from None
+    return cls(**options)
+
+
+class Model:
+    """Base class of a BRDF model (see :mod:`gonio.models` for the conventions).
+
+    Subclasses set ``name``, ``OPTIONS`` (option name -> tuple of allowed values, the
+    first one the default), ``energy_conserving``, implement ``_parameters()``,
+    ``_eval(wi, wo, p)`` on float64 arrays of unit directions and validated parameters
+    ``p`` and ``to_mitsuba``. A microfacet model may also implement ``_eval_parts``
+    returning (smooth part, lobe part) and ``_lobe_distribution(p)`` so that
+    :meth:`albedo` integrates the lobe in half-vector space.
+    """
+
+    name = ""
+    OPTIONS: dict = {}
+    energy_conserving = True
+
+    def __init__(self, **options):
+        opts = {}
+        for key, allowed in self.OPTIONS.items():
+            value = options.pop(key, allowed[0])
+            if isinstance(value, str):
+                value = value.lower()
+            if value not in allowed:
+                raise ValueError(f"{self.name}: option {key}={value!r} not one of {allowed}")
+            opts[key] = value
+        if options:
+            raise ValueError(
+                f"{self.name}: unknown option(s) {sorted(options)}; known: {sorted(self.OPTIONS)}"
+            )
+        self.options = opts
+        self.parameters = tuple(self._parameters())
+        self._by_name = {p.name: p for p in self.parameters}
+
+    def __repr__(self):
+        opts = ", ".join(f"{k}={v!r}" for k, v in self.options.items())
+        return f"gonio.models.get({self.name!r}{', ' if opts else ''}{opts})"
+
+    def _parameters(self):
+        raise NotImplementedError
+
+    # -- parameters ------------------------------------------------------------------
+    def defaults(self):
+        """Dict of default parameter values (validated form)."""
+        return self.validate({})
+
+    def validate(self, params):
+        """Check and normalise a parameter dict.
+
+        Missing parameters take their default. Per-channel parameters become float64
+        arrays of shape (3,) (a scalar broadcasts); the others become Python floats.
+
+        Raises
+        ------
+        ValueError
+            Unknown name, wrong shape, NaN or infinite value, or a value outside the
+            parameter's bounds [lower, upper].
+        """
+        if params is None:
+            params = {}
+        unknown = set(params) - set(self._by_name)
+        if unknown:
+            raise ValueError(
+                f"{self.name}: unknown parameter(s) {sorted(unknown)}; "
+                f"expected {[p.name for p in self.parameters]}"
+            )
+        out = {}
+        for p in self.parameters:
+            v = params.get(p.name, p.default)
+            try:
+                a = np.asarray(v, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"{self.name}: parameter {p.name}={v!r} is not a number") from None
+            if p.per_channel:
+                if a.ndim == 0:
+                    a = np.full(CHANNELS, float(a))
+                elif a.shape != (CHANNELS,):
+                    raise ValueError(
+                        f"{self.name}: parameter {p.name} must be a float or shape ({CHANNELS},), got {a.shape}"
+                    )
+                else:
+                    a = a.copy()
+            elif a.ndim != 0:
+                if a.size == 1:
+                    a = a.reshape(())
+                else:
+                    raise ValueError(f"{self.name}: parameter {p.name} must be a scalar, got shape {a.shape}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"{self.name}: parameter {p.name}={v!r} is not finite")
+            if np.any(a < p.lower) or np.any(a > p.upper):
+                raise ValueError(
+                    f"{self.name}: parameter {p.name}={v!r} outside its bounds [{p.lower}, {p.upper}] ({p.unit})"
+                )
+            out[p.name] = a if p.per_channel else float(a)
+        self._check(out)
+        return out
+
+    def _check(self, p):
+        """Hook for cross-parameter checks (raise ValueError)."""
+
+    # -- evaluation ----------------------------------------------------------------------
+    def eval(self, wi, wo, params):
+        """BRDF f_r(wi, wo) in sr^-1, shape (N, 3).
+
+        Parameters
+        ----------
+        wi : array_like, shape (N, 3)
+            Unit directions toward the light (local frame, +z normal).
+        wo : array_like, shape (N, 3)
+            Unit directions toward the detector.
+        params : dict
+            Parameter values (see :attr:`parameters`); validated on every call.
+
+        Returns
+        -------
+        ndarray, shape (N, 3), float64
+            f_r without the cosine factor; 0 where either direction is at or below the
+            horizon (and for non-finite directions).
+        """
+        wi = as_directions(wi, "wi")
+        wo = as_directions(wo, "wo")
+        if wi.shape != wo.shape:
+            raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
+        p = self.validate(params)
+        n = wi.shape[0]
+        out = np.empty((n, CHANNELS))
+        with np.errstate(all="ignore"):
+            for s in range(0, n, _BLOCK):
+                e = min(s + _BLOCK, n)
+                a, b = wi[s:e], wo[s:e]
+                f = self._eval(a, b, p)
+                ok = (a[:, 2] > 0.0) & (b[:, 2] > 0.0)
+                ok &= np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+                out[s:e] = np.where(ok[:, None], f, 0.0)
+        return out
+
+    def _eval(self, wi, wo, p):
+        smooth, lobe = self._eval_parts(wi, wo, p)
+        if lobe is None:
+            return smooth
+        return smooth + lobe
+
+    def _eval_parts(self, wi, wo, p):
+        raise NotImplementedError
+
+    def _lobe_distribution(self, p):
+        return None
+
+    # -- directional albedo --------------------------------------------------------------
+    def albedo(self, wo, params, **quadrature):
+        """Directional albedo a(wo) = integral of f_r(wi, wo) cos(theta_i) d(wi), (N, 3).
+
+        Deterministic adaptive quadrature; see :func:`gonio.models._albedo.albedo` for
+        the options (``n_theta``, ``n_phi``, ``tol``, ``max_level``, ``return_error``)
+        and the stated error (<= 1e-3 absolute, typically < 1e-5).
+        """
+        from ._albedo import albedo
+
+        return albedo(self, wo, params, **quadrature)
+
+    # -- Mitsuba ---------------------------------------------------------------------
+    def to_mitsuba(self, params):
+        """Dict for ``mitsuba.load_dict`` rendering exactly this model."""
+        raise NotImplementedError
+
+
+def rgb(value):
+    """Mitsuba RGB texture dict for a (3,) array."""
+    return {"type": "rgb", "value": [float(x) for x in np.broadcast_to(value, (CHANNELS,))]}
+
+
+INV_PI = 1.0 / math.pi

@@ -1,0 +1,95 @@
+"""Local-frame geometry helpers (pbrt / Mitsuba vocabulary).
+
+Conventions (used everywhere in :mod:`gonio.models`): the local shading frame has
++z along the surface normal; ``wi`` points from the surface toward the light,
+``wo`` from the surface toward the detector; both are unit vectors stored as arrays
+of shape (N, 3). ``wm`` is a microfacet normal (for reflection the half vector).
+
+All helpers are branch-free numpy: degenerate geometry is masked, never NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "as_directions",
+    "cos_theta",
+    "safe_sqrt",
+    "half_vector",
+    "reflect",
+    "sincos_phi",
+]
+
+
+def safe_sqrt(x):
+    """``sqrt(max(0, x))`` (pbrt-v4 ``util/math.h`` ``SafeSqrt``)."""
+    return np.sqrt(np.maximum(x, 0.0))
+
+
+def cos_theta(w):
+    """z component of the (N, 3) direction array ``w``."""
+    return w[..., 2]
+
+
+def as_directions(w, name="w"):
+    """Return ``w`` as a C-contiguous float64 array of shape (N, 3).
+
+    Parameters
+    ----------
+    w : array_like, shape (N, 3) or (3,)
+        Unit directions in the local frame. float32 input is promoted.
+    name : str
+        Used in the error message.
+
+    Raises
+    ------
+    ValueError
+        If the last axis is not of length 3.
+    """
+    a = np.asarray(w, dtype=np.float64)
+    if a.ndim == 1 and a.shape[0] == 3:
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {np.shape(w)}")
+    return np.ascontiguousarray(a)
+
+
+def half_vector(wi, wo):
+    """Normalised half vector ``wm = (wi + wo) / |wi + wo|`` and a validity mask.
+
+    Returns
+    -------
+    wm : ndarray, shape (N, 3)
+        The half vector; (0, 0, 1) where ``wi + wo`` vanishes (wi == -wo).
+    valid : ndarray of bool, shape (N,)
+        False where the half vector is undefined.
+    """
+    h = wi + wo
+    n2 = np.einsum("ij,ij->i", h, h)
+    valid = n2 > 1e-300
+    inv = 1.0 / np.sqrt(np.where(valid, n2, 1.0))
+    wm = h * inv[:, None]
+    if not valid.all():
+        wm[~valid] = (0.0, 0.0, 1.0)
+    return wm, valid
+
+
+def reflect(w, wm):
+    """Mirror ``w`` about ``wm``: ``2 (w . wm) wm - w`` (both (N, 3))."""
+    d = np.einsum("ij,ij->i", w, wm)
+    return 2.0 * d[:, None] * wm - w
+
+
+def sincos_phi(w, eps=4.0 * np.finfo(np.float32).eps):
+    """Sine and cosine of the azimuth of ``w``; (0, 1) at the pole.
+
+    Mirrors Mitsuba's ``Frame3f::sincos_phi`` (``core/frame.h``), including its
+    pole threshold ``sin^2 theta <= 4 eps`` (float32 epsilon).
+    """
+    s2 = w[..., 0] ** 2 + w[..., 1] ** 2
+    pole = s2 <= eps
+    inv = 1.0 / np.sqrt(np.where(pole, 1.0, s2))
+    c = np.where(pole, 1.0, np.clip(w[..., 0] * inv, -1.0, 1.0))
+    s = np.where(pole, 0.0, np.clip(w[..., 1] * inv, -1.0, 1.0))
+    return s, c

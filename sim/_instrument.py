@@ -1,0 +1,288 @@
+"""The simulated gonioreflectometer: physics state plus its three protocol ports."""
+
+from __future__ import annotations
+
+import copy
+import math
+import threading
+from collections import OrderedDict
+
+import numpy as np
+
+from ._camera_port import CameraPort
+from ._clock import SimClock
+from ._faults import FaultSchedule
+from ._kinematics import forward
+from ._lamp import Lamp
+from ._port import PortEndpoint
+from ._sample import SampleTruth
+from ._scene import HolderScene
+from ._scpi import PowerMeter, ScpiMeter
+from ._sensor import SensorModel, encode_dng
+from ._stages import RotaryAxis
+from ._zaber import ZaberChain
+
+__all__ = ["Instrument", "DEFAULT_SETTINGS", "DEFAULT_SAMPLE", "DEFAULT_REFERENCE", "lookup"]
+
+#: docs/interfaces.md section 3.
+DEFAULT_SETTINGS = {
+    "axes": {
+        "yaw": [1, 1, -95.0, 95.0],
+        "tilt": [1, 2, -88.0, 88.0],
+        "azimuth": [1, 3, -180.0, 180.0],
+        "lamp": [1, 4, -175.0, 175.0],
+        "cycle_dist": 720000,
+        "lamp_block_deg": 6.0,
+    },
+    "camera": {"width": 64, "height": 48, "pixel_size": 0.01, "bits": 14},
+    "holder": {"sample_half": 0.25, "offset": 0.3, "holder_reflectance": 0.05},
+}
+DEFAULT_SAMPLE = {"model": "diffuse", "params": {"reflectance": 0.5}}
+DEFAULT_REFERENCE = {"model": "diffuse", "params": {"reflectance": 0.99}}
+_AXIS_NAMES = ("yaw", "tilt", "azimuth", "lamp")
+
+_REGISTRY: dict[str, "Instrument"] = {}
+
+
+def lookup(name: str) -> "Instrument":
+    """The instrument registered under ``name`` (KeyError if none)."""
+    return _REGISTRY[name]
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in (over or {}).items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+class Instrument:
+    """A simulated gonioreflectometer.
+
+    Parameters
+    ----------
+    settings : dict or None
+        Instrument settings (docs/interfaces.md section 3); merged over ``DEFAULT_SETTINGS``.
+    sample, reference : dict
+        Sample specs (``{"model": ..., "options": ..., "params": ...}``,
+        ``{"bsdf_file": PATH}`` or ``{"mitsuba": DICT}``) of the sample and reference squares.
+    seed : int
+        Seeds every random draw (lamp drift, fixed-pattern noise, frame noise, meter noise).
+    clock : SimClock, str, float or None
+        A clock or a spec for ``SimClock.coerce``: None or ``"instant"``, ``"real"``,
+        ``"scaled:10"``, a scale factor.
+    faults : FaultSchedule, list, dict, str or None
+        Fault schedule (TOML path or text, or parsed tables); see ``_faults.py``.
+    sensor, lamp, meter : dict or None
+        Overrides of ``SensorModel``, ``Lamp``, ``PowerMeter`` parameters.
+    spp : int
+        Samples per pixel of the renders (edge anti-aliasing only).
+    """
+
+    def __init__(self, settings: dict | None = None, sample: dict = DEFAULT_SAMPLE,
+                 reference: dict = DEFAULT_REFERENCE, seed: int = 0, clock=None, faults=None,
+                 sensor: dict | None = None, lamp: dict | None = None,
+                 meter: dict | None = None, spp: int = 4):
+        self.settings = _merge(DEFAULT_SETTINGS, settings or {})
+        self.seed = int(seed)
+        self.clock = SimClock.coerce(clock)
+        self.lock = threading.RLock()
+        self.name: str | None = None
+
+        ax = self.settings["axes"]
+        cd = int(ax["cycle_dist"])
+        try:
+            entries = sorted((int(ax[n][1]), n, ax[n]) for n in _AXIS_NAMES)
+        except KeyError as e:
+            raise ValueError(f"settings.axes lacks {e.args[0]!r}") from None
+        if [e[0] for e in entries] != [1, 2, 3, 4] or any(int(e[2][0]) != 1 for e in entries):
+            raise ValueError("the simulator puts the four stages on device 1, axes 1..4")
+        self.axis_names = [e[1] for e in entries]
+        self.axes = [RotaryAxis(limit_min=int(round(v[2] * cd / 360.0)),
+                                limit_max=int(round(v[3] * cd / 360.0)), cycle_dist=cd)
+                     for _, _, v in entries]
+        # power-on: wherever the last session left them (seeded, within 20 deg of home)
+        start = np.random.default_rng([self.seed & 0xFFFFFFFF, 0x57A6]).uniform(-20.0, 20.0, 4)
+        for a, deg in zip(self.axes, start):
+            a.physical = float(round(deg * cd / 360.0))
+            a.offset = a.physical
+
+        self.lamp = Lamp(self.seed, **(lamp or {}))
+        self.meter = PowerMeter(self.seed, **(meter or {}))
+        cam = self.settings["camera"]
+        self.sensor = SensorModel(width=int(cam["width"]), height=int(cam["height"]),
+                                  bits=int(cam["bits"]), seed=self.seed, p_ref=self.lamp.p0,
+                                  **(sensor or {}))
+        self.sample = SampleTruth(sample)
+        self.reference = SampleTruth(reference)
+        self.spp = int(spp)
+        self.faults = FaultSchedule.coerce(faults)
+
+        self.zaber = ZaberChain(self)
+        self.scpi = ScpiMeter(self)
+        self.camera = CameraPort(self)
+        self.ports = {
+            "zaber": PortEndpoint(self, "zaber", self.zaber, b"\r\n", split_cr=True),
+            "meter": PortEndpoint(self, "meter", self.scpi, b"\n", split_cr=False),
+            "camera": PortEndpoint(self, "camera", self.camera, b"\n", split_cr=False),
+        }
+        self._scene: HolderScene | None = None
+        self._radiance = OrderedDict()
+        self._frame_key = None
+        self._frame_count = 0
+
+    # ------------------------------------------------------------------ registry
+    def register(self, name: str) -> "Instrument":
+        """Make the ports reachable as ``sim://NAME/zaber|meter|camera``; returns self."""
+        if "/" in name or not name:
+            raise ValueError("an instrument name is non-empty and has no '/'")
+        _REGISTRY[name] = self
+        self.name = name
+        return self
+
+    def unregister(self) -> None:
+        """Remove the instrument from the ``sim://`` registry."""
+        if self.name is not None and _REGISTRY.get(self.name) is self:
+            del _REGISTRY[self.name]
+        self.name = None
+
+    def url(self, port: str) -> str:
+        """``sim://NAME/PORT`` of a registered instrument."""
+        if self.name is None:
+            raise RuntimeError("register the instrument first")
+        return f"sim://{self.name}/{port}"
+
+    def open(self, port: str, **kwargs):
+        """``serial.serial_for_url`` of one of this (registered) instrument's ports."""
+        import serial
+
+        return serial.serial_for_url(self.url(port), **kwargs)
+
+    # ------------------------------------------------------------------ truth
+    @property
+    def fault_seed(self) -> int:
+        return self.seed if self.faults.seed is None else int(self.faults.seed)
+
+    @property
+    def sample_spec(self) -> dict:
+        """The sample spec the instrument was built with (a copy)."""
+        return copy.deepcopy(self.sample.spec)
+
+    def true_brdf(self, wi, wo) -> np.ndarray:
+        """True f_r of the sample (sr^-1), shape (N, 3), for (N, 3) directions (sample frame)."""
+        return self.sample.eval(wi, wo)
+
+    def pose_microsteps(self) -> tuple:
+        """Physical stage positions now (yaw, tilt, azimuth, lamp), integer microsteps."""
+        t = self.clock.now()
+        return tuple(int(round(a.position_physical(t))) for a in self.axes)
+
+    def angles(self) -> dict:
+        """Physical stage angles now, radians, by axis name."""
+        return {n: p * 2 * math.pi / a.cycle_dist
+                for n, p, a in zip(self.axis_names, self.pose_microsteps(), self.axes)}
+
+    def geometry(self, pose: tuple | None = None) -> dict:
+        """``wi``, ``wo``, image ``right``/``up`` (sample frame) and ``R`` for a pose (default: now)."""
+        pose = self.pose_microsteps() if pose is None else pose
+        ang = {n: p * 2 * math.pi / a.cycle_dist for n, p, a in zip(self.axis_names, pose, self.axes)}
+        return forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"])
+
+    def geometry_angle(self, pose: tuple, name: str) -> float:
+        """Angle (radians) of axis ``name`` in a pose of physical microsteps."""
+        i = self.axis_names.index(name)
+        return pose[i] * 2 * math.pi / self.axes[i].cycle_dist
+
+    # ------------------------------------------------------------------ test helpers
+    def set_pose(self, **angles_deg) -> None:
+        """Put stages at angles (deg) at once, homed, without the protocol (tests, demos)."""
+        t = self.clock.now()
+        for n, deg in angles_deg.items():
+            a = self.axes[self.axis_names.index(n)]
+            a.power_cycle(t)
+            a.physical = float(round(deg * a.cycle_dist / 360.0))
+            a.offset, a.homed = 0.0, True
+
+    def home_all(self) -> None:
+        """All stages homed at their reference, at once (tests, demos)."""
+        self.set_pose(**{n: 0.0 for n in self.axis_names})
+
+    def power_cycle(self, device: int = 1) -> None:
+        """Power-cycle device 1 (stages lose their reference) or device 2 (lamp off)."""
+        t = self.clock.now()
+        if device == 1:
+            for a in self.axes:
+                a.power_cycle(t)
+        else:
+            self.lamp.switch(t, False)
+            self.lamp.set_flux(t, 1.0)
+
+    # ------------------------------------------------------------------ camera physics
+    @property
+    def scene(self) -> HolderScene:
+        if self._scene is None:
+            cam, hold = self.settings["camera"], self.settings["holder"]
+            self._scene = HolderScene(
+                self.sample.mitsuba, self.reference.mitsuba, width=int(cam["width"]),
+                height=int(cam["height"]), pixel_size=float(cam["pixel_size"]),
+                sample_half=float(hold["sample_half"]), offset=float(hold["offset"]),
+                holder_reflectance=float(hold["holder_reflectance"]), spp=self.spp)
+        return self._scene
+
+    def radiance(self, pose: tuple | None = None) -> np.ndarray:
+        """Radiance image for unit irradiance at a pose (default: now), (H, W, 3), sr^-1; cached.
+
+        With the lamp arm within ``lamp_block_deg`` of the camera the lamp head hides the
+        sample: the image is black (the controller should never go there).
+        """
+        pose = self.pose_microsteps() if pose is None else tuple(pose)
+        img = self._radiance.get(pose)
+        if img is None:
+            g = self.geometry(pose)
+            lamp_deg = abs((math.degrees(self.geometry_angle(pose, "lamp")) + 180.0) % 360.0 - 180.0)
+            if lamp_deg < float(self.settings["axes"].get("lamp_block_deg", 0.0)):
+                # the lamp head stands between the sample and the camera: nothing to see
+                img = np.zeros((self.sensor.height, self.sensor.width, 3))
+            else:
+                img = self.scene.render(g["wi"], g["wo"], g["right"], g["up"])
+            self._radiance[pose] = img
+            if len(self._radiance) > 16:
+                self._radiance.popitem(last=False)
+        else:
+            self._radiance.move_to_end(pose)
+        return img
+
+    def capture(self, seconds: float) -> bytes:
+        """Expose one frame of ``seconds`` now; advance the clock; return the DNG bytes.
+
+        The noise comes from ``default_rng([seed, 0xCA3E, *pose + 2**31, exposure ns, lamp on,
+        flux ppm, lamp dead, frame count at this pose])``: the same pose, exposure, lamp state
+        and frame order give the same noise in a new process.
+        """
+        with self.lock:
+            t0 = self.clock.now()
+            pose = self.pose_microsteps()
+            lamp = self.lamp
+            state = (int(lamp.on), int(round(lamp.flux * 1e6)), int(lamp.dead))
+            if pose != self._frame_key:
+                self._frame_key, self._frame_count = pose, 0
+            frame = self._frame_count
+            self._frame_count += 1
+            exposure_ns = int(round(seconds * 1e9))
+            key = [self.seed & 0xFFFFFFFF, 0xCA3E, *[(p + 2**31) & 0xFFFFFFFF for p in pose],
+                   exposure_ns, *state, frame]
+            rng = np.random.default_rng(key)
+            power = lamp.power(t0 + 0.5 * seconds)
+            if power > 0.0:
+                rad = self.radiance(pose)
+            else:
+                rad = np.zeros((self.sensor.height, self.sensor.width, 3))
+            raw = self.sensor.expose(rad, power, seconds, rng)
+            self.clock.advance(seconds)
+            desc = {"gonio_sim": 1, "pose_microsteps": list(pose), "exposure_ns": exposure_ns,
+                    "frame_at_pose": frame, "seed": self.seed}
+            return encode_dng(raw, black=self.sensor.black, white=self.sensor.white,
+                              exposure=seconds, description=desc)

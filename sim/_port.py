@@ -1,0 +1,166 @@
+"""Byte-stream endpoint of one simulated port: line framing, fault injection, reply buffer.
+
+Shared by the ``sim://`` transport (``protocol_sim.py``) and the pseudo-terminal server
+(``_pty.py``). A host writes bytes; each complete line costs ``clock.latency`` of simulated
+time (instant clock), passes the fault schedule and reaches the protocol server; its reply
+lines are queued for reading.
+"""
+
+from __future__ import annotations
+
+import math
+import string
+
+__all__ = ["PortEndpoint", "PortVanished"]
+
+_GARBLE_CHARS = (string.ascii_letters + string.digits + "#@/:.- ").encode()
+
+
+class PortVanished(Exception):
+    """The port is gone (fault ``vanish``); handles opened before stay dead."""
+
+
+class PortEndpoint:
+    """One port of the instrument.
+
+    Parameters
+    ----------
+    instrument : Instrument
+        Owner (clock, lock, fault schedule).
+    name : {"zaber", "meter", "camera"}
+        Port name.
+    server : object
+        Protocol server with ``handle(text) -> list[str]``.
+    reply_end : bytes
+        Terminator appended to each reply line.
+    split_cr : bool
+        Whether a lone ``\\r`` also ends an input line (Zaber).
+    """
+
+    def __init__(self, instrument, name: str, server, reply_end: bytes, split_cr: bool):
+        self.inst = instrument
+        self.name = name
+        self.server = server
+        self.reply_end = reply_end
+        self.split_cr = split_cr
+        self.commands = 0                 # command lines received (fault counter)
+        self.generation = 0               # bumped when the port vanishes
+        self.vanished_until: float | None = None
+        self.silent_until = -math.inf
+        self.on_vanish = []               # callbacks(endpoint, duration) for the pty server
+        self._in = bytearray()
+        self.out = bytearray()
+
+    # ------------------------------------------------------------------ presence
+    def present(self) -> bool:
+        """Whether the port exists now (reappears once its vanish time is over)."""
+        if self.vanished_until is None:
+            return True
+        if self.inst.clock.now() >= self.vanished_until:
+            self.vanished_until = None
+            return True
+        return False
+
+    def vanish(self, duration: float) -> None:
+        """Make the port disappear for ``duration`` simulated seconds."""
+        self.generation += 1
+        self.vanished_until = self.inst.clock.now() + float(duration)
+        self._in.clear()
+        self.out.clear()
+        for cb in list(self.on_vanish):
+            cb(self, duration)
+
+    def check(self, generation: int) -> None:
+        """Raise PortVanished unless a handle of ``generation`` is still connected."""
+        if generation != self.generation or not self.present():
+            raise PortVanished(self.name)
+
+    # ------------------------------------------------------------------ bytes in
+    def feed(self, data: bytes) -> None:
+        """Bytes from the host; complete lines are executed at once."""
+        with self.inst.lock:
+            self._in += data
+            while True:
+                buf = bytes(self._in)
+                if self.split_cr:
+                    cuts = [i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0]
+                else:
+                    cuts = [i for i in (buf.find(b"\n"),) if i >= 0]
+                if not cuts:
+                    break
+                i = min(cuts)
+                line = buf[:i]
+                del self._in[: i + 1]
+                self._line(line.decode("ascii", "replace").strip())
+
+    def _line(self, text: str) -> None:
+        if not text:
+            return
+        inst = self.inst
+        inst.clock.tick()
+        self.commands += 1
+        n = self.commands
+        t = inst.clock.now()
+        seed = inst.fault_seed
+        execute, drop, again, post = True, False, False, []
+        for f in inst.faults.due(self.name, n, t, seed):
+            k = f.kind
+            if k == "timeout":
+                drop, execute = True, f.execute
+            elif k == "silence":
+                port = inst.ports[f.port]
+                port.silent_until = t + f.duration
+            elif k in ("garble", "truncate", "bad_checksum"):
+                post.append(f)
+            elif k == "again":
+                again = True
+            elif k in ("stall", "limit"):
+                inst.zaber.armed_halts.append((f.axis, f.fraction, "FS" if k == "stall" else "WL"))
+            elif k == "power_cycle":
+                inst.power_cycle(f.device)
+            elif k == "vanish":
+                inst.ports[f.port].vanish(f.duration)
+                if f.port == self.name:
+                    return
+            elif k in ("camera_nothing", "camera_truncated"):
+                inst.camera.armed.append(k.split("_", 1)[1])
+            elif k == "lamp_dies":
+                inst.lamp.die(f.at_time if f.at_time is not None else t)
+        if t < self.silent_until:
+            return
+        if again:
+            replies = self.server.again(text)
+        elif execute:
+            replies = self.server.handle(text)
+        else:
+            replies = []
+        if drop or not replies:
+            return
+        ends = [self.reply_end] * len(replies)
+        for f in post:
+            rng = f.rng(seed, n)
+            line = replies[0]
+            if f.kind == "bad_checksum":
+                body = line[1:].split(":", 1)[0]
+                good = (-sum(body.encode())) & 0xFF
+                replies[0] = f"@{body}:{(good + 1) & 0xFF:02X}"
+            elif f.kind == "garble":
+                chars = bytearray(line.encode("ascii", "replace"))
+                k = max(1, len(chars) // 10)
+                pos = rng.choice(len(chars), size=min(k, len(chars)), replace=False)
+                for p in pos:
+                    chars[p] = _GARBLE_CHARS[rng.integers(len(_GARBLE_CHARS))]
+                replies[0] = chars.decode("ascii")
+            else:       # truncate
+                replies[0] = line[: int(rng.integers(1, max(2, len(line))))]
+                ends[0] = b""
+        for r, e in zip(replies, ends):
+            self.out += r.encode("ascii", "replace") + e
+
+    # ------------------------------------------------------------------ bytes out
+    def take(self, size: int) -> bytes:
+        """Remove and return up to ``size`` reply bytes."""
+        with self.inst.lock:
+            data = bytes(self.out[:size])
+            del self.out[:size]
+            return data

@@ -1,0 +1,147 @@
+"""Virtual samples: resolve a sample spec to a Mitsuba BSDF dict and its true f_r.
+
+A sample spec is one of
+
+``{"model": NAME, "options": {...}, "params": {...}}``
+    a gonio model, ``gonio.models.get(NAME, **options)``; rendered through
+    ``model.to_mitsuba(params)``, truth ``model.eval(wi, wo, params)``.
+``{"bsdf_file": PATH}``
+    measured data through Mitsuba's ``measured`` plugin (RGL-EPFL ``.bsdf``).
+``{"mitsuba": DICT}``
+    any Mitsuba BSDF dict (tests, quick experiments).
+
+For the Mitsuba-only specs the truth is ``bsdf.eval`` divided by cos(theta_i) (Mitsuba's
+``si.wi`` is our ``wo``; the conversion lives here and in ``_scene.py`` only).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+
+import numpy as np
+
+__all__ = ["SampleTruth", "mitsuba_variant", "resolve_sample"]
+
+_VARIANT: str | None = None
+
+
+def mitsuba_variant() -> str:
+    """The Mitsuba variant gonio renders with (gonio.models' choice when it has one)."""
+    global _VARIANT
+    if _VARIANT is not None:
+        return _VARIANT
+    try:
+        from gonio.models import mitsuba_variant as models_variant
+    except ImportError:
+        models_variant = None
+    if models_variant is not None:
+        _VARIANT = models_variant()
+        return _VARIANT
+    import mitsuba as mi
+    for v in ("llvm_ad_rgb", "scalar_rgb"):
+        try:
+            mi.set_variant(v)
+        except Exception:       # noqa: BLE001 - no usable libLLVM: fall back
+            continue
+        _VARIANT = v
+        return v
+    raise RuntimeError("no usable Mitsuba RGB variant (llvm_ad_rgb, scalar_rgb)")
+
+
+def _diffuse_fallback(params: dict) -> tuple[dict, callable]:
+    rho = np.broadcast_to(np.asarray(params.get("reflectance", 0.5), dtype=float), (3,)).copy()
+
+    def eval_(wi, wo):
+        ok = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        return np.where(ok[:, None], rho[None, :] / np.pi, 0.0)
+
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho.tolist()}}, eval_
+
+
+class SampleTruth:
+    """A resolved sample: Mitsuba dict for rendering, exact f_r for tests.
+
+    Parameters
+    ----------
+    spec : dict
+        Sample spec (module docstring).
+    """
+
+    def __init__(self, spec: dict):
+        if not isinstance(spec, dict):
+            raise TypeError("a sample spec is a dict")
+        self.spec = copy.deepcopy(spec)
+        self._bsdf = None
+        self._eval = None
+        if "model" in spec:
+            name = spec["model"]
+            options = dict(spec.get("options", {}))
+            params = dict(spec.get("params", {}))
+            try:
+                import gonio.models as gm
+                get = gm.get
+            except (ImportError, AttributeError):
+                get = None
+            if get is None:
+                if name != "diffuse":
+                    raise RuntimeError(f"gonio.models is not available to resolve model {name!r}")
+                self.mitsuba, self._eval = _diffuse_fallback(params)
+            else:
+                model = get(name, **options)
+                self.mitsuba = model.to_mitsuba(params)
+                self._eval = lambda wi, wo, m=model, p=params: np.asarray(m.eval(wi, wo, p), float)
+        elif "bsdf_file" in spec:
+            path = os.fspath(spec["bsdf_file"])
+            if not os.path.exists(path):
+                raise FileNotFoundError(path)
+            self.mitsuba = {"type": "measured", "filename": path}
+        elif "mitsuba" in spec:
+            self.mitsuba = copy.deepcopy(spec["mitsuba"])
+        else:
+            raise ValueError("a sample spec needs 'model', 'bsdf_file' or 'mitsuba'")
+
+    def to_json(self) -> str:
+        """The spec as JSON (for a dataset's ``sample_truth`` attribute)."""
+        return json.dumps(self.spec, sort_keys=True, default=str)
+
+    def eval(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """True f_r (sr^-1), shape (N, 3), for unit directions (N, 3) in the sample frame."""
+        wi = np.atleast_2d(np.asarray(wi, dtype=float))
+        wo = np.atleast_2d(np.asarray(wo, dtype=float))
+        if self._eval is not None:
+            return self._eval(wi, wo)
+        return self._mitsuba_eval(wi, wo)
+
+    def _mitsuba_eval(self, wi, wo):
+        import drjit as dr
+        import mitsuba as mi
+
+        variant = mitsuba_variant()
+        with mi.scoped_set_variant(variant):
+            if self._bsdf is None:
+                self._bsdf = mi.load_dict(self.mitsuba)
+            ctx = mi.BSDFContext()
+            if variant.startswith("scalar"):
+                out = np.zeros((wi.shape[0], 3))
+                for k in range(wi.shape[0]):
+                    si = mi.SurfaceInteraction3f()
+                    si.wi = mi.Vector3f(*wo[k])
+                    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+                    out[k] = np.array(self._bsdf.eval(ctx, si, mi.Vector3f(*wi[k])))
+            else:
+                n = wi.shape[0]
+                si = dr.zeros(mi.SurfaceInteraction3f, n)
+                si.wi = mi.Vector3f(np.ascontiguousarray(wo.T, dtype=np.float32))
+                si.sh_frame = mi.Frame3f(mi.Normal3f(0, 0, 1))
+                val = self._bsdf.eval(ctx, si, mi.Vector3f(np.ascontiguousarray(wi.T, dtype=np.float32)))
+                out = np.array(val, dtype=float).reshape(3, n).T
+        cos_i = wi[:, 2]
+        ok = (cos_i > 0) & (wo[:, 2] > 0)
+        return np.where(ok[:, None], out / np.where(ok, cos_i, 1.0)[:, None], 0.0)
+
+
+def resolve_sample(spec: dict) -> SampleTruth:
+    """Resolve a sample spec (see module docstring)."""
+    return SampleTruth(spec)

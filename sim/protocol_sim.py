@@ -1,0 +1,170 @@
+"""pyserial URL handler for ``sim://NAME/PORT`` (PORT: ``zaber``, ``meter``, ``camera``).
+
+``import gonio.sim`` appends ``"gonio.sim"`` to ``serial.protocol_handler_packages``; pyserial
+then imports this module (``gonio.sim.protocol_sim``) for the ``sim`` scheme and instantiates
+``Serial``. NAME is an ``Instrument`` registered in this process.
+
+Reads in an ``instant``-clock instrument never sleep: bytes the host asks for that are not
+there advance the simulated clock by the read timeout (as a real port would have waited),
+then the read returns what there is. ``timeout=None`` returns what there is at once (nothing
+can arrive later: the simulator answers synchronously). With a ``scaled`` clock reads wait
+in wall time like a real port. A vanished port (fault) raises ``SerialException`` on every
+call and on ``open`` until it is back; each failing call costs 0.1 s of simulated time in
+instant mode, so a host's retry loop sees it come back.
+"""
+
+from __future__ import annotations
+
+import time
+import urllib.parse
+
+from serial.serialutil import PortNotOpenError, SerialBase, SerialException
+
+from ._instrument import lookup
+from ._port import PortVanished
+
+__all__ = ["Serial"]
+
+RETRY_COST = 0.1    # simulated seconds a failing call on a vanished port costs (instant clock)
+
+
+class Serial(SerialBase):
+    """Serial port onto a simulated instrument's port."""
+
+    def open(self):
+        if self._port is None:
+            raise SerialException("Port must be configured before it can be used.")
+        if self.is_open:
+            raise SerialException("Port is already open.")
+        ep = self._endpoint_from_url(self.portstr)
+        inst = ep.inst
+        with inst.lock:
+            if not ep.present():
+                inst.clock.tick()
+                if inst.clock.instant:
+                    inst.clock.advance(RETRY_COST)
+                raise SerialException(f"could not open port {self.portstr}: [Errno 2] No such file or directory")
+            self._ep = ep
+            self._generation = ep.generation
+        self.is_open = True
+
+    def _endpoint_from_url(self, url: str):
+        parts = urllib.parse.urlsplit(url)
+        if parts.scheme != "sim":
+            raise SerialException(f"expected a string in the form 'sim://NAME/PORT', not {url!r}")
+        port = parts.path.strip("/")
+        try:
+            inst = lookup(parts.netloc)
+        except KeyError:
+            raise SerialException(f"no simulated instrument registered as {parts.netloc!r}") from None
+        if port not in inst.ports:
+            raise SerialException(f"unknown port {port!r} (zaber, meter, camera)")
+        return inst.ports[port]
+
+    def from_url(self, url):
+        """Validate a URL (pyserial API)."""
+        self._endpoint_from_url(url)
+        return url
+
+    def _reconfigure_port(self):
+        pass
+
+    def close(self):
+        self.is_open = False
+
+    def _alive(self):
+        if not self.is_open:
+            raise PortNotOpenError()
+        try:
+            self._ep.check(self._generation)
+        except PortVanished:
+            clock = self._ep.inst.clock
+            if clock.instant:
+                clock.advance(RETRY_COST)
+            raise SerialException("device reports readiness to read but returned no data "
+                                  "(device disconnected or multiple access on port?)") from None
+
+    @property
+    def in_waiting(self):
+        with self._ep.inst.lock if self.is_open else _Null():
+            self._alive()
+            return len(self._ep.out)
+
+    def read(self, size=1):
+        self._alive()
+        ep = self._ep
+        clock = ep.inst.clock
+        got = bytearray()
+        deadline = None if self._timeout is None else time.monotonic() + self._timeout
+        while True:
+            with ep.inst.lock:
+                self._alive()
+                got += ep.take(size - len(got))
+            if len(got) >= size:
+                break
+            if clock.instant:
+                if self._timeout:
+                    clock.advance(self._timeout)
+                break
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+            time.sleep(0.001)
+        return bytes(got)
+
+    def write(self, data):
+        self._alive()
+        data = bytes(data)
+        self._ep.feed(data)
+        return len(data)
+
+    def reset_input_buffer(self):
+        self._alive()
+        with self._ep.inst.lock:
+            self._ep.out.clear()
+
+    def reset_output_buffer(self):
+        self._alive()
+
+    @property
+    def out_waiting(self):
+        self._alive()
+        return 0
+
+    def cancel_read(self):
+        pass
+
+    def cancel_write(self):
+        pass
+
+    def _update_break_state(self):
+        self._alive()
+
+    def _update_rts_state(self):
+        pass
+
+    def _update_dtr_state(self):
+        pass
+
+    @property
+    def cts(self):
+        return True
+
+    @property
+    def dsr(self):
+        return True
+
+    @property
+    def ri(self):
+        return False
+
+    @property
+    def cd(self):
+        return True
+
+
+class _Null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False

@@ -1,0 +1,194 @@
+"""Capture, resume and export against the simulated instrument (sim://), the production code path."""
+
+import json
+import os
+import signal
+
+import numpy as np
+import pytest
+import xarray as xr
+
+sim = pytest.importorskip("gonio.sim")
+
+from gonio.bench import kinematics, plans
+from gonio.bench._camera import SimCamera
+from gonio.bench._files import sha256_file
+from gonio.bench._journal import Journal, read_session
+from gonio.bench._settings import default_settings
+from gonio.bench.capture import capture, resume
+from gonio.bench.errors import CommunicationError, DeviceError, GonioError, SessionError, UnreachableError
+from gonio.bench.export import export
+
+S = default_settings()
+GLOSSY = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.15}}
+SMALL = plans.Plan("small", plans.with_reciprocal(
+    [[30, 0, 40, 180], [30, 0, 30, 180], [45, 0, 20, 0], [20, 0, 50, 90], [60, 0, 60, 180], [10, 0, 70, 135]]))
+
+
+@pytest.fixture
+def instrument(request):
+    made = []
+
+    def make(name, seed=1, sample=GLOSSY, faults=None):
+        inst = sim.Instrument(S, sample=sample, seed=seed, faults=faults).register(name)
+        made.append(inst)
+        return inst
+    yield make
+    for inst in made:
+        inst.unregister()
+
+
+def run(inst, folder, plan=SMALL, **kw):
+    return capture(folder, plan, S, inst.url("zaber"), inst.url("meter"), kw.pop("camera", inst.url("camera")),
+                   seed=inst.seed, progress=False, sleep=inst.clock.advance, sample_truth=inst.sample_spec, **kw)
+
+
+def chi2(folder, inst):
+    rows = Journal(folder / "journal.sqlite").points()
+    wi = np.array([kinematics.directions(r["theta_i"], r["phi_i"]) for r in rows])
+    wo = np.array([kinematics.directions(r["theta_o"], r["phi_o"]) for r in rows])
+    truth = inst.true_brdf(wi, wo)
+    f, s = np.array([r["brdf"] for r in rows]), np.array([r["brdf_std"] for r in rows])
+    return np.mean(((f - truth) / s) ** 2), rows
+
+
+def assert_clean(folder):
+    """No orphan temporary file; every journalled RAW file matches its checksum."""
+    leftovers = [p.name for p in (folder / "raw").iterdir() if p.name.startswith(".tmp-") or p.name.endswith(".part")]
+    assert leftovers == []
+    with Journal(folder / "journal.sqlite") as j:
+        for r in j.points():
+            for e in r["detail"]["exposures"]:
+                assert sha256_file(folder / e["file"]) == e["sha256"]
+
+
+def test_capture_recovers_known_brdf_and_exports(instrument, tmp_path):
+    inst = instrument("cap1")
+    folder = tmp_path / "s"
+    res = run(inst, folder, plans.load_plan("quick"))
+    assert res.complete and res.n_new == res.n_done == 30 and res.stopped == ""
+    c2, rows = chi2(folder, inst)
+    assert 0.3 < c2 < 2.5, c2                              # f_r within its stated uncertainty of the truth
+    assert len(res.reciprocity) == 4 and res.reciprocity_error < 0.02
+    assert res.move_ordered_s < 0.7 * res.move_naive_s
+    assert_clean(folder)
+    doc = read_session(folder)
+    assert doc["session"]["seed"] == 1 and doc["plan"]["name"] == "quick" and "axes" in doc["settings"]
+    assert json.loads(doc["sample_truth"]["json"]) == GLOSSY
+    ds = xr.open_dataset(export(folder), engine="h5netcdf")
+    assert ds.sizes == {"point": 30, "channel": 3} and list(ds.channel.values) == ["R", "G", "B"]
+    for c in ("theta_i", "phi_i", "theta_o", "phi_o"):
+        assert ds[c].attrs["units"] == "degree"
+    assert ds.brdf.attrs["units"] == "sr^-1" and ds.brdf_std.dims == ("point", "channel")
+    assert ds.saturated.dtype == bool and ds.attrs["scale_rel_std"] == 0.005 and ds.attrs["seed"] == 1
+    p = ds.reciprocal_partner.values
+    assert (p >= 0).sum() == 8 and all(p[p[i]] == i for i in np.flatnonzero(p >= 0))
+    assert json.loads(ds.attrs["sample_truth"]) == GLOSSY and ds.attrs["complete"] == 1
+    ds.close()
+    assert not any(n.startswith(".tmp-") for n in os.listdir(folder))
+
+
+class InterruptingCamera:
+    """The simulated camera, which presses Ctrl-C (SIGINT) once after ``after`` exposures."""
+
+    def __init__(self, url, after):
+        self.cam, self.after, self.n = SimCamera(url), after, 0
+
+    def expose(self, seconds, path):
+        self.n += 1
+        if self.n == self.after:
+            os.kill(os.getpid(), signal.SIGINT)
+        return self.cam.expose(seconds, path)
+
+    def close(self):
+        self.cam.close()
+
+
+def test_ctrl_c_once_stops_resumably_and_resume_finishes(instrument, tmp_path):
+    ref = instrument("ref2")
+    run(ref, tmp_path / "ref")
+    inst = instrument("cap2")
+    folder = tmp_path / "s"
+    n_darks = len(list((tmp_path / "ref" / "raw").glob("dark_*")))
+    res = run(inst, folder, camera=InterruptingCamera(inst.url("camera"), n_darks + 4))
+    assert not res.complete and "Ctrl-C" in res.stopped and 0 < res.n_done < len(SMALL)
+    assert_clean(folder)
+    res2 = resume(folder, camera=inst.url("camera"), sleep=inst.clock.advance, progress=False)
+    assert res2.complete and res2.n_new == len(SMALL) - res.n_done
+    a = {r["idx"]: r for r in Journal(tmp_path / "ref" / "journal.sqlite").points()}
+    b = {r["idx"]: r for r in Journal(folder / "journal.sqlite").points()}
+    assert sorted(b) == list(range(len(SMALL)))                   # every planned point exactly once
+    for i in a:                                                   # same values as the uninterrupted run
+        fa, fb = np.array(a[i]["brdf"]), np.array(b[i]["brdf"])
+        s = np.hypot(a[i]["brdf_std"], b[i]["brdf_std"])
+        assert np.all(np.abs(fa - fb) < 4 * s)
+    assert_clean(folder)
+
+
+def test_power_cycle_stops_and_resume_rehomes(instrument, tmp_path):
+    inst = instrument("cap3", faults=[{"kind": "power_cycle", "port": "zaber", "at_command": 40, "device": 1}])
+    folder = tmp_path / "s"
+    with pytest.raises(GonioError) as e:
+        run(inst, folder)
+    assert "\n" not in str(e.value)
+    n = len(Journal(folder / "journal.sqlite").done())
+    assert n < len(SMALL)
+    res = resume(folder, sleep=inst.clock.advance, progress=False)
+    assert res.complete
+    kinds = [k for _, k, _ in Journal(folder / "journal.sqlite").events()]
+    assert "home" in kinds and "stop" in kinds
+    c2, _ = chi2(folder, inst)
+    assert c2 < 3.0
+
+
+@pytest.mark.parametrize("fault", [
+    {"kind": "garble", "port": "zaber", "probability": 0.03},
+    {"kind": "timeout", "port": "zaber", "probability": 0.03},
+    {"kind": "bad_checksum", "port": "zaber", "probability": 0.03},
+    {"kind": "truncate", "port": "meter", "probability": 0.05},
+    {"kind": "camera_truncated", "port": "camera", "at_command": [20, 30]},
+    {"kind": "camera_nothing", "port": "camera", "at_command": [25]},
+    {"kind": "silence", "port": "meter", "at_command": [30], "duration": 3.0},
+])
+def test_faults_complete_with_no_wrong_point(instrument, tmp_path, fault):
+    inst = instrument("f", faults=[fault])
+    folder = tmp_path / "s"
+    res = run(inst, folder)
+    assert res.complete
+    c2, rows = chi2(folder, inst)
+    assert c2 < 3.0 and len(rows) == len(SMALL)
+    assert_clean(folder)
+    comm = [json.loads(t) for _, k, t in Journal(folder / "journal.sqlite").events() if k == "comm"][-1]
+    assert comm[f"{fault['port']}_retries"] > 0                # the fault did fire and was recovered
+
+
+def test_lamp_dies_pauses_then_stops_resumably(instrument, tmp_path):
+    inst = instrument("lamp", faults=[{"kind": "lamp_dies", "port": "meter", "at_command": 25}])
+    folder = tmp_path / "s"
+    with pytest.raises(DeviceError) as e:
+        run(inst, folder)
+    msg = str(e.value)
+    assert "paused" in msg and "lamp" in msg and "resume" in msg and "\n" not in msg
+    kinds = [k for _, k, _ in Journal(folder / "journal.sqlite").events()]
+    assert "pause" in kinds
+    assert len(Journal(folder / "journal.sqlite").done()) < len(SMALL)
+
+
+def test_bad_inputs_leave_nothing_behind(instrument, tmp_path):
+    inst = instrument("bad")
+    with pytest.raises(CommunicationError, match="cannot open the stage port"):
+        capture(tmp_path / "a", SMALL, S, "/dev/no-such-port", inst.url("meter"), inst.url("camera"), progress=False)
+    assert not (tmp_path / "a").exists()
+    with pytest.raises(CommunicationError, match="power-meter port"):
+        capture(tmp_path / "a", SMALL, S, inst.url("zaber"), "sim://nobody/meter", inst.url("camera"), progress=False)
+    assert not (tmp_path / "a").exists()
+    bad = plans.Plan("bad", [[30, 0, 40, 180], [30, 0, 30, 0]])
+    with pytest.raises(UnreachableError, match="1 unreachable"):
+        run(inst, tmp_path / "b", bad)
+    assert not (tmp_path / "b").exists()
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "x").write_text("")
+    with pytest.raises(SessionError, match="not empty"):
+        run(inst, tmp_path / "c")
+    with pytest.raises(SessionError, match="not a gonio session"):
+        resume(tmp_path / "c")

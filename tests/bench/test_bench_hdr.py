@@ -1,0 +1,68 @@
+"""HDR merge and exposure bracketing on synthetic frames with a known noise model."""
+
+import numpy as np
+import pytest
+
+from gonio.bench._camera import RawFrame
+from gonio.bench._hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
+
+NOISE = NoiseModel(gain=2.0, read_noise=3.0)
+FULL = 16383 - 512
+
+
+def frame(rate, t, power, rng, dark_rate=10.0, clip=True):
+    """A black-subtracted (3, h, w) frame: signal rate (DN per s per W) * t * P, with noise."""
+    mean = np.broadcast_to(rate * t * power + dark_rate * t, (3, 20, 30)).astype(float)
+    e = rng.poisson(mean * NOISE.gain) + rng.normal(0, NOISE.read_noise, mean.shape)
+    dn = np.round(e / NOISE.gain)
+    g2 = np.round((rng.poisson(mean[1] * NOISE.gain) + rng.normal(0, NOISE.read_noise, mean[1].shape)) / NOISE.gain)
+    if clip:
+        dn, g2 = np.minimum(dn, FULL), np.minimum(g2, FULL)
+    sig = dn.copy()
+    sig[1] = 0.5 * (dn[1] + g2)
+    peak = dn.copy()
+    peak[1] = np.maximum(dn[1], g2)
+    return RawFrame(sig, peak, np.array([1.0, 2.0, 1.0]), 512.0, 16383.0)
+
+
+def test_ladder_powers_of_two():
+    r = ladder(0.0005, 4.0)
+    assert r[0] == 0.0005 and r[-1] == 0.0005 * 2 ** 12 and np.all(r[1:] / r[:-1] == 2)
+
+
+def test_dn_for_snr():
+    s = NOISE.dn_for_snr(50.0)
+    assert s / np.sqrt(s / NOISE.gain + (NOISE.read_noise / NOISE.gain) ** 2 + 1 / 12) == pytest.approx(50.0)
+
+
+def test_merge_recovers_radiance_excluding_saturation():
+    rng = np.random.default_rng(0)
+    rate = np.array([1.2e8, 3e7, 5e6])[:, None, None]          # DN / (s W): red saturates at 16 ms
+    exps = []
+    for t in (0.001, 0.004, 0.016):
+        exps.append(Exposure(t, 0.01, frame(rate, t, 0.01, rng), frame(0.0, t, 0.0, rng)))
+    h = merge(exps, NOISE, 0.9)
+    assert h.n_used[0].max() == 2 and h.n_used[2].min() == 3      # the 16 ms red is saturated everywhere
+    z = (h.radiance - rate) / np.sqrt(h.var)
+    assert abs(z.mean()) < 0.1 and 0.85 < z.std() < 1.15           # unbiased, honest variance
+    assert np.all(h.var[0] < h.var[0].max() * 2)
+
+
+def test_merge_all_saturated_is_nan():
+    rng = np.random.default_rng(1)
+    e = Exposure(1.0, 1.0, frame(1e6, 1.0, 1.0, rng), frame(0.0, 1.0, 0.0, rng))
+    h = merge([e], NOISE, 0.9)
+    assert np.all(np.isnan(h.radiance)) and np.all(h.n_used == 0)
+
+
+def test_choose_bracket():
+    rungs = ladder(0.0005, 4.0)
+    # bright peak at 8000 DN in 8 ms, darkest at 20 DN: shortest keeps peak < 0.72 FS, longest reaches SNR 50
+    b = choose_bracket(rungs, 0.008, 8000.0, 20.0, FULL, NOISE, 0.9, 50.0)
+    assert b[0] == 0.008 and 8000 * b[0] / 0.008 < 0.72 * FULL
+    need = NOISE.dn_for_snr(50.0)
+    assert 20 * b[-1] / 0.008 >= need and 20 * b[-2] / 0.008 < need or b[-1] == rungs[-1]
+    assert all(x in rungs for x in b) and b == sorted(b)
+    # the darkest is never pushed into saturation
+    b = choose_bracket(rungs, 0.008, 15000.0, 14000.0, FULL, NOISE, 0.9, 1000.0)
+    assert 14000 * b[-1] / 0.008 < 0.9 * FULL

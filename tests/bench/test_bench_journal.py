@@ -1,0 +1,53 @@
+"""Session folder, journal and crash-safe files."""
+
+import sqlite3
+import tomllib
+
+import numpy as np
+import pytest
+
+from gonio.bench._files import atomic_write_bytes, remove_orphans, sha256_file, tmp_name
+from gonio.bench._journal import Journal, dumps_toml, read_session, write_session
+from gonio.bench.errors import SessionError
+
+
+def test_journal_pragmas_and_rows(tmp_path):
+    with Journal(tmp_path / "j.sqlite") as j:
+        assert j.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert j.db.execute("PRAGMA synchronous").fetchone()[0] == 2          # FULL
+        j.record_dark(0.004, "raw/d.dng", "ab" * 32)
+        j.record_point(3, (30, 0, 40, 180), (1, 2, 3, 4), [0.1, 0.2, 0.3], [0.01, 0.02, 0.03], False,
+                       {"exposures": [{"file": "raw/p.dng", "sha256": "cd" * 32}]})
+        with pytest.raises(sqlite3.IntegrityError):                           # a point is journalled once
+            j.record_point(3, (30, 0, 40, 180), (1, 2, 3, 4), [0, 0, 0], [0, 0, 0], False, {})
+    with Journal(tmp_path / "j.sqlite") as j:                                   # committed: survives a reopen
+        assert j.done() == {3} and j.darks() == {0.004: ("raw/d.dng", "ab" * 32)}
+        row = j.points()[0]
+        assert row["brdf"] == [0.1, 0.2, 0.3] and row["theta_o"] == 40 and row["saturated"] == 0
+
+
+def test_toml_round_trip(tmp_path):
+    doc = {"session": {"seed": 3, "name": 'a "quoted" name', "ok": True},
+           "plan": {"points": [[30.0, 0.0, 40.0, 180.0]], "name": "x"},
+           "settings": {"axes": {"yaw": [1, 1, -95.0, 95.0], "cycle_dist": 720000}, "reference": {"reflectance": 0.99}}}
+    write_session(tmp_path / "s", doc)
+    assert read_session(tmp_path / "s") == doc
+    assert (tmp_path / "s" / "raw").is_dir()
+    assert tomllib.loads(dumps_toml({"a": {"b": {"c": 1.5}}})) == {"a": {"b": {"c": 1.5}}}
+
+
+def test_not_a_session(tmp_path):
+    with pytest.raises(SessionError, match="not a gonio session"):
+        read_session(tmp_path)
+    (tmp_path / "session.toml").write_text("x = [")
+    with pytest.raises(SessionError, match="corrupt"):
+        read_session(tmp_path)
+
+
+def test_atomic_files(tmp_path):
+    digest = atomic_write_bytes(tmp_path / "a.bin", b"hello")
+    assert digest == sha256_file(tmp_path / "a.bin") and not tmp_name(tmp_path / "a.bin").exists()
+    tmp_name(tmp_path / "b.dng").write_bytes(b"half")
+    (tmp_path / "c.dng.part").write_bytes(b"half")
+    assert sorted(p.name for p in remove_orphans(tmp_path)) == [".tmp-b.dng", "c.dng.part"]
+    assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]

@@ -1,0 +1,90 @@
+"""The whole loop on the simulated instrument: capture -> export -> fit -> Mitsuba -> report.
+
+The virtual sample's BRDF is known, so the fit must recover it within its reported
+uncertainty, and Mitsuba, given the exported fit, must render what gonio's own model
+evaluates (tech-facts: the flat-sample/directional/radiancemeter scene renders
+f_r E cos(theta_i) exactly).
+"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gonio.bench._samples import DEMO_SAMPLE, check_sample
+from gonio.bench.export import export
+from gonio.bench.fit_runner import fit_dataset, render_closure
+from gonio.bench.report import _truth_by_name, write_report
+from gonio.bench.session_runner import capture_sim
+from gonio.fitting import load_dataset, write_json_atomic
+
+
+@pytest.fixture(scope="module")
+def loop(tmp_path_factory):
+    out = tmp_path_factory.mktemp("loop")
+    sample = check_sample(DEMO_SAMPLE)
+    summary = capture_sim(out / "session", sample=sample, plan="quick", seed=7, progress=False)
+    dataset = export(out / "session")
+    meas = load_dataset(dataset)
+    result, doc, _ = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=7,
+                                 dataset_path=dataset)
+    write_json_atomic(out / "fit.json", doc)
+    closure = render_closure(out / "fit.json", meas, out / "render")
+    return {"out": out, "sample": sample, "summary": summary, "meas": meas, "result": result, "doc": doc,
+            "closure": closure}
+
+
+def test_capture_is_complete_and_dataset_is_clean(loop):
+    s, meas = loop["summary"], loop["meas"]
+    assert s.complete and s.n_done == s.n_points == meas.n_points
+    assert np.all(np.isfinite(meas.brdf)) and np.all(meas.brdf_std > 0)
+    assert meas.attrs["sample_truth"]["model"] == "roughplastic"
+    assert "seed" in meas.attrs and "gonio_version" in meas.attrs
+
+
+def test_recovered_parameters_within_reported_uncertainty(loop):
+    doc, sample = loop["doc"], loop["sample"]
+    truths = _truth_by_name(sample, list(doc["parameters"]))
+    assert len(truths) == 5
+    for name, p in doc["parameters"].items():
+        z = (p["value"] - truths[name]) / p["std"]
+        assert abs(z) < 3.0, (name, p["value"], truths[name], p["std"])
+        assert p["ci90"][0] < p["value"] < p["ci90"][1]
+    assert 0.3 < doc["goodness"]["chi2_dof"] < 2.0
+    assert doc["constraints"]["energy"]["holds"]
+
+
+def test_mitsuba_renders_what_the_model_evaluates(loop):
+    s = loop["closure"]["summary"]
+    assert s["export_max_rel"] < 1e-4
+    # the render of the fit agrees with the measurement at the noise level
+    assert s["residual_rms_sigma"] < 2.0
+
+
+def test_report_is_self_contained(loop):
+    path = write_report(loop["out"], loop["out"] / "report.html")
+    text = path.read_text()
+    assert text.count("data:image/png;base64,") >= 4
+    assert "Mitsuba re-render" in text and "roughplastic" in text
+    assert (loop["out"] / "report_files" / "inplane.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_demo_command_end_to_end(tmp_path):
+    """`gonio demo` as a user runs it (quick plan to keep the suite short)."""
+    proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "demo", "--out", str(tmp_path / "out"),
+                           "--plan", "quick", "--seed", "3", "--no-posterior"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "within 3 sigma" in proc.stdout
+    for name in ("dataset.nc", "fit.json", "report.html", "render/render.json", "session/journal.sqlite"):
+        assert (tmp_path / "out" / name).exists(), name
+    fit = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert fit["provenance"]["seed"] == 3
+    # a second run replaces the previous demo session instead of refusing
+    proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "demo", "--out", str(tmp_path / "out"),
+                           "--plan", "quick", "--seed", "3", "--no-posterior"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]

@@ -1,0 +1,235 @@
+"""Every registered model: public interface, physical properties over a sweep of its
+parameter box, numerical hard cases and hostile parameters (issue 3)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import sys
+import subprocess
+
+import numpy as np
+import pytest
+
+import gonio.models as gm
+from gonio.models._albedo import QUADRATURE_ERROR
+
+from models_testutil import random_hemisphere, random_params
+
+
+def all_configs():
+    out = []
+    for name in gm.names():
+        cls = gm.get(name).__class__
+        keys = list(cls.OPTIONS)
+        for values in itertools.product(*(cls.OPTIONS[k] for k in keys)):
+            out.append((name, dict(zip(keys, values))))
+    return out
+
+
+CONFIGS = all_configs()
+IDS = ["-".join([n] + [f"{k}={v}" for k, v in o.items()]) for n, o in CONFIGS]
+
+
+def corner_params(model):
+    """Corners of the parameter box (all channels at the same corner)."""
+    pars = model.parameters
+    for corner in itertools.product(*[(p.lower, p.upper) for p in pars]):
+        yield {p.name: v for p, v in zip(pars, corner)}
+
+
+def sweep(model, rng, n_random=6):
+    yield model.defaults()
+    yield from corner_params(model)
+    for _ in range(n_random):
+        yield random_params(model, rng, alpha_range=(1e-4, 1.0))
+
+
+# -- interface ----------------------------------------------------------------------------
+
+
+def test_registry_and_interface():
+    assert {"diffuse", "roughplastic", "roughconductor", "cooktorrance", "orennayar"} <= set(gm.names())
+    m = gm.get("roughplastic", distribution="ggx")
+    assert m.name == "roughplastic"
+    assert m.options == {"distribution": "ggx", "nonlinear": False}
+    assert isinstance(m.parameters, tuple) and all(isinstance(p, gm.Parameter) for p in m.parameters)
+    p = m.parameters[0]
+    assert (p.name, p.per_channel, p.unit) == ("diffuse_reflectance", True, "1")
+    assert {q.name for q in gm.get("roughconductor", anisotropic=True).parameters} == {"eta", "k", "alpha_u", "alpha_v"}
+    assert gm.get("cooktorrance").energy_conserving is False
+    with pytest.raises(ValueError, match="unknown model"):
+        gm.get("phong")
+    with pytest.raises(ValueError, match="option"):
+        gm.get("roughplastic", distribution="phong")
+    with pytest.raises(ValueError, match="unknown option"):
+        gm.get("roughplastic", sample_visible=False)
+
+
+def test_import_is_light():
+    """``import gonio.models`` neither imports Mitsuba nor scipy."""
+    code = "import sys, gonio.models; print('mitsuba' in sys.modules, 'scipy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "False"]
+
+
+def test_validate_normalises():
+    m = gm.get("roughplastic")
+    v = m.validate({"diffuse_reflectance": 0.3, "alpha": np.float32(0.2)})
+    assert v["diffuse_reflectance"].shape == (3,) and np.all(v["diffuse_reflectance"] == 0.3)
+    assert isinstance(v["alpha"], float) and v["int_ior"] == 1.49
+
+
+@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+def test_eval_shapes_and_dtypes(name, options, rng):
+    m = gm.get(name, **options)
+    p = m.defaults()
+    wi, wo = random_hemisphere(rng, 50), random_hemisphere(rng, 50)
+    f = m.eval(wi, wo, p)
+    assert f.shape == (50, 3) and f.dtype == np.float64
+    # float32 input gives the float64 result of the rounded directions
+    f32 = m.eval(wi.astype(np.float32), wo.astype(np.float32), p)
+    ref = m.eval(wi.astype(np.float32).astype(np.float64), wo.astype(np.float32).astype(np.float64), p)
+    np.testing.assert_array_equal(f32, ref)
+    # N = 0
+    assert m.eval(np.zeros((0, 3)), np.zeros((0, 3)), p).shape == (0, 3)
+    assert m.albedo(np.zeros((0, 3)), p).shape == (0, 3)
+    with pytest.raises(ValueError):
+        m.eval(wi, wo[:10], p)
+    with pytest.raises(ValueError):
+        m.eval(wi[:, :2], wo[:, :2], p)
+
+
+# -- physics over the parameter box ------------------------------------------------------
+
+
+@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+def test_reciprocity_and_positivity(name, options, rng):
+    m = gm.get(name, **options)
+    wi, wo = random_hemisphere(rng, 2000), random_hemisphere(rng, 2000)
+    for p in sweep(m, rng):
+        f = m.eval(wi, wo, p)
+        g = m.eval(wo, wi, p)
+        assert np.all(np.isfinite(f)) and np.all(f >= 0), p
+        np.testing.assert_allclose(f, g, rtol=1e-12, atol=0, err_msg=str(p))
+
+
+@pytest.mark.parametrize("name,options", [c for c in CONFIGS if gm.get(c[0], **c[1]).energy_conserving],
+                         ids=[i for c, i in zip(CONFIGS, IDS) if gm.get(c[0], **c[1]).energy_conserving])
+def test_energy_conservation(name, options, rng):
+    """Directional albedo <= 1 + quadrature error over the parameter box."""
+    m = gm.get(name, **options)
+    th = np.array([0.0, 0.5, 1.0, 1.3, 1.5, math.pi / 2 - 1e-4])
+    wo = np.stack([np.sin(th) * math.cos(0.4), np.sin(th) * math.sin(0.4), np.cos(th)], 1)
+    for p in itertools.islice(sweep(m, rng, n_random=3), 8):
+        a = m.albedo(wo, p, tol=3e-4)
+        assert np.all(np.isfinite(a)) and np.all(a >= 0), p
+        assert a.max() <= 1 + QUADRATURE_ERROR, (p, a.max())
+
+
+def test_cooktorrance_can_exceed_one():
+    """The documented limitation: rho_s = 1, f0 = 1 gives an albedo far above 1."""
+    m = gm.get("cooktorrance")
+    a = m.albedo(np.array([[0.0, 0.0, 1.0]]), {"diffuse_reflectance": 0.0, "specular_reflectance": 1.0, "f0": 1.0, "roughness": 0.05})
+    assert a.min() > 3.0  # the Cook-Torrance 1/pi normalisation: about 4 F at small m
+
+
+def test_lambert_and_mirror_limits():
+    # Lambert: albedo = rho for every view (seed notes: Lambert's rho/pi)
+    wo = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [math.sin(1.5), 0.0, math.cos(1.5)]])
+    np.testing.assert_allclose(gm.get("diffuse").albedo(wo, {"reflectance": [0.2, 0.5, 0.9]}), [[0.2, 0.5, 0.9]] * 3, rtol=1e-12)
+    # a nearly smooth conductor is a mirror: albedo -> F(theta_o), all energy near the mirror direction
+    m = gm.get("roughconductor", distribution="ggx")
+    p = {"eta": [0.3504, 0.3504, 0.3504], "k": [2.7141, 2.7141, 2.7141], "alpha": 1e-3}
+    a = m.albedo(wo[:2], p)
+    F = gm.fresnel_conductor(wo[:2, 2:3], 0.3504, 2.7141)
+    np.testing.assert_allclose(a, np.broadcast_to(F, a.shape), rtol=2e-3)
+
+
+# -- hard cases -------------------------------------------------------------------------
+
+
+def hard_directions():
+    eps = 1e-7
+    t = math.pi / 2 - eps
+    g = np.array([math.sin(t), 0.0, math.cos(t)])  # 90 deg - 1e-7
+    z = np.array([0.0, 0.0, 1.0])
+    h = np.array([1.0, 0.0, 0.0])  # exactly at the horizon
+    b = np.array([0.6, 0.0, -0.8])  # below
+    s = np.array([0.6, 0.0, 0.8])
+    mirror = np.array([-0.6, 0.0, 0.8])
+    pairs = [
+        (g, g), (g, -g * [1, 1, -1]), (g, z), (z, g), (z, z), (s, s), (s, mirror), (g, np.array([-g[0], 0, g[2]])),
+        (h, h), (h, s), (s, h), (b, s), (s, b), (b, b), (-z, z), (s, -s),
+    ]
+    wi = np.array([p[0] for p in pairs])
+    wo = np.array([p[1] for p in pairs])
+    below = (wi[:, 2] <= 0) | (wo[:, 2] <= 0)
+    return wi, wo, below
+
+
+@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+def test_hard_cases(name, options, rng):
+    m = gm.get(name, **options)
+    wi, wo, below = hard_directions()
+    corners = list(corner_params(m))
+    for j, p in enumerate(corners + [m.defaults()]):
+        for a, b in ((wi, wo), (wi.astype(np.float32), wo.astype(np.float32))):
+            f = m.eval(a, b, p)
+            assert np.all(np.isfinite(f)) and np.all(f >= 0), p
+            assert np.all(f[below] == 0), p
+        if j in (0, len(corners) - 1, len(corners)):  # lowest, highest corner, defaults
+            d = np.unique(np.concatenate([wo, wi]), axis=0)
+            al = m.albedo(d, p, tol=1e-3)
+            assert np.all(np.isfinite(al)) and np.all(al >= 0)
+            assert np.all(al[d[:, 2] <= 0] == 0)
+
+
+def test_large_batch_memory():
+    """1e7 pairs evaluate in blocks: peak traced memory stays well under 2 GB."""
+    import tracemalloc
+
+    n = 10_000_000
+    m = gm.get("diffuse")
+    wi = np.zeros((n, 3))
+    wi[:, 2] = 1.0
+    tracemalloc.start()
+    f = m.eval(wi, wi, {})
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert f.shape == (n, 3) and peak < 2e9 - 2 * wi.nbytes
+    assert peak < 1.5 * f.nbytes  # output plus one block of temporaries
+
+
+# -- hostile parameters --------------------------------------------------------------------
+
+HOSTILE = [-1.0, float("inf"), -float("inf"), float("nan")]
+
+
+@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+def test_hostile_parameters(name, options):
+    m = gm.get(name, **options)
+    wi = np.array([[0.0, 0.0, 1.0]])
+    for par in m.parameters:
+        for bad in HOSTILE + [par.upper * 10 + 1]:
+            with pytest.raises(ValueError, match=par.name):
+                m.eval(wi, wi, {par.name: bad})
+        if par.per_channel:
+            with pytest.raises(ValueError, match=par.name):
+                m.validate({par.name: [0.1, 0.2]})
+            with pytest.raises(ValueError, match=par.name):
+                m.validate({par.name: [0.1, float("nan"), 0.2]})
+    with pytest.raises(ValueError, match="unknown parameter"):
+        m.validate({"nonsense": 1.0})
+    with pytest.raises(ValueError):
+        m.validate({m.parameters[0].name: "abc"})
+
+
+def test_plastic_rejects_eta_below_one():
+    m = gm.get("roughplastic")
+    for eta in (0.5, 1.0):
+        with pytest.raises(ValueError, match="int_ior"):
+            m.validate({"int_ior": eta})
+    for alpha in (0.0, -0.1):
+        with pytest.raises(ValueError, match="alpha"):
+            m.validate({"alpha": alpha})

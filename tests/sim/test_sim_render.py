@@ -1,0 +1,90 @@
+"""Rendered holder radiance against f_r * E * cos(theta_i) and the image layout."""
+
+import numpy as np
+import pytest
+
+ROUGH = {"mitsuba": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2,
+                     "diffuse_reflectance": {"type": "rgb", "value": [0.6, 0.3, 0.1]}}}
+POSES = [dict(yaw=15.0, tilt=0.0, azimuth=0.0, lamp=30.0),          # specular geometry
+         dict(yaw=30.0, tilt=20.0, azimuth=30.0, lamp=50.0),
+         dict(yaw=-20.0, tilt=-35.0, azimuth=-120.0, lamp=40.0),
+         dict(yaw=60.0, tilt=10.0, azimuth=40.0, lamp=100.0),
+         dict(yaw=-40.0, tilt=20.0, azimuth=30.0, lamp=60.0)]         # light behind: 0
+GLOSSY = {"model": "roughplastic", "options": {"distribution": "ggx"},
+          "params": {"diffuse_reflectance": [0.55, 0.3, 0.12], "alpha": 0.15, "int_ior": 1.5}}
+
+
+def _pixel(inst, point_local):
+    """(row, col) that sees a point of the holder plane, or None when outside the frame."""
+    g = inst.geometry()
+    s = inst.settings["camera"]["pixel_size"]
+    W, H = inst.sensor.width, inst.sensor.height
+    col = int(round((W - 1) / 2 + point_local @ g["right"] / s))
+    row = int(round((H - 1) / 2 - point_local @ g["up"] / s))
+    return (row, col) if 0 <= row < H and 0 <= col < W else None
+
+
+@pytest.mark.parametrize("spec", [ROUGH, GLOSSY, {"model": "diffuse", "params": {"reflectance": 0.7}},
+                                  {"model": "cooktorrance", "params": {}},
+                                  {"bsdf_file": "/work/shared/data/rgl/paper_white_rgb.bsdf"}],
+                         ids=["mitsuba-dict", "models-roughplastic", "models-diffuse",
+                              "models-cooktorrance", "measured"])
+def test_sample_radiance_is_fr_e_cos(make, spec):
+    import os
+    if "bsdf_file" in spec and not os.path.exists(spec["bsdf_file"]):
+        pytest.skip("RGL data not present")
+    inst = make(sample=spec)
+    off = inst.settings["holder"]["offset"]
+    checked = lit = 0
+    for pose in POSES:
+        inst.set_pose(**pose)
+        g = inst.geometry()
+        img = inst.radiance()
+        r, c = _pixel(inst, np.array([-off, 0.0, 0.0]))
+        checked += 1
+        expected = inst.true_brdf(g["wi"][None], g["wo"][None])[0] * g["wi"][2]
+        # measured data: the exact mirror direction sits on a kink of the plugin's warp, where
+        # 1e-6 of float32 direction round-off moves the value by 0.2 %
+        rtol = 5e-3 if "bsdf_file" in spec else 2e-5
+        np.testing.assert_allclose(img[r, c], expected, rtol=rtol, atol=1e-7)
+        lit += bool(expected.max() > 1e-3)
+        ref_px = _pixel(inst, np.array([off, 0.0, 0.0]))
+        if ref_px is not None:
+            ref = inst.reference.eval(g["wi"][None], g["wo"][None])[0] * g["wi"][2]
+            np.testing.assert_allclose(img[ref_px], ref, rtol=2e-4)
+        hr, hc = _pixel(inst, np.array([0.0, 0.0, 0.0]))      # holder between the squares
+        np.testing.assert_allclose(img[hr, hc], 0.05 / np.pi * max(g["wi"][2], 0.0), rtol=1e-3)
+    assert checked == len(POSES) and lit == len(POSES) - 1
+
+
+def test_image_axes(make):
+    """At zero pose, lamp aside: the sample (local x < 0 -> lab -Y) is on the image's left."""
+    inst = make(sample={"model": "diffuse", "params": {"reflectance": 0.3}})
+    inst.set_pose(yaw=0.0, tilt=0.0, azimuth=0.0, lamp=30.0)
+    img = inst.radiance()[..., 1]
+    W = inst.sensor.width
+    row = inst.sensor.height // 2
+    left, right = img[row, : W // 2 - 8], img[row, W // 2 + 8:]
+    assert np.median(left) == pytest.approx(0.3 / np.pi * np.cos(np.radians(30)), rel=1e-4)
+    assert np.median(right) == pytest.approx(0.99 / np.pi * np.cos(np.radians(30)), rel=1e-4)
+    # azimuth 90: local x -> lab Z, so the sample square (x < 0) moves to the bottom
+    inst.set_pose(azimuth=90.0)
+    img = inst.radiance()[..., 1]
+    col = W // 2
+    assert img[-5, col] == pytest.approx(0.3 / np.pi * np.cos(np.radians(30)), rel=1e-4)
+    assert img[5, col] == pytest.approx(0.99 / np.pi * np.cos(np.radians(30)), rel=1e-4)
+
+
+def test_light_behind_sample_is_dark(make):
+    inst = make()
+    inst.set_pose(yaw=-60.0, tilt=0.0, azimuth=0.0, lamp=150.0)   # cos(theta_i) < 0
+    assert inst.geometry()["wi"][2] < 0
+    assert np.abs(inst.radiance()).max() == 0.0
+
+
+def test_lamp_in_front_of_camera_blocks_the_view(make):
+    inst = make()
+    inst.set_pose(yaw=0.0, tilt=0.0, azimuth=0.0, lamp=4.0)        # inside lamp_block_deg = 6
+    assert np.abs(inst.radiance()).max() == 0.0
+    inst.set_pose(lamp=8.0)
+    assert inst.radiance().max() > 0.1
