@@ -5,6 +5,7 @@
 | ``*IDN?`` | ``gonio,SimCamera,SIM00001,0.1.0`` |
 | ``SENSOR?`` | ``<width> <height> <bits> <black> <white> <cfa>`` |
 | ``EXPOSE <seconds> <path>`` | ``OK <sha256>`` once the DNG is at ``<path>``; ``ERR <reason>`` |
+| ``FLAT <seconds> <path>`` | as ``EXPOSE``, of the flat-field source (integrating sphere) |
 
 The exposure physics lives in ``Instrument.capture``; this module parses and formats.
 Exposures from 1 us to 60 s are accepted; the path is the rest of the line (spaces allowed),
@@ -42,11 +43,11 @@ class CameraPort:
         if cmd == "SENSOR?" and len(parts) == 1:
             s = self.inst.sensor
             return [f"{s.width} {s.height} {s.bits} {s.black} {s.white} {CFA}"]
-        if cmd == "EXPOSE":
-            return [self._expose(parts[1:])]
+        if cmd in ("EXPOSE", "FLAT"):
+            return [self._expose(parts[1:], "flat" if cmd == "FLAT" else "scene")]
         return ["ERR unknown command"]
 
-    def _expose(self, args) -> str:
+    def _expose(self, args, source="scene") -> str:
         try:
             seconds = float(args[0])
         except (IndexError, ValueError):
@@ -59,7 +60,7 @@ class CameraPort:
         folder = os.path.dirname(os.path.abspath(path))
         if not os.path.isdir(folder):
             return "ERR no such directory"
-        data = self.inst.capture(seconds)
+        data = self.inst.capture(seconds, source)
         fault = self.armed.pop(0) if self.armed else None
         try:
             if fault == "nothing":

@@ -255,18 +255,31 @@ class Instrument:
             self._radiance.move_to_end(pose)
         return img
 
-    def capture(self, seconds: float) -> bytes:
+    #: Radiance (per unit power, sr^-1) and power (W) of the flat-field source: an integrating
+    #: sphere as bright as a white Lambertian at normal incidence under the full lamp, on its
+    #: own stabilised supply (no warm-up, no drift).
+    FLAT_RADIANCE = 1.0 / math.pi
+    FLAT_POWER = 0.01
+
+    def capture(self, seconds: float, source: str = "scene") -> bytes:
         """Expose one frame of ``seconds`` now; advance the clock; return the DNG bytes.
 
+        ``source="flat"`` images the flat-field source (the lab puts an integrating sphere
+        in front of the lens; it fills the frame with uniform radiance), for the
+        photo-response non-uniformity calibration.
+
         The noise comes from ``default_rng([seed, 0xCA3E, *pose + 2**31, exposure ns, lamp on,
-        flux ppm, lamp dead, frame count at this pose])``: the same pose, exposure, lamp state
-        and frame order give the same noise in a new process.
+        flux ppm, lamp dead, flat, frame count at this pose])``: the same pose, exposure, lamp
+        state and frame order give the same noise in a new process.
         """
+        if source not in ("scene", "flat"):
+            raise ValueError(f"unknown camera source {source!r}")
+        flat = source == "flat"
         with self.lock:
             t0 = self.clock.now()
             pose = self.pose_microsteps()
             lamp = self.lamp
-            state = (int(lamp.on), int(round(lamp.flux * 1e6)), int(lamp.dead))
+            state = (int(lamp.on), int(round(lamp.flux * 1e6)), int(lamp.dead), int(flat))
             if pose != self._frame_key:
                 self._frame_key, self._frame_count = pose, 0
             frame = self._frame_count
@@ -275,14 +288,16 @@ class Instrument:
             key = [self.seed & 0xFFFFFFFF, 0xCA3E, *[(p + 2**31) & 0xFFFFFFFF for p in pose],
                    exposure_ns, *state, frame]
             rng = np.random.default_rng(key)
-            power = lamp.power(t0 + 0.5 * seconds)
-            if power > 0.0:
+            power = self.FLAT_POWER if flat else lamp.power(t0 + 0.5 * seconds)
+            if flat:
+                rad = np.full((self.sensor.height, self.sensor.width, 3), self.FLAT_RADIANCE)
+            elif power > 0.0:
                 rad = self.radiance(pose)
             else:
                 rad = np.zeros((self.sensor.height, self.sensor.width, 3))
             raw = self.sensor.expose(rad, power, seconds, rng)
             self.clock.advance(seconds)
             desc = {"gonio_sim": 1, "pose_microsteps": list(pose), "exposure_ns": exposure_ns,
-                    "frame_at_pose": frame, "seed": self.seed}
+                    "frame_at_pose": frame, "seed": self.seed, "source": source}
             return encode_dng(raw, black=self.sensor.black, white=self.sensor.white,
                               exposure=seconds, description=desc)

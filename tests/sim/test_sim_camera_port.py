@@ -122,3 +122,31 @@ def test_capture_point_wall_time(make, tmp_path):
     per_point = float(np.median(times))
     print(f"\nsimulated capture point: median {per_point * 1e3:.1f} ms wall")
     assert per_point < 0.25       # target 0.1 s; loose bound against CI noise
+
+
+def test_flat_field_source_reveals_the_prnu_map(tmp_path):
+    """FLAT frames are uniform radiance: their mean over many frames is the PRNU gain map.
+
+    With N frames at ~15000 e- the per-pixel estimate has relative noise
+    1/sqrt(15000 N) (Poisson), so the estimated map must correlate with the true map
+    (PRNU 1 %) far above chance.
+    """
+    from gonio.sim import Instrument
+    from gonio.sim._camera_port import CameraPort
+
+    inst = Instrument(seed=5)
+    cam = CameraPort(inst)
+    frames = []
+    for k in range(16):
+        reply = cam.handle(f"FLAT 0.01 {tmp_path / f'f{k}.dng'}")[0]
+        assert reply.startswith("OK "), reply
+        with rawpy.imread(str(tmp_path / f"f{k}.dng")) as raw:
+            frames.append(raw.raw_image_visible.astype(float) - inst.sensor.black)
+    mean = np.mean(frames, axis=0)
+    est = mean / mean.mean()
+    truth = inst.sensor.prnu_map / inst.sensor.prnu_map.mean()
+    r = np.corrcoef(est.ravel(), truth.ravel())[0, 1]
+    assert r > 0.8, r
+    # the source is uniform: away from PRNU the frame is flat to the shot-noise level
+    assert abs(mean.mean() / np.median(mean) - 1) < 0.01
+    assert cam.handle("FLAT -1 x.dng")[0] == "ERR bad exposure"
