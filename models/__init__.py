@@ -16,7 +16,9 @@ Conventions (everywhere in this package)
 Public API
 ----------
 ``get(name, **options)``, ``names()``, ``Parameter``, ``Model`` (base class),
-``mitsuba_variant()``; the pieces ``fresnel_dielectric``, ``fresnel_conductor``,
+``mitsuba_variant()``; ``fast`` (compiled Dr.Jit path: ``fast.available()``,
+``fast.eval(model, wi, wo, params)``, ``fast.value_and_grad(model, wi, wo, params,
+cotangent)``); ``gonio.models.bench.run()`` (throughput benchmark); the pieces ``fresnel_dielectric``, ``fresnel_conductor``,
 ``fresnel_schlick``, ``MicrofacetDistribution``, ``lambert``, ``oren_nayar``.
 
 Example
@@ -29,6 +31,7 @@ Example
 from __future__ import annotations
 
 from . import _cooktorrance, _lambertian, _orennayar, _roughconductor, _roughplastic  # noqa: F401  (register models)
+from . import _fast as fast
 from ._base import CHANNELS, Model, Parameter, get, names
 from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
@@ -42,6 +45,7 @@ __all__ = [
     "Model",
     "CHANNELS",
     "mitsuba_variant",
+    "fast",
     "fresnel_dielectric",
     "fresnel_conductor",
     "fresnel_schlick",

@@ -198,8 +198,13 @@ def _tables(kind, alpha, eta):
         cp = mu / dr.sqrt((alpha * wxr) ** 2 + mu * mu)
         if kind == "beckmann":
             u_np, sy_np = extra
-            u1 = dr.gather(F, F(u_np), i)
-            sx = _beckmann_sx(dr, cp, u1)
+            # the x slope depends on (r, i) only: solve it on that small grid, then gather
+            k = dr.arange(U, res * a)
+            rk = k // a
+            muk = dr.gather(F, F(mu_np), rk)
+            cpk = muk / dr.sqrt((alpha * dr.gather(F, F(wx_np), rk)) ** 2 + muk * muk)
+            sxk = _beckmann_sx(dr, cpk, dr.gather(F, F(u_np), k - rk * a))
+            sx = dr.gather(F, sxk, r * a + i)
             sy = dr.gather(F, F(sy_np), j)
             mx = -alpha * sx
             my2 = (alpha * sy) ** 2
@@ -346,26 +351,30 @@ def _kernel(model, wi, wo, P):
 
 
 def _inputs(model, wi, wo, params, grad):
+    """Dr.Jit inputs. Directions are loaded as flat (3N) arrays without copies and
+    de-interleaved by gathers inside the fused kernel; non-finite directions are
+    degenerate geometry (f_r = 0), as in the reference."""
     dr, F, V3, U = _dr()
     wi = as_directions(wi, "wi")
     wo = as_directions(wo, "wo")
     if wi.shape != wo.shape:
         raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
     p = model.validate(params)
-    # non-finite directions are degenerate geometry (0), as in the reference
-    bad = ~(np.isfinite(wi).all(1) & np.isfinite(wo).all(1))
-    if bad.any():
-        wi, wo = wi.copy(), wo.copy()
-        wi[bad] = wo[bad] = (0.0, 0.0, -1.0)
-    vi = V3(*(F(np.ascontiguousarray(wi[:, k])) for k in range(3)))
-    vo = V3(*(F(np.ascontiguousarray(wo[:, k])) for k in range(3)))
+    n = wi.shape[0]
+    idx = dr.arange(U, n) * 3
+    flat_i, flat_o = F(wi.reshape(-1)), F(wo.reshape(-1))
+    vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
+    vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
+    finite = dr.isfinite(vi.x) & dr.isfinite(vi.y) & dr.isfinite(vi.z)
+    finite &= dr.isfinite(vo.x) & dr.isfinite(vo.y) & dr.isfinite(vo.z)
+    down = V3(0.0, 0.0, -1.0)
+    vi = dr.select(finite, vi, down)
+    vo = dr.select(finite, vo, down)
     P, leaves = {}, []
     for par in model.parameters:
         v = p[par.name]
-        if par.per_channel:
-            vals = [dr.opaque(F, float(x)) for x in v]
-        else:
-            vals = [dr.opaque(F, float(v))]
+        xs = [float(x) for x in v] if par.per_channel else [float(v)]
+        vals = [dr.opaque(F, x) for x in xs]
         if grad:
             for x in vals:
                 dr.enable_grad(x)
@@ -376,7 +385,18 @@ def _inputs(model, wi, wo, params, grad):
             P["_tables"] = _tables(model.options["distribution"], dr.maximum(P["alpha"], 1e-4), P["int_ior"])
         else:
             P["_tables"] = _cached_tables(model.options["distribution"], p["alpha"], p["int_ior"])
-    return vi, vo, P, leaves, wi.shape[0]
+    return vi, vo, P, leaves, n
+
+
+def _interleave(chans, n):
+    """(N, 3) numpy array from three Dr.Jit arrays, evaluated in one fused kernel."""
+    dr, F, V3, U = _dr()
+    chans = [dr.detach(c) for c in chans]
+    dr.eval(*chans)
+    out = np.empty((n, CHANNELS))
+    for c, ch in enumerate(chans):
+        out[:, c] = np.asarray(ch)
+    return out
 
 
 @lru_cache(maxsize=256)
@@ -387,16 +407,24 @@ def _cached_tables(kind, alpha, eta):
     return t, r
 
 
+def _empty(model, wi, wo, params):
+    """Validate the arguments; True for an empty batch."""
+    a, b = as_directions(wi, "wi"), as_directions(wo, "wo")
+    if a.shape != b.shape:
+        raise ValueError(f"wi and wo must have the same shape, got {a.shape} and {b.shape}")
+    model.validate(params)
+    return a.shape[0] == 0
+
+
 def eval(model, wi, wo, params):
     """Compiled f_r(wi, wo), shape (N, 3); same contract as ``model.eval``."""
     dr, F, V3, U = _dr()
-    vi, vo, P, _, n = _inputs(model, wi, wo, params, grad=False)
-    if n == 0:
+    if _empty(model, wi, wo, params):
         return np.zeros((0, CHANNELS))
+    vi, vo, P, _, n = _inputs(model, wi, wo, params, grad=False)
     with dr.suspend_grad():
         chans = _kernel(model, vi, vo, P)
-        dr.eval(*chans)
-    return np.stack([np.asarray(c, dtype=np.float64) for c in chans], axis=1)
+        return _interleave(chans, n)
 
 
 def value_and_grad(model, wi, wo, params, cotangent):
@@ -418,18 +446,23 @@ def value_and_grad(model, wi, wo, params, cotangent):
     Roughness below Mitsuba's floor (1e-4) is clamped, so its gradient is 0 there.
     """
     dr, F, V3, U = _dr()
+    if _empty(model, wi, wo, params):
+        p = model.validate(params)
+        return np.zeros((0, CHANNELS)), {k: (np.zeros(CHANNELS) if np.ndim(v) else 0.0) for k, v in p.items()}
     vi, vo, P, leaves, n = _inputs(model, wi, wo, params, grad=True)
     cot = np.asarray(cotangent, dtype=np.float64)
     if cot.shape != (n, CHANNELS):
         raise ValueError(f"cotangent must have shape ({n}, {CHANNELS}), got {cot.shape}")
     chans = _kernel(model, vi, vo, P)
+    flat_c = F(np.ascontiguousarray(cot).reshape(-1))
+    idx = dr.arange(U, n) * 3
     loss = 0.0
     for c, ch in enumerate(chans):
-        loss = loss + dr.sum(ch * F(np.ascontiguousarray(cot[:, c])))
+        loss = loss + dr.sum(ch * dr.gather(F, flat_c, idx + c))
     dr.backward(loss)
-    f = np.stack([np.asarray(dr.detach(c), dtype=np.float64) for c in chans], axis=1)
+    f = _interleave(chans, n)
     grad = {}
     for par, vals in leaves:
-        g = np.array([float(np.asarray(dr.grad(x)).ravel()[0]) if dr.grad_enabled(x) else 0.0 for x in vals])
+        g = np.array([float(np.asarray(dr.grad(x)).ravel()[0]) for x in vals])
         grad[par.name] = g if par.per_channel else float(g[0])
     return f, grad

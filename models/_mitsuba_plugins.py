@@ -116,13 +116,19 @@ def _make_classes(mi, dr):
 
 
 def ensure_registered(model_name):
-    """Register the Python BSDF of ``model_name`` for the current gonio Mitsuba variant;
-    return its plugin name (``gonio_<model_name>``)."""
-    variant = mitsuba_variant()
+    """Register the Python BSDF of ``model_name`` for the active Mitsuba variant (gonio's
+    default variant if none is active yet); return its plugin name (``gonio_<model_name>``).
+
+    Registration is per variant, and callers may hold another variant in a
+    ``mi.scoped_set_variant`` block (the scalar virtual gonioreflectometer does), so the
+    active variant wins over gonio's default.
+    """
+    import mitsuba as mi
+
+    variant = mi.variant() or mitsuba_variant()
     plugin = f"gonio_{model_name}"
     if (variant, plugin) not in _registered:
         import drjit as dr
-        import mitsuba as mi
 
         classes = _make_classes(mi, dr)
         cls = classes[model_name]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 
 from ._base import Model, Parameter, register
 from ._diffuse import oren_nayar

@@ -25,7 +25,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from ._fresnel import fresnel_dielectric
 from ._microfacet import ALPHA_MIN, MicrofacetDistribution, _concentric_disk
 
 __all__ = ["RES", "rough_tables", "lerp_table", "clear_cache"]

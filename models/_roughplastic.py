@@ -9,14 +9,12 @@ changes eta by 2.8e-4 and F by about 0.1 %).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ._base import INV_PI, Model, Parameter, register, rgb
 from ._fresnel import fresnel_dielectric
 from ._geometry import half_vector
-from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution, smith_g1_xyz
+from ._microfacet import MicrofacetDistribution, smith_g1_xyz
 from ._rough_tables import lerp_table, rough_tables
 
 __all__ = ["RoughPlastic"]
