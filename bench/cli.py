@@ -73,7 +73,14 @@ def _cmd_fit(args):
 def _cmd_render(args):
     from .fit_runner import render_cli
 
-    render_cli(Path(args.fit), Path(args.dataset), Path(args.out), variant=args.variant)
+    render_cli(Path(args.fit), Path(args.dataset), Path(args.out), variant=args.variant, preview=args.preview,
+               measured=args.measured, size=args.size, spp=args.spp)
+
+
+def _cmd_convert(args):
+    from .fit_runner import convert_cli
+
+    convert_cli(Path(args.source), Path(args.out), args.to)
 
 
 def _cmd_report(args):
@@ -140,7 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_cmd_export)
 
     f = sub.add_parser("fit", help="fit a model to a dataset")
-    f.add_argument("dataset", help="dataset.nc")
+    f.add_argument("dataset", help="dataset.nc, a MERL .binary or an RGL .bsdf file")
     f.add_argument("--model", default="auto", help="model name, or auto for BIC model selection (default)")
     f.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="model option, e.g. distribution=beckmann (repeatable)")
@@ -156,7 +163,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--dataset", required=True, help="dataset.nc")
     r.add_argument("--out", required=True, help="output folder (render.json)")
     r.add_argument("--variant", help="Mitsuba variant (default: llvm_ad_rgb when it works, else scalar_rgb)")
+    r.add_argument("--preview", action="store_true", help="also render sphere previews under two lightings")
+    r.add_argument("--measured", help="measured data to preview beside the fit: MERL .binary or RGL .bsdf")
+    r.add_argument("--size", type=int, default=128, help="preview size in pixels (default 128)")
+    r.add_argument("--spp", type=int, default=256, help="preview samples per pixel (default 256)")
     r.set_defaults(func=_cmd_render)
+
+    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict or MERL, a dataset to CSV")
+    cv.add_argument("source", help="fit file (JSON) or dataset.nc")
+    cv.add_argument("--to", required=True, choices=["mitsuba-xml", "mitsuba-dict", "merl", "csv"])
+    cv.add_argument("--out", required=True, help="file to write")
+    cv.set_defaults(func=_cmd_convert)
 
     rep = sub.add_parser("report", help="write a self-contained HTML report of an output folder")
     rep.add_argument("folder", help="folder with dataset.nc (and fit.json, render/render.json)")

@@ -32,6 +32,21 @@ def _clear_previous_demo(session: Path):
     shutil.rmtree(session)
 
 
+def _truth_bsdf(model, params):
+    """The simulated sample's true BSDF as a Mitsuba dict (the 'measured' side of the preview)."""
+    import mitsuba as mi
+
+    from gonio.models import mitsuba_variant
+
+    with mi.scoped_set_variant(mitsuba_variant()):
+        return model.to_mitsuba(params)
+
+
+def _noise_floor(preview: dict) -> float:
+    values = [v["noise_mean"] for v in (preview.get("delta_e") or {}).values() if v.get("noise_mean") is not None]
+    return max(values) if values else float("nan")
+
+
 def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool = True) -> dict:
     """Run the loop; returns a summary dict (the figures printed)."""
     from rich.console import Console
@@ -41,7 +56,9 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
 
     from ._samples import load_sample
     from .export import export
-    from .fit_runner import fit_dataset, print_fit, render_closure
+    import gonio.models as gm
+
+    from .fit_runner import fit_dataset, print_fit, render_closure, render_previews
     from .report import write_report
     from .session_runner import capture_sim
 
@@ -75,6 +92,12 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
     timings[f"Mitsuba re-render ({closure['variant']})"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    truth_model = gm.get(sample["model"], **sample["options"])
+    with_truth = render_previews(out / "fit.json", out / "render", measured=_truth_bsdf(truth_model, sample["params"]),
+                                 size=96, spp=128)
+    timings["preview renders (sphere, 2 lightings)"] = time.perf_counter() - t
+
+    t = time.perf_counter()
     report = write_report(out, out / "report.html")
     timings["report"] = time.perf_counter() - t
 
@@ -92,6 +115,9 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
         table.add_row(stage, f"{seconds:.2f}")
     table.add_row("total", f"{sum(timings.values()):.2f}")
     console.print(table)
+    if with_truth.get("delta_e_mean") is not None:
+        console.print(f"preview: fit vs the true sample, mean CIEDE2000 {with_truth['delta_e_mean']:.2f} "
+                      f"(Monte Carlo noise floor {_noise_floor(with_truth):.2f})")
 
     from .report import _truth_by_name
 

@@ -24,15 +24,35 @@ def parse_options(pairs) -> dict:
     return out
 
 
-def _open_dataset(path: Path):
+def _open_dataset(path: Path, seed: int = 0):
+    """A gonio dataset.nc, a MERL .binary file or an RGL .bsdf file, as Measurements.
+
+    MERL and RGL files carry no uncertainty: each value gets a relative 1-sigma (1 % MERL,
+    2 % RGL) that sets the fit's weighting. A MERL table is subsampled to 5000 of its bins
+    (seeded); an RGL file is sampled at the ``standard`` plan's geometry.
+    """
     from gonio.fitting import load_dataset
 
     if not path.exists():
         raise GonioError(f"dataset {path} does not exist; run `gonio export SESSION` to write one")
+    suffix = path.suffix.lower()
     try:
+        if suffix == ".binary":
+            from gonio.fitting.formats import merl_to_measurements
+
+            return merl_to_measurements(path, n=5000, rng=np.random.default_rng(seed))
+        if suffix == ".bsdf":
+            from gonio.fitting import direction
+            from gonio.fitting.formats import rgl_measurements
+
+            from .plans import load_plan
+
+            a = np.radians(load_plan("standard").angles)
+            return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
         return load_dataset(path)
-    except OSError as exc:
-        raise GonioError(f"cannot read {path} as NetCDF ({exc}); give a dataset.nc written by gonio export") from None
+    except (OSError, ValueError) as exc:
+        raise GonioError(f"cannot read {path} ({' '.join(str(exc).split())}); give a dataset.nc written by "
+                         "gonio export, a MERL .binary or an RGL .bsdf file") from None
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", posterior=False,
@@ -65,6 +85,13 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", poster
     return result, doc, post
 
 
+def _energy_text(energy: dict) -> str:
+    if energy.get("by_construction") and energy.get("max_albedo") is None:
+        return "conserved by construction"
+    state = "holds" if energy.get("holds") else "VIOLATED"
+    return f"{state} (max albedo {energy['max_albedo']:.4f})" if energy.get("max_albedo") is not None else state
+
+
 def print_fit(doc, truth=None, console=None):
     """A rich table of the fit: value, 1-sigma, 90 % interval (and the truth when known)."""
     from rich.console import Console
@@ -88,8 +115,7 @@ def print_fit(doc, truth=None, console=None):
     console.print(table)
     g = doc["goodness"]
     console.print(f"chi2/dof = {g['chi2_dof']:.3f} ({g['dof']} dof), RMSE f_r = {g['rmse_fr']:.3g} 1/sr, "
-                  f"energy {'holds' if doc['constraints']['energy']['holds'] else 'VIOLATED'} "
-                  f"(max albedo {doc['constraints']['energy']['max_albedo']:.4f}), "
+                  f"energy {_energy_text(doc['constraints']['energy'])}, "
                   f"{doc['optimiser']['evaluations']} evaluations in {doc['optimiser']['time_s']:.2f} s")
     flagged = [n for n, p in doc["parameters"].items() if p["undetermined"]]
     if flagged:
@@ -101,7 +127,7 @@ def print_fit(doc, truth=None, console=None):
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
     from gonio.fitting import write_json_atomic
 
-    meas = _open_dataset(dataset)
+    meas = _open_dataset(dataset, seed)
     _, doc, _ = fit_dataset(meas, model=model, options=parse_options(options), seed=seed, loss=loss,
                             posterior=posterior, dataset_path=dataset)
     write_json_atomic(out, doc)
@@ -130,10 +156,62 @@ def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     return result
 
 
-def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None):
+def render_previews(fit_path: Path, out_dir: Path, measured=None, size: int = 128, spp: int = 256) -> dict:
+    """Sphere previews of the fit (and of the measured data) with CIEDE2000; writes preview.json."""
+    from gonio.fitting import load_fit, write_json_atomic
+    from gonio.fitting.preview import preview
+
+    model, params, _ = load_fit(fit_path)
+    if isinstance(measured, (str, Path)) and not Path(measured).exists():
+        raise GonioError(f"measured data {measured} does not exist; give a MERL .binary or RGL .bsdf file")
+    result = preview(model, params, Path(out_dir) / "preview", measured=measured, size=size, spp=spp)
+    summary = {k: (str(v) if isinstance(v, Path) else v) for k, v in result.items() if k != "images"}
+    summary["images"] = {lighting: {k: str(v) for k, v in paths.items()} for lighting, paths in result["images"].items()}
+    write_json_atomic(Path(out_dir) / "preview" / "preview.json", summary)
+    return summary
+
+
+def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, preview=False, measured=None,
+               size=128, spp=256):
     meas = _open_dataset(dataset)
     result = render_closure(fit_path, meas, out_dir, variant)
     s = result["summary"]
-    print(f"Mitsuba {result['variant']}: {result['points']} poses rendered in {result['time_s']:.3f} s; "
+    print(f"Mitsuba {result['variant']}: {result['points']} poses rendered in {result['time_s']:.3f} s "
+          f"(scene re-render of {result['scene_check']['poses']} poses agrees to {result['scene_check']['max_rel']:.1e}); "
           f"export check max rel {s['export_max_rel']:.2e}; render vs measurement rms {s['residual_rms_sigma']:.3f} sigma "
           f"(max {s['residual_max_sigma']:.2f}); wrote {Path(out_dir) / 'render.json'}")
+    if preview or measured:
+        pv = render_previews(fit_path, out_dir, measured, size, spp)
+        de = f"; mean CIEDE2000 vs measured {pv['delta_e_mean']:.2f}" if pv.get("delta_e_mean") is not None else ""
+        print(f"previews in {Path(out_dir) / 'preview'} ({pv['time_s']:.1f} s){de}")
+
+
+def convert_cli(source: Path, out: Path, to: str):
+    """Exchange formats: fit -> Mitsuba XML / dict JSON / MERL; dataset -> CSV."""
+    from gonio.fitting import load_fit, write_json_atomic
+    from gonio.fitting import formats
+
+    if not source.exists():
+        raise GonioError(f"{source} does not exist")
+    if to in ("mitsuba-xml", "mitsuba-dict", "merl"):
+        if source.suffix.lower() != ".json":
+            raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
+        try:
+            model, params, doc = load_fit(source)
+        except (ValueError, KeyError, json.JSONDecodeError) as exc:
+            raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+        if to == "merl":
+            formats.write_merl(out, formats.resample_to_merl(model, params))
+        else:
+            xml, d = formats.mitsuba_snippet(model.name, dict(model.options), params)
+            if to == "mitsuba-dict":
+                write_json_atomic(out, d)
+            else:
+                from ._files import atomic_write_text
+
+                atomic_write_text(out, xml)
+    elif to == "csv":
+        formats.dataset_to_csv(_open_dataset(source), out)
+    else:
+        raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-dict, merl (from a fit) or csv (from a dataset)")
+    print(f"wrote {out}")

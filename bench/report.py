@@ -36,7 +36,8 @@ def find_outputs(folder) -> dict:
         return None
 
     found = {"dataset": first("dataset.nc", "*/dataset.nc"), "fit": first("fit.json", "*/fit.json"),
-             "render": first("render/render.json", "render.json", "*/render.json")}
+             "render": first("render/render.json", "render.json", "*/render.json"),
+             "preview": first("render/preview/preview.json", "preview/preview.json", "*/preview/preview.json")}
     if found["dataset"] is None:
         raise GonioError(f"no dataset.nc under {folder}; run `gonio export SESSION` first")
     return found
@@ -88,6 +89,8 @@ def write_report(folder, out=None) -> Path:
     import matplotlib.pyplot as plt
 
     from gonio.fitting import load_dataset, load_fit
+
+    from .fit_runner import _energy_text
 
     found = find_outputs(folder)
     out = Path(out) if out else Path(folder) / "report.html"
@@ -142,8 +145,7 @@ def write_report(folder, out=None) -> Path:
             f"<p>chi<sup>2</sup>/dof = {_fmt(g['chi2_dof'])} ({g['dof']} dof); RMSE f_r = {_fmt(g['rmse_fr'])} sr<sup>-1</sup>; "
             f"RMSE cos-weighted = {_fmt(g['rmse_cos_fr'])}; optimiser {html.escape(fit_doc['optimiser']['local'])}, "
             f"{fit_doc['optimiser']['evaluations']} evaluations, {_fmt(fit_doc['optimiser']['time_s'], 3)} s. "
-            f"Energy: max albedo {_fmt(fit_doc['constraints']['energy'].get('max_albedo'))} "
-            f"({'holds' if fit_doc['constraints']['energy'].get('holds') else 'VIOLATED'}).</p>")
+            f"Energy: {html.escape(_energy_text(fit_doc['constraints']['energy']))}.</p>")
         if fit_doc.get("posterior"):
             post = fit_doc["posterior"]
             sections.append(f"<p>Posterior (emcee): {post['walkers']} walkers x {post['steps']} steps, "
@@ -207,9 +209,12 @@ def write_report(folder, out=None) -> Path:
     if found["render"] is not None:
         rd = json.loads(Path(found["render"]).read_text())
         s = rd["summary"]
+        sc = rd.get("scene_check") or {}
         sections.append(
             "<h2>Mitsuba re-render at the measured geometry</h2>"
-            f"<p>variant {html.escape(rd['variant'])}, {rd['points']} points in {_fmt(rd['time_s'], 3)} s. "
+            f"<p>variant {html.escape(rd['variant'])}, {rd['points']} points in {_fmt(rd['time_s'], 3)} s "
+            f"(one batched evaluation; {sc.get('poses', 0)} poses re-rendered as full scenes in "
+            f"{html.escape(str(sc.get('variant')))} agree to {_fmt(sc.get('max_rel'), 2)}). "
             f"Export check: max |render - model| / model = {_fmt(s['export_max_rel'])}. "
             f"Render vs measurement: rms residual {_fmt(s['residual_rms_sigma'], 3)} sigma, "
             f"max |residual| {_fmt(s['residual_max_sigma'], 3)} sigma.</p>"
@@ -226,6 +231,29 @@ def write_report(folder, out=None) -> Path:
         ax.set_xlabel("measured f_r (1/sr)")
         ax.set_ylabel("Mitsuba render of the fit (1/sr)")
         images["mitsuba_vs_measured.png"] = _png(fig)
+
+    # ---- preview renders
+    if found["preview"] is not None:
+        pv = json.loads(Path(found["preview"]).read_text())
+        rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{_fmt(v.get('mean'), 3)}</td><td>{_fmt(v.get('p95'), 3)}</td>"
+                       f"<td>{_fmt(v.get('noise_mean'), 3)}</td></tr>" for k, v in (pv.get("delta_e") or {}).items())
+        sections.append("<h2>Preview renders</h2>"
+                        f"<p>Sphere, {pv.get('size')} px, {pv.get('spp')} spp, {html.escape(str(pv.get('variant')))}, "
+                        f"{_fmt(pv.get('time_s'), 3)} s. Left: the fit; right: the measured (or true simulated) BSDF; "
+                        "then the CIEDE2000 difference.</p>"
+                        + ("<table><tr><th>lighting</th><th>mean &Delta;E00</th><th>95th pct</th>"
+                           f"<th>Monte Carlo noise floor (mean)</th></tr>{rows}</table>" if rows else ""))
+        side = pv.get("side_by_side_png")
+        if side and Path(side).exists():
+            images["preview_side_by_side.png"] = Path(side).read_bytes()
+
+    # ---- the fit as a Mitsuba scene snippet
+    if fit_doc is not None:
+        from gonio.fitting.formats import mitsuba_snippet
+
+        xml, _ = mitsuba_snippet(model.name, dict(model.options), params)
+        sections.append("<h2>Use the fit in Mitsuba 3</h2><pre>" + html.escape(xml) + "</pre>"
+                        f"<pre>{html.escape(json.dumps(fit_doc['mitsuba'], indent=1))}</pre>")
 
     # ---- assemble
     image_dir = out.with_name(out.stem + "_files")

@@ -142,11 +142,19 @@ def render_brdf(model, params, wi, wo, variant: str | None = None):
 def loop_closure(model, params, meas, variant: str | None = None, n_worst: int = 5) -> dict:
     """Render the fit at every measured pose and compare with gonio's evaluation and the data.
 
+    All poses go through the batched wavefront evaluation (:mod:`._batch_render`, one kernel
+    in llvm_ad_rgb); 50 of them are also rendered with the per-pose scene
+    (:class:`VirtualGonio`) to show the two are the same render (``scene_check``).
+
     Returns a JSON-ready dict: the rendered f_r, the export check (render vs ``model.eval``),
     residuals of the measurement against the render in units of its 1-sigma, and the worst
     points with their geometry (degrees).
     """
-    rendered, seconds, used_variant = render_brdf(model, params, meas.wi, meas.wo, variant)
+    from ._batch_render import render_brdf_batch, scene_check
+
+    rendered, seconds, used_variant = render_brdf_batch(model, params, meas.wi, meas.wo, variant)
+    check = scene_check(model, params, meas.wi, meas.wo, n=50, rng=0, variant=used_variant,
+                        scene_variant=DEFAULT_VARIANT)
     evaluated = model.eval(meas.wi, meas.wo, params)
     floor = 1e-6
     mask = np.abs(evaluated) > floor
@@ -167,6 +175,8 @@ def loop_closure(model, params, meas, variant: str | None = None, n_worst: int =
         "variant": used_variant, "points": int(meas.n_points), "time_s": seconds,
         "brdf_render": rendered.tolist(), "brdf_model": evaluated.tolist(),
         "residual_sigma": resid.tolist(),
+        "scene_check": {"poses": int(check["indices"].size), "max_rel": check["max_rel"],
+                        "variant": check["scene_variant"]},
         "summary": {
             "export_max_rel": float(export_rel.max()) if export_rel.size else 0.0,
             "export_median_rel": float(np.median(export_rel)) if export_rel.size else 0.0,

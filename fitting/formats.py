@@ -1,0 +1,528 @@
+"""Exchange formats of the field: MERL ``.binary``, RGL ``.bsdf``, Mitsuba snippets, CSV.
+
+MERL ``.binary`` (Matusik, Pfister, Brand & McMillan, "A Data-Driven Reflectance Model",
+ACM TOG 22(3), 2003; the conventions of the MERL distribution's ``BRDFRead.cpp``, from which
+this module's own code was written):
+
+* Rusinkiewicz half/difference angles: the half vector h = normalize(wi + wo) gives
+  (theta_h, phi_h); wi rotated by -phi_h about the normal and then by -theta_h about the
+  binormal gives the difference vector's (theta_d, phi_d). Isotropic: phi_h is dropped;
+  reciprocity: phi_d is folded onto [0, pi) (phi_d < 0 -> phi_d + pi).
+* Grid 90 (theta_h) x 90 (theta_d) x 180 (phi_d), C order with phi_d fastest:
+  index = i_pd + 180 * (i_td + 90 * i_th).
+* i_th = floor(90 * sqrt(theta_h / (pi/2))) (square-root mapping: fine bins near the
+  specular peak); i_td = floor(90 * theta_d / (pi/2)); i_pd = floor(180 * phi_d / pi);
+  each clamped to the grid, theta_h <= 0 maps to 0.
+* File: three int32 (90, 90, 180), then 90*90*180 float64 for red, the same for green, then
+  blue, little-endian. f_r = stored * scale with scale = 1/1500, 1.15/1500, 1.66/1500 for
+  R, G, B. A negative stored value means "no data" (e.g. below the horizon).
+
+gonio's direction convention (docs/interfaces.md): ``wi`` toward the light, ``wo`` toward the
+detector, f_r without the cosine, (N, 3) per channel. MERL's "in" vector is the light, i.e.
+gonio's ``wi``; with reciprocity folded in, swapping wi and wo lands in the same bin.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ._data import Measurements
+
+__all__ = [
+    "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "half_diff_angles",
+    "merl_bin_directions", "merl_to_measurements", "mitsuba_snippet", "read_merl", "resample_to_merl",
+    "rgl_measurements", "write_merl",
+]
+
+#: Grid size (theta_h, theta_d, phi_d) of a MERL table.
+MERL_SHAPE = (90, 90, 180)
+#: f_r = stored value * scale, per channel R, G, B (BRDFRead.cpp's RED/GREEN/BLUE_SCALE).
+MERL_SCALE = np.array([1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0])
+_HALF_PI = 0.5 * math.pi
+
+
+# ---------------------------------------------------------------------------------------
+# Half/difference angles and the MERL index mapping
+# ---------------------------------------------------------------------------------------
+def half_diff_angles(wi, wo):
+    """Rusinkiewicz angles (theta_h, phi_h, theta_d, phi_d), radians, of direction pairs.
+
+    ``wi`` (toward the light) is the vector rotated into the half-vector frame, as MERL does
+    with its "in" vector. phi_d is in (-pi, pi] (not folded).
+    """
+    wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+    wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+    h = wi + wo
+    norm = np.linalg.norm(h, axis=1)
+    norm = np.where(norm > 0, norm, 1.0)
+    h = h / norm[:, None]
+    theta_h = np.arccos(np.clip(h[:, 2], -1.0, 1.0))
+    phi_h = np.arctan2(h[:, 1], h[:, 0])
+    # rotate wi by -phi_h about z (the normal) ...
+    c, s = np.cos(phi_h), np.sin(phi_h)
+    x = c * wi[:, 0] + s * wi[:, 1]
+    y = -s * wi[:, 0] + c * wi[:, 1]
+    z = wi[:, 2]
+    # ... then by -theta_h about y (the binormal)
+    c, s = np.cos(theta_h), np.sin(theta_h)
+    dx = c * x - s * z
+    dz = s * x + c * z
+    theta_d = np.arccos(np.clip(dz, -1.0, 1.0))
+    phi_d = np.arctan2(y, dx)
+    return theta_h, phi_h, theta_d, phi_d
+
+
+def _merl_indices(theta_h, theta_d, phi_d):
+    """Flat MERL table index per configuration (BRDFRead.cpp's mapping, vectorised)."""
+    th = np.floor(90.0 * np.sqrt(np.clip(theta_h, 0.0, None) / _HALF_PI))
+    i_th = np.clip(th, 0, MERL_SHAPE[0] - 1).astype(np.int64)
+    i_td = np.clip(np.floor(theta_d / _HALF_PI * MERL_SHAPE[1]), 0, MERL_SHAPE[1] - 1).astype(np.int64)
+    pd = np.where(phi_d < 0.0, phi_d + math.pi, phi_d)  # reciprocity: phi_d and phi_d + pi agree
+    i_pd = np.clip(np.floor(pd / math.pi * MERL_SHAPE[2]), 0, MERL_SHAPE[2] - 1).astype(np.int64)
+    return i_pd + MERL_SHAPE[2] * (i_td + MERL_SHAPE[1] * i_th)
+
+
+def merl_bin_directions():
+    """Directions (wi, wo), each (90*90*180, 3), at the centre of every MERL bin, flat order.
+
+    The centre is taken in index space: theta_h = ((i + 1/2) / 90)^2 pi/2,
+    theta_d = (j + 1/2) / 90 pi/2, phi_d = (k + 1/2) / 180 pi, phi_h = 0. Looking a centre
+    up gives back its own bin. Pairs with a direction below the horizon are included (the
+    caller masks them).
+    """
+    i = (np.arange(MERL_SHAPE[0]) + 0.5) / MERL_SHAPE[0]
+    theta_h = i * i * _HALF_PI
+    theta_d = (np.arange(MERL_SHAPE[1]) + 0.5) / MERL_SHAPE[1] * _HALF_PI
+    phi_d = (np.arange(MERL_SHAPE[2]) + 0.5) / MERL_SHAPE[2] * math.pi
+    th, td, pd = np.meshgrid(theta_h, theta_d, phi_d, indexing="ij")
+    th, td, pd = th.ravel(), td.ravel(), pd.ravel()
+    # difference vector in the half-vector frame, then rotated by +theta_h about y
+    dx, dy, dz = np.sin(td) * np.cos(pd), np.sin(td) * np.sin(pd), np.cos(td)
+    c, s = np.cos(th), np.sin(th)
+    wi = np.stack([c * dx + s * dz, dy, -s * dx + c * dz], axis=1)
+    h = np.stack([s, np.zeros_like(s), c], axis=1)
+    wo = 2.0 * np.sum(wi * h, axis=1, keepdims=True) * h - wi  # mirror of wi about h
+    return wi, wo
+
+
+# ---------------------------------------------------------------------------------------
+# MERL tables
+# ---------------------------------------------------------------------------------------
+class MerlBRDF:
+    """A MERL table: stored values and their evaluation as f_r.
+
+    Parameters
+    ----------
+    raw : array_like, shape (3, 90, 90, 180)
+        The values as the file stores them (f_r / scale; negative = no data). Kept as
+        given, so ``read_merl`` -> ``write_merl`` is byte-identical.
+    path : str, optional
+        Where it came from (provenance only).
+    """
+
+    def __init__(self, raw, path=None):
+        raw = np.asarray(raw, dtype=np.float64)
+        if raw.shape != (3, *MERL_SHAPE):
+            raise ValueError(f"a MERL table has shape (3, 90, 90, 180), got {raw.shape}")
+        self.raw = raw
+        self.path = None if path is None else str(path)
+
+    @classmethod
+    def from_brdf(cls, table, path=None) -> "MerlBRDF":
+        """From f_r values (3, 90, 90, 180) in sr^-1; NaN or negative = no data (stored -1)."""
+        table = np.asarray(table, dtype=np.float64)
+        if table.shape != (3, *MERL_SHAPE):
+            raise ValueError(f"a MERL table has shape (3, 90, 90, 180), got {table.shape}")
+        raw = table / MERL_SCALE[:, None, None, None]
+        raw[~np.isfinite(raw) | (raw < 0)] = -1.0
+        return cls(raw, path)
+
+    @property
+    def table(self) -> np.ndarray:
+        """f_r (3, 90, 90, 180), sr^-1 (stored * scale; negative where there is no data)."""
+        return self.raw * MERL_SCALE[:, None, None, None]
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Bins with data in every channel, (90, 90, 180) bool."""
+        return np.all(self.raw >= 0, axis=0)
+
+    def indices(self, wi, wo) -> np.ndarray:
+        """Flat bin index of each (wi, wo) pair, shape (N,)."""
+        theta_h, _, theta_d, phi_d = half_diff_angles(wi, wo)
+        return _merl_indices(theta_h, theta_d, phi_d)
+
+    def has_data(self, wi, wo) -> np.ndarray:
+        """True where both directions are above the horizon and the bin holds data, (N,)."""
+        wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+        up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        return up & self.valid.reshape(-1)[self.indices(wi, wo)]
+
+    def eval(self, wi, wo, missing: float = np.nan) -> np.ndarray:
+        """f_r (N, 3) by nearest-bin look-up (MERL's own mapping, no interpolation).
+
+        0 where either direction is at or below the horizon; ``missing`` (NaN by default)
+        in bins without data.
+        """
+        wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+        idx = self.indices(wi, wo)
+        raw = self.raw.reshape(3, -1)[:, idx].T
+        out = raw * MERL_SCALE
+        out[np.any(raw < 0, axis=1)] = missing
+        out[(wi[:, 2] <= 0) | (wo[:, 2] <= 0)] = 0.0
+        return out
+
+    def write(self, path) -> Path:
+        return write_merl(path, self)
+
+    def __repr__(self):
+        return f"MerlBRDF(path={self.path!r}, valid bins={int(self.valid.sum())}/{int(np.prod(MERL_SHAPE))})"
+
+
+def read_merl(path) -> MerlBRDF:
+    """Read a MERL ``.binary`` file.
+
+    Raises
+    ------
+    ValueError
+        When the header's dimensions are not 90 x 90 x 180 or the file is truncated.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    if len(data) < 12:
+        raise ValueError(f"{path}: too short for a MERL header ({len(data)} bytes)")
+    dims = tuple(int(d) for d in np.frombuffer(data[:12], dtype="<i4"))
+    if dims != MERL_SHAPE:
+        raise ValueError(f"{path}: MERL dimensions {dims}, expected {MERL_SHAPE}")
+    n = int(np.prod(MERL_SHAPE))
+    expected = 12 + 3 * n * 8
+    if len(data) != expected:
+        raise ValueError(f"{path}: {len(data)} bytes, a MERL file has {expected}")
+    raw = np.frombuffer(data[12:], dtype="<f8").astype(np.float64).reshape(3, *MERL_SHAPE)
+    return MerlBRDF(raw, path)
+
+
+def write_merl(path, table) -> Path:
+    """Write a MERL ``.binary`` file atomically (temporary file in the same folder, rename).
+
+    ``table`` is a :class:`MerlBRDF` (its stored values are written unchanged) or f_r values
+    of shape (3, 90, 90, 180) in sr^-1 (divided by the scale factors; NaN/negative -> -1).
+    """
+    merl = table if isinstance(table, MerlBRDF) else MerlBRDF.from_brdf(table)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(np.asarray(MERL_SHAPE, dtype="<i4").tobytes())
+            fh.write(np.ascontiguousarray(merl.raw, dtype="<f8").tobytes())
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def resample_to_merl(eval_fn, params=None, *, chunk: int = 200_000) -> MerlBRDF:
+    """Fill a MERL table from any f_r function.
+
+    Parameters
+    ----------
+    eval_fn : callable or gonio.models.Model
+        ``eval_fn(wi, wo) -> (N, 3)`` f_r in sr^-1 (gonio convention), or a model together
+        with ``params`` (``model.eval(wi, wo, params)``), or anything with ``.eval(wi, wo)``
+        (a :class:`MerlBRDF`, an :class:`RGLBRDF`).
+    params : dict, optional
+        The model's parameters.
+
+    Each bin gets the value at its centre (:func:`merl_bin_directions`). Bins whose centre
+    has a direction at or below the horizon, or where the function returns NaN, are stored
+    as -1 (no data). Finite negative values (measured data after colour conversion) are
+    clipped to 0, since MERL reads negative as "no data".
+    """
+    if params is not None:
+        model = eval_fn
+
+        def fn(wi, wo):
+            return model.eval(wi, wo, params)
+    elif not callable(eval_fn) and hasattr(eval_fn, "eval"):  # MerlBRDF, RGLBRDF
+        fn = eval_fn.eval
+    else:
+        fn = eval_fn
+    wi, wo = merl_bin_directions()
+    n = wi.shape[0]
+    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    values = np.full((n, 3), np.nan)
+    todo = np.flatnonzero(up)
+    for start in range(0, todo.size, chunk):
+        sel = todo[start:start + chunk]
+        f = np.asarray(fn(wi[sel], wo[sel]), dtype=np.float64)
+        values[sel] = np.broadcast_to(f.reshape(sel.size, -1), (sel.size, 3))
+    bad = ~np.isfinite(values)
+    values = np.where(bad, np.nan, np.clip(values, 0.0, None))
+    return MerlBRDF.from_brdf(values.T.reshape(3, *MERL_SHAPE))
+
+
+def merl_to_measurements(merl, wi=None, wo=None, *, n: int | None = None, rng=None, rel_std: float = 0.01,
+                         floor: float = 1e-4) -> Measurements:
+    """Sample a MERL table as :class:`Measurements`, so it can be fitted with gonio.fitting.
+
+    Parameters
+    ----------
+    merl : MerlBRDF or path
+    wi, wo : array_like (N, 3), optional
+        Where to sample (nearest-bin look-up). By default the centres of all bins with data.
+    n : int, optional
+        Keep a random subset of ``n`` points (``rng``: seed or Generator).
+    rel_std, floor : float
+        The 1-sigma given to each value: ``rel_std * max(|f_r|, floor)``. MERL files carry
+        no uncertainty, so this sets the weighting of the fit (relative by default).
+
+    Points without data (or below the horizon) are kept with ``use = False`` and f_r = 0.
+    """
+    if not isinstance(merl, MerlBRDF):
+        merl = read_merl(merl)
+    if (wi is None) != (wo is None):
+        raise ValueError("give both wi and wo, or neither")
+    if wi is None:
+        wi, wo = merl_bin_directions()
+        keep = merl.valid.reshape(-1) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        wi, wo = wi[keep], wo[keep]
+    else:
+        wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+    if n is not None and n < wi.shape[0]:
+        idx = np.sort(np.random.default_rng(rng).choice(wi.shape[0], size=n, replace=False))
+        wi, wo = wi[idx], wo[idx]
+    ok = merl.has_data(wi, wo)
+    f = merl.eval(wi, wo, missing=0.0)
+    f[~ok] = 0.0
+    std = rel_std * np.maximum(np.abs(f), floor)
+    use = np.repeat(ok[:, None], 3, axis=1)
+    attrs = {"source": "MERL", "path": merl.path or "", "rel_std": rel_std, "floor": floor}
+    return Measurements(wi, wo, f, std, use, attrs)
+
+
+# ---------------------------------------------------------------------------------------
+# RGL .bsdf (through Mitsuba's `measured` plugin)
+# ---------------------------------------------------------------------------------------
+class RGLBRDF:
+    """An RGL-EPFL ``.bsdf`` file (isotropic RGB) evaluated through Mitsuba's ``measured``.
+
+    ``eval(wi, wo)`` returns f_r (N, 3) in gonio's convention: Mitsuba's ``si.wi`` is set to
+    gonio's ``wo`` (sensor side) and the evaluated direction to gonio's ``wi`` (light side);
+    ``bsdf.eval`` returns f_r * cos(theta_i), divided out here. Values can be slightly
+    negative (the data's colour conversion), as in the file.
+    """
+
+    def __init__(self, path, variant: str | None = None):
+        self.path = str(Path(path))
+        if not Path(self.path).is_file():
+            raise FileNotFoundError(f"RGL BSDF file not found: {self.path}")
+        from ._batch_render import _select_variant
+
+        self.variant = _select_variant(variant)
+        import mitsuba as mi
+
+        with mi.scoped_set_variant(self.variant):
+            self._bsdf = mi.load_dict(self.mitsuba_dict())
+
+    def mitsuba_dict(self) -> dict:
+        return {"type": "measured", "filename": self.path}
+
+    def eval(self, wi, wo) -> np.ndarray:
+        from ._batch_render import _divide_cos, eval_bsdf_cos
+
+        wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+        return _divide_cos(eval_bsdf_cos(self._bsdf, wi, wo, self.variant), wi, wo)
+
+    def __repr__(self):
+        return f"RGLBRDF({self.path!r})"
+
+
+def rgl_measurements(path, wi, wo, *, rel_std: float = 0.02, floor: float = 1e-4,
+                     variant: str | None = None) -> Measurements:
+    """f_r of an RGL ``.bsdf`` file at the given directions, as :class:`Measurements`.
+
+    ``brdf_std = rel_std * max(|f_r|, floor)`` (the file carries no uncertainty); pairs with
+    a direction at or below the horizon get ``use = False``.
+    """
+    rgl = RGLBRDF(path, variant)
+    wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+    wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+    f = rgl.eval(wi, wo)
+    up = (wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9)
+    std = rel_std * np.maximum(np.abs(f), floor)
+    use = np.repeat(up[:, None], 3, axis=1)
+    attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": rgl.variant}
+    return Measurements(wi, wo, f, std, use, attrs)
+
+
+# ---------------------------------------------------------------------------------------
+# Mitsuba 3 snippet
+# ---------------------------------------------------------------------------------------
+def _fmt_float(v) -> str:
+    return repr(float(v))
+
+
+def _xml_lines(d: dict, indent: str) -> list[str]:
+    lines = []
+    for key, value in d.items():
+        if key in ("type", "id"):
+            continue
+        if isinstance(value, dict):
+            kind = value.get("type")
+            if kind == "rgb":
+                v = np.broadcast_to(np.asarray(value["value"], dtype=np.float64), (3,))
+                lines.append(f'{indent}<rgb name="{key}" value="{", ".join(_fmt_float(x) for x in v)}"/>')
+            elif kind == "spectrum" and not isinstance(value.get("value"), (list, tuple)):
+                lines.append(f'{indent}<spectrum name="{key}" value="{_fmt_float(value["value"])}"/>')
+            else:  # a nested plugin (a texture)
+                lines.append(f'{indent}<texture type="{kind}" name="{key}">')
+                lines.extend(_xml_lines(value, indent + "    "))
+                lines.append(f"{indent}</texture>")
+        elif isinstance(value, (bool, np.bool_)):
+            lines.append(f'{indent}<boolean name="{key}" value="{"true" if value else "false"}"/>')
+        elif isinstance(value, (int, np.integer)):
+            lines.append(f'{indent}<integer name="{key}" value="{int(value)}"/>')
+        elif isinstance(value, (float, np.floating)):
+            lines.append(f'{indent}<float name="{key}" value="{_fmt_float(value)}"/>')
+        elif isinstance(value, str):
+            lines.append(f'{indent}<string name="{key}" value="{value}"/>')
+        elif isinstance(value, (list, tuple, np.ndarray)) and np.size(value) == 3:
+            v = np.asarray(value, dtype=np.float64).ravel()
+            lines.append(f'{indent}<rgb name="{key}" value="{", ".join(_fmt_float(x) for x in v)}"/>')
+        else:
+            raise TypeError(f"cannot write Mitsuba property {key!r} of type {type(value).__name__} as XML")
+    return lines
+
+
+def mitsuba_snippet(model_name: str, options: dict | None, params: dict, *, bsdf_id: str = "gonio_fit"):
+    """A fitted model as a Mitsuba 3 ``<bsdf>`` XML snippet and the equivalent Python dict.
+
+    Parameters
+    ----------
+    model_name : str
+        A gonio model name (``gonio.models.names()``).
+    options : dict or None
+        The model's discrete options (``{"distribution": "ggx"}``).
+    params : dict
+        Fitted parameter values.
+    bsdf_id : str
+        The ``id`` of the XML element (to reference it from a shape).
+
+    Returns
+    -------
+    xml_text : str
+        ``<bsdf type=... id=...>...</bsdf>`` to paste into a Mitsuba 3 scene (version 3.x).
+    mitsuba_dict : dict
+        ``mitsuba.load_dict`` accepts it as is.
+
+    Models without a native Mitsuba plugin export a Python plugin ``gonio_<name>``: the
+    snippet says in a comment that ``gonio.models`` must register it (``model.to_mitsuba``
+    does) in the process that loads the scene.
+    """
+    import gonio.models as gm
+
+    model = gm.get(model_name, **(options or {}))
+    d = model.to_mitsuba(params)
+    kind = d["type"]
+    lines = []
+    lines.append(f"<!-- gonio fit: model {model.name}, options {dict(model.options)}; f_r in sr^-1."
+                 " Exterior index 1 (ext_ior) where the model has one. -->")
+    if str(kind).startswith("gonio_"):
+        lines.append(f"<!-- '{kind}' is a Python BSDF: call gonio.models.get({model.name!r}).to_mitsuba(params)"
+                     " (which runs mitsuba.register_bsdf) before loading this scene. -->")
+    lines.append(f'<bsdf type="{kind}" id="{bsdf_id}">')
+    lines.extend(_xml_lines(d, "    "))
+    lines.append("</bsdf>")
+    return "\n".join(lines) + "\n", d
+
+
+# ---------------------------------------------------------------------------------------
+# CSV
+# ---------------------------------------------------------------------------------------
+def _angles_deg(w):
+    theta = np.degrees(np.arccos(np.clip(w[:, 2], -1.0, 1.0)))
+    phi = np.degrees(np.arctan2(w[:, 1], w[:, 0]))
+    return theta, phi
+
+
+def dataset_to_csv(meas_or_dataset_path, out_csv) -> Path:
+    """Write a dataset (``dataset.nc`` path) or :class:`Measurements` as CSV, atomically.
+
+    One header line names each column with its unit: angles in degrees (``theta_i [deg]``
+    ...; i toward the light, o toward the detector, local frame, +z the normal), f_r and
+    its 1-sigma in ``1/sr`` per channel, and a 0/1 ``use`` flag per channel (0 = saturated or
+    flagged). One row per measured configuration.
+    """
+    if isinstance(meas_or_dataset_path, Measurements):
+        meas = meas_or_dataset_path
+        angles = (*_angles_deg(meas.wi), *_angles_deg(meas.wo))
+    else:
+        from ._data import load_dataset
+
+        path = Path(meas_or_dataset_path)
+        meas = load_dataset(path)
+        angles = _dataset_angles_deg(path)
+        if angles is None:
+            angles = (*_angles_deg(meas.wi), *_angles_deg(meas.wo))
+    channels = list(meas.channels)[: meas.n_channels]
+    header = ["theta_i [deg]", "phi_i [deg]", "theta_o [deg]", "phi_o [deg]"]
+    header += [f"brdf_{c} [1/sr]" for c in channels]
+    header += [f"brdf_std_{c} [1/sr]" for c in channels]
+    header += [f"use_{c} [0/1]" for c in channels]
+    out_csv = Path(out_csv)
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out_csv.name}.", suffix=".tmp", dir=out_csv.parent)
+    try:
+        with os.fdopen(fd, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(header)
+            for k in range(meas.n_points):
+                row = [f"{a[k]:.6f}" for a in angles]
+                row += [repr(float(v)) for v in meas.brdf[k]]
+                row += [repr(float(v)) for v in meas.brdf_std[k]]
+                row += [str(int(u)) for u in meas.use[k]]
+                writer.writerow(row)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, out_csv)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return out_csv
+
+
+def _dataset_angles_deg(path):
+    """The four angle coordinates of a dataset.nc exactly as stored, in degrees (or None)."""
+    import xarray as xr
+
+    try:
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            out = []
+            for name in ("theta_i", "phi_i", "theta_o", "phi_o"):
+                var = ds[name]
+                values = np.asarray(var.values, dtype=np.float64)
+                unit = str(var.attrs.get("units", "degree")).lower()
+                out.append(values if unit.startswith("deg") else np.degrees(values))
+            return tuple(out)
+    except (KeyError, OSError, ValueError):
+        return None

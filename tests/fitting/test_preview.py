@@ -1,0 +1,91 @@
+"""Preview renders: fitted model beside the measured data, CIEDE2000 between them.
+
+Reduced size/spp here to keep the suite fast; at the defaults (128 px, 256 spp) a call takes
+3-5 s on the 2-core machine in llvm_ad_rgb and the noise floor (same model, two seeds) is
+about 0.8-1.0 mean Delta E.
+"""
+
+import math
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+import gonio.models as gm
+from gonio.fitting.formats import resample_to_merl, write_merl
+from gonio.fitting.preview import delta_e_2000, measured_bsdf_dict, preview, sphere_mask
+
+RGL = Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl" / "paper_white_rgb.bsdf"
+DIFFUSE = {"reflectance": [0.5, 0.4, 0.3]}
+GLOSSY = {"diffuse_reflectance": [0.5, 0.3, 0.2], "alpha": 0.1, "int_ior": 1.5}
+SMALL = {"size": 48, "spp": 32}
+
+
+def _needs_llvm():
+    if not gm.mitsuba_variant().startswith("llvm"):
+        pytest.skip("Python BSDFs (the MERL table) render per sample in scalar_rgb: too slow for a test")
+
+
+def test_delta_e_basics():
+    a = np.full((4, 4, 3), 0.5)
+    assert np.all(delta_e_2000(a, a) == 0)
+    assert delta_e_2000(a, a * 1.2).mean() > 2  # 20 % brighter is clearly visible
+    m = sphere_mask(64)
+    assert m[32, 32] and not m[0, 0] and 0.3 < m.mean() < 0.7
+
+
+def test_same_model_and_its_merl_table_give_delta_e_near_zero(tmp_path):
+    _needs_llvm()
+    model = gm.get("diffuse")
+    same = preview(model, DIFFUSE, tmp_path / "same", measured=model.to_mitsuba(DIFFUSE), **SMALL)
+    assert same["delta_e_mean"] < 0.5 and same["delta_e_p95"] < 0.5
+    # the model resampled to MERL, written, and rendered through the registered Python BSDF
+    path = write_merl(tmp_path / "diffuse.binary", resample_to_merl(model, DIFFUSE))
+    merl = preview(model, DIFFUSE, tmp_path / "merl", measured=path, **SMALL)
+    assert merl["delta_e_mean"] < 0.5, merl["delta_e"]
+    for lighting in ("env", "area"):
+        assert merl["delta_e"][lighting]["noise_mean"] > 0  # the seed-to-seed noise is reported
+
+
+def test_diffuse_vs_glossy_is_clearly_different_and_files_decode(tmp_path):
+    diffuse = gm.get("diffuse")
+    glossy = gm.get("roughplastic", distribution="ggx")
+    out = preview(diffuse, DIFFUSE, tmp_path, measured=glossy.to_mitsuba(GLOSSY), **SMALL)
+    assert out["delta_e_mean"] > 1.0
+    assert set(out["delta_e"]) == {"env", "area"}
+    for lighting, entry in out["images"].items():
+        for key in ("model_exr", "model_png", "measured_exr", "measured_png", "delta_e_png"):
+            assert Path(entry[key]).is_file(), key
+        png = mpimg.imread(entry["model_png"])
+        assert png.shape[:2] == (48, 48) and png.max() > 0.1
+        import mitsuba as mi
+
+        exr = np.array(mi.Bitmap(entry["model_exr"]))
+        assert exr.shape[:2] == (48, 48) and np.isfinite(exr).all() and exr.max() > 0
+    side = mpimg.imread(out["side_by_side_png"])
+    assert side.ndim == 3 and side.shape[0] > 100
+    assert out["time_s"] < 30
+
+
+@pytest.mark.skipif(not RGL.is_file(), reason=f"RGL sample data not found at {RGL}")
+def test_rgl_measured_plugin_preview(tmp_path):
+    assert measured_bsdf_dict(RGL) == {"type": "measured", "filename": str(RGL)}
+    model = gm.get("diffuse")
+    albedo = {"reflectance": [0.83, 0.84, 0.98]}  # paper_white's approximate albedo (tech-facts)
+    out = preview(model, albedo, tmp_path, measured=RGL, lightings=("area",), **SMALL)
+    # a Lambertian with the paper's albedo is close, but not identical
+    assert 0.2 < out["delta_e_mean"] < 6.0, out["delta_e"]
+    with pytest.raises(ValueError):
+        measured_bsdf_dict(tmp_path / "side_by_side.png")
+
+
+def test_model_only_preview(tmp_path):
+    out = preview(gm.get("diffuse"), DIFFUSE, tmp_path, lightings=("area",), **SMALL)
+    assert out["delta_e_mean"] is None and Path(out["images"]["area"]["model_png"]).is_file()
+    # a white Lambertian facing the lamp renders ~1 (the Lab reference white of the Delta E)
+    import mitsuba as mi
+
+    img = np.array(mi.Bitmap(out["images"]["area"]["model_exr"]))
+    peak = np.percentile(img[..., 0][sphere_mask(48)], 99)
+    assert math.isclose(peak, DIFFUSE["reflectance"][0], rel_tol=0.25), peak  # 99th pct: noise biases it up
