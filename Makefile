@@ -9,12 +9,12 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.stamp-install
 
-.PHONY: demo test test-fast install llvm clean
+.PHONY: demo test test-fast install llvm chromium clean
 
 demo: $(STAMP)
 	$(VENV)/bin/gonio demo
 
-test: $(STAMP)
+test: $(STAMP) chromium
 	$(PY) -m pytest -q
 
 test-fast: $(STAMP)
@@ -39,6 +39,16 @@ llvm:
 	  { apt-get update -q >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -q libllvm19 >/dev/null 2>&1; } || \
 	  echo "gonio: could not install libllvm19; Mitsuba will use scalar_rgb"; \
 	else echo "gonio: no apt-get as root; Mitsuba will use scalar_rgb unless a libLLVM is installed"; fi
+
+# The report test opens the HTML report in headless Chromium; it skips (and says so) without it.
+chromium:
+	@if command -v chromium >/dev/null 2>&1; then :; \
+	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	  echo "installing Debian's chromium for the report's browser test"; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null 2>&1 || \
+	  { apt-get update -q >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null 2>&1; } || \
+	  echo "gonio: could not install chromium; the report's browser test will be skipped"; \
+	else echo "gonio: no apt-get as root; the report's browser test will be skipped"; fi
 
 clean:
 	rm -rf $(VENV) gonio-out .pytest_cache

@@ -81,6 +81,39 @@ def _truth_by_name(truth, names):
     return out
 
 
+def _plan_text(plan):
+    if not plan:
+        return None
+    try:
+        doc = json.loads(plan) if isinstance(plan, str) else plan
+    except json.JSONDecodeError:
+        return str(plan)[:200]
+    points = doc.get("points") or doc.get("angles") or []
+    return f"{doc.get('name', '?')}: {len(points)} points. {doc.get('description', '')}".strip()
+
+
+def _truth_text(truth):
+    if not isinstance(truth, dict):
+        return None
+    return f"{truth.get('model', truth.get('bsdf_file', '?'))} {json.dumps(truth.get('options', {}))} {json.dumps(truth.get('params', {}))}"
+
+
+def _reciprocity(dataset_path, meas):
+    """Median relative difference between reciprocal partners (wi and wo swapped), or None."""
+    import xarray as xr
+
+    with xr.open_dataset(dataset_path, engine="h5netcdf") as ds:
+        if "reciprocal_partner" not in ds.variables:
+            return None
+        partner = np.asarray(ds["reciprocal_partner"].values, dtype=int)
+    i = np.where((partner > np.arange(partner.size)) & (partner < partner.size))[0]
+    if i.size == 0:
+        return None
+    a, b = meas.brdf[i], meas.brdf[partner[i]]
+    rel = np.abs(a - b) / np.maximum(0.5 * np.abs(a + b), 1e-12)
+    return f"{float(np.median(rel)):.2e} over {i.size} pairs (max {float(rel.max()):.2e})"
+
+
 def write_report(folder, out=None) -> Path:
     """Write the HTML report for ``folder``; returns its path."""
     import matplotlib
@@ -106,7 +139,9 @@ def write_report(folder, out=None) -> Path:
     # ---- capture summary and coverage
     attrs = meas.attrs
     summary_rows = [("points", meas.n_points), ("usable values", meas.n_used), ("seed", attrs.get("seed")),
-                    ("plan", attrs.get("plan")), ("capture duration (simulated s)", attrs.get("duration_s")),
+                    ("plan", _plan_text(attrs.get("plan"))), ("sample (simulated truth)", _truth_text(attrs.get("sample_truth"))),
+                    ("reciprocity (median |f_a - f_b| / mean over pairs)", _reciprocity(found["dataset"], meas)),
+                    ("capture duration (s)", attrs.get("duration_s")),
                     ("lamp drift (monitor, relative)", attrs.get("lamp_drift")),
                     ("reciprocity error (rms relative)", attrs.get("reciprocity_rms")),
                     ("reference scale uncertainty (relative 1-sigma)", attrs.get("scale_rel_std")),
@@ -268,7 +303,11 @@ def write_report(folder, out=None) -> Path:
             "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:left}"
             "figure{display:inline-block;margin:0.5em}img{max-width:100%}</style></head><body>"
             f"<h1>gonio report: {html.escape(str(Path(folder).resolve().name))}</h1>"
-            + "".join(sections) + "<h2>Figures</h2>" + "".join(figures) + "</body></html>")
+            + "".join(sections) + "<h2>Figures</h2>" + "".join(figures)
+            # After load, record how many images the browser decoded (the headless-browser test reads it).
+            + "<script>window.addEventListener('load',function(){var im=Array.prototype.slice.call(document.images);"
+              "document.body.setAttribute('data-images-decoded',im.filter(function(i){return i.complete&&i.naturalWidth>0;})"
+              ".length+'/'+im.length);});</script></body></html>")
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".report.", suffix=".tmp", dir=out.parent)
     with os.fdopen(fd, "w") as fh:

@@ -88,3 +88,25 @@ def test_demo_command_end_to_end(tmp_path):
                            "--plan", "quick", "--seed", "3", "--no-posterior"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_report_renders_in_headless_chromium(loop, tmp_path):
+    """The report opens in a real browser, every embedded image decodes, no script error."""
+    import shutil
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        pytest.skip("Debian's chromium is not installed (`make test` installs it where apt-get runs as root)")
+    path = write_report(loop["out"], loop["out"] / "report.html")
+    proc = subprocess.run(
+        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         f"--user-data-dir={tmp_path / 'profile'}", "--enable-logging=stderr", "--v=0",
+         "--virtual-time-budget=5000", "--dump-dom", path.as_uri()],
+        capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "<h1>gonio report" in proc.stdout
+    decoded = proc.stdout.split('data-images-decoded="')[1].split('"')[0]
+    ok, total = (int(v) for v in decoded.split("/"))
+    assert total >= 5 and ok == total, decoded
+    assert "Uncaught" not in proc.stderr
