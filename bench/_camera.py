@@ -5,7 +5,8 @@ SHA-256 of the bytes it wrote, verified against the file) and ``close()``. Three
 
 * `SimCamera`: the tethered-camera protocol of docs/interfaces.md section 4 over a serial URL
   (``sim://NAME/camera`` or a pty): ``*IDN?``, ``SENSOR?``, ``EXPOSE <s> <path>`` ->
-  ``OK <sha256>``.
+  ``OK <sha256>``, and ``FLAT <s> <path>`` (the flat-field source) behind ``flat``.
+  A camera without ``flat`` gets no flat-field (PRNU) correction.
 * `WatchedFolderCamera`: the vendor's tethering software drops RAW files in a folder; the
   camera waits for a new file whose size has settled and copies it to ``path``.
 * `Gphoto2Camera`: a tethered camera through the ``gphoto2`` command-line tool
@@ -70,6 +71,9 @@ class RawFrame:
         Black level, DN.
     white : float
         White (clipping) level, DN.
+    rgb_cam : ndarray (3, 3) or None
+        White-balanced camera RGB -> linear sRGB (D65), from the file's colour matrices as
+        LibRaw derives them (rows sum to 1: a neutral stays neutral); None if the file has none.
     """
 
     signal: np.ndarray
@@ -77,6 +81,7 @@ class RawFrame:
     n_raw: np.ndarray
     black: float
     white: float
+    rgb_cam: np.ndarray | None = None
 
     @property
     def full_scale(self) -> float:
@@ -104,6 +109,7 @@ def decode_raw(path: str | os.PathLike) -> RawFrame:
             blacks = np.asarray(raw.black_level_per_channel, float)
             white = float(raw.white_level)
             desc = raw.color_desc.decode("ascii", "replace")
+            rgb_cam = np.asarray(raw.color_matrix, float)[:3, :3].copy()
     except (rawpy.LibRawError, OSError, ValueError) as exc:
         raise GonioError(f"cannot decode RAW file {path} ({type(exc).__name__}); "
                          "it is corrupt or not a RAW format") from None
@@ -128,7 +134,9 @@ def decode_raw(path: str | os.PathLike) -> RawFrame:
                          "only Bayer sensors are supported")
     signal /= count[:, None, None]
     black = float(np.mean(blacks))
-    return RawFrame(signal, peak, count, black, white)
+    if not (np.all(np.isfinite(rgb_cam)) and np.allclose(rgb_cam.sum(1), 1.0, atol=1e-3)):
+        rgb_cam = None
+    return RawFrame(signal, peak, count, black, white, rgb_cam)
 
 
 class SimCamera:
@@ -167,23 +175,40 @@ class SimCamera:
             raise CommunicationError(f"camera on {port_url} answered SENSOR? with {' '.join(tok)!r}; "
                                      "check that the URL names a camera port") from None
 
-    def _query(self, text: str, timeout: float | None = None) -> str:
-        if timeout is not None:
-            self._port.timeout = timeout
+    def _once(self, text: str, timeout: float | None) -> bytes | None:
+        """One exchange; None if the port failed or stayed silent."""
         try:
+            if timeout is not None:
+                self._port.timeout = timeout
             if self._port.in_waiting:            # a late reply, or one a killed process left
                 self._port.reset_input_buffer()
             self._port.write((text + "\n").encode("utf-8"))
             line = self._port.readline()
-        except (serial.SerialException, OSError) as exc:
-            raise CommunicationError(f"camera on {self.port_url} failed ({exc}); check the connection, "
-                                     "then resume the session") from None
+        except (serial.SerialException, OSError, AttributeError):
+            return None
         finally:
-            if timeout is not None:
+            if timeout is not None and self._port is not None:
                 self._port.timeout = self.timeout
-        if not line.endswith(b"\n"):
-            raise CommunicationError(f"camera on {self.port_url} did not answer {text.split()[0]!r}; "
-                                     "check it is on, then resume the session")
+        return line if line.endswith(b"\n") else None
+
+    def _query(self, text: str, timeout: float | None = None) -> str:
+        """Send a line, return the reply; after a silent or failed port, reconnect once and resend."""
+        line = self._once(text, timeout)
+        if line is None:
+            self.retries_used += 1
+            try:
+                self._port.close()
+            except (serial.SerialException, OSError):
+                pass
+            try:
+                self._port = serial.serial_for_url(self.port_url, baudrate=self.baudrate, timeout=self.timeout)
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise CommunicationError(f"camera on {self.port_url} failed and cannot be reopened ({exc}); "
+                                         "check the connection, then resume the session") from None
+            line = self._once(text, timeout)
+        if line is None:
+            raise CommunicationError(f"camera on {self.port_url} did not answer {text.split()[0]!r}, "
+                                     "even after a reconnect; check it is on, then resume the session")
         return line.decode("utf-8", "replace").strip()
 
     def expose(self, seconds: float, path: str | os.PathLike) -> str:
@@ -194,11 +219,18 @@ class SimCamera:
         DeviceError
             ``ERR`` from the camera, or a bad file after every retry.
         """
+        return self._shoot("EXPOSE", seconds, path)
+
+    def flat(self, seconds: float, path: str | os.PathLike) -> str:
+        """Expose the flat-field source (uniform radiance over the frame) for ``seconds``: as `expose`."""
+        return self._shoot("FLAT", seconds, path)
+
+    def _shoot(self, command: str, seconds: float, path: str | os.PathLike) -> str:
         path = Path(path).resolve()
         tmp = tmp_name(path)
         why = ""
         for _ in range(self.retries + 1):
-            reply = self._query(f"EXPOSE {seconds:.9g} {tmp}", timeout=self.timeout + seconds)
+            reply = self._query(f"{command} {seconds:.9g} {tmp}", timeout=self.timeout + seconds)
             if reply.startswith("ERR"):
                 raise DeviceError(f"camera refused a {seconds:g} s exposure to {path.name}: {reply[4:]}; "
                                   "check the exposure range and the session folder")

@@ -23,7 +23,7 @@ import numpy as np
 
 from ._camera import RawFrame
 
-__all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "choose_bracket", "ladder"]
+__all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "choose_bracket", "ladder", "flat_gain"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,12 @@ class HdrResult:
     radiance: np.ndarray
     var: np.ndarray
     n_used: np.ndarray
+
+    def flat_fielded(self, gain: np.ndarray | None) -> "HdrResult":
+        """Divide out each pixel's relative gain (3, h, w) from a flat field (PRNU); None: unchanged."""
+        if gain is None:
+            return self
+        return HdrResult(self.radiance / gain, self.var / gain ** 2, self.n_used)
 
 
 def _saturated(frame: RawFrame, saturation_fraction: float) -> np.ndarray:
@@ -157,3 +163,14 @@ def choose_bracket(rungs: np.ndarray, t_probe: float, peak_dn: float, low_dn: fl
     if idx[-1] != i_long:
         idx.append(i_long)
     return [float(rungs[i]) for i in idx]
+
+
+def flat_gain(flats: Sequence[RawFrame], dark: RawFrame) -> np.ndarray:
+    """Relative gain of each value (3, h, w) from flat-field frames of one exposure time.
+
+    The mean dark-subtracted flat, divided by its mean over the frame per channel: 1 on
+    average, the photo-response non-uniformity (PRNU) pixel by pixel. Its own noise is the
+    flat's shot noise over ``len(flats)`` frames.
+    """
+    sig = np.mean([f.signal for f in flats], axis=0) - dark.signal
+    return sig / sig.mean(axis=(1, 2), keepdims=True)

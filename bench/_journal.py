@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import sqlite3
 import time
@@ -25,19 +26,22 @@ import tomllib
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from ._files import atomic_write_text, remove_orphans, sha256_file
+from ._files import atomic_write_text, sha256_file
 from .errors import SessionError
 
-__all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "Journal", "write_session", "read_session",
-           "dumps_toml", "versions"]
+__all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "LOCK_FILE", "Journal", "SessionLock", "write_session",
+           "read_session", "verify_files", "dumps_toml", "versions"]
 
 SESSION_FILE = "session.toml"
 JOURNAL_FILE = "journal.sqlite"
 RAW_DIR = "raw"
+LOCK_FILE = ".lock"
 
 _SCHEMA = """
-CREATE TABLE IF NOT EXISTS darks (
-    seconds REAL PRIMARY KEY,
+CREATE TABLE IF NOT EXISTS calibration (   -- dark and flat-field frames
+    name TEXT PRIMARY KEY,       -- e.g. "dark:0.004", "flat:3"
+    kind TEXT NOT NULL,          -- "dark" | "flat"
+    seconds REAL NOT NULL,
     file TEXT NOT NULL,
     sha256 TEXT NOT NULL,
     finished REAL NOT NULL
@@ -59,6 +63,35 @@ CREATE TABLE IF NOT EXISTS events (
     text TEXT NOT NULL
 );
 """
+
+
+class SessionLock:
+    """An exclusive lock on a session folder while a process measures into it.
+
+    ``flock`` on ``.lock``: the kernel releases it when the process dies, however it dies, so
+    a killed capture never leaves a stale lock behind.
+    """
+
+    def __init__(self, folder: str | Path):
+        self.path = Path(folder) / LOCK_FILE
+        self.fd = None
+
+    def __enter__(self) -> "SessionLock":
+        import fcntl
+
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.fd)
+            self.fd = None
+            raise SessionError(f"{self.path.parent} is in use by another capture; wait for it or stop it first") from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
 
 
 def versions() -> dict[str, str]:
@@ -96,15 +129,23 @@ class Journal:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def record_dark(self, seconds: float, file: str, sha256: str) -> None:
-        """Commit a dark frame (exposure time s, file relative to the session, checksum)."""
+    def record_frame(self, name: str, kind: str, seconds: float, file: str, sha256: str) -> None:
+        """Commit a calibration frame (``kind`` "dark" or "flat", exposure s, file relative to the session)."""
         with self.db:
             self.db.execute("BEGIN")
-            self.db.execute("INSERT OR REPLACE INTO darks VALUES (?, ?, ?, ?)", (seconds, file, sha256, time.time()))
+            self.db.execute("INSERT OR REPLACE INTO calibration VALUES (?, ?, ?, ?, ?, ?)",
+                            (name, kind, seconds, file, sha256, time.time()))
 
-    def darks(self) -> dict[float, tuple[str, str]]:
-        """``{seconds: (file, sha256)}`` of the committed dark frames."""
-        return {r[0]: (r[1], r[2]) for r in self.db.execute("SELECT seconds, file, sha256 FROM darks")}
+    def frames(self, kind: str) -> dict[str, tuple[float, str, str]]:
+        """``{name: (seconds, file, sha256)}`` of the committed calibration frames of ``kind``."""
+        return {r[0]: (r[1], r[2], r[3]) for r in self.db.execute(
+            "SELECT name, seconds, file, sha256 FROM calibration WHERE kind = ? ORDER BY name", (kind,))}
+
+    def forget_frames(self, kind: str) -> None:
+        """Drop the calibration frames of ``kind`` (an incomplete set is taken again whole)."""
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("DELETE FROM calibration WHERE kind = ?", (kind,))
 
     def record_point(self, idx: int, angles: Iterable[float], stage: Iterable[float], brdf, brdf_std,
                      saturated: bool, detail: Mapping[str, Any]) -> None:
@@ -137,6 +178,11 @@ class Journal:
         with self.db:
             self.db.execute("BEGIN")
             self.db.execute("INSERT INTO events (time, kind, text) VALUES (?, ?, ?)", (time.time(), kind, text))
+
+    def first_event(self, kind: str) -> str | None:
+        """Text of the first event of ``kind`` (e.g. the session's reference monitor reading), or None."""
+        row = self.db.execute("SELECT text FROM events WHERE kind = ? ORDER BY id LIMIT 1", (kind,)).fetchone()
+        return None if row is None else row[0]
 
     def events(self) -> list[tuple[float, str, str]]:
         return list(self.db.execute("SELECT time, kind, text FROM events ORDER BY id"))
@@ -208,7 +254,7 @@ def verify_files(folder: str | Path, journal: Journal) -> list[str]:
     """RAW files the journal names whose checksum does not match (missing or corrupt)."""
     folder = Path(folder)
     bad = []
-    for _, (file, digest) in journal.darks().items():
+    for _, file, digest in [v for kind in ("dark", "flat") for v in journal.frames(kind).values()]:
         p = folder / file
         if not p.is_file() or sha256_file(p) != digest:
             bad.append(file)

@@ -231,8 +231,9 @@ def lower_bound(var, ok, settings, start, iterations: int | None = None) -> floa
     """Held-Karp lower bound (s) on any open path from ``start`` through all points.
 
     Edges cost the cheapest pair of valid variants. The open path is closed into a tour with a
-    dummy node joined at zero cost to every point; the bound is the best Lagrangian 1-tree
-    (node 0 = the dummy) found by subgradient steps.
+    dummy node joined at zero cost to every node; tours in which the start is not next to the
+    dummy only widen the set minimised over, so the bound stays valid. The bound is the best
+    Lagrangian 1-tree (node 0 = the dummy) found by subgradient steps: each is a lower bound.
     """
     n = var.shape[0]
     if n == 0:
@@ -251,7 +252,6 @@ def lower_bound(var, ok, settings, start, iterations: int | None = None) -> floa
     pi = np.zeros(m)
     best = 0.0
     step = None
-    ub = None
     for it in range(iterations):
         Wp = W + pi[:, None] + pi[None, :]
         np.fill_diagonal(Wp, 0.0)
@@ -276,7 +276,7 @@ def lower_bound(var, ok, settings, start, iterations: int | None = None) -> floa
 
 
 def _min_matrix(var, ok, settings):
-    """Move time between points at their cheapest valid pair of solutions (N, N), and from home."""
+    """Move time (s) between points at their cheapest valid pair of solutions, (N, N)."""
     n = var.shape[0]
     big = 1e9
     D = np.full((n, n), np.inf)

@@ -73,13 +73,14 @@ class PowerMeter:
         except (serial.SerialException, OSError, AttributeError, NotImplementedError):
             pass
 
-    def _write(self, text: str) -> None:
+    def _write(self, text: str) -> bool:
+        """Send one line; False if the port failed (the caller retries, then reconnects)."""
         self._drain()
         try:
             self._port.write((text + "\n").encode("ascii"))
-        except (serial.SerialException, OSError) as exc:
-            raise CommunicationError(f"power meter on {self.port_url} cannot be written ({exc}); "
-                                     "check the cable, then resume the session") from None
+            return True
+        except (serial.SerialException, OSError):
+            return False
 
     def _read(self) -> str | None:
         try:
@@ -96,14 +97,15 @@ class PowerMeter:
     def query(self, text: str, parse=str):
         """Send a query and return its parsed one-line answer (retries, then a reconnect)."""
         last = "no answer"
+        if self._port is None:                 # a reconnect failed earlier: try again now
+            self.open()
         for round_ in range(2):
             if round_:
                 self.close()
                 self.reconnects += 1
                 self.open()
             for _ in range(self.retries + 1):
-                self._write(text)
-                line = self._read()
+                line = self._read() if self._write(text) else None
                 if line is None:
                     last = "no answer"
                     self.retries_used += 1
@@ -118,7 +120,11 @@ class PowerMeter:
 
     def command(self, text: str) -> None:
         """Send a set command, then read the error queue; raise `DeviceError` on an error."""
-        self._write(text)
+        if self._port is None:
+            self.open()
+        if not self._write(text):
+            raise CommunicationError(f"power meter on {self.port_url} cannot be written; check the cable, "
+                                     "then resume the session")
         code, msg = self.error()
         if code != 0:
             raise DeviceError(f"power meter rejected {text!r}: {code} {msg}; check the [meter] settings")

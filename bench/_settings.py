@@ -10,7 +10,7 @@ from typing import Any, Mapping
 
 from .errors import GonioError
 
-__all__ = ["DEFAULT_SETTINGS_PATH", "default_settings", "load_settings", "merge_settings", "AXES"]
+__all__ = ["DEFAULT_SETTINGS_PATH", "default_settings", "load_settings", "merge_settings", "validate_settings", "AXES"]
 
 DEFAULT_SETTINGS_PATH = Path(__file__).with_name("instrument.toml")
 AXES = ("yaw", "tilt", "azimuth", "lamp")   # the order of a stage-angle vector everywhere
@@ -18,7 +18,7 @@ AXES = ("yaw", "tilt", "azimuth", "lamp")   # the order of a stage-angle vector 
 
 def default_settings() -> dict[str, Any]:
     """Return a fresh copy of the default instrument settings (``bench/instrument.toml``)."""
-    return _validated(tomllib.loads(DEFAULT_SETTINGS_PATH.read_text()))
+    return validate_settings(tomllib.loads(DEFAULT_SETTINGS_PATH.read_text()))
 
 
 def merge_settings(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
@@ -51,27 +51,39 @@ def load_settings(path: str | Path | None = None) -> dict[str, Any]:
         user = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise GonioError(f"settings file {path} is not valid TOML ({exc}); fix the syntax") from None
-    return _validated(merge_settings(default_settings(), user), str(path))
+    return validate_settings(merge_settings(default_settings(), user), str(path))
 
 
-def _validated(s: dict[str, Any], where: str = "instrument settings") -> dict[str, Any]:
-    """Check the tables the bench relies on; raise a one-line GonioError otherwise."""
+def validate_settings(s: dict[str, Any], where: str = "instrument settings") -> dict[str, Any]:
+    """Check the tables the bench relies on; raise a one-line GonioError naming the bad key."""
+    def bad(key: str) -> GonioError:
+        return GonioError(f"{where}: missing or invalid {key}; compare with {DEFAULT_SETTINGS_PATH.name}")
+
+    def num(key: str, value, positive: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise bad(key)
+        if positive and not value > 0:
+            raise bad(key)
+        return float(value)
+
     try:
         for name in AXES:
+            key = f"axes.{name}"
             dev, ax, lo, hi = s["axes"][name]
-            if not (int(dev) >= 1 and int(ax) >= 1 and math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-                raise ValueError(f"axes.{name}")
+            if not (int(dev) >= 1 and int(ax) >= 1 and num(key, lo) < num(key, hi)):
+                raise bad(key)
+            key = f"motion.{name}"
             vmax, acc = s["motion"][name]
-            if not (vmax > 0 and acc > 0):
-                raise ValueError(f"motion.{name}")
-        if int(s["axes"]["cycle_dist"]) <= 0:
-            raise ValueError("axes.cycle_dist")
-        rho = float(s["reference"]["reflectance"])
-        if not 0 < rho <= 1.5:
-            raise ValueError("reference.reflectance")
+            num(key, vmax, True), num(key, acc, True)
+        num("axes.cycle_dist", s["axes"]["cycle_dist"], True)
+        rho = s["reference"]["reflectance"]
+        rho = rho if isinstance(rho, list) else [rho]
+        if len(rho) not in (1, 3) or not all(0 < num("reference.reflectance", r) <= 1.5 for r in rho):
+            raise bad("reference.reflectance")
         for key in ("width", "height", "pixel_size", "bits"):
-            if not s["camera"][key] > 0:
-                raise ValueError(f"camera.{key}")
-    except (KeyError, TypeError, ValueError) as exc:
-        raise GonioError(f"{where}: missing or invalid value {exc}; compare with {DEFAULT_SETTINGS_PATH.name}") from None
+            num(f"camera.{key}", s["camera"][key], True)
+    except KeyError as exc:
+        raise bad(str(exc.args[0])) from None
+    except (TypeError, ValueError):
+        raise bad("[axes] or [motion] entry (lists of numbers)") from None
     return s

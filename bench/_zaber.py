@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Callable, Mapping
 
 import serial
 
 from ._settings import AXES
-from .errors import CommunicationError, FaultError, RejectedError, UnreachableError, GonioError
+from .errors import CommunicationError, DeviceError, FaultError, GonioError, RejectedError, UnreachableError
 
 __all__ = [
     "FLAG_MEANINGS",
@@ -38,8 +38,10 @@ __all__ = [
     "parse_reply",
     "ZaberChain",
     "Goniometer",
+    "MoveError",
     "LedSource",
     "shortest_equivalent",
+    "emergency_stop",
 ]
 
 FLAG_MEANINGS = {
@@ -296,6 +298,8 @@ class ZaberChain:
         return line
 
     def _exchange(self, device: int, axis: int, command: str) -> Reply:
+        if self._port is None:
+            raise _NoReply("port closed")
         msgid = self._next_msgid()
         try:
             self._port.write(format_command(device, axis, command, msgid, self.checksum))
@@ -336,7 +340,7 @@ class ZaberChain:
         """
         last = ""
         for round_ in range(2):
-            if round_:
+            if round_ or self._port is None:     # (a reconnect failed earlier: try again now)
                 try:
                     self.reconnect()
                 except CommunicationError as exc:
@@ -347,6 +351,10 @@ class ZaberChain:
                     reply = self._exchange(device, axis, command)
                 except (_NoReply, _Garbled) as exc:
                     last = str(exc)
+                    self.retries_used += 1
+                    continue
+                if reply.flag == "RJ" and reply.data.split()[:1] == ["AGAIN"]:
+                    last = "device busy (AGAIN)"      # the device asks for the command again
                     self.retries_used += 1
                     continue
                 return self._checked(reply, command, check)
@@ -431,6 +439,19 @@ class ZaberChain:
                                  "check for a jammed stage, then resume the session")
 
 
+def emergency_stop(port_url: str, baudrate: int = 115200, n_devices: int = 2) -> int:
+    """Send the emergency stop to every device on the chain at once (``/0 0 estop``).
+
+    Bypasses everything else: no retries, no checks, a fresh port. Returns the number of
+    devices that answered (a stop is sent whether or not they do).
+    """
+    chain = ZaberChain(port_url, baudrate, timeout=0.5, retries=0)
+    try:
+        return len(chain.broadcast("estop", n_devices))
+    finally:
+        chain.close()
+
+
 def shortest_equivalent(target_deg: float, current_deg: float, lo_deg: float, hi_deg: float) -> float:
     """The angle equivalent to ``target_deg`` (mod 360) inside [lo, hi] nearest ``current_deg``.
 
@@ -457,6 +478,14 @@ class _Axis:
     cycle_dist: int = 0
 
 
+class MoveError(DeviceError):
+    """An axis stopped short of its goal (stall, unexpected limit switch)."""
+
+    def __init__(self, message: str, flags=()):
+        super().__init__(message)
+        self.flags = tuple(flags)
+
+
 class Goniometer:
     """The rotary axes of the gonioreflectometer in degrees (interfaces.md section 3).
 
@@ -477,6 +506,8 @@ class Goniometer:
     the device's own ``limit.min``/``limit.max``.
     """
 
+    POSITION_TOLERANCE_STEPS = 2
+
     def __init__(self, chain: ZaberChain, settings: Mapping, *, poll_interval_s: float = 0.05,
                  sleep: Callable[[float], None] = time.sleep, move_timeout_s: float = 300.0):
         self.chain = chain
@@ -492,8 +523,32 @@ class Goniometer:
         self._position: dict[str, float] | None = None   # cache of the last confirmed angles
         self._reconnects_seen = chain.reconnects
 
-    def connect(self) -> list[str]:
-        """Read cycle distances and limits; return the active flags of the stage devices."""
+    def connect(self, clear_faults: bool = False) -> list[str]:
+        """Read flags, cycle distances and limits; return the active flags of the stage devices.
+
+        Parameters
+        ----------
+        clear_faults : bool
+            Clear latched flags first (``warnings clear``: FS after a stall, NI, WL), as a
+            resume does once the operator has looked at the cause.
+
+        Raises
+        ------
+        FaultError
+            A fault flag is (still) active.
+        """
+        active = []
+        for dev in self.devices:
+            flags = self.chain.flags(dev)
+            if clear_faults and any(f[0] in "FNW" and f not in ("WR", "WH") for f in flags):
+                self.chain.clear_flags(dev)
+                flags = self.chain.flags(dev)
+            faults = [f for f in flags if f.startswith("F")]
+            if faults:
+                text = "; ".join(f"{f} {FLAG_MEANINGS.get(f, 'fault')}" for f in faults)
+                raise FaultError(f"Zaber device {dev} reports a fault: {text}; clear the cause, "
+                                 "then run the session again with --resume", tuple(faults))
+            active += flags
         for dev in self.devices:
             axes = [a for a in self.axes.values() if a.device == dev]
             cyc = self.chain.get(dev, 0, "limit.cycle.dist")
@@ -511,7 +566,8 @@ class Goniometer:
                 a.lo_deg = max(a.lo_deg, lo[i] * 360.0 / a.cycle_dist)
                 a.hi_deg = min(a.hi_deg, hi[i] * 360.0 / a.cycle_dist)
         self.connected = True
-        return self.flags()
+        self._position = None
+        return active
 
     def flags(self) -> list[str]:
         """Active flags of all stage devices."""
@@ -583,8 +639,26 @@ class Goniometer:
             self.chain.request(a.device, a.axis, f"move abs {self.deg_to_steps(name, deg)}")
         if wait:
             self.wait_idle()
+            self._verify(goal)
             self._position = {**current, **goal}
         return goal
+
+    def _verify(self, goal: Mapping[str, float]) -> None:
+        """Check that every axis reached its goal (a stall or a limit switch stops it short).
+
+        Raises
+        ------
+        DeviceError
+            An axis is more than `POSITION_TOLERANCE_STEPS` microsteps off, with the active flags.
+        """
+        pos = self.positions()
+        off = {n: pos[n] for n, g in goal.items()
+               if abs(self.deg_to_steps(n, pos[n]) - self.deg_to_steps(n, g)) > self.POSITION_TOLERANCE_STEPS}
+        if off:
+            flags = self.flags()
+            text = ", ".join(f"{n} at {pos[n]:.3f} deg instead of {goal[n]:.3f}" for n in off)
+            why = "; ".join(f"{f} {FLAG_MEANINGS.get(f, '')}".strip() for f in flags) or "no flag"
+            raise MoveError(f"move fell short: {text} ({why}); check the stage, then resume the session", flags)
 
     def wait_idle(self) -> None:
         """Poll every stage device until IDLE (faults raise)."""

@@ -1,22 +1,36 @@
 """The capture loop: a session that survives being killed.
 
-`capture` creates a session folder and measures a plan; `resume` finishes one. Per point:
-move (in the ordered plan), wait for IDLE, expose with automatic bracketing, read the
-monitor at each exposure, merge the bracket into HDR radiance (dark frames subtracted,
-saturated values excluded), average the sample and reference regions located from the
-geometry, and convert to f_r with the reference:
+`capture` creates a session folder and measures a plan; `resume` finishes one.
+
+Once per session, before the first point (each set journalled, so a resume reuses it): dark
+frames with the lamp off for every rung of the exposure ladder (the bracketing may use any of
+them), and, where the camera has a flat-field source, ``[capture] flat_frames`` flat frames
+whose mean gives each pixel's relative gain (the sensor's response non-uniformity).
+
+Per point: move (in the ordered plan, the shortest way, soft limits checked, the position
+verified), wait for IDLE, settle, expose with automatic bracketing (a probe, then the rungs
+that keep the brightest region pixel below saturation in the shortest exposure and bring the
+darkest to ``noise_floor_snr`` in the longest), read the monitor at each exposure, merge the
+bracket into HDR radiance (dark frames subtracted, saturated values excluded, flat-fielded),
+average the sample and reference regions (the super-pixels wholly inside each square, found
+from the geometry), and convert to f_r with the reference:
 
     f_r = (S_sample / S_ref) * rho_ref / pi
 
-with a 1-sigma propagated from both regions' standard errors. The reference certificate's
-own uncertainty is a fully correlated scale error, stored apart (``scale_rel_std``). A
-point's journal row is committed only when everything about it succeeded.
+with a 1-sigma from both regions' standard errors of the mean (shot, read and residual
+fixed-pattern noise; the monitor cancels in the ratio). The reference certificate's own
+uncertainty is a fully correlated scale error, stored apart (``scale_rel_std``). A point's
+journal row is committed only when everything about it succeeded; reciprocal pairs are
+compared as they arrive.
 
 Operating behaviour: a rich progress bar (points, ETA, latest f_r); Ctrl-C once finishes the
 current point and stops resumably, twice stops the stages and exits; the run pauses itself
 (a suspender) while the lamp is off its session-start level by more than
-``[lamp] drift_tolerance`` or the meter is silent, and stops resumably with a one-line reason
-when that lasts longer than ``suspend_timeout_s``.
+``[lamp] drift_tolerance``, changes within a bracket by more than ``bracket_tolerance``, or
+the meter is silent, and stops resumably with a one-line reason when that lasts longer than
+``suspend_timeout_s``. A move that falls short (a limit switch) is retried once; faults
+(a stall) stop the run resumably, and a resume clears them and re-homes where the controller
+lost its reference.
 """
 
 from __future__ import annotations
@@ -36,13 +50,13 @@ import numpy as np
 from . import kinematics
 from ._camera import RawFrame, SimCamera, decode_raw
 from ._files import TMP_PREFIX, remove_orphans, sha256_file
-from ._hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
-from ._journal import (JOURNAL_FILE, RAW_DIR, SESSION_FILE, Journal, read_session, verify_files, versions,
-                       write_session)
+from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
+from ._journal import (JOURNAL_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock, read_session, verify_files,
+                       versions, write_session)
 from ._ordering import order_moves
 from ._scpi import PowerMeter
-from ._settings import AXES
-from ._zaber import Goniometer, LedSource, ZaberChain
+from ._settings import AXES, default_settings, merge_settings, validate_settings
+from ._zaber import Goniometer, LedSource, MoveError, ZaberChain, emergency_stop
 from .errors import CommunicationError, DeviceError, GonioError, SessionError
 from .plans import Plan, plan_from_dict, require_reachable
 
@@ -90,6 +104,11 @@ class CaptureSummary:
     move_ordered_s: float = 0.0
     move_bound_s: float = 0.0
     wall_s: float = 0.0
+
+    @property
+    def per_point_s(self) -> float:
+        """Wall time per point measured by this call, s (NaN if none)."""
+        return self.wall_s / self.n_new if self.n_new else math.nan
 
     @property
     def reciprocity_error(self) -> float:
@@ -147,16 +166,7 @@ class Bench:
                     pass
 
 
-def estop(zaber_url: str, baudrate: int = 115200, n_devices: int = 2) -> int:
-    """Send the emergency stop to every device on the chain at once (``/0 0 estop``).
-
-    Returns the number of devices that answered.
-    """
-    chain = ZaberChain(zaber_url, baudrate, timeout=0.5, retries=0)
-    try:
-        return len(chain.broadcast("estop", n_devices))
-    finally:
-        chain.close()
+estop = emergency_stop        # ``gonio estop --port``: /0 0 estop to every device at once
 
 
 # -- Ctrl-C ----------------------------------------------------------------------------------
@@ -189,8 +199,75 @@ class _Suspended(Exception):
     """The lamp or the meter is not fit to measure; the point must wait and be measured again."""
 
 
+def _check_sensor(camera, settings: Mapping) -> None:
+    """The regions of interest come from ``[camera]``: the camera must have that many pixels."""
+    sensor = getattr(camera, "sensor", None)
+    cam = settings["camera"]
+    if sensor is not None and (sensor.width, sensor.height) != (cam["width"], cam["height"]):
+        raise GonioError(f"the camera reports {sensor.width}x{sensor.height} pixels but the settings say "
+                         f"{cam['width']}x{cam['height']}; fix [camera] width/height in the settings")
+
+
+class ReferenceModel:
+    """f_r of the reference (sr^-1, per channel): ``rho / pi`` times its non-Lambertian factor.
+
+    Settings (``[reference]``): ``reflectance`` (a number or one per channel), and optionally
+    ``factor_theta_i``, ``factor_theta_o`` (degrees, ascending) and ``factor`` (a table, rows
+    over theta_i, columns over theta_o) from the certificate: the reference's f_r relative to
+    a Lambertian of the same reflectance, interpolated bilinearly (clamped at the edges).
+    """
+
+    def __init__(self, ref: Mapping):
+        self.rho = np.broadcast_to(np.asarray(ref["reflectance"], float), (3,)).copy()
+        self.table = None
+        if "factor" in ref:
+            ti = np.asarray(ref.get("factor_theta_i", []), float)
+            to = np.asarray(ref.get("factor_theta_o", []), float)
+            fac = np.asarray(ref["factor"], float)
+            if (fac.shape != (len(ti), len(to)) or len(ti) < 1 or len(to) < 1 or not np.all(np.isfinite(fac))
+                    or np.any(np.diff(ti) <= 0) or np.any(np.diff(to) <= 0) or np.any(fac <= 0)):
+                raise GonioError("[reference] factor must be a positive len(factor_theta_i) x len(factor_theta_o) "
+                                 "table over ascending angles; fix the settings")
+            self.table = (ti, to, fac)
+
+    def factor(self, theta_i: float, theta_o: float) -> float:
+        """The non-Lambertian factor at (theta_i, theta_o) in degrees (1 without a table)."""
+        if self.table is None:
+            return 1.0
+        ti, to, fac = self.table
+        rows = np.array([np.interp(theta_o, to, row) for row in fac])
+        return float(np.interp(theta_i, ti, rows))
+
+    def f_r(self, theta_i: float, theta_o: float) -> np.ndarray:
+        """Reference f_r (3,) in sr^-1."""
+        return self.rho / math.pi * self.factor(theta_i, theta_o)
+
+
+def _region_stats(hdr, mask: np.ndarray) -> dict[str, Any]:
+    """Per-channel mean of the HDR radiance over ``mask``, its standard error, and counts.
+
+    ``se`` is the empirical standard error of the mean (pixel scatter: shot and read noise and
+    the sensor's fixed pattern), ``se_model`` the one the noise model alone predicts. Pixels
+    saturated in every exposure (NaN) are left out and counted in ``n_saturated``.
+    """
+    rad, var = hdr.radiance[:, mask], hdr.var[:, mask]
+    good = np.isfinite(rad)
+    n = good.sum(1)
+    mean, se, se_model = np.full(3, np.nan), np.full(3, np.nan), np.full(3, np.nan)
+    for c in range(3):
+        x = rad[c, good[c]]
+        if n[c]:
+            mean[c] = x.mean()
+            se_model[c] = math.sqrt(var[c, good[c]].sum()) / n[c]
+        if n[c] > 1:
+            se[c] = x.std(ddof=1) / math.sqrt(n[c])
+    return {"mean": mean, "se": se, "se_model": se_model, "n": n, "n_saturated": int((~good).sum())}
+
+
 class _Session:
     """One run over a session folder (shared by `capture` and `resume`)."""
+
+    MAX_ATTEMPTS = 5        # measurements of one point interrupted by the lamp before the run stops
 
     def __init__(self, folder: Path, doc: Mapping, bench: Bench, journal: Journal, progress: bool,
                  stop: Callable[[], bool]):
@@ -210,9 +287,9 @@ class _Session:
         self.rungs = ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))
         self.probe = float(self.rungs[np.argmin(np.abs(np.log(self.rungs / float(cap["probe_s"]))))])
         self.snr = float(cap["noise_floor_snr"])
-        ref = self.settings["reference"]
-        self.rho = np.broadcast_to(np.asarray(ref["reflectance"], float), (3,)).copy()
+        self.reference = ReferenceModel(self.settings["reference"])
         self.darks: dict[float, RawFrame] = {}
+        self.gain: np.ndarray | None = None          # flat-field relative gain (3, h, w), None if no flat
         lamp = self.settings.get("lamp", {})
         self.drift_tol = float(lamp.get("drift_tolerance", 0.2))
         self.bracket_tol = float(lamp.get("bracket_tolerance", 0.02))
@@ -225,35 +302,30 @@ class _Session:
 
     # -- instrument preparation ----------------------------------------------------------
     def prepare(self) -> None:
-        """Check flags and positions, home if the reference is lost, take missing darks, lamp on."""
+        """Check flags and positions, home if the reference is lost, take missing darks and
+        flats, lamp on."""
         b = self.bench
-        flags = b.gonio.connect()
-        faults = [f for f in flags if f.startswith("F")]
-        if faults:
-            b.chain.clear_flags(b.gonio.devices[0])
-            flags = b.gonio.flags()
-            faults = [f for f in flags if f.startswith("F")]
-            if faults:
-                from ._zaber import FLAG_MEANINGS
-                raise DeviceError("stages report fault(s) " + ", ".join(f"{f} ({FLAG_MEANINGS.get(f, 'fault')})" for f in faults)
-                                  + "; clear the cause, then resume the session")
+        _check_sensor(b.camera, self.settings)
+        flags = b.gonio.connect(clear_faults=True)
         if any(f in ("WR", "WH") for f in flags):
             self.journal.event("home", f"stages lost their reference ({' '.join(flags)}): homing")
             b.gonio.home()
-        b.chain.clear_flags(b.gonio.devices[0])
         b.meter.identify()
         m = self.settings.get("meter", {})
         b.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))
         self._take_darks()
+        self._take_flats()
+        cm = next(iter(self.darks.values())).rgb_cam
+        if cm is not None and self.journal.first_event("rgb_cam") is None:
+            self.journal.event("rgb_cam", json.dumps(cm.tolist()))
         b.led.set_flux(float(self.settings.get("lamp", {}).get("flux", 1.0)))
         b.led.on()
         self.p_ref = self._p_ref()
 
     def _p_ref(self) -> float:
-        row = self.journal.db.execute(
-            "SELECT text FROM events WHERE kind = 'p_ref' ORDER BY id LIMIT 1").fetchone()
-        if row is not None:
-            return float(row[0])
+        known = self.journal.first_event("p_ref")       # a resumed session keeps its reference
+        if known is not None:
+            return float(known)
         p = self.bench.meter.power()
         if not p > 0:
             raise DeviceError(f"the monitor reads {p:g} W with the lamp on; check the LED and the meter, "
@@ -261,23 +333,69 @@ class _Session:
         self.journal.event("p_ref", repr(p))
         return p
 
+    def _load(self, file: str, digest: str) -> RawFrame:
+        path = self.folder / file
+        if not path.is_file() or sha256_file(path) != digest:
+            raise SessionError(f"calibration frame {file} is missing or corrupt; the session folder is damaged")
+        return decode_raw(path)
+
     def _take_darks(self) -> None:
-        have = self.journal.darks()
-        missing = [t for t in self.rungs if float(t) not in have]
-        if missing:
+        """Dark frames (lamp off) for every rung of the exposure ladder, journalled once per session."""
+        have = {v[0]: v for v in self.journal.frames("dark").values()}
+        if any(float(t) not in have for t in self.rungs):
             self.bench.led.off()
-        for t in self.rungs:
-            t = float(t)
+        for t in map(float, self.rungs):
             if t in have:
-                file, digest = have[t]
-                path = self.folder / file
-                if not path.is_file() or sha256_file(path) != digest:
-                    raise SessionError(f"dark frame {file} is missing or corrupt; the session folder is damaged")
+                _, file, digest = have[t]
             else:
                 file = f"{RAW_DIR}/dark_{t * 1e6:010.0f}us.dng"
                 digest = self.bench.camera.expose(t, self.folder / file)
-                self.journal.record_dark(t, file, digest)
-            self.darks[t] = decode_raw(self.folder / file)
+                self.journal.record_frame(f"dark:{t!r}", "dark", t, file, digest)
+            self.darks[t] = self._load(file, digest)
+
+    def _take_flats(self) -> None:
+        """Flat-field frames for the PRNU correction (cameras with a ``flat`` source only).
+
+        The exposure is the longest rung that keeps the flat below 60 % of full scale, found
+        from probe frames; ``[capture] flat_frames`` frames are averaged. An incomplete set
+        (a crash while taking it) is taken again whole. Whether a session has a flat field is
+        decided once, when it starts.
+        """
+        cam = self.bench.camera
+        n = int(self.settings["capture"].get("flat_frames", 16))
+        if self.journal.first_event("no_flat") is not None:
+            return                               # decided when the session started: keep it so
+        have = self.journal.frames("flat")
+        if len(have) != n:                       # none yet, or a crash while taking them
+            self.journal.forget_frames("flat")
+            if not hasattr(cam, "flat") or n < 1:
+                self.journal.event("no_flat", "no flat-field source: pixel response non-uniformity not corrected")
+                return
+            t = self._flat_exposure(cam)
+            for k in range(n):
+                file = f"{RAW_DIR}/flat_{k:03d}.dng"
+                self.journal.record_frame(f"flat:{k:03d}", "flat", t, file, cam.flat(t, self.folder / file))
+            have = self.journal.frames("flat")
+        t = next(iter(have.values()))[0]
+        self.gain = flat_gain([self._load(f, d) for _, f, d in have.values()], self.darks[t])
+
+    def _flat_exposure(self, cam) -> float:
+        probe = self.folder / RAW_DIR / f"{TMP_PREFIX}flat-probe.dng"
+        t = self.probe
+        try:
+            for _ in range(len(self.rungs)):
+                cam.flat(t, probe)
+                f = decode_raw(probe)
+                level = float(np.percentile(f.peak - self.darks[t].signal, 99.9)) / f.full_scale
+                i = int(np.searchsorted(self.rungs, t))
+                if level >= self.sat and i > 0:
+                    t = float(self.rungs[max(0, i - 3)])
+                    continue
+                fits = self.rungs[self.rungs * max(level, 1e-6) / t <= 0.6]
+                return float(fits[-1]) if len(fits) else float(self.rungs[0])
+            return t
+        finally:
+            probe.unlink(missing_ok=True)
 
     # -- suspenders -----------------------------------------------------------------------
     def _power(self) -> float:
@@ -319,13 +437,15 @@ class _Session:
         """Move to point ``idx``, bracket, merge, calibrate; return the journal row's fields."""
         b = self.bench
         stage = self.stage[idx]
-        b.gonio.move_to(dict(zip(AXES, stage)))
+        try:
+            b.gonio.move_to(dict(zip(AXES, stage)))
+        except MoveError as exc:                 # e.g. WL: clear the flags, try once more
+            self.journal.event("warning", str(exc))
+            b.chain.clear_flags(b.gonio.devices[0])
+            b.gonio.move_to(dict(zip(AXES, stage)))
         b.sleep(float(self.settings.get("motion", {}).get("settle_s", 0.0)))
         sm, rm = kinematics.roi_masks(stage, self.settings)
         both = sm | rm
-        if sm.sum() < 2 or rm.sum() < 2:
-            raise GonioError(f"point {idx}: the sample or reference square is not in view; "
-                             "remove the point from the plan")
         p_start = self._power()
         taken: dict[float, tuple[Exposure, dict]] = {}
         t = self.probe
@@ -357,24 +477,13 @@ class _Session:
         if max(powers) / min(powers) - 1.0 > self.bracket_tol:
             raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
                              f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
-        hdr = merge([u[0] for u in used], self.noise, self.sat)
-        stats = {}
-        saturated = False
-        for name, mask in (("sample", sm), ("reference", rm)):
-            rad = hdr.radiance[:, mask]
-            var = hdr.var[:, mask]
-            good = np.isfinite(rad)
-            saturated |= bool((~good).any())
-            n = good.sum(1)
-            mean = np.array([rad[c, good[c]].mean() if n[c] else np.nan for c in range(3)])
-            se_emp = np.array([rad[c, good[c]].std(ddof=1) / math.sqrt(n[c]) if n[c] > 1 else np.nan
-                               for c in range(3)])
-            se_mod = np.array([math.sqrt(var[c, good[c]].sum()) / n[c] if n[c] else np.nan for c in range(3)])
-            stats[name] = {"mean": mean, "se": se_emp, "se_model": se_mod, "n": n}
+        hdr = merge([u[0] for u in used], self.noise, self.sat).flat_fielded(self.gain)
+        stats = {"sample": _region_stats(hdr, sm), "reference": _region_stats(hdr, rm)}
+        saturated = any(st["n_saturated"] for st in stats.values())
         s, r = stats["sample"], stats["reference"]
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = s["mean"] / r["mean"]
-            brdf = ratio * self.rho / math.pi
+            brdf = ratio * self.reference.f_r(*self.plan.angles[idx, [0, 2]])
             rel = np.sqrt((s["se"] / s["mean"]) ** 2 + (r["se"] / r["mean"]) ** 2)
             std = np.abs(brdf) * rel
         detail = {
@@ -382,6 +491,7 @@ class _Session:
             "p_start": p_start,
             "bracket": bracket,
             **{f"{k}_{q}": [float(v) for v in stats[k][q]] for k in stats for q in ("mean", "se", "se_model", "n")},
+            "n_saturated": {k: int(stats[k]["n_saturated"]) for k in stats},
         }
         return {"brdf": brdf, "brdf_std": std, "saturated": saturated or not np.all(np.isfinite(brdf)),
                 "detail": detail, "stage": stage}
@@ -412,12 +522,16 @@ class _Session:
                 if self.stop():
                     stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
                     break
-                while True:
+                for attempt in range(self.MAX_ATTEMPTS):
                     try:
                         res = self.measure(idx)
                         break
                     except _Suspended as exc:
-                        self._wait_until_fit(str(exc))
+                        why = str(exc)
+                        self._wait_until_fit(why)
+                else:
+                    raise DeviceError(f"point {idx} failed {self.MAX_ATTEMPTS} times ({why}); "
+                                      "check the lamp, then resume the session")
                 self.journal.record_point(idx, self.plan.angles[idx], res["stage"], res["brdf"],
                                           res["brdf_std"], res["saturated"], res["detail"])
                 self.results[idx] = (np.asarray(res["brdf"]), np.asarray(res["brdf_std"]))
@@ -472,7 +586,6 @@ def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_ur
         "settings": dict(settings),
     }
     if sample_truth is not None:
-        import json
         doc["sample_truth"] = {"json": sample_truth if isinstance(sample_truth, str) else json.dumps(sample_truth, sort_keys=True)}
     if meta:
         doc["meta"] = dict(meta)
@@ -481,7 +594,9 @@ def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_ur
 
 def _run(folder: Path, doc: Mapping, bench: Bench, warnings: list, progress: bool, t0: float) -> CaptureSummary:
     journal = None
+    lock = SessionLock(folder)
     try:
+        lock.__enter__()
         journal = Journal(folder / JOURNAL_FILE)
         with _Interrupts() as intr:
             sess = _Session(folder, doc, bench, journal, progress, lambda: intr.requested)
@@ -519,6 +634,7 @@ def _run(folder: Path, doc: Mapping, bench: Bench, warnings: list, progress: boo
         if journal is not None:
             journal.close()
         bench.close()
+        lock.__exit__()
 
 
 def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_url: str, camera,
@@ -562,6 +678,7 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     """
     t0 = time.perf_counter()
     folder = Path(session_dir)
+    settings = validate_settings(merge_settings(default_settings(), settings))   # tables left out keep their defaults
     if (folder / SESSION_FILE).exists():
         raise SessionError(f"{folder} already holds a session; resume it with --resume {folder} or choose another --out")
     if folder.exists() and not folder.is_dir():
@@ -576,17 +693,14 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
             raise SessionError(f"{folder} is not empty; choose a new folder for the session")
         remove_orphans(folder)
     stage = require_reachable(plan, settings)
-    for k, st in enumerate(stage):
-        sm, rm = kinematics.roi_masks(st, settings)
-        if sm.sum() < 2 or rm.sum() < 2:
-            raise GonioError(f"plan {plan.name!r} point {k} {plan.angles[k].tolist()}: the sample or reference "
-                             "square is not in the camera's view; remove the point from the plan")
     order = order_moves(stage, settings)
     # open every port before anything is written: a dead port leaves nothing behind
     warnings: list = []
     bench = Bench(settings, zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
                   timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
     try:
+        _check_sensor(bench.camera, settings)
+        ReferenceModel(settings["reference"])
         doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta)
         write_session(folder, doc)
         doc = read_session(folder)
@@ -608,8 +722,9 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
     t0 = time.perf_counter()
     folder = Path(session_dir)
     doc = read_session(folder)
-    remove_orphans(folder / RAW_DIR)
-    remove_orphans(folder)
+    with SessionLock(folder):                  # not while another process measures into it
+        remove_orphans(folder / RAW_DIR)
+        remove_orphans(folder)
     ports = doc.get("ports", {})
     zaber_url = zaber_url or ports.get("zaber")
     meter_url = meter_url or ports.get("meter")

@@ -6,6 +6,12 @@ Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i
 stage angles; attributes ``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``,
 ``sample_truth`` (simulated sessions), ``scale_rel_std`` (the reference certificate's relative
 1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``), ``complete``.
+
+Where the RAW files carry colour matrices, also ``brdf_srgb`` (linear sRGB, D65) and
+``brdf_xyz`` (CIE XYZ) with their 1-sigma: the camera-RGB f_r is white-balanced by
+construction (the reference is spectrally flat and shares the illumination), so LibRaw's
+camera -> sRGB matrix applies to it directly, and XYZ = M_sRGB->XYZ sRGB (IEC 61966-2-1).
+Channel noise is independent, so variances map through the squared matrix elements.
 Written with xarray's h5netcdf engine to a temporary name, fsynced, then renamed.
 """
 
@@ -25,6 +31,9 @@ __all__ = ["export", "to_dataset", "DATASET_FILE"]
 
 DATASET_FILE = "dataset.nc"
 
+#: Linear sRGB -> CIE XYZ (D65), IEC 61966-2-1.
+SRGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+
 
 def to_dataset(session_dir):
     """The session's journalled points as an `xarray.Dataset` (see the module docstring)."""
@@ -36,6 +45,7 @@ def to_dataset(session_dir):
         raise SessionError(f"{folder} has no journal: no point was measured; run the capture first")
     with Journal(folder / JOURNAL_FILE) as j:
         rows = j.points()
+        rgb_cam = j.first_event("rgb_cam")
     if not rows:
         raise SessionError(f"{folder} has no measured point yet; resume the capture first")
     n_plan = len(doc["plan"]["points"])
@@ -64,6 +74,9 @@ def to_dataset(session_dir):
         **{k: ("point", np.array([r[k] for r in rows], float), {**deg, "long_name": f"stage angle {k}"})
            for k in ("yaw", "tilt", "azimuth", "lamp")},
     }
+    if rgb_cam is not None:
+        data.update(_colour(np.asarray(json.loads(rgb_cam), float), data["brdf"][1], data["brdf_std"][1]))
+        coords["xyz"] = ["X", "Y", "Z"]
     sess = doc.get("session", {})
     attrs = {
         "gonio_version": str(sess.get("gonio", "unknown")),
@@ -79,6 +92,18 @@ def to_dataset(session_dir):
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
     return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def _colour(rgb_cam: np.ndarray, f: np.ndarray, sd: np.ndarray) -> dict:
+    """``brdf_srgb``, ``brdf_xyz`` and their 1-sigma from camera-RGB f_r (N, 3)."""
+    out = {}
+    sr = {"units": "sr^-1"}
+    for name, M, dim, what in (("srgb", rgb_cam, "channel", "linear sRGB (D65)"),
+                               ("xyz", SRGB_TO_XYZ @ rgb_cam, "xyz", "CIE XYZ (D65)")):
+        out[f"brdf_{name}"] = (("point", dim), f @ M.T, {**sr, "long_name": f"f_r in {what}"})
+        out[f"brdf_{name}_std"] = (("point", dim), np.sqrt(sd ** 2 @ (M ** 2).T),
+                                   {**sr, "long_name": f"1-sigma of brdf_{name}"})
+    return out
 
 
 def export(session_dir) -> Path:

@@ -45,6 +45,7 @@ __all__ = [
 
 B = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 _C = np.array([1.0, 0.0, 0.0])
+MIN_ROI_PIXELS = 4      # super-pixels each region of interest needs for a mean and its standard error
 
 
 def _rz(a):
@@ -180,7 +181,8 @@ def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping) -> Reachability
 
     Reasons, in the order checked: not finite; below the horizon or at grazing (theta outside
     [0, 90)); lamp in front of the camera (L < ``lamp_block_deg``); an axis outside its limits
-    (after choosing the equivalent azimuth inside the limits).
+    (after choosing the equivalent azimuth inside the limits); fewer than `MIN_ROI_PIXELS`
+    super-pixels of the sample or reference square in view.
     """
     ti, pi_, to, po = (np.atleast_1d(np.asarray(a, float)) for a in (theta_i, phi_i, theta_o, phi_o))
     ti, pi_, to, po = np.broadcast_arrays(ti, pi_, to, po)
@@ -210,6 +212,10 @@ def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping) -> Reachability
                     if not (lo - 1e-9 <= v <= hi + 1e-9):
                         reasons[k] = f"{name} = {v:.1f} deg outside its limits [{lo:g}, {hi:g}]"
                         break
+                if not reasons[k] and "camera" in settings and "holder" in settings:
+                    sm, rm = roi_masks(stage[k], settings)
+                    if min(sm.sum(), rm.sum()) < MIN_ROI_PIXELS:
+                        reasons[k] = "the sample or reference square is out of the camera's view"
         ok[k] = reasons[k] == ""
     return Reachability(ok, reasons, stage)
 

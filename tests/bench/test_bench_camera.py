@@ -10,7 +10,7 @@ import tifffile
 
 from benchfakes import expect
 from gonio.bench._camera import (Gphoto2Camera, SimCamera, WatchedFolderCamera, decode_raw, shutter_value)
-from gonio.bench.errors import DeviceError, GonioError
+from gonio.bench.errors import CommunicationError, DeviceError, GonioError
 
 
 def write_dng(path, mosaic, black=512, white=16383):
@@ -84,6 +84,16 @@ def test_sim_camera_retries_bad_file_then_errors(tmp_path):
                   (f"EXPOSE 100 {tmp}\n", "ERR bad exposure\n")])
     with pytest.raises(DeviceError, match="bad exposure"):
         SimCamera("expect://c3").expose(100, target)
+
+
+def test_sim_camera_reconnects_once_when_silent(tmp_path):
+    ex = expect("c4", [("*IDN?\n", "gonio,SimCamera,SIM1,0.1\n"), ("SENSOR?\n", "32 24 14 512 16383 RGGB\n"),
+                       ("*IDN?\n", None), ("*IDN?\n", "gonio,SimCamera,SIM1,0.1\n"),
+                       ("*IDN?\n", None), ("*IDN?\n", None)])
+    cam = SimCamera("expect://c4")
+    assert cam._query("*IDN?").startswith("gonio") and ex.opened == 2
+    with pytest.raises(CommunicationError, match="even after a reconnect"):
+        cam._query("*IDN?")
 
 
 def test_watched_folder_camera(tmp_path):

@@ -76,7 +76,7 @@ def test_capture_recovers_known_brdf_and_exports(instrument, tmp_path):
     assert doc["session"]["seed"] == 1 and doc["plan"]["name"] == "quick" and "axes" in doc["settings"]
     assert json.loads(doc["sample_truth"]["json"]) == GLOSSY
     ds = xr.open_dataset(export(folder), engine="h5netcdf")
-    assert ds.sizes == {"point": 30, "channel": 3} and list(ds.channel.values) == ["R", "G", "B"]
+    assert ds.sizes == {"point": 30, "channel": 3, "xyz": 3} and list(ds.channel.values) == ["R", "G", "B"]
     for c in ("theta_i", "phi_i", "theta_o", "phi_o"):
         assert ds[c].attrs["units"] == "degree"
     assert ds.brdf.attrs["units"] == "sr^-1" and ds.brdf_std.dims == ("point", "channel")
@@ -84,8 +84,26 @@ def test_capture_recovers_known_brdf_and_exports(instrument, tmp_path):
     p = ds.reciprocal_partner.values
     assert (p >= 0).sum() == 8 and all(p[p[i]] == i for i in np.flatnonzero(p >= 0))
     assert json.loads(ds.attrs["sample_truth"]) == GLOSSY and ds.attrs["complete"] == 1
+    # colour: a neutral stays neutral, and Y of a grey is its sRGB value (rows of the matrices)
+    assert ds.brdf_xyz.dims == ("point", "xyz") and list(ds.xyz.values) == ["X", "Y", "Z"]
+    np.testing.assert_allclose(ds.brdf_xyz.sel(xyz="Y"), ds.brdf_srgb.values @ [0.2126, 0.7152, 0.0722], rtol=1e-12)
+    assert np.all(ds.brdf_srgb_std > 0)
     ds.close()
     assert not any(n.startswith(".tmp-") for n in os.listdir(folder))
+
+
+def test_hdr_bracketing_on_a_shiny_sample(instrument, tmp_path):
+    """A specular peak about 200 times brighter than the reference: bracketed, merged, unsaturated."""
+    inst = instrument("shiny", sample={"model": "roughplastic",
+                                       "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.03}})
+    folder = tmp_path / "s"
+    assert run(inst, folder).complete
+    c2, rows = chi2(folder, inst)
+    assert c2 < 2.5
+    assert not any(r["saturated"] for r in rows)
+    peak = max(rows, key=lambda r: r["brdf"][1])
+    assert peak["brdf"][1] > 30 and len(peak["detail"]["bracket"]) >= 3      # sr^-1: the specular point
+    assert min(len(r["detail"]["bracket"]) for r in rows) == 1
 
 
 class InterruptingCamera:
@@ -99,6 +117,9 @@ class InterruptingCamera:
         if self.n == self.after:
             os.kill(os.getpid(), signal.SIGINT)
         return self.cam.expose(seconds, path)
+
+    def flat(self, seconds, path):
+        return self.cam.flat(seconds, path)
 
     def close(self):
         self.cam.close()
@@ -148,7 +169,10 @@ def test_power_cycle_stops_and_resume_rehomes(instrument, tmp_path):
     {"kind": "truncate", "port": "meter", "probability": 0.05},
     {"kind": "camera_truncated", "port": "camera", "at_command": [20, 30]},
     {"kind": "camera_nothing", "port": "camera", "at_command": [25]},
+    {"kind": "timeout", "port": "camera", "at_command": [22]},
     {"kind": "silence", "port": "meter", "at_command": [30], "duration": 3.0},
+    {"kind": "again", "port": "zaber", "probability": 0.03},
+    {"kind": "limit", "port": "zaber", "at_command": [70]},
 ])
 def test_faults_complete_with_no_wrong_point(instrument, tmp_path, fault):
     inst = instrument("f", faults=[fault])
@@ -159,7 +183,61 @@ def test_faults_complete_with_no_wrong_point(instrument, tmp_path, fault):
     assert c2 < 3.0 and len(rows) == len(SMALL)
     assert_clean(folder)
     comm = [json.loads(t) for _, k, t in Journal(folder / "journal.sqlite").events() if k == "comm"][-1]
-    assert comm[f"{fault['port']}_retries"] > 0                # the fault did fire and was recovered
+    if fault["kind"] == "limit":
+        assert any("move fell short" in t and "WL" in t for _, k, t in Journal(folder / "journal.sqlite").events())
+    else:
+        assert comm[f"{fault['port']}_retries"] > 0            # the fault did fire and was recovered
+
+
+def test_meter_vanishing_pauses_then_goes_on(instrument, tmp_path):
+    inst = instrument("van", faults=[{"kind": "vanish", "port": "meter", "at_command": 30, "duration": 30.0}])
+    folder = tmp_path / "s"
+    res = run(inst, folder)
+    assert res.complete
+    events = Journal(folder / "journal.sqlite").events()
+    kinds = [k for _, k, _ in events]
+    assert "pause" in kinds and "resume" in kinds
+    assert any("power meter is silent" in t for _, k, t in events if k == "pause")
+    c2, _ = chi2(folder, inst)
+    assert c2 < 3.0
+
+
+def test_stage_port_vanishing_stops_resumably(instrument, tmp_path):
+    inst = instrument("vz", faults=[{"kind": "vanish", "port": "zaber", "at_command": 60, "duration": 1000.0}])
+    folder = tmp_path / "s"
+    with pytest.raises(CommunicationError) as e:
+        run(inst, folder)
+    assert "reconnect" in str(e.value) and "resume" in str(e.value) and "\n" not in str(e.value)
+    inst.clock.advance(1000.0)
+    assert resume(folder, sleep=inst.clock.advance, progress=False).complete
+
+
+def test_ctrl_c_twice_stops_the_stages(instrument, tmp_path):
+    from gonio.bench.capture import CaptureInterrupted
+    inst = instrument("cc")
+
+    class Twice(InterruptingCamera):
+        def expose(self, seconds, path):
+            self.n += 1
+            if self.n == self.after:
+                os.kill(os.getpid(), signal.SIGINT)          # once: finish the point...
+                os.kill(os.getpid(), signal.SIGINT)          # ...twice: stop now
+            return self.cam.expose(seconds, path)
+    with pytest.raises(CaptureInterrupted, match="resumable"):
+        run(inst, tmp_path / "s", camera=Twice(inst.url("camera"), 16))
+    assert any(k == "stop" for _, k, _ in Journal(tmp_path / "s" / "journal.sqlite").events())
+    assert resume(tmp_path / "s", camera=inst.url("camera"), sleep=inst.clock.advance, progress=False).complete
+
+
+def test_stall_stops_resumably_and_resume_finishes(instrument, tmp_path):
+    inst = instrument("stall", faults=[{"kind": "stall", "port": "zaber", "at_command": [70]}])
+    folder = tmp_path / "s"
+    with pytest.raises(GonioError) as e:
+        run(inst, folder)
+    assert "FS stalled and stopped" in str(e.value) and "\n" not in str(e.value)
+    assert resume(folder, sleep=inst.clock.advance, progress=False).complete
+    c2, rows = chi2(folder, inst)
+    assert c2 < 3.0 and len(rows) == len(SMALL)
 
 
 def test_lamp_dies_pauses_then_stops_resumably(instrument, tmp_path):
@@ -172,6 +250,32 @@ def test_lamp_dies_pauses_then_stops_resumably(instrument, tmp_path):
     kinds = [k for _, k, _ in Journal(folder / "journal.sqlite").events()]
     assert "pause" in kinds
     assert len(Journal(folder / "journal.sqlite").done()) < len(SMALL)
+
+
+class CameraWithoutFlat:
+    def __init__(self, url):
+        self.cam = SimCamera(url)
+
+    def expose(self, seconds, path):
+        return self.cam.expose(seconds, path)
+
+    def close(self):
+        self.cam.close()
+
+
+def test_flat_field_taken_once_per_session(instrument, tmp_path):
+    inst = instrument("flat")
+    run(inst, tmp_path / "a", plans.Plan("two", [[30, 0, 40, 180], [20, 0, 50, 90]]))
+    with Journal(tmp_path / "a" / "journal.sqlite") as j:
+        flats = j.frames("flat")
+        assert len(flats) == S["capture"]["flat_frames"] and len({v[0] for v in flats.values()}) == 1
+    assert not list((tmp_path / "a" / "raw").glob(".tmp-*"))
+    # a camera without a flat source: the session says so, and a resume keeps it that way
+    res = run(inst, tmp_path / "b", plans.Plan("two", [[30, 0, 40, 180], [20, 0, 50, 90]]),
+              camera=CameraWithoutFlat(inst.url("camera")))
+    assert res.complete
+    with Journal(tmp_path / "b" / "journal.sqlite") as j:
+        assert j.frames("flat") == {} and j.first_event("no_flat") is not None
 
 
 def test_bad_inputs_leave_nothing_behind(instrument, tmp_path):
@@ -192,3 +296,26 @@ def test_bad_inputs_leave_nothing_behind(instrument, tmp_path):
         run(inst, tmp_path / "c")
     with pytest.raises(SessionError, match="not a gonio session"):
         resume(tmp_path / "c")
+
+
+def test_reference_model():
+    from gonio.bench.capture import ReferenceModel
+    flat = ReferenceModel({"reflectance": 0.99})
+    np.testing.assert_allclose(flat.f_r(30, 40), np.full(3, 0.99 / np.pi))
+    m = ReferenceModel({"reflectance": [0.98, 0.99, 0.97], "factor_theta_i": [0, 60], "factor_theta_o": [0, 80],
+                        "factor": [[1.0, 0.9], [1.1, 0.95]]})
+    assert m.factor(0, 0) == 1.0 and m.factor(60, 80) == 0.95 and m.factor(30, 40) == pytest.approx((1 + 0.9 + 1.1 + 0.95) / 4)
+    assert m.factor(90, 90) == 0.95                                    # clamped at the table's edge
+    np.testing.assert_allclose(m.f_r(0, 0), np.array([0.98, 0.99, 0.97]) / np.pi)
+    with pytest.raises(GonioError, match="factor"):
+        ReferenceModel({"reflectance": 0.99, "factor_theta_i": [0], "factor_theta_o": [0, 1], "factor": [[1.0]]})
+
+
+def test_camera_size_must_match_settings(instrument, tmp_path):
+    from gonio.bench._settings import merge_settings
+    inst = instrument("size")
+    wrong = merge_settings(S, {"camera": {"width": 128}})
+    with pytest.raises(GonioError, match="camera reports 64x48 pixels"):
+        capture(tmp_path / "s", SMALL, wrong, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
+                progress=False, sleep=inst.clock.advance)
+    assert not (tmp_path / "s").exists()

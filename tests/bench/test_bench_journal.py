@@ -3,11 +3,10 @@
 import sqlite3
 import tomllib
 
-import numpy as np
 import pytest
 
 from gonio.bench._files import atomic_write_bytes, remove_orphans, sha256_file, tmp_name
-from gonio.bench._journal import Journal, dumps_toml, read_session, write_session
+from gonio.bench._journal import Journal, SessionLock, dumps_toml, read_session, write_session
 from gonio.bench.errors import SessionError
 
 
@@ -15,13 +14,14 @@ def test_journal_pragmas_and_rows(tmp_path):
     with Journal(tmp_path / "j.sqlite") as j:
         assert j.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         assert j.db.execute("PRAGMA synchronous").fetchone()[0] == 2          # FULL
-        j.record_dark(0.004, "raw/d.dng", "ab" * 32)
+        j.record_frame("dark:0.004", "dark", 0.004, "raw/d.dng", "ab" * 32)
         j.record_point(3, (30, 0, 40, 180), (1, 2, 3, 4), [0.1, 0.2, 0.3], [0.01, 0.02, 0.03], False,
                        {"exposures": [{"file": "raw/p.dng", "sha256": "cd" * 32}]})
         with pytest.raises(sqlite3.IntegrityError):                           # a point is journalled once
             j.record_point(3, (30, 0, 40, 180), (1, 2, 3, 4), [0, 0, 0], [0, 0, 0], False, {})
     with Journal(tmp_path / "j.sqlite") as j:                                   # committed: survives a reopen
-        assert j.done() == {3} and j.darks() == {0.004: ("raw/d.dng", "ab" * 32)}
+        assert j.done() == {3} and j.frames("dark") == {"dark:0.004": (0.004, "raw/d.dng", "ab" * 32)}
+        assert j.frames("flat") == {}
         row = j.points()[0]
         assert row["brdf"] == [0.1, 0.2, 0.3] and row["theta_o"] == 40 and row["saturated"] == 0
 
@@ -51,3 +51,12 @@ def test_atomic_files(tmp_path):
     (tmp_path / "c.dng.part").write_bytes(b"half")
     assert sorted(p.name for p in remove_orphans(tmp_path)) == [".tmp-b.dng", "c.dng.part"]
     assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
+def test_session_lock_is_exclusive(tmp_path):
+    with SessionLock(tmp_path):
+        with pytest.raises(SessionError, match="in use by another capture"):
+            with SessionLock(tmp_path):
+                pass
+    with SessionLock(tmp_path):                 # released
+        pass

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gonio.bench import kinematics, plans
-from gonio.bench._ordering import cost_matrix, lower_bound, mirror, move_time, order_moves, path_time, _variants
+from gonio.bench._ordering import _variants, cost_matrix, move_time, order_moves, path_time
 from gonio.bench._settings import default_settings
 
 S = default_settings()

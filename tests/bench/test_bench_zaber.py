@@ -120,13 +120,13 @@ def test_shortest_equivalent():
     assert shortest_equivalent(10.0, 0.0, -95, 95) == 10.0
 
 
-def _connect_script(msg0=0, flags="--"):
+def _connect_script(flags="--"):
     cyc = "720000 720000 720000 720000"
-    return [(cmd(1, 0, msg0, "get limit.cycle.dist"), f"@01 0 {msg0:02d} OK IDLE -- {cyc}\r\n"),
-            (cmd(1, 0, msg0 + 1, "get limit.min"), f"@01 0 {msg0 + 1:02d} OK IDLE -- -190000 -176000 -360000 -350000\r\n"),
-            (cmd(1, 0, msg0 + 2, "get limit.max"), f"@01 0 {msg0 + 2:02d} OK IDLE -- 190000 176000 360000 350000\r\n"),
-            (cmd(1, 0, msg0 + 3, "warnings"), f"@01 0 {msg0 + 3:02d} OK IDLE {flags} "
-             + ("00" if flags == "--" else f"01 {flags}") + "\r\n")]
+    w = "00" if flags == "--" else f"01 {flags}"
+    return [(cmd(1, 0, 0, "warnings"), f"@01 0 00 OK IDLE {flags} {w}\r\n"),
+            (cmd(1, 0, 1, "get limit.cycle.dist"), f"@01 0 01 OK IDLE -- {cyc}\r\n"),
+            (cmd(1, 0, 2, "get limit.min"), "@01 0 02 OK IDLE -- -190000 -176000 -360000 -350000\r\n"),
+            (cmd(1, 0, 3, "get limit.max"), "@01 0 03 OK IDLE -- 190000 176000 360000 350000\r\n")]
 
 
 def test_goniometer_move_in_degrees():
@@ -137,7 +137,8 @@ def test_goniometer_move_in_degrees():
         (cmd(1, 2, 6, "move abs -20000"), "@01 2 06 OK BUSY -- 0\r\n"),     # -10 deg
         (cmd(1, 0, 7), "@01 0 07 OK BUSY -- 0\r\n"),
         (cmd(1, 0, 8), "@01 0 08 OK IDLE -- 0\r\n"),
-        (cmd(1, 0, 9, "get pos"), "@01 0 09 OK IDLE -- 60000 -20000 0 0\r\n"),
+        (cmd(1, 0, 9, "get pos"), "@01 0 09 OK IDLE -- 60000 -20000 0 0\r\n"),     # verified
+        (cmd(1, 0, 10, "get pos"), "@01 0 10 OK IDLE -- 60000 -20000 0 0\r\n"),
     ])
     g = Goniometer(ZaberChain("expect://g1"), s, sleep=lambda t: None)
     assert g.connect() == []
@@ -145,6 +146,29 @@ def test_goniometer_move_in_degrees():
     assert g.positions() == {"yaw": 30.0, "tilt": -10.0, "azimuth": 0.0, "lamp": 0.0}
     assert g.deg_to_steps("lamp", 1.0) == 2000 and g.steps_to_deg("lamp", 2000) == 1.0
     assert ex.done()
+
+
+def test_short_move_is_reported_with_flags():
+    from gonio.bench._zaber import MoveError
+    ex = expect("g4", _connect_script() + [
+        (cmd(1, 0, 4, "get pos"), "@01 0 04 OK IDLE -- 0 0 0 0\r\n"),
+        (cmd(1, 4, 5, "move abs 100000"), "@01 4 05 OK BUSY -- 0\r\n"),
+        (cmd(1, 0, 6), "@01 0 06 OK IDLE WL 0\r\n"),
+        (cmd(1, 0, 7, "get pos"), "@01 0 07 OK IDLE WL 0 0 0 40000\r\n"),
+        (cmd(1, 0, 8, "warnings"), "@01 0 08 OK IDLE WL 01 WL\r\n"),
+    ])
+    g = Goniometer(ZaberChain("expect://g4"), default_settings(), sleep=lambda t: None)
+    g.connect()
+    with pytest.raises(MoveError) as e:
+        g.move_to({"lamp": 50.0})
+    assert "lamp at 20.000 deg instead of 50.000" in str(e.value) and "WL unexpected limit switch" in str(e.value)
+    assert e.value.flags == ("WL",) and ex.done()
+
+
+def test_again_is_sent_again():
+    ex = expect("z10", [(cmd(1, 0, 0, "get pos"), "@01 0 00 RJ BUSY -- AGAIN\r\n"),
+                        (cmd(1, 0, 1, "get pos"), "@01 0 01 OK IDLE -- 5\r\n")])
+    assert ZaberChain("expect://z10").get(1, 0, "pos") == [5.0] and ex.done()
 
 
 def test_soft_limits_checked_before_any_move():
@@ -168,6 +192,15 @@ def test_homing_and_flags():
     assert g.connect() == ["WR"]
     assert g.needs_homing()
     g.home()
+    assert ex.done()
+
+
+def test_connect_clears_latched_fault_or_refuses():
+    ex = expect("g5", [(cmd(1, 0, 0, "warnings"), "@01 0 00 OK IDLE FS 01 FS\r\n"),
+                       (cmd(1, 0, 1, "warnings clear"), "@01 0 01 OK IDLE FS 01 FS\r\n"),
+                       (cmd(1, 0, 2, "warnings"), "@01 0 02 OK IDLE FS 01 FS\r\n")])
+    with pytest.raises(FaultError, match="FS stalled and stopped"):
+        Goniometer(ZaberChain("expect://g5"), default_settings()).connect(clear_faults=True)
     assert ex.done()
 
 
