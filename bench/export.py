@@ -74,6 +74,9 @@ def to_dataset(session_dir):
         **{k: ("point", np.array([r[k] for r in rows], float), {**deg, "long_name": f"stage angle {k}"})
            for k in ("yaw", "tilt", "azimuth", "lamp")},
     }
+    monitor = np.array([float(r["detail"].get("p_start", np.nan)) for r in rows])
+    data["monitor_power"] = ("point", monitor, {"units": "W", "long_name": "power-meter reading of the lamp "
+                                                "monitor at the start of the point"})
     if rgb_cam is not None:
         data.update(_colour(np.asarray(json.loads(rgb_cam), float), data["brdf"][1], data["brdf_std"][1]))
         coords["xyz"] = ["X", "Y", "Z"]
@@ -87,6 +90,10 @@ def to_dataset(session_dir):
         "scale_rel_std": float(doc["settings"]["reference"].get("rel_std", 0.0)),
         "reference_reflectance": json.dumps(doc["settings"]["reference"]["reflectance"]),
         "complete": int(len(rows) == n_plan),
+        # relative span of the monitor over the session: what normalisation had to correct
+        "lamp_drift": float((np.nanmax(monitor) - np.nanmin(monitor)) / np.nanmedian(monitor))
+        if np.any(np.isfinite(monitor)) and np.nanmedian(monitor) > 0 else 0.0,
+        "capture_wall_s": float(max(r["finished"] for r in rows) - min(r["finished"] for r in rows)),
         "title": "gonio BRDF measurement",
     }
     if "sample_truth" in doc:

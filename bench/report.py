@@ -141,9 +141,8 @@ def write_report(folder, out=None) -> Path:
     summary_rows = [("points", meas.n_points), ("usable values", meas.n_used), ("seed", attrs.get("seed")),
                     ("plan", _plan_text(attrs.get("plan"))), ("sample (simulated truth)", _truth_text(attrs.get("sample_truth"))),
                     ("reciprocity (median |f_a - f_b| / mean over pairs)", _reciprocity(found["dataset"], meas)),
-                    ("capture duration (s)", attrs.get("duration_s")),
-                    ("lamp drift (monitor, relative)", attrs.get("lamp_drift")),
-                    ("reciprocity error (rms relative)", attrs.get("reciprocity_rms")),
+                    ("capture wall time, first to last point (s)", attrs.get("capture_wall_s")),
+                    ("lamp drift over the session (monitor span / median)", attrs.get("lamp_drift")),
                     ("reference scale uncertainty (relative 1-sigma)", attrs.get("scale_rel_std")),
                     ("gonio version", attrs.get("gonio_version"))]
     sections.append("<h2>Capture</h2><table>" + "".join(
