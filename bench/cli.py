@@ -64,9 +64,15 @@ def _cmd_export(args):
 
 
 def _cmd_fit(args):
-    from .fit_runner import fit_cli
+    from .fit_runner import fit_batch_cli, fit_cli
 
-    fit_cli(Path(args.dataset), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
+    if args.batch:
+        fit_batch_cli([Path(d) for d in args.dataset], model=args.model, options=args.option, out=Path(args.out),
+                      seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers)
+        return
+    if len(args.dataset) != 1:
+        raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")
+    fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
             loss=args.loss, posterior=args.posterior)
 
 
@@ -112,6 +118,12 @@ def _cmd_bench_models(args):
     run(n=args.n)
 
 
+def _cmd_bench_fit(args):
+    from gonio.fitting.bench import run
+
+    run(quick=args.quick, out=Path(args.out) if args.out else None)
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="gonio", description="Physically based BRDF measurement and validation bench.")
@@ -147,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_cmd_export)
 
     f = sub.add_parser("fit", help="fit a model to a dataset")
-    f.add_argument("dataset", help="dataset.nc, a MERL .binary or an RGL .bsdf file")
+    f.add_argument("dataset", nargs="+", help="dataset.nc, a MERL .binary or an RGL .bsdf file (several with --batch)")
     f.add_argument("--model", default="auto", help="model name, or auto for BIC model selection (default)")
     f.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="model option, e.g. distribution=beckmann (repeatable)")
@@ -156,6 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--loss", default="chi2", help="chi2 (default), robust, cosine, log")
     f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
                    help="sample the posterior with emcee")
+    f.add_argument("--batch", action="store_true", help="fit every DATASET on Dask; --out is then a folder")
+    f.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
+    f.add_argument("--workers", type=int, default=2, help="local Dask workers (default 2)")
     f.set_defaults(func=_cmd_fit)
 
     r = sub.add_parser("render", help="re-render a fit in Mitsuba at the dataset's geometry and compare")
@@ -202,6 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
     bm = bsub.add_parser("models", help="model evaluations per second next to Mitsuba's bsdf.eval")
     bm.add_argument("-n", type=int, default=1_000_000)
     bm.set_defaults(func=_cmd_bench_models)
+    bf = bsub.add_parser("fit", help="fit speed against error: gonio vs scipy least_squares, CRLB efficiency")
+    bf.add_argument("--quick", action="store_true", help="a small matrix (about 10 s)")
+    bf.add_argument("--out", help="folder for the CSV table and the PNG plot")
+    bf.set_defaults(func=_cmd_bench_fit)
     return p
 
 

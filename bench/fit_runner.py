@@ -140,6 +140,33 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
     print(f"wrote {out}")
 
 
+def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers):
+    """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``."""
+    import gonio.models as gm
+    from gonio.fitting import fit_batch, fit_document, write_json_atomic
+
+    if model == "auto":
+        raise GonioError("--batch needs a named --model (e.g. roughplastic); auto is for single fits")
+    try:
+        m = gm.get(model, **parse_options(options))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise GonioError(f"{exc}; known models: {', '.join(gm.names())}") from None
+    metas = [_open_dataset(d, seed) for d in datasets]
+    stems = [d.parent.name if d.name == "dataset.nc" else d.stem for d in datasets]
+    if len(set(stems)) != len(stems):
+        stems = [f"{k:04d}_{s}" for k, s in enumerate(stems)]
+    try:
+        results = fit_batch(metas, m, scheduler=scheduler, n_workers=workers, rng_seed=seed, loss=loss)
+    except OSError as exc:
+        raise GonioError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+    out.mkdir(parents=True, exist_ok=True)
+    for path, meas, result, stem in zip(datasets, metas, results, stems):
+        write_json_atomic(out / f"{stem}.fit.json", fit_document(result, meas, seed=seed, dataset_path=path))
+        print(f"{stem}: chi2/dof {result.chi2_dof:.3f}, " + ", ".join(
+            f"{n}={v:.4g}+-{e:.2g}" for n, v, e in zip(result.space.names, result.x, result.std)))
+    print(f"wrote {len(results)} fit files to {out}")
+
+
 def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     """Render the fit at the dataset's geometry; write ``out_dir/render.json``; return its content."""
     from gonio.fitting import load_fit, write_json_atomic

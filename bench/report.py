@@ -177,7 +177,7 @@ def write_report(folder, out=None) -> Path:
             "<table><tr><th>parameter</th><th>value</th><th>1-sigma</th><th>90 % interval</th><th>truth</th>"
             "<th>(value-truth)/sigma</th><th>unit</th><th>method</th><th>flags</th></tr>" + "".join(rows) + "</table>"
             f"<p>chi<sup>2</sup>/dof = {_fmt(g['chi2_dof'])} ({g['dof']} dof); RMSE f_r = {_fmt(g['rmse_fr'])} sr<sup>-1</sup>; "
-            f"RMSE cos-weighted = {_fmt(g['rmse_cos_fr'])}; optimiser {html.escape(fit_doc['optimiser']['local'])}, "
+            f"RMSE cos-weighted = {_fmt(g['rmse_cos_fr'])}; optimiser {html.escape(fit_doc['optimiser']['method'])}, "
             f"{fit_doc['optimiser']['evaluations']} evaluations, {_fmt(fit_doc['optimiser']['time_s'], 3)} s. "
             f"Energy: {html.escape(_energy_text(fit_doc['constraints']['energy']))}.</p>")
         if fit_doc.get("posterior"):

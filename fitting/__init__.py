@@ -2,14 +2,18 @@
 
 - :func:`load_dataset` reads ``dataset.nc`` into :class:`Measurements` (unit directions in
   the local frame, f_r and its 1-sigma, a usable-value mask); NaN in used values raises.
-- :func:`fit` is the constrained maximum-likelihood fit (nlopt: multi-start + SLSQP, bounds
-  from the model's declarations, albedo <= 1 for models that can break it) with a Laplace
-  covariance; :func:`sample_posterior` the emcee posterior with an autocorrelation check;
+- :func:`fit` is the constrained maximum-likelihood fit (stratified multi-start, parameters in
+  which f_r is affine solved exactly, bounded Levenberg-Marquardt on the rest, nlopt SLSQP
+  polish under albedo <= 1 for models that can break it) with a Laplace covariance; :func:`sample_posterior` the emcee posterior with an autocorrelation check;
   :func:`select` model selection by BIC ("model only what the data needs").
 - :func:`fit_document` / :func:`write_json_atomic` / :func:`load_fit`: the fit file.
-- :mod:`gonio.fitting.render`: Mitsuba re-renders the fit at the measured geometry.
+- :func:`fit_batch`: many datasets on Dask; :func:`crlb`: the Cramer-Rao bound.
+- :mod:`gonio.fitting.render`: Mitsuba re-renders the fit at the measured geometry;
+  :mod:`gonio.fitting.formats` (MERL, RGL, Mitsuba snippets, CSV); :mod:`gonio.fitting.preview`.
 """
 
+from ._batch import fit_batch, fit_serial
+from ._crlb import crlb, efficiency
 from ._data import DataError, Measurements, direction, load_dataset
 from ._fitfile import fit_document, load_fit, versions, write_json_atomic
 from ._loss import LOSSES
@@ -19,7 +23,7 @@ from ._selection import CANDIDATES, Ranked, select
 from ._space import ParameterSpace
 
 __all__ = [
-    "CANDIDATES", "DataError", "FitResult", "LOSSES", "Measurements", "ParameterSpace", "Posterior", "Ranked",
+    "CANDIDATES", "DataError", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "Measurements", "ParameterSpace", "Posterior", "Ranked",
     "direction", "fit", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
     "write_json_atomic",
 ]
