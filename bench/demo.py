@@ -47,6 +47,29 @@ def _noise_floor(preview: dict) -> float:
     return max(values) if values else float("nan")
 
 
+def _speed_vs_error(meas, result, sample, seed) -> dict:
+    """Time and error of gonio's fit and of scipy's least_squares (the peer) on this capture.
+
+    Both minimise the same chi^2; the error is the largest |fit - truth| / sigma over the
+    parameters (sigma: gonio's Laplace 1-sigma), so a value below ~3 is at the noise limit.
+    """
+    import numpy as np
+
+    from gonio.fitting.bench import _scipy_lsq
+
+    truth = result.space.from_params({k: np.asarray(v, dtype=float) for k, v in sample["params"].items()})
+    x_lsq, t_lsq, n_lsq = _scipy_lsq(meas, result.model)
+    rows = []
+    for name, x, seconds, evals in (("gonio (global + LM + Laplace)", result.x, result.time_s, result.n_evals),
+                                    ("scipy least_squares (TRF, finite differences)", x_lsq, t_lsq, n_lsq)):
+        fr = result.model.eval(meas.wi, meas.wo, result.space.to_params(x))
+        r = ((fr - meas.brdf) / meas.brdf_std)[meas.use]
+        rows.append({"optimiser": name, "time_s": float(seconds), "evaluations": int(evals),
+                     "chi2": float(r @ r), "max_pull": float(np.max(np.abs((x - truth) / result.std))),
+                     "rmse_fr": float(np.sqrt(np.mean(((fr - meas.brdf)[meas.use]) ** 2)))})
+    return {"points": int(meas.n_points), "model": result.model.name, "rows": rows, "seed": seed}
+
+
 def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool = True) -> dict:
     """Run the loop; returns a summary dict (the figures printed)."""
     from rich.console import Console
@@ -87,6 +110,9 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
         timings["posterior (emcee)"] = post.time_s
     write_json_atomic(out / "fit.json", doc)
 
+    speed = _speed_vs_error(meas, result, sample, seed)
+    write_json_atomic(out / "speed.json", speed)
+
     t = time.perf_counter()
     closure = render_closure(out / "fit.json", meas, out / "render")
     timings[f"Mitsuba re-render ({closure['variant']})"] = time.perf_counter() - t
@@ -115,6 +141,9 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
         table.add_row(stage, f"{seconds:.2f}")
     table.add_row("total", f"{sum(timings.values()):.2f}")
     console.print(table)
+    for row in speed["rows"]:
+        console.print(f"{row['optimiser']:<48} {row['time_s']:7.3f} s  {row['evaluations']:5d} evals  "
+                      f"chi2 {row['chi2']:.2f}  max |fit-truth|/sigma {row['max_pull']:.2f}")
     if with_truth.get("delta_e_mean") is not None:
         console.print(f"preview: fit vs the true sample, mean CIEDE2000 {with_truth['delta_e_mean']:.2f} "
                       f"(Monte Carlo noise floor {_noise_floor(with_truth):.2f})")

@@ -80,7 +80,9 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", poster
     if posterior:
         if loss != "chi2":
             raise GonioError("--posterior needs the chi2 loss (the likelihood of the data's noise model)")
-        post = sample_posterior(meas, result, rng=rng, time_budget_s=posterior_budget_s)
+        # with a time budget, short chunks so that the budget is checked often
+        post = sample_posterior(meas, result, rng=rng, time_budget_s=posterior_budget_s,
+                                chunk=100 if posterior_budget_s else 500)
     doc = fit_document(result, meas, seed=seed, posterior=post, ranking=ranking, dataset_path=dataset_path)
     return result, doc, post
 

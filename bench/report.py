@@ -37,7 +37,8 @@ def find_outputs(folder) -> dict:
 
     found = {"dataset": first("dataset.nc", "*/dataset.nc"), "fit": first("fit.json", "*/fit.json"),
              "render": first("render/render.json", "render.json", "*/render.json"),
-             "preview": first("render/preview/preview.json", "preview/preview.json", "*/preview/preview.json")}
+             "preview": first("render/preview/preview.json", "preview/preview.json", "*/preview/preview.json"),
+             "speed": first("speed.json", "*/speed.json")}
     if found["dataset"] is None:
         raise GonioError(f"no dataset.nc under {folder}; run `gonio export SESSION` first")
     return found
@@ -238,6 +239,26 @@ def write_report(folder, out=None) -> Path:
         ax.set_ylabel("directional albedo")
         ax.set_ylim(0, max(1.05, float(alb.max()) * 1.05))
         images["albedo.png"] = _png(fig)
+
+    # ---- posterior corner plot
+    post = (fit_doc or {}).get("posterior") or {}
+    if post.get("samples"):
+        import corner
+
+        samples = np.asarray(post["samples"], dtype=float)
+        fig = corner.corner(samples, labels=post.get("names"), quantiles=[0.05, 0.5, 0.95], label_kwargs={"fontsize": 8})
+        fig.suptitle("posterior (emcee)" + ("" if post.get("converged") else ": chain too short, see advice"), fontsize=9)
+        images["corner.png"] = _png(fig)
+
+    # ---- speed against error on this capture
+    if found["speed"] is not None:
+        sp = json.loads(Path(found["speed"]).read_text())
+        sections.append(f"<h2>Fit speed against error ({sp['points']} points, {html.escape(sp['model'])})</h2>"
+                        "<table><tr><th>optimiser</th><th>time (s)</th><th>evaluations</th><th>chi<sup>2</sup></th>"
+                        "<th>max |fit - truth| / sigma</th><th>RMSE f_r</th></tr>" + "".join(
+                            f"<tr><td>{html.escape(r['optimiser'])}</td><td>{_fmt(r['time_s'], 3)}</td><td>{r['evaluations']}</td>"
+                            f"<td>{_fmt(r['chi2'])}</td><td>{_fmt(r['max_pull'], 3)}</td><td>{_fmt(r['rmse_fr'], 3)}</td></tr>"
+                            for r in sp["rows"]) + "</table>")
 
     # ---- Mitsuba loop closure
     if found["render"] is not None:

@@ -102,7 +102,10 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                        "dataset_seed": meas.attrs.get("seed")},
     }
     if posterior is not None:
+        # at most 2000 thinned draws: enough for a corner plot, small enough for JSON
+        samples = posterior.samples[:: max(1, len(posterior.samples) // 2000)][:2000]
         doc["posterior"] = {"converged": posterior.converged, "walkers": posterior.n_walkers,
+                            "names": list(posterior.names), "samples": samples,
                             "steps": posterior.n_steps, "tau": posterior.tau, "independent_samples": posterior.n_independent,
                             "acceptance": posterior.acceptance, "time_s": posterior.time_s, "advice": posterior.advice}
     return _jsonable(doc)
