@@ -104,7 +104,7 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
 
     meas = load_dataset(dataset)
     result, doc, post = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=seed,
-                                    posterior=posterior, posterior_budget_s=40.0, dataset_path=dataset)
+                                    posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset)
     timings["fit (nlopt + Laplace)"] = doc["optimiser"]["time_s"]
     if post is not None:
         timings["posterior (emcee)"] = post.time_s

@@ -12,8 +12,11 @@ used only where Dr.Jit's LLVM backend works (:func:`available`); nothing else in
   With ``cotangent = 2 w (f_r - y)`` this is the gradient of a weighted least-squares
   objective; with unit vectors it gives rows of the Jacobian.
 
-For ``roughplastic`` the transmittance table and internal reflectance are computed
-here as well (same quadrature as :mod:`gonio.models._rough_tables`), so that gradients
+For ``roughplastic`` the transmittance table and internal reflectance follow the
+model's ``exact_tables`` setting: with ``exact_tables=False`` the interpolated grid of
+:func:`gonio.models._rough_tables.rough_tables_interp` (gradients through the spline's
+derivative); with ``exact_tables=True`` (the default, and in grid cells that fall back to
+the exact tables) computed here as well (same quadrature as :mod:`gonio.models._rough_tables`), so that gradients
 with respect to ``alpha`` and ``int_ior`` include their dependence through the table.
 
 Kernels are cached by Dr.Jit: parameter values enter as opaque variables, so a new
@@ -31,6 +34,7 @@ import numpy as np
 
 from ._base import CHANNELS
 from ._geometry import as_directions
+from ._rough_tables import _interp
 
 __all__ = ["available", "eval", "value_and_grad"]
 
@@ -381,10 +385,22 @@ def _inputs(model, wi, wo, params, grad):
         leaves.append((par, vals))
         P[par.name] = vals if par.per_channel else vals[0]
     if model.name == "roughplastic":
-        if grad:
-            P["_tables"] = _tables(model.options["distribution"], dr.maximum(P["alpha"], 1e-4), P["int_ior"])
+        kind = model.options["distribution"]
+        grid = None if getattr(model, "exact_tables", True) else _interp(kind, p["alpha"], p["int_ior"], grad=grad)
+        if grid is not None:
+            # the same interpolated tables as the numpy model; for gradients, their
+            # first-order expansion about the current point (value unchanged: the
+            # opaque alpha, eta equal p's), d/d(alpha, eta) from the spline
+            if grad:
+                t, r, dx, dy = grid
+                da, de = P["alpha"] - p["alpha"], P["int_ior"] - p["int_ior"]
+                P["_tables"] = (F(t) + da * F(dx[:-1]) + de * F(dy[:-1]), F([r]) + da * dx[-1] + de * dy[-1])
+            else:
+                P["_tables"] = (F(grid[0]), F([grid[1]]))
+        elif grad:
+            P["_tables"] = _tables(kind, dr.maximum(P["alpha"], 1e-4), P["int_ior"])
         else:
-            P["_tables"] = _cached_tables(model.options["distribution"], p["alpha"], p["int_ior"])
+            P["_tables"] = _cached_tables(kind, p["alpha"], p["int_ior"])
     return vi, vo, P, leaves, n
 
 
