@@ -11,8 +11,6 @@ import base64
 import html
 import io
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -123,6 +121,7 @@ def write_report(folder, out=None) -> Path:
     import matplotlib.pyplot as plt
 
     from gonio.fitting import load_dataset, load_fit
+    from gonio.fitting._io import atomic_open
 
     from .fit_runner import _energy_text
 
@@ -328,9 +327,6 @@ def write_report(folder, out=None) -> Path:
             + "<script>window.addEventListener('load',function(){var im=Array.prototype.slice.call(document.images);"
               "document.body.setAttribute('data-images-decoded',im.filter(function(i){return i.complete&&i.naturalWidth>0;})"
               ".length+'/'+im.length);});</script></body></html>")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".report.", suffix=".tmp", dir=out.parent)
-    with os.fdopen(fd, "w") as fh:
+    with atomic_open(out, "w") as fh:
         fh.write(page)
-    os.replace(tmp, out)
     return out

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import platform
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+
+from ._io import atomic_open
 
 __all__ = ["fit_document", "write_json_atomic", "load_fit", "versions"]
 
@@ -113,20 +113,10 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
 
 def write_json_atomic(path, doc) -> Path:
     """Write JSON to a temporary file beside ``path``, fsync, rename: never half-written."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(doc, fh, indent=2)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_open(path, "w") as fh:
+        json.dump(doc, fh, indent=2)
+        fh.write("\n")
+    return Path(path)
 
 
 def load_fit(path):

@@ -26,13 +26,12 @@ from __future__ import annotations
 
 import csv
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ._data import Measurements
+from ._io import atomic_open
 
 __all__ = [
     "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "half_diff_angles",
@@ -218,21 +217,9 @@ def write_merl(path, table) -> Path:
     """
     merl = table if isinstance(table, MerlBRDF) else MerlBRDF.from_brdf(table)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(np.asarray(MERL_SHAPE, dtype="<i4").tobytes())
-            fh.write(np.ascontiguousarray(merl.raw, dtype="<f8").tobytes())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_open(path, "wb") as fh:
+        fh.write(np.asarray(MERL_SHAPE, dtype="<i4").tobytes())
+        fh.write(np.ascontiguousarray(merl.raw, dtype="<f8").tobytes())
     return path
 
 
@@ -487,27 +474,15 @@ def dataset_to_csv(meas_or_dataset_path, out_csv) -> Path:
     header += [f"brdf_std_{c} [1/sr]" for c in channels]
     header += [f"use_{c} [0/1]" for c in channels]
     out_csv = Path(out_csv)
-    out_csv.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_csv.name}.", suffix=".tmp", dir=out_csv.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(header)
-            for k in range(meas.n_points):
-                row = [f"{a[k]:.6f}" for a in angles]
-                row += [repr(float(v)) for v in meas.brdf[k]]
-                row += [repr(float(v)) for v in meas.brdf_std[k]]
-                row += [str(int(u)) for u in meas.use[k]]
-                writer.writerow(row)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, out_csv)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_open(out_csv, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        for k in range(meas.n_points):
+            row = [f"{a[k]:.6f}" for a in angles]
+            row += [repr(float(v)) for v in meas.brdf[k]]
+            row += [repr(float(v)) for v in meas.brdf_std[k]]
+            row += [str(int(u)) for u in meas.use[k]]
+            writer.writerow(row)
     return out_csv
 
 

@@ -60,21 +60,21 @@ def _merl_class(mi, dr):
     n_th, n_td, n_pd = MERL_SHAPE
     half_pi = 0.5 * math.pi
 
-    class MerlTableBSDF(mi.BSDF):
+    from gonio.models._mitsuba_plugins import bsdf_base
+
+    class MerlTableBSDF(bsdf_base(mi, dr)):
         """Nearest-bin look-up of a MERL table (BRDFRead.cpp's mapping), in gonio's convention:
         the light direction is Mitsuba's ``wo`` argument, the viewer's is ``si.wi``."""
 
         def __init__(self, props):
-            mi.BSDF.__init__(self, props)
+            super().__init__(props)
             key = props["table_key"]
             table = _MERL_TABLES[key]  # (3, n) f_r, 0 where the file has no data
             self.r = mi.Float(table[0].astype(np.float32))
             self.g = mi.Float(table[1].astype(np.float32))
             self.b = mi.Float(table[2].astype(np.float32))
-            self.m_components = [mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide]
-            self.m_flags = self.m_components[0]
 
-        def _fr(self, si, wo):
+        def _f(self, si, wo):
             wi_g, wo_g = wo, si.wi  # gonio: wi toward the light, wo toward the viewer
             h = dr.normalize(wi_g + wo_g)
             theta_h = dr.safe_acos(h.z)
@@ -95,36 +95,6 @@ def _merl_class(mi, dr):
             idx = mi.UInt32(i_pd + n_pd * (i_td + n_td * i_th))
             return mi.Color3f(dr.gather(mi.Float, self.r, idx), dr.gather(mi.Float, self.g, idx),
                               dr.gather(mi.Float, self.b, idx))
-
-        def eval(self, ctx, si, wo, active=True):
-            ci = mi.Frame3f.cos_theta(wo)
-            co = mi.Frame3f.cos_theta(si.wi)
-            ok = active & (ci > 0) & (co > 0)
-            return dr.select(ok, self._fr(si, wo) * ci, 0.0)
-
-        def pdf(self, ctx, si, wo, active=True):
-            ok = active & (mi.Frame3f.cos_theta(si.wi) > 0)
-            return dr.select(ok, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
-
-        def eval_pdf(self, ctx, si, wo, active=True):
-            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
-
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            bs = mi.BSDFSample3f()
-            bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
-            bs.pdf = mi.warp.square_to_cosine_hemisphere_pdf(bs.wo)
-            bs.eta = 1.0
-            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
-            bs.sampled_component = mi.UInt32(0)
-            ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (bs.pdf > 0)
-            value = self.eval(ctx, si, bs.wo, ok) / dr.select(ok, bs.pdf, 1.0)
-            return bs, dr.select(ok, value, 0.0)
-
-        def traverse(self, callback):
-            pass
-
-        def parameters_changed(self, keys):
-            pass
 
         def to_string(self):
             return "MerlTableBSDF[]"

@@ -60,9 +60,7 @@ def oren_nayar(wi, wo, reflectance, sigma):
     B = 0.45 * s2 / (s2 + 0.09)
     ci = np.clip(wi[:, 2], 0.0, 1.0)
     co = np.clip(wo[:, 2], 0.0, 1.0)
-    si = np.sqrt(np.maximum(1.0 - ci * ci, 0.0))
-    so = np.sqrt(np.maximum(1.0 - co * co, 0.0))
-    # cos(phi_i - phi_o) * sin_i * sin_o = wi_x wo_x + wi_y wo_y
+    # cos(phi_i - phi_o) * sin_i * sin_o = wi_x wo_x + wi_y wo_y (no sines needed)
     cdphi_ss = wi[:, 0] * wo[:, 0] + wi[:, 1] * wo[:, 1]
     cmax = np.maximum(ci, co)
     term = np.maximum(cdphi_ss, 0.0) / np.where(cmax > 0.0, cmax, 1.0)

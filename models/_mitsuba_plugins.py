@@ -13,16 +13,19 @@ import math
 
 from ._mitsuba import mitsuba_variant
 
-__all__ = ["ensure_registered"]
+__all__ = ["bsdf_base", "ensure_registered"]
 
 _registered: set = set()
 
 
-def _make_classes(mi, dr):
-    def rgb(props, key):
-        return mi.Color3f(props[f"{key}_r"], props[f"{key}_g"], props[f"{key}_b"])
+def bsdf_base(mi, dr):
+    """The base of gonio's Python BSDFs for the active variant: a front-side glossy reflector
+    with cosine-weighted sampling; a subclass only defines ``_f(self, si, wo)`` -> f_r, with
+    gonio's wi = Mitsuba's ``wo`` (light) and gonio's wo = ``si.wi`` (detector).
 
-    class _Base(mi.BSDF):
+    Shared with :mod:`gonio.fitting.preview` (its tabulated MERL BSDF).
+    """
+    class GonioBSDF(mi.BSDF):
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
             self.m_components = [mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide]
@@ -60,6 +63,15 @@ def _make_classes(mi, dr):
 
         def parameters_changed(self, keys):
             pass
+
+    return GonioBSDF
+
+
+def _make_classes(mi, dr):
+    def rgb(props, key):
+        return mi.Color3f(props[f"{key}_r"], props[f"{key}_g"], props[f"{key}_b"])
+
+    _Base = bsdf_base(mi, dr)
 
     class CookTorranceBSDF(_Base):
         def __init__(self, props):
