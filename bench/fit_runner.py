@@ -80,9 +80,11 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", poster
     if posterior:
         if loss != "chi2":
             raise GonioError("--posterior needs the chi2 loss (the likelihood of the data's noise model)")
-        # with a time budget, short chunks so that the budget is checked often
+        # With a time budget: 12 walkers (the sampler integrates the linear parameters out, so
+        # the chain explores only the nonlinear ones: 2 for roughplastic) in short chunks, so
+        # the budget is checked every few seconds.
         post = sample_posterior(meas, result, rng=rng, time_budget_s=posterior_budget_s,
-                                chunk=100 if posterior_budget_s else 500)
+                                **({"n_walkers": 12, "chunk": 50} if posterior_budget_s else {}))
     doc = fit_document(result, meas, seed=seed, posterior=post, ranking=ranking, dataset_path=dataset_path)
     return result, doc, post
 
