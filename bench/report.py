@@ -217,6 +217,35 @@ def write_report(folder, out=None) -> Path:
                 ax.set_xlabel("theta_o (deg, + = mirror side)")
             axes[0][0].set_ylabel("f_r (1/sr)")
             images["inplane.png"] = _png(fig)
+        # polar view at the incidence with the most out-of-plane points: the fit over the whole
+        # hemisphere (background), the measurements on the same colour scale (dots)
+        out_of_plane = ~in_plane
+        if out_of_plane.any():
+            groups, counts = np.unique(np.round(theta_i[out_of_plane]), return_counts=True)
+            ti = float(groups[np.argmax(counts)])
+            sel = np.abs(theta_i - ti) < 0.6
+            phi_in = float(np.median(phi_i[sel]))
+            t, p = np.meshgrid(np.radians(np.linspace(0, 85, 60)), np.radians(np.linspace(-180, 180, 121)))
+            wo_g = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1).reshape(-1, 3)
+            wi_g = np.tile([np.sin(np.radians(ti)) * np.cos(phi_in), np.sin(np.radians(ti)) * np.sin(phi_in),
+                            np.cos(np.radians(ti))], (wo_g.shape[0], 1))
+            c = 1 if meas.n_channels > 1 else 0
+            grid = model.eval(wi_g, wo_g, params)[:, c].reshape(t.shape)
+            norm = matplotlib.colors.LogNorm(vmin=max(float(grid.min()), 1e-4), vmax=float(grid.max()))
+            fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(8.4, 4.0))
+            for ax, title in zip(axes, ("fit (background) and measurement (dots)", "measurement / fit")):
+                ax.set_ylim(0, 85)
+                ax.set_title(title, fontsize=9)
+            mesh = axes[0].pcolormesh(p, np.degrees(t), grid, norm=norm, cmap="viridis", shading="auto")
+            axes[0].scatter(phi_o[sel], theta_o[sel], c=meas.brdf[sel, c], norm=norm, cmap="viridis",
+                            edgecolors="white", s=28)
+            fig.colorbar(mesh, ax=axes[0], shrink=0.7, label=f"f_r {meas.channels[c]} (1/sr)")
+            ratio = meas.brdf[sel, c] / np.maximum(fitted[sel, c], 1e-12)
+            sc = axes[1].scatter(phi_o[sel], theta_o[sel], c=ratio, cmap="coolwarm", s=28,
+                                 vmin=1 - 3 * float(np.std(ratio - 1) + 1e-6), vmax=1 + 3 * float(np.std(ratio - 1) + 1e-6))
+            fig.colorbar(sc, ax=axes[1], shrink=0.7)
+            fig.suptitle(f"theta_i = {ti:.0f} deg", fontsize=9)
+            images["polar.png"] = _png(fig)
         fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
         axes[0].hist(resid[meas.use].ravel(), bins=40, color="grey")
         axes[0].set_xlabel("(measured - fit) / sigma")
