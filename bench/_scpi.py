@@ -11,12 +11,13 @@ import math
 
 import serial
 
+from ._serial import SerialDevice
 from .errors import CommunicationError, DeviceError, GonioError
 
 __all__ = ["PowerMeter"]
 
 
-class PowerMeter:
+class PowerMeter(SerialDevice):
     """A SCPI optical power meter (Thorlabs PM100-like).
 
     Parameters
@@ -31,39 +32,13 @@ class PowerMeter:
         round; then `CommunicationError`.
     """
 
+    what, flag = "power-meter", "--meter-port"
+
     def __init__(self, port_url: str, baudrate: int = 115200, timeout: float = 1.0, *, retries: int = 2):
-        self.port_url = port_url
-        self.baudrate = baudrate
-        self.timeout = timeout
+        super().__init__(port_url, baudrate, timeout)
         self.retries = retries
-        self.reconnects = 0
         self.retries_used = 0
-        self._port = None
         self.open()
-
-    def open(self) -> None:
-        """Open the port."""
-        if self._port is not None:
-            return
-        try:
-            self._port = serial.serial_for_url(self.port_url, baudrate=self.baudrate, timeout=self.timeout)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise CommunicationError(f"cannot open the power-meter port {self.port_url!r} ({exc}); "
-                                     "check the cable and the --meter-port value") from None
-
-    def close(self) -> None:
-        """Close the port."""
-        if self._port is not None:
-            try:
-                self._port.close()
-            finally:
-                self._port = None
-
-    def __enter__(self) -> "PowerMeter":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def _drain(self) -> None:
         """Drop unread input: a late answer to an earlier query, or one a killed process left."""
@@ -101,9 +76,7 @@ class PowerMeter:
             self.open()
         for round_ in range(2):
             if round_:
-                self.close()
-                self.reconnects += 1
-                self.open()
+                self.reconnect()
             for _ in range(self.retries + 1):
                 line = self._read() if self._write(text) else None
                 if line is None:

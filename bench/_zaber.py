@@ -26,6 +26,7 @@ from typing import Callable, Mapping
 
 import serial
 
+from ._serial import SerialDevice
 from ._settings import AXES
 from .errors import CommunicationError, DeviceError, FaultError, GonioError, RejectedError, UnreachableError
 
@@ -210,7 +211,7 @@ def parse_reply(line: bytes | str) -> Reply:
     return Reply(device, axis, msgid, flag, status, warning, " ".join(tok[5:]))
 
 
-class ZaberChain:
+class ZaberChain(SerialDevice):
     """One Zaber ASCII daisy chain on one serial port.
 
     Parameters
@@ -236,52 +237,19 @@ class ZaberChain:
     or lost line.
     """
 
+    what, flag = "stage", "--port"
+
     def __init__(self, port_url: str, baudrate: int = 115200, timeout: float = 1.0, *,
                  checksum: bool = True, retries: int = 2,
                  on_warning: Callable[[int, str, str], None] | None = None):
-        self.port_url = port_url
-        self.baudrate = baudrate
-        self.timeout = timeout
+        super().__init__(port_url, baudrate, timeout)
         self.checksum = checksum
         self.retries = retries
         self.on_warning = on_warning
-        self.reconnects = 0
         self.retries_used = 0                 # resends after a silent or garbled reply (all time)
         self.warnings_seen: list[tuple[int, str]] = []
         self._msgid = -1
-        self._port = None
         self.open()
-
-    # -- port handling -------------------------------------------------------------------
-    def open(self) -> None:
-        """Open the port (a second call is a no-op while it is open)."""
-        if self._port is not None:
-            return
-        try:
-            self._port = serial.serial_for_url(self.port_url, baudrate=self.baudrate, timeout=self.timeout)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise CommunicationError(f"cannot open the stage port {self.port_url!r} ({exc}); "
-                                     "check the cable and the --port value") from None
-
-    def close(self) -> None:
-        """Close the port."""
-        if self._port is not None:
-            try:
-                self._port.close()
-            finally:
-                self._port = None
-
-    def reconnect(self) -> None:
-        """Close and reopen the port (the caller re-queries positions and flags)."""
-        self.close()
-        self.reconnects += 1
-        self.open()
-
-    def __enter__(self) -> "ZaberChain":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # -- one exchange --------------------------------------------------------------------
     def _next_msgid(self) -> int:
