@@ -6,9 +6,7 @@ Each case runs the real ``gonio`` console script in its own process, as a user w
 import os
 import subprocess
 import sys
-from pathlib import Path
 
-import pytest
 
 GONIO = [sys.executable, "-m", "gonio.bench.cli"]
 
