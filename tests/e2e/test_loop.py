@@ -110,3 +110,41 @@ def test_report_renders_in_headless_chromium(loop, tmp_path):
     ok, total = (int(v) for v in decoded.split("/"))
     assert total >= 5 and ok == total, decoded
     assert "Uncaught" not in proc.stderr
+
+
+def test_cli_sim_capture_killed_then_resumed(tmp_path):
+    """`gonio capture --sim` SIGKILLed mid-run; `gonio capture --resume` rebuilds the same
+    virtual instrument from session.toml, re-homes it and finishes: every point once."""
+    import signal
+    import sqlite3
+    import time
+
+    session = tmp_path / "s"
+    cmd = [sys.executable, "-m", "gonio.bench.cli", "capture", "--sim", "--plan", "quick", "--seed", "5",
+           "--out", str(session), "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    journal = session / "journal.sqlite"
+    deadline = time.monotonic() + 120
+    done = 0
+    while time.monotonic() < deadline and proc.poll() is None:
+        if journal.exists():
+            try:
+                done = sqlite3.connect(journal).execute("SELECT count(*) FROM points").fetchone()[0]
+            except sqlite3.Error:
+                done = 0
+            if done >= 5:
+                break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the capture finished before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert 5 <= done < 30
+    res = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "capture", "--resume", str(session), "--quiet"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "30/30 points" in res.stdout
+    rows = sqlite3.connect(journal).execute("SELECT idx FROM points ORDER BY idx").fetchall()
+    assert [r[0] for r in rows] == list(range(30))
+    assert not list(session.rglob("*.tmp")) and not list((session / "raw").glob(".*"))
+    meas = load_dataset(export(session))
+    assert meas.n_points == 30 and np.all(np.isfinite(meas.brdf))
