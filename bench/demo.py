@@ -67,7 +67,10 @@ def _speed_vs_error(meas, result, sample, seed) -> dict:
         rows.append({"optimiser": name, "time_s": float(seconds), "evaluations": int(evals),
                      "chi2": float(r @ r), "max_pull": float(np.max(np.abs((x - truth) / result.std))),
                      "rmse_fr": float(np.sqrt(np.mean(((fr - meas.brdf)[meas.use]) ** 2)))})
-    return {"points": int(meas.n_points), "model": result.model.name, "rows": rows, "seed": seed}
+    from gonio.fitting import versions
+
+    return {"points": int(meas.n_points), "model": result.model.name, "rows": rows, "seed": seed,
+            "versions": versions()}
 
 
 def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool = True) -> dict:

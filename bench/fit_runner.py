@@ -171,6 +171,16 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
     print(f"wrote {len(results)} fit files to {out}")
 
 
+def _provenance(fit_path, meas=None) -> dict:
+    """Versions, and the fit and dataset a derived file was made from."""
+    from gonio.fitting import versions
+
+    out = {"versions": versions(), "fit": str(fit_path)}
+    if meas is not None:
+        out["dataset_seed"] = meas.attrs.get("seed")
+    return out
+
+
 def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     """Render the fit at the dataset's geometry; write ``out_dir/render.json``; return its content."""
     from gonio.fitting import load_fit, write_json_atomic
@@ -183,6 +193,7 @@ def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     except (ValueError, KeyError, json.JSONDecodeError) as exc:
         raise GonioError(f"{fit_path} is not a readable gonio fit file ({exc})") from None
     result = loop_closure(model, params, meas, variant=variant)
+    result["provenance"] = _provenance(fit_path, meas)
     write_json_atomic(Path(out_dir) / "render.json", result)
     return result
 
@@ -198,6 +209,7 @@ def render_previews(fit_path: Path, out_dir: Path, measured=None, size: int = 12
     result = preview(model, params, Path(out_dir) / "preview", measured=measured, size=size, spp=spp)
     summary = {k: (str(v) if isinstance(v, Path) else v) for k, v in result.items() if k != "images"}
     summary["images"] = {lighting: {k: str(v) for k, v in paths.items()} for lighting, paths in result["images"].items()}
+    summary["provenance"] = _provenance(fit_path)
     write_json_atomic(Path(out_dir) / "preview" / "preview.json", summary)
     return summary
 
