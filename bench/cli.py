@@ -184,9 +184,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, default=256, help="preview samples per pixel (default 256)")
     r.set_defaults(func=_cmd_render)
 
-    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict or MERL, a dataset to CSV")
+    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict or MERL, a dataset to CSV or MERL")
     cv.add_argument("source", help="fit file (JSON) or dataset.nc")
-    cv.add_argument("--to", required=True, choices=["mitsuba-xml", "mitsuba-dict", "merl", "csv"])
+    cv.add_argument("--to", required=True, choices=["mitsuba-xml", "mitsuba-dict", "merl", "csv", "merl-data"],
+                    help="from a fit: mitsuba-xml, mitsuba-dict, merl (the model resampled); "
+                         "from a dataset: csv, merl-data (measured values binned, the rest no-data)")
     cv.add_argument("--out", required=True, help="file to write")
     cv.set_defaults(func=_cmd_convert)
 

@@ -230,7 +230,7 @@ def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, previ
 
 
 def convert_cli(source: Path, out: Path, to: str):
-    """Exchange formats: fit -> Mitsuba XML / dict JSON / MERL; dataset -> CSV."""
+    """Exchange formats: fit -> Mitsuba XML / dict JSON / MERL; dataset -> CSV / MERL (binned)."""
     from gonio.fitting import load_fit, write_json_atomic
     from gonio.fitting import formats
 
@@ -255,6 +255,10 @@ def convert_cli(source: Path, out: Path, to: str):
                 atomic_write_text(out, xml)
     elif to == "csv":
         formats.dataset_to_csv(_open_dataset(source), out)
+    elif to == "merl-data":
+        merl = formats.dataset_to_merl(_open_dataset(source))
+        formats.write_merl(out, merl)
+        print(f"{int(merl.valid.sum())} of {merl.valid.size} MERL bins hold measured data; the rest are marked no-data")
     else:
-        raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-dict, merl (from a fit) or csv (from a dataset)")
+        raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-dict, merl (from a fit), csv or merl-data (from a dataset)")
     print(f"wrote {out}")

@@ -34,7 +34,7 @@ from ._data import Measurements
 from ._io import atomic_open
 
 __all__ = [
-    "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "half_diff_angles",
+    "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "dataset_to_merl", "half_diff_angles",
     "merl_bin_directions", "merl_to_measurements", "mitsuba_snippet", "read_merl", "resample_to_merl",
     "rgl_measurements", "write_merl",
 ]
@@ -261,6 +261,28 @@ def resample_to_merl(eval_fn, params=None, *, chunk: int = 200_000) -> MerlBRDF:
     bad = ~np.isfinite(values)
     values = np.where(bad, np.nan, np.clip(values, 0.0, None))
     return MerlBRDF.from_brdf(values.T.reshape(3, *MERL_SHAPE))
+
+
+def dataset_to_merl(meas) -> MerlBRDF:
+    """Bin measured f_r into the MERL grid: the inverse-variance mean of the points falling in
+    each bin; bins without a point are marked no-data (-1), nothing is interpolated.
+
+    A MERL table holds 1.46 million bins, so a capture of a few thousand points fills a few
+    thousand of them: the file is an exchange format for what was measured, and tools that
+    read it must honour MERL's negative = no-data convention.
+    """
+    use = np.all(meas.use, axis=1) & (meas.wi[:, 2] > 0) & (meas.wo[:, 2] > 0)
+    theta_h, _, theta_d, phi_d = half_diff_angles(meas.wi[use], meas.wo[use])
+    idx = _merl_indices(theta_h, theta_d, phi_d)
+    n_bins = int(np.prod(MERL_SHAPE))
+    table = np.full((3, n_bins), np.nan)
+    for c in range(3):
+        w = 1.0 / meas.brdf_std[use, c] ** 2
+        wsum = np.bincount(idx, weights=w, minlength=n_bins)
+        fsum = np.bincount(idx, weights=w * meas.brdf[use, c], minlength=n_bins)
+        hit = wsum > 0
+        table[c, hit] = np.maximum(fsum[hit] / wsum[hit], 0.0)
+    return MerlBRDF.from_brdf(table.reshape(3, *MERL_SHAPE))
 
 
 def merl_to_measurements(merl, wi=None, wo=None, *, n: int | None = None, rng=None, rel_std: float = 0.01,

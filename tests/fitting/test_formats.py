@@ -227,3 +227,25 @@ def test_dataset_to_csv(tmp_path):
     # from Measurements directly
     out2 = dataset_to_csv(meas, tmp_path / "m.csv")
     assert out2.read_text().splitlines()[0] == ",".join(header)
+
+
+def test_dataset_binned_into_merl_keeps_measured_values_and_marks_the_rest(tmp_path):
+    """Each measured point lands in its own MERL bin (the bin it indexes to) with its value;
+    bins without a point read back as no data."""
+    from gonio.fitting import Measurements, direction
+    from gonio.fitting.formats import dataset_to_merl, read_merl, write_merl
+
+    rng = np.random.default_rng(4)
+    n = 200
+    wi = direction(np.radians(rng.uniform(5, 80, n)), rng.uniform(-np.pi, np.pi, n))
+    wo = direction(np.radians(rng.uniform(5, 80, n)), rng.uniform(-np.pi, np.pi, n))
+    f = rng.uniform(0.05, 2.0, (n, 3))
+    meas = Measurements(wi, wo, f, 0.01 * f, np.ones((n, 3), bool))
+    merl = read_merl(write_merl(tmp_path / "m.binary", dataset_to_merl(meas)))
+    idx = merl.indices(wi, wo)
+    unique, first = np.unique(idx, return_index=True)
+    assert merl.valid.sum() == unique.size
+    alone = np.bincount(idx)[idx[first]] == 1        # bins holding exactly one point
+    got = merl.eval(wi[first][alone], wo[first][alone])
+    # the file stores float64 of f / scale: the value comes back to rounding
+    np.testing.assert_allclose(got, f[first][alone], rtol=1e-12)
