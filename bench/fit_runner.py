@@ -121,6 +121,10 @@ def print_fit(doc, truth=None, console=None):
     console.print(f"chi2/dof = {g['chi2_dof']:.3f} ({g['dof']} dof), RMSE f_r = {g['rmse_fr']:.3g} 1/sr, "
                   f"energy {_energy_text(doc['constraints']['energy'])}, "
                   f"{doc['optimiser']['evaluations']} evaluations in {doc['optimiser']['time_s']:.2f} s")
+    if not g.get("model_adequate", True):
+        console.print(f"[yellow]chi2/dof = {g['chi2_dof']:.3g}: the model misses the data by more than its noise "
+                      f"(Birge ratio {g['birge_ratio']:.3g}); the 1-sigma values are statistical only and "
+                      "understate the model's error[/yellow]")
     flagged = [n for n, p in doc["parameters"].items() if p["undetermined"]]
     if flagged:
         console.print(f"[yellow]the data cannot determine: {', '.join(flagged)}[/yellow]")

@@ -88,7 +88,11 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                                         "note": "every gonio model is reciprocal (tests/models); data pairs are checked at capture"}},
         "goodness": {"loss": result.loss, "chi2": result.chi2, "dof": result.dof, "chi2_dof": result.chi2_dof,
                      "rmse_fr": result.rmse_fr, "rmse_cos_fr": result.rmse_cos_fr, "n_used": result.n_used,
-                     "bic": result.bic},
+                     "bic": result.bic,
+                     # sqrt(chi2/dof) (Birge 1932): well above 1 means the model misses the data
+                     # by more than its noise, and the 1-sigma values are statistical only
+                     "birge_ratio": float(np.sqrt(result.chi2_dof)),
+                     "model_adequate": bool(result.chi2_dof < 1.0 + 4.0 * np.sqrt(2.0 / result.dof))},
         "optimiser": {"method": result.method, "evaluations": result.n_evals, "time_s": result.time_s,
                       "converged": result.converged, "message": result.message,
                       "solved_linearly": list(result.linear)},
