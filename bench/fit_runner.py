@@ -110,7 +110,7 @@ def print_fit(doc, truth=None, console=None):
     for col in ("parameter", "value", "1-sigma", "90 % interval", "unit") + (("truth", "(fit-truth)/sigma") if truths else ()):
         table.add_column(col, justify="right" if col not in ("parameter", "unit") else "left")
     for name, p in doc["parameters"].items():
-        row = [name, f"{p['value']:.5g}", f"{p['std']:.2g}", f"[{p['ci90'][0]:.4g}, {p['ci90'][1]:.4g}]", p["unit"] or ""]
+        row = [name, f"{p['value']:.6g}", f"{p['std']:.2g}", f"[{p['ci90'][0]:.6g}, {p['ci90'][1]:.6g}]", p["unit"] or ""]
         if truths:
             t = truths.get(name)
             row += [f"{t:.5g}" if t is not None else "-",

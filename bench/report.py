@@ -150,6 +150,7 @@ def write_report(folder, out=None) -> Path:
     fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.4, 4.4))
     sc = ax.scatter(phi_o, theta_o, c=theta_i, cmap="viridis", s=14)
     ax.set_ylim(0, 90)
+    ax.set_rticks([30, 60, 90])
     ax.set_title("detector directions (r = theta_o, colour = theta_i)", fontsize=9)
     fig.colorbar(sc, ax=ax, shrink=0.7, label="theta_i (deg)")
     images["coverage.png"] = _png(fig)
@@ -169,7 +170,7 @@ def write_report(folder, out=None) -> Path:
             z = (p["value"] - t) / p["std"] if (t is not None and p["std"]) else None
             flags = ", ".join(f for f, on in (("at bound", p["at_bound"]), ("undetermined", p["undetermined"])) if on)
             rows.append(f"<tr><td>{html.escape(name)}</td><td>{_fmt(p['value'])}</td><td>{_fmt(p['std'], 2)}</td>"
-                        f"<td>{_fmt(p['ci90'])}</td><td>{_fmt(t)}</td><td>{_fmt(z, 2)}</td><td>{html.escape(p['unit'] or '')}</td>"
+                        f"<td>{_fmt(p['ci90'], 7)}</td><td>{_fmt(t)}</td><td>{_fmt(z, 2)}</td><td>{html.escape(p['unit'] or '')}</td>"
                         f"<td>{html.escape(p['method'])}</td><td>{flags}</td></tr>")
         g = fit_doc["goodness"]
         sections.append(
