@@ -98,6 +98,7 @@ def _energy_text(energy: dict) -> str:
 
 def print_fit(doc, truth=None, console=None):
     """A rich table of the fit: value, 1-sigma, 90 % interval (and the truth when known)."""
+    from rich import box
     from rich.console import Console
     from rich.table import Table
 
@@ -106,11 +107,28 @@ def print_fit(doc, truth=None, console=None):
     console = console or Console()
     names = list(doc["parameters"])
     truths = _truth_by_name(truth, names) if truth and truth.get("model") == doc["model"]["name"] else {}
-    table = Table(title=f"fit: {doc['model']['name']} {json.dumps(doc['model']['options'])}")
-    for col in ("parameter", "value", "1-sigma", "90 % interval", "unit") + (("truth", "(fit-truth)/sigma") if truths else ()):
-        table.add_column(col, justify="right" if col not in ("parameter", "unit") else "left")
-    for name, p in doc["parameters"].items():
-        row = [name, f"{p['value']:.6g}", f"{p['std']:.2g}", f"[{p['ci90'][0]:.6g}, {p['ci90'][1]:.6g}]", p["unit"] or ""]
+    params = doc["parameters"]
+    # A Laplace 90 % interval is value +- 1.645 sigma: it gets a column only where it says more
+    # (an emcee interval, or one clipped at a bound); units only where some are not "1".
+    show_ci = any(p["method"] != "laplace" or p["at_bound"] for p in params.values())
+    show_unit = any((p["unit"] or "1") != "1" for p in params.values())
+    caption = "; ".join(c for c in ("z = (fit - truth) / sigma" if truths else "",
+                                    "" if show_ci else "90 % interval = value +- 1.645 sigma",
+                                    "" if show_unit else "all parameters dimensionless") if c)
+    table = Table(title=f"fit: {doc['model']['name']} {json.dumps(doc['model']['options'])}", box=box.SIMPLE_HEAD,
+                  caption=caption or None)
+    # the parameter names never wrap: an operator must read them whole in an 80-column terminal
+    table.add_column("parameter", no_wrap=True)
+    cols = ("value", "1-sigma") + (("90 % interval",) if show_ci else ()) + (("unit",) if show_unit else ()) \
+        + (("truth", "z") if truths else ())
+    for col in cols:
+        table.add_column(col, justify="left" if col == "unit" else "right", no_wrap=True)
+    for name, p in params.items():
+        row = [name, f"{p['value']:.6g}", f"{p['std']:.2g}"]
+        if show_ci:
+            row.append(f"{p['ci90'][0]:.6g} .. {p['ci90'][1]:.6g}")
+        if show_unit:
+            row.append(p["unit"] or "")
         if truths:
             t = truths.get(name)
             row += [f"{t:.5g}" if t is not None else "-",
