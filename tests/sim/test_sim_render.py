@@ -1,7 +1,12 @@
 """Rendered holder radiance against f_r * E * cos(theta_i) and the image layout."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+
+# ../shared beside the checkout (tests may read it; the project never needs it at run time)
+PAPER = Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl" / "paper_white_rgb.bsdf"
 
 ROUGH = {"mitsuba": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2,
                      "diffuse_reflectance": {"type": "rgb", "value": [0.6, 0.3, 0.1]}}}
@@ -26,13 +31,12 @@ def _pixel(inst, point_local):
 
 @pytest.mark.parametrize("spec", [ROUGH, GLOSSY, {"model": "diffuse", "params": {"reflectance": 0.7}},
                                   {"model": "cooktorrance", "params": {}},
-                                  {"bsdf_file": "/work/shared/data/rgl/paper_white_rgb.bsdf"}],
+                                  {"bsdf_file": str(PAPER)}],
                          ids=["mitsuba-dict", "models-roughplastic", "models-diffuse",
                               "models-cooktorrance", "measured"])
 def test_sample_radiance_is_fr_e_cos(make, spec):
-    import os
-    if "bsdf_file" in spec and not os.path.exists(spec["bsdf_file"]):
-        pytest.skip("RGL data not present")
+    if "bsdf_file" in spec and not PAPER.is_file():
+        pytest.skip(f"RGL sample data not found at {PAPER} (../shared beside the checkout)")
     inst = make(sample=spec)
     off = inst.settings["holder"]["offset"]
     checked = lit = 0
