@@ -29,26 +29,26 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	@touch $@
 
+# Install a Debian package when missing, as root with apt-get; otherwise say what follows.
+# $(1): command that succeeds when it is there; $(2): package; $(3): why; $(4): what happens without it
+define apt_install
+	@if $(1) >/dev/null 2>&1; then :; \
+	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	  echo "installing Debian's $(2) $(3)"; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(2) >/dev/null 2>&1 || \
+	  { apt-get update -q >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(2) >/dev/null 2>&1; } || \
+	  echo "gonio: could not install $(2); $(4)"; \
+	else echo "gonio: no apt-get as root; $(4) unless $(2) is installed"; fi
+endef
+
 # Mitsuba's llvm_ad_* variants need a system libLLVM (Debian's 14/15 make drjit abort; 19 works).
 # Without it gonio falls back to scalar_rgb and says so.
 llvm:
-	@if ls /usr/lib/*/libLLVM*.so.19* >/dev/null 2>&1 || ls /usr/lib/*/libLLVM.so.19* >/dev/null 2>&1; then :; \
-	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
-	  echo "installing Debian's libllvm19 for Mitsuba's LLVM variants"; \
-	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q libllvm19 >/dev/null 2>&1 || \
-	  { apt-get update -q >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -q libllvm19 >/dev/null 2>&1; } || \
-	  echo "gonio: could not install libllvm19; Mitsuba will use scalar_rgb"; \
-	else echo "gonio: no apt-get as root; Mitsuba will use scalar_rgb unless a libLLVM is installed"; fi
+	$(call apt_install,ls /usr/lib/*/libLLVM*.so.19*,libllvm19,for Mitsuba's LLVM variants,Mitsuba will use scalar_rgb)
 
 # The report test opens the HTML report in headless Chromium; it skips (and says so) without it.
 chromium:
-	@if command -v chromium >/dev/null 2>&1; then :; \
-	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
-	  echo "installing Debian's chromium for the report's browser test"; \
-	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null 2>&1 || \
-	  { apt-get update -q >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null 2>&1; } || \
-	  echo "gonio: could not install chromium; the report's browser test will be skipped"; \
-	else echo "gonio: no apt-get as root; the report's browser test will be skipped"; fi
+	$(call apt_install,command -v chromium,chromium,for the report's browser test,the report's browser test will be skipped)
 
 clean:
 	rm -rf $(VENV) gonio-out .pytest_cache
