@@ -9,7 +9,7 @@ import numpy as np
 
 from ._geometry import as_directions
 
-__all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS"]
+__all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs"]
 
 #: Number of colour channels (linear camera RGB).
 CHANNELS = 3
@@ -48,6 +48,16 @@ class Parameter:
 
 
 _REGISTRY: dict[str, type] = {}
+
+
+def eval_inputs(model, wi, wo, params):
+    """What every evaluation path checks first: directions as (N, 3) float64 arrays of one
+    shape, and the validated parameters. Returns ``(wi, wo, params)``."""
+    wi = as_directions(wi, "wi")
+    wo = as_directions(wo, "wo")
+    if wi.shape != wo.shape:
+        raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
+    return wi, wo, model.validate(params)
 
 
 def register(cls):
@@ -193,11 +203,7 @@ class Model:
             f_r without the cosine factor; 0 where either direction is at or below the
             horizon (and for non-finite directions).
         """
-        wi = as_directions(wi, "wi")
-        wo = as_directions(wo, "wo")
-        if wi.shape != wo.shape:
-            raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
-        p = self.validate(params)
+        wi, wo, p = eval_inputs(self, wi, wo, params)
         n = wi.shape[0]
         out = np.empty((n, CHANNELS))
         with np.errstate(all="ignore"):

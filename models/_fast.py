@@ -32,8 +32,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ._base import CHANNELS
-from ._geometry import as_directions
+from ._base import CHANNELS, eval_inputs
 from ._rough_tables import _interp
 
 __all__ = ["available", "eval", "value_and_grad"]
@@ -359,11 +358,7 @@ def _inputs(model, wi, wo, params, grad):
     de-interleaved by gathers inside the fused kernel; non-finite directions are
     degenerate geometry (f_r = 0), as in the reference."""
     dr, F, V3, U = _dr()
-    wi = as_directions(wi, "wi")
-    wo = as_directions(wo, "wo")
-    if wi.shape != wo.shape:
-        raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
-    p = model.validate(params)
+    wi, wo, p = eval_inputs(model, wi, wo, params)
     n = wi.shape[0]
     idx = dr.arange(U, n) * 3
     flat_i, flat_o = F(wi.reshape(-1)), F(wo.reshape(-1))
@@ -425,11 +420,7 @@ def _cached_tables(kind, alpha, eta):
 
 def _empty(model, wi, wo, params):
     """Validate the arguments; True for an empty batch."""
-    a, b = as_directions(wi, "wi"), as_directions(wo, "wo")
-    if a.shape != b.shape:
-        raise ValueError(f"wi and wo must have the same shape, got {a.shape} and {b.shape}")
-    model.validate(params)
-    return a.shape[0] == 0
+    return eval_inputs(model, wi, wo, params)[0].shape[0] == 0
 
 
 def eval(model, wi, wo, params):
