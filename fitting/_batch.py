@@ -15,10 +15,28 @@ import numpy as np
 __all__ = ["fit_batch", "fit_serial"]
 
 
+def _one_thread_per_worker():
+    """Inside a Dask worker: one Dr.Jit thread. Dask parallelises over datasets; a worker
+    process per core each running Dr.Jit's own pool of one thread per core would put twice
+    as many busy threads as cores on the machine."""
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return
+    import drjit as dr
+
+    if dr.thread_count() != 1:
+        dr.set_thread_count(1)
+
+
 def _fit_one(meas, model_spec, i, rng_seed, fit_kwargs):
     import gonio.models as gm
 
     from ._optimise import fit
+
+    _one_thread_per_worker()
 
     name, options = model_spec
     model = gm.get(name, **options)

@@ -50,7 +50,7 @@ import time
 
 import numpy as np
 
-from . import _loss
+from . import _affine, _loss
 from ._lm import levenberg_marquardt
 from ._space import ParameterSpace
 
@@ -454,6 +454,20 @@ def _safe_sum(c):
     return v if np.isfinite(v) else np.inf
 
 
+def choose_starts(starts, scores, n_local, start_ratio=START_RATIO, basin_distance=BASIN_DISTANCE):
+    """Indices of the best-scoring starts that lie in distinct basins (unit-box distance
+    >= ``basin_distance``), at most ``n_local``, none worse than ``start_ratio`` x the best."""
+    chosen = []
+    for k in np.argsort(scores, kind="stable"):
+        if chosen and not scores[k] <= start_ratio * scores[chosen[0]] + 10.0:
+            break  # far worse than the best start: not worth a local run
+        if all(np.max(np.abs(starts[k] - starts[j])) >= basin_distance for j in chosen):
+            chosen.append(int(k))
+        if len(chosen) >= max(1, n_local):
+            break
+    return chosen
+
+
 # ---------------------------------------------------------------------------- the fit
 def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         n_starts: int | None = None, n_local: int = 3, maxeval: int = 2000, enforce_energy: bool | None = None,
@@ -495,6 +509,11 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     if enforce_energy is None:
         enforce_energy = not getattr(model, "energy_conserving", True)
     t0 = time.perf_counter()
+    if _affine.applicable(meas, model, space, loss, enforce_energy, use_fast):
+        res = _affine.fit_affine(meas, model, space, loss, rng, n_starts=n_starts, n_local=n_local,
+                                 maxeval=maxeval, score_rows=SCORE_ROWS)
+        if res is not None:
+            return res
     problem = _Problem(meas, model, space, loss, use_fast=use_fast)
     energy_wo = _energy_directions()
 
@@ -507,14 +526,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     scorer = problem if stride == 1 else _Problem(meas.subset(slice(None, None, stride)), model, space, loss,
                                                   use_fast=problem.eval.fast, linear=problem.linear)
     starts, scores = _global_starts(scorer, free, u_default, n_starts, rng)
-    chosen = []
-    for k in np.argsort(scores, kind="stable"):
-        if chosen and not scores[k] <= START_RATIO * scores[chosen[0]] + 10.0:
-            break  # far worse than the best start: not worth a local run
-        if all(np.max(np.abs(starts[k] - starts[j])) >= BASIN_DISTANCE for j in chosen):
-            chosen.append(int(k))
-        if len(chosen) >= max(1, n_local):
-            break
+    chosen = choose_starts(starts, scores, n_local)
 
     # ---- local stage: Levenberg-Marquardt from each chosen start
     atol = 1e-4 if loss in ("chi2", "robust") else 0.0

@@ -120,6 +120,7 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
                                  "chi2_dof": float(np.mean(chi)), "efficiency_min": float(np.min(eff)),
                                  "reps": reps})
     _print(rows)
+    extra = {} if quick else {"emcee": bench_emcee(seed=seed), "dask": bench_dask(seed=seed)}
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -128,6 +129,10 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
             w.writeheader()
             w.writerows(rows)
         _plot(rows, out / "fit_bench.png")
+        if extra:
+            import json
+
+            (out / "fit_bench_extra.json").write_text(json.dumps(extra, indent=1, default=float))
     return rows
 
 
@@ -160,3 +165,87 @@ def _plot(rows, path):
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def bench_emcee(n=10000, n_walkers=32, seed=0):
+    """Posterior of a roughplastic RGB fit to ``n`` points: wall time, tau, independent
+    samples, and log-probability evaluations per second against plain emcee on the same
+    data with the numpy reference model (all 5 parameters, walkers looped), the issue's peer."""
+    import emcee
+
+    import gonio.models as gm
+
+    from ._optimise import fit
+    from ._posterior import sample_posterior
+    from ._space import ParameterSpace
+
+    name, options, truth = MODELS[0]
+    model = gm.get(name, **options)
+    truth = {k: np.asarray(v, dtype=np.float64) if isinstance(v, list) else v for k, v in truth.items()}
+    meas, _ = simulate_capture(model, truth, n, np.random.default_rng([seed, 7]), 0.01)
+    res = fit(meas, model, rng=np.random.default_rng(seed))
+    post = sample_posterior(meas, res, rng=np.random.default_rng(seed), n_walkers=n_walkers, max_steps=6000, chunk=250)
+    ours = post.n_steps * post.n_walkers / post.time_s
+    space = ParameterSpace(model, 3)
+
+    def log_prob(x):
+        if np.any(x < space.lower) or np.any(x > space.upper):
+            return -np.inf
+        r = (model.eval(meas.wi, meas.wo, space.to_params(x)) - meas.brdf) / meas.brdf_std
+        return -0.5 * float(np.sum(r[meas.use] ** 2))
+
+    rng = np.random.default_rng(seed)
+    p0 = res.x + 1e-3 * res.std * rng.standard_normal((32, space.size))
+    sampler = emcee.EnsembleSampler(32, space.size, log_prob)
+    t0 = time.perf_counter()
+    sampler.run_mcmc(p0, 5, progress=False)
+    peer = 5 * 32 / (time.perf_counter() - t0)
+    row = {"points": n, "walkers": post.n_walkers, "steps": post.n_steps, "time_s": post.time_s,
+           "tau_max": float(np.max(post.tau)), "n_independent": post.n_independent, "converged": post.converged,
+           "evals_per_s": ours, "peer_evals_per_s": peer, "surrogate_error": post.surrogate_error}
+    print(f"\nemcee, roughplastic RGB, {n} points, {post.n_walkers} walkers: {post.n_steps} steps in "
+          f"{post.time_s:.1f} s, tau {np.max(post.tau):.0f}, {post.n_independent:.0f} independent samples "
+          f"({post.n_independent / post.time_s:.0f}/s), converged {post.converged}")
+    print(f"log-probability evaluations/s: gonio {ours:,.0f}, plain emcee + numpy model {peer:,.0f} "
+          f"(ratio {ours / peer:.0f}); table surrogate error {post.surrogate_error}")
+    return row
+
+
+def bench_dask(n_datasets=24, n=1000, seed=0):
+    """``fit_batch`` on a local cluster of 1 and 2 workers against the serial loop: wall time
+    (cluster already up; its start-up printed apart) and the largest difference."""
+    from dask.distributed import Client, LocalCluster
+
+    import gonio.models as gm
+
+    from ._batch import fit_batch, fit_serial
+
+    name, options, truth = MODELS[0]
+    model = gm.get(name, **options)
+    truth = {k: np.asarray(v, dtype=np.float64) if isinstance(v, list) else v for k, v in truth.items()}
+    data = [simulate_capture(model, truth, n, np.random.default_rng([seed, 11, i]), 0.02)[0] for i in range(n_datasets)]
+    fit_serial(data[:2], model, rng_seed=seed)  # warm the kernels
+    t0 = time.perf_counter()
+    serial = fit_serial(data, model, rng_seed=seed)
+    t_serial = time.perf_counter() - t0
+    row = {"datasets": n_datasets, "points": n, "serial_s": t_serial}
+    print(f"\nDask fit_batch, {n_datasets} roughplastic datasets of {n} points: serial {t_serial:.2f} s")
+    for workers in (1, 2):
+        t0 = time.perf_counter()
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        client = Client(cluster)
+        t_up = time.perf_counter() - t0
+        try:
+            fit_batch(data[:workers * 2], model, scheduler=cluster.scheduler_address, rng_seed=seed)  # warm workers
+            t0 = time.perf_counter()
+            out = fit_batch(data, model, scheduler=cluster.scheduler_address, rng_seed=seed)
+            dt = time.perf_counter() - t0
+        finally:
+            client.close()
+            cluster.close()
+        diff = max(float(np.max(np.abs(a.x - b.x))) for a, b in zip(out, serial))
+        row[f"workers_{workers}_s"] = dt
+        row[f"workers_{workers}_max_diff"] = diff
+        print(f"  {workers} worker(s): {dt:.2f} s (speed-up {t_serial / dt:.2f}x vs serial; cluster start "
+              f"{t_up:.1f} s), max |x - serial| {diff:.1e}")
+    return row

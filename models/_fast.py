@@ -473,3 +473,242 @@ def value_and_grad(model, wi, wo, params, cotangent):
         g = np.array([float(np.asarray(dr.grad(x)).ravel()[0]) for x in vals])
         grad[par.name] = g if par.per_channel else float(g[0])
     return f, grad
+
+
+# -- affine parts, batched over parameter sets (the fitter's hot loop) -----------------------
+#
+# For the models whose f_r is affine in one per-channel parameter,
+#
+#     f_r[c](wi, wo) = base(wi, wo; theta) + coef[c] * basis(wi, wo; theta),
+#
+# with ``base`` and ``basis`` the same in every channel, a fit only needs base and basis
+# for each trial theta: the per-channel coefficient follows by weighted linear least
+# squares. :func:`affine_parts` evaluates them for K parameter sets theta_k at once (one
+# LLVM kernel over K x N lanes, directions loaded once by :func:`prepare`), which is what
+# a multi-start stage, a finite-difference Jacobian and an ensemble sampler's walkers need.
+#
+# ``coef`` is not always the model's own parameter. For ``roughplastic`` (nonlinear=False)
+# f_r = spec + rho / (1 - R_int) * t(mu_i) t(mu_o) / (pi eta^2), so coef = rho / (1 - R_int)
+# and rho = coef * q(theta) with q = 1 - R_int(alpha, eta): the fitter works with coef and
+# needs the 128 x 128 quadrature of R_int (16 times the cost of the transmittance table)
+# only to convert its answer back. :func:`affine_q` gives q exactly.
+
+#: theta names of the models with an affine per-channel parameter: model name -> (affine
+#: parameter, nonlinear parameters in theta's column order).
+AFFINE = {
+    "diffuse": ("reflectance", ()),
+    "orennayar": ("reflectance", ("sigma",)),
+    "roughplastic": ("diffuse_reflectance", ("alpha", "int_ior")),
+}
+
+
+def affine_spec(model):
+    """(affine parameter, theta names) when :func:`affine_parts` serves ``model``, else None."""
+    spec = AFFINE.get(model.name)
+    if spec is None:
+        return None
+    if model.name == "roughplastic" and (model.options["nonlinear"] or not getattr(model, "exact_tables", True)):
+        return None  # coef would not be affine (nonlinear) / the model uses interpolated tables
+    return spec
+
+
+class Prepared:
+    """Directions loaded once into Dr.Jit (float64), for repeated :func:`affine_parts` calls."""
+
+    def __init__(self, wi, wo):
+        dr, F, V3, U = _dr()
+        wi = np.asarray(wi, dtype=np.float64)
+        wo = np.asarray(wo, dtype=np.float64)
+        ok = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
+        down = np.array([0.0, 0.0, -1.0])
+        wi = np.where(ok[:, None], wi, down)
+        wo = np.where(ok[:, None], wo, down)
+        self.n = wi.shape[0]
+        self.wi = [F(np.ascontiguousarray(wi[:, k])) for k in range(3)]
+        self.wo = [F(np.ascontiguousarray(wo[:, k])) for k in range(3)]
+        dr.make_opaque(*self.wi, *self.wo)
+
+
+def prepare(wi, wo):
+    """Load a batch of direction pairs (N, 3) for :func:`affine_parts`."""
+    return Prepared(wi, wo)
+
+
+def _t_ext_batch(kind, alpha, eta):
+    """Transmittance tables of K (alpha, eta) pairs (Float64 arrays of size K): size K * 64,
+    the same quadrature as :func:`_tables` (32 x 32 Gauss-Legendre over visible normals)."""
+    dr, F, V3, U = _dr()
+    mu_np, wx_np, a, b, wgt_np, extra, res = _table_grid(kind, 32)
+    size = res * a * b
+    idx = dr.arange(U, dr.width(alpha) * size)
+    k = idx // size
+    loc = idx - k * size
+    r = loc // (a * b)
+    ij = loc - r * (a * b)
+    al = dr.gather(F, alpha, k)
+    e = dr.gather(F, eta, k)
+    mu = dr.gather(F, F(mu_np), r)
+    wxr = dr.gather(F, F(wx_np), r)
+    wgt = dr.gather(F, F(wgt_np), ij)
+    cp = mu / dr.sqrt((al * wxr) ** 2 + mu * mu)
+    if kind == "beckmann":
+        u_np, sy_np = extra
+        i = ij // b
+        sx = _beckmann_sx(dr, cp, dr.gather(F, F(u_np), i))
+        sy = dr.gather(F, F(sy_np), ij - i * b)
+        mx = -al * sx
+        inv = dr.rsqrt(mx * mx + (al * sy) ** 2 + 1.0)
+    else:
+        px_np, py_np = extra
+        px = dr.gather(F, F(px_np), ij)
+        py = dr.gather(F, F(py_np), ij)
+        s = 0.5 * (1.0 + cp)
+        py = _safe_sqrt(dr, 1.0 - px * px) * (1.0 - s) + py * s
+        z = _safe_sqrt(dr, 1.0 - px * px - py * py)
+        sin_i = _safe_sqrt(dr, 1.0 - cp * cp)
+        norm = al / (sin_i * py + cp * z)
+        mx = -(cp * py - sin_i * z) * norm
+        my = px * norm
+        inv = dr.rsqrt(mx * mx + my * my + 1.0)
+    mx = mx * inv
+    mz = inv
+    d = wxr * mx + mu * mz
+    front = d > 0
+    Fr, ct = _fresnel_outside(dr, dr.select(front, d, 1.0), e)
+    eta_ti = 1.0 / e
+    oz = mz * (d * eta_ti - ct) - mu * eta_ti
+    v = dr.select(front & (oz < 0) & (ct > 0), _g1_z(dr, kind, al, oz) * (1.0 - Fr), 0.0)
+    return dr.block_sum(v * wgt, a * b)
+
+
+def _theta_array(thetas, n_theta):
+    t = np.asarray(thetas, dtype=np.float64)
+    if t.ndim == 1:
+        t = t.reshape(-1, n_theta) if n_theta else t.reshape(-1, 0)
+    if t.ndim != 2 or t.shape[1] != n_theta or t.shape[0] == 0:
+        raise ValueError(f"thetas must have shape (K >= 1, {n_theta}), got {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError("thetas contain NaN or inf")
+    return t
+
+
+def affine_tables(model, thetas):
+    """The parameter-dependent tables of :func:`affine_parts` at K parameter sets, exactly:
+    for ``roughplastic`` the transmittance tables, shape (K, 64); (K, 0) for the others."""
+    spec = affine_spec(model)
+    if spec is None:
+        raise ValueError(f"model {model!r} has no affine-parts kernel")
+    dr, F, V3, U = _dr()
+    th = _theta_array(thetas, len(spec[1]))
+    if model.name != "roughplastic":
+        return np.zeros((th.shape[0], 0))
+    a, e = F(np.maximum(th[:, 0], 1e-4)), F(th[:, 1])
+    dr.make_opaque(a, e)
+    with dr.suspend_grad():
+        t = _t_ext_batch(model.options["distribution"], a, e)
+        dr.eval(t)
+        return np.asarray(t).reshape(th.shape[0], 64)
+
+
+def affine_parts(model, prepared, thetas, tables=None):
+    """``base`` and ``basis`` (each (K, N), float64) of ``model`` at K parameter sets.
+
+    Parameters
+    ----------
+    model
+        A model with :func:`affine_spec` not None.
+    prepared : Prepared
+        The directions (:func:`prepare`).
+    thetas : array_like, shape (K, T)
+        Values of the nonlinear parameters, columns in ``affine_spec(model)[1]`` order
+        (not validated against the model's bounds: the caller keeps them inside).
+
+    tables : ndarray, shape (K, 64), optional
+        The tables of :func:`affine_tables` at ``thetas`` (or a caller's approximation of
+        them, e.g. an interpolant when many nearby thetas are evaluated); computed exactly
+        in the same kernel call when omitted.
+
+    Returns
+    -------
+    base, basis : ndarray, shape (K, N)
+        f_r[c] = base + coef[c] * basis at theta_k (0 below the horizon); see the section
+        notes for what ``coef`` means per model.
+    """
+    spec = affine_spec(model)
+    if spec is None:
+        raise ValueError(f"model {model!r} has no affine-parts kernel")
+    dr, F, V3, U = _dr()
+    th = _theta_array(thetas, len(spec[1]))
+    K, N = th.shape[0], prepared.n
+    if N == 0:
+        return np.zeros((K, 0)), np.zeros((K, 0))
+    cols = [F(np.ascontiguousarray(th[:, j])) for j in range(th.shape[1])]
+    if cols:
+        dr.make_opaque(*cols)
+    with dr.suspend_grad():
+        lane = dr.arange(U, K * N)
+        k = lane // N
+        i = lane - k * N
+        vi = V3(*(dr.gather(F, c, i) for c in prepared.wi))
+        vo = V3(*(dr.gather(F, c, i) for c in prepared.wo))
+        ci, co = vi.z, vo.z
+        active = (ci > 0) & (co > 0)
+        if model.name == "diffuse":
+            base = F(0.0) * ci
+            basis = dr.select(active, F(1.0 / math.pi), F(0.0))
+        elif model.name == "orennayar":
+            sig = dr.gather(F, cols[0], k)
+            s2 = sig * sig
+            A = 1.0 - s2 / (2.0 * (s2 + 0.33))
+            B = 0.45 * s2 / (s2 + 0.09)
+            cmax = dr.maximum(dr.clip(ci, 0.0, 1.0), dr.clip(co, 0.0, 1.0))
+            cd = vi.x * vo.x + vi.y * vo.y
+            term = dr.select(cmax > 0, dr.maximum(cd, 0.0) / dr.select(cmax > 0, cmax, 1.0), 0.0)
+            base = F(0.0) * ci
+            basis = dr.select(active, (A + B * term) / math.pi, 0.0)
+        else:  # roughplastic, nonlinear=False
+            kind = model.options["distribution"]
+            alpha = dr.maximum(cols[0], 1e-4)
+            if tables is None:
+                t = _t_ext_batch(kind, alpha, cols[1])
+            else:
+                tb = np.asarray(tables, dtype=np.float64)
+                if tb.shape != (K, 64):
+                    raise ValueError(f"tables must have shape ({K}, 64), got {tb.shape}")
+                t = F(tb.reshape(-1))
+            al = dr.gather(F, alpha, k)
+            eta = dr.gather(F, cols[1], k)
+            wm, valid = _half_vector(dr, F, vi, vo)
+            di, do = dr.dot(vi, wm), dr.dot(vo, wm)
+            den = 4.0 * ci * co
+            ok = active & valid & (den > 0)
+            D = _D(dr, kind, al, al, wm)
+            G = _g1(dr, kind, al, al, vi.x, vi.y, ci, di) * _g1(dr, kind, al, al, vo.x, vo.y, co, do)
+            Fr, _ = _fresnel_outside(dr, dr.clip(0.5 * (di + do), 0.0, 1.0), eta)
+            base = dr.select(ok, Fr * D * G / dr.select(ok, den, 1.0), 0.0)
+
+            def lerp(x):
+                x = dr.clip(x, 0.0, 1.0) * 63
+                j = dr.minimum(U(x), 62)
+                w1 = x - F(j)
+                return dr.gather(F, t, k * 64 + j) * (1.0 - w1) + dr.gather(F, t, k * 64 + j + 1) * w1
+
+            basis = dr.select(active, lerp(ci) * lerp(co) / (math.pi * eta * eta), 0.0)
+        dr.eval(base, basis)
+        return np.asarray(base).reshape(K, N), np.asarray(basis).reshape(K, N)
+
+
+def affine_q(model, thetas):
+    """q(theta), shape (K,): the model's affine parameter is ``coef * q`` (exact).
+
+    1 for ``diffuse`` and ``orennayar``; ``1 - R_int(alpha, eta)`` for ``roughplastic``,
+    from the same 128 x 128 quadrature as :func:`gonio.models._rough_tables.rough_tables`
+    (cached per (alpha, eta))."""
+    spec = affine_spec(model)
+    if spec is None:
+        raise ValueError(f"model {model!r} has no affine-parts kernel")
+    th = _theta_array(thetas, len(spec[1]))
+    if model.name != "roughplastic":
+        return np.ones(th.shape[0])
+    kind = model.options["distribution"]
+    return np.array([1.0 - float(np.asarray(_cached_tables(kind, float(a), float(e))[1])[0]) for a, e in th])

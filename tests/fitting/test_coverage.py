@@ -7,7 +7,8 @@ must contain the truth about 68 % of the time and the emcee 90 % credible interv
 
 Binomial noise of a coverage over 50 captures: sqrt(p (1 - p) / 50) = 6.6 % at p = 0.68 and
 4.2 % at p = 0.90; the Laplace band [0.54, 0.82] is +-2.1 sigma. The emcee band [0.85, 0.95]
-is the issue's and only +-1.2 sigma wide, so that test uses 60 captures (+-1.3 sigma).
+is the issue's and only +-1.2 sigma wide at 50 captures: those tests use 60 (roughplastic,
++-1.3 sigma) and 100 (orennayar, +-1.7 sigma).
 Figures measured (printed with -s) are in the fitting note.
 """
 
@@ -44,20 +45,33 @@ def test_laplace_one_sigma_covers_68_percent(case):
     assert np.all((cov >= 0.54) & (cov <= 0.82)), dict(zip(names, cov))
 
 
-@pytest.mark.slow
-def test_emcee_90_percent_intervals_cover_85_to_95_percent():
-    model, truth = ORENNAYAR
-    hits, taus = [], []
-    for s in range(60):
-        meas = simulate(model, truth, np.random.default_rng(2000 + s), n=40, rel=0.05, specular_fraction=0.0)
+def _emcee_coverage(model, truth, n_sets, seed0, n, rel, **sim):
+    hits, taus, conv = [], [], []
+    for s in range(n_sets):
+        meas = simulate(model, truth, np.random.default_rng(seed0 + s), n=n, rel=rel, **sim)
         r = fit(meas, model, rng=np.random.default_rng(s))
-        post = sample_posterior(meas, r, rng=np.random.default_rng(s), n_walkers=8, chunk=200, max_steps=600,
+        post = sample_posterior(meas, r, rng=np.random.default_rng(s), n_walkers=8, chunk=200, max_steps=800,
                                 tau_multiple=30)
         lo, hi = post.interval(90).T
         x_true = r.space.from_params(truth)
         hits.append((lo <= x_true) & (x_true <= hi))
         taus.append(np.max(post.tau))
-    cov = np.mean(hits, axis=0)
-    print("\nemcee 90% coverage, orennayar:", dict(zip(r.space.names, np.round(cov, 3))),
-          "median tau", np.median(taus))
-    assert np.all((cov >= 0.85) & (cov <= 0.95)), dict(zip(r.space.names, cov))
+        conv.append(post.converged)
+    return r.space.names, np.mean(hits, axis=0), np.median(taus), np.mean(conv)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["roughplastic", "orennayar"])
+def test_emcee_90_percent_intervals_cover_85_to_95_percent(case):
+    """Seeded, so deterministic; the band is the issue's. Binomial sd of the coverage:
+    3.9 % over 60 captures (roughplastic), 3.0 % over 100 (orennayar)."""
+    if case == "roughplastic":
+        model, truth = ROUGHPLASTIC
+        names, cov, tau, conv = _emcee_coverage(model, truth, 60, 3000, n=100, rel=0.05)
+    else:
+        model, truth = ORENNAYAR
+        names, cov, tau, conv = _emcee_coverage(model, truth, 100, 2000, n=40, rel=0.05, specular_fraction=0.0)
+    print(f"\nemcee 90% coverage, {case}:", dict(zip(names, np.round(cov, 3))), "median tau", tau,
+          "converged fraction", conv)
+    assert conv >= 0.9
+    assert np.all((cov >= 0.85) & (cov <= 0.95)), dict(zip(names, cov))
