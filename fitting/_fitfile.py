@@ -111,7 +111,8 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         doc["posterior"] = {"converged": posterior.converged, "walkers": posterior.n_walkers,
                             "names": list(posterior.names), "samples": samples,
                             "steps": posterior.n_steps, "tau": posterior.tau, "independent_samples": posterior.n_independent,
-                            "acceptance": posterior.acceptance, "time_s": posterior.time_s, "advice": posterior.advice}
+                            "acceptance": posterior.acceptance, "time_s": posterior.time_s, "advice": posterior.advice,
+                            "table_surrogate_error": posterior.surrogate_error}
     return _jsonable(doc)
 
 
