@@ -180,6 +180,21 @@ def _table_grid(kind, n):
     return mu, wx, a, b, wgt.ravel(), extra, RES
 
 
+def _ggx_warp(dr, F, alpha, cp, disk, ij):
+    """Mitsuba's GGX visible-normal warp of the concentric-disk node ``ij`` for a direction
+    with cosine ``cp`` (stretched): the slope-space normal's x and 1 / |(mx, my, 1)|."""
+    px = dr.gather(F, F(disk[0]), ij)
+    py = dr.gather(F, F(disk[1]), ij)
+    s = 0.5 * (1.0 + cp)
+    py = _safe_sqrt(dr, 1.0 - px * px) * (1.0 - s) + py * s
+    z = _safe_sqrt(dr, 1.0 - px * px - py * py)
+    sin_i = _safe_sqrt(dr, 1.0 - cp * cp)
+    norm = alpha / (sin_i * py + cp * z)
+    mx = -(cp * py - sin_i * z) * norm
+    my = px * norm
+    return mx, dr.rsqrt(mx * mx + my * my + 1.0)
+
+
 def _tables(kind, alpha, eta):
     """Dr.Jit version of ``_rough_tables.rough_tables`` (differentiable in alpha, eta).
 
@@ -213,17 +228,7 @@ def _tables(kind, alpha, eta):
             my2 = (alpha * sy) ** 2
             inv = dr.rsqrt(mx * mx + my2 + 1.0)
         else:
-            px_np, py_np = extra
-            px = dr.gather(F, F(px_np), ij)
-            py = dr.gather(F, F(py_np), ij)
-            s = 0.5 * (1.0 + cp)
-            py = _safe_sqrt(dr, 1.0 - px * px) * (1.0 - s) + py * s
-            z = _safe_sqrt(dr, 1.0 - px * px - py * py)
-            sin_i = _safe_sqrt(dr, 1.0 - cp * cp)
-            norm = alpha / (sin_i * py + cp * z)
-            mx = -(cp * py - sin_i * z) * norm
-            my = px * norm
-            inv = dr.rsqrt(mx * mx + my * my + 1.0)
+            mx, inv = _ggx_warp(dr, F, alpha, cp, extra, ij)
         mx = mx * inv
         mz = inv
         d = wxr * mx + mu * mz
@@ -559,17 +564,7 @@ def _t_ext_batch(kind, alpha, eta):
         mx = -al * sx
         inv = dr.rsqrt(mx * mx + (al * sy) ** 2 + 1.0)
     else:
-        px_np, py_np = extra
-        px = dr.gather(F, F(px_np), ij)
-        py = dr.gather(F, F(py_np), ij)
-        s = 0.5 * (1.0 + cp)
-        py = _safe_sqrt(dr, 1.0 - px * px) * (1.0 - s) + py * s
-        z = _safe_sqrt(dr, 1.0 - px * px - py * py)
-        sin_i = _safe_sqrt(dr, 1.0 - cp * cp)
-        norm = al / (sin_i * py + cp * z)
-        mx = -(cp * py - sin_i * z) * norm
-        my = px * norm
-        inv = dr.rsqrt(mx * mx + my * my + 1.0)
+        mx, inv = _ggx_warp(dr, F, al, cp, extra, ij)
     mx = mx * inv
     mz = inv
     d = wxr * mx + mu * mz

@@ -43,3 +43,27 @@ def test_global_stage_finds_the_specular_basin():
         r = fit(meas, model, rng=np.random.default_rng(seed))
         assert 0.8 < r.chi2_dof < 1.25
         assert r.x[3] == pytest.approx(0.02, rel=0.1)
+
+
+@pytest.mark.parametrize("case", ["orennayar", "roughplastic"])
+def test_batched_affine_path_equals_general_path(case):
+    """The fast path (batched kernel, coefficient rho / q) and the general path (model.eval,
+    rho directly) find the same optimum and the same Laplace uncertainty."""
+    from _simdata import simulate
+
+    import gonio.models as gm
+    from gonio.fitting import fit
+
+    if case == "orennayar":
+        model, truth = gm.get("orennayar"), {"reflectance": np.array([0.5, 0.4, 0.3]), "sigma": 0.5}
+        meas = simulate(model, truth, np.random.default_rng(8), n=200, rel=0.03, specular_fraction=0.0)
+    else:
+        model = gm.get("roughplastic", distribution="ggx")
+        truth = {"diffuse_reflectance": np.array([0.5, 0.35, 0.2]), "alpha": 0.2, "int_ior": 1.5}
+        meas = simulate(model, truth, np.random.default_rng(8), n=150, rel=0.03)
+    fast = fit(meas, model, rng=np.random.default_rng(0))
+    slow = fit(meas, model, rng=np.random.default_rng(0), use_fast=False)
+    assert "batched affine kernel" in fast.method and "batched" not in slow.method
+    np.testing.assert_allclose(fast.x, slow.x, rtol=0, atol=1e-3 * np.max(slow.std))
+    np.testing.assert_allclose(fast.std, slow.std, rtol=2e-2)
+    assert abs(fast.chi2 - slow.chi2) <= 1e-6 * slow.chi2 + 1e-6
