@@ -180,6 +180,17 @@ def _table_grid(kind, n):
     return mu, wx, a, b, wgt.ravel(), extra, RES
 
 
+def _transmit(dr, kind, alpha, eta, mu, d, mz):
+    """Integrand of Mitsuba's ``eval_transmittance``: (1 - F(wi . m)) G1(wt, m) for the
+    refracted direction wt (z component ``oz``), 0 for back-facing or total reflection;
+    ``d`` = wi . m, ``mz`` the normal's z, ``mu`` = wi_z."""
+    front = d > 0
+    Fr, ct = _fresnel_outside(dr, dr.select(front, d, 1.0), eta)
+    eta_ti = 1.0 / eta
+    oz = mz * (d * eta_ti - ct) - mu * eta_ti
+    return dr.select(front & (oz < 0) & (ct > 0), _g1_z(dr, kind, alpha, oz) * (1.0 - Fr), 0.0)
+
+
 def _ggx_warp(dr, F, alpha, cp, disk, ij):
     """Mitsuba's GGX visible-normal warp of the concentric-disk node ``ij`` for a direction
     with cosine ``cp`` (stretched): the slope-space normal's x and 1 / |(mx, my, 1)|."""
@@ -233,12 +244,7 @@ def _tables(kind, alpha, eta):
         mz = inv
         d = wxr * mx + mu * mz
         if which == "t":
-            front = d > 0
-            Fr, ct = _fresnel_outside(dr, dr.select(front, d, 1.0), e)
-            eta_ti = 1.0 / e
-            oz = mz * (d * eta_ti - ct) - mu * eta_ti
-            g = _g1_z(dr, kind, alpha, oz)
-            v = dr.select(front & (oz < 0) & (ct > 0), g * (1.0 - Fr), 0.0)
+            v = _transmit(dr, kind, alpha, e, mu, d, mz)
         else:
             oz = 2.0 * d * mz - mu
             front = (d > 0) & (oz > 0)
@@ -568,12 +574,7 @@ def _t_ext_batch(kind, alpha, eta):
     mx = mx * inv
     mz = inv
     d = wxr * mx + mu * mz
-    front = d > 0
-    Fr, ct = _fresnel_outside(dr, dr.select(front, d, 1.0), e)
-    eta_ti = 1.0 / e
-    oz = mz * (d * eta_ti - ct) - mu * eta_ti
-    v = dr.select(front & (oz < 0) & (ct > 0), _g1_z(dr, kind, al, oz) * (1.0 - Fr), 0.0)
-    return dr.block_sum(v * wgt, a * b)
+    return dr.block_sum(_transmit(dr, kind, al, e, mu, d, mz) * wgt, a * b)
 
 
 def _theta_array(thetas, n_theta):
