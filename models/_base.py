@@ -171,9 +171,12 @@ class Model:
                     a = a.reshape(())
                 else:
                     raise ValueError(f"{self.name}: parameter {p.name} must be a scalar, got shape {a.shape}")
-            if not np.all(np.isfinite(a)):
+            # checked on Python floats: for 1-3 values this is ~10x faster than numpy's
+            # ufuncs, and validation runs on every evaluation
+            vals = a.tolist() if p.per_channel else [float(a)]
+            if not all(math.isfinite(x) for x in vals):
                 raise ValueError(f"{self.name}: parameter {p.name}={v!r} is not finite")
-            if np.any(a < p.lower) or np.any(a > p.upper):
+            if min(vals) < p.lower or max(vals) > p.upper:
                 raise ValueError(
                     f"{self.name}: parameter {p.name}={v!r} outside its bounds [{p.lower}, {p.upper}] ({p.unit})"
                 )

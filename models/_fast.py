@@ -33,9 +33,10 @@ from functools import lru_cache
 import numpy as np
 
 from ._base import CHANNELS, eval_inputs
+from ._geometry import as_directions
 from ._rough_tables import _interp
 
-__all__ = ["available", "eval", "value_and_grad"]
+__all__ = ["available", "eval", "value_and_grad", "Directions", "eval_resident", "jacobian", "chi2_grad"]
 
 _PROBE = (
     "import drjit as dr\n"
@@ -69,81 +70,181 @@ def _dr():
 
 
 # -- shared pieces --------------------------------------------------------------------------
+#
+# Written for the throughput of the LLVM kernels: on this hardware a division or a square
+# root costs as much as ten multiplications, so every term below is arranged as one
+# fraction (the microfacet term D G / (4 cos_i cos_o), Fresnel's equations) with a single
+# division at the end. The algebra is exact; results equal the numpy reference to rounding.
+# Every piece works in float64 and float32 alike (the type follows the inputs).
+
+
+def _floor(x):
+    """Smallest argument :func:`_safe_sqrt` passes on for the precision of ``x``."""
+    import drjit as dr
+
+    return 1e-300 if dr.type_v(x) == dr.VarType.Float64 else 1e-30
 
 
 def _safe_sqrt(dr, x):
-    # floor at 1e-300 (not 0): the derivative stays finite, so masked lanes give 0 * finite
-    # instead of 0 * inf = NaN in reverse mode; the value differs from 0 by 1e-150
-    return dr.sqrt(dr.maximum(x, 1e-300))
+    # floor at a tiny positive number (not 0): the derivative stays finite, so masked lanes
+    # give 0 * finite instead of 0 * inf = NaN in both AD modes
+    return dr.sqrt(dr.maximum(x, _floor(x)))
 
 
-def _half_vector(dr, F, wi, wo):
-    h = wi + wo
-    n2 = dr.squared_norm(h)
-    valid = n2 > 1e-300
-    inv = dr.rsqrt(dr.select(valid, n2, 1.0))
-    return h * inv, valid
+def _fresnel_outside(dr, ci, eta, grad=False):
+    """Dielectric Fresnel reflectance from the index-1 side, 0 <= ci <= 1; returns (F, cos_t)
+    and, with ``grad``, dF / d eta as a third element.
 
-
-def _D(dr, kind, au, av, m):
-    z2 = m.z * m.z
-    up = m.z > 0
-    z2s = dr.select(up, z2, 1.0)
-    if kind == "beckmann":
-        e = ((m.x / au) ** 2 + (m.y / av) ** 2) / z2s
-        r = dr.exp(-e) / (math.pi * au * av * z2s * z2s)
-    else:
-        t = (m.x / au) ** 2 + (m.y / av) ** 2 + z2
-        r = 1.0 / (math.pi * au * av * dr.select(up, t * t, 1.0))
-    return dr.select(up & (r * m.z > 1e-20), r, 0.0)
-
-
-def _g1(dr, kind, au, av, x, y, z, dot_wm):
-    xy = (au * x) ** 2 + (av * y) ** 2
-    z2 = z * z
-    ok = z2 > 0
-    t2 = xy / dr.select(ok, z2, 1.0)
-    if kind == "ggx":
-        g = 2.0 / (1.0 + dr.sqrt(1.0 + t2))
-    else:
-        pos = t2 > 0
-        a = dr.rsqrt(dr.select(pos, t2, 1.0))
-        a2 = a * a
-        g = dr.select(a >= 1.6, 1.0, (3.535 * a + 2.181 * a2) / (1.0 + 2.276 * a + 2.577 * a2))
-    g = dr.select(ok, g, 0.0)
-    g = dr.select(xy == 0, 1.0, g)
-    return dr.select(dot_wm * z <= 0, 0.0, g)
-
-
-def _fresnel_outside(dr, ci, eta):
-    """Dielectric Fresnel from the index-1 side, 0 <= ci <= 1; returns (F, cos_t)."""
+    F = (a_s^2 + a_p^2) / 2 with a_s = (ci - eta ct) / (ci + eta ct), a_p = (ct - eta ci) /
+    (ct + eta ci) (Born & Wolf, sec. 1.5.2), over one common denominator. With u = eta ct,
+    du / d eta = 1 / ct and eta d ct / d eta = (1 - ct^2) / ct, so
+    dF / d eta = (2 ci / ct) [(ct - eta ci)(1 - 2 ct^2) / dp^3 - (ci - u) / ds^3]."""
     ci = dr.minimum(ci, 1.0)
-    ct = _safe_sqrt(dr, 1.0 - (1.0 - ci * ci) / (eta * eta))
-    den_s = ci + eta * ct
-    den_p = ct + eta * ci
+    ct = _safe_sqrt(dr, 1.0 - (1.0 - ci * ci) * (1.0 / (eta * eta)))
+    es, ep = eta * ct, eta * ci
+    ds, dp = ci + es, ct + ep
+    ns, npp = (ci - es) * dp, (ct - ep) * ds
+    den = ds * dp
     special = ci <= 0
-    a_s = (ci - eta * ct) / dr.select(special, 1.0, den_s)
-    a_p = (ct - eta * ci) / dr.select(special, 1.0, den_p)
-    return dr.select(special, 1.0, 0.5 * (a_s * a_s + a_p * a_p)), ct
+    F = 0.5 * (ns * ns + npp * npp) / dr.select(special, 1.0, den * den)
+    out = (dr.select(special, 1.0, F), ct)
+    if grad:
+        ds3, dp3 = ds * ds * ds, dp * dp * dp
+        g = 2.0 * ci * ((ct - ep) * (1.0 - 2.0 * ct * ct) * ds3 - (ci - es) * dp3) / dr.select(special, 1.0, ct * ds3 * dp3)
+        out += (dr.select(special, 0.0, g),)
+    return out
 
 
-def _fresnel_conductor(dr, c, eta, k):
-    c = dr.clip(c, 0.0, 1.0)
+def _fresnel_conductor(dr, c, eta, k, grad=False):
+    """Unpolarised conductor reflectance (eta + i k), the form of Mitsuba's
+    ``fresnel_conductor`` (after pbrt-v3's FrConductor): F = (R_s + R_p) / 2 with
+    R_s = (T1 - T2) / (T1 + T2), R_p = R_s (T3 - T4) / (T3 + T4), i.e.
+    F = (T1 - T2) T3 / (P Q), P = T1 + T2, Q = T3 + T4: one division.
+
+    The cosine is floored at 1e-15: then P >= c^2 > 0 and Q > 0 for every eta > 0 (no guard
+    needed), and F is unchanged wherever a model uses it (c = wi . m > 0 for two directions
+    above the horizon).
+
+    With ``grad``, returns (F, dF/d eta, dF/d k): with A = a^2 + b^2,
+    dA/d eta = 2 eta (eta^2 + k^2 - s^2) / A, dA/dk = 2 k (eta^2 + k^2 + s^2) / A,
+    da = (dA +- 2 eta|k) / (4 a), dT1 = dA, dT2 = 2 c da, dT3 = c^2 dA, dT4 = s^2 dT2 and
+    dF = [2 (dT1 T2 - dT2 T1) T3 Q + (T1 - T2)(dT3 T4 - dT4 T3) P] / (P Q)^2."""
+    c = dr.clip(c, 1e-15, 1.0)
     c2 = c * c
     s2 = 1.0 - c2
-    s4 = s2 * s2
-    t1 = eta * eta - k * k - s2
-    a2pb2 = _safe_sqrt(dr, t1 * t1 + 4.0 * eta * eta * k * k)
-    a = _safe_sqrt(dr, 0.5 * (a2pb2 + t1))
-    term1 = a2pb2 + c2
-    term2 = 2.0 * c * a
-    den1 = term1 + term2
-    r_s = dr.select(den1 > 0, (term1 - term2) / dr.select(den1 > 0, den1, 1.0), 1.0)
-    term3 = a2pb2 * c2 + s4
-    term4 = term2 * s2
-    den2 = term3 + term4
-    r_p = r_s * dr.select(den2 > 0, (term3 - term4) / dr.select(den2 > 0, den2, 1.0), 1.0)
-    return dr.clip(0.5 * (r_s + r_p), 0.0, 1.0)
+    e2, k2 = eta * eta, k * k
+    t1 = e2 - k2 - s2
+    A = _safe_sqrt(dr, t1 * t1 + 4.0 * e2 * k2)  # a^2 + b^2
+    a = _safe_sqrt(dr, 0.5 * (A + t1))
+    T1 = A + c2
+    T2 = 2.0 * c * a
+    T3 = A * c2 + s2 * s2
+    T4 = T2 * s2
+    if not grad:
+        return dr.clip((T1 - T2) * T3 / ((T1 + T2) * (T3 + T4)), 0.0, 1.0)
+    P, Q = T1 + T2, T3 + T4
+    r = 1.0 / (P * Q)
+    F = dr.clip((T1 - T2) * T3 * r, 0.0, 1.0)
+    rA4a = 1.0 / (4.0 * A * a)
+    out = [F]
+    for dA_num, sign, x in ((2.0 * eta * (e2 + k2 - s2), 1.0, eta), (2.0 * k * (e2 + k2 + s2), -1.0, k)):
+        dA = dA_num * 4.0 * a * rA4a  # dA_num / A
+        dT2 = 2.0 * c * (dA + sign * 2.0 * x) * A * rA4a  # 2 c (dA +- 2x) / (4a)
+        dT3, dT4 = c2 * dA, s2 * dT2
+        out.append((2.0 * (dA * T2 - dT2 * T1) * T3 * Q + (T1 - T2) * (dT3 * T4 - dT4 * T3) * P) * r * r)
+    return tuple(out)
+
+
+def _beckmann_g1_over_cos(dr, au, av, w):
+    """Mitsuba's Beckmann G1 (Walter et al. 2007's rational fit in a = 1 / (alpha tan)) over
+    cos(theta), as a fraction: with s = |(au x, av y)|, a = z / s, multiply the fit's
+    numerator and denominator by s^2; G1 = 1 (num 1, den z) for a >= 1.6.
+    Returns (num, den, s, a >= 1.6)."""
+    s = _safe_sqrt(dr, (au * w.x) ** 2 + (av * w.y) ** 2)
+    z = w.z
+    big = z >= 1.6 * s
+    num = dr.select(big, 1.0, 3.535 * s + 2.181 * z)
+    return num, dr.select(big, z, s * s + 2.276 * s * z + 2.577 * z * z), s, big
+
+
+def _lobe(dr, kind, au, av, wi, wo, grad=False):
+    """Mitsuba's microfacet reflection term D(m) G(wi, wo, m) / (4 cos_i cos_o) as a
+    fraction, for the half vector m of (wi, wo) and separable Smith G.
+
+    Returns ``(num, den, c, ok)``: the term is num / den where ``ok`` (den is 1 elsewhere),
+    c = wi . m (the Fresnel cosine). For GGX the cosines cancel exactly:
+    G1(w) / (2 cos) = 1 / (cos + sqrt(cos^2 + (au x)^2 + (av y)^2)). D is 0 where
+    D cos(theta_m) <= 1e-20, Mitsuba's cut.
+
+    With ``grad``, also ``(gu, gv)``: d ln(term) / d au and d / d av (for an isotropic
+    alpha, d / d alpha = gu + gv), 0 where the term is 0. GGX: ln den = ln(pi au av) +
+    2 ln t + ln(ci + Si) + ln(co + So) with t = (mx/au)^2 + (my/av)^2 + mz^2; Beckmann:
+    ln(term) = -e + ln(n_i/d_i) + ln(n_o/d_o) - ln(4 pi au av mz^4) with e = ((mx/au)^2 +
+    (my/av)^2) / mz^2 and d s / d au = (au x)^2 / (au s) for each direction."""
+    ci, co = wi.z, wo.z
+    h = wi + wo
+    h2 = dr.squared_norm(h)
+    ok = (ci > 0) & (co > 0) & (h2 > _floor(h2))
+    inv = dr.rsqrt(dr.select(ok, h2, 1.0))
+    mz = h.z * inv
+    c = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h)) * inv
+    iau, iav = 1.0 / au, 1.0 / av
+    qx, qy = (h.x * inv * iau) ** 2, (h.y * inv * iav) ** 2
+    px2 = qx + qy
+    paa = math.pi * au * av
+    ax_i, ay_i, ax_o, ay_o = (au * wi.x) ** 2, (av * wi.y) ** 2, (au * wo.x) ** 2, (av * wo.y) ** 2
+    if kind == "ggx":
+        t = px2 + mz * mz
+        si = _safe_sqrt(dr, ci * ci + ax_i + ay_i)
+        so = _safe_sqrt(dr, co * co + ax_o + ay_o)
+        tt = paa * t * t
+        num = 1.0 + 0.0 * ci
+        den = tt * (ci + si) * (co + so)
+        ok &= mz > 1e-20 * tt
+        if grad:
+            rt = 4.0 / t
+            w_i = 1.0 / (si * (ci + si))
+            w_o = 1.0 / (so * (co + so))
+            gu = (qx * rt - 1.0 - ax_i * w_i - ax_o * w_o) * iau
+            gv = (qy * rt - 1.0 - ay_i * w_i - ay_o * w_o) * iav
+    else:
+        mz2 = mz * mz
+        mz2 = dr.select(ok, mz2, 1.0)
+        rmz2 = 1.0 / mz2 if grad else None
+        ex = dr.exp(-(px2 * rmz2 if grad else px2 / mz2))
+        ni, di, s_i, big_i = _beckmann_g1_over_cos(dr, au, av, wi)
+        no, do, s_o, big_o = _beckmann_g1_over_cos(dr, au, av, wo)
+        dd = paa * mz2 * mz2
+        num = ex * ni * no
+        den = 4.0 * dd * di * do
+        ok &= ex * mz > 1e-20 * dd
+        if grad:
+            def k(n, d, s, z, big):
+                return dr.select(big, 0.0, (3.535 * d - (2.0 * s + 2.276 * z) * n) / dr.select(big, 1.0, s * n * d))
+
+            k_i, k_o = k(ni, di, s_i, ci, big_i), k(no, do, s_o, co, big_o)
+            gu = (2.0 * qx * rmz2 - 1.0 + ax_i * k_i + ax_o * k_o) * iau
+            gv = (2.0 * qy * rmz2 - 1.0 + ay_i * k_i + ay_o * k_o) * iav
+    ok &= den > 0
+    out = (dr.select(ok, num, 0.0), dr.select(ok, den, 1.0), c, ok)
+    if grad:
+        out += (dr.select(ok, gu, 0.0), dr.select(ok, gv, 0.0))
+    return out
+
+
+def _oren_nayar_over_rho(dr, sigma, wi, wo):
+    """Qualitative Oren-Nayar (Oren & Nayar 1994, eq. 30) over rho:
+    (A + B max(0, cos(phi_i - phi_o)) sin(theta_max) tan(theta_min)) / pi, written as
+    (A cmax + B max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o); 0 below the
+    horizon."""
+    ci, co = wi.z, wo.z
+    active = (ci > 0) & (co > 0)
+    s2 = sigma * sigma
+    A = 1.0 - s2 / (2.0 * (s2 + 0.33))
+    B = 0.45 * s2 / (s2 + 0.09)
+    cmax = dr.minimum(dr.maximum(ci, co), 1.0)
+    cd = dr.maximum(wi.x * wo.x + wi.y * wo.y, 0.0)
+    return dr.select(active, (A * cmax + B * cd) / dr.select(active, cmax, 1.0) * (1.0 / math.pi), 0.0)
 
 
 def _lerp_table(dr, F, U, table, x, n):
@@ -294,92 +395,141 @@ def _channels(P, name):
     return P[name] if isinstance(P[name], list) else [P[name]] * CHANNELS
 
 
-def _kernel(model, wi, wo, P):
-    """f_r per channel (list of 3 Float64) for Dr.Jit inputs; P maps parameter names
-    to Float64 scalars (per-channel parameters: lists of 3)."""
-    dr, F, V3, U = _dr()
+def _kernel(model, wi, wo, P, grad=False):
+    """f_r per channel (list of 3 arrays) for Dr.Jit direction vectors wi, wo (float64 or
+    float32); P maps parameter names to scalars of the same type (per-channel parameters:
+    lists of 3) and, for ``roughplastic``, ``_tables`` to (t_ext, r_int).
+
+    With ``grad``, returns ``(f, J)``: J maps each parameter name to 3 arrays, d f[c] / d p
+    (per-channel p: d f[c] / d p[c]), from derivatives written out by hand next to the value
+    (forward mode, sharing every intermediate; tested against Dr.Jit's AD and finite
+    differences). ``roughplastic`` then also needs ``P["_dtables"]`` = (dt/d alpha,
+    dr/d alpha, dt/d eta, dr/d eta)."""
+    import drjit as dr
+
+    F = type(wi.z)
+    U = dr.uint32_array_t(F)
     name = model.name
     ci, co = wi.z, wo.z
     active = (ci > 0) & (co > 0)
+    zero = dr.zeros(F, dr.width(ci))
+    J = {}
     if name == "diffuse":
-        rho = _channels(P, "reflectance")
-        return [dr.select(active, r / math.pi + 0.0 * ci, 0.0) for r in rho]
-    if name == "orennayar":
-        rho = _channels(P, "reflectance")
-        s2 = P["sigma"] * P["sigma"]
-        A = 1.0 - s2 / (2.0 * (s2 + 0.33))
-        B = 0.45 * s2 / (s2 + 0.09)
-        cic, coc = dr.clip(ci, 0.0, 1.0), dr.clip(co, 0.0, 1.0)
-        cd = wi.x * wo.x + wi.y * wo.y
-        cmax = dr.maximum(cic, coc)
-        term = dr.select(cmax > 0, dr.maximum(cd, 0.0) / dr.select(cmax > 0, cmax, 1.0), 0.0)
-        f = A + B * term
-        return [dr.select(active, r / math.pi * f, 0.0) for r in rho]
-    wm, valid = _half_vector(dr, F, wi, wo)
-    di, do = dr.dot(wi, wm), dr.dot(wo, wm)
-    dh = 0.5 * (di + do)
-    den = 4.0 * ci * co
-    ok = active & valid & (den > 0)
-    if name in ("roughplastic", "roughconductor"):
+        basis = dr.select(active, 1.0 / math.pi + zero, 0.0)
+        J["reflectance"] = [basis] * CHANNELS
+        f = [r * basis for r in _channels(P, "reflectance")]
+    elif name == "orennayar":
+        sig = P["sigma"]
+        basis = _oren_nayar_over_rho(dr, sig, wi, wo)
+        f = [r * basis for r in _channels(P, "reflectance")]
+        if grad:
+            # dA/d sigma = -0.33 sigma / (s^2 + 0.33)^2, dB/d sigma = 0.081 sigma / (s^2 + 0.09)^2
+            s2 = sig * sig
+            dA = -0.33 * sig / ((s2 + 0.33) * (s2 + 0.33))
+            dB = 0.081 * sig / ((s2 + 0.09) * (s2 + 0.09))
+            cmax = dr.minimum(dr.maximum(ci, co), 1.0)
+            cd = dr.maximum(wi.x * wo.x + wi.y * wo.y, 0.0)
+            dbasis = dr.select(active, (dA * cmax + dB * cd) / dr.select(active, cmax, 1.0) * (1.0 / math.pi), 0.0)
+            J["reflectance"] = [basis] * CHANNELS
+            J["sigma"] = [r * dbasis for r in _channels(P, "reflectance")]
+    elif name in ("roughplastic", "roughconductor"):
         kind = model.options["distribution"]
-        if name == "roughconductor" and model.options["anisotropic"]:
-            au, av = dr.maximum(P["alpha_u"], 1e-4), dr.maximum(P["alpha_v"], 1e-4)
-        else:
-            au = av = dr.maximum(P["alpha"], 1e-4)
-        D = _D(dr, kind, au, av, wm)
-        G = _g1(dr, kind, au, av, wi.x, wi.y, ci, di) * _g1(dr, kind, au, av, wo.x, wo.y, co, do)
-        s = dr.select(ok, D * G / dr.select(ok, den, 1.0), 0.0)
+        aniso = name == "roughconductor" and model.options["anisotropic"]
+        alphas = (P["alpha_u"], P["alpha_v"]) if aniso else (P["alpha"], P["alpha"])
+        au, av = (dr.maximum(a, 1e-4) for a in alphas)
+        lobe = _lobe(dr, kind, au, av, wi, wo, grad)
+        num, den, c = lobe[:3]
+        s = num / den
+        if grad:
+            # below the roughness floor alpha is clamped: derivative 0
+            gu, gv = (dr.select(a >= 1e-4, g, 0.0) * s for a, g in zip(alphas, lobe[4:]))
+            ds = {"alpha_u": gu, "alpha_v": gv} if aniso else {"alpha": gu + gv}
         if name == "roughconductor":
-            etas, ks = _channels(P, "eta"), _channels(P, "k")
-            return [dr.select(active, _fresnel_conductor(dr, dh, e, k) * s, 0.0) for e, k in zip(etas, ks)]
-        eta = P["int_ior"]
-        Fr, _ = _fresnel_outside(dr, dr.clip(dh, 0.0, 1.0), eta)
-        spec = Fr * s
-        t_ext, r_int = P["_tables"]
-        ti = _lerp_table(dr, F, U, t_ext, ci, 64)
-        to = _lerp_table(dr, F, U, t_ext, co, 64)
-        scale = ti * to / (math.pi * eta * eta)
-        out = []
-        for rho in _channels(P, "diffuse_reflectance"):
-            denom = 1.0 - (rho * r_int if model.options["nonlinear"] else r_int)
-            out.append(dr.select(active, spec + rho / denom * scale, 0.0))
-        return out
-    if name == "cooktorrance":
+            fres = [_fresnel_conductor(dr, c, e, k, grad) for e, k in zip(_channels(P, "eta"), _channels(P, "k"))]
+            if not grad:
+                return [Fc * s for Fc in fres]
+            f = [Fc[0] * s for Fc in fres]
+            J["eta"] = [Fc[1] * s for Fc in fres]
+            J["k"] = [Fc[2] * s for Fc in fres]
+            for key, d in ds.items():
+                J[key] = [Fc[0] * d for Fc in fres]
+        else:
+            eta = P["int_ior"]
+            fres = _fresnel_outside(dr, dr.clip(c, 0.0, 1.0), eta, grad)
+            spec = fres[0] * s
+            t_ext, r_int = P["_tables"]
+            ti = _lerp_table(dr, F, U, t_ext, ci, 64)
+            to = _lerp_table(dr, F, U, t_ext, co, 64)
+            k_eta = 1.0 / (math.pi * eta * eta)
+            tt = dr.select(active, ti * to, 0.0)
+            scale = tt * k_eta
+            nonlinear = model.options["nonlinear"]
+            rhos = _channels(P, "diffuse_reflectance")
+            inv_den = [1.0 / (1.0 - (rho * r_int if nonlinear else r_int)) for rho in rhos]
+            f = [spec + rho * q * scale for rho, q in zip(rhos, inv_den)]
+            if grad:
+                dt_a, dr_a, dt_e, dr_e = P["_dtables"]
+
+                def dscale(dt):
+                    dti = _lerp_table(dr, F, U, dt, ci, 64)
+                    dto = _lerp_table(dr, F, U, dt, co, 64)
+                    return dr.select(active, dti * to + ti * dto, 0.0) * k_eta
+
+                ds_a = dscale(dt_a)
+                ds_e = dscale(dt_e) - 2.0 * scale / eta
+                # d/dx [rho / (1 - m r)] = rho m (dr/dx) / (1 - m r)^2 with m = rho or 1
+                J["diffuse_reflectance"] = [scale * (q * q if nonlinear else q) for q in inv_den]
+                J["alpha"] = []
+                J["int_ior"] = []
+                for rho, q in zip(rhos, inv_den):
+                    m = rho if nonlinear else 1.0
+                    J["alpha"].append(fres[0] * ds["alpha"] + rho * q * (ds_a + scale * m * dr_a * q))
+                    J["int_ior"].append(fres[2] * s + rho * q * (ds_e + scale * m * dr_e * q))
+    elif name == "cooktorrance":
+        # Ngan et al. 2005: Beckmann D without pi, G = min(1, 2 cos_m min(cos_i, cos_o) / (wi . m)),
+        # written with the unnormalised half vector h: cos_m = h_z / |h|, wi . m = (wi . h) / |h|
         m = P["roughness"]
-        ch = wm.z
-        up = ok & (ch > 0) & (dh > 0)
-        ch2s = dr.select(up, ch * ch, 1.0)
+        h = wi + wo
+        h2 = dr.squared_norm(h)
+        hz = h.z
+        dh = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h))  # |h| (wi . m)
+        up = active & (h2 > _floor(h2)) & (hz > 0) & (dh > 0)
+        r_hz2 = 1.0 / dr.select(up, hz * hz, 1.0)
         m2 = m * m
-        tan2 = (wm.x * wm.x + wm.y * wm.y) / ch2s
-        D = dr.exp(-tan2 / m2) / (m2 * ch2s * ch2s)
-        G = dr.minimum(1.0, 2.0 * ch * dr.minimum(ci, co) / dr.select(up, dh, 1.0))
-        s = dr.select(up, D * G / (math.pi * dr.select(up, ci * co, 1.0)), 0.0)
-        x = 1.0 - dr.clip(dh, 0.0, 1.0)
+        e = (h.x * h.x + h.y * h.y) * r_hz2 * (1.0 / m2)  # tan^2(theta_m) / m^2
+        g_num = 2.0 * hz * dr.minimum(ci, co)
+        g_den = dr.select(g_num < dh, dh, g_num)  # G = g_num / g_den = min(1, 2 hz min / dh)
+        # D G / (pi ci co) with D = exp(-e) / (m^2 cos^4(theta_m)), 1 / cos^2 = |h|^2 / hz^2
+        # (ratios first: hz^4 ci co underflows float32 at grazing angles)
+        sec2 = h2 * r_hz2
+        s = dr.select(up, dr.exp(-e) * sec2 * sec2 * g_num / (math.pi * m2 * g_den * dr.select(up, ci * co, 1.0)), 0.0)
+        x = 1.0 - dr.clip(dh * dr.rsqrt(dr.select(up, h2, 1.0)), 0.0, 1.0)
         x2 = x * x
         x5 = x2 * x2 * x
-        out = []
-        for rd, rs, f0 in zip(_channels(P, "diffuse_reflectance"), _channels(P, "specular_reflectance"), _channels(P, "f0")):
-            out.append(dr.select(active, rd / math.pi + rs * (f0 + (1.0 - f0) * x5) * s, 0.0))
-        return out
-    raise NotImplementedError(f"no compiled kernel for model {name!r}")
+        rds, rss, f0s = (_channels(P, k) for k in ("diffuse_reflectance", "specular_reflectance", "f0"))
+        lam = dr.select(active, 1.0 / math.pi + zero, 0.0)
+        f = [rd * lam + rs * (f0 + (1.0 - f0) * x5) * s for rd, rs, f0 in zip(rds, rss, f0s)]
+        if grad:
+            ds = (2.0 * e - 2.0) * (1.0 / m) * s  # d ln s / dm = (2 e - 2) / m
+            J["diffuse_reflectance"] = [lam] * CHANNELS
+            J["specular_reflectance"] = [(f0 + (1.0 - f0) * x5) * s for f0 in f0s]
+            J["roughness"] = [rs * (f0 + (1.0 - f0) * x5) * ds for rs, f0 in zip(rss, f0s)]
+            J["f0"] = [rs * (1.0 - x5) * s for rs in rss]
+    else:
+        raise NotImplementedError(f"no compiled kernel for model {name!r}")
+    if not grad:
+        return f
+    return f, {par.name: J[par.name] for par in model.parameters}
 
 
-def _inputs(model, wi, wo, params, grad):
-    """Dr.Jit inputs. Directions are loaded as flat (3N) arrays without copies and
-    de-interleaved by gathers inside the fused kernel; non-finite directions are
-    degenerate geometry (f_r = 0), as in the reference."""
-    dr, F, V3, U = _dr()
-    wi, wo, p = eval_inputs(model, wi, wo, params)
-    n = wi.shape[0]
-    idx = dr.arange(U, n) * 3
-    flat_i, flat_o = F(wi.reshape(-1)), F(wo.reshape(-1))
-    vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
-    vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
-    finite = dr.isfinite(vi.x) & dr.isfinite(vi.y) & dr.isfinite(vi.z)
-    finite &= dr.isfinite(vo.x) & dr.isfinite(vo.y) & dr.isfinite(vo.z)
-    down = V3(0.0, 0.0, -1.0)
-    vi = dr.select(finite, vi, down)
-    vo = dr.select(finite, vo, down)
+def _param_vars(model, p, F, grad, dtables=False):
+    """Dr.Jit scalars of type F for validated parameters ``p`` (opaque: a new value reuses
+    the compiled kernel), AD-enabled when ``grad``; for ``roughplastic`` also its tables
+    (``P["_tables"]``, computed in float64 and cast to F) and, with ``dtables``, their
+    derivatives (``P["_dtables"]``, for ``_kernel(..., grad=True)``). Returns (P, leaves)."""
+    import drjit as dr
+
+    F64 = _dr()[1]
     P, leaves = {}, []
     for par in model.parameters:
         v = p[par.name]
@@ -400,13 +550,40 @@ def _inputs(model, wi, wo, params, grad):
             if grad:
                 t, r, dx, dy = grid
                 da, de = P["alpha"] - p["alpha"], P["int_ior"] - p["int_ior"]
-                P["_tables"] = (F(t) + da * F(dx[:-1]) + de * F(dy[:-1]), F([r]) + da * dx[-1] + de * dy[-1])
+                tables = (F(t) + da * F(dx[:-1]) + de * F(dy[:-1]), F([r]) + da * dx[-1] + de * dy[-1])
             else:
-                P["_tables"] = (F(grid[0]), F([grid[1]]))
+                tables = (F(grid[0]), F([grid[1]]))
         elif grad:
-            P["_tables"] = _tables(kind, dr.maximum(P["alpha"], 1e-4), P["int_ior"])
+            tables = _tables(kind, dr.maximum(F64(P["alpha"]), 1e-4), F64(P["int_ior"]))
         else:
-            P["_tables"] = _cached_tables(kind, p["alpha"], p["int_ior"])
+            tables = _cached_tables(kind, p["alpha"], p["int_ior"], F)
+        P["_tables"] = tuple(t if type(t) is F else F(t) for t in tables)
+        if dtables:
+            if grid is not None:
+                dx, dy = _interp(kind, p["alpha"], p["int_ior"], grad=True)[2:]
+                P["_dtables"] = (F(dx[:-1]), F([dx[-1]]), F(dy[:-1]), F([dy[-1]]))
+            else:
+                P["_dtables"] = _cached_table_derivs(kind, p["alpha"], p["int_ior"], F)
+    return P, leaves
+
+
+def _inputs(model, wi, wo, params, grad):
+    """Dr.Jit inputs (float64) from numpy. Directions are loaded as flat (3N) arrays without
+    copies and de-interleaved by gathers inside the fused kernel; non-finite directions are
+    degenerate geometry (f_r = 0), as in the reference."""
+    dr, F, V3, U = _dr()
+    wi, wo, p = eval_inputs(model, wi, wo, params)
+    n = wi.shape[0]
+    idx = dr.arange(U, n) * 3
+    flat_i, flat_o = F(wi.reshape(-1)), F(wo.reshape(-1))
+    vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
+    vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
+    finite = dr.isfinite(vi.x) & dr.isfinite(vi.y) & dr.isfinite(vi.z)
+    finite &= dr.isfinite(vo.x) & dr.isfinite(vo.y) & dr.isfinite(vo.z)
+    down = V3(0.0, 0.0, -1.0)
+    vi = dr.select(finite, vi, down)
+    vo = dr.select(finite, vo, down)
+    P, leaves = _param_vars(model, p, F, grad)
     return vi, vo, P, leaves, n
 
 
@@ -422,11 +599,42 @@ def _interleave(chans, n):
 
 
 @lru_cache(maxsize=256)
-def _cached_tables(kind, alpha, eta):
-    dr, F, V3, U = _dr()
-    t, r = _tables(kind, dr.opaque(F, max(alpha, 1e-4)), dr.opaque(F, eta))
+def _cached_tables(kind, alpha, eta, F=None):
+    """roughplastic's (t_ext, r_int) at (alpha, eta), evaluated, as Dr.Jit arrays of type F
+    (float64 by default; computed in float64 and cast)."""
+    dr, F64, V3, U = _dr()
+    if F is not None and F is not F64:
+        t, r = _cached_tables(kind, alpha, eta)
+        t, r = F(t), F(r)
+    else:
+        t, r = _tables(kind, dr.opaque(F64, max(alpha, 1e-4)), dr.opaque(F64, eta))
     dr.eval(t, r)
     return t, r
+
+
+@lru_cache(maxsize=256)
+def _cached_table_derivs(kind, alpha, eta, F=None):
+    """d(t_ext, r_int)/d alpha and d/d eta of roughplastic's tables at (alpha, eta), by
+    Dr.Jit's forward-mode AD through the quadrature (float64, cast to F): (dt/d alpha,
+    dr/d alpha, dt/d eta, dr/d eta). alpha below the floor 1e-4 is clamped: d/d alpha = 0."""
+    import drjit as dr
+
+    F64 = _dr()[1]
+    F = F or F64
+    a, e = dr.opaque(F64, max(alpha, 1e-4)), dr.opaque(F64, eta)
+    dr.enable_grad(a, e)
+    t, r = _tables(kind, a, e)
+    out = []
+    for x in (a, e):
+        dr.set_grad(x, 1.0)
+        dr.forward_to(t, r, flags=dr.ADFlag.ClearVertices)
+        out += [dr.detach(dr.grad(t)) + dr.zeros(F64, 64), dr.detach(dr.grad(r)) + dr.zeros(F64, 1)]
+        dr.clear_grad((t, r, x))
+    if alpha < 1e-4:
+        out[0], out[1] = dr.zeros(F64, 64), dr.zeros(F64, 1)
+    out = [F(v) for v in out]
+    dr.eval(*out)
+    return tuple(out)
 
 
 def _empty(model, wi, wo, params):
@@ -486,6 +694,206 @@ def value_and_grad(model, wi, wo, params, cotangent):
     return f, grad
 
 
+# -- resident batches: directions loaded once, evaluated many times ---------------------------
+#
+# What a fitter and a renderer do: the geometry of a capture is fixed while parameters
+# change. :class:`Directions` holds it in Dr.Jit arrays (structure of arrays, like
+# Mitsuba's own ``Vector3f``), in float32 (Mitsuba's precision, the fastest) or float64;
+# :func:`eval_resident` and :func:`jacobian` then cost one fused kernel each, with no
+# conversion from or to numpy unless asked for.
+
+
+class Directions:
+    """A batch of N direction pairs (wi, wo) held in Dr.Jit.
+
+    Parameters
+    ----------
+    wi, wo : array_like, shape (N, 3)
+        Unit directions in the local frame (non-finite rows are degenerate geometry:
+        f_r = 0 there).
+    dtype : numpy dtype, float32 (default) or float64
+    """
+
+    def __init__(self, wi, wo, dtype=np.float32):
+        import drjit as dr
+
+        dtype = np.dtype(dtype)
+        if dtype == np.float32:
+            from drjit.llvm.ad import Array3f as V3
+            from drjit.llvm.ad import Float as F
+        elif dtype == np.float64:
+            from drjit.llvm.ad import Array3f64 as V3
+            from drjit.llvm.ad import Float64 as F
+        else:
+            raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+        wi, wo = as_directions(wi, "wi"), as_directions(wo, "wo")
+        if wi.shape != wo.shape:
+            raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
+        ok = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
+        down = np.array([0.0, 0.0, -1.0])
+        self.n = wi.shape[0]
+        self.dtype = dtype
+        self.F, self.V3 = F, V3
+        self.wi = V3(np.ascontiguousarray(np.where(ok[:, None], wi, down).T, dtype=dtype))
+        self.wo = V3(np.ascontiguousarray(np.where(ok[:, None], wo, down).T, dtype=dtype))
+        dr.make_opaque(self.wi, self.wo)
+
+    def __len__(self):
+        return self.n
+
+    def channels(self, a, name="array"):
+        """Per-pair data (N, 3), e.g. measured values or weights, as 3 resident Dr.Jit
+        arrays of the batch's precision (for :func:`chi2_grad`)."""
+        import drjit as dr
+
+        a = np.asarray(a, dtype=np.float64)
+        if a.shape != (self.n, CHANNELS):
+            raise ValueError(f"{name} must have shape ({self.n}, {CHANNELS}), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} contains NaN or inf")
+        out = [self.F(np.ascontiguousarray(a[:, c], dtype=self.dtype)) for c in range(CHANNELS)]
+        dr.make_opaque(*out)
+        return out
+
+
+def _to_numpy(chans, n):
+    out = np.empty((n, CHANNELS), dtype=np.asarray(chans[0]).dtype if n else np.float64)
+    for c, ch in enumerate(chans):
+        out[:, c] = np.asarray(ch)
+    return out
+
+
+def eval_resident(model, dirs, params, numpy=True):
+    """f_r on a resident batch: one fused kernel in the batch's precision.
+
+    Returns an (N, 3) numpy array, or (``numpy=False``) the three channels as evaluated
+    Dr.Jit arrays (for timing, or to keep working in Dr.Jit)."""
+    import drjit as dr
+
+    p = model.validate(params)
+    if dirs.n == 0:
+        return np.zeros((0, CHANNELS), dtype=dirs.dtype) if numpy else [dirs.F() for _ in range(CHANNELS)]
+    P, _ = _param_vars(model, p, dirs.F, grad=False)
+    with dr.suspend_grad():
+        chans = _frozen_kernel(model)(dirs.wi, dirs.wo, P)
+        dr.eval(*chans)
+    return _to_numpy(chans, dirs.n) if numpy else chans
+
+
+@lru_cache(maxsize=64)
+def _frozen_kernel_for(name, options):
+    """:func:`_kernel` for one model configuration under ``dr.freeze``: the first call per
+    input layout traces and records the kernel launch, later calls replay it with the new
+    inputs (parameters are opaque inputs), skipping Python tracing and Dr.Jit's code
+    generation and hashing (~0.1 ms a call)."""
+    import drjit as dr
+
+    from . import get
+
+    model = get(name, **dict(options))
+
+    def run(wi, wo, P):
+        return _kernel(model, wi, wo, P)
+
+    return dr.freeze(run)
+
+
+def _frozen_kernel(model):
+    # _kernel reads only the model's name and options (tables arrive in P)
+    return _frozen_kernel_for(model.name, tuple(sorted(model.options.items())))
+
+
+def jacobian(model, dirs, params, numpy=True):
+    """f_r and its derivative with respect to every parameter, in one fused kernel.
+
+    Forward-mode derivatives written out next to the value in :func:`_kernel` (every
+    intermediate shared; tested against Dr.Jit's reverse-mode AD and against finite
+    differences of the numpy reference). Channels are independent in every model, so for a
+    per-channel parameter p, ``J[p][:, c]`` is d f_r[c] / d p[c] (and d f_r[c] / d p[c']
+    = 0 for c' != c); for a shared one it is d f_r[c] / d p.
+
+    Returns
+    -------
+    f : ndarray (N, 3), or list of 3 Dr.Jit arrays when ``numpy=False``
+    J : dict
+        Parameter name -> ndarray (N, 3) (or list of 3 Dr.Jit arrays).
+
+    Notes
+    -----
+    Roughness below Mitsuba's floor (1e-4) is clamped, so its derivative is 0 there. For
+    ``roughplastic`` the derivatives include the tables' dependence on alpha and int_ior.
+    """
+    import drjit as dr
+
+    p = model.validate(params)
+    n = dirs.n
+    if n == 0:
+        z = np.zeros((0, CHANNELS), dtype=dirs.dtype)
+        return z, {par.name: z.copy() for par in model.parameters}
+    P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
+    with dr.suspend_grad():
+        f, J = _kernel(model, dirs.wi, dirs.wo, P, grad=True)
+        dr.eval(*f, *(t for ts in J.values() for t in ts))
+    if not numpy:
+        return f, J
+    return _to_numpy(f, n), {k: _to_numpy(v, n) for k, v in J.items()}
+
+
+def chi2_grad(model, dirs, params, y, w):
+    """chi^2 = sum w (f_r - y)^2 over pairs and channels, and its gradient with respect to
+    every parameter: what a gradient-based fitter (nlopt's SLSQP or MMA, a quasi-Newton
+    step) needs, in one fused kernel that stores nothing per pair.
+
+    The derivatives are :func:`jacobian`'s, reduced inside the kernel (Dr.Jit's symbolic
+    ``sum``, accumulated in float64 whatever the batch's precision) into
+    d chi^2 / d p = 2 sum w (f_r - y) d f_r / d p.
+
+    Parameters
+    ----------
+    y, w : list of 3 Dr.Jit arrays (``dirs.channels(...)``) or array_like (N, 3)
+        Measured values and weights (1 / sigma^2 for the maximum-likelihood chi^2).
+
+    Returns
+    -------
+    chi2 : float
+    grad : dict
+        Parameter name -> float, or (3,) array for per-channel parameters.
+    """
+    import drjit as dr
+
+    p = model.validate(params)
+    y = y if isinstance(y, list) else dirs.channels(y, "y")
+    w = w if isinstance(w, list) else dirs.channels(w, "w")
+    if dirs.n == 0:
+        return 0.0, {par.name: (np.zeros(CHANNELS) if par.per_channel else 0.0) for par in model.parameters}
+    F64 = _dr()[1]
+    P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
+    with dr.suspend_grad():
+        f, J = _kernel(model, dirs.wi, dirs.wo, P, grad=True)
+        wr = [wc * (fc - yc) for fc, yc, wc in zip(f, y, w)]
+
+        zero = dr.zeros(dr.uint32_array_t(F64), 1)
+
+        def total(x):
+            # in-kernel reduction: each thread adds into its own copy of the 1-element
+            # target (ReduceMode.Expand), merged at the end, so no atomics per lane
+            t = dr.zeros(F64, 1)
+            dr.scatter_reduce(dr.ReduceOp.Add, t, F64(x), zero, mode=dr.ReduceMode.Expand)
+            return t
+
+        chi2 = total(sum(a * (fc - yc) for a, fc, yc in zip(wr, f, y)))
+        sums = {}
+        for par in model.parameters:
+            terms = [a * d for a, d in zip(wr, J[par.name])]
+            sums[par.name] = [total(t) for t in terms] if par.per_channel else [total(terms[0] + terms[1] + terms[2])]
+        dr.eval(chi2, *(v for vs in sums.values() for v in vs))
+    grad = {}
+    for par in model.parameters:
+        g = 2.0 * np.array([float(np.asarray(v)[0]) for v in sums[par.name]])
+        grad[par.name] = g if par.per_channel else float(g[0])
+    return float(np.asarray(chi2)[0]), grad
+
+
 # -- affine parts, batched over parameter sets (the fitter's hot loop) -----------------------
 #
 # For the models whose f_r is affine in one per-channel parameter,
@@ -523,26 +931,9 @@ def affine_spec(model):
     return spec
 
 
-class Prepared:
-    """Directions loaded once into Dr.Jit (float64), for repeated :func:`affine_parts` calls."""
-
-    def __init__(self, wi, wo):
-        dr, F, V3, U = _dr()
-        wi = np.asarray(wi, dtype=np.float64)
-        wo = np.asarray(wo, dtype=np.float64)
-        ok = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
-        down = np.array([0.0, 0.0, -1.0])
-        wi = np.where(ok[:, None], wi, down)
-        wo = np.where(ok[:, None], wo, down)
-        self.n = wi.shape[0]
-        self.wi = [F(np.ascontiguousarray(wi[:, k])) for k in range(3)]
-        self.wo = [F(np.ascontiguousarray(wo[:, k])) for k in range(3)]
-        dr.make_opaque(*self.wi, *self.wo)
-
-
 def prepare(wi, wo):
-    """Load a batch of direction pairs (N, 3) for :func:`affine_parts`."""
-    return Prepared(wi, wo)
+    """Load a batch of direction pairs (N, 3) for :func:`affine_parts` (float64)."""
+    return Directions(wi, wo, np.float64)
 
 
 def _t_ext_batch(kind, alpha, eta):
@@ -613,8 +1004,8 @@ def affine_parts(model, prepared, thetas, tables=None):
     ----------
     model
         A model with :func:`affine_spec` not None.
-    prepared : Prepared
-        The directions (:func:`prepare`).
+    prepared : Directions
+        The directions in float64 (:func:`prepare`).
     thetas : array_like, shape (K, T)
         Values of the nonlinear parameters, columns in ``affine_spec(model)[1]`` order
         (not validated against the model's bounds: the caller keeps them inside).
@@ -645,23 +1036,16 @@ def affine_parts(model, prepared, thetas, tables=None):
         lane = dr.arange(U, K * N)
         k = lane // N
         i = lane - k * N
-        vi = V3(*(dr.gather(F, c, i) for c in prepared.wi))
-        vo = V3(*(dr.gather(F, c, i) for c in prepared.wo))
+        vi = dr.gather(V3, prepared.wi, i)
+        vo = dr.gather(V3, prepared.wo, i)
         ci, co = vi.z, vo.z
         active = (ci > 0) & (co > 0)
         if model.name == "diffuse":
             base = F(0.0) * ci
             basis = dr.select(active, F(1.0 / math.pi), F(0.0))
         elif model.name == "orennayar":
-            sig = dr.gather(F, cols[0], k)
-            s2 = sig * sig
-            A = 1.0 - s2 / (2.0 * (s2 + 0.33))
-            B = 0.45 * s2 / (s2 + 0.09)
-            cmax = dr.maximum(dr.clip(ci, 0.0, 1.0), dr.clip(co, 0.0, 1.0))
-            cd = vi.x * vo.x + vi.y * vo.y
-            term = dr.select(cmax > 0, dr.maximum(cd, 0.0) / dr.select(cmax > 0, cmax, 1.0), 0.0)
             base = F(0.0) * ci
-            basis = dr.select(active, (A + B * term) / math.pi, 0.0)
+            basis = _oren_nayar_over_rho(dr, dr.gather(F, cols[0], k), vi, vo)
         else:  # roughplastic, nonlinear=False
             kind = model.options["distribution"]
             alpha = dr.maximum(cols[0], 1e-4)
@@ -674,14 +1058,9 @@ def affine_parts(model, prepared, thetas, tables=None):
                 t = F(tb.reshape(-1))
             al = dr.gather(F, alpha, k)
             eta = dr.gather(F, cols[1], k)
-            wm, valid = _half_vector(dr, F, vi, vo)
-            di, do = dr.dot(vi, wm), dr.dot(vo, wm)
-            den = 4.0 * ci * co
-            ok = active & valid & (den > 0)
-            D = _D(dr, kind, al, al, wm)
-            G = _g1(dr, kind, al, al, vi.x, vi.y, ci, di) * _g1(dr, kind, al, al, vo.x, vo.y, co, do)
-            Fr, _ = _fresnel_outside(dr, dr.clip(0.5 * (di + do), 0.0, 1.0), eta)
-            base = dr.select(ok, Fr * D * G / dr.select(ok, den, 1.0), 0.0)
+            num, den, c, ok = _lobe(dr, kind, al, al, vi, vo)
+            Fr, _ = _fresnel_outside(dr, dr.clip(c, 0.0, 1.0), eta)
+            base = Fr * num / den
 
             def lerp(x):
                 x = dr.clip(x, 0.0, 1.0) * 63

@@ -1,19 +1,25 @@
 """Throughput benchmark of the models against Mitsuba 3's own ``bsdf.eval``.
 
 ``gonio bench models`` calls :func:`run`. Not a test: figures depend on the machine.
-For each model (default parameters, default options, plus GGX variants) and one batch
-of ``n`` random direction pairs on the upper hemisphere it times, best of ``repeat``:
+For each model (default options plus GGX variants) at one *coloured* parameter set (the
+defaults with the per-channel values spread, so no path can evaluate one channel for
+three) and one batch of ``n`` random direction pairs on the upper hemisphere it times,
+best of ``repeat``:
 
-* ``numpy``: the reference implementation, ``model.eval``;
-* ``drjit``: the compiled path, :func:`gonio.models._fast.eval` (if LLVM works);
-* ``grad``: :func:`gonio.models._fast.value_and_grad` (f_r and the gradient with respect
-  to every parameter, one reverse-mode pass);
-* ``mitsuba``: ``bsdf.eval`` in the variant chosen by :func:`mitsuba_variant`, on the
-  same batch already converted to Mitsuba arrays (float32, its native precision).
+* ``numpy``: the reference implementation, ``model.eval`` (float64);
+* ``drjit64``: :func:`gonio.models._fast.eval`, float64, numpy in and out (what the
+  fitter's general path calls);
+* ``drjit32``: :func:`gonio.models._fast.eval_resident` on a float32
+  :class:`~gonio.models._fast.Directions` batch loaded once, results left in Dr.Jit;
+* ``jac32``: :func:`gonio.models._fast.jacobian`, the same batch: f_r and its derivative
+  with respect to every parameter;
+* ``mitsuba``: ``bsdf.eval`` in the variant chosen by :func:`mitsuba_variant`, on the same
+  batch already converted to Mitsuba arrays (float32), results left in Dr.Jit.
 
-and prints millions of evaluations per second and the ratios drjit / mitsuba and
-grad / drjit cost. All timings include the conversion from and to numpy of the gonio
-paths; Mitsuba's excludes it (its inputs are built once).
+``drjit32`` and ``mitsuba`` run under the same conditions (float32, resident inputs, one
+fused kernel, outputs evaluated); their ratio is the figure of merit, with ``jac/eval``
+(the Jacobian's time over ``drjit32``'s). Each timing ends with ``dr.sync_thread()``
+(the LLVM backend launches asynchronously).
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import time
 
 import numpy as np
 
-__all__ = ["run", "CASES"]
+__all__ = ["run", "CASES", "coloured_params"]
 
 #: (model name, options) benchmarked by default.
 CASES = (
@@ -37,12 +43,29 @@ CASES = (
 )
 
 
-def _best(fn, repeat):
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
+def coloured_params(model):
+    """The model's defaults with per-channel values scaled by (1.2, 1.0, 0.8) (kept inside
+    the bounds), so the three channels differ."""
+    p = model.defaults()
+    for par in model.parameters:
+        if par.per_channel:
+            v = np.asarray(p[par.name], dtype=np.float64) * np.array([1.2, 1.0, 0.8])
+            p[par.name] = np.clip(v, par.lower, par.upper)
+    return model.validate(p)
+
+
+def _interleaved_best(timed, repeat):
+    """Best time of each callable over ``repeat`` rounds, the callables taking turns within
+    a round so that all of them see the same machine (a shared host's load drifts); one
+    untimed call first (JIT compilation, table caches)."""
+    for fn in timed.values():
         fn()
-        best = min(best, time.perf_counter() - t0)
+    best = dict.fromkeys(timed, float("inf"))
+    for _ in range(repeat):
+        for key, fn in timed.items():
+            t0 = time.perf_counter()
+            fn()
+            best[key] = min(best[key], time.perf_counter() - t0)
     return best
 
 
@@ -70,12 +93,12 @@ def _mitsuba_timer(model, params, wi, wo):
     def go():
         v = bsdf.eval(ctx, si, w)
         dr.eval(v)
-        dr.sync_thread()  # the LLVM backend launches asynchronously
+        dr.sync_thread()
 
     return go, variant
 
 
-def run(n=1_000_000, repeat=3, cases=CASES, file=None, seed=0):
+def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     """Print evaluations per second per model and return the figures.
 
     Parameters
@@ -83,7 +106,7 @@ def run(n=1_000_000, repeat=3, cases=CASES, file=None, seed=0):
     n : int
         Direction pairs per batch.
     repeat : int
-        Timings per figure (the best is kept; the first, JIT-compiling call is extra).
+        Rounds of timings (the best is kept; a first, JIT-compiling call is extra).
     cases : sequence of (name, options)
     file : text stream
         Where to print (default stdout).
@@ -93,9 +116,9 @@ def run(n=1_000_000, repeat=3, cases=CASES, file=None, seed=0):
     Returns
     -------
     list of dict
-        One dict per case: ``model``, ``options``, ``numpy``, ``drjit``, ``grad``,
-        ``mitsuba`` (evaluations/s, None where unavailable), ``ratio`` (drjit / mitsuba)
-        and ``grad_cost`` (time of value_and_grad / time of drjit eval).
+        One dict per case: ``model``, ``options``, and evaluations/s ``numpy``,
+        ``drjit64``, ``drjit32``, ``jac32``, ``mitsuba`` (None where unavailable), ``ratio``
+        (drjit32 / mitsuba) and ``jac_cost`` (time of the Jacobian / time of drjit32).
     """
     from . import _fast, get
 
@@ -109,53 +132,53 @@ def run(n=1_000_000, repeat=3, cases=CASES, file=None, seed=0):
 
     wi, wo = hemi(n), hemi(n)
     fast = _fast.available()
+    if fast:
+        import drjit as dr
+
+        dirs = _fast.Directions(wi, wo, np.float32)
+
+        def resident(fn):
+            def go():
+                fn()
+                dr.sync_thread()
+
+            return go
+
     rows = []
-    header = f"{'model':<34}{'numpy':>10}{'drjit':>10}{'grad':>10}{'mitsuba':>10}{'drjit/mi':>10}{'grad/eval':>10}"
+    cols = ("numpy", "drjit64", "drjit32", "jac32", "mitsuba")
     print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat})", file=out)
-    print(header, file=out)
+    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in cols) + f"{'32/mi':>7}{'jac/ev':>7}", file=out)
     variant = None
     for name, options in cases:
         model = get(name, **options)
-        p = model.defaults()
+        p = coloured_params(model)
         model.eval(wi[:1000], wo[:1000], p)  # warm caches (tables)
-        t_np = _best(lambda: model.eval(wi, wo, p), repeat)
-        t_dr = t_gr = None
+        timed = {"numpy": lambda: model.eval(wi, wo, p)}
         if fast:
-            cot = np.ones((n, 3))
-            _fast.eval(model, wi, wo, p)
-            t_dr = _best(lambda: _fast.eval(model, wi, wo, p), repeat)
-            _fast.value_and_grad(model, wi, wo, p, cot)
-            t_gr = _best(lambda: _fast.value_and_grad(model, wi, wo, p, cot), repeat)
+            timed["drjit64"] = lambda: _fast.eval(model, wi, wo, p)
+            timed["drjit32"] = resident(lambda: _fast.eval_resident(model, dirs, p, numpy=False))
+            timed["jac32"] = resident(lambda: _fast.jacobian(model, dirs, p, numpy=False))
         go, variant = _mitsuba_timer(model, p, wi, wo)
-        t_mi = None
         if go is not None:
-            go()
-            t_mi = _best(go, repeat)
-        row = {
-            "model": name,
-            "options": dict(options),
-            "numpy": n / t_np,
-            "drjit": n / t_dr if t_dr else None,
-            "grad": n / t_gr if t_gr else None,
-            "mitsuba": n / t_mi if t_mi else None,
-        }
-        row["ratio"] = (t_mi / t_dr) if (t_mi and t_dr) else None
-        row["grad_cost"] = (t_gr / t_dr) if (t_gr and t_dr) else None
+            timed["mitsuba"] = go
+        t = dict.fromkeys(cols)
+        t.update(_interleaved_best(timed, repeat))
+        row = {"model": name, "options": dict(options)}
+        row.update({k: (n / v if v else None) for k, v in t.items()})
+        row["ratio"] = (t["mitsuba"] / t["drjit32"]) if (t["mitsuba"] and t["drjit32"]) else None
+        row["jac_cost"] = (t["jac32"] / t["drjit32"]) if (t["jac32"] and t["drjit32"]) else None
         rows.append(row)
 
-        def fmt(x, scale=1e-6):
-            return f"{x * scale:10.1f}" if x is not None else f"{'-':>10}"
+        def fmt(x, width, scale=1e-6, digits=1):
+            return f"{x * scale:{width}.{digits}f}" if x is not None else f"{'-':>{width}}"
 
         label = name + "".join(f" {v}" for v in options.values())
-        print(
-            f"{label:<34}{fmt(row['numpy'])}{fmt(row['drjit'])}{fmt(row['grad'])}{fmt(row['mitsuba'])}"
-            f"{fmt(row['ratio'], 1)}{fmt(row['grad_cost'], 1)}",
-            file=out,
-        )
+        print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in cols)
+              + fmt(row["ratio"], 7, 1, 2) + fmt(row["jac_cost"], 7, 1, 2), file=out)
     if variant is not None:
         print(f"Mitsuba variant: {variant}", file=out)
     if not fast:
-        print("Dr.Jit LLVM backend unavailable: compiled path not timed", file=out)
+        print("Dr.Jit LLVM backend unavailable: compiled paths not timed", file=out)
     return rows
 
 
