@@ -9,16 +9,21 @@ best of ``repeat``:
 * ``numpy``: the reference implementation, ``model.eval`` (float64);
 * ``drjit64``: :func:`gonio.models._fast.eval`, float64, numpy in and out (what the
   fitter's general path calls);
-* ``drjit32``: :func:`gonio.models._fast.eval_resident` on a float32
-  :class:`~gonio.models._fast.Directions` batch loaded once, results left in Dr.Jit;
+* ``drjit32``: :meth:`gonio.models._fast.Bound.eval` (parameters loaded once, as Mitsuba's
+  ``load_dict``) on a float32 :class:`~gonio.models._fast.Directions` batch loaded once,
+  results left in Dr.Jit;
 * ``jac32``: :func:`gonio.models._fast.jacobian`, the same batch: f_r and its derivative
-  with respect to every parameter;
+  with respect to every parameter (N x 3 values per parameter, left in Dr.Jit);
+* ``grad32``: :func:`gonio.models._fast.chi2_grad`, the same batch with resident data and
+  weights: chi^2 and its gradient with respect to every parameter (reduced in the kernel);
 * ``mitsuba``: ``bsdf.eval`` in the variant chosen by :func:`mitsuba_variant`, on the same
   batch already converted to Mitsuba arrays (float32), results left in Dr.Jit.
 
 ``drjit32`` and ``mitsuba`` run under the same conditions (float32, resident inputs, one
 fused kernel, outputs evaluated); their ratio is the figure of merit, with ``jac/eval``
-(the Jacobian's time over ``drjit32``'s). Each timing ends with ``dr.sync_thread()``
+and ``grad/ev`` (the Jacobian's and the chi^2 gradient's times over ``drjit32``'s); the
+last two columns repeat the cost ratio in float64 (``drjit64`` resident, the fitter's
+precision). Each timing ends with ``dr.sync_thread()``
 (the LLVM backend launches asynchronously).
 """
 
@@ -118,7 +123,8 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     list of dict
         One dict per case: ``model``, ``options``, and evaluations/s ``numpy``,
         ``drjit64``, ``drjit32``, ``jac32``, ``mitsuba`` (None where unavailable), ``ratio``
-        (drjit32 / mitsuba) and ``jac_cost`` (time of the Jacobian / time of drjit32).
+        (drjit32 / mitsuba), ``jac_cost`` and ``grad_cost`` (time of the Jacobian and of
+        chi2_grad / time of drjit32) and ``grad_cost64`` (the same in float64).
     """
     from . import _fast, get
 
@@ -136,6 +142,7 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         import drjit as dr
 
         dirs = _fast.Directions(wi, wo, np.float32)
+        dirs64 = _fast.Directions(wi, wo, np.float64)
 
         def resident(fn):
             def go():
@@ -145,9 +152,10 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
             return go
 
     rows = []
-    cols = ("numpy", "drjit64", "drjit32", "jac32", "mitsuba")
+    cols = ("numpy", "drjit64", "drjit32", "jac32", "grad32", "mitsuba")
+    extra = ("32/mi", "jac/ev", "grad/ev", "grad/ev64")
     print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat})", file=out)
-    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in cols) + f"{'32/mi':>7}{'jac/ev':>7}", file=out)
+    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in cols) + "".join(f"{c:>10}" for c in extra), file=out)
     variant = None
     for name, options in cases:
         model = get(name, **options)
@@ -156,17 +164,29 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         timed = {"numpy": lambda: model.eval(wi, wo, p)}
         if fast:
             timed["drjit64"] = lambda: _fast.eval(model, wi, wo, p)
-            timed["drjit32"] = resident(lambda: _fast.eval_resident(model, dirs, p, numpy=False))
+            bound = _fast.Bound(model, p, np.float32)
+            timed["drjit32"] = resident(lambda: bound.eval(dirs, numpy=False))
             timed["jac32"] = resident(lambda: _fast.jacobian(model, dirs, p, numpy=False))
+            f_true = model.eval(wi, wo, p)
+            y_np = f_true * (1.0 + 0.01 * rng.standard_normal(f_true.shape))
+            w_np = 1.0 / (0.01 * np.maximum(f_true, 1e-3)) ** 2
+            y32, w32 = dirs.channels(y_np), dirs.channels(w_np)
+            y64, w64 = dirs64.channels(y_np), dirs64.channels(w_np)
+            timed["grad32"] = lambda: _fast.chi2_grad(model, dirs, p, y32, w32)
+            bound64 = _fast.Bound(model, p, np.float64)
+            timed["eval64"] = resident(lambda: bound64.eval(dirs64, numpy=False))
+            timed["grad64"] = lambda: _fast.chi2_grad(model, dirs64, p, y64, w64)
         go, variant = _mitsuba_timer(model, p, wi, wo)
         if go is not None:
             timed["mitsuba"] = go
         t = dict.fromkeys(cols)
         t.update(_interleaved_best(timed, repeat))
         row = {"model": name, "options": dict(options)}
-        row.update({k: (n / v if v else None) for k, v in t.items()})
+        row.update({k: (n / v if v else None) for k, v in t.items() if k in cols})
         row["ratio"] = (t["mitsuba"] / t["drjit32"]) if (t["mitsuba"] and t["drjit32"]) else None
-        row["jac_cost"] = (t["jac32"] / t["drjit32"]) if (t["jac32"] and t["drjit32"]) else None
+        for key, num, den in (("jac_cost", "jac32", "drjit32"), ("grad_cost", "grad32", "drjit32"),
+                              ("grad_cost64", "grad64", "eval64")):
+            row[key] = (t[num] / t[den]) if (t.get(num) and t.get(den)) else None
         rows.append(row)
 
         def fmt(x, width, scale=1e-6, digits=1):
@@ -174,7 +194,7 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
 
         label = name + "".join(f" {v}" for v in options.values())
         print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in cols)
-              + fmt(row["ratio"], 7, 1, 2) + fmt(row["jac_cost"], 7, 1, 2), file=out)
+              + "".join(fmt(row[k], 10, 1, 2) for k in ("ratio", "jac_cost", "grad_cost", "grad_cost64")), file=out)
     if variant is not None:
         print(f"Mitsuba variant: {variant}", file=out)
     if not fast:

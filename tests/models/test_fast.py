@@ -221,3 +221,39 @@ def test_resident_bad_input_and_edges():
         assert all(np.all(np.isfinite(v)) and np.all(v[[0, 2]] == 0) for v in J.values())
     with pytest.raises(ValueError, match="alpha"):
         _fast.eval_resident(m, d, {"alpha": float("nan")})
+    # a Bound model (parameters loaded once) evaluates any batch of its precision
+    b = _fast.Bound(m, {"alpha": 0.3}, np.float64)
+    np.testing.assert_array_equal(b.eval(d), _fast.eval_resident(m, d, {"alpha": 0.3}))
+    with pytest.raises(ValueError, match="float32"):
+        b.eval(_fast.Directions(wi, wo, np.float32))
+    with pytest.raises(ValueError, match="alpha"):
+        _fast.Bound(m, {"alpha": -1.0})
+
+
+def test_chi2_grad_matches_jacobian():
+    """chi2_grad's in-kernel reductions equal sum w (f - y)^2 and 2 sum w (f - y) J computed
+    in numpy from ``jacobian`` (float64: 1e-12; float32: the chi^2 to 1e-5, the gradient to
+    2e-3 of its largest component, the cancellation of a sum of 1e4 residual terms)."""
+    rng = np.random.default_rng(31)
+    n = 10_000
+    wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
+    for name, options in (("roughconductor", {"distribution": "beckmann"}), ("roughplastic", {"nonlinear": True}),
+                          ("cooktorrance", {}), ("orennayar", {})):
+        m = gm.get(name, **options)
+        p = m.validate(random_params(m, rng, alpha_range=(0.05, 1.0)))
+        f0 = m.eval(wi, wo, p)
+        y = f0 * (1 + 0.02 * rng.standard_normal(f0.shape))
+        w = 1.0 / (0.02 * np.maximum(f0, 1e-3)) ** 2
+        for dt, rtol, gtol in ((np.float64, 1e-12, 1e-10), (np.float32, 1e-5, 2e-3)):
+            d = _fast.Directions(wi, wo, dt)
+            f, J = _fast.jacobian(m, _fast.Directions(wi, wo, np.float64), p)
+            chi2, grad = _fast.chi2_grad(m, d, p, d.channels(y), d.channels(w))
+            assert chi2 == pytest.approx(np.sum(w * (f - y) ** 2), rel=rtol)
+            for par in m.parameters:
+                g = 2 * np.sum(w * (f - y) * J[par.name], axis=0)
+                want = g if par.per_channel else g.sum()
+                np.testing.assert_allclose(grad[par.name], want, rtol=gtol, atol=gtol * np.max(np.abs(want)))
+    with pytest.raises(ValueError, match="y must have shape"):
+        _fast.chi2_grad(m, d, p, np.zeros((3, 3)), np.ones((3, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        _fast.chi2_grad(m, d, p, np.full((n, 3), np.nan), np.ones((n, 3)))
