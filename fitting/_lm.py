@@ -64,7 +64,8 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
     budget : callable, optional
         Returns False once the caller's evaluation budget is spent.
     jac : callable, optional
-        ``jac(u, r) -> J``; forward differences of ``fun`` by default.
+        ``jac(u, r) -> J``, or None where it has no answer; forward differences of ``fun``
+        by default and wherever ``jac`` returns None.
     abandon : callable, optional
         ``abandon(iteration, cost) -> bool``: give up a start that is clearly worse than one
         already refined (multi-start racing).
@@ -85,7 +86,9 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
         if budget is not None and not budget():
             message = "maxeval reached"
             break
-        J = jac(u, r) if jac is not None else forward_jacobian(fun, u, r, h)
+        J = jac(u, r) if jac is not None else None
+        if J is None:
+            J = forward_jacobian(fun, u, r, h)
         g = J.T @ r
         A = J.T @ J
         free = ~(((u <= 0.0) & (g > 0)) | ((u >= 1.0) & (g < 0)))

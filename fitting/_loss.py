@@ -46,6 +46,20 @@ def residuals(loss: str, model_fr, meas) -> np.ndarray:
     return r[meas.use]
 
 
+def residual_derivative(loss: str, model_fr, meas) -> np.ndarray:
+    """d residual / d f_r per value, shape of ``model_fr`` (all values; :func:`residuals`
+    keeps the used ones)."""
+    cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), model_fr.shape)
+    if loss in ("chi2", "robust"):
+        return 1.0 / meas.brdf_std
+    if loss == "cosine":
+        return np.array(cos_i)
+    if loss == "log":
+        x = model_fr * cos_i
+        return np.where(x > -0.999, cos_i / (1.0 + np.maximum(x, -0.999)), 0.0)
+    raise ValueError(f"unknown loss {loss!r}")
+
+
 def objective(loss: str, r: np.ndarray) -> float:
     """Scalar objective from residuals."""
     if loss == "robust":

@@ -2,13 +2,13 @@
 
 Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.bench`):
 
-* **Evaluation.** f_r comes from :mod:`gonio.models._fast` (Dr.Jit LLVM kernels; for
-  ``roughplastic`` a new (alpha, eta) costs ~4 ms there against ~50 ms in the numpy
-  reference) where it is available and agrees with ``model.eval``; otherwise from
-  ``model.eval``. Derivatives are forward differences of these evaluations: with cached
-  kernels a difference costs one evaluation, cheaper than ``_fast.value_and_grad`` (whose
-  reverse pass through the roughplastic quadrature tables costs ~25 evaluations) and all a
-  Gauss-Newton method needs.
+* **Evaluation.** f_r comes from :mod:`gonio.models._fast` (Dr.Jit LLVM kernels, float64,
+  the directions loaded once per fit; for ``roughplastic`` a new (alpha, eta) costs ~4 ms
+  there against ~50 ms in the numpy reference) where it is available and agrees with
+  ``model.eval``; otherwise from ``model.eval``. Derivatives are exact there: the kernels
+  compute f_r and d f_r / d parameter together (:func:`gonio.models._fast.jacobian`, one
+  call for all parameters, 3-5x an evaluation), chained through the loss and the unit box.
+  On the numpy path they are forward differences.
 * **Variable projection** (Golub & Pereyra 1973). Parameters in which f_r is affine
   (per-channel albedos, detected numerically from the model, never listed by hand) are
   solved exactly, by bounded weighted linear least squares, for every value of the
@@ -141,17 +141,34 @@ class Evaluator:
         self.model, self.wi, self.wo = model, wi, wo
         self.n_evals = 0
         self.fast = False
+        self._dirs = None
         worth_it = len(wi) >= FAST_MIN_POINTS or model.name in FAST_ALWAYS
         if use_fast is not False and n_channels == 3 and (use_fast or worth_it):
             self.fast = _fast_agrees(model)
         self.backend = "drjit-llvm" if self.fast else "numpy"
 
+    def _resident(self):
+        from gonio.models import _fast
+        if self._dirs is None:  # directions loaded into Dr.Jit once per fit
+            self._dirs = _fast.Directions(self.wi, self.wo, np.float64)
+        return self._dirs
+
     def __call__(self, params) -> np.ndarray:
         self.n_evals += 1
         if self.fast:
             from gonio.models import _fast
-            return _fast.eval(self.model, self.wi, self.wo, params)
+            return _fast.eval_resident(self.model, self._resident(), params)
         return np.asarray(self.model.eval(self.wi, self.wo, params), dtype=np.float64)
+
+    def jacobian(self, params):
+        """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
+        derivatives (:func:`gonio.models._fast.jacobian`; one call, counted as one
+        evaluation), or None on the numpy path."""
+        if not self.fast:
+            return None
+        from gonio.models import _fast
+        self.n_evals += 1
+        return _fast.jacobian(self.model, self._resident(), params)
 
 
 _FAST_OK: dict = {}
@@ -222,6 +239,47 @@ class _Problem:
             return np.sign(r) * np.sqrt(2.0 * (np.sqrt(1.0 + r * r) - 1.0))
         return r
 
+    # -- exact derivatives (compiled path)
+    def residual_jacobian_x(self, x, cols, loss=None):
+        """Residuals at x and their exact derivatives with respect to x[cols] (natural units),
+        shape (M, len(cols)), from the compiled kernel's Jacobian; None on the numpy path
+        or where the derivatives are not finite (the callers then difference)."""
+        loss = loss or self.loss
+        out = self.eval.jacobian(self.space.to_params(x))
+        if out is None:
+            return None
+        f, J = out
+        meas = self.meas
+        r = _loss.residuals(loss, f, meas)
+        drdf = np.broadcast_to(_loss.residual_derivative(loss, f, meas), f.shape)
+        D = np.empty((r.size, len(cols)))
+        for k, j in enumerate(cols):
+            e = self.space.entries[j]
+            dfdx = J[e.param]
+            if e.channel >= 0:
+                col = np.zeros_like(f)
+                col[:, e.channel] = dfdx[:, e.channel] * drdf[:, e.channel]
+            else:
+                col = dfdx * drdf
+            D[:, k] = col[meas.use]
+        if not (np.all(np.isfinite(D)) and np.all(np.isfinite(r))):
+            return None
+        return r, D
+
+    def lm_jacobian_u(self, u, r_lm):
+        """Exact Jacobian of :meth:`lm_residuals_u` at u (None: difference instead)."""
+        x = self.space.from_unit(u)
+        out = self.residual_jacobian_x(x, range(self.space.size))
+        if out is None:
+            return None
+        r, D = out
+        D = D * self.space.dx_du(x)[None, :]
+        if self.loss == "robust":  # rho(r) = sign(r) sqrt(2 (sqrt(1 + r^2) - 1))
+            s = np.sqrt(1.0 + r * r)
+            small = np.abs(r_lm) < 1e-8
+            D = D * np.where(small, 1.0, r / (s * np.where(small, 1.0, r_lm)))[:, None]
+        return D
+
     # -- variable projection
     def basis(self, x):
         """f_r = base + sum_g a_g * B_g (per channel) at the nonlinear part of x."""
@@ -269,20 +327,25 @@ class _Problem:
         return self.residuals_x(x)
 
     def kaufman_jacobian(self, v, r, x_template, h=1e-6):
-        """Jacobian of the reduced residuals at v (Kaufman 1975): differences in the nonlinear
-        coordinates at fixed affine parameters, projected off the span of the affine columns
-        (those not held at a bound). One evaluation per nonlinear parameter."""
+        """Jacobian of the reduced residuals at v (Kaufman 1975): derivatives in the nonlinear
+        coordinates at fixed affine parameters (exact from the compiled kernel; else forward
+        differences, one evaluation per nonlinear parameter), projected off the span of the
+        affine columns (those not held at a bound)."""
         x = self.x_of(v, x_template)
         cols = self._cols
         u = self.space.to_unit(x)
-        J = np.empty((r.size, v.size))
-        for k, j in enumerate(self.nl_idx):
-            step = h if u[j] + h <= 1.0 else -h
-            up = u.copy()
-            up[j] += step
-            xp = self.space.from_unit(up)
-            xp[self._lin_index] = x[self._lin_index]
-            J[:, k] = (self.residuals_x(xp) - r) / step
+        exact = self.residual_jacobian_x(x, self.nl_idx)
+        if exact is not None:
+            J = exact[1] * self.space.dx_du(x)[self.nl_idx][None, :]
+        else:
+            J = np.empty((r.size, v.size))
+            for k, j in enumerate(self.nl_idx):
+                step = h if u[j] + h <= 1.0 else -h
+                up = u.copy()
+                up[j] += step
+                xp = self.space.from_unit(up)
+                xp[self._lin_index] = x[self._lin_index]
+                J[:, k] = (self.residuals_x(xp) - r) / step
         lin_cols = []
         for g, B in zip(self.linear, cols):
             for c, i in enumerate(g["index"]):
@@ -555,7 +618,8 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
             else:
                 u0 = u_default.copy()
                 u0[free] = starts[k]
-                lm = levenberg_marquardt(problem.lm_residuals_u, u0, atol=atol, budget=budget, abandon=abandon)
+                lm = levenberg_marquardt(problem.lm_residuals_u, u0, atol=atol, budget=budget, abandon=abandon,
+                                         jac=problem.lm_jacobian_u if problem.eval.fast else None)
                 x = space.from_unit(lm.u)
                 res = (x, _loss.objective(loss, problem.residuals_x(x)), lm.converged, lm.message)
         except FloatingPointError as exc:
@@ -603,10 +667,13 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
 def jacobian_chi2(problem, x, rel_step=1e-5):
     """chi^2 residuals at x and their Jacobian in natural units (M, P).
 
-    Columns of affine parameters are exact; the others are central differences with a
-    relative step (one-sided at a bound).
+    Exact from the compiled kernel where it runs; otherwise columns of affine parameters are
+    exact and the others central differences with a relative step (one-sided at a bound).
     """
     space, meas = problem.space, problem.meas
+    exact = problem.residual_jacobian_x(x, range(space.size), loss="chi2")
+    if exact is not None:
+        return exact[1], exact[0]
     f0 = problem.f_x(x)
     r0 = _loss.residuals("chi2", f0, meas)
     J = np.empty((r0.size, space.size))
@@ -649,7 +716,8 @@ def _slsqp_energy(problem, x0, energy_wo, maxeval):
     def f(u, grad):
         r = r_of(u)
         if grad.size:
-            grad[:] = 2.0 * (forward_jacobian(r_of, u, r).T @ r) / norm
+            J = problem.lm_jacobian_u(u, r) if problem.eval.fast else None
+            grad[:] = 2.0 * ((J if J is not None else forward_jacobian(r_of, u, r)).T @ r) / norm
         return float(r @ r) / norm
 
     quad = _AlbedoQuadrature(problem, energy_wo)

@@ -118,6 +118,13 @@ class ParameterSpace:
         x_lin = lo + u * (hi - lo)
         return np.where(self._log, x_log, x_lin)
 
+    def dx_du(self, x) -> np.ndarray:
+        """d x / d u at x, per coordinate: hi - lo (linear), x ln(hi / lo) (logarithmic)."""
+        lo, hi = self.lower, self.upper
+        safe_lo = np.where(self._log, lo, 1.0)
+        return np.where(self._log, np.asarray(x, dtype=np.float64) * np.log(np.where(self._log, hi / safe_lo, 1.0)),
+                        hi - lo)
+
     def at_bound(self, x, rtol: float = 1e-6) -> np.ndarray:
         u = self.to_unit(x)
         return (u <= rtol) | (u >= 1.0 - rtol)
