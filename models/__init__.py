@@ -18,7 +18,11 @@ Public API
 ``get(name, **options)``, ``names()``, ``Parameter``, ``Model`` (base class),
 ``mitsuba_variant()``; ``fast`` (compiled Dr.Jit path: ``fast.available()``,
 ``fast.eval(model, wi, wo, params)``, ``fast.value_and_grad(model, wi, wo, params,
-cotangent)``); ``gonio.models.bench.run()`` (throughput benchmark); the pieces ``fresnel_dielectric``, ``fresnel_conductor``,
+cotangent)``; on resident batches ``fast.Directions(wi, wo, dtype)`` (float32 or float64,
+loaded once), ``fast.Bound(model, params, dtype).eval(dirs)``, ``fast.eval_resident``,
+``fast.jacobian`` (f_r and d f_r / d every parameter, one kernel) and ``fast.chi2_grad``
+(chi^2 and its gradient, reduced in the kernel)); ``gonio.models.bench.run()``
+(throughput benchmark); the pieces ``fresnel_dielectric``, ``fresnel_conductor``,
 ``fresnel_schlick``, ``MicrofacetDistribution``, ``lambert``, ``oren_nayar``.
 
 Example
