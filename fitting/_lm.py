@@ -48,6 +48,28 @@ def forward_jacobian(fun, u, r0, h=1e-6):
     return J
 
 
+#: Largest step in any unit-box coordinate (a quarter of the box): where two parameters are
+#: nearly degenerate (a conductor channel far from its optimum, where F barely depends on
+#: eta and k) the Gauss-Newton step along the weak direction is huge and lands on a face;
+#: the global stage explores, the local stage stays local.
+MAX_STEP = 0.25
+#: Fraction of the way to a face of the box that a step crossing it goes (see _inside).
+TO_FACE = 0.99
+
+
+def _inside(u, step):
+    """u + step, where a coordinate would leave the unit box moving only ``TO_FACE`` of the
+    way to the face it crosses (strictly feasible iterates, as in Coleman & Li 1996 and
+    scipy's 'trf'). Clipping onto the face instead can strand a parameter at a point where
+    the residuals do not depend on it to first order (a conductor's k = 0: F depends on
+    k^2), where its Jacobian column vanishes and no Gauss-Newton step leaves; a coordinate
+    already on a face stays there (it is not free unless the gradient points inward)."""
+    t = u + step
+    t = np.where(t < 0.0, u * (1.0 - TO_FACE), t)
+    t = np.where(t > 1.0, 1.0 - (1.0 - u) * (1.0 - TO_FACE), t)
+    return np.clip(t, 0.0, 1.0)
+
+
 def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, atol: float = 0.0,
                         xtol: float = 1e-10, h: float = 1e-6, budget=None, jac=None,
                         abandon=None) -> LMResult:
@@ -104,15 +126,17 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
             except np.linalg.LinAlgError:
                 lam *= 8.0
                 continue
+            if np.max(np.abs(step_f)) > MAX_STEP:  # a leap, not a local step: damp more
+                lam *= 8.0
+                continue
             step = np.zeros_like(u)
             step[free] = step_f
+            u_new = _inside(u, step)
             if lam <= 1e-3:  # (nearly) Gauss-Newton: is the step worth an evaluation?
-                s_clip = np.clip(u + step, 0.0, 1.0) - u
-                pred = cost - float(np.sum((r + J @ s_clip) ** 2))
+                pred = cost - float(np.sum((r + J @ (u_new - u)) ** 2))
                 if pred <= ftol * cost + atol:
                     return LMResult(u=u, r=r, cost=cost, converged=True,
                                     message="predicted decrease below tolerance", n_iter=it)
-            u_new = np.clip(u + step, 0.0, 1.0)
             try:
                 r_new = fun(u_new)
                 c_new = float(r_new @ r_new)

@@ -85,6 +85,13 @@ def _floor(x):
     return 1e-300 if dr.type_v(x) == dr.VarType.Float64 else 1e-30
 
 
+def _eps(x):
+    """Machine epsilon of the precision of ``x``."""
+    import drjit as dr
+
+    return 2.0 ** -52 if dr.type_v(x) == dr.VarType.Float64 else 2.0 ** -23
+
+
 def _safe_sqrt(dr, x):
     # floor at a tiny positive number (not 0): the derivative stays finite, so masked lanes
     # give 0 * finite instead of 0 * inf = NaN in both AD modes
@@ -146,10 +153,14 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
     r = 1.0 / (P * Q)
     F = dr.clip((T1 - T2) * T3 * r, 0.0, 1.0)
     rA4a = 1.0 / (4.0 * A * a)
+    # where a^2 = (A + t1) / 2 is lost to cancellation (k -> 0 with eta below sin(theta),
+    # where F -> 1), a is rounding noise and so is (dA +- 2x): the value path is flat
+    # there, and so is its derivative through a
+    live = a * a > 64.0 * _eps(a) * A
     out = [F]
     for dA_num, sign, x in ((2.0 * eta * (e2 + k2 - s2), 1.0, eta), (2.0 * k * (e2 + k2 + s2), -1.0, k)):
         dA = dA_num * 4.0 * a * rA4a  # dA_num / A
-        dT2 = 2.0 * c * (dA + sign * 2.0 * x) * A * rA4a  # 2 c (dA +- 2x) / (4a)
+        dT2 = dr.select(live, 2.0 * c * (dA + sign * 2.0 * x) * A * rA4a, 0.0)  # 2 c (dA +- 2x) / (4a)
         dT3, dT4 = c2 * dA, s2 * dT2
         out.append((2.0 * (dA * T2 - dT2 * T1) * T3 * Q + (T1 - T2) * (dT3 * T4 - dT4 * T3) * P) * r * r)
     return tuple(out)
