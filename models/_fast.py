@@ -909,32 +909,37 @@ def chi2_grad(model, dirs, params, y, w):
     w = w if isinstance(w, list) else dirs.channels(w, "w")
     if dirs.n == 0:
         return 0.0, {par.name: (np.zeros(CHANNELS) if par.per_channel else 0.0) for par in model.parameters}
-    F64 = _dr()[1]
     P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
     with dr.suspend_grad():
-        f, J = _kernel(model, dirs.wi, dirs.wo, P, grad=True)
-        wr = [wc * (fc - yc) for fc, yc, wc in zip(f, y, w)]
-
-        zero = dr.zeros(dr.uint32_array_t(F64), 1)
-
-        def total(x):
-            # in-kernel reduction: each thread adds into its own copy of the 1-element
-            # target (ReduceMode.Expand), merged at the end, so no atomics per lane
-            t = dr.zeros(F64, 1)
-            dr.scatter_reduce(dr.ReduceOp.Add, t, F64(x), zero, mode=dr.ReduceMode.Expand)
-            return t
-
-        chi2 = total(sum(a * (fc - yc) for a, fc, yc in zip(wr, f, y)))
-        sums = {}
-        for par in model.parameters:
-            terms = [a * d for a, d in zip(wr, J[par.name])]
-            sums[par.name] = [total(t) for t in terms] if par.per_channel else [total(terms[0] + terms[1] + terms[2])]
-        dr.eval(chi2, *(v for vs in sums.values() for v in vs))
-    grad = {}
+        sums = _chi2_sums(model, dirs.wi, dirs.wo, P, y, w)
+        dr.eval(sums)
+    vals = np.asarray(sums, dtype=np.float64).reshape(-1)
+    grad, k = {}, 1
     for par in model.parameters:
-        g = 2.0 * np.array([float(np.asarray(v)[0]) for v in sums[par.name]])
+        m = CHANNELS if par.per_channel else 1
+        g = 2.0 * vals[k:k + m]
         grad[par.name] = g if par.per_channel else float(g[0])
-    return float(np.asarray(chi2)[0]), grad
+        k += m
+    return float(vals[0]), grad
+
+
+def _chi2_sums(model, wi, wo, P, y, w):
+    """[chi^2, then sum w (f - y) d f / d p for each parameter (3 sums for a per-channel
+    one)] as one float64 array, reduced in the kernel: each thread adds into its own copy
+    of the target (ReduceMode.Expand), merged at the end, so no atomics per lane."""
+    import drjit as dr
+
+    F64, U = _dr()[1], _dr()[3]
+    f, J = _kernel(model, wi, wo, P, grad=True)
+    wr = [wc * (fc - yc) for fc, yc, wc in zip(f, y, w)]
+    terms = [sum(a * (fc - yc) for a, fc, yc in zip(wr, f, y))]
+    for par in model.parameters:
+        t = [a * d for a, d in zip(wr, J[par.name])]
+        terms += t if par.per_channel else [t[0] + t[1] + t[2]]
+    out = dr.zeros(F64, len(terms))
+    for i, t in enumerate(terms):
+        dr.scatter_reduce(dr.ReduceOp.Add, out, F64(t), U(i), mode=dr.ReduceMode.Expand)
+    return out
 
 
 # -- affine parts, batched over parameter sets (the fitter's hot loop) -----------------------
