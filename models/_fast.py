@@ -1,16 +1,23 @@
 """Compiled evaluation path: the same models written in Dr.Jit (LLVM backend).
 
 The numpy implementations are the reference; this module evaluates the same formulas
-(term for term, tested against the reference to 1e-10 relative) as fused, multithreaded
-LLVM kernels, and differentiates them with Dr.Jit's automatic differentiation. It is
-used only where Dr.Jit's LLVM backend works (:func:`available`); nothing else in
-:mod:`gonio.models` depends on it.
+(tested against the reference to 1e-10 relative in float64, 2e-5 in float32) as fused,
+multithreaded LLVM kernels, with their derivatives. It is used only where Dr.Jit's LLVM
+backend works (:func:`available`); nothing else in :mod:`gonio.models` depends on it.
+
+numpy in, numpy out (float64):
 
 * :func:`eval` -- f_r, shape (N, 3), like ``Model.eval``.
 * :func:`value_and_grad` -- f_r and the gradient of ``sum(cotangent * f_r)`` with respect
-  to every parameter (one reverse-mode pass; per-channel parameters get (3,) gradients).
-  With ``cotangent = 2 w (f_r - y)`` this is the gradient of a weighted least-squares
-  objective; with unit vectors it gives rows of the Jacobian.
+  to every parameter (Dr.Jit's reverse-mode AD; per-channel parameters get (3,) gradients).
+
+On a resident batch (:class:`Directions`, float32 or float64, loaded once):
+
+* :meth:`Bound.eval` / :func:`eval_resident` -- f_r, one kernel (``gonio bench models``
+  times ``Bound.eval`` against Mitsuba's ``bsdf.eval``);
+* :func:`jacobian` -- f_r and d f_r / d every parameter, one kernel, derivatives written
+  by hand next to the values in :func:`_kernel`;
+* :func:`chi2_grad` -- sum w (f_r - y)^2 and its gradient, reduced inside the kernel.
 
 For ``roughplastic`` the transmittance table and internal reflectance follow the
 model's ``exact_tables`` setting: with ``exact_tables=False`` the interpolated grid of
@@ -912,8 +919,8 @@ def chi2_grad(model, dirs, params, y, w):
     P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
     with dr.suspend_grad():
         sums = _chi2_sums(model, dirs.wi, dirs.wo, P, y, w)
-        dr.eval(sums)
-    vals = np.asarray(sums, dtype=np.float64).reshape(-1)
+        dr.eval(*sums)
+    vals = np.array([float(np.asarray(v)[0]) for v in sums])
     grad, k = {}, 1
     for par in model.parameters:
         m = CHANNELS if par.per_channel else 1
@@ -925,8 +932,9 @@ def chi2_grad(model, dirs, params, y, w):
 
 def _chi2_sums(model, wi, wo, P, y, w):
     """[chi^2, then sum w (f - y) d f / d p for each parameter (3 sums for a per-channel
-    one)] as one float64 array, reduced in the kernel: each thread adds into its own copy
-    of the target (ReduceMode.Expand), merged at the end, so no atomics per lane."""
+    one)], each reduced in the kernel into its own 1-element float64 target: each thread
+    adds into its own copy (ReduceMode.Expand), merged at the end, so no atomics per lane.
+    (One shared target is slower: every sum then hits the same cache line.)"""
     import drjit as dr
 
     F64, U = _dr()[1], _dr()[3]
@@ -936,9 +944,12 @@ def _chi2_sums(model, wi, wo, P, y, w):
     for par in model.parameters:
         t = [a * d for a, d in zip(wr, J[par.name])]
         terms += t if par.per_channel else [t[0] + t[1] + t[2]]
-    out = dr.zeros(F64, len(terms))
-    for i, t in enumerate(terms):
-        dr.scatter_reduce(dr.ReduceOp.Add, out, F64(t), U(i), mode=dr.ReduceMode.Expand)
+    zero = dr.zeros(U, 1)
+    out = []
+    for t in terms:
+        target = dr.zeros(F64, 1)
+        dr.scatter_reduce(dr.ReduceOp.Add, target, F64(t), zero, mode=dr.ReduceMode.Expand)
+        out.append(target)
     return out
 
 
