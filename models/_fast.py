@@ -265,11 +265,30 @@ def _oren_nayar_over_rho(dr, sigma, wi, wo):
     return dr.select(active, (A * cmax + B * cd) / dr.select(active, cmax, 1.0) * (1.0 / math.pi), 0.0)
 
 
-def _lerp_table(dr, F, U, table, x, n):
+def _pairs(t):
+    """A table of n values as its n - 1 neighbour pairs (t0, t1, t1, t2, ...), for
+    :func:`_lerp_table` (differentiable: a gather)."""
+    import drjit as dr
+
+    F = type(t)
+    U = dr.uint32_array_t(F)
+    j = dr.arange(U, 2 * (dr.width(t) - 1))
+    return dr.gather(F, t, (j >> 1) + (j & 1))
+
+
+def _lerp_table(dr, F, U, pairs, x, n):
+    """Linear interpolation of an n-node table on [0, 1] given as :func:`_pairs`, as
+    Mitsuba's ``lerp_gather``: one two-element gather per lane (measured 0.68 ms against
+    1.06 ms for two gathers and an unsigned index at 1e6 lanes; AVX2 converts to signed
+    integers natively, to unsigned only by emulation)."""
+    from drjit.llvm.ad import Array2f, Array2f64
+
+    V2 = Array2f if dr.type_v(x) == dr.VarType.Float32 else Array2f64
     x = dr.clip(x, 0.0, 1.0) * (n - 1)
-    idx = dr.minimum(U(x), n - 2)
-    w1 = x - F(idx)
-    return dr.gather(F, table, idx) * (1.0 - w1) + dr.gather(F, table, idx + 1) * w1
+    i = dr.minimum(dr.int32_array_t(F)(x), n - 2)
+    w1 = x - F(i)
+    v = dr.gather(V2, pairs, dr.reinterpret_array(U, i))
+    return v.x * (1.0 - w1) + v.y * w1
 
 
 # -- roughplastic tables ---------------------------------------------------------------------
@@ -433,9 +452,9 @@ def _kernel(model, wi, wo, P, grad=False):
     zero = dr.zeros(F, dr.width(ci))
     J = {}
     if name == "diffuse":
-        basis = dr.select(active, 1.0 / math.pi + zero, 0.0)
-        J["reflectance"] = [basis] * CHANNELS
-        f = [r * basis for r in _channels(P, "reflectance")]
+        f = [dr.select(active, r * (1.0 / math.pi) + zero, 0.0) for r in _channels(P, "reflectance")]
+        if grad:
+            J["reflectance"] = [dr.select(active, 1.0 / math.pi + zero, 0.0)] * CHANNELS
     elif name == "orennayar":
         sig = P["sigma"]
         basis = _oren_nayar_over_rho(dr, sig, wi, wo)
@@ -560,6 +579,7 @@ def _param_vars(model, p, F, grad, dtables=False):
         P[par.name] = vals if par.per_channel else vals[0]
     if model.name == "roughplastic":
         kind = model.options["distribution"]
+        t_paired = not grad and getattr(model, "exact_tables", True)  # the cached tables come paired
         grid = None if getattr(model, "exact_tables", True) else _interp(kind, p["alpha"], p["int_ior"], grad=grad)
         if grid is not None:
             # the same interpolated tables as the numpy model; for gradients, their
@@ -574,12 +594,13 @@ def _param_vars(model, p, F, grad, dtables=False):
         elif grad:
             tables = _tables(kind, dr.maximum(F64(P["alpha"]), 1e-4), F64(P["int_ior"]))
         else:
-            tables = _cached_tables(kind, p["alpha"], p["int_ior"], F)
-        P["_tables"] = tuple(t if type(t) is F else F(t) for t in tables)
+            tables = _cached_tables(kind, p["alpha"], p["int_ior"], F, paired=True)
+        t, r = (x if type(x) is F else F(x) for x in tables)
+        P["_tables"] = (t if t_paired else _pairs(t), r)
         if dtables:
             if grid is not None:
                 dx, dy = _interp(kind, p["alpha"], p["int_ior"], grad=True)[2:]
-                P["_dtables"] = (F(dx[:-1]), F([dx[-1]]), F(dy[:-1]), F([dy[-1]]))
+                P["_dtables"] = (_pairs(F(dx[:-1])), F([dx[-1]]), _pairs(F(dy[:-1])), F([dy[-1]]))
             else:
                 P["_dtables"] = _cached_table_derivs(kind, p["alpha"], p["int_ior"], F)
     return P, leaves
@@ -617,11 +638,15 @@ def _interleave(chans, n):
 
 
 @lru_cache(maxsize=256)
-def _cached_tables(kind, alpha, eta, F=None):
+def _cached_tables(kind, alpha, eta, F=None, paired=False):
     """roughplastic's (t_ext, r_int) at (alpha, eta), evaluated, as Dr.Jit arrays of type F
-    (float64 by default; computed in float64 and cast)."""
+    (float64 by default; computed in float64 and cast); with ``paired``, t_ext as
+    :func:`_pairs` for :func:`_lerp_table`."""
     dr, F64, V3, U = _dr()
-    if F is not None and F is not F64:
+    if paired:
+        t, r = _cached_tables(kind, alpha, eta, F)
+        t = _pairs(t)
+    elif F is not None and F is not F64:
         t, r = _cached_tables(kind, alpha, eta)
         t, r = F(t), F(r)
     else:
@@ -651,6 +676,7 @@ def _cached_table_derivs(kind, alpha, eta, F=None):
     if alpha < 1e-4:
         out[0], out[1] = dr.zeros(F64, 64), dr.zeros(F64, 1)
     out = [F(v) for v in out]
+    out[0], out[2] = _pairs(out[0]), _pairs(out[2])
     dr.eval(*out)
     return tuple(out)
 

@@ -80,6 +80,9 @@ def _make_classes(mi, dr):
             self.rho_s = rgb(props, "specular_reflectance")
             self.f0 = rgb(props, "f0")
             self.m = mi.Float(props["roughness"])
+            # opaque, as Mitsuba's own plugins keep their parameters: a new value reuses the
+            # compiled kernel instead of being folded into a new one
+            dr.make_opaque(self.rho_d, self.rho_s, self.f0, self.m)
 
         def _f(self, si, wo):
             wi_g, wo_g = wo, si.wi
@@ -109,8 +112,9 @@ def _make_classes(mi, dr):
             _Base.__init__(self, props)
             self.rho = rgb(props, "reflectance")
             s2 = float(props["sigma"]) ** 2
-            self.A = 1.0 - s2 / (2.0 * (s2 + 0.33))
-            self.B = 0.45 * s2 / (s2 + 0.09)
+            self.A = mi.Float(1.0 - s2 / (2.0 * (s2 + 0.33)))
+            self.B = mi.Float(0.45 * s2 / (s2 + 0.09))
+            dr.make_opaque(self.rho, self.A, self.B)  # as above
 
         def _f(self, si, wo):
             wi_g, wo_g = wo, si.wi
