@@ -1,21 +1,27 @@
-"""Levenberg-Marquardt in the unit box, with a forward-difference Jacobian.
+"""Levenberg-Marquardt in the unit box, with the caller's Jacobian or forward differences.
 
 The fit's losses are all sums of squared residuals, so the local stage is a Gauss-Newton
 method rather than a general quasi-Newton one: near the optimum J^T J is the Hessian up to
 terms of the order of the residuals (Nocedal & Wright 2006, sec. 10.3), and Gauss-Newton
 converges in a handful of iterations where SLSQP or MMA, which build curvature from
-gradients alone, need tens. Each iteration costs one Jacobian (P + 1 residual evaluations).
+gradients alone, need tens. Each iteration costs one Jacobian: the caller's exact one
+(``jac``; the compiled kernels give it in one call) or P + 1 residual evaluations.
 
-Bounds: the iterate lives in the unit box [0, 1]^P. A coordinate at a face whose gradient
-pushes outward is frozen for that step (an active-set projection); the step is clipped to
-the box. The damping is Marquardt's scaled diagonal (Marquardt 1963), lambda divided by 5
-on success and multiplied by 8 on failure.
+Bounds: the iterate lives strictly inside the unit box [0, 1]^P. A coordinate at a face
+whose gradient pushes outward is frozen for that step (an active-set projection); a
+coordinate that would cross a face goes 0.99 of the way to it (each coordinate on its own,
+so the step's direction can change; Coleman & Li 1996 scale the whole step instead), and no
+coordinate moves more than a quarter of the box in one step. The damping is Marquardt's
+scaled diagonal (Marquardt 1963), lambda divided by 5 on success and multiplied by 8 on
+failure or on a step longer than that.
 
 References
 ----------
 Marquardt, D. W. (1963). An algorithm for least-squares estimation of nonlinear parameters.
 J. SIAM 11(2), 431-441.
 Nocedal, J., Wright, S. J. (2006). Numerical Optimization, 2nd ed., ch. 10.
+Coleman, T. F., Li, Y. (1996). An interior trust region approach for nonlinear minimization
+subject to bounds. SIAM J. Optim. 6(2), 418-445.
 """
 
 from __future__ import annotations
@@ -59,8 +65,8 @@ TO_FACE = 0.99
 
 def _inside(u, step):
     """u + step, where a coordinate would leave the unit box moving only ``TO_FACE`` of the
-    way to the face it crosses (strictly feasible iterates, as in Coleman & Li 1996 and
-    scipy's 'trf'). Clipping onto the face instead can strand a parameter at a point where
+    way to the face it crosses (strictly feasible iterates, after Coleman & Li 1996 and
+    scipy's 'trf', which scale the whole step back; here each coordinate on its own). Clipping onto the face instead can strand a parameter at a point where
     the residuals do not depend on it to first order (a conductor's k = 0: F depends on
     k^2), where its Jacobian column vanishes and no Gauss-Newton step leaves; a coordinate
     already on a face stays there (it is not free unless the gradient points inward)."""
@@ -126,7 +132,7 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
             except np.linalg.LinAlgError:
                 lam *= 8.0
                 continue
-            if np.max(np.abs(step_f)) > MAX_STEP:  # a leap, not a local step: damp more
+            if not np.all(np.abs(step_f) <= MAX_STEP):  # a leap (or NaN), not a local step: damp more
                 lam *= 8.0
                 continue
             step = np.zeros_like(u)

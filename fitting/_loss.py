@@ -49,9 +49,9 @@ def residuals(loss: str, model_fr, meas) -> np.ndarray:
 def residual_derivative(loss: str, model_fr, meas) -> np.ndarray:
     """d residual / d f_r per value, shape of ``model_fr`` (all values; :func:`residuals`
     keeps the used ones)."""
-    cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), model_fr.shape)
     if loss in ("chi2", "robust"):
         return 1.0 / meas.brdf_std
+    cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), model_fr.shape)
     if loss == "cosine":
         return np.array(cos_i)
     if loss == "log":

@@ -30,8 +30,9 @@ Reciprocity needs no constraint: every gonio model is reciprocal by construction
 tests/models); the data's reciprocal pairs are a measurement diagnostic, not a fit constraint.
 
 At the optimum the Laplace approximation gives the covariance (J^T J)^-1 of the chi^2 loss
-(Fisher information of the Gaussian noise model), with J in natural units (exact columns for
-the affine parameters, central differences for the others). Parameters the data cannot
+(Fisher information of the Gaussian noise model), with J in natural units (exact from the
+compiled kernel; on the numpy path exact columns for the affine parameters, central
+differences for the others). Parameters the data cannot
 determine (a singular or near-singular Fisher matrix, or a 1-sigma wider than half the
 parameter's range) are named, never returned as NaN; strongly correlated pairs
 (|rho| >= 0.9) are listed in ``FitResult.correlated``.
@@ -235,8 +236,8 @@ class _Problem:
     def lm_residuals_u(self, u):
         """Residuals whose sum of squares is the objective (robust loss: transformed)."""
         r = self.residuals_x(self.space.from_unit(u))
-        if self.loss == "robust":
-            return np.sign(r) * np.sqrt(2.0 * (np.sqrt(1.0 + r * r) - 1.0))
+        if self.loss == "robust":  # rho^2 = 2 (sqrt(1 + r^2) - 1), without the cancellation
+            return r * np.sqrt(2.0 / (np.sqrt(1.0 + r * r) + 1.0))
         return r
 
     # -- exact derivatives (compiled path)
@@ -266,18 +267,18 @@ class _Problem:
             return None
         return r, D
 
-    def lm_jacobian_u(self, u, r_lm):
-        """Exact Jacobian of :meth:`lm_residuals_u` at u (None: difference instead)."""
+    def lm_jacobian_u(self, u, _r=None):
+        """Exact Jacobian of :meth:`lm_residuals_u` at u (None: difference instead); the
+        residuals argument of ``levenberg_marquardt``'s ``jac(u, r)`` is not needed."""
         x = self.space.from_unit(u)
         out = self.residual_jacobian_x(x, range(self.space.size))
         if out is None:
             return None
         r, D = out
         D = D * self.space.dx_du(x)[None, :]
-        if self.loss == "robust":  # rho(r) = sign(r) sqrt(2 (sqrt(1 + r^2) - 1))
+        if self.loss == "robust":  # rho(r) = r sqrt(2 / (s + 1)), s = sqrt(1 + r^2)
             s = np.sqrt(1.0 + r * r)
-            small = np.abs(r_lm) < 1e-8
-            D = D * np.where(small, 1.0, r / (s * np.where(small, 1.0, r_lm)))[:, None]
+            D = D * (np.sqrt(0.5 * (s + 1.0)) / s)[:, None]  # d rho / dr
         return D
 
     # -- variable projection

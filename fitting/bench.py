@@ -8,6 +8,8 @@ sigma = rel * f_r + floor. Optimisers:
 * ``gonio``: :func:`gonio.fitting.fit` as shipped (stratified global stage, variable
   projection + Levenberg-Marquardt, compiled kernels, Laplace covariance);
 * ``gonio-local``: the same from the declared defaults only (``n_starts=0``);
+* ``nlopt-mma``, ``nlopt-slsqp``: nlopt's LD_MMA and LD_SLSQP from the defaults on the same
+  chi^2 with its exact gradient reduced in the compiled kernel (the local-stage peers);
 * ``scipy-lsq``: ``scipy.optimize.least_squares`` (trust-region reflective, 2-point
   finite-difference Jacobian, bounds) on the same chi^2 residuals with the numpy reference
   ``model.eval``, from the defaults -- what a user of scipy would write, the issue's peer.

@@ -92,13 +92,6 @@ def _floor(x):
     return 1e-300 if dr.type_v(x) == dr.VarType.Float64 else 1e-30
 
 
-def _eps(x):
-    """Machine epsilon of the precision of ``x``."""
-    import drjit as dr
-
-    return 2.0 ** -52 if dr.type_v(x) == dr.VarType.Float64 else 2.0 ** -23
-
-
 def _safe_sqrt(dr, x):
     # floor at a tiny positive number (not 0): the derivative stays finite, so masked lanes
     # give 0 * finite instead of 0 * inf = NaN in both AD modes
@@ -141,7 +134,8 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
 
     With ``grad``, returns (F, dF/d eta, dF/d k): with A = a^2 + b^2,
     dA/d eta = 2 eta (eta^2 + k^2 - s^2) / A, dA/dk = 2 k (eta^2 + k^2 + s^2) / A,
-    da = (dA +- 2 eta|k) / (4 a), dT1 = dA, dT2 = 2 c da, dT3 = c^2 dA, dT4 = s^2 dT2 and
+    da = (dA +- 2 eta|k) / (4 a) (or its cancellation-free form, below), dT1 = dA,
+    dT2 = 2 c da, dT3 = c^2 dA, dT4 = s^2 dT2 and
     dF = [2 (dT1 T2 - dT2 T1) T3 Q + (T1 - T2)(dT3 T4 - dT4 T3) P] / (P Q)^2."""
     c = dr.clip(c, 1e-15, 1.0)
     c2 = c * c
@@ -159,15 +153,20 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
     P, Q = T1 + T2, T3 + T4
     r = 1.0 / (P * Q)
     F = dr.clip((T1 - T2) * T3 * r, 0.0, 1.0)
-    rA4a = 1.0 / (4.0 * A * a)
-    # where a^2 = (A + t1) / 2 is lost to cancellation (k -> 0 with eta below sin(theta),
-    # where F -> 1), a is rounding noise and so is (dA +- 2x): the value path is flat
-    # there, and so is its derivative through a
-    live = a * a > 64.0 * _eps(a) * A
+    rA = 1.0 / A
+    # da without cancellation. For t1 >= 0, a^2 = (A + t1) / 2 >= t1 and da = (dA + dt1) / (4a).
+    # For t1 < 0 (k -> 0 with eta below sin(theta)) A + t1 cancels; there
+    # a = sqrt(2) eta k / sqrt(R), R = A - t1 >= 2 |t1| (since (A + t1)(A - t1) = 4 eta^2 k^2),
+    # whose derivative stays exact down to k = 0 (one-sided there: F ~ 1 - C k)
+    neg = t1 < 0
+    rR = dr.rsqrt(dr.select(neg, A - t1, 1.0))
+    ra4 = 1.0 / (4.0 * dr.select(neg, 1.0, a))
     out = [F]
-    for dA_num, sign, x in ((2.0 * eta * (e2 + k2 - s2), 1.0, eta), (2.0 * k * (e2 + k2 + s2), -1.0, k)):
-        dA = dA_num * 4.0 * a * rA4a  # dA_num / A
-        dT2 = dr.select(live, 2.0 * c * (dA + sign * 2.0 * x) * A * rA4a, 0.0)  # 2 c (dA +- 2x) / (4a)
+    for dA_num, dt1, d_ek, x in ((2.0 * eta * (e2 + k2 - s2), 2.0 * eta, k, eta),
+                                 (2.0 * k * (e2 + k2 + s2), -2.0 * k, eta, k)):
+        dA = dA_num * rA
+        da = dr.select(neg, math.sqrt(2.0) * rR * (d_ek - 0.5 * eta * k * (dA - dt1) * rR * rR), (dA + dt1) * ra4)
+        dT2 = 2.0 * c * da
         dT3, dT4 = c2 * dA, s2 * dT2
         out.append((2.0 * (dA * T2 - dT2 * T1) * T3 * Q + (T1 - T2) * (dT3 * T4 - dT4 * T3) * P) * r * r)
     return tuple(out)
@@ -579,7 +578,7 @@ def _param_vars(model, p, F, grad, dtables=False):
         P[par.name] = vals if par.per_channel else vals[0]
     if model.name == "roughplastic":
         kind = model.options["distribution"]
-        t_paired = not grad and getattr(model, "exact_tables", True)  # the cached tables come paired
+        t_paired = False  # the cached exact tables come paired already
         grid = None if getattr(model, "exact_tables", True) else _interp(kind, p["alpha"], p["int_ior"], grad=grad)
         if grid is not None:
             # the same interpolated tables as the numpy model; for gradients, their
@@ -595,6 +594,7 @@ def _param_vars(model, p, F, grad, dtables=False):
             tables = _tables(kind, dr.maximum(F64(P["alpha"]), 1e-4), F64(P["int_ior"]))
         else:
             tables = _cached_tables(kind, p["alpha"], p["int_ior"], F, paired=True)
+            t_paired = True
         t, r = (x if type(x) is F else F(x) for x in tables)
         P["_tables"] = (t if t_paired else _pairs(t), r)
         if dtables:
@@ -777,7 +777,7 @@ class Directions:
         down = np.array([0.0, 0.0, -1.0])
         self.n = wi.shape[0]
         self.dtype = dtype
-        self.F, self.V3 = F, V3
+        self.F = F
         self.wi = V3(np.ascontiguousarray(np.where(ok[:, None], wi, down).T, dtype=dtype))
         self.wo = V3(np.ascontiguousarray(np.where(ok[:, None], wo, down).T, dtype=dtype))
         dr.make_opaque(self.wi, self.wo)
@@ -808,7 +808,8 @@ def _to_numpy(chans, n):
 
 
 class Bound:
-    """A model with its parameters loaded into Dr.Jit once (validated, tables built), the
+    """A model with its parameters loaded into Dr.Jit once (validated now, tables and Dr.Jit
+    scalars built at the first :meth:`eval`), the
     counterpart of a Mitsuba BSDF instance (``mitsuba.load_dict``): each :meth:`eval` on a
     resident batch is then one kernel launch, as ``bsdf.eval`` is.
 
@@ -920,9 +921,10 @@ def chi2_grad(model, dirs, params, y, w):
     every parameter: what a gradient-based fitter (nlopt's SLSQP or MMA, a quasi-Newton
     step) needs, in one fused kernel that stores nothing per pair.
 
-    The derivatives are :func:`jacobian`'s, reduced inside the kernel (Dr.Jit's symbolic
-    ``sum``, accumulated in float64 whatever the batch's precision) into
-    d chi^2 / d p = 2 sum w (f_r - y) d f_r / d p.
+    The derivatives are :func:`jacobian`'s, reduced inside the kernel (``scatter_reduce``
+    with ``ReduceMode.Expand`` into float64 targets, whatever the batch's precision) into
+    d chi^2 / d p = 2 sum w (f_r - y) d f_r / d p. The order of the additions depends on the
+    thread schedule: results can differ in the last bits between runs.
 
     Parameters
     ----------

@@ -21,11 +21,10 @@ best of ``repeat``:
 
 ``drjit32`` and ``mitsuba`` run under the same conditions (float32, resident inputs, one
 fused kernel, outputs evaluated) and are timed head to head, taking turns; their ratio is
-the figure of merit, with ``jac/eval``
-and ``grad/ev`` (the Jacobian's and the chi^2 gradient's times over ``drjit32``'s); the
-last two columns repeat the cost ratio in float64 (``drjit64`` resident, the fitter's
-precision). Each timing ends with ``dr.sync_thread()``
-(the LLVM backend launches asynchronously).
+the figure of merit, with ``jac/ev`` and ``grad/ev`` (the Jacobian's and the chi^2
+gradient's times over ``drjit32``'s) and ``grad/ev64`` (the chi^2 gradient over the
+evaluation, both float64 and resident: the fitter's precision). Each timing ends with
+``dr.sync_thread()`` (the LLVM backend launches asynchronously).
 """
 
 from __future__ import annotations
