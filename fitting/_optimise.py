@@ -334,11 +334,11 @@ class _Problem:
         affine columns (those not held at a bound)."""
         x = self.x_of(v, x_template)
         cols = self._cols
-        u = self.space.to_unit(x)
         exact = self.residual_jacobian_x(x, self.nl_idx)
         if exact is not None:
             J = exact[1] * self.space.dx_du(x)[self.nl_idx][None, :]
         else:
+            u = self.space.to_unit(x)
             J = np.empty((r.size, v.size))
             for k, j in enumerate(self.nl_idx):
                 step = h if u[j] + h <= 1.0 else -h
@@ -620,7 +620,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
                 u0 = u_default.copy()
                 u0[free] = starts[k]
                 lm = levenberg_marquardt(problem.lm_residuals_u, u0, atol=atol, budget=budget, abandon=abandon,
-                                         jac=problem.lm_jacobian_u if problem.eval.fast else None)
+                                         jac=problem.lm_jacobian_u)
                 x = space.from_unit(lm.u)
                 res = (x, _loss.objective(loss, problem.residuals_x(x)), lm.converged, lm.message)
         except FloatingPointError as exc:
@@ -717,7 +717,7 @@ def _slsqp_energy(problem, x0, energy_wo, maxeval):
     def f(u, grad):
         r = r_of(u)
         if grad.size:
-            J = problem.lm_jacobian_u(u, r) if problem.eval.fast else None
+            J = problem.lm_jacobian_u(u)
             grad[:] = 2.0 * ((J if J is not None else forward_jacobian(r_of, u, r)).T @ r) / norm
         return float(r @ r) / norm
 

@@ -96,8 +96,7 @@ def _nlopt_local(meas, model, algorithm):
         if chi2 < best[0]:
             best[:] = [chi2, np.array(u)]
         if grad.size:
-            gx = np.array([g[e.param][e.channel] if e.channel >= 0 else g[e.param] for e in space.entries])
-            grad[:] = gx * space.dx_du(x) / norm
+            grad[:] = space.from_params(g) * space.dx_du(x) / norm
         return chi2 / norm
 
     u0 = space.to_unit(space.default())
@@ -144,11 +143,9 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
                 for opt in OPTIMISERS:
                     xs, times, rmses, chi, evals = [], [], [], [], []
                     for r, (meas, f_true) in enumerate(caps):
-                        if opt == "scipy-lsq" or opt.startswith("nlopt"):
-                            if opt == "scipy-lsq":
-                                x, dt, ne = _scipy_lsq(meas, model)
-                            else:
-                                x, dt, ne = _nlopt_local(meas, model, NLOPT_LOCAL[opt])
+                        if opt == "scipy-lsq" or opt in NLOPT_LOCAL:
+                            x, dt, ne = (_scipy_lsq(meas, model) if opt == "scipy-lsq"
+                                         else _nlopt_local(meas, model, NLOPT_LOCAL[opt]))
                             from ._space import ParameterSpace
                             space = ParameterSpace(model, meas.n_channels)
                             fr = model.eval(meas.wi, meas.wo, space.to_params(x))

@@ -249,19 +249,26 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     return out
 
 
-def _oren_nayar_over_rho(dr, sigma, wi, wo):
+def _oren_nayar_over_rho(dr, sigma, wi, wo, grad=False):
     """Qualitative Oren-Nayar (Oren & Nayar 1994, eq. 30) over rho:
     (A + B max(0, cos(phi_i - phi_o)) sin(theta_max) tan(theta_min)) / pi, written as
     (A cmax + B max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o); 0 below the
-    horizon."""
+    horizon. Linear in (A, B), so with ``grad`` the same shape at (dA, dB) / d sigma
+    = (-0.33 sigma / (s^2 + 0.33)^2, 0.081 sigma / (s^2 + 0.09)^2) is d / d sigma."""
     ci, co = wi.z, wo.z
     active = (ci > 0) & (co > 0)
-    s2 = sigma * sigma
-    A = 1.0 - s2 / (2.0 * (s2 + 0.33))
-    B = 0.45 * s2 / (s2 + 0.09)
     cmax = dr.minimum(dr.maximum(ci, co), 1.0)
     cd = dr.maximum(wi.x * wo.x + wi.y * wo.y, 0.0)
-    return dr.select(active, (A * cmax + B * cd) / dr.select(active, cmax, 1.0) * (1.0 / math.pi), 0.0)
+    r = dr.select(active, (1.0 / math.pi) / dr.select(active, cmax, 1.0), 0.0)
+
+    def shape(A, B):
+        return (A * cmax + B * cd) * r
+
+    s2 = sigma * sigma
+    value = shape(1.0 - s2 / (2.0 * (s2 + 0.33)), 0.45 * s2 / (s2 + 0.09))
+    if not grad:
+        return value
+    return value, shape(-0.33 * sigma / ((s2 + 0.33) * (s2 + 0.33)), 0.081 * sigma / ((s2 + 0.09) * (s2 + 0.09)))
 
 
 def _pairs(t):
@@ -455,17 +462,10 @@ def _kernel(model, wi, wo, P, grad=False):
         if grad:
             J["reflectance"] = [dr.select(active, 1.0 / math.pi + zero, 0.0)] * CHANNELS
     elif name == "orennayar":
-        sig = P["sigma"]
-        basis = _oren_nayar_over_rho(dr, sig, wi, wo)
+        shape = _oren_nayar_over_rho(dr, P["sigma"], wi, wo, grad)
+        basis, dbasis = shape if grad else (shape, None)
         f = [r * basis for r in _channels(P, "reflectance")]
         if grad:
-            # dA/d sigma = -0.33 sigma / (s^2 + 0.33)^2, dB/d sigma = 0.081 sigma / (s^2 + 0.09)^2
-            s2 = sig * sig
-            dA = -0.33 * sig / ((s2 + 0.33) * (s2 + 0.33))
-            dB = 0.081 * sig / ((s2 + 0.09) * (s2 + 0.09))
-            cmax = dr.minimum(dr.maximum(ci, co), 1.0)
-            cd = dr.maximum(wi.x * wo.x + wi.y * wo.y, 0.0)
-            dbasis = dr.select(active, (dA * cmax + dB * cd) / dr.select(active, cmax, 1.0) * (1.0 / math.pi), 0.0)
             J["reflectance"] = [basis] * CHANNELS
             J["sigma"] = [r * dbasis for r in _channels(P, "reflectance")]
     elif name in ("roughplastic", "roughconductor"):
@@ -965,7 +965,7 @@ def _chi2_sums(model, wi, wo, P, y, w):
     (One shared target is slower: every sum then hits the same cache line.)"""
     import drjit as dr
 
-    F64, U = _dr()[1], _dr()[3]
+    _, F64, _, U = _dr()
     f, J = _kernel(model, wi, wo, P, grad=True)
     wr = [wc * (fc - yc) for fc, yc, wc in zip(f, y, w)]
     terms = [sum(a * (fc - yc) for a, fc, yc in zip(wr, f, y))]
