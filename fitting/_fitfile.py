@@ -5,7 +5,8 @@ Layout (docs/interfaces.md, architecture.md "A fit file"):
 at_bound, undetermined, method}}; ``covariance`` {names, matrix}; ``constraints``;
 ``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used}; ``optimiser``;
 ``posterior`` (or null); ``selection`` (for ``--model auto``); ``mitsuba`` (the BSDF dict);
-``provenance`` (versions, seed, dataset path and checksum).
+``provenance`` (versions, seed, dataset path and checksum); ``non_finite`` (only when a
+figure was NaN or infinite: the dotted paths written as null, since JSON has no NaN).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import platform
+import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -20,7 +22,9 @@ import numpy as np
 
 from ._io import atomic_open
 
-__all__ = ["fit_document", "write_json_atomic", "load_fit", "versions"]
+__all__ = ["fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions"]
+
+FIT_FORMAT = "gonio-fit/1"
 
 
 def versions() -> dict:
@@ -36,16 +40,23 @@ def versions() -> dict:
     return out
 
 
-def _jsonable(value):
+def _jsonable(value, where: str = "", non_finite: list | None = None):
+    """``value`` as plain JSON types; NaN and +-inf become None (JSON null).
+
+    Where ``non_finite`` is a list, the dotted path of every value replaced is appended to it
+    (``goodness.chi2_dof``, ``covariance.matrix[0][1]``), so the writer can say so.
+    """
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): _jsonable(v, f"{where}.{k}" if where else str(k), non_finite) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
+        return [_jsonable(v, f"{where}[{i}]", non_finite) for i, v in enumerate(value)]
     if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
+        return _jsonable(value.tolist(), where, non_finite)
     if isinstance(value, np.generic):
-        return value.item()
+        return _jsonable(value.item(), where, non_finite)
     if isinstance(value, float) and not np.isfinite(value):
+        if non_finite is not None:
+            non_finite.append(where or "(top level)")
         return None
     return value
 
@@ -77,7 +88,7 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                         ci90=[posterior.quantiles[5][i], posterior.quantiles[95][i]], method="emcee")
         params[name] = item
     doc = {
-        "format": "gonio-fit/1",
+        "format": FIT_FORMAT,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "model": {"name": result.model.name, "options": dict(result.model.options)},
         "params": _jsonable(result.params),
@@ -113,25 +124,80 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                             "steps": posterior.n_steps, "tau": posterior.tau, "independent_samples": posterior.n_independent,
                             "acceptance": posterior.acceptance, "time_s": posterior.time_s, "advice": posterior.advice,
                             "table_surrogate_error": posterior.surrogate_error}
-    return _jsonable(doc)
+    bad: list = []
+    doc = _jsonable(doc, non_finite=bad)
+    if bad:
+        # said in the file: these figures were NaN or infinite and are written as null
+        doc["non_finite"] = bad
+    return doc
 
 
 def write_json_atomic(path, doc) -> Path:
-    """Write JSON to a temporary file beside ``path``, fsync, rename: never half-written."""
-    with atomic_open(path, "w") as fh:
-        json.dump(doc, fh, indent=2)
-        fh.write("\n")
+    """Write strict JSON (RFC 8259) to a temporary file beside ``path``, fsync, rename.
+
+    NaN and +-inf, which JSON cannot hold, are written as null. A gonio fit document lists
+    the places under ``non_finite``; for any other document a RuntimeWarning names them.
+    Nothing is written when ``doc`` cannot be serialised.
+    """
+    bad: list = []
+    clean = _jsonable(doc, non_finite=bad)
+    if bad:
+        if isinstance(clean, dict) and clean.get("format") == FIT_FORMAT:
+            clean["non_finite"] = sorted(set(clean.get("non_finite") or []) | set(bad))
+        else:
+            warnings.warn(f"{path}: NaN or infinite values written as null at {', '.join(bad[:5])}"
+                          + (f" and {len(bad) - 5} more" if len(bad) > 5 else ""), RuntimeWarning, stacklevel=2)
+    text = json.dumps(clean, indent=2, allow_nan=False) + "\n"
+    with atomic_open(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
     return Path(path)
 
 
-def load_fit(path):
-    """Read a fit file; return (model, params, document)."""
+def _refuse_constant(name):
+    raise ValueError(f"{name} is not JSON (a fit file is strict JSON; non-finite values are written as null)")
+
+
+def parse_fit(doc, path="fit file"):
+    """Check a fit document read from ``path``; return (model, params, document).
+
+    Raises ValueError (a one-line reason) when it is not a gonio fit file or its model,
+    options or parameter values are not what a fit file holds.
+    """
     import gonio.models as gm
 
-    path = Path(path)
-    doc = json.loads(path.read_text())
-    if doc.get("format") != "gonio-fit/1":
-        raise ValueError(f"{path} is not a gonio fit file (format {doc.get('format')!r})")
-    model = gm.get(doc["model"]["name"], **doc["model"]["options"])
-    params = {k: (np.asarray(v, dtype=np.float64) if isinstance(v, list) else float(v)) for k, v in doc["params"].items()}
+    if not isinstance(doc, dict) or doc.get("format") != FIT_FORMAT:
+        fmt = doc.get("format") if isinstance(doc, dict) else None
+        raise ValueError(f"{path} is not a gonio fit file (format {fmt!r:.60})")
+    spec = doc.get("model")
+    if not isinstance(spec, dict) or not isinstance(spec.get("name"), str) or not isinstance(spec.get("options", {}), dict):
+        raise ValueError(f"{path}: 'model' must hold a name and an options table")
+    if not isinstance(doc.get("params"), dict):
+        raise ValueError(f"{path}: 'params' must be a table of parameter values")
+    try:
+        model = gm.get(spec["name"], **spec.get("options", {}))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: model {spec['name']!r:.60} with options {spec.get('options')!r:.80}: "
+                         f"{' '.join(str(exc).split())}") from None
+    params = {}
+    for k, v in doc["params"].items():
+        ok = (isinstance(v, (int, float)) and not isinstance(v, bool)) or (
+            isinstance(v, list) and v and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v))
+        if not ok:
+            raise ValueError(f"{path}: params.{k:.60} must be a number or a list of numbers, not {v!r:.60}")
+        arr = np.asarray(v, dtype=np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{path}: params.{k:.60} is not finite")
+        params[k] = arr if isinstance(v, list) else float(v)
     return model, params, doc
+
+
+def load_fit(path):
+    """Read a fit file; return (model, params, document). ValueError when it is not one."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant)
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a gonio fit file (not UTF-8 text)") from None
+    except RecursionError:
+        raise ValueError(f"{path} is not a gonio fit file (nested too deeply)") from None
+    return parse_fit(doc, path)
