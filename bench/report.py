@@ -1,30 +1,43 @@
 """One self-contained HTML report of a session: capture, fit, and the Mitsuba loop closure.
 
-The report reads what the other commands wrote (``dataset.nc``, ``fit.json``,
-``render/render.json``) and embeds matplotlib PNGs as base64, so the single file reads
-offline; the PNGs are also written beside it for reuse.
+The report reads what the other commands wrote (``dataset.nc``, ``fit.json``, ``speed.json``,
+``render/render.json``, ``render/preview/preview.json``) and embeds matplotlib PNGs as
+base64, so the single file reads offline; the PNGs are also written beside it for reuse.
+
+It treats every one of those files as hostile (bench/_report_input.py): it reads only files
+that resolve inside the output folder, refuses a file reference that points out of it and a
+field of the wrong type with one line (:class:`GonioError`, exit status 2) before it writes
+anything, and builds the page from one Jinja2 template with autoescape: each section is a
+function below that returns plain values (strings, numbers, lists), never HTML.
 """
 
 from __future__ import annotations
 
 import base64
-import html
-import io
+import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
+from . import _report_figures as figs
+from ._report_input import MAX_IMAGE_BYTES, PNG_MAGIC, Doc, Folder, cut, show
 from .errors import GonioError
 
 __all__ = ["find_outputs", "write_report"]
 
+TEMPLATES = Path(__file__).with_name("templates")
+FIX_FIT = "re-run `gonio fit DATASET --out FIT.json`"
+FIX_RENDER = "re-run `gonio render FIT.json --dataset DATASET --out DIR/render`"
+FIX_PREVIEW = "re-run `gonio render FIT.json --dataset DATASET --out DIR/render --preview`"
+FIX_SPEED = "re-run `gonio demo` or delete speed.json"
+
 
 def find_outputs(folder) -> dict:
-    """Locate the dataset, fit file and render summary under ``folder``."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise GonioError(f"{folder} is not a folder; give the output folder of `gonio demo` or a session folder")
+    """Locate the dataset, fit file and render summary under ``folder`` (inside it only)."""
+    root = Folder(folder)
+    folder = root.path
 
     def first(*patterns):
         for pattern in patterns:
@@ -39,44 +52,44 @@ def find_outputs(folder) -> dict:
              "speed": first("speed.json", "*/speed.json")}
     if found["dataset"] is None:
         raise GonioError(f"no dataset.nc under {folder}; run `gonio export SESSION` first")
+    for key, path in found.items():
+        if path is not None:
+            root.check(path, key)
     return found
 
 
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    return buf.getvalue()
-
-
-def _fmt(v, digits=4):
+def _fmt(v, digits=4) -> str:
+    """A value as plain text for the template (which escapes it); never HTML."""
     if v is None:
         return "–"
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_fmt(x, digits) for x in v) + "]"
-    if isinstance(v, float):
-        return f"{v:.{digits}g}"
-    return html.escape(str(v))
+        return cut("[" + ", ".join(_fmt(x, digits) for x in v[:50]) + (", ..." if len(v) > 50 else "") + "]")
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.{digits}g}"
+    return cut(str(v))
 
 
 def _truth_by_name(truth, names):
     """Map fit-vector names (``diffuse_reflectance[R]``) to true values where the truth is known."""
-    if not truth or "params" not in truth:
+    if not isinstance(truth, dict) or not isinstance(truth.get("params"), dict):
         return {}
     out = {}
     channels = ["R", "G", "B"]
     for name in names:
-        base, _, chan = name.partition("[")
+        base, _, chan = str(name).partition("[")
         if base not in truth["params"]:
             continue
-        value = np.asarray(truth["params"][base], dtype=float).reshape(-1)
-        if chan:
-            c = channels.index(chan.rstrip("]"))
-            out[name] = float(value[c] if value.size > 1 else value[0])
-        else:
-            out[name] = float(value[0])
+        try:
+            value = np.asarray(truth["params"][base], dtype=float).reshape(-1)
+            if chan:
+                c = channels.index(chan.rstrip("]"))
+                out[name] = float(value[c] if value.size > 1 else value[0])
+            else:
+                out[name] = float(value[0])
+        except (ValueError, TypeError, IndexError):
+            continue
     return out
 
 
@@ -85,26 +98,39 @@ def _plan_text(plan):
         return None
     try:
         doc = json.loads(plan) if isinstance(plan, str) else plan
-    except json.JSONDecodeError:
-        return str(plan)[:200]
+    except (ValueError, RecursionError):
+        return cut(str(plan), 200)
+    if not isinstance(doc, dict):
+        return cut(str(plan), 200)
     points = doc.get("points") or doc.get("angles") or []
-    return f"{doc.get('name', '?')}: {len(points)} points. {doc.get('description', '')}".strip()
+    n = len(points) if isinstance(points, (list, tuple)) else "?"
+    return cut(f"{doc.get('name', '?')}: {n} points. {doc.get('description', '')}".strip())
 
 
 def _truth_text(truth):
     if not isinstance(truth, dict):
         return None
-    return f"{truth.get('model', truth.get('bsdf_file', '?'))} {json.dumps(truth.get('options', {}))} {json.dumps(truth.get('params', {}))}"
+    try:
+        return cut(f"{truth.get('model', truth.get('bsdf_file', '?'))} {json.dumps(truth.get('options', {}))} "
+                   f"{json.dumps(truth.get('params', {}))}")
+    except (ValueError, TypeError, RecursionError):
+        return None
 
 
 def _reciprocity(dataset_path, meas):
     """Median relative difference between reciprocal partners (wi and wo swapped), or None."""
     import xarray as xr
 
-    with xr.open_dataset(dataset_path, engine="h5netcdf") as ds:
-        if "reciprocal_partner" not in ds.variables:
-            return None
-        partner = np.asarray(ds["reciprocal_partner"].values, dtype=int)
+    try:
+        with xr.open_dataset(dataset_path, engine="h5netcdf") as ds:
+            if "reciprocal_partner" not in ds.variables:
+                return None
+            partner = np.asarray(ds["reciprocal_partner"].values, dtype=float)
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+    if partner.shape != (meas.n_points,) or not np.all(np.isfinite(partner)):
+        return None
+    partner = partner.astype(np.int64)
     i = np.where((partner > np.arange(partner.size)) & (partner < partner.size))[0]
     if i.size == 0:
         return None
@@ -113,250 +139,244 @@ def _reciprocity(dataset_path, meas):
     return f"{float(np.median(rel)):.2e} over {i.size} pairs (max {float(rel.max()):.2e})"
 
 
+# --------------------------------------------------------------------------- sections
+def capture_section(meas, dataset_path) -> dict:
+    attrs = meas.attrs
+    rows = [("points", meas.n_points), ("usable values", meas.n_used), ("seed", attrs.get("seed")),
+            ("plan", _plan_text(attrs.get("plan"))), ("sample (simulated truth)", _truth_text(attrs.get("sample_truth"))),
+            ("reciprocity (median |f_a - f_b| / mean over pairs)", _reciprocity(dataset_path, meas)),
+            ("capture wall time, first to last point (s)", attrs.get("capture_wall_s")),
+            ("lamp drift over the session (monitor span / median)", attrs.get("lamp_drift")),
+            ("reference scale uncertainty (relative 1-sigma)", attrs.get("scale_rel_std")),
+            ("gonio version", attrs.get("gonio_version"))]
+    return {"rows": [(k, _fmt(v)) for k, v in rows if v is not None]}
+
+
+def fit_section(fit: Doc, truth) -> dict:
+    from .fit_runner import _energy_text
+
+    spec = fit.need("model")
+    name = spec.text("name", required=True)
+    params = fit.items("parameters")
+    truths = _truth_by_name(truth, [k for k, _ in params]) if isinstance(truth, dict) and truth.get("model") == name else {}
+    rows = []
+    for pname, p in params:
+        value, std, t = p.num("value"), p.num("std"), truths.get(pname)
+        z = (value - t) / std if (t is not None and value is not None and std) else None
+        flags = ", ".join(f for f, on in (("at bound", p.flag("at_bound")), ("undetermined", p.flag("undetermined"))) if on)
+        rows.append({"name": cut(pname, 80), "value": _fmt(value), "std": _fmt(std, 2), "ci90": _fmt(p.numbers("ci90"), 7),
+                     "truth": _fmt(t), "z": _fmt(z, 2), "unit": p.text("unit") or "", "method": p.text("method") or "",
+                     "flags": flags})
+    g, opt = fit.need("goodness"), fit.need("optimiser")
+    energy = fit.need("constraints").need("energy")
+    energy_text = _energy_text({"by_construction": energy.flag("by_construction"), "holds": energy.flag("holds"),
+                                "max_albedo": energy.num("max_albedo")})
+    out = {"model": name, "options": spec.json_text("options"), "rows": rows,
+           "chi2_dof": _fmt(g.num("chi2_dof")), "dof": _fmt(g.count("dof")), "rmse_fr": _fmt(g.num("rmse_fr")),
+           "rmse_cos_fr": _fmt(g.num("rmse_cos_fr")), "method": opt.text("method") or "–",
+           "evaluations": _fmt(opt.count("evaluations")), "time_s": _fmt(opt.num("time_s"), 3), "energy": energy_text,
+           "non_finite": cut(", ".join(str(x) for x in fit.raw("non_finite") or [] if isinstance(x, str)))}
+    post = fit.sub("posterior")
+    out["posterior"] = None if post is None else {
+        "walkers": _fmt(post.count("walkers")), "steps": _fmt(post.count("steps")),
+        "independent": _fmt(post.num("independent_samples"), 3), "converged": str(post.flag("converged")),
+        "advice": post.text("advice") or ""}
+    out["selection"] = [{"model": r.text("model", required=True), "options": r.json_text("options"),
+                         "k": _fmt(r.count("k")), "chi2": _fmt(r.num("chi2")), "delta_bic": _fmt(r.num("delta_bic"), 3),
+                         "chosen": "yes" if r.flag("chosen") else ""} for r in fit.rows("selection")]
+    return out
+
+
+def posterior_samples(fit: Doc):
+    """(samples (N, k), names, converged) for the corner plot, or None; refuse malformed ones."""
+    post = fit.sub("posterior")
+    if post is None or not post.raw("samples"):
+        return None
+    raw, names = post.raw("samples"), post.raw("names")
+    try:
+        samples = np.asarray(raw, dtype=float) if isinstance(raw, list) and len(raw) <= 100_000 else None
+    except (ValueError, TypeError):
+        samples = None
+    if samples is None or samples.ndim != 2 or samples.shape[1] > 64 or not np.all(np.isfinite(samples)):
+        post.refuse("samples", "a table of finite numbers (draws x parameters)", raw)
+    if names is not None and (not isinstance(names, list) or len(names) != samples.shape[1]
+                              or not all(isinstance(n, str) for n in names)):
+        post.refuse("names", f"a list of {samples.shape[1]} names", names)
+    return samples, names, post.flag("converged")
+
+
+def speed_section(sp: Doc) -> dict:
+    return {"points": _fmt(sp.count("points")), "model": sp.text("model") or "–",
+            "rows": [{"optimiser": r.text("optimiser") or "–", "time_s": _fmt(r.num("time_s"), 3),
+                      "evaluations": _fmt(r.count("evaluations")), "chi2": _fmt(r.num("chi2")),
+                      "max_pull": _fmt(r.num("max_pull"), 3), "rmse_fr": _fmt(r.num("rmse_fr"), 3)}
+                     for r in sp.rows("rows")]}
+
+
+def render_section(rd: Doc, meas) -> tuple[dict, np.ndarray]:
+    sc, s = rd.sub("scene_check") or Doc({}, rd.label, "scene_check", fix=rd.fix), rd.need("summary")
+    section = {"variant": rd.text("variant") or "–", "points": _fmt(rd.count("points")), "time_s": _fmt(rd.num("time_s"), 3),
+               "poses": _fmt(sc.count("poses") or 0), "scene_variant": sc.text("variant") or "None",
+               "max_rel": _fmt(sc.num("max_rel"), 2), "export_max_rel": _fmt(s.num("export_max_rel")),
+               "rms": _fmt(s.num("residual_rms_sigma"), 3), "max": _fmt(s.num("residual_max_sigma"), 3),
+               "worst": [{"point": _fmt(w.count("point")), **{k: _fmt(w.num(k), 3) for k in
+                                                              ("theta_i", "phi_i", "theta_o", "phi_o", "residual_sigma")}}
+                         for w in s.rows("worst", limit=1000)]}
+    raw = rd.raw("brdf_render")
+    try:
+        rendered = np.asarray(raw, dtype=float) if isinstance(raw, list) else None
+    except (ValueError, TypeError):
+        rendered = None
+    if rendered is None or rendered.ndim != 2 or rendered.shape[1] < 1:
+        rd.refuse("brdf_render", "a table of numbers (points x channels)", raw)
+    if rendered.shape[0] != meas.n_points:
+        raise GonioError(f"{rd.label} holds {rendered.shape[0]} rendered points, the dataset {meas.n_points}: "
+                         f"it was rendered from another capture; {rd.fix}")
+    return section, rendered
+
+
+def preview_section(pv: Doc, root: Folder, path: Path) -> tuple[dict, bytes | None]:
+    section = {"size": _fmt(pv.count("size")), "spp": _fmt(pv.count("spp")), "variant": pv.text("variant") or "None",
+               "time_s": _fmt(pv.num("time_s"), 3), "note": None,
+               "rows": [{"lighting": cut(k, 80), "mean": _fmt(v.num("mean"), 3), "p95": _fmt(v.num("p95"), 3),
+                         "noise": _fmt(v.num("noise_mean"), 3)} for k, v in pv.items("delta_e")]}
+    side = pv.raw("side_by_side_png")
+    if side is None:
+        return section, None
+    real = root.reference(side, path, "side_by_side_png", fix=FIX_PREVIEW)
+    if real is None:
+        section["note"] = (f"The side-by-side image that {root.label(path)} names ({cut(str(side), 200)}) is missing "
+                           "from the folder; re-run the preview to include it.")
+        return section, None
+    data = root.read_bytes(real, "side_by_side_png", MAX_IMAGE_BYTES)
+    if not data.startswith(PNG_MAGIC):
+        raise GonioError(f"{root.label(path)}: side_by_side_png {show(side)} is not a PNG image; {FIX_PREVIEW}")
+    return section, data
+
+
+def mitsuba_section(model, params, fit: Doc) -> dict:
+    from gonio.fitting.formats import mitsuba_snippet
+
+    xml, _ = mitsuba_snippet(model.name, dict(model.options), params)
+    try:
+        as_json = json.dumps(fit.raw("mitsuba"), indent=1)
+    except (ValueError, TypeError, RecursionError):
+        fit.refuse("mitsuba", "a plain JSON object", fit.raw("mitsuba"))
+    return {"xml": xml, "dict": cut(as_json, 20_000)}
+
+
+# --------------------------------------------------------------------------- the report
+def _check_out(out: Path) -> Path:
+    """The report's figure folder, after checking that both can be written; refuse otherwise."""
+    image_dir = out.with_name(out.stem + "_files")
+    if out.is_dir():
+        raise GonioError(f"--out {out} is a folder; give a file name such as {out / 'report.html'}")
+    parent = out.parent if str(out.parent) else Path(".")
+    probe = next((p for p in (parent, *parent.parents) if p.exists()), None)
+    if probe is None or not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise GonioError(f"cannot write the report in {parent}: not a writable folder; choose another --out")
+    if image_dir.is_symlink() or (image_dir.exists() and not image_dir.is_dir()):
+        raise GonioError(f"{image_dir} exists and is not a plain folder (a link or a file); remove it and run again")
+    return image_dir
+
+
+def _load_dataset(root: Folder, path: Path):
+    from gonio.fitting import load_dataset
+    from gonio.fitting._data import DataError
+
+    root.check(path, "dataset")
+    try:
+        return load_dataset(path)
+    except DataError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise GonioError(f"{root.label(path)} is not a readable gonio dataset ({' '.join(str(exc).split())[:160]}); "
+                         "re-export the session with `gonio export SESSION`") from None
+
+
+def _load_fit(root: Folder, path: Path):
+    from gonio.fitting._fitfile import parse_fit
+
+    fit = root.read_json(path, "fit file", fix=FIX_FIT)
+    try:
+        model, params, _ = parse_fit(fit.data, root.label(path))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise GonioError(f"{' '.join(str(exc).split())[:300]}; {FIX_FIT}") from None
+    return fit, model, params
+
+
+def build_page(folder, found: dict, root: Folder) -> tuple[str, dict]:
+    """Read and check every input, draw the figures and fill the template; write nothing."""
+    import jinja2
+
+    meas = _load_dataset(root, found["dataset"])
+    ctx = {"title": cut(Path(folder).resolve().name, 200), "notes": [], "fit": None, "speed": None, "render": None,
+           "preview": None, "mitsuba": None}
+    ctx["capture"] = capture_section(meas, found["dataset"])
+    fit = model = params = samples = rendered = side = None
+    if found["fit"] is not None:
+        fit, model, params = _load_fit(root, found["fit"])
+        truth = meas.attrs.get("sample_truth")
+        ctx["fit"] = fit_section(fit, truth if isinstance(truth, dict) else None)
+        samples = posterior_samples(fit)
+        ctx["mitsuba"] = mitsuba_section(model, params, fit)
+    if found["speed"] is not None:
+        ctx["speed"] = speed_section(root.read_json(found["speed"], "speed file", fix=FIX_SPEED))
+    if found["render"] is not None:
+        ctx["render"], rendered = render_section(root.read_json(found["render"], "render summary", fix=FIX_RENDER), meas)
+    if found["preview"] is not None:
+        ctx["preview"], side = preview_section(root.read_json(found["preview"], "preview summary", fix=FIX_PREVIEW),
+                                               root, found["preview"])
+
+    # every input is read and checked: now the figures, in the report's order
+    images: dict[str, bytes] = {}
+    notes = ctx["notes"]
+    figs.draw(images, notes, "coverage.png", figs.coverage, meas)
+    if model is not None:
+        for name, fn in (("inplane.png", figs.inplane), ("polar.png", figs.polar), ("residuals.png", figs.residuals)):
+            figs.draw(images, notes, name, fn, meas, model, params)
+        figs.draw(images, notes, "albedo.png", figs.albedo, model, params)
+    if samples is not None:
+        figs.draw(images, notes, "corner.png", figs.corner_plot, *samples)
+    if rendered is not None:
+        figs.draw(images, notes, "mitsuba_vs_measured.png", figs.mitsuba_vs_measured, meas, rendered)
+    if side is not None:
+        images["preview_side_by_side.png"] = side
+    if ctx["preview"] is not None and ctx["preview"]["note"]:
+        notes.append(ctx["preview"]["note"])
+    ctx["figures"] = [{"name": name, "b64": base64.b64encode(data).decode("ascii")} for name, data in images.items()]
+
+    script = (TEMPLATES / "report.js").read_text(encoding="utf-8").removesuffix("\n")
+    ctx["script_hash"] = base64.b64encode(hashlib.sha256(script.encode("utf-8")).digest()).decode("ascii")
+    env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
+                             undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
+    return env.get_template("report.html.j2").render(**ctx), images
+
+
 def write_report(folder, out=None) -> Path:
-    """Write the HTML report for ``folder``; returns its path."""
+    """Write the HTML report for ``folder``; returns its path.
+
+    Every input is read and checked before anything is written; a bad one is refused with a
+    one-line :class:`GonioError`. The report and its ``*_files`` PNGs are written atomically,
+    with the mode the user's umask gives.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from gonio.fitting import load_dataset, load_fit
     from gonio.fitting._io import atomic_open
 
-    from .fit_runner import _energy_text
-
     found = find_outputs(folder)
+    root = Folder(folder)
     out = Path(out) if out else Path(folder) / "report.html"
-    meas = load_dataset(found["dataset"])
-    theta_i = np.degrees(np.arccos(np.clip(meas.wi[:, 2], -1, 1)))
-    theta_o = np.degrees(np.arccos(np.clip(meas.wo[:, 2], -1, 1)))
-    phi_i = np.arctan2(meas.wi[:, 1], meas.wi[:, 0])
-    phi_o = np.arctan2(meas.wo[:, 1], meas.wo[:, 0])
-    images: dict[str, bytes] = {}
-    sections: list[str] = []
-    colours = ["tab:red", "tab:green", "tab:blue"]
-
-    # ---- capture summary and coverage
-    attrs = meas.attrs
-    summary_rows = [("points", meas.n_points), ("usable values", meas.n_used), ("seed", attrs.get("seed")),
-                    ("plan", _plan_text(attrs.get("plan"))), ("sample (simulated truth)", _truth_text(attrs.get("sample_truth"))),
-                    ("reciprocity (median |f_a - f_b| / mean over pairs)", _reciprocity(found["dataset"], meas)),
-                    ("capture wall time, first to last point (s)", attrs.get("capture_wall_s")),
-                    ("lamp drift over the session (monitor span / median)", attrs.get("lamp_drift")),
-                    ("reference scale uncertainty (relative 1-sigma)", attrs.get("scale_rel_std")),
-                    ("gonio version", attrs.get("gonio_version"))]
-    sections.append("<h2>Capture</h2><table>" + "".join(
-        f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>" for k, v in summary_rows if v is not None) + "</table>")
-    fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.4, 4.4))
-    sc = ax.scatter(phi_o, theta_o, c=theta_i, cmap="viridis", s=14)
-    ax.set_ylim(0, 90)
-    ax.set_rticks([30, 60, 90])
-    ax.set_title("detector directions (r = theta_o, colour = theta_i)", fontsize=9)
-    fig.colorbar(sc, ax=ax, shrink=0.7, label="theta_i (deg)")
-    images["coverage.png"] = _png(fig)
-
-    fit_doc = model = params = None
-    if found["fit"] is not None:
-        model, params, fit_doc = load_fit(found["fit"])
-
-    # ---- fit: parameter table, goodness, selection
-    if fit_doc is not None:
-        truth = attrs.get("sample_truth") if isinstance(attrs.get("sample_truth"), dict) else None
-        names = list(fit_doc["parameters"])
-        truths = _truth_by_name(truth, names) if truth and truth.get("model") == fit_doc["model"]["name"] else {}
-        rows = []
-        for name, p in fit_doc["parameters"].items():
-            t = truths.get(name)
-            z = (p["value"] - t) / p["std"] if (t is not None and p["std"]) else None
-            flags = ", ".join(f for f, on in (("at bound", p["at_bound"]), ("undetermined", p["undetermined"])) if on)
-            rows.append(f"<tr><td>{html.escape(name)}</td><td>{_fmt(p['value'])}</td><td>{_fmt(p['std'], 2)}</td>"
-                        f"<td>{_fmt(p['ci90'], 7)}</td><td>{_fmt(t)}</td><td>{_fmt(z, 2)}</td><td>{html.escape(p['unit'] or '')}</td>"
-                        f"<td>{html.escape(p['method'])}</td><td>{flags}</td></tr>")
-        g = fit_doc["goodness"]
-        sections.append(
-            f"<h2>Fit: {html.escape(fit_doc['model']['name'])} {html.escape(json.dumps(fit_doc['model']['options']))}</h2>"
-            "<table><tr><th>parameter</th><th>value</th><th>1-sigma</th><th>90 % interval</th><th>truth</th>"
-            "<th>(value-truth)/sigma</th><th>unit</th><th>method</th><th>flags</th></tr>" + "".join(rows) + "</table>"
-            f"<p>chi<sup>2</sup>/dof = {_fmt(g['chi2_dof'])} ({g['dof']} dof); RMSE f_r = {_fmt(g['rmse_fr'])} sr<sup>-1</sup>; "
-            f"RMSE cos-weighted = {_fmt(g['rmse_cos_fr'])}; optimiser {html.escape(fit_doc['optimiser']['method'])}, "
-            f"{fit_doc['optimiser']['evaluations']} evaluations, {_fmt(fit_doc['optimiser']['time_s'], 3)} s. "
-            f"Energy: {html.escape(_energy_text(fit_doc['constraints']['energy']))}.</p>")
-        if fit_doc.get("posterior"):
-            post = fit_doc["posterior"]
-            sections.append(f"<p>Posterior (emcee): {post['walkers']} walkers x {post['steps']} steps, "
-                            f"{_fmt(post['independent_samples'], 3)} independent samples, converged: {post['converged']}. "
-                            f"{html.escape(post.get('advice') or '')}</p>")
-        if fit_doc.get("selection"):
-            sections.append("<h3>Model selection (BIC)</h3><table><tr><th>model</th><th>k</th><th>chi<sup>2</sup></th>"
-                            "<th>&Delta;BIC</th><th>chosen</th></tr>" + "".join(
-                                f"<tr><td>{html.escape(r['model'])} {html.escape(json.dumps(r['options']))}</td><td>{r['k']}</td>"
-                                f"<td>{_fmt(r['chi2'])}</td><td>{_fmt(r['delta_bic'], 3)}</td><td>{'yes' if r['chosen'] else ''}</td></tr>"
-                                for r in fit_doc["selection"]) + "</table>")
-
-        # ---- measured vs fitted, in the plane of incidence, for several incidence angles
-        fitted = model.eval(meas.wi, meas.wo, params)
-        resid = (meas.brdf - fitted) / meas.brdf_std
-        phi_d = np.degrees(np.abs(np.angle(np.exp(1j * (phi_i - phi_o)))))
-        in_plane = (phi_d > 175) | (phi_d < 5) | (theta_i < 1) | (theta_o < 1)
-        incidences = sorted({round(t) for t in theta_i[in_plane]})
-        if incidences:
-            pick = incidences if len(incidences) <= 4 else [incidences[int(k)] for k in np.linspace(0, len(incidences) - 1, 4)]
-            fig, axes = plt.subplots(1, len(pick), figsize=(3.3 * len(pick), 3.2), squeeze=False)
-            for ax, ti in zip(axes[0], pick):
-                sel = in_plane & (np.abs(theta_i - ti) < 0.6)
-                # signed outgoing angle: negative on the lamp's side
-                signed = np.where(phi_d[sel] < 90, -theta_o[sel], theta_o[sel])
-                t = np.radians(np.linspace(-89, 89, 241))
-                wi_c = np.tile([np.sin(np.radians(ti)), 0.0, np.cos(np.radians(ti))], (t.size, 1))
-                wo_c = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)  # +t on the mirror side
-                curve = model.eval(wi_c, wo_c, params)
-                for c in range(meas.n_channels):
-                    ax.errorbar(signed, meas.brdf[sel, c], yerr=meas.brdf_std[sel, c], fmt="o", ms=3, color=colours[c % 3])
-                    ax.plot(np.degrees(t), curve[:, c], "-", lw=1, color=colours[c % 3])
-                ax.set_yscale("log")
-                ax.set_title(f"theta_i = {ti} deg (in plane)", fontsize=9)
-                ax.set_xlabel("theta_o (deg, + = mirror side)")
-            axes[0][0].set_ylabel("f_r (1/sr)")
-            images["inplane.png"] = _png(fig)
-        # polar view at the incidence with the most out-of-plane points: the fit over the whole
-        # hemisphere (background), the measurements on the same colour scale (dots)
-        out_of_plane = ~in_plane
-        if out_of_plane.any():
-            groups, counts = np.unique(np.round(theta_i[out_of_plane]), return_counts=True)
-            ti = float(groups[np.argmax(counts)])
-            sel = np.abs(theta_i - ti) < 0.6
-            phi_in = float(np.median(phi_i[sel]))
-            t, p = np.meshgrid(np.radians(np.linspace(0, 85, 60)), np.radians(np.linspace(-180, 180, 121)))
-            wo_g = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1).reshape(-1, 3)
-            wi_g = np.tile([np.sin(np.radians(ti)) * np.cos(phi_in), np.sin(np.radians(ti)) * np.sin(phi_in),
-                            np.cos(np.radians(ti))], (wo_g.shape[0], 1))
-            c = 1 if meas.n_channels > 1 else 0
-            grid = model.eval(wi_g, wo_g, params)[:, c].reshape(t.shape)
-            norm = matplotlib.colors.LogNorm(vmin=max(float(grid.min()), 1e-4), vmax=float(grid.max()))
-            fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(8.4, 4.0))
-            for ax, title in zip(axes, ("fit (background) and measurement (dots)", "measurement / fit")):
-                ax.set_ylim(0, 85)
-                ax.set_title(title, fontsize=9)
-            mesh = axes[0].pcolormesh(p, np.degrees(t), grid, norm=norm, cmap="viridis", shading="auto")
-            axes[0].scatter(phi_o[sel], theta_o[sel], c=meas.brdf[sel, c], norm=norm, cmap="viridis",
-                            edgecolors="white", s=28)
-            fig.colorbar(mesh, ax=axes[0], shrink=0.7, label=f"f_r {meas.channels[c]} (1/sr)")
-            ratio = meas.brdf[sel, c] / np.maximum(fitted[sel, c], 1e-12)
-            sc = axes[1].scatter(phi_o[sel], theta_o[sel], c=ratio, cmap="coolwarm", s=28,
-                                 vmin=1 - 3 * float(np.std(ratio - 1) + 1e-6), vmax=1 + 3 * float(np.std(ratio - 1) + 1e-6))
-            fig.colorbar(sc, ax=axes[1], shrink=0.7)
-            fig.suptitle(f"theta_i = {ti:.0f} deg", fontsize=9)
-            images["polar.png"] = _png(fig)
-        fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
-        axes[0].hist(resid[meas.use].ravel(), bins=40, color="grey")
-        axes[0].set_xlabel("(measured - fit) / sigma")
-        axes[0].set_title("fit residuals", fontsize=9)
-        sc = axes[1].scatter(theta_i, theta_o, c=np.sqrt(np.mean(resid ** 2, axis=1)), cmap="magma", s=16)
-        axes[1].set_xlabel("theta_i (deg)")
-        axes[1].set_ylabel("theta_o (deg)")
-        axes[1].set_title("rms residual / sigma per point", fontsize=9)
-        fig.colorbar(sc, ax=axes[1])
-        images["residuals.png"] = _png(fig)
-        # directional albedo of the fit
-        t = np.radians(np.linspace(0, 85, 35))
-        wo_a = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)
-        alb = model.albedo(wo_a, params)
-        fig, ax = plt.subplots(figsize=(4.2, 3.0))
-        for c in range(alb.shape[1]):
-            ax.plot(np.degrees(t), alb[:, c], color=colours[c % 3])
-        ax.set_xlabel("theta_o (deg)")
-        ax.set_ylabel("directional albedo")
-        ax.set_ylim(0, max(1.05, float(alb.max()) * 1.05))
-        images["albedo.png"] = _png(fig)
-
-    # ---- posterior corner plot
-    post = (fit_doc or {}).get("posterior") or {}
-    if post.get("samples"):
-        import corner
-
-        samples = np.asarray(post["samples"], dtype=float)
-        fig = corner.corner(samples, labels=post.get("names"), quantiles=[0.05, 0.5, 0.95], label_kwargs={"fontsize": 8})
-        fig.suptitle("posterior (emcee)" + ("" if post.get("converged") else ": chain too short, see advice"), fontsize=9)
-        images["corner.png"] = _png(fig)
-
-    # ---- speed against error on this capture
-    if found["speed"] is not None:
-        sp = json.loads(Path(found["speed"]).read_text())
-        sections.append(f"<h2>Fit speed against error ({sp['points']} points, {html.escape(sp['model'])})</h2>"
-                        "<table><tr><th>optimiser</th><th>time (s)</th><th>evaluations</th><th>chi<sup>2</sup></th>"
-                        "<th>max |fit - truth| / sigma</th><th>RMSE f_r</th></tr>" + "".join(
-                            f"<tr><td>{html.escape(r['optimiser'])}</td><td>{_fmt(r['time_s'], 3)}</td><td>{r['evaluations']}</td>"
-                            f"<td>{_fmt(r['chi2'])}</td><td>{_fmt(r['max_pull'], 3)}</td><td>{_fmt(r['rmse_fr'], 3)}</td></tr>"
-                            for r in sp["rows"]) + "</table>")
-
-    # ---- Mitsuba loop closure
-    if found["render"] is not None:
-        rd = json.loads(Path(found["render"]).read_text())
-        s = rd["summary"]
-        sc = rd.get("scene_check") or {}
-        sections.append(
-            "<h2>Mitsuba re-render at the measured geometry</h2>"
-            f"<p>variant {html.escape(rd['variant'])}, {rd['points']} points in {_fmt(rd['time_s'], 3)} s "
-            f"(one batched evaluation; {sc.get('poses', 0)} poses re-rendered as full scenes in "
-            f"{html.escape(str(sc.get('variant')))} agree to {_fmt(sc.get('max_rel'), 2)}). "
-            f"Export check: max |render - model| / model = {_fmt(s['export_max_rel'])}. "
-            f"Render vs measurement: rms residual {_fmt(s['residual_rms_sigma'], 3)} sigma, "
-            f"max |residual| {_fmt(s['residual_max_sigma'], 3)} sigma.</p>"
-            "<table><tr><th>worst points</th><th>theta_i</th><th>phi_i</th><th>theta_o</th><th>phi_o</th><th>residual / sigma</th></tr>"
-            + "".join(f"<tr><td>{w['point']}</td><td>{_fmt(w['theta_i'], 3)}</td><td>{_fmt(w['phi_i'], 3)}</td>"
-                      f"<td>{_fmt(w['theta_o'], 3)}</td><td>{_fmt(w['phi_o'], 3)}</td><td>{_fmt(w['residual_sigma'], 3)}</td></tr>"
-                      for w in s["worst"]) + "</table>")
-        rendered = np.asarray(rd["brdf_render"])
-        fig, ax = plt.subplots(figsize=(4.2, 4.0))
-        for c in range(min(3, rendered.shape[1])):
-            ax.loglog(meas.brdf[:, c], rendered[:, c], "o", ms=3, color=colours[c])
-        lim = [max(1e-4, float(np.min(meas.brdf[meas.brdf > 0])) * 0.8), float(np.max(meas.brdf)) * 1.2]
-        ax.plot(lim, lim, "k--", lw=0.8)
-        ax.set_xlabel("measured f_r (1/sr)")
-        ax.set_ylabel("Mitsuba render of the fit (1/sr)")
-        images["mitsuba_vs_measured.png"] = _png(fig)
-
-    # ---- preview renders
-    if found["preview"] is not None:
-        pv = json.loads(Path(found["preview"]).read_text())
-        rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{_fmt(v.get('mean'), 3)}</td><td>{_fmt(v.get('p95'), 3)}</td>"
-                       f"<td>{_fmt(v.get('noise_mean'), 3)}</td></tr>" for k, v in (pv.get("delta_e") or {}).items())
-        sections.append("<h2>Preview renders</h2>"
-                        f"<p>Sphere, {pv.get('size')} px, {pv.get('spp')} spp, {html.escape(str(pv.get('variant')))}, "
-                        f"{_fmt(pv.get('time_s'), 3)} s. Left: the fit; right: the measured (or true simulated) BSDF; "
-                        "then the CIEDE2000 difference.</p>"
-                        + ("<table><tr><th>lighting</th><th>mean &Delta;E00</th><th>95th pct</th>"
-                           f"<th>Monte Carlo noise floor (mean)</th></tr>{rows}</table>" if rows else ""))
-        side = pv.get("side_by_side_png")
-        if side and Path(side).exists():
-            images["preview_side_by_side.png"] = Path(side).read_bytes()
-
-    # ---- the fit as a Mitsuba scene snippet
-    if fit_doc is not None:
-        from gonio.fitting.formats import mitsuba_snippet
-
-        xml, _ = mitsuba_snippet(model.name, dict(model.options), params)
-        sections.append("<h2>Use the fit in Mitsuba 3</h2><pre>" + html.escape(xml) + "</pre>"
-                        f"<pre>{html.escape(json.dumps(fit_doc['mitsuba'], indent=1))}</pre>")
-
-    # ---- assemble
-    image_dir = out.with_name(out.stem + "_files")
-    image_dir.mkdir(parents=True, exist_ok=True)
-    figures = []
-    for name, data in images.items():
-        (image_dir / name).write_bytes(data)
-        figures.append(f'<figure><img alt="{name}" src="data:image/png;base64,{base64.b64encode(data).decode()}">'
-                       f"<figcaption>{name}</figcaption></figure>")
-    page = ("<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>gonio report</title><style>"
-            "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-            "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:left}"
-            "figure{display:inline-block;margin:0.5em}img{max-width:100%}</style></head><body>"
-            f"<h1>gonio report: {html.escape(str(Path(folder).resolve().name))}</h1>"
-            + "".join(sections) + "<h2>Figures</h2>" + "".join(figures)
-            # After load, record how many images the browser decoded (the headless-browser test reads it).
-            + "<script>window.addEventListener('load',function(){var im=Array.prototype.slice.call(document.images);"
-              "document.body.setAttribute('data-images-decoded',im.filter(function(i){return i.complete&&i.naturalWidth>0;})"
-              ".length+'/'+im.length);});</script></body></html>")
-    with atomic_open(out, "w") as fh:
-        fh.write(page)
+    image_dir = _check_out(out)
+    page, images = build_page(folder, found, root)
+    try:
+        image_dir.mkdir(parents=True, exist_ok=True)
+        for name, data in images.items():
+            with atomic_open(image_dir / name, "wb") as fh:
+                fh.write(data)
+        with atomic_open(out, "w", encoding="utf-8") as fh:
+            fh.write(page)
+    except OSError as exc:
+        raise GonioError(f"cannot write the report {out}: {exc.strerror or exc}; free space or choose another --out") from None
     return out

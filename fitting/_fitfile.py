@@ -22,9 +22,13 @@ import numpy as np
 
 from ._io import atomic_open
 
-__all__ = ["fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions"]
+__all__ = ["fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning"]
 
 FIT_FORMAT = "gonio-fit/1"
+
+
+class NonFiniteWarning(UserWarning):
+    """A document held NaN or inf, which strict JSON cannot; they were written as null."""
 
 
 def versions() -> dict:
@@ -136,7 +140,7 @@ def write_json_atomic(path, doc) -> Path:
     """Write strict JSON (RFC 8259) to a temporary file beside ``path``, fsync, rename.
 
     NaN and +-inf, which JSON cannot hold, are written as null. A gonio fit document lists
-    the places under ``non_finite``; for any other document a RuntimeWarning names them.
+    the places under ``non_finite``; for any other document a :class:`NonFiniteWarning` names them.
     Nothing is written when ``doc`` cannot be serialised.
     """
     bad: list = []
@@ -146,7 +150,7 @@ def write_json_atomic(path, doc) -> Path:
             clean["non_finite"] = sorted(set(clean.get("non_finite") or []) | set(bad))
         else:
             warnings.warn(f"{path}: NaN or infinite values written as null at {', '.join(bad[:5])}"
-                          + (f" and {len(bad) - 5} more" if len(bad) > 5 else ""), RuntimeWarning, stacklevel=2)
+                          + (f" and {len(bad) - 5} more" if len(bad) > 5 else ""), NonFiniteWarning, stacklevel=2)
     text = json.dumps(clean, indent=2, allow_nan=False) + "\n"
     with atomic_open(path, "w", encoding="utf-8") as fh:
         fh.write(text)

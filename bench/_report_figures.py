@@ -1,0 +1,195 @@
+"""The report's figures (matplotlib, PNG bytes), drawn from values the report has checked.
+
+Each figure function returns ``{file name: PNG bytes}``; :func:`draw` runs them and turns a
+figure that cannot be drawn (a degenerate posterior, values matplotlib refuses) into a note
+for the report instead of a traceback. Text from input files reaches a figure only through
+:func:`label`, which stops matplotlib reading it as mathtext.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+__all__ = ["draw", "label"]
+
+COLOURS = ["tab:red", "tab:green", "tab:blue"]
+
+
+def label(text, limit: int = 40) -> str:
+    """Input text made safe for a matplotlib label: no mathtext, bounded length."""
+    s = "".join(ch if ch.isprintable() else "?" for ch in str(text))[:limit]
+    return s.replace("\\", "/").replace("$", r"\$")
+
+
+def _png(fig) -> bytes:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def draw(images: dict, notes: list, name: str, fn, *args) -> None:
+    """Add ``fn(*args)``'s figures to ``images``; on failure add a note saying which and why."""
+    import matplotlib.pyplot as plt
+
+    try:
+        images.update(fn(*args))
+    except (ValueError, TypeError, IndexError, OverflowError, FloatingPointError, RuntimeError) as exc:
+        plt.close("all")
+        notes.append(f"figure {name} could not be drawn: {' '.join(str(exc).split())[:200]}")
+
+
+def angles(meas):
+    theta_i = np.degrees(np.arccos(np.clip(meas.wi[:, 2], -1, 1)))
+    theta_o = np.degrees(np.arccos(np.clip(meas.wo[:, 2], -1, 1)))
+    phi_i = np.arctan2(meas.wi[:, 1], meas.wi[:, 0])
+    phi_o = np.arctan2(meas.wo[:, 1], meas.wo[:, 0])
+    return theta_i, theta_o, phi_i, phi_o
+
+
+def coverage(meas) -> dict:
+    import matplotlib.pyplot as plt
+
+    theta_i, theta_o, _, phi_o = angles(meas)
+    fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.4, 4.4))
+    sc = ax.scatter(phi_o, theta_o, c=theta_i, cmap="viridis", s=14)
+    ax.set_ylim(0, 90)
+    ax.set_rticks([30, 60, 90])
+    ax.set_title("detector directions (r = theta_o, colour = theta_i)", fontsize=9)
+    fig.colorbar(sc, ax=ax, shrink=0.7, label="theta_i (deg)")
+    return {"coverage.png": _png(fig)}
+
+
+def _in_plane(meas):
+    theta_i, theta_o, phi_i, phi_o = angles(meas)
+    phi_d = np.degrees(np.abs(np.angle(np.exp(1j * (phi_i - phi_o)))))
+    return phi_d, (phi_d > 175) | (phi_d < 5) | (theta_i < 1) | (theta_o < 1)
+
+
+def inplane(meas, model, params) -> dict:
+    """Measured vs fitted, in the plane of incidence, for up to four incidence angles."""
+    import matplotlib.pyplot as plt
+
+    theta_i, theta_o, _, _ = angles(meas)
+    phi_d, in_plane = _in_plane(meas)
+    incidences = sorted({round(t) for t in theta_i[in_plane]})
+    if not incidences:
+        return {}
+    pick = incidences if len(incidences) <= 4 else [incidences[int(k)] for k in np.linspace(0, len(incidences) - 1, 4)]
+    fig, axes = plt.subplots(1, len(pick), figsize=(3.3 * len(pick), 3.2), squeeze=False)
+    for ax, ti in zip(axes[0], pick):
+        sel = in_plane & (np.abs(theta_i - ti) < 0.6)
+        # signed outgoing angle: negative on the lamp's side
+        signed = np.where(phi_d[sel] < 90, -theta_o[sel], theta_o[sel])
+        t = np.radians(np.linspace(-89, 89, 241))
+        wi_c = np.tile([np.sin(np.radians(ti)), 0.0, np.cos(np.radians(ti))], (t.size, 1))
+        wo_c = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)  # +t on the mirror side
+        curve = model.eval(wi_c, wo_c, params)
+        for c in range(meas.n_channels):
+            ax.errorbar(signed, meas.brdf[sel, c], yerr=meas.brdf_std[sel, c], fmt="o", ms=3, color=COLOURS[c % 3])
+            ax.plot(np.degrees(t), curve[:, c], "-", lw=1, color=COLOURS[c % 3])
+        ax.set_yscale("log")
+        ax.set_title(f"theta_i = {ti} deg (in plane)", fontsize=9)
+        ax.set_xlabel("theta_o (deg, + = mirror side)")
+    axes[0][0].set_ylabel("f_r (1/sr)")
+    return {"inplane.png": _png(fig)}
+
+
+def polar(meas, model, params) -> dict:
+    """At the incidence with the most out-of-plane points: the fit over the whole hemisphere
+    (background), the measurements on the same colour scale (dots), and their ratio."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    theta_i, theta_o, phi_i, phi_o = angles(meas)
+    _, in_plane = _in_plane(meas)
+    out_of_plane = ~in_plane
+    if not out_of_plane.any():
+        return {}
+    fitted = model.eval(meas.wi, meas.wo, params)
+    groups, counts = np.unique(np.round(theta_i[out_of_plane]), return_counts=True)
+    ti = float(groups[np.argmax(counts)])
+    sel = np.abs(theta_i - ti) < 0.6
+    phi_in = float(np.median(phi_i[sel]))
+    t, p = np.meshgrid(np.radians(np.linspace(0, 85, 60)), np.radians(np.linspace(-180, 180, 121)))
+    wo_g = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1).reshape(-1, 3)
+    wi_g = np.tile([np.sin(np.radians(ti)) * np.cos(phi_in), np.sin(np.radians(ti)) * np.sin(phi_in),
+                    np.cos(np.radians(ti))], (wo_g.shape[0], 1))
+    c = 1 if meas.n_channels > 1 else 0
+    grid = model.eval(wi_g, wo_g, params)[:, c].reshape(t.shape)
+    norm = matplotlib.colors.LogNorm(vmin=max(float(grid.min()), 1e-4), vmax=float(grid.max()))
+    fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(8.4, 4.0))
+    for ax, title in zip(axes, ("fit (background) and measurement (dots)", "measurement / fit")):
+        ax.set_ylim(0, 85)
+        ax.set_title(title, fontsize=9)
+    mesh = axes[0].pcolormesh(p, np.degrees(t), grid, norm=norm, cmap="viridis", shading="auto")
+    axes[0].scatter(phi_o[sel], theta_o[sel], c=meas.brdf[sel, c], norm=norm, cmap="viridis", edgecolors="white", s=28)
+    fig.colorbar(mesh, ax=axes[0], shrink=0.7, label=f"f_r {label(meas.channels[c])} (1/sr)")
+    ratio = meas.brdf[sel, c] / np.maximum(fitted[sel, c], 1e-12)
+    spread = 3 * float(np.std(ratio - 1) + 1e-6)
+    sc = axes[1].scatter(phi_o[sel], theta_o[sel], c=ratio, cmap="coolwarm", s=28, vmin=1 - spread, vmax=1 + spread)
+    fig.colorbar(sc, ax=axes[1], shrink=0.7)
+    fig.suptitle(f"theta_i = {ti:.0f} deg", fontsize=9)
+    return {"polar.png": _png(fig)}
+
+
+def residuals(meas, model, params) -> dict:
+    import matplotlib.pyplot as plt
+
+    theta_i, theta_o, _, _ = angles(meas)
+    resid = (meas.brdf - model.eval(meas.wi, meas.wo, params)) / meas.brdf_std
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
+    axes[0].hist(resid[meas.use].ravel(), bins=40, color="grey")
+    axes[0].set_xlabel("(measured - fit) / sigma")
+    axes[0].set_title("fit residuals", fontsize=9)
+    sc = axes[1].scatter(theta_i, theta_o, c=np.sqrt(np.mean(resid ** 2, axis=1)), cmap="magma", s=16)
+    axes[1].set_xlabel("theta_i (deg)")
+    axes[1].set_ylabel("theta_o (deg)")
+    axes[1].set_title("rms residual / sigma per point", fontsize=9)
+    fig.colorbar(sc, ax=axes[1])
+    return {"residuals.png": _png(fig)}
+
+
+def albedo(model, params) -> dict:
+    """Directional albedo of the fit."""
+    import matplotlib.pyplot as plt
+
+    t = np.radians(np.linspace(0, 85, 35))
+    wo_a = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)
+    alb = model.albedo(wo_a, params)
+    fig, ax = plt.subplots(figsize=(4.2, 3.0))
+    for c in range(alb.shape[1]):
+        ax.plot(np.degrees(t), alb[:, c], color=COLOURS[c % 3])
+    ax.set_xlabel("theta_o (deg)")
+    ax.set_ylabel("directional albedo")
+    ax.set_ylim(0, max(1.05, float(alb.max()) * 1.05))
+    return {"albedo.png": _png(fig)}
+
+
+def corner_plot(samples: np.ndarray, names, converged: bool) -> dict:
+    import corner
+
+    fig = corner.corner(samples, labels=[label(n) for n in names] if names else None, quantiles=[0.05, 0.5, 0.95],
+                        label_kwargs={"fontsize": 8})
+    fig.suptitle("posterior (emcee)" + ("" if converged else ": chain too short, see advice"), fontsize=9)
+    return {"corner.png": _png(fig)}
+
+
+def mitsuba_vs_measured(meas, rendered: np.ndarray) -> dict:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.2, 4.0))
+    for c in range(min(3, rendered.shape[1], meas.n_channels)):
+        ax.loglog(meas.brdf[:, c], rendered[:, c], "o", ms=3, color=COLOURS[c])
+    positive = meas.brdf[meas.brdf > 0]
+    lim = [max(1e-4, float(np.min(positive)) * 0.8 if positive.size else 1e-4), max(float(np.max(meas.brdf)) * 1.2, 1e-3)]
+    ax.plot(lim, lim, "k--", lw=0.8)
+    ax.set_xlabel("measured f_r (1/sr)")
+    ax.set_ylabel("Mitsuba render of the fit (1/sr)")
+    return {"mitsuba_vs_measured.png": _png(fig)}

@@ -1,0 +1,1 @@
+window.addEventListener('load',function(){var im=Array.prototype.slice.call(document.images);document.body.setAttribute('data-images-decoded',im.filter(function(i){return i.complete&&i.naturalWidth>0;}).length+'/'+im.length);});
