@@ -74,9 +74,19 @@ def load_sample(source) -> dict:
             head = fh.read(12)
         if not head.startswith(b"tensor_file"):
             raise GonioError(f"{path} is not an RGL-EPFL tensor .bsdf file (bad header)")
+        from gonio.fitting.formats import check_rgl_file
+
+        try:
+            check_rgl_file(path)       # the whole structure, before any stage moves
+        except ValueError as exc:
+            raise GonioError(f"sample {' '.join(str(exc).split())}") from None
         return {"bsdf_file": str(path.resolve())}
     try:
         spec = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise GonioError(f"sample file {path} is not valid TOML ({exc}); fix the syntax") from None
+    except UnicodeDecodeError:
+        raise GonioError(f"sample file {path} is not UTF-8 text; give a sample TOML or a measured .bsdf file") from None
+    except OSError as exc:
+        raise GonioError(f"cannot read sample file {path} ({exc.strerror}); check the path") from None
     return check_sample(spec)

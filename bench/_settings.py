@@ -47,6 +47,8 @@ def load_settings(path: str | Path | None = None) -> dict[str, Any]:
         text = path.read_text()
     except OSError as exc:
         raise GonioError(f"cannot read settings file {path}: {exc.strerror}; check the path") from None
+    except UnicodeDecodeError:
+        raise GonioError(f"settings file {path} is not UTF-8 text; give a settings TOML file") from None
     try:
         user = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

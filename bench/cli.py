@@ -33,7 +33,21 @@ def _version() -> str:
         return "unknown"
 
 
+def _env(func):
+    """Environment errors (disk full, read-only, binary garbage) inside a command: one line, exit 2."""
+    import functools
+
+    @functools.wraps(func)
+    def run(args):
+        from ._preflight import environment_errors
+
+        with environment_errors():
+            return func(args)
+    return run
+
+
 # --------------------------------------------------------------------------- commands
+@_env
 def _cmd_demo(args):
     from .demo import run_demo
 
@@ -56,6 +70,7 @@ def _cmd_capture(args):
                                camera=args.camera, dry_run=args.dry_run, progress=not args.quiet)
 
 
+@_env
 def _cmd_export(args):
     from .export import export
 
@@ -63,12 +78,14 @@ def _cmd_export(args):
     print(f"wrote {path}")
 
 
+@_env
 def _cmd_fit(args):
     from .fit_runner import fit_batch_cli, fit_cli
 
     if args.batch:
         fit_batch_cli([Path(d) for d in args.dataset], model=args.model, options=args.option, out=Path(args.out),
-                      seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers)
+                      seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers,
+                      dashboard=args.dashboard)
         return
     if len(args.dataset) != 1:
         raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")
@@ -76,6 +93,7 @@ def _cmd_fit(args):
             loss=args.loss, posterior=args.posterior)
 
 
+@_env
 def _cmd_render(args):
     from .fit_runner import render_cli
 
@@ -83,24 +101,58 @@ def _cmd_render(args):
                measured=args.measured, size=args.size, spp=args.spp)
 
 
+@_env
 def _cmd_convert(args):
     from .fit_runner import convert_cli
 
     convert_cli(Path(args.source), Path(args.out), args.to)
 
 
+@_env
 def _cmd_report(args):
+    from ._preflight import check_output_file
     from .report import write_report
 
-    path = write_report(Path(args.folder), Path(args.out) if args.out else None)
+    folder = Path(args.folder)
+    if folder.is_dir():     # (a missing folder gets write_report's own one line)
+        check_output_file(Path(args.out) if args.out else folder / "report.html", "report file")
+    path = write_report(folder, Path(args.out) if args.out else None)
     print(f"wrote {path}")
 
 
+def _check_clock(spec: str) -> None:
+    """``--clock``: instant, realtime/real, or a finite time scale factor > 0."""
+    import math
+
+    if str(spec).strip().lower() in ("instant", "realtime", "real"):
+        return
+    try:
+        scale = float(spec)
+    except ValueError:
+        scale = math.nan
+    if not (math.isfinite(scale) and 1e-6 <= scale <= 1e6):
+        raise GonioError(f"--clock {spec!r}: use instant, realtime or a time scale factor between 1e-6 and 1e6 "
+                         "such as 10")
+
+
+@_env
 def _cmd_sim_serve(args):
     from . import session_runner
 
-    session_runner.serve_cli(sample=args.sample, seed=args.seed, settings=args.settings, clock=args.clock,
-                             faults=args.faults)
+    _check_clock(args.clock)
+    # SIGTERM and SIGHUP end the server like Ctrl-C: ptys closed, its /tmp/gonio-sim-* folder removed
+    import signal
+
+    def _stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        session_runner.serve_cli(sample=args.sample, seed=args.seed, settings=args.settings, clock=args.clock,
+                                 faults=args.faults)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _cmd_estop(args):
@@ -110,14 +162,18 @@ def _cmd_estop(args):
     print("emergency stop sent to every device")
 
 
+@_env
 def _cmd_bench_models(args):
     try:
         from gonio.models.bench import run
     except ImportError:
         raise GonioError("this build of gonio.models has no benchmark") from None
+    if not 1_000 <= args.n <= 10_000_000:
+        raise GonioError(f"-n {args.n}: give a batch of direction pairs between 1000 and 10000000")
     run(n=args.n)
 
 
+@_env
 def _cmd_bench_fit(args):
     from gonio.fitting.bench import run
 
@@ -170,7 +226,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sample the posterior with emcee")
     f.add_argument("--batch", action="store_true", help="fit every DATASET on Dask; --out is then a folder")
     f.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
-    f.add_argument("--workers", type=int, default=2, help="local Dask workers (default 2)")
+    f.add_argument("--workers", type=int, default=2,
+                   help="local Dask workers (default 2); the local cluster talks TLS with a certificate made for the run")
+    f.add_argument("--dashboard", metavar="HOST:PORT",
+                   help="serve the local cluster's Dask dashboard there, e.g. 127.0.0.1:8787 (default: none)")
     f.set_defaults(func=_cmd_fit)
 
     r = sub.add_parser("render", help="re-render a fit in Mitsuba at the dataset's geometry and compare")

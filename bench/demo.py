@@ -25,7 +25,7 @@ def _clear_previous_demo(session: Path):
     marker = session / "session.toml"
     try:
         is_demo = marker.exists() and tomllib.loads(marker.read_text()).get("meta", {}).get("demo", False)
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
         is_demo = False
     if not is_demo:
         raise GonioError(f"{session} exists and is not a previous demo session; choose another --out")
@@ -88,8 +88,14 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
     from .report import write_report
     from .session_runner import capture_sim
 
+    from ._preflight import check_output_dir
+    from .plans import load_plan
+
     console = Console()
     out = Path(out)
+    plan_obj = load_plan(plan)          # a bad plan is refused before anything is written
+    # RAW files (about 150 kB a point with the calibration frames), dataset, fit, renders
+    check_output_dir(out, "demo output folder (--out)", need_bytes=len(plan_obj) * 256 * 1024 + 32 * 2 ** 20)
     out.mkdir(parents=True, exist_ok=True)
     session = out / "session"
     _clear_previous_demo(session)
@@ -97,12 +103,15 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
     timings = {}
 
     t = time.perf_counter()
-    capture_sim(session, sample=sample, plan=plan, seed=seed, progress=True, demo=True)
+    capture_sim(session, sample=sample, plan=plan_obj, seed=seed, progress=True, demo=True)
     timings["capture (simulated instrument)"] = time.perf_counter() - t
 
     t = time.perf_counter()
     dataset = export(session)
-    shutil.copyfile(dataset, out / "dataset.nc")
+    from gonio.fitting._io import atomic_open
+
+    with open(dataset, "rb") as src, atomic_open(out / "dataset.nc", "wb") as dst:
+        shutil.copyfileobj(src, dst)
     timings["export dataset.nc"] = time.perf_counter() - t
 
     meas = load_dataset(dataset)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,9 @@ def print_fit(doc, truth=None, console=None):
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
     from gonio.fitting import write_json_atomic
 
+    from ._preflight import check_output_file
+
+    check_output_file(out, "fit file (--out)")
     meas = _open_dataset(dataset, seed)
     _, doc, _ = fit_dataset(meas, model=model, options=parse_options(options), seed=seed, loss=loss,
                             posterior=posterior, dataset_path=dataset)
@@ -166,13 +170,25 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
     print(f"wrote {out}")
 
 
-def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers):
+def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None):
     """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``."""
     import gonio.models as gm
     from gonio.fitting import fit_batch, fit_document, write_json_atomic
 
+    from gonio.fitting._batch import check_scheduler_address, check_workers
+
+    from ._preflight import check_output_dir
+
     if model == "auto":
         raise GonioError("--batch needs a named --model (e.g. roughplastic); auto is for single fits")
+    try:
+        if scheduler is None:
+            check_workers(workers)
+        else:
+            check_scheduler_address(scheduler)
+    except ValueError as exc:
+        raise GonioError(str(exc)) from None
+    check_output_dir(out, "batch output folder (--out)")
     try:
         m = gm.get(model, **parse_options(options))
     except (KeyError, ValueError, TypeError) as exc:
@@ -182,9 +198,11 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
     if len(set(stems)) != len(stems):
         stems = [f"{k:04d}_{s}" for k, s in enumerate(stems)]
     try:
-        results = fit_batch(metas, m, scheduler=scheduler, n_workers=workers, rng_seed=seed, loss=loss)
-    except OSError as exc:
-        raise GonioError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+        results = fit_batch(metas, m, scheduler=scheduler, n_workers=min(workers, len(metas)), rng_seed=seed,
+                            loss=loss, dashboard_address=dashboard)
+    except (OSError, TimeoutError) as exc:
+        raise GonioError(f"cannot reach the Dask scheduler {scheduler} ({' '.join(str(exc).split())[:200]}); "
+                         "check the address and that it is running") from None
     out.mkdir(parents=True, exist_ok=True)
     for path, meas, result, stem in zip(datasets, metas, results, stems):
         write_json_atomic(out / f"{stem}.fit.json", fit_document(result, meas, seed=seed, dataset_path=path))
@@ -220,6 +238,24 @@ def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     return result
 
 
+def _check_measured(path: Path) -> None:
+    """``--measured``: an existing MERL .binary or a well-formed RGL .bsdf file."""
+    from gonio.fitting.formats import check_rgl_file, read_merl
+
+    if not path.is_file():
+        raise GonioError(f"measured data {path} does not exist or is not a file; give a MERL .binary or RGL .bsdf file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".bsdf":
+            check_rgl_file(path)
+        elif suffix == ".binary":
+            read_merl(path)
+        else:
+            raise GonioError(f"measured data {path}: give a MERL .binary or an RGL .bsdf file")
+    except ValueError as exc:
+        raise GonioError(f"measured data {path} is not readable ({' '.join(str(exc).split())[:200]})") from None
+
+
 def render_previews(fit_path: Path, out_dir: Path, measured=None, size: int = 128, spp: int = 256) -> dict:
     """Sphere previews of the fit (and of the measured data) with CIEDE2000; writes preview.json."""
     from gonio.fitting import load_fit, write_json_atomic
@@ -236,8 +272,61 @@ def render_previews(fit_path: Path, out_dir: Path, measured=None, size: int = 12
     return summary
 
 
+#: preview bounds: a size x size image at spp samples per pixel, rendered four times
+PREVIEW_SIZE = (8, 2048)
+PREVIEW_SPP = (1, 16384)
+PREVIEW_MAX_SAMPLES = 1 << 30
+
+
+def check_variant(variant):
+    """``--variant``: a Mitsuba RGB variant that this machine can run (None: gonio's choice)."""
+    if variant is None:
+        return None
+    import mitsuba as mi
+
+    import gonio.models as gm
+
+    known = [v for v in mi.variants() if v.endswith("_rgb")]
+    if variant not in known:
+        raise GonioError(f"--variant {str(variant)[:60]!r}: use one of {', '.join(known)} (gonio renders RGB)")
+    if mi.variant() is None:
+        mi.set_variant(gm.mitsuba_variant())
+    try:
+        with mi.scoped_set_variant(variant):
+            mi.load_dict({"type": "diffuse"})
+    except (ImportError, RuntimeError) as exc:
+        first = str(exc).split(".")[0][:160]
+        raise GonioError(f"--variant {variant} does not run on this machine ({first}); "
+                         f"use {gm.mitsuba_variant()} or scalar_rgb") from None
+    return variant
+
+
+def check_preview_options(size, spp):
+    """``--size`` and ``--spp`` within bounds (one line otherwise)."""
+    lo, hi = PREVIEW_SIZE
+    if not lo <= int(size) <= hi:
+        raise GonioError(f"--size {size}: give a preview size from {lo} to {hi} pixels")
+    lo, hi = PREVIEW_SPP
+    if not lo <= int(spp) <= hi:
+        raise GonioError(f"--spp {spp}: give from {lo} to {hi} samples per pixel")
+    if int(size) ** 2 * int(spp) > PREVIEW_MAX_SAMPLES:
+        raise GonioError(f"--size {size} with --spp {spp} is {int(size) ** 2 * int(spp):.3g} samples per image; "
+                         f"keep size^2 x spp at most {PREVIEW_MAX_SAMPLES:.3g}")
+
+
 def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, preview=False, measured=None,
                size=128, spp=256):
+    from ._preflight import check_output_dir
+
+    # every option is checked before anything is rendered or written
+    if preview or measured:
+        check_preview_options(size, spp)
+    check_output_dir(out_dir, "render output folder (--out)")
+    if measured is not None:
+        _check_measured(Path(measured))
+    check_variant(variant)
+    if not Path(fit_path).exists():
+        raise GonioError(f"fit file {fit_path} does not exist; run `gonio fit DATASET --out FIT.json` first")
     meas = _open_dataset(dataset)
     result = render_closure(fit_path, meas, out_dir, variant)
     s = result["summary"]
@@ -255,9 +344,18 @@ def convert_cli(source: Path, out: Path, to: str):
     """Exchange formats: fit -> Mitsuba XML / dict JSON / MERL; dataset -> CSV / MERL (binned)."""
     from gonio.fitting import load_fit, write_json_atomic
     from gonio.fitting import formats
+    from gonio.fitting._io import atomic_open
+
+    from ._preflight import check_output_file
 
     if not source.exists():
         raise GonioError(f"{source} does not exist")
+    if source.is_dir():
+        raise GonioError(f"{source} is a folder; give a fit file (FIT.json) or a dataset.nc")
+    merl_bytes = 12 + 3 * 90 * 90 * 180 * 8
+    check_output_file(out, "converted file (--out)", need_bytes=merl_bytes if to in ("merl", "merl-data") else 0)
+    if Path(os.path.abspath(out)) == Path(os.path.abspath(source)):
+        raise GonioError(f"--out {out} is the source file; give another file name")
     if to in ("mitsuba-xml", "mitsuba-dict", "merl"):
         if source.suffix.lower() != ".json":
             raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
@@ -272,9 +370,8 @@ def convert_cli(source: Path, out: Path, to: str):
             if to == "mitsuba-dict":
                 write_json_atomic(out, d)
             else:
-                from ._files import atomic_write_text
-
-                atomic_write_text(out, xml)
+                with atomic_open(out, "w", encoding="utf-8") as fh:
+                    fh.write(xml)
     elif to == "csv":
         formats.dataset_to_csv(_open_dataset(source), out)
     elif to == "merl-data":

@@ -59,6 +59,9 @@ __all__ = [
 PRESET_DIR = Path(__file__).with_name("presets")
 PRESETS = ("quick", "standard", "dense")
 COLUMNS = ("theta_i", "phi_i", "theta_o", "phi_o")
+#: most points in one plan (the dense preset has about 1000): the ordering's N x N matrices
+#: stay under 128 MiB each, and a generator never runs without bound
+MAX_POINTS = 4000
 
 
 def preset_names() -> list[str]:
@@ -110,6 +113,10 @@ def _validated_angles(angles, name: str) -> np.ndarray:
                         "(theta_i, phi_i, theta_o, phi_o in degrees); fix the plan file") from None
     if a.size == 0:
         raise PlanError(f"plan {name!r} has no points; add points or scans to it")
+    if a.ndim == 2 and a.shape[0] > MAX_POINTS:
+        raise PlanError(f"plan {name!r} has {a.shape[0]} points, more than {MAX_POINTS} (the move ordering's "
+                        f"N x N matrices would need {8 * a.shape[0] ** 2 / 2 ** 20:.0f} MiB each); split it into plans "
+                        f"of at most {MAX_POINTS} points")
     if a.ndim != 2 or a.shape[1] != 4:
         raise PlanError(f"plan {name!r}: each point needs exactly 4 angles "
                         "(theta_i, phi_i, theta_o, phi_o in degrees); fix the plan file")
@@ -176,6 +183,9 @@ def hemisphere_directions(n: int, max_theta_deg: float = 80.0) -> tuple[np.ndarr
     """
     if n < 1:
         raise PlanError("a hemisphere scan needs n >= 1; fix the plan file")
+    if n > MAX_POINTS:
+        raise PlanError(f"a hemisphere scan of n = {n} directions is more than a plan holds ({MAX_POINTS}); "
+                        "lower n in the plan file")
     if not 0 < max_theta_deg < 90:
         raise PlanError(f"hemisphere max_theta {max_theta_deg} must be in (0, 90) deg; fix the plan file")
     tmax = math.radians(max_theta_deg)
@@ -254,6 +264,12 @@ def _scan(spec: Mapping[str, Any], name: str, k: int) -> np.ndarray:
         raise PlanError(f"plan {name!r}: scan {k} ({kind}) has unknown keys {sorted(extra)}; "
                         f"allowed: {sorted(_SCAN_KEYS[kind])}")
     try:
+        lengths = {key: (len(v) if isinstance(v, list) else 1) for key, v in spec.items()
+                   if key in ("theta_i", "theta_o", "phi_d")}
+        count = math.prod(lengths.values()) * (int(spec["n"]) if kind == "hemisphere" else 1)
+        if count > MAX_POINTS:
+            raise PlanError(f"plan {name!r}: scan {k} ({kind}) makes about {count} points, more than a plan holds "
+                            f"({MAX_POINTS}); make it smaller")
         if kind == "in_plane":
             a = in_plane(_nums(spec["theta_i"]), _nums(spec["theta_o"]), float(spec.get("phi", 0.0)),
                          float(spec.get("exclude_backscatter_deg", 8.0)))
@@ -329,6 +345,8 @@ def load_plan(spec: str | Path) -> Plan:
     except OSError as exc:
         raise PlanError(f"cannot read plan file {path}: {exc.strerror or exc}; check the path "
                         f"or use a preset ({', '.join(preset_names())})") from None
+    except UnicodeDecodeError:
+        raise PlanError(f"plan file {path} is not UTF-8 text; give a plan TOML or CSV file") from None
     if path.suffix.lower() == ".csv":
         return _plan_from_csv(text, path)
     try:

@@ -36,7 +36,7 @@ from ._io import atomic_open
 __all__ = [
     "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "dataset_to_merl", "half_diff_angles",
     "merl_bin_directions", "merl_to_measurements", "mitsuba_snippet", "read_merl", "resample_to_merl",
-    "rgl_measurements", "write_merl",
+    "rgl_measurements", "write_merl", "check_rgl_file",
 ]
 
 #: Grid size (theta_h, theta_d, phi_d) of a MERL table.
@@ -328,6 +328,70 @@ def merl_to_measurements(merl, wi=None, wo=None, *, n: int | None = None, rng=No
 # ---------------------------------------------------------------------------------------
 # RGL .bsdf (through Mitsuba's `measured` plugin)
 # ---------------------------------------------------------------------------------------
+#: element sizes of the tensor file's dtype codes (Mitsuba's Struct types: u8 i8 u16 i16 u32 i32 u64 i64 f16 f32 f64)
+_TENSOR_DTYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 8, 8: 8, 9: 2, 10: 4, 11: 8}
+#: fields Mitsuba's ``measured`` plugin reads (besides rgb, or spectra and wavelengths)
+_RGL_FIELDS = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "description", "jacobian")
+_RGL_MAX_BYTES = 1 << 30
+
+
+def check_rgl_file(path) -> dict:
+    """Check an RGL-EPFL ``.bsdf`` tensor file's structure in Python, before Mitsuba reads it.
+
+    The header, every field's name, dtype, shape and byte range must be well formed and lie
+    inside the file, and the fields the ``measured`` plugin needs must be there (float32
+    where they are numbers). Returns ``{name: (dtype code, shape)}``.
+
+    Raises
+    ------
+    ValueError
+        With one line saying what is wrong.
+    """
+    import struct
+
+    path = Path(path)
+    size = path.stat().st_size
+    if size > _RGL_MAX_BYTES:
+        raise ValueError(f"{path}: {size} bytes, more than an RGL .bsdf file holds ({_RGL_MAX_BYTES} at most)")
+    with open(path, "rb") as fh:
+        head = fh.read(min(size, 1 << 16))
+    if not head.startswith(b"tensor_file\x00"):
+        raise ValueError(f"{path} is not an RGL-EPFL tensor .bsdf file (bad header)")
+    fields = {}
+    try:
+        pos = 12
+        major, minor = head[pos], head[pos + 1]
+        (count,) = struct.unpack_from("<I", head, pos + 2)
+        pos += 6
+        if (major, minor) != (1, 0) or not 1 <= count <= 64:
+            raise ValueError(f"{path}: tensor file version {major}.{minor} with {count} fields is not an RGL .bsdf file")
+        for _ in range(count):
+            (length,) = struct.unpack_from("<H", head, pos)
+            name = head[pos + 2:pos + 2 + length].decode("ascii")
+            pos += 2 + length
+            ndim, dtype, offset = struct.unpack_from("<HBQ", head, pos)
+            pos += 11
+            if not 0 <= ndim <= 8 or dtype not in _TENSOR_DTYPE_SIZE:
+                raise ValueError(f"{path}: field {name!r} has {ndim} dimensions and dtype {dtype}")
+            shape = struct.unpack_from(f"<{ndim}Q", head, pos)
+            pos += 8 * ndim
+            nbytes = _TENSOR_DTYPE_SIZE[dtype] * int(np.prod(shape, dtype=object))
+            if offset < pos or offset + nbytes > size:
+                raise ValueError(f"{path}: field {name!r} lies outside the file (truncated or damaged)")
+            fields[name] = (dtype, tuple(int(d) for d in shape))
+    except (struct.error, IndexError, UnicodeDecodeError):
+        raise ValueError(f"{path}: the tensor file's header is truncated or damaged") from None
+    missing = [f for f in _RGL_FIELDS if f not in fields]
+    if "rgb" not in fields and not {"spectra", "wavelengths"} <= set(fields):
+        missing.append("rgb")
+    if missing:
+        raise ValueError(f"{path}: not an RGL BSDF measurement (no {', '.join(missing)} field)")
+    for name in ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "rgb", "spectra", "wavelengths"):
+        if name in fields and fields[name][0] != 10:
+            raise ValueError(f"{path}: field {name!r} is not float32")
+    return fields
+
+
 class RGLBRDF:
     """An RGL-EPFL ``.bsdf`` file (isotropic RGB) evaluated through Mitsuba's ``measured``.
 
@@ -343,11 +407,16 @@ class RGLBRDF:
             raise FileNotFoundError(f"RGL BSDF file not found: {self.path}")
         from ._batch_render import _select_variant
 
+        check_rgl_file(self.path)
         self.variant = _select_variant(variant)
         import mitsuba as mi
 
         with mi.scoped_set_variant(self.variant):
-            self._bsdf = mi.load_dict(self.mitsuba_dict())
+            try:
+                self._bsdf = mi.load_dict(self.mitsuba_dict())
+            except RuntimeError as exc:
+                reason = str(exc).rsplit("]", 1)[-1].strip()[:200]
+                raise ValueError(f"{self.path}: Mitsuba cannot read it as an RGL .bsdf file ({reason})") from None
 
     def mitsuba_dict(self) -> dict:
         return {"type": "measured", "filename": self.path}

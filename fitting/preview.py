@@ -159,9 +159,12 @@ def measured_bsdf_dict(measured, variant: str | None = None) -> dict:
         path = Path(measured)
         if not path.is_file():
             raise FileNotFoundError(f"measured data not found: {path}")
-        if path.suffix == ".bsdf":
+        if path.suffix.lower() == ".bsdf":
+            from .formats import check_rgl_file
+
+            check_rgl_file(path)
             return {"type": "measured", "filename": str(path)}
-        if path.suffix == ".binary":
+        if path.suffix.lower() == ".binary":
             return register_merl_bsdf(path, variant)
         raise ValueError(f"{path}: expected an RGL .bsdf or a MERL .binary file")
     raise TypeError(f"cannot render measured data of type {type(measured).__name__}:"

@@ -41,6 +41,7 @@ class PtyServer:
 
     def __init__(self, instrument: Instrument, link_dir: str | None = None):
         self.instrument = instrument
+        self._own_dir = link_dir is None        # a folder this server made goes away with it
         self.link_dir = link_dir or tempfile.mkdtemp(prefix="gonio-sim-")
         os.makedirs(self.link_dir, exist_ok=True)
         self._fds: dict[str, tuple[int, int]] = {}      # port -> (master, slave)
@@ -159,6 +160,15 @@ class PtyServer:
         for ep in self.instrument.ports.values():
             if self._vanished in ep.on_vanish:
                 ep.on_vanish.remove(self._vanished)
+        if self._own_dir:
+            for name in self.instrument.ports:
+                for link in (os.path.join(self.link_dir, name), os.path.join(self.link_dir, name) + ".new"):
+                    if os.path.lexists(link):
+                        os.unlink(link)
+            try:
+                os.rmdir(self.link_dir)
+            except OSError:
+                pass
 
     def __enter__(self):
         return self
