@@ -1,32 +1,55 @@
 # gonio: two commands on a fresh Debian machine.
 #   make demo   full loop on the simulated instrument (capture, export, fit, render, report)
 #   make test   the test suite
-# Each installs what it needs: a virtual environment with gonio and its dependencies, and
-# Debian's libllvm19 (Mitsuba's fast LLVM variants) when apt-get is available.
+# Each installs what it needs: a virtual environment with gonio and its dependencies at the
+# versions pinned in constraints.txt, and Debian's libllvm19 (Mitsuba's fast LLVM variants)
+# when apt-get is available. `make test-latest` tries the newest releases instead.
 
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.stamp-install
 
-.PHONY: demo test test-fast install llvm chromium clean
+.PHONY: demo test test-fast test-codegen test-latest lock install llvm chromium clean
 
 demo: $(STAMP)
 	$(VENV)/bin/gonio demo
 
+# The whole suite on both cores, then the tests whose numbers depend on Dr.Jit's machine
+# code once more under another code generation (AVX2 on an AVX-512 host, SSE4 on an AVX2
+# host): the next CI machine may have the other one (issue 12).
 test: $(STAMP) chromium
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2
+	@$(MAKE) --no-print-directory test-codegen
 
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
+test-codegen: $(STAMP)
+	@other=$$($(PY) -m gonio.models._jit_target --other); \
+	if [ -n "$$other" ]; then \
+	  echo "numerical tests again under Dr.Jit's $$other code generation (GONIO_LLVM_TARGET=$$other)"; \
+	  GONIO_LLVM_TARGET=$$other $(PY) -m pytest -q -n 2 -m codegen; \
+	else echo "no second code generation on this CPU; numerical tests ran once"; fi
+
+# The suite against the newest releases of every dependency, in a venv of its own.
+test-latest:
+	$(PYTHON) -m venv .venv-latest
+	.venv-latest/bin/python -m pip install -q --upgrade pip
+	.venv-latest/bin/python -m pip install -q --upgrade --upgrade-strategy eager -e ".[test]"
+	.venv-latest/bin/python -m pytest -q -n 2
+
+# Re-pin constraints.txt to what the current venv holds (after a deliberate upgrade).
+lock: $(STAMP)
+	$(PY) -m pip freeze --exclude-editable | grep -v '^#' > constraints.txt
+
 install: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@$(MAKE) --no-print-directory llvm
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[test]"
+	$(PY) -m pip install -q -c constraints.txt -e ".[test]"
 	@touch $@
 
 # Install a Debian package when missing, as root with apt-get; otherwise say what follows.
@@ -51,4 +74,4 @@ chromium:
 	$(call apt_install,command -v chromium,chromium,for the report's browser test,the report's browser test will be skipped)
 
 clean:
-	rm -rf $(VENV) gonio-out .pytest_cache
+	rm -rf $(VENV) .venv-latest gonio-out .pytest_cache

@@ -66,7 +66,12 @@ def available():
         r = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, timeout=120)
     except Exception:
         return False
-    return r.returncode == 0
+    if r.returncode != 0:
+        return False
+    from ._jit_target import apply_env
+
+    apply_env()  # GONIO_LLVM_TARGET, before this process compiles its first kernel
+    return True
 
 
 def _dr():

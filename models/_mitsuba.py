@@ -76,6 +76,10 @@ def mitsuba_variant():
                 )
                 mi.set_variant(FALLBACK)
                 _chosen = FALLBACK
+        if _chosen.startswith("llvm"):
+            from ._jit_target import apply_env
+
+            apply_env()  # GONIO_LLVM_TARGET, before Mitsuba compiles its first kernel
     elif mi.variant() != _chosen:
         mi.set_variant(_chosen)
     return _chosen

@@ -10,6 +10,8 @@ from gonio.fitting import Measurements, fit
 
 from _simdata import simulate
 
+pytestmark = pytest.mark.codegen  # run again under a second code generation (issue 12)
+
 RP = gm.get("roughplastic", distribution="ggx")
 RHO = np.array([0.5, 0.4, 0.3])
 

@@ -13,7 +13,8 @@ from gonio.models import _fast
 
 from models_testutil import random_hemisphere, random_params
 
-pytestmark = pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable")
+pytestmark = [pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable"),
+              pytest.mark.codegen]
 
 
 def configs():

@@ -1,0 +1,135 @@
+"""Which machine code Dr.Jit's LLVM backend generates: the host's, or a named x86-64 level.
+
+Dr.Jit compiles every kernel for the host CPU by default (on AVX-512 machines 16 float32
+lanes, FMA contraction, the host's rcp/rsqrt refinements), so the last bits of a float32
+result depend on the machine. Pinning a target makes them the same on every machine that
+supports it, and lets one machine run the test suite under another machine's code
+generation (issue 12).
+
+Dr.Jit's Python package does not expose the setting, but its C library does:
+``jit_llvm_set_target(const char *cpu, const char *features, uint32_t vector_width)`` in
+``libdrjit-core.so`` (C++ linkage; see drjit-core's ``include/drjit-core/jit.h``). It
+applies to kernels compiled after the call; kernels already compiled stay as they are,
+so call it before the first evaluation (the environment variable ``GONIO_LLVM_TARGET``,
+read by :func:`apply_env`, is the way to do that for a whole process).
+
+Targets
+-------
+``native``   the host's CPU, features and width (Dr.Jit's default; nothing is changed)
+``avx2``     x86-64-v3: Haswell's features (AVX2, FMA, F16C, BMI1/2), 8 float32 lanes
+``sse4``     x86-64-v2: Nehalem's features (SSE4.2, POPCNT), 4 float32 lanes
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+
+__all__ = ["TARGETS", "llvm_target", "set_llvm_target", "apply_env", "other_target"]
+
+TARGETS: dict[str, tuple[str, str, int] | None] = {
+    "native": None,
+    "avx2": ("haswell", "+sse2,+sse3,+ssse3,+sse4.1,+sse4.2,+popcnt,+cx16,+avx,+avx2,+fma,+f16c,+bmi,+bmi2,"
+             "+lzcnt,+movbe", 8),
+    "sse4": ("nehalem", "+sse2,+sse3,+ssse3,+sse4.1,+sse4.2,+popcnt,+cx16", 4),
+}
+
+# the host features each target needs (names as /proc/cpuinfo spells them)
+_NEEDS = {"avx2": {"avx", "avx2", "fma", "f16c", "bmi1", "bmi2"}, "sse4": {"sse4_2", "popcnt"}}
+
+_lib = None
+
+
+def _core():
+    global _lib
+    if _lib is None:
+        import drjit as dr
+
+        _lib = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+        _lib._Z19jit_llvm_target_cpuv.restype = ctypes.c_char_p
+        _lib._Z24jit_llvm_target_featuresv.restype = ctypes.c_char_p
+        _lib._Z21jit_llvm_vector_widthv.restype = ctypes.c_uint32
+        _lib._Z19jit_llvm_set_targetPKcS0_j.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+        _lib._Z19jit_llvm_set_targetPKcS0_j.restype = None
+    return _lib
+
+
+def _init_llvm() -> None:
+    # the target strings exist once the backend has started: one tiny evaluation starts it
+    import drjit as dr
+    from drjit.llvm import Float
+
+    dr.eval(Float(0.0) + 1.0)
+
+
+def llvm_target() -> tuple[str, int]:
+    """(cpu name, float32 vector width) that Dr.Jit's LLVM backend compiles for now."""
+    _init_llvm()
+    lib = _core()
+    return lib._Z19jit_llvm_target_cpuv().decode(), int(lib._Z21jit_llvm_vector_widthv())
+
+
+def _host_flags() -> set[str]:
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def set_llvm_target(name: str) -> tuple[str, int]:
+    """Make Dr.Jit compile every later LLVM kernel for target ``name`` (see the module
+    docstring); return the (cpu, width) now in effect.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name, or a target the host cannot execute (its CPU lacks a feature
+        the target needs: the kernels would stop with an illegal instruction).
+    """
+    key = name.strip().lower()
+    if key not in TARGETS:
+        raise ValueError(f"unknown LLVM target {name!r}: choose one of {', '.join(TARGETS)}")
+    spec = TARGETS[key]
+    if spec is None:
+        return llvm_target()
+    flags = _host_flags()
+    missing = sorted(_NEEDS[key] - flags) if flags else []
+    if missing:
+        raise ValueError(f"this CPU cannot run the {key} target (it lacks {', '.join(missing)})")
+    _init_llvm()
+    cpu, features, width = spec
+    _core()._Z19jit_llvm_set_targetPKcS0_j(cpu.encode(), features.encode(), width)
+    return llvm_target()
+
+
+def apply_env() -> tuple[str, int] | None:
+    """Apply ``GONIO_LLVM_TARGET`` when set (``native``, ``avx2``, ``sse4``); return the
+    target in effect, or None when the variable is unset."""
+    name = os.environ.get("GONIO_LLVM_TARGET", "").strip()
+    if not name:
+        return None
+    return set_llvm_target(name)
+
+
+def other_target() -> str:
+    """A target other than the host's own code generation that this host can run: ``avx2``
+    on an AVX-512 host, ``sse4`` on an AVX2 host, '' otherwise (no LLVM, or not x86-64)."""
+    flags = _host_flags()
+    if "avx512f" in flags and _NEEDS["avx2"] <= flags:
+        return "avx2"
+    if "avx2" in flags and _NEEDS["sse4"] <= flags:
+        return "sse4"
+    return ""
+
+
+if __name__ == "__main__":  # python -m gonio.models._jit_target --other (used by the Makefile)
+    import sys
+
+    if sys.argv[1:] == ["--other"]:
+        print(other_target())
+    else:
+        print(*llvm_target())
