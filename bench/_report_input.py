@@ -119,12 +119,19 @@ class Folder:
                              f"the report embeds only files inside the output folder: {fix}")
         return self.check(chosen, key)
 
-    def read_json(self, path, what: str, *, fix: str) -> "Doc":
-        """A JSON object from a file inside the folder, as a :class:`Doc`; refuse anything else."""
+    def read_json(self, path, what: str, *, fix: str, strict: bool = False) -> "Doc":
+        """A JSON object from a file inside the folder, as a :class:`Doc`; refuse anything else.
+
+        ``strict``: refuse NaN and Infinity, which are not JSON (a fit file never holds them).
+        """
         label = self.label(path)
         data = self.read_bytes(path, what, MAX_JSON_BYTES)
+
+        def constant(name):
+            raise GonioError(f"{label} holds {name}, which is not JSON (a gonio fit file writes null); {fix}")
+
         try:
-            doc = json.loads(data.decode("utf-8"))
+            doc = json.loads(data.decode("utf-8"), **({"parse_constant": constant} if strict else {}))
         except UnicodeDecodeError:
             raise GonioError(f"{label} is not UTF-8 text; {fix}") from None
         except RecursionError:
@@ -256,5 +263,10 @@ class Doc:
 
 
 def cut(text: str, limit: int = MAX_TEXT) -> str:
-    """``text`` cut to ``limit`` characters, saying how long it was."""
-    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters, cut)"
+    """``text`` cut to ``limit`` characters (saying how long it was), with control and
+    format characters (terminal escapes, bidi overrides) written as visible escapes."""
+    text = str(text)
+    short = text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters, cut)"
+    if short.isprintable():
+        return short
+    return "".join(ch if ch.isprintable() or ch in "\n\t" else ascii(ch)[1:-1] for ch in short)

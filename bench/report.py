@@ -297,7 +297,7 @@ def _load_dataset(root: Folder, path: Path):
 def _load_fit(root: Folder, path: Path):
     from gonio.fitting._fitfile import parse_fit
 
-    fit = root.read_json(path, "fit file", fix=FIX_FIT)
+    fit = root.read_json(path, "fit file", fix=FIX_FIT, strict=True)
     try:
         model, params, _ = parse_fit(fit.data, root.label(path))
     except (ValueError, KeyError, TypeError) as exc:

@@ -1,0 +1,144 @@
+"""Fit files and every atomically written file (issue 14): strict JSON, the user's umask mode,
+and no temporary file left behind, whether the writer fails, is interrupted or is killed."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from gonio.fitting import load_fit, write_json_atomic
+from gonio.fitting._fitfile import NonFiniteWarning, _jsonable
+from gonio.fitting._io import atomic_open
+
+
+def strict(text: str):
+    def refuse(name):
+        raise AssertionError(f"{name} in a file that must be strict JSON")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def temporaries(folder):
+    return sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+
+
+def test_numpy_nan_and_inf_scalars_become_null_and_are_listed(tmp_path):
+    doc = {"format": "gonio-fit/1", "goodness": {"chi2": np.float64("nan"), "chi2_dof": np.float32("inf"),
+                                                 "dof": np.int64(3), "ok": np.bool_(True)},
+           "covariance": {"matrix": np.array([[1.0, np.nan], [-np.inf, 2.0]])}, "tau": [np.float16("nan"), 1.5]}
+    path = write_json_atomic(tmp_path / "fit.json", doc)
+    loaded = strict(path.read_text())
+    assert loaded["goodness"] == {"chi2": None, "chi2_dof": None, "dof": 3, "ok": True}
+    assert loaded["covariance"]["matrix"] == [[1.0, None], [None, 2.0]]
+    assert loaded["tau"] == [None, 1.5]
+    assert loaded["non_finite"] == sorted(["goodness.chi2", "goodness.chi2_dof", "covariance.matrix[0][1]",
+                                           "covariance.matrix[1][0]", "tau[0]"])
+    bad = []
+    assert _jsonable(np.float32("nan"), "x", bad) is None and bad == ["x"]
+
+
+def test_other_documents_say_so_with_a_warning(tmp_path):
+    with pytest.warns(NonFiniteWarning, match=r"render.json: NaN or infinite values written as null at summary.rms"):
+        path = write_json_atomic(tmp_path / "render.json", {"summary": {"rms": np.float64("nan")}})
+    assert strict(path.read_text()) == {"summary": {"rms": None}}
+
+
+def test_unserialisable_document_writes_nothing(tmp_path):
+    (tmp_path / "fit.json").write_text('{"old": 1}')
+    with pytest.raises(TypeError):
+        write_json_atomic(tmp_path / "fit.json", {"path": object()})
+    assert (tmp_path / "fit.json").read_text() == '{"old": 1}' and not temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity"])
+def test_load_fit_refuses_non_json_numbers(tmp_path, token):
+    path = tmp_path / "fit.json"
+    path.write_text('{"format": "gonio-fit/1", "model": {"name": "diffuse", "options": {}}, '
+                    f'"params": {{"reflectance": [0.5, {token}, 0.2]}}}}')
+    with pytest.raises(ValueError, match=f"{token} is not JSON"):
+        load_fit(path)
+
+
+@pytest.mark.parametrize("params, needle", [({"reflectance": ["<script>"]}, "params.reflectance"),
+                                            ({"reflectance": True}, "params.reflectance"),
+                                            ({"reflectance": ["1e400"]}, "not finite"),
+                                            ("x", "'params' must be")])
+def test_load_fit_refuses_bad_values(tmp_path, params, needle):
+    path = tmp_path / "fit.json"
+    text = json.dumps({"format": "gonio-fit/1", "model": {"name": "diffuse", "options": {}}, "params": params})
+    path.write_text(text.replace('"1e400"', "1e400"))  # a literal that JSON reads as inf
+    with pytest.raises(ValueError, match=needle.replace("[", r"\[").replace("(", r"\(")):
+        load_fit(path)
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_files_get_the_umask_mode(tmp_path, umask, mode):
+    old = os.umask(umask)
+    try:
+        json_path = write_json_atomic(tmp_path / "fit.json", {"a": 1})
+        with atomic_open(tmp_path / "x.bin", "wb") as fh:
+            fh.write(b"x")
+    finally:
+        os.umask(old)
+    assert json_path.stat().st_mode & 0o777 == mode
+    assert (tmp_path / "x.bin").stat().st_mode & 0o777 == mode
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt, OSError, SystemExit])
+def test_failed_write_removes_its_temporary_and_keeps_the_old_file(tmp_path, error):
+    target = tmp_path / "report.html"
+    target.write_text("old")
+    with pytest.raises(error):
+        with atomic_open(target, "w") as fh:
+            fh.write("new, half")
+            assert temporaries(tmp_path)
+            raise error()
+    assert target.read_text() == "old" and not temporaries(tmp_path)
+
+
+def test_failed_rename_removes_its_temporary(tmp_path, monkeypatch):
+    def refuse(*_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", refuse)
+    with pytest.raises(KeyboardInterrupt):
+        write_json_atomic(tmp_path / "fit.json", {"a": 1})
+    monkeypatch.undo()
+    assert not (tmp_path / "fit.json").exists() and not temporaries(tmp_path)
+
+
+def test_temporaries_of_killed_writers_are_removed_by_the_next_write(tmp_path):
+    """A writer SIGKILLed mid-write leaves its temporary; the next write of that file removes
+    it (and untagged ones older than ten minutes), but not one a live writer still owns."""
+    target = tmp_path / "fit.json"
+    code = ("import os, signal, sys\nfrom gonio.fitting._io import atomic_open\n"
+            "with atomic_open(sys.argv[1], 'w') as fh:\n    fh.write('half'); fh.flush()\n"
+            "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(target)], timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    (left,) = temporaries(tmp_path)
+    assert left.startswith(".fit.json.") and not target.exists()
+    old_untagged = tmp_path / ".fit.json.abc123.tmp"  # the name an older gonio used
+    old_untagged.write_text("x")
+    os.utime(old_untagged, (time.time() - 3600,) * 2)
+    fresh_untagged = tmp_path / ".fit.json.def456.tmp"
+    fresh_untagged.write_text("x")
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        live = tmp_path / f".fit.json.{sleeper.pid}-zzz.tmp"
+        live.write_text("x")
+        other = tmp_path / ".other.json.1-zzz.tmp"
+        other.write_text("x")
+        write_json_atomic(target, {"a": 1})
+        assert temporaries(tmp_path) == sorted([fresh_untagged.name, live.name, other.name])
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    assert strict(target.read_text()) == {"a": 1}
