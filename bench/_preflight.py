@@ -24,7 +24,7 @@ from pathlib import Path
 from .errors import GonioError
 
 __all__ = ["check_output_file", "check_output_dir", "check_free_space", "check_input_file",
-           "environment_errors", "mount_of", "MiB"]
+           "environment_errors", "writing", "mount_of", "MiB"]
 
 MiB = 1 << 20
 #: kept free beyond an estimate: a file system at 100 % fails in ways no estimate sees
@@ -184,3 +184,15 @@ def environment_errors():
                          "give the text file (TOML, CSV, JSON) the option expects") from None
     except MemoryError:
         raise GonioError("out of memory: the input is too large for this machine; give a smaller one") from None
+
+
+@contextlib.contextmanager
+def writing(path):
+    """Around the write of ``path``: an OSError without a file name (fsync, rename) is named
+    after ``path`` and its disk, as one line."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None:
+            exc = OSError(exc.errno, exc.strerror or str(exc), str(path))
+        raise GonioError(_oserror_line(exc)) from None

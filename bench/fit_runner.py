@@ -154,13 +154,14 @@ def print_fit(doc, truth=None, console=None):
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
     from gonio.fitting import write_json_atomic
 
-    from ._preflight import check_output_file
+    from ._preflight import check_output_file, writing
 
     check_output_file(out, "fit file (--out)")
     meas = _open_dataset(dataset, seed)
     _, doc, _ = fit_dataset(meas, model=model, options=parse_options(options), seed=seed, loss=loss,
                             posterior=posterior, dataset_path=dataset)
-    write_json_atomic(out, doc)
+    with writing(out):
+        write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None
     print_fit(doc, truth)
     if doc.get("selection"):
@@ -177,7 +178,7 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
 
     from gonio.fitting._batch import check_scheduler_address, check_workers
 
-    from ._preflight import check_output_dir
+    from ._preflight import check_output_dir, writing
 
     if model == "auto":
         raise GonioError("--batch needs a named --model (e.g. roughplastic); auto is for single fits")
@@ -205,7 +206,8 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
                          "check the address and that it is running") from None
     out.mkdir(parents=True, exist_ok=True)
     for path, meas, result, stem in zip(datasets, metas, results, stems):
-        write_json_atomic(out / f"{stem}.fit.json", fit_document(result, meas, seed=seed, dataset_path=path))
+        with writing(out / f"{stem}.fit.json"):
+            write_json_atomic(out / f"{stem}.fit.json", fit_document(result, meas, seed=seed, dataset_path=path))
         print(f"{stem}: chi2/dof {result.chi2_dof:.3f}, " + ", ".join(
             f"{n}={v:.4g}+-{e:.2g}" for n, v, e in zip(result.space.names, result.x, result.std)))
     print(f"wrote {len(results)} fit files to {out}")
@@ -234,7 +236,10 @@ def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
         raise GonioError(f"{fit_path} is not a readable gonio fit file ({exc})") from None
     result = loop_closure(model, params, meas, variant=variant)
     result["provenance"] = _provenance(fit_path, meas)
-    write_json_atomic(Path(out_dir) / "render.json", result)
+    from ._preflight import writing
+
+    with writing(Path(out_dir) / "render.json"):
+        write_json_atomic(Path(out_dir) / "render.json", result)
     return result
 
 
@@ -346,7 +351,7 @@ def convert_cli(source: Path, out: Path, to: str):
     from gonio.fitting import formats
     from gonio.fitting._io import atomic_open
 
-    from ._preflight import check_output_file
+    from ._preflight import check_output_file, writing
 
     if not source.exists():
         raise GonioError(f"{source} does not exist")
@@ -356,6 +361,12 @@ def convert_cli(source: Path, out: Path, to: str):
     check_output_file(out, "converted file (--out)", need_bytes=merl_bytes if to in ("merl", "merl-data") else 0)
     if Path(os.path.abspath(out)) == Path(os.path.abspath(source)):
         raise GonioError(f"--out {out} is the source file; give another file name")
+    with writing(out):
+        _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
+    print(f"wrote {out}")
+
+
+def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open):
     if to in ("mitsuba-xml", "mitsuba-dict", "merl"):
         if source.suffix.lower() != ".json":
             raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
@@ -380,4 +391,3 @@ def convert_cli(source: Path, out: Path, to: str):
         print(f"{int(merl.valid.sum())} of {merl.valid.size} MERL bins hold measured data; the rest are marked no-data")
     else:
         raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-dict, merl (from a fit), csv or merl-data (from a dataset)")
-    print(f"wrote {out}")

@@ -209,15 +209,20 @@ def serve(settings: dict | None = None, sample: dict = DEFAULT_SAMPLE,
     if echo == "print":
         def echo(line):
             print(line, flush=True)
-    if echo is not None:
-        for name, path in server.paths.items():
-            echo(f"{name} {path} -> {server.devices[name]}")
-    if not block:
-        return server.start()
-    try:
+    try:                                  # from here on, any exit closes the ptys and removes the folder
+        if echo is not None:
+            for name, path in server.paths.items():
+                echo(f"{name} {path} -> {server.devices[name]}")
+        if not block:
+            return server.start()
         server.run()
     except KeyboardInterrupt:
-        pass
-    finally:
+        server.stop()
+        if not block:
+            raise
+    except BaseException:
+        server.stop()
+        raise
+    else:
         server.stop()
     return server
