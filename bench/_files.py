@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 __all__ = ["TMP_PREFIX", "sha256_file", "atomic_write_bytes", "atomic_write_text", "fsync_dir",
-           "commit_file", "remove_orphans"]
+           "commit_file", "create_exclusive", "write_new_text", "remove_orphans"]
 
 TMP_PREFIX = ".tmp-"     # temporary files start with this; a resume removes any left behind
 
@@ -62,6 +62,39 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` through a temporary name."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def create_exclusive(path: str | os.PathLike) -> bool:
+    """Create ``path`` empty with ``O_CREAT | O_EXCL``: False if anything already has that name.
+
+    A capture reserves each RAW file's name this way before the camera writes it (the camera's
+    rename then replaces the empty placeholder), so no existing RAW file is ever overwritten.
+    """
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    except FileExistsError:
+        return False
+    os.close(fd)
+    return True
+
+
+def write_new_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary name, refusing to replace an existing file.
+
+    The final step is a hard link, which (unlike a rename) fails if ``path`` exists:
+    `FileExistsError` then, and nothing is changed.
+    """
+    path = Path(path)
+    tmp = tmp_name(path)
+    with open(tmp, "wb") as fh:
+        fh.write(text.encode("utf-8"))
+        fh.flush()
+        os.fsync(fh.fileno())
+    try:
+        os.link(tmp, path)
+    finally:
+        os.unlink(tmp)
+    fsync_dir(path.parent)
 
 
 def remove_orphans(folder: str | os.PathLike) -> list[Path]:

@@ -3,15 +3,21 @@
 ::
 
     session/
+      .lock             flock'ed by the one process that writes into the folder; taken
+                        before anything else is written
       session.toml      plan, instrument settings, ports, versions, seed, sample truth
-                        (written through a temporary name BEFORE the first move)
+                        (written ONCE, through a temporary name, BEFORE the first move; its
+                        SHA-256 and text are recorded in the journal and checked by every
+                        resume and export: see `gonio.bench._integrity`)
       journal.sqlite    WAL, synchronous=FULL: one committed row per finished point and per
-                        dark frame, with the RAW files' SHA-256
-      raw/              RAW files (temporary name, fsync, rename)
+                        dark frame, with the RAW files' SHA-256; every RAW file's name is
+                        reserved (committed) before the camera writes it
+      raw/              RAW files (temporary name, fsync, rename; never overwritten)
       dataset.nc        after export
 
 A point's row is written in one transaction after everything about it succeeded; a crash at
-any moment leaves either the whole row or none of it.
+any moment leaves either the whole row or none of it. The journal is the only record of what
+is done: a file in ``raw/`` that it does not name means the journal lost commits.
 """
 
 from __future__ import annotations
@@ -26,11 +32,11 @@ import tomllib
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from ._files import atomic_write_text, sha256_file
+from ._files import sha256_file, write_new_text
 from .errors import SessionError
 
 __all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "LOCK_FILE", "Journal", "SessionLock", "write_session",
-           "read_session", "verify_files", "dumps_toml", "versions"]
+           "read_session", "session_text", "verify_files", "damaged_files", "dumps_toml", "versions"]
 
 SESSION_FILE = "session.toml"
 JOURNAL_FILE = "journal.sqlite"
@@ -55,6 +61,21 @@ CREATE TABLE IF NOT EXISTS points (
     saturated INTEGER NOT NULL,
     detail TEXT NOT NULL,        -- JSON: exposures, files, checksums, monitor, region statistics
     finished REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS session (       -- what session.toml was when the session started
+    key TEXT PRIMARY KEY,        -- "sha256", "text", "doc" (canonical JSON)
+    value TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS files (         -- every RAW file name, reserved before it is written
+    file TEXT PRIMARY KEY,
+    reserved REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS superseded (    -- point rows replaced by a new measurement
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    idx INTEGER NOT NULL,
+    row TEXT NOT NULL,           -- JSON of the old points row
+    why TEXT NOT NULL,
+    time REAL NOT NULL
 );
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -147,6 +168,69 @@ class Journal:
             self.db.execute("BEGIN")
             self.db.execute("DELETE FROM calibration WHERE kind = ?", (kind,))
 
+    # -- the session record and the RAW file names -------------------------------------
+    def record_session(self, text: str, doc: Mapping[str, Any]) -> None:
+        """Record session.toml (its SHA-256, text and parsed content) once, when the session starts."""
+        import hashlib
+
+        rows = [("sha256", hashlib.sha256(text.encode("utf-8")).hexdigest()), ("text", text),
+                ("doc", json.dumps(doc, sort_keys=True, default=str))]
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany("INSERT INTO session VALUES (?, ?)", rows)
+
+    def session_record(self) -> dict[str, str]:
+        """``{"sha256", "text", "doc"}`` as recorded (empty if the session was never recorded)."""
+        return dict(self.db.execute("SELECT key, value FROM session"))
+
+    def reserve(self, file: str) -> None:
+        """Commit a RAW file's name before the camera writes it (so no file goes unaccounted for)."""
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("INSERT INTO files VALUES (?, ?)", (file, time.time()))
+
+    def reserve_all(self, files: Iterable[str]) -> None:
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany("INSERT OR IGNORE INTO files VALUES (?, ?)", [(f, time.time()) for f in files])
+
+    def reserved(self) -> set[str]:
+        """Every RAW file name the journal ever reserved."""
+        return {r[0] for r in self.db.execute("SELECT file FROM files")}
+
+    def supersede(self, idxs: Iterable[int], why: str) -> list[int]:
+        """Move the rows of points ``idxs`` to ``superseded`` (one transaction): they are measured again."""
+        idxs = sorted({int(i) for i in idxs})
+        moved = []
+        with self.db:
+            self.db.execute("BEGIN")
+            for i in idxs:
+                cur = self.db.execute("SELECT * FROM points WHERE idx = ?", (i,))
+                row = cur.fetchone()
+                if row is None:
+                    continue
+                names = [d[0] for d in cur.description]
+                self.db.execute("INSERT INTO superseded (idx, row, why, time) VALUES (?, ?, ?, ?)",
+                                (i, json.dumps(dict(zip(names, row))), why, time.time()))
+                self.db.execute("DELETE FROM points WHERE idx = ?", (i,))
+                moved.append(i)
+        return moved
+
+    def forget_frame(self, name: str) -> None:
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("DELETE FROM calibration WHERE name = ?", (name,))
+
+    def insert_rows(self, table: str, rows: list[dict[str, Any]]) -> None:
+        """Insert rows salvaged from a damaged journal (``--rebuild-journal``) as they were."""
+        if not rows:
+            return
+        names = list(rows[0])
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany(f"INSERT INTO {table} ({', '.join(names)}) VALUES ({', '.join('?' * len(names))})",
+                                [tuple(r[n] for n in names) for r in rows])
+
     def record_point(self, idx: int, angles: Iterable[float], stage: Iterable[float], brdf, brdf_std,
                      saturated: bool, detail: Mapping[str, Any]) -> None:
         """Commit one finished point in a single transaction."""
@@ -225,16 +309,26 @@ def dumps_toml(doc: Mapping[str, Any], _prefix: str = "") -> str:
     return out
 
 
-def write_session(folder: str | Path, doc: Mapping[str, Any]) -> Path:
-    """Create the session folder (and ``raw/``) and write ``session.toml`` through a temporary name."""
-    folder = Path(folder)
-    try:
-        (folder / RAW_DIR).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SessionError(f"cannot create session folder {folder} ({exc.strerror}); choose another --out") from None
+def session_text(doc: Mapping[str, Any]) -> str:
+    """The text of ``session.toml`` for ``doc`` (checked to read back)."""
     text = dumps_toml(doc)
     tomllib.loads(text)                     # never write what cannot be read back
-    atomic_write_text(folder / SESSION_FILE, text)
+    return text
+
+
+def write_session(folder: str | Path, doc: Mapping[str, Any] | str) -> Path:
+    """Create the session folder (and ``raw/``) and write ``session.toml`` once, through a
+    temporary name; `SessionError` if the folder already has one (it is never replaced)."""
+    folder = Path(folder)
+    text = doc if isinstance(doc, str) else session_text(doc)
+    try:
+        (folder / RAW_DIR).mkdir(parents=True, exist_ok=True)
+        write_new_text(folder / SESSION_FILE, text)
+    except FileExistsError:
+        raise SessionError(f"{folder} already holds a session; resume it with --resume {folder} "
+                           "or choose another --out") from None
+    except OSError as exc:
+        raise SessionError(f"cannot write the session to {folder} ({exc.strerror}); choose another --out") from None
     return folder / SESSION_FILE
 
 
@@ -245,9 +339,34 @@ def read_session(folder: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise SessionError(f"{folder} is not a gonio session (no {SESSION_FILE}); give the folder a capture wrote")
     try:
-        return tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SessionError(f"{path} is corrupt ({exc}); the session cannot be resumed") from None
+
+
+def _bad(folder: Path, file: str, digest: str) -> bool:
+    p = folder / file
+    try:
+        return not p.is_file() or sha256_file(p) != digest
+    except OSError:
+        return True
+
+
+def damaged_files(folder: str | Path, journal: Journal) -> tuple[dict[str, str], dict[int, str]]:
+    """Journalled RAW files that are missing or whose checksum does not match.
+
+    Returns ``({calibration name: file}, {point index: first bad file})``.
+    """
+    folder = Path(folder)
+    cal = {name: file for kind in ("dark", "flat") for name, (_, file, digest) in journal.frames(kind).items()
+           if _bad(folder, file, digest)}
+    points = {}
+    for row in journal.points():
+        for e in row["detail"].get("exposures", []):
+            if _bad(folder, e["file"], e["sha256"]):
+                points[int(row["idx"])] = e["file"]
+                break
+    return cal, points
 
 
 def verify_files(folder: str | Path, journal: Journal) -> list[str]:
@@ -255,12 +374,10 @@ def verify_files(folder: str | Path, journal: Journal) -> list[str]:
     folder = Path(folder)
     bad = []
     for _, file, digest in [v for kind in ("dark", "flat") for v in journal.frames(kind).values()]:
-        p = folder / file
-        if not p.is_file() or sha256_file(p) != digest:
+        if _bad(folder, file, digest):
             bad.append(file)
     for row in journal.points():
         for e in row["detail"].get("exposures", []):
-            p = folder / e["file"]
-            if not p.is_file() or sha256_file(p) != e["sha256"]:
+            if _bad(folder, e["file"], e["sha256"]):
                 bad.append(e["file"])
     return bad

@@ -49,10 +49,11 @@ import numpy as np
 
 from . import kinematics
 from ._camera import RawFrame, SimCamera, decode_raw
-from ._files import TMP_PREFIX, remove_orphans, sha256_file
+from ._files import TMP_PREFIX, create_exclusive, remove_orphans, sha256_file
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
-from ._journal import (JOURNAL_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock, read_session, verify_files,
-                       versions, write_session)
+from . import _integrity
+from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock, damaged_files,
+                       read_session, session_text, versions, write_session)
 from ._ordering import order_moves
 from ._scpi import PowerMeter
 from ._settings import AXES, default_settings, merge_settings, validate_settings
@@ -60,11 +61,11 @@ from ._zaber import Goniometer, LedSource, MoveError, ZaberChain, emergency_stop
 from .errors import CommunicationError, DeviceError, GonioError, SessionError
 from .plans import Plan, plan_from_dict, require_reachable
 
-__all__ = ["capture", "resume", "CaptureSummary", "CaptureInterrupted", "Bench", "estop"]
+__all__ = ["capture", "resume", "CaptureSummary", "CaptureInterrupted", "StopNow", "Bench", "estop"]
 
 
 class CaptureInterrupted(GonioError):
-    """Ctrl-C pressed twice: the stages were stopped; the session is resumable."""
+    """Ctrl-C pressed twice, or SIGTERM / SIGHUP: the stages were stopped; the session is resumable."""
 
 
 @dataclass
@@ -91,6 +92,8 @@ class CaptureSummary:
         Planned stage travel time: plan order, ordered, lower bound (s).
     wall_s : float
         Wall time of this call, s.
+    notes : list of str
+        One line per recovery a resume made (journal rebuilt, points measured again).
     """
 
     session_dir: Path
@@ -104,6 +107,7 @@ class CaptureSummary:
     move_ordered_s: float = 0.0
     move_bound_s: float = 0.0
     wall_s: float = 0.0
+    notes: list = field(default_factory=list)
 
     @property
     def per_point_s(self) -> float:
@@ -169,28 +173,50 @@ class Bench:
 estop = emergency_stop        # ``gonio estop --port``: /0 0 estop to every device at once
 
 
-# -- Ctrl-C ----------------------------------------------------------------------------------
+# -- Ctrl-C and the termination signals ----------------------------------------------------------
+
+class StopNow(KeyboardInterrupt):
+    """Raised in the main thread by a second Ctrl-C, or by SIGTERM / SIGHUP: stop the stages now."""
+
+    def __init__(self, why: str):
+        super().__init__(why)
+        self.why = why
+
 
 class _Interrupts:
-    """First SIGINT: ask to stop at the next point boundary; second: KeyboardInterrupt."""
+    """First SIGINT: ask to stop at the next point boundary; second SIGINT, or one SIGTERM or
+    SIGHUP (a service manager stopping the bench, the terminal closing): `StopNow`, handled as
+    Ctrl-C twice. Once a stop is under way (or ``deferred``), further signals only set the flag,
+    so the clean-up (stages stopped, LED off, journal events) is never cut short."""
+
+    SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
 
     def __init__(self):
         self.requested = False
-        self._old = None
+        self.stopping = False
+        self.deferred = False
+        self._old: dict = {}
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
-            self._old = signal.signal(signal.SIGINT, self._handler)
+            for sig in self.SIGNALS:
+                self._old[sig] = signal.signal(sig, self._handler)
         return self
 
     def _handler(self, signum, frame):
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
+        if self.stopping or self.deferred:
+            self.requested = True
+            return
+        if signum == signal.SIGINT and not self.requested:
+            self.requested = True
+            return
+        self.stopping = True
+        raise StopNow("Ctrl-C twice" if signum == signal.SIGINT else signal.Signals(signum).name)
 
     def __exit__(self, *exc):
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old = {}
 
 
 # -- the measurement of one point ----------------------------------------------------------------
@@ -299,6 +325,23 @@ class _Session:
         self.results: dict[int, tuple[np.ndarray, np.ndarray]] = {
             r["idx"]: (np.asarray(r["brdf"]), np.asarray(r["brdf_std"])) for r in journal.points()}
         self.reciprocity: list[dict] = []
+        self.reserved = journal.reserved()
+
+    def _fresh(self, name: str) -> str:
+        """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
+        created empty with O_EXCL before the camera writes it (its rename replaces the placeholder):
+        an existing RAW file is never overwritten, and every file in raw/ is one the journal names."""
+        stem, dot, ext = name.rpartition(".")
+        k = 0
+        while True:
+            file = f"{RAW_DIR}/{name}" if k == 0 else f"{RAW_DIR}/{stem}_{k}{dot}{ext}"
+            k += 1
+            if file in self.reserved or (self.folder / file).exists():
+                continue
+            self.journal.reserve(file)
+            self.reserved.add(file)
+            if create_exclusive(self.folder / file):
+                return file
 
     # -- instrument preparation ----------------------------------------------------------
     def prepare(self) -> None:
@@ -348,7 +391,7 @@ class _Session:
             if t in have:
                 _, file, digest = have[t]
             else:
-                file = f"{RAW_DIR}/dark_{t * 1e6:010.0f}us.dng"
+                file = self._fresh(f"dark_{t * 1e6:010.0f}us.dng")
                 digest = self.bench.camera.expose(t, self.folder / file)
                 self.journal.record_frame(f"dark:{t!r}", "dark", t, file, digest)
             self.darks[t] = self._load(file, digest)
@@ -373,7 +416,7 @@ class _Session:
                 return
             t = self._flat_exposure(cam)
             for k in range(n):
-                file = f"{RAW_DIR}/flat_{k:03d}.dng"
+                file = self._fresh(f"flat_{k:03d}.dng")
                 self.journal.record_frame(f"flat:{k:03d}", "flat", t, file, cam.flat(t, self.folder / file))
             have = self.journal.frames("flat")
         t = next(iter(have.values()))[0]
@@ -427,7 +470,7 @@ class _Session:
 
     # -- one point -----------------------------------------------------------------------
     def _expose(self, idx: int, t: float) -> tuple[Exposure, dict]:
-        file = f"{RAW_DIR}/p{idx:05d}_{t * 1e6:010.0f}us.dng"
+        file = self._fresh(f"p{idx:05d}_{t * 1e6:010.0f}us.dng")
         digest = self.bench.camera.expose(t, self.folder / file)
         p = self._power()
         frame = decode_raw(self.folder / file)
@@ -592,28 +635,30 @@ def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_ur
     return doc
 
 
-def _run(folder: Path, doc: Mapping, bench: Bench, warnings: list, progress: bool, t0: float) -> CaptureSummary:
-    journal = None
-    lock = SessionLock(folder)
+def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: SessionLock, warnings: list,
+         progress: bool, t0: float, notes: list) -> CaptureSummary:
+    """Measure what the journal lacks. Takes over ``bench``, ``journal`` and ``lock`` (closes them)."""
     try:
-        lock.__enter__()
-        journal = Journal(folder / JOURNAL_FILE)
         with _Interrupts() as intr:
-            sess = _Session(folder, doc, bench, journal, progress, lambda: intr.requested)
             try:
+                sess = _Session(folder, doc, bench, journal, progress, lambda: intr.requested)
                 sess.prepare()
                 n_new, stopped = sess.run()
-            except KeyboardInterrupt:
+            except StopNow as exc:
+                intr.stopping = True
+                why = "stopped by Ctrl-C twice" if exc.why == "Ctrl-C twice" else f"stopped by {exc.why}"
                 try:
                     bench.gonio.stop()
                 finally:
-                    journal.event("stop", "Ctrl-C twice: stages stopped")
-                raise CaptureInterrupted(f"stopped by Ctrl-C twice; the stages were stopped and the session "
-                                         f"is resumable with --resume {folder}") from None
+                    journal.event("stop", f"{why}: stages stopped")
+                raise CaptureInterrupted(f"{why}; the stages were stopped, the LED switched off and the session "
+                                         f"is resumable with `gonio capture --resume {folder}`") from None
             except GonioError as exc:
                 journal.event("stop", str(exc))
+                exc.session_dir = folder          # the session stays resumable (exit status 3)
                 raise
             finally:
+                intr.deferred = True              # a signal now only sets the flag: clean up first
                 for d, f, m in warnings:
                     journal.event("warning", f"device {d}: {f} {m}")
                 journal.event("comm", json.dumps({
@@ -622,19 +667,37 @@ def _run(folder: Path, doc: Mapping, bench: Bench, warnings: list, progress: boo
                     "camera_retries": getattr(bench.camera, "retries_used", 0)}))
                 try:
                     bench.led.off()
-                except GonioError:
-                    pass
+                    journal.event("lamp", "LED off")
+                except GonioError as exc:
+                    journal.event("warning", f"could not switch the LED off ({exc}); switch it off by hand")
+        if intr.requested and not stopped and len(journal.done()) < len(sess.plan):
+            stopped = "stopped by a signal; run the capture again with --resume to finish"
         remove_orphans(folder / RAW_DIR)        # late files of a killed earlier process, if any
         n_done = len(journal.done())
         o = doc["order"]
         return CaptureSummary(folder, len(sess.plan), n_done, n_new, n_done == len(sess.plan), stopped,
                               sess.reciprocity, o["naive_s"], o["ordered_s"], o["bound_s"],
-                              time.perf_counter() - t0)
+                              time.perf_counter() - t0, notes)
     finally:
-        if journal is not None:
-            journal.close()
+        journal.close()
         bench.close()
         lock.__exit__()
+
+
+def _leftover(p: Path) -> bool:
+    """What a capture stopped before its session.toml existed may leave (an empty folder otherwise)."""
+    if p.is_dir():
+        return p.name == RAW_DIR and not any(p.iterdir())
+    return p.name.startswith(TMP_PREFIX) or p.name == LOCK_FILE
+
+
+def _check_new_folder(folder: Path) -> None:
+    if (folder / SESSION_FILE).exists():
+        raise SessionError(f"{folder} already holds a session; resume it with --resume {folder} or choose another --out")
+    if folder.exists() and not folder.is_dir():
+        raise SessionError(f"{folder} is a file, not a folder; choose another --out")
+    if folder.is_dir() and not all(_leftover(p) for p in folder.iterdir()):
+        raise SessionError(f"{folder} is not empty; choose a new folder for the session")
 
 
 def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_url: str, camera,
@@ -673,73 +736,127 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     Raises
     ------
     GonioError
-        Unreachable plan, folder already a session, a port that does not open, a fault; the
-        session (once written) stays resumable.
+        Unreachable plan, folder already a session (or in use by another capture), a port that
+        does not open, a fault; the session (once written) stays resumable.
     """
     t0 = time.perf_counter()
     folder = Path(session_dir)
     settings = validate_settings(merge_settings(default_settings(), settings))   # tables left out keep their defaults
-    if (folder / SESSION_FILE).exists():
-        raise SessionError(f"{folder} already holds a session; resume it with --resume {folder} or choose another --out")
-    if folder.exists() and not folder.is_dir():
-        raise SessionError(f"{folder} is a file, not a folder; choose another --out")
-    if folder.is_dir():
-        # a capture killed before its session.toml existed leaves only an empty raw/ and temporary files
-        def leftover(p: Path) -> bool:
-            if p.is_dir():
-                return p.name == RAW_DIR and not any(p.iterdir())
-            return p.name.startswith(TMP_PREFIX)
-        if not all(leftover(p) for p in folder.iterdir()):
-            raise SessionError(f"{folder} is not empty; choose a new folder for the session")
-        remove_orphans(folder)
+    _check_new_folder(folder)
     stage = require_reachable(plan, settings)
     order = order_moves(stage, settings)
     # open every port before anything is written: a dead port leaves nothing behind
     warnings: list = []
     bench = Bench(settings, zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
                   timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
+    lock = journal = None
     try:
         _check_sensor(bench.camera, settings)
         ReferenceModel(settings["reference"])
-        doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta)
-        write_session(folder, doc)
+        text = session_text(_session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta))
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SessionError(f"cannot create session folder {folder} ({exc.strerror}); choose another --out") from None
+        lock = SessionLock(folder).__enter__()  # before anything else is written: one capture per folder
+        _check_new_folder(folder)               # again, now that no other capture can write here
+        remove_orphans(folder)
+        write_session(folder, text)             # once: never replaces an existing session.toml
         doc = read_session(folder)
+        journal = Journal(folder / JOURNAL_FILE)
+        journal.record_session(text, doc)
     except BaseException:
+        if journal is not None:
+            journal.close()
         bench.close()
+        if lock is not None:
+            lock.__exit__()
         raise
-    return _run(folder, doc, bench, warnings, progress, t0)
+    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [])
 
 
 def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = None, camera=None,
            progress: bool = True, *, sleep: Callable[[float], None] = time.sleep,
-           poll_interval_s: float = 0.05, timeout: float = 1.0) -> CaptureSummary:
-    """Finish a session: re-check positions and flags (re-home if the reference was lost),
-    verify the journalled RAW files, remove orphan temporary files, skip the journalled
-    points and measure the rest in the session's order.
+           poll_interval_s: float = 0.05, timeout: float = 1.0, rebuild_journal: bool = False,
+           remeasure: str | None = None, notify: Callable[[str], None] | None = None) -> CaptureSummary:
+    """Finish a session: check it is one consistent record (`gonio.bench._integrity`), re-check
+    positions and flags (re-home if the reference was lost), verify the journalled RAW files,
+    remove orphan temporary files, skip the journalled points and measure the rest in the
+    session's order.
+
+    Points whose RAW files are missing or corrupt, and the points ``remeasure`` names
+    (``"3,7,10-12"``), are measured again (their old rows are kept in ``superseded``);
+    calibration frames that are missing or corrupt are taken again. ``rebuild_journal``
+    replaces a missing or damaged journal first. Each of these is said in one line to
+    ``notify`` and in the summary's ``notes``.
 
     Ports default to those recorded in ``session.toml``.
     """
     t0 = time.perf_counter()
     folder = Path(session_dir)
-    doc = read_session(folder)
-    with SessionLock(folder):                  # not while another process measures into it
+    notes: list[str] = []
+
+    def note(line: str) -> None:
+        notes.append(line)
+        if notify is not None:
+            notify(line)
+
+    _integrity.load_session(folder)             # not a session: say so before taking its lock
+    lock = SessionLock(folder).__enter__()      # not while another process measures into it
+    journal = bench = None
+    try:
+        data, doc, why = _integrity.load_session(folder)
+        if rebuild_journal:
+            note(_integrity.rebuild_journal(folder, data, doc, why))
+        journal = _integrity.open_journal(folder, data, doc, why)
+        plan_n = len(doc["plan"]["points"])
         remove_orphans(folder / RAW_DIR)
         remove_orphans(folder)
-    ports = doc.get("ports", {})
-    zaber_url = zaber_url or ports.get("zaber")
-    meter_url = meter_url or ports.get("meter")
-    if camera is None:
-        camera = ports.get("camera")
-        if not (isinstance(camera, str) and "://" in camera or isinstance(camera, str) and camera.startswith("/")):
-            raise SessionError(f"{folder} was captured with a {camera} camera; give the camera to resume with")
-    if not zaber_url or not meter_url:
-        raise SessionError(f"{folder}: give the ports to resume on (--port and --meter-port)")
-    with Journal(folder / JOURNAL_FILE) as j:
-        bad = verify_files(folder, j)
-    if bad:
-        raise SessionError(f"{len(bad)} journalled RAW file(s) are missing or corrupt (first: {bad[0]}); "
-                           "the session folder is damaged")
-    warnings: list = []
-    bench = Bench(doc["settings"], zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
-                  timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
-    return _run(folder, doc, bench, warnings, progress, t0)
+        cal, bad = damaged_files(folder, journal)
+        if cal:
+            names = sorted(cal)
+            for name in names:
+                journal.forget_frame(name)
+            journal.event("retake", f"calibration frames missing or corrupt: {', '.join(names)}")
+            note(f"{len(names)} calibration frame(s) are missing or corrupt (first: {cal[names[0]]}): taking them again")
+        if bad:
+            idx = sorted(bad)
+            journal.supersede(idx, "RAW file missing or corrupt")
+            shown = ", ".join(map(str, idx[:10])) + (f" and {len(idx) - 10} more" if len(idx) > 10 else "")
+            note(f"measuring again {len(idx)} point(s) whose RAW files are missing or corrupt: {shown} "
+                 f"(first file: {bad[idx[0]]})")
+        if remeasure:
+            want = _integrity.parse_points(remeasure, plan_n)
+            moved = journal.supersede(want, "--remeasure")
+            note(f"measuring again {len(want)} point(s) as asked ({len(moved)} had been measured)")
+        _drop_placeholders(folder, journal)
+        ports = doc.get("ports", {})
+        zaber_url = zaber_url or ports.get("zaber")
+        meter_url = meter_url or ports.get("meter")
+        if camera is None:
+            camera = ports.get("camera")
+            if not (isinstance(camera, str) and ("://" in camera or camera.startswith("/"))):
+                raise SessionError(f"{folder} was captured with a {camera} camera; give the camera to resume with")
+        if not zaber_url or not meter_url:
+            raise SessionError(f"{folder}: give the ports to resume on (--port and --meter-port)")
+        warnings: list = []
+        bench = Bench(doc["settings"], zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
+                      timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
+    except BaseException:
+        if journal is not None:
+            journal.close()
+        if bench is not None:
+            bench.close()
+        lock.__exit__()
+        raise
+    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, notes)
+
+
+def _drop_placeholders(folder: Path, journal: Journal) -> None:
+    """Remove the empty placeholders of RAW files a stopped run reserved but never received."""
+    used = {f for kind in ("dark", "flat") for _, f, _ in journal.frames(kind).values()}
+    used |= {e["file"] for r in journal.points() for e in r["detail"].get("exposures", [])}
+    for file in _integrity.raw_files(folder):
+        p = folder / file
+        if file not in used and p.stat().st_size == 0:
+            p.unlink()

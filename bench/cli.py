@@ -58,14 +58,19 @@ def _cmd_capture(args):
     from . import session_runner
 
     if args.resume:
-        session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
-                                  camera=args.camera, progress=not args.quiet)
-        return
+        return session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
+                                         camera=args.camera, progress=not args.quiet,
+                                         rebuild_journal=args.rebuild_journal, remeasure=args.remeasure,
+                                         restore_session=args.restore_session)
+    for flag, given in (("--rebuild-journal", args.rebuild_journal), ("--remeasure", args.remeasure),
+                        ("--restore-session", args.restore_session)):
+        if given:
+            raise GonioError(f"{flag} repairs an existing session: use it with --resume DIR")
     if args.out is None:
         raise GonioError("capture needs --out DIR (a new session folder) or --resume DIR")
     if not args.sim and not args.port:
         raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
-    session_runner.capture_cli(Path(args.out), sim=args.sim, sample=args.sample, plan=args.plan, seed=args.seed,
+    return session_runner.capture_cli(Path(args.out), sim=args.sim, sample=args.sample, plan=args.plan, seed=args.seed,
                                settings=args.settings, port=args.port, meter_port=args.meter_port,
                                camera=args.camera, dry_run=args.dry_run, progress=not args.quiet)
 
@@ -181,8 +186,20 @@ def _cmd_bench_fit(args):
 
 
 # --------------------------------------------------------------------------- parser
+EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_STOPPED = 0, 1, 2, 3
+
+EPILOG = """exit status:
+  0  done (a capture: every point of the plan measured)
+  1  failed: an unexpected error (a bug: please report the traceback)
+  2  refused: bad input or environment, said in one line; nothing was written or changed
+  3  stopped, resumable: a capture stopped before the end (Ctrl-C, SIGTERM, SIGHUP, a fault,
+     the lamp or a port lost); the session is consistent: `gonio capture --resume DIR`
+  130 interrupted (Ctrl-C) outside a capture"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="gonio", description="Physically based BRDF measurement and validation bench.")
+    p = _Parser(prog="gonio", description="Physically based BRDF measurement and validation bench.",
+                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"gonio {_version()}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
@@ -195,7 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also sample the posterior with emcee (default on)")
     d.set_defaults(func=_cmd_demo)
 
-    c = sub.add_parser("capture", help="run a capture session (simulated or real instrument)")
+    c = sub.add_parser("capture", help="run a capture session (simulated or real instrument)",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     c.add_argument("--sim", action="store_true", help="use the simulated instrument in this process")
     c.add_argument("--sample", help="sample TOML or measured .bsdf file (simulated instrument only)")
     c.add_argument("--plan", default="standard", help="preset (quick, standard, dense) or plan TOML/CSV file")
@@ -208,6 +226,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--camera", help="camera: a serial port/URL of a simulated camera, folder:PATH, or gphoto2")
     c.add_argument("--dry-run", action="store_true", help="print point count, duration estimate, unreachable points; move nothing")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.add_argument("--remeasure", metavar="POINTS",
+                   help="with --resume: measure these plan points again, e.g. 3,7,10-12 (points whose RAW files "
+                        "are missing or corrupt are measured again without asking)")
+    c.add_argument("--rebuild-journal", action="store_true",
+                   help="with --resume: replace a missing or damaged journal.sqlite, keeping the points whose RAW "
+                        "files match their recorded checksums (the old journal is kept beside it)")
+    c.add_argument("--restore-session", action="store_true",
+                   help="with --resume: put back session.toml as the journal recorded it when the session started")
     c.set_defaults(func=_cmd_capture)
 
     e = sub.add_parser("export", help="write SESSION/dataset.nc from a session's journal")
@@ -291,10 +317,20 @@ def main(argv=None) -> int:
     from gonio.fitting._data import DataError
 
     try:
-        args.func(args)
+        rc = args.func(args)
     except GonioError as exc:
-        sys.stderr.write(f"gonio: error: {exc}\n")
-        return 2
+        session = getattr(exc, "session_dir", None)
+        if type(exc).__name__ == "CaptureInterrupted":      # Ctrl-C twice, SIGTERM, SIGHUP
+            _say(f"gonio: stopped: {exc}")
+            return EXIT_STOPPED
+        if session is not None:                 # raised while measuring: the session stays resumable
+            msg = str(exc)
+            if "--resume" not in msg:
+                msg += f" (the session is resumable: `gonio capture --resume {session}`)"
+            _say(f"gonio: stopped: {msg}")
+            return EXIT_STOPPED
+        _say(f"gonio: error: {exc}")
+        return EXIT_REFUSED
     except DataError as exc:
         sys.stderr.write(f"gonio: error: {' '.join(str(exc).split())}\n")
         return 2
@@ -302,9 +338,18 @@ def main(argv=None) -> int:
         sys.stderr.write(f"gonio: error: {exc.filename or exc}: no such file; check the path\n")
         return 2
     except KeyboardInterrupt:
-        sys.stderr.write("gonio: interrupted\n")
+        _say("gonio: interrupted")
         return 130
-    return 0
+    return int(rc or 0)
+
+
+def _say(line: str) -> None:
+    """One line on stderr; a closed terminal (SIGHUP) must not turn it into a traceback."""
+    try:
+        sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 from ._files import commit_file, tmp_name
-from ._journal import JOURNAL_FILE, Journal, read_session
 from .errors import SessionError
 
 __all__ = ["export", "to_dataset", "DATASET_FILE"]
@@ -39,11 +38,14 @@ def to_dataset(session_dir):
     """The session's journalled points as an `xarray.Dataset` (see the module docstring)."""
     import xarray as xr
 
+    from . import _integrity
+
     folder = Path(session_dir)
-    doc = read_session(folder)
-    if not (folder / JOURNAL_FILE).is_file():
-        raise SessionError(f"{folder} has no journal: no point was measured; run the capture first")
-    with Journal(folder / JOURNAL_FILE) as j:
+    data, doc, why = _integrity.load_session(folder)
+    if doc is None:
+        raise SessionError(f"{folder / 'session.toml'} is not valid TOML ({why}); the session cannot be exported")
+    # the same checks as a resume: session.toml as journalled, the journal whole, no unknown RAW file
+    with _integrity.open_journal(folder, data, doc, why, write=False) as j:
         rows = j.points()
         rgb_cam = j.first_event("rgb_cam")
     if not rows:

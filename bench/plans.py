@@ -83,6 +83,9 @@ class Plan:
     description : str
     source : str
         Where the plan came from (preset name or file path).
+    duplicates : int
+        Points given more than once and dropped (the first occurrence is kept), whatever the
+        plan's format: a plan holds each point once.
     """
 
     name: str
@@ -90,10 +93,14 @@ class Plan:
     partner: np.ndarray = field(default=None)
     description: str = ""
     source: str = ""
+    duplicates: int = 0
 
     def __post_init__(self):
-        self.angles = _validated_angles(self.angles, self.name)
-        if self.partner is None:
+        a = _validated_angles(self.angles, self.name)
+        a, dropped = dedupe(a)
+        self.angles = a
+        self.duplicates += dropped
+        if self.partner is None or dropped:
             self.partner = find_partners(self.angles)
 
     def __len__(self) -> int:
@@ -132,6 +139,14 @@ def _validated_angles(angles, name: str) -> np.ndarray:
                         "fix the plan file")
     a[:, [1, 3]] = (a[:, [1, 3]] + 180.0) % 360.0 - 180.0
     return a
+
+
+def dedupe(angles: np.ndarray) -> tuple[np.ndarray, int]:
+    """``angles`` (validated, phi wrapped) without repeated points (first kept), and how many went."""
+    _, first = np.unique(np.round(angles, 9), axis=0, return_index=True)
+    if len(first) == len(angles):
+        return angles, 0
+    return angles[np.sort(first)], len(angles) - len(first)
 
 
 def find_partners(angles, tol_deg: float = 1e-6) -> np.ndarray:
@@ -316,10 +331,7 @@ def plan_from_dict(d: Mapping[str, Any], default_name: str = "plan", source: str
         parts.append(_scan(spec, name, k))
     if not parts:
         raise PlanError(f"plan {name!r} has no points; add 'points' or [[scan]] tables")
-    angles = _validated_angles(np.vstack(parts), name)
-    # drop exact duplicates, keeping the first occurrence
-    _, first = np.unique(np.round(angles, 9), axis=0, return_index=True)
-    angles = angles[np.sort(first)]
+    angles = _validated_angles(np.vstack(parts), name)     # Plan drops repeated points, keeping the first
     return Plan(name, angles, description=str(d.get("description", "")), source=source or str(d.get("source", "")))
 
 
@@ -413,6 +425,7 @@ class DryRun:
     bound_move_s: float
     per_point_s: float
     order: np.ndarray
+    duplicates: int = 0
 
     @property
     def estimated_s(self) -> float:
@@ -423,6 +436,8 @@ class DryRun:
         """Human-readable lines for the CLI."""
         lines = [f"{self.n_points} points; estimated duration {self.estimated_s / 60:.1f} min "
                  f"(moves {self.ordered_move_s:.0f} s + {self.per_point_s:g} s per point)"]
+        if self.duplicates:
+            lines.append(f"{self.duplicates} repeated point(s) in the plan dropped (each point is measured once)")
         if self.naive_move_s > 0:
             lines.append(f"move time: plan order {self.naive_move_s:.0f} s, ordered {self.ordered_move_s:.0f} s "
                          f"({100 * (1 - self.ordered_move_s / self.naive_move_s):.0f} % less), "
@@ -440,6 +455,6 @@ def dry_run(plan: Plan, settings: Mapping, per_point_s: float = 2.0) -> DryRun:
 
     bad = check_plan(plan, settings)
     if bad:
-        return DryRun(len(plan), bad, 0.0, 0.0, 0.0, per_point_s, np.zeros(0, int))
+        return DryRun(len(plan), bad, 0.0, 0.0, 0.0, per_point_s, np.zeros(0, int), plan.duplicates)
     res = order_moves(kinematics.inverse(*plan.angles.T), settings)
-    return DryRun(len(plan), [], res.naive_s, res.ordered_s, res.bound_s, per_point_s, res.order)
+    return DryRun(len(plan), [], res.naive_s, res.ordered_s, res.bound_s, per_point_s, res.order, plan.duplicates)

@@ -15,7 +15,9 @@ from pathlib import Path
 
 from .errors import GonioError
 
-__all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument"]
+__all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument", "EXIT_STOPPED"]
+
+EXIT_STOPPED = 3          # the capture stopped before the end; `gonio capture --resume DIR` finishes it
 
 
 def _settings(path):
@@ -64,6 +66,7 @@ def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, 
 
 
 def _print_summary(summary):
+    """Print what the run did; return the exit status (0 complete, 3 stopped and resumable)."""
     lines = [f"session {summary.session_dir}: {summary.n_done}/{summary.n_points} points "
              f"({summary.n_new} new) in {summary.wall_s:.1f} s wall"]
     if summary.move_naive_s:
@@ -74,7 +77,10 @@ def _print_summary(summary):
                      f"{summary.reciprocity_error:.2e}")
     if summary.stopped:
         lines.append(f"stopped early: {summary.stopped}; finish with `gonio capture --resume {summary.session_dir}`")
-    print("\n".join(lines))
+    elif not summary.complete:
+        lines.append(f"incomplete: finish with `gonio capture --resume {summary.session_dir}`")
+    print("\n".join(lines), flush=True)
+    return 0 if summary.complete else EXIT_STOPPED
 
 
 def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress):
@@ -85,7 +91,7 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
     plan_obj = _plan(plan)
     if dry_run:
         print(plan_dry_run(plan_obj, settings_d).summary())
-        return
+        return 0
     if sim:
         if port or meter_port:
             raise GonioError("--sim and --port/--meter-port exclude each other: pick the simulated or the real instrument")
@@ -99,7 +105,7 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
         if not meter_port or not camera:
             raise GonioError("a hardware capture needs --port, --meter-port and --camera")
         summary = capture(out, plan_obj, settings_d, port, meter_port, _camera(camera), seed=seed, progress=progress)
-    _print_summary(summary)
+    return _print_summary(summary)
 
 
 def _camera(spec: str):
@@ -112,26 +118,55 @@ def _camera(spec: str):
     return spec  # a serial port or URL of a simulated camera
 
 
-def resume_cli(session: Path, *, port, meter_port, camera, progress):
-    from ._journal import read_session
+def _note(line: str) -> None:
+    import sys
+
+    sys.stderr.write(f"gonio: {line}\n")
+    sys.stderr.flush()
+
+
+def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_journal=False, remeasure=None,
+               restore_session=False):
+    """``gonio capture --resume``; returns the exit status."""
+    from . import _integrity
     from .capture import resume
 
-    if not (session / "session.toml").exists():
-        raise GonioError(f"{session} holds no session (no session.toml); give the folder a capture wrote")
-    doc = read_session(session)
+    if restore_session:
+        from ._journal import SessionLock
+
+        if not session.is_dir():
+            raise GonioError(f"{session} is not a gonio session folder; give the folder a capture wrote")
+        with SessionLock(session):
+            print(_integrity.restore_session(session))
+        return 0
+    data, doc, why = _integrity.load_session(session)
+    if doc is None:
+        raise GonioError(f"{session / 'session.toml'} is not valid TOML ({why}); restore it with "
+                         f"`gonio capture --resume {session} --restore-session`")
+    _integrity.check_doc(doc, session)
+    if not rebuild_journal:                      # refuse what differs before any simulator is built
+        try:
+            _integrity.open_journal(session, data, doc, why, write=False).close()
+        except _integrity.NothingMeasured:
+            pass                                 # a capture stopped before its journal: the resume starts it
     meta = doc.get("meta", {})
+    kw = dict(progress=progress, rebuild_journal=rebuild_journal, remeasure=remeasure, notify=_note)
     if meta.get("sim") and not port:
         settings = doc["settings"]
-        sample = json.loads(meta["sample"])
+        try:
+            sample = json.loads(meta["sample"])
+        except (KeyError, TypeError, ValueError):
+            raise GonioError(f"{session / 'session.toml'}: [meta] sample is missing or not JSON; "
+                             "the simulated instrument cannot be rebuilt") from None
         inst = sim_instrument(settings, sample, int(doc["session"]["seed"]), name=meta.get("sim_name"))
         try:
-            summary = resume(session, inst.url("zaber"), inst.url("meter"), inst.url("camera"), progress=progress,
-                             sleep=inst.clock.advance)
+            summary = resume(session, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
+                             sleep=inst.clock.advance, **kw)
         finally:
             inst.unregister()
     else:
-        summary = resume(session, port, meter_port, _camera(camera) if camera else None, progress=progress)
-    _print_summary(summary)
+        summary = resume(session, port, meter_port, _camera(camera) if camera else None, **kw)
+    return _print_summary(summary)
 
 
 def serve_cli(*, sample, seed, settings, clock, faults):
