@@ -54,7 +54,7 @@ def find_outputs(folder) -> dict:
         raise GonioError(f"no dataset.nc under {folder}; run `gonio export SESSION` first")
     for key, path in found.items():
         if path is not None:
-            root.check(path, key)
+            root.check(path, "input file")
     return found
 
 

@@ -73,6 +73,8 @@ def remove_stale_temporaries(path) -> list[Path]:
             if entry.is_dir(follow_symlinks=False):
                 continue
             tag = name[len(prefix):-4]
+            if "." in tag:  # the temporary of a longer name (fit.json.bak), not of this one
+                continue
             head, sep, _ = tag.partition("-")
             if sep and head.isdigit():
                 if int(head) == os.getpid() or _pid_alive(int(head)):

@@ -136,8 +136,11 @@ def test_temporaries_of_killed_writers_are_removed_by_the_next_write(tmp_path):
         live.write_text("x")
         other = tmp_path / ".other.json.1-zzz.tmp"
         other.write_text("x")
+        longer = tmp_path / ".fit.json.bak.abc123.tmp"  # an old temporary of fit.json.bak, not of fit.json
+        longer.write_text("x")
+        os.utime(longer, (time.time() - 3600,) * 2)
         write_json_atomic(target, {"a": 1})
-        assert temporaries(tmp_path) == sorted([fresh_untagged.name, live.name, other.name])
+        assert temporaries(tmp_path) == sorted([fresh_untagged.name, live.name, other.name, longer.name])
     finally:
         sleeper.kill()
         sleeper.wait()
