@@ -168,6 +168,7 @@ def fit_section(fit: Doc, truth) -> dict:
                      "truth": _fmt(t), "z": _fmt(z, 2), "unit": p.text("unit") or "", "method": p.text("method") or "",
                      "flags": flags})
     g, opt = fit.need("goodness"), fit.need("optimiser")
+    nulled = fit.raw("non_finite") if isinstance(fit.raw("non_finite"), list) else []
     energy = fit.need("constraints").need("energy")
     energy_text = _energy_text({"by_construction": energy.flag("by_construction"), "holds": energy.flag("holds"),
                                 "max_albedo": energy.num("max_albedo")})
@@ -175,7 +176,7 @@ def fit_section(fit: Doc, truth) -> dict:
            "chi2_dof": _fmt(g.num("chi2_dof")), "dof": _fmt(g.count("dof")), "rmse_fr": _fmt(g.num("rmse_fr")),
            "rmse_cos_fr": _fmt(g.num("rmse_cos_fr")), "method": opt.text("method") or "–",
            "evaluations": _fmt(opt.count("evaluations")), "time_s": _fmt(opt.num("time_s"), 3), "energy": energy_text,
-           "non_finite": cut(", ".join(str(x) for x in fit.raw("non_finite") or [] if isinstance(x, str)))}
+           "non_finite": cut(", ".join(x for x in nulled if isinstance(x, str)))}
     post = fit.sub("posterior")
     out["posterior"] = None if post is None else {
         "walkers": _fmt(post.count("walkers")), "steps": _fmt(post.count("steps")),

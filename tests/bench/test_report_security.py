@@ -188,6 +188,14 @@ def test_nan_numbers_are_shown_and_nan_counts_refused(out):
     assert_refused(out, "speed.json", "rows[0].evaluations", "whole number")
 
 
+def test_values_written_as_null_are_said_in_the_report(out):
+    edit(out, "fit.json", lambda d: (d["goodness"].update(chi2_dof=None), d.update(non_finite=["goodness.chi2_dof", 3])))
+    page = write_report(out).read_text()
+    assert "chi<sup>2</sup>/dof = – (" in page and "NaN or infinite: goodness.chi2_dof." in page
+    edit(out, "fit.json", lambda d: d.update(non_finite=7))
+    assert "NaN or infinite" not in write_report(out).read_text()
+
+
 def test_fit_file_with_nan_tokens_is_refused(out):
     text = (out / "fit.json").read_text()
     doc = json.loads(text)
