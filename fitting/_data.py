@@ -93,14 +93,45 @@ class Measurements:
                             self.use[index], dict(self.attrs), self.channels)
 
 
+#: Angle units a dataset may declare, and the factor to radians.
+ANGLE_UNITS = {**dict.fromkeys(("deg", "degree", "degrees"), np.pi / 180.0),
+               **dict.fromkeys(("rad", "radian", "radians"), 1.0)}
+
+#: A 1-sigma below this fraction of the value it belongs to (or of the dataset's typical value)
+#: is no measurement's uncertainty: it would weight one point ~1e18 times another.
+MIN_REL_SIGMA = 1e-9
+#: ... nor is one below this, whatever the values (sr^-1): its inverse square overflows.
+MIN_SIGMA = 1e-100
+
+
+def _check_sigmas(path, brdf, std, use) -> None:
+    """brdf_std must be positive, finite, normal and not absurdly small at every usable value."""
+    if not np.any(use):
+        return
+    bad = use & ~(std > 0)
+    if np.any(bad):
+        i, c = (int(v) for v in np.argwhere(bad)[0])
+        raise DataError(f"{path}: brdf_std = {std[i, c]:g} at point {i} (channel {c}) is not positive; "
+                        "every used value needs a 1-sigma > 0 (flag the point saturated or drop it)")
+    typical = float(np.median(np.abs(brdf[use])))
+    floor = np.maximum(MIN_REL_SIGMA * np.maximum(np.abs(brdf), typical), MIN_SIGMA)
+    bad = use & ((std < floor) | (std < np.finfo(np.float64).tiny))
+    if np.any(bad):
+        i, c = (int(v) for v in np.argwhere(bad)[0])
+        raise DataError(f"{path}: brdf_std = {std[i, c]:g} at point {i} (channel {c}) is absurdly small for "
+                        f"brdf = {brdf[i, c]:g} (below {MIN_REL_SIGMA:g} of the value); fix the uncertainties")
+
+
 def load_dataset(path) -> Measurements:
     """Read a gonio ``dataset.nc`` into :class:`Measurements`.
 
     Raises
     ------
     DataError
-        When the file lacks the variables of docs/interfaces.md section 5, or holds NaN where
-        values are used.
+        When the file lacks the variables of docs/interfaces.md section 5, declares angle
+        units other than degrees or radians, has a direction below the horizon (theta outside
+        [0, 90] deg), holds NaN where values are used, or a 1-sigma that is not positive,
+        finite and of a plausible size (see `MIN_REL_SIGMA`).
     """
     import xarray as xr
 
@@ -113,16 +144,41 @@ def load_dataset(path) -> Measurements:
 
     def radians(name):
         var = ds[name]
-        unit = str(var.attrs.get("units", "degree")).lower()
-        values = np.asarray(var.values, dtype=np.float64)
-        return np.deg2rad(values) if unit.startswith("deg") else values
+        unit = " ".join(str(var.attrs.get("units", "degree")).split()).lower()
+        if unit not in ANGLE_UNITS:
+            raise DataError(f"{path}: {name} has units {var.attrs.get('units')!r}; angles must be in "
+                            "degree(s)/deg or radian(s)/rad: fix the units attribute")
+        try:
+            values = np.asarray(var.values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"{path}: {name} is not numeric; fix the dataset") from None
+        if values.ndim != 1:
+            raise DataError(f"{path}: {name} must be one value per point, not shape {values.shape}")
+        if not np.all(np.isfinite(values)):
+            raise DataError(f"{path}: {name} is NaN or inf at point {int(np.argmax(~np.isfinite(values)))}; "
+                            "fix or drop that point")
+        return values * ANGLE_UNITS[unit]
 
-    wi = direction(radians("theta_i"), radians("phi_i"))
-    wo = direction(radians("theta_o"), radians("phi_o"))
-    brdf = np.asarray(ds["brdf"].transpose("point", ...).values, dtype=np.float64)
-    std = np.asarray(ds["brdf_std"].transpose("point", ...).values, dtype=np.float64)
+    angles = {k: radians(k) for k in ("theta_i", "phi_i", "theta_o", "phi_o")}
+    for k in ("theta_i", "theta_o"):
+        bad = (angles[k] < 0) | (angles[k] > np.pi / 2 + 1e-9)
+        if np.any(bad):
+            i = int(np.argmax(bad))
+            raise DataError(f"{path}: {k} = {np.degrees(angles[k][i]):.6g} deg at point {i} is below the horizon "
+                            "(theta must be in [0, 90] deg); fix the units or drop the point")
+    wi = direction(angles["theta_i"], angles["phi_i"])
+    wo = direction(angles["theta_o"], angles["phi_o"])
+    try:
+        brdf = np.asarray(ds["brdf"].transpose("point", ...).values, dtype=np.float64)
+        std = np.asarray(ds["brdf_std"].transpose("point", ...).values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{path}: brdf and brdf_std must be numeric arrays over point (and channel)") from None
     if brdf.ndim == 1:
-        brdf, std = brdf[:, None], std[:, None]
+        brdf = brdf[:, None]
+    if std.ndim == 1:
+        std = std[:, None]
+    if brdf.ndim != 2 or std.shape != brdf.shape or brdf.shape[0] != wi.shape[0]:
+        raise DataError(f"{path}: brdf {brdf.shape} and brdf_std {std.shape} must match the {wi.shape[0]} points")
     use = np.ones(brdf.shape, dtype=bool)
     if "saturated" in ds.variables:
         sat = np.asarray(ds["saturated"].values, dtype=bool)
@@ -132,6 +188,7 @@ def load_dataset(path) -> Measurements:
         bad = int(np.argwhere(nan_rows & use)[0, 0])
         raise DataError(f"{path}: brdf or brdf_std is NaN at point {bad} and it is not flagged saturated;"
                         " re-export the session or drop the point")
+    _check_sigmas(path, brdf, std, use)
     attrs = {}
     for key, value in ds.attrs.items():
         if isinstance(value, np.generic):
