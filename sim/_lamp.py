@@ -45,11 +45,18 @@ class Lamp:
         Random-walk standard deviation of log power per sqrt(second).
     t_ambient : float
         Ambient temperature, deg C.
+    flux_max : float
+        What the controller reports as ``lamp.flux.max``; ``lamp.flux`` on the wire is
+        ``flux * flux_max``. The units of Zaber's ``lamp.flux`` are not published: the
+        default 1.0 (wire value = relative flux) is invented.
     """
 
     def __init__(self, seed: int = 0, p0: float = 0.01, tau: float = 120.0,
                  delta_t: float = 15.0, droop: float = 0.004, drift_sigma: float = 2e-4,
-                 t_ambient: float = 25.0):
+                 t_ambient: float = 25.0, flux_max: float = 1.0):
+        if not (math.isfinite(flux_max) and flux_max > 0):
+            raise ValueError("flux_max must be finite and > 0")
+        self.flux_max = float(flux_max)
         self.p0 = float(p0)
         self.tau = float(tau)
         self.delta_t = float(delta_t)

@@ -157,6 +157,23 @@ class PortEndpoint:
         for r, e in zip(replies, ends):
             self.out += r.encode("ascii", "replace") + e
 
+    def poll(self) -> int:
+        """Queue the spontaneous lines (Zaber alerts) that came due by now; return how many.
+
+        Called by the pty server's loop and by ``sim://`` reads, so an alert of a motion that
+        ends in (scaled) real time reaches the host without a command.
+        """
+        alerts = getattr(self.server, "alerts", None)
+        if alerts is None:
+            return 0
+        with self.inst.lock:
+            if not self.present() or self.inst.clock.now() < self.silent_until:
+                return 0
+            lines = alerts()
+            for line in lines:
+                self.out += line.encode("ascii", "replace") + self.reply_end
+            return len(lines)
+
     # ------------------------------------------------------------------ bytes out
     def take(self, size: int) -> bytes:
         """Remove and return up to ``size`` reply bytes."""

@@ -108,6 +108,13 @@ class PtyServer:
         if name in self._back_at:           # the port vanished while handling this line
             self._close(name)
             return
+        self._flush(name)
+
+    def _flush(self, name: str) -> None:
+        """Write the endpoint's queued reply and alert bytes to the pty."""
+        master, _ = self._fds[name]
+        ep = self.instrument.ports[name]
+        ep.poll()
         out = ep.take(len(ep.out))
         while out:
             try:
@@ -131,6 +138,8 @@ class PtyServer:
                     self._open(name)
                 elif name in self._fds and self._back_at.get(name) is not None and now < t:
                     self._close(name)
+            for name in list(self._fds):
+                self._flush(name)            # alerts of motions that ended in real time
             masters = {fds[0]: name for name, fds in self._fds.items()}
             if not masters:
                 time.sleep(0.01)

@@ -144,6 +144,8 @@ class RotaryAxis:
     _target: float = 0.0
     _homing: bool = False
     _halt: tuple | None = None                  # (time, flag) when the motion is cut short
+    driver_enabled: bool = True                 # ``driver disable`` de-energises the motor (FD)
+    parked: bool = False                        # ``tools parking park``: keeps the reference over a power cycle
 
     # ---------------------------------------------------------------- state queries
     def process(self, t: float) -> None:
@@ -212,6 +214,8 @@ class RotaryAxis:
         f = set(self.flags)
         if not self.homed:
             f |= {"WR", "WH"}
+        if not self.driver_enabled:
+            f.add("FD")
         return f
 
     # ---------------------------------------------------------------- actions
@@ -236,6 +240,25 @@ class RotaryAxis:
     def move_abs(self, t: float, counter_target: int) -> None:
         """Start a move to counter position ``counter_target`` (microsteps) at time ``t``."""
         self._start(t, counter_target + self.offset)
+
+    def move_vel(self, t: float, speed: float) -> None:
+        """Move at ``speed`` (microsteps/s, signed) until a stop or the travel limit.
+
+        The simulator plans it as a move to the limit in the direction of ``speed`` with
+        ``|speed|`` as the speed limit: the axis comes to rest at the limit instead of running
+        into it (a real controller stops at the limit too; its exact deceleration there is not
+        published: invented).
+        """
+        if speed == 0:
+            self.stop(t)
+            return
+        target = self.limit_max if speed > 0 else self.limit_min
+        vmax = self.maxspeed
+        self.maxspeed = abs(speed)
+        try:
+            self._start(t, target + self.offset)
+        finally:
+            self.maxspeed = vmax
 
     def home(self, t: float) -> None:
         """Start homing: drive to the physical reference (0), then zero the counter."""
@@ -276,9 +299,17 @@ class RotaryAxis:
             self._halt = (float(t_halt), flag)
 
     def power_cycle(self, t: float) -> None:
-        """Lose power: stop where it is, counter reads 0, reference lost (WR, WH)."""
+        """Lose power: stop where it is, counter reads 0, reference lost (WR, WH).
+
+        A parked axis (``tools parking park``) keeps its counter and reference and comes back
+        parked, as Zaber describes parking (the axis stays parked until ``unpark``).
+        """
         self.physical = self.position_physical(t)
         self._segs, self._halt, self._homing = [], None, False
+        self.driver_enabled = True
+        if self.parked:
+            self.flags.clear()
+            return
         self.offset = self.physical
         self.homed = False
         self.flags.clear()

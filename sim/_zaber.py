@@ -1,8 +1,14 @@
 """Zaber ASCII protocol server for the simulated daisy chain (grammar: shared/notes/protocols.md).
 
-Device 1 is a rotary controller whose axes are ``RotaryAxis`` objects (``_stages.py``);
-device 2 is the LED source (``_lamp.py``). This module only parses and formats; the physics
-stays in those modules.
+Device 1 is a rotary controller whose axes are ``RotaryAxis`` objects (``_stages.py``,
+commands in ``_zaber_stage.py``); device 2 is the LED source (``_lamp.py``, commands in
+``_zaber_led.py``). This module parses, frames and formats; identification and the ``comm.*``
+settings every device shares live here too (``Device``).
+
+Sources: Zaber's ASCII protocol manual (message format, reply/info/alert line types, message
+ids, ``:CC`` checksums, message continuation, rejection reasons and warning flags) and what
+zaber-motion 10.3 sends (observed on the wire: ``/0 0 00``, then per device
+``get comm.packet.size.max``, ``get deviceid``, ``get version``, ... before anything else).
 
 Behaviour chosen where the manual leaves room (the bench relies on it):
 
@@ -20,20 +26,33 @@ Behaviour chosen where the manual leaves room (the bench relies on it):
 - Message ids are echoed as two digits (``@01 1 07 OK ...``).
 - Replies carry a checksum only when ``comm.checksum`` is 1 (device setting, default 0).
 - ``maxspeed`` in microsteps/s, ``accel`` in microsteps/s^2 (not Zaber's native units).
-- LED (device 2): ``lamp on|off``, ``set lamp.flux F`` (0..1), ``get lamp.flux`` (3
-  decimals), ``get lamp.temperature`` (deg C, 1 decimal), ``get lamp.status`` (0/1).
+- Alerts (``set comm.alert 1``): when an axis's motion ends the device sends
+  ``!DD A IDLE WARN`` (manual: alert message type ``!``, fields device, axis, status,
+  warning flag); the simulator sends one per axis that moved, after the reply of the command
+  during which it ended, or from the pty server's loop in real time.
+- Continuation (manual, "message continuation"): a reply longer than ``packet_size_max``
+  characters ends in ``\\`` right after its last data word and its data goes on in
+  ``#DD A [ID] cont ...`` lines (further ones end in ``\\`` too). No space before the
+  backslash: zaber-motion 10.3 joins the parts with one space after dropping the backslash
+  (observed: ``176000 \\`` came out as ``176000  360000``). The manual does not say how a
+  checksum combines with the marker: the simulator puts ``:CC`` after it (invented), over
+  the text between the leading ``@``/``#`` and the colon.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["ZaberChain", "lrc", "FLAG_PRIORITY"]
+__all__ = ["ZaberChain", "Device", "lrc", "FLAG_PRIORITY", "Reject"]
 
 #: Warning flags, highest priority first (faults, warnings, notices).
 FLAG_PRIORITY = ["FS", "FQ", "FH", "FE", "FD", "WL", "WR", "WH", "WS", "WM", "WT", "WV",
                  "NI", "NC", "NR", "NU"]
-_MOTION = {"move", "home"}
+
+#: Longest reply line (characters, without ``:CC`` and terminator) before it continues.
+#: zaber-motion reads ``comm.packet.size.max`` first; real controllers report values of this
+#: order; 80 is the simulator's choice (invented: the manual gives no default).
+PACKET_SIZE_MAX = 80
 
 
 def lrc(text: str) -> int:
@@ -41,7 +60,7 @@ def lrc(text: str) -> int:
     return (-sum(text.encode("ascii", "replace"))) & 0xFF
 
 
-def _sort_flags(flags) -> list[str]:
+def sort_flags(flags) -> list[str]:
     order = {f: i for i, f in enumerate(FLAG_PRIORITY)}
     return sorted(set(flags), key=lambda f: (order.get(f, 99), f))
 
@@ -83,20 +102,131 @@ def parse(text: str) -> Command | None:
     return Command(device, axis, msgid, [t.lower() for t in toks], err)
 
 
-class _Reject(Exception):
+class Reject(Exception):
+    """The device answers ``RJ`` with ``reason`` (one of the manual's rejection reasons)."""
+
     def __init__(self, reason: str):
         self.reason = reason
 
 
-def _int_arg(words, i) -> int:
+def int_arg(words, i) -> int:
     try:
-        s = words[i]
-    except IndexError:
-        raise _Reject("BADDATA") from None
-    try:
-        return int(s)
-    except ValueError:
-        raise _Reject("BADDATA") from None
+        return int(words[i])
+    except (IndexError, ValueError):
+        raise Reject("BADDATA") from None
+
+
+class Device:
+    """One device on the chain: identification and the ``comm.*``/``system.*`` settings.
+
+    Subclasses implement ``axis_count``, ``status``, ``command`` (motion and the like) and
+    the per-axis settings (``get_axis``/``set_axis``).
+
+    Parameters
+    ----------
+    chain : ZaberChain
+    number : int
+        Device address.
+    ident : dict
+        ``deviceid``, ``system.serial``, ``version``, ``version.build`` (device settings) and
+        ``peripheralid`` (per axis).
+    """
+
+    def __init__(self, chain, number: int, ident: dict):
+        self.chain = chain
+        self.number = number
+        self.ident = dict(ident)
+        self.checksum = 0
+        self.alert = 0
+
+    @property
+    def inst(self):
+        return self.chain.inst
+
+    def now(self) -> float:
+        return self.inst.clock.now()
+
+    # -- to override ---------------------------------------------------------------------
+    def axis_count(self) -> int:
+        raise NotImplementedError
+
+    def status(self, axis: int) -> tuple[str, list]:
+        """``("BUSY"|"IDLE", sorted active flags)`` of an axis (0: the whole device)."""
+        return "IDLE", []
+
+    def command(self, cmd: Command) -> str:
+        raise Reject("BADCOMMAND")
+
+    def get_axis(self, key: str, axis: int) -> str:
+        """One axis's value of a per-axis setting (``Reject("BADCOMMAND")`` if unknown)."""
+        if key in ("peripheralid", "peripheral.id"):
+            return str(self.ident["peripheralid"])
+        raise Reject("BADCOMMAND")
+
+    def set_axis(self, key: str, value: str, axes: list) -> None:
+        raise Reject("BADCOMMAND")
+
+    # -- shared ----------------------------------------------------------------------------
+    #: Device settings: (name -> attribute or identification key). Read-only unless listed
+    #: in ``_WRITABLE``.
+    _DEVICE_GET = ("deviceid", "system.serial", "version", "version.build", "system.axiscount",
+                   "comm.checksum", "comm.alert", "comm.packet.size.max", "get.settings.max",
+                   "system.access", "comm.address")
+    _WRITABLE = ("comm.checksum", "comm.alert")
+
+    def device_get(self, key: str) -> str:
+        if key in ("deviceid", "system.serial", "version", "version.build"):
+            return str(self.ident[key])
+        if key == "system.axiscount":
+            return str(self.axis_count())
+        if key == "comm.checksum":
+            return str(self.checksum)
+        if key == "comm.alert":
+            return str(self.alert)
+        if key == "comm.packet.size.max":
+            return str(self.chain.packet_size_max)
+        if key == "get.settings.max":
+            # the manual documents several settings in one ``get``; how many a device takes
+            # is per firmware: the simulator takes 6 (invented)
+            return "6"
+        if key == "system.access":
+            return "1"          # normal user access (value invented: the manual lists levels 1, 2)
+        return str(self.number)     # comm.address
+
+    def axes_of(self, axis: int) -> list[int]:
+        return list(range(1, self.axis_count() + 1)) if axis == 0 else [axis]
+
+    def handle(self, cmd: Command) -> str:
+        w = cmd.words
+        if not w:
+            return "0"
+        if w[0] == "get":
+            if len(w) < 2 or len(w) - 1 > 6:
+                raise Reject("BADCOMMAND" if len(w) < 2 else "BADDATA")
+            return " ".join(self._get_one(cmd, key) for key in w[1:])
+        if w[0] == "set":
+            if len(w) != 3:
+                raise Reject("BADCOMMAND" if len(w) < 2 else "BADDATA")
+            key, value = w[1], w[2]
+            if key in self._DEVICE_GET:
+                if key not in self._WRITABLE:
+                    raise Reject("BADCOMMAND")
+                if cmd.axis != 0:
+                    raise Reject("DEVICEONLY")
+                if value not in ("0", "1"):
+                    raise Reject("BADDATA")
+                setattr(self, "checksum" if key == "comm.checksum" else "alert", int(value))
+                return "0"
+            self.set_axis(key, value, self.axes_of(cmd.axis))
+            return "0"
+        return self.command(cmd)
+
+    def _get_one(self, cmd: Command, key: str) -> str:
+        if key in self._DEVICE_GET:
+            if cmd.axis != 0:
+                raise Reject("DEVICEONLY")
+            return self.device_get(key)
+        return " ".join(self.get_axis(key, a) for a in self.axes_of(cmd.axis))
 
 
 class ZaberChain:
@@ -106,88 +236,119 @@ class ZaberChain:
     ----------
     instrument : Instrument
         Owner of the clock, the stage axes (device 1) and the lamp (device 2).
+
+    Attributes
+    ----------
+    packet_size_max : int
+        Longest reply line before it continues (``comm.packet.size.max``).
     """
 
     STAGE_DEVICE = 1
     LED_DEVICE = 2
 
     def __init__(self, instrument):
-        self.inst = instrument
-        self.checksum = {self.STAGE_DEVICE: 0, self.LED_DEVICE: 0}
-        self.armed_halts: list = []     # [(axis index or None, fraction, flag)] from faults
+        from ._zaber_led import LedDevice
+        from ._zaber_stage import StageDevice
 
-    # ------------------------------------------------------------------ helpers
+        self.inst = instrument
+        self.packet_size_max = PACKET_SIZE_MAX
+        self.armed_halts: list = []     # [(axis index or None, fraction, flag)] from faults
+        self.stage = StageDevice(self, self.STAGE_DEVICE)
+        self.led = LedDevice(self, self.LED_DEVICE)
+        self.units = {self.STAGE_DEVICE: self.stage, self.LED_DEVICE: self.led}
+        self._pending_alerts: list[str] = []
+
+    # ------------------------------------------------------------------ compatibility
     @property
     def axes(self):
         return self.inst.axes
 
-    def _now(self) -> float:
-        return self.inst.clock.now()
+    @property
+    def checksum(self) -> dict:
+        """``comm.checksum`` of each device (read-only view)."""
+        return {n: d.checksum for n, d in self.units.items()}
 
-    def _scope(self, device: int, axis: int) -> list:
-        """Axis objects a command addresses (device 1)."""
-        return list(self.axes) if axis == 0 else [self.axes[axis - 1]]
-
-    def _status(self, device: int, axis: int) -> tuple[str, str, list]:
-        t = self._now()
-        if device == self.LED_DEVICE:
-            return "IDLE", "--", []
-        scope = self._scope(device, axis if axis <= len(self.axes) else 0)
-        busy = any(a.busy(t) for a in scope)
-        flags = set()
-        for a in scope:
-            flags |= a.active_flags(t)
-        flags = _sort_flags(flags)
-        return ("BUSY" if busy else "IDLE"), (flags[0] if flags else "--"), flags
-
-    def format(self, device: int, axis: int, msgid, ok: bool, data: str) -> str:
-        """One reply line (no terminator)."""
-        status, warn, _ = self._status(device, axis)
-        mid = f" {msgid:02d}" if msgid is not None else ""
-        body = f"{device:02d} {axis}{mid} {'OK' if ok else 'RJ'} {status} {warn} {data}"
-        if self.checksum.get(device):
+    # ------------------------------------------------------------------ formatting
+    def _seal(self, device: int, lead: str, body: str) -> str:
+        if self.units[device].checksum:
             body += f":{lrc(body):02X}"
-        return "@" + body
+        return lead + body
+
+    def format(self, device: int, axis: int, msgid, ok: bool, data: str) -> list[str]:
+        """The reply packet(s) of one answer (no terminators): one line, or continued."""
+        status, flags = self.units[device].status(axis)
+        warn = flags[0] if flags else "--"
+        mid = f" {msgid:02d}" if msgid is not None else ""
+        head = f"{device:02d} {axis}{mid} {'OK' if ok else 'RJ'} {status} {warn}"
+        limit = max(24, int(self.packet_size_max))
+        if 1 + len(head) + 1 + len(data) <= limit or " " not in data:
+            return [self._seal(device, "@", f"{head} {data}")]
+        lines, words = [], data.split(" ")
+        lead, prefix = "@", head
+        while words:
+            body = prefix
+            while words and (len(body) + 1 + len(words[0]) + 1 <= limit - 1 or body == prefix):
+                body += " " + words.pop(0)
+            if words:
+                body += "\\"
+            lines.append(self._seal(device, lead, body))
+            lead, prefix = "#", f"{device:02d} {axis}{mid} cont"
+        return lines
+
+    def alert_line(self, device: int, axis: int) -> str:
+        status, flags = self.units[device].status(axis)
+        return self._seal(device, "!", f"{device:02d} {axis} {status} {flags[0] if flags else '--'}")
 
     def devices(self, cmd: Command) -> list[int]:
         if cmd.device == 0:
             return [self.STAGE_DEVICE, self.LED_DEVICE]
-        if cmd.device in (self.STAGE_DEVICE, self.LED_DEVICE):
+        if cmd.device in self.units:
             return [cmd.device]
         return []
 
     def axis_count(self, device: int) -> int:
-        return len(self.axes) if device == self.STAGE_DEVICE else 1
+        return self.units[device].axis_count()
 
     # ------------------------------------------------------------------ entry points
     def handle(self, text: str) -> list[str]:
-        """Execute one command line; return the reply lines (no terminators)."""
+        """Execute one command line; return the reply lines (no terminators).
+
+        Alerts that came due before the command come first; alerts of motions that ended
+        while it ran (an instant clock's jump) come after its replies.
+        """
         cmd = parse(text)
         if cmd is None:
             return []
-        replies = []
+        out = self.alerts()
         for dev in self.devices(cmd):
+            unit = self.units[dev]
             try:
                 if cmd.error:
-                    raise _Reject(cmd.error)
-                if cmd.axis > self.axis_count(dev):
-                    raise _Reject("BADAXIS")
-                if dev == self.STAGE_DEVICE:
-                    data = self._stage(cmd)
-                else:
-                    data = self._led(cmd)
-                replies.append(self.format(dev, cmd.axis, cmd.msgid, True, data))
-            except _Reject as rj:
-                replies.append(self.format(dev, cmd.axis, cmd.msgid, False, rj.reason))
-        self._jump(cmd, replies)
-        return replies
+                    raise Reject(cmd.error)
+                if cmd.axis > unit.axis_count():
+                    raise Reject("BADAXIS")
+                data = unit.handle(cmd)
+                out += self.format(dev, cmd.axis, cmd.msgid, True, data)
+            except Reject as rj:
+                out += self.format(dev, cmd.axis, cmd.msgid, False, rj.reason)
+        self._jump(cmd, out)
+        return out + self.alerts()
+
+    def alerts(self) -> list[str]:
+        """Alert lines of motions that ended by now (``comm.alert 1`` devices only)."""
+        out = self._pending_alerts
+        self._pending_alerts = []
+        return out + self.stage.ended_alerts()
 
     def again(self, text: str) -> list[str]:
         """Reply ``RJ ... AGAIN`` to a command without executing it (fault injection)."""
         cmd = parse(text)
         if cmd is None:
             return []
-        return [self.format(d, cmd.axis, cmd.msgid, False, "AGAIN") for d in self.devices(cmd)]
+        out = []
+        for d in self.devices(cmd):
+            out += self.format(d, cmd.axis, cmd.msgid, False, "AGAIN")
+        return out
 
     def _jump(self, cmd: Command, replies: list[str]) -> None:
         """Instant clock: a BUSY reply to a poll, ``get`` or ``warnings`` skips to the motion's end."""
@@ -198,211 +359,8 @@ class ZaberChain:
             return
         if cmd.axis > len(self.axes) or not any(" BUSY " in r for r in replies):
             return
-        t = self._now()
-        ends = [e for e in (a.end_time(t) for a in self._scope(1, cmd.axis)) if e is not None]
+        t = self.inst.clock.now()
+        scope = list(self.axes) if cmd.axis == 0 else [self.axes[cmd.axis - 1]]
+        ends = [e for e in (a.end_time(t) for a in scope) if e is not None]
         if ends:
             clock.advance_to(max(ends))
-
-    # ------------------------------------------------------------------ device 1
-    def _stage(self, cmd: Command) -> str:
-        w = cmd.words
-        t = self._now()
-        if not w:
-            return "0"
-        op = w[0]
-        if op == "home":
-            if len(w) != 1:
-                raise _Reject("BADCOMMAND")
-            for a in self._scope(1, cmd.axis):
-                a.home(t)
-                self._arm(a, t)
-            return "0"
-        if op == "move":
-            if len(w) < 2 or w[1] not in ("abs", "rel", "min", "max"):
-                raise _Reject("BADCOMMAND")
-            scope = self._scope(1, cmd.axis)
-            if w[1] in ("abs", "rel"):
-                if len(w) != 3:
-                    raise _Reject("BADDATA")
-                n = _int_arg(w, 2)
-            elif len(w) != 2:
-                raise _Reject("BADDATA")
-            if any(not a.homed for a in scope):
-                raise _Reject("BADDATA")
-            targets = []
-            for a in scope:
-                if w[1] == "abs":
-                    tgt = n
-                elif w[1] == "rel":
-                    tgt = a.position(t) + n
-                elif w[1] == "min":
-                    tgt = a.limit_min
-                else:
-                    tgt = a.limit_max
-                if not a.in_limits(tgt):
-                    raise _Reject("BADDATA")
-                targets.append(tgt)
-            for a, tgt in zip(scope, targets):
-                a.move_abs(t, tgt)
-                self._arm(a, t)
-            return "0"
-        if op in ("stop", "estop"):
-            if len(w) != 1:
-                raise _Reject("BADCOMMAND")
-            for a in self._scope(1, cmd.axis):
-                (a.stop if op == "stop" else a.estop)(t)
-            return "0"
-        if op == "warnings":
-            return self._warnings(cmd, w)
-        if op == "get":
-            if len(w) != 2:
-                raise _Reject("BADCOMMAND")
-            return self._get_stage(cmd, w[1], t)
-        if op == "set":
-            if len(w) != 3:
-                raise _Reject("BADCOMMAND" if len(w) < 2 else "BADDATA")
-            return self._set_stage(cmd, w[1], w[2], t)
-        raise _Reject("BADCOMMAND")
-
-    def _arm(self, axis_obj, t: float) -> None:
-        """Apply an armed stall/limit fault to the motion that just started."""
-        if not self.armed_halts:
-            return
-        idx = self.axes.index(axis_obj) + 1
-        for k, (ax, fraction, flag) in enumerate(self.armed_halts):
-            end = axis_obj.end_time(t)
-            if (ax is None or ax == idx) and end is not None:
-                axis_obj.schedule_halt(t + fraction * (end - t), flag)
-                del self.armed_halts[k]
-                return
-
-    def _warnings(self, cmd: Command, w) -> str:
-        if len(w) == 1:
-            clear = False
-        elif len(w) == 2 and w[1] == "clear":
-            clear = True
-        else:
-            raise _Reject("BADCOMMAND")
-        _, _, flags = self._status(1, cmd.axis)
-        if clear:
-            for a in self._scope(1, cmd.axis):
-                a.flags.clear()
-        return " ".join([f"{len(flags):02d}"] + flags)
-
-    _AXIS_SETTINGS = {"pos", "limit.min", "limit.max", "limit.cycle.dist", "maxspeed", "accel"}
-
-    def _get_stage(self, cmd: Command, key: str, t: float) -> str:
-        if key == "system.axiscount":
-            if cmd.axis != 0:
-                raise _Reject("DEVICEONLY")
-            return str(len(self.axes))
-        if key == "comm.checksum":
-            if cmd.axis != 0:
-                raise _Reject("DEVICEONLY")
-            return str(self.checksum[1])
-        if key not in self._AXIS_SETTINGS:
-            raise _Reject("BADCOMMAND")
-        vals = []
-        for a in self._scope(1, cmd.axis):
-            if key == "pos":
-                vals.append(a.position(t))
-            elif key == "limit.min":
-                vals.append(a.limit_min)
-            elif key == "limit.max":
-                vals.append(a.limit_max)
-            elif key == "limit.cycle.dist":
-                vals.append(a.cycle_dist)
-            elif key == "maxspeed":
-                vals.append(a.maxspeed)
-            else:
-                vals.append(a.accel)
-        return " ".join(str(int(v)) for v in vals)
-
-    def _set_stage(self, cmd: Command, key: str, value: str, t: float) -> str:
-        if key == "comm.checksum":
-            if cmd.axis != 0:
-                raise _Reject("DEVICEONLY")
-            if value not in ("0", "1"):
-                raise _Reject("BADDATA")
-            self.checksum[1] = int(value)
-            return "0"
-        if key == "system.axiscount" or key == "pos":
-            raise _Reject("BADCOMMAND")
-        if key not in self._AXIS_SETTINGS:
-            raise _Reject("BADCOMMAND")
-        try:
-            v = int(value)
-        except ValueError:
-            raise _Reject("BADDATA") from None
-        scope = self._scope(1, cmd.axis)
-        if any(a.busy(t) for a in scope):
-            raise _Reject("STATUSBUSY")
-        for a in scope:
-            if key in ("maxspeed", "accel", "limit.cycle.dist") and v <= 0:
-                raise _Reject("BADDATA")
-            if key == "limit.min" and v > a.limit_max:
-                raise _Reject("BADDATA")
-            if key == "limit.max" and v < a.limit_min:
-                raise _Reject("BADDATA")
-        attr = {"limit.min": "limit_min", "limit.max": "limit_max",
-                "limit.cycle.dist": "cycle_dist", "maxspeed": "maxspeed", "accel": "accel"}[key]
-        for a in scope:
-            setattr(a, attr, v)
-        return "0"
-
-    # ------------------------------------------------------------------ device 2
-    def _led(self, cmd: Command) -> str:
-        w = cmd.words
-        t = self._now()
-        lamp = self.inst.lamp
-        if not w:
-            return "0"
-        op = w[0]
-        if op in ("stop", "estop") and len(w) == 1:
-            return "0"
-        if op == "warnings":
-            if w[1:] not in ([], ["clear"]):
-                raise _Reject("BADCOMMAND")
-            return "00"
-        device_only = {"lamp", "set", "get"}
-        if op in device_only and cmd.axis != 0 and not (op == "get" and w[1:2] == ["system.axiscount"]):
-            if op == "lamp" or (len(w) > 1 and w[1].startswith("lamp.")):
-                raise _Reject("DEVICEONLY")
-        if op == "lamp":
-            if len(w) != 2 or w[1] not in ("on", "off"):
-                raise _Reject("BADDATA" if len(w) == 2 else "BADCOMMAND")
-            lamp.switch(t, w[1] == "on")
-            return "0"
-        if op == "get" and len(w) == 2:
-            key = w[1]
-            if key == "lamp.flux":
-                return f"{lamp.flux:.3f}"
-            if key == "lamp.temperature":
-                return f"{lamp.temperature(t):.1f}"
-            if key == "lamp.status":
-                return "1" if lamp.on else "0"
-            if key == "system.axiscount":
-                return "1"
-            if key == "comm.checksum":
-                return str(self.checksum[2])
-            raise _Reject("BADCOMMAND")
-        if op == "set" and len(w) == 3:
-            key, value = w[1], w[2]
-            if key == "lamp.flux":
-                try:
-                    f = float(value)
-                except ValueError:
-                    raise _Reject("BADDATA") from None
-                if not 0.0 <= f <= 1.0:
-                    raise _Reject("BADDATA")
-                lamp.set_flux(t, f)
-                return "0"
-            if key == "comm.checksum":
-                if value not in ("0", "1"):
-                    raise _Reject("BADDATA")
-                self.checksum[2] = int(value)
-                return "0"
-            if key in ("lamp.temperature", "lamp.status", "system.axiscount"):
-                raise _Reject("BADCOMMAND")
-            raise _Reject("BADCOMMAND")
-        raise _Reject("BADCOMMAND")

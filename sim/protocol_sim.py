@@ -88,6 +88,7 @@ class Serial(SerialBase):
     def in_waiting(self):
         with self._ep.inst.lock if self.is_open else _Null():
             self._alive()
+            self._ep.poll()
             return len(self._ep.out)
 
     def read(self, size=1):
@@ -99,6 +100,7 @@ class Serial(SerialBase):
         while True:
             with ep.inst.lock:
                 self._alive()
+                ep.poll()
                 got += ep.take(size - len(got))
             if len(got) >= size:
                 break

@@ -169,7 +169,8 @@ def test_lamp_dies(make):
     inst.clock.advance(20.0)
     m.write(b"MEAS:POW?\n")
     assert abs(float(m.readline())) < 1e-7
-    assert _z(z, "/2 0 get lamp.status") == b"@02 0 OK IDLE -- 1\r\n"   # controller unaware
+    # controller unaware (2 = on, as zaber-motion reads lamp.status; issue 17: was 1)
+    assert _z(z, "/2 0 get lamp.status") == b"@02 0 OK IDLE -- 2\r\n"
 
 
 def test_probability_faults_are_seeded(make):

@@ -119,14 +119,18 @@ def test_led_device(make):
     inst = make()
     z = serial.serial_for_url(inst.url("zaber"), timeout=0.5)
     exchange(z, [
-        (b"/2 0 get lamp.status", b"@02 0 OK IDLE -- 0\r\n"),
-        (b"/2 0 lamp on", b"@02 0 OK IDLE -- 0\r\n"),
+        # issue 17: lamp.status 1 off / 2 on, as zaber-motion's IlluminatorChannel.is_on() reads
+        # it (only 2 is "on"); these two lines used to assert 0 / 1
         (b"/2 0 get lamp.status", b"@02 0 OK IDLE -- 1\r\n"),
+        (b"/2 0 lamp on", b"@02 0 OK IDLE -- 0\r\n"),
+        (b"/2 0 get lamp.status", b"@02 0 OK IDLE -- 2\r\n"),
         (b"/2 0 set lamp.flux 0.8", b"@02 0 OK IDLE -- 0\r\n"),
         (b"/2 0 get lamp.flux", b"@02 0 OK IDLE -- 0.800\r\n"),
         (b"/2 0 set lamp.flux 1.5", b"@02 0 RJ IDLE -- BADDATA\r\n"),
         (b"/2 0 get lamp.temperature", b"@02 0 OK IDLE -- 25.0\r\n"),
-        (b"/2 1 lamp on", b"@02 1 RJ IDLE -- DEVICEONLY\r\n"),
+        # issue 17: a channel is an axis (zaber-motion's Illuminator sends /2 1 lamp on);
+        # this line used to assert DEVICEONLY, which the corrected protocol note refutes
+        (b"/2 1 lamp on", b"@02 1 OK IDLE -- 0\r\n"),
         (b"/2 2 lamp on", b"@02 2 RJ IDLE -- BADAXIS\r\n"),
         (b"/2 0 lamp dim", b"@02 0 RJ IDLE -- BADDATA\r\n"),
         (b"/2 0 move abs 5", b"@02 0 RJ IDLE -- BADCOMMAND\r\n"),
