@@ -126,7 +126,7 @@ class Instrument:
         self.camera = CameraPort(self)
         self.ports = {
             "zaber": PortEndpoint(self, "zaber", self.zaber, b"\r\n", split_cr=True),
-            "meter": PortEndpoint(self, "meter", self.scpi, b"\n", split_cr=False),
+            "meter": PortEndpoint(self, "meter", self.scpi, b"\n", split_cr=True),   # \r, \n or \r\n end a line
             "camera": PortEndpoint(self, "camera", self.camera, b"\n", split_cr=False),
         }
         self._scene: HolderScene | None = None
