@@ -11,7 +11,14 @@ Layers, bottom up:
   reply, then a reconnect; `RJ` raises `RejectedError`, fault flags raise `FaultError`.
 * `Goniometer`: the four rotary axes of device 1 in degrees, soft limits checked before any
   move, shortest-way moves, homing, BUSY polling.
-* `LedSource`: device 2, the lamp.
+* `LedSource`: device 2, the lamp, one channel an axis, as Zaber's own library drives it.
+
+What real controllers may send besides the reply (Zaber ASCII protocol manual, message
+types and "message continuation"; zaber-motion 10.3 on the wire): info lines ``#..`` and
+alerts ``!..`` anywhere, before or between replies; a reply whose data ends in ``\\`` goes on
+in ``#DD A [ID] cont ...`` lines of the same device, axis and message id; ``NA`` for an axis
+that lacks a setting in an axis-0 ``get``. `ZaberChain` skips the first, joins the second
+and reads ``NA`` as NaN (`Reply.values`), which the callers refuse by name.
 
 Retries resend the same command. That is safe for every command this module sends (absolute
 moves, homing, gets, sets, lamp on/off) and would not be for ``move rel``, which it never sends.
@@ -168,13 +175,48 @@ class Reply:
         return self.status == "BUSY"
 
     @property
+    def continued(self) -> bool:
+        """The data goes on in ``cont`` lines (it ends in a backslash)."""
+        return self.data.endswith("\\")
+
+    @property
     def values(self) -> list[float]:
-        """The data as numbers (one per axis for an axis-0 ``get``)."""
+        """The data as numbers (one per axis for an axis-0 ``get``); ``NA`` reads as NaN."""
         try:
-            return [float(v) for v in self.data.split()]
+            return [math.nan if v == "NA" else float(v) for v in self.data.split()]
         except ValueError:
             raise CommunicationError(f"device {self.device} sent non-numeric data {self.data!r}; "
                                      "check that the port talks to a Zaber device") from None
+
+
+def parse_continuation(line: bytes | str) -> tuple[int, int, int | None, str]:
+    """Parse one continuation line ``#DD A [ID] cont DATA[:CC]``: ``(device, axis, msgid, data)``.
+
+    Raises
+    ------
+    ValueError
+        Not a continuation line, or a bad checksum.
+    """
+    if isinstance(line, bytes):
+        line = line.decode("ascii")
+    line = line.strip()
+    if not line.startswith("#"):
+        raise ValueError(f"not a continuation line: {line!r}")
+    body = line[1:]
+    if len(body) >= 3 and body[-3] == ":":
+        body, cc = body[:-3], body[-2:]
+        if lrc(body.encode("ascii")) != cc.upper():
+            raise ValueError(f"bad checksum in {line!r}")
+    tok = body.split(" ")
+    if len(tok) < 3 or not (tok[0].isdigit() and tok[1].isdigit()):
+        raise ValueError(f"malformed continuation {line!r}")
+    msgid = None
+    if tok[2].isdigit():
+        msgid = int(tok[2])
+        tok = tok[:2] + tok[3:]
+    if len(tok) < 3 or tok[2] != "cont":
+        raise ValueError(f"not a continuation line: {line!r}")
+    return int(tok[0]), int(tok[1]), msgid, " ".join(tok[3:])
 
 
 def parse_reply(line: bytes | str) -> Reply:
@@ -283,7 +325,38 @@ class ZaberChain(SerialDevice):
                 raise _Garbled(str(exc)) from None
             if reply.msgid != msgid or (device != 0 and reply.device != device):
                 continue                          # a late reply to an earlier try
+            return self._complete(reply)
+
+    #: Most continuation lines one reply may take (a hostile or broken device cannot keep
+    #: the driver reading forever).
+    MAX_CONTINUATIONS = 64
+
+    def _complete(self, reply: Reply) -> Reply:
+        """Join the ``cont`` lines of a continued reply (same device, axis, message id)."""
+        parts = [reply.data]
+        n = 0
+        while parts[-1].endswith("\\"):
+            parts[-1] = parts[-1][:-1].rstrip()
+            n += 1
+            if n > self.MAX_CONTINUATIONS:
+                raise _Garbled(f"reply of device {reply.device} continued over {self.MAX_CONTINUATIONS} lines")
+            while True:
+                line = self._readline()
+                if line[:1] == b"!":
+                    continue                      # an alert between the packets
+                if line[:1] != b"#":
+                    raise _Garbled(f"continuation expected after {reply.data!r}, got {line!r}")
+                try:
+                    dev, ax, mid, data = parse_continuation(line)
+                except (ValueError, UnicodeDecodeError):
+                    continue                      # an info line of another kind
+                if (dev, ax, mid) == (reply.device, reply.axis, reply.msgid):
+                    parts.append(data)
+                    break
+        if n == 0:
             return reply
+        data = " ".join(p for p in parts if p)
+        return Reply(reply.device, reply.axis, reply.msgid, reply.flag, reply.status, reply.warning, data)
 
     def request(self, device: int, axis: int, command: str = "", *, check: bool = True) -> Reply:
         """Send one command and return its reply.
@@ -334,17 +407,46 @@ class ZaberChain(SerialDevice):
         """Send ``command`` to every device (address 0) and collect up to ``n_devices`` replies.
 
         No retries: used for ``estop`` and ``stop``, where speed matters more than an answer.
+        Replies are matched by message id, one per device (alerts, info lines, garbage and
+        late replies to earlier commands are skipped); reading stops at ``n_devices`` replies
+        or the first silent timeout, then whatever else is already waiting is read away, so
+        the next command starts on an empty buffer.
         """
-        replies = []
+        by_device: dict[int, Reply] = {}
         msgid = self._next_msgid()
-        self._port.write(format_command(0, 0, command, msgid, self.checksum))
-        for _ in range(n_devices):
+        try:
+            self._port.write(format_command(0, 0, command, msgid, self.checksum))
+        except (serial.SerialException, OSError):
+            return []
+        skipped = 0
+        while len(by_device) < n_devices and skipped <= 16 * n_devices + 16:
             try:
                 line = self._readline()
-                replies.append(parse_reply(line))
-            except (_NoReply, ValueError, UnicodeDecodeError):
+            except _NoReply:
                 break
-        return replies
+            try:
+                reply = parse_reply(line) if line[:1] == b"@" else None
+            except (ValueError, UnicodeDecodeError):
+                reply = None
+            if reply is None or reply.msgid != msgid or reply.device in by_device:
+                skipped += 1
+                continue
+            try:
+                by_device[reply.device] = self._complete(reply)
+            except (_NoReply, _Garbled):
+                by_device[reply.device] = reply
+        self._drain()
+        return [by_device[d] for d in sorted(by_device)]
+
+    def _drain(self) -> None:
+        """Read away what is already waiting (alerts after a stop, replies of extra devices)."""
+        try:
+            for _ in range(256):
+                if not self._port.in_waiting:
+                    break
+                self._port.readline()
+        except (serial.SerialException, OSError, AttributeError, NotImplementedError):
+            pass
 
     def _checked(self, reply: Reply, command: str, check: bool) -> Reply:
         if reply.flag == "RJ" and check:
@@ -524,9 +626,12 @@ class Goniometer:
             hi = self.chain.get(dev, 0, "limit.max")
             for a in axes:
                 i = a.axis - 1
-                if i >= len(cyc):
+                if i >= len(cyc) or i >= len(lo) or i >= len(hi):
                     raise GonioError(f"Zaber device {dev} has no axis {a.axis} for {a.name}; "
                                      "check the [axes] table of the settings")
+                if not all(math.isfinite(v[i]) for v in (cyc, lo, hi)):
+                    raise GonioError(f"Zaber device {dev} axis {a.axis} ({a.name}) answers NA for its "
+                                     "limits: no rotary stage there; check the [axes] table of the settings")
                 a.cycle_dist = int(cyc[i])
                 if a.cycle_dist <= 0:
                     raise GonioError(f"axis {a.name} reports limit.cycle.dist {cyc[i]:g}: not a rotary "
@@ -563,6 +668,9 @@ class Goniometer:
             pos = self.chain.get(dev, 0, "pos")
             for a in self.axes.values():
                 if a.device == dev:
+                    if a.axis > len(pos) or not math.isfinite(pos[a.axis - 1]):
+                        raise CommunicationError(f"Zaber device {dev} gave no position for axis {a.axis} "
+                                                 f"({a.name}); check the [axes] table and the stage cable")
                     out[a.name] = self.steps_to_deg(a.name, pos[a.axis - 1])
         self._position = dict(out)
         return out
@@ -648,26 +756,57 @@ class Goniometer:
 
 
 class LedSource:
-    """The LED source, a Zaber-protocol device (device 2 by default)."""
+    """The LED source, a Zaber-protocol device (device 2 by default), driven as zaber-motion's
+    Illuminator API drives it (observed with zaber-motion 10.3 on the wire):
 
-    def __init__(self, chain: ZaberChain, device: int = 2):
+    * a channel is an axis: ``/2 1 lamp on``, ``/2 1 get lamp.flux.max``,
+      ``/2 1 set lamp.flux F`` with ``F = fraction * lamp.flux.max``;
+    * ``off`` is ``/2 0 lamp off``, every channel (the safe stop, as ``Illuminator.turn_off``).
+
+    Parameters
+    ----------
+    chain : ZaberChain
+    device : int
+        Address of the LED controller.
+    channel : int
+        The channel (axis) the LED is on, 1..n.
+    """
+
+    def __init__(self, chain: ZaberChain, device: int = 2, channel: int = 1):
+        if not (isinstance(channel, int) and 1 <= channel <= 9):
+            raise GonioError(f"lamp channel {channel!r} is invalid; fix [lamp] channel (1..9) in the settings")
         self.chain = chain
         self.device = device
+        self.channel = channel
+        self._flux_max: float | None = None
 
     def on(self) -> None:
-        """Switch the lamp on (``lamp on``)."""
-        self.chain.request(self.device, 0, "lamp on")
+        """Switch the channel on (``/D C lamp on``)."""
+        self.chain.request(self.device, self.channel, "lamp on")
 
     def off(self) -> None:
-        """Switch the lamp off (``lamp off``)."""
+        """Switch every channel off (``/D 0 lamp off``)."""
         self.chain.request(self.device, 0, "lamp off")
 
+    def flux_max(self) -> float:
+        """``lamp.flux.max`` of the channel (read once)."""
+        if self._flux_max is None:
+            v = self.chain.get(self.device, self.channel, "lamp.flux.max")
+            if len(v) != 1 or not (math.isfinite(v[0]) and v[0] > 0):
+                raise DeviceError(f"Zaber device {self.device} channel {self.channel} reports lamp.flux.max "
+                                  f"{v!r}; check that [lamp] device and channel name an LED")
+            self._flux_max = v[0]
+        return self._flux_max
+
     def set_flux(self, flux: float) -> None:
-        """Set the relative flux (0..1)."""
-        if not (math.isfinite(flux) and 0.0 <= flux <= 1.0):
+        """Set the flux as a fraction (0..1) of the channel's ``lamp.flux.max``."""
+        if not (isinstance(flux, (int, float)) and math.isfinite(flux) and 0.0 <= flux <= 1.0):
             raise GonioError(f"lamp flux {flux!r} is outside [0, 1]; fix [lamp] flux in the settings")
-        self.chain.set(self.device, 0, "lamp.flux", f"{flux:g}")
+        self.chain.set(self.device, self.channel, "lamp.flux", f"{flux * self.flux_max():.6g}")
 
     def temperature(self) -> float:
         """LED temperature (degrees Celsius)."""
-        return self.chain.get(self.device, 0, "lamp.temperature")[0]
+        v = self.chain.get(self.device, self.channel, "lamp.temperature")
+        if not v or not math.isfinite(v[0]):
+            raise DeviceError(f"Zaber device {self.device} channel {self.channel} gives no lamp.temperature")
+        return v[0]

@@ -205,10 +205,13 @@ def test_connect_clears_latched_fault_or_refuses():
 
 
 def test_led_commands():
-    ex = expect("l1", [(cmd(2, 0, 0, "lamp on"), "@02 0 00 OK IDLE -- 0\r\n"),
-                       (cmd(2, 0, 1, "set lamp.flux 0.8"), "@02 0 01 OK IDLE -- 0\r\n"),
-                       (cmd(2, 0, 2, "get lamp.temperature"), "@02 0 02 OK IDLE -- 31.5\r\n"),
-                       (cmd(2, 0, 3, "lamp off"), "@02 0 03 OK IDLE -- 0\r\n")])
+    # issue 17: the channel is an axis and the flux a fraction of lamp.flux.max, as
+    # zaber-motion's Illuminator sends it (was /2 0 lamp on, /2 0 set lamp.flux 0.8)
+    ex = expect("l1", [(cmd(2, 1, 0, "lamp on"), "@02 1 00 OK IDLE -- 0\r\n"),
+                       (cmd(2, 1, 1, "get lamp.flux.max"), "@02 1 01 OK IDLE -- 1.000\r\n"),
+                       (cmd(2, 1, 2, "set lamp.flux 0.8"), "@02 1 02 OK IDLE -- 0\r\n"),
+                       (cmd(2, 1, 3, "get lamp.temperature"), "@02 1 03 OK IDLE -- 31.5\r\n"),
+                       (cmd(2, 0, 4, "lamp off"), "@02 0 04 OK IDLE -- 0\r\n")])
     led = LedSource(ZaberChain("expect://l1"))
     led.on()
     led.set_flux(0.8)
