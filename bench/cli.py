@@ -33,6 +33,17 @@ def _version() -> str:
         return "unknown"
 
 
+def _seed(text: str) -> int:
+    """A seed: an integer from 0 to 2**63 - 1 (numpy's generators take no negative seed)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid seed {text!r}: give an integer from 0 to 2**63 - 1") from None
+    if not 0 <= value < 2 ** 63:
+        raise argparse.ArgumentTypeError(f"seed {value} is out of range: give an integer from 0 to 2**63 - 1")
+    return value
+
+
 def _env(func):
     """Environment errors (disk full, read-only, binary garbage) inside a command: one line, exit 2."""
     import functools
@@ -206,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="full loop on the simulated instrument: capture, export, fit, render, report")
     d.add_argument("--out", default="gonio-out", help="output folder (default ./gonio-out)")
-    d.add_argument("--seed", type=int, default=1, help="seed of the simulated instrument and the fit (default 1)")
+    d.add_argument("--seed", type=_seed, default=1, help="seed of the simulated instrument and the fit (default 1)")
     d.add_argument("--plan", default="standard", help="plan preset or TOML file (default standard)")
     d.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=True,
                    help="also sample the posterior with emcee (default on)")
@@ -246,7 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="model option, e.g. distribution=beckmann (repeatable)")
     f.add_argument("--out", required=True, help="fit file to write (JSON)")
-    f.add_argument("--seed", type=int, default=0, help="seed of the multi-start and the sampler")
+    f.add_argument("--seed", type=_seed, default=0, help="seed of the multi-start and the sampler")
     f.add_argument("--loss", default="chi2", help="chi2 (default), robust, cosine, log")
     f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
                    help="sample the posterior with emcee")
@@ -287,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     ssub.required = True
     serve = ssub.add_parser("serve", help="serve the simulated instrument on pseudo-terminals and print their paths")
     serve.add_argument("--sample", help="sample TOML or measured .bsdf file")
-    serve.add_argument("--seed", type=int, default=0)
+    serve.add_argument("--seed", type=_seed, default=0)
     serve.add_argument("--settings", help="instrument settings TOML")
     serve.add_argument("--clock", default="realtime", help="instant, realtime, or a time scale factor such as 10")
     serve.add_argument("--faults", help="fault schedule TOML")

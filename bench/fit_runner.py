@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +28,25 @@ def parse_options(pairs) -> dict:
     return out
 
 
+@contextlib.contextmanager
+def _quiet_reader_cleanup():
+    """A damaged NetCDF file leaves a half-built h5netcdf File whose ``close`` raises when it is
+    collected ("Exception ignored in ... Traceback" on stderr): collect it here, quietly."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        module = str(getattr(getattr(unraisable, "object", None), "__module__", "") or "")
+        if not module.startswith(("h5netcdf", "h5py")):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        gc.collect()
+        sys.unraisablehook = previous
+
+
 def _open_dataset(path: Path, seed: int = 0):
     """A gonio dataset.nc, a MERL .binary file or an RGL .bsdf file, as Measurements.
 
@@ -37,23 +59,32 @@ def _open_dataset(path: Path, seed: int = 0):
     if not path.exists():
         raise GonioError(f"dataset {path} does not exist; run `gonio export SESSION` to write one")
     suffix = path.suffix.lower()
-    try:
-        if suffix == ".binary":
-            from gonio.fitting.formats import merl_to_measurements
+    # a damaged file leaves half-built reader objects behind, freed with the exception: all
+    # inside the quiet hook, so that their failing close() prints nothing
+    with _quiet_reader_cleanup():
+        try:
+            if suffix == ".binary":
+                from gonio.fitting.formats import merl_to_measurements
 
-            return merl_to_measurements(path, n=5000, rng=np.random.default_rng(seed))
-        if suffix == ".bsdf":
-            from gonio.fitting import direction
-            from gonio.fitting.formats import rgl_measurements
+                return merl_to_measurements(path, n=5000, rng=np.random.default_rng(seed))
+            if suffix == ".bsdf":
+                from gonio.fitting import direction
+                from gonio.fitting.formats import rgl_measurements
 
-            from .plans import load_plan
+                from .plans import load_plan
 
-            a = np.radians(load_plan("standard").angles)
-            return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
-        return load_dataset(path)
-    except (OSError, ValueError) as exc:
-        raise GonioError(f"cannot read {path} ({' '.join(str(exc).split())}); give a dataset.nc written by "
-                         "gonio export, a MERL .binary or an RGL .bsdf file") from None
+                a = np.radians(load_plan("standard").angles)
+                return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
+            return load_dataset(path)
+        except GonioError:
+            raise
+        except MemoryError:
+            message = f"{path} is too large to read on this machine"
+        except Exception as exc:            # a damaged file: HDF5 answers KeyError, RuntimeError, ...
+            reason = " ".join(str(exc).split())[:300] or type(exc).__name__
+            message = (f"cannot read {path} ({reason}); give a dataset.nc written by "
+                       "gonio export, a MERL .binary or an RGL .bsdf file")
+    raise GonioError(message)
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", posterior=False,

@@ -48,9 +48,13 @@ class PtyServer:
         self._back_at: dict[str, float] = {}            # vanished port -> wall time it returns
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        for name, ep in instrument.ports.items():
-            self._open(name)
-            ep.on_vanish.append(self._vanished)
+        try:
+            for name, ep in instrument.ports.items():
+                self._open(name)
+                ep.on_vanish.append(self._vanished)
+        except BaseException:               # (Ctrl-C, no free pty): leave no pty and no folder behind
+            self.stop()
+            raise
 
     # ------------------------------------------------------------------ ptys
     @property
@@ -214,10 +218,10 @@ def serve(settings: dict | None = None, sample: dict = DEFAULT_SAMPLE,
     clock = SimClock.coerce(clock, default="real")
     inst = Instrument(settings, sample=sample, reference=reference, seed=seed, clock=clock,
                       faults=faults, **kwargs)
-    server = PtyServer(inst, link_dir)
     if echo == "print":
         def echo(line):
             print(line, flush=True)
+    server = PtyServer(inst, link_dir)
     try:                                  # from here on, any exit closes the ptys and removes the folder
         if echo is not None:
             for name, path in server.paths.items():
