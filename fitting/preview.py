@@ -25,8 +25,12 @@ kernel in ``llvm_ad_rgb`` (fast); in ``scalar_rgb`` it is called per sample (slo
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import itertools
 import math
+import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -272,15 +276,35 @@ def _to_srgb8(rgb):
     return np.round(x * 255).astype(np.uint8)
 
 
+@contextlib.contextmanager
+def _atomic_image(path):
+    """A temporary name beside ``path`` (same extension, for the writers that go by it),
+    renamed to ``path`` when the block succeeds, removed when it fails: no half-written image."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except RuntimeError as exc:             # Mitsuba's Bitmap.write on a full disk
+        Path(tmp).unlink(missing_ok=True)
+        raise OSError(errno.EIO, f"cannot write the image ({' '.join(str(exc).split())[:160]})", str(path)) from None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 def _write_png(path, rgb):
     import matplotlib.image as mpimg
 
-    mpimg.imsave(str(path), _to_srgb8(rgb))
+    with _atomic_image(path) as tmp:
+        mpimg.imsave(tmp, _to_srgb8(rgb))
     return str(path)
 
 
 def _write_exr(mi, path, rgb):
-    mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32)).write(str(path))
+    with _atomic_image(path) as tmp:
+        mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32)).write(tmp)
     return str(path)
 
 
@@ -303,14 +327,16 @@ def _side_by_side(path, rows, with_measured):
             ax.set_xticks([])
             ax.set_yticks([])
     fig.tight_layout()
-    fig.savefig(str(path))
+    with _atomic_image(path) as tmp:
+        fig.savefig(tmp)
     return str(path)
 
 
 def _delta_e_png(path, de, vmax):
     import matplotlib.image as mpimg
 
-    mpimg.imsave(str(path), de, cmap="magma", vmin=0.0, vmax=vmax)
+    with _atomic_image(path) as tmp:
+        mpimg.imsave(tmp, de, cmap="magma", vmin=0.0, vmax=vmax)
     return str(path)
 
 

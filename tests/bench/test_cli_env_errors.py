@@ -289,3 +289,18 @@ def test_check_helpers_directly(tmp_path):
         check_output_dir(tmp_path / ("x" * 300))
     with pytest.raises(GonioError, match="not a file name"):
         check_output_file(tmp_path / "..")
+
+
+def test_disk_full_while_writing_a_preview_image(capsys, data, tmp_path, monkeypatch):
+    import matplotlib.image as mpimg
+
+    def half_then_full(fname, *a, **k):
+        with open(fname, "wb") as fh:
+            fh.write(b"\x89PNG half")
+        raise OSError(errno.ENOSPC, "No space left on device", str(fname))
+    monkeypatch.setattr(mpimg, "imsave", half_then_full)
+    out = tmp_path / "render"
+    refused(capsys, "render", data["fit"], "--dataset", data["dataset"], "--out", out, "--preview",
+            "--size", "16", "--spp", "1", needles=("full",))
+    left = [p.name for p in (out / "preview").iterdir()] if (out / "preview").exists() else []
+    assert not [n for n in left if n.endswith(".png") or ".tmp" in n], left
