@@ -1,0 +1,183 @@
+"""zaber-motion 10.3 and zaber.serial 0.9 against `gonio sim serve`'s pseudo-terminals.
+
+The clients are Zaber's own; the bytes they send are theirs (message ids and ``:CC``
+checksums from zaber-motion, bare commands from zaber.serial). Reference behaviour: Zaber's
+ASCII protocol manual (replies, alerts ``!DD A STATUS WARN``, continuation ``\\`` + ``cont``);
+values are the simulator's (sim/_zaber_stage.py, sim/_zaber_led.py).
+"""
+
+import http.server
+import threading
+import time
+
+import pytest
+
+import gonio.sim as gs
+
+zm = pytest.importorskip("zaber_motion", reason="zaber-motion is not installed")
+from zaber_motion import DeviceDbSourceType, Library, LogOutputMode  # noqa: E402
+from zaber_motion.ascii import Connection  # noqa: E402
+from zaber_motion.exceptions import DeviceDbFailedException  # noqa: E402
+from zaber_motion.microscopy import Illuminator  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+Library.set_log_output(LogOutputMode.OFF)
+
+
+@pytest.fixture
+def served(tmp_path):
+    servers = []
+
+    def _serve(**kw):
+        srv = gs.serve(seed=1, clock=gs.SimClock("instant"), link_dir=str(tmp_path / f"p{len(servers)}"),
+                       block=False, echo=None, **kw)
+        servers.append(srv)
+        return srv
+
+    yield _serve
+    for srv in servers:
+        srv.stop()
+
+
+def _open(srv):
+    c = Connection.open_serial_port(srv.devices["zaber"])
+    c.detect_devices(identify_devices=False)
+    return c
+
+
+def test_detect_and_identification_settings(served):
+    srv = served()
+    with Connection.open_serial_port(srv.devices["zaber"]) as c:
+        devs = c.detect_devices(identify_devices=False)
+        assert [d.device_address for d in devs] == [1, 2]
+        d1, d2 = devs
+        ask = lambda d, text, axis=0: d.generic_command(text, axis=axis).data   # noqa: E731
+        assert (ask(d1, "get deviceid"), ask(d1, "get system.serial"), ask(d1, "get version"),
+                ask(d1, "get version.build")) == ("30342", "91001", "7.38", "18426")
+        assert ask(d1, "get system.axiscount") == "4" and ask(d1, "get comm.packet.size.max") == "80"
+        assert ask(d1, "get resolution", 2) == "64" and ask(d1, "get peripheralid", 3) == "43211"
+        assert ask(d1, "get peripheral.id", 1) == "43211"
+        assert ask(d2, "get deviceid") == "30311" and ask(d2, "get peripheralid", 1) == "58001"
+
+
+class _DbSpy(http.server.BaseHTTPRequestHandler):
+    paths: list = []
+
+    def do_GET(self):                    # noqa: N802 - http.server's name
+        _DbSpy.paths.append(self.path)
+        self.send_response(404)
+        self.end_headers()
+
+    def log_message(self, *args):
+        pass
+
+
+def test_identify_asks_the_device_database_with_the_sims_ids(served):
+    """identify() reads every identification setting, then looks the product up in Zaber's
+    device database (web or file); offline, a local spy stands in for it and records the
+    lookup, which carries the simulator's device id, firmware and peripheral ids."""
+    srv = served()
+    httpd = http.server.HTTPServer(("127.0.0.1", 0), _DbSpy)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    _DbSpy.paths = []
+    Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE, f"http://127.0.0.1:{httpd.server_port}/db")
+    try:
+        with _open(srv) as c:
+            with pytest.raises(DeviceDbFailedException):
+                c.get_device(1).identify()
+    finally:
+        Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE)
+        httpd.shutdown()
+    assert _DbSpy.paths, "zaber-motion never reached the device database"
+    path = _DbSpy.paths[0]
+    assert "30342" in path and "fw=7.38.18426" in path and path.count("peripheral-id=43211") == 4
+
+
+def test_axis_moves_settings_park_and_driver(served):
+    srv = served()
+    with _open(srv) as c:
+        d = c.get_device(1)
+        ax = d.get_axis(2)
+        d.all_axes.home()
+        ax.move_absolute(36000)
+        assert ax.get_position() == 36000
+        assert ax.settings.get("maxspeed") == 40000
+        ax.settings.set("maxspeed", 20000)
+        assert ax.settings.get("maxspeed") == 20000
+        ax.move_velocity(10000)
+        assert ax.is_busy()
+        ax.stop()
+        assert not ax.is_busy() and ax.get_position() > 36000
+        ax.park()
+        assert ax.is_parked()
+        ax.unpark()
+        assert not ax.is_parked()
+        ax.driver_disable()
+        assert "FD" in ax.warnings.get_flags()
+        ax.driver_enable()
+        assert "FD" not in ax.warnings.get_flags()
+        ax.move_relative(-1000)
+        assert ax.get_position() == pytest.approx(srv.instrument.axes[1].position(srv.instrument.clock.now()))
+
+
+def test_continued_reply(served):
+    srv = served()
+    srv.instrument.zaber.packet_size_max = 40       # '@01 0 07 OK IDLE -- 190000 176000\' fits
+    with _open(srv) as c:
+        assert c.get_device(1).generic_command("get limit.max").data == "190000 176000 360000 350000"
+
+
+def test_illuminator_channel_api(served):
+    srv = served(lamp={"flux_max": 2.5})
+    lamp = srv.instrument.lamp
+    with _open(srv) as c:
+        il = Illuminator(c.get_device(2))
+        ch = il.get_channel(1)
+        assert not ch.is_on()
+        ch.on()
+        assert ch.is_on() and lamp.on
+        ch.set_intensity(0.4)                        # sends set lamp.flux 1 (0.4 * 2.5)
+        assert lamp.flux == pytest.approx(0.4)
+        assert ch.get_intensity() == pytest.approx(0.4)
+        il.turn_off()                                # /2 0 lamp off
+        assert not ch.is_on() and not lamp.on
+
+
+def test_alerts(served):
+    srv = served()
+    with _open(srv) as c:
+        alerts = []
+        c.alert.subscribe(alerts.append)
+        ax = c.get_device(1).get_axis(2)
+        c.get_device(1).all_axes.home()
+        c.enable_alerts()
+        ax.move_absolute(72000, wait_until_idle=False)
+        ax.wait_until_idle()
+        deadline = time.monotonic() + 5
+        while not alerts and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert [(a.device_address, a.axis_number, a.status) for a in alerts] == [(1, 2, "IDLE")]
+        c.disable_alerts()
+
+
+zs = pytest.importorskip("zaber.serial", reason="zaber.serial is not installed")
+
+
+def test_zaber_serial(served):
+    srv = served()
+    port = zs.AsciiSerial(srv.devices["zaber"], timeout=2)
+    try:
+        dev = zs.AsciiDevice(port, 1)
+        assert dev.send("get deviceid").data == "30342"
+        assert dev.home().reply_flag == "OK"
+        dev.poll_until_idle()
+        ax = dev.axis(3)
+        ax.move_abs(-36000)
+        assert ax.get_position() == -36000
+        led = zs.AsciiDevice(port, 2).axis(1)
+        assert led.send("lamp on").reply_flag == "OK"
+        assert led.send("get lamp.status").data == "2"
+        assert zs.AsciiDevice(port, 2).send("lamp off").reply_flag == "OK"
+        assert led.send("get lamp.status").data == "1"
+    finally:
+        port.close()
