@@ -207,17 +207,25 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
     import gonio.models as gm
     from gonio.fitting import fit_batch, fit_document, write_json_atomic
 
-    from gonio.fitting._batch import check_scheduler_address, check_workers
+    from gonio.fitting._batch import check_dashboard_address, check_scheduler_address, check_workers
 
     from ._preflight import check_output_dir, writing
 
+    from gonio.fitting import LOSSES
+
     if model == "auto":
         raise GonioError("--batch needs a named --model (e.g. roughplastic); auto is for single fits")
+    if loss not in LOSSES:
+        raise GonioError(f"unknown loss {loss!r}: choose one of {', '.join(LOSSES)}")
     try:
         if scheduler is None:
             check_workers(workers)
+            if dashboard is not None:
+                check_dashboard_address(dashboard)
         else:
             check_scheduler_address(scheduler)
+            if dashboard is not None:
+                raise ValueError("--dashboard is for the local cluster; an existing scheduler serves its own")
     except ValueError as exc:
         raise GonioError(str(exc)) from None
     check_output_dir(out, "batch output folder (--out)")
@@ -233,8 +241,17 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
         results = fit_batch(metas, m, scheduler=scheduler, n_workers=min(workers, len(metas)), rng_seed=seed,
                             loss=loss, dashboard_address=dashboard)
     except (OSError, TimeoutError) as exc:
-        raise GonioError(f"cannot reach the Dask scheduler {scheduler} ({' '.join(str(exc).split())[:200]}); "
+        if scheduler is None:
+            raise GonioError(f"the local Dask cluster failed ({' '.join(str(exc).split())[:200]})") from None
+        raise GonioError(f"cannot reach the Dask scheduler {scheduler} ({' '.join(str(exc).split())[:320]}); "
                          "check the address and that it is running") from None
+    except ValueError as exc:           # a dataset the fit refuses (raised in a worker)
+        raise GonioError(" ".join(str(exc).split())) from None
+    except Exception as exc:
+        if type(exc).__module__.startswith("distributed"):      # KilledWorker, CommClosedError, ...
+            raise GonioError(f"the Dask cluster lost a worker or a connection ({type(exc).__name__}: "
+                             f"{' '.join(str(exc).split())[:200]}); run again, or with fewer --workers") from None
+        raise
     out.mkdir(parents=True, exist_ok=True)
     for path, meas, result, stem in zip(datasets, metas, results, stems):
         with writing(out / f"{stem}.fit.json"):

@@ -41,6 +41,14 @@ def check_workers(n) -> int:
     return int(n)
 
 
+def check_dashboard_address(address: str) -> str:
+    """``HOST:PORT`` for the local cluster's dashboard."""
+    m = _ADDRESS.match(str(address).strip())
+    if not m or m.group(1) or not 0 <= int(m.group(3)) <= 65535:
+        raise ValueError(f"--dashboard {str(address)[:80]!r}: give HOST:PORT, e.g. 127.0.0.1:8787")
+    return str(address).strip()
+
+
 def check_scheduler_address(address: str) -> str:
     """A Dask scheduler address ``tcp://HOST:PORT``, ``tls://HOST:PORT`` or ``HOST:PORT``."""
     m = _ADDRESS.match(str(address).strip())
@@ -101,6 +109,8 @@ def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
     import dask
 
     n_workers = check_workers(n_workers)
+    if dashboard_address is not None:
+        dashboard_address = check_dashboard_address(dashboard_address)
     security = local_security()
     # Scheduler and workers always start an HTTP server (health, info, JSON routes): without a
     # dashboard they get no routes, and are stopped once the cluster is up (_close_http).
@@ -206,7 +216,12 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
             cluster.close()
             raise
     else:
-        client = Client(check_scheduler_address(scheduler), timeout="20s")
+        address = check_scheduler_address(scheduler)
+        try:
+            client = Client(address, timeout="20s")
+        except (TypeError, ValueError) as exc:       # tls:// without certificates in Dask's config
+            raise ConnectionError(f"{' '.join(str(exc).split())[:200]}; a tls:// scheduler needs its "
+                                  "certificates in Dask's configuration (distributed.comm.tls)") from None
     try:
         futures = [client.submit(_fit_one, m, spec, i, rng_seed, fit_kwargs, pure=False)
                    for i, m in enumerate(datasets)]

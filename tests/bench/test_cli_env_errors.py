@@ -116,6 +116,10 @@ def test_batch_out_and_workers_and_scheduler(capsys, data, unwritable, tmp_path,
     line = refused(capsys, "fit", "--batch", ds, "--model", "diffuse", "--out", tmp_path / "b",
                    "--scheduler", "not a url", needles=("--scheduler",))
     assert "tls://HOST:PORT" in line
+    refused(capsys, "fit", "--batch", ds, "--model", "diffuse", "--out", tmp_path / "b", "--loss", "nosuch",
+            needles=("unknown loss",))               # a traceback from the workers on 15e620e
+    refused(capsys, "fit", "--batch", ds, "--model", "diffuse", "--out", tmp_path / "b", "--dashboard", "x y",
+            needles=("--dashboard",))
     assert time.monotonic() - t0 < 10
     assert not (tmp_path / "b").exists()
 

@@ -122,3 +122,24 @@ def test_private_cluster_still_equals_serial():
     batch = fit_batch(data, model, n_workers=2, rng_seed=4)
     for a, b in zip(batch, serial):
         np.testing.assert_allclose(a.x, b.x, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_a_tls_scheduler_without_certificates_is_one_connection_error():
+    model = gm.get("diffuse")
+    data = [simulate(model, {"reflectance": np.array([0.5, 0.4, 0.3])}, np.random.default_rng(0), n=20)]
+    cluster = local_cluster(1)
+    try:
+        with pytest.raises(ConnectionError, match="certificates"):
+            fit_batch(data, model, scheduler=cluster.scheduler_address)     # TypeError on 15e620e
+    finally:
+        cluster.close()
+
+
+def test_dashboard_address_is_validated():
+    from gonio.fitting._batch import check_dashboard_address
+
+    assert check_dashboard_address("127.0.0.1:8787") == "127.0.0.1:8787"
+    for bad in ("x y", "tcp://127.0.0.1:8787", ":::", "host:70000"):
+        with pytest.raises(ValueError, match="--dashboard"):
+            check_dashboard_address(bad)
