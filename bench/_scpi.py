@@ -2,19 +2,74 @@
 
 Queries end with ``?`` and get one line back; set commands get nothing back, so after every
 set command the error queue (``SYST:ERR?``) is read and a non-zero code raises. Lines end
-with ``\\n``. Only ``serial.serial_for_url`` opens the port.
+with ``\\n``. The port is a pyserial URL (``serial.serial_for_url``: ``/dev/ttyUSB1``, a pty,
+``sim://NAME/meter``) or a VISA resource string (``USB0::0x1313::0x8072::P2000000::INSTR``,
+``ASRL/dev/ttyUSB0::INSTR``, ``TCPIP0::host::5025::SOCKET``) opened through PyVISA with the
+pure-Python pyvisa-py backend (``@py``), as USB-TMC meters such as the Thorlabs PM100D/USB
+are reached.
 """
 
 from __future__ import annotations
 
 import math
+import re
 
 import serial
 
 from ._serial import SerialDevice
 from .errors import CommunicationError, DeviceError, GonioError
 
-__all__ = ["PowerMeter"]
+__all__ = ["PowerMeter", "is_visa_resource"]
+
+_VISA = re.compile(r"^(ASRL|USB\d*|TCPIP\d*|GPIB\d*|VXI\d*|PXI\d*)[^\s]*::(INSTR|SOCKET)$", re.IGNORECASE)
+
+
+def is_visa_resource(text: str) -> bool:
+    """Whether ``text`` is a VISA resource string (``...::INSTR`` or ``...::SOCKET``)."""
+    return isinstance(text, str) and len(text) <= 256 and bool(_VISA.match(text))
+
+
+class _VisaPort:
+    """The few pyserial calls the driver makes, on a PyVISA resource."""
+
+    def __init__(self, resource: str, baudrate: int, timeout: float):
+        import pyvisa
+
+        self._rm = pyvisa.ResourceManager("@py")
+        self._errors = (pyvisa.errors.VisaIOError, OSError, ValueError)
+        try:
+            self._res = self._rm.open_resource(resource, read_termination="\n", write_termination="",
+                                               timeout=max(1, int(timeout * 1000)))
+            if resource.upper().startswith("ASRL"):
+                self._res.baud_rate = int(baudrate)
+        except Exception:
+            self._rm.close()
+            raise
+
+    in_waiting = 0                       # unknown through VISA: nothing to drain
+
+    def reset_input_buffer(self) -> None:
+        pass
+
+    def write(self, data: bytes) -> int:
+        try:
+            return self._res.write_raw(bytes(data))
+        except self._errors as exc:
+            raise serial.SerialException(str(exc)) from None
+
+    def readline(self) -> bytes:
+        try:
+            return self._res.read().encode("ascii", "replace") + b"\n"
+        except self._errors:
+            return b""                   # a timeout, as pyserial's readline gives it
+        except UnicodeDecodeError:
+            return b"\xff\n"
+
+    def close(self) -> None:
+        try:
+            self._res.close()
+        finally:
+            self._rm.close()
 
 
 class PowerMeter(SerialDevice):
@@ -39,6 +94,20 @@ class PowerMeter(SerialDevice):
         self.retries = retries
         self.retries_used = 0
         self.open()
+
+    def open(self) -> None:
+        """Open the port: a VISA resource through PyVISA (pyvisa-py), else a pyserial URL."""
+        if self._port is not None or not is_visa_resource(self.port_url):
+            return super().open()
+        try:
+            self._port = _VisaPort(self.port_url, self.baudrate, self.timeout)
+        except ImportError:
+            raise CommunicationError(f"the power-meter resource {self.port_url!r} needs PyVISA and pyvisa-py; "
+                                     "install them or give a serial port to --meter-port") from None
+        except Exception as exc:           # PyVISA's errors are many and backend-specific
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise CommunicationError(f"cannot open the power-meter resource {self.port_url!r} ({msg}); "
+                                     "check the cable and the --meter-port value") from None
 
     def _drain(self) -> None:
         """Drop unread input: a late answer to an earlier query, or one a killed process left."""
