@@ -36,7 +36,7 @@ from ._journal import JOURNAL_FILE, RAW_DIR, SESSION_FILE, Journal
 from .errors import GonioError, SessionError
 
 __all__ = ["load_session", "check_doc", "describe_difference", "open_journal", "raw_files", "rebuild_journal",
-           "restore_session", "parse_points", "NothingMeasured"]
+           "restore_session", "parse_points", "NothingMeasured", "repair", "drop_placeholders"]
 
 class NothingMeasured(SessionError):
     """The session has no journal yet and raw/ is empty: nothing was measured."""
@@ -467,3 +467,38 @@ def parse_points(spec: str, n: int) -> list[int]:
     if not out:
         raise SessionError(f"--remeasure {spec!r}: give plan point indices such as 3,7,10-12")
     return sorted(out)
+
+
+def repair(folder: Path, journal: Journal, want: list[int] | None, note) -> None:
+    """Before a resume measures: take again the calibration frames whose RAW files are missing
+    or corrupt, measure again the points whose RAW files are (and the points ``want``, from
+    `parse_points`); each said in one line to ``note``. The old rows are kept in ``superseded``."""
+    from ._journal import damaged_files
+
+    cal, bad = damaged_files(folder, journal)
+    if cal:
+        names = sorted(cal)
+        for name in names:
+            journal.forget_frame(name)
+        journal.event("retake", f"calibration frames missing or corrupt: {', '.join(names)}")
+        note(f"{len(names)} calibration frame(s) are missing or corrupt (first: {cal[names[0]]}): taking them again")
+    if bad:
+        idx = sorted(bad)
+        journal.supersede(idx, "RAW file missing or corrupt")
+        shown = ", ".join(map(str, idx[:10])) + (f" and {len(idx) - 10} more" if len(idx) > 10 else "")
+        note(f"measuring again {len(idx)} point(s) whose RAW files are missing or corrupt: {shown} "
+             f"(first file: {bad[idx[0]]})")
+    if want:
+        moved = journal.supersede(want, "--remeasure")
+        note(f"measuring again {len(want)} point(s) as asked ({len(moved)} had been measured)")
+    drop_placeholders(folder, journal)
+
+
+def drop_placeholders(folder: Path, journal: Journal) -> None:
+    """Remove the empty placeholders of RAW files a stopped run reserved but never received."""
+    used = {f for kind in ("dark", "flat") for _, f, _ in journal.frames(kind).values()}
+    used |= {e["file"] for r in journal.points() for e in r["detail"].get("exposures", [])}
+    for file in raw_files(folder):
+        p = folder / file
+        if file not in used and p.stat().st_size == 0:
+            p.unlink()

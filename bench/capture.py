@@ -37,8 +37,6 @@ from __future__ import annotations
 
 import json
 import math
-import signal
-import threading
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -50,12 +48,14 @@ import numpy as np
 from . import kinematics
 from ._camera import RawFrame, SimCamera, decode_raw
 from ._files import TMP_PREFIX, create_exclusive, remove_orphans, sha256_file
-from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
 from . import _integrity
-from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock, damaged_files,
+from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
+from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock,
                        read_session, session_text, versions, write_session)
+from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
 from ._ordering import order_moves
 from ._scpi import PowerMeter
+from ._signals import Interrupts, StopNow
 from ._settings import AXES, default_settings, merge_settings, validate_settings
 from ._zaber import Goniometer, LedSource, MoveError, ZaberChain, emergency_stop
 from .errors import CommunicationError, DeviceError, GonioError, SessionError
@@ -149,17 +149,24 @@ class Bench:
                  sleep: Callable[[float], None] = time.sleep, poll_interval_s: float = 0.05,
                  timeout: float = 1.0, baudrate: int = 115200, on_warning=None):
         self.settings = settings
-        self.sleep = sleep
+        self._sleep = sleep
+        self.checkpoint: Callable[[], None] = lambda: None    # a run's safe point: may raise StopNow
         self.chain = self.meter = self.camera = None
         try:
             self.chain = ZaberChain(zaber_url, baudrate, timeout, on_warning=on_warning)
-            self.gonio = Goniometer(self.chain, settings, poll_interval_s=poll_interval_s, sleep=sleep)
+            self.gonio = Goniometer(self.chain, settings, poll_interval_s=poll_interval_s, sleep=self.sleep)
             self.led = LedSource(self.chain, int(settings.get("lamp", {}).get("device", 2)))
             self.meter = PowerMeter(meter_url, baudrate, timeout)
             self.camera = _open_camera(camera, 30.0)
         except BaseException:
             self.close()
             raise
+
+    def sleep(self, seconds: float) -> None:
+        """Wait (a stage poll, a settle, a pause): a safe point to stop at."""
+        self.checkpoint()
+        self._sleep(seconds)
+        self.checkpoint()
 
     def close(self) -> None:
         for dev in (self.camera, self.meter, self.chain):
@@ -173,121 +180,10 @@ class Bench:
 estop = emergency_stop        # ``gonio estop --port``: /0 0 estop to every device at once
 
 
-# -- Ctrl-C and the termination signals ----------------------------------------------------------
-
-class StopNow(KeyboardInterrupt):
-    """Raised in the main thread by a second Ctrl-C, or by SIGTERM / SIGHUP: stop the stages now."""
-
-    def __init__(self, why: str):
-        super().__init__(why)
-        self.why = why
-
-
-class _Interrupts:
-    """First SIGINT: ask to stop at the next point boundary; second SIGINT, or one SIGTERM or
-    SIGHUP (a service manager stopping the bench, the terminal closing): `StopNow`, handled as
-    Ctrl-C twice. Once a stop is under way (or ``deferred``), further signals only set the flag,
-    so the clean-up (stages stopped, LED off, journal events) is never cut short."""
-
-    SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
-
-    def __init__(self):
-        self.requested = False
-        self.stopping = False
-        self.deferred = False
-        self._old: dict = {}
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for sig in self.SIGNALS:
-                self._old[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def _handler(self, signum, frame):
-        if self.stopping or self.deferred:
-            self.requested = True
-            return
-        if signum == signal.SIGINT and not self.requested:
-            self.requested = True
-            return
-        self.stopping = True
-        raise StopNow("Ctrl-C twice" if signum == signal.SIGINT else signal.Signals(signum).name)
-
-    def __exit__(self, *exc):
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-        self._old = {}
-
-
 # -- the measurement of one point ----------------------------------------------------------------
 
 class _Suspended(Exception):
     """The lamp or the meter is not fit to measure; the point must wait and be measured again."""
-
-
-def _check_sensor(camera, settings: Mapping) -> None:
-    """The regions of interest come from ``[camera]``: the camera must have that many pixels."""
-    sensor = getattr(camera, "sensor", None)
-    cam = settings["camera"]
-    if sensor is not None and (sensor.width, sensor.height) != (cam["width"], cam["height"]):
-        raise GonioError(f"the camera reports {sensor.width}x{sensor.height} pixels but the settings say "
-                         f"{cam['width']}x{cam['height']}; fix [camera] width/height in the settings")
-
-
-class ReferenceModel:
-    """f_r of the reference (sr^-1, per channel): ``rho / pi`` times its non-Lambertian factor.
-
-    Settings (``[reference]``): ``reflectance`` (a number or one per channel), and optionally
-    ``factor_theta_i``, ``factor_theta_o`` (degrees, ascending) and ``factor`` (a table, rows
-    over theta_i, columns over theta_o) from the certificate: the reference's f_r relative to
-    a Lambertian of the same reflectance, interpolated bilinearly (clamped at the edges).
-    """
-
-    def __init__(self, ref: Mapping):
-        self.rho = np.broadcast_to(np.asarray(ref["reflectance"], float), (3,)).copy()
-        self.table = None
-        if "factor" in ref:
-            ti = np.asarray(ref.get("factor_theta_i", []), float)
-            to = np.asarray(ref.get("factor_theta_o", []), float)
-            fac = np.asarray(ref["factor"], float)
-            if (fac.shape != (len(ti), len(to)) or len(ti) < 1 or len(to) < 1 or not np.all(np.isfinite(fac))
-                    or np.any(np.diff(ti) <= 0) or np.any(np.diff(to) <= 0) or np.any(fac <= 0)):
-                raise GonioError("[reference] factor must be a positive len(factor_theta_i) x len(factor_theta_o) "
-                                 "table over ascending angles; fix the settings")
-            self.table = (ti, to, fac)
-
-    def factor(self, theta_i: float, theta_o: float) -> float:
-        """The non-Lambertian factor at (theta_i, theta_o) in degrees (1 without a table)."""
-        if self.table is None:
-            return 1.0
-        ti, to, fac = self.table
-        rows = np.array([np.interp(theta_o, to, row) for row in fac])
-        return float(np.interp(theta_i, ti, rows))
-
-    def f_r(self, theta_i: float, theta_o: float) -> np.ndarray:
-        """Reference f_r (3,) in sr^-1."""
-        return self.rho / math.pi * self.factor(theta_i, theta_o)
-
-
-def _region_stats(hdr, mask: np.ndarray) -> dict[str, Any]:
-    """Per-channel mean of the HDR radiance over ``mask``, its standard error, and counts.
-
-    ``se`` is the empirical standard error of the mean (pixel scatter: shot and read noise and
-    the sensor's fixed pattern), ``se_model`` the one the noise model alone predicts. Pixels
-    saturated in every exposure (NaN) are left out and counted in ``n_saturated``.
-    """
-    rad, var = hdr.radiance[:, mask], hdr.var[:, mask]
-    good = np.isfinite(rad)
-    n = good.sum(1)
-    mean, se, se_model = np.full(3, np.nan), np.full(3, np.nan), np.full(3, np.nan)
-    for c in range(3):
-        x = rad[c, good[c]]
-        if n[c]:
-            mean[c] = x.mean()
-            se_model[c] = math.sqrt(var[c, good[c]].sum()) / n[c]
-        if n[c] > 1:
-            se[c] = x.std(ddof=1) / math.sqrt(n[c])
-    return {"mean": mean, "se": se, "se_model": se_model, "n": n, "n_saturated": int((~good).sum())}
 
 
 class _Session:
@@ -348,7 +244,7 @@ class _Session:
         """Check flags and positions, home if the reference is lost, take missing darks and
         flats, lamp on."""
         b = self.bench
-        _check_sensor(b.camera, self.settings)
+        check_sensor(b.camera, self.settings)
         flags = b.gonio.connect(clear_faults=True)
         if any(f in ("WR", "WH") for f in flags):
             self.journal.event("home", f"stages lost their reference ({' '.join(flags)}): homing")
@@ -391,6 +287,7 @@ class _Session:
             if t in have:
                 _, file, digest = have[t]
             else:
+                self.bench.checkpoint()
                 file = self._fresh(f"dark_{t * 1e6:010.0f}us.dng")
                 digest = self.bench.camera.expose(t, self.folder / file)
                 self.journal.record_frame(f"dark:{t!r}", "dark", t, file, digest)
@@ -416,6 +313,7 @@ class _Session:
                 return
             t = self._flat_exposure(cam)
             for k in range(n):
+                self.bench.checkpoint()
                 file = self._fresh(f"flat_{k:03d}.dng")
                 self.journal.record_frame(f"flat:{k:03d}", "flat", t, file, cam.flat(t, self.folder / file))
             have = self.journal.frames("flat")
@@ -470,8 +368,10 @@ class _Session:
 
     # -- one point -----------------------------------------------------------------------
     def _expose(self, idx: int, t: float) -> tuple[Exposure, dict]:
+        self.bench.checkpoint()
         file = self._fresh(f"p{idx:05d}_{t * 1e6:010.0f}us.dng")
         digest = self.bench.camera.expose(t, self.folder / file)
+        self.bench.checkpoint()
         p = self._power()
         frame = decode_raw(self.folder / file)
         return Exposure(t, p, frame, self.darks[t]), {"seconds": t, "file": file, "sha256": digest, "power": p}
@@ -521,7 +421,7 @@ class _Session:
             raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
                              f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
         hdr = merge([u[0] for u in used], self.noise, self.sat).flat_fielded(self.gain)
-        stats = {"sample": _region_stats(hdr, sm), "reference": _region_stats(hdr, rm)}
+        stats = {"sample": region_stats(hdr, sm), "reference": region_stats(hdr, rm)}
         saturated = any(st["n_saturated"] for st in stats.values())
         s, r = stats["sample"], stats["reference"]
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -557,11 +457,12 @@ class _Session:
             r = self._reciprocity(i)
             if r is not None and r["i"] == i:
                 self.reciprocity.append(r)
-        bar = _ProgressBar(len(self.plan), len(done), self.progress)
+        bar = ProgressBar(len(self.plan), len(done), self.progress)
         n_new = 0
         stopped = ""
         try:
             for idx in todo:
+                self.bench.checkpoint()
                 if self.stop():
                     stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
                     break
@@ -588,34 +489,6 @@ class _Session:
         return n_new, stopped
 
 
-class _ProgressBar:
-    """rich progress: points done, ETA, the latest f_r (and reciprocity when a pair closes)."""
-
-    def __init__(self, total: int, done: int, enabled: bool):
-        self.p = None
-        if not enabled:
-            return
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        self.p = Progress(TextColumn("capture"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                          TextColumn("{task.fields[latest]}"), console=Console(stderr=True))
-        self.task = self.p.add_task("capture", total=total, completed=done, latest="")
-        self.p.start()
-
-    def advance(self, brdf, recip) -> None:
-        if self.p is None:
-            return
-        text = "f_r " + " ".join(f"{v:.4g}" for v in brdf) + " sr^-1"
-        if recip is not None:
-            text += f"  reciprocity {100 * np.nanmax(np.abs(recip['rel'])):.1f} %"
-        self.p.update(self.task, advance=1, latest=text)
-
-    def close(self) -> None:
-        if self.p is not None:
-            self.p.stop()
-
-
 def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_url, camera,
                  sample_truth, meta) -> dict[str, Any]:
     doc = {
@@ -639,7 +512,8 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
          progress: bool, t0: float, notes: list) -> CaptureSummary:
     """Measure what the journal lacks. Takes over ``bench``, ``journal`` and ``lock`` (closes them)."""
     try:
-        with _Interrupts() as intr:
+        with Interrupts() as intr:
+            bench.checkpoint = intr.check
             try:
                 sess = _Session(folder, doc, bench, journal, progress, lambda: intr.requested)
                 sess.prepare()
@@ -659,6 +533,7 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
                 raise
             finally:
                 intr.deferred = True              # a signal now only sets the flag: clean up first
+                bench.checkpoint = lambda: None
                 for d, f, m in warnings:
                     journal.event("warning", f"device {d}: {f} {m}")
                 journal.event("comm", json.dumps({
@@ -751,7 +626,7 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
                   timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
     lock = journal = None
     try:
-        _check_sensor(bench.camera, settings)
+        check_sensor(bench.camera, settings)
         ReferenceModel(settings["reference"])
         text = session_text(_session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta))
         try:
@@ -806,30 +681,15 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
     journal = bench = None
     try:
         data, doc, why = _integrity.load_session(folder)
+        want = None
+        if remeasure and doc is not None and isinstance(doc.get("plan"), Mapping):
+            want = _integrity.parse_points(remeasure, len(doc["plan"].get("points", [])))   # before any write
         if rebuild_journal:
             note(_integrity.rebuild_journal(folder, data, doc, why))
         journal = _integrity.open_journal(folder, data, doc, why)
-        plan_n = len(doc["plan"]["points"])
         remove_orphans(folder / RAW_DIR)
         remove_orphans(folder)
-        cal, bad = damaged_files(folder, journal)
-        if cal:
-            names = sorted(cal)
-            for name in names:
-                journal.forget_frame(name)
-            journal.event("retake", f"calibration frames missing or corrupt: {', '.join(names)}")
-            note(f"{len(names)} calibration frame(s) are missing or corrupt (first: {cal[names[0]]}): taking them again")
-        if bad:
-            idx = sorted(bad)
-            journal.supersede(idx, "RAW file missing or corrupt")
-            shown = ", ".join(map(str, idx[:10])) + (f" and {len(idx) - 10} more" if len(idx) > 10 else "")
-            note(f"measuring again {len(idx)} point(s) whose RAW files are missing or corrupt: {shown} "
-                 f"(first file: {bad[idx[0]]})")
-        if remeasure:
-            want = _integrity.parse_points(remeasure, plan_n)
-            moved = journal.supersede(want, "--remeasure")
-            note(f"measuring again {len(want)} point(s) as asked ({len(moved)} had been measured)")
-        _drop_placeholders(folder, journal)
+        _integrity.repair(folder, journal, want, note)
         ports = doc.get("ports", {})
         zaber_url = zaber_url or ports.get("zaber")
         meter_url = meter_url or ports.get("meter")
@@ -850,13 +710,3 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
         lock.__exit__()
         raise
     return _run(folder, doc, bench, journal, lock, warnings, progress, t0, notes)
-
-
-def _drop_placeholders(folder: Path, journal: Journal) -> None:
-    """Remove the empty placeholders of RAW files a stopped run reserved but never received."""
-    used = {f for kind in ("dark", "flat") for _, f, _ in journal.frames(kind).values()}
-    used |= {e["file"] for r in journal.points() for e in r["detail"].get("exposures", [])}
-    for file in _integrity.raw_files(folder):
-        p = folder / file
-        if file not in used and p.stat().st_size == 0:
-            p.unlink()

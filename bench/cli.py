@@ -336,7 +336,7 @@ def main(argv=None) -> int:
             return EXIT_STOPPED
         if session is not None:                 # raised while measuring: the session stays resumable
             msg = str(exc)
-            if "--resume" not in msg:
+            if f"--resume {session}" not in msg:
                 msg += f" (the session is resumable: `gonio capture --resume {session}`)"
             _say(f"gonio: stopped: {msg}")
             return EXIT_STOPPED

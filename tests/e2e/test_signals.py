@@ -128,3 +128,25 @@ def test_sigterm_during_a_move_stops_the_stages_and_switches_the_led_off(tmp_pat
         assert res.complete
     finally:
         inst.unregister()
+
+
+def test_a_fault_mid_run_exits_3_and_a_refusal_exits_2(tmp_path, monkeypatch, capsys):
+    """A stall while measuring leaves a resumable session: status 3, one line; bad input: 2."""
+    from gonio.bench import cli, session_runner
+
+    real = session_runner.sim_instrument
+
+    def stalling(settings, sample, seed, clock="instant", faults=None, name=None):
+        return real(settings, sample, seed, clock, [{"kind": "stall", "port": "zaber", "at_command": [70]}], name)
+    monkeypatch.setattr(session_runner, "sim_instrument", stalling)
+    session = tmp_path / "s"
+    rc = cli.main(["capture", "--sim", "--plan", "quick", "--out", str(session), "--quiet"])
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert rc == 3 and len(err) == 1, err
+    assert err[0].startswith("gonio: stopped:") and "FS stalled" in err[0] and f"--resume {session}" in err[0]
+    monkeypatch.setattr(session_runner, "sim_instrument", real)
+    assert cli.main(["capture", "--resume", str(session), "--quiet", "--remeasure", "999"]) == 2
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1 and err[0].startswith("gonio: error: --remeasure '999'"), err
+    assert cli.main(["capture", "--resume", str(session), "--quiet"]) == 0
+    assert "30/30 points" in capsys.readouterr().out
