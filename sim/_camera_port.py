@@ -27,6 +27,8 @@ class CameraPort:
     """Camera protocol server; ``armed`` holds pending camera faults (``nothing``, ``truncated``)."""
 
     IDN = "gonio,SimCamera,SIM00001,0.1.0"
+    #: command lines are UTF-8: the path of an exposure may hold any character (Zaber and SCPI are ASCII)
+    encoding = "utf-8"
 
     def __init__(self, instrument):
         self.inst = instrument

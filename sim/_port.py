@@ -91,7 +91,7 @@ class PortEndpoint:
                 i = min(cuts)
                 line = buf[:i]
                 del self._in[: i + 1]
-                self._line(line.decode("ascii", "replace").strip())
+                self._line(line.decode(getattr(self.server, "encoding", "ascii"), "replace").strip())
 
     def _line(self, text: str) -> None:
         if not text:

@@ -308,3 +308,13 @@ def test_disk_full_while_writing_a_preview_image(capsys, data, tmp_path, monkeyp
             "--size", "16", "--spp", "1", needles=("full",))
     left = [p.name for p in (out / "preview").iterdir()] if (out / "preview").exists() else []
     assert not [n for n in left if n.endswith(".png") or ".tmp" in n], left
+
+
+def test_capture_into_a_non_ascii_folder(capsys, tmp_path):
+    """The simulated camera read its command line as ASCII: 'no such directory' and a dead session."""
+    plan = tmp_path / "one.toml"
+    plan.write_text('name = "one"\npoints = [[30, 0, 30, 180]]\n')
+    out = tmp_path / "séance ü" / "s"
+    rc, err = gonio(capsys, "capture", "--sim", "--plan", plan, "--out", out, "--quiet")
+    assert rc == 0, err
+    assert any(p.suffix == ".dng" for p in (out / "raw").iterdir())

@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from gonio.bench import cli
 
 FUZZ = settings(max_examples=int(os.environ.get("GONIO_FUZZ_EXAMPLES", "25")), deadline=timedelta(seconds=30),
-                database=None, derandomize=True, print_blob=True,
+                database=None, derandomize=not os.environ.get("GONIO_FUZZ_RANDOM"), print_blob=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
                                        HealthCheck.data_too_large])
 
