@@ -52,6 +52,8 @@ def _env(func):
     def run(args):
         from ._preflight import environment_errors
 
+        if getattr(args, "out", None) is not None and not str(args.out).strip():
+            raise GonioError("--out is empty; give a path")
         with environment_errors():
             return func(args)
     return run

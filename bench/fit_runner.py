@@ -58,6 +58,9 @@ def _open_dataset(path: Path, seed: int = 0):
 
     if not path.exists():
         raise GonioError(f"dataset {path} does not exist; run `gonio export SESSION` to write one")
+    if path.is_dir():
+        hint = f" (e.g. {path / 'dataset.nc'})" if (path / "dataset.nc").exists() else ""
+        raise GonioError(f"dataset {path} is a folder; give the dataset file{hint}")
     suffix = path.suffix.lower()
     # a damaged file leaves half-built reader objects behind, freed with the exception: all
     # inside the quiet hook, so that their failing close() prints nothing

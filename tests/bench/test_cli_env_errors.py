@@ -100,6 +100,10 @@ def test_fit_out_unwritable_folder_file_refused_before_fitting(capsys, data, unw
     (tmp_path / "afile").write_text("x")
     refused(capsys, "fit", data["dataset"], "--model", "diffuse", "--out", tmp_path / "afile" / "fit.json",
             needles=("is a file, not a folder",))
+    refused(capsys, "fit", data["dataset"], "--model", "diffuse", "--out", "", needles=("--out is empty",))
+    refused(capsys, "fit", data["dataset"], "--model", "diffuse", "--out", "/dev/null",
+            needles=("not a regular file",))            # a rename would have replaced the device node
+    refused(capsys, "fit", tmp_path, "--model", "diffuse", "--out", tmp_path / "x.json", needles=("is a folder",))
     assert listing(tmp_path) == ["adir", "afile", "ro"]
 
 
