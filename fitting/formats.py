@@ -195,6 +195,10 @@ def read_merl(path) -> MerlBRDF:
         When the header's dimensions are not 90 x 90 x 180 or the file is truncated.
     """
     path = Path(path)
+    n = int(np.prod(MERL_SHAPE))
+    size = path.stat().st_size
+    if size != 12 + 3 * n * 8:          # checked before reading: a huge file is never loaded
+        raise ValueError(f"{path}: {size} bytes, a MERL file has {12 + 3 * n * 8}")
     data = path.read_bytes()
     if len(data) < 12:
         raise ValueError(f"{path}: too short for a MERL header ({len(data)} bytes)")
