@@ -66,6 +66,14 @@ def load_session(folder: Path) -> tuple[bytes, dict[str, Any] | None, str]:
 
 def check_doc(doc: Mapping[str, Any], folder: Path):
     """Check that ``doc`` is a whole session; return its `Plan`. One-line `SessionError` otherwise."""
+    try:
+        return _check_doc(doc, folder)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        raise SessionError(f"{folder / SESSION_FILE} is malformed ({type(exc).__name__}: {exc}); put back the "
+                           "original session.toml") from None
+
+
+def _check_doc(doc: Mapping[str, Any], folder: Path):
     from ._settings import validate_settings
     from .plans import plan_from_dict
 
@@ -142,6 +150,16 @@ def _first_diff(a, b, path: str) -> str | None:
 
 def describe_difference(rec: Mapping[str, Any], cur: Mapping[str, Any]) -> str:
     """What differs between the recorded session (``rec``) and ``cur``, in a few words."""
+    try:
+        return _describe(rec, cur)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, StopIteration):
+        return _first_diff(dict(rec), dict(cur), "") or "its text differs"
+
+
+def _describe(rec: Mapping[str, Any], cur: Mapping[str, Any]) -> str:
+    for t in TABLES:
+        if t in cur and not isinstance(cur[t], Mapping):
+            return f"its [{t}] is no longer a table"
     for t in sorted(set(rec) | set(cur)):
         if t not in cur:
             return f"its [{t}] table is missing"

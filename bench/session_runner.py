@@ -140,16 +140,18 @@ def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_jou
             print(_integrity.restore_session(session))
         return 0
     data, doc, why = _integrity.load_session(session)
-    if doc is None:
-        raise GonioError(f"{session / 'session.toml'} is not valid TOML ({why}); restore it with "
-                         f"`gonio capture --resume {session} --restore-session`")
-    _integrity.check_doc(doc, session)
-    if not rebuild_journal:                      # refuse what differs before any simulator is built
+    # refuse what differs or is damaged before any simulator is built (the resume checks again)
+    if rebuild_journal:
+        if doc is None:
+            raise GonioError(f"{session / 'session.toml'} is not valid TOML ({why}); the journal cannot be "
+                             "rebuilt without it")
+        _integrity.check_doc(doc, session)
+    else:
         try:
             _integrity.open_journal(session, data, doc, why, write=False).close()
         except _integrity.NothingMeasured:
             pass                                 # a capture stopped before its journal: the resume starts it
-    meta = doc.get("meta", {})
+    meta = doc.get("meta") if isinstance(doc.get("meta"), dict) else {}
     kw = dict(progress=progress, rebuild_journal=rebuild_journal, remeasure=remeasure, notify=_note)
     if meta.get("sim") and not port:
         settings = doc["settings"]
