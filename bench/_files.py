@@ -82,7 +82,8 @@ def write_new_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary name, refusing to replace an existing file.
 
     The final step is a hard link, which (unlike a rename) fails if ``path`` exists:
-    `FileExistsError` then, and nothing is changed.
+    `FileExistsError` then, and nothing is changed. On a file system without hard links the
+    caller's lock must exclude other writers: the name is checked, then the file renamed.
     """
     path = Path(path)
     tmp = tmp_name(path)
@@ -91,9 +92,17 @@ def write_new_text(path: str | os.PathLike, text: str) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     try:
-        os.link(tmp, path)
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise
+        except OSError:                      # no hard links here (FAT, some network shares)
+            if os.path.lexists(path):
+                raise FileExistsError(str(path)) from None
+            os.replace(tmp, path)
     finally:
-        os.unlink(tmp)
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
     fsync_dir(path.parent)
 
 

@@ -96,8 +96,9 @@ def resume_on(folder, **kw):
 
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory):
-    """A complete session and one stopped (Ctrl-C once) after 2 of its 5 points; copy before use.
-    ``snap`` is journal.sqlite as it was on disk mid-run, its recent commits still in the -wal."""
+    """Complete sessions ``complete`` and ``walsnap``, and ``partial``, stopped by Ctrl-C once after
+    a point or two; copy before use. ``snap.sqlite`` is walsnap's journal.sqlite as it was on disk
+    mid-run, its recent commits still only in the -wal."""
     base = tmp_path_factory.mktemp("sessions")
     inst = instrument()
     try:
@@ -107,9 +108,9 @@ def sessions(tmp_path_factory):
         snap = base / "snap.sqlite"
 
         def hook(n, path):
-            if not snap.exists() and len(idx_rows(base / "stopped")) >= 1:
-                shutil.copyfile(base / "stopped" / "journal.sqlite", snap)
-        res = capture(base / "stopped", PLAN, S, z, m, Camera(c, after=0, hook=hook), seed=1, progress=False,
+            if not snap.exists() and len(idx_rows(base / "walsnap")) >= 1:
+                shutil.copyfile(base / "walsnap" / "journal.sqlite", snap)
+        res = capture(base / "walsnap", PLAN, S, z, m, Camera(c, after=0, hook=hook), seed=1, progress=False,
                       sleep=inst.clock.advance)
         assert res.complete
         # the same again, stopped by Ctrl-C once a few exposures into the points
@@ -274,6 +275,20 @@ def test_session_toml_is_written_once(tmp_path):
     assert (tmp_path / "s" / "session.toml").read_text().strip() == "a = 1"
 
 
+def test_session_toml_is_written_once_without_hard_links(tmp_path, monkeypatch):
+    from gonio.bench import _files
+    from gonio.bench._journal import write_session
+
+    def no_links(*a):
+        raise PermissionError(1, "Operation not permitted")
+    monkeypatch.setattr(_files.os, "link", no_links)
+    write_session(tmp_path / "s", {"a": 1})
+    with pytest.raises(SessionError, match="already holds a session"):
+        write_session(tmp_path / "s", {"a": 2})
+    assert (tmp_path / "s" / "session.toml").read_text().strip() == "a = 1"
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["raw", "session.toml"]
+
+
 # -- 3. the journal is the only record of what is done ---------------------------------------------
 
 def _drop_journal(folder):
@@ -335,7 +350,7 @@ def test_truncated_journal_is_refused_by_export_and_resume_then_rebuilt(sessions
 
 def test_lost_wal_is_refused_then_rebuilt(sessions, tmp_path):
     """journal.sqlite as it was on disk mid-run (its last commits only in the -wal), the -wal gone."""
-    folder = copy(sessions, "stopped", tmp_path)
+    folder = copy(sessions, "walsnap", tmp_path)
     before = raw_hashes(folder)
     _drop_journal(folder)
     shutil.copyfile(sessions / "snap.sqlite", folder / "journal.sqlite")
