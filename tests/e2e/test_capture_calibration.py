@@ -24,8 +24,6 @@ from gonio.bench.report import _truth_by_name
 from gonio.bench.session_runner import capture_sim
 from gonio.fitting import load_dataset
 
-pytestmark = pytest.mark.codegen  # run again under a second code generation (issue 12)
-
 N_CAPTURES = int(__import__("os").environ.get("GONIO_N_CAPTURES", 20))
 
 
