@@ -61,3 +61,17 @@ def test_forced_target_changes_the_width_and_keeps_the_numbers():
 def test_unknown_or_unsupported_targets_are_refused():
     with pytest.raises(ValueError, match="unknown LLVM target 'avx1024'"):
         set_llvm_target("avx1024")
+
+
+@pytest.mark.codegen
+def test_this_run_compiles_for_the_requested_target():
+    """Under GONIO_LLVM_TARGET (make test's second pass) this very process, an xdist worker
+    included, compiles for that width: the pass is not a silent copy of the first one."""
+    from gonio.models._jit_target import TARGETS, llvm_target
+
+    name = os.environ.get("GONIO_LLVM_TARGET", "").strip().lower()
+    cpu, width = llvm_target()
+    if not name or TARGETS[name] is None:
+        assert width >= 4
+    else:
+        assert (cpu, width) == (TARGETS[name][0], TARGETS[name][2])
