@@ -622,19 +622,25 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     order = order_moves(stage, settings)
     # open every port before anything is written: a dead port leaves nothing behind
     warnings: list = []
-    bench = Bench(settings, zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
-                  timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
-    lock = journal = None
+    lock = journal = bench = None
     try:
-        check_sensor(bench.camera, settings)
-        ReferenceModel(settings["reference"])
-        text = session_text(_session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta))
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise SessionError(f"cannot create session folder {folder} ({exc.strerror}); choose another --out") from None
-        lock = SessionLock(folder).__enter__()  # before anything else is written: one capture per folder
-        _check_new_folder(folder)               # again, now that no other capture can write here
+        with Interrupts() as pre:               # a signal while the ports open: stop before writing
+            bench = Bench(settings, zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
+                          timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
+            check_sensor(bench.camera, settings)
+            ReferenceModel(settings["reference"])
+            text = session_text(_session_doc(plan, settings, seed, order, zaber_url, meter_url, camera,
+                                             sample_truth, meta))
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise SessionError(f"cannot create session folder {folder} ({exc.strerror}); "
+                                   "choose another --out") from None
+            lock = SessionLock(folder).__enter__()  # before anything else is written: one capture per folder
+            _check_new_folder(folder)               # again, now that no other capture can write here
+        if pre.requested:
+            raise CaptureInterrupted(f"stopped by {pre.stop or 'Ctrl-C'} before the capture started; no session "
+                                     "was written")
         remove_orphans(folder)
         write_session(folder, text)             # once: never replaces an existing session.toml
         doc = read_session(folder)
@@ -643,7 +649,8 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     except BaseException:
         if journal is not None:
             journal.close()
-        bench.close()
+        if bench is not None:
+            bench.close()
         if lock is not None:
             lock.__exit__()
         raise
@@ -680,28 +687,32 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
     lock = SessionLock(folder).__enter__()      # not while another process measures into it
     journal = bench = None
     try:
-        data, doc, why = _integrity.load_session(folder)
-        want = None
-        if remeasure and doc is not None and isinstance(doc.get("plan"), Mapping):
-            want = _integrity.parse_points(remeasure, len(doc["plan"].get("points", [])))   # before any write
-        if rebuild_journal:
-            note(_integrity.rebuild_journal(folder, data, doc, why))
-        journal = _integrity.open_journal(folder, data, doc, why)
-        remove_orphans(folder / RAW_DIR)
-        remove_orphans(folder)
-        _integrity.repair(folder, journal, want, note)
-        ports = doc.get("ports", {})
-        zaber_url = zaber_url or ports.get("zaber")
-        meter_url = meter_url or ports.get("meter")
-        if camera is None:
-            camera = ports.get("camera")
-            if not (isinstance(camera, str) and ("://" in camera or camera.startswith("/"))):
-                raise SessionError(f"{folder} was captured with a {camera} camera; give the camera to resume with")
-        if not zaber_url or not meter_url:
-            raise SessionError(f"{folder}: give the ports to resume on (--port and --meter-port)")
-        warnings: list = []
-        bench = Bench(doc["settings"], zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
-                      timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
+        with Interrupts() as pre:               # checks and repairs finish whole; a signal stops after them
+            data, doc, why = _integrity.load_session(folder)
+            want = None
+            if remeasure and doc is not None and isinstance(doc.get("plan"), Mapping):
+                want = _integrity.parse_points(remeasure, len(doc["plan"].get("points", [])))   # before any write
+            if rebuild_journal:
+                note(_integrity.rebuild_journal(folder, data, doc, why))
+            journal = _integrity.open_journal(folder, data, doc, why)
+            remove_orphans(folder / RAW_DIR)
+            remove_orphans(folder)
+            _integrity.repair(folder, journal, want, note)
+            ports = doc.get("ports", {})
+            zaber_url = zaber_url or ports.get("zaber")
+            meter_url = meter_url or ports.get("meter")
+            if camera is None:
+                camera = ports.get("camera")
+                if not (isinstance(camera, str) and ("://" in camera or camera.startswith("/"))):
+                    raise SessionError(f"{folder} was captured with a {camera} camera; give the camera to resume with")
+            if not zaber_url or not meter_url:
+                raise SessionError(f"{folder}: give the ports to resume on (--port and --meter-port)")
+            warnings: list = []
+            bench = Bench(doc["settings"], zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
+                          timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
+        if pre.requested:
+            raise CaptureInterrupted(f"stopped by {pre.stop or 'Ctrl-C'} before measuring; the session is resumable "
+                                     f"with `gonio capture --resume {folder}`")
     except BaseException:
         if journal is not None:
             journal.close()

@@ -150,3 +150,45 @@ def test_a_fault_mid_run_exits_3_and_a_refusal_exits_2(tmp_path, monkeypatch, ca
     assert len(err) == 1 and err[0].startswith("gonio: error: --remeasure '999'"), err
     assert cli.main(["capture", "--resume", str(session), "--quiet"]) == 0
     assert "30/30 points" in capsys.readouterr().out
+
+
+def test_sigterm_while_a_capture_or_resume_sets_up_stops_cleanly(tmp_path, monkeypatch):
+    """A signal while the ports open (capture) or the session is checked (resume): one line, no
+    half-done step; the resume's checks and repairs finish whole first."""
+    from gonio.bench import _integrity, plans
+    from gonio.bench import capture as capture_mod
+    from gonio.bench._settings import default_settings
+    from gonio.bench.capture import CaptureInterrupted, capture, resume
+
+    S = default_settings()
+    inst = sim.Instrument(S, seed=1).register(f"setup-{os.getpid()}")
+    plan = plans.Plan("two", [[30, 0, 40, 180], [20, 0, 50, 90]])
+    real_bench, real_repair = capture_mod.Bench, _integrity.repair
+
+    class Bench(real_bench):
+        def __init__(self, *a, **kw):
+            os.kill(os.getpid(), signal.SIGTERM)
+            super().__init__(*a, **kw)
+
+    def repair(*a, **kw):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real_repair(*a, **kw)
+    try:
+        monkeypatch.setattr(capture_mod, "Bench", Bench)
+        with pytest.raises(CaptureInterrupted, match="stopped by SIGTERM before the capture started; no session "
+                                                     "was written"):
+            capture(tmp_path / "s", plan, S, inst.url("zaber"), inst.url("meter"), inst.url("camera"), seed=1,
+                    progress=False, sleep=inst.clock.advance)
+        assert not (tmp_path / "s" / "session.toml").exists()
+        monkeypatch.setattr(capture_mod, "Bench", real_bench)
+        assert capture(tmp_path / "s", plan, S, inst.url("zaber"), inst.url("meter"), inst.url("camera"), seed=1,
+                       progress=False, sleep=inst.clock.advance).complete
+        monkeypatch.setattr(_integrity, "repair", repair)
+        with pytest.raises(CaptureInterrupted, match="stopped by SIGTERM before measuring; the session is resumable"):
+            resume(tmp_path / "s", progress=False, sleep=inst.clock.advance, remeasure="1")
+        monkeypatch.setattr(_integrity, "repair", real_repair)
+        res = resume(tmp_path / "s", progress=False, sleep=inst.clock.advance)
+        assert res.complete and res.n_new == 1                 # the --remeasure was done whole before the stop
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    finally:
+        inst.unregister()
