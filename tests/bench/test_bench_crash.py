@@ -100,6 +100,15 @@ def test_sigkill_at_random_moments_then_resume(tmp_path):
     assert orphans == []
     with Journal(tmp_path / "ref" / "journal.sqlite") as j:
         ref_rows = j.points()
-    for a, b in zip(ref_rows, rows):                                  # the uninterrupted run's values
+    # the uninterrupted run's values: the resumed points see other noise draws (the kills move
+    # the simulated clock and the lamp drift), so they agree within the combined sigma; 4 sigma
+    # over ~90 values is a false-alarm rate of 90 x 6.3e-5 = 0.6 % if every value were an
+    # independent draw (the largest |difference| / sigma printed with -s, issue 12)
+    z = []
+    for a, b in zip(ref_rows, rows):
         fa, fb = np.array(a["brdf"]), np.array(b["brdf"])
-        assert np.all(np.abs(fa - fb) < 4 * np.hypot(a["brdf_std"], b["brdf_std"]))
+        z.append(np.abs(fa - fb) / np.hypot(a["brdf_std"], b["brdf_std"]))
+    z = np.concatenate(z)
+    print(f"\nresumed vs uninterrupted: {z.size} values, largest |difference| / sigma {z.max():.2f}, "
+          f"identical {np.mean(z == 0):.0%}")
+    assert np.all(z < 4)
