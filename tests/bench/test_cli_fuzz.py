@@ -11,7 +11,6 @@ import contextlib
 import gc
 import io
 import json
-import math
 import os
 import shutil
 import sys
@@ -30,28 +29,19 @@ FUZZ = settings(max_examples=int(os.environ.get("GONIO_FUZZ_EXAMPLES", "25")), d
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
                                        HealthCheck.data_too_large])
 
+from gonio.bench._journal import _toml_value as journal_toml_value  # noqa: E402
+
 MODELS = ["diffuse", "roughplastic", "cooktorrance", "orennayar", "roughconductor"]
 
 
 # ----------------------------------------------------------------------------- content
 def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
+    """session.toml's writer for scalars, plus inline tables (random documents nest them)."""
     if isinstance(v, list):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     if isinstance(v, dict):
         return "{" + ", ".join(f"{json.dumps(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(type(v))
+    return journal_toml_value(v)
 
 
 def to_toml(doc: dict) -> str:
