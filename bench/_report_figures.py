@@ -12,6 +12,8 @@ import io
 
 import numpy as np
 
+from gonio.models.geometry import angles as _angles
+
 __all__ = ["draw", "label"]
 
 COLOURS = ["tab:red", "tab:green", "tab:blue"]
@@ -46,11 +48,9 @@ def draw(images: dict, notes: list, name: str, fn, *args) -> None:
 
 
 def angles(meas):
-    theta_i = np.degrees(np.arccos(np.clip(meas.wi[:, 2], -1, 1)))
-    theta_o = np.degrees(np.arccos(np.clip(meas.wo[:, 2], -1, 1)))
-    phi_i = np.arctan2(meas.wi[:, 1], meas.wi[:, 0])
-    phi_o = np.arctan2(meas.wo[:, 1], meas.wo[:, 0])
-    return theta_i, theta_o, phi_i, phi_o
+    theta_i, phi_i = _angles(meas.wi)
+    theta_o, phi_o = _angles(meas.wo)
+    return np.degrees(theta_i), np.degrees(theta_o), phi_i, phi_o
 
 
 def coverage(meas) -> dict:

@@ -183,7 +183,7 @@ def _cmd_estop(args):
 @_env
 def _cmd_bench_models(args):
     try:
-        from gonio.models.bench import run
+        from gonio.models.speed import run
     except ImportError:
         raise GonioError("this build of gonio.models has no benchmark") from None
     if not 1_000 <= args.n <= 10_000_000:
@@ -193,7 +193,7 @@ def _cmd_bench_models(args):
 
 @_env
 def _cmd_bench_fit(args):
-    from gonio.fitting.bench import run
+    from gonio.fitting.speed import run
 
     run(quick=args.quick, out=Path(args.out) if args.out else None)
 

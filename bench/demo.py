@@ -55,7 +55,7 @@ def _speed_vs_error(meas, result, sample, seed) -> dict:
     """
     import numpy as np
 
-    from gonio.fitting.bench import _scipy_lsq
+    from gonio.fitting.speed import _scipy_lsq
 
     truth = result.space.from_params({k: np.asarray(v, dtype=float) for k, v in sample["params"].items()})
     x_lsq, t_lsq, n_lsq = _scipy_lsq(meas, result.model)

@@ -28,6 +28,8 @@ from typing import Mapping
 
 import numpy as np
 
+from gonio.models import geometry
+
 from ._settings import AXES
 
 __all__ = [
@@ -97,17 +99,13 @@ def forward(stage_deg) -> tuple[np.ndarray, np.ndarray]:
 
 def angles_of(w) -> tuple[np.ndarray, np.ndarray]:
     """Unit vectors (..., 3) -> (theta, phi) in degrees, phi in [-180, 180)."""
-    w = np.asarray(w, dtype=float)
-    theta = np.degrees(np.arccos(np.clip(w[..., 2], -1.0, 1.0)))
-    phi = np.degrees(np.arctan2(w[..., 1], w[..., 0]))
+    theta, phi = geometry.angles_deg(w)
     return theta, _wrap(phi)
 
 
 def directions(theta_deg, phi_deg) -> np.ndarray:
     """(theta, phi) in degrees -> unit vectors (..., 3) in the local frame."""
-    t, p = np.radians(np.asarray(theta_deg, float)), np.radians(np.asarray(phi_deg, float))
-    st = np.sin(t)
-    return np.stack([st * np.cos(p), st * np.sin(p), np.cos(t)], -1)
+    return geometry.directions_deg(theta_deg, phi_deg)
 
 
 def forward_angles(stage_deg) -> np.ndarray:

@@ -13,19 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models.geometry import directions as direction
+
 __all__ = ["Measurements", "direction", "load_dataset"]
 
 
 class DataError(ValueError):
     """Raised when measurement data cannot be fitted as given (NaN, negative sigma, ...)."""
-
-
-def direction(theta, phi):
-    """Unit vectors from polar angle ``theta`` and azimuth ``phi`` (radians), shape (N, 3)."""
-    theta = np.asarray(theta, dtype=np.float64)
-    phi = np.asarray(phi, dtype=np.float64)
-    sin_theta = np.sin(theta)
-    return np.stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), np.cos(theta)], axis=-1)
 
 
 @dataclasses.dataclass

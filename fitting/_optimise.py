@@ -1,6 +1,6 @@
 """Constrained maximum-likelihood fit of a BRDF model, and its Laplace uncertainty.
 
-Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.bench`):
+Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.speed`):
 
 * **Evaluation.** f_r comes from :mod:`gonio.models._fast` (Dr.Jit LLVM kernels, float64,
   the directions loaded once per fit; for ``roughplastic`` a new (alpha, eta) costs ~4 ms
@@ -50,6 +50,8 @@ import dataclasses
 import time
 
 import numpy as np
+
+from gonio.models.geometry import directions
 
 from . import _affine, _loss
 from ._lm import levenberg_marquardt
@@ -187,8 +189,7 @@ def _fast_agrees(model) -> bool:
             rng = np.random.default_rng(12345)
             t = np.radians(rng.uniform(0, 80, (2, 16)))
             p = rng.uniform(-np.pi, np.pi, (2, 16))
-            wi = np.stack([np.sin(t[0]) * np.cos(p[0]), np.sin(t[0]) * np.sin(p[0]), np.cos(t[0])], -1)
-            wo = np.stack([np.sin(t[1]) * np.cos(p[1]), np.sin(t[1]) * np.sin(p[1]), np.cos(t[1])], -1)
+            wi, wo = directions(t[0], p[0]), directions(t[1], p[1])
             params = {q.name: q.default for q in model.parameters}
             a = _fast.eval(model, wi, wo, params)
             b = model.eval(wi, wo, params)

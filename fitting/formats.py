@@ -30,6 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models.geometry import angles_deg as _angles_deg
+from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
+
 from ._data import Measurements
 from ._io import atomic_open
 
@@ -409,10 +412,8 @@ class RGLBRDF:
         self.path = str(Path(path))
         if not Path(self.path).is_file():
             raise FileNotFoundError(f"RGL BSDF file not found: {self.path}")
-        from ._batch_render import _select_variant
-
         check_rgl_file(self.path)
-        self.variant = _select_variant(variant)
+        self.variant = select_variant(variant)
         import mitsuba as mi
 
         with mi.scoped_set_variant(self.variant):
@@ -426,11 +427,9 @@ class RGLBRDF:
         return {"type": "measured", "filename": self.path}
 
     def eval(self, wi, wo) -> np.ndarray:
-        from ._batch_render import _divide_cos, eval_bsdf_cos
-
         wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
         wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
-        return _divide_cos(eval_bsdf_cos(self._bsdf, wi, wo, self.variant), wi, wo)
+        return divide_cos(eval_cos(self._bsdf, wi, wo, self.variant), wi, wo)
 
     def __repr__(self):
         return f"RGLBRDF({self.path!r})"
@@ -538,12 +537,6 @@ def mitsuba_snippet(model_name: str, options: dict | None, params: dict, *, bsdf
 # ---------------------------------------------------------------------------------------
 # CSV
 # ---------------------------------------------------------------------------------------
-def _angles_deg(w):
-    theta = np.degrees(np.arccos(np.clip(w[:, 2], -1.0, 1.0)))
-    phi = np.degrees(np.arctan2(w[:, 1], w[:, 0]))
-    return theta, phi
-
-
 def dataset_to_csv(meas_or_dataset_path, out_csv) -> Path:
     """Write a dataset (``dataset.nc`` path) or :class:`Measurements` as CSV, atomically.
 

@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models.mitsuba import bsdf_base, select_variant
+
 __all__ = ["LIGHTINGS", "delta_e_2000", "measured_bsdf_dict", "preview", "register_merl_bsdf", "render_sphere",
            "sphere_mask"]
 
@@ -63,8 +65,6 @@ def _merl_class(mi, dr):
 
     n_th, n_td, n_pd = MERL_SHAPE
     half_pi = 0.5 * math.pi
-
-    from gonio.models._mitsuba_plugins import bsdf_base
 
     class MerlTableBSDF(bsdf_base(mi, dr)):
         """Nearest-bin look-up of a MERL table (BRDFRead.cpp's mapping), in gonio's convention:
@@ -130,12 +130,11 @@ def register_merl_bsdf(merl, variant: str | None = None) -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from ._batch_render import _select_variant
     from .formats import MerlBRDF, read_merl
 
     if not isinstance(merl, MerlBRDF):
         merl = read_merl(merl)
-    variant = _select_variant(variant)
+    variant = select_variant(variant)
     with mi.scoped_set_variant(variant):
         if variant not in _MERL_REGISTERED:
             cls = _merl_class(mi, dr)
@@ -234,9 +233,8 @@ def render_sphere(bsdf: dict, lighting: str = "env", size: int = 128, spp: int =
 def _render_seeds(bsdf, lighting, size, spp, seeds, variant=None):
     import mitsuba as mi
 
-    from ._batch_render import _select_variant
 
-    variant = _select_variant(variant)
+    variant = select_variant(variant)
     out = []
     with mi.scoped_set_variant(variant):
         scene = mi.load_dict(_scene_dict(mi, lighting, bsdf, int(size), int(spp)))
@@ -377,10 +375,9 @@ def preview(model, params, out_dir, measured=None, size: int = 128, spp: int = 2
     """
     import mitsuba as mi
 
-    from ._batch_render import _select_variant
 
     t0 = time.perf_counter()
-    variant = _select_variant(variant)
+    variant = select_variant(variant)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_bsdf = model.to_mitsuba(params)

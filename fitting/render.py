@@ -18,11 +18,15 @@ import time
 
 import numpy as np
 
-__all__ = ["DEFAULT_VARIANT", "VirtualGonio", "loop_closure", "render_brdf"]
+from gonio.models.geometry import angles_deg, finite_directions
+from gonio.models.mitsuba import SCENE_VARIANT
 
-#: One pose is one ray: Mitsuba's scalar variant renders it in about 0.4 ms here, the LLVM
-#: variant in about 2 ms (kernel launch per render), so scalar is the default for this loop.
-DEFAULT_VARIANT = "scalar_rgb"
+from ._batch_render import render_brdf_batch
+
+__all__ = ["DEFAULT_VARIANT", "VirtualGonio", "loop_closure", "render_brdf", "scene_check"]
+
+#: The per-pose scene's variant (:data:`gonio.models.mitsuba.SCENE_VARIANT`: scalar).
+DEFAULT_VARIANT = SCENE_VARIANT
 
 
 def _look_at_matrix(origin, target, up):
@@ -150,8 +154,6 @@ def loop_closure(model, params, meas, variant: str | None = None, n_worst: int =
     residuals of the measurement against the render in units of its 1-sigma, and the worst
     points with their geometry (degrees).
     """
-    from ._batch_render import render_brdf_batch, scene_check
-
     rendered, seconds, used_variant = render_brdf_batch(model, params, meas.wi, meas.wo, variant)
     check = scene_check(model, params, meas.wi, meas.wo, n=50, rng=0, variant=used_variant,
                         scene_variant=DEFAULT_VARIANT)
@@ -164,11 +166,8 @@ def loop_closure(model, params, meas, variant: str | None = None, n_worst: int =
     per_point = np.sqrt(np.sum(used ** 2, axis=1) / np.maximum(meas.use.sum(axis=1), 1))
     order = np.argsort(per_point)[::-1][:n_worst]
 
-    def angles(w):
-        return np.degrees(np.arccos(np.clip(w[:, 2], -1, 1))), np.degrees(np.arctan2(w[:, 1], w[:, 0]))
-
-    ti, pi_ = angles(meas.wi)
-    to, po = angles(meas.wo)
+    ti, pi_ = angles_deg(meas.wi)
+    to, po = angles_deg(meas.wo)
     worst = [{"point": int(k), "theta_i": float(ti[k]), "phi_i": float(pi_[k]), "theta_o": float(to[k]),
               "phi_o": float(po[k]), "residual_sigma": float(per_point[k])} for k in order]
     return {
@@ -185,3 +184,29 @@ def loop_closure(model, params, meas, variant: str | None = None, n_worst: int =
             "worst": worst,
         },
     }
+
+
+def scene_check(model, params, wi, wo, n: int = 50, rng=None, variant: str | None = None,
+                scene_variant: str | None = None, floor: float = 1e-6) -> dict:
+    """Re-render ``n`` of the poses with the one-scene-per-pose virtual gonioreflectometer.
+
+    Shows that the batched evaluation *is* the render: both numbers come from Mitsuba, one
+    from the scene (``VirtualGonio``: rectangle, directional lamp, radiancemeter, ``direct``
+    integrator), one from :func:`render_brdf_batch`.
+
+    Returns a dict: ``indices`` (the poses checked), ``batch`` and ``scene`` (f_r, (n, 3)),
+    ``max_rel`` (largest |batch - scene| / |scene| where f_r * cos(theta_i) > ``floor``),
+    ``variant`` and ``scene_variant``.
+    """
+    wi = finite_directions(wi, "wi")
+    wo = finite_directions(wo, "wo")
+    rng = np.random.default_rng(rng)
+    idx = np.sort(rng.choice(wi.shape[0], size=min(n, wi.shape[0]), replace=False))
+    batch, _, used = render_brdf_batch(model, params, wi[idx], wo[idx], variant)
+    scene_variant = scene_variant or used
+    scene, _, _ = render_brdf(model, params, wi[idx], wo[idx], scene_variant)
+    weight = np.abs(scene) * np.clip(wi[idx, 2], 0, None)[:, None]
+    mask = weight > floor
+    rel = np.abs(batch - scene)[mask] / np.abs(scene)[mask]
+    return {"indices": idx, "batch": batch, "scene": scene, "max_rel": float(rel.max()) if rel.size else 0.0,
+            "n_compared": int(mask.sum()), "variant": used, "scene_variant": scene_variant}

@@ -16,12 +16,13 @@ Conventions (everywhere in this package)
 Public API
 ----------
 ``get(name, **options)``, ``names()``, ``Parameter``, ``Model`` (base class),
-``mitsuba_variant()``; ``fast`` (compiled Dr.Jit path: ``fast.available()``,
+``mitsuba_variant()``; ``mitsuba`` (the one boundary to Mitsuba: variant, direction
+convention, batched ``eval_cos``); ``geometry`` (directions from angles and back); ``fast`` (compiled Dr.Jit path: ``fast.available()``,
 ``fast.eval(model, wi, wo, params)``, ``fast.value_and_grad(model, wi, wo, params,
 cotangent)``; on resident batches ``fast.Directions(wi, wo, dtype)`` (float32 or float64,
 loaded once), ``fast.Bound(model, params, dtype).eval(dirs)``, ``fast.eval_resident``,
 ``fast.jacobian`` (f_r and d f_r / d every parameter, one kernel) and ``fast.chi2_grad``
-(chi^2 and its gradient, reduced in the kernel)); ``gonio.models.bench.run()``
+(chi^2 and its gradient, reduced in the kernel)); ``gonio.models.speed.run()``
 (throughput benchmark); the pieces ``fresnel_dielectric``, ``fresnel_conductor``,
 ``fresnel_schlick``, ``MicrofacetDistribution``, ``lambert``, ``oren_nayar``.
 
@@ -40,7 +41,7 @@ from ._base import CHANNELS, Model, Parameter, get, names
 from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
-from ._mitsuba import mitsuba_variant
+from .mitsuba import mitsuba_variant
 
 __all__ = [
     "get",
@@ -50,6 +51,8 @@ __all__ = [
     "CHANNELS",
     "mitsuba_variant",
     "fast",
+    "geometry",
+    "mitsuba",
     "fresnel_dielectric",
     "fresnel_conductor",
     "fresnel_schlick",

@@ -30,7 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ._geometry import as_directions
+from .geometry import as_directions
 
 __all__ = ["albedo", "QUADRATURE_ERROR"]
 

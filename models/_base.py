@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._geometry import as_directions
+from .geometry import as_directions
 
 __all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs"]
 

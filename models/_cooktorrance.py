@@ -9,7 +9,7 @@ import numpy as np
 
 from ._base import Model, Parameter, register
 from ._fresnel import fresnel_schlick
-from ._geometry import half_vector
+from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution
 
 __all__ = ["CookTorrance", "cook_torrance_lobe"]

@@ -40,7 +40,7 @@ from functools import lru_cache
 import numpy as np
 
 from ._base import CHANNELS, eval_inputs
-from ._geometry import as_directions
+from .geometry import as_directions
 from ._rough_tables import _interp
 
 __all__ = ["available", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad"]

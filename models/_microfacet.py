@@ -36,7 +36,7 @@ import math
 
 import numpy as np
 
-from ._geometry import safe_sqrt, sincos_phi
+from .geometry import safe_sqrt, sincos_phi
 
 __all__ = ["MicrofacetDistribution", "DISTRIBUTIONS", "ALPHA_MIN", "smith_g1_xyz"]
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from ._mitsuba import mitsuba_variant
+from ._variant import mitsuba_variant
 
 __all__ = ["bsdf_base", "ensure_registered"]
 

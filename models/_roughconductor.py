@@ -6,7 +6,7 @@ import numpy as np
 
 from ._base import Model, Parameter, register, rgb
 from ._fresnel import fresnel_conductor
-from ._geometry import half_vector
+from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution, smith_g1_xyz
 
 __all__ = ["RoughConductor"]

@@ -13,7 +13,7 @@ import numpy as np
 
 from ._base import INV_PI, Model, Parameter, register, rgb
 from ._fresnel import fresnel_dielectric
-from ._geometry import half_vector
+from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution, smith_g1_xyz
 from ._rough_tables import lerp_table, rough_tables, rough_tables_interp
 

@@ -1,4 +1,8 @@
-"""Local-frame geometry helpers (pbrt / Mitsuba vocabulary).
+"""gonio's one geometry module: directions from angles and back, local-frame helpers.
+
+Every conversion between angles and unit vectors in gonio goes through here:
+:func:`directions` / :func:`angles` (radians) and :func:`directions_deg` / :func:`angles_deg`
+(degrees, as in files and on the command line); phi = atan2(y, x), theta from +z.
 
 Conventions (used everywhere in :mod:`gonio.models`): the local shading frame has
 +z along the surface normal; ``wi`` points from the surface toward the light,
@@ -13,6 +17,11 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "directions",
+    "directions_deg",
+    "angles",
+    "angles_deg",
+    "finite_directions",
     "as_directions",
     "cos_theta",
     "safe_sqrt",
@@ -53,6 +62,41 @@ def as_directions(w, name="w"):
     if a.ndim != 2 or a.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {np.shape(w)}")
     return np.ascontiguousarray(a)
+
+
+def directions(theta, phi):
+    """Unit vectors (..., 3) from polar angle ``theta`` and azimuth ``phi`` (radians)."""
+    theta = np.asarray(theta, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64)
+    sin_theta = np.sin(theta)
+    return np.stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), np.cos(theta)], axis=-1)
+
+
+def directions_deg(theta_deg, phi_deg):
+    """Unit vectors (..., 3) from ``theta`` and ``phi`` in degrees."""
+    return directions(np.radians(np.asarray(theta_deg, float)), np.radians(np.asarray(phi_deg, float)))
+
+
+def angles(w):
+    """(theta, phi) in radians of unit vectors (..., 3); phi = atan2(y, x) in (-pi, pi]."""
+    w = np.asarray(w, dtype=np.float64)
+    return np.arccos(np.clip(w[..., 2], -1.0, 1.0)), np.arctan2(w[..., 1], w[..., 0])
+
+
+def angles_deg(w):
+    """(theta, phi) in degrees of unit vectors (..., 3); phi in (-180, 180]."""
+    theta, phi = angles(w)
+    return np.degrees(theta), np.degrees(phi)
+
+
+def finite_directions(w, name="w"):
+    """``w`` as float64 (N, 3) (reshaped if need be); ValueError if it holds NaN or inf."""
+    w = np.asarray(w, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != 3:
+        w = w.reshape(-1, 3)
+    if not np.all(np.isfinite(w)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return w
 
 
 def half_vector(wi, wo):

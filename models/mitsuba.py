@@ -1,131 +1,120 @@
-"""Choice of the process-global Mitsuba variant, made once and reused.
+"""gonio's one boundary to Mitsuba 3: the variant, the direction convention, batched eval.
 
-``mitsuba.set_variant`` is process-global; every part of gonio that talks to Mitsuba
-calls :func:`mitsuba_variant` instead, so they all agree. Mitsuba is imported here
-lazily: ``import gonio.models`` does not import it.
+Everything in gonio that talks to Mitsuba goes through this module:
+
+* :func:`mitsuba_variant` chooses the process-global variant once (``llvm_ad_rgb`` when LLVM
+  works, else ``scalar_rgb`` with one line on stderr saying so; ``GONIO_MITSUBA_VARIANT``
+  forces one); :func:`select_variant` is the same for callers that may name a variant;
+  :data:`SCENE_VARIANT` is the variant of the one-ray-per-pose scenes (scalar: a single ray
+  renders faster there than a kernel launch).
+* :func:`interaction` is the one place the direction convention is converted: Mitsuba's
+  ``si.wi`` points to the sensor (gonio's ``wo``) and the direction ``bsdf.eval`` is asked
+  about is gonio's ``wi`` (toward the light); ``bsdf.eval`` returns f_r * cos(theta_i).
+* :func:`eval_cos` evaluates a BSDF dict or object on a batch in gonio's convention (chunked,
+  one kernel per chunk in LLVM, a loop in scalar), :func:`divide_cos` turns it into f_r.
+* :func:`bsdf_base` and :func:`ensure_registered`: gonio's Python BSDF plugins.
+
+Mitsuba is imported lazily here: ``import gonio.models`` does not import it.
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
+import numpy as np
 
-__all__ = ["mitsuba_variant", "mitsuba_eval_cos", "PREFERRED", "FALLBACK"]
+from .geometry import finite_directions
+from ._mitsuba_plugins import bsdf_base, ensure_registered
+from ._variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
 
-PREFERRED = "llvm_ad_rgb"
-FALLBACK = "scalar_rgb"
-
-_chosen: str | None = None
-
-# A broken system libLLVM can abort the process (not raise) at the first kernel
-# compilation, so the llvm variant is first probed in a child process.
-_PROBE = (
-    "import mitsuba as mi, drjit as dr\n"
-    f"mi.set_variant('{PREFERRED}')\n"
-    "y = dr.sqrt(dr.arange(mi.Float, 16))\n"
-    "dr.eval(y)\n"
-    "print(y)\n"
-)
+__all__ = ["mitsuba_variant", "select_variant", "interaction", "eval_cos", "divide_cos", "bsdf_base",
+           "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
 
 
-def _llvm_works():
-    try:
-        r = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, timeout=120)
-    except Exception as exc:  # pragma: no cover - environment dependent
-        return False, f"{type(exc).__name__}: {exc}"
-    if r.returncode != 0:
-        tail = (r.stderr or r.stdout).strip().splitlines()
-        return False, tail[-1] if tail else f"exit status {r.returncode}"
-    return True, ""
-
-
-def mitsuba_variant():
-    """Select the Mitsuba variant for this process and return its name.
-
-    ``llvm_ad_rgb`` when LLVM works, else ``scalar_rgb`` (one line on stderr says so).
-    The environment variable ``GONIO_MITSUBA_VARIANT`` forces a variant. Idempotent:
-    the choice is made once per process; later calls re-select it if something else
-    changed the global variant in between.
-
-    Raises
-    ------
-    ImportError
-        If Mitsuba is not installed.
-    """
-    global _chosen
+def select_variant(variant=None):
+    """The variant to use (gonio's process choice when None); makes sure one is set globally."""
     import mitsuba as mi
 
-    if _chosen is None:
-        forced = os.environ.get("GONIO_MITSUBA_VARIANT")
-        if forced:
-            mi.set_variant(forced)
-            _chosen = forced
-        else:
-            ok, why = _llvm_works()
-            if ok:
-                try:
-                    mi.set_variant(PREFERRED)
-                    _chosen = PREFERRED
-                except Exception as exc:  # pragma: no cover
-                    ok, why = False, f"{type(exc).__name__}: {exc}"
-            if not ok:
-                print(
-                    f"gonio: Mitsuba variant {PREFERRED} unavailable ({why}); using {FALLBACK}",
-                    file=sys.stderr,
-                )
-                mi.set_variant(FALLBACK)
-                _chosen = FALLBACK
-        if _chosen.startswith("llvm"):
-            from ._jit_target import apply_env
-
-            apply_env()  # GONIO_LLVM_TARGET, before Mitsuba compiles its first kernel
-    elif mi.variant() != _chosen:
-        mi.set_variant(_chosen)
-    return _chosen
+    if variant is None:
+        variant = mitsuba_variant()
+    if mi.variant() is None:  # scoped_set_variant cannot restore "no variant"
+        mi.set_variant(variant)
+    return variant
 
 
-def mitsuba_eval_cos(bsdf, wi, wo):
-    """Evaluate a Mitsuba BSDF on a batch in gonio's convention.
+def interaction(wi, wo):
+    """A wavefront ``SurfaceInteraction3f`` and the direction to evaluate, gonio -> Mitsuba.
+
+    ``wi``, ``wo`` (N, 3) in gonio's convention (toward the light, toward the detector);
+    returns ``(si, w)`` for ``bsdf.eval(ctx, si, w)`` in the active (vectorised) variant:
+    ``si.wi`` = gonio's ``wo`` (Mitsuba's points to the sensor), ``w`` = gonio's ``wi``,
+    identity shading frame (the flat sample's). Directions are rounded to float32.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    si = dr.zeros(mi.SurfaceInteraction3f, wi.shape[0])
+    si.wi = mi.Vector3f(np.ascontiguousarray(wo.T, dtype=np.float32))
+    si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
+    si.n = mi.Normal3f(0.0, 0.0, 1.0)
+    return si, mi.Vector3f(np.ascontiguousarray(wi.T, dtype=np.float32))
+
+
+def eval_cos(bsdf, wi, wo, variant: str | None = None, chunk: int = 1 << 20) -> np.ndarray:
+    """Mitsuba's ``bsdf.eval`` in gonio's convention, batched.
 
     Parameters
     ----------
     bsdf : dict or mitsuba.BSDF
-        A ``mitsuba.load_dict`` dict (e.g. ``model.to_mitsuba(params)``) or a loaded BSDF.
+        A ``mitsuba.load_dict`` dict (loaded in ``variant``) or a BSDF already loaded in it.
     wi, wo : array_like, shape (N, 3)
-        Toward the light and toward the detector (gonio convention).
+        Toward the light and toward the detector (local frame, +z the normal).
+    variant : str, optional
+        Mitsuba variant; gonio's choice (:func:`mitsuba_variant`) when None.
 
     Returns
     -------
     ndarray, shape (N, 3), float64
-        Mitsuba's ``bsdf.eval`` = f_r(wi, wo) * cos(theta_i): Mitsuba's ``si.wi`` is
-        set to our ``wo`` and its ``wo`` argument to our ``wi``. Mitsuba computes in
-        float32: directions are rounded to float32 first.
+        f_r(wi, wo) * cos(theta_i) as Mitsuba computes it (float32 inside); 0 below the
+        horizon.
     """
-    import numpy as np
-
-    variant = mitsuba_variant()
     import drjit as dr
     import mitsuba as mi
 
-    if isinstance(bsdf, dict):
-        bsdf = mi.load_dict(bsdf)
-    wi = np.ascontiguousarray(np.asarray(wi, dtype=np.float32).reshape(-1, 3))
-    wo = np.ascontiguousarray(np.asarray(wo, dtype=np.float32).reshape(-1, 3))
+    variant = select_variant(variant)
+    wi = finite_directions(wi, "wi")
+    wo = finite_directions(wo, "wo")
+    if wi.shape != wo.shape:
+        raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
     n = wi.shape[0]
+    out = np.zeros((n, 3))
     if n == 0:
-        return np.zeros((0, 3))
-    ctx = mi.BSDFContext()
-    if variant.startswith(("llvm", "cuda")):
-        si = dr.zeros(mi.SurfaceInteraction3f, n)
-        si.wi = mi.Vector3f(np.ascontiguousarray(wo.T))
-        si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
-        v = bsdf.eval(ctx, si, mi.Vector3f(np.ascontiguousarray(wi.T)))
-        return np.array(v, dtype=np.float64).reshape(3, n).T.copy()
-    out = np.empty((n, 3))
-    si = dr.zeros(mi.SurfaceInteraction3f)
-    si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
-    for j in range(n):
-        si.wi = mi.Vector3f(*map(float, wo[j]))
-        out[j] = np.array(bsdf.eval(ctx, si, mi.Vector3f(*map(float, wi[j]))), dtype=np.float64).reshape(3)
+        return out
+    with mi.scoped_set_variant(variant):
+        if isinstance(bsdf, dict):
+            bsdf = mi.load_dict(bsdf)
+        ctx = mi.BSDFContext()
+        if variant.startswith(("llvm", "cuda")):
+            for start in range(0, n, chunk):
+                stop = min(n, start + chunk)
+                si, w = interaction(wi[start:stop], wo[start:stop])
+                value = bsdf.eval(ctx, si, w)
+                out[start:stop] = np.array(value, dtype=np.float64).reshape(3, stop - start).T
+        else:
+            si = dr.zeros(mi.SurfaceInteraction3f)
+            si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
+            si.n = mi.Normal3f(0.0, 0.0, 1.0)
+            wi32 = wi.astype(np.float32).tolist()
+            wo32 = wo.astype(np.float32).tolist()
+            for j in range(n):
+                si.wi = mi.Vector3f(*wo32[j])  # Mitsuba's si.wi points to the sensor: gonio's wo
+                value = bsdf.eval(ctx, si, mi.Vector3f(*wi32[j]))
+                out[j] = (value[0], value[1], value[2])
     return out
+
+
+def divide_cos(values, wi, wo):
+    """f_r from f_r * cos(theta_i); 0 where either direction is at or below the horizon."""
+    cos_i = wi[:, 2].astype(np.float32).astype(np.float64)  # the cosine Mitsuba multiplied by
+    ok = (wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9)
+    fr = np.zeros_like(values)
+    fr[ok] = values[ok] / cos_i[ok, None]
+    return fr

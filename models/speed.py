@@ -77,7 +77,7 @@ def _interleaved_best(timed, repeat):
 def _mitsuba_timer(model, params, wi, wo):
     """A callable running Mitsuba's bsdf.eval on the batch, or None without Mitsuba."""
     try:
-        from ._mitsuba import mitsuba_variant
+        from .mitsuba import interaction, mitsuba_variant
 
         variant = mitsuba_variant()
         import drjit as dr
@@ -87,11 +87,7 @@ def _mitsuba_timer(model, params, wi, wo):
     if not variant.startswith(("llvm", "cuda")):
         return None, variant
     bsdf = mi.load_dict(model.to_mitsuba(params))
-    n = wi.shape[0]
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = mi.Vector3f(np.ascontiguousarray(wo.T.astype(np.float32)))
-    si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
-    w = mi.Vector3f(np.ascontiguousarray(wi.T.astype(np.float32)))
+    si, w = interaction(wi, wo)
     ctx = mi.BSDFContext()
     dr.eval(si, w)
 

@@ -10,8 +10,8 @@ A sample spec is one of
 ``{"mitsuba": DICT}``
     any Mitsuba BSDF dict (tests, quick experiments).
 
-For the Mitsuba-only specs the truth is ``bsdf.eval`` divided by cos(theta_i) (Mitsuba's
-``si.wi`` is our ``wo``; the conversion lives here and in ``_scene.py`` only).
+For the Mitsuba-only specs the truth is ``bsdf.eval`` divided by cos(theta_i), evaluated in
+gonio's convention through :func:`gonio.models.mitsuba.eval_cos` (the one boundary).
 """
 
 from __future__ import annotations
@@ -22,33 +22,9 @@ import os
 
 import numpy as np
 
+from gonio.models.mitsuba import eval_cos, mitsuba_variant
+
 __all__ = ["SampleTruth", "mitsuba_variant", "resolve_sample"]
-
-_VARIANT: str | None = None
-
-
-def mitsuba_variant() -> str:
-    """The Mitsuba variant gonio renders with (gonio.models' choice when it has one)."""
-    global _VARIANT
-    if _VARIANT is not None:
-        return _VARIANT
-    try:
-        from gonio.models import mitsuba_variant as models_variant
-    except ImportError:
-        models_variant = None
-    if models_variant is not None:
-        _VARIANT = models_variant()
-        return _VARIANT
-    import mitsuba as mi
-    for v in ("llvm_ad_rgb", "scalar_rgb"):
-        try:
-            mi.set_variant(v)
-        except Exception:       # noqa: BLE001 - no usable libLLVM: fall back
-            continue
-        _VARIANT = v
-        return v
-    raise RuntimeError("no usable Mitsuba RGB variant (llvm_ad_rgb, scalar_rgb)")
-
 
 def _diffuse_fallback(params: dict) -> tuple[dict, callable]:
     rho = np.broadcast_to(np.asarray(params.get("reflectance", 0.5), dtype=float), (3,)).copy()
@@ -115,28 +91,13 @@ class SampleTruth:
         return self._mitsuba_eval(wi, wo)
 
     def _mitsuba_eval(self, wi, wo):
-        import drjit as dr
         import mitsuba as mi
 
         variant = mitsuba_variant()
         with mi.scoped_set_variant(variant):
             if self._bsdf is None:
                 self._bsdf = mi.load_dict(self.mitsuba)
-            ctx = mi.BSDFContext()
-            if variant.startswith("scalar"):
-                out = np.zeros((wi.shape[0], 3))
-                for k in range(wi.shape[0]):
-                    si = mi.SurfaceInteraction3f()
-                    si.wi = mi.Vector3f(*wo[k])
-                    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
-                    out[k] = np.array(self._bsdf.eval(ctx, si, mi.Vector3f(*wi[k])))
-            else:
-                n = wi.shape[0]
-                si = dr.zeros(mi.SurfaceInteraction3f, n)
-                si.wi = mi.Vector3f(np.ascontiguousarray(wo.T, dtype=np.float32))
-                si.sh_frame = mi.Frame3f(mi.Normal3f(0, 0, 1))
-                val = self._bsdf.eval(ctx, si, mi.Vector3f(np.ascontiguousarray(wi.T, dtype=np.float32)))
-                out = np.array(val, dtype=float).reshape(3, n).T
+        out = eval_cos(self._bsdf, wi, wo, variant)
         cos_i = wi[:, 2]
         ok = (cos_i > 0) & (wo[:, 2] > 0)
         return np.where(ok[:, None], out / np.where(ok, cos_i, 1.0)[:, None], 0.0)

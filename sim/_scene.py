@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._sample import mitsuba_variant
+from gonio.models.mitsuba import mitsuba_variant
 
 __all__ = ["HolderScene"]
 
@@ -58,12 +58,19 @@ class HolderScene:
         Holder layout (docs/interfaces.md section 3).
     spp : int
         Samples per pixel (anti-aliasing of the squares' edges only).
+    markers : dict, optional
+        ArUco markers on the holder (``[holder] markers``, sim/_holder_markers.py).
+    holder_pose : (dx, dy, angle_deg), optional
+        Where the holder really sits in the sample plane (the simulator's truth; default where
+        the settings put it).
     """
 
     def __init__(self, sample_bsdf: dict, reference_bsdf: dict, *, width: int, height: int,
                  pixel_size: float, sample_half: float, offset: float,
-                 holder_reflectance: float, spp: int = 4):
+                 holder_reflectance: float, spp: int = 4, markers=None, holder_pose=None):
         import mitsuba as mi
+
+        from ._holder_markers import holder_transform, marker_shapes
 
         self.variant = mitsuba_variant()
         self.width, self.height = int(width), int(height)
@@ -72,8 +79,10 @@ class HolderScene:
         with mi.scoped_set_variant(self.variant):
             T = mi.ScalarTransform4f
 
+            pose = holder_transform(T, holder_pose)
+
             def square(cx):
-                return T().translate([cx, 0.0, _SQUARE_LIFT]) @ T().scale([sample_half, sample_half, 1.0])
+                return pose @ T().translate([cx, 0.0, _SQUARE_LIFT]) @ T().scale([sample_half, sample_half, 1.0])
 
             scene = {
                 "type": "scene",
@@ -93,6 +102,7 @@ class HolderScene:
                     "bsdf": {"type": "diffuse",
                              "reflectance": {"type": "rgb", "value": float(holder_reflectance)}},
                 },
+                **marker_shapes(markers, holder_pose, mi),
             }
             self._scene = mi.load_dict(scene)
             self._params = mi.traverse(self._scene)

@@ -13,7 +13,9 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting import direction
-from gonio.fitting._batch_render import eval_bsdf_cos, render_brdf_batch, scene_check
+from gonio.fitting._batch_render import render_brdf_batch
+from gonio.fitting.render import scene_check
+from gonio.models.mitsuba import eval_cos as eval_bsdf_cos
 
 CASES = [
     ("roughplastic", {"distribution": "ggx"}, {"diffuse_reflectance": [0.5, 0.3, 0.2], "alpha": 0.2, "int_ior": 1.5}),

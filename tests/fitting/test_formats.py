@@ -171,7 +171,7 @@ def test_rgl_measurements_through_mitsuba_measured_plugin():
 def test_mitsuba_snippet_xml_equals_dict(name, options, params):
     import mitsuba as mi
 
-    from gonio.fitting._batch_render import eval_bsdf_cos
+    from gonio.models.mitsuba import eval_cos as eval_bsdf_cos
 
     xml, d = mitsuba_snippet(name, options, params)
     assert xml.lstrip().startswith("<!--") and '<bsdf type="' in xml and xml.rstrip().endswith("</bsdf>")

@@ -76,7 +76,7 @@ def test_conductor_fits_reach_the_noise_limit_with_exact_derivatives():
     channel onto a face of the box (k = 0, where F depends on k^2 and the Jacobian column
     vanishes) and left it there: chi^2/dof 13 before steps were bounded and kept inside."""
     import gonio.models as gm
-    from gonio.fitting.bench import MODELS, simulate_capture
+    from gonio.fitting.speed import MODELS, simulate_capture
 
     if not gm.fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable: no exact derivatives to test")

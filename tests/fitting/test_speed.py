@@ -4,7 +4,7 @@ import csv
 
 import pytest
 
-from gonio.fitting import bench
+from gonio.fitting import speed as bench
 
 
 @pytest.mark.slow

@@ -91,7 +91,7 @@ def test_gradient_matches_finite_differences(name, options):
 
 
 def test_bench_runs():
-    from gonio.models import bench
+    from gonio.models import speed as bench
 
     buf = io.StringIO()
     rows = bench.run(n=2000, repeat=1, cases=(("diffuse", {}), ("roughconductor", {"distribution": "ggx"})), file=buf)
@@ -106,7 +106,7 @@ def test_bench_runs():
 def test_bench_parameters_are_coloured():
     """The benchmark's parameters differ per channel (so no path can evaluate one channel
     for three) and stay inside the bounds."""
-    from gonio.models.bench import coloured_params
+    from gonio.models.speed import coloured_params
 
     for name, options in CONFIGS:
         m = gm.get(name, **options)

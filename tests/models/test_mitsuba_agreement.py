@@ -1,7 +1,7 @@
 """gonio.models against Mitsuba 3's own ``bsdf.eval`` (issue 3, "Accuracy"; issue 12).
 
 Mitsuba's ``bsdf.eval`` returns f_r * cos(theta) of the light direction and its
-``si.wi`` is our ``wo`` (conversion in ``gonio.models._mitsuba.mitsuba_eval_cos``).
+``si.wi`` is our ``wo`` (conversion in ``gonio.models.mitsuba.eval_cos``).
 For each model and option set: 20 random parameter sets, 1e5 random direction pairs
 each, compared wherever f_r cos > 1e-6.
 
@@ -45,7 +45,7 @@ import gonio.models as gm
 from models_testutil import random_hemisphere, random_params
 
 mi = pytest.importorskip("mitsuba")
-from gonio.models._mitsuba import mitsuba_eval_cos, mitsuba_variant  # noqa: E402
+from gonio.models.mitsuba import eval_cos as mitsuba_eval_cos, mitsuba_variant  # noqa: E402
 
 pytestmark = pytest.mark.codegen  # run again under a second code generation (issue 12)
 
