@@ -229,7 +229,8 @@ class Instrument:
                 self.sample.mitsuba, self.reference.mitsuba, width=int(cam["width"]),
                 height=int(cam["height"]), pixel_size=float(cam["pixel_size"]),
                 sample_half=float(hold["sample_half"]), offset=float(hold["offset"]),
-                holder_reflectance=float(hold["holder_reflectance"]), spp=self.spp)
+                holder_reflectance=float(hold["holder_reflectance"]), spp=self.spp,
+                markers=hold.get("markers"), holder_pose=hold.get("sim_pose"))   # sim_pose: the truth
         return self._scene
 
     def radiance(self, pose: tuple | None = None) -> np.ndarray:

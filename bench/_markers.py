@@ -1,0 +1,233 @@
+"""The holder's ArUco markers: where the sample and reference squares are in a frame.
+
+The holder carries square ArUco markers at known places beside the two squares (the
+``markers`` entry of the ``[holder]`` settings table)::
+
+    [holder]
+    markers = { dictionary = "DICT_4X4_50", size = 0.12, ids = [0, 1, 2, 3, 4, 5],
+                centres = [[-0.49, 0.36], [0.0, 0.36], [0.49, 0.36],
+                           [-0.49, -0.36], [0.0, -0.36], [0.49, -0.36]] }
+
+(holder units, in the holder's plane, x from the sample square to the reference square,
+markers upright: their top edge toward +y). The simulated holder (sim/_scene.py) renders the
+same table.
+
+`find_regions` detects the markers in a frame with OpenCV's aruco module, maps their corners
+to the sample plane through the stage geometry (`kinematics.image_to_local`), fits the
+holder's pose in that plane (a rotation and a shift, least squares over every corner), and
+returns the super-pixels wholly inside each square of the posed holder. Where no marker is
+found, or the fit is poor, the regions come from the geometry alone (`kinematics.roi_masks`,
+the holder assumed where the settings put it): the fallback, said in ``source``.
+
+Corner positions: OpenCV reports a marker's corners on its outermost pixel centres (half a
+pixel inside the true edge on every side); the shrink is symmetric, so the fitted rotation
+and shift, which use the corners' centroid and directions, are unbiased by it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from . import kinematics
+from .errors import GonioError
+
+__all__ = ["MarkerLayout", "HolderPose", "Regions", "layout_of", "detect", "fit_pose", "find_regions",
+           "posed_masks", "example_layout"]
+
+#: the fit's rms corner residual (holder units, per pixel size) above which the markers are not trusted
+MAX_RMS_PIXELS = 1.5
+
+
+def example_layout(sample_half: float = 0.25, offset: float = 0.3, size: float = 0.12) -> dict:
+    """A ``markers`` table with six 4x4 markers: three above and three below the two squares
+    (each on a white margin of one cell, a sixth of ``size``)."""
+    y = sample_half + 0.03 + size / 6 + 0.5 * size
+    xs = [-(offset + sample_half) + 0.5 * size, 0.0, offset + sample_half - 0.5 * size]
+    centres = [[x, y] for x in xs] + [[x, -y] for x in xs]
+    return {"dictionary": "DICT_4X4_50", "size": float(size), "ids": list(range(6)), "centres": centres}
+
+
+@dataclass(frozen=True)
+class MarkerLayout:
+    """The markers of the holder: OpenCV dictionary name, side length, ids and centres (holder units)."""
+
+    dictionary: str
+    size: float
+    ids: tuple
+    centres: np.ndarray          # (n, 2)
+
+    def corners(self, marker_id: int) -> np.ndarray:
+        """The marker's corners (4, 2) in holder coordinates, OpenCV's order: top-left, top-right,
+        bottom-right, bottom-left, for a marker upright on the holder (top toward +y)."""
+        c = self.centres[self.ids.index(marker_id)]
+        h = 0.5 * self.size
+        return c + np.array([[-h, h], [h, h], [h, -h], [-h, -h]])
+
+
+def layout_of(settings: Mapping) -> MarkerLayout | None:
+    """The marker layout of ``settings["holder"]["markers"]``; None where the holder has none.
+
+    Raises
+    ------
+    GonioError
+        The table is malformed (one line naming what to fix).
+    """
+    table = settings.get("holder", {}).get("markers")
+    if table is None:
+        return None
+    bad = GonioError("[holder] markers must be a table with dictionary (e.g. \"DICT_4X4_50\"), size > 0, "
+                     "ids (distinct integers) and centres (one [x, y] per id); fix the settings")
+    if not isinstance(table, Mapping):
+        raise bad
+    try:
+        import cv2
+
+        name = str(table["dictionary"])
+        if not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
+            raise bad
+        size = table["size"]
+        ids = tuple(table["ids"])
+        centres = np.asarray(table["centres"], dtype=float)
+    except (KeyError, TypeError, ValueError):
+        raise bad from None
+    if (isinstance(size, bool) or not isinstance(size, (int, float)) or not (math.isfinite(size) and size > 0)
+            or not ids or len(ids) > 1000 or any(isinstance(i, bool) or not isinstance(i, int) or i < 0 for i in ids)
+            or len(set(ids)) != len(ids) or centres.shape != (len(ids), 2) or not np.all(np.isfinite(centres))):
+        raise bad
+    return MarkerLayout(name, float(size), ids, centres)
+
+
+def _to_8bit(image: np.ndarray) -> np.ndarray:
+    """A linear image (h, w) scaled to 8 bits: 0 at its 1st percentile, 255 at its 99.5th."""
+    img = np.nan_to_num(np.asarray(image, float), nan=0.0, posinf=0.0, neginf=0.0)
+    lo, hi = np.percentile(img, [1.0, 99.5])
+    if not hi > lo:
+        return np.zeros(img.shape, np.uint8)
+    return np.clip((img - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
+def detect(image: np.ndarray, layout: MarkerLayout) -> dict[int, np.ndarray]:
+    """Markers of ``layout`` found in ``image`` (h, w), linear: ``{id: corners (4, 2) as (col, row)}``."""
+    import cv2
+
+    aruco = cv2.aruco
+    dictionary = aruco.getPredefinedDictionary(getattr(aruco, layout.dictionary))
+    params = aruco.DetectorParameters()
+    params.cornerRefinementMethod = aruco.CORNER_REFINE_SUBPIX
+    params.minMarkerPerimeterRate = 0.01       # small markers in a wide frame
+    corners, ids, _ = aruco.ArucoDetector(dictionary, params).detectMarkers(_to_8bit(image))
+    found = {}
+    if ids is None:
+        return found
+    for c, i in zip(corners, ids.ravel()):
+        i = int(i)
+        if i in layout.ids and i not in found:
+            found[i] = np.asarray(c, float).reshape(4, 2)
+    return found
+
+
+@dataclass(frozen=True)
+class HolderPose:
+    """Where the holder sits in the sample plane relative to where the settings put it.
+
+    ``local = R(angle) @ holder + shift``; ``rms`` is the fit's corner residual (holder units),
+    ``ids`` the markers it used.
+    """
+
+    shift: np.ndarray            # (2,)
+    angle_deg: float
+    rms: float
+    ids: tuple
+
+    def to_holder(self, local: np.ndarray) -> np.ndarray:
+        """Sample-plane points (..., 2) -> holder coordinates."""
+        a = math.radians(self.angle_deg)
+        R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        return (np.asarray(local, float) - self.shift) @ R        # R.T applied to row vectors
+
+
+def fit_pose(holder_xy: np.ndarray, local_xy: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares rotation and shift with ``local = R @ holder + shift`` (2-D Kabsch).
+
+    Returns ``(shift, angle_deg, rms)``.
+    """
+    p, q = np.asarray(holder_xy, float), np.asarray(local_xy, float)
+    pc, qc = p.mean(0), q.mean(0)
+    H = (p - pc).T @ (q - qc)
+    a = math.atan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    shift = qc - R @ pc
+    rms = float(np.sqrt(np.mean(np.sum((p @ R.T + shift - q) ** 2, axis=1))))
+    return shift, math.degrees(a), rms
+
+
+def posed_masks(stage_deg, settings: Mapping, pose: HolderPose | None, binning: int = 2,
+                margin_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """As `kinematics.roi_masks`, for the holder at ``pose`` (None: where the settings put it)."""
+    if pose is None:
+        return kinematics.roi_masks(stage_deg, settings, binning, margin_px)
+    cam, hold = settings["camera"], settings["holder"]
+    W, H, s = cam["width"], cam["height"], cam["pixel_size"]
+    if margin_px is None:
+        margin_px = float(settings.get("capture", {}).get("roi_margin_px", 1.0))
+    h, w = H // binning, W // binning
+    i, j = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    corners = [pose.to_holder(kinematics.image_to_local(stage_deg, binning * i + dr, binning * j + dc, settings))
+               for dr in (-0.5, binning - 0.5) for dc in (-0.5, binning - 0.5)]
+    xy = np.stack(corners, 0)
+    half = hold["sample_half"] - margin_px * s
+    off = hold["offset"]
+
+    def inside(cx):
+        return np.all((np.abs(xy[..., 0] - cx) <= half) & (np.abs(xy[..., 1]) <= half), axis=0)
+
+    return inside(-off), inside(off)
+
+
+@dataclass(frozen=True)
+class Regions:
+    """The sample and reference regions of one frame (super-pixel grid) and how they were found."""
+
+    sample: np.ndarray
+    reference: np.ndarray
+    source: str                  # "markers" or "geometry"
+    pose: HolderPose | None
+    why: str = ""                # the reason for the fallback, if any
+
+
+def find_regions(image: np.ndarray, stage_deg, settings: Mapping, binning: int = 2) -> Regions:
+    """The regions of interest of a frame, from the holder's markers, else from the geometry.
+
+    Parameters
+    ----------
+    image : ndarray (H // binning, W // binning)
+        A linear image on the super-pixel grid (e.g. the green plane of a decoded RAW frame).
+    stage_deg : array_like (4,)
+        The stage angles the frame was taken at, degrees.
+    """
+    layout = layout_of(settings)
+    if layout is None:
+        sm, rm = kinematics.roi_masks(stage_deg, settings, binning)
+        return Regions(sm, rm, "geometry", None, "the holder has no markers in the settings")
+    found = detect(image, layout)
+    if not found:
+        sm, rm = kinematics.roi_masks(stage_deg, settings, binning)
+        return Regions(sm, rm, "geometry", None, "no marker found in the frame")
+    ids = tuple(sorted(found))
+    px = np.concatenate([found[i] for i in ids])                # (col, row) on the super-pixel grid
+    rows, cols = binning * px[:, 1] + 0.5 * (binning - 1), binning * px[:, 0] + 0.5 * (binning - 1)
+    local = kinematics.image_to_local(stage_deg, rows, cols, settings)
+    holder = np.concatenate([layout.corners(i) for i in ids])
+    shift, angle, rms = fit_pose(holder, local)
+    limit = MAX_RMS_PIXELS * binning * float(settings["camera"]["pixel_size"]) / max(
+        1e-6, abs(kinematics.rotation(stage_deg)[0, 2]))          # foreshortened pixels are longer
+    if not (np.isfinite(rms) and rms <= limit):
+        sm, rm = kinematics.roi_masks(stage_deg, settings, binning)
+        return Regions(sm, rm, "geometry", None, f"the markers do not fit the layout (rms {rms:.3g} > {limit:.3g})")
+    pose = HolderPose(shift, angle, rms, ids)
+    sm, rm = posed_masks(stage_deg, settings, pose, binning)
+    return Regions(sm, rm, "markers", pose)

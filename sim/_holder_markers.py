@@ -1,0 +1,76 @@
+"""ArUco markers printed on the simulated holder, as Mitsuba shapes.
+
+The layout is the ``markers`` entry of the ``[holder]`` settings table (the same table the
+bench reads, bench/_markers.py): an OpenCV dictionary name (``DICT_4X4_50``), the side length
+(holder units), the ids and their centres (holder units, markers upright: the top edge toward
++y). Each marker is a ``rectangle`` just above the dark holder plate (below the squares)
+whose diffuse reflectance is the marker's bitmap (OpenCV's ``generateImageMarker``) on a
+one-cell white margin, black 0.03 and white 0.8, looked up with the nearest filter so the cells stay sharp.
+
+``holder_pose`` ``(dx, dy, angle_deg)`` is where the holder really sits in the sample plane,
+relative to where the settings put it (a holder mounted off centre or turned): the squares
+and the markers move with it, the plate is uniform. It is the simulator's truth, for tests
+of marker-based region finding; the bench does not know it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["marker_bitmap", "marker_shapes", "holder_transform", "MARKER_BLACK", "MARKER_WHITE"]
+
+MARKER_BLACK = 0.03
+MARKER_WHITE = 0.8
+_MARKER_DROP = 1e-4          # between the squares (z = 0) and the plate (z = -2e-4)
+_CELL_PIXELS = 8             # bitmap pixels per marker cell
+
+
+def marker_bitmap(dictionary: str, marker_id: int) -> tuple[np.ndarray, float]:
+    """The marker's reflectance (n, n), row 0 at its top: OpenCV's marker (one-cell black
+    border) on a one-cell white margin, the quiet zone a detector needs on a dark plate.
+
+    Returns the bitmap and its side relative to the marker's (black border to black border).
+    """
+    import cv2
+
+    aruco = cv2.aruco
+    d = aruco.getPredefinedDictionary(getattr(aruco, dictionary))
+    cells = d.markerSize + 2
+    img = aruco.generateImageMarker(d, int(marker_id), cells * _CELL_PIXELS)
+    img = np.pad(img, _CELL_PIXELS, constant_values=255)
+    return np.where(img > 127, MARKER_WHITE, MARKER_BLACK), (cells + 2) / cells
+
+
+def holder_transform(T, holder_pose):
+    """The Mitsuba transform that puts the holder at ``holder_pose`` ``(dx, dy, angle_deg)``."""
+    dx, dy, ang = (float(v) for v in (holder_pose or (0.0, 0.0, 0.0)))
+    if not all(math.isfinite(v) for v in (dx, dy, ang)):
+        raise ValueError("holder_pose must be three finite numbers (dx, dy, angle_deg)")
+    return T().translate([dx, dy, 0.0]) @ T().rotate([0.0, 0.0, 1.0], ang)
+
+
+def marker_shapes(markers, holder_pose, mi) -> dict:
+    """Scene-dict entries ``marker<ID>`` for the layout ``markers`` (None: none)."""
+    if not markers:
+        return {}
+    T = mi.ScalarTransform4f
+    size = float(markers["size"])
+    ids = [int(i) for i in markers["ids"]]
+    centres = np.asarray(markers["centres"], float).reshape(len(ids), 2)
+    pose = holder_transform(T, holder_pose)
+    out = {}
+    for mid, (cx, cy) in zip(ids, centres):
+        refl, grow = marker_bitmap(str(markers["dictionary"]), mid)
+        # Mitsuba's rectangle maps v = 0 to its -y edge and a bitmap's row 0 to v = 0: flip the
+        # rows so the marker's top lies toward +y (as printed, seen from the +z side)
+        rgb = np.repeat(refl[::-1, :, None], 3, axis=2).astype(np.float32)
+        out[f"marker{mid}"] = {
+            "type": "rectangle",
+            "to_world": pose @ T().translate([float(cx), float(cy), -_MARKER_DROP]) @ T().scale([0.5 * size * grow, 0.5 * size * grow, 1.0]),
+            "bsdf": {"type": "diffuse",
+                     "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(rgb)),
+                                     "filter_type": "nearest", "raw": True, "wrap_mode": "clamp"}},
+        }
+    return out
