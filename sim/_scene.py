@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._sample import mitsuba_variant
+from gonio.models.mitsuba import mitsuba_variant
 
 __all__ = ["HolderScene"]
 
