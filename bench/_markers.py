@@ -27,16 +27,25 @@ and shift, which use the corners' centroid and directions, are unbiased by it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
 from . import kinematics
 from .errors import GonioError
 
-__all__ = ["MarkerLayout", "HolderPose", "Regions", "layout_of", "detect", "fit_pose", "find_regions",
-           "posed_masks", "example_layout"]
+__all__ = [
+    "HolderPose",
+    "MarkerLayout",
+    "Regions",
+    "detect",
+    "example_layout",
+    "find_regions",
+    "fit_pose",
+    "layout_of",
+    "posed_masks",
+]
 
 #: the fit's rms corner residual (holder units, per pixel size) above which the markers are not trusted
 MAX_RMS_PIXELS = 1.5

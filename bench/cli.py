@@ -321,6 +321,9 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--quick", action="store_true", help="a small matrix (about 10 s)")
     bf.add_argument("--out", help="folder for the CSV table and the PNG plot")
     bf.set_defaults(func=_cmd_bench_fit)
+    from .operator import register as _operator_commands     # devices, home, move, jog, shot; bench capture
+
+    _operator_commands(sub, bsub)
     return p
 
 

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-__all__ = ["marker_bitmap", "marker_shapes", "holder_transform", "MARKER_BLACK", "MARKER_WHITE"]
+__all__ = ["MARKER_BLACK", "MARKER_WHITE", "holder_transform", "marker_bitmap", "marker_shapes"]
 
 MARKER_BLACK = 0.03
 MARKER_WHITE = 0.8

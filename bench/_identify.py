@@ -1,0 +1,109 @@
+"""What is on each port, identified: Zaber devices (device id, serial, firmware, axes and their
+peripheral ids), the power meter's ``*IDN?`` and the camera's.
+
+A Zaber controller answers ``get deviceid``, ``get system.serial``, ``get version``,
+``get version.build`` and ``get system.axiscount`` on axis 0 and ``get peripheralid`` per
+axis (the settings zaber-motion's ``identify()`` reads); older firmware may reject one of
+them (``RJ BADCOMMAND``), which is recorded as missing rather than failing. Whatever a device
+sends is treated as hostile text: only printable ASCII is kept, at most 64 characters.
+
+`record` puts the identification of a bench's devices in the session's journal (an
+``identification`` event, JSON) once per run: a capture calls it after the instrument is
+prepared, and a resume on other hardware records what it ran on.
+"""
+
+from __future__ import annotations
+
+import json
+
+from .errors import CommunicationError, GonioError
+
+__all__ = ["clean", "describe_device", "discover", "identify_bench", "record", "roles", "zaber_device"]
+
+_MAX_TEXT = 64
+_DEVICE_SETTINGS = (("deviceid", "device_id"), ("system.serial", "serial"), ("version", "firmware"),
+                    ("version.build", "build"), ("system.axiscount", "axes"))
+MAX_AXES = 16          # peripheral ids read per device at most (a hostile axis count cannot loop us)
+
+
+def clean(text) -> str:
+    """Printable ASCII of a device's answer, at most 64 characters."""
+    s = "".join(ch for ch in str(text) if 32 <= ord(ch) < 127).strip()
+    return s[:_MAX_TEXT] + ("..." if len(s) > _MAX_TEXT else "")
+
+
+def discover(chain, max_devices: int = 99) -> list[int]:
+    """Addresses of the devices that answer a broadcast ``get deviceid``, ascending."""
+    replies = chain.broadcast("get deviceid", max_devices)
+    return sorted({r.device for r in replies if 1 <= r.device <= 99})
+
+
+def _ask(chain, device: int, axis: int, setting: str):
+    """One identification setting as text; None where the device rejects it or sends nothing usable."""
+    try:
+        reply = chain.request(device, axis, f"get {setting}", check=False)
+    except CommunicationError:
+        return None
+    if not reply.ok or not reply.data or reply.data.split()[0] == "NA":
+        return None
+    return clean(reply.data)
+
+
+def zaber_device(chain, device: int) -> dict:
+    """Identification of one Zaber device: device id, serial, firmware, build, axes, peripheral ids."""
+    out = {"address": int(device)}
+    for setting, key in _DEVICE_SETTINGS:
+        out[key] = _ask(chain, device, 0, setting)
+    try:
+        n = int(out["axes"]) if out["axes"] is not None else 0
+    except ValueError:
+        n = 0
+    out["axes"] = n
+    out["peripheral_ids"] = [_ask(chain, device, a, "peripheralid") for a in range(1, min(n, MAX_AXES) + 1)]
+    return out
+
+
+def describe_device(d: dict, role: str = "") -> str:
+    """One line for ``gonio devices``."""
+    def v(key):
+        return d.get(key) if d.get(key) is not None else "?"
+    fw = v("firmware") + (f" build {d['build']}" if d.get("build") else "")
+    ids = " ".join(p if p is not None else "-" for p in d.get("peripheral_ids", []))
+    axes = f"{d['axes']} " + ("axis" if d["axes"] == 1 else "axes")
+    text = (f"device {d['address']}: device id {v('device_id')}, serial {v('serial')}, firmware {fw}, {axes}"
+            + (f" (peripheral ids {ids})" if ids else ""))
+    return text + (f"; {role}" if role else "")
+
+
+def roles(settings) -> dict[int, str]:
+    """What the settings put on each Zaber address: the stage axes and the LED source."""
+    out: dict[int, list[str]] = {}
+    for name in ("yaw", "tilt", "azimuth", "lamp"):
+        dev, ax = settings["axes"][name][:2]
+        out.setdefault(int(dev), []).append(f"{name} on axis {int(ax)}")
+    led = int(settings.get("lamp", {}).get("device", 2))
+    text = {d: "stages: " + ", ".join(v) for d, v in out.items()}
+    text[led] = (text[led] + "; " if led in text else "") + "LED source"
+    return text
+
+
+def identify_bench(bench) -> dict:
+    """The identification of a `capture.Bench`'s devices (the Zaber addresses its settings name)."""
+    addresses = sorted({int(v[0]) for k, v in bench.settings["axes"].items() if isinstance(v, list)}
+                       | {int(bench.led.device)})
+    out = {"zaber_port": clean(bench.chain.port_url), "zaber": [zaber_device(bench.chain, d) for d in addresses]}
+    try:
+        out["meter"] = clean(bench.meter.identify())
+    except GonioError:
+        out["meter"] = None
+    out["meter_port"] = clean(bench.meter.port_url)
+    cam = getattr(bench.camera, "idn", None)
+    out["camera"] = clean(cam) if cam else type(bench.camera).__name__
+    return out
+
+
+def record(bench, journal) -> dict:
+    """Journal the identification of every device of ``bench`` (an ``identification`` event)."""
+    ident = identify_bench(bench)
+    journal.event("identification", json.dumps(ident, sort_keys=True, allow_nan=False))
+    return ident
