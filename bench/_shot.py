@@ -169,7 +169,7 @@ def take_shot(args, settings, stage, out: Path) -> str:
                 except Exception:        # noqa: BLE001
                     pass
     src = "markers" if regions.source == "markers" else f"geometry ({regions.why})"
-    return (f"shot: {len(used)} exposures {', '.join(f'{x:g}' for x in used)} s and {len(darks)} darks in {out}; "
+    return (f"shot: {len(used)} exposure{'s' if len(used) != 1 else ''} {', '.join(f'{x:g}' for x in used)} s and {len(darks)} dark{'s' if len(darks) != 1 else ''} in {out}; "
             f"regions from {src}; f_r ~ " + " ".join(f"{v:.4g}" for v in f_r) + f" sr^-1 at {where_}")
 
 
