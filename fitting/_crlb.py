@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._optimise import _Problem, jacobian_chi2
+from ._problem import Problem as _Problem
+from ._result import jacobian_chi2
 from ._space import ParameterSpace
 
 __all__ = ["crlb", "efficiency"]

@@ -37,7 +37,11 @@ import time
 
 import numpy as np
 
+from gonio.models import fast
+
 from . import _loss
+from ._affine import AffineKernel, applicable, single_threaded_blas
+from ._problem import Problem as _Problem
 
 __all__ = ["Posterior", "sample_posterior"]
 
@@ -81,10 +85,7 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
     """
     import emcee
 
-    from ._optimise import _Problem
-
     space, model = result.space, result.model
-    from ._affine import applicable, single_threaded_blas
 
     affine = None
     if collapse and applicable(meas, model, space, "chi2", False, None) and _fast_theta(model):
@@ -167,9 +168,7 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
 
 def _fast_theta(model) -> bool:
     """The batched collapsed posterior needs at least one nonlinear parameter."""
-    from gonio.models import _fast
-
-    spec = _fast.affine_spec(model)
+    spec = fast.affine_spec(model)
     return spec is not None and len(spec[1]) > 0
 
 
@@ -231,10 +230,6 @@ class _AffinePosterior:
     Q_TOL = 1e-4
 
     def __init__(self, meas, result):
-        from gonio.models import _fast
-
-        from ._affine import AffineKernel
-
         self.model, self.space = result.model, result.space
         self.kern = AffineKernel(meas, result.model, result.space, 1.0 / meas.brdf_std)
         nl = self.kern.nl_idx
@@ -244,7 +239,7 @@ class _AffinePosterior:
         self.box = None
         self.t_ok = False
         self.surrogate_error = None
-        if result.model.name != "roughplastic":
+        if not result.model.structure.affine.tables:  # no tables: nothing to interpolate
             return
         theta = result.x[nl]
         sd = np.sqrt(np.clip(np.diag(result.cov)[nl], 0.0, None))
@@ -253,14 +248,14 @@ class _AffinePosterior:
         if not np.all(hi > lo):
             return
         check = lo + (hi - lo) * np.array([[0.3, 0.2], [0.8, 0.35], [0.15, 0.7], [0.6, 0.9]])
-        t_ex, q_ex = _fast.affine_tables(self.model, check), _fast.affine_q(self.model, check)
+        t_ex, q_ex = fast.affine_tables(self.model, check), fast.affine_q(self.model, check)
         for n in (3, 5, 9):
             c = 0.5 - 0.5 * np.cos(np.pi * np.arange(n) / (n - 1))  # Chebyshev-Lobatto in [0, 1]
             nodes = lo[:, None] + (hi - lo)[:, None] * c[None, :]
             pts = np.array([[a, b] for a in nodes[0] for b in nodes[1]])
             self.box = (lo, hi, nodes)
-            self.node_t = _fast.affine_tables(self.model, pts)
-            self.node_q = _fast.affine_q(self.model, pts)
+            self.node_t = fast.affine_tables(self.model, pts)
+            self.node_q = fast.affine_q(self.model, pts)
             t_s, q_s = self._interp(check)
             err_t = float(np.max(np.abs(t_s - t_ex) / np.maximum(np.abs(t_ex), 1e-12)))
             err_q = float(np.max(np.abs(q_s - q_ex) / q_ex))
@@ -289,22 +284,20 @@ class _AffinePosterior:
 
     def tables_q(self, thetas):
         """(tables or None, q) at thetas (K, T): interpolated inside the box, exact outside."""
-        from gonio.models import _fast
-
-        if self.model.name != "roughplastic":
+        if not self.model.structure.affine.tables:
             return None, np.ones(thetas.shape[0])
         if self.box is None:
-            return _fast.affine_tables(self.model, thetas), _fast.affine_q(self.model, thetas)
+            return fast.affine_tables(self.model, thetas), fast.affine_q(self.model, thetas)
         lo, hi, _ = self.box
         inside = np.all((thetas >= lo) & (thetas <= hi), axis=1)
         t, q = np.empty((thetas.shape[0], 64)), np.empty(thetas.shape[0])
         if np.any(inside):
             t[inside], q[inside] = self._interp(thetas[inside])
             if not self.t_ok:
-                t[inside] = _fast.affine_tables(self.model, thetas[inside])
+                t[inside] = fast.affine_tables(self.model, thetas[inside])
         if np.any(~inside):
-            t[~inside] = _fast.affine_tables(self.model, thetas[~inside])
-            q[~inside] = _fast.affine_q(self.model, thetas[~inside])
+            t[~inside] = fast.affine_tables(self.model, thetas[~inside])
+            q[~inside] = fast.affine_q(self.model, thetas[~inside])
         return t, q
 
     def stats(self, thetas):

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models import fast
+
 __all__ = ["run", "simulate_capture"]
 
 MODELS = (("roughplastic", {"distribution": "ggx"},
@@ -73,17 +75,15 @@ def _scipy_lsq(meas, model):
 def _nlopt_local(meas, model, algorithm):
     """nlopt's gradient-based local optimisers (LD_MMA, LD_SLSQP) on the same chi^2 from the
     declared defaults, with the exact gradient of the compiled kernel
-    (:func:`gonio.models._fast.chi2_grad`, float64) chained into the unit box: the peers of
+    (:func:`gonio.models.fast.chi2_grad`, float64) chained into the unit box: the peers of
     gonio's Levenberg-Marquardt local stage. Returns (x, seconds, evaluations)."""
     import nlopt
-
-    from gonio.models import _fast
 
     from ._space import ParameterSpace
 
     space = ParameterSpace(model, meas.n_channels)
     t0 = time.perf_counter()
-    dirs = _fast.Directions(meas.wi, meas.wo, np.float64)
+    dirs = fast.Directions(meas.wi, meas.wo, np.float64)
     y = dirs.channels(np.where(meas.use, meas.brdf, 0.0), "y")
     w = dirs.channels(np.where(meas.use, 1.0 / meas.brdf_std ** 2, 0.0), "w")
     n_evals = [0]
@@ -91,7 +91,7 @@ def _nlopt_local(meas, model, algorithm):
 
     def chi2_u(u, grad):
         x = space.from_unit(u)
-        chi2, g = _fast.chi2_grad(model, dirs, space.to_params(x), y, w)
+        chi2, g = fast.chi2_grad(model, dirs, space.to_params(x), y, w)
         n_evals[0] += 1
         if chi2 < best[0]:
             best[:] = [chi2, np.array(u)]

@@ -41,6 +41,7 @@ from ._base import CHANNELS, Model, Parameter, get, names
 from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
+from ._structure import Affine, Structure
 from .mitsuba import mitsuba_variant
 
 __all__ = [
@@ -48,6 +49,8 @@ __all__ = [
     "names",
     "Parameter",
     "Model",
+    "Structure",
+    "Affine",
     "CHANNELS",
     "mitsuba_variant",
     "fast",

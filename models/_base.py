@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._structure import Structure
 from .geometry import as_directions
 
 __all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs"]
@@ -100,6 +101,12 @@ class Model:
     name = ""
     OPTIONS: dict = {}
     energy_conserving = True
+
+    @property
+    def structure(self) -> Structure:
+        """What fitting and the compiled path may rely on (:class:`Structure`): a compiled
+        kernel, an affine per-channel parameter. Subclasses declare theirs."""
+        return Structure()
 
     def __init__(self, **options):
         opts = {}

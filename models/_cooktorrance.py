@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from ._base import Model, Parameter, register
+from ._structure import Structure
 from ._fresnel import fresnel_schlick
 from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution
@@ -89,6 +90,10 @@ class CookTorrance(Model):
     """
 
     name = "cooktorrance"
+
+    @property
+    def structure(self):
+        return Structure(kernel=True)
     OPTIONS = {}
     energy_conserving = False
 

@@ -1004,23 +1004,11 @@ def _chi2_sums(model, wi, wo, P, y, w):
 # needs the 128 x 128 quadrature of R_int (16 times the cost of the transmittance table)
 # only to convert its answer back. :func:`affine_q` gives q exactly.
 
-#: theta names of the models with an affine per-channel parameter: model name -> (affine
-#: parameter, nonlinear parameters in theta's column order).
-AFFINE = {
-    "diffuse": ("reflectance", ()),
-    "orennayar": ("reflectance", ("sigma",)),
-    "roughplastic": ("diffuse_reflectance", ("alpha", "int_ior")),
-}
-
-
 def affine_spec(model):
-    """(affine parameter, theta names) when :func:`affine_parts` serves ``model``, else None."""
-    spec = AFFINE.get(model.name)
-    if spec is None:
-        return None
-    if model.name == "roughplastic" and (model.options["nonlinear"] or not getattr(model, "exact_tables", True)):
-        return None  # coef would not be affine (nonlinear) / the model uses interpolated tables
-    return spec
+    """(affine parameter, theta names) when :func:`affine_parts` serves ``model``, else None:
+    read from the model's declaration (``model.structure.affine``)."""
+    affine = model.structure.affine
+    return None if affine is None else (affine.coefficient, tuple(affine.theta))
 
 
 def prepare(wi, wo):
@@ -1079,7 +1067,7 @@ def affine_tables(model, thetas):
         raise ValueError(f"model {model!r} has no affine-parts kernel")
     dr, F, V3, U = _dr()
     th = _theta_array(thetas, len(spec[1]))
-    if model.name != "roughplastic":
+    if not model.structure.affine.tables:
         return np.zeros((th.shape[0], 0))
     a, e = F(np.maximum(th[:, 0], 1e-4)), F(th[:, 1])
     dr.make_opaque(a, e)
@@ -1175,7 +1163,7 @@ def affine_q(model, thetas):
     if spec is None:
         raise ValueError(f"model {model!r} has no affine-parts kernel")
     th = _theta_array(thetas, len(spec[1]))
-    if model.name != "roughplastic":
+    if not model.structure.affine.tables:
         return np.ones(th.shape[0])
     kind = model.options["distribution"]
     return np.array([1.0 - float(np.asarray(_cached_tables(kind, float(a), float(e))[1])[0]) for a, e in th])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ._base import Model, Parameter, register, rgb
+from ._structure import Affine, Structure
 from ._diffuse import lambert
 
 __all__ = ["Diffuse"]
@@ -19,6 +20,10 @@ class Diffuse(Model):
     """
 
     name = "diffuse"
+
+    @property
+    def structure(self):
+        return Structure(kernel=True, affine=Affine("reflectance"))
     OPTIONS = {}
     energy_conserving = True
 

@@ -6,6 +6,7 @@ import math
 
 
 from ._base import Model, Parameter, register
+from ._structure import Affine, Structure
 from ._diffuse import oren_nayar
 
 __all__ = ["OrenNayar"]
@@ -30,6 +31,10 @@ class OrenNayar(Model):
     """
 
     name = "orennayar"
+
+    @property
+    def structure(self):
+        return Structure(kernel=True, affine=Affine("reflectance", ("sigma",)))
     OPTIONS = {}
     energy_conserving = True
 

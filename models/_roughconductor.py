@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._base import Model, Parameter, register, rgb
+from ._structure import Structure
 from ._fresnel import fresnel_conductor
 from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution, smith_g1_xyz
@@ -43,6 +44,10 @@ class RoughConductor(Model):
     """
 
     name = "roughconductor"
+
+    @property
+    def structure(self):
+        return Structure(kernel=True)
     OPTIONS = {"distribution": ("beckmann", "ggx"), "anisotropic": (False, True)}
     energy_conserving = True
 

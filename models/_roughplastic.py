@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _fast
 from ._base import INV_PI, Model, Parameter, register, rgb
 from ._fresnel import fresnel_dielectric
 from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution, smith_g1_xyz
-from ._rough_tables import lerp_table, rough_tables, rough_tables_interp
+from ._rough_tables import _interp, lerp_table, rough_tables, rough_tables_interp
+from ._structure import Affine, Structure
 
 __all__ = ["RoughPlastic"]
 
@@ -79,6 +81,43 @@ class RoughPlastic(Model):
     def __repr__(self):
         r = super().__repr__()
         return r if self.exact_tables else r[:-1] + ", exact_tables=False)"
+
+    @property
+    def structure(self):
+        """Compiled kernel (always worth it: the tables); with ``nonlinear=False`` and the
+        exact tables, f_r is affine in coef = rho / q, q = 1 - R_int(alpha, eta)."""
+        affine = None
+        if not self.options["nonlinear"] and self.exact_tables:
+            affine = Affine("diffuse_reflectance", ("alpha", "int_ior"), tables=True,
+                            q_approx=self._q_approx, q_gradient=self._q_gradient)
+        return Structure(kernel=True, compile_always=True, affine=affine)
+
+    def _q_approx(self, thetas):
+        """q = 1 - R_int at thetas (K, 2) from the precomputed grid's interpolation where it
+        has one, else exact (:func:`gonio.models.fast.affine_q`)."""
+        kind = self.options["distribution"]
+        out = np.empty(thetas.shape[0])
+        for k, (a, e) in enumerate(thetas):
+            g = _interp(kind, a, e, tol=np.inf)
+            out[k] = (1.0 - g[1]) if g is not None else _fast.affine_q(self, [[a, e]])[0]
+        return out
+
+    def _q_gradient(self, theta):
+        """dq/d(alpha, eta): the grid spline where available, else central differences of the
+        exact q with a 1e-3 relative step (the exact quadrature has square-root cusps where
+        nodes cross the critical angle; the spline follows the physical trend)."""
+        g = _interp(self.options["distribution"], theta[0], theta[1], grad=True, tol=np.inf)
+        if g is not None:
+            return -np.array([g[2][-1], g[3][-1]])
+        out = np.empty(2)
+        for j in range(2):
+            h = 1e-3 * theta[j]
+            tp, tm = theta.copy(), theta.copy()
+            tp[j] += h
+            tm[j] -= h
+            qp, qm = _fast.affine_q(self, [tp, tm])
+            out[j] = (qp - qm) / (2.0 * h)
+        return out
 
     def tables(self, alpha, eta):
         """(t_ext (64,), R_int) used by :meth:`eval` for this roughness and index."""

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 
-from ._zaber import Device, Reject
+from ._zaber_device import Device, Reject
 
 __all__ = ["LedDevice"]
 

@@ -24,7 +24,7 @@ Chosen where the manual is silent (invented):
 
 from __future__ import annotations
 
-from ._zaber import Device, Reject, int_arg, sort_flags
+from ._zaber_device import Device, Reject, int_arg, sort_flags
 
 __all__ = ["StageDevice"]
 

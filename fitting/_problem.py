@@ -1,0 +1,303 @@
+"""The general fit problem: f_r at fixed directions (compiled where possible), residuals
+and their exact or differenced Jacobians, and variable projection of the parameters in
+which f_r is affine (detected numerically, never listed by hand).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gonio.models import fast
+from gonio.models.geometry import directions
+
+from . import _loss
+
+__all__ = ["Evaluator", "Problem", "FAST_MIN_POINTS"]
+
+#: Below this many points the compiled kernels' fixed cost (~1 ms a call) exceeds numpy's.
+#: A model whose parameter-dependent precomputation is much cheaper compiled declares it
+#: (``model.structure.compile_always``: roughplastic's quadrature tables, ~4 ms in Dr.Jit
+#: against ~50 ms in numpy) and is compiled at any size.
+FAST_MIN_POINTS = 500
+
+
+class Evaluator:
+    """f_r of one model at fixed directions, compiled where possible; counts evaluations."""
+
+    def __init__(self, model, wi, wo, n_channels: int, use_fast: bool | None = None):
+        self.model, self.wi, self.wo = model, wi, wo
+        self.n_evals = 0
+        self.fast = False
+        self._dirs = None
+        worth_it = len(wi) >= FAST_MIN_POINTS or model.structure.compile_always
+        if use_fast is not False and n_channels == 3 and (use_fast or worth_it):
+            self.fast = _fast_agrees(model)
+        self.backend = "drjit-llvm" if self.fast else "numpy"
+
+    def _resident(self):
+        if self._dirs is None:  # directions loaded into Dr.Jit once per fit
+            self._dirs = fast.Directions(self.wi, self.wo, np.float64)
+        return self._dirs
+
+    def __call__(self, params) -> np.ndarray:
+        self.n_evals += 1
+        if self.fast:
+            return fast.eval_resident(self.model, self._resident(), params)
+        return np.asarray(self.model.eval(self.wi, self.wo, params), dtype=np.float64)
+
+    def jacobian(self, params):
+        """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
+        derivatives (:func:`gonio.models.fast.jacobian`; one call, counted as one
+        evaluation), or None on the numpy path."""
+        if not self.fast:
+            return None
+        self.n_evals += 1
+        return fast.jacobian(self.model, self._resident(), params)
+
+
+_FAST_OK: dict = {}
+
+
+def _fast_agrees(model) -> bool:
+    """True when gonio.models.fast evaluates this model and matches model.eval (checked once)."""
+    key = (model.name, tuple(sorted((k, str(v)) for k, v in model.options.items())))
+    if key in _FAST_OK:
+        return _FAST_OK[key]
+    ok = False
+    try:
+        if model.structure.kernel and fast.available():
+            rng = np.random.default_rng(12345)
+            t = np.radians(rng.uniform(0, 80, (2, 16)))
+            p = rng.uniform(-np.pi, np.pi, (2, 16))
+            wi, wo = directions(t[0], p[0]), directions(t[1], p[1])
+            params = {q.name: q.default for q in model.parameters}
+            a = fast.eval(model, wi, wo, params)
+            b = model.eval(wi, wo, params)
+            ok = bool(np.allclose(a, b, rtol=1e-8, atol=1e-12 * max(1.0, float(np.max(np.abs(b))))))
+    except Exception:  # no compiled kernel for this model, or no working LLVM
+        ok = False
+    _FAST_OK[key] = ok
+    return ok
+
+
+class _Problem:
+    """Residuals of one fit, with the affine parameters projected out where the loss allows."""
+
+    def __init__(self, meas, model, space, loss, evaluator=None, use_fast=None, linear=None):
+        self.meas, self.model, self.space, self.loss = meas, model, space, loss
+        self.eval = evaluator or Evaluator(model, meas.wi, meas.wo, meas.n_channels, use_fast)
+        self.use = meas.use
+        cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), meas.brdf.shape)
+        self.weight = 1.0 / meas.brdf_std if loss in ("chi2", "robust") else cos_i
+        self.linear = []
+        self.linear = _linear_groups(self) if linear is None else linear
+        self.varpro = bool(self.linear) and loss in ("chi2", "cosine")
+        lin_idx = sorted(i for g in self.linear for i in g["index"]) if self.varpro else []
+        self.nl_idx = np.array([i for i in range(space.size) if i not in lin_idx], dtype=int)
+        self._lin_index = np.array(lin_idx, dtype=int)
+        self._last = (None, None)
+
+    @property
+    def n_evals(self):
+        return self.eval.n_evals
+
+    # -- plain residuals
+    def f_x(self, x):
+        return self.eval(self.space.to_params(x))
+
+    def residuals_x(self, x, loss=None):
+        fr = self.f_x(x)
+        r = _loss.residuals(loss or self.loss, fr, self.meas)
+        if not np.all(np.isfinite(r)):
+            raise FloatingPointError(f"model {self.model.name} returned non-finite f_r at "
+                                     f"{dict(zip(self.space.names, np.round(x, 6)))}")
+        return r
+
+    def lm_residuals_u(self, u):
+        """Residuals whose sum of squares is the objective (robust loss: transformed)."""
+        r = self.residuals_x(self.space.from_unit(u))
+        if self.loss == "robust":  # rho^2 = 2 (sqrt(1 + r^2) - 1), without the cancellation
+            return r * np.sqrt(2.0 / (np.sqrt(1.0 + r * r) + 1.0))
+        return r
+
+    # -- exact derivatives (compiled path)
+    def residual_jacobian_x(self, x, cols, loss=None):
+        """Residuals at x and their exact derivatives with respect to x[cols] (natural units),
+        shape (M, len(cols)), from the compiled kernel's Jacobian; None on the numpy path
+        or where the derivatives are not finite (the callers then difference)."""
+        loss = loss or self.loss
+        out = self.eval.jacobian(self.space.to_params(x))
+        if out is None:
+            return None
+        f, J = out
+        meas = self.meas
+        r = _loss.residuals(loss, f, meas)
+        drdf = np.broadcast_to(_loss.residual_derivative(loss, f, meas), f.shape)
+        D = np.empty((r.size, len(cols)))
+        for k, j in enumerate(cols):
+            e = self.space.entries[j]
+            dfdx = J[e.param]
+            if e.channel >= 0:
+                col = np.zeros_like(f)
+                col[:, e.channel] = dfdx[:, e.channel] * drdf[:, e.channel]
+            else:
+                col = dfdx * drdf
+            D[:, k] = col[meas.use]
+        if not (np.all(np.isfinite(D)) and np.all(np.isfinite(r))):
+            return None
+        return r, D
+
+    def lm_jacobian_u(self, u, _r=None):
+        """Exact Jacobian of :meth:`lm_residuals_u` at u (None: difference instead); the
+        residuals argument of ``levenberg_marquardt``'s ``jac(u, r)`` is not needed."""
+        x = self.space.from_unit(u)
+        out = self.residual_jacobian_x(x, range(self.space.size))
+        if out is None:
+            return None
+        r, D = out
+        D = D * self.space.dx_du(x)[None, :]
+        if self.loss == "robust":  # rho(r) = r sqrt(2 / (s + 1)), s = sqrt(1 + r^2)
+            s = np.sqrt(1.0 + r * r)
+            D = D * (np.sqrt(0.5 * (s + 1.0)) / s)[:, None]  # d rho / dr
+        return D
+
+    # -- variable projection
+    def basis(self, x):
+        """f_r = base + sum_g a_g * B_g (per channel) at the nonlinear part of x."""
+        x = np.array(x, dtype=np.float64)
+        for g in self.linear:
+            x[g["index"]] = g["v0"]
+        base = self.f_x(x)
+        cols = []
+        for g in self.linear:
+            x1 = x.copy()
+            x1[g["index"]] = g["v1"]
+            cols.append((self.f_x(x1) - base) / (g["v1"] - g["v0"]))
+        base = base - sum(B * g["v0"] for B, g in zip(cols, self.linear))
+        return base, cols
+
+    def solve_linear(self, x):
+        """x with its affine parameters at their bounded weighted least-squares values."""
+        x = np.array(x, dtype=np.float64)
+        base, cols = self.basis(x)
+        self._cols = cols
+        w, y, use = self.weight, self.meas.brdf, self.use
+        for c in range(base.shape[1]):
+            m = use[:, c]
+            idx = [g["index"][c] for g in self.linear]
+            A = (np.stack([B[m, c] for B in cols], axis=1)) * w[m, c][:, None]
+            b = (y[m, c] - base[m, c]) * w[m, c]
+            lo, hi = self.space.lower[idx], self.space.upper[idx]
+            if A.shape[1] == 1:
+                den = float(A[:, 0] @ A[:, 0])
+                a = np.array([float(A[:, 0] @ b) / den if den > 0 else x[idx[0]]])
+            else:
+                a = np.linalg.lstsq(A, b, rcond=None)[0]
+                if np.any(a < lo) or np.any(a > hi):
+                    from scipy.optimize import lsq_linear
+                    a = lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
+            x[idx] = np.clip(a, lo, hi)
+        return x
+
+    def reduced_residuals(self, v, x_template):
+        """Residuals at nonlinear unit coordinates v, affine parameters projected out."""
+        u = self.space.to_unit(x_template)
+        u[self.nl_idx] = v
+        x = self.solve_linear(self.space.from_unit(u))
+        self._last = (v.copy(), x)
+        return self.residuals_x(x)
+
+    def kaufman_jacobian(self, v, r, x_template, h=1e-6):
+        """Jacobian of the reduced residuals at v (Kaufman 1975): derivatives in the nonlinear
+        coordinates at fixed affine parameters (exact from the compiled kernel; else forward
+        differences, one evaluation per nonlinear parameter), projected off the span of the
+        affine columns (those not held at a bound)."""
+        x = self.x_of(v, x_template)
+        cols = self._cols
+        exact = self.residual_jacobian_x(x, self.nl_idx)
+        if exact is not None:
+            J = exact[1] * self.space.dx_du(x)[self.nl_idx][None, :]
+        else:
+            u = self.space.to_unit(x)
+            J = np.empty((r.size, v.size))
+            for k, j in enumerate(self.nl_idx):
+                step = h if u[j] + h <= 1.0 else -h
+                up = u.copy()
+                up[j] += step
+                xp = self.space.from_unit(up)
+                xp[self._lin_index] = x[self._lin_index]
+                J[:, k] = (self.residuals_x(xp) - r) / step
+        lin_cols = []
+        for g, B in zip(self.linear, cols):
+            for c, i in enumerate(g["index"]):
+                if self.space.lower[i] < x[i] < self.space.upper[i]:
+                    Bc = np.zeros_like(B)
+                    Bc[:, c] = B[:, c] * self.weight[:, c]
+                    lin_cols.append(Bc[self.use])
+        if lin_cols:
+            Q, _ = np.linalg.qr(np.stack(lin_cols, axis=1))
+            J = J - Q @ (Q.T @ J)
+        return J
+
+    def x_of(self, v, x_template):
+        if self._last[0] is not None and np.array_equal(self._last[0], v):
+            return self._last[1]
+        u = self.space.to_unit(x_template)
+        u[self.nl_idx] = v
+        return self.solve_linear(self.space.from_unit(u))
+
+    def albedo_excess(self, x, wo):
+        a = self.model.albedo(wo, self.space.to_params(x))
+        return np.asarray(a, dtype=np.float64).reshape(-1) - 1.0
+
+
+Problem = _Problem
+
+
+def _linear_groups(problem):
+    """Per-channel parameters in which f_r is affine, jointly, channel by channel.
+
+    Tested numerically at two interior points: f(a) for three values of each group must lie
+    on a line for every channel separately, and a random joint setting of all accepted groups
+    must equal the sum of their effects. Returns [{"param", "index" (per channel), "v0", "v1"}].
+    """
+    space = problem.space
+    groups = {}
+    for i, e in enumerate(space.entries):
+        if e.channel >= 0:
+            groups.setdefault(e.param, []).append(i)
+    groups = {k: v for k, v in groups.items() if len(v) == space.n_channels}
+    if not groups:
+        return []
+    test_u = (np.full(space.size, 0.37), np.full(space.size, 0.61))
+    accepted = []
+    for name, index in groups.items():
+        lo, hi = space.lower[index[0]], space.upper[index[0]]
+        v0, v1 = lo + 0.2 * (hi - lo), lo + 0.8 * (hi - lo)
+        g = {"param": name, "index": list(index), "v0": float(v0), "v1": float(v1)}
+        if all(_affine_ok(problem, u, accepted + [g]) for u in test_u):
+            accepted.append(g)
+    return accepted
+
+
+def _affine_ok(problem, u, gs):
+    space = problem.space
+    x = space.from_unit(u)
+    try:
+        saved = problem.linear
+        problem.linear = gs
+        base, cols = problem.basis(x)
+        problem.linear = saved
+        rng = np.random.default_rng(7)
+        xt = x.copy()
+        pred = base.copy()
+        for g, B in zip(gs, cols):
+            lo, hi = space.lower[g["index"][0]], space.upper[g["index"][0]]
+            a = lo + (hi - lo) * rng.uniform(0.1, 0.9, space.n_channels)
+            xt[g["index"]] = a
+            pred = pred + B * a[None, :]
+        f = problem.f_x(xt)
+    except (ValueError, FloatingPointError):
+        return False
+    scale = max(float(np.max(np.abs(f))), 1e-300)
+    return bool(np.all(np.isfinite(f)) and np.max(np.abs(f - pred)) <= 1e-9 * scale)

@@ -1,0 +1,73 @@
+"""What a model declares about its own structure, for fitting and the compiled path.
+
+A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its name:
+
+* ``kernel``: a compiled Dr.Jit kernel evaluates it (:mod:`gonio.models.fast`: value and
+  exact derivatives);
+* ``compile_always``: its parameter-dependent precomputation is much cheaper compiled
+  (roughplastic's quadrature tables: ~4 ms in Dr.Jit, ~50 ms in numpy), so the compiled path
+  pays off at any number of points;
+* ``affine``: f_r[c] = base(theta) + coef[c] * basis(theta) with base and basis the same in
+  every channel (an :class:`Affine` declaration), or None.
+
+The idea is astropy.modeling's ``linear`` / ``fit_deriv`` declarations and Mitsuba's
+``traverse``: the model says what it is, the fitter reads it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["Affine", "Structure"]
+
+
+@dataclass(frozen=True)
+class Affine:
+    """A per-channel parameter entering f_r affinely.
+
+    Attributes
+    ----------
+    coefficient : str
+        The model's parameter (per channel) that is ``coef * q(theta)``.
+    theta : tuple of str
+        The nonlinear parameters, in the column order of ``fast.affine_parts``' thetas.
+    tables : bool
+        base and basis depend on parameter-dependent tables (``fast.affine_tables``, (K, 64))
+        and q differs from 1 (``fast.affine_q`` gives it exactly).
+    q_approx : callable, optional
+        ``q_approx(thetas (K, T)) -> (K,)``: a cheap q for the iterations (None: exact q).
+    q_gradient : callable, optional
+        ``q_gradient(theta (T,)) -> (T,)``: d q / d theta (None: q is 1, derivative 0).
+    """
+
+    coefficient: str
+    theta: tuple = ()
+    tables: bool = False
+    q_approx: Callable | None = None
+    q_gradient: Callable | None = None
+
+    def approx_q(self, thetas) -> np.ndarray:
+        """q at thetas (K, T) for the iterations: 1 without tables."""
+        thetas = np.atleast_2d(thetas)
+        if not self.tables or self.q_approx is None:
+            return np.ones(thetas.shape[0])
+        return self.q_approx(thetas)
+
+    def q_grad(self, theta) -> np.ndarray:
+        """d q / d theta at theta (T,): 0 without tables."""
+        theta = np.asarray(theta, dtype=np.float64)
+        if not self.tables or self.q_gradient is None:
+            return np.zeros(theta.size)
+        return self.q_gradient(theta)
+
+
+@dataclass(frozen=True)
+class Structure:
+    """A model's structure (see the module notes)."""
+
+    kernel: bool = False
+    compile_always: bool = False
+    affine: Affine | None = None
