@@ -250,6 +250,8 @@ class _Session:
             self.journal.event("home", f"stages lost their reference ({' '.join(flags)}): homing")
             b.gonio.home()
         b.meter.identify()
+        from ._identify import record as record_identification
+        record_identification(b, self.journal)     # every device's *IDN?, Zaber id, serial, firmware
         m = self.settings.get("meter", {})
         b.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))
         self._take_darks()
