@@ -277,3 +277,32 @@ def test_commands_on_the_ptys_of_gonio_sim_serve(served, tmp_path):
     assert any(f.startswith("shot_") and f.endswith(".dng") for f in files)
     p = _gonio("move", "--port", z, "--stage", "0,0,0,2")
     assert p.returncode == 2 and "in front of the camera" in p.stderr
+
+
+def test_shot_finds_the_regions_from_the_markers_of_a_moved_holder(capsys, tmp_path):
+    """gonio shot with a settings file whose holder carries markers: the shot records regions
+    found from them and the holder's pose the simulator was given (its truth)."""
+    layout = _markers.example_layout()
+    cent = ", ".join(f"[{x!r}, {y!r}]" for x, y in layout["centres"])
+    toml = tmp_path / "markers.toml"
+    toml.write_text("[camera]\nwidth = 480\nheight = 360\npixel_size = 0.0027\n[holder]\n"
+                    f"markers = {{ dictionary = \"DICT_4X4_50\", size = {layout['size']!r}, "
+                    f"ids = {layout['ids']!r}, centres = [{cent}] }}\n")
+    from gonio.bench._settings import load_settings
+
+    bench = load_settings(toml)
+    sim = merge_settings(bench, {"holder": {"sim_pose": [0.03, 0.02, -2.0]}})
+    inst = gs.Instrument(sim, seed=4).register(f"op{next(_count)}")
+    try:
+        z = inst.url("zaber")
+        assert run(["home", "--port", z, "--settings", str(toml)], capsys)[0] == 0
+        rc, text, err = run(["shot", "--port", z, "--meter-port", inst.url("meter"), "--camera", inst.url("camera"),
+                             "--out", str(tmp_path / "s"), "--settings", str(toml), "--angles", "30,0,20,180"], capsys)
+    finally:
+        inst.unregister()
+    assert rc == 0, err
+    assert "regions from markers" in text
+    reg = json.loads((tmp_path / "s" / "shot.json").read_text())["regions"]
+    assert reg["source"] == "markers"
+    assert np.allclose(reg["holder_pose"]["shift"], [0.03, 0.02], atol=0.0027)
+    assert reg["holder_pose"]["angle_deg"] == pytest.approx(-2.0, abs=0.3)
