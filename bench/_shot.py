@@ -22,7 +22,7 @@ from ._camera import decode_raw
 from ._files import atomic_write_text, commit_file, create_exclusive, tmp_name
 from ._hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
 from ._measure import ReferenceModel, check_sensor, region_stats
-from ._operate import move, open_camera, where
+from ._operate import move, open_camera, require_homed, where
 from ._settings import AXES
 from .errors import GonioError
 
@@ -87,6 +87,8 @@ def take_shot(args, settings, stage, out: Path) -> str:
         check_sensor(camera, settings)
         if stage is not None:
             move(gonio, stage, args.port)
+        else:
+            require_homed(gonio, args.port)          # the pose (and the regions) need a reference
         pos = gonio.positions()
         stage = np.array([pos[n] for n in AXES])
         m = settings.get("meter", {})

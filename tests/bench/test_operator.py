@@ -139,6 +139,12 @@ def test_nothing_moves_before_homing(inst, capsys):
     assert inst.pose_microsteps() == before
 
 
+def test_shot_needs_homed_stages(inst, capsys, tmp_path):
+    assert_refused(run(["shot", "--port", url(inst, "zaber"), "--meter-port", url(inst, "meter"),
+                        "--camera", url(inst, "camera"), "--out", str(tmp_path / "s")], capsys), "not homed")
+    assert not (tmp_path / "s").exists() and not inst.lamp.on
+
+
 def test_shot_writes_dng_preview_and_record(inst, capsys, tmp_path):
     z = url(inst, "zaber")
     assert run(["home", "--port", z], capsys)[0] == 0
