@@ -1,4 +1,8 @@
-"""Crash-safe file helpers: write to a temporary name, fsync, rename, fsync the folder."""
+"""The session's file helpers: checksums, exclusive reservations, write-once files, and the
+commit of a file another program wrote under a reserved name (``.tmp-<name>``: the camera's
+copy, the export's netCDF writer). Writing gonio's own files goes through the house's one
+atomic writer, :mod:`gonio.models.atomic`, which also holds the one rule that recognises a
+temporary (:func:`~gonio.models.atomic.is_temporary`)."""
 
 from __future__ import annotations
 
@@ -6,10 +10,12 @@ import hashlib
 import os
 from pathlib import Path
 
+from gonio.models import atomic
+
 __all__ = ["TMP_PREFIX", "sha256_file", "atomic_write_bytes", "atomic_write_text", "fsync_dir",
            "commit_file", "create_exclusive", "write_new_text", "remove_orphans"]
 
-TMP_PREFIX = ".tmp-"     # temporary files start with this; a resume removes any left behind
+TMP_PREFIX = atomic.RESERVED_PREFIX     # reserved names start with this; a resume removes any left behind
 
 
 def sha256_file(path: str | os.PathLike) -> str:
@@ -48,14 +54,10 @@ def commit_file(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:
-    """Write ``data`` to ``path`` through a temporary name; return its SHA-256 (hex)."""
-    tmp = tmp_name(path)
-    with open(tmp, "wb") as fh:
+    """Write ``data`` to ``path`` atomically (:func:`gonio.models.atomic.atomic_open`); return
+    its SHA-256 (hex)."""
+    with atomic.atomic_open(path, "wb") as fh:
         fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    fsync_dir(Path(path).parent)
     return hashlib.sha256(data).hexdigest()
 
 
@@ -107,12 +109,7 @@ def write_new_text(path: str | os.PathLike, text: str) -> None:
 
 
 def remove_orphans(folder: str | os.PathLike) -> list[Path]:
-    """Delete temporary files (``.tmp-*`` and ``*.part``) left in ``folder`` by a crash."""
-    out = []
-    folder = Path(folder)
-    if folder.is_dir():
-        for p in folder.iterdir():
-            if p.is_file() and (p.name.startswith(TMP_PREFIX) or p.name.endswith(".part")):
-                p.unlink()
-                out.append(p)
-    return out
+    """Delete the temporary files left in ``folder`` by a crash (the one rule:
+    :func:`gonio.models.atomic.is_temporary`; ``.tmp-*`` and ``*.part`` whoever wrote them, the
+    atomic writer's own when their writer no longer runs). Call it holding the session lock."""
+    return atomic.remove_orphans(folder)

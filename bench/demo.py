@@ -13,6 +13,9 @@ import time
 import tomllib
 from pathlib import Path
 
+from gonio.models.atomic import atomic_open
+
+from ._fitdoc import truth_by_name
 from .errors import GonioError
 
 __all__ = ["run_demo"]
@@ -55,10 +58,10 @@ def _speed_vs_error(meas, result, sample, seed) -> dict:
     """
     import numpy as np
 
-    from gonio.fitting.speed import _scipy_lsq
+    from gonio.fitting.speed import scipy_lsq
 
     truth = result.space.from_params({k: np.asarray(v, dtype=float) for k, v in sample["params"].items()})
-    x_lsq, t_lsq, n_lsq = _scipy_lsq(meas, result.model)
+    x_lsq, t_lsq, n_lsq = scipy_lsq(meas, result.model)
     rows = []
     for name, x, seconds, evals in (("gonio (global + LM + Laplace)", result.x, result.time_s, result.n_evals),
                                     ("scipy least_squares (TRF, finite differences)", x_lsq, t_lsq, n_lsq)):
@@ -108,8 +111,6 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
 
     t = time.perf_counter()
     dataset = export(session)
-    from gonio.fitting._io import atomic_open
-
     with open(dataset, "rb") as src, atomic_open(out / "dataset.nc", "wb") as dst:
         shutil.copyfileobj(src, dst)
     timings["export dataset.nc"] = time.perf_counter() - t
@@ -160,9 +161,7 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
         console.print(f"preview: fit vs the true sample, mean CIEDE2000 {with_truth['delta_e_mean']:.2f} "
                       f"(Monte Carlo noise floor {_noise_floor(with_truth):.2f})")
 
-    from .report import _truth_by_name
-
-    truths = _truth_by_name(sample, list(doc["parameters"]))
+    truths = truth_by_name(sample, list(doc["parameters"]))
     z = {n: (p["value"] - truths[n]) / p["std"] for n, p in doc["parameters"].items() if n in truths and p["std"] > 0}
     worst = max(abs(v) for v in z.values()) if z else float("nan")
     verdict = "within" if worst <= 3 else "NOT within"

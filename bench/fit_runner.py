@@ -11,6 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models.atomic import atomic_open
+
+from ._fitdoc import energy_text, truth_for
 from .errors import GonioError
 
 __all__ = ["fit_dataset", "fit_cli", "render_cli", "parse_options", "print_fit"]
@@ -124,24 +127,15 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", poster
     return result, doc, post
 
 
-def _energy_text(energy: dict) -> str:
-    if energy.get("by_construction") and energy.get("max_albedo") is None:
-        return "conserved by construction"
-    state = "holds" if energy.get("holds") else "VIOLATED"
-    return f"{state} (max albedo {energy['max_albedo']:.4f})" if energy.get("max_albedo") is not None else state
-
-
 def print_fit(doc, truth=None, console=None):
     """A rich table of the fit: value, 1-sigma, 90 % interval (and the truth when known)."""
     from rich import box
     from rich.console import Console
     from rich.table import Table
 
-    from .report import _truth_by_name
-
     console = console or Console()
     names = list(doc["parameters"])
-    truths = _truth_by_name(truth, names) if truth and truth.get("model") == doc["model"]["name"] else {}
+    truths = truth_for(truth, doc["model"]["name"], names)
     params = doc["parameters"]
     # A Laplace 90 % interval is value +- 1.645 sigma: it gets a column only where it says more
     # (an emcee interval, or one clipped at a bound); units only where some are not "1".
@@ -172,7 +166,7 @@ def print_fit(doc, truth=None, console=None):
     console.print(table)
     g = doc["goodness"]
     console.print(f"chi2/dof = {g['chi2_dof']:.3f} ({g['dof']} dof), RMSE f_r = {g['rmse_fr']:.3g} 1/sr, "
-                  f"energy {_energy_text(doc['constraints']['energy'])}, "
+                  f"energy {energy_text(doc['constraints']['energy'])}, "
                   f"{doc['optimiser']['evaluations']} evaluations in {doc['optimiser']['time_s']:.2f} s")
     if not g.get("model_adequate", True):
         console.print(f"[yellow]chi2/dof = {g['chi2_dof']:.3g}: the model misses the data by more than its noise "
@@ -208,13 +202,10 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
 def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None):
     """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``."""
     import gonio.models as gm
-    from gonio.fitting import fit_batch, fit_document, write_json_atomic
-
-    from gonio.fitting._batch import check_dashboard_address, check_scheduler_address, check_workers
+    from gonio.fitting import (LOSSES, check_dashboard_address, check_scheduler_address, check_workers, fit_batch,
+                               fit_document, write_json_atomic)
 
     from ._preflight import check_output_dir, writing
-
-    from gonio.fitting import LOSSES
 
     if model == "auto":
         raise GonioError("--batch needs a named --model (e.g. roughplastic); auto is for single fits")
@@ -400,7 +391,6 @@ def convert_cli(source: Path, out: Path, to: str):
     """Exchange formats: fit -> Mitsuba XML / dict JSON / MERL; dataset -> CSV / MERL (binned)."""
     from gonio.fitting import load_fit, write_json_atomic
     from gonio.fitting import formats
-    from gonio.fitting._io import atomic_open
 
     from ._preflight import check_output_file, writing
 

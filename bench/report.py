@@ -21,7 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models.atomic import atomic_open
+
+from . import _fitdoc
 from . import _report_figures as figs
+from ._fitdoc import truth_for
 from ._report_input import MAX_IMAGE_BYTES, PNG_MAGIC, Doc, Folder, cut, show
 from .errors import GonioError
 
@@ -69,28 +73,6 @@ def _fmt(v, digits=4) -> str:
     if isinstance(v, (float, np.floating)):
         return f"{float(v):.{digits}g}"
     return cut(str(v))
-
-
-def _truth_by_name(truth, names):
-    """Map fit-vector names (``diffuse_reflectance[R]``) to true values where the truth is known."""
-    if not isinstance(truth, dict) or not isinstance(truth.get("params"), dict):
-        return {}
-    out = {}
-    channels = ["R", "G", "B"]
-    for name in names:
-        base, _, chan = str(name).partition("[")
-        if base not in truth["params"]:
-            continue
-        try:
-            value = np.asarray(truth["params"][base], dtype=float).reshape(-1)
-            if chan:
-                c = channels.index(chan.rstrip("]"))
-                out[name] = float(value[c] if value.size > 1 else value[0])
-            else:
-                out[name] = float(value[0])
-        except (ValueError, TypeError, IndexError):
-            continue
-    return out
 
 
 def _plan_text(plan):
@@ -153,12 +135,10 @@ def capture_section(meas, dataset_path) -> dict:
 
 
 def fit_section(fit: Doc, truth) -> dict:
-    from .fit_runner import _energy_text
-
     spec = fit.need("model")
     name = spec.text("name", required=True)
     params = fit.items("parameters")
-    truths = _truth_by_name(truth, [k for k, _ in params]) if isinstance(truth, dict) and truth.get("model") == name else {}
+    truths = truth_for(truth, name, [k for k, _ in params])
     rows = []
     for pname, p in params:
         value, std, t = p.num("value"), p.num("std"), truths.get(pname)
@@ -170,7 +150,7 @@ def fit_section(fit: Doc, truth) -> dict:
     g, opt = fit.need("goodness"), fit.need("optimiser")
     nulled = fit.raw("non_finite") if isinstance(fit.raw("non_finite"), list) else []
     energy = fit.need("constraints").need("energy")
-    energy_text = _energy_text({"by_construction": energy.flag("by_construction"), "holds": energy.flag("holds"),
+    energy_text = _fitdoc.energy_text({"by_construction": energy.flag("by_construction"), "holds": energy.flag("holds"),
                                 "max_albedo": energy.num("max_albedo")})
     out = {"model": name, "options": spec.json_text("options"), "rows": rows,
            "chi2_dof": _fmt(g.num("chi2_dof")), "dof": _fmt(g.count("dof")), "rmse_fr": _fmt(g.num("rmse_fr")),
@@ -283,7 +263,7 @@ def _check_out(out: Path) -> Path:
 
 def _load_dataset(root: Folder, path: Path):
     from gonio.fitting import load_dataset
-    from gonio.fitting._data import DataError
+    from gonio.fitting import DataError
 
     root.check(path, "dataset")
     try:
@@ -296,7 +276,7 @@ def _load_dataset(root: Folder, path: Path):
 
 
 def _load_fit(root: Folder, path: Path):
-    from gonio.fitting._fitfile import parse_fit
+    from gonio.fitting import parse_fit
 
     fit = root.read_json(path, "fit file", fix=FIX_FIT, strict=True)
     try:
@@ -364,7 +344,6 @@ def write_report(folder, out=None) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
-    from gonio.fitting._io import atomic_open
 
     found = find_outputs(folder)
     root = Folder(folder)

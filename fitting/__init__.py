@@ -12,10 +12,10 @@
   :mod:`gonio.fitting.formats` (MERL, RGL, Mitsuba snippets, CSV); :mod:`gonio.fitting.preview`.
 """
 
-from ._batch import fit_batch, fit_serial
+from ._batch import check_dashboard_address, check_scheduler_address, check_workers, fit_batch, fit_serial
 from ._crlb import crlb, efficiency
 from ._data import DataError, Measurements, direction, load_dataset
-from ._fitfile import fit_document, load_fit, versions, write_json_atomic
+from ._fitfile import fit_document, load_fit, parse_fit, versions, write_json_atomic
 from ._loss import LOSSES
 from ._optimise import FitResult, fit
 from ._posterior import Posterior, sample_posterior
@@ -25,5 +25,5 @@ from ._space import ParameterSpace
 __all__ = [
     "CANDIDATES", "DataError", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "Measurements", "ParameterSpace", "Posterior", "Ranked",
     "direction", "fit", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
-    "write_json_atomic",
+    "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers",
 ]

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_open
+from gonio.models.atomic import atomic_open
+
 
 __all__ = ["fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning"]
 

@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models.atomic import atomic_open
 from gonio.models.geometry import angles_deg as _angles_deg
 from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
 
 from ._data import Measurements
-from ._io import atomic_open
 
 __all__ = [
     "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "dataset_to_merl", "half_diff_angles",

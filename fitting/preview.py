@@ -29,13 +29,12 @@ import contextlib
 import errno
 import itertools
 import math
-import os
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from gonio.models.atomic import atomic_path
 from gonio.models.mitsuba import bsdf_base, select_variant
 
 __all__ = ["LIGHTINGS", "delta_e_2000", "measured_bsdf_dict", "preview", "register_merl_bsdf", "render_sphere",
@@ -278,18 +277,11 @@ def _to_srgb8(rgb):
 def _atomic_image(path):
     """A temporary name beside ``path`` (same extension, for the writers that go by it),
     renamed to ``path`` when the block succeeds, removed when it fails: no half-written image."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
     try:
-        yield tmp
-        os.replace(tmp, path)
+        with atomic_path(path, keep_suffix=True) as tmp:
+            yield tmp
     except RuntimeError as exc:             # Mitsuba's Bitmap.write on a full disk
-        Path(tmp).unlink(missing_ok=True)
         raise OSError(errno.EIO, f"cannot write the image ({' '.join(str(exc).split())[:160]})", str(path)) from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _write_png(path, rgb):

@@ -58,7 +58,7 @@ def simulate_capture(model, truth, n, rng, rel=0.02, floor=1e-3):
     return Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool)), f
 
 
-def _scipy_lsq(meas, model):
+def scipy_lsq(meas, model):
     import scipy.optimize
 
     from . import _loss
@@ -144,7 +144,7 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
                     xs, times, rmses, chi, evals = [], [], [], [], []
                     for r, (meas, f_true) in enumerate(caps):
                         if opt == "scipy-lsq" or opt in NLOPT_LOCAL:
-                            x, dt, ne = (_scipy_lsq(meas, model) if opt == "scipy-lsq"
+                            x, dt, ne = (scipy_lsq(meas, model) if opt == "scipy-lsq"
                                          else _nlopt_local(meas, model, NLOPT_LOCAL[opt]))
                             from ._space import ParameterSpace
                             space = ParameterSpace(model, meas.n_channels)

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_open
+
 from . import _rough_tables as rt
 from ._roughplastic import RoughPlastic
 
@@ -111,10 +113,8 @@ def build(out, jobs=2):
         )
     rt._GRID = None
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, **data)
-    os.replace(tmp, out)
+    with atomic_open(out, "wb") as fh:
+        np.savez_compressed(fh, **data)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB) in {time.perf_counter() - t0:.0f} s")
     return data
 

@@ -1,8 +1,15 @@
-"""Files that are never half-written: write to a temporary name beside the target, fsync,
-rename (POSIX ``rename`` replaces atomically). On any error, KeyboardInterrupt included, the
-temporary file is removed and the previous file, if any, is left as it was.
+"""gonio's one atomic file writer: write to a temporary name beside the target, fsync, rename
+(POSIX ``rename`` replaces atomically). On any error, KeyboardInterrupt included, the
+temporary file is removed and the previous file, if any, is left as it was. Every folder
+uses it (it lives in the lowest layer so that sim and models can): :func:`atomic_open` for
+a file object, :func:`atomic_path` for writers that want a path (Mitsuba's and matplotlib's
+image writers, which go by the extension).
 
-The temporary file is ``.<name>.<pid>-<random>.tmp``. A process killed outright (SIGKILL,
+The temporary file is ``.<name>.<pid>-<random>.tmp`` (``atomic_path(..., keep_suffix=True)``
+appends the target's extension). :func:`is_temporary` is the one rule that recognises a
+temporary, this scheme and the two names of files that another program writes and gonio
+commits (``.tmp-<name>``: the bench's camera copies, the export's netCDF writer; and
+``<name>.part`` from older versions of the simulated camera). A process killed outright (SIGKILL,
 power cut) cannot remove it, so every write first removes the temporary files of the same
 target left by processes that no longer run (and, for names without a pid, written by older
 versions of gonio, those untouched for ten minutes). The file written gets the mode the
@@ -14,12 +21,17 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-__all__ = ["atomic_open", "file_mode", "remove_stale_temporaries"]
+__all__ = ["atomic_open", "atomic_path", "file_mode", "is_temporary", "remove_orphans",
+           "remove_stale_temporaries", "RESERVED_PREFIX"]
+
+#: The temporary name of a file another program writes before gonio commits it (``.tmp-x``).
+RESERVED_PREFIX = ".tmp-"
 
 _UNTAGGED_AGE_S = 600.0
 _umask_lock = threading.Lock()
@@ -45,6 +57,36 @@ def file_mode() -> int:
     return 0o666 & ~_umask()
 
 
+_TEMPORARY = re.compile(r"^\..+\.(?P<tag>[^.]+)\.tmp(\.[^.]+)?$")
+
+
+def is_temporary(name: str) -> bool:
+    """True for the name of a temporary file of any gonio writer (see the module notes)."""
+    return name.startswith(RESERVED_PREFIX) or name.endswith(".part") or bool(_TEMPORARY.match(name))
+
+
+def _tag(name: str, target: str) -> str | None:
+    """The writer's tag (``<pid>-<random>``, or an older untagged random part) when ``name`` is
+    a temporary of ``target`` written by :func:`atomic_open` or :func:`atomic_path`."""
+    prefix = f".{target}."
+    if not name.startswith(prefix):
+        return None
+    rest = name[len(prefix):]
+    suffix = Path(target).suffix
+    for end in [".tmp"] + ([".tmp" + suffix] if suffix else []):
+        if rest.endswith(end) and len(rest) > len(end):
+            tag = rest[: -len(end)]
+            return None if "." in tag else tag  # "." : the temporary of a longer name (fit.json.bak)
+    return None
+
+
+def _stale(tag: str, entry) -> bool:
+    head, sep, _ = tag.partition("-")
+    if sep and head.isdigit():
+        return not (int(head) == os.getpid() or _pid_alive(int(head)))
+    return time.time() - entry.stat(follow_symlinks=False).st_mtime >= _UNTAGGED_AGE_S
+
+
 def _pid_alive(pid: int) -> bool:
     if pid <= 0:
         return False
@@ -60,27 +102,43 @@ def _pid_alive(pid: int) -> bool:
 def remove_stale_temporaries(path) -> list[Path]:
     """Remove the temporary files of ``path`` that no running writer owns; return them."""
     path = Path(path)
-    prefix, removed = f".{path.name}.", []
+    removed = []
     try:
         entries = list(os.scandir(path.parent))
     except OSError:
         return removed
     for entry in entries:
-        name = entry.name
-        if not (name.startswith(prefix) and name.endswith(".tmp")) or len(name) <= len(prefix) + 4:
+        tag = _tag(entry.name, path.name)
+        if tag is None:
             continue
         try:
-            if entry.is_dir(follow_symlinks=False):
+            if entry.is_dir(follow_symlinks=False) or not _stale(tag, entry):
                 continue
-            tag = name[len(prefix):-4]
-            if "." in tag:  # the temporary of a longer name (fit.json.bak), not of this one
+            os.unlink(entry.path)
+            removed.append(Path(entry.path))
+        except OSError:
+            continue
+    return removed
+
+
+def remove_orphans(folder) -> list[Path]:
+    """Remove the temporaries in ``folder`` (:func:`is_temporary`) that no running writer owns;
+    the reserved names (``.tmp-x``, ``x.part``) are removed whoever wrote them: call it only
+    while holding the folder (the capture's lock)."""
+    removed = []
+    folder = Path(folder)
+    if not folder.is_dir():
+        return removed
+    for entry in sorted(os.scandir(folder), key=lambda e: e.name):
+        name = entry.name
+        if not is_temporary(name):
+            continue
+        try:
+            if not entry.is_file(follow_symlinks=False):
                 continue
-            head, sep, _ = tag.partition("-")
-            if sep and head.isdigit():
-                if int(head) == os.getpid() or _pid_alive(int(head)):
+            if not (name.startswith(RESERVED_PREFIX) or name.endswith(".part")):
+                if not _stale(_TEMPORARY.match(name)["tag"], entry):
                     continue
-            elif time.time() - entry.stat(follow_symlinks=False).st_mtime < _UNTAGGED_AGE_S:
-                continue
             os.unlink(entry.path)
             removed.append(Path(entry.path))
         except OSError:
@@ -101,20 +159,51 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def _temporary(path: Path, suffix: str = "") -> tuple[int, str]:
+    """A new temporary file beside ``path`` with the umask's mode: (fd, name)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}-", suffix=".tmp" + suffix, dir=path.parent)
+    try:
+        os.fchmod(fd, file_mode())
+    except BaseException:
+        os.close(fd)
+        os.unlink(tmp)
+        raise
+    return fd, tmp
+
+
+@contextlib.contextmanager
+def atomic_path(path, keep_suffix: bool = False):
+    """``with atomic_path(path) as tmp: writer(tmp)`` writes ``path`` all or nothing: the
+    writer writes the temporary name (ending in ``path``'s extension with ``keep_suffix``),
+    which is fsynced and renamed to ``path`` when the block succeeds, removed when it fails."""
+    path = Path(path)
+    fd, tmp = _temporary(path, path.suffix if keep_suffix else "")
+    os.close(fd)
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+        tmp = None
+        _fsync_dir(path.parent)
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
 @contextlib.contextmanager
 def atomic_open(path, mode: str = "w", **kwargs):
     """``with atomic_open(path, "wb") as fh: ...`` writes ``path`` all or nothing."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(path)
     tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}-", suffix=".tmp", dir=path.parent)
-        try:
-            os.fchmod(fd, file_mode())
-        except BaseException:
-            os.close(fd)
-            raise
+        fd, tmp = _temporary(path)
         with os.fdopen(fd, mode, **kwargs) as fh:
             yield fh
             fh.flush()

@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gonio.models.atomic import atomic_open
+
 __all__ = ["SensorModel", "write_dng", "encode_dng"]
 
 CFA = "RGGB"
@@ -182,12 +184,7 @@ def encode_dng(raw: np.ndarray, *, black: int, white: int, exposure: float | Non
 
 
 def write_dng(path: str | os.PathLike, data: bytes) -> str:
-    """Write bytes atomically: temporary name, fsync, rename. Returns their sha256 (hex)."""
-    path = os.fspath(path)
-    tmp = f"{path}.part"
-    with open(tmp, "wb") as fh:
+    """Write bytes atomically (:func:`gonio.models.atomic.atomic_open`). Returns their sha256 (hex)."""
+    with atomic_open(path, "wb") as fh:
         fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
     return hashlib.sha256(data).hexdigest()

@@ -172,7 +172,7 @@ def _enospc(*args, **kwargs):
 
 @pytest.mark.parametrize("to,suffix", [("mitsuba-xml", ".xml"), ("mitsuba-dict", ".json")])
 def test_disk_full_while_converting_leaves_nothing(capsys, data, tmp_path, monkeypatch, to, suffix):
-    import gonio.fitting._io as io
+    import gonio.models.atomic as io
 
     monkeypatch.setattr(io.os, "fsync", _enospc)
     out = tmp_path / "out" / f"x{suffix}"
@@ -182,7 +182,7 @@ def test_disk_full_while_converting_leaves_nothing(capsys, data, tmp_path, monke
 
 
 def test_disk_full_while_writing_the_fit(capsys, data, tmp_path, monkeypatch):
-    import gonio.fitting._io as io
+    import gonio.models.atomic as io
 
     monkeypatch.setattr(io.os, "fsync", _enospc)
     refused(capsys, "fit", data["dataset"], "--model", "diffuse", "--out", tmp_path / "fit.json",

@@ -15,7 +15,7 @@ import pytest
 
 from gonio.fitting import load_fit, write_json_atomic
 from gonio.fitting._fitfile import NonFiniteWarning, _jsonable
-from gonio.fitting._io import atomic_open
+from gonio.models.atomic import atomic_open
 
 
 def strict(text: str):
@@ -118,7 +118,7 @@ def test_temporaries_of_killed_writers_are_removed_by_the_next_write(tmp_path):
     """A writer SIGKILLed mid-write leaves its temporary; the next write of that file removes
     it (and untagged ones older than ten minutes), but not one a live writer still owns."""
     target = tmp_path / "fit.json"
-    code = ("import os, signal, sys\nfrom gonio.fitting._io import atomic_open\n"
+    code = ("import os, signal, sys\nfrom gonio.models.atomic import atomic_open\n"
             "with atomic_open(sys.argv[1], 'w') as fh:\n    fh.write('half'); fh.flush()\n"
             "    os.kill(os.getpid(), signal.SIGKILL)\n")
     proc = subprocess.run([sys.executable, "-c", code, str(target)], timeout=60)

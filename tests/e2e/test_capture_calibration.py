@@ -20,7 +20,7 @@ import pytest
 from gonio.bench._samples import DEMO_SAMPLE, check_sample
 from gonio.bench.export import export
 from gonio.bench.fit_runner import fit_dataset
-from gonio.bench.report import _truth_by_name
+from gonio.bench._fitdoc import truth_by_name as _truth_by_name
 from gonio.bench.session_runner import capture_sim
 from gonio.fitting import load_dataset
 

@@ -16,7 +16,8 @@ import pytest
 from gonio.bench._samples import DEMO_SAMPLE, check_sample
 from gonio.bench.export import export
 from gonio.bench.fit_runner import fit_dataset, render_closure
-from gonio.bench.report import _truth_by_name, write_report
+from gonio.bench._fitdoc import truth_by_name as _truth_by_name
+from gonio.bench.report import write_report
 from gonio.bench.session_runner import capture_sim
 from gonio.fitting import load_dataset, write_json_atomic
 

@@ -1,0 +1,48 @@
+"""Helpers on fit documents (``fit.json``) shared by the fit runner, the report and the demo:
+the truth of a simulated sample matched to a fit's parameter names, and the energy
+constraint in words. One place, so the three say the same thing."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["CHANNEL_NAMES", "energy_text", "truth_by_name", "truth_for"]
+
+#: The names of the colour channels in a fit vector's names (``diffuse_reflectance[R]``).
+CHANNEL_NAMES = ["R", "G", "B"]
+
+
+def truth_by_name(truth, names):
+    """Map fit-vector names (``diffuse_reflectance[R]``) to true values where the truth is known."""
+    if not isinstance(truth, dict) or not isinstance(truth.get("params"), dict):
+        return {}
+    out = {}
+    for name in names:
+        base, _, chan = str(name).partition("[")
+        if base not in truth["params"]:
+            continue
+        try:
+            value = np.asarray(truth["params"][base], dtype=float).reshape(-1)
+            if chan:
+                c = CHANNEL_NAMES.index(chan.rstrip("]"))
+                out[name] = float(value[c] if value.size > 1 else value[0])
+            else:
+                out[name] = float(value[0])
+        except (ValueError, TypeError, IndexError):
+            continue
+    return out
+
+
+def truth_for(truth, model_name, names):
+    """:func:`truth_by_name` when ``truth`` describes the fitted model, else {}."""
+    if isinstance(truth, dict) and truth.get("model") == model_name:
+        return truth_by_name(truth, names)
+    return {}
+
+
+def energy_text(energy: dict) -> str:
+    """The energy constraint of a fit document in words."""
+    if energy.get("by_construction") and energy.get("max_albedo") is None:
+        return "conserved by construction"
+    state = "holds" if energy.get("holds") else "VIOLATED"
+    return f"{state} (max albedo {energy['max_albedo']:.4f})" if energy.get("max_albedo") is not None else state
