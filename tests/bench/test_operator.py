@@ -312,3 +312,30 @@ def test_shot_finds_the_regions_from_the_markers_of_a_moved_holder(capsys, tmp_p
     assert reg["source"] == "markers"
     assert np.allclose(reg["holder_pose"]["shift"], [0.03, 0.02], atol=0.0027)
     assert reg["holder_pose"]["angle_deg"] == pytest.approx(-2.0, abs=0.3)
+
+
+def _corner_masks(stage, settings, pose, binning=2, margin_px=1.0):
+    """The regions by the definition: all four corners of each super-pixel's footprint inside."""
+    cam, hold = settings["camera"], settings["holder"]
+    h, w = cam["height"] // binning, cam["width"] // binning
+    i, j = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    xy = np.stack([pose.to_holder(kinematics.image_to_local(stage, binning * i + dr, binning * j + dc, settings))
+                   for dr in (-0.5, binning - 0.5) for dc in (-0.5, binning - 0.5)])
+    half = hold["sample_half"] - margin_px * cam["pixel_size"]
+    return tuple(np.all((np.abs(xy[..., 0] - cx) <= half) & (np.abs(xy[..., 1]) <= half), axis=0)
+                 for cx in (-hold["offset"], hold["offset"]))
+
+
+def test_posed_masks_are_the_corner_test():
+    """The affine shortcut gives the masks of the corner-by-corner definition, and with no pose
+    those of kinematics.roi_masks, over random poses."""
+    settings = default_settings()
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        stage = np.array([rng.uniform(-80, 80), rng.uniform(-80, 80), rng.uniform(-180, 180), rng.uniform(10, 170)])
+        pose = _markers.HolderPose(rng.uniform(-0.05, 0.05, 2), rng.uniform(-5, 5), 0.0, ())
+        want = _corner_masks(stage, settings, pose)
+        got = _markers.posed_masks(stage, settings, pose)
+        assert all((a == b).all() for a, b in zip(want, got))
+        ref = kinematics.roi_masks(stage, settings)
+        assert all((a == b).all() for a, b in zip(ref, _markers.posed_masks(stage, settings, None)))
