@@ -22,6 +22,7 @@ level, never the gamma-encoded ``postprocess`` output.
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import shutil
@@ -139,6 +140,18 @@ def decode_raw(path: str | os.PathLike) -> RawFrame:
     return RawFrame(signal, peak, count, black, white, rgb_cam)
 
 
+def _commit(tmp: Path, path: Path) -> None:
+    """`commit_file`, with a failed fsync or rename (a full disk) named after ``path``; the
+    temporary file is removed."""
+    try:
+        commit_file(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if exc.filename is None:
+            raise OSError(exc.errno, exc.strerror, str(path)) from None
+        raise
+
+
 class SimCamera:
     """The tethered camera protocol (interfaces.md section 4) over a serial URL.
 
@@ -231,6 +244,9 @@ class SimCamera:
         why = ""
         for _ in range(self.retries + 1):
             reply = self._query(f"{command} {seconds:.9g} {tmp}", timeout=self.timeout + seconds)
+            if reply.startswith("ERR disk full"):        # the capture stops resumably, naming the disk
+                tmp.unlink(missing_ok=True)
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
             if reply.startswith("ERR"):
                 raise DeviceError(f"camera refused a {seconds:g} s exposure to {path.name}: {reply[4:]}; "
                                   "check the exposure range and the session folder")
@@ -247,7 +263,7 @@ class SimCamera:
                 tmp.unlink()
                 self.retries_used += 1
                 continue
-            commit_file(tmp, path)
+            _commit(tmp, path)
             return digest
         if tmp.exists():
             tmp.unlink()
@@ -307,12 +323,16 @@ class WatchedFolderCamera:
                 src = self.folder / name
                 path = Path(path)
                 tmp = tmp_name(path)
-                shutil.copyfile(src, tmp)
+                try:
+                    shutil.copyfile(src, tmp)
+                except OSError:                  # e.g. the disk is full: no half-copied file stays
+                    tmp.unlink(missing_ok=True)
+                    raise
                 digest = sha256_file(tmp)
                 if digest != sha256_file(src):
                     tmp.unlink()
                     raise DeviceError(f"{src} changed while it was copied; check the tethering software")
-                commit_file(tmp, path)
+                _commit(tmp, path)
                 return digest
             sizes = new
             self.sleep(self.poll_s)
@@ -358,13 +378,16 @@ class Gphoto2Camera:
             raise GonioError(f"{gphoto2!r} is not installed; install gphoto2 (apt-get install gphoto2) "
                              "or use another camera")
 
-    def _call(self, args: list[str], timeout: float) -> None:
+    def _call(self, args: list[str], timeout: float, path: Path | None = None) -> None:
         cmd = [self.gphoto2] + (["--port", self.port] if self.port else []) + args
         try:
             res = self.run(cmd, capture_output=True, text=True, timeout=timeout)
         except (OSError, subprocess.TimeoutExpired) as exc:
             raise DeviceError(f"gphoto2 failed ({type(exc).__name__}); check the camera's USB link") from None
         if res.returncode != 0:
+            text = f"{res.stderr or ''}\n{res.stdout or ''}"
+            if path is not None and ("No space left on device" in text or "Disk quota exceeded" in text):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))   # stops resumably
             msg = (res.stderr or res.stdout or "").strip().splitlines()
             raise DeviceError(f"gphoto2 {' '.join(args[:2])} failed: {msg[-1] if msg else res.returncode}; "
                               "check the camera's USB link and mode")
@@ -374,13 +397,17 @@ class Gphoto2Camera:
         path = Path(path)
         tmp = tmp_name(path)
         self._call(["--set-config", f"shutterspeed={shutter_value(seconds)}"], self.timeout_s)
-        self._call(["--capture-image-and-download", "--filename", str(tmp), "--force-overwrite"],
-                   self.timeout_s + seconds)
+        try:
+            self._call(["--capture-image-and-download", "--filename", str(tmp), "--force-overwrite"],
+                       self.timeout_s + seconds, path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            raise
         if not tmp.exists():
             raise DeviceError(f"gphoto2 reported success but wrote no file for {path.name}; "
                               "check the camera's capture target setting")
         digest = sha256_file(tmp)
-        commit_file(tmp, path)
+        _commit(tmp, path)
         return digest
 
     def close(self) -> None:

@@ -219,6 +219,25 @@ def raw_files(folder: Path) -> list[str]:
                   if p.is_file() and not p.name.startswith(".") and not p.name.endswith(".part"))
 
 
+def _no_room(path: Path, exc: BaseException) -> None:
+    """An I/O error opening a journal on a full disk is not damage (SQLite needs room beside it, its
+    -shm and -wal files, even to read it): say so, rather than send the user to --rebuild-journal."""
+    import shutil
+
+    from ._preflight import mount_of
+
+    code = getattr(exc, "sqlite_errorcode", 0) & 0xFF
+    if not (isinstance(exc, OSError) or code in (sqlite3.SQLITE_IOERR, sqlite3.SQLITE_FULL, sqlite3.SQLITE_CANTOPEN)):
+        return
+    try:
+        free = shutil.disk_usage(path.parent).free
+    except OSError:
+        return
+    if free < (1 << 20):
+        raise SessionError(f"{path} cannot be read: the disk at {mount_of(path)} is full ({free // 1024} KiB free; "
+                           f"{exc}); free some space and run the command again") from None
+
+
 def _inspect(path: Path) -> tuple[str, str]:
     """``("missing" | "empty" | "damaged" | "unrecorded" | "ok", detail)`` of a journal file."""
     if not path.exists():
@@ -229,6 +248,7 @@ def _inspect(path: Path) -> tuple[str, str]:
             return "empty", "is empty"
         db = sqlite3.connect(str(path), timeout=30.0)
     except (OSError, sqlite3.Error) as exc:
+        _no_room(path, exc)
         return "damaged", f"cannot be opened ({exc})"
     try:
         check = db.execute("PRAGMA quick_check").fetchone()
@@ -241,6 +261,7 @@ def _inspect(path: Path) -> tuple[str, str]:
             return "unrecorded", "has no session record"
         return "ok", ""
     except sqlite3.DatabaseError as exc:
+        _no_room(path, exc)
         return "damaged", f"is damaged ({exc})"
     finally:
         db.close()

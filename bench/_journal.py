@@ -22,6 +22,7 @@ is done: a file in ``raw/`` that it does not name means the journal lost commits
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -139,6 +140,8 @@ class Journal:
             self.db.execute("PRAGMA synchronous=FULL")
             self.db.executescript(_SCHEMA)
         except sqlite3.DatabaseError as exc:
+            if getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL or "disk is full" in str(exc):
+                raise                            # not damage: the caller says the disk is full
             raise SessionError(f"journal {self.path} is unreadable ({exc}); the session folder is damaged") from None
 
     def close(self) -> None:
@@ -328,6 +331,12 @@ def write_session(folder: str | Path, doc: Mapping[str, Any] | str) -> Path:
         raise SessionError(f"{folder} already holds a session; resume it with --resume {folder} "
                            "or choose another --out") from None
     except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            from ._preflight import mount_of
+
+            raise SessionError(f"cannot write the session to {folder}: the disk at {mount_of(folder)} is full "
+                               f"({exc.strerror}); free some space and run the command again, or choose "
+                               "another --out") from None
         raise SessionError(f"cannot write the session to {folder} ({exc.strerror}); choose another --out") from None
     return folder / SESSION_FILE
 

@@ -1,16 +1,83 @@
 """Pieces of one point's measurement: the sensor check, the reference's f_r, region statistics,
-and the progress bar."""
+the disk space a capture needs, and the progress bar."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
 
 from .errors import GonioError
 
-__all__ = ["check_sensor", "ReferenceModel", "region_stats", "ProgressBar"]
+__all__ = ["check_sensor", "ReferenceModel", "region_stats", "ProgressBar", "RawEstimate", "raw_estimate",
+           "FRAMES_PER_POINT"]
+
+#: RAW frames per point assumed before a session has measured one: the probe and a bracket of three
+#: rungs (a 16:1 range at factors of 4; the simulated plans take 1 to 3). Once points are measured,
+#: the session's own mean (plus a quarter) is used instead. An estimate, not a bound: a capture
+#: that outgrows it stops resumably when the disk fills.
+FRAMES_PER_POINT = 4
+_BLOCK = 4096
+_JOURNAL_PER_POINT = 8 << 10       # a point's row (its detail JSON) and its share of the WAL
+_JOURNAL_PER_FRAME = 512           # a RAW file's reserved name, a calibration row
+
+
+def frame_bytes(settings: Mapping) -> int:
+    """Bytes one RAW frame takes on disk, from ``[camera]``: width x height samples of
+    ceil(bits / 8) bytes (an uncompressed DNG; compressed RAW files are smaller), a header and
+    preview allowance of 5 % (at least 4 KiB), rounded up to 4 KiB blocks."""
+    cam = settings["camera"]
+    data = int(cam["width"]) * int(cam["height"]) * ((int(cam.get("bits", 16)) + 7) // 8)
+    size = data + max(_BLOCK, data // 20)
+    return -(-size // _BLOCK) * _BLOCK
+
+
+@dataclass(frozen=True)
+class RawEstimate:
+    """What a capture (or what is left of one) will write: points, frames, bytes."""
+
+    points: int
+    per_point: int
+    calibration: int              # dark and flat-field frames still to take
+    frame_bytes: int
+
+    @property
+    def frames(self) -> int:
+        return self.points * self.per_point + self.calibration
+
+    @property
+    def bytes(self) -> int:
+        return (self.frames * (self.frame_bytes + _JOURNAL_PER_FRAME) + self.points * _JOURNAL_PER_POINT)
+
+    def describe(self, what: str) -> str:
+        return (f"{what} ({self.points} point(s) x ~{self.per_point} RAW frames + {self.calibration} dark/flat "
+                f"frames, ~{self.frame_bytes / 1024:.0f} KiB each)")
+
+
+def raw_estimate(settings: Mapping, points: int, *, has_flat: bool, journal=None) -> RawEstimate:
+    """The RAW files still to write for ``points`` points: their exposures (`FRAMES_PER_POINT`, or
+    the session's own mean once ``journal`` holds measured points), the dark frames of every rung
+    of the exposure ladder not yet journalled, and ``[capture] flat_frames`` flat frames (and the
+    probe that sets their exposure) where the camera has a flat-field source and the session has
+    not yet taken them (or decided it has none)."""
+    from ._hdr import ladder
+
+    cap = settings["capture"]
+    rungs = [float(t) for t in ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))]
+    n_flat = int(cap.get("flat_frames", 16))
+    per_point, darks = FRAMES_PER_POINT, len(rungs)
+    flats = n_flat + 1 if has_flat and n_flat >= 1 else 0
+    if journal is not None:
+        have = {float(v[0]) for v in journal.frames("dark").values()}
+        darks = sum(t not in have for t in rungs)
+        if journal.first_event("no_flat") is not None or len(journal.frames("flat")) == n_flat:
+            flats = 0
+        counts = [len(r["detail"].get("exposures", [])) for r in journal.points()]
+        if counts:
+            per_point = max(1, math.ceil(1.25 * sum(counts) / len(counts)))
+    return RawEstimate(int(points), per_point, darks + flats, frame_bytes(settings))
 
 
 def check_sensor(camera, settings: Mapping) -> None:

@@ -24,7 +24,7 @@ from pathlib import Path
 from .errors import GonioError
 
 __all__ = ["check_output_file", "check_output_dir", "check_free_space", "check_input_file",
-           "environment_errors", "writing", "mount_of", "MiB"]
+           "environment_errors", "writing", "mount_of", "disk_full", "oserror_line", "MiB"]
 
 MiB = 1 << 20
 #: kept free beyond an estimate: a file system at 100 % fails in ways no estimate sees
@@ -85,7 +85,19 @@ def _check_parent_chain(folder: Path, what: str, target: Path) -> Path:
     return anc
 
 
-def check_free_space(path, need_bytes: int, what: str) -> None:
+def disk_full(exc: BaseException) -> bool:
+    """``exc`` says the disk is full: ENOSPC or EDQUOT, or SQLite's SQLITE_FULL."""
+    if isinstance(exc, OSError):
+        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    import sqlite3
+
+    if isinstance(exc, sqlite3.DatabaseError):
+        code = getattr(exc, "sqlite_errorcode", None)
+        return (code is not None and code & 0xFF == sqlite3.SQLITE_FULL) or "disk is full" in str(exc)
+    return False
+
+
+def check_free_space(path, need_bytes: int, what: str, hint: str = "free some space or write elsewhere") -> None:
     """Refuse when the disk holding ``path`` has less than ``need_bytes`` (plus a margin) free."""
     anc = _existing_ancestor(Path(path))
     try:
@@ -94,7 +106,7 @@ def check_free_space(path, need_bytes: int, what: str) -> None:
         return
     if free < int(need_bytes) + _MARGIN:
         raise GonioError(f"not enough space for {what}: the disk at {mount_of(anc)} has {free / MiB:.0f} MiB free, "
-                         f"about {(int(need_bytes) + _MARGIN) / MiB:.0f} MiB are needed; free some space or write elsewhere")
+                         f"about {(int(need_bytes) + _MARGIN) / MiB:.0f} MiB are needed; {hint}")
 
 
 def check_output_file(path, what: str = "output file", *, need_bytes: int = 0) -> Path:
@@ -146,6 +158,11 @@ def check_input_file(path, what: str = "input file") -> Path:
     return path
 
 
+def oserror_line(exc: OSError) -> str:
+    """One line for an environment error: the file, what is wrong, what to do."""
+    return _oserror_line(exc)
+
+
 def _oserror_line(exc: OSError) -> str:
     name = exc.filename if exc.filename is not None else ""
     where = f"{name}: " if name != "" else ""
@@ -184,6 +201,11 @@ def environment_errors():
                          "give the text file (TOML, CSV, JSON) the option expects") from None
     except MemoryError:
         raise GonioError("out of memory: the input is too large for this machine; give a smaller one") from None
+    except Exception as exc:
+        if not disk_full(exc):              # SQLite's "database or disk is full"
+            raise
+        name = getattr(exc, "filename", None)
+        raise GonioError(_oserror_line(OSError(errno.ENOSPC, "database or disk is full", name))) from None
 
 
 @contextlib.contextmanager

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import math
+import sqlite3
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -52,7 +53,8 @@ from . import _integrity
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
 from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock,
                        read_session, session_text, versions, write_session)
-from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
+from ._measure import ProgressBar, ReferenceModel, check_sensor, raw_estimate, region_stats
+from ._preflight import _MARGIN as MARGIN, MiB, check_free_space, check_output_dir, disk_full, mount_of, oserror_line
 from ._ordering import order_moves
 from ._scpi import PowerMeter
 from ._signals import Interrupts, StopNow
@@ -66,6 +68,11 @@ __all__ = ["capture", "resume", "CaptureSummary", "CaptureInterrupted", "StopNow
 
 class CaptureInterrupted(GonioError):
     """Ctrl-C pressed twice, or SIGTERM / SIGHUP: the stages were stopped; the session is resumable."""
+
+
+class DiskFull(SessionError):
+    """The disk filled during a capture (a RAW file, the journal, a session file): the stages were
+    stopped, the LED switched off; the session is consistent and resumable once space is freed."""
 
 
 @dataclass
@@ -526,27 +533,41 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
                 try:
                     bench.gonio.stop()
                 finally:
-                    journal.event("stop", f"{why}: stages stopped")
+                    _event(journal, "stop", f"{why}: stages stopped")
                 raise CaptureInterrupted(f"{why}; the stages were stopped, the LED switched off and the session "
                                          f"is resumable with `gonio capture --resume {folder}`") from None
             except GonioError as exc:
-                journal.event("stop", str(exc))
+                _event(journal, "stop", str(exc))
                 exc.session_dir = folder          # the session stays resumable (exit status 3)
                 raise
+            except (OSError, sqlite3.DatabaseError) as exc:     # disk full, or another environment error
+                if not isinstance(exc, OSError) and not disk_full(exc):
+                    raise
+                intr.deferred = True
+                try:
+                    bench.gonio.stop()
+                except (GonioError, OSError):
+                    pass
+                err = _environment_stop(folder, doc, journal, exc)
+                _event(journal, "stop", f"{err}: stages stopped")
+                remove_orphans(folder / RAW_DIR)    # a half-written RAW file of this run (.tmp-*, *.part)
+                raise err from None
             finally:
                 intr.deferred = True              # a signal now only sets the flag: clean up first
                 bench.checkpoint = lambda: None
-                for d, f, m in warnings:
-                    journal.event("warning", f"device {d}: {f} {m}")
-                journal.event("comm", json.dumps({
-                    "zaber_retries": bench.chain.retries_used, "zaber_reconnects": bench.chain.reconnects,
-                    "meter_retries": bench.meter.retries_used, "meter_reconnects": bench.meter.reconnects,
-                    "camera_retries": getattr(bench.camera, "retries_used", 0)}))
                 try:
-                    bench.led.off()
-                    journal.event("lamp", "LED off")
-                except GonioError as exc:
-                    journal.event("warning", f"could not switch the LED off ({exc}); switch it off by hand")
+                    for d, f, m in warnings:
+                        _event(journal, "warning", f"device {d}: {f} {m}")
+                    _event(journal, "comm", json.dumps({
+                        "zaber_retries": bench.chain.retries_used, "zaber_reconnects": bench.chain.reconnects,
+                        "meter_retries": bench.meter.retries_used, "meter_reconnects": bench.meter.reconnects,
+                        "camera_retries": getattr(bench.camera, "retries_used", 0)}))
+                finally:                          # the LED goes off whatever the journal does
+                    try:
+                        bench.led.off()
+                        _event(journal, "lamp", "LED off")
+                    except (GonioError, OSError) as exc:
+                        _event(journal, "warning", f"could not switch the LED off ({exc}); switch it off by hand")
         if intr.requested and not stopped and len(journal.done()) < len(sess.plan):
             stopped = "stopped by a signal; run the capture again with --resume to finish"
         remove_orphans(folder / RAW_DIR)        # late files of a killed earlier process, if any
@@ -559,6 +580,70 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
         journal.close()
         bench.close()
         lock.__exit__()
+
+
+def _event(journal: Journal, kind: str, text: str) -> None:
+    """Journal an event; on a full disk (the journal cannot grow) it is dropped, so the clean-up
+    (stages stopped, LED off) still runs and the reason for the stop is still said."""
+    try:
+        journal.event(kind, text)
+    except (OSError, sqlite3.DatabaseError) as exc:
+        if not disk_full(exc):
+            raise
+
+
+def _has_flat(camera) -> bool:
+    """Whether ``camera`` has a flat-field source (a camera URL is a `SimCamera`, which has one)."""
+    if isinstance(camera, str):
+        return "://" in camera or camera.startswith("/")
+    return hasattr(camera, "flat")
+
+
+def _check_room(folder: Path, settings: Mapping, points: int, camera, journal: Journal | None, what: str,
+                hint: str) -> None:
+    """Refuse (one line) unless the disk holding ``folder`` has room for the RAW files ``points``
+    points and the missing calibration frames will write (`gonio.bench._measure.raw_estimate`)."""
+    est = raw_estimate(settings, points, has_flat=_has_flat(camera), journal=journal)
+    if est.frames:
+        check_free_space(folder, est.bytes, est.describe(what), hint)
+
+
+def _environment_stop(folder: Path, doc: Mapping, journal: Journal | None, exc: BaseException) -> SessionError:
+    """The one line for an environment error during a run (disk full: which disk, how much to free,
+    how to resume), as a resumable stop (``session_dir`` set: exit status 3)."""
+    n = len(doc["plan"]["points"])
+    try:
+        done = len(journal.done()) if journal is not None else 0
+    except sqlite3.Error:
+        done = None
+    state = (f"{done}/{n} points are measured and the session is consistent" if done is not None
+             else "the session is consistent")
+    resume = f"`gonio capture --resume {folder}`"
+    if disk_full(exc):
+        name = getattr(exc, "filename", None)
+        where = Path(name) if name else folder / (JOURNAL_FILE if isinstance(exc, sqlite3.Error) else RAW_DIR)
+        shown = where
+        for base in (folder, folder.resolve()):
+            try:
+                shown = where.relative_to(base)
+                break
+            except ValueError:
+                pass
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        left = n - done if done is not None else n
+        try:
+            est = raw_estimate(doc["settings"], left, has_flat=True, journal=journal)
+            if not est.frames:
+                raise ValueError
+            need = f"free at least {(est.bytes + MARGIN) / MiB:.0f} MiB for the {left} point(s) left, then resume"
+        except Exception:                         # the estimate is a courtesy: never hide the stop
+            need = "free some space, then resume"
+        err = DiskFull(f"the disk at {mount_of(where)} is full ({reason}) while writing {shown}; the capture "
+                       f"stopped, {state}; {need} with {resume}")
+    else:
+        err = SessionError(f"{oserror_line(exc)}; the capture stopped, {state}; fix it, then resume with {resume}")
+    err.session_dir = folder
+    return err
 
 
 def _leftover(p: Path) -> bool:
@@ -622,6 +707,10 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     _check_new_folder(folder)
     stage = require_reachable(plan, settings)
     order = order_moves(stage, settings)
+    # before any port opens or anything is written: the folder writable, room for the RAW files
+    check_output_dir(folder, "session folder (--out)")
+    _check_room(folder, settings, len(plan), camera, None, f"the RAW files of session {folder}",
+                "free some space or give another --out")
     # open every port before anything is written: a dead port leaves nothing behind
     warnings: list = []
     lock = journal = bench = None
@@ -646,14 +735,25 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
         remove_orphans(folder)
         write_session(folder, text)             # once: never replaces an existing session.toml
         doc = read_session(folder)
-        journal = Journal(folder / JOURNAL_FILE)
-        journal.record_session(text, doc)
+        try:
+            journal = Journal(folder / JOURNAL_FILE)
+            journal.record_session(text, doc)
+        except (OSError, sqlite3.DatabaseError) as exc:
+            if not disk_full(exc):
+                raise
+            # session.toml is written, the journal is not: a resume records it (nothing measured yet)
+            raise _environment_stop(folder, doc, None, exc) from None
     except BaseException:
         if journal is not None:
             journal.close()
         if bench is not None:
             bench.close()
         if lock is not None:
+            if not (folder / SESSION_FILE).exists():
+                try:
+                    remove_orphans(folder)       # e.g. a session.toml half-written on a full disk
+                except OSError:
+                    pass
             lock.__exit__()
         raise
     return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [])
@@ -697,6 +797,13 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
             if rebuild_journal:
                 note(_integrity.rebuild_journal(folder, data, doc, why))
             journal = _integrity.open_journal(folder, data, doc, why)
+            # before a repair or a measurement writes: the folder writable, room for what is left
+            left = (set(range(len(doc["plan"]["points"]))) - journal.done()) | set(want or ())
+            check_output_dir(folder, "session folder")
+            _check_room(folder, doc["settings"], len(left),
+                        camera if camera is not None else doc.get("ports", {}).get("camera"), journal,
+                        f"the {len(left)} point(s) left to measure in {folder}",
+                        f"free some space, then resume with `gonio capture --resume {folder}`")
             remove_orphans(folder / RAW_DIR)
             remove_orphans(folder)
             _integrity.repair(folder, journal, want, note)

@@ -67,6 +67,7 @@ def _cmd_demo(args):
     run_demo(out=Path(args.out), seed=args.seed, plan=args.plan, posterior=args.posterior)
 
 
+@_env
 def _cmd_capture(args):
     from . import session_runner
 

@@ -12,11 +12,15 @@ Where the RAW files carry colour matrices, also ``brdf_srgb`` (linear sRGB, D65)
 construction (the reference is spectrally flat and shares the illumination), so LibRaw's
 camera -> sRGB matrix applies to it directly, and XYZ = M_sRGB->XYZ sRGB (IEC 61966-2-1).
 Channel noise is independent, so variances map through the squared matrix elements.
-Written with xarray's h5netcdf engine to a temporary name, fsynced, then renamed.
+Serialised with xarray's h5netcdf engine in memory (h5py never writes to the disk: on a full disk
+it crashed the process), after a check that the disk has room for it; then written to a
+temporary name in the session folder, fsynced and renamed. A full disk is one line and leaves
+no partial file (an older ``dataset.nc`` stays as it was).
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 from pathlib import Path
@@ -24,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ._files import commit_file, tmp_name
-from .errors import SessionError
+from .errors import GonioError, SessionError
 
 __all__ = ["export", "to_dataset", "DATASET_FILE"]
 
@@ -123,14 +127,32 @@ def export(session_dir) -> Path:
     SessionError
         Not a session folder, or no point measured yet.
     """
+    from ._preflight import check_free_space, check_output_file, oserror_line
+
     folder = Path(session_dir)
     ds = to_dataset(folder)
     path = folder / DATASET_FILE
+    check_output_file(path, "dataset")
+    check_free_space(folder, estimated_bytes(ds), f"{path} (its estimated size)")
+    data = ds.to_netcdf(engine="h5netcdf")          # in memory: bytes (a memoryview)
+    check_free_space(folder, len(data), f"{path} ({len(data) / 2 ** 20:.1f} MiB)")
     tmp = tmp_name(path)
     try:
-        ds.to_netcdf(tmp, engine="h5netcdf")
+        with open(tmp, "wb") as fh:
+            fh.write(data)
         commit_file(tmp, path)
+    except OSError as exc:
+        raise GonioError(oserror_line(OSError(exc.errno or errno.EIO, exc.strerror or str(exc), str(path)))) from None
     finally:
-        if tmp.exists():
+        if os.path.lexists(tmp):
             os.unlink(tmp)
     return path
+
+
+def estimated_bytes(ds) -> int:
+    """An upper estimate of the netCDF-4 file of ``ds``: its arrays, its attributes and about
+    4 KiB of HDF5 structure per variable (a quick plan's file is 37 KB for 10 KB of values)."""
+    attrs = sum(len(str(v)) for v in ds.attrs.values())
+    names = list(ds.variables)
+    attrs += sum(len(str(v)) for n in names for v in ds[n].attrs.values())
+    return int(ds.nbytes) + attrs + 4096 * len(names) + (64 << 10)

@@ -10,11 +10,13 @@
 The exposure physics lives in ``Instrument.capture``; this module parses and formats.
 Exposures from 1 us to 60 s are accepted; the path is the rest of the line (spaces allowed),
 its folder must exist. Errors: ``ERR bad exposure``, ``ERR missing path``,
-``ERR no such directory``, ``ERR write failed``, ``ERR unknown command``.
+``ERR no such directory``, ``ERR disk full`` (ENOSPC or EDQUOT: the client stops resumably),
+``ERR write failed``, ``ERR unknown command``.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 
@@ -72,6 +74,8 @@ class CameraPort:
                 digest = hashlib.sha256(data).hexdigest()
             else:
                 digest = write_dng(path, data)
-        except OSError:
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                return "ERR disk full"
             return "ERR write failed"
         return f"OK {digest}"
