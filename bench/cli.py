@@ -331,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from gonio.fitting._data import DataError
+    from gonio.fitting import DataError
 
     try:
         rc = args.func(args)
