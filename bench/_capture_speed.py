@@ -50,6 +50,8 @@ class PointTimes:
     motion: float = 0.0
     exposure: float = 0.0
     phases: dict = field(default_factory=lambda: dict.fromkeys(_PHASES, 0.0))
+    mask_calls: list = field(default_factory=list)
+    masks_affine: float = 0.0     # the same masks through _markers.posed_masks, timed after the run
 
     @property
     def bound(self) -> float:
@@ -83,6 +85,8 @@ class _Meter:
         def phase(key):
             def make(fn):
                 def timed(*a, **kw):
+                    if key == "masks" and self.current is not None:
+                        self.current.mask_calls.append((a, kw))
                     t = time.perf_counter()
                     try:
                         return fn(*a, **kw)
@@ -162,6 +166,13 @@ def _one(width: int, height: int, n_points: int, seed: int, folder: Path) -> lis
                     progress=False, sample_truth=sample, sleep=inst.clock.advance)
     finally:
         inst.unregister()
+    from ._markers import posed_masks
+
+    for p in meter.points:                 # the same masks from the map's affinity, for comparison
+        for a, kw in p.mask_calls:
+            t = time.perf_counter()
+            posed_masks(a[0], a[1], None, *a[2:], **kw)
+            p.masks_affine += time.perf_counter() - t
     return meter.points
 
 
@@ -183,17 +194,22 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
         # with the reduction of point k overlapping the move to k+1, only what outlasts the move stays
         compute = sum(row[k + "_s"] for k in ("merge", "masks", "stats"))
         row["overlap_ratio"] = (row["bound_s"] + row["host_s"] - min(compute, row["motion_s"])) / row["bound_s"]
+        row["masks_affine_s"] = mean(lambda p: p.masks_affine)
+        row["affine_ratio"] = (row["projected_s"] - row["masks_s"] + row["masks_affine_s"]) / row["bound_s"]
         rows.append(row)
     head = (f"{'camera':>10} {'pts':>3} {'motion':>7} {'expose':>7} {'bound':>7} {'wall':>7} {'sim':>7} "
-            f"{'host':>7} {'decode':>7} {'merge':>7} {'masks':>7} {'stats':>7} {'proj/bound':>10} {'overlapped':>10}")
+            f"{'host':>7} {'decode':>7} {'merge':>7} {'masks':>7} {'stats':>7} {'proj/bound':>10} {'overlapped':>10} "
+            f"{'masks*':>7} {'proj*/bound':>11}")
     out("capture pipeline, seconds per point (bound = stage motion + exposures, simulated time; "
         "host = wall - simulator's computing; proj = bound + host; the loop is sequential: nothing "
-        "overlaps the next move, 'overlapped' is what overlapping merge, masks and stats with it could reach)")
+        "overlaps the next move, 'overlapped' is what overlapping merge, masks and stats with it could reach; "
+        "masks* = the same masks through _markers.posed_masks, timed after the run, proj* = proj with them)")
     out(head)
     for r in rows:
         out(f"{r['camera']:>10} {r['points']:>3} {r['motion_s']:7.3f} {r['exposure_s']:7.3f} {r['bound_s']:7.3f} "
             f"{r['wall_s']:7.3f} {r['sim_s']:7.3f} {r['host_s']:7.3f} {r['decode_s']:7.3f} {r['merge_s']:7.3f} "
-            f"{r['masks_s']:7.3f} {r['stats_s']:7.3f} {r['ratio']:9.3f}x {r['overlap_ratio']:9.3f}x")
+            f"{r['masks_s']:7.3f} {r['stats_s']:7.3f} {r['ratio']:9.3f}x {r['overlap_ratio']:9.3f}x "
+            f"{r['masks_affine_s']:7.3f} {r['affine_ratio']:10.3f}x")
     return rows
 
 

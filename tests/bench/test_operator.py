@@ -339,3 +339,16 @@ def test_posed_masks_are_the_corner_test():
         assert all((a == b).all() for a, b in zip(want, got))
         ref = kinematics.roi_masks(stage, settings)
         assert all((a == b).all() for a, b in zip(ref, _markers.posed_masks(stage, settings, None)))
+
+
+def test_bench_capture_prints_the_table_against_its_bound(capsys):
+    rc, out, err = run(["bench", "capture", "--skip-full", "--points", "2"], capsys)
+    assert rc == 0, err
+    row = out.splitlines()[-1].split()
+    assert row[0] == "64x48" and row[1] == "2"
+    motion, expose, bound = map(float, row[2:5])
+    assert motion > 0 and expose > 0 and bound == pytest.approx(motion + expose, abs=2e-3)
+    assert float(row[12].rstrip("x")) >= 1.0         # bound + host time is never below the bound
+    for argv, needle in ((["--points", "0"], "give 1 to 20 points"), (["--full-size", "6000by4000"], "WIDTHxHEIGHT"),
+                         (["--full-size", "7x7"], "WIDTHxHEIGHT")):
+        assert_refused(run(["bench", "capture", *argv], capsys), needle)
