@@ -12,7 +12,13 @@ from . import _loss
 from ._lm import forward_jacobian
 from ._problem import Evaluator
 
-__all__ = ["SLSQP_MAXTIME_S", "energy_directions", "slsqp_energy"]
+__all__ = ["NLOPT_ERRORS", "SLSQP_MAXTIME_S", "energy_directions", "scale_to_feasible", "slsqp_energy"]
+
+#: What nlopt's optimize() raises on failure: its own classes (``nlopt.runtime_error`` and
+#: friends are not Python's RuntimeError) and the standard ones.
+NLOPT_ERRORS = tuple({RuntimeError, ValueError, nlopt.ForcedStop} | {
+    getattr(nlopt, n) for n in ("runtime_error", "logic_error", "domain_error", "range_error", "overflow_error",
+                                "underflow_error", "length_error") if isinstance(getattr(nlopt, n, None), type)})
 
 #: Wall-time cap of the constrained SLSQP polish (each constraint gradient integrates the
 #: albedo P + 1 times); a polish cut short is reported as not converged.
@@ -68,18 +74,49 @@ def slsqp_energy(problem, x0, energy_wo, maxeval):
             status = opt.last_optimize_result()
         except nlopt.RoundoffLimited:
             status = nlopt.ROUNDOFF_LIMITED
-        except (RuntimeError, ValueError) as exc:
-            x = space.from_unit(u0)
-            return x, _loss.objective(loss, problem.residuals_x(x)), False, f"nlopt SLSQP failed: {exc}"
+        except NLOPT_ERRORS as exc:
+            x, note = scale_to_feasible(problem, space.from_unit(u0), energy_wo)
+            reason = " ".join(str(exc).split())[:120] or type(exc).__name__
+            return x, _loss.objective(loss, problem.residuals_x(x)), False, f"nlopt SLSQP failed ({reason}){note}"
         excess = float(np.max(problem.albedo_excess(space.from_unit(u), energy_wo)))
         if excess <= 1e-4:
             break
         margin[0] += excess + 1e-4
     x = space.from_unit(u)
     ok = status in (1, 2, 3, 4) or status == nlopt.ROUNDOFF_LIMITED
-    if np.max(problem.albedo_excess(space.from_unit(u), energy_wo)) > 1e-4:
+    note = ""
+    if np.max(problem.albedo_excess(x, energy_wo)) > 1e-4:
         ok = False
-    return x, _loss.objective(loss, problem.residuals_x(x)), ok, _status_text(status)
+        x, note = scale_to_feasible(problem, x, energy_wo)
+    return x, _loss.objective(loss, problem.residuals_x(x)), ok, _status_text(status) + note
+
+
+def scale_to_feasible(problem, x, energy_wo):
+    """The fallback when SLSQP fails or ends infeasible: shrink each channel's affine
+    parameters toward their lower bounds, ``a = lo + s_c (a - lo)``, by the largest s_c in
+    [0, 1] with albedo_c(wo_k) <= 1. The albedo is affine in those parameters, so two
+    albedo evaluations give s_c exactly. Returns (x, a note for the message); x unchanged
+    (and the note says why) where no affine parameters exist or even s_c = 0 is infeasible."""
+    groups = getattr(problem, "linear", None) or []
+    c_n = problem.meas.n_channels
+    if not groups:
+        return x, "; no affine parameter to scale: albedo <= 1 NOT met"
+    lo = problem.space.lower
+    idx = [[g["index"][c] for g in groups] for c in range(c_n)]
+    x0 = x.copy()
+    for chan in idx:
+        x0[chan] = lo[chan]
+    a1 = (problem.albedo_excess(x, energy_wo) + 1.0).reshape(-1, c_n)
+    a0 = (problem.albedo_excess(x0, energy_wo) + 1.0).reshape(-1, c_n)
+    if np.any(a0 > 1.0):
+        return x, "; albedo > 1 even at the affine parameters' lower bounds: NOT met"
+    out = x.copy()
+    for c, chan in enumerate(idx):
+        slope = a1[:, c] - a0[:, c]
+        over = slope > 0
+        s = min([1.0] + list((1.0 - 1e-6 - a0[over, c]) / slope[over]))
+        out[chan] = lo[chan] + max(s, 0.0) * (x[chan] - lo[chan])
+    return out, "; affine parameters scaled to meet albedo <= 1"
 
 
 class _AlbedoQuadrature:
