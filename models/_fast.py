@@ -37,7 +37,6 @@ batched affine parts of the models that declare an affine parameter in :mod:`._f
 
 from __future__ import annotations
 
-import math
 import subprocess
 import sys
 from functools import lru_cache
@@ -45,10 +44,9 @@ from functools import lru_cache
 import numpy as np
 
 from ._base import CHANNELS, eval_inputs
-from ._rough_tables import _interp
 from ._fast_affine import affine_parts, affine_q, affine_spec, affine_tables, prepare
-from ._jit import (Directions, _cached_table_derivs, _cached_tables, _dr, _floor, _fresnel_conductor,
-                   _fresnel_outside, _lerp_table, _lobe, _oren_nayar_over_rho, _pairs, _tables)
+from ._jit import Directions, JitContext, _dr
+from ._jit import _fresnel_conductor  # noqa: F401  (tests check its derivatives as fast._fresnel_conductor)
 
 __all__ = ["available", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad",
            "affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
@@ -85,125 +83,24 @@ def available():
 # -- model kernels ---------------------------------------------------------------------------
 
 
-def _channels(P, name):
-    return P[name] if isinstance(P[name], list) else [P[name]] * CHANNELS
-
-
 def _kernel(model, wi, wo, P, grad=False):
     """f_r per channel (list of 3 arrays) for Dr.Jit direction vectors wi, wo (float64 or
     float32); P maps parameter names to scalars of the same type (per-channel parameters:
-    lists of 3) and, for ``roughplastic``, ``_tables`` to (t_ext, r_int).
+    lists of 3) plus what the model's ``kernel_inputs`` adds (roughplastic: ``_tables``).
 
-    With ``grad``, returns ``(f, J)``: J maps each parameter name to 3 arrays, d f[c] / d p
-    (per-channel p: d f[c] / d p[c]), from derivatives written out by hand next to the value
-    (forward mode, sharing every intermediate; tested against Dr.Jit's AD and finite
-    differences). ``roughplastic`` then also needs ``P["_dtables"]`` = (dt/d alpha,
-    dr/d alpha, dt/d eta, dr/d eta)."""
+    The kernel itself is the model's own (``model.structure.kernel``, written beside the
+    model with the pieces of :mod:`._jit`). With ``grad``, returns ``(f, J)``: J maps each
+    parameter name to 3 arrays, d f[c] / d p (per-channel p: d f[c] / d p[c]), from
+    derivatives written out by hand next to the value (forward mode, sharing every
+    intermediate; tested against Dr.Jit's AD and finite differences)."""
     import drjit as dr
 
+    impl = model.structure.kernel
+    if impl is None:
+        raise NotImplementedError(f"no compiled kernel for model {model.name!r}")
     F = type(wi.z)
-    U = dr.uint32_array_t(F)
-    name = model.name
-    ci, co = wi.z, wo.z
-    active = (ci > 0) & (co > 0)
-    zero = dr.zeros(F, dr.width(ci))
-    J = {}
-    if name == "diffuse":
-        f = [dr.select(active, r * (1.0 / math.pi) + zero, 0.0) for r in _channels(P, "reflectance")]
-        if grad:
-            J["reflectance"] = [dr.select(active, 1.0 / math.pi + zero, 0.0)] * CHANNELS
-    elif name == "orennayar":
-        shape = _oren_nayar_over_rho(dr, P["sigma"], wi, wo, grad)
-        basis, dbasis = shape if grad else (shape, None)
-        f = [r * basis for r in _channels(P, "reflectance")]
-        if grad:
-            J["reflectance"] = [basis] * CHANNELS
-            J["sigma"] = [r * dbasis for r in _channels(P, "reflectance")]
-    elif name in ("roughplastic", "roughconductor"):
-        kind = model.options["distribution"]
-        aniso = name == "roughconductor" and model.options["anisotropic"]
-        alphas = (P["alpha_u"], P["alpha_v"]) if aniso else (P["alpha"], P["alpha"])
-        au, av = (dr.maximum(a, 1e-4) for a in alphas)
-        lobe = _lobe(dr, kind, au, av, wi, wo, grad)
-        num, den, c = lobe[:3]
-        s = num / den
-        if grad:
-            # below the roughness floor alpha is clamped: derivative 0
-            gu, gv = (dr.select(a >= 1e-4, g, 0.0) * s for a, g in zip(alphas, lobe[4:]))
-            ds = {"alpha_u": gu, "alpha_v": gv} if aniso else {"alpha": gu + gv}
-        if name == "roughconductor":
-            fres = [_fresnel_conductor(dr, c, e, k, grad) for e, k in zip(_channels(P, "eta"), _channels(P, "k"))]
-            if not grad:
-                return [Fc * s for Fc in fres]
-            f = [Fc[0] * s for Fc in fres]
-            J["eta"] = [Fc[1] * s for Fc in fres]
-            J["k"] = [Fc[2] * s for Fc in fres]
-            for key, d in ds.items():
-                J[key] = [Fc[0] * d for Fc in fres]
-        else:
-            eta = P["int_ior"]
-            fres = _fresnel_outside(dr, dr.clip(c, 0.0, 1.0), eta, grad)
-            spec = fres[0] * s
-            t_ext, r_int = P["_tables"]
-            ti = _lerp_table(dr, F, U, t_ext, ci, 64)
-            to = _lerp_table(dr, F, U, t_ext, co, 64)
-            k_eta = 1.0 / (math.pi * eta * eta)
-            tt = dr.select(active, ti * to, 0.0)
-            scale = tt * k_eta
-            nonlinear = model.options["nonlinear"]
-            rhos = _channels(P, "diffuse_reflectance")
-            inv_den = [1.0 / (1.0 - (rho * r_int if nonlinear else r_int)) for rho in rhos]
-            f = [spec + rho * q * scale for rho, q in zip(rhos, inv_den)]
-            if grad:
-                dt_a, dr_a, dt_e, dr_e = P["_dtables"]
-
-                def dscale(dt):
-                    dti = _lerp_table(dr, F, U, dt, ci, 64)
-                    dto = _lerp_table(dr, F, U, dt, co, 64)
-                    return dr.select(active, dti * to + ti * dto, 0.0) * k_eta
-
-                ds_a = dscale(dt_a)
-                ds_e = dscale(dt_e) - 2.0 * scale / eta
-                # d/dx [rho / (1 - m r)] = rho m (dr/dx) / (1 - m r)^2 with m = rho or 1
-                J["diffuse_reflectance"] = [scale * (q * q if nonlinear else q) for q in inv_den]
-                J["alpha"] = []
-                J["int_ior"] = []
-                for rho, q in zip(rhos, inv_den):
-                    m = rho if nonlinear else 1.0
-                    J["alpha"].append(fres[0] * ds["alpha"] + rho * q * (ds_a + scale * m * dr_a * q))
-                    J["int_ior"].append(fres[2] * s + rho * q * (ds_e + scale * m * dr_e * q))
-    elif name == "cooktorrance":
-        # Ngan et al. 2005: Beckmann D without pi, G = min(1, 2 cos_m min(cos_i, cos_o) / (wi . m)),
-        # written with the unnormalised half vector h: cos_m = h_z / |h|, wi . m = (wi . h) / |h|
-        m = P["roughness"]
-        h = wi + wo
-        h2 = dr.squared_norm(h)
-        hz = h.z
-        dh = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h))  # |h| (wi . m)
-        up = active & (h2 > _floor(h2)) & (hz > 0) & (dh > 0)
-        r_hz2 = 1.0 / dr.select(up, hz * hz, 1.0)
-        m2 = m * m
-        e = (h.x * h.x + h.y * h.y) * r_hz2 * (1.0 / m2)  # tan^2(theta_m) / m^2
-        g_num = 2.0 * hz * dr.minimum(ci, co)
-        g_den = dr.select(g_num < dh, dh, g_num)  # G = g_num / g_den = min(1, 2 hz min / dh)
-        # D G / (pi ci co) with D = exp(-e) / (m^2 cos^4(theta_m)), 1 / cos^2 = |h|^2 / hz^2
-        # (ratios first: hz^4 ci co underflows float32 at grazing angles)
-        sec2 = h2 * r_hz2
-        s = dr.select(up, dr.exp(-e) * sec2 * sec2 * g_num / (math.pi * m2 * g_den * dr.select(up, ci * co, 1.0)), 0.0)
-        x = 1.0 - dr.clip(dh * dr.rsqrt(dr.select(up, h2, 1.0)), 0.0, 1.0)
-        x2 = x * x
-        x5 = x2 * x2 * x
-        rds, rss, f0s = (_channels(P, k) for k in ("diffuse_reflectance", "specular_reflectance", "f0"))
-        lam = dr.select(active, 1.0 / math.pi + zero, 0.0)
-        f = [rd * lam + rs * (f0 + (1.0 - f0) * x5) * s for rd, rs, f0 in zip(rds, rss, f0s)]
-        if grad:
-            ds = (2.0 * e - 2.0) * (1.0 / m) * s  # d ln s / dm = (2 e - 2) / m
-            J["diffuse_reflectance"] = [lam] * CHANNELS
-            J["specular_reflectance"] = [(f0 + (1.0 - f0) * x5) * s for f0 in f0s]
-            J["roughness"] = [rs * (f0 + (1.0 - f0) * x5) * ds for rs, f0 in zip(rss, f0s)]
-            J["f0"] = [rs * (1.0 - x5) * s for rs in rss]
-    else:
-        raise NotImplementedError(f"no compiled kernel for model {name!r}")
+    ctx = JitContext(dr, F, dr.uint32_array_t(F), (wi.z > 0) & (wo.z > 0), dr.zeros(F, dr.width(wi.z)))
+    f, J = impl(model, ctx, wi, wo, P, grad)
     if not grad:
         return f
     return f, {par.name: J[par.name] for par in model.parameters}
@@ -211,12 +108,10 @@ def _kernel(model, wi, wo, P, grad=False):
 
 def _param_vars(model, p, F, grad, dtables=False):
     """Dr.Jit scalars of type F for validated parameters ``p`` (opaque: a new value reuses
-    the compiled kernel), AD-enabled when ``grad``; for ``roughplastic`` also its tables
-    (``P["_tables"]``, computed in float64 and cast to F) and, with ``dtables``, their
-    derivatives (``P["_dtables"]``, for ``_kernel(..., grad=True)``). Returns (P, leaves)."""
+    the compiled kernel), AD-enabled when ``grad``; plus what the model's ``structure.kernel_inputs`` adds
+    (roughplastic: its tables and, with ``dtables``, their derivatives). Returns (P, leaves)."""
     import drjit as dr
 
-    F64 = _dr()[1]
     P, leaves = {}, []
     for par in model.parameters:
         v = p[par.name]
@@ -227,33 +122,9 @@ def _param_vars(model, p, F, grad, dtables=False):
                 dr.enable_grad(x)
         leaves.append((par, vals))
         P[par.name] = vals if par.per_channel else vals[0]
-    if model.name == "roughplastic":
-        kind = model.options["distribution"]
-        t_paired = False  # the cached exact tables come paired already
-        grid = None if getattr(model, "exact_tables", True) else _interp(kind, p["alpha"], p["int_ior"], grad=grad)
-        if grid is not None:
-            # the same interpolated tables as the numpy model; for gradients, their
-            # first-order expansion about the current point (value unchanged: the
-            # opaque alpha, eta equal p's), d/d(alpha, eta) from the spline
-            if grad:
-                t, r, dx, dy = grid
-                da, de = P["alpha"] - p["alpha"], P["int_ior"] - p["int_ior"]
-                tables = (F(t) + da * F(dx[:-1]) + de * F(dy[:-1]), F([r]) + da * dx[-1] + de * dy[-1])
-            else:
-                tables = (F(grid[0]), F([grid[1]]))
-        elif grad:
-            tables = _tables(kind, dr.maximum(F64(P["alpha"]), 1e-4), F64(P["int_ior"]))
-        else:
-            tables = _cached_tables(kind, p["alpha"], p["int_ior"], F, paired=True)
-            t_paired = True
-        t, r = (x if type(x) is F else F(x) for x in tables)
-        P["_tables"] = (t if t_paired else _pairs(t), r)
-        if dtables:
-            if grid is not None:
-                dx, dy = _interp(kind, p["alpha"], p["int_ior"], grad=True)[2:]
-                P["_dtables"] = (_pairs(F(dx[:-1])), F([dx[-1]]), _pairs(F(dy[:-1])), F([dy[-1]]))
-            else:
-                P["_dtables"] = _cached_table_derivs(kind, p["alpha"], p["int_ior"], F)
+    hook = model.structure.kernel_inputs
+    if hook is not None:
+        hook(model, p, P, F, grad, dtables)
     return P, leaves
 
 
@@ -417,10 +288,10 @@ def _frozen_kernel_for(name, options):
 
 
 def _frozen_kernel(model):
-    # _kernel reads only the model's name and options (tables arrive in P). The two
-    # diffuse models' traces are so short that replaying a recording costs more (~19 us
-    # against ~13 us for 1000 pairs)
-    if model.name in ("diffuse", "orennayar"):
+    # _kernel reads only the model's name and options (tables arrive in P). A model whose
+    # trace is so short that replaying a recording costs more (the diffuse ones: ~19 us
+    # against ~13 us for 1000 pairs) says so (structure.freeze = False).
+    if not model.structure.freeze:
         return lambda wi, wo, P: _kernel(model, wi, wo, P)
     return _frozen_kernel_for(model.name, tuple(sorted(model.options.items())))
 

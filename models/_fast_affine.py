@@ -4,12 +4,10 @@
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
-from ._jit import (Directions, _cached_tables, _dr, _fresnel_outside, _lobe, _oren_nayar_over_rho,
-                   _t_ext_batch)
+from ._jit import Directions, JitContext, _cached_tables, _dr, _t_ext_batch
 
 __all__ = ["affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
 
@@ -116,35 +114,8 @@ def affine_parts(model, prepared, thetas, tables=None):
         vo = dr.gather(V3, prepared.wo, i)
         ci, co = vi.z, vo.z
         active = (ci > 0) & (co > 0)
-        if model.name == "diffuse":
-            base = F(0.0) * ci
-            basis = dr.select(active, F(1.0 / math.pi), F(0.0))
-        elif model.name == "orennayar":
-            base = F(0.0) * ci
-            basis = _oren_nayar_over_rho(dr, dr.gather(F, cols[0], k), vi, vo)
-        else:  # roughplastic, nonlinear=False
-            kind = model.options["distribution"]
-            alpha = dr.maximum(cols[0], 1e-4)
-            if tables is None:
-                t = _t_ext_batch(kind, alpha, cols[1])
-            else:
-                tb = np.asarray(tables, dtype=np.float64)
-                if tb.shape != (K, 64):
-                    raise ValueError(f"tables must have shape ({K}, 64), got {tb.shape}")
-                t = F(tb.reshape(-1))
-            al = dr.gather(F, alpha, k)
-            eta = dr.gather(F, cols[1], k)
-            num, den, c, ok = _lobe(dr, kind, al, al, vi, vo)
-            Fr, _ = _fresnel_outside(dr, dr.clip(c, 0.0, 1.0), eta)
-            base = Fr * num / den
-
-            def lerp(x):
-                x = dr.clip(x, 0.0, 1.0) * 63
-                j = dr.minimum(U(x), 62)
-                w1 = x - F(j)
-                return dr.gather(F, t, k * 64 + j) * (1.0 - w1) + dr.gather(F, t, k * 64 + j + 1) * w1
-
-            basis = dr.select(active, lerp(ci) * lerp(co) / (math.pi * eta * eta), 0.0)
+        ctx = JitContext(dr, F, U, active, None)
+        base, basis = model.structure.affine.kernel(model, ctx, cols, k, K, vi, vo, tables)
         dr.eval(base, basis)
         return np.asarray(base).reshape(K, N), np.asarray(basis).reshape(K, N)
 

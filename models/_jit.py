@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
 from ._base import CHANNELS
 from .geometry import as_directions
 
-__all__ = ["Directions"]
+__all__ = ["Directions", "JitContext", "channels", "microfacet_lobe"]
 
 
 def _dr():
@@ -516,3 +517,38 @@ def _t_ext_batch(kind, alpha, eta):
     mz = inv
     d = wxr * mx + mu * mz
     return dr.block_sum(_transmit(dr, kind, al, e, mu, d, mz) * wgt, a * b)
+
+
+# -- what the models' own kernels share (the kernels live beside their models) ---------------
+class JitContext(NamedTuple):
+    """What every model kernel gets: the Dr.Jit module, the float and uint array types of the
+    batch, the mask of pairs above the horizon (both cosines > 0) and a zero array."""
+
+    dr: object
+    F: type
+    U: type
+    active: object
+    zero: object
+
+
+def channels(P, name):
+    """A parameter's value per colour channel (a shared parameter repeated)."""
+    return P[name] if isinstance(P[name], list) else [P[name]] * CHANNELS
+
+
+_channels = channels
+
+
+def microfacet_lobe(dr, kind, alphas, wi, wo, grad, aniso):
+    """The microfacet term D G / (4 cos_i cos_o) = s, the cosine c at the microfacet normal
+    and, with ``grad``, ds per roughness parameter (``alpha`` or ``alpha_u``/``alpha_v``);
+    below the roughness floor alpha is clamped: derivative 0."""
+    au, av = (dr.maximum(a, 1e-4) for a in alphas)
+    lobe = _lobe(dr, kind, au, av, wi, wo, grad)
+    num, den, c = lobe[:3]
+    s = num / den
+    ds = None
+    if grad:
+        gu, gv = (dr.select(a >= 1e-4, g, 0.0) * s for a, g in zip(alphas, lobe[4:]))
+        ds = {"alpha_u": gu, "alpha_v": gv} if aniso else {"alpha": gu + gv}
+    return s, c, ds

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from ._base import Model, Parameter, register, rgb
+import math
+
+from ._base import CHANNELS, Model, Parameter, register, rgb
+from ._jit import channels
 from ._structure import Affine, Structure
 from ._diffuse import lambert
 
@@ -23,7 +26,7 @@ class Diffuse(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=True, affine=Affine("reflectance"))
+        return Structure(kernel=_jit_kernel, freeze=False, affine=Affine("reflectance", kernel=_jit_affine_parts))
     OPTIONS = {}
     energy_conserving = True
 
@@ -36,3 +39,17 @@ class Diffuse(Model):
     def to_mitsuba(self, params):
         p = self.validate(params)
         return {"type": "diffuse", "reflectance": rgb(p["reflectance"])}
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """The compiled kernel (:mod:`gonio.models.fast`): f_r = rho / pi, d f / d rho = 1 / pi."""
+    dr = k.dr
+    f = [dr.select(k.active, r * (1.0 / math.pi) + k.zero, 0.0) for r in channels(P, "reflectance")]
+    J = {"reflectance": [dr.select(k.active, 1.0 / math.pi + k.zero, 0.0)] * CHANNELS} if grad else {}
+    return f, J
+
+
+def _jit_affine_parts(model, k, cols, lanes, K, vi, vo, tables):
+    """base = 0, basis = 1 / pi above the horizon (``fast.affine_parts``)."""
+    dr, F = k.dr, k.F
+    return F(0.0) * vi.z, dr.select(k.active, F(1.0 / math.pi), F(0.0))

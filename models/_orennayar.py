@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 
 
-from ._base import Model, Parameter, register
+from ._base import CHANNELS, Model, Parameter, register
+from ._jit import _oren_nayar_over_rho, channels
 from ._structure import Affine, Structure
 from ._diffuse import oren_nayar
 
@@ -34,7 +35,7 @@ class OrenNayar(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=True, affine=Affine("reflectance", ("sigma",)))
+        return Structure(kernel=_jit_kernel, freeze=False, affine=Affine("reflectance", ("sigma",), kernel=_jit_affine_parts))
     OPTIONS = {}
     energy_conserving = True
 
@@ -55,3 +56,21 @@ class OrenNayar(Model):
         for c, v in zip("rgb", p["reflectance"]):
             d[f"reflectance_{c}"] = float(v)
         return d
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """The compiled kernel: f_r = rho * shape(sigma), derivatives by hand."""
+    shape = _oren_nayar_over_rho(k.dr, P["sigma"], wi, wo, grad)
+    basis, dbasis = shape if grad else (shape, None)
+    f = [r * basis for r in channels(P, "reflectance")]
+    J = {}
+    if grad:
+        J["reflectance"] = [basis] * CHANNELS
+        J["sigma"] = [r * dbasis for r in channels(P, "reflectance")]
+    return f, J
+
+
+def _jit_affine_parts(model, k, cols, lanes, K, vi, vo, tables):
+    """base = 0, basis = shape(sigma) (``fast.affine_parts``)."""
+    dr, F = k.dr, k.F
+    return F(0.0) * vi.z, _oren_nayar_over_rho(dr, dr.gather(F, cols[0], lanes), vi, vo)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._base import Model, Parameter, register, rgb
+from ._jit import _fresnel_conductor, channels, microfacet_lobe
 from ._structure import Structure
 from ._fresnel import fresnel_conductor
 from .geometry import half_vector
@@ -47,7 +48,7 @@ class RoughConductor(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=True)
+        return Structure(kernel=_jit_kernel)
     OPTIONS = {"distribution": ("beckmann", "ggx"), "anisotropic": (False, True)}
     energy_conserving = True
 
@@ -104,3 +105,18 @@ class RoughConductor(Model):
         else:
             d["alpha"] = au
         return d
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """The compiled kernel: conductor Fresnel times the microfacet term, derivatives by hand."""
+    dr = k.dr
+    aniso = model.options["anisotropic"]
+    alphas = (P["alpha_u"], P["alpha_v"]) if aniso else (P["alpha"], P["alpha"])
+    s, c, ds = microfacet_lobe(dr, model.options["distribution"], alphas, wi, wo, grad, aniso)
+    fres = [_fresnel_conductor(dr, c, e, kk, grad) for e, kk in zip(channels(P, "eta"), channels(P, "k"))]
+    if not grad:
+        return [Fc * s for Fc in fres], {}
+    J = {"eta": [Fc[1] * s for Fc in fres], "k": [Fc[2] * s for Fc in fres]}
+    for key, d in ds.items():
+        J[key] = [Fc[0] * d for Fc in fres]
+    return [Fc[0] * s for Fc in fres], J

@@ -9,6 +9,8 @@ changes eta by 2.8e-4 and F by about 0.1 %).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from . import _fast
@@ -17,6 +19,8 @@ from ._fresnel import fresnel_dielectric
 from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution, smith_g1_xyz
 from ._rough_tables import _interp, lerp_table, rough_tables, rough_tables_interp
+from ._jit import (_cached_table_derivs, _cached_tables, _dr, _fresnel_outside, _lerp_table, _lobe, _pairs,
+                   _t_ext_batch, _tables, channels, microfacet_lobe)
 from ._structure import Affine, Structure
 
 __all__ = ["RoughPlastic"]
@@ -89,8 +93,8 @@ class RoughPlastic(Model):
         affine = None
         if not self.options["nonlinear"] and self.exact_tables:
             affine = Affine("diffuse_reflectance", ("alpha", "int_ior"), tables=True,
-                            q_approx=self._q_approx, q_gradient=self._q_gradient)
-        return Structure(kernel=True, compile_always=True, affine=affine)
+                            q_approx=self._q_approx, q_gradient=self._q_gradient, kernel=_jit_affine_parts)
+        return Structure(kernel=_jit_kernel, kernel_inputs=_jit_inputs, compile_always=True, affine=affine)
 
     def _q_approx(self, thetas):
         """q = 1 - R_int at thetas (K, 2) from the precomputed grid's interpolation where it
@@ -171,3 +175,109 @@ class RoughPlastic(Model):
             "ext_ior": 1.0,
             "diffuse_reflectance": rgb(p["diffuse_reflectance"]),
         }
+
+
+def _jit_inputs(model, p, P, F, grad, dtables):
+    """The kernel's tables (``P["_tables"]``: t_ext and R_int, computed in float64 and cast to
+    F) and, with ``dtables``, their derivatives (``P["_dtables"]``)."""
+    import drjit as dr
+
+    F64 = _dr()[1]
+    kind = model.options["distribution"]
+    t_paired = False  # the cached exact tables come paired already
+    grid = None if getattr(model, "exact_tables", True) else _interp(kind, p["alpha"], p["int_ior"], grad=grad)
+    if grid is not None:
+        # the same interpolated tables as the numpy model; for gradients, their
+        # first-order expansion about the current point (value unchanged: the
+        # opaque alpha, eta equal p's), d/d(alpha, eta) from the spline
+        if grad:
+            t, r, dx, dy = grid
+            da, de = P["alpha"] - p["alpha"], P["int_ior"] - p["int_ior"]
+            tables = (F(t) + da * F(dx[:-1]) + de * F(dy[:-1]), F([r]) + da * dx[-1] + de * dy[-1])
+        else:
+            tables = (F(grid[0]), F([grid[1]]))
+    elif grad:
+        tables = _tables(kind, dr.maximum(F64(P["alpha"]), 1e-4), F64(P["int_ior"]))
+    else:
+        tables = _cached_tables(kind, p["alpha"], p["int_ior"], F, paired=True)
+        t_paired = True
+    t, r = (x if type(x) is F else F(x) for x in tables)
+    P["_tables"] = (t if t_paired else _pairs(t), r)
+    if dtables:
+        if grid is not None:
+            dx, dy = _interp(kind, p["alpha"], p["int_ior"], grad=True)[2:]
+            P["_dtables"] = (_pairs(F(dx[:-1])), F([dx[-1]]), _pairs(F(dy[:-1])), F([dy[-1]]))
+        else:
+            P["_dtables"] = _cached_table_derivs(kind, p["alpha"], p["int_ior"], F)
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """The compiled kernel: specular lobe + diffuse base through the coating's tables."""
+    dr, F, U, active = k.dr, k.F, k.U, k.active
+    ci, co = wi.z, wo.z
+    alphas = (P["alpha"], P["alpha"])
+    s, c, ds = microfacet_lobe(dr, model.options["distribution"], alphas, wi, wo, grad, False)
+    J = {}
+    eta = P["int_ior"]
+    fres = _fresnel_outside(dr, dr.clip(c, 0.0, 1.0), eta, grad)
+    spec = fres[0] * s
+    t_ext, r_int = P["_tables"]
+    ti = _lerp_table(dr, F, U, t_ext, ci, 64)
+    to = _lerp_table(dr, F, U, t_ext, co, 64)
+    k_eta = 1.0 / (math.pi * eta * eta)
+    tt = dr.select(active, ti * to, 0.0)
+    scale = tt * k_eta
+    nonlinear = model.options["nonlinear"]
+    rhos = channels(P, "diffuse_reflectance")
+    inv_den = [1.0 / (1.0 - (rho * r_int if nonlinear else r_int)) for rho in rhos]
+    f = [spec + rho * q * scale for rho, q in zip(rhos, inv_den)]
+    if grad:
+        dt_a, dr_a, dt_e, dr_e = P["_dtables"]
+
+        def dscale(dt):
+            dti = _lerp_table(dr, F, U, dt, ci, 64)
+            dto = _lerp_table(dr, F, U, dt, co, 64)
+            return dr.select(active, dti * to + ti * dto, 0.0) * k_eta
+
+        ds_a = dscale(dt_a)
+        ds_e = dscale(dt_e) - 2.0 * scale / eta
+        # d/dx [rho / (1 - m r)] = rho m (dr/dx) / (1 - m r)^2 with m = rho or 1
+        J["diffuse_reflectance"] = [scale * (q * q if nonlinear else q) for q in inv_den]
+        J["alpha"] = []
+        J["int_ior"] = []
+        for rho, q in zip(rhos, inv_den):
+            m = rho if nonlinear else 1.0
+            J["alpha"].append(fres[0] * ds["alpha"] + rho * q * (ds_a + scale * m * dr_a * q))
+            J["int_ior"].append(fres[2] * s + rho * q * (ds_e + scale * m * dr_e * q))
+    return f, J
+
+
+def _jit_affine_parts(model, ctx, cols, lanes, K, vi, vo, tables):
+    """base = the specular lobe, basis = t(mu_i) t(mu_o) / (pi eta^2) (``fast.affine_parts``;
+    ``nonlinear=False``)."""
+    dr, F, U, active = ctx.dr, ctx.F, ctx.U, ctx.active
+    k = lanes
+    ci, co = vi.z, vo.z
+    kind = model.options["distribution"]
+    alpha = dr.maximum(cols[0], 1e-4)
+    if tables is None:
+        t = _t_ext_batch(kind, alpha, cols[1])
+    else:
+        tb = np.asarray(tables, dtype=np.float64)
+        if tb.shape != (K, 64):
+            raise ValueError(f"tables must have shape ({K}, 64), got {tb.shape}")
+        t = F(tb.reshape(-1))
+    al = dr.gather(F, alpha, k)
+    eta = dr.gather(F, cols[1], k)
+    num, den, c, ok = _lobe(dr, kind, al, al, vi, vo)
+    Fr, _ = _fresnel_outside(dr, dr.clip(c, 0.0, 1.0), eta)
+    base = Fr * num / den
+
+    def lerp(x):
+        x = dr.clip(x, 0.0, 1.0) * 63
+        j = dr.minimum(U(x), 62)
+        w1 = x - F(j)
+        return dr.gather(F, t, k * 64 + j) * (1.0 - w1) + dr.gather(F, t, k * 64 + j + 1) * w1
+
+    basis = dr.select(active, lerp(ci) * lerp(co) / (math.pi * eta * eta), 0.0)
+    return base, basis

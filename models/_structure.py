@@ -2,8 +2,10 @@
 
 A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its name:
 
-* ``kernel``: a compiled Dr.Jit kernel evaluates it (:mod:`gonio.models.fast`: value and
-  exact derivatives);
+* ``kernel``: its compiled Dr.Jit kernel, written beside the model (:mod:`gonio.models.fast`
+  runs it: value and exact derivatives), or None; ``kernel_inputs`` adds what the kernel
+  needs beyond the parameters (roughplastic: its tables); ``freeze`` says whether replaying
+  a recorded kernel launch pays off (not for the two diffuse models' short traces);
 * ``compile_always``: its parameter-dependent precomputation is much cheaper compiled
   (roughplastic's quadrature tables: ~4 ms in Dr.Jit, ~50 ms in numpy), so the compiled path
   pays off at any number of points;
@@ -41,6 +43,9 @@ class Affine:
         ``q_approx(thetas (K, T)) -> (K,)``: a cheap q for the iterations (None: exact q).
     q_gradient : callable, optional
         ``q_gradient(theta (T,)) -> (T,)``: d q / d theta (None: q is 1, derivative 0).
+    kernel : callable, optional
+        ``kernel(model, ctx, cols, lanes, K, vi, vo, tables) -> (base, basis)``: the batched
+        Dr.Jit kernel of ``fast.affine_parts`` (K parameter sets times N directions).
     """
 
     coefficient: str
@@ -48,6 +53,7 @@ class Affine:
     tables: bool = False
     q_approx: Callable | None = None
     q_gradient: Callable | None = None
+    kernel: Callable | None = None
 
     def approx_q(self, thetas) -> np.ndarray:
         """q at thetas (K, T) for the iterations: 1 without tables."""
@@ -68,6 +74,8 @@ class Affine:
 class Structure:
     """A model's structure (see the module notes)."""
 
-    kernel: bool = False
+    kernel: Callable | None = None
+    kernel_inputs: Callable | None = None
+    freeze: bool = True
     compile_always: bool = False
     affine: Affine | None = None
