@@ -34,6 +34,10 @@ import time
 
 import numpy as np
 
+from . import _fast as fast
+from ._base import get
+from .mitsuba import interaction, mitsuba_variant
+
 __all__ = ["run", "CASES", "coloured_params"]
 
 #: (model name, options) benchmarked by default.
@@ -77,8 +81,6 @@ def _interleaved_best(timed, repeat):
 def _mitsuba_timer(model, params, wi, wo):
     """A callable running Mitsuba's bsdf.eval on the batch, or None without Mitsuba."""
     try:
-        from .mitsuba import interaction, mitsuba_variant
-
         variant = mitsuba_variant()
         import drjit as dr
         import mitsuba as mi
@@ -97,6 +99,71 @@ def _mitsuba_timer(model, params, wi, wo):
         dr.sync_thread()
 
     return go, variant
+
+
+COLUMNS = ("numpy", "drjit64", "drjit32", "jac32", "grad32", "mitsuba")
+EXTRA = ("32/mi", "jac/ev", "grad/ev", "grad/ev64")
+
+
+def _resident(fn):
+    """A timer of a resident-batch call: the call, then wait for Dr.Jit's kernels."""
+    import drjit as dr
+
+    def go():
+        fn()
+        dr.sync_thread()
+
+    return go
+
+
+def _compiled_timers(model, p, wi, wo, dirs, dirs64, rng):
+    """The compiled paths' timers for one model (``drjit64`` ... ``grad64``)."""
+    timed = {"drjit64": lambda: fast.eval(model, wi, wo, p)}
+    bound = fast.Bound(model, p, np.float32)
+    timed["drjit32"] = _resident(lambda: bound.eval(dirs, numpy=False))
+    timed["jac32"] = _resident(lambda: fast.jacobian(model, dirs, p, numpy=False))
+    f_true = model.eval(wi, wo, p)
+    y_np = f_true * (1.0 + 0.01 * rng.standard_normal(f_true.shape))
+    w_np = 1.0 / (0.01 * np.maximum(f_true, 1e-3)) ** 2
+    y32, w32 = dirs.channels(y_np), dirs.channels(w_np)
+    y64, w64 = dirs64.channels(y_np), dirs64.channels(w_np)
+    timed["grad32"] = lambda: fast.chi2_grad(model, dirs, p, y32, w32)
+    bound64 = fast.Bound(model, p, np.float64)
+    timed["eval64"] = _resident(lambda: bound64.eval(dirs64, numpy=False))
+    timed["grad64"] = lambda: fast.chi2_grad(model, dirs64, p, y64, w64)
+    return timed
+
+
+def _head_to_head(timed, t, repeat):
+    """drjit32 against mitsuba timed alone, taking turns which goes first: next to the numpy
+    columns (hundreds of MB through the caches between timings) the ratio moved by up to
+    30 % with the order."""
+    if "drjit32" in timed and "mitsuba" in timed:
+        pair = {"drjit32": timed["drjit32"], "mitsuba": timed["mitsuba"]}
+        flip = {"mitsuba": timed["mitsuba"], "drjit32": timed["drjit32"]}
+        h2h = [_interleaved_best(pair if r % 2 == 0 else flip, 2) for r in range(2 * repeat)]
+        return {k: min(h[k] for h in h2h) for k in pair}
+    return {"drjit32": t["drjit32"], "mitsuba": t["mitsuba"]}
+
+
+def _row(name, options, t, head, n):
+    row = {"model": name, "options": dict(options)}
+    row.update({k: (n / v if v else None) for k, v in t.items() if k in COLUMNS})
+    row["ratio"] = (head["mitsuba"] / head["drjit32"]) if (head["mitsuba"] and head["drjit32"]) else None
+    row.update({f"{k}_h2h": (n / v if v else None) for k, v in head.items()})
+    for key, num, den in (("jac_cost", "jac32", "drjit32"), ("grad_cost", "grad32", "drjit32"),
+                          ("grad_cost64", "grad64", "eval64")):
+        row[key] = (t[num] / t[den]) if (t.get(num) and t.get(den)) else None
+    return row
+
+
+def _print_row(row, name, options, out):
+    def fmt(x, width, scale=1e-6, digits=1):
+        return f"{x * scale:{width}.{digits}f}" if x is not None else f"{'-':>{width}}"
+
+    label = name + "".join(f" {v}" for v in options.values())
+    print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in COLUMNS)
+          + "".join(fmt(row[k], 10, 1, 2) for k in ("ratio", "jac_cost", "grad_cost", "grad_cost64")), file=out)
 
 
 def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
@@ -123,8 +190,6 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         ``mitsuba_h2h``), ``jac_cost`` and ``grad_cost`` (time of the Jacobian and of
         chi2_grad / time of drjit32) and ``grad_cost64`` (the same in float64).
     """
-    from . import _fast, get
-
     out = file or sys.stdout
     rng = np.random.default_rng(seed)
 
@@ -134,80 +199,34 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         return v / np.linalg.norm(v, axis=1)[:, None]
 
     wi, wo = hemi(n), hemi(n)
-    fast = _fast.available()
-    if fast:
-        import drjit as dr
-
-        dirs = _fast.Directions(wi, wo, np.float32)
-        dirs64 = _fast.Directions(wi, wo, np.float64)
-
-        def resident(fn):
-            def go():
-                fn()
-                dr.sync_thread()
-
-            return go
-
+    compiled = fast.available()
+    if compiled:
+        dirs = fast.Directions(wi, wo, np.float32)
+        dirs64 = fast.Directions(wi, wo, np.float64)
     rows = []
-    cols = ("numpy", "drjit64", "drjit32", "jac32", "grad32", "mitsuba")
-    extra = ("32/mi", "jac/ev", "grad/ev", "grad/ev64")
     print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat})", file=out)
-    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in cols) + "".join(f"{c:>10}" for c in extra), file=out)
+    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in COLUMNS) + "".join(f"{c:>10}" for c in EXTRA), file=out)
     variant = None
     for name, options in cases:
         model = get(name, **options)
         p = coloured_params(model)
         model.eval(wi[:1000], wo[:1000], p)  # warm caches (tables)
         timed = {"numpy": lambda: model.eval(wi, wo, p)}
-        if fast:
-            timed["drjit64"] = lambda: _fast.eval(model, wi, wo, p)
-            bound = _fast.Bound(model, p, np.float32)
-            timed["drjit32"] = resident(lambda: bound.eval(dirs, numpy=False))
-            timed["jac32"] = resident(lambda: _fast.jacobian(model, dirs, p, numpy=False))
-            f_true = model.eval(wi, wo, p)
-            y_np = f_true * (1.0 + 0.01 * rng.standard_normal(f_true.shape))
-            w_np = 1.0 / (0.01 * np.maximum(f_true, 1e-3)) ** 2
-            y32, w32 = dirs.channels(y_np), dirs.channels(w_np)
-            y64, w64 = dirs64.channels(y_np), dirs64.channels(w_np)
-            timed["grad32"] = lambda: _fast.chi2_grad(model, dirs, p, y32, w32)
-            bound64 = _fast.Bound(model, p, np.float64)
-            timed["eval64"] = resident(lambda: bound64.eval(dirs64, numpy=False))
-            timed["grad64"] = lambda: _fast.chi2_grad(model, dirs64, p, y64, w64)
+        if compiled:
+            timed.update(_compiled_timers(model, p, wi, wo, dirs, dirs64, rng))
         go, variant = _mitsuba_timer(model, p, wi, wo)
         if go is not None:
             timed["mitsuba"] = go
-        t = dict.fromkeys(cols)
+        t = dict.fromkeys(COLUMNS)
         t.update(_interleaved_best(timed, repeat))
-        if "drjit32" in timed and "mitsuba" in timed:
-            # the figure of merit from a head-to-head of just the two, taking turns which
-            # goes first: next to the numpy columns (hundreds of MB through the caches
-            # between timings) the ratio moved by up to 30 % with the order
-            pair = {"drjit32": timed["drjit32"], "mitsuba": timed["mitsuba"]}
-            flip = {"mitsuba": timed["mitsuba"], "drjit32": timed["drjit32"]}
-            h2h = [_interleaved_best(pair if r % 2 == 0 else flip, 2) for r in range(2 * repeat)]
-            head = {k: min(h[k] for h in h2h) for k in pair}
-        else:
-            head = {"drjit32": t["drjit32"], "mitsuba": t["mitsuba"]}
-        row = {"model": name, "options": dict(options)}
-        row.update({k: (n / v if v else None) for k, v in t.items() if k in cols})
-        row["ratio"] = (head["mitsuba"] / head["drjit32"]) if (head["mitsuba"] and head["drjit32"]) else None
-        row.update({f"{k}_h2h": (n / v if v else None) for k, v in head.items()})
-        for key, num, den in (("jac_cost", "jac32", "drjit32"), ("grad_cost", "grad32", "drjit32"),
-                              ("grad_cost64", "grad64", "eval64")):
-            row[key] = (t[num] / t[den]) if (t.get(num) and t.get(den)) else None
+        row = _row(name, options, t, _head_to_head(timed, t, repeat), n)
         rows.append(row)
-
-        def fmt(x, width, scale=1e-6, digits=1):
-            return f"{x * scale:{width}.{digits}f}" if x is not None else f"{'-':>{width}}"
-
-        label = name + "".join(f" {v}" for v in options.values())
-        print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in cols)
-              + "".join(fmt(row[k], 10, 1, 2) for k in ("ratio", "jac_cost", "grad_cost", "grad_cost64")), file=out)
+        _print_row(row, name, options, out)
     print("32/mi: drjit32 against mitsuba timed head to head (the columns: all paths in turn); "
           "jac/ev, grad/ev: against drjit32 in turn; grad/ev64: float64", file=out)
     if variant is not None:
         print(f"Mitsuba variant: {variant}", file=out)
-    if not fast:
+    if not compiled:
         print("Dr.Jit LLVM backend unavailable: compiled paths not timed", file=out)
     return rows
 
