@@ -76,6 +76,44 @@ def _inside(u, step):
     return np.clip(t, 0.0, 1.0)
 
 
+def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget):
+    """Raise the damping until a step inside the box lowers the cost.
+
+    Returns ``(outcome, u_new, r_new, c_new, lam)`` with outcome ``"accepted"``,
+    ``"predicted"`` (a (nearly) Gauss-Newton step whose predicted decrease is below the
+    tolerance: converged without evaluating it) or ``"none"`` (no decrease possible)."""
+    d = np.maximum(np.diag(Af), 1e-12 * max(np.max(np.diag(Af)), 1e-300))
+    u_new = r_new = None
+    c_new = np.inf
+    while lam < 1e12:
+        try:
+            step_f = np.linalg.solve(Af + lam * np.diag(d), -gf)
+        except np.linalg.LinAlgError:
+            lam *= 8.0
+            continue
+        if not np.all(np.abs(step_f) <= MAX_STEP):  # a leap (or NaN), not a local step: damp more
+            lam *= 8.0
+            continue
+        step = np.zeros_like(u)
+        step[free] = step_f
+        u_new = _inside(u, step)
+        if lam <= 1e-3:  # (nearly) Gauss-Newton: is the step worth an evaluation?
+            pred = cost - float(np.sum((r + J @ (u_new - u)) ** 2))
+            if pred <= ftol * cost + atol:
+                return "predicted", u_new, r_new, c_new, lam
+        try:
+            r_new = fun(u_new)
+            c_new = float(r_new @ r_new)
+        except FloatingPointError:
+            c_new = np.inf
+        if c_new < cost:
+            return "accepted", u_new, r_new, c_new, lam
+        lam *= 8.0
+        if budget is not None and not budget():
+            break
+    return "none", u_new, r_new, c_new, lam
+
+
 def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, atol: float = 0.0,
                         xtol: float = 1e-10, h: float = 1e-6, budget=None, jac=None,
                         abandon=None) -> LMResult:
@@ -123,38 +161,12 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
         if not np.any(free) or np.max(np.abs(g[free])) <= 1e-14 * max(cost, 1e-300):
             message, converged = "gradient vanishes", True
             break
-        Af, gf = A[np.ix_(free, free)], g[free]
-        d = np.maximum(np.diag(Af), 1e-12 * max(np.max(np.diag(Af)), 1e-300))
-        accepted = False
-        while lam < 1e12:
-            try:
-                step_f = np.linalg.solve(Af + lam * np.diag(d), -gf)
-            except np.linalg.LinAlgError:
-                lam *= 8.0
-                continue
-            if not np.all(np.abs(step_f) <= MAX_STEP):  # a leap (or NaN), not a local step: damp more
-                lam *= 8.0
-                continue
-            step = np.zeros_like(u)
-            step[free] = step_f
-            u_new = _inside(u, step)
-            if lam <= 1e-3:  # (nearly) Gauss-Newton: is the step worth an evaluation?
-                pred = cost - float(np.sum((r + J @ (u_new - u)) ** 2))
-                if pred <= ftol * cost + atol:
-                    return LMResult(u=u, r=r, cost=cost, converged=True,
-                                    message="predicted decrease below tolerance", n_iter=it)
-            try:
-                r_new = fun(u_new)
-                c_new = float(r_new @ r_new)
-            except FloatingPointError:
-                c_new = np.inf
-            if c_new < cost:
-                accepted = True
-                break
-            lam *= 8.0
-            if budget is not None and not budget():
-                break
-        if not accepted:
+        outcome, u_new, r_new, c_new, lam = _damped_step(fun, u, r, cost, J, A[np.ix_(free, free)], g[free], free,
+                                                         lam, ftol, atol, budget)
+        if outcome == "predicted":
+            return LMResult(u=u, r=r, cost=cost, converged=True,
+                            message="predicted decrease below tolerance", n_iter=it)
+        if outcome != "accepted":
             message, converged = "no decrease possible (at the optimum to working precision)", True
             break
         decrease = cost - c_new

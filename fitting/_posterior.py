@@ -100,29 +100,10 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
     P = sub.size
     lower, upper = space.lower[sub], space.upper[sub]
 
-    def full_x(xs_row):
-        x = result.x.copy()
-        x[sub] = xs_row
-        return x
-
-    def log_prob(xs):
-        xs = np.atleast_2d(xs)
-        out = np.full(xs.shape[0], -np.inf)
-        inside = np.all((xs >= lower) & (xs <= upper), axis=1)
-        for k in np.where(inside)[0]:
-            if collapsed:
-                out[k] = _collapsed(problem, full_x(xs[k]))[0]
-            else:
-                r = _loss.residuals("chi2", problem.f_x(full_x(xs[k])), meas)
-                if np.all(np.isfinite(r)):
-                    out[k] = -0.5 * float(r @ r)
-        return out
+    full_x, log_prob = (None, None) if affine is not None else _log_prob(meas, result, problem, sub, collapsed)
 
     n_walkers = max(n_walkers, 2 * P + 2)
-    scale = np.sqrt(np.clip(np.diag(result.cov)[sub], 1e-24, None))
-    start = result.x[sub] + 1e-2 * scale * rng.standard_normal((n_walkers, P))
-    span = upper - lower
-    start = np.clip(start, lower + 1e-9 * span, upper - 1e-9 * span)
+    start = _walker_start(result, sub, lower, upper, n_walkers, rng)
 
     # differential-evolution proposals (ter Braak 2006; ter Braak & Vrugt 2008's snooker
     # update), mixed as in emcee's documentation: on the bench's roughplastic posterior the
@@ -132,18 +113,7 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
     sampler = emcee.EnsembleSampler(n_walkers, P, affine or log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(int(rng.integers(2**32 - 1))).get_state()
     t0 = time.perf_counter()
-    state = start
-    tau = np.full(P, np.inf)
-    converged = False
-    while sampler.iteration < max_steps:
-        with single_threaded_blas():
-            state = sampler.run_mcmc(state, chunk, progress=False)
-        tau = sampler.get_autocorr_time(tol=0)
-        if np.all(np.isfinite(tau)) and sampler.iteration > tau_multiple * np.max(tau):
-            converged = True
-            break
-        if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
-            break
+    tau, converged = _run_chain(sampler, start, P, chunk, max_steps, tau_multiple, time_budget_s, t0)
     n_steps = sampler.iteration
     tau_max = float(np.max(tau)) if np.all(np.isfinite(tau)) else float(n_steps)
     burn = int(min(n_steps // 2, 3 * tau_max))
@@ -164,6 +134,56 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
                      quantiles=quantiles, acceptance=float(np.mean(sampler.acceptance_fraction)),
                      time_s=time.perf_counter() - t0, advice=advice,
                      surrogate_error=affine.surrogate_error if affine is not None else None)
+
+
+def _log_prob(meas, result, problem, sub, collapsed):
+    """(full_x, log_prob): the full parameter vector of a sampled sub-vector, and the
+    vectorised log posterior (flat prior inside the bounds; collapsed: the affine
+    parameter integrated out)."""
+    lower, upper = result.space.lower[sub], result.space.upper[sub]
+
+    def full_x(xs_row):
+        x = result.x.copy()
+        x[sub] = xs_row
+        return x
+
+    def log_prob(xs):
+        xs = np.atleast_2d(xs)
+        out = np.full(xs.shape[0], -np.inf)
+        inside = np.all((xs >= lower) & (xs <= upper), axis=1)
+        for k in np.where(inside)[0]:
+            if collapsed:
+                out[k] = _collapsed(problem, full_x(xs[k]))[0]
+            else:
+                r = _loss.residuals("chi2", problem.f_x(full_x(xs[k])), meas)
+                if np.all(np.isfinite(r)):
+                    out[k] = -0.5 * float(r @ r)
+        return out
+
+    return full_x, log_prob
+
+
+def _walker_start(result, sub, lower, upper, n_walkers, rng):
+    """Walkers in a small ball (1e-2 Laplace sigma) about the optimum, inside the bounds."""
+    scale = np.sqrt(np.clip(np.diag(result.cov)[sub], 1e-24, None))
+    start = result.x[sub] + 1e-2 * scale * rng.standard_normal((n_walkers, sub.size))
+    span = upper - lower
+    return np.clip(start, lower + 1e-9 * span, upper - 1e-9 * span)
+
+
+def _run_chain(sampler, state, P, chunk, max_steps, tau_multiple, time_budget_s, t0):
+    """Run the ensemble in chunks until it exceeds ``tau_multiple`` tau, the step budget or
+    the time budget; returns (tau, converged)."""
+    tau = np.full(P, np.inf)
+    while sampler.iteration < max_steps:
+        with single_threaded_blas():
+            state = sampler.run_mcmc(state, chunk, progress=False)
+        tau = sampler.get_autocorr_time(tol=0)
+        if np.all(np.isfinite(tau)) and sampler.iteration > tau_multiple * np.max(tau):
+            return tau, True
+        if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
+            break
+    return tau, False
 
 
 def _fast_theta(model) -> bool:
