@@ -13,10 +13,25 @@ import time
 import tomllib
 from pathlib import Path
 
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+import gonio.models as gm
+from gonio.fitting import load_dataset, versions, write_json_atomic
+from gonio.fitting.speed import scipy_lsq
 from gonio.models.atomic import atomic_open
+from gonio.models.mitsuba import mitsuba_variant
 
 from ._fitdoc import truth_by_name
+from ._preflight import check_output_dir
+from ._samples import load_sample
 from .errors import GonioError
+from .export import export
+from .fit_runner import fit_dataset, print_fit, render_closure, render_previews
+from .plans import load_plan
+from .report import write_report
+from .session_runner import capture_sim
 
 __all__ = ["run_demo"]
 
@@ -39,8 +54,6 @@ def _truth_bsdf(model, params):
     """The simulated sample's true BSDF as a Mitsuba dict (the 'measured' side of the preview)."""
     import mitsuba as mi
 
-    from gonio.models import mitsuba_variant
-
     with mi.scoped_set_variant(mitsuba_variant()):
         return model.to_mitsuba(params)
 
@@ -56,10 +69,6 @@ def _speed_vs_error(meas, result, sample, seed) -> dict:
     Both minimise the same chi^2; the error is the largest |fit - truth| / sigma over the
     parameters (sigma: gonio's Laplace 1-sigma), so a value below ~3 is at the noise limit.
     """
-    import numpy as np
-
-    from gonio.fitting.speed import scipy_lsq
-
     truth = result.space.from_params({k: np.asarray(v, dtype=float) for k, v in sample["params"].items()})
     x_lsq, t_lsq, n_lsq = scipy_lsq(meas, result.model)
     rows = []
@@ -70,30 +79,12 @@ def _speed_vs_error(meas, result, sample, seed) -> dict:
         rows.append({"optimiser": name, "time_s": float(seconds), "evaluations": int(evals),
                      "chi2": float(r @ r), "max_pull": float(np.max(np.abs((x - truth) / result.std))),
                      "rmse_fr": float(np.sqrt(np.mean(((fr - meas.brdf)[meas.use]) ** 2)))})
-    from gonio.fitting import versions
-
     return {"points": int(meas.n_points), "model": result.model.name, "rows": rows, "seed": seed,
             "versions": versions()}
 
 
 def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool = True) -> dict:
     """Run the loop; returns a summary dict (the figures printed)."""
-    from rich.console import Console
-    from rich.table import Table
-
-    from gonio.fitting import load_dataset, write_json_atomic
-
-    from ._samples import load_sample
-    from .export import export
-    import gonio.models as gm
-
-    from .fit_runner import fit_dataset, print_fit, render_closure, render_previews
-    from .report import write_report
-    from .session_runner import capture_sim
-
-    from ._preflight import check_output_dir
-    from .plans import load_plan
-
     console = Console()
     out = Path(out)
     plan_obj = load_plan(plan)          # a bad plan is refused before anything is written
@@ -103,6 +94,12 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
     session = out / "session"
     _clear_previous_demo(session)
     sample = load_sample(None)
+    run = _run_stages(out, session, sample, plan_obj, seed, posterior)
+    return _print_summary(console, out, session, sample, plan, seed, run)
+
+
+def _run_stages(out, session, sample, plan_obj, seed, posterior) -> dict:
+    """Capture, export, fit, benchmark, re-render, preview and report, timing each stage."""
     timings = {}
 
     t = time.perf_counter()
@@ -139,7 +136,14 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
     t = time.perf_counter()
     report = write_report(out, out / "report.html")
     timings["report"] = time.perf_counter() - t
+    return {"timings": timings, "meas": meas, "doc": doc, "speed": speed, "closure": closure,
+            "with_truth": with_truth, "report": report}
 
+
+def _print_summary(console, out, session, sample, plan, seed, run) -> dict:
+    """The demo's table and figures on the console; returns the summary dict."""
+    timings, meas, doc, speed, closure = run["timings"], run["meas"], run["doc"], run["speed"], run["closure"]
+    with_truth, report = run["with_truth"], run["report"]
     console.rule("gonio demo")
     console.print(f"sample: {sample['model']} {sample['options']}  plan: {plan}  points: {meas.n_points}  seed: {seed}")
     print_fit(doc, truth=sample, console=console)
@@ -168,3 +172,4 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
     console.print(f"every recovered parameter is {verdict} 3 sigma of the truth (largest |z| = {worst:.2f})")
     console.print(f"wrote {session}/, {out / 'dataset.nc'}, {out / 'fit.json'}, {out / 'render' / 'render.json'}, {report}")
     return {"timings": timings, "z": z, "closure": s, "fit": doc}
+
