@@ -24,6 +24,8 @@ import tempfile
 
 import numpy as np
 
+import gonio.models as gm
+
 __all__ = ["fit_batch", "fit_serial", "local_security", "check_workers", "check_scheduler_address",
            "MAX_WORKERS"]
 
@@ -157,8 +159,6 @@ def _one_thread_per_worker():
 
 
 def _fit_one(meas, model_spec, i, rng_seed, fit_kwargs):
-    import gonio.models as gm
-
     from ._optimise import fit
 
     _one_thread_per_worker()

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+import gonio.models as gm
 from gonio.models.atomic import atomic_open
 from gonio.models.geometry import angles_deg as _angles_deg
 from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
@@ -517,8 +518,6 @@ def mitsuba_snippet(model_name: str, options: dict | None, params: dict, *, bsdf
     snippet says in a comment that ``gonio.models`` must register it (``model.to_mitsuba``
     does) in the process that loads the scene.
     """
-    import gonio.models as gm
-
     model = gm.get(model_name, **(options or {}))
     d = model.to_mitsuba(params)
     kind = d["type"]

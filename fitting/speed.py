@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+import gonio.models as gm
 from gonio.models import fast
 
 __all__ = ["run", "simulate_capture"]
@@ -122,8 +123,6 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
     ``quick`` (the test's setting, < 1 min): roughplastic only, 100 and 1000 points, one
     noise level, 2 captures per cell.
     """
-    import gonio.models as gm
-
     from ._crlb import crlb, efficiency
     from ._optimise import fit
 
@@ -224,8 +223,6 @@ def bench_emcee(n=10000, n_walkers=32, seed=0):
     data with the numpy reference model (all 5 parameters, walkers looped), the issue's peer."""
     import emcee
 
-    import gonio.models as gm
-
     from ._optimise import fit
     from ._posterior import sample_posterior
     from ._space import ParameterSpace
@@ -271,8 +268,6 @@ def bench_dask(n_datasets=16, n=10000, seed=0, model_index=1):
     the batched kernel) gain little (1.1-1.2x): Dask's cost of shipping a task and its
     result is of that order."""
     from dask.distributed import Client, LocalCluster
-
-    import gonio.models as gm
 
     from ._batch import fit_batch, fit_serial
 

@@ -22,6 +22,7 @@ import os
 
 import numpy as np
 
+import gonio.models as gm
 from gonio.models.mitsuba import eval_cos, mitsuba_variant
 
 __all__ = ["SampleTruth", "mitsuba_variant", "resolve_sample"]
@@ -56,7 +57,6 @@ class SampleTruth:
             options = dict(spec.get("options", {}))
             params = dict(spec.get("params", {}))
             try:
-                import gonio.models as gm
                 get = gm.get
             except (ImportError, AttributeError):
                 get = None
