@@ -53,9 +53,12 @@ def _quiet_reader_cleanup():
 def _open_dataset(path: Path, seed: int = 0):
     """A gonio dataset.nc, a MERL .binary file or an RGL .bsdf file, as Measurements.
 
-    MERL and RGL files carry no uncertainty: each value gets a relative 1-sigma (1 % MERL,
-    2 % RGL) that sets the fit's weighting. A MERL table is subsampled to 5000 of its bins
-    (seeded); an RGL file is sampled at the ``standard`` plan's geometry.
+    MERL and RGL files carry no uncertainty: each value gets a nominal relative 1-sigma (1 %
+    MERL, 2 % RGL; ``attrs["nominal_sigma"]``) and a solid-angle weight. A MERL table is
+    subsampled to 5000 of its bins (seeded); an RGL file is sampled on its own measured
+    layout (:func:`gonio.fitting.rgl_samples`: every measured theta_i <= 80 deg, 1152 outgoing
+    directions each, half by the material's importance sampling so the peak is resolved),
+    or at the ``standard`` plan's geometry where only scalar Mitsuba runs.
     """
     from gonio.fitting import load_dataset
 
@@ -70,16 +73,21 @@ def _open_dataset(path: Path, seed: int = 0):
     with _quiet_reader_cleanup():
         try:
             if suffix == ".binary":
-                from gonio.fitting.formats import merl_to_measurements
+                from gonio.fitting import merl_samples
 
-                return merl_to_measurements(path, n=5000, rng=np.random.default_rng(seed))
+                return merl_samples(path, n=5000, rng=np.random.default_rng(seed))
             if suffix == ".bsdf":
-                from gonio.fitting import direction
+                from gonio.fitting import direction, rgl_samples
                 from gonio.fitting.formats import rgl_measurements
 
                 from .plans import load_plan
 
-                a = np.radians(load_plan("standard").angles)
+                try:        # the file's own measured layout, solid-angle weighted
+                    return rgl_samples(path)
+                except ValueError as exc:
+                    if "vectorised Mitsuba variant" not in str(exc):
+                        raise
+                a = np.radians(load_plan("standard").angles)     # scalar_rgb only: the standard plan
                 return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
             return load_dataset(path)
         except GonioError:
@@ -97,7 +105,7 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", poster
                 posterior_budget_s=None, dataset_path=None):
     """Fit (or select) a model; return (FitResult, fit document, Posterior or None)."""
     import gonio.models as gm
-    from gonio.fitting import fit, fit_document, sample_posterior, select
+    from gonio.fitting import fit, fit_document, option_candidates, sample_posterior, select
 
     rng = np.random.default_rng(seed)
     ranking = None
@@ -107,11 +115,14 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", poster
         result, ranking = select(meas, rng=rng, loss=loss)
     else:
         try:
-            m = gm.get(model, **(options or {}))
+            candidates = option_candidates(model, options)
         except (KeyError, ValueError, TypeError) as exc:
             raise GonioError(f"{exc}; known models: {', '.join(gm.names())}, or auto") from None
         try:
-            result = fit(meas, m, rng=rng, loss=loss)
+            if len(candidates) > 1:     # no distribution given: each declared one, chosen by BIC (said)
+                result, ranking = select(meas, rng=rng, loss=loss, candidates=candidates, delta=0.0)
+            else:
+                result = fit(meas, gm.get(model, **candidates[0][1]), rng=rng, loss=loss)
         except ValueError as exc:
             raise GonioError(str(exc)) from None
     post = None
@@ -168,7 +179,9 @@ def print_fit(doc, truth=None, console=None):
     console.print(f"chi2/dof = {g['chi2_dof']:.3f} ({g['dof']} dof), RMSE f_r = {g['rmse_fr']:.3g} 1/sr, "
                   f"energy {energy_text(doc['constraints']['energy'])}, "
                   f"{doc['optimiser']['evaluations']} evaluations in {doc['optimiser']['time_s']:.2f} s")
-    if not g.get("model_adequate", True):
+    if g.get("warning"):
+        console.print(f"[yellow]{g['warning']}[/yellow]")
+    elif not g.get("model_adequate", True):
         console.print(f"[yellow]chi2/dof = {g['chi2_dof']:.3g}: the model misses the data by more than its noise "
                       f"(Birge ratio {g['birge_ratio']:.3g}); the 1-sigma values are statistical only and "
                       "understate the model's error[/yellow]")
@@ -192,10 +205,16 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
         write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None
     print_fit(doc, truth)
+    opts = doc["model"]["options"]
+    if model != "auto" and doc.get("selection") and "distribution" in opts:
+        others = ", ".join(sorted({r["options"].get("distribution") for r in doc["selection"]} - {opts["distribution"]}))
+        print(f"distribution: {opts['distribution']} (chosen by BIC over {others}; "
+              f"--option distribution=NAME fixes it)")
     if doc.get("selection"):
         for row in doc["selection"]:
             print(f"  {'*' if row['chosen'] else ' '} {row['model']:<15} {json.dumps(row['options']):<28} "
-                  f"k={row['k']:<2} chi2={row['chi2']:<12.4g} dBIC={row['delta_bic']:.2f}")
+                  f"k={row['k']:<2} -2lnL[{row.get('loss', 'chi2')}]={row.get('neg2_loglik', row['chi2']):<12.4g} "
+                  f"dBIC={row['delta_bic']:.2f}")
     print(f"wrote {out}")
 
 

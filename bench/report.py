@@ -156,7 +156,12 @@ def fit_section(fit: Doc, truth) -> dict:
            "chi2_dof": _fmt(g.num("chi2_dof")), "dof": _fmt(g.count("dof")), "rmse_fr": _fmt(g.num("rmse_fr")),
            "rmse_cos_fr": _fmt(g.num("rmse_cos_fr")), "method": opt.text("method") or "–",
            "evaluations": _fmt(opt.count("evaluations")), "time_s": _fmt(opt.num("time_s"), 3), "energy": energy_text,
-           "non_finite": cut(", ".join(x for x in nulled if isinstance(x, str)))}
+           "non_finite": cut(", ".join(x for x in nulled if isinstance(x, str))),
+           # a poor fit says so beside its intervals (Birge-inflated or discrepancy ones)
+           "warning": cut(g.text("warning") or "", 400) or (
+               "" if g.raw("model_adequate") is not False else
+               f"chi2/dof = {_fmt(g.num('chi2_dof'))}: the model misses the data by more than its noise; "
+               "the 1-sigma values are statistical only")}
     post = fit.sub("posterior")
     out["posterior"] = None if post is None else {
         "walkers": _fmt(post.count("walkers")), "steps": _fmt(post.count("steps")),

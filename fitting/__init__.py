@@ -19,11 +19,12 @@ from ._fitfile import fit_document, load_fit, parse_fit, versions, write_json_at
 from ._loss import LOSSES
 from ._optimise import FitResult, fit
 from ._posterior import Posterior, sample_posterior
-from ._selection import CANDIDATES, Ranked, select
+from ._realdata import merl_samples, rgl_samples
+from ._selection import CANDIDATES, Ranked, option_candidates, select
 from ._space import ParameterSpace
 
 __all__ = [
     "CANDIDATES", "DataError", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "Measurements", "ParameterSpace", "Posterior", "Ranked",
-    "direction", "fit", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
+    "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
     "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers",
 ]

@@ -38,6 +38,11 @@ class Measurements:
         Which values enter the fit (saturated or flagged values are left out).
     attrs : dict
         Provenance carried over from the dataset (seed, version, sample truth...).
+    weight : ndarray, shape (N,), optional
+        Each sample's solid-angle weight (sr^2 of direction-pair space it stands for; e.g.
+        1 / pdf of the directions' sampling), so that a sum over samples approximates an
+        integral over the hemispheres. None: every sample counts the same. Used by the
+        ``discrepancy`` likelihood and the Ngan / log error metrics.
     """
 
     wi: np.ndarray
@@ -47,6 +52,7 @@ class Measurements:
     use: np.ndarray
     attrs: dict = dataclasses.field(default_factory=dict)
     channels: tuple = ("R", "G", "B")
+    weight: np.ndarray | None = None
 
     def __post_init__(self):
         self.wi = np.atleast_2d(np.asarray(self.wi, dtype=np.float64))
@@ -69,6 +75,10 @@ class Measurements:
             raise DataError("brdf_std must be finite and > 0 at every usable point (it weights the fit)")
         if used.sum() == 0:
             raise DataError("no usable BRDF values (all flagged): nothing to fit")
+        if self.weight is not None:
+            self.weight = np.asarray(self.weight, dtype=np.float64).reshape(-1)
+            if self.weight.shape != (n,) or not np.all(np.isfinite(self.weight)) or np.any(self.weight <= 0):
+                raise DataError(f"weight must hold {n} finite values > 0 (one solid-angle weight per point)")
 
     @property
     def n_points(self) -> int:
@@ -84,7 +94,14 @@ class Measurements:
 
     def subset(self, index) -> "Measurements":
         return Measurements(self.wi[index], self.wo[index], self.brdf[index], self.brdf_std[index],
-                            self.use[index], dict(self.attrs), self.channels)
+                            self.use[index], dict(self.attrs), self.channels,
+                            None if self.weight is None else self.weight[index])
+
+    def relative_weight(self) -> np.ndarray:
+        """Solid-angle weights scaled to mean 1 (ones when there are none), shape (N,)."""
+        if self.weight is None:
+            return np.ones(self.n_points)
+        return self.weight / self.weight.mean()
 
 
 #: Angle units a dataset may declare, and the factor to radians.

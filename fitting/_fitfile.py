@@ -23,7 +23,7 @@ import numpy as np
 from gonio.models.atomic import atomic_open
 
 
-__all__ = ["fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning"]
+__all__ = ["model_adequacy", "fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning"]
 
 FIT_FORMAT = "gonio-fit/1"
 
@@ -78,15 +78,19 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
     """Build the fit file's content from a FitResult (and optional posterior and ranking)."""
     space = result.space
     z90 = 1.6448536269514722  # two-sided 90 % of a standard normal
+    adequate, inflation, warning = model_adequacy(result)
     params = {}
     by_name = {p.name: p for p in result.model.parameters}
     for i, name in enumerate(space.names):
         entry = space.entries[i]
         p = by_name[entry.param]
-        item = {"value": result.x[i], "std": result.std[i], "unit": p.unit, "parameter": entry.param,
+        std = result.std[i] * inflation
+        item = {"value": result.x[i], "std": std, "unit": p.unit, "parameter": entry.param,
                 "channel": space.channels[entry.channel] if entry.channel >= 0 else None,
-                "ci90": [max(result.x[i] - z90 * result.std[i], p.lower), min(result.x[i] + z90 * result.std[i], p.upper)],
+                "ci90": [max(result.x[i] - z90 * std, p.lower), min(result.x[i] + z90 * std, p.upper)],
                 "method": "laplace", "at_bound": name in result.at_bound, "undetermined": name in result.undetermined}
+        if inflation != 1.0:
+            item["std_statistical"] = result.std[i]
         if posterior is not None and posterior.converged:
             item.update(median=posterior.quantiles[50][i],
                         std_posterior=0.5 * (posterior.quantiles[84][i] - posterior.quantiles[16][i]),
@@ -98,7 +102,7 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         "model": {"name": result.model.name, "options": dict(result.model.options)},
         "params": _jsonable(result.params),
         "parameters": params,
-        "covariance": {"names": space.names, "matrix": result.cov},
+        "covariance": {"names": space.names, "matrix": result.cov * inflation ** 2, "inflation": inflation},
         "constraints": {"energy": result.energy,
                         "reciprocity": {"by_construction": True,
                                         "note": "every gonio model is reciprocal (tests/models); data pairs are checked at capture"}},
@@ -108,7 +112,11 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                      # sqrt(chi2/dof) (Birge 1932): well above 1 means the model misses the data
                      # by more than its noise, and the 1-sigma values are statistical only
                      "birge_ratio": float(np.sqrt(result.chi2_dof)),
-                     "model_adequate": bool(result.chi2_dof < 1.0 + 4.0 * np.sqrt(2.0 / result.dof))},
+                     "model_adequate": adequate, "std_inflation": inflation, "warning": warning,
+                     "criterion": {"loss": result.loss, "neg2_loglik": result.neg2_loglik, "k": result.k_criterion,
+                                   "bic": result.bic},
+                     "discrepancy": ({k: v for k, v in result.discrepancy.items() if not k.startswith("_")}
+                                     if result.discrepancy else None)},
         "optimiser": {"method": result.method, "evaluations": result.n_evals, "time_s": result.time_s,
                       "converged": result.converged, "message": result.message,
                       "solved_linearly": list(result.linear)},
@@ -135,6 +143,29 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         # said in the file: these figures were NaN or infinite and are written as null
         doc["non_finite"] = bad
     return doc
+
+
+def model_adequacy(result):
+    """(adequate, std inflation, warning or None) of a fit.
+
+    A fit is adequate when chi^2/dof lies within 4 standard deviations of 1
+    (sd sqrt(2 / dof)). When it is not, the model misses the data by more than the noise
+    and the Laplace sigma describe only the noise: they are multiplied by the Birge ratio
+    sqrt(chi^2/dof) (Birge 1932), the scale that makes chi^2/dof = 1, and the fit file says
+    so. The ``discrepancy`` likelihood fits that excess variance itself (its chi^2 is
+    against it), so its sigma are reported as they are.
+    """
+    chi2_dof = float(result.chi2_dof)
+    adequate = bool(chi2_dof < 1.0 + 4.0 * np.sqrt(2.0 / result.dof))
+    if adequate:
+        return True, 1.0, None
+    if result.loss == "discrepancy":
+        return False, 1.0, (f"chi2/dof = {chi2_dof:.3g} against the fitted discrepancy variance: the intervals "
+                            "include the model discrepancy but the fit is still poor")
+    birge = float(np.sqrt(chi2_dof))
+    return False, birge, (f"chi2/dof = {chi2_dof:.3g}: the model misses the data by more than its noise; 1-sigma "
+                          f"and 90 % intervals are inflated by the Birge ratio {birge:.3g} (std_statistical keeps "
+                          "the noise-only values); fit with --loss discrepancy for a fitted model-discrepancy term")
 
 
 def write_json_atomic(path, doc) -> Path:

@@ -9,6 +9,7 @@ and one Laplace approximation serve all of them.
 | ``robust`` | as chi2, objective sum 2 (sqrt(1 + r^2) - 1) | outliers (soft-L1 / pseudo-Huber) |
 | ``cosine`` | (f_model - f_meas) cos(theta_i) | the cosine-weighted L2 of Ngan, Durand & Matusik (2005) |
 | ``log`` | ln(1 + f_model cos theta_i) - ln(1 + f_meas cos theta_i) | the E2 metric of Loew et al. (2012) |
+| ``discrepancy`` | (f_model - f_meas) / s, s^2 = sigma^2 + (rel f_model)^2 + abs^2, (rel, abs) fitted with the model | real materials (:mod:`gonio.fitting._discrepancy`); the residuals here are chi2's on data whose sigma is already s |
 
 References
 ----------
@@ -23,7 +24,7 @@ import numpy as np
 
 __all__ = ["LOSSES", "residuals", "objective", "objective_weights"]
 
-LOSSES = ("chi2", "robust", "cosine", "log")
+LOSSES = ("chi2", "robust", "cosine", "log", "discrepancy")
 
 
 def validate_loss(name: str) -> str:
@@ -35,7 +36,7 @@ def validate_loss(name: str) -> str:
 def residuals(loss: str, model_fr, meas) -> np.ndarray:
     """Residuals of the used values, flattened (length ``meas.n_used``)."""
     cos_i = np.clip(meas.wi[:, 2:3], 0.0, 1.0)
-    if loss in ("chi2", "robust"):
+    if loss in ("chi2", "robust", "discrepancy"):
         r = (model_fr - meas.brdf) / meas.brdf_std
     elif loss == "cosine":
         r = (model_fr - meas.brdf) * cos_i
@@ -49,7 +50,7 @@ def residuals(loss: str, model_fr, meas) -> np.ndarray:
 def residual_derivative(loss: str, model_fr, meas) -> np.ndarray:
     """d residual / d f_r per value, shape of ``model_fr`` (all values; :func:`residuals`
     keeps the used ones)."""
-    if loss in ("chi2", "robust"):
+    if loss in ("chi2", "robust", "discrepancy"):
         return 1.0 / meas.brdf_std
     cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), model_fr.shape)
     if loss == "cosine":

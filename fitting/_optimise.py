@@ -60,6 +60,7 @@ import numpy as np
 
 from . import _loss
 from ._affine import AffineFit, applicable, single_threaded_blas
+from ._discrepancy import fit_discrepancy
 from ._energy import energy_directions, slsqp_energy
 from ._lm import levenberg_marquardt
 from ._problem import Evaluator, Problem
@@ -205,8 +206,10 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         The data (f_r in sr^-1 with 1-sigma).
     model
         A gonio model (``gonio.models.get(...)``).
-    loss : {"chi2", "robust", "cosine", "log"}
-        See :mod:`gonio.fitting._loss`. Only ``chi2`` gives a calibrated covariance.
+    loss : {"chi2", "robust", "cosine", "log", "discrepancy"}
+        See :mod:`gonio.fitting._loss`. ``chi2`` gives a calibrated covariance when the model
+        holds; ``discrepancy`` fits a model-discrepancy variance with the model
+        (:mod:`gonio.fitting._discrepancy`), for real materials.
     fixed : dict, optional
         Parameters held fixed at the given values.
     rng : numpy.random.Generator
@@ -228,6 +231,9 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     if rng is None or not isinstance(rng, np.random.Generator):
         raise TypeError("fit() needs rng=numpy.random.Generator (seeded) so the fit is reproducible")
     _loss.validate_loss(loss)
+    if loss == "discrepancy":
+        return fit_discrepancy(meas, model, fit, rng=rng, fixed=fixed, n_starts=n_starts, n_local=n_local,
+                               maxeval=maxeval, enforce_energy=enforce_energy, use_fast=use_fast)
     space = ParameterSpace(model, meas.n_channels, fixed, meas.channels)
     if space.size == 0:
         raise ValueError("every parameter is fixed: nothing to fit")

@@ -47,6 +47,9 @@ class FitResult:
     rmse_cos_fr: float
     method: str = "levenberg-marquardt"
     linear: list = dataclasses.field(default_factory=list)
+    #: the model-discrepancy term fitted with the model (loss ``discrepancy``): ``rel``,
+    #: ``abs`` (sr^-1), ``neg2_loglik``, ``iterations``; None for the other losses
+    discrepancy: dict | None = None
 
     @property
     def params(self) -> dict:
@@ -61,9 +64,35 @@ class FitResult:
         return self.chi2 / self.dof
 
     @property
+    def neg2_loglik(self) -> float:
+        """-2 ln L (up to a constant common to all models) of the loss that was minimised:
+
+        * ``chi2``: chi^2 (Gaussian noise with the data's sigma);
+        * ``robust``: its objective (pseudo-Huber on the sigma-scaled residuals);
+        * ``cosine``, ``log``: n ln(objective / n), the Gaussian likelihood of the loss's
+          residuals with their variance profiled out (one more parameter);
+        * ``discrepancy``: sum r^2 / s^2 + ln s^2 with s^2 = sigma^2 + (rel f)^2 + abs^2.
+        """
+        if self.loss == "discrepancy" and self.discrepancy:
+            return float(self.discrepancy["neg2_loglik"])
+        if self.loss in ("cosine", "log"):
+            return float(self.n_used * np.log(max(self.objective, 1e-300) / self.n_used))
+        if self.loss == "robust":
+            return float(self.objective)
+        return float(self.chi2)
+
+    @property
+    def k_criterion(self) -> int:
+        """Free parameters counted by the BIC: the model's, plus the noise parameters the
+        loss estimates (one profiled variance for cosine/log, rel and abs for discrepancy)."""
+        return self.space.size + {"cosine": 1, "log": 1, "discrepancy": 2}.get(self.loss, 0)
+
+    @property
     def bic(self) -> float:
-        """Bayesian information criterion, chi^2 + k ln n (Schwarz 1978)."""
-        return self.chi2 + self.space.size * np.log(self.n_used)
+        """Bayesian information criterion -2 ln L + k ln n (Schwarz 1978), from the likelihood
+        of the loss that was minimised (:attr:`neg2_loglik`), never from chi^2 when another
+        loss was."""
+        return self.neg2_loglik + self.k_criterion * np.log(self.n_used)
 
     @property
     def correlation(self) -> np.ndarray:

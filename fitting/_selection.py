@@ -1,7 +1,9 @@
 """Model selection: model only what the data needs.
 
-Every candidate is fitted by maximum likelihood and ranked by the Bayesian information
-criterion BIC = chi^2 + k ln n (Schwarz 1978). Among the candidates whose BIC lies within
+Every candidate is fitted with one loss and ranked by the Bayesian information criterion
+BIC = -2 ln L + k ln n (Schwarz 1978) of that same loss (:attr:`FitResult.bic`: chi^2 for the
+chi2 loss, the profiled Gaussian likelihood of the log or cosine residuals, the discrepancy
+likelihood). Among the candidates whose BIC lies within
 ``delta`` of the best, the one with the fewest parameters wins: by Kass & Raftery (1995,
 sec. 3.2) a BIC difference below 2 is "not worth more than a bare mention", so the data gives
 no reason to prefer the more complex model.
@@ -15,16 +17,42 @@ import dataclasses
 
 from ._optimise import fit
 
-__all__ = ["CANDIDATES", "Ranked", "select"]
+__all__ = ["CANDIDATES", "Ranked", "option_candidates", "select"]
 
 #: (name, options) tried by ``--model auto``, simplest first.
-CANDIDATES = (
-    ("diffuse", {}),
-    ("roughplastic", {"distribution": "ggx"}),
-    ("roughplastic", {"distribution": "beckmann"}),
-    ("roughconductor", {"distribution": "ggx"}),
-    ("cooktorrance", {}),
-)
+#: Every microfacet distribution a model declares (``OPTIONS["distribution"]``) is a
+#: candidate of its own: a Beckmann conductor is not "explained" by another model.
+CANDIDATE_MODELS = ("diffuse", "roughplastic", "roughconductor", "cooktorrance")
+
+
+def _candidates(names=CANDIDATE_MODELS):
+    import gonio.models as gm
+
+    out = []
+    for name in names:
+        try:
+            cls = type(gm.get(name))
+        except (KeyError, ValueError):
+            continue
+        for dist in cls.OPTIONS.get("distribution", (None,)):
+            out.append((name, {} if dist is None else {"distribution": dist}))
+    return tuple(out)
+
+
+CANDIDATES = _candidates()
+
+
+def option_candidates(name, options=None):
+    """The candidates a named model stands for: one per declared microfacet distribution
+    when ``options`` does not choose one (so that ``--model roughplastic`` on a GGX sample
+    is not silently fitted as Beckmann), else just ``(name, options)``."""
+    import gonio.models as gm
+
+    options = dict(options or {})
+    allowed = type(gm.get(name, **options)).OPTIONS.get("distribution")
+    if not allowed or "distribution" in options:
+        return ((name, options),)
+    return tuple((name, {**options, "distribution": d}) for d in allowed)
 
 
 @dataclasses.dataclass
@@ -37,10 +65,12 @@ class Ranked:
     delta_bic: float
     chosen: bool
     result: object = dataclasses.field(repr=False, default=None)
+    loss: str = "chi2"
+    neg2_loglik: float = 0.0
 
     def row(self) -> dict:
-        return {"model": self.name, "options": self.options, "k": self.k, "chi2": self.chi2,
-                "bic": self.bic, "delta_bic": self.delta_bic, "chosen": self.chosen}
+        return {"model": self.name, "options": self.options, "k": self.k, "chi2": self.chi2, "loss": self.loss,
+                "neg2_loglik": self.neg2_loglik, "bic": self.bic, "delta_bic": self.delta_bic, "chosen": self.chosen}
 
 
 def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
@@ -61,7 +91,8 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
         except (KeyError, ValueError):
             continue  # a candidate this build of gonio.models does not provide
         result = fit(meas, model, rng=rng, **fit_kwargs)
-        rows.append(Ranked(name, dict(options), result.space.size, result.chi2, result.bic, 0.0, False, result))
+        rows.append(Ranked(name, dict(options), result.space.size, result.chi2, result.bic, 0.0, False, result,
+                           result.loss, result.neg2_loglik))
     if not rows:
         raise ValueError("no candidate model could be fitted")
     best_bic = min(r.bic for r in rows)

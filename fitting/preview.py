@@ -37,7 +37,7 @@ import numpy as np
 from gonio.models.atomic import atomic_path
 from gonio.models.mitsuba import bsdf_base, select_variant
 
-__all__ = ["LIGHTINGS", "delta_e_2000", "measured_bsdf_dict", "preview", "register_merl_bsdf", "render_sphere",
+__all__ = ["LIGHTINGS", "delta_e_2000", "matched_noise_floor", "measured_bsdf_dict", "preview", "register_merl_bsdf", "render_sphere",
            "sphere_mask"]
 
 LIGHTINGS = ("env", "area")
@@ -243,6 +243,19 @@ def _render_seeds(bsdf, lighting, size, spp, seeds, variant=None):
     return out
 
 
+def matched_noise_floor(model_a, meas_a, model_b, meas_b) -> np.ndarray:
+    """Per-pixel CIEDE2000 that Monte Carlo noise alone contributes to a matched-seed
+    comparison (model and measured rendered with seed a; again with seed b).
+
+    The difference image d = model - measured holds the BSDFs' true difference plus the
+    noise that the matched seeds leave; (d_a - d_b) / sqrt(2) cancels the true difference
+    and keeps one pair's noise. The floor is the CIEDE2000 between the measured render and
+    the measured render plus that noise: comparing the model with itself at another seed (two
+    independent renders) overstates it, so that "below the floor" would prove nothing."""
+    e = ((model_a - meas_a) - (model_b - meas_b)) / np.sqrt(2.0)
+    return delta_e_2000(meas_a, np.clip(meas_a + e, 0.0, None))
+
+
 def sphere_mask(size: int) -> np.ndarray:
     """Pixels whose centre ray hits the sphere (the camera geometry of the preview scenes)."""
     t = math.tan(math.radians(_FOV_DEG) / 2)
@@ -360,8 +373,8 @@ def preview(model, params, out_dir, measured=None, size: int = 128, spp: int = 2
         ``images[lighting]``: paths of ``model_exr``, ``model_png`` (and ``measured_exr``,
         ``measured_png``, ``delta_e_png`` with ``measured``); ``side_by_side_png``;
         ``delta_e[lighting] = {"mean", "p95", "noise_mean", "noise_p95"}`` (the noise
-        figures: the model against itself rendered with seed + 1, i.e. what Monte Carlo noise
-        alone gives between two independently sampled renders) and overall ``delta_e_mean``, ``delta_e_p95``
+        figures: :func:`matched_noise_floor`, what Monte Carlo noise contributes to the
+        comparison of model and measured rendered with the *same* seed) and overall ``delta_e_mean``, ``delta_e_p95``
         (over the sphere's pixels of all lightings; None without ``measured``); ``variant``,
         ``time_s``, ``size``, ``spp``, ``seed``.
     """
@@ -383,12 +396,12 @@ def preview(model, params, out_dir, measured=None, size: int = 128, spp: int = 2
         entry["model_png"] = _write_png(out_dir / f"{lighting}_model.png", img_model)
         row = {"lighting": lighting, "model": img_model}
         if measured_bsdf is not None:
-            img_meas = render_sphere(measured_bsdf, lighting, size, spp, seed, variant)
+            img_meas, img_meas_noise = _render_seeds(measured_bsdf, lighting, size, spp, [seed, seed + 1], variant)
             entry["measured_exr"] = _write_exr(mi, out_dir / f"{lighting}_measured.exr", img_meas)
             entry["measured_png"] = _write_png(out_dir / f"{lighting}_measured.png", img_meas)
             de = np.where(mask, delta_e_2000(img_model, img_meas), 0.0)
             on = de[mask]
-            noise = delta_e_2000(img_model, img_noise)[mask]
+            noise = matched_noise_floor(img_model, img_meas, img_noise, img_meas_noise)[mask]
             stats[lighting] = {"mean": float(on.mean()), "p95": float(np.percentile(on, 95)),
                                "noise_mean": float(noise.mean()), "noise_p95": float(np.percentile(noise, 95))}
             entry["delta_e_png"] = _delta_e_png(out_dir / f"{lighting}_delta_e.png", de,

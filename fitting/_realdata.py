@@ -1,0 +1,160 @@
+"""Real measured materials fitted on their own samples, with solid-angle weights.
+
+An RGL-EPFL ``.bsdf`` file (Dupuy & Jakob 2018) is measured at a set of incident elevations
+``theta_i`` (its ``theta_i`` field) and, for each, on a grid of outgoing directions warped by
+the material's own visible-normal distribution: dense in the specular peak, sparse in the
+tail. :func:`rgl_samples` reproduces that layout through Mitsuba's ``measured`` plugin
+(which interpolates the measured grid): at every measured ``theta_i`` below ``theta_max``,
+``n_side^2`` outgoing directions drawn by the material's own importance sampling
+(``bsdf.sample`` on a stratified grid: peak-aware, the peak resolved by about half of them)
+and ``n_side^2`` cosine-distributed ones (the diffuse tail and grazing angles). Each pair
+gets a solid-angle weight:
+
+* outgoing: the balance-heuristic estimator weight ``1 / (n (p_bsdf + p_cos) / 2)`` of the
+  two sample sets together (Veach 1997, sec. 9.2), so that a weighted sum over samples is an
+  unbiased estimate of an integral over the outgoing hemisphere;
+* incident: the solid angle ``2 pi (cos a - cos b)`` of the band between the midpoints of
+  neighbouring measured elevations.
+
+A MERL ``.binary`` file is sampled at every bin that holds data (a seeded subset of
+``n`` bins when asked), weighted by each bin's solid angle in Rusinkiewicz coordinates
+(:func:`merl_weights`, the Jacobian of the half/difference parametrisation).
+
+Neither format carries an uncertainty: the values get a nominal sigma (``rel_std``) that
+only the plain chi2 loss uses, and ``attrs["nominal_sigma"] = True`` tells the discrepancy
+likelihood to fit the variance instead.
+
+References
+----------
+Dupuy, J., Jakob, W. (2018). An adaptive parameterization for efficient material acquisition
+and rendering. ACM TOG 37(6), 274.
+Veach, E. (1997). Robust Monte Carlo methods for light transport simulation. PhD thesis,
+Stanford, ch. 9.
+Rusinkiewicz, S. (1998). A new change of variables for efficient BRDF representation. EGWR.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from gonio.models.geometry import directions
+
+from ._data import Measurements
+
+__all__ = ["rgl_theta_i", "rgl_samples", "merl_samples", "merl_weights"]
+
+#: default samples per incident elevation and sample set: 2 * 24^2 = 1152 outgoing directions
+N_SIDE = 24
+
+
+def rgl_theta_i(path) -> np.ndarray:
+    """The measured incident elevations of an RGL ``.bsdf`` file (radians)."""
+    from .formats import check_rgl_file
+
+    check_rgl_file(path)
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+        pos = 12 + 2
+        (count,) = struct.unpack_from("<I", head, pos)
+        pos += 4
+        for _ in range(count):
+            (length,) = struct.unpack_from("<H", head, pos)
+            name = head[pos + 2:pos + 2 + length].decode("ascii")
+            pos += 2 + length
+            ndim, _dtype, offset = struct.unpack_from("<HBQ", head, pos)
+            pos += 11
+            shape = struct.unpack_from(f"<{ndim}Q", head, pos)
+            pos += 8 * ndim
+            if name == "theta_i":
+                fh.seek(offset)
+                values = np.frombuffer(fh.read(4 * int(np.prod(shape))), dtype="<f4").astype(np.float64)
+                return np.radians(values) if values.max() > 2.0 else values
+    raise ValueError(f"{path}: no theta_i field")
+
+
+def _band_weights(theta, theta_max):
+    """Solid angle of the band of each elevation between the midpoints to its neighbours."""
+    edges = np.concatenate([[0.0], 0.5 * (theta[1:] + theta[:-1]), [theta_max]])
+    edges = np.clip(edges, 0.0, theta_max)
+    return 2.0 * np.pi * (np.cos(edges[:-1]) - np.cos(edges[1:]))
+
+
+def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_std: float = 0.02,
+                floor: float = 1e-4, variant: str | None = None) -> Measurements:
+    """An RGL file's own measurement layout (see the module), as weighted Measurements."""
+    import mitsuba as mi
+
+    from gonio.models.mitsuba import divide_cos, eval_cos, interaction, select_variant
+
+    from .formats import RGLBRDF
+
+    variant = select_variant(variant)
+    if not variant.startswith(("llvm", "cuda")):
+        raise ValueError(f"sampling an RGL file's own layout needs a vectorised Mitsuba variant, not {variant}")
+    rgl = RGLBRDF(path, variant)
+    theta_max = np.radians(theta_max_deg)
+    theta_all = np.sort(rgl_theta_i(path))
+    theta = theta_all[theta_all <= theta_max + 1e-9]
+    band = _band_weights(theta, theta_max)
+    g = (np.arange(n_side) + 0.5) / n_side
+    U, V = [a.reshape(-1) for a in np.meshgrid(g, g, indexing="ij")]
+    m = U.size
+    # cosine-distributed set (Malley's method on the stratified grid)
+    r, ph = np.sqrt(U), 2.0 * np.pi * V
+    cos_set = np.stack([r * np.cos(ph), r * np.sin(ph), np.sqrt(np.clip(1.0 - U, 0.0, 1.0))], axis=-1)
+    wis, wos, weights = [], [], []
+    with mi.scoped_set_variant(variant):
+        ctx = mi.BSDFContext()
+        for t, wband in zip(theta, band):
+            d = directions(np.full(2 * m, t), np.zeros(2 * m))     # the file's incident direction (phi 0: isotropic)
+            si, _ = interaction(d[:m], d[:m])
+            bs, _ = rgl._bsdf.sample(ctx, si, mi.Float(np.full(m, 0.5, np.float32)),
+                                     mi.Point2f(U.astype(np.float32), V.astype(np.float32)))
+            sampled = np.array(bs.wo, dtype=np.float64).reshape(3, m).T
+            out = np.concatenate([sampled, cos_set])
+            out /= np.linalg.norm(out, axis=1, keepdims=True)
+            si2, w2 = interaction(out, d)
+            p_bsdf = np.array(rgl._bsdf.pdf(ctx, si2, w2), dtype=np.float64).reshape(-1)
+            p_cos = np.clip(out[:, 2], 0.0, None) / np.pi
+            ok = (out[:, 2] > np.cos(theta_max)) & np.isfinite(p_bsdf) & ((p_bsdf + p_cos) > 0)
+            # 2m samples, mixture pdf (p_bsdf + p_cos) / 2
+            w_out = np.divide(1.0, m * (p_bsdf + p_cos), out=np.zeros(2 * m), where=ok)
+            wis.append(out[ok])                                 # gonio's wi: toward the light
+            wos.append(d[:m][:1].repeat(ok.sum(), 0))           # gonio's wo: the file's incident direction
+            weights.append(w_out[ok] * wband)
+    wi, wo, weight = np.concatenate(wis), np.concatenate(wos), np.concatenate(weights)
+    f = divide_cos(eval_cos(rgl._bsdf, wi, wo, variant), wi, wo)
+    std = rel_std * np.maximum(np.abs(f), floor)
+    use = np.repeat(((wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9))[:, None], 3, axis=1)
+    attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": variant,
+             "nominal_sigma": True, "sampling": f"own layout: {theta.size} measured theta_i <= {theta_max_deg:g} deg, "
+             f"{2 * m} outgoing each (half by the material's importance sampling, half cosine), MIS weights"}
+    return Measurements(wi, wo, f, std, use, attrs, weight=weight)
+
+
+def merl_weights(wi, wo) -> np.ndarray:
+    """Solid-angle weight of each MERL bin centre: the bin's volume in Rusinkiewicz
+    coordinates times the Jacobian sin(theta_h) sin(theta_d) (Rusinkiewicz 1998), up to a
+    constant factor (theta_h bins are quadratic: d theta_h = 2 sqrt(theta_h (pi/2)) / 90)."""
+    from .formats import half_diff_angles
+
+    th, _, td, _ = half_diff_angles(wi, wo)
+    dth = np.sqrt(np.clip(th, 1e-6, None) * (np.pi / 2)) / 45.0
+    return np.clip(np.sin(th) * np.sin(td) * dth, 1e-12, None)
+
+
+def merl_samples(path, *, n: int | None = None, rng=None, theta_max_deg: float = 80.0) -> Measurements:
+    """Every MERL bin with data (or a seeded subset of ``n``), weighted (:func:`merl_weights`)."""
+    import dataclasses
+
+    from .formats import merl_to_measurements
+
+    meas = merl_to_measurements(path, n=n, rng=rng)
+    cmax = np.cos(np.radians(theta_max_deg))
+    keep = (meas.wi[:, 2] > cmax) & (meas.wo[:, 2] > cmax) & meas.use.any(axis=1)
+    meas = meas.subset(keep)
+    attrs = dict(meas.attrs, nominal_sigma=True, sampling="every MERL bin with data" if n is None else f"{n} MERL bins (seeded)")
+    return dataclasses.replace(meas, attrs=attrs, weight=merl_weights(meas.wi, meas.wo))
