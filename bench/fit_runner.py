@@ -107,6 +107,10 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", poster
     import gonio.models as gm
     from gonio.fitting import fit, fit_document, option_candidates, sample_posterior, select
 
+    from gonio.fitting import LOSSES
+
+    if loss not in LOSSES:
+        raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
     rng = np.random.default_rng(seed)
     ranking = None
     if model == "auto":

@@ -120,3 +120,12 @@ def test_inadequate_fit_inflates_intervals_and_warns():
     r2 = fit(ok, diffuse, rng=np.random.default_rng(0))
     d2 = fit_document(r2, ok)
     assert d2["goodness"]["std_inflation"] == 1.0 and d2["goodness"]["warning"] is None
+
+
+def test_unknown_loss_refused_before_fitting():
+    from gonio.bench.errors import GonioError
+    from gonio.bench.fit_runner import fit_dataset
+
+    meas = simulate(gm.get("diffuse"), {"reflectance": [0.5, 0.4, 0.3]}, np.random.default_rng(1), n=50)
+    with pytest.raises(GonioError, match="unknown loss"):
+        fit_dataset(meas, model="auto", loss="nonsense")
