@@ -38,7 +38,7 @@ import serial
 from ._files import commit_file, sha256_file, tmp_name
 from .errors import CommunicationError, DeviceError, GonioError
 
-__all__ = ["SensorInfo", "RawFrame", "decode_raw", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
+__all__ = ["SensorInfo", "RawFrame", "decode_raw", "read_verified", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
            "RAW_SUFFIXES"]
 
 RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
@@ -62,10 +62,11 @@ class RawFrame:
 
     Attributes
     ----------
-    signal : ndarray (3, h, w) float64
-        Black-subtracted DN per channel R, G, B; G is the mean of the two greens.
-    peak : ndarray (3, h, w) float64
-        Black-subtracted DN of the brightest raw pixel behind each value (for saturation).
+    signal : ndarray (3, h, w) float32
+        Black-subtracted DN per channel R, G, B; G is the mean of the two greens (exact in float32).
+    peak : ndarray (3, h, w) float32, or None
+        Black-subtracted DN of the brightest raw pixel behind each value (for saturation); None
+        where decoded without it (dark frames).
     n_raw : ndarray (3,)
         Raw pixels averaged per value (1, 2, 1): variances divide by it.
     black : float
@@ -90,54 +91,87 @@ class RawFrame:
         return self.white - self.black
 
 
-def decode_raw(path: str | os.PathLike) -> RawFrame:
+def decode_raw(path: str | os.PathLike, *, window: tuple[int, int, int, int] | None = None, peak: bool = True,
+               data: bytes | None = None) -> RawFrame:
     """Decode a RAW file to linear black-subtracted R, G, B planes (see `RawFrame`).
+
+    Parameters
+    ----------
+    window : (row0, row1, col0, col1), optional
+        Only these super-pixel rows and columns (a crop of the full planes: the same values).
+    peak : bool
+        Also the brightest raw value behind each value (False: ``peak`` is None; dark frames).
+    data : bytes, optional
+        The file's bytes, already read (e.g. to check its checksum): not read again.
+
+    The planes are float32: raw values are integers below 2^16, so black-subtracted values and
+    the mean of two greens are exact in float32 (the float64 planes of old held the same numbers).
 
     Raises
     ------
     GonioError
         The file is missing or not a RAW file rawpy can read.
     """
+    import io
+
     import rawpy
 
     path = Path(path)
-    if not path.is_file():
+    if data is None and not path.is_file():
         raise GonioError(f"RAW file {path} is missing; check the session's raw/ folder")
     try:
-        with rawpy.imread(str(path)) as raw:
-            img = raw.raw_image_visible.astype(np.float64)
-            colors = raw.raw_colors_visible.copy()
+        with rawpy.imread(io.BytesIO(data) if data is not None else str(path)) as raw:
+            img = raw.raw_image_visible
+            sizes = raw.sizes
+            pattern = np.asarray(raw.raw_pattern)
+            # raw_colors_visible is raw_pattern tiled from the sensor's corner, offset by the margins;
+            # only its first 2x2 tile is needed (the whole map costs as much as the decode)
+            m = pattern.shape[0]
+            colors = np.array([[pattern[(sizes.top_margin + r) % m, (sizes.left_margin + c) % pattern.shape[1]]
+                                for c in range(2)] for r in range(2)])
             blacks = np.asarray(raw.black_level_per_channel, float)
             white = float(raw.white_level)
             desc = raw.color_desc.decode("ascii", "replace")
             rgb_cam = np.asarray(raw.color_matrix, float)[:3, :3].copy()
+            h, w = img.shape[0] // 2, img.shape[1] // 2
+            r0, r1, c0, c1 = window if window is not None else (0, h, 0, w)
+            r0, r1, c0, c1 = max(0, r0), min(h, r1), max(0, c0), min(w, c1)
+            # map LibRaw colour indices to R, G, B through color_desc (e.g. "RGBG")
+            chan = np.array([{"R": 0, "G": 1, "B": 2}.get(c, 1) for c in desc[:4].ljust(4, "G")])[colors]
+            count = np.zeros(3)
+            for k in chan.ravel():
+                count[k] += 1
+            if np.any(count == 0):
+                raise GonioError(f"RAW file {path} has CFA {desc!r} without R, G and B in a 2x2 tile; "
+                                 "only Bayer sensors are supported")
+            shape = (3, max(0, r1 - r0), max(0, c1 - c0))
+            signal = np.zeros(shape, np.float32)
+            top = np.full(shape, -np.inf, np.float32) if peak else None
+            for dr in range(2):
+                for dc in range(2):
+                    k = int(chan[dr, dc])
+                    plane = img[2 * r0 + dr:2 * r1:2, 2 * c0 + dc:2 * c1:2].astype(np.float32)
+                    plane -= np.float32(blacks[colors[dr, dc]])
+                    signal[k] += plane
+                    if peak:
+                        np.maximum(top[k], plane, out=top[k])
     except (rawpy.LibRawError, OSError, ValueError) as exc:
         raise GonioError(f"cannot decode RAW file {path} ({type(exc).__name__}); "
                          "it is corrupt or not a RAW format") from None
-    h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
-    img, colors = img[:h, :w], colors[:h, :w]
-    sub = img - blacks[colors]
-    # map LibRaw colour indices to R, G, B through color_desc (e.g. "RGBG")
-    chan = np.array([{"R": 0, "G": 1, "B": 2}.get(c, 1) for c in desc[:4].ljust(4, "G")])[colors]
-    tiles = chan[:2, :2]
-    signal = np.zeros((3, h // 2, w // 2))
-    peak = np.full((3, h // 2, w // 2), -np.inf)
-    count = np.zeros(3)
-    for dr in range(2):
-        for dc in range(2):
-            k = int(tiles[dr, dc])
-            plane = sub[dr::2, dc::2]
-            signal[k] += plane
-            peak[k] = np.maximum(peak[k], plane)
-            count[k] += 1
-    if np.any(count == 0):
-        raise GonioError(f"RAW file {path} has CFA {desc!r} without R, G and B in a 2x2 tile; "
-                         "only Bayer sensors are supported")
-    signal /= count[:, None, None]
+    signal /= count.astype(np.float32)[:, None, None]      # the two greens' mean (exact: a halving)
     black = float(np.mean(blacks))
     if not (np.all(np.isfinite(rgb_cam)) and np.allclose(rgb_cam.sum(1), 1.0, atol=1e-3)):
         rgb_cam = None
-    return RawFrame(signal, peak, count, black, white, rgb_cam)
+    return RawFrame(signal, top, count, black, white, rgb_cam)
+
+
+def read_verified(path: str | os.PathLike) -> tuple[bytes, str]:
+    """A file's bytes and their SHA-256 (hex), from one read (checksum and decode share it)."""
+    import hashlib
+
+    with open(path, "rb") as fh:
+        data = fh.read()
+    return data, hashlib.sha256(data).hexdigest()
 
 
 def _commit(tmp: Path, path: Path) -> None:

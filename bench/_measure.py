@@ -138,10 +138,10 @@ def region_stats(hdr, mask: np.ndarray) -> dict[str, Any]:
     for c in range(3):
         x = rad[c, good[c]]
         if n[c]:
-            mean[c] = x.mean()
-            se_model[c] = math.sqrt(var[c, good[c]].sum()) / n[c]
+            mean[c] = x.mean(dtype=np.float64)        # float32 values, float64 sums
+            se_model[c] = math.sqrt(var[c, good[c]].sum(dtype=np.float64)) / n[c]
         if n[c] > 1:
-            se[c] = x.std(ddof=1) / math.sqrt(n[c])
+            se[c] = x.std(ddof=1, dtype=np.float64) / math.sqrt(n[c])
     return {"mean": mean, "se": se, "se_model": se_model, "n": n, "n_saturated": int((~good).sum())}
 
 

@@ -713,11 +713,23 @@ class Goniometer:
         for name, deg in goal.items():
             a = self.axes[name]
             self.chain.request(a.device, a.axis, f"move abs {self.deg_to_steps(name, deg)}")
+        self._moving_from = dict(current)
         if wait:
-            self.wait_idle()
-            self._verify(goal)
-            self._position = {**current, **goal}
+            self.finish_move(goal)
         return goal
+
+    def finish_move(self, goal: Mapping[str, float]) -> None:
+        """Wait for a move (``move_to(..., wait=False)``, which returned ``goal``) to end and verify
+        it, as ``move_to`` does: the stages move on their own while the host works meanwhile.
+
+        Raises
+        ------
+        MoveError
+            An axis fell short (a limit switch, a stall).
+        """
+        self.wait_idle()
+        self._verify(goal)
+        self._position = {**getattr(self, "_moving_from", {}), **goal}
 
     def _verify(self, goal: Mapping[str, float]) -> None:
         """Check that every axis reached its goal (a stall or a limit switch stops it short).

@@ -39,6 +39,7 @@ import json
 import math
 import sqlite3
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -46,11 +47,11 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from . import kinematics
-from ._camera import RawFrame, SimCamera, decode_raw
-from ._files import TMP_PREFIX, create_exclusive, remove_orphans, sha256_file
+from ._camera import RawFrame, SimCamera, decode_raw, read_verified
+from ._files import TMP_PREFIX, create_exclusive, remove_orphans
 from . import _integrity
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
+from ._markers import posed_masks
 from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock,
                        read_session, session_text, versions, write_session)
 from ._measure import ProgressBar, ReferenceModel, check_sensor, raw_estimate, region_stats
@@ -229,6 +230,7 @@ class _Session:
             r["idx"]: (np.asarray(r["brdf"]), np.asarray(r["brdf_std"])) for r in journal.points()}
         self.reciprocity: list[dict] = []
         self.reserved = journal.reserved()
+        self._masks_of: dict[tuple, tuple] = {}      # per pose: the regions (the plan revisits none, a retry does)
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -281,11 +283,16 @@ class _Session:
         self.journal.event("p_ref", repr(p))
         return p
 
-    def _load(self, file: str, digest: str) -> RawFrame:
+    def _load(self, file: str, digest: str, peak: bool = True) -> RawFrame:
+        """A calibration frame, its checksum checked and decoded from one read."""
         path = self.folder / file
-        if not path.is_file() or sha256_file(path) != digest:
+        try:
+            data, got = read_verified(path) if path.is_file() else (b"", "")
+        except OSError:
+            data, got = b"", ""
+        if got != digest:
             raise SessionError(f"calibration frame {file} is missing or corrupt; the session folder is damaged")
-        return decode_raw(path)
+        return decode_raw(path, data=data, peak=peak)
 
     def _take_darks(self) -> None:
         """Dark frames (lamp off) for every rung of the exposure ladder, journalled once per session."""
@@ -300,7 +307,7 @@ class _Session:
                 file = self._fresh(f"dark_{t * 1e6:010.0f}us.dng")
                 digest = self.bench.camera.expose(t, self.folder / file)
                 self.journal.record_frame(f"dark:{t!r}", "dark", t, file, digest)
-            self.darks[t] = self._load(file, digest)
+            self.darks[t] = self._load(file, digest, peak=False)     # signal only: what a dark is used for
 
     def _take_flats(self) -> None:
         """Flat-field frames for the PRNU correction (cameras with a ``flat`` source only).
@@ -315,7 +322,7 @@ class _Session:
         if self.journal.first_event("no_flat") is not None:
             return                               # decided when the session started: keep it so
         have = self.journal.frames("flat")
-        if len(have) != n:                       # none yet, or a crash while taking them
+        if len(have) != n or n < 1:              # none yet, or a crash while taking them (or none wanted)
             self.journal.forget_frames("flat")
             if not hasattr(cam, "flat") or n < 1:
                 self.journal.event("no_flat", "no flat-field source: pixel response non-uniformity not corrected")
@@ -327,7 +334,7 @@ class _Session:
                 self.journal.record_frame(f"flat:{k:03d}", "flat", t, file, cam.flat(t, self.folder / file))
             have = self.journal.frames("flat")
         t = next(iter(have.values()))[0]
-        self.gain = flat_gain([self._load(f, d) for _, f, d in have.values()], self.darks[t])
+        self.gain = flat_gain((self._load(f, d, peak=False) for _, f, d in have.values()), self.darks[t])
 
     def _flat_exposure(self, cam) -> float:
         probe = self.folder / RAW_DIR / f"{TMP_PREFIX}flat-probe.dng"
@@ -376,34 +383,76 @@ class _Session:
                           "then resume the session")
 
     # -- one point -----------------------------------------------------------------------
-    def _expose(self, idx: int, t: float) -> tuple[Exposure, dict]:
+    def _masks(self, stage: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+        """The sample and reference regions at ``stage`` (`_markers.posed_masks`: the masks of
+        `kinematics.roi_masks`, from the map's affinity) cropped to their bounding box, and the box
+        (super-pixel rows and columns) that is all a point decodes, merges and reduces."""
+        key = tuple(float(v) for v in stage)
+        if key not in self._masks_of:
+            sm, rm = posed_masks(stage, self.settings, None)
+            both = sm | rm
+            rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
+            if len(rows):
+                box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+            else:                                # no region in view: the whole frame, as before
+                box = (0, sm.shape[0], 0, sm.shape[1])
+            win = np.s_[box[0]:box[1], box[2]:box[3]]
+            while len(self._masks_of) > 1:       # this pose and the next are all a run needs
+                self._masks_of.pop(next(iter(self._masks_of)))
+            self._masks_of[key] = (sm[win], rm[win], box)
+        return self._masks_of[key]
+
+    def _dark(self, t: float, box) -> RawFrame:
+        d = self.darks[t]
+        return RawFrame(d.signal[:, box[0]:box[1], box[2]:box[3]], None, d.n_raw, d.black, d.white, d.rgb_cam)
+
+    def _expose(self, idx: int, t: float, box, decode: bool = True) -> tuple[Exposure | None, dict]:
+        """One exposure of point ``idx``: its RAW file, the monitor reading, and (``decode``) its
+        frame inside ``box`` (else decoded later, by the point's reduction)."""
         self.bench.checkpoint()
         file = self._fresh(f"p{idx:05d}_{t * 1e6:010.0f}us.dng")
         digest = self.bench.camera.expose(t, self.folder / file)
         self.bench.checkpoint()
         p = self._power()
-        frame = decode_raw(self.folder / file)
-        return Exposure(t, p, frame, self.darks[t]), {"seconds": t, "file": file, "sha256": digest, "power": p}
+        d = {"seconds": t, "file": file, "sha256": digest, "power": p}
+        if not decode:
+            return None, d
+        return Exposure(t, p, decode_raw(self.folder / file, window=box), self._dark(t, box)), d
 
-    def measure(self, idx: int) -> dict:
-        """Move to point ``idx``, bracket, merge, calibrate; return the journal row's fields."""
+    def _start_move(self, idx: int) -> dict:
+        """Send the stages towards point ``idx`` and return at once (they move on the controller)."""
+        return self.bench.gonio.move_to(dict(zip(AXES, self.stage[idx])), wait=False)
+
+    def _arrive(self, idx: int, goal: dict | None) -> None:
+        """Finish the move to point ``idx`` (``goal``: the one `_start_move` sent; None: move now),
+        then settle."""
         b = self.bench
-        stage = self.stage[idx]
+        target = dict(zip(AXES, self.stage[idx]))
         try:
-            b.gonio.move_to(dict(zip(AXES, stage)))
+            if goal is None:
+                b.gonio.move_to(target)
+            else:
+                b.gonio.finish_move(goal)
         except MoveError as exc:                 # e.g. WL: clear the flags, try once more
             self.journal.event("warning", str(exc))
             b.chain.clear_flags(b.gonio.devices[0])
-            b.gonio.move_to(dict(zip(AXES, stage)))
+            b.gonio.move_to(target)
         b.sleep(float(self.settings.get("motion", {}).get("settle_s", 0.0)))
-        sm, rm = kinematics.roi_masks(stage, self.settings)
+
+    def _bracket(self, idx: int, goal: dict | None = None) -> dict:
+        """Move to point ``idx`` and take its bracket: what the instrument must do at the point.
+        The probe (and a dim probe's confirmation) are decoded here, inside the regions' box, to
+        choose the bracket; the other frames are left to `_reduce`."""
+        self._arrive(idx, goal)
+        stage = self.stage[idx]
+        sm, rm, box = self._masks(stage)
         both = sm | rm
         p_start = self._power()
-        taken: dict[float, tuple[Exposure, dict]] = {}
+        taken: dict[float, tuple[Exposure | None, dict]] = {}
         t = self.probe
         # probe down the ladder until the regions are unsaturated (or the ladder ends)
         while True:
-            taken[t] = self._expose(idx, t)
+            taken[t] = self._expose(idx, t, box)
             e = taken[t][0]
             peak = float(e.frame.peak[:, both].max())
             if peak < self.sat * e.frame.full_scale or t <= self.rungs[0]:
@@ -420,16 +469,30 @@ class _Session:
             if bracket[0] == t or peak > 0.05 * e.frame.full_scale or bracket[0] in taken:
                 break
             t = bracket[0]                      # dim probe: confirm the shortest rung first
-            taken[t] = self._expose(idx, t)
+            taken[t] = self._expose(idx, t, box)
         for tb in bracket:
             if tb not in taken:
-                taken[tb] = self._expose(idx, tb)
+                taken[tb] = self._expose(idx, tb, box, decode=False)
         used = [taken[tb] for tb in sorted(taken)]
         powers = [d["power"] for _, d in used]
         if max(powers) / min(powers) - 1.0 > self.bracket_tol:
             raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
                              f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
-        hdr = merge([u[0] for u in used], self.noise, self.sat).flat_fielded(self.gain)
+        return {"idx": idx, "stage": stage, "used": used, "p_start": p_start, "bracket": bracket,
+                "masks": (sm, rm, box)}
+
+    def _reduce(self, shot: dict) -> dict:
+        """Decode what `_bracket` left, merge the bracket, reduce the regions, calibrate: the journal
+        row's fields. Touches no device and no journal, so it runs while the stages move on."""
+        idx, used = shot["idx"], shot["used"]
+        sm, rm, box = shot["masks"]
+        exposures = [e if e is not None else
+                     Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box),
+                              self._dark(d["seconds"], box))
+                     for e, d in used]
+        gain = None if self.gain is None else self.gain[:, box[0]:box[1], box[2]:box[3]]
+        hdr = merge(exposures, self.noise, self.sat).flat_fielded(gain)
+        del exposures
         stats = {"sample": region_stats(hdr, sm), "reference": region_stats(hdr, rm)}
         saturated = any(st["n_saturated"] for st in stats.values())
         s, r = stats["sample"], stats["reference"]
@@ -440,13 +503,18 @@ class _Session:
             std = np.abs(brdf) * rel
         detail = {
             "exposures": [d for _, d in used],
-            "p_start": p_start,
-            "bracket": bracket,
+            "p_start": shot["p_start"],
+            "bracket": shot["bracket"],
             **{f"{k}_{q}": [float(v) for v in stats[k][q]] for k in stats for q in ("mean", "se", "se_model", "n")},
             "n_saturated": {k: int(stats[k]["n_saturated"]) for k in stats},
         }
         return {"brdf": brdf, "brdf_std": std, "saturated": saturated or not np.all(np.isfinite(brdf)),
-                "detail": detail, "stage": stage}
+                "detail": detail, "stage": shot["stage"]}
+
+    def measure(self, idx: int) -> dict:
+        """Move to point ``idx``, bracket, merge, calibrate; return the journal row's fields (one
+        point, start to end: `run` overlaps the reduction with the next move instead)."""
+        return self._reduce(self._bracket(idx))
 
     def _reciprocity(self, idx: int) -> dict | None:
         j = int(self.plan.partner[idx])
@@ -459,7 +527,26 @@ class _Session:
         return {"i": min(idx, j), "j": max(idx, j), "rel": rel.tolist(), "z": z.tolist()}
 
     # -- the loop ------------------------------------------------------------------------
+    def _commit(self, idx: int, res: dict, bar: ProgressBar) -> None:
+        """Journal point ``idx`` (its RAW files are complete and fsynced: the camera committed them)."""
+        self.journal.record_point(idx, self.plan.angles[idx], res["stage"], res["brdf"],
+                                  res["brdf_std"], res["saturated"], res["detail"])
+        self.results[idx] = (np.asarray(res["brdf"]), np.asarray(res["brdf_std"]))
+        r = self._reciprocity(idx)
+        if r is not None:
+            self.reciprocity.append(r)
+        bar.advance(res["brdf"], r)
+
     def run(self) -> tuple[int, str]:
+        """Measure the points the journal lacks, in the session's order.
+
+        A pipeline of two: once point k's bracket is taken, the stages are sent to point k+1 and
+        a worker thread decodes, merges and reduces point k while they move (and while k+1's
+        exposures run); point k is journalled once its reduction is done, before k+1's. A point
+        is in the journal only when its row is complete; whatever stops the run (a signal, a
+        fault, a full disk) first journals a point whose reduction had finished, and a point
+        still being reduced is measured again on resume, as one interrupted mid-bracket is.
+        """
         done = self.journal.done()
         todo = [int(i) for i in self.order if int(i) not in done]
         for i in sorted(done):
@@ -469,31 +556,58 @@ class _Session:
         bar = ProgressBar(len(self.plan), len(done), self.progress)
         n_new = 0
         stopped = ""
-        try:
-            for idx in todo:
-                self.bench.checkpoint()
-                if self.stop():
-                    stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
-                    break
-                for attempt in range(self.MAX_ATTEMPTS):
-                    try:
-                        res = self.measure(idx)
-                        break
-                    except _Suspended as exc:
-                        why = str(exc)
-                        self._wait_until_fit(why)
-                else:
-                    raise DeviceError(f"point {idx} failed {self.MAX_ATTEMPTS} times ({why}); "
-                                      "check the lamp, then resume the session")
-                self.journal.record_point(idx, self.plan.angles[idx], res["stage"], res["brdf"],
-                                          res["brdf_std"], res["saturated"], res["detail"])
-                self.results[idx] = (np.asarray(res["brdf"]), np.asarray(res["brdf_std"]))
-                r = self._reciprocity(idx)
-                if r is not None:
-                    self.reciprocity.append(r)
+        pending = None                   # (idx, future of its reduction): not yet journalled
+        goal = None                      # the move sent ahead to todo[n], not yet waited for
+        pool = ThreadPoolExecutor(1, thread_name_prefix="gonio-reduce")
+
+        def commit_pending() -> None:
+            nonlocal pending, n_new
+            if pending is not None:
+                idx, fut = pending
+                res = fut.result()
+                pending = None
+                self._commit(idx, res, bar)
                 n_new += 1
-                bar.advance(res["brdf"], r)
+
+        try:
+            try:
+                for n, idx in enumerate(todo):
+                    self.bench.checkpoint()
+                    if self.stop():
+                        stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
+                        break
+                    for attempt in range(self.MAX_ATTEMPTS):
+                        try:
+                            shot = self._bracket(idx, goal)
+                            break
+                        except _Suspended as exc:
+                            goal = None
+                            why = str(exc)
+                            self._wait_until_fit(why)
+                    else:
+                        raise DeviceError(f"point {idx} failed {self.MAX_ATTEMPTS} times ({why}); "
+                                          "check the lamp, then resume the session")
+                    goal = None
+                    ahead = todo[n + 1] if n + 1 < len(todo) and not self.stop() else None
+                    if ahead is not None:
+                        goal = self._start_move(ahead)         # the stages move while the host works
+                    fut = pool.submit(self._reduce, shot)
+                    del shot
+                    commit_pending()                           # point k-1 (reduced during k's bracket)
+                    pending = (idx, fut)
+                    if ahead is not None:
+                        self._masks(self.stage[ahead])         # the next regions, during the move
+                commit_pending()
+            except BaseException:
+                # what stops the run keeps a point whose reduction finished (its data is complete)
+                if pending is not None:
+                    try:
+                        commit_pending()
+                    except Exception:
+                        pass
+                raise
         finally:
+            pool.shutdown(wait=True, cancel_futures=True)
             bar.close()
         return n_new, stopped
 
