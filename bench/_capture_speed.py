@@ -1,35 +1,44 @@
 """``gonio bench capture``: the capture pipeline's time per point against the instrument's own.
 
-A capture of a few points runs on the simulated instrument (instant clock) twice: with the
-default camera and with a full-size one (6000 x 4000, 14-bit RGGB, the same field of view).
-Per point it measures, in the same run:
+A capture of a few points runs on the simulated instrument twice: with the default camera and
+with a full-size one (6000 x 4000, 14-bit RGGB, the same field of view). The simulator runs in
+real time (its stages move, its exposures last, while the host works, as on hardware). Per
+point (a cycle: from the start of its move to the start of the next) it measures, in the same
+run:
 
-* the **lower bound**: the simulated time the instrument itself needs, stage motion (with
-  settling and the protocol's polls) plus the exposures; a bench can go no faster;
-* the **host time**: wall time of the point minus the simulator's own computing (rendering,
-  sensor noise, DNG encoding: what a real camera does in its own hardware), split into RAW
-  decoding, HDR merge, region masks and statistics, and the rest (protocol, checksums,
-  journal);
-* the **projection**: bound + host time, what the point would take on hardware, and its ratio
-  to the bound.
+* the **lower bound**: what the instrument itself needs, the stages' motion (the simulated
+  stages' own time from the move command to standstill, plus ``settle_s``) and the exposures;
+  a bench can go no faster;
+* the **wall time** of the cycle and the simulator's own computing in it (rendering, sensor
+  noise, DNG encoding: what a real camera does in its own hardware), which is taken out:
+  ``proj = wall - sim`` is what the point would take on hardware and ``host = proj - bound``
+  what the host adds to the bound (protocol, polling granularity, the probe's decoding,
+  checksums, and whatever of the reduction the move does not hide);
+* where the host's time goes: RAW decoding, HDR merge, region masks and statistics (per point,
+  whichever thread ran them), and ``reduce``, the worker thread's time per point (decode,
+  merge and statistics of point k while the stages move to k+1); ``tail``, the last point's
+  reduction and journal row after its bracket (once a run: no move hides it; not in the
+  per-point means).
 
-The capture loop (bench/capture.py) is sequential: a point's frames are decoded as they
-arrive, merged and reduced after the bracket, and only then does the next move start. No
-work of one point overlaps the next move, so the projection adds the host time to the bound
-in full; the table says how much of it an overlap could hide (the part shorter than the next
-move). The benchmark only measures: it wraps the pipeline's functions with timers for the run
-and restores them.
+To keep the accounting honest, the simulator renders a frame only once the worker is idle:
+the worker may overlap the stage motion and the exposures, never the simulator's computing,
+which a real bench does not have. The benchmark only measures: it wraps the pipeline's
+functions with timers for the run and restores them. ``peak MiB`` is the process's peak
+resident memory after the camera's run.
 
 Settings of the run (both cameras): exposures 1/500 s to 1/16 s (6 rungs: the session takes a
-dark frame per rung and keeps each decoded, 288 MB at full size), one flat-field frame (0 is not accepted by the capture), the quick
-plan's first points.
+dark frame per rung and keeps each decoded, signal only, float32: 72 MB at full size), one
+flat-field frame, the quick plan's first points.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import resource
+import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,15 +52,15 @@ _PHASES = ("decode", "merge", "masks", "stats")
 
 @dataclass
 class PointTimes:
-    """Seconds per point: wall, the simulator's computing, the bound (motion, exposure) and phases."""
+    """Seconds of one point's cycle (its move's start to the next's): wall, the simulator's
+    computing, the bound (motion, exposure), and the phases that ran meanwhile."""
 
     wall: float = 0.0
     sim_cpu: float = 0.0
     motion: float = 0.0
     exposure: float = 0.0
     phases: dict = field(default_factory=lambda: dict.fromkeys(_PHASES, 0.0))
-    mask_calls: list = field(default_factory=list)
-    masks_affine: float = 0.0     # the same masks through _markers.posed_masks, timed after the run
+    reduce: float = 0.0
 
     @property
     def bound(self) -> float:
@@ -59,21 +68,40 @@ class PointTimes:
 
     @property
     def host(self) -> float:
-        return self.wall - self.sim_cpu
+        return self.wall - self.sim_cpu - self.bound
 
 
 class _Meter:
     """Timers wrapped around the pipeline's functions for one run (restored afterwards)."""
 
-    def __init__(self, inst):
+    def __init__(self, inst, settle_s: float = 0.0):
         self.inst = inst
-        self.current: PointTimes | None = None
-        self.points: list[PointTimes] = []
-        self.exposure_sim = 0.0
+        self.settle = settle_s
+        self.lock = threading.Lock()
+        self.idle = threading.Condition(self.lock)
+        self.busy = 0                       # reductions running in the worker
+        self.sim_cpu = self.exposure = 0.0
+        self.phases = dict.fromkeys(_PHASES, 0.0)
+        self.reduce = 0.0
+        self.motion = 0.0                   # the stages' own time of the moves sent, s
+        self.marks: list[tuple] = []        # (wall, motion, sim_cpu, exposure, phases, reduce) at each move's start
+        self.end: tuple | None = None       # the same after the last bracket
+        self.run_end: float = 0.0
+
+    def _mark(self):
+        with self.lock:
+            return (time.perf_counter(), self.motion, self.sim_cpu, self.exposure, dict(self.phases),
+                    self.reduce)
+
+    def _motion_left(self) -> float:
+        """Seconds until the simulated stages stand still (0 when idle)."""
+        t = self.inst.clock.now()
+        ends = [e for e in (a.end_time(t) for a in self.inst.axes) if e is not None]
+        return max(ends) - t if ends else 0.0
 
     @contextlib.contextmanager
     def installed(self):
-        from . import capture, kinematics
+        from . import _zaber, capture
 
         patches = []
 
@@ -85,49 +113,83 @@ class _Meter:
         def phase(key):
             def make(fn):
                 def timed(*a, **kw):
-                    if key == "masks" and self.current is not None:
-                        self.current.mask_calls.append((a, kw))
                     t = time.perf_counter()
                     try:
                         return fn(*a, **kw)
                     finally:
-                        if self.current is not None:
-                            self.current.phases[key] += time.perf_counter() - t
+                        with self.lock:
+                            self.phases[key] += time.perf_counter() - t
                 return timed
             return make
 
         def sim_capture(fn):
             def timed(seconds, *a, **kw):
-                t, c = time.perf_counter(), self.inst.clock.now()
+                with self.idle:                      # the worker never hides in the simulator's computing
+                    while self.busy:
+                        self.idle.wait()
+                t = time.perf_counter()
                 try:
-                    return fn(seconds, *a, **kw)
+                    return fn(seconds, *a, **kw)     # renders, then lets the exposure pass (real time)
                 finally:
-                    if self.current is not None:
-                        self.current.sim_cpu += time.perf_counter() - t
-                        self.current.exposure += self.inst.clock.now() - c
+                    cpu = max(0.0, time.perf_counter() - t - seconds)
+                    with self.lock:
+                        self.sim_cpu += cpu
+                        self.exposure += seconds
                     cache = self.inst._radiance          # keep one full-size render, not 16
                     while len(cache) > 1:
                         cache.popitem(last=False)
             return timed
 
-        def measure(fn):
-            def timed(sess, idx):
-                self.current = PointTimes()
-                t, c = time.perf_counter(), self.inst.clock.now()
+        def move(fn):
+            def timed(gonio, target, *a, wait=True, **kw):
+                self.marks.append(self._mark())      # a point's cycle starts with its move
+                goal = fn(gonio, target, *a, wait=False, **kw)
+                with self.lock:
+                    self.motion += self._motion_left() + settle
+                if wait:
+                    gonio.finish_move(goal)
+                return goal
+            return timed
+
+        def bracket(fn):
+            def timed(sess, idx, *a, **kw):
                 try:
-                    return fn(sess, idx)
+                    return fn(sess, idx, *a, **kw)
                 finally:
-                    p, self.current = self.current, None
-                    p.wall = time.perf_counter() - t
-                    p.motion = self.inst.clock.now() - c - p.exposure
-                    self.points.append(p)
+                    self.end = self._mark()
+            return timed
+
+        def reduce(fn):
+            def timed(sess, shot):
+                with self.lock:
+                    self.busy += 1
+                t = time.perf_counter()
+                try:
+                    return fn(sess, shot)
+                finally:
+                    with self.idle:
+                        self.reduce += time.perf_counter() - t
+                        self.busy -= 1
+                        self.idle.notify_all()
+            return timed
+
+        def run(fn):
+            def timed(sess):
+                try:
+                    return fn(sess)
+                finally:
+                    self.run_end = time.perf_counter()
             return timed
 
         patch(capture, "decode_raw", phase("decode"))
         patch(capture, "merge", phase("merge"))
         patch(capture, "region_stats", phase("stats"))
-        patch(kinematics, "roi_masks", phase("masks"))
-        patch(capture._Session, "measure", measure)
+        patch(capture, "posed_masks", phase("masks"))
+        settle = self.settle
+        patch(_zaber.Goniometer, "move_to", move)
+        patch(capture._Session, "_bracket", bracket)
+        patch(capture._Session, "_reduce", reduce)
+        patch(capture._Session, "run", run)
         patch(self.inst, "capture", sim_capture)
         try:
             yield self
@@ -138,12 +200,26 @@ class _Meter:
                 else:
                     delattr(obj, name)
 
+    def points(self) -> tuple[list[PointTimes], float]:
+        """The points' cycles (the last one to the end of its bracket) and the tail after it."""
+        marks = [*self.marks, self.end]
+        pts = []
+        for (w0, c0, s0, e0, p0, r0), (w1, c1, s1, e1, p1, r1) in zip(marks, marks[1:]):
+            pts.append(PointTimes(w1 - w0, s1 - s0, c1 - c0, e1 - e0, {k: p1[k] - p0[k] for k in _PHASES}, r1 - r0))
+        last = self.end
+        tail = self.run_end - last[0]
+        if pts:                                    # what ran after the last bracket belongs to the last point
+            for k in _PHASES:
+                pts[-1].phases[k] += self.phases[k] - last[4][k]
+            pts[-1].reduce += self.reduce - last[5]
+        return pts, tail
 
-def _one(width: int, height: int, n_points: int, seed: int, folder: Path) -> list[PointTimes]:
+
+def _one(width: int, height: int, n_points: int, seed: int, folder: Path) -> tuple[list[PointTimes], float]:
     import gonio.sim
 
-    from .capture import capture
     from ._settings import default_settings, merge_settings
+    from .capture import capture
     from .plans import Plan, load_plan
 
     base = default_settings()
@@ -156,24 +232,22 @@ def _one(width: int, height: int, n_points: int, seed: int, folder: Path) -> lis
     plan = Plan(f"bench-{n_points}", quick.angles[:n_points], source="quick")
     sample = {"model": "diffuse", "params": {"reflectance": 0.5}}
     ref = {"model": "diffuse", "params": {"reflectance": float(settings["reference"]["reflectance"])}}
-    inst = gonio.sim.Instrument(settings, sample=sample, reference=ref, seed=seed, clock="instant",
+    inst = gonio.sim.Instrument(settings, sample=sample, reference=ref, seed=seed, clock="real",
                                 spp=1 if width * height > 1_000_000 else 4)
     inst.register(f"bench-capture-{width}x{height}-{id(inst):x}")
-    meter = _Meter(inst)
+    meter = _Meter(inst, float(settings.get("motion", {}).get("settle_s", 0.0)))
     try:
         with meter.installed():
             capture(folder, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"), seed=seed,
-                    progress=False, sample_truth=sample, sleep=inst.clock.advance)
+                    progress=False, sample_truth=sample, sleep=time.sleep)
     finally:
         inst.unregister()
-    from ._markers import posed_masks
+    return meter.points()
 
-    for p in meter.points:                 # the same masks from the map's affinity, for comparison
-        for a, kw in p.mask_calls:
-            t = time.perf_counter()
-            posed_masks(a[0], a[1], None, *a[2:], **kw)
-            p.masks_affine += time.perf_counter() - t
-    return meter.points
+
+def _peak_mib() -> float:
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1 << 20) if sys.platform == "darwin" else rss / 1024
 
 
 def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: int = 0, out=print) -> list[dict]:
@@ -182,34 +256,30 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
     rows = []
     for w, h in cams:
         with tempfile.TemporaryDirectory(prefix="gonio-bench-capture-") as tmp:
-            pts = _one(w, h, n_points, seed, Path(tmp) / "session")
+            pts, tail = _one(w, h, n_points, seed, Path(tmp) / "session")
         n = len(pts)
         mean = lambda f: sum(f(p) for p in pts) / n          # noqa: E731
         row = {"camera": f"{w}x{h}", "points": n, "motion_s": mean(lambda p: p.motion),
                "exposure_s": mean(lambda p: p.exposure), "bound_s": mean(lambda p: p.bound),
                "wall_s": mean(lambda p: p.wall), "sim_s": mean(lambda p: p.sim_cpu),
-               "host_s": mean(lambda p: p.host), **{k + "_s": mean(lambda p, k=k: p.phases[k]) for k in _PHASES}}
+               "host_s": mean(lambda p: p.host), **{k + "_s": mean(lambda p, k=k: p.phases[k]) for k in _PHASES},
+               "reduce_s": mean(lambda p: p.reduce), "tail_s": tail, "peak_mib": _peak_mib()}
         row["projected_s"] = row["bound_s"] + row["host_s"]
         row["ratio"] = row["projected_s"] / row["bound_s"] if row["bound_s"] > 0 else math.nan
-        # with the reduction of point k overlapping the move to k+1, only what outlasts the move stays
-        compute = sum(row[k + "_s"] for k in ("merge", "masks", "stats"))
-        row["overlap_ratio"] = (row["bound_s"] + row["host_s"] - min(compute, row["motion_s"])) / row["bound_s"]
-        row["masks_affine_s"] = mean(lambda p: p.masks_affine)
-        row["affine_ratio"] = (row["projected_s"] - row["masks_s"] + row["masks_affine_s"]) / row["bound_s"]
         rows.append(row)
     head = (f"{'camera':>10} {'pts':>3} {'motion':>7} {'expose':>7} {'bound':>7} {'wall':>7} {'sim':>7} "
-            f"{'host':>7} {'decode':>7} {'merge':>7} {'masks':>7} {'stats':>7} {'proj/bound':>10} {'overlapped':>10} "
-            f"{'masks*':>7} {'proj*/bound':>11}")
-    out("capture pipeline, seconds per point (bound = stage motion + exposures, simulated time; "
-        "host = wall - simulator's computing; proj = bound + host; the loop is sequential: nothing "
-        "overlaps the next move, 'overlapped' is what overlapping merge, masks and stats with it could reach; "
-        "masks* = the same masks through _markers.posed_masks, timed after the run, proj* = proj with them)")
+            f"{'host':>7} {'decode':>7} {'merge':>7} {'masks':>7} {'stats':>7} {'proj/bound':>10} {'reduce':>7} "
+            f"{'tail':>7} {'peak MiB':>8}")
+    out("capture pipeline, seconds per point (the simulator in real time; bound = the stages' own motion + "
+        "settling + exposures; wall = a point's move start to the next's; sim = the simulator's computing in it; "
+        "host = wall - sim - bound; proj = bound + host; reduce = the worker's decode, merge and statistics "
+        "of the point, overlapping the next move; tail = the last point's reduction, after its bracket, once a run)")
     out(head)
     for r in rows:
         out(f"{r['camera']:>10} {r['points']:>3} {r['motion_s']:7.3f} {r['exposure_s']:7.3f} {r['bound_s']:7.3f} "
             f"{r['wall_s']:7.3f} {r['sim_s']:7.3f} {r['host_s']:7.3f} {r['decode_s']:7.3f} {r['merge_s']:7.3f} "
-            f"{r['masks_s']:7.3f} {r['stats_s']:7.3f} {r['ratio']:9.3f}x {r['overlap_ratio']:9.3f}x "
-            f"{r['masks_affine_s']:7.3f} {r['affine_ratio']:10.3f}x")
+            f"{r['masks_s']:7.3f} {r['stats_s']:7.3f} {r['ratio']:9.3f}x {r['reduce_s']:7.3f} {r['tail_s']:7.3f} "
+            f"{r['peak_mib']:8.0f}")
     return rows
 
 

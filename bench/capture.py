@@ -51,7 +51,7 @@ from ._camera import RawFrame, SimCamera, decode_raw, read_verified
 from ._files import TMP_PREFIX, create_exclusive, remove_orphans
 from . import _integrity
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
-from ._markers import posed_masks
+from ._markers import find_regions, layout_of, posed_masks
 from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock,
                        read_session, session_text, versions, write_session)
 from ._measure import ProgressBar, ReferenceModel, check_sensor, raw_estimate, region_stats
@@ -231,6 +231,7 @@ class _Session:
         self.reciprocity: list[dict] = []
         self.reserved = journal.reserved()
         self._masks_of: dict[tuple, tuple] = {}      # per pose: the regions (the plan revisits none, a retry does)
+        self.layout = layout_of(self.settings)       # the holder's markers, None where it has none
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -404,6 +405,8 @@ class _Session:
 
     def _dark(self, t: float, box) -> RawFrame:
         d = self.darks[t]
+        if box is None:
+            return d
         return RawFrame(d.signal[:, box[0]:box[1], box[2]:box[3]], None, d.n_raw, d.black, d.white, d.rgb_cam)
 
     def _expose(self, idx: int, t: float, box, decode: bool = True) -> tuple[Exposure | None, dict]:
@@ -418,6 +421,28 @@ class _Session:
         if not decode:
             return None, d
         return Exposure(t, p, decode_raw(self.folder / file, window=box), self._dark(t, box)), d
+
+    def _regions_from_markers(self, idx: int, stage) -> tuple[tuple, Exposure, dict, dict]:
+        """The first probe of a point on a holder with markers: decoded whole, the regions found
+        from the markers in it (`_markers.find_regions`; the geometry's where none fit), the frame
+        then cropped to their box like any other."""
+        e, d = self._expose(idx, self.probe, None)
+        sig = e.frame.signal[1] - e.dark.signal[1]
+        found = find_regions(np.asarray(sig, float), stage, self.settings)
+        sm, rm = found.sample, found.reference
+        both = sm | rm
+        rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
+        box = ((int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows)
+               else (0, sm.shape[0], 0, sm.shape[1]))
+        win = np.s_[box[0]:box[1], box[2]:box[3]]
+        f = e.frame
+        e = Exposure(e.seconds, e.power, RawFrame(f.signal[(slice(None), *win)].copy(), f.peak[(slice(None), *win)].copy(), f.n_raw, f.black,
+                                                  f.white, f.rgb_cam), self._dark(e.seconds, box))
+        info = {"source": found.source, "why": found.why}
+        if found.pose is not None:
+            info.update(shift_m=[float(v) for v in found.pose.shift], angle_deg=float(found.pose.angle_deg),
+                        rms_m=float(found.pose.rms), ids=[int(i) for i in found.pose.ids])
+        return (sm[win], rm[win], box), e, d, info
 
     def _start_move(self, idx: int) -> dict:
         """Send the stages towards point ``idx`` and return at once (they move on the controller)."""
@@ -445,14 +470,20 @@ class _Session:
         choose the bracket; the other frames are left to `_reduce`."""
         self._arrive(idx, goal)
         stage = self.stage[idx]
-        sm, rm, box = self._masks(stage)
-        both = sm | rm
+        regions = None
+        if self.layout is None:
+            sm, rm, box = self._masks(stage)
         p_start = self._power()
         taken: dict[float, tuple[Exposure | None, dict]] = {}
         t = self.probe
+        if self.layout is not None:             # the regions from the holder's markers, in the probe
+            (sm, rm, box), e, d, regions = self._regions_from_markers(idx, stage)
+            taken[t] = (e, d)
+        both = sm | rm
         # probe down the ladder until the regions are unsaturated (or the ladder ends)
         while True:
-            taken[t] = self._expose(idx, t, box)
+            if t not in taken:
+                taken[t] = self._expose(idx, t, box)
             e = taken[t][0]
             peak = float(e.frame.peak[:, both].max())
             if peak < self.sat * e.frame.full_scale or t <= self.rungs[0]:
@@ -479,7 +510,7 @@ class _Session:
             raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
                              f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
         return {"idx": idx, "stage": stage, "used": used, "p_start": p_start, "bracket": bracket,
-                "masks": (sm, rm, box)}
+                "masks": (sm, rm, box), "regions": regions}
 
     def _reduce(self, shot: dict) -> dict:
         """Decode what `_bracket` left, merge the bracket, reduce the regions, calibrate: the journal
@@ -508,6 +539,8 @@ class _Session:
             **{f"{k}_{q}": [float(v) for v in stats[k][q]] for k in stats for q in ("mean", "se", "se_model", "n")},
             "n_saturated": {k: int(stats[k]["n_saturated"]) for k in stats},
         }
+        if shot.get("regions") is not None:      # a holder with markers: how the regions were found
+            detail["regions"] = shot["regions"]
         return {"brdf": brdf, "brdf_std": std, "saturated": saturated or not np.all(np.isfinite(brdf)),
                 "detail": detail, "stage": shot["stage"]}
 
@@ -540,12 +573,13 @@ class _Session:
     def run(self) -> tuple[int, str]:
         """Measure the points the journal lacks, in the session's order.
 
-        A pipeline of two: once point k's bracket is taken, the stages are sent to point k+1 and
-        a worker thread decodes, merges and reduces point k while they move (and while k+1's
-        exposures run); point k is journalled once its reduction is done, before k+1's. A point
-        is in the journal only when its row is complete; whatever stops the run (a signal, a
-        fault, a full disk) first journals a point whose reduction had finished, and a point
-        still being reduced is measured again on resume, as one interrupted mid-bracket is.
+        Once point k's bracket is taken, the stages are sent to point k+1 at once, and a worker
+        thread decodes, merges and reduces point k while they move (the main thread meanwhile
+        finds k+1's regions); point k is journalled as soon as its reduction is done, still
+        during the move and before k+1's bracket, so a point is in the journal only once its
+        row is complete and its RAW files committed, and a stop (Ctrl-C once, after the point
+        being journalled; a signal, a fault, a full disk) loses at most the point in progress,
+        as before. A move sent ahead when the run stops at a point boundary is stopped.
         """
         done = self.journal.done()
         todo = [int(i) for i in self.order if int(i) not in done]
@@ -591,13 +625,14 @@ class _Session:
                     ahead = todo[n + 1] if n + 1 < len(todo) and not self.stop() else None
                     if ahead is not None:
                         goal = self._start_move(ahead)         # the stages move while the host works
-                    fut = pool.submit(self._reduce, shot)
+                    pending = (idx, pool.submit(self._reduce, shot))
                     del shot
-                    commit_pending()                           # point k-1 (reduced during k's bracket)
-                    pending = (idx, fut)
                     if ahead is not None:
                         self._masks(self.stage[ahead])         # the next regions, during the move
-                commit_pending()
+                    commit_pending()                           # point k, still during the move
+                if goal is not None:                           # stopped with a move sent ahead
+                    goal = None
+                    self.bench.gonio.stop()
             except BaseException:
                 # what stops the run keeps a point whose reduction finished (its data is complete)
                 if pending is not None:

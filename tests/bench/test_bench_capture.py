@@ -319,3 +319,79 @@ def test_camera_size_must_match_settings(instrument, tmp_path):
         capture(tmp_path / "s", SMALL, wrong, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
                 progress=False, sleep=inst.clock.advance)
     assert not (tmp_path / "s").exists()
+
+
+def test_no_flat_frames_wanted_with_a_flat_source(instrument, tmp_path):
+    """``[capture] flat_frames = 0`` with a camera that has a flat source: no flat field, said once
+    (it ended in StopIteration in _take_flats), and a resume keeps it that way."""
+    inst = instrument("noflat")
+    settings = {**S, "capture": {**S["capture"], "flat_frames": 0}}
+    plan = plans.Plan("two", [[30, 0, 40, 180], [20, 0, 50, 90]])
+    res = capture(tmp_path / "s", plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
+                  seed=inst.seed, progress=False, sleep=inst.clock.advance, sample_truth=inst.sample_spec)
+    assert res.complete and res.n_new == 2
+    with Journal(tmp_path / "s" / "journal.sqlite") as j:
+        assert j.frames("flat") == {} and j.first_event("no_flat") is not None
+    res = resume(tmp_path / "s", progress=False, sleep=inst.clock.advance, remeasure="1")
+    assert res.complete and res.n_new == 1
+    assert_clean(tmp_path / "s")
+
+
+def test_windowed_decode_is_the_crop_of_the_full_decode(instrument, tmp_path):
+    """What a point decodes (the regions' box, from bytes already read, darks without peaks) is
+    exactly the crop of the full frame."""
+    from gonio.bench._camera import decode_raw, read_verified
+
+    inst = instrument("window")
+    path = tmp_path / "f.dng"
+    path.write_bytes(inst.capture(0.01))
+    full = decode_raw(path)
+    data, digest = read_verified(path)
+    assert digest == sha256_file(path)
+    h, w = full.signal.shape[1:]
+    for box in ((0, h, 0, w), (3, h - 5, 7, w - 2), (h // 2, h // 2 + 1, 0, 1)):
+        part = decode_raw(path, window=box, data=data)
+        win = np.s_[:, box[0]:box[1], box[2]:box[3]]
+        assert np.array_equal(part.signal, full.signal[win]) and np.array_equal(part.peak, full.peak[win])
+        assert part.signal.dtype == np.float32 and (part.black, part.white) == (full.black, full.white)
+    dark = decode_raw(path, peak=False)
+    assert dark.peak is None and np.array_equal(dark.signal, full.signal)
+    # float32 holds the raw values exactly: the greens' mean is a half-integer at most
+    assert np.array_equal(full.signal * 2, np.round(full.signal * 2))
+
+
+def test_regions_from_the_holders_markers(tmp_path):
+    """Settings that declare holder markers: each point's regions come from the markers in its
+    probe (the pose is journalled), so a holder moved by a known offset is measured where it is."""
+    from gonio.bench import _markers
+    from gonio.bench._settings import merge_settings
+
+    bench = merge_settings(default_settings(), {"camera": {"width": 480, "height": 360, "pixel_size": 0.0027}})
+    bench["holder"] = {**bench["holder"], "markers": _markers.example_layout()}
+    shift, turn = (0.04, -0.03), 3.0
+    simset = {**bench, "holder": {**bench["holder"], "sim_pose": [*shift, turn]}}
+    inst = sim.Instrument(simset, sample=GLOSSY, seed=2).register("markers")
+    try:
+        plan = plans.Plan("two", [[30, 0, 40, 180], [20, 0, 50, 90]])
+        res = capture(tmp_path / "s", plan, bench, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
+                      seed=2, progress=False, sleep=inst.clock.advance, sample_truth=inst.sample_spec)
+        assert res.complete
+        rows = Journal(tmp_path / "s" / "journal.sqlite").points()
+        for r in rows:
+            reg = r["detail"]["regions"]
+            assert reg["source"] == "markers", reg["why"]
+            assert np.allclose(reg["shift_m"], shift, atol=2 * bench["camera"]["pixel_size"])
+            assert reg["angle_deg"] == pytest.approx(turn, abs=0.5)
+        wi = np.array([kinematics.directions(r["theta_i"], r["phi_i"]) for r in rows])
+        wo = np.array([kinematics.directions(r["theta_o"], r["phi_o"]) for r in rows])
+        f, s = np.array([r["brdf"] for r in rows]), np.array([r["brdf_std"] for r in rows])
+        assert np.mean(((f - inst.true_brdf(wi, wo)) / s) ** 2) < 5.0
+    finally:
+        inst.unregister()
+    # without markers in the settings the geometry's regions are used and nothing is journalled about them
+    inst = sim.Instrument(S, sample=GLOSSY, seed=2).register("nomarkers")
+    try:
+        run(inst, tmp_path / "g", plans.Plan("one", [[30, 0, 40, 180]]))
+        assert "regions" not in Journal(tmp_path / "g" / "journal.sqlite").points()[0]["detail"]
+    finally:
+        inst.unregister()
