@@ -194,12 +194,29 @@ def _cmd_bench_models(args):
 
 @_env
 def _cmd_bench_fit(args):
-    from gonio.fitting.speed import run
+    from gonio.fitting.speed import run, run_real
 
+    if args.real:
+        files = [Path(f) for f in args.real]
+        for f in files:
+            if not f.is_file() or f.suffix.lower() not in (".bsdf", ".binary"):
+                raise GonioError(f"--real {f}: give measured RGL .bsdf or MERL .binary files that exist")
+        if args.quick:
+            raise GonioError("--quick is for the synthetic matrix; --real fits each file in full")
+        try:
+            run_real(files, out=Path(args.out) if args.out else None, seed=args.seed)
+        except ValueError as exc:
+            raise GonioError(" ".join(str(exc).split())[:300]) from None
+        return
     run(quick=args.quick, out=Path(args.out) if args.out else None)
 
 
 # --------------------------------------------------------------------------- parser
+LOSS_HELP = ("chi2 (the data's Gaussian noise; default for dataset.nc), robust (pseudo-Huber on chi2's residuals), "
+             "cosine (Ngan 2005 cosine-weighted L2), log (Loew 2012 ln(1 + f cos) residuals, sandwich covariance; "
+             "default for RGL .bsdf and MERL .binary files, which carry no uncertainty), discrepancy (chi2 with a "
+             "relative and absolute model-discrepancy variance fitted with the model; experimental); every loss "
+             "weights each sample by its solid angle")
 EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_STOPPED = 0, 1, 2, 3
 
 EPILOG = """exit status:
@@ -261,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model option, e.g. distribution=beckmann (repeatable)")
     f.add_argument("--out", required=True, help="fit file to write (JSON)")
     f.add_argument("--seed", type=_seed, default=0, help="seed of the multi-start and the sampler")
-    f.add_argument("--loss", default="chi2", help="chi2 (default), robust, cosine, log")
+    f.add_argument("--loss", default=None, help=LOSS_HELP)
     f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
                    help="sample the posterior with emcee")
     f.add_argument("--batch", action="store_true", help="fit every DATASET on Dask; --out is then a folder")
@@ -320,7 +337,11 @@ def build_parser() -> argparse.ArgumentParser:
     bm.set_defaults(func=_cmd_bench_models)
     bf = bsub.add_parser("fit", help="fit speed against error: gonio vs scipy least_squares, CRLB efficiency")
     bf.add_argument("--quick", action="store_true", help="a small matrix (about 10 s)")
-    bf.add_argument("--out", help="folder for the CSV table and the PNG plot")
+    bf.add_argument("--out", help="folder for the CSV table and the PNG plot (with --real: a .csv file or a folder)")
+    bf.add_argument("--real", nargs="+", metavar="FILE",
+                    help="measured materials (RGL .bsdf, MERL .binary): gonio's chosen fit beside a scipy log-loss "
+                         "peer, Ngan and log errors on one dense grid, times from the same run")
+    bf.add_argument("--seed", type=_seed, default=0, help="seed of the fits' starts (with --real)")
     bf.set_defaults(func=_cmd_bench_fit)
     from .operator import register as _operator_commands     # devices, home, move, jog, shot; bench capture
 

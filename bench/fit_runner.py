@@ -101,14 +101,19 @@ def _open_dataset(path: Path, seed: int = 0):
     raise GonioError(message)
 
 
-def fit_dataset(meas, *, model="auto", options=None, seed=0, loss="chi2", posterior=False,
+def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
                 posterior_budget_s=None, dataset_path=None):
-    """Fit (or select) a model; return (FitResult, fit document, Posterior or None)."""
+    """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
+
+    ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
+    (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file."""
     import gonio.models as gm
-    from gonio.fitting import fit, fit_document, option_candidates, sample_posterior, select
+    from gonio.fitting import default_loss, fit, fit_document, option_candidates, sample_posterior, select
 
     from gonio.fitting import LOSSES
 
+    if loss is None:
+        loss = default_loss(meas)
     if loss not in LOSSES:
         raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
     rng = np.random.default_rng(seed)
@@ -232,7 +237,7 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
 
     if model == "auto":
         raise GonioError("--batch needs a named --model (e.g. roughplastic); auto is for single fits")
-    if loss not in LOSSES:
+    if loss is not None and loss not in LOSSES:
         raise GonioError(f"unknown loss {loss!r}: choose one of {', '.join(LOSSES)}")
     try:
         if scheduler is None:
@@ -251,6 +256,14 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
     except (KeyError, ValueError, TypeError) as exc:
         raise GonioError(f"{exc}; known models: {', '.join(gm.names())}") from None
     metas = [_open_dataset(d, seed) for d in datasets]
+    if loss is None:
+        from gonio.fitting import default_loss
+
+        defaults = sorted({default_loss(m) for m in metas})
+        if len(defaults) > 1:
+            raise GonioError(f"these datasets have different default losses ({', '.join(defaults)}: measured sigma "
+                             "or none); give --loss, or fit them in separate batches")
+        loss = defaults[0]
     stems = [d.parent.name if d.name == "dataset.nc" else d.stem for d in datasets]
     if len(set(stems)) != len(stems):
         stems = [f"{k:04d}_{s}" for k, s in enumerate(stems)]

@@ -158,7 +158,7 @@ class AffineFit:
     def __init__(self, meas, model, space, loss, score_rows=3000):
         self.meas, self.model, self.space, self.loss = meas, model, space, loss
         self.cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), meas.brdf.shape)
-        weight = 1.0 / meas.brdf_std if loss == "chi2" else self.cos_i
+        weight = (1.0 / meas.brdf_std if loss == "chi2" else self.cos_i) * _loss.value_weight(meas)
         self.kern = kern = AffineKernel(meas, model, space, weight)
         stride = max(1, int(np.ceil(meas.n_points / score_rows)))
         self.scorer = kern if stride == 1 else AffineKernel(meas, model, space, weight, slice(None, None, stride))
@@ -260,7 +260,7 @@ class AffineFit:
         one kernel call; at fixed rho the coefficient moves with q)."""
         meas, space, kern, nl, T = self.meas, self.space, self.kern, self.nl, self.T
         base0, basis0 = parts[0][0], parts[1][0]
-        sig_w = np.where(meas.use, 1.0 / meas.brdf_std, 0.0)
+        sig_w = np.where(meas.use, _loss.value_weight(meas) / meas.brdf_std, 0.0)
         f0 = base0[:, None] + basis0[:, None] * coef[None, :]
         J = np.zeros((int(meas.use.sum()), space.size))
         for c, i in enumerate(kern.lin_idx):
@@ -286,7 +286,7 @@ class AffineFit:
     def _assemble(self, x, J, coef, parts, t0, converged, message):
         meas, space, kern, loss = self.meas, self.space, self.kern, self.loss
         base0, basis0 = parts[0][0], parts[1][0]
-        sig_w = np.where(meas.use, 1.0 / meas.brdf_std, 0.0)
+        sig_w = np.where(meas.use, _loss.value_weight(meas) / meas.brdf_std, 0.0)
         y = np.where(meas.use, meas.brdf, 0.0)
         f0 = base0[:, None] + basis0[:, None] * coef[None, :]
         r_chi = (sig_w * (f0 - y))[meas.use]

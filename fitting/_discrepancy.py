@@ -109,8 +109,8 @@ def fit_discrepancy(meas, model, fit, *, rng, nominal_sigma: bool | None = None,
         moved = max(abs(new_rel - rel) / max(rel, 1e-12), abs(new_abs - absf) / max(absf, 1e-300))
         rel, absf = new_rel, new_abs
         s = np.sqrt(_variance(sigma0_full, np.abs(f), rel, absf))
-        # the weighted likelihood: w r^2 / s^2 is r^2 / (s / sqrt(w))^2
-        eff = dataclasses.replace(meas, brdf_std=s / np.sqrt(w_full), attrs=dict(meas.attrs))
+        # the weighted likelihood: chi2 multiplies every residual by sqrt(w) itself
+        eff = dataclasses.replace(meas, brdf_std=s, attrs=dict(meas.attrs))
         kwargs["n_local"] = min(kwargs.get("n_local", 3), 2)
         result = fit(eff, model, rng=rng, loss="chi2", **kwargs)
         evals += result.n_evals

@@ -152,7 +152,9 @@ def model_adequacy(result):
     (sd sqrt(2 / dof)). When it is not, the model misses the data by more than the noise
     and the Laplace sigma describe only the noise: they are multiplied by the Birge ratio
     sqrt(chi^2/dof) (Birge 1932), the scale that makes chi^2/dof = 1, and the fit file says
-    so. The ``discrepancy`` likelihood fits that excess variance itself (its chi^2 is
+    so. The ``log`` and ``cosine`` losses report the sandwich covariance of their own
+    residuals (:func:`gonio.fitting._result.sandwich`), which already holds the discrepancy,
+    so it is not inflated. The ``discrepancy`` likelihood fits that excess variance itself (its chi^2 is
     against it), so its sigma are reported as they are.
     """
     chi2_dof = float(result.chi2_dof)
@@ -162,6 +164,10 @@ def model_adequacy(result):
     if result.loss == "discrepancy":
         return False, 1.0, (f"chi2/dof = {chi2_dof:.3g} against the fitted discrepancy variance: the intervals "
                             "include the model discrepancy but the fit is still poor")
+    if result.loss in ("log", "cosine"):
+        return False, 1.0, (f"chi2/dof = {chi2_dof:.3g} against the nominal sigma: the model misses the data; the "
+                            f"intervals are the sandwich covariance of the {result.loss} residuals, which includes "
+                            "the model's discrepancy (not inflated again)")
     birge = float(np.sqrt(chi2_dof))
     return False, birge, (f"chi2/dof = {chi2_dof:.3g}: the model misses the data by more than its noise; 1-sigma "
                           f"and 90 % intervals are inflated by the Birge ratio {birge:.3g} (std_statistical keeps "

@@ -98,7 +98,9 @@ def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget):
         step[free] = step_f
         u_new = _inside(u, step)
         if lam <= 1e-3:  # (nearly) Gauss-Newton: is the step worth an evaluation?
-            pred = cost - float(np.sum((r + J @ (u_new - u)) ** 2))
+            # |r|^2 - |r + J s|^2 = -(2 g.s + s^T A s): P x P work, and no cancellation
+            s = (u_new - u)[free]
+            pred = -float(2.0 * gf @ s + s @ Af @ s)
             if pred <= ftol * cost + atol:
                 return "predicted", u_new, r_new, c_new, lam
         try:

@@ -5,6 +5,10 @@ and one Laplace approximation serve all of them.
 
 | name | residual | use |
 |---|---|---|
+Every residual is multiplied by sqrt(w), w the sample's solid-angle weight relative to the
+mean (``Measurements.weight``; 1 without one), so that sum r^2 is a solid-angle integral
+over the hemispheres rather than a sum over however the directions were sampled.
+
 | ``chi2`` | (f_model - f_meas) / sigma | maximum likelihood under the data's Gaussian noise model; the default, and the only loss whose covariance is calibrated |
 | ``robust`` | as chi2, objective sum 2 (sqrt(1 + r^2) - 1) | outliers (soft-L1 / pseudo-Huber) |
 | ``cosine`` | (f_model - f_meas) cos(theta_i) | the cosine-weighted L2 of Ngan, Durand & Matusik (2005) |
@@ -22,9 +26,25 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LOSSES", "residuals", "objective", "objective_weights"]
+__all__ = ["LOSSES", "REAL_DEFAULT_LOSS", "residuals", "objective", "objective_weights", "value_weight"]
 
 LOSSES = ("chi2", "robust", "cosine", "log", "discrepancy")
+#: the loss ``gonio fit`` uses by default on files without a measured uncertainty (RGL
+#: ``.bsdf``, MERL ``.binary``: ``attrs["nominal_sigma"]``); datasets keep ``chi2``
+REAL_DEFAULT_LOSS = "log"
+
+
+def default_loss(meas) -> str:
+    """``chi2`` for data with a measured sigma; :data:`REAL_DEFAULT_LOSS` for files without."""
+    return REAL_DEFAULT_LOSS if meas.attrs.get("nominal_sigma") else "chi2"
+
+
+def value_weight(meas) -> np.ndarray:
+    """sqrt of each sample's relative solid-angle weight, shape (N, 1): every residual is
+    multiplied by it, so that sum r^2 is the solid-angle-weighted sum (ones without weights)."""
+    if meas.weight is None:
+        return np.ones((meas.n_points, 1))
+    return np.sqrt(meas.relative_weight())[:, None]
 
 
 def validate_loss(name: str) -> str:
@@ -34,7 +54,8 @@ def validate_loss(name: str) -> str:
 
 
 def residuals(loss: str, model_fr, meas) -> np.ndarray:
-    """Residuals of the used values, flattened (length ``meas.n_used``)."""
+    """Residuals of the used values, flattened (length ``meas.n_used``), each multiplied by
+    the square root of its sample's solid-angle weight (:func:`value_weight`)."""
     cos_i = np.clip(meas.wi[:, 2:3], 0.0, 1.0)
     if loss in ("chi2", "robust", "discrepancy"):
         r = (model_fr - meas.brdf) / meas.brdf_std
@@ -44,20 +65,23 @@ def residuals(loss: str, model_fr, meas) -> np.ndarray:
         r = np.log1p(np.maximum(model_fr * cos_i, -0.999)) - np.log1p(np.maximum(meas.brdf * cos_i, -0.999))
     else:
         raise ValueError(f"unknown loss {loss!r}")
+    if meas.weight is not None:
+        r = r * value_weight(meas)
     return r[meas.use]
 
 
 def residual_derivative(loss: str, model_fr, meas) -> np.ndarray:
     """d residual / d f_r per value, shape of ``model_fr`` (all values; :func:`residuals`
-    keeps the used ones)."""
+    keeps the used ones), the solid-angle weight included."""
+    sw = value_weight(meas)
     if loss in ("chi2", "robust", "discrepancy"):
-        return 1.0 / meas.brdf_std
+        return sw / meas.brdf_std
     cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), model_fr.shape)
     if loss == "cosine":
-        return np.array(cos_i)
+        return np.array(cos_i * sw)
     if loss == "log":
         x = model_fr * cos_i
-        return np.where(x > -0.999, cos_i / (1.0 + np.maximum(x, -0.999)), 0.0)
+        return np.where(x > -0.999, sw * cos_i / (1.0 + np.maximum(x, -0.999)), 0.0)
     raise ValueError(f"unknown loss {loss!r}")
 
 

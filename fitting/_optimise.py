@@ -64,7 +64,7 @@ from ._discrepancy import fit_discrepancy
 from ._energy import energy_directions, slsqp_energy
 from ._lm import levenberg_marquardt
 from ._problem import Evaluator, Problem
-from ._result import FitResult, jacobian_chi2, laplace
+from ._result import FitResult, jacobian_chi2, laplace, robust_covariance
 from ._space import ParameterSpace
 from ._starts import BASIN_DISTANCE, SCORE_ROWS, START_RATIO, choose_starts, global_starts
 
@@ -245,6 +245,14 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         with single_threaded_blas():
             res = refine_starts(AffineFit(meas, model, space, loss, SCORE_ROWS), rng, t0=t0, **loop)
         if res is not None:
+            if loss in ROBUST_COV:
+                res = robust_covariance(res, meas, Problem(meas, model, space, loss, use_fast=use_fast, linear=[]))
             return res
     general = GeneralFit(meas, model, space, loss, use_fast, enforce_energy, maxeval)
-    return refine_starts(general, rng, t0=t0, **loop)
+    res = refine_starts(general, rng, t0=t0, **loop)
+    return robust_covariance(res, meas, general.problem) if loss in ROBUST_COV else res
+
+
+#: losses without a noise model: their covariance is the sandwich of their own residuals
+#: (:func:`gonio.fitting._result.sandwich`), not the chi^2 Fisher matrix
+ROBUST_COV = ("log", "cosine")

@@ -88,7 +88,7 @@ class _Problem:
         self.eval = evaluator or Evaluator(model, meas.wi, meas.wo, meas.n_channels, use_fast)
         self.use = meas.use
         cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), meas.brdf.shape)
-        self.weight = 1.0 / meas.brdf_std if loss in ("chi2", "robust") else cos_i
+        self.weight = (1.0 / meas.brdf_std if loss in ("chi2", "robust") else cos_i) * _loss.value_weight(meas)
         self.linear = []
         self.linear = _linear_groups(self) if linear is None else linear
         self.varpro = bool(self.linear) and loss in ("chi2", "cosine")

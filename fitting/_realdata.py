@@ -83,8 +83,12 @@ def _band_weights(theta, theta_max):
 
 
 def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_std: float = 0.02,
-                floor: float = 1e-4, variant: str | None = None) -> Measurements:
-    """An RGL file's own measurement layout (see the module), as weighted Measurements."""
+                floor: float = 1e-4, variant: str | None = None, rng=None) -> Measurements:
+    """An RGL file's own measurement layout (see the module), as weighted Measurements.
+
+    ``rng`` (a numpy Generator): the ``n_side^2`` sample points of each set are drawn
+    uniformly at random instead of on the stratified grid -- a random geometry of the same
+    layout and weights (the resampling test refits on such geometries)."""
     import mitsuba as mi
 
     from gonio.models.mitsuba import divide_cos, eval_cos, interaction, select_variant
@@ -101,6 +105,10 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
     band = _band_weights(theta, theta_max)
     g = (np.arange(n_side) + 0.5) / n_side
     U, V = [a.reshape(-1) for a in np.meshgrid(g, g, indexing="ij")]
+    if rng is not None:
+        if not isinstance(rng, np.random.Generator):
+            raise TypeError("rgl_samples(rng=...) takes a numpy.random.Generator")
+        U, V = rng.random((2, n_side * n_side))
     m = U.size
     # cosine-distributed set (Malley's method on the stratified grid)
     r, ph = np.sqrt(U), 2.0 * np.pi * V

@@ -121,6 +121,7 @@ def jacobian_chi2(problem, x, rel_step=1e-5):
         return exact[1], exact[0]
     f0 = problem.f_x(x)
     r0 = _loss.residuals("chi2", f0, meas)
+    sw = _loss.value_weight(meas)
     J = np.empty((r0.size, space.size))
     lin = {}
     if problem.linear:
@@ -129,7 +130,7 @@ def jacobian_chi2(problem, x, rel_step=1e-5):
             for c, i in enumerate(g["index"]):
                 Bc = np.zeros_like(B)
                 Bc[:, c] = B[:, c]
-                lin[i] = (Bc / meas.brdf_std)[meas.use]
+                lin[i] = (Bc * sw / meas.brdf_std)[meas.use]
     scale = np.maximum(np.abs(x), 1e-3 * (space.upper - space.lower))
     for j in range(space.size):
         if j in lin:
@@ -141,7 +142,7 @@ def jacobian_chi2(problem, x, rel_step=1e-5):
         xp[j], xm[j] = hi, lo
         fp = f0 if hi == x[j] else problem.f_x(xp)
         fm = f0 if lo == x[j] else problem.f_x(xm)
-        J[:, j] = ((fp - fm) / meas.brdf_std)[meas.use] / (hi - lo)
+        J[:, j] = ((fp - fm) * sw / meas.brdf_std)[meas.use] / (hi - lo)
     if not np.all(np.isfinite(J)):
         raise FloatingPointError("non-finite Jacobian at the optimum")
     return J, r0
@@ -165,3 +166,65 @@ def laplace(J, space, cond_limit=1e12):
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     undetermined.update(np.where(std > 0.5 * width)[0].tolist())
     return cov, [space.names[i] for i in sorted(undetermined)]
+
+
+def loss_jacobian(problem, x, loss, rel_step=1e-5):
+    """Residuals of ``loss`` at x and their Jacobian in natural units (M, P): exact from the
+    compiled kernel where it runs, else central differences (one-sided at a bound)."""
+    space, meas = problem.space, problem.meas
+    exact = problem.residual_jacobian_x(x, range(space.size), loss=loss)
+    if exact is not None:
+        return exact[1], exact[0]
+    r0 = _loss.residuals(loss, problem.f_x(x), meas)
+    J = np.empty((r0.size, space.size))
+    scale = np.maximum(np.abs(x), 1e-3 * (space.upper - space.lower))
+    for j in range(space.size):
+        h = rel_step * scale[j]
+        hi, lo = min(x[j] + h, space.upper[j]), max(x[j] - h, space.lower[j])
+        xp, xm = x.copy(), x.copy()
+        xp[j], xm[j] = hi, lo
+        J[:, j] = (_loss.residuals(loss, problem.f_x(xp), meas) - _loss.residuals(loss, problem.f_x(xm), meas)) / (hi - lo)
+    if not np.all(np.isfinite(J)):
+        raise FloatingPointError("non-finite Jacobian at the optimum")
+    return J, r0
+
+
+def sandwich(J, r, space, clusters):
+    """Cluster-robust ("sandwich") covariance of a least-squares M-estimator:
+    A^-1 B A^-1 with A = J^T J and B = sum_g s_g s_g^T, s_g = sum over the residuals of
+    cluster g of J_k r_k (Huber 1967; White 1980; Liang & Zeger 1986 for clusters).
+
+    It needs no noise model: it is the covariance of the estimate when the directions are a
+    random sample of the geometry and the residuals (measurement noise and the model's own
+    discrepancy) are whatever they are at them. The colour channels of one direction pair
+    share their discrepancy, so a cluster is one pair. Parameters the data cannot determine
+    keep :func:`laplace`'s prior-width variance."""
+    # the bread from the profiled-scale Fisher matrix s^2 (J^T J)^-1, s^2 = |r|^2 / (M - P):
+    # :func:`laplace` judges what is undetermined on the scale of the residuals, not of 1
+    s2 = max(float(r @ r) / max(r.size - J.shape[1], 1), 1e-300)
+    cov_a, undetermined = laplace(J / np.sqrt(s2), space)
+    # leverage h_k = J_k A^-1 J_k^T; residuals divided by 1 - h_k (HC3, MacKinnon & White
+    # 1985): a sample that pulls the fit onto itself shows a residual too small by that factor
+    h = np.clip(np.einsum("kp,pq,kq->k", J, cov_a / s2, J), 0.0, 0.99)
+    S = np.zeros((int(clusters.max()) + 1, J.shape[1]))
+    np.add.at(S, clusters, J * (r / (1.0 - h))[:, None])
+    cov = cov_a @ (S.T @ S) @ cov_a / (s2 * s2)
+    width = space.upper - space.lower
+    for name in undetermined:
+        i = space.names.index(name)
+        cov[i, i] = max(cov[i, i], cov_a[i, i], width[i] ** 2 / 12.0)
+    return 0.5 * (cov + cov.T), undetermined
+
+
+def robust_covariance(result, meas, problem):
+    """``result`` with the sandwich covariance of its own loss's residuals
+    (:func:`sandwich`, one cluster per direction pair) instead of the chi^2 Fisher matrix:
+    for the ``log`` and ``cosine`` losses, whose residuals have no noise model."""
+    import dataclasses
+
+    J, r = loss_jacobian(problem, result.x, result.loss)
+    clusters = np.nonzero(meas.use)[0]
+    cov, undetermined = sandwich(J, r, result.space, clusters)
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return dataclasses.replace(result, cov=cov, std=std, undetermined=undetermined,
+                               method=result.method + " + sandwich covariance of the " + result.loss + " residuals")

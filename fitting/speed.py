@@ -18,6 +18,9 @@ Reported per cell (mean over ``reps`` captures): wall time, parameter error
 (RMS over parameters of (x - truth) / CRLB, ~1 at the noise limit), RMSE of f_r against the
 noiseless truth, chi^2/dof, and the efficiency CRLB^2 / MSE (worst parameter) from
 :mod:`gonio.fitting._crlb`.
+
+:func:`run_real` (``gonio bench fit --real FILES``) is the measured-material table: gonio's
+chosen fit beside a scipy log-loss peer on a dense grid (:mod:`gonio.fitting._realbench`).
 """
 
 from __future__ import annotations
@@ -31,7 +34,9 @@ import numpy as np
 import gonio.models as gm
 from gonio.models import fast
 
-__all__ = ["run", "simulate_capture"]
+from ._realbench import run_real
+
+__all__ = ["run", "run_real", "simulate_capture"]
 
 MODELS = (("roughplastic", {"distribution": "ggx"},
            {"diffuse_reflectance": [0.6, 0.3, 0.15], "alpha": 0.15, "int_ior": 1.6}),
