@@ -124,25 +124,45 @@ class ReferenceModel:
         return self.rho / math.pi * self.factor(theta_i, theta_o)
 
 
+def _sum64(x: np.ndarray) -> float:
+    """Sum in float64 of a float32 (or float64) vector, without a float64 copy of it."""
+    return float(np.add.reduce(x, dtype=np.float64))
+
+
+def _ss64(x: np.ndarray, mean: float, block: int = 1 << 18) -> float:
+    """Sum of squared deviations from ``mean``, in float64, a block at a time."""
+    ss = 0.0
+    for i in range(0, x.size, block):
+        d = x[i:i + block].astype(np.float64)
+        d -= mean
+        ss += float(np.dot(d, d))
+    return ss
+
+
 def region_stats(hdr, mask: np.ndarray) -> dict[str, Any]:
     """Per-channel mean of the HDR radiance over ``mask``, its standard error, and counts.
 
     ``se`` is the empirical standard error of the mean (pixel scatter: shot and read noise and
     the sensor's fixed pattern), ``se_model`` the one the noise model alone predicts. Pixels
-    saturated in every exposure (NaN) are left out and counted in ``n_saturated``.
+    saturated in every exposure (NaN) are left out and counted in ``n_saturated``. Sums are
+    float64 whatever the planes' type (float32 from `_hdr.merge`).
     """
-    rad, var = hdr.radiance[:, mask], hdr.var[:, mask]
-    good = np.isfinite(rad)
-    n = good.sum(1)
     mean, se, se_model = np.full(3, np.nan), np.full(3, np.nan), np.full(3, np.nan)
+    n = np.zeros(3, dtype=np.int64)
+    bad = 0
     for c in range(3):
-        x = rad[c, good[c]]
+        x, v = hdr.radiance[c][mask], hdr.var[c][mask]
+        good = np.isfinite(x)
+        if not good.all():
+            bad += int((~good).sum())
+            x, v = x[good], v[good]
+        n[c] = x.size
         if n[c]:
-            mean[c] = x.mean(dtype=np.float64)        # float32 values, float64 sums
-            se_model[c] = math.sqrt(var[c, good[c]].sum(dtype=np.float64)) / n[c]
+            mean[c] = _sum64(x) / n[c]
+            se_model[c] = math.sqrt(_sum64(v)) / n[c]
         if n[c] > 1:
-            se[c] = x.std(ddof=1, dtype=np.float64) / math.sqrt(n[c])
-    return {"mean": mean, "se": se, "se_model": se_model, "n": n, "n_saturated": int((~good).sum())}
+            se[c] = math.sqrt(_ss64(x, mean[c]) / (n[c] - 1)) / math.sqrt(n[c])
+    return {"mean": mean, "se": se, "se_model": se_model, "n": n, "n_saturated": bad}
 
 
 class ProgressBar:

@@ -190,6 +190,21 @@ estop = emergency_stop        # ``gonio estop --port``: /0 0 estop to every devi
 
 # -- the measurement of one point ----------------------------------------------------------------
 
+def _runs(mask: np.ndarray) -> np.ndarray:
+    """Where the runs of True in ``mask`` (read row by row) start and end, alternately."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.ravel().view(np.int8), [0]))))
+    return edges[:-1] if len(edges) and edges[-1] == mask.size else edges
+
+
+def _extreme(ufunc, planes: np.ndarray, runs: np.ndarray) -> float:
+    """``ufunc`` (np.maximum, np.minimum) over the values of every plane inside a mask given by its
+    `_runs`: the same value as ``planes[:, mask].max()``, without copying the regions out."""
+    if not len(runs):
+        raise ValueError("no value in the regions")
+    flat = planes.reshape(planes.shape[0], -1)
+    return float(ufunc.reduce(ufunc.reduceat(flat, runs, axis=1)[:, 0::2], axis=None))
+
+
 class _Suspended(Exception):
     """The lamp or the meter is not fit to measure; the point must wait and be measured again."""
 
@@ -384,10 +399,11 @@ class _Session:
                           "then resume the session")
 
     # -- one point -----------------------------------------------------------------------
-    def _masks(self, stage: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    def _masks(self, stage: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int], np.ndarray]:
         """The sample and reference regions at ``stage`` (`_markers.posed_masks`: the masks of
-        `kinematics.roi_masks`, from the map's affinity) cropped to their bounding box, and the box
-        (super-pixel rows and columns) that is all a point decodes, merges and reduces."""
+        `kinematics.roi_masks`, from the map's affinity) cropped to their bounding box, the box
+        (super-pixel rows and columns) that is all a point decodes, merges and reduces, and the
+        `_runs` of both regions together."""
         key = tuple(float(v) for v in stage)
         if key not in self._masks_of:
             sm, rm = posed_masks(stage, self.settings, None)
@@ -400,7 +416,7 @@ class _Session:
             win = np.s_[box[0]:box[1], box[2]:box[3]]
             while len(self._masks_of) > 1:       # this pose and the next are all a run needs
                 self._masks_of.pop(next(iter(self._masks_of)))
-            self._masks_of[key] = (sm[win], rm[win], box)
+            self._masks_of[key] = (sm[win], rm[win], box, _runs(both[win]))
         return self._masks_of[key]
 
     def _dark(self, t: float, box) -> RawFrame:
@@ -472,29 +488,28 @@ class _Session:
         stage = self.stage[idx]
         regions = None
         if self.layout is None:
-            sm, rm, box = self._masks(stage)
+            sm, rm, box, runs = self._masks(stage)
         p_start = self._power()
         taken: dict[float, tuple[Exposure | None, dict]] = {}
         t = self.probe
         if self.layout is not None:             # the regions from the holder's markers, in the probe
             (sm, rm, box), e, d, regions = self._regions_from_markers(idx, stage)
+            runs = _runs(sm | rm)
             taken[t] = (e, d)
-        both = sm | rm
         # probe down the ladder until the regions are unsaturated (or the ladder ends)
         while True:
             if t not in taken:
                 taken[t] = self._expose(idx, t, box)
             e = taken[t][0]
-            peak = float(e.frame.peak[:, both].max())
+            peak = _extreme(np.maximum, e.frame.peak, runs)
             if peak < self.sat * e.frame.full_scale or t <= self.rungs[0]:
                 break
             k = int(np.searchsorted(self.rungs, t)) - 3
             t = float(self.rungs[max(0, k)])
         for _ in range(3):
             e = taken[t][0]
-            sig = e.frame.signal - e.dark.signal
-            peak = float((e.frame.peak - np.maximum(e.dark.signal, 0))[:, both].max())
-            low = float(sig[:, both].min())
+            peak = _extreme(np.maximum, e.frame.peak - np.maximum(e.dark.signal, 0), runs)
+            low = _extreme(np.minimum, e.frame.signal - e.dark.signal, runs)
             bracket = choose_bracket(self.rungs, t, peak, low, e.frame.full_scale, self.noise,
                                      self.sat, self.snr)
             if bracket[0] == t or peak > 0.05 * e.frame.full_scale or bracket[0] in taken:
