@@ -12,7 +12,7 @@ over the hemispheres rather than a sum over however the directions were sampled.
 | ``chi2`` | (f_model - f_meas) / sigma | maximum likelihood under the data's Gaussian noise model; the default, and the only loss whose covariance is calibrated |
 | ``robust`` | as chi2, objective sum 2 (sqrt(1 + r^2) - 1) | outliers (soft-L1 / pseudo-Huber) |
 | ``cosine`` | (f_model - f_meas) cos(theta_i) | the cosine-weighted L2 of Ngan, Durand & Matusik (2005) |
-| ``log`` | ln(1 + f_model cos theta_i) - ln(1 + f_meas cos theta_i) | the E2 metric of Loew et al. (2012) |
+| ``log`` | ln(1 + f_model cos theta_i) - ln(1 + f_meas cos theta_i) | the E2 metric of Loew et al. (2012); the default for files without a measured sigma (RGL, MERL): a Gaussian likelihood of the log residuals with its scale profiled (BIC), intervals from the sandwich covariance (:func:`gonio.fitting._result.sandwich`) |
 | ``discrepancy`` | (f_model - f_meas) / s, s^2 = sigma^2 + (rel f_model)^2 + abs^2, (rel, abs) fitted with the model | real materials (:mod:`gonio.fitting._discrepancy`); the residuals here are chi2's on data whose sigma is already s |
 
 References

@@ -40,7 +40,9 @@ the result and its Laplace covariance in :mod:`._result`.
 At the optimum the Laplace approximation gives the covariance (J^T J)^-1 of the chi^2 loss
 (Fisher information of the Gaussian noise model), with J in natural units (exact from the
 compiled kernel; on the numpy path exact columns for the affine parameters, central
-differences for the others). Parameters the data cannot
+differences for the others). The ``log`` and ``cosine`` losses,
+which have no noise model, report instead the cluster-robust sandwich covariance of their own
+residuals (:func:`gonio.fitting._result.sandwich`). Parameters the data cannot
 determine (a singular or near-singular Fisher matrix, or a 1-sigma wider than half the
 parameter's range) are named, never returned as NaN; strongly correlated pairs
 (|rho| >= 0.9) are listed in ``FitResult.correlated``.
