@@ -49,7 +49,7 @@ import numpy as np
 
 from ._camera import RawFrame, SimCamera, decode_raw, read_verified
 from ._files import TMP_PREFIX, create_exclusive, remove_orphans
-from . import _integrity
+from . import _integrity, kinematics
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
 from ._markers import find_regions, layout_of, posed_masks
 from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock,
@@ -189,6 +189,34 @@ estop = emergency_stop        # ``gonio estop --port``: /0 0 estop to every devi
 
 
 # -- the measurement of one point ----------------------------------------------------------------
+
+def roi_masks_fast(stage, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
+    """`kinematics.roi_masks`, exactly, at about `_markers.posed_masks`' cost.
+
+    `posed_masks` finds the same regions from the map's affinity but may decide a super-pixel
+    whose corner lies on a square's edge (a tie, common where the pixel grid lines up with the
+    squares) the other way at rounding level. So: the super-pixels that `posed_masks` puts
+    inside with a margin 1e-3 pixel wider are inside, those it leaves out with one 1e-3 pixel
+    narrower are out, and the few in between are decided by `roi_masks`' own corner test.
+    """
+    margin = float(settings.get("capture", {}).get("roi_margin_px", 1.0))
+    hold, s = settings["holder"], float(settings["camera"]["pixel_size"])
+    half, off = hold["sample_half"] - margin * s, hold["offset"]
+    delta = 1e-3
+    inner = posed_masks(stage, settings, None, margin_px=margin + delta)
+    outer = posed_masks(stage, settings, None, margin_px=margin - delta)
+    out = []
+    for sure, maybe, cx in zip(inner, outer, (-off, off)):
+        i, j = np.nonzero(maybe & ~sure)
+        if len(i):
+            xy = np.stack([kinematics.image_to_local(stage, 2 * i + dr, 2 * j + dc, settings)
+                           for dr in (-0.5, 1.5) for dc in (-0.5, 1.5)], 0)
+            ok = np.all((np.abs(xy[..., 0] - cx) <= half) & (np.abs(xy[..., 1]) <= half), axis=0)
+            sure = sure.copy()
+            sure[i[ok], j[ok]] = True
+        out.append(sure)
+    return out[0], out[1]
+
 
 def _runs(mask: np.ndarray) -> np.ndarray:
     """Where the runs of True in ``mask`` (read row by row) start and end, alternately."""
@@ -400,13 +428,13 @@ class _Session:
 
     # -- one point -----------------------------------------------------------------------
     def _masks(self, stage: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int], np.ndarray]:
-        """The sample and reference regions at ``stage`` (`_markers.posed_masks`: the masks of
-        `kinematics.roi_masks`, from the map's affinity) cropped to their bounding box, the box
+        """The sample and reference regions at ``stage`` (`roi_masks_fast`: the masks of
+        `kinematics.roi_masks`, mostly from the map's affinity) cropped to their bounding box, the box
         (super-pixel rows and columns) that is all a point decodes, merges and reduces, and the
         `_runs` of both regions together."""
         key = tuple(float(v) for v in stage)
         if key not in self._masks_of:
-            sm, rm = posed_masks(stage, self.settings, None)
+            sm, rm = roi_masks_fast(stage, self.settings)
             both = sm | rm
             rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
             if len(rows):

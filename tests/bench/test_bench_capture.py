@@ -395,3 +395,22 @@ def test_regions_from_the_holders_markers(tmp_path):
         assert "regions" not in Journal(tmp_path / "g" / "journal.sqlite").points()[0]["detail"]
     finally:
         inst.unregister()
+
+
+def test_fast_roi_masks_are_the_geometry_masks_exactly():
+    """The capture's regions (`roi_masks_fast`: `_markers.posed_masks` with the ties on a square's
+    edge decided by `kinematics.roi_masks`' own test) are `roi_masks`' masks, pixel for pixel, on
+    the plan's poses and on random ones (posed_masks alone differs at ties on the default camera)."""
+    from gonio.bench._settings import merge_settings
+    from gonio.bench.capture import roi_masks_fast
+
+    rng = np.random.default_rng(7)
+    for w, h in ((64, 48), (320, 240)):
+        px = float(S["camera"]["pixel_size"]) * S["camera"]["width"] / w
+        s = merge_settings(S, {"camera": {"width": w, "height": h, "pixel_size": px}})
+        stages = list(plans.require_reachable(plans.load_plan("quick"), s))
+        stages += [np.array([rng.uniform(-80, 80), rng.uniform(-80, 80), rng.uniform(-180, 180), rng.uniform(10, 170)])
+                   for _ in range(10)]
+        for stage in stages:
+            want, got = kinematics.roi_masks(stage, s), roi_masks_fast(stage, s)
+            assert all(np.array_equal(a, b) for a, b in zip(want, got)), (w, stage)
