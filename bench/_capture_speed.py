@@ -10,10 +10,12 @@ run:
   stages' own time from the move command to standstill, plus ``settle_s``) and the exposures;
   a bench can go no faster;
 * the **wall time** of the cycle and the simulator's own computing in it (rendering, sensor
-  noise, DNG encoding: what a real camera does in its own hardware), which is taken out:
+  noise, DNG encoding, the simulated camera hashing and writing its file: what a real camera
+  and its tethering do on their side), which is taken out:
   ``proj = wall - sim`` is what the point would take on hardware and ``host = proj - bound``
-  what the host adds to the bound (protocol, polling granularity, the probe's decoding,
-  checksums, and whatever of the reduction the move does not hide);
+  what the host adds to the bound (protocol, polling granularity, the probe's decoding, the
+  client's checksum check, fsync and rename of each RAW file, and whatever of the reduction
+  the move does not hide);
 * where the host's time goes: RAW decoding, HDR merge, region masks and statistics (per point,
   whichever thread ran them), and ``reduce``, the worker thread's time per point (decode,
   merge and statistics of point k while the stages move to k+1); ``tail``, the last point's
@@ -81,6 +83,7 @@ class _Meter:
         self.idle = threading.Condition(self.lock)
         self.busy = 0                       # reductions running in the worker
         self.sim_cpu = self.exposure = 0.0
+        self.sim_cpu_port = 0.0
         self.phases = dict.fromkeys(_PHASES, 0.0)
         self.reduce = 0.0
         self.motion = 0.0                   # the stages' own time of the moves sent, s
@@ -134,10 +137,23 @@ class _Meter:
                     cpu = max(0.0, time.perf_counter() - t - seconds)
                     with self.lock:
                         self.sim_cpu += cpu
+                        self.sim_cpu_port += cpu           # camera_port counts the rest of the command
                         self.exposure += seconds
                     cache = self.inst._radiance          # keep one full-size render, not 16
                     while len(cache) > 1:
                         cache.popitem(last=False)
+            return timed
+
+        def camera_port(fn):                         # fn: the port's bound method
+            def timed(port, *a, **kw):
+                t, e = time.perf_counter(), self.exposure
+                try:
+                    return fn(*a, **kw)             # render (timed by sim_capture), encode, hash, write
+                finally:
+                    with self.lock:
+                        inner = self.sim_cpu_port
+                        self.sim_cpu += max(0.0, time.perf_counter() - t - (self.exposure - e) - inner)
+                        self.sim_cpu_port = 0.0
             return timed
 
         def move(fn):
@@ -191,6 +207,7 @@ class _Meter:
         patch(capture._Session, "_reduce", reduce)
         patch(capture._Session, "run", run)
         patch(self.inst, "capture", sim_capture)
+        patch(self.inst.camera, "_expose", lambda fn: (lambda *a, **kw: camera_port(fn)(self.inst.camera, *a, **kw)))
         try:
             yield self
         finally:
