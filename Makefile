@@ -19,7 +19,7 @@ demo: $(STAMP)
 # code once more under another code generation (AVX2 on an AVX-512 host, SSE4 on an AVX2
 # host): the next CI machine may have the other one (issue 12).
 test: $(STAMP) chromium
-	$(PY) -m pytest -q -n 2
+	$(PY) -m pytest -q -n 2 --dist worksteal
 	@$(MAKE) --no-print-directory test-codegen
 
 test-fast: $(STAMP)
@@ -29,7 +29,7 @@ test-codegen: $(STAMP)
 	@other=$$($(PY) -m gonio.models._jit_target --other); \
 	if [ -n "$$other" ]; then \
 	  echo "numerical tests again under Dr.Jit's $$other code generation (GONIO_LLVM_TARGET=$$other)"; \
-	  GONIO_LLVM_TARGET=$$other $(PY) -m pytest -q -n 2 -m codegen; \
+	  GONIO_LLVM_TARGET=$$other $(PY) -m pytest -q -n 2 --dist worksteal -m codegen; \
 	else echo "no second code generation on this CPU; numerical tests ran once"; fi
 
 # The suite against the newest releases of every dependency, in a venv of its own.
