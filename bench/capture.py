@@ -13,7 +13,8 @@ that keep the brightest region pixel below saturation in the shortest exposure a
 darkest to ``noise_floor_snr`` in the longest), read the monitor at each exposure, merge the
 bracket into HDR radiance (dark frames subtracted, saturated values excluded, flat-fielded),
 average the sample and reference regions (the super-pixels wholly inside each square, found
-from the geometry), and convert to f_r with the reference:
+from the holder's markers in the probe where the settings declare them, else from the
+geometry), and convert to f_r with the reference:
 
     f_r = (S_sample / S_ref) * rho_ref / pi
 
@@ -21,7 +22,9 @@ with a 1-sigma from both regions' standard errors of the mean (shot, read and re
 fixed-pattern noise; the monitor cancels in the ratio). The reference certificate's own
 uncertainty is a fully correlated scale error, stored apart (``scale_rel_std``). A point's
 journal row is committed only when everything about it succeeded; reciprocal pairs are
-compared as they arrive.
+compared as they arrive. Once a point's bracket is taken the stages start towards the next
+point, and a worker thread decodes, merges and reduces the point (inside the regions' bounding
+box only) while they move; its row is committed before the next bracket starts.
 
 Operating behaviour: a rich progress bar (points, ETA, latest f_r); Ctrl-C once finishes the
 current point and stops resumably, twice stops the stages and exits; the run pauses itself
