@@ -39,7 +39,6 @@ from pathlib import Path
 
 import numpy as np
 
-import gonio.models as gm
 from gonio.models.geometry import directions
 
 from ._space import ParameterSpace

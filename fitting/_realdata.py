@@ -36,7 +36,6 @@ Rusinkiewicz, S. (1998). A new change of variables for efficient BRDF representa
 from __future__ import annotations
 
 import struct
-from pathlib import Path
 
 import numpy as np
 

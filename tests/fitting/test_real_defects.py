@@ -4,7 +4,6 @@ Synthetic stand-ins keep them fast; the real RGL files are used where present
 (../shared/data/rgl) by tests/fitting/test_real_materials.py.
 """
 
-import dataclasses
 
 import nlopt
 import numpy as np
