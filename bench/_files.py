@@ -43,14 +43,8 @@ def tmp_name(path: str | os.PathLike) -> Path:
 
 
 def commit_file(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
-    """fsync ``tmp``, rename it to ``path`` and fsync the folder."""
-    fd = os.open(tmp, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    fsync_dir(Path(path).parent)
+    """fsync ``tmp``, rename it to ``path`` and fsync the folder (gonio.models.atomic.commit)."""
+    atomic.commit(tmp, path)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:

@@ -27,7 +27,7 @@ import threading
 import time
 from pathlib import Path
 
-__all__ = ["atomic_open", "atomic_path", "file_mode", "is_temporary", "remove_orphans",
+__all__ = ["atomic_open", "atomic_path", "commit", "file_mode", "is_temporary", "remove_orphans",
            "remove_stale_temporaries", "RESERVED_PREFIX"]
 
 #: The temporary name of a file another program writes before gonio commits it (``.tmp-x``).
@@ -159,6 +159,18 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def commit(tmp, path) -> None:
+    """fsync the finished temporary ``tmp``, rename it to ``path`` and fsync the folder, so
+    that ``path`` is either the old file or the whole new one, after a power cut too."""
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    _fsync_dir(Path(path).parent)
+
+
 def _temporary(path: Path, suffix: str = "") -> tuple[int, str]:
     """A new temporary file beside ``path`` with the umask's mode: (fd, name)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -183,14 +195,8 @@ def atomic_path(path, keep_suffix: bool = False):
     os.close(fd)
     try:
         yield tmp
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
+        commit(tmp, path)
         tmp = None
-        _fsync_dir(path.parent)
     finally:
         if tmp is not None:
             with contextlib.suppress(OSError):
