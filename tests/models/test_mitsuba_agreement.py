@@ -23,8 +23,8 @@ CPU the test runs on. ``s_mitsuba`` holds the rounding noise of Mitsuba's float3
 as this machine's code generation makes it (vector width, FMA contraction, rcp/rsqrt
 refinements), so the bound follows the CPU instead of one machine's observation: on
 15e620e the bound used ``s_ours`` alone with K = 8 and failed on two AVX-512 machines
-(cooktorrance: the float32 Beckmann exponent rounds worse than a 1-ulp input change
-moves it). Measured on 2026-12-01 (Intel AVX-512), largest (rel - tol) / (s_ours + s_mi)
+(cooktorrance: our float64 sensitivity understates the rounding of Mitsuba's float32
+kernel there). Measured on 2026-12-01 (Intel AVX-512), largest (rel - tol) / (s_ours + s_mi)
 over every pair above ``tol`` of every configuration: 0.18 with Dr.Jit's native 16-wide
 target and 0.14 with the 8-wide AVX2 target (``GONIO_LLVM_TARGET=avx2``), against
 17.5 for (rel - tol) / s_ours alone under AVX2. K = 2 leaves a factor 11.
