@@ -112,7 +112,10 @@ def apply_env() -> tuple[str, int] | None:
     name = os.environ.get("GONIO_LLVM_TARGET", "").strip()
     if not name:
         return None
-    return set_llvm_target(name)
+    try:
+        return set_llvm_target(name)
+    except ValueError as exc:
+        raise ValueError(f"GONIO_LLVM_TARGET: {exc}; or unset it") from None
 
 
 def other_target() -> str:

@@ -58,9 +58,14 @@ def test_forced_target_changes_the_width_and_keeps_the_numbers():
     assert native["rel"] <= 2e-5 and forced["rel"] <= 2e-5, (native, forced)
 
 
-def test_unknown_or_unsupported_targets_are_refused():
+def test_unknown_or_unsupported_targets_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="unknown LLVM target 'avx1024'"):
         set_llvm_target("avx1024")
+    from gonio.models._jit_target import apply_env
+
+    monkeypatch.setenv("GONIO_LLVM_TARGET", "avx1024")
+    with pytest.raises(ValueError, match="^GONIO_LLVM_TARGET: unknown LLVM target 'avx1024'"):
+        apply_env()
 
 
 @pytest.mark.codegen
