@@ -35,7 +35,6 @@ Rusinkiewicz, S. (1998). A new change of variables for efficient BRDF representa
 
 from __future__ import annotations
 
-import struct
 
 import numpy as np
 
@@ -51,27 +50,10 @@ N_SIDE = 24
 
 def rgl_theta_i(path) -> np.ndarray:
     """The measured incident elevations of an RGL ``.bsdf`` file (radians)."""
-    from .formats import check_rgl_file
+    from .formats import rgl_field
 
-    check_rgl_file(path)
-    with open(path, "rb") as fh:
-        head = fh.read(1 << 16)
-        pos = 12 + 2
-        (count,) = struct.unpack_from("<I", head, pos)
-        pos += 4
-        for _ in range(count):
-            (length,) = struct.unpack_from("<H", head, pos)
-            name = head[pos + 2:pos + 2 + length].decode("ascii")
-            pos += 2 + length
-            ndim, _dtype, offset = struct.unpack_from("<HBQ", head, pos)
-            pos += 11
-            shape = struct.unpack_from(f"<{ndim}Q", head, pos)
-            pos += 8 * ndim
-            if name == "theta_i":
-                fh.seek(offset)
-                values = np.frombuffer(fh.read(4 * int(np.prod(shape))), dtype="<f4").astype(np.float64)
-                return np.radians(values) if values.max() > 2.0 else values
-    raise ValueError(f"{path}: no theta_i field")
+    values = rgl_field(path, "theta_i").ravel()
+    return np.radians(values) if values.max() > 2.0 else values
 
 
 def _band_weights(theta, theta_max):

@@ -348,7 +348,7 @@ def check_rgl_file(path) -> dict:
 
     The header, every field's name, dtype, shape and byte range must be well formed and lie
     inside the file, and the fields the ``measured`` plugin needs must be there (float32
-    where they are numbers). Returns ``{name: (dtype code, shape)}``.
+    where they are numbers). Returns ``{name: (dtype code, shape, byte offset)}``.
 
     Raises
     ------
@@ -386,7 +386,7 @@ def check_rgl_file(path) -> dict:
             nbytes = _TENSOR_DTYPE_SIZE[dtype] * int(np.prod(shape, dtype=object))
             if offset < pos or offset + nbytes > size:
                 raise ValueError(f"{path}: field {name!r} lies outside the file (truncated or damaged)")
-            fields[name] = (dtype, tuple(int(d) for d in shape))
+            fields[name] = (dtype, tuple(int(d) for d in shape), int(offset))
     except (struct.error, IndexError, UnicodeDecodeError):
         raise ValueError(f"{path}: the tensor file's header is truncated or damaged") from None
     missing = [f for f in _RGL_FIELDS if f not in fields]
@@ -398,6 +398,20 @@ def check_rgl_file(path) -> dict:
         if name in fields and fields[name][0] != 10:
             raise ValueError(f"{path}: field {name!r} is not float32")
     return fields
+
+
+def rgl_field(path, name: str) -> np.ndarray:
+    """One float32 field of a checked RGL ``.bsdf`` file (:func:`check_rgl_file`), as float64."""
+    fields = check_rgl_file(path)
+    if name not in fields:
+        raise ValueError(f"{path}: no {name} field")
+    dtype, shape, offset = fields[name]
+    if dtype != 10:
+        raise ValueError(f"{path}: field {name!r} is not float32")
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        data = fh.read(4 * int(np.prod(shape, dtype=object)))
+    return np.frombuffer(data, dtype="<f4").astype(np.float64).reshape(shape)
 
 
 class RGLBRDF:
