@@ -21,6 +21,8 @@ from gonio.bench.report import write_report
 from gonio.bench.session_runner import capture_sim
 from gonio.fitting import load_dataset, write_json_atomic
 
+from capture_process import start_capture
+
 
 @pytest.fixture(scope="module")
 def loop(tmp_path_factory):
@@ -118,25 +120,9 @@ def test_cli_sim_capture_killed_then_resumed(tmp_path):
     virtual instrument from session.toml, re-homes it and finishes: every point once."""
     import signal
     import sqlite3
-    import time
 
     session = tmp_path / "s"
-    cmd = [sys.executable, "-m", "gonio.bench.cli", "capture", "--sim", "--plan", "quick", "--seed", "5",
-           "--out", str(session), "--quiet"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    journal = session / "journal.sqlite"
-    deadline = time.monotonic() + 120
-    done = 0
-    while time.monotonic() < deadline and proc.poll() is None:
-        if journal.exists():
-            try:
-                done = sqlite3.connect(journal).execute("SELECT count(*) FROM points").fetchone()[0]
-            except sqlite3.Error:
-                done = 0
-            if done >= 3:
-                break
-        time.sleep(0.05)
-    assert proc.poll() is None, "the capture finished before it could be killed"
+    proc, done = start_capture(session, timeout_s=120)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert 3 <= done < 30
@@ -144,7 +130,7 @@ def test_cli_sim_capture_killed_then_resumed(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "30/30 points" in res.stdout
-    rows = sqlite3.connect(journal).execute("SELECT idx FROM points ORDER BY idx").fetchall()
+    rows = sqlite3.connect(session / "journal.sqlite").execute("SELECT idx FROM points ORDER BY idx").fetchall()
     assert [r[0] for r in rows] == list(range(30))
     assert not list(session.rglob("*.tmp")) and not list((session / "raw").glob(".*"))
     meas = load_dataset(export(session))

@@ -9,35 +9,12 @@ import os
 import signal
 import sqlite3
 import subprocess
-import sys
-import time
 
 import pytest
 
 sim = pytest.importorskip("gonio.sim")
 
-GONIO = [sys.executable, "-m", "gonio.bench.cli"]
-ENV = dict(os.environ, PYTHONWARNINGS="ignore")
-
-
-def start_capture(session):
-    """`gonio capture --sim --plan quick` in its own process, once it has journalled 3 points."""
-    proc = subprocess.Popen(GONIO + ["capture", "--sim", "--plan", "quick", "--seed", "5", "--out", str(session),
-                                     "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
-    journal = session / "journal.sqlite"
-    deadline = time.monotonic() + 180
-    done = 0
-    while time.monotonic() < deadline and proc.poll() is None:
-        if journal.exists():
-            try:
-                done = sqlite3.connect(journal).execute("SELECT count(*) FROM points").fetchone()[0]
-            except sqlite3.Error:
-                done = 0
-            if done >= 3:
-                break
-        time.sleep(0.05)
-    assert proc.poll() is None, "the capture finished before the signal"
-    return proc
+from capture_process import ENV, GONIO, start_capture  # noqa: E402
 
 
 def events(session):
@@ -57,7 +34,7 @@ def resume_and_check(session):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_sigterm_and_sighup_stop_like_ctrl_c_twice(tmp_path, sig):
     session = tmp_path / "s"
-    proc = start_capture(session)
+    proc, _ = start_capture(session)
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=120)
     name = signal.Signals(sig).name
@@ -73,7 +50,7 @@ def test_sigterm_and_sighup_stop_like_ctrl_c_twice(tmp_path, sig):
 
 def test_ctrl_c_once_exits_3_and_says_how_to_finish(tmp_path):
     session = tmp_path / "s"
-    proc = start_capture(session)
+    proc, _ = start_capture(session)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 3, (proc.returncode, err[-2000:])
