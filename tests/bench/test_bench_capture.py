@@ -2,7 +2,6 @@
 
 import json
 import os
-import signal
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from gonio.bench._files import sha256_file
 from gonio.bench._journal import Journal, read_session
 from gonio.bench._settings import default_settings
 from gonio.bench.capture import capture, resume
+from benchfakes.cameras import InterruptingCamera
 from gonio.bench.errors import CommunicationError, DeviceError, GonioError, SessionError, UnreachableError
 from gonio.bench.export import export
 
@@ -104,25 +104,6 @@ def test_hdr_bracketing_on_a_shiny_sample(instrument, tmp_path):
     peak = max(rows, key=lambda r: r["brdf"][1])
     assert peak["brdf"][1] > 30 and len(peak["detail"]["bracket"]) >= 3      # sr^-1: the specular point
     assert min(len(r["detail"]["bracket"]) for r in rows) == 1
-
-
-class InterruptingCamera:
-    """The simulated camera, which presses Ctrl-C (SIGINT) once after ``after`` exposures."""
-
-    def __init__(self, url, after):
-        self.cam, self.after, self.n = SimCamera(url), after, 0
-
-    def expose(self, seconds, path):
-        self.n += 1
-        if self.n == self.after:
-            os.kill(os.getpid(), signal.SIGINT)
-        return self.cam.expose(seconds, path)
-
-    def flat(self, seconds, path):
-        return self.cam.flat(seconds, path)
-
-    def close(self):
-        self.cam.close()
 
 
 def test_ctrl_c_once_stops_resumably_and_resume_finishes(instrument, tmp_path):
@@ -216,15 +197,8 @@ def test_ctrl_c_twice_stops_the_stages(instrument, tmp_path):
     from gonio.bench.capture import CaptureInterrupted
     inst = instrument("cc")
 
-    class Twice(InterruptingCamera):
-        def expose(self, seconds, path):
-            self.n += 1
-            if self.n == self.after:
-                os.kill(os.getpid(), signal.SIGINT)          # once: finish the point...
-                os.kill(os.getpid(), signal.SIGINT)          # ...twice: stop now
-            return self.cam.expose(seconds, path)
-    with pytest.raises(CaptureInterrupted, match="resumable"):
-        run(inst, tmp_path / "s", camera=Twice(inst.url("camera"), 16))
+    with pytest.raises(CaptureInterrupted, match="resumable"):        # Ctrl-C twice: stop now
+        run(inst, tmp_path / "s", camera=InterruptingCamera(inst.url("camera"), 16, presses=2))
     assert any(k == "stop" for _, k, _ in Journal(tmp_path / "s" / "journal.sqlite").events())
     assert resume(tmp_path / "s", camera=inst.url("camera"), sleep=inst.clock.advance, progress=False).complete
 

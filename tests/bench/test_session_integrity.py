@@ -8,7 +8,6 @@ import hashlib
 import json
 import os
 import shutil
-import signal
 import sqlite3
 
 import numpy as np
@@ -18,7 +17,7 @@ sim = pytest.importorskip("gonio.sim")
 
 from gonio.bench import capture as capture_mod
 from gonio.bench import plans
-from gonio.bench._camera import SimCamera
+from benchfakes.cameras import InterruptingCamera
 from gonio.bench._journal import Journal, SessionLock
 from gonio.bench._settings import default_settings
 from gonio.bench.capture import capture, resume
@@ -29,27 +28,6 @@ S = default_settings()
 GLOSSY = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.15}}
 PLAN = plans.Plan("five", [[30, 0, 40, 180], [20, 0, 50, 90], [45, 0, 20, 0], [30, 0, 30, 180],
                            [10, 0, 70, 135]])
-
-
-class Camera:
-    """The simulated camera; presses Ctrl-C once after ``after`` exposures, and can call ``hook``."""
-
-    def __init__(self, url, after=0, hook=None):
-        self.cam, self.after, self.n, self.hook = SimCamera(url), after, 0, hook
-
-    def expose(self, seconds, path):
-        self.n += 1
-        if self.hook is not None:
-            self.hook(self.n, path)
-        if self.n == self.after:
-            os.kill(os.getpid(), signal.SIGINT)
-        return self.cam.expose(seconds, path)
-
-    def flat(self, seconds, path):
-        return self.cam.flat(seconds, path)
-
-    def close(self):
-        self.cam.close()
 
 
 _count = [0]
@@ -110,11 +88,11 @@ def sessions(tmp_path_factory):
         def hook(n, path):
             if not snap.exists() and len(idx_rows(base / "walsnap")) >= 1:
                 shutil.copyfile(base / "walsnap" / "journal.sqlite", snap)
-        res = capture(base / "walsnap", PLAN, S, z, m, Camera(c, after=0, hook=hook), seed=1, progress=False,
+        res = capture(base / "walsnap", PLAN, S, z, m, InterruptingCamera(c, after=0, hook=hook), seed=1, progress=False,
                       sleep=inst.clock.advance)
         assert res.complete
         # the same again, stopped by Ctrl-C once a few exposures into the points
-        res = capture(base / "partial", PLAN, S, z, m, Camera(c, after=n_darks() + 3), seed=1,
+        res = capture(base / "partial", PLAN, S, z, m, InterruptingCamera(c, after=n_darks() + 3), seed=1,
                       progress=False, sleep=inst.clock.advance)
         assert not res.complete and 0 < res.n_done < len(PLAN)
     finally:
