@@ -64,11 +64,8 @@ def summarise(files, n_boot=20000, seed=0):
     probability that a 20 % too narrow posterior passes, both from the binomial and by
     resampling the measured captures (which keeps the dependence between parameters)."""
     for f in files:
-        d = json.loads(Path(f).read_text())
+        d, hits = T.read_calibration(f)
         kind, case = d["case"].split("-", 1)
-        _, hits = T.load_calibration(kind, case) if Path(f).parent == T.CALIBRATION_DIR else (None, None)
-        if hits is None:
-            hits = np.array([[[c == "1" for c in b] for b in d[k]] for k in ("nominal", "narrow")]).transpose(2, 0, 1)
         m = len(hits)
         cov, narrow = hits.mean(axis=0)
         print(f'    ("{kind}", "{case}"): {{  # {m} captures, seeds from {d["first_seed"]}')

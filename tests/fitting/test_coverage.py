@@ -90,12 +90,18 @@ N_EMCEE = {"roughplastic": 150, "orennayar": 400}
 CALIBRATION_DIR = Path(__file__).parent / "data" / "coverage"
 
 
-def load_calibration(kind: str, case: str) -> tuple[list[str], np.ndarray]:
-    """(names, hits) of a stored calibration run; hits (captures, 2, parameters): [:, 0]
-    nominal intervals, [:, 1] intervals 20 % narrower."""
-    d = json.loads((CALIBRATION_DIR / f"{kind}-{case}.json").read_text())
+def read_calibration(path) -> tuple[dict, np.ndarray]:
+    """(document, hits) of a calibration file written by calibrate_coverage.py; hits
+    (captures, 2, parameters): [:, 0] nominal intervals, [:, 1] intervals 20 % narrower."""
+    d = json.loads(Path(path).read_text())
     hits = np.array([[[c == "1" for c in bits] for bits in d[key]] for key in ("nominal", "narrow")], dtype=bool)
-    return d["names"], hits.transpose(2, 0, 1)
+    return d, hits.transpose(2, 0, 1)
+
+
+def load_calibration(kind: str, case: str) -> tuple[list[str], np.ndarray]:
+    """(names, hits) of the stored calibration run of one case (see read_calibration)."""
+    d, hits = read_calibration(CALIBRATION_DIR / f"{kind}-{case}.json")
+    return d["names"], hits
 
 
 def _calibrated():
