@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._budget import budget_variables
 from ._files import commit_file, tmp_name
 from .errors import GonioError, SessionError
 
@@ -83,6 +84,8 @@ def to_dataset(session_dir):
     monitor = np.array([float(r["detail"].get("p_start", np.nan)) for r in rows])
     data["monitor_power"] = ("point", monitor, {"units": "W", "long_name": "power-meter reading of the lamp "
                                                 "monitor at the start of the point"})
+    # the per-point uncertainty budget, u_<component> and u_combined (bench/_budget.py)
+    data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1]))
     if rgb_cam is not None:
         data.update(_colour(np.asarray(json.loads(rgb_cam), float), data["brdf"][1], data["brdf_std"][1]))
         coords["xyz"] = ["X", "Y", "Z"]

@@ -1,0 +1,155 @@
+"""The per-point uncertainty budget of ``dataset.nc`` (GUM, JCGM 100:2008; docs/interfaces.md 5.1).
+
+Every value of ``brdf`` carries its standard uncertainty split by component, one variable
+``u_<component>`` (point, channel) each, in sr^-1, with attributes
+
+* ``gum_type``: ``"A"`` (evaluated from the scatter of this session's own observations,
+  JCGM 100 4.2) or ``"B"`` (from other information: a certificate, a calibration, a model;
+  JCGM 100 4.3);
+* ``correlation``: how the component's errors are shared across values, ``"none"``
+  (independent from value to value), ``"full"`` (one common error: every value moves
+  together), ``"channel"`` (one common error per colour channel, independent between
+  channels) or ``"group:<var>"`` (one common error per integer label of the variable
+  ``<var>``, on point or (point, channel));
+* ``source``: what the figure comes from.
+
+For a correlated component the values are signed: c_k u(x), the change of ``brdf`` when the
+shared input x moves by +1 standard uncertainty (JCGM 100 5.1.3, sensitivity coefficient
+times standard uncertainty), so a reader can propagate it to anything fitted. A value's
+standard uncertainty from the component is its magnitude. ``u_combined`` is the root sum of
+squares over the components at each value (JCGM 100 5.1.2: correlations between values do
+not enter one value's own variance). The type-A components add up to ``brdf_std`` exactly
+(``u_shot_read^2 + u_fixed_pattern^2 = brdf_std^2``), so a reader of ``brdf_std`` alone
+sees what it saw before.
+
+Components assembled here: ``shot_read`` (A, none: the HDR merge's shot + read noise model
+of the sample and reference regions), ``fixed_pattern`` (A, none: the pixel scatter beyond
+that model, the sensor's fixed pattern and the flat field's residual), ``reference_certificate``
+(B, full by default: the reference's certified reflectance, relative 1-sigma ``[reference]
+rel_std``; ``rel_std_correlation = "channel"`` in the settings declares per-channel
+certificates). The source monitor needs no term: sample and reference are in every frame, so
+a lamp change cancels in their ratio (the monitor only suspends a point whose bracket the
+lamp changed within). Other modules supply further components as :class:`Component` values
+(angle x slope, aperture, stray light, linearity, colour matrix): ``budget_variables(...,
+extra=[...])``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import numpy as np
+
+__all__ = ["Component", "budget_variables", "CORRELATIONS", "BUDGET_FORMAT"]
+
+BUDGET_FORMAT = "gonio-budget/1"
+CORRELATIONS = ("none", "full", "channel")
+_NAME = re.compile(r"^[a-z][a-z0-9_]{0,40}$")
+
+
+@dataclasses.dataclass
+class Component:
+    """One line of the budget: ``value`` (N, 3) in sr^-1 (signed where correlated).
+
+    ``groups``: integer labels (N,) or (N, 3), only for ``correlation = "group"``: values with
+    the same label share one error (written as the variable ``u_<name>_group``).
+    """
+
+    name: str
+    value: np.ndarray
+    gum_type: str
+    correlation: str
+    source: str
+    groups: np.ndarray | None = None
+
+    def check(self, shape) -> None:
+        if not _NAME.match(self.name) or self.name == "combined":
+            raise ValueError(f"budget component name {self.name!r} must be lower-case letters, digits and _")
+        if self.gum_type not in ("A", "B"):
+            raise ValueError(f"budget component {self.name}: gum_type must be 'A' or 'B', not {self.gum_type!r}")
+        if self.correlation not in CORRELATIONS + ("group",):
+            raise ValueError(f"budget component {self.name}: correlation must be one of "
+                             f"{', '.join(CORRELATIONS)} or group, not {self.correlation!r}")
+        if np.shape(self.value) != tuple(shape):
+            raise ValueError(f"budget component {self.name}: shape {np.shape(self.value)} is not {tuple(shape)}")
+        if (self.correlation == "group") != (self.groups is not None):
+            raise ValueError(f"budget component {self.name}: groups are given exactly when correlation is 'group'")
+        if self.groups is not None and np.shape(self.groups) not in ((shape[0],), tuple(shape)):
+            raise ValueError(f"budget component {self.name}: groups must have shape ({shape[0]},) or {tuple(shape)}")
+
+
+def _detail(rows, key, fallback):
+    return np.array([r["detail"].get(key, fallback) for r in rows], float)
+
+
+def type_a(rows, brdf: np.ndarray, brdf_std: np.ndarray) -> list[Component]:
+    """``shot_read`` and ``fixed_pattern`` from the journalled region statistics.
+
+    The noise model's relative standard error of the sample/reference ratio (``se_model``) is
+    capped at the empirical one (``se``), whose square is split exactly: shot/read the model's
+    share, fixed pattern the excess. A journal without ``se_model`` puts it all in shot_read.
+    """
+    nan3 = [np.nan] * 3
+    rel2_model = np.zeros_like(brdf)
+    for k in ("sample", "reference"):
+        mean = _detail(rows, f"{k}_mean", nan3)
+        se_model = _detail(rows, f"{k}_se_model", nan3)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel2_model += (se_model / mean) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        model = np.abs(brdf) * np.sqrt(rel2_model)
+    shot = np.where(np.isfinite(model), np.minimum(model, brdf_std), brdf_std)
+    fixed = np.sqrt(np.clip(brdf_std ** 2 - shot ** 2, 0.0, None))
+    return [Component("shot_read", shot, "A", "none",
+                      "HDR merge noise model (shot + read noise) of the sample and reference regions"),
+            Component("fixed_pattern", fixed, "A", "none",
+                      "pixel scatter in the regions beyond the noise model (fixed pattern, flat-field residual)")]
+
+
+def certificate(settings, brdf: np.ndarray) -> list[Component]:
+    """``reference_certificate``: brdf x the certificate's relative 1-sigma (one per channel
+    or one for all); correlation ``full`` unless ``[reference] rel_std_correlation``
+    says ``channel``. No component when the certificate states none."""
+    ref = settings.get("reference", {})
+    rel = np.broadcast_to(np.asarray(ref.get("rel_std", 0.0), float), (brdf.shape[1],))
+    if not np.any(rel > 0):
+        return []
+    corr = str(ref.get("rel_std_correlation", "full"))
+    return [Component("reference_certificate", brdf * rel, "B", corr,
+                      "reference certificate: relative 1-sigma [reference] rel_std of its reflectance")]
+
+
+def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, extra=()) -> dict:
+    """The budget's dataset variables: ``u_<component>`` for type A, the certificate and
+    ``extra`` (more :class:`Component`), their ``_group`` labels, and ``u_combined``.
+
+    Raises ValueError when a component is malformed or holds NaN where ``brdf`` is finite.
+    """
+    comps = type_a(rows, brdf, brdf_std) + certificate(settings, brdf) + list(extra)
+    seen, out = set(), {}
+    total = np.zeros_like(brdf)
+    finite = np.isfinite(brdf)
+    for c in comps:
+        c.check(brdf.shape)
+        if c.name in seen:
+            raise ValueError(f"budget component {c.name} given twice")
+        seen.add(c.name)
+        v = np.asarray(c.value, float)
+        if not np.all(np.isfinite(v[finite])):
+            raise ValueError(f"budget component {c.name} is NaN or infinite where brdf is finite")
+        corr = c.correlation
+        if c.groups is not None:
+            g = np.asarray(c.groups, np.int64)
+            out[f"u_{c.name}_group"] = (("point",) if g.ndim == 1 else ("point", "channel"), g,
+                                        {"long_name": f"labels of the values sharing one {c.name} error"})
+            corr = f"group:u_{c.name}_group"
+        out[f"u_{c.name}"] = (("point", "channel"), v, {
+            "units": "sr^-1", "gum_type": c.gum_type, "correlation": corr, "source": c.source,
+            "long_name": f"standard uncertainty of brdf from {c.name.replace('_', ' ')}"
+                         + (" (signed: the change for +1 sigma of the shared input)" if corr != "none" else "")})
+        total += v * v
+    out["u_combined"] = (("point", "channel"), np.sqrt(total), {
+        "units": "sr^-1", "budget_format": BUDGET_FORMAT, "components": " ".join(sorted(seen)),
+        "long_name": "combined standard uncertainty of brdf (root sum of squares of the u_ components)"})
+    return out
