@@ -1,8 +1,17 @@
-"""Instrument settings: the defaults in ``instrument.toml`` merged with a user's overrides."""
+"""Instrument settings: the defaults in ``instrument.toml`` merged with a user's overrides.
+
+Every table and key a settings file may hold is declared once in :data:`SCHEMA` (with what it
+means); a file with an unknown table or key (``[refrence]``, ``reflectanse = 0.5``) is refused
+with one line that suggests the closest known name (:func:`difflib.get_close_matches`), so a
+misspelling never silently leaves the default in force. :func:`effective_settings` says where
+each value came from (``default``: instrument.toml, ``file``: the user's file, ``option``: a
+command-line option such as ``--operator``); ``gonio settings show`` prints it.
+"""
 
 from __future__ import annotations
 
 import copy
+import difflib
 import math
 import tomllib
 from pathlib import Path
@@ -10,10 +19,63 @@ from typing import Any, Mapping
 
 from .errors import GonioError
 
-__all__ = ["DEFAULT_SETTINGS_PATH", "default_settings", "load_settings", "merge_settings", "validate_settings", "AXES"]
+__all__ = ["DEFAULT_SETTINGS_PATH", "SCHEMA", "default_settings", "load_settings", "merge_settings",
+           "validate_settings", "check_schema", "effective_settings", "show_settings", "AXES"]
 
 DEFAULT_SETTINGS_PATH = Path(__file__).with_name("instrument.toml")
 AXES = ("yaw", "tilt", "azimuth", "lamp")   # the order of a stage-angle vector everywhere
+
+_AXIS = "[device, axis, min_deg, max_deg]"
+_MOTION = "[maxspeed_deg_per_s, accel_deg_per_s2]"
+#: every table and key a settings file may hold; a new setting is declared here (one line)
+SCHEMA: dict[str, dict[str, str]] = {
+    "axes": {**{a: _AXIS for a in AXES}, "cycle_dist": "microsteps per revolution",
+             "lamp_block_deg": "lamp arm blocks the detector within this angle (deg)"},
+    "motion": {**{a: _MOTION for a in AXES}, "settle_s": "wait after IDLE before exposing (s)"},
+    "camera": {"width": "pixels", "height": "pixels", "pixel_size": "holder units per pixel", "bits": "ADC bits",
+               "gain_e_per_dn": "electrons per DN", "read_noise_e": "read noise (electrons rms)"},
+    "holder": {"sample_half": "half-width of the sample square", "offset": "reference square offset",
+               "holder_reflectance": "holder's diffuse reflectance", "markers": "ArUco marker layout table",
+               "sim_pose": "simulator only: the holder's true pose [dx, dy, rot_deg]"},
+    "reference": {"reflectance": "certified reflectance (one value or R, G, B)",
+                  "rel_std": "certificate's relative 1-sigma", "certificate": "certificate id (text)",
+                  "factor_theta_i": "non-Lambertian factor grid (deg)", "factor_theta_o": "non-Lambertian factor grid (deg)",
+                  "factor": "non-Lambertian factor table"},
+    "meter": {"wavelength_nm": "power meter wavelength (nm)", "averaging": "samples per reading"},
+    "lamp": {"device": "Zaber address of the LED source", "flux": "relative LED flux",
+             "drift_tolerance": "relative monitor change that pauses the capture",
+             "bracket_tolerance": "monitor change within a point that re-measures it",
+             "suspend_poll_s": "monitor poll while paused (s)", "suspend_timeout_s": "longest pause (s)"},
+    "capture": {"exposure_min_s": "shortest exposure (s)", "exposure_max_s": "longest exposure (s)",
+                "probe_s": "first exposure at each point (s)", "saturation_fraction": "saturation threshold",
+                "noise_floor_snr": "SNR of the darkest pixel", "flat_frames": "flat-field frames",
+                "roi_margin_px": "ROI margin (pixels)"},
+    "session": {"sample_id": "the sample's identifier (report, session.toml)",
+                "sample_description": "what the sample is (report)", "operator": "who measured (report)"},
+}
+_TEXT_KEYS = {("session", "sample_id"), ("session", "sample_description"), ("session", "operator"),
+              ("reference", "certificate")}
+
+
+def _suggest(name: str, known, fmt: str = "{}") -> str:
+    close = difflib.get_close_matches(str(name), list(known), n=1, cutoff=0.6)
+    return f"did you mean {fmt.format(close[0])}? " if close else ""
+
+
+def check_schema(user: Mapping[str, Any], where: str) -> None:
+    """Refuse an unknown table or key of a user's settings with a did-you-mean (one line)."""
+    for section, table in user.items():
+        if section not in SCHEMA:
+            raise GonioError(f"{where}: unknown section [{section}]; {_suggest(section, SCHEMA, '[{}]')}known sections: {', '.join(SCHEMA)}")
+        if not isinstance(table, Mapping):
+            raise GonioError(f"{where}: {section} must be a table ([{section}] with keys), not a value")
+        for key, value in table.items():
+            if key not in SCHEMA[section]:
+                raise GonioError(f"{where}: unknown key {key!r} in [{section}]; {_suggest(key, SCHEMA[section])}"
+                                 f"known keys: {', '.join(SCHEMA[section])}")
+            if (section, key) in _TEXT_KEYS and (not isinstance(value, str) or not value.strip()
+                                                 or len(value) > 400 or not value.isprintable()):
+                raise GonioError(f"{where}: {section}.{key} must be a line of printable text (at most 400 characters)")
 
 
 def default_settings() -> dict[str, Any]:
@@ -32,17 +94,7 @@ def merge_settings(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict
     return out
 
 
-def load_settings(path: str | Path | None = None) -> dict[str, Any]:
-    """Load settings: the defaults, overridden by the tables of the TOML file at ``path``.
-
-    Raises
-    ------
-    GonioError
-        The file is missing or malformed, or a value is invalid.
-    """
-    if path is None:
-        return default_settings()
-    path = Path(path)
+def _read_user(path: Path) -> dict[str, Any]:
     try:
         text = path.read_text()
     except OSError as exc:
@@ -53,7 +105,39 @@ def load_settings(path: str | Path | None = None) -> dict[str, Any]:
         user = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise GonioError(f"settings file {path} is not valid TOML ({exc}); fix the syntax") from None
-    return validate_settings(merge_settings(default_settings(), user), str(path))
+    check_schema(user, f"settings file {path}")
+    return user
+
+
+def load_settings(path: str | Path | None = None, options: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, Any]:
+    """Load settings: the defaults, overridden by the tables of the TOML file at ``path``, then
+    by ``options`` (``{"session": {"operator": ...}}`` from command-line options).
+
+    Raises
+    ------
+    GonioError
+        The file is missing or malformed, a table or key is unknown, or a value is invalid.
+    """
+    return effective_settings(path, options)[0]
+
+
+def effective_settings(path=None, options=None) -> tuple[dict[str, Any], dict[str, str]]:
+    """(settings, {"section.key": "default" | "file PATH" | "option"}): where each value came from."""
+    base = default_settings()
+    source = {f"{s}.{k}": "default" for s, t in base.items() if isinstance(t, Mapping) for k in t}
+    where = "instrument settings"
+    if path is not None:
+        user = _read_user(Path(path))
+        base = merge_settings(base, user)
+        source.update({f"{s}.{k}": f"file {path}" for s, t in user.items() for k in t})
+        where = str(path)
+    opts = {s: {k: v for k, v in t.items() if v is not None} for s, t in (options or {}).items()}
+    opts = {s: t for s, t in opts.items() if t}
+    if opts:
+        check_schema(opts, "command-line option")
+        base = merge_settings(base, opts)
+        source.update({f"{s}.{k}": "option" for s, t in opts.items() for k in t})
+    return validate_settings(base, where), source
 
 
 def validate_settings(s: dict[str, Any], where: str = "instrument settings") -> dict[str, Any]:
@@ -89,3 +173,22 @@ def validate_settings(s: dict[str, Any], where: str = "instrument settings") -> 
     except (TypeError, ValueError):
         raise bad("[axes] or [motion] entry (lists of numbers)") from None
     return s
+
+
+def show_settings(path=None, options=None) -> list[str]:
+    """The effective settings as TOML-like lines, each value with where it came from."""
+    import json
+
+    settings, source = effective_settings(path, options)
+    lines = []
+    for section, table in settings.items():
+        if not isinstance(table, Mapping):
+            continue
+        lines.append(f"[{section}]")
+        for key, value in table.items():
+            text = json.dumps(value) if not isinstance(value, (dict, list)) else json.dumps(value, separators=(", ", " = "))
+            lines.append(f"{key} = {text}  # {source.get(f'{section}.{key}', 'default')}")
+        lines.append("")
+    if "session" not in settings:
+        lines.append("[session]  # not set: give --sample-id, --sample-description, --operator or a [session] table")
+    return lines

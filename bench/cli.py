@@ -80,11 +80,11 @@ def _cmd_capture(args):
                         ("--restore-session", args.restore_session)):
         if given:
             raise GonioError(f"{flag} repairs an existing session: use it with --resume DIR")
-    if args.out is None:
+    if args.out is None and not args.dry_run:       # a dry run writes nothing: no folder needed
         raise GonioError("capture needs --out DIR (a new session folder) or --resume DIR")
     if not args.sim and not args.port:
         raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
-    return session_runner.capture_cli(Path(args.out), sim=args.sim, sample=args.sample, plan=args.plan, seed=args.seed,
+    return session_runner.capture_cli(Path(args.out) if args.out is not None else None, sim=args.sim, sample=args.sample, plan=args.plan, seed=args.seed,
                                settings=args.settings, port=args.port, meter_port=args.meter_port,
                                camera=args.camera, dry_run=args.dry_run, progress=not args.quiet)
 
@@ -139,6 +139,26 @@ def _cmd_report(args):
     print(f"wrote {path}")
 
 
+def _cmd_settings_show(args):
+    from ._settings import show_settings
+
+    print("\n".join(show_settings(args.settings, _session_options(args))))
+
+
+def _session_options(args) -> dict:
+    """``--sample-id``, ``--sample-description``, ``--operator`` as a ``[session]`` settings table."""
+    return {"session": {"sample_id": getattr(args, "sample_id", None),
+                        "sample_description": getattr(args, "sample_description", None),
+                        "operator": getattr(args, "operator", None)}}
+
+
+def _add_session_options(parser) -> None:
+    parser.add_argument("--sample-id", help="the sample's identifier, recorded in session.toml and the report "
+                                            "(or [session] sample_id in the settings)")
+    parser.add_argument("--sample-description", help="what the sample is (recorded; shown in the report)")
+    parser.add_argument("--operator", help="who measures (recorded; shown in the report)")
+
+
 def _check_clock(spec: str) -> None:
     """``--clock``: instant, realtime/real, or a finite time scale factor > 0."""
     import math
@@ -175,7 +195,7 @@ def _cmd_sim_serve(args):
 
 
 def _cmd_estop(args):
-    from ._zaber import emergency_stop
+    from .drivers.zaber import emergency_stop
 
     emergency_stop(args.port, baudrate=args.baud)
     print("emergency stop sent to every device")
@@ -312,6 +332,15 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("folder", help="folder with dataset.nc (and fit.json, render/render.json)")
     rep.add_argument("--out", help="report file (default FOLDER/report.html)")
     rep.set_defaults(func=_cmd_report)
+
+    st = sub.add_parser("settings", help="instrument settings: show the effective values and where each came from")
+    stsub = st.add_subparsers(dest="settings_command", metavar="WHAT", parser_class=_Parser)
+    stsub.required = True
+    show = stsub.add_parser("show", help="print the effective settings, each value with its source "
+                                         "(default: bench/instrument.toml, file, option)")
+    show.add_argument("--settings", help="instrument settings TOML overriding bench/instrument.toml")
+    _add_session_options(show)
+    show.set_defaults(func=_env(_cmd_settings_show))
 
     s = sub.add_parser("sim", help="the simulated instrument")
     ssub = s.add_subparsers(dest="sim_command", metavar="SIMCOMMAND", parser_class=_Parser)

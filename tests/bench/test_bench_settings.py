@@ -37,3 +37,61 @@ def test_bad_settings_are_one_line(tmp_path, text, match):
     assert "\n" not in str(e.value)
     with pytest.raises(GonioError, match="cannot read settings file"):
         load_settings(tmp_path / "missing.toml")
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[refrence]\nreflectance = 0.5\n", r"unknown section \[refrence\]; did you mean \[reference\]\?"),
+    ("[reference]\nreflectanse = 0.5\n", r"unknown key 'reflectanse' in \[reference\]; did you mean reflectance\?"),
+    ("[camera]\nwidht = 100\n", r"did you mean width\?"),
+    ("[zzz]\nx = 1\n", r"unknown section \[zzz\]; known sections"),
+    ("camera = 3\n", r"camera must be a table"),
+    ("[session]\noperator = 7\n", r"session.operator must be a line of printable text"),
+])
+def test_unknown_or_misspelt_settings_are_refused_with_a_suggestion(tmp_path, text, match):
+    """A misspelt table or key used to leave the default (certificate 0.99) silently in force."""
+    f = tmp_path / "typo.toml"
+    f.write_text(text)
+    with pytest.raises(GonioError, match=match) as e:
+        load_settings(f)
+    assert "\n" not in str(e.value)
+
+
+def test_every_default_key_is_declared_in_the_schema():
+    from gonio.bench._settings import SCHEMA
+
+    for section, table in default_settings().items():
+        assert set(table) <= set(SCHEMA[section]), section
+
+
+def test_effective_settings_say_where_each_value_came_from(tmp_path):
+    from gonio.bench._settings import effective_settings
+
+    f = tmp_path / "lab.toml"
+    f.write_text("[reference]\nreflectance = 0.97\ncertificate = \"NPL-123\"\n[session]\noperator = \"A. B.\"\n")
+    s, source = effective_settings(f, {"session": {"operator": "C. D.", "sample_id": "S-7", "sample_description": None}})
+    assert s["reference"]["reflectance"] == 0.97 and source["reference.reflectance"] == f"file {f}"
+    assert source["reference.rel_std"] == "default" and s["session"] == {"operator": "C. D.", "sample_id": "S-7"}
+    assert source["session.operator"] == "option" and "session.sample_description" not in source
+
+
+def test_settings_show_cli(tmp_path, capsys):
+    from gonio.bench.cli import main
+
+    f = tmp_path / "lab.toml"
+    f.write_text("[reference]\nreflectance = 0.97\n")
+    assert main(["settings", "show", "--settings", str(f), "--sample-id", "S-7"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert f"reflectance = 0.97  # file {f}" in out and "rel_std = 0.005  # default" in out
+    assert 'sample_id = "S-7"  # option' in out
+    f.write_text("[refrence]\nreflectance = 0.5\n")
+    assert main(["settings", "show", "--settings", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert "did you mean [reference]?" in err and len(err.strip().splitlines()) == 1
+
+
+def test_capture_dry_run_needs_no_out(capsys):
+    """The README's `gonio capture --sim --plan standard --dry-run` (it said: capture needs --out DIR)."""
+    from gonio.bench.cli import main
+
+    assert main(["capture", "--sim", "--plan", "quick", "--dry-run"]) == 0
+    assert "points; estimated duration" in capsys.readouterr().out
