@@ -17,8 +17,9 @@ What a driver must know
 -----------------------
 * Axes power on un-homed (WR, WH) at a seeded position within 20 deg of home; every
   ``move`` is rejected (``RJ IDLE WR BADDATA``) until ``home``.
-* ``maxspeed`` is in microsteps/s (default 40000 = 20 deg/s), ``accel`` in microsteps/s^2
-  (default 80000); ``limit.cycle.dist`` 720000; deg = pos * 360 / cycle_dist.
+* ``maxspeed`` and ``move vel`` are in Zaber's native unit, microsteps/s * 1.6384 (default
+  65536 = 40000 microsteps/s = 20 deg/s), ``accel`` in microsteps/s^2 * 1.6384 / 10 (default
+  13107 = 80000 microsteps/s^2); ``limit.cycle.dist`` 720000; deg = pos * 360 / cycle_dist.
 * Instant clock (default): each command line costs 1 ms of simulated time; a ``BUSY`` reply
   to a poll, ``get`` or ``warnings`` moves the clock to the end of the motion, so the next
   poll reads ``IDLE``; an exposure advances the clock by its duration; a read that waits for

@@ -5,8 +5,8 @@ State only; the Zaber ASCII grammar lives in ``_zaber.py``.
 Units
 -----
 Positions in integer microsteps (the value a ``get pos`` reports), speeds in microsteps/s,
-accelerations in microsteps/s^2 (simpler than Zaber's native ``maxspeed`` unit of
-microsteps/s * 1.6384; the bench reads these units from ``docs/interfaces.md``).
+accelerations in microsteps/s^2; the wire carries Zaber's native units (``maxspeed``
+microsteps/s * 1.6384, ``accel`` microsteps/s^2 * 1.6384 / 10), converted in ``_zaber_stage.py``.
 Angle (deg) = position * 360 / ``cycle_dist``.
 
 Each axis keeps its *physical* angle apart from its position *counter*: the counter reads

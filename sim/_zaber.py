@@ -25,7 +25,8 @@ Behaviour chosen where the manual leaves room (the bench relies on it):
   ``BADMESSAGEID``; a bad ``:CC`` checksum -> ``BADDATA`` (nothing executed).
 - Message ids are echoed as two digits (``@01 1 07 OK ...``).
 - Replies carry a checksum only when ``comm.checksum`` is 1 (device setting, default 0).
-- ``maxspeed`` in microsteps/s, ``accel`` in microsteps/s^2 (not Zaber's native units).
+- ``maxspeed``, ``move vel`` and ``accel`` in Zaber's native units (microsteps/s * 1.6384,
+  microsteps/s^2 * 1.6384 / 10; ``_zaber_stage.py``).
 - Alerts (``set comm.alert 1``): when an axis's motion ends the device sends
   ``!DD A IDLE WARN`` (manual: alert message type ``!``, fields device, axis, status,
   warning flag); the simulator sends one per axis that moved, after the reply of the command

@@ -6,10 +6,19 @@ of ``pos``, ``limit.min``, ``limit.max``, ``limit.cycle.dist``, ``maxspeed``, ``
 ``resolution``, ``peripheralid``/``peripheral.id``, ``parking.state``, ``driver.enabled``,
 ``encoder.pos``.
 
+Speeds and accelerations are in Zaber's native units (ASCII protocol manual, settings
+``maxspeed`` and ``accel``; the same factors in zaber.serial-era clients): ``maxspeed`` and
+``move vel`` data = microsteps/s * 1.6384 (microsteps per 1.6384 s), ``accel`` data =
+microsteps/s^2 * 1.6384 / 10. The
+axes (sim/_stages.py) keep microsteps/s and microsteps/s^2; this module converts at the wire
+and rounds a reported value to the nearest integer (the simulator's defaults, 40000
+microsteps/s and 80000 microsteps/s^2, read 65536 and 13107).
+
 Chosen where the manual is silent (invented):
 
-- ``move vel N``: ``|N|`` up to 1 000 000 microsteps/s, else ``BADDATA``; it needs a homed
-  axis like every other move; the axis comes to rest at the travel limit.
+- ``move vel N``: ``|N|`` up to 1 000 000 native units (610 352 microsteps/s), else
+  ``BADDATA``; it needs a homed axis like every other move; the axis comes to rest at the
+  travel limit.
 - ``driver disable``: the axis carries ``FD`` until ``driver enable``; moves and homing are
   rejected with ``DRIVERDISABLED`` (a reason zaber-motion 10.3 knows: DriverDisabledException).
 - A parked axis rejects motion with ``PARKED``; it keeps its reference over a power cycle.
@@ -26,11 +35,16 @@ from __future__ import annotations
 
 from ._zaber_device import Device, Reject, int_arg, sort_flags
 
-__all__ = ["StageDevice"]
+__all__ = ["StageDevice", "NATIVE_PER_SPEED", "NATIVE_PER_ACCEL"]
 
 STAGE_IDENT = {"deviceid": 30342, "system.serial": 91001, "version": "7.38",
                "version.build": 18426, "peripheralid": 43211}
-MAX_VEL = 1_000_000
+MAX_VEL = 1_000_000           # native units (invented bound)
+#: native units per physical unit (Zaber ASCII manual): maxspeed/move vel per microstep/s,
+#: accel per microstep/s^2
+NATIVE_PER_SPEED = 1.6384
+NATIVE_PER_ACCEL = 1.6384 / 10
+_NATIVE = {"maxspeed": NATIVE_PER_SPEED, "accel": NATIVE_PER_ACCEL}
 _ATTR = {"limit.min": "limit_min", "limit.max": "limit_max", "limit.cycle.dist": "cycle_dist",
          "maxspeed": "maxspeed", "accel": "accel"}
 
@@ -164,7 +178,7 @@ class StageDevice(Device):
             if abs(n) > MAX_VEL:
                 raise Reject("BADDATA")
             for a in scope:
-                a.move_vel(t, n)
+                a.move_vel(t, n / NATIVE_PER_SPEED)
             self._started(scope)
             return "0"
         targets = []
@@ -186,6 +200,8 @@ class StageDevice(Device):
         a = self.axes[axis - 1]
         if key == "pos":
             return str(a.position(self.now()))
+        if key in _NATIVE:
+            return str(round(getattr(a, _ATTR[key]) * _NATIVE[key]))
         if key in _ATTR:
             return str(int(getattr(a, _ATTR[key])))
         if key == "resolution":
@@ -224,4 +240,4 @@ class StageDevice(Device):
             if key == "limit.max" and v < a.limit_min:
                 raise Reject("BADDATA")
         for a in scope:
-            setattr(a, _ATTR[key], v)
+            setattr(a, _ATTR[key], v / _NATIVE[key] if key in _NATIVE else v)

@@ -101,10 +101,10 @@ def test_axis_moves_settings_park_and_driver(served):
         d.all_axes.home()
         ax.move_absolute(36000)
         assert ax.get_position() == 36000
-        assert ax.settings.get("maxspeed") == 40000
-        ax.settings.set("maxspeed", 20000)
-        assert ax.settings.get("maxspeed") == 20000
-        ax.move_velocity(10000)
+        assert ax.settings.get("maxspeed") == 65536         # native: 40000 microsteps/s * 1.6384
+        ax.settings.set("maxspeed", 32768)
+        assert ax.settings.get("maxspeed") == 32768
+        ax.move_velocity(16384)
         assert ax.is_busy()
         ax.stop()
         assert not ax.is_busy() and ax.get_position() > 36000
@@ -118,6 +118,48 @@ def test_axis_moves_settings_park_and_driver(served):
         assert "FD" not in ax.warnings.get_flags()
         ax.move_relative(-1000)
         assert ax.get_position() == pytest.approx(srv.instrument.axes[1].position(srv.instrument.clock.now()))
+
+
+def _timed_move(srv, ax, microsteps):
+    clock = srv.instrument.clock
+    t0 = clock.now()
+    ax.move_relative(microsteps)                 # waits until idle (polls)
+    return clock.now() - t0
+
+
+def test_native_speed_unit_sets_the_motion_time(served):
+    """maxspeed, accel and move vel read and written through zaber-motion in Zaber's native
+    units (ASCII protocol manual: speed = data / 1.6384 microsteps/s, acceleration = data * 10 /
+    1.6384 microsteps/s^2); the simulated stage then takes the trapezoid's time for a move,
+    d / v + v / a (d >= v^2 / a). Tolerance 20 ms: the instant clock charges 1 ms per command
+    line and zaber-motion sends a few per move (the move, its polls); a unit error of 1.6384 or
+    10 would change the 72-degree move's 4.1 s by more than a second."""
+    from zaber_motion import Units
+    from zaber_motion.exceptions import DeviceNotIdentifiedException
+
+    srv = served()
+    with _open(srv) as c:
+        d = c.get_device(1)
+        ax = d.get_axis(1)
+        d.all_axes.home()
+        cycle = ax.settings.get("limit.cycle.dist")
+        v_native, a_native = ax.settings.get("maxspeed"), ax.settings.get("accel")
+        v, a = v_native / 1.6384, a_native * 10 / 1.6384            # microsteps/s, microsteps/s^2
+        assert v * 360 / cycle == pytest.approx(20.0) and a * 360 / cycle == pytest.approx(40.0, rel=1e-4)
+        dist = round(72 * cycle / 360)
+        assert _timed_move(srv, ax, dist) == pytest.approx(dist / v + v / a, abs=0.02)
+        ax.settings.set("maxspeed", 32768)                          # 20000 microsteps/s = 10 deg/s
+        ax.settings.set("accel", 8192)                              # 50000 microsteps/s^2
+        assert _timed_move(srv, ax, -dist) == pytest.approx(dist / 20000 + 20000 / 50000, abs=0.02)
+        ax.move_velocity(-8192)                                     # 5000 microsteps/s toward limit.min
+        axis = srv.instrument.axes[0]
+        t = srv.instrument.clock.now() + 0.5                        # past the 0.1 s ramp
+        assert axis.velocity(t) == pytest.approx(-5000.0)
+        ax.stop()
+        # zaber-motion's own conversion needs the product's conversion table from Zaber's
+        # device database (identify()), which is not reachable offline
+        with pytest.raises(DeviceNotIdentifiedException):
+            ax.settings.get("maxspeed", Units.ANGULAR_VELOCITY_DEGREES_PER_SECOND)
 
 
 def test_continued_reply(served):

@@ -55,11 +55,11 @@ def test_move_get_set_and_rejections(make):
         (b"/1 0 get limit.cycle.dist", b"@01 0 OK IDLE -- 720000 720000 720000 720000\r\n"),
         (b"/1 0 get limit.min", b"@01 0 OK IDLE -- -190000 -176000 -360000 -350000\r\n"),
         (b"/1 4 get limit.max", b"@01 4 OK IDLE -- 350000\r\n"),
-        (b"/1 0 get maxspeed", b"@01 0 OK IDLE -- 40000 40000 40000 40000\r\n"),
-        (b"/1 1 set maxspeed 20000", b"@01 1 OK IDLE -- 0\r\n"),
-        (b"/1 1 get maxspeed", b"@01 1 OK IDLE -- 20000\r\n"),
+        (b"/1 0 get maxspeed", b"@01 0 OK IDLE -- 65536 65536 65536 65536\r\n"),  # 40000 microsteps/s * 1.6384
+        (b"/1 1 set maxspeed 32768", b"@01 1 OK IDLE -- 0\r\n"),
+        (b"/1 1 get maxspeed", b"@01 1 OK IDLE -- 32768\r\n"),
         (b"/1 1 set accel 1.5", b"@01 1 RJ IDLE -- BADDATA\r\n"),
-        (b"/1 1 get accel", b"@01 1 OK IDLE -- 80000\r\n"),
+        (b"/1 1 get accel", b"@01 1 OK IDLE -- 13107\r\n"),     # 80000 microsteps/s^2 * 0.16384
         (b"/1 0 get system.axiscount", b"@01 0 OK IDLE -- 4\r\n"),
         (b"/1 1 get system.axiscount", b"@01 1 RJ IDLE -- DEVICEONLY\r\n"),
         (b"/1 0 set system.axiscount 3", b"@01 0 RJ IDLE -- BADCOMMAND\r\n"),

@@ -34,7 +34,7 @@ def test_identification(make):
         (b"/1 1 get peripheral.id", b"@01 1 OK IDLE WR 43211\r\n"),
         (b"/1 1 get deviceid", b"@01 1 RJ IDLE WR DEVICEONLY\r\n"),
         (b"/1 0 set deviceid 5", b"@01 0 RJ IDLE WR BADCOMMAND\r\n"),
-        (b"/1 1 get pos limit.max maxspeed", b"@01 1 OK IDLE WR 0 190000 40000\r\n"),
+        (b"/1 1 get pos limit.max maxspeed", b"@01 1 OK IDLE WR 0 190000 65536\r\n"),
         (b"/1 1 get pos pos pos pos pos pos pos", b"@01 1 RJ IDLE WR BADDATA\r\n"),
         (b"/2 0 get deviceid", b"@02 0 OK IDLE -- 30311\r\n"),
         (b"/0 0 get system.serial", b"@01 0 OK IDLE WR 91001\r\n@02 0 OK IDLE -- 92001\r\n"),
