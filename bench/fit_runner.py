@@ -102,8 +102,11 @@ def _open_dataset(path: Path, seed: int = 0):
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
-                posterior_budget_s=None, dataset_path=None):
+                posterior_budget_s=None, dataset_path=None, budget=None):
     """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
+
+    ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting.load_budget`; None:
+    from ``meas.attrs``), carried into every parameter's combined uncertainty.
 
     ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
     (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file."""
@@ -143,7 +146,8 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
         # one batch: 32 walkers on 100 points take ~2 ms a step).
         post = sample_posterior(meas, result, rng=rng, time_budget_s=posterior_budget_s,
                                 **({"chunk": 250} if posterior_budget_s else {}))
-    doc = fit_document(result, meas, seed=seed, posterior=post, ranking=ranking, dataset_path=dataset_path)
+    doc = fit_document(result, meas, seed=seed, posterior=post, ranking=ranking, dataset_path=dataset_path,
+                       budget=budget)
     return result, doc, post
 
 
@@ -161,19 +165,27 @@ def print_fit(doc, truth=None, console=None):
     # (an emcee interval, or one clipped at a bound); units only where some are not "1".
     show_ci = any(p["method"] != "laplace" or p["at_bound"] for p in params.values())
     show_unit = any((p["unit"] or "1") != "1" for p in params.values())
-    caption = "; ".join(c for c in ("z = (fit - truth) / sigma" if truths else "",
+    caption = "; ".join(c for c in ("z = (fit - truth) / " + ("u_c" if doc.get("uncertainty") else "sigma")
+                                    if truths else "",
+                                    "1-sigma statistical, u_c combined (budget), U = 2 u_c"
+                                    if doc.get("uncertainty") else "",
                                     "" if show_ci else "90 % interval = value +- 1.645 sigma",
                                     "" if show_unit else "all parameters dimensionless") if c)
     table = Table(title=f"fit: {doc['model']['name']} {json.dumps(doc['model']['options'])}", box=box.SIMPLE_HEAD,
                   caption=caption or None)
     # the parameter names never wrap: an operator must read them whole in an 80-column terminal
     table.add_column("parameter", no_wrap=True)
-    cols = ("value", "1-sigma") + (("90 % interval",) if show_ci else ()) + (("unit",) if show_unit else ()) \
-        + (("truth", "z") if truths else ())
+    unc = (doc.get("uncertainty") or {}).get("parameters") or {}
+    cols = ("value", "1-sigma") + (("u_c", "U (k=2)") if unc else ()) + (("90 % interval",) if show_ci else ()) \
+        + (("unit",) if show_unit else ()) + (("truth", "z") if truths else ())
     for col in cols:
         table.add_column(col, justify="left" if col == "unit" else "right", no_wrap=True)
     for name, p in params.items():
         row = [name, f"{p['value']:.6g}", f"{p['std']:.2g}"]
+        u = unc.get(name)
+        sigma = u["u_combined"] if u else p["std"]
+        if unc:
+            row += [f"{u['u_combined']:.2g}", f"{u['U']:.2g}"] if u else ["-", "-"]
         if show_ci:
             row.append(f"{p['ci90'][0]:.6g} .. {p['ci90'][1]:.6g}")
         if show_unit:
@@ -181,7 +193,7 @@ def print_fit(doc, truth=None, console=None):
         if truths:
             t = truths.get(name)
             row += [f"{t:.5g}" if t is not None else "-",
-                    f"{(p['value'] - t) / p['std']:+.2f}" if (t is not None and p["std"] > 0) else "-"]
+                    f"{(p['value'] - t) / sigma:+.2f}" if (t is not None and sigma > 0) else "-"]
         table.add_row(*row)
     console.print(table)
     g = doc["goodness"]
@@ -194,11 +206,37 @@ def print_fit(doc, truth=None, console=None):
         console.print(f"[yellow]chi2/dof = {g['chi2_dof']:.3g}: the model misses the data by more than its noise "
                       f"(Birge ratio {g['birge_ratio']:.3g}); the 1-sigma values are statistical only and "
                       "understate the model's error[/yellow]")
+    dominant = budget_line(doc)
+    if dominant:
+        console.print(dominant)
     flagged = [n for n, p in doc["parameters"].items() if p["undetermined"]]
     if flagged:
         console.print(f"[yellow]the data cannot determine: {', '.join(flagged)}[/yellow]")
     if doc.get("posterior") and doc["posterior"].get("advice"):
         console.print(f"[yellow]{doc['posterior']['advice']}[/yellow]")
+
+
+def open_budget(path: Path, meas):
+    """The uncertainty budget of a dataset.nc (None for MERL/RGL files: from ``meas.attrs``)."""
+    from gonio.fitting import load_budget
+
+    if path.suffix.lower() in (".binary", ".bsdf"):
+        return None
+    try:
+        return load_budget(path, meas)
+    except ValueError as exc:
+        raise GonioError(" ".join(str(exc).split())) from None
+
+
+def budget_line(doc) -> str:
+    """One line: each parameter's largest share of u_c^2 (the fit file's uncertainty budget)."""
+    unc = (doc.get("uncertainty") or {}).get("parameters") or {}
+    parts = []
+    for name, u in unc.items():
+        if u.get("budget"):
+            comp, frac = max(u["budget"].items(), key=lambda kv: kv[1])
+            parts.append(f"{name} {comp} {100 * frac:.0f} %")
+    return ("largest term of u_c^2: " + ", ".join(parts)) if parts else ""
 
 
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
@@ -208,8 +246,9 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
 
     check_output_file(out, "fit file (--out)")
     meas = _open_dataset(dataset, seed)
+    budget = open_budget(dataset, meas)
     _, doc, _ = fit_dataset(meas, model=model, options=parse_options(options), seed=seed, loss=loss,
-                            posterior=posterior, dataset_path=dataset)
+                            posterior=posterior, dataset_path=dataset, budget=budget)
     with writing(out):
         write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None
@@ -438,9 +477,22 @@ def convert_cli(source: Path, out: Path, to: str):
     check_output_file(out, "converted file (--out)", need_bytes=merl_bytes if to in ("merl", "merl-data") else 0)
     if Path(os.path.abspath(out)) == Path(os.path.abspath(source)):
         raise GonioError(f"--out {out} is the source file; give another file name")
-    with writing(out):
-        _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
+    made = [p for p in Path(os.path.abspath(out)).parents if not p.exists()]
+    try:
+        with writing(out):
+            _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
+    except BaseException:
+        for folder in made:              # innermost first: only the folders this call made, if empty
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+        raise
     print(f"wrote {out}")
+
+
+def _make_parent(out: Path) -> None:
+    """``--out``'s missing folders are made (as ``mkdir -p``) once the source has been read:
+    check_output_file has already checked that their nearest existing ancestor is writable."""
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
 
 
 def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open):
@@ -452,18 +504,25 @@ def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
         except (ValueError, KeyError, json.JSONDecodeError) as exc:
             raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
         if to == "merl":
-            formats.write_merl(out, formats.resample_to_merl(model, params))
-        else:
-            xml, d = formats.mitsuba_snippet(model.name, dict(model.options), params)
-            if to == "mitsuba-dict":
-                write_json_atomic(out, d)
-            else:
-                with atomic_open(out, "w", encoding="utf-8") as fh:
-                    fh.write(xml)
+            merl = formats.resample_to_merl(model, params)
+            _make_parent(out)
+            formats.write_merl(out, merl)
+        elif to == "mitsuba-dict":
+            _, d = formats.mitsuba_snippet(model.name, dict(model.options), params)
+            _make_parent(out)
+            write_json_atomic(out, d)
+        else:  # a file of its own: mitsuba.load_file and <include> need the root's version
+            xml = formats.mitsuba_document(model.name, dict(model.options), params)
+            _make_parent(out)
+            with atomic_open(out, "w", encoding="utf-8") as fh:
+                fh.write(xml)
     elif to == "csv":
-        formats.dataset_to_csv(_open_dataset(source), out)
+        meas = _open_dataset(source)
+        _make_parent(out)
+        formats.dataset_to_csv(meas, out)
     elif to == "merl-data":
         merl = formats.dataset_to_merl(_open_dataset(source))
+        _make_parent(out)
         formats.write_merl(out, merl)
         print(f"{int(merl.valid.sum())} of {merl.valid.size} MERL bins hold measured data; the rest are marked no-data")
     else:

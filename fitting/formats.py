@@ -1,4 +1,5 @@
-"""Exchange formats of the field: MERL ``.binary``, RGL ``.bsdf``, Mitsuba snippets, CSV.
+"""Exchange formats of the field: MERL ``.binary``, RGL ``.bsdf``, Mitsuba XML (snippets and files,
+:mod:`._mitsuba_xml`), CSV.
 
 MERL ``.binary`` (Matusik, Pfister, Brand & McMillan, "A Data-Driven Reflectance Model",
 ACM TOG 22(3), 2003; the conventions of the MERL distribution's ``BRDFRead.cpp``, from which
@@ -36,10 +37,12 @@ from gonio.models.geometry import angles_deg as _angles_deg
 from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
 
 from ._data import Measurements
+from ._mitsuba_xml import MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet
 
 __all__ = [
     "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "dataset_to_merl", "half_diff_angles",
-    "merl_bin_directions", "merl_to_measurements", "mitsuba_snippet", "read_merl", "resample_to_merl",
+    "merl_bin_directions", "merl_to_measurements", "mitsuba_document", "mitsuba_snippet", "MITSUBA_XML_VERSION",
+    "read_merl", "resample_to_merl",
     "rgl_measurements", "write_merl", "check_rgl_file",
 ]
 
@@ -466,85 +469,6 @@ def rgl_measurements(path, wi, wo, *, rel_std: float = 0.02, floor: float = 1e-4
     use = np.repeat(up[:, None], 3, axis=1)
     attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": rgl.variant}
     return Measurements(wi, wo, f, std, use, attrs)
-
-
-# ---------------------------------------------------------------------------------------
-# Mitsuba 3 snippet
-# ---------------------------------------------------------------------------------------
-def _fmt_float(v) -> str:
-    return repr(float(v))
-
-
-def _xml_lines(d: dict, indent: str) -> list[str]:
-    lines = []
-    for key, value in d.items():
-        if key in ("type", "id"):
-            continue
-        if isinstance(value, dict):
-            kind = value.get("type")
-            if kind == "rgb":
-                v = np.broadcast_to(np.asarray(value["value"], dtype=np.float64), (3,))
-                lines.append(f'{indent}<rgb name="{key}" value="{", ".join(_fmt_float(x) for x in v)}"/>')
-            elif kind == "spectrum" and not isinstance(value.get("value"), (list, tuple)):
-                lines.append(f'{indent}<spectrum name="{key}" value="{_fmt_float(value["value"])}"/>')
-            else:  # a nested plugin (a texture)
-                lines.append(f'{indent}<texture type="{kind}" name="{key}">')
-                lines.extend(_xml_lines(value, indent + "    "))
-                lines.append(f"{indent}</texture>")
-        elif isinstance(value, (bool, np.bool_)):
-            lines.append(f'{indent}<boolean name="{key}" value="{"true" if value else "false"}"/>')
-        elif isinstance(value, (int, np.integer)):
-            lines.append(f'{indent}<integer name="{key}" value="{int(value)}"/>')
-        elif isinstance(value, (float, np.floating)):
-            lines.append(f'{indent}<float name="{key}" value="{_fmt_float(value)}"/>')
-        elif isinstance(value, str):
-            lines.append(f'{indent}<string name="{key}" value="{value}"/>')
-        elif isinstance(value, (list, tuple, np.ndarray)) and np.size(value) == 3:
-            v = np.asarray(value, dtype=np.float64).ravel()
-            lines.append(f'{indent}<rgb name="{key}" value="{", ".join(_fmt_float(x) for x in v)}"/>')
-        else:
-            raise TypeError(f"cannot write Mitsuba property {key!r} of type {type(value).__name__} as XML")
-    return lines
-
-
-def mitsuba_snippet(model_name: str, options: dict | None, params: dict, *, bsdf_id: str = "gonio_fit"):
-    """A fitted model as a Mitsuba 3 ``<bsdf>`` XML snippet and the equivalent Python dict.
-
-    Parameters
-    ----------
-    model_name : str
-        A gonio model name (``gonio.models.names()``).
-    options : dict or None
-        The model's discrete options (``{"distribution": "ggx"}``).
-    params : dict
-        Fitted parameter values.
-    bsdf_id : str
-        The ``id`` of the XML element (to reference it from a shape).
-
-    Returns
-    -------
-    xml_text : str
-        ``<bsdf type=... id=...>...</bsdf>`` to paste into a Mitsuba 3 scene (version 3.x).
-    mitsuba_dict : dict
-        ``mitsuba.load_dict`` accepts it as is.
-
-    Models without a native Mitsuba plugin export a Python plugin ``gonio_<name>``: the
-    snippet says in a comment that ``gonio.models`` must register it (``model.to_mitsuba``
-    does) in the process that loads the scene.
-    """
-    model = gm.get(model_name, **(options or {}))
-    d = model.to_mitsuba(params)
-    kind = d["type"]
-    lines = []
-    lines.append(f"<!-- gonio fit: model {model.name}, options {dict(model.options)}; f_r in sr^-1."
-                 " Exterior index 1 (ext_ior) where the model has one. -->")
-    if str(kind).startswith("gonio_"):
-        lines.append(f"<!-- '{kind}' is a Python BSDF: call gonio.models.get({model.name!r}).to_mitsuba(params)"
-                     " (which runs mitsuba.register_bsdf) before loading this scene. -->")
-    lines.append(f'<bsdf type="{kind}" id="{bsdf_id}">')
-    lines.extend(_xml_lines(d, "    "))
-    lines.append("</bsdf>")
-    return "\n".join(lines) + "\n", d
 
 
 # ---------------------------------------------------------------------------------------
