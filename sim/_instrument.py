@@ -11,6 +11,7 @@ import numpy as np
 
 from ._camera_port import CameraPort
 from ._clock import SimClock
+from ._errors import error_model, square_masks
 from ._faults import FaultSchedule
 from ._kinematics import forward
 from ._lamp import Lamp
@@ -80,6 +81,12 @@ class Instrument:
         Overrides of ``SensorModel``, ``Lamp``, ``PowerMeter`` parameters.
     spp : int
         Samples per pixel of the renders (edge anti-aliasing only).
+
+    Notes
+    -----
+    ``settings["errors"]`` (a preset name or table, ``_errors.error_model``) switches on the
+    systematic errors; their truth, drawn from ``seed``, is ``error_state``. Without it (or
+    with ``ideal``) the instrument is the error-free one, bit for bit.
     """
 
     def __init__(self, settings: dict | None = None, sample: dict = DEFAULT_SAMPLE,
@@ -120,6 +127,10 @@ class Instrument:
         self.reference = SampleTruth(reference)
         self.spp = int(spp)
         self.faults = FaultSchedule.coerce(faults)
+        self.errors = error_model(self.settings.get("errors"))
+        rel_std = float((self.settings.get("reference") or {}).get("rel_std", 0.0))
+        self.error_state = self.errors.draw(self.seed, rel_std)
+        self._errors_on = self.errors.active
 
         self.zaber = ZaberChain(self)
         self.scpi = ScpiMeter(self)
@@ -189,7 +200,16 @@ class Instrument:
         """``wi``, ``wo``, image ``right``/``up`` (sample frame) and ``R`` for a pose (default: now)."""
         pose = self.pose_microsteps() if pose is None else pose
         ang = {n: p * 2 * math.pi / a.cycle_dist for n, p, a in zip(self.axis_names, pose, self.axes)}
-        return forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"])
+        if not self._errors_on:
+            return forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"])
+        st = self.error_state
+        for n, a in zip(self.axis_names, self.axes):      # true = commanded + the stage's errors
+            ang[n] += math.radians(st.axis_error_deg(_AXIS_NAMES.index(n), a.moves, a.last_dir))
+        g = forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"])
+        H = st.holder
+        if H is not None:                                  # the holder's true frame
+            g = {k: (v @ H if k == "R" else H.T @ v) for k, v in g.items()}
+        return g
 
     def geometry_angle(self, pose: tuple, name: str) -> float:
         """Angle (radians) of axis ``name`` in a pose of physical microsteps."""
@@ -240,7 +260,8 @@ class Instrument:
         sample: the image is black (the controller should never go there).
         """
         pose = self.pose_microsteps() if pose is None else tuple(pose)
-        img = self._radiance.get(pose)
+        key = pose if not self._errors_on else (pose, *((a.moves, a.last_dir) for a in self.axes))
+        img = self._radiance.get(key)
         if img is None:
             g = self.geometry(pose)
             lamp_deg = abs((math.degrees(self.geometry_angle(pose, "lamp")) + 180.0) % 360.0 - 180.0)
@@ -249,11 +270,28 @@ class Instrument:
                 img = np.zeros((self.sensor.height, self.sensor.width, 3))
             else:
                 img = self.scene.render(g["wi"], g["wo"], g["right"], g["up"])
-            self._radiance[pose] = img
+                if self._errors_on:
+                    img = self._with_errors(img, g)
+            self._radiance[key] = img
             if len(self._radiance) > 16:
                 self._radiance.popitem(last=False)
         else:
-            self._radiance.move_to_end(pose)
+            self._radiance.move_to_end(key)
+        return img
+
+    def _with_errors(self, img: np.ndarray, g: dict) -> np.ndarray:
+        """The render plus what it cannot show: each square's interior set to its true radiance
+        (wedge, apertures, true reference), then the stray-light floor (``_errors.py``)."""
+        st = self.error_state
+        img = np.array(img, dtype=np.float64)
+        if st.squares_altered:
+            wi, wo = np.asarray(g["wi"], float), np.asarray(g["wo"], float)
+            ms, mr = square_masks(g, self.settings)
+            cos_i = max(float(wi[2]), 0.0)
+            img[ms] += st.sample_radiance(self.sample, wi, wo) - self.sample.eval(wi, wo)[0] * cos_i
+            img[mr] += st.reference_radiance(self.reference, wi, wo) - self.reference.eval(wi, wo)[0] * cos_i
+        if self.errors.stray.floor:
+            img += self.errors.stray.floor / math.pi
         return img
 
     #: Radiance (per unit power, sr^-1) and power (W) of the flat-field source: an integrating
@@ -297,8 +335,10 @@ class Instrument:
             else:
                 rad = np.zeros((self.sensor.height, self.sensor.width, 3))
             raw = self.sensor.expose(rad, power, seconds, rng)
+            if self._errors_on:
+                raw = self.error_state.nonlinear(raw, self.sensor.black, self.sensor.white)
             self.clock.advance(seconds)
             desc = {"gonio_sim": 1, "pose_microsteps": list(pose), "exposure_ns": exposure_ns,
                     "frame_at_pose": frame, "seed": self.seed, "source": source}
             return encode_dng(raw, black=self.sensor.black, white=self.sensor.white,
-                              exposure=seconds, description=desc)
+                              exposure=seconds, description=desc, colour=self.sensor.colour)

@@ -146,6 +146,8 @@ class RotaryAxis:
     _halt: tuple | None = None                  # (time, flag) when the motion is cut short
     driver_enabled: bool = True                 # ``driver disable`` de-energises the motor (FD)
     parked: bool = False                        # ``tools parking park``: keeps the reference over a power cycle
+    moves: int = 0                              # motions started (the error model's per-move draws)
+    last_dir: int = 0                           # sign of the last motion (+1, -1; 0 before any): backlash
 
     # ---------------------------------------------------------------- state queries
     def process(self, t: float) -> None:
@@ -229,6 +231,9 @@ class RotaryAxis:
         self._halt = None
         self.physical = x
         self._target = float(physical_target)
+        self.moves += 1
+        if self._target != x:
+            self.last_dir = 1 if self._target > x else -1
         self._segs = plan_trapezoid(x, v, self._target, self.maxspeed, self.accel, t)
         if not self._segs:
             self.physical = self._target
