@@ -171,11 +171,11 @@ def print_fit(doc, truth=None, console=None):
                                     if doc.get("uncertainty") else "",
                                     "" if show_ci else "90 % interval = value +- 1.645 sigma",
                                     "" if show_unit else "all parameters dimensionless") if c)
+    unc = (doc.get("uncertainty") or {}).get("parameters") or {}
     table = Table(title=f"fit: {doc['model']['name']} {json.dumps(doc['model']['options'])}", box=box.SIMPLE_HEAD,
-                  caption=caption or None)
+                  caption=caption or None, collapse_padding=bool(unc))
     # the parameter names never wrap: an operator must read them whole in an 80-column terminal
     table.add_column("parameter", no_wrap=True)
-    unc = (doc.get("uncertainty") or {}).get("parameters") or {}
     cols = ("value", "1-sigma") + (("u_c", "U (k=2)") if unc else ()) + (("90 % interval",) if show_ci else ()) \
         + (("unit",) if show_unit else ()) + (("truth", "z") if truths else ())
     for col in cols:

@@ -5,7 +5,9 @@ Layout (docs/interfaces.md, architecture.md "A fit file"):
 at_bound, undetermined, method}}; ``covariance`` {names, matrix}; ``constraints``;
 ``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used}; ``optimiser``;
 ``posterior`` (or null); ``selection`` (for ``--model auto``); ``mitsuba`` (the BSDF dict);
-``provenance`` (versions, seed, dataset path and checksum); ``non_finite`` (only when a
+``provenance`` (versions, seed, dataset path and checksum); ``uncertainty`` (per parameter
+u_stat, u_combined, U = k u_combined with k = 2, and its budget: docs/interfaces.md 5.1);
+``non_finite`` (only when a
 figure was NaN or infinite: the dotted paths written as null, since JSON has no NaN).
 """
 
@@ -21,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from gonio.models.atomic import atomic_open
+
+from ._budget import K_EXPANDED, budget_from_attrs, propagate
 
 
 __all__ = ["model_adequacy", "fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning"]
@@ -74,8 +78,12 @@ def sha256_file(path) -> str:
     return h.hexdigest()
 
 
-def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, dataset_path=None) -> dict:
-    """Build the fit file's content from a FitResult (and optional posterior and ranking)."""
+def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, dataset_path=None, budget=None) -> dict:
+    """Build the fit file's content from a FitResult (and optional posterior and ranking).
+
+    ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting._budget.load_budget`);
+    None reads it from ``meas.attrs`` (type A and ``scale_rel_std``). It fills ``uncertainty``.
+    """
     space = result.space
     z90 = 1.6448536269514722  # two-sided 90 % of a standard normal
     adequate, inflation, warning = model_adequacy(result)
@@ -125,6 +133,7 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         "selection": [r.row() for r in ranking] if ranking else None,
         "mitsuba": result.model.to_mitsuba(result.params),
         "scale_rel_std": meas.attrs.get("scale_rel_std"),
+        "uncertainty": _uncertainty(result, meas, budget, result.std * inflation, result.cov * inflation ** 2),
         "provenance": {"versions": versions(), "seed": seed, "dataset": str(dataset_path) if dataset_path else None,
                        "dataset_sha256": sha256_file(dataset_path) if dataset_path and Path(dataset_path).exists() else None,
                        "dataset_seed": meas.attrs.get("seed")},
@@ -143,6 +152,17 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         # said in the file: these figures were NaN or infinite and are written as null
         doc["non_finite"] = bad
     return doc
+
+
+def _uncertainty(result, meas, budget, u_stat, cov_stat) -> dict:
+    """The ``uncertainty`` section: combined and expanded uncertainty and budget per parameter
+    (docs/interfaces.md 5.1)."""
+    budget = budget if budget is not None else budget_from_attrs(meas)
+    out = propagate(result, meas, budget, u_stat)
+    return {"k": K_EXPANDED, "method": "first-order propagation of every budget component through the fit "
+                                      "(correlated ones as shared nuisance errors; GUM 5.1, JCGM 102 6.2)",
+            "budget_source": budget.source, "components": budget.describe(), "parameters": out["parameters"],
+            "covariance_combined": {"names": list(result.space.names), "matrix": cov_stat + out["cov_systematic"]}}
 
 
 def model_adequacy(result):

@@ -1,0 +1,191 @@
+"""The uncertainty budget carried into the fitted parameters (GUM, JCGM 100:2008).
+
+A dataset's budget (docs/interfaces.md 5.1: ``u_<component>`` variables with ``gum_type``
+and ``correlation``) is read by :func:`load_budget`; a dataset without one gets
+:func:`budget_from_attrs` (type A = ``brdf_std`` and a fully correlated certificate term
+brdf x ``scale_rel_std``). :func:`propagate` carries every component into the parameters.
+
+Method: linearised nuisance parameters. The fit is the weighted least-squares estimate
+x(y) of its own loss (residuals r(x, y)); to first order a shift d of the data moves it by
+G d with G = -(J^T J)^+ J^T diag(dr/dy), J = dr/dx at the optimum (the implicit-function
+theorem applied to J^T r = 0). A correlated component is a shared error e ~ N(0, 1) per
+group with brdf shifted by e u_group (u signed), so it adds (G u_g)(G u_g)^T per group
+(one for ``full``, three for ``channel``, one per label for ``group:<var>``); an
+independent component adds G diag(u^2) G^T. Only P x M matrices are formed, never M x M.
+Why this and not a generalised least-squares refit with V = D + U U^T: the estimate the
+optimiser computes is the weighted one, and this is its covariance under V exactly to first
+order (the GLS covariance (J^T V^-1 J)^-1 belongs to another estimator); for the dominant
+term, a scale error that the model absorbs (u in the span of J), both coincide
+(:func:`gls_covariance`, Woodbury, is kept to show it in the tests). A fit's own statistical
+covariance (Laplace or sandwich, Birge-inflated where the model misses) stands for the type-A
+independent components; their propagated shares only split it in the budget.
+
+References: JCGM 100:2008 (GUM) 5.1-5.2 and 6.2 (k = 2); JCGM 102:2011 6.2 (propagation of
+a multivariate covariance, U_y = C U_x C^T); Woodbury (1950), Hager (1989) for the inverse of
+a diagonal plus low-rank matrix.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from . import _loss
+
+__all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "propagate", "gls_covariance", "K_EXPANDED"]
+
+#: coverage factor of the expanded uncertainty U = k u_c (about 95 % for a normal distribution, GUM 6.2.2)
+K_EXPANDED = 2.0
+STATISTICAL = "statistical"
+
+
+@dataclasses.dataclass
+class BudgetComponent:
+    """One component: ``value`` (N, C) in sr^-1 (signed where correlated), its GUM type,
+    its correlation (``none``, ``full``, ``channel`` or ``group``) and, for ``group``,
+    integer labels (N, C)."""
+
+    name: str
+    value: np.ndarray
+    gum_type: str
+    correlation: str
+    source: str = ""
+    groups: np.ndarray | None = None
+
+    @property
+    def statistical(self) -> bool:
+        """Type A and independent: represented by the fit's own statistical covariance."""
+        return self.gum_type == "A" and self.correlation == "none"
+
+    def columns(self, use: np.ndarray) -> np.ndarray:
+        """The shared-error shifts, (n_groups, N, C): a data shift per unit shared error."""
+        v = np.where(use, self.value, 0.0)
+        if self.correlation == "full":
+            return v[None]
+        if self.correlation == "channel":
+            return np.stack([np.where(np.arange(v.shape[1]) == c, v, 0.0) for c in range(v.shape[1])])
+        labels = np.broadcast_to(self.groups, v.shape)
+        return np.stack([np.where(labels == g, v, 0.0) for g in np.unique(labels[use])])
+
+
+@dataclasses.dataclass
+class Budget:
+    components: list
+    source: str = "dataset"
+
+    def describe(self) -> dict:
+        return {c.name: {"gum_type": c.gum_type, "correlation": c.correlation, "source": c.source}
+                for c in self.components}
+
+
+def budget_from_attrs(meas) -> Budget:
+    """Type A = ``brdf_std``; type B = the certificate, brdf x ``scale_rel_std``, fully correlated."""
+    comps = [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none", "brdf_std (the fit's weights)")]
+    rel = float(meas.attrs.get("scale_rel_std", 0.0) or 0.0)
+    if rel > 0:
+        comps.append(BudgetComponent("reference_certificate", meas.brdf * rel, "B", "full",
+                                     "scale_rel_std (reference certificate)"))
+    return Budget(comps, "scale_rel_std attribute" if rel > 0 else "brdf_std only")
+
+
+def load_budget(path, meas) -> Budget:
+    """The budget of ``dataset.nc`` at ``path`` (its ``u_`` variables), aligned with ``meas``;
+    :func:`budget_from_attrs` when the file has none. ValueError (one line) when a
+    component is malformed."""
+    import xarray as xr
+
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        names = [v for v in ds.data_vars if v.startswith("u_") and "gum_type" in ds[v].attrs]
+        comps = []
+        for v in names:
+            var = ds[v]
+            corr = str(var.attrs.get("correlation", ""))
+            gtype = str(var.attrs.get("gum_type", ""))
+            value = np.asarray(var.transpose("point", "channel").values, float)
+            groups = None
+            if corr.startswith("group:"):
+                gname = corr.split(":", 1)[1]
+                if gname not in ds.variables:
+                    raise ValueError(f"{path}: {v} names the group variable {gname!r:.40}, which is not in the dataset")
+                groups = np.broadcast_to(np.asarray(ds[gname].values, np.int64).reshape(value.shape[0], -1),
+                                         value.shape).copy()
+                corr = "group"
+            if gtype not in ("A", "B") or corr not in ("none", "full", "channel", "group"):
+                raise ValueError(f"{path}: {v} has gum_type {gtype!r:.10} and correlation {corr!r:.30}; "
+                                 "see docs/interfaces.md 5.1")
+            if value.shape != meas.brdf.shape or not np.all(np.isfinite(value[meas.use])):
+                raise ValueError(f"{path}: {v} must be finite at every used value, shape {meas.brdf.shape}")
+            comps.append(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")), groups))
+    return Budget(comps) if comps else budget_from_attrs(meas)
+
+
+def _sensitivity(result, meas):
+    """G = -(J^T J)^+ J^T diag(dr/dy) restricted to the used values: (P, M), and the mask."""
+    from ._problem import Problem
+    from ._result import loss_jacobian
+
+    loss = result.loss if result.loss in ("chi2", "robust", "cosine", "log") else "chi2"
+    problem = Problem(meas, result.model, result.space, loss)
+    J, _ = loss_jacobian(problem, result.x, loss)
+    drdy = -_loss.residual_derivative(loss, meas.brdf, meas)
+    drdy = np.broadcast_to(drdy, meas.brdf.shape)[meas.use]
+    return -np.linalg.pinv(J, rcond=1e-10) * drdy[None, :]
+
+
+def propagate(result, meas, budget: Budget, u_stat: np.ndarray) -> dict:
+    """The fit file's ``uncertainty`` section (docs/interfaces.md 5.1): per parameter
+    ``u_stat``, ``u_combined``, ``U`` (k = 2), ``k`` and ``budget`` (variance fractions).
+
+    ``u_stat``: the statistical 1-sigma of each parameter (Birge-inflated where so reported).
+    Also ``covariance_combined``: the statistical covariance plus the propagated ones.
+    """
+    G = _sensitivity(result, meas)
+    use = meas.use
+    P = result.space.size
+    var, stat_share = {}, {}
+    cov_b = np.zeros((P, P))
+    for c in budget.components:
+        if c.statistical:
+            g = G * c.value[use][None, :]
+            stat_share[c.name] = np.einsum("pm,pm->p", g, g)
+            continue
+        if c.correlation == "none":
+            g = G * c.value[use][None, :]
+            cov = g @ g.T
+        else:
+            cols = c.columns(use)
+            g = np.stack([G @ col[use] for col in cols], axis=1)     # (P, n_groups)
+            cov = g @ g.T
+        var[c.name] = np.diag(cov).copy()
+        cov_b += cov
+    u_stat = np.asarray(u_stat, float)
+    total = u_stat ** 2 + np.diag(cov_b)
+    out = {}
+    s_sum = sum(stat_share.values()) if stat_share else None
+    for i, name in enumerate(result.space.names):
+        t = float(total[i])
+        frac = {}
+        if s_sum is not None and s_sum[i] > 0:
+            for k, v in stat_share.items():
+                frac[k] = u_stat[i] ** 2 * v[i] / s_sum[i] / t if t > 0 else 0.0
+        else:
+            frac[STATISTICAL] = u_stat[i] ** 2 / t if t > 0 else 1.0
+        for k, v in var.items():
+            frac[k] = float(v[i]) / t if t > 0 else 0.0
+        uc = float(np.sqrt(t))
+        out[name] = {"u_stat": float(u_stat[i]), "u_combined": uc, "U": K_EXPANDED * uc, "k": K_EXPANDED,
+                     "budget": {k: float(f) for k, f in sorted(frac.items(), key=lambda kv: -kv[1])}}
+    return {"parameters": out, "cov_systematic": cov_b}
+
+
+def gls_covariance(J: np.ndarray, sigma: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """(J^T V^-1 J)^-1 for V = diag(sigma^2) + U U^T by the Woodbury identity
+    V^-1 = D^-1 - D^-1 U (I + U^T D^-1 U)^-1 U^T D^-1 (J: M x P in data units, U: M x r);
+    O(M P r), no M x M matrix."""
+    Dinv = 1.0 / sigma ** 2
+    DJ, DU = J * Dinv[:, None], U * Dinv[:, None]
+    core = np.eye(U.shape[1]) + U.T @ DU
+    A = J.T @ DJ - (DJ.T @ U) @ np.linalg.solve(core, U.T @ DJ)
+    return np.linalg.inv(A)
+
