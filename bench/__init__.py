@@ -20,9 +20,9 @@ _WHERE = {
     "load_plan": ".plans", "check_plan": ".plans", "dry_run": ".plans", "Plan": ".plans",
     "load_settings": "._settings", "default_settings": "._settings",
     "forward": ".kinematics", "inverse": ".kinematics",
-    "ZaberChain": "._zaber", "Goniometer": "._zaber", "LedSource": "._zaber", "emergency_stop": "._zaber",
-    "PowerMeter": "._scpi", "SimCamera": "._camera", "WatchedFolderCamera": "._camera",
-    "Gphoto2Camera": "._camera", "decode_raw": "._camera",
+    "ZaberChain": ".drivers", "Goniometer": ".drivers", "LedSource": ".drivers", "emergency_stop": ".drivers",
+    "PowerMeter": ".drivers", "SimCamera": ".drivers", "WatchedFolderCamera": ".drivers",
+    "Gphoto2Camera": ".drivers", "decode_raw": ".drivers",
     "write_report": ".report", "run_demo": ".demo",
 }
 

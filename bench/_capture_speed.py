@@ -104,7 +104,8 @@ class _Meter:
 
     @contextlib.contextmanager
     def installed(self):
-        from . import _zaber, capture
+        from . import capture
+        from .drivers import stages as _zaber
 
         patches = []
 

@@ -21,7 +21,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ._camera import RawFrame
+from .drivers.camera import RawFrame
 
 __all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "choose_bracket", "ladder", "flat_gain"]
 

@@ -47,7 +47,7 @@ def target_of(args, settings) -> np.ndarray | None:
 
 
 def goniometer(args, settings):
-    from ._zaber import Goniometer, ZaberChain
+    from .drivers import Goniometer, ZaberChain       # a command's device: loaded when it runs
 
     chain = ZaberChain(args.port, args.baud, 1.0)
     try:
@@ -92,7 +92,7 @@ def where(gonio) -> str:
 
 def open_camera(spec: str):
     """A camera from ``--camera``: ``gphoto2``, ``folder:PATH`` or a serial URL of a camera port."""
-    from ._camera import Gphoto2Camera, SimCamera, WatchedFolderCamera
+    from .drivers import Gphoto2Camera, SimCamera, WatchedFolderCamera
 
     if spec == "gphoto2":
         return Gphoto2Camera()

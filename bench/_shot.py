@@ -17,13 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _identify, _markers, kinematics
-from ._camera import decode_raw
+from . import _markers, kinematics
 from ._files import atomic_write_text, commit_file, create_exclusive, tmp_name
 from ._hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
 from ._measure import ReferenceModel, check_sensor, region_stats
 from ._operate import move, open_camera, require_homed, where
 from ._settings import AXES
+from .drivers import Goniometer, LedSource, PowerMeter, ZaberChain, decode_raw
+from .drivers import identify as _identify
 from .errors import GonioError
 
 __all__ = ["take_shot", "write_preview"]
@@ -67,9 +68,6 @@ def write_preview(path: Path, radiance: np.ndarray, sample: np.ndarray, referenc
 
 def take_shot(args, settings, stage, out: Path) -> str:
     """Move (if ``stage`` is given), bracket, dark frames, merge, write; return the summary line."""
-    from ._scpi import PowerMeter
-    from ._zaber import Goniometer, LedSource, ZaberChain
-
     cap, cam_s = settings["capture"], settings["camera"]
     noise = NoiseModel(float(cam_s.get("gain_e_per_dn", 2.0)), float(cam_s.get("read_noise_e", 3.0)))
     sat = float(cap["saturation_fraction"])

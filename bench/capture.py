@@ -50,7 +50,6 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ._camera import RawFrame, SimCamera, decode_raw, read_verified
 from ._files import TMP_PREFIX, create_exclusive, remove_orphans
 from . import _integrity, kinematics
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
@@ -60,10 +59,11 @@ from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, 
 from ._measure import ProgressBar, ReferenceModel, check_sensor, raw_estimate, region_stats
 from ._preflight import _MARGIN as MARGIN, MiB, check_free_space, check_output_dir, disk_full, mount_of, oserror_line
 from ._ordering import order_moves
-from ._scpi import PowerMeter
 from ._signals import Interrupts, StopNow
 from ._settings import AXES, default_settings, merge_settings, validate_settings
-from ._zaber import Goniometer, LedSource, MoveError, ZaberChain, emergency_stop
+from .drivers import (Goniometer, LedSource, MoveError, PowerMeter, RawFrame, SimCamera, ZaberChain, decode_raw,
+                      emergency_stop, read_verified)
+from .drivers.identify import record as record_identification
 from .errors import CommunicationError, DeviceError, GonioError, SessionError
 from .plans import Plan, plan_from_dict, require_reachable
 
@@ -306,7 +306,6 @@ class _Session:
             self.journal.event("home", f"stages lost their reference ({' '.join(flags)}): homing")
             b.gonio.home()
         b.meter.identify()
-        from ._identify import record as record_identification
         record_identification(b, self.journal)     # every device's *IDN?, Zaber id, serial, firmware
         m = self.settings.get("meter", {})
         b.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _identify, _operate
+from . import _operate
 from ._settings import AXES
 from .errors import GonioError
 
@@ -118,9 +118,10 @@ def cmd_devices(args) -> int:
         raise GonioError("devices needs --port (the Zaber chain), --meter-port or --camera")
     settings = _settings(args)
     lines = []
-    if args.port:
-        from ._zaber import ZaberChain
+    from .drivers import PowerMeter, ZaberChain
+    from .drivers import identify as _identify
 
+    if args.port:
         with ZaberChain(args.port, args.baud, 0.5, retries=1) as chain:
             found = _identify.discover(chain)
             if not found:
@@ -132,8 +133,6 @@ def cmd_devices(args) -> int:
             for dev in sorted(set(roles) - set(found)):
                 lines.append(f"  device {dev}: did not answer, but the settings put the {roles[dev]} there")
     if args.meter_port:
-        from ._scpi import PowerMeter
-
         with PowerMeter(args.meter_port, args.baud, 1.0) as meter:
             lines.append(f"meter {args.meter_port}: {_identify.clean(meter.identify())}")
     if args.camera:

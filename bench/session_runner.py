@@ -109,7 +109,7 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
 
 
 def _camera(spec: str):
-    from ._camera import Gphoto2Camera, WatchedFolderCamera
+    from .drivers import Gphoto2Camera, WatchedFolderCamera
 
     if spec == "gphoto2":
         return Gphoto2Camera()

@@ -35,8 +35,8 @@ from typing import Callable
 import numpy as np
 import serial
 
-from ._files import commit_file, sha256_file, tmp_name
-from .errors import CommunicationError, DeviceError, GonioError
+from .._files import commit_file, sha256_file, tmp_name
+from ..errors import CommunicationError, DeviceError, GonioError
 
 __all__ = ["SensorInfo", "RawFrame", "decode_raw", "read_verified", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
            "RAW_SUFFIXES"]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 
-from .errors import CommunicationError, GonioError
+from ..errors import CommunicationError, GonioError
 
 __all__ = ["clean", "describe_device", "discover", "identify_bench", "record", "roles", "zaber_device"]
 

@@ -16,8 +16,8 @@ import re
 
 import serial
 
-from ._serial import SerialDevice
-from .errors import CommunicationError, DeviceError, GonioError
+from ..errors import CommunicationError, DeviceError, GonioError
+from .serialport import SerialDevice
 
 __all__ = ["PowerMeter", "is_visa_resource"]
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import serial
 
-from .errors import CommunicationError
+from ..errors import CommunicationError
 
 __all__ = ["SerialDevice"]
 

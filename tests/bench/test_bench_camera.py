@@ -9,7 +9,7 @@ import pytest
 import tifffile
 
 from benchfakes import expect
-from gonio.bench._camera import (Gphoto2Camera, SimCamera, WatchedFolderCamera, decode_raw, shutter_value)
+from gonio.bench.drivers.camera import (Gphoto2Camera, SimCamera, WatchedFolderCamera, decode_raw, shutter_value)
 from gonio.bench.errors import CommunicationError, DeviceError, GonioError
 
 

@@ -10,7 +10,7 @@ import xarray as xr
 sim = pytest.importorskip("gonio.sim")
 
 from gonio.bench import kinematics, plans
-from gonio.bench._camera import SimCamera
+from gonio.bench.drivers.camera import SimCamera
 from gonio.bench._files import sha256_file
 from gonio.bench._journal import Journal, read_session
 from gonio.bench._settings import default_settings
@@ -314,7 +314,7 @@ def test_no_flat_frames_wanted_with_a_flat_source(instrument, tmp_path):
 def test_windowed_decode_is_the_crop_of_the_full_decode(instrument, tmp_path):
     """What a point decodes (the regions' box, from bytes already read, darks without peaks) is
     exactly the crop of the full frame."""
-    from gonio.bench._camera import decode_raw, read_verified
+    from gonio.bench.drivers.camera import decode_raw, read_verified
 
     inst = instrument("window")
     path = tmp_path / "f.dng"

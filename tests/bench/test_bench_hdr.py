@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gonio.bench._camera import RawFrame
+from gonio.bench.drivers.camera import RawFrame
 from gonio.bench._hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
 
 NOISE = NoiseModel(gain=2.0, read_noise=3.0)

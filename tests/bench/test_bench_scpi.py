@@ -3,7 +3,7 @@
 import pytest
 
 from benchfakes import expect
-from gonio.bench._scpi import PowerMeter
+from gonio.bench.drivers.meter import PowerMeter
 from gonio.bench.errors import CommunicationError, DeviceError, GonioError
 
 

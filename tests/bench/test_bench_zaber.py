@@ -4,8 +4,8 @@ import pytest
 
 from benchfakes import expect
 from gonio.bench._settings import default_settings
-from gonio.bench._zaber import (Goniometer, LedSource, ZaberChain, format_command, lrc, parse_reply,
-                                shortest_equivalent)
+from gonio.bench.drivers import (Goniometer, LedSource, ZaberChain, format_command, lrc, parse_reply,
+                                 shortest_equivalent)
 from gonio.bench.errors import CommunicationError, FaultError, GonioError, RejectedError, UnreachableError
 
 
@@ -149,7 +149,7 @@ def test_goniometer_move_in_degrees():
 
 
 def test_short_move_is_reported_with_flags():
-    from gonio.bench._zaber import MoveError
+    from gonio.bench.drivers import MoveError
     ex = expect("g4", _connect_script() + [
         (cmd(1, 0, 4, "get pos"), "@01 0 04 OK IDLE -- 0 0 0 0\r\n"),
         (cmd(1, 4, 5, "move abs 100000"), "@01 4 05 OK BUSY -- 0\r\n"),

@@ -174,8 +174,8 @@ SITES = ["camera-dng", "camera-rename", "raw-placeholder", "journal-commit", "jo
 
 @pytest.mark.parametrize("site", SITES)
 def test_disk_full_during_a_capture_stops_resumably(capsys, tmp_path, plan_file, monkeypatch, site):
-    import gonio.bench._camera as camera
-    import gonio.bench._zaber as zaber
+    import gonio.bench.drivers.camera as camera
+    import gonio.bench.drivers.stages as zaber
     import gonio.bench.capture as capture
     import gonio.bench.session_runner as runner
     import gonio.sim._camera_port as port

@@ -12,8 +12,8 @@ import pytest
 
 from benchfakes import expect
 from gonio.bench._settings import default_settings
-from gonio.bench._zaber import (Goniometer, LedSource, ZaberChain, emergency_stop, format_command, lrc,
-                                parse_continuation, parse_reply)
+from gonio.bench.drivers import Goniometer, LedSource, ZaberChain, emergency_stop, format_command, lrc, parse_reply
+from gonio.bench.drivers.zaber_protocol import parse_continuation
 from gonio.bench.errors import CommunicationError, GonioError
 
 
@@ -60,7 +60,7 @@ def test_endless_continuation_is_bounded():
     z = ZaberChain.__new__(ZaberChain)
     lines = iter([b"#01 0 00 cont 1\\\r\n"] * 200)
     z._readline = lambda: next(lines)
-    from gonio.bench._zaber import _Garbled
+    from gonio.bench.drivers.zaber import _Garbled
     with pytest.raises(_Garbled, match="continued over 64 lines"):
         z._complete(parse_reply("@01 0 00 OK IDLE -- 0\\"))
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from gonio.bench import _identify
+from gonio.bench.drivers import identify as _identify
 from gonio.bench._journal import Journal
 from gonio.bench.plans import Plan
 from gonio.bench.session_runner import capture_sim

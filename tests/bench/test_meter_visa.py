@@ -3,7 +3,7 @@
 import pytest
 
 import gonio.sim as gs
-from gonio.bench._scpi import PowerMeter, is_visa_resource
+from gonio.bench.drivers.meter import PowerMeter, is_visa_resource
 from gonio.bench.errors import CommunicationError
 
 pytest.importorskip("pyvisa", reason="PyVISA is not installed")

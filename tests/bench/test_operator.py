@@ -16,7 +16,7 @@ import pytest
 
 import gonio.sim as gs
 from gonio.bench import _markers, kinematics
-from gonio.bench._camera import decode_raw
+from gonio.bench.drivers.camera import decode_raw
 from gonio.bench._settings import AXES, default_settings, merge_settings
 from gonio.bench.cli import main
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import signal
 
-from gonio.bench._camera import SimCamera
+from gonio.bench.drivers.camera import SimCamera
 
 
 class InterruptingCamera:

@@ -1,0 +1,36 @@
+"""gonio.bench.drivers: the bench's device layer, apart from the capture loop.
+
+One module per device kind, each device a class that opens its port when made, says what it
+is (``identify``), is read and set through typed methods, and is closed with ``close`` (or a
+``with`` block), as ophyd-async's devices and lewis's device/interface split are laid out:
+
+* `serialport`: `SerialDevice`, the base of the serial drivers (``serial_for_url`` opens the
+  port, so ``sim://NAME/...``, a pty and ``/dev/ttyUSB0`` are the same; one-line port errors).
+* `zaber_protocol`: the Zaber ASCII bytes, pure functions (`lrc`, `format_command`,
+  `parse_reply`, `Reply`, the flag and rejection meanings).
+* `zaber`: `ZaberChain`, the daisy chain on one port (message ids, retries, continued replies,
+  alerts, broadcast), and `emergency_stop`.
+* `stages`: `Goniometer`, the rotary axes in degrees (limits, shortest-way moves, homing).
+* `led`: `LedSource`, the lamp on the chain.
+* `meter`: `PowerMeter`, the SCPI source monitor (pyserial or VISA).
+* `camera`: `SimCamera`, `WatchedFolderCamera`, `Gphoto2Camera` and RAW decoding.
+* `identify`: what is on each port (Zaber device ids, ``*IDN?``), journalled once per run.
+
+The capture loop (`gonio.bench.capture`) and the operator commands use the devices only
+through these classes; the simulator (`gonio.sim`) speaks the same bytes at the far end.
+"""
+
+from .camera import Gphoto2Camera, RawFrame, SimCamera, WatchedFolderCamera, decode_raw, read_verified
+from .led import LedSource
+from .meter import PowerMeter, is_visa_resource
+from .serialport import SerialDevice
+from .stages import Goniometer, MoveError, shortest_equivalent
+from .zaber import ZaberChain, emergency_stop
+from .zaber_protocol import FLAG_MEANINGS, REJECT_MEANINGS, Reply, format_command, lrc, parse_reply
+
+__all__ = [
+    "FLAG_MEANINGS", "REJECT_MEANINGS", "Gphoto2Camera", "Goniometer", "LedSource", "MoveError",
+    "PowerMeter", "RawFrame", "Reply", "SerialDevice", "SimCamera", "WatchedFolderCamera", "ZaberChain",
+    "decode_raw", "emergency_stop", "format_command", "is_visa_resource", "lrc", "parse_reply",
+    "read_verified", "shortest_equivalent",
+]
