@@ -95,3 +95,14 @@ def test_capture_dry_run_needs_no_out(capsys):
 
     assert main(["capture", "--sim", "--plan", "quick", "--dry-run"]) == 0
     assert "points; estimated duration" in capsys.readouterr().out
+
+
+def test_tables_other_modules_check_pass_through(tmp_path):
+    """[errors] (the simulator's error model) and the calibration tables are checked by their own
+    modules; a misspelling of them is still caught here."""
+    f = tmp_path / "e.toml"
+    f.write_text('[errors]\npreset = "typical"\n[stray]\nfloor = 0.001\n')
+    assert load_settings(f)["errors"] == {"preset": "typical"}
+    f.write_text('[erors]\npreset = "typical"\n')
+    with pytest.raises(GonioError, match=r"did you mean \[errors\]\?"):
+        load_settings(f)
