@@ -1,4 +1,4 @@
-"""The holder's ArUco markers: where the sample and reference squares are in a frame.
+"""The holder's ArUco markers or ChArUco board: where the sample and reference squares are in a frame.
 
 The holder carries square ArUco markers at known places beside the two squares (the
 ``markers`` entry of the ``[holder]`` settings table)::
@@ -11,6 +11,26 @@ The holder carries square ArUco markers at known places beside the two squares (
 (holder units, in the holder's plane, x from the sample square to the reference square,
 markers upright: their top edge toward +y). The simulated holder (sim/_scene.py) renders the
 same table.
+
+Or a ChArUco board (OpenCV's ``CharucoBoard``: a chessboard whose white squares carry ArUco
+markers, its corners found to sub-pixel precision between two decoded markers)::
+
+    [holder]
+    markers = { dictionary = "DICT_4X4_50", board = [10, 8], square = 0.125, size = 0.1,
+                centre = [0.0, 0.0] }
+
+``board`` the squares across and down, ``square`` their side, ``size`` the markers' side
+(holder units), ``centre`` the board's centre on the holder; the board is upright (the top row
+of OpenCV's board image toward +y) and lies under the sample and reference squares, which hide
+its middle (`example_board`: 10 x 8 squares of 0.125 around the default squares, the two
+visible rows above and below them give 18 corners). The board's object points (OpenCV: origin
+at the top-left corner, x right, y down) map to the holder as ``centre + (x - W/2, H/2 - y)``.
+A corner is used only where both markers beside it were decoded (``CharucoParameters
+.minMarkers`` 2), so no corner is interpolated from one marker next to a hidden square.
+The pose is not OpenCV's ``solvePnP``: that is a pinhole camera's pose, and the bench's camera
+is telecentric (orthographic; its intrinsics are the pixel size and image axes of
+docs/interfaces.md), so the matched image points go through that camera's own map to the
+sample plane and the holder's planar shift and turn are fitted there, as for the markers.
 
 `find_regions` detects the markers in a frame with OpenCV's aruco module, maps their corners
 to the sample plane through the stage geometry (`kinematics.image_to_local`), fits the
@@ -36,10 +56,13 @@ from . import kinematics
 from .errors import GonioError
 
 __all__ = [
+    "BoardLayout",
     "HolderPose",
     "MarkerLayout",
     "Regions",
     "detect",
+    "detect_board",
+    "example_board",
     "example_layout",
     "find_regions",
     "fit_pose",
@@ -49,6 +72,8 @@ __all__ = [
 
 #: the fit's rms corner residual (holder units, per pixel size) above which the markers are not trusted
 MAX_RMS_PIXELS = 1.5
+#: the fewest ChArUco corners a pose is fitted to
+MIN_BOARD_CORNERS = 4
 
 
 def example_layout(sample_half: float = 0.25, offset: float = 0.3, size: float = 0.12) -> dict:
@@ -58,6 +83,40 @@ def example_layout(sample_half: float = 0.25, offset: float = 0.3, size: float =
     xs = [-(offset + sample_half) + 0.5 * size, 0.0, offset + sample_half - 0.5 * size]
     centres = [[x, y] for x in xs] + [[x, -y] for x in xs]
     return {"dictionary": "DICT_4X4_50", "size": float(size), "ids": list(range(6)), "centres": centres}
+
+
+def example_board(sample_half: float = 0.25, offset: float = 0.3) -> dict:
+    """A ``markers`` table for a ChArUco board under the two squares: 10 x 8 squares of side
+    ``sample_half / 2`` (markers 0.8 of it), so a row boundary runs along the squares' top and
+    bottom edges and two whole rows show above and below them."""
+    sq = 0.5 * sample_half
+    nx = 2 * math.ceil((offset + sample_half) / sq)
+    return {"dictionary": "DICT_4X4_50", "board": [nx, 8], "square": sq, "size": 0.8 * sq, "centre": [0.0, 0.0]}
+
+
+@dataclass(frozen=True)
+class BoardLayout:
+    """A ChArUco board on the holder: dictionary name, squares (nx, ny), square and marker
+    sides and centre (holder units)."""
+
+    dictionary: str
+    squares: tuple
+    square: float
+    size: float
+    centre: np.ndarray           # (2,)
+
+    def board(self):
+        import cv2
+
+        aruco = cv2.aruco
+        d = aruco.getPredefinedDictionary(getattr(aruco, self.dictionary))
+        return aruco.CharucoBoard(self.squares, self.square, self.size, d)
+
+    def to_holder(self, obj: np.ndarray) -> np.ndarray:
+        """OpenCV board object points (n, 3) or (n, 2) -> holder coordinates (n, 2)."""
+        obj = np.asarray(obj, float).reshape(-1, np.shape(obj)[-1])
+        w, h = self.squares[0] * self.square, self.squares[1] * self.square
+        return self.centre + np.stack([obj[:, 0] - 0.5 * w, 0.5 * h - obj[:, 1]], axis=1)
 
 
 @dataclass(frozen=True)
@@ -92,6 +151,8 @@ def layout_of(settings: Mapping) -> MarkerLayout | None:
                      "ids (distinct integers) and centres (one [x, y] per id); fix the settings")
     if not isinstance(table, Mapping):
         raise bad
+    if "board" in table:
+        return _board_of(table)
     try:
         import cv2
 
@@ -108,6 +169,36 @@ def layout_of(settings: Mapping) -> MarkerLayout | None:
             or len(set(ids)) != len(ids) or centres.shape != (len(ids), 2) or not np.all(np.isfinite(centres))):
         raise bad
     return MarkerLayout(name, float(size), ids, centres)
+
+
+def _board_of(table: Mapping) -> BoardLayout:
+    bad = GonioError("[holder] markers with a board must have dictionary (e.g. \"DICT_4X4_50\"), board = [nx, ny] "
+                     "(integers 3..100), square > size > 0 and centre = [x, y]; fix the settings")
+
+    def number(v) -> float:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise bad
+        return float(v)
+
+    try:
+        import cv2
+
+        name = str(table["dictionary"])
+        squares = tuple(table["board"])
+        square, size = number(table["square"]), number(table["size"])
+        centre = np.array([number(v) for v in table.get("centre", (0.0, 0.0))])
+    except (KeyError, TypeError, ValueError):
+        raise bad from None
+    if (not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)) or len(squares) != 2
+            or any(isinstance(n, bool) or not isinstance(n, int) or not 3 <= n <= 100 for n in squares)
+            or not 0 < size < square or centre.shape != (2,)):
+        raise bad
+    layout = BoardLayout(name, squares, square, size, centre)
+    n_markers = squares[0] * squares[1] // 2
+    if n_markers > cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0]:
+        raise GonioError(f"[holder] markers: a {squares[0]} x {squares[1]} board needs {n_markers} markers, "
+                         f"more than {name} has; choose a larger dictionary or fewer squares")
+    return layout
 
 
 def _to_8bit(image: np.ndarray) -> np.ndarray:
@@ -139,12 +230,30 @@ def detect(image: np.ndarray, layout: MarkerLayout) -> dict[int, np.ndarray]:
     return found
 
 
+def detect_board(image: np.ndarray, layout: BoardLayout) -> tuple[np.ndarray, np.ndarray]:
+    """The board's corners found in ``image`` (h, w), linear: ``(holder_xy (n, 2), image (n, 2)
+    as (col, row))``, n = 0 where none; OpenCV's ``CharucoDetector`` and ``matchImagePoints``."""
+    import cv2
+
+    aruco = cv2.aruco
+    board = layout.board()
+    params = aruco.DetectorParameters()
+    params.minMarkerPerimeterRate = 0.01       # small markers in a wide frame
+    charuco = aruco.CharucoParameters()
+    charuco.minMarkers = 2                     # a corner between two decoded markers only
+    corners, ids, _, _ = aruco.CharucoDetector(board, charuco, params).detectBoard(_to_8bit(image))
+    if ids is None or len(ids) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    obj, img = board.matchImagePoints(corners, ids)
+    return layout.to_holder(obj), np.asarray(img, float).reshape(-1, 2)
+
+
 @dataclass(frozen=True)
 class HolderPose:
     """Where the holder sits in the sample plane relative to where the settings put it.
 
     ``local = R(angle) @ holder + shift``; ``rms`` is the fit's corner residual (holder units),
-    ``ids`` the markers it used.
+    ``ids`` the markers it used (a board: the indices of the corners found).
     """
 
     shift: np.ndarray            # (2,)
@@ -237,15 +346,21 @@ def find_regions(image: np.ndarray, stage_deg, settings: Mapping, binning: int =
     if layout is None:
         sm, rm = kinematics.roi_masks(stage_deg, settings, binning)
         return Regions(sm, rm, "geometry", None, "the holder has no markers in the settings")
-    found = detect(image, layout)
-    if not found:
+    if isinstance(layout, BoardLayout):
+        holder, px = detect_board(image, layout)
+        ids, none = tuple(range(len(holder))), len(holder) < MIN_BOARD_CORNERS
+        why = f"fewer than {MIN_BOARD_CORNERS} board corners found in the frame"
+    else:
+        found = detect(image, layout)
+        ids, none, why = tuple(sorted(found)), not found, "no marker found in the frame"
+        if found:
+            px = np.concatenate([found[i] for i in ids])            # (col, row) on the super-pixel grid
+            holder = np.concatenate([layout.corners(i) for i in ids])
+    if none:
         sm, rm = kinematics.roi_masks(stage_deg, settings, binning)
-        return Regions(sm, rm, "geometry", None, "no marker found in the frame")
-    ids = tuple(sorted(found))
-    px = np.concatenate([found[i] for i in ids])                # (col, row) on the super-pixel grid
+        return Regions(sm, rm, "geometry", None, why)
     rows, cols = binning * px[:, 1] + 0.5 * (binning - 1), binning * px[:, 0] + 0.5 * (binning - 1)
     local = kinematics.image_to_local(stage_deg, rows, cols, settings)
-    holder = np.concatenate([layout.corners(i) for i in ids])
     shift, angle, rms = fit_pose(holder, local)
     limit = MAX_RMS_PIXELS * binning * float(settings["camera"]["pixel_size"]) / max(
         1e-6, abs(kinematics.rotation(stage_deg)[0, 2]))          # foreshortened pixels are longer

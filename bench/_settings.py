@@ -35,7 +35,7 @@ SCHEMA: dict[str, dict[str, str]] = {
     "camera": {"width": "pixels", "height": "pixels", "pixel_size": "holder units per pixel", "bits": "ADC bits",
                "gain_e_per_dn": "electrons per DN", "read_noise_e": "read noise (electrons rms)"},
     "holder": {"sample_half": "half-width of the sample square", "offset": "reference square offset",
-               "holder_reflectance": "holder's diffuse reflectance", "markers": "ArUco marker layout table",
+               "holder_reflectance": "holder's diffuse reflectance", "markers": "ArUco markers or ChArUco board layout table",
                "sim_pose": "simulator only: the holder's true pose [dx, dy, rot_deg]"},
     "reference": {"reflectance": "certified reflectance (one value or R, G, B)",
                   "rel_std": "certificate's relative 1-sigma", "certificate": "certificate id (text)",

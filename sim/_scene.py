@@ -59,7 +59,7 @@ class HolderScene:
     spp : int
         Samples per pixel (anti-aliasing of the squares' edges only).
     markers : dict, optional
-        ArUco markers on the holder (``[holder] markers``, sim/_holder_markers.py).
+        ArUco markers or a ChArUco board on the holder (``[holder] markers``, sim/_holder_markers.py).
     holder_pose : (dx, dy, angle_deg), optional
         Where the holder really sits in the sample plane (the simulator's truth; default where
         the settings put it).
