@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ._budget import budget_variables
+from ._cf import cf_encode
 from ._files import commit_file, tmp_name
 from .errors import GonioError, SessionError
 
@@ -107,7 +108,7 @@ def to_dataset(session_dir):
     }
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
-    return xr.Dataset(data, coords=coords, attrs=attrs)
+    return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
 
 
 def _colour(rgb_cam: np.ndarray, f: np.ndarray, sd: np.ndarray) -> dict:

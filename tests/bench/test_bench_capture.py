@@ -80,7 +80,8 @@ def test_capture_recovers_known_brdf_and_exports(instrument, tmp_path):
     for c in ("theta_i", "phi_i", "theta_o", "phi_o"):
         assert ds[c].attrs["units"] == "degree"
     assert ds.brdf.attrs["units"] == "sr^-1" and ds.brdf_std.dims == ("point", "channel")
-    assert ds.saturated.dtype == bool and ds.attrs["scale_rel_std"] == 0.005 and ds.attrs["seed"] == 1
+    assert ds.saturated.dtype == np.int8 and ds.saturated.attrs["flag_meanings"] == "not_saturated saturated"
+    assert ds.attrs["scale_rel_std"] == 0.005 and ds.attrs["seed"] == 1
     p = ds.reciprocal_partner.values
     assert (p >= 0).sum() == 8 and all(p[p[i]] == i for i in np.flatnonzero(p >= 0))
     assert json.loads(ds.attrs["sample_truth"]) == GLOSSY and ds.attrs["complete"] == 1
