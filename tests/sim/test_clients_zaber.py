@@ -74,8 +74,16 @@ class _DbSpy(http.server.BaseHTTPRequestHandler):
 
 def test_identify_asks_the_device_database_with_the_sims_ids(served):
     """identify() reads every identification setting, then looks the product up in Zaber's
-    device database (web or file); offline, a local spy stands in for it and records the
-    lookup, which carries the simulator's device id, firmware and peripheral ids."""
+    device database; offline, a local spy stands in for the web service and records the lookup,
+    which carries the simulator's device id, firmware and peripheral ids.
+
+    identify() cannot pass offline without Zaber's own data: the web service is
+    ``GET https://api.zaber.io/device-db/v2/public/device/30342?fw=7.38.18426&peripheral-id=43211``
+    (the peripheral id once per axis); the offline source (``DeviceDbSourceType.FILE``) is
+    Zaber's published SQLite file ``devices-public.sqlite`` (zaber-motion first reads its table
+    ``SwWeb_SchemaVersion``), not on this machine nor in any package; the store
+    (``enable_device_db_store``) only keeps answers fetched online before. The simulator's ids
+    are invented, so even that file would have to list a product with them."""
     srv = served()
     httpd = http.server.HTTPServer(("127.0.0.1", 0), _DbSpy)
     threading.Thread(target=httpd.serve_forever, daemon=True).start()
@@ -89,8 +97,29 @@ def test_identify_asks_the_device_database_with_the_sims_ids(served):
         Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE)
         httpd.shutdown()
     assert _DbSpy.paths, "zaber-motion never reached the device database"
-    path = _DbSpy.paths[0]
-    assert "30342" in path and "fw=7.38.18426" in path and path.count("peripheral-id=43211") == 4
+    assert _DbSpy.paths[0] == "/db/device/30342?fw=7.38.18426" + "&peripheral-id=43211" * 4
+
+
+def test_identify_offline_sources_need_zabers_database(served, tmp_path):
+    """The offline routes zaber-motion offers fail without Zaber's database file: a missing
+    file, an empty one (no schema), and the store with the web service unreachable."""
+    srv = served()
+    empty = tmp_path / "empty.sqlite"
+    empty.write_bytes(b"")
+    attempts = [(lambda: Library.set_device_db_source(DeviceDbSourceType.FILE, str(tmp_path / "none.sqlite")),
+                 "no such file"),
+                (lambda: Library.set_device_db_source(DeviceDbSourceType.FILE, str(empty)), "SwWeb_SchemaVersion"),
+                (lambda: (Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE, "http://127.0.0.1:9/db"),
+                          Library.enable_device_db_store(str(tmp_path / "store"))), "online source")]
+    try:
+        with _open(srv) as c:
+            for setup, why in attempts:
+                setup()
+                with pytest.raises(DeviceDbFailedException, match=why):
+                    c.get_device(1).identify()
+    finally:
+        Library.disable_device_db_store()
+        Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE)
 
 
 def test_axis_moves_settings_park_and_driver(served):
