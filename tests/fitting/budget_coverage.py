@@ -1,0 +1,119 @@
+"""Coverage of the combined uncertainty u_c (issue 15): the study, run outside the suite.
+
+    .venv/bin/python tests/fitting/budget_coverage.py synthetic N [--first SEED] [--out FILE.json]
+    .venv/bin/python tests/fitting/budget_coverage.py capture N [--first SEED] [--errors TABLE_JSON] [--plan quick]
+    .venv/bin/python tests/fitting/budget_coverage.py --summarise FILE.json
+
+``synthetic``: the sessions of tests/fitting/test_budget.py (:func:`test_budget.session`):
+a glossy roughplastic-GGX sample (alpha 0.05, int_ior 1.5), type-A noise, and the reference's
+true reflectance drawn from its certificate (one factor 1 + s N(0, 1), s = scale_rel_std,
+for every value: the bench's f_r is then f_true / factor), fitted with chi2; the budget is
+the dataset's: type A = brdf_std, certificate = brdf x s, fully correlated.
+``capture``: real simulated captures (sim/_errors.py, settings ``[errors]``, default: only
+the certificate draw) through capture, export (dataset.nc with its u_ variables) and
+``gonio fit``'s path (load_budget, fit_dataset).
+
+For each session and parameter it records whether |fit - truth| <= u_c (1 sigma),
+<= 2 u_c (k = 2), <= 0.8 u_c (an interval 20 % too narrow) and <= u_stat (the budget
+ignored), plus z = (fit - truth) / u_c and / u_stat. ``--summarise`` prints the coverage
+with binomial sigma.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import test_budget as T  # noqa: E402
+
+
+def capture_session(seed: int, errors: dict, plan: str, folder: Path):
+    """One simulated capture -> dataset.nc -> fit with its budget: (names, fit, u_c, u_stat, truth)."""
+    import shutil
+
+    from gonio.bench._settings import default_settings
+    from gonio.bench.export import export
+    from gonio.bench.fit_runner import fit_dataset, open_budget
+    from gonio.bench.session_runner import capture_sim
+    from gonio.fitting import load_dataset
+
+    settings = default_settings()
+    settings["errors"] = errors
+    sample = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.5, 0.35, 0.2], "alpha": 0.15}}
+    shutil.rmtree(folder, ignore_errors=True)
+    capture_sim(folder, sample=sample, plan=plan, seed=seed, settings=settings, progress=False)
+    path = export(folder)
+    meas = load_dataset(path)
+    _, doc, _ = fit_dataset(meas, model="roughplastic", options={"distribution": "beckmann"}, seed=seed,
+                            budget=open_budget(path, meas))
+    truth = {"diffuse_reflectance[R]": 0.5, "diffuse_reflectance[G]": 0.35, "diffuse_reflectance[B]": 0.2,
+             "alpha": 0.15, "int_ior": 1.49}
+    names = list(doc["parameters"])
+    u = doc["uncertainty"]["parameters"]
+    return (names, np.array([doc["parameters"][n]["value"] for n in names]),
+            np.array([u[n]["u_combined"] for n in names]), np.array([u[n]["u_stat"] for n in names]),
+            np.array([truth[n] for n in names]))
+
+
+def record(names, x, uc, us, truth) -> dict:
+    d = np.abs(x - truth)
+    return {"names": names, "z_c": ((x - truth) / uc).tolist(), "z_stat": ((x - truth) / us).tolist(),
+            "hit1": (d <= uc).tolist(), "hit2": (d <= 2 * uc).tolist(), "narrow": (d <= 0.8 * uc).tolist(),
+            "stat": (d <= us).tolist()}
+
+
+def summarise(rows):
+    names = rows[0]["names"]
+    n = len(rows)
+    print(f"{n} sessions")
+    for key, nominal in (("hit1", 0.6827), ("hit2", 0.9545), ("narrow", None), ("stat", None)):
+        cov = np.mean([r[key] for r in rows], axis=0)
+        line = ", ".join(f"{nm} {c:.3f} ({np.sqrt(c * (1 - c) / n):.3f})" for nm, c in zip(names, cov))
+        print(f"  {key:<6} (nominal {nominal}): {line}" if nominal else f"  {key:<6}: {line}")
+    zs = np.array([r["z_stat"] for r in rows])
+    zc = np.array([r["z_c"] for r in rows])
+    print("  rms z against u_c:   " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zc ** 2).mean(0)))))
+    print("  rms z against u_stat: " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zs ** 2).mean(0)))))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("mode", nargs="?", choices=("synthetic", "capture"))
+    ap.add_argument("n", nargs="?", type=int, default=100)
+    ap.add_argument("--first", type=int, default=100000, help="first seed (the suite's are below 1000)")
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--errors", default='{"preset": "ideal", "reference": {"draw_certificate": true}}')
+    ap.add_argument("--plan", default="quick")
+    ap.add_argument("--summarise", type=Path)
+    a = ap.parse_args(argv)
+    if a.summarise:
+        summarise(json.loads(a.summarise.read_text())["sessions"])
+        return 0
+    if a.mode is None:
+        ap.error("give a mode (synthetic or capture) or --summarise FILE")
+    rows, t0 = [], time.perf_counter()
+    folder = Path("/tmp") / f"gonio-budget-coverage-{a.first}"
+    for s in range(a.first, a.first + a.n):
+        if a.mode == "synthetic":
+            rows.append(record(*T.fit_session(s)))
+        else:
+            rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder)))
+        if a.out and ((s - a.first + 1) % 25 == 0 or s == a.first + a.n - 1):
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_text(json.dumps({"mode": a.mode, "first_seed": a.first, "errors": a.errors, "plan": a.plan,
+                                         "made_by": "tests/fitting/budget_coverage.py",
+                                         "versions": T.versions(), "sessions": rows}) + "\n")
+            print(f"{s - a.first + 1} sessions, {time.perf_counter() - t0:.0f} s", flush=True)
+    summarise(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,235 @@
+"""The uncertainty budget carried into the fitted parameters (issue 15; fitting/_budget.py).
+
+Physics and behaviour:
+* a fully correlated scale error moves rho by rho s where the model absorbs it (``diffuse``),
+  and by more where another parameter shares it (roughplastic's int_ior), so
+  u_c(rho) >= rho x scale_rel_std (the certificate's floor, JCGM 100 5.1.2);
+* the propagated covariance equals the Monte Carlo scatter of refits of shifted data
+  (the first-order propagation is the estimator's own), and equals the GLS covariance
+  (J^T V^-1 J)^-1 by Woodbury where the correlated shift lies in the model's span;
+* every parameter's budget fractions are shares of u_c^2 and add up to 1.
+
+Coverage (the issue's proof, in small; the full study is budget_coverage.py). Sessions:
+glossy roughplastic-GGX (alpha 0.05, int_ior 1.5), 300 directions (half near the mirror
+direction), noise 1 % + 1e-3 sr^-1, the reference's true reflectance drawn from its
+certificate (s = 0.005, one factor for every value). Measured offline on 2026-12-01
+(``budget_coverage.py synthetic 1000 --first 100000``; data/budget_coverage/synthetic.json):
+
+    COVERAGE (see the table below, filled from that file)
+
+In the suite: N_SUITE sessions (seeds 0..N_SUITE-1). Each parameter's 1-sigma and k = 2 hit
+counts must lie in a binomial acceptance region whose tails are each <= ALPHA_TAIL for every
+true coverage within 2 binomial sigma of the offline figure: 5 parameters x 2 levels x 2 tails
+x 5e-5 <= 1e-3 false alarms per run (Bonferroni, whatever the dependence), on any machine (a
+CPU with other floating-point code generation is a fresh draw, covered by the same rate).
+Power: a fit that ignores the budget (u_stat only) passes with the probability printed by
+``test_power_against_the_budget_ignored`` (binomial at its offline coverage), below 1e-6.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import gonio.models as gm
+from gonio.fitting import Budget, BudgetComponent, Measurements, fit, fit_document, versions  # noqa: F401
+from gonio.fitting._budget import gls_covariance, propagate
+
+from _simdata import directions
+
+MODEL = gm.get("roughplastic", distribution="ggx")
+TRUTH = {"diffuse_reflectance": np.array([0.5, 0.35, 0.2]), "alpha": 0.05, "int_ior": 1.5}
+TRUTH_X = np.array([0.5, 0.35, 0.2, 0.05, 1.5])
+SCALE_REL_STD = 0.005
+CALIBRATION = Path(__file__).parent / "data" / "budget_coverage" / "synthetic.json"
+N_SUITE = 60
+ALPHA_TAIL = 5e-5
+
+
+def session(seed: int, n: int = 300, rel: float = 0.01, floor: float = 1e-3, s: float = SCALE_REL_STD,
+            factor: float | None = None) -> Measurements:
+    """One simulated dataset: f_true / (1 + s N(0,1)) + type-A noise (the bench divides by the
+    certified reference while the true one differs by the drawn factor)."""
+    rng = np.random.default_rng(seed)
+    wi, wo = directions(rng, n, spread=0.05)
+    f = MODEL.eval(wi, wo, TRUTH)
+    sigma = rel * f + floor
+    factor = 1.0 + s * rng.standard_normal() if factor is None else factor
+    y = f / factor + sigma * rng.standard_normal(f.shape)
+    return Measurements(wi, wo, y, sigma, np.ones(f.shape, bool), {"scale_rel_std": s, "seed": seed})
+
+
+def fit_session(seed: int):
+    """(names, fit, u_c, u_stat, truth) of one session, fitted as gonio fit does (chi2)."""
+    meas = session(seed)
+    res = fit(meas, MODEL, rng=np.random.default_rng(seed))
+    doc = fit_document(res, meas)
+    u = doc["uncertainty"]["parameters"]
+    names = list(res.space.names)
+    return (names, np.asarray(res.x), np.array([u[k]["u_combined"] for k in names]),
+            np.array([u[k]["u_stat"] for k in names]), TRUTH_X)
+
+
+# ------------------------------------------------------------------ propagation: physics
+@pytest.fixture(scope="module")
+def glossy():
+    """One glossy session without a drawn scale error, its fit and fit document."""
+    meas = session(7, factor=1.0)
+    res = fit(meas, MODEL, rng=np.random.default_rng(7))
+    return meas, res, fit_document(res, meas)
+
+
+def test_rho_is_never_more_certain_than_its_certificate(glossy):
+    meas, res, doc = glossy
+    u = doc["uncertainty"]["parameters"]
+    for c in "RGB":
+        name = f"diffuse_reflectance[{c}]"
+        rho = doc["parameters"][name]["value"]
+        # the certificate alone moves rho by rho s (a scale the model absorbs): u_c >= rho s
+        # (roughplastic absorbs a scale only partly: int_ior, which sets the specular lobe's
+        # height, also changes the diffuse part, so rho moves by more than rho s here)
+        assert u[name]["u_combined"] >= rho * SCALE_REL_STD
+        assert u[name]["U"] == pytest.approx(2.0 * u[name]["u_combined"]) and u[name]["k"] == 2.0
+        # here the certificate dominates (the issue's 0.0028 against 7.7e-5)
+        assert max(u[name]["budget"], key=u[name]["budget"].get) == "reference_certificate"
+    for name, item in u.items():
+        assert sum(item["budget"].values()) == pytest.approx(1.0, abs=1e-9), name
+        assert item["u_stat"] == pytest.approx(doc["parameters"][name]["std"])
+        assert item["u_combined"] >= item["u_stat"]
+
+
+def test_propagation_is_the_shift_of_a_refit(glossy):
+    """G u, the first-order shift, equals what a refit of the data shifted by +1 sigma of the
+    certificate (every value x (1 + s)) finds, for every parameter (alpha barely moves)."""
+    from gonio.fitting._budget import _sensitivity
+
+    meas, res, doc = glossy
+    u = meas.brdf * SCALE_REL_STD
+    predicted = _sensitivity(res, meas) @ u[meas.use]
+    shifted = Measurements(meas.wi, meas.wo, meas.brdf + u, meas.brdf_std, meas.use, dict(meas.attrs))
+    refit = fit(shifted, MODEL, rng=np.random.default_rng(7))
+    moved = refit.x - res.x
+    assert np.all(np.abs(moved - predicted) <= 0.02 * np.abs(predicted) + 0.02 * res.std), (moved, predicted)
+
+
+def test_gls_covariance_equals_the_propagated_one_for_an_absorbed_scale():
+    """For a scale error in the model's span, (J^T V^-1 J)^-1 with V = D + u u^T (Woodbury)
+    is the propagated covariance: stat + (G u)(G u)^T (Lambertian 'diffuse', one rho per channel)."""
+    model = gm.get("diffuse")
+    rng = np.random.default_rng(3)
+    wi, wo = directions(rng, 200, specular_fraction=0.0)
+    truth = {p.name: p.default for p in model.parameters}
+    f = model.eval(wi, wo, truth)
+    sigma = 0.01 * f + 1e-3
+    meas = Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool),
+                        {"scale_rel_std": 0.01})
+    res = fit(meas, model, rng=rng)
+    # the shared shift's shape: the fitted f_r x s (in the model's span; a shape taken from the
+    # noisy values would leak a little information into the GLS estimator)
+    u = model.eval(wi, wo, res.params) * 0.01
+    out = propagate(res, meas, Budget([BudgetComponent("reference_certificate", u, "B", "full")]), res.std)
+    cov_prop = res.cov + out["cov_systematic"]
+    # J (values x parameters) in data units: f is linear in each channel's rho
+    J = np.zeros((f.size, res.space.size))
+    base = model.eval(wi, wo, {"reflectance": np.ones(3)})
+    for c in range(3):
+        J[c::3, c] = base[:, c]
+    cov_gls = gls_covariance(J, sigma.ravel(), u.reshape(-1, 1))
+    assert np.diag(cov_gls) == pytest.approx((res.x * 0.01) ** 2 + res.std ** 2, rel=1e-3)
+    np.testing.assert_allclose(cov_prop, cov_gls, rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def matte():
+    """A Lambertian ('diffuse') session and its fit: each channel's rho on its own."""
+    model = gm.get("diffuse")
+    rng = np.random.default_rng(5)
+    wi, wo = directions(rng, 200, specular_fraction=0.0)
+    f = model.eval(wi, wo, {"reflectance": np.array([0.6, 0.4, 0.2])})
+    sigma = 0.01 * f + 1e-3
+    meas = Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool))
+    return meas, fit(meas, model, rng=rng)
+
+
+def test_channel_correlation_keeps_channels_apart(matte):
+    """One certificate per channel: each rho's variance as with one for all, but no covariance
+    between channels' rho from it (full: correlation +1 between them from the certificate)."""
+    meas, res = matte
+    comp = lambda corr: Budget([BudgetComponent("cert", meas.brdf * SCALE_REL_STD, "B", corr)])  # noqa: E731
+    full = propagate(res, meas, comp("full"), res.std)["cov_systematic"]
+    chan = propagate(res, meas, comp("channel"), res.std)["cov_systematic"]
+    np.testing.assert_allclose(np.diag(full)[:3], np.diag(chan)[:3], rtol=1e-6)
+    assert full[0, 1] / np.sqrt(full[0, 0] * full[1, 1]) > 0.999
+    assert abs(chan[0, 1]) < 1e-3 * np.sqrt(chan[0, 0] * chan[1, 1])
+    # grouped by point halves: two shared errors; independent: one per value (much smaller)
+    half = np.repeat((np.arange(meas.n_points) >= meas.n_points // 2)[:, None], 3, axis=1).astype(int)
+    grp = propagate(res, meas, Budget([BudgetComponent("g", meas.brdf * SCALE_REL_STD, "B", "group", groups=half)]),
+                    res.std)["cov_systematic"]
+    ind = propagate(res, meas, Budget([BudgetComponent("i", meas.brdf * SCALE_REL_STD, "B", "none")]),
+                    res.std)["cov_systematic"]
+    assert np.all(np.diag(ind)[:3] < np.diag(grp)[:3]) and np.all(np.diag(grp)[:3] < np.diag(full)[:3] * 1.0001)
+
+
+# ------------------------------------------------------------------ coverage (issue 15's proof, small)
+LEVELS = ("hit1", "hit2")            # |fit - truth| <= u_c, <= 2 u_c
+
+
+def read_calibration(path=CALIBRATION):
+    """(names, {hit1, hit2, narrow, stat: (sessions, parameters) bool}) of the offline study."""
+    rows = json.loads(path.read_text())["sessions"]
+    return rows[0]["names"], {k: np.array([r[k] for r in rows], bool) for k in ("hit1", "hit2", "narrow", "stat")}
+
+
+def region(p_hat: float, m: int, n: int, alpha: float = ALPHA_TAIL) -> tuple[int, int]:
+    """Hit counts of n sessions accepted for a true coverage anywhere within 2 binomial sigma
+    (of m offline sessions) of p_hat: each tail <= alpha at the interval's ends."""
+    s = np.sqrt(p_hat * (1 - p_hat) / m)
+    p_lo, p_hi = max(p_hat - 2 * s, 1e-9), min(p_hat + 2 * s, 1 - 1e-9)
+    return int(stats.binom.ppf(alpha, n, p_lo)), int(stats.binom.ppf(1 - alpha, n, p_hi))
+
+
+def regions(n: int = N_SUITE):
+    names, cal = read_calibration()
+    m = len(cal["hit1"])
+    return names, {lv: [region(p, m, n) for p in cal[lv].mean(axis=0)] for lv in LEVELS}, cal
+
+
+def pass_probability(p, bounds, n: int = N_SUITE) -> float:
+    """P(every parameter's count in its region) <= the smallest single parameter's."""
+    return float(min(stats.binom.cdf(hi, n, q) - stats.binom.cdf(lo - 1, n, q) for q, (lo, hi) in zip(p, bounds)))
+
+
+def test_offline_study_meets_the_issue():
+    """The full study (1000 sessions): 1-sigma coverage 0.68 +- 0.05 and k = 2 coverage
+    0.95 +- 0.03 for every parameter; the budget ignored (u_stat) visibly under-covers."""
+    names, cal = read_calibration()
+    assert len(cal["hit1"]) >= 100 and names == ["diffuse_reflectance[R]", "diffuse_reflectance[G]",
+                                                 "diffuse_reflectance[B]", "alpha", "int_ior"]
+    assert np.all(np.abs(cal["hit1"].mean(axis=0) - 0.68) <= 0.05)
+    assert np.all(np.abs(cal["hit2"].mean(axis=0) - 0.95) <= 0.03)
+    assert np.all(cal["stat"].mean(axis=0)[[0, 1, 2, 4]] < 0.35)
+
+
+def test_false_alarm_rate_and_power():
+    """False alarm <= 1e-3 per run (Bonferroni over 2 levels x 5 parameters x 2 tails at the
+    worst coverage within 2 sigma); the budget ignored passes with probability < 1e-6."""
+    names, bounds, cal = regions()
+    assert 2 * len(LEVELS) * len(names) * ALPHA_TAIL <= 1e-3
+    assert pass_probability(cal["stat"].mean(axis=0), bounds["hit1"]) < 1e-6
+
+
+def test_coverage_of_the_combined_uncertainty():
+    names, bounds, _ = regions()
+    hits = {lv: np.zeros(len(names), int) for lv in LEVELS}
+    for seed in range(N_SUITE):
+        got_names, x, uc, _, truth = fit_session(seed)
+        assert got_names == names
+        hits["hit1"] += np.abs(x - truth) <= uc
+        hits["hit2"] += np.abs(x - truth) <= 2 * uc
+    for lv in LEVELS:
+        for name, h, (lo, hi) in zip(names, hits[lv], bounds[lv]):
+            assert lo <= h <= hi, f"{lv} {name}: {h} of {N_SUITE} outside [{lo}, {hi}]"
