@@ -23,12 +23,13 @@ from gonio.fitting.speed import scipy_lsq
 from gonio.models.atomic import atomic_open
 from gonio.models.mitsuba import mitsuba_variant
 
+from ._console import print_table
 from ._fitdoc import truth_by_name
 from ._preflight import check_output_dir
 from ._samples import load_sample
 from .errors import GonioError
 from .export import export
-from .fit_runner import fit_dataset, print_fit, render_closure, render_previews
+from .fit_runner import fit_dataset, open_budget, print_fit, render_closure, render_previews
 from .plans import load_plan
 from .report import write_report
 from .session_runner import capture_sim
@@ -114,7 +115,8 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior) -> dict:
 
     meas = load_dataset(dataset)
     result, doc, post = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=seed,
-                                    posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset)
+                                    posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset,
+                                    budget=open_budget(dataset, meas))
     timings["fit (nlopt + Laplace)"] = doc["optimiser"]["time_s"]
     if post is not None:
         timings["posterior (emcee)"] = post.time_s
@@ -158,18 +160,23 @@ def _print_summary(console, out, session, sample, plan, seed, run) -> dict:
         table.add_row(stage, f"{seconds:.2f}")
     table.add_row("total", f"{sum(timings.values()):.2f}")
     console.print(table)
-    for row in speed["rows"]:
-        console.print(f"{row['optimiser']:<48} {row['time_s']:7.3f} s  {row['evaluations']:5d} evals  "
-                      f"chi2 {row['chi2']:.2f}  max |fit-truth|/sigma {row['max_pull']:.2f}")
+    print_table(console, [("optimiser", "left"), ("time (s)", "right"), ("evaluations", "right"), ("chi2", "right"),
+                          ("max |fit - truth| / sigma", "right")],
+                [[row["optimiser"], f"{row['time_s']:.3f}", str(row["evaluations"]), f"{row['chi2']:.2f}",
+                  f"{row['max_pull']:.2f}"] for row in speed["rows"]], title="fit speed against error")
     if with_truth.get("delta_e_mean") is not None:
         console.print(f"preview: fit vs the true sample, mean CIEDE2000 {with_truth['delta_e_mean']:.2f} "
                       f"(Monte Carlo noise floor {_noise_floor(with_truth):.2f})")
 
     truths = truth_by_name(sample, list(doc["parameters"]))
-    z = {n: (p["value"] - truths[n]) / p["std"] for n, p in doc["parameters"].items() if n in truths and p["std"] > 0}
+    # z in the combined standard uncertainty u_c (the budget's; the statistical sigma where none)
+    unc = (doc.get("uncertainty") or {}).get("parameters") or {}
+    sig = {n: unc[n]["u_combined"] if n in unc else p["std"] for n, p in doc["parameters"].items()}
+    z = {n: (p["value"] - truths[n]) / sig[n] for n, p in doc["parameters"].items() if n in truths and sig[n] > 0}
     worst = max(abs(v) for v in z.values()) if z else float("nan")
     verdict = "within" if worst <= 3 else "NOT within"
-    console.print(f"every recovered parameter is {verdict} 3 sigma of the truth (largest |z| = {worst:.2f})")
+    console.print(f"every recovered parameter is {verdict} 3 sigma of the truth (sigma: u_c, combined; "
+                  f"largest |z| = {worst:.2f})")
     console.print(f"wrote {session}/, {out / 'dataset.nc'}, {out / 'fit.json'}, {out / 'render' / 'render.json'}, {report}")
     return {"timings": timings, "z": z, "closure": s, "fit": doc}
 

@@ -1,0 +1,166 @@
+"""The per-point uncertainty budget in dataset.nc (issue 15; bench/_budget.py, docs/interfaces.md 5.1)
+and how gonio fit reads it back (fitting/_budget.py): components, their attributes, bad input."""
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from gonio.bench._budget import Component, budget_variables
+from gonio.fitting import Measurements, load_budget, load_dataset
+
+N = 8
+
+
+def rows(rng, se_ratio):
+    """Journal rows' region statistics: se = se_ratio x se_model (fixed pattern when > 1)."""
+    out = []
+    for _ in range(N):
+        d = {}
+        for k in ("sample", "reference"):
+            mean = 100 + 50 * rng.random(3)
+            se_model = 0.1 * rng.random(3) + 0.05
+            d.update({f"{k}_mean": mean.tolist(), f"{k}_se_model": se_model.tolist(),
+                      f"{k}_se": (se_model * se_ratio).tolist()})
+        out.append({"detail": d})
+    return out
+
+
+def brdf_of(rs):
+    ratio = np.array([np.array(r["detail"]["sample_mean"]) / r["detail"]["reference_mean"] for r in rs])
+    rel = np.sqrt(sum((np.array([r["detail"][f"{k}_se"] for r in rs]) /
+                       np.array([r["detail"][f"{k}_mean"] for r in rs])) ** 2 for k in ("sample", "reference")))
+    f = ratio * 0.99 / np.pi
+    return f, f * rel
+
+
+@pytest.mark.parametrize("se_ratio", [0.7, 1.0, 1.6])
+def test_type_a_components_add_up_to_brdf_std(se_ratio):
+    rs = rows(np.random.default_rng(1), se_ratio)
+    f, s = brdf_of(rs)
+    v = budget_variables(rs, {"reference": {"reflectance": 0.99, "rel_std": 0.005}}, f, s)
+    shot, fixed = v["u_shot_read"][1], v["u_fixed_pattern"][1]
+    np.testing.assert_allclose(shot ** 2 + fixed ** 2, s ** 2, rtol=1e-12)
+    # the empirical scatter beyond the noise model is the fixed pattern: (1.6^2 - 1) / 1.6^2 of it
+    np.testing.assert_allclose(fixed ** 2, s ** 2 * max(0.0, 1 - 1 / se_ratio ** 2), rtol=1e-9, atol=1e-30)
+    assert v["u_shot_read"][2]["gum_type"] == "A" and v["u_shot_read"][2]["correlation"] == "none"
+    cert = v["u_reference_certificate"]
+    np.testing.assert_allclose(cert[1], f * 0.005, rtol=1e-15)            # signed: brdf x rel_std
+    assert cert[2]["gum_type"] == "B" and cert[2]["correlation"] == "full" and "certificate" in cert[2]["source"]
+    comb = v["u_combined"]
+    np.testing.assert_allclose(comb[1], np.sqrt(s ** 2 + (f * 0.005) ** 2), rtol=1e-12)
+    assert comb[2]["components"] == "fixed_pattern reference_certificate shot_read"
+
+
+def test_certificate_per_channel_and_none():
+    rs = rows(np.random.default_rng(2), 1.0)
+    f, s = brdf_of(rs)
+    v = budget_variables(rs, {"reference": {"rel_std": [0.004, 0.005, 0.006], "rel_std_correlation": "channel"}}, f, s)
+    assert v["u_reference_certificate"][2]["correlation"] == "channel"
+    np.testing.assert_allclose(v["u_reference_certificate"][1], f * [0.004, 0.005, 0.006])
+    assert "u_reference_certificate" not in budget_variables(rs, {"reference": {"rel_std": 0.0}}, f, s)
+
+
+def test_extra_components_and_groups():
+    rs = rows(np.random.default_rng(3), 1.0)
+    f, s = brdf_of(rs)
+    g = np.arange(N) // 4
+    extra = [Component("stray_light", 0.01 * f, "B", "group", "stray-light floor", groups=g)]
+    v = budget_variables(rs, {"reference": {}}, f, s, extra=extra)
+    assert v["u_stray_light"][2]["correlation"] == "group:u_stray_light_group"
+    assert list(v["u_stray_light_group"][1]) == list(g)
+
+
+@pytest.mark.parametrize("bad, needle", [
+    (Component("Bad Name", None, "B", "full", ""), "lower-case"),
+    (Component("x", None, "C", "full", ""), "gum_type"),
+    (Component("x", None, "B", "sideways", ""), "correlation"),
+    (Component("x", np.zeros((N, 2)), "B", "full", ""), "shape"),
+    (Component("x", np.full((N, 3), np.nan), "B", "full", ""), "NaN"),
+    (Component("x", None, "B", "group", ""), "groups"),
+    (Component("shot_read", None, "A", "none", ""), "twice"),
+])
+def test_malformed_components_are_refused(bad, needle):
+    rs = rows(np.random.default_rng(4), 1.0)
+    f, s = brdf_of(rs)
+    if bad.value is None:
+        bad.value = np.zeros_like(f)
+    with pytest.raises(ValueError, match=needle):
+        budget_variables(rs, {"reference": {}}, f, s, extra=[bad])
+
+
+def write(path, *, extra=None, scale=0.005):
+    rng = np.random.default_rng(0)
+    f = 0.1 + rng.random((N, 3))
+    s = 0.01 * f
+    deg = {"units": "degree"}
+    coords = {"point": np.arange(N), "channel": ["R", "G", "B"],
+              "theta_i": ("point", np.linspace(10, 60, N), deg), "phi_i": ("point", np.zeros(N), deg),
+              "theta_o": ("point", np.linspace(20, 70, N), deg), "phi_o": ("point", np.full(N, 180.0), deg)}
+    data = {"brdf": (("point", "channel"), f, {"units": "sr^-1"}),
+            "brdf_std": (("point", "channel"), s, {"units": "sr^-1"}), **(extra or {})}
+    xr.Dataset(data, coords=coords, attrs={"scale_rel_std": scale}).to_netcdf(path, engine="h5netcdf")
+    return path
+
+
+def test_load_budget_reads_the_variables_back(tmp_path):
+    rs = rows(np.random.default_rng(5), 1.2)
+    f, s = brdf_of(rs)
+    g = (np.arange(N) % 2)
+    v = budget_variables(rs, {"reference": {"rel_std": 0.005}}, f, s,
+                         extra=[Component("angle", 0.001 * f, "B", "group", "zero offsets", groups=g)])
+    path = write(tmp_path / "d.nc", extra=v)
+    meas = load_dataset(path)
+    b = load_budget(path, meas)
+    by = {c.name: c for c in b.components}
+    assert set(by) == {"shot_read", "fixed_pattern", "reference_certificate", "angle", "combined"} - {"combined"}
+    assert by["angle"].correlation == "group" and by["angle"].groups.shape == (N, 3)
+    assert by["shot_read"].statistical and not by["reference_certificate"].statistical
+    # no u_ variables: brdf_std and the scale_rel_std attribute
+    b0 = load_budget(write(tmp_path / "e.nc"), meas)
+    assert [c.name for c in b0.components] == ["statistical", "reference_certificate"]
+
+
+class Proc:
+    def __init__(self, returncode, stdout, stderr):
+        self.returncode, self.stdout, self.stderr = returncode, stdout, stderr
+
+
+def gonio_fit(path, out, capsys, monkeypatch):
+    """``gonio fit PATH --model diffuse --out OUT`` in this process (an 80-column terminal)."""
+    from gonio.bench.cli import main
+
+    monkeypatch.setenv("COLUMNS", "80")
+    rc = main(["fit", str(path), "--model", "diffuse", "--out", str(out)])
+    got = capsys.readouterr()
+    return Proc(rc, got.out, got.err)
+
+
+@pytest.mark.parametrize("attrs, needle", [
+    ({"gum_type": "C", "correlation": "full"}, "gum_type 'C'"),
+    ({"gum_type": "B", "correlation": "sideways"}, "correlation 'sideways'"),
+    ({"gum_type": "B", "correlation": "group:nowhere"}, "'nowhere', which is not in the dataset"),
+])
+def test_gonio_fit_refuses_a_malformed_budget_in_one_line(tmp_path, attrs, needle, capsys, monkeypatch):
+    path = write(tmp_path / "d.nc", extra={"u_x": (("point", "channel"), np.full((N, 3), 1e-3), attrs)})
+    proc = gonio_fit(path, tmp_path / "fit.json", capsys, monkeypatch)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0] and "u_x" in lines[0], proc.stderr
+    assert not (tmp_path / "fit.json").exists()
+
+
+def test_gonio_fit_reports_the_combined_uncertainty(tmp_path, capsys, monkeypatch):
+    path = write(tmp_path / "d.nc")
+    proc = gonio_fit(path, tmp_path / "fit.json", capsys, monkeypatch)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    u = doc["uncertainty"]
+    assert u["k"] == 2.0 and u["budget_source"] == "scale_rel_std attribute"
+    for c in "RGB":
+        item = u["parameters"][f"reflectance[{c}]"]
+        rho = doc["parameters"][f"reflectance[{c}]"]["value"]
+        assert item["u_combined"] >= rho * 0.005 and item["U"] == pytest.approx(2 * item["u_combined"])
+    assert "u_c" in proc.stdout and "U (k=2)" in proc.stdout and "largest term" in proc.stdout
+    assert max(len(line) for line in proc.stdout.splitlines()) <= 80
