@@ -348,7 +348,8 @@ def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     if not fit_path.exists():
         raise GonioError(f"fit file {fit_path} does not exist; run `gonio fit DATASET --out FIT.json` first")
     try:
-        model, params, _ = load_fit(fit_path)
+        loaded = load_fit(fit_path)
+        model, params = loaded.model, loaded.params
     except (ValueError, KeyError, json.JSONDecodeError) as exc:
         raise GonioError(f"{fit_path} is not a readable gonio fit file ({exc})") from None
     result = loop_closure(model, params, meas, variant=variant)
@@ -383,7 +384,8 @@ def render_previews(fit_path: Path, out_dir: Path, measured=None, size: int = 12
     from gonio.fitting import load_fit, write_json_atomic
     from gonio.fitting.preview import preview
 
-    model, params, _ = load_fit(fit_path)
+    loaded = load_fit(fit_path)
+    model, params = loaded.model, loaded.params
     if isinstance(measured, (str, Path)) and not Path(measured).exists():
         raise GonioError(f"measured data {measured} does not exist; give a MERL .binary or RGL .bsdf file")
     result = preview(model, params, Path(out_dir) / "preview", measured=measured, size=size, spp=spp)
@@ -500,7 +502,8 @@ def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
         if source.suffix.lower() != ".json":
             raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
         try:
-            model, params, doc = load_fit(source)
+            loaded = load_fit(source)
+            model, params = loaded.model, loaded.params
         except (ValueError, KeyError, json.JSONDecodeError) as exc:
             raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
         if to == "merl":

@@ -6,7 +6,8 @@
   which f_r is affine solved exactly, bounded Levenberg-Marquardt on the rest, nlopt SLSQP
   polish under albedo <= 1 for models that can break it) with a Laplace covariance; :func:`sample_posterior` the emcee posterior with an autocorrelation check;
   :func:`select` model selection by BIC ("model only what the data needs").
-- :func:`fit_document` / :func:`write_json_atomic` / :func:`load_fit`: the fit file.
+- :func:`fit_document` / :func:`write_json_atomic` / :func:`load_fit`: the fit file (read back as a
+  :class:`FitFile`: ``.model``, ``.params``, ``.document``, ``to_xarray()``, notebook reprs).
 - :func:`fit_batch`: many datasets on Dask; :func:`crlb`: the Cramer-Rao bound.
 - :mod:`gonio.fitting.render`: Mitsuba re-renders the fit at the measured geometry;
   :mod:`gonio.fitting.formats` (MERL, RGL, Mitsuba snippets, CSV); :mod:`gonio.fitting.preview`.
@@ -16,7 +17,7 @@ from ._batch import check_dashboard_address, check_scheduler_address, check_work
 from ._budget import Budget, BudgetComponent, load_budget
 from ._crlb import crlb, efficiency
 from ._data import DataError, Measurements, direction, load_dataset
-from ._fitfile import fit_document, load_fit, parse_fit, versions, write_json_atomic
+from ._fitfile import FitFile, fit_document, load_fit, parse_fit, versions, write_json_atomic
 from ._loss import LOSSES, REAL_DEFAULT_LOSS, default_loss
 from ._optimise import FitResult, fit
 from ._posterior import Posterior, sample_posterior
@@ -25,7 +26,7 @@ from ._selection import CANDIDATES, Ranked, option_candidates, select
 from ._space import ParameterSpace
 
 __all__ = [
-    "Budget", "BudgetComponent", "load_budget", "CANDIDATES", "DataError", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked",
+    "Budget", "BudgetComponent", "load_budget", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked",
     "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
     "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers",
 ]

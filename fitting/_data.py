@@ -103,6 +103,41 @@ class Measurements:
             return np.ones(self.n_points)
         return self.weight / self.weight.mean()
 
+    # ---- how a dataset shows itself (terminal, notebook) and leaves as xarray (gonio.fitting._display) ----
+    def __repr__(self) -> str:
+        """Sizes, the f_r range and median relative 1-sigma per channel; no raw arrays."""
+        from ._display import measurements_summary, text
+
+        caption, rows, notes = measurements_summary(self)
+        return "Measurements: " + text(caption, _MEAS_HEADER, rows, notes)
+
+    def _repr_html_(self) -> str:
+        from ._display import measurements_summary, table_html
+
+        caption, rows, notes = measurements_summary(self)
+        return table_html("Measurements: " + caption, _MEAS_HEADER, rows, notes)
+
+    def to_xarray(self):
+        """An :class:`xarray.Dataset` over ``point`` and ``channel``: ``brdf``, ``brdf_std``
+        (sr^-1), ``use``, ``weight`` where given; the angles ``theta_i``, ``phi_i``, ``theta_o``,
+        ``phi_o`` (degrees, gonio.models.geometry's convention) as coordinates."""
+        import xarray as xr
+
+        from gonio.models.geometry import angles_deg
+
+        (ti, pi_), (to, po) = angles_deg(self.wi), angles_deg(self.wo)
+        deg = {"units": "degree"}
+        data = {"brdf": (("point", "channel"), self.brdf, {"units": "sr^-1"}),
+                "brdf_std": (("point", "channel"), self.brdf_std, {"units": "sr^-1"}),
+                "use": (("point", "channel"), self.use)}
+        if self.weight is not None:
+            data["weight"] = ("point", self.weight, {"units": "sr^2"})
+        coords = {"channel": list(self.channels)[: self.n_channels],
+                  **{k: ("point", v, deg) for k, v in (("theta_i", ti), ("phi_i", pi_), ("theta_o", to), ("phi_o", po))}}
+        return xr.Dataset(data, coords=coords, attrs={k: v for k, v in self.attrs.items() if isinstance(v, (str, int, float))})
+
+
+_MEAS_HEADER = ("channel", "values used", "f_r range (1/sr)", "median rel. 1-sigma")
 
 #: Angle units a dataset may declare, and the factor to radians.
 ANGLE_UNITS = {**dict.fromkeys(("deg", "degree", "degrees"), np.pi / 180.0),

@@ -27,7 +27,8 @@ from gonio.models.atomic import atomic_open
 from ._budget import K_EXPANDED, budget_from_attrs, propagate
 
 
-__all__ = ["model_adequacy", "fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning"]
+__all__ = ["model_adequacy", "fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning",
+           "FitFile"]
 
 FIT_FORMAT = "gonio-fit/1"
 
@@ -253,8 +254,126 @@ def parse_fit(doc, path="fit file"):
     return model, params, doc
 
 
-def load_fit(path):
-    """Read a fit file; return (model, params, document). ValueError when it is not one."""
+class FitFile:
+    """A fit file read back (:func:`load_fit`): the model, its parameter values, the document.
+
+    Attributes
+    ----------
+    model : gonio.models.Model
+        The fitted model with its options.
+    params : dict
+        Parameter values (``model.eval(wi, wo, params)``), floats or per-channel arrays.
+    document : dict
+        The whole fit file (layout in this module's docstring).
+    path : pathlib.Path or None
+        Where it was read from.
+
+    Unpacking it as ``model, params, doc = load_fit(path)`` still works (the tuple that
+    ``load_fit`` returned before) but is deprecated.
+    """
+
+    def __init__(self, model, params: dict, document: dict, path=None):
+        self.model, self.params, self.document = model, params, document
+        self.path = Path(path) if path is not None else None
+
+    def __iter__(self):
+        warnings.warn("unpacking load_fit() as (model, params, document) is deprecated; use its .model, "
+                      ".params and .document", DeprecationWarning, stacklevel=2)
+        return iter((self.model, self.params, self.document))
+
+    @property
+    def parameters(self) -> dict:
+        """``{name: {value, std, unit, ci90, ...}}`` per fitted parameter (one per channel)."""
+        table = self.document.get("parameters")
+        return table if isinstance(table, dict) else {}
+
+    @property
+    def goodness(self) -> dict:
+        """chi2, dof, chi2_dof, rmse_fr, the adequacy verdict and its warning."""
+        table = self.document.get("goodness")
+        return table if isinstance(table, dict) else {}
+
+    def eval(self, wi, wo):
+        """f_r (N, C) in sr^-1 of the fit at unit directions ``wi`` (to the light), ``wo`` (to the detector)."""
+        return self.model.eval(wi, wo, self.params)
+
+    def to_mitsuba(self) -> dict:
+        """The Mitsuba 3 BSDF dict (``mitsuba.load_dict`` accepts it)."""
+        return self.model.to_mitsuba(self.params)
+
+    def to_mitsuba_xml(self) -> str:
+        """A Mitsuba 3 XML file's text (``mitsuba.load_file`` and ``<include>`` load it)."""
+        from ._mitsuba_xml import mitsuba_document
+
+        return mitsuba_document(self.model.name, dict(self.model.options), self.params)
+
+    def _summary(self):
+        rows = []
+        for name, item in self.parameters.items():
+            item = item if isinstance(item, dict) else {}
+            flags = [f for f, key in (("at bound", "at_bound"), ("undetermined", "undetermined")) if item.get(key)]
+            rows.append((name, item.get("value"), item.get("std"), item.get("unit", ""), flags))
+        g = self.goodness
+        options = ", ".join(f"{k}={v}" for k, v in dict(self.model.options).items())
+        caption = f"{self.model.name}({options}) fit" + (f" from {self.path.name}" if self.path else "")
+        notes = []
+        if isinstance(g.get("chi2_dof"), (int, float)):
+            notes.append(f"chi2/dof = {g['chi2_dof']:.4g} (dof {g.get('dof')}), loss {g.get('loss')}")
+        if g.get("warning"):
+            notes.append(str(g["warning"]))
+        return caption, rows, notes
+
+    def _rows(self):
+        from ._display import value_pm
+
+        caption, rows, notes = self._summary()
+        out = [(n, value_pm(v, s) if isinstance(v, (int, float)) else str(v), u, ", ".join(f)) for n, v, s, u, f in rows]
+        return caption, out, notes
+
+    def __repr__(self) -> str:
+        from ._display import text
+
+        caption, rows, notes = self._rows()
+        return text(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
+
+    def _repr_html_(self) -> str:
+        from ._display import table_html
+
+        caption, rows, notes = self._rows()
+        return table_html(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
+
+    def to_xarray(self):
+        """The fitted parameters as an :class:`xarray.Dataset` over ``parameter`` (``value``,
+        ``std``, ``ci90_low``, ``ci90_high``; ``unit`` a coordinate; goodness in the attributes)."""
+        import xarray as xr
+
+        _, rows, _ = self._summary()
+        names = [r[0] for r in rows]
+        table = self.parameters
+
+        def column(key, k=None):
+            out = []
+            for n in names:
+                v = table[n].get(key) if isinstance(table[n], dict) else None
+                v = v[k] if k is not None and isinstance(v, list) and len(v) > k else v
+                out.append(float(v) if isinstance(v, (int, float)) else np.nan)
+            return "parameter", np.array(out)
+
+        attrs = {k: v for k, v in self.goodness.items() if isinstance(v, (int, float, str)) and not isinstance(v, bool)}
+        attrs.update(model=self.model.name, options=json.dumps(dict(self.model.options), sort_keys=True))
+        return xr.Dataset({"value": column("value"), "std": column("std"),
+                           "ci90_low": column("ci90", 0), "ci90_high": column("ci90", 1)},
+                          coords={"parameter": names, "unit": ("parameter", [str(r[3]) for r in rows])}, attrs=attrs)
+
+
+def load_fit(path) -> FitFile:
+    """Read a fit file into a :class:`FitFile` (``.model``, ``.params``, ``.document``).
+
+    Raises
+    ------
+    ValueError
+        A one-line reason when it is not a gonio fit file.
+    """
     path = Path(path)
     try:
         doc = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant)
@@ -262,4 +381,5 @@ def load_fit(path):
         raise ValueError(f"{path} is not a gonio fit file (not UTF-8 text)") from None
     except RecursionError:
         raise ValueError(f"{path} is not a gonio fit file (nested too deeply)") from None
-    return parse_fit(doc, path)
+    model, params, doc = parse_fit(doc, path)
+    return FitFile(model, params, doc, path)

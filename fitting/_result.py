@@ -108,6 +108,54 @@ class FitResult:
         return [(names[i], names[j], float(c[i, j]))
                 for i in range(len(names)) for j in range(i + 1, len(names)) if abs(c[i, j]) >= 0.9]
 
+    # ---- how a fit shows itself (terminal, notebook) and leaves as a table ----
+    def __repr__(self) -> str:
+        """The model, the goodness of fit and each parameter as value ± 1-sigma; no raw arrays."""
+        from ._display import fit_summary, text
+
+        return text(*_with_header(fit_summary(self)))
+
+    def _repr_html_(self) -> str:
+        """Jupyter's rich display: the same table as :meth:`__repr__`, as escaped HTML."""
+        from ._display import fit_summary, table_html
+
+        caption, rows, notes = fit_summary(self)
+        return table_html(caption, _HEADER, rows, notes)
+
+    def to_xarray(self):
+        """The fit as an :class:`xarray.Dataset` over ``parameter``: ``value``, ``std``,
+        ``lower``, ``upper``, ``at_bound``, ``undetermined`` and ``correlation``
+        (``parameter`` x ``parameter_b``); ``unit`` a coordinate; the goodness of fit and the
+        model in the attributes."""
+        import json
+
+        import xarray as xr
+
+        names = list(self.space.names)
+
+        def flag(chosen):
+            return "parameter", np.array([n in chosen for n in names])
+
+        return xr.Dataset(
+            {"value": ("parameter", np.asarray(self.x, float)), "std": ("parameter", np.asarray(self.std, float)),
+             "lower": ("parameter", np.asarray(self.space.lower, float)),
+             "upper": ("parameter", np.asarray(self.space.upper, float)),
+             "at_bound": flag(self.at_bound), "undetermined": flag(self.undetermined),
+             "correlation": (("parameter", "parameter_b"), self.correlation)},
+            coords={"parameter": names, "parameter_b": names, "unit": ("parameter", [e.unit for e in self.space.entries])},
+            attrs={"model": self.model.name, "options": json.dumps(dict(self.model.options), sort_keys=True),
+                   "loss": self.loss, "chi2": float(self.chi2), "dof": int(self.dof), "chi2_dof": float(self.chi2_dof),
+                   "n_used": int(self.n_used), "bic": float(self.bic), "converged": int(bool(self.converged)),
+                   "method": self.method})
+
+
+_HEADER = ("parameter", "value ± 1-sigma", "unit", "flags")
+
+
+def _with_header(summary):
+    caption, rows, notes = summary
+    return caption, _HEADER, rows, notes
+
 
 def jacobian_chi2(problem, x, rel_step=1e-5):
     """chi^2 residuals at x and their Jacobian in natural units (M, P).

@@ -4,11 +4,13 @@ Notes
 -----
 For a pixel of colour channel k under the RGGB mosaic (row 0: R G, row 1: G B):
 
+    camera RGB      L_k = sum_j (N A)_kj rho_j      (sim/_colour.py: the camera's spectral response)
     mean electrons  mu = L_k * P * t * S * PRNU + i_dark * t
     electrons       e  = Poisson(mu) + DSNU + Normal(0, sigma_read)
     raw value       DN = clip(round(black + e / gain), 0, white)
 
-with L_k the rendered radiance for unit irradiance (sr^-1, i.e. f_r cos(theta_i)), P the lamp
+with rho_j the rendered linear-sRGB radiance for unit irradiance (sr^-1, i.e. f_r cos(theta_i)),
+``N A`` the camera's raw response per unit sRGB (identity for ``camera="identity"``), P the lamp
 power (W), t the exposure (s), S the sensitivity (electrons per W s sr^-1-normalised
 radiance), PRNU a fixed per-pixel gain (mean 1) and DSNU a fixed per-pixel offset (e-), both
 drawn once from the instrument seed. Hence the photon transfer curve: in DN, the variance of
@@ -16,7 +18,11 @@ a flat, dark-subtracted patch is ``mean / gain + (sigma_read / gain)^2`` (+ the 
 quantisation), slope ``1 / gain``.
 
 The default ``sensitivity`` is chosen so that a white Lambertian sample (f_r = 1/pi) at
-normal incidence fills half the well in 10 ms at the lamp's full power ``p_ref``.
+normal incidence fills half the well in 10 ms at the lamp's full power ``p_ref`` in the
+camera's most sensitive channel (green; red and blue reach ``neutral`` times that).
+
+The DNG carries the camera's colour tags (ColorMatrix1, CalibrationIlluminant1, AsShotNeutral,
+ForwardMatrix1: sim/_colour.py says what each holds).
 """
 
 from __future__ import annotations
@@ -31,6 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gonio.models.atomic import atomic_open
+
+from ._colour import DEFAULT_CAMERA, CameraColour, camera_colour
 
 __all__ = ["SensorModel", "write_dng", "encode_dng"]
 
@@ -67,6 +75,9 @@ class SensorModel:
         Lamp power the default sensitivity refers to, W.
     seed : int
         Instrument seed; the fixed patterns come from ``default_rng([seed, 0x5E45])``.
+    camera : str
+        Whose spectral sensitivities (a name in colour-science's ``MSDS_CAMERA_SENSITIVITIES``),
+        or ``"identity"`` (camera RGB = linear sRGB, the idealised camera).
     """
 
     width: int = 64
@@ -81,8 +92,11 @@ class SensorModel:
     sensitivity: float | None = None
     p_ref: float = 0.01
     seed: int = 0
+    camera: str = DEFAULT_CAMERA
     prnu_map: np.ndarray = field(init=False, repr=False)
     dsnu_map: np.ndarray = field(init=False, repr=False)
+    colour: CameraColour = field(init=False, repr=False)
+    _weights: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
         if self.bits not in (12, 14, 16):
@@ -90,6 +104,8 @@ class SensorModel:
         if self.sensitivity is None:
             # half the well for f_r = 1/pi, cos(theta_i) = 1, P = p_ref, t = 10 ms
             self.sensitivity = 0.5 * self.full_well / ((1 / math.pi) * self.p_ref * 0.01)
+        self.colour = camera_colour(self.camera)
+        self._weights = self.colour.cam_from_srgb[self.channel_map]     # (H, W, 3): each pixel's row of N A
         rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, 0x5E45])
         shape = (self.height, self.width)
         self.prnu_map = 1.0 + self.prnu * rng.standard_normal(shape)
@@ -116,10 +132,9 @@ class SensorModel:
         return ch
 
     def mosaic(self, radiance_rgb: np.ndarray) -> np.ndarray:
-        """Sample an (H, W, 3) radiance image through the RGGB mosaic -> (H, W)."""
-        ch = self.channel_map
-        r, c = np.indices(ch.shape)
-        return radiance_rgb[r, c, ch]
+        """Sample an (H, W, 3) linear-sRGB radiance image through the camera's spectral response
+        and the RGGB mosaic -> (H, W) raw camera RGB."""
+        return np.einsum("hwj,hwj->hw", radiance_rgb, self._weights)
 
     def mean_electrons(self, radiance_rgb: np.ndarray, power: float, exposure: float) -> np.ndarray:
         """Expected photo + dark electrons per pixel (before DSNU), e-."""
@@ -154,10 +169,29 @@ class SensorModel:
         return np.clip(dn, 0, self.white).astype(np.uint16)
 
 
+def _rationals(values, signed: bool) -> tuple:
+    """(numerator, denominator) pairs of a TIFF (S)RATIONAL array, 1e-7 resolution."""
+    den = 10_000_000
+    out = []
+    for v in np.ravel(np.asarray(values, float)):
+        num = int(round(float(v) * den))
+        if not (-2 ** 31 < num < 2 ** 31) or (num < 0 and not signed):
+            raise ValueError(f"colour tag value {v!r} does not fit a TIFF rational")
+        out += [num, den]
+    return tuple(out)
+
+
 def encode_dng(raw: np.ndarray, *, black: int, white: int, exposure: float | None = None,
-               model: str = "gonio SimCamera", description: dict | None = None) -> bytes:
-    """Encode a uint16 RGGB mosaic as DNG bytes (tifffile, tags rawpy/LibRaw reads)."""
+               model: str = "gonio SimCamera", description: dict | None = None,
+               colour: CameraColour | None = None) -> bytes:
+    """Encode a uint16 RGGB mosaic as DNG bytes (tifffile, tags rawpy/LibRaw reads).
+
+    ``colour`` (default the identity camera) gives ColorMatrix1, AsShotNeutral and
+    ForwardMatrix1 (sim/_colour.py); CalibrationIlluminant1 is D65 (21).
+    """
     import tifffile
+
+    colour = colour if colour is not None else camera_colour("identity")
 
     extratags = [
         (50706, "B", 4, (1, 4, 0, 0), True),           # DNGVersion
@@ -167,9 +201,10 @@ def encode_dng(raw: np.ndarray, *, black: int, white: int, exposure: float | Non
         (33422, "B", 4, tuple(_CFA_CODES[c] for c in CFA), True),   # CFAPattern
         (50714, "I", 1, (int(black),), True),          # BlackLevel
         (50717, "I", 1, (int(white),), True),          # WhiteLevel
-        (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), True),  # ColorMatrix1
-        (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),    # AsShotNeutral
-        (50778, "H", 1, (21,), True),                  # CalibrationIlluminant1 = D65
+        (50721, "2i", 9, _rationals(colour.color_matrix, True), True),      # ColorMatrix1 (XYZ -> camera)
+        (50728, "2I", 3, _rationals(colour.neutral, False), True),          # AsShotNeutral
+        (50778, "H", 1, (21,), True),                                       # CalibrationIlluminant1 = D65
+        (50964, "2i", 9, _rationals(colour.forward_matrix, True), True),    # ForwardMatrix1 (camera -> XYZ D50)
     ]
     if exposure is not None:
         num = int(round(exposure * 1_000_000))

@@ -125,9 +125,13 @@ def test_fit_file_round_trip(tmp_path):
     path = write_json_atomic(tmp_path / "fit.json", doc)
     text = path.read_text()
     assert "NaN" not in text and "Infinity" not in text
-    model, params, loaded = load_fit(path)
+    fitfile = load_fit(path)
+    model, params, loaded = fitfile.model, fitfile.params, fitfile.document
     assert model.name == "diffuse"
     np.testing.assert_allclose(params["reflectance"], result.x)
     assert loaded["parameters"]["reflectance[R]"]["std"] == pytest.approx(result.std[0])
+    with pytest.warns(DeprecationWarning, match="unpacking load_fit"):   # the old tuple, still readable
+        old_model, old_params, old_doc = fitfile
+    assert old_model is model and old_params is params and old_doc is loaded
     assert json.loads(text)["provenance"]["versions"]["numpy"] == np.__version__
     assert not list(tmp_path.glob("*.tmp"))

@@ -1,0 +1,96 @@
+"""How fits and datasets show themselves in a terminal and a notebook.
+
+Short text reprs (never raw arrays) and HTML tables for Jupyter's ``_repr_html_``; every
+string that comes from a file or a user (model names, options, channel labels, dataset
+attributes) is escaped with :func:`html.escape` before it reaches HTML. Values are printed
+with their 1-sigma rounded to two significant digits and the value to the same decimal place
+(the GUM's rounding of a result, JCGM 100:2008 section 7.2.6).
+"""
+
+from __future__ import annotations
+
+import html
+import math
+
+import numpy as np
+
+__all__ = ["value_pm", "parameter_rows", "table_html", "fit_summary", "measurements_summary"]
+
+
+def value_pm(x, u=None) -> str:
+    """``x`` and its 1-sigma ``u`` as text, ``u`` to two significant digits (``0.54992 ± 0.00077``);
+    ``x`` alone to 6 digits when ``u`` is missing, zero or not finite."""
+    x = float(x)
+    if not math.isfinite(x):
+        return str(x)
+    if u is None or not math.isfinite(float(u)) or float(u) <= 0:
+        return f"{x:.6g}"
+    u = float(u)
+    last = math.floor(math.log10(u)) - 1              # the decimal place of u's second digit
+    if 1e-3 <= abs(x) < 1e5 or (x == 0 and 1e-3 <= u < 1e5):
+        d = max(-last, 0)
+        return f"{round(x, -last):.{d}f} ± {round(u, -last):.{d}f}"
+    ex = math.floor(math.log10(abs(x))) if x != 0 else math.floor(math.log10(u))
+    d = max(ex - last, 0)
+    return f"({x / 10 ** ex:.{d}f} ± {u / 10 ** ex:.{d}f})e{ex:+03d}"
+
+
+def parameter_rows(names, values, stds, units, flags=None) -> list[tuple[str, str, str, str]]:
+    """(name, value ± 1-sigma, unit, flags) per parameter."""
+    flags = flags or {}
+    return [(str(n), value_pm(v, s), str(u), ", ".join(flags.get(n, ()))) for n, v, s, u in zip(names, values, stds, units)]
+
+
+def table_html(caption: str, header, rows, notes=()) -> str:
+    """An HTML table (everything escaped) with a caption and notes below it."""
+    esc = html.escape
+    head = "".join(f"<th style='text-align:left'>{esc(str(h))}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td style='text-align:left'>{esc(str(c))}</td>" for c in row) + "</tr>"
+                   for row in rows)
+    foot = "".join(f"<p style='margin:0.2em 0'>{esc(str(n))}</p>" for n in notes)
+    return (f"<div><table><caption style='text-align:left'><b>{esc(caption)}</b></caption>"
+            f"<thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>{foot}</div>")
+
+
+def fit_summary(result) -> tuple[str, list, list]:
+    """(caption, rows, notes) of a :class:`~gonio.fitting.FitResult`."""
+    units = [e.unit for e in result.space.entries]
+    flags = {n: ["at bound"] for n in result.at_bound}
+    for n in result.undetermined:
+        flags.setdefault(n, []).append("undetermined")
+    rows = parameter_rows(result.space.names, result.x, result.std, units, flags)
+    options = ", ".join(f"{k}={v}" for k, v in dict(result.model.options).items())
+    caption = f"{result.model.name}({options}) fit, loss {result.loss}"
+    notes = [f"chi2/dof = {result.chi2_dof:.4g} (dof {result.dof}), {result.n_used} values used, "
+             f"{'converged' if result.converged else 'NOT converged: ' + str(result.message)}",
+             f"method: {result.method}; 1-sigma from the {'sandwich' if 'sandwich' in result.method else 'Laplace'} covariance"]
+    notes += [f"correlated: {a} and {b} (rho = {rho:+.3f})" for a, b, rho in result.correlated]
+    return caption, rows, notes
+
+
+def measurements_summary(meas) -> tuple[str, list, list]:
+    """(caption, rows, notes) of :class:`~gonio.fitting.Measurements`: one row per channel."""
+    theta_i = np.degrees(np.arccos(np.clip(meas.wi[:, 2], -1, 1)))
+    theta_o = np.degrees(np.arccos(np.clip(meas.wo[:, 2], -1, 1)))
+    rows = []
+    for c in range(meas.n_channels):
+        used = meas.use[:, c]
+        f, s = meas.brdf[used, c], meas.brdf_std[used, c]
+        rows.append((str(meas.channels[c]) if c < len(meas.channels) else str(c), int(used.sum()),
+                     f"{f.min():.4g} .. {f.max():.4g}" if f.size else "-",
+                     f"{np.median(s / np.maximum(np.abs(f), 1e-300)):.2g}" if f.size else "-"))
+    caption = f"{meas.n_points} direction pairs x {meas.n_channels} channels, {meas.n_used} values used"
+    notes = [f"theta_i {theta_i.min():.1f} .. {theta_i.max():.1f} deg, theta_o {theta_o.min():.1f} .. "
+             f"{theta_o.max():.1f} deg" + (", solid-angle weights" if meas.weight is not None else "")]
+    for key in ("gonio_version", "seed", "title"):
+        if key in meas.attrs:
+            notes.append(f"{key}: {str(meas.attrs[key])[:120]}")
+    return caption, rows, notes
+
+
+def text(caption, header, rows, notes) -> str:
+    """The same table as aligned plain text."""
+    widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) if rows else len(str(h)) for i, h in enumerate(header)]
+    lines = [caption, "  " + "  ".join(str(h).ljust(w) for h, w in zip(header, widths)).rstrip()]
+    lines += ["  " + "  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    return "\n".join(lines + [f"  {n}" for n in notes])

@@ -1,0 +1,72 @@
+"""The simulated camera's colour (sim/_colour.py): sensitivities -> matrices -> DNG tags LibRaw reads."""
+
+import io
+
+import colour
+import numpy as np
+import pytest
+import rawpy
+
+from gonio.sim import SensorModel
+from gonio.sim._colour import camera_colour, luther_error, mallett_fidelity, srgb_matrices
+from gonio.sim._sensor import encode_dng
+
+NIKON = camera_colour("Nikon 5100 (NPL)")
+
+
+def test_the_camera_matrix_is_a_real_cameras_not_the_identity():
+    a = NIKON.balanced
+    np.testing.assert_allclose(a.sum(1), 1.0, atol=1e-12)           # a neutral stays neutral
+    assert np.abs(a - np.eye(3)).max() > 0.2                          # the D5100 mixes channels strongly
+    assert NIKON.neutral.max() == 1.0 and NIKON.neutral.min() < 0.7  # red is ~0.58 of green under D65
+    assert camera_colour("identity").balanced.tolist() == np.eye(3).tolist()
+
+
+def test_spectral_integration_of_a_mallett_spectrum_equals_the_matrix():
+    """The 3x3 is exact for the simulated surfaces: their spectra are linear in rho (Mallett 2019)."""
+    basis = colour.recovery.MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019
+    rho = np.array([0.6, 0.1, 0.05])
+    sd = colour.SpectralDistribution(basis.values @ rho, basis.wavelengths)
+    np.testing.assert_allclose(NIKON.white_balanced(sd)[0], NIKON.balanced @ rho, rtol=1e-8)
+    # and the spectrum's own sRGB is rho to well under a just-noticeable difference (Mallett 2019)
+    assert mallett_fidelity(rho) < 0.05
+
+
+def test_luther_error_is_zero_only_for_the_identity():
+    """A 3x3 cannot map a real camera's response to a metamer-free colorimeter: the 24 Ohta
+    ColorChecker spectra are off by a few CIEDE2000 through the D5100's matrix."""
+    assert luther_error(camera_colour("identity")).max() == 0.0
+    err = luther_error(NIKON)
+    assert err.shape == (24,) and 0.2 < err.mean() < 5.0
+
+
+def test_dng_declares_the_matrices_libraw_reads():
+    s = SensorModel(seed=3)
+    raw = s.expose(np.full((s.height, s.width, 3), 0.2), 0.01, 0.01, np.random.default_rng(0))
+    data = encode_dng(raw, black=s.black, white=s.white, exposure=0.01, colour=s.colour)
+    with rawpy.imread(io.BytesIO(data)) as r:
+        # LibRaw's camera -> sRGB (its own 6-digit sRGB constants and float32: agreement to ~2e-4)
+        np.testing.assert_allclose(np.asarray(r.color_matrix)[:3, :3], NIKON.srgb_from_cam, atol=5e-4)
+        wb = np.asarray(r.camera_whitebalance[:3])
+        np.testing.assert_allclose(wb / wb[1], NIKON.neutral[1] / NIKON.neutral, rtol=1e-5)   # 1 / AsShotNeutral
+    # ColorMatrix1 maps the D65 white (Y = 1) onto AsShotNeutral; ForwardMatrix1 maps neutral to D50
+    d65 = colour.xy_to_XYZ(colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"])
+    d50 = colour.xy_to_XYZ(colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D50"])
+    np.testing.assert_allclose(NIKON.color_matrix @ d65, NIKON.neutral, rtol=1e-4)
+    np.testing.assert_allclose(NIKON.forward_matrix @ np.ones(3), d50, rtol=1e-4)
+    to_xyz, to_rgb = srgb_matrices()
+    np.testing.assert_allclose(to_xyz @ to_rgb, np.eye(3), atol=1e-14)
+
+
+def test_sensor_records_the_sRGB_radiance_through_the_camera():
+    """Mean raw per channel of a uniform sRGB patch = N A rho x the sensitivity scale."""
+    s = SensorModel(width=64, height=48, seed=0, prnu=0.0, dsnu=0.0, dark_current=0.0)
+    rho = np.array([0.6, 0.1, 0.05])
+    mu = s.mean_electrons(np.broadcast_to(rho, (s.height, s.width, 3)), 0.01, 0.01)
+    got = [mu[s.channel_map == k].mean() for k in range(3)]
+    np.testing.assert_allclose(got, NIKON.cam_from_srgb @ rho * 0.01 * 0.01 * s.sensitivity, rtol=1e-12)
+
+
+def test_unknown_camera_is_refused():
+    with pytest.raises(ValueError, match="unknown camera"):
+        SensorModel(camera="Brownie")
