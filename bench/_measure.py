@@ -168,15 +168,22 @@ def region_stats(hdr, mask: np.ndarray) -> dict[str, Any]:
 class ProgressBar:
     """rich progress: points done, ETA, the latest f_r (and reciprocity when a pair closes)."""
 
-    def __init__(self, total: int, done: int, enabled: bool):
+    def __init__(self, total: int, done: int, enabled: bool, console=None):
         self.p = None
         if not enabled:
             return
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+        from rich.table import Column
 
-        self.p = Progress(TextColumn("capture"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                          TextColumn("{task.fields[latest]}"), console=Console(stderr=True))
+        # the count and the ETA keep their width (an 80-column terminal showed "0:00:…"); the
+        # bar and the latest value give way, the latter cut at its end
+        self.p = Progress(TextColumn("capture"), BarColumn(bar_width=None, table_column=Column(ratio=1, min_width=8)),
+                          MofNCompleteColumn(table_column=Column(no_wrap=True, min_width=2 * len(str(total)) + 1)),
+                          TimeRemainingColumn(table_column=Column(no_wrap=True, min_width=7)),
+                          TextColumn("{task.fields[latest]}", table_column=Column(ratio=1, no_wrap=True,
+                                                                                 overflow="ellipsis")),
+                          console=console or Console(stderr=True))
         self.task = self.p.add_task("capture", total=total, completed=done, latest="")
         self.p.start()
 

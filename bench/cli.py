@@ -94,7 +94,30 @@ def _cmd_export(args):
     from .export import export
 
     path = export(Path(args.session))
-    print(f"wrote {path}")
+    done, planned, complete = _export_counts(path)
+    if complete is False or (planned is not None and done is not None and done < planned):
+        of = f"{done} of {planned} planned points" if planned is not None else f"{done} points, the plan not finished"
+        print(f"wrote {path}: PARTIAL, {of} (the session stopped early; "
+              f"`gonio capture --resume {args.session}` measures the rest, then export again)")
+    else:
+        print(f"wrote {path}" + (f" ({done} points)" if done is not None else ""))
+
+
+def _export_counts(path):
+    """(points in the dataset, points planned, complete) from its attributes; None where not recorded."""
+    import json
+
+    import xarray as xr
+
+    try:
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            done = int(ds.sizes.get("point", 0))
+            plan = json.loads(ds.attrs.get("plan", "{}"))
+            complete = ds.attrs.get("complete")
+    except (OSError, ValueError, TypeError):
+        return None, None, None
+    planned = len(plan["points"]) if isinstance(plan, dict) and isinstance(plan.get("points"), list) else None
+    return done, planned, (None if complete is None else bool(int(complete)))
 
 
 @_env

@@ -23,6 +23,7 @@ from gonio.fitting.speed import scipy_lsq
 from gonio.models.atomic import atomic_open
 from gonio.models.mitsuba import mitsuba_variant
 
+from ._console import print_table
 from ._fitdoc import truth_by_name
 from ._preflight import check_output_dir
 from ._samples import load_sample
@@ -159,9 +160,10 @@ def _print_summary(console, out, session, sample, plan, seed, run) -> dict:
         table.add_row(stage, f"{seconds:.2f}")
     table.add_row("total", f"{sum(timings.values()):.2f}")
     console.print(table)
-    for row in speed["rows"]:
-        console.print(f"{row['optimiser']:<48} {row['time_s']:7.3f} s  {row['evaluations']:5d} evals  "
-                      f"chi2 {row['chi2']:.2f}  max |fit-truth|/sigma {row['max_pull']:.2f}")
+    print_table(console, [("optimiser", "left"), ("time (s)", "right"), ("evaluations", "right"), ("chi2", "right"),
+                          ("max |fit - truth| / sigma", "right")],
+                [[row["optimiser"], f"{row['time_s']:.3f}", str(row["evaluations"]), f"{row['chi2']:.2f}",
+                  f"{row['max_pull']:.2f}"] for row in speed["rows"]], title="fit speed against error")
     if with_truth.get("delta_e_mean") is not None:
         console.print(f"preview: fit vs the true sample, mean CIEDE2000 {with_truth['delta_e_mean']:.2f} "
                       f"(Monte Carlo noise floor {_noise_floor(with_truth):.2f})")

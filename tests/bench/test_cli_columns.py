@@ -1,0 +1,163 @@
+"""The CLI in an 80-column terminal, and what it says (issue 19, "the CLI never misleads").
+
+Tables: values are never cut or wrapped (rich cut `diffuse_reflectance[…   0.5499…` before);
+the progress bar keeps its count and ETA; unknown option values name their own choices once;
+`fit --batch` warns like `fit`; an export of a partial session says so; `render` checks its
+inputs before it writes.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+import report_folder
+from gonio.bench.cli import main
+
+LONG = ["diffuse_reflectance[R]", "diffuse_reflectance[G]", "diffuse_reflectance[B]", "alpha", "int_ior"]
+
+
+def _doc(uncertainty=True):
+    """A fit document shaped as gonio fit writes it, with the widest columns (emcee intervals,
+    the uncertainty budget's u_c and U, the truth)."""
+    values = [0.5498598406268321, 0.30004553504938375, 0.11990647583637357, 0.14999366132551537, 1.5001066358210924]
+    params = {n: {"value": v, "std": 1.4e-4 * (k + 1), "unit": "1", "method": "emcee", "at_bound": False,
+                  "undetermined": False, "ci90": [v - 2.3e-4, v + 2.2e-4]} for k, (n, v) in enumerate(zip(LONG, values))}
+    doc = {"model": {"name": "roughplastic", "options": {"distribution": "ggx", "nonlinear": False}},
+           "parameters": params,
+           "goodness": {"chi2_dof": 0.85, "dof": 85, "rmse_fr": 1.3e-4, "model_adequate": True, "warning": None},
+           "constraints": {"energy": {"by_construction": True, "holds": True, "max_albedo": 0.6}},
+           "optimiser": {"evaluations": 37, "time_s": 0.73}}
+    if uncertainty:
+        doc["uncertainty"] = {"k": 2, "components": {}, "parameters": {
+            n: {"u_stat": p["std"], "u_combined": 3.1e-3 / (k + 1), "U": 6.2e-3 / (k + 1), "k": 2,
+                "budget": {"statistical": 0.1, "reference_certificate": 0.9}}
+            for k, (n, p) in enumerate(params.items())}}
+    return doc
+
+
+def _screen(width=80):
+    return Console(width=width, file=io.StringIO(), record=True, color_system=None)
+
+
+@pytest.mark.parametrize("uncertainty", [True, False])
+def test_fit_table_at_80_columns_keeps_every_value_whole(uncertainty):
+    from gonio.bench.fit_runner import print_fit
+
+    console = _screen()
+    truth = {"model": "roughplastic", "options": {"distribution": "ggx"},
+             "params": {"alpha": 0.15, "diffuse_reflectance": [0.55, 0.3, 0.12], "int_ior": 1.5}}
+    print_fit(_doc(uncertainty), truth=truth, console=console)
+    text = console.export_text()
+    lines = text.splitlines()
+    assert "…" not in text and max(len(line) for line in lines) <= 80, text
+    for name in LONG:                                   # every name whole, in every table part
+        assert sum(name in line for line in lines) >= 1, name
+    # GUM rounding (JCGM 100 7.2.6): value to u_c's second significant digit; u_c to two digits
+    assert ("0.5499" if uncertainty else "0.54986") in text
+    assert ("0.0031" if uncertainty else "0.00014") in text
+    assert "0.54963 .. 0.55008" in text                # the 90 % interval whole
+    # and the same table at 200 columns is one table
+    wide = _screen(200)
+    print_fit(_doc(uncertainty), truth=truth, console=wide)
+    assert "(continued)" not in wide.export_text() and "(continued)" in text
+
+
+def test_print_table_continues_below_instead_of_cutting():
+    from gonio.bench._console import print_table, table_width
+
+    console = _screen()
+    cols = [("key", "left")] + [(f"a long header {k}", "right") for k in range(6)]
+    rows = [["x" * 20] + [f"{1.23456789012 * 10 ** k:.10g}" for k in range(6)]]
+    print_table(console, cols, rows, title="t")
+    text = console.export_text()
+    assert "…" not in text and max(map(len, text.splitlines())) <= 80
+    for v in rows[0]:
+        assert v in text
+    assert text.count("x" * 20) >= 2                    # the key column repeated in the continuation
+    assert table_width([20, 10]) == 37
+
+
+def test_progress_bar_keeps_count_and_eta_at_80_columns():
+    from gonio.bench._measure import ProgressBar
+
+    console = _screen()
+    bar = ProgressBar(1053, 110, True, console=console)
+    bar.advance(np.array([0.1234567, 0.07764, 0.03135]), {"rel": np.array([0.01, 0.02, 0.03])})
+    bar.p.refresh()
+    bar.close()
+    text = console.export_text()
+    assert "111/1053" in text and ("-:--:--" in text or ":" in text.split("111/1053")[1][:9]), text
+    assert "0:00:…" not in text and max(map(len, text.splitlines())) <= 80
+
+
+@pytest.mark.parametrize("argv, want, not_want", [
+    (["--model", "nosuch"], "unknown model 'nosuch': choose one of", None),
+    (["--model", "roughplastic", "--option", "distribution=nosuch"], "not one of ('beckmann', 'ggx')", "known models"),
+])
+def test_unknown_option_values_name_their_own_choices_once(tmp_path, capsys, argv, want, not_want):
+    report_folder._dataset(tmp_path / "d.nc", n=8)
+    assert main(["fit", str(tmp_path / "d.nc"), *argv, "--out", str(tmp_path / "fit.json")]) == 2
+    err = capsys.readouterr().err
+    assert want in err and err.count("known models") <= 1 and err.count("choose one of") <= 1, err
+    if not_want:
+        assert not_want not in err
+    assert not (tmp_path / "fit.json").exists()
+
+
+def test_fit_batch_warns_on_an_inadequate_fit(tmp_path, capsys, monkeypatch):
+    """chi2/dof in the thousands (noise 1000x understated): `fit --batch` says so, like `fit`."""
+    import xarray as xr
+
+    import gonio.fitting
+    from gonio.fitting import fit
+
+    good = tmp_path / "good.nc"
+    report_folder._dataset(good, n=40)
+    bad = tmp_path / "bad.nc"
+    with xr.open_dataset(good, engine="h5netcdf") as ds:
+        ds.load()
+    ds["brdf_std"] = ds["brdf_std"] * 1e-3
+    ds.to_netcdf(bad, engine="h5netcdf")
+
+    def serial(metas, model, *, rng_seed, loss, **_):      # the Dask cluster's work, in this process
+        return [fit(m, model, rng=np.random.default_rng(rng_seed), loss=loss) for m in metas]
+
+    monkeypatch.setattr(gonio.fitting, "fit_batch", serial)
+    assert main(["fit", "--batch", str(good), str(bad), "--model", "diffuse", "--out", str(tmp_path / "fits")]) == 0
+    out, err = capsys.readouterr()
+    assert "good: chi2/dof" in out and "bad: chi2/dof" in out
+    assert "warning: chi2/dof = " in err and "1 of 2 fits miss their data" in err and "bad" in err.split("fits miss")[1]
+    assert json.loads((tmp_path / "fits" / "bad.fit.json").read_text())["goodness"]["model_adequate"] is False
+
+
+def test_export_of_a_partial_session_says_partial(tmp_path, capsys, monkeypatch):
+    import xarray as xr
+
+    import gonio.bench.export
+
+    path = tmp_path / "dataset.nc"
+    report_folder._dataset(path, n=8)
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        ds.load()
+    ds.attrs.update(plan=json.dumps({"name": "dense", "points": [[0, 0, 0, 0]] * 1053}), complete=0)
+    path.unlink()
+    ds.to_netcdf(path, engine="h5netcdf")
+    monkeypatch.setattr(gonio.bench.export, "export", lambda session: path)
+    assert main(["export", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "PARTIAL, 8 of 1053 planned points" in out and f"--resume {tmp_path}" in out
+
+
+def test_render_checks_the_measured_file_before_writing(tmp_path, capsys):
+    (tmp_path / "fit.json").write_text("{}")
+    report_folder._dataset(tmp_path / "dataset.nc", n=8)
+    out = tmp_path / "render"
+    assert main(["render", str(tmp_path / "fit.json"), "--dataset", str(tmp_path / "dataset.nc"), "--out", str(out),
+                 "--measured", str(tmp_path / "missing.binary")]) == 2
+    assert "missing.binary does not exist" in capsys.readouterr().err
+    assert not out.exists()
