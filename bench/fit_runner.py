@@ -124,7 +124,8 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
     ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
     (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file."""
     import gonio.models as gm
-    from gonio.fitting import default_loss, fit, fit_document, option_candidates, sample_posterior, select
+    from gonio.fitting import (default_loss, fit, fit_document, option_candidates, sample_posterior, select,
+                               with_instrument_response)
 
     from gonio.fitting import LOSSES
 
@@ -150,6 +151,13 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
                 result = fit(meas, gm.get(model, **candidates[0][1]), rng=rng, loss=loss)
         except ValueError as exc:
             raise GonioError(str(exc)) from None
+    # the instrument's angular response, where the dataset declares its apertures (fitting/_aperture.py)
+    chosen = result.model
+    try:
+        result, meas, budget = with_instrument_response(
+            meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
+    except ValueError as exc:
+        raise GonioError(str(exc)) from None
     post = None
     if posterior:
         if loss != "chi2":
@@ -527,17 +535,16 @@ def _make_parent(out: Path) -> None:
 
 def _convert_pabopto(source, out, formats, load_fit):
     """``--to pabopto``: a fit's model on a grid, or a dataset's measured values, one file per incidence."""
-    from gonio.fitting._pabopto import _write
-
     if source.suffix.lower() == ".json":
         try:
             loaded = load_fit(source)
         except (ValueError, KeyError, json.JSONDecodeError) as exc:
             raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
-        channels = loaded.document.get("colour", {}).get("channels", ("R", "G", "B")) \
-            if isinstance(loaded.document.get("colour"), dict) else ("R", "G", "B")
-        files = formats.model_pabopto(loaded.model, loaded.params, channels=tuple(channels), sample_name=source.stem)
-        paths = _write(out, files)
+        # the fitted channels (R, G, B or X, Y, Z) as the fit file names them
+        named = [p.get("channel") for p in loaded.parameters.values() if isinstance(p, dict) and p.get("channel")]
+        channels = tuple(dict.fromkeys(named)) or ("R", "G", "B")
+        files = formats.model_pabopto(loaded.model, loaded.params, channels=channels, sample_name=source.stem)
+        paths = formats.write_pabopto_files(out, files)
     else:
         try:
             paths = formats.write_pabopto(out, _open_dataset(source), sample_name=source.parent.name or source.stem)

@@ -13,6 +13,7 @@
   :mod:`gonio.fitting.formats` (MERL, RGL, Mitsuba snippets, CSV); :mod:`gonio.fitting.preview`.
 """
 
+from ._aperture import with_instrument_response
 from ._batch import check_dashboard_address, check_scheduler_address, check_workers, fit_batch, fit_serial
 from ._budget import Budget, BudgetComponent, load_budget
 from ._crlb import crlb, efficiency
@@ -26,7 +27,7 @@ from ._selection import CANDIDATES, Ranked, option_candidates, select
 from ._space import ParameterSpace
 
 __all__ = [
-    "Budget", "BudgetComponent", "load_budget", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked",
+    "Budget", "BudgetComponent", "load_budget", "with_instrument_response", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked",
     "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
     "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers",
 ]

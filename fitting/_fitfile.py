@@ -133,8 +133,13 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         "posterior": None,
         "selection": [r.row() for r in ranking] if ranking else None,
         "mitsuba": result.model.to_mitsuba(result.params),
+        # the colour space of every per-channel value here (fitting/_data.load_dataset), the matrix
+        # and what the fit leaves out; Mitsuba reads rgb as linear sRGB: only an srgb fit renders true colour
+        "colour": meas.attrs.get("colour"),
         "scale_rel_std": meas.attrs.get("scale_rel_std"),
         "uncertainty": _uncertainty(result, meas, budget, result.std * inflation, result.cov * inflation ** 2),
+        # the instrument's angular response in the forward model (fitting/_aperture.py), or null
+        "instrument_response": getattr(result, "response", None),
         "provenance": {"versions": versions(), "seed": seed, "dataset": str(dataset_path) if dataset_path else None,
                        "dataset_sha256": sha256_file(dataset_path) if dataset_path and Path(dataset_path).exists() else None,
                        "dataset_seed": meas.attrs.get("seed")},

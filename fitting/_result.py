@@ -50,6 +50,9 @@ class FitResult:
     #: the model-discrepancy term fitted with the model (loss ``discrepancy``): ``rel``,
     #: ``abs`` (sr^-1), ``neg2_loglik``, ``iterations``; None for the other losses
     discrepancy: dict | None = None
+    #: the instrument's angular response applied (fitting/_aperture.py): apertures, the largest
+    #: correction, the point model's parameters; None where the dataset declares no apertures
+    response: dict | None = None
 
     @property
     def params(self) -> dict:
