@@ -343,12 +343,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, default=256, help="preview samples per pixel (default 256)")
     r.set_defaults(func=_cmd_render)
 
-    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict or MERL, a dataset to CSV or MERL")
+    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict, MERL or PAB-Opto, "
+                                        "a dataset to CSV, MERL or PAB-Opto")
     cv.add_argument("source", help="fit file (JSON) or dataset.nc")
-    cv.add_argument("--to", required=True, choices=["mitsuba-xml", "mitsuba-dict", "merl", "csv", "merl-data"],
-                    help="from a fit: mitsuba-xml, mitsuba-dict, merl (the model resampled); "
-                         "from a dataset: csv, merl-data (measured values binned, the rest no-data)")
-    cv.add_argument("--out", required=True, help="file to write")
+    cv.add_argument("--to", required=True,
+                    choices=["mitsuba-xml", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto"],
+                    help="from a fit: mitsuba-xml (a file mitsuba.load_file and <include> load), mitsuba-dict, "
+                         "merl (the model resampled), pabopto (the model on a grid); from a dataset: csv, "
+                         "merl-data (measured values binned, the rest no-data), pabopto (measured values); "
+                         "pabopto writes one file per incident direction into the --out folder, for Radiance's "
+                         "pabopto2bsdf")
+    cv.add_argument("--out", required=True, help="file to write (a folder for --to pabopto); missing folders are made")
     cv.set_defaults(func=_cmd_convert)
 
     rep = sub.add_parser("report", help="write a self-contained HTML report of an output folder")

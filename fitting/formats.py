@@ -1,5 +1,5 @@
 """Exchange formats of the field: MERL ``.binary``, RGL ``.bsdf``, Mitsuba XML (snippets and files,
-:mod:`._mitsuba_xml`), CSV.
+:mod:`._mitsuba_xml`), Radiance's PAB-Opto text (:mod:`._pabopto`, for ``pabopto2bsdf``), CSV.
 
 MERL ``.binary`` (Matusik, Pfister, Brand & McMillan, "A Data-Driven Reflectance Model",
 ACM TOG 22(3), 2003; the conventions of the MERL distribution's ``BRDFRead.cpp``, from which
@@ -38,11 +38,13 @@ from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
 
 from ._data import Measurements
 from ._mitsuba_xml import MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet
+from ._pabopto import model_pabopto, pabopto_files, write_pabopto
+from ._pabopto import write_files as write_pabopto_files
 
 __all__ = [
     "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "dataset_to_merl", "half_diff_angles",
     "merl_bin_directions", "merl_to_measurements", "mitsuba_document", "mitsuba_snippet", "MITSUBA_XML_VERSION",
-    "read_merl", "resample_to_merl",
+    "read_merl", "resample_to_merl", "model_pabopto", "pabopto_files", "write_pabopto", "write_pabopto_files",
     "rgl_measurements", "write_merl", "check_rgl_file",
 ]
 
