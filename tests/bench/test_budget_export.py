@@ -162,5 +162,5 @@ def test_gonio_fit_reports_the_combined_uncertainty(tmp_path, capsys, monkeypatc
         item = u["parameters"][f"reflectance[{c}]"]
         rho = doc["parameters"][f"reflectance[{c}]"]["value"]
         assert item["u_combined"] >= rho * 0.005 and item["U"] == pytest.approx(2 * item["u_combined"])
-    assert "u_c" in proc.stdout and "U (k=2)" in proc.stdout and "largest term" in proc.stdout
+    assert "u_c" in proc.stdout and "(k=2)" in proc.stdout and "largest term" in proc.stdout
     assert max(len(line) for line in proc.stdout.splitlines()) <= 80
