@@ -132,7 +132,7 @@ def _cmd_fit(args):
     if len(args.dataset) != 1:
         raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")
     fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
-            loss=args.loss, posterior=args.posterior)
+            loss=args.loss, posterior=args.posterior, colour_space=args.colour_space)
 
 
 @_env
@@ -322,6 +322,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--out", required=True, help="fit file to write (JSON)")
     f.add_argument("--seed", type=_seed, default=0, help="seed of the multi-start and the sampler")
     f.add_argument("--loss", default=None, help=LOSS_HELP)
+    f.add_argument("--colour-space", default="srgb", metavar="SPACE",
+                   help="fit f_r in srgb (linear sRGB, D65: Mitsuba's rendering space; default), xyz (CIE XYZ) "
+                        "or camera (white-balanced camera RGB); dataset.nc only")
     f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
                    help="sample the posterior with emcee")
     f.add_argument("--batch", action="store_true", help="fit every DATASET on Dask; --out is then a folder")

@@ -8,10 +8,13 @@ stage angles; attributes ``gonio_version``, ``seed``, ``plan``, ``settings``, ``
 1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``), ``complete``.
 
 Where the RAW files carry colour matrices, also ``brdf_srgb`` (linear sRGB, D65) and
-``brdf_xyz`` (CIE XYZ) with their 1-sigma: the camera-RGB f_r is white-balanced by
-construction (the reference is spectrally flat and shares the illumination), so LibRaw's
-camera -> sRGB matrix applies to it directly, and XYZ = M_sRGB->XYZ sRGB (IEC 61966-2-1).
-Channel noise is independent, so variances map through the squared matrix elements.
+``brdf_xyz`` (CIE XYZ) with their 1-sigma and channel correlation (``brdf_srgb_corr``): the
+camera-RGB f_r is white-balanced by construction (the reference is spectrally flat and shares
+the illumination), so the camera -> sRGB matrix (bench/colour_matrix.py: from a RAW file's
+ColorMatrix1, else LibRaw's journalled one) applies to it directly, and XYZ = M_sRGB->XYZ sRGB
+(IEC 61966-2-1). Camera channel noise is independent, so the sRGB channels' covariance is
+S diag(sigma^2) S^T. Every f_r variable says its space (attribute ``colour_space``); the
+attribute ``colour_matrix`` records the matrix and its source.
 Serialised with xarray's h5netcdf engine in memory (h5py never writes to the disk: on a full disk
 it crashed the process), after a check that the disk has room for it; then written to a
 temporary name in the session folder, fsynced and renamed. A full disk is one line and leaves
@@ -30,14 +33,14 @@ import numpy as np
 from ._budget import budget_variables
 from ._cf import cf_encode
 from ._files import commit_file, tmp_name
+from ._journal import RAW_DIR
+from .colour_matrix import SRGB_TO_XYZ, ColourMatrix, convert, matrix_from_dng, matrix_from_libraw
 from .errors import GonioError, SessionError
 
 __all__ = ["export", "to_dataset", "DATASET_FILE"]
 
 DATASET_FILE = "dataset.nc"
 
-#: Linear sRGB -> CIE XYZ (D65), IEC 61966-2-1.
-SRGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
 
 
 def to_dataset(session_dir):
@@ -87,8 +90,10 @@ def to_dataset(session_dir):
                                                 "monitor at the start of the point"})
     # the per-point uncertainty budget, u_<component> and u_combined (bench/_budget.py)
     data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1]))
-    if rgb_cam is not None:
-        data.update(_colour(np.asarray(json.loads(rgb_cam), float), data["brdf"][1], data["brdf_std"][1]))
+    data["brdf"][2]["colour_space"] = data["brdf_std"][2]["colour_space"] = "camera"
+    matrix = _colour_matrix(folder, rgb_cam)
+    if matrix is not None:
+        data.update(_colour(matrix, data["brdf"][1], data["brdf_std"][1]))
         coords["xyz"] = ["X", "Y", "Z"]
     sess = doc.get("session", {})
     attrs = {
@@ -106,20 +111,42 @@ def to_dataset(session_dir):
         "capture_wall_s": float(max(r["finished"] for r in rows) - min(r["finished"] for r in rows)),
         "title": "gonio BRDF measurement",
     }
+    if matrix is not None:
+        attrs["colour_matrix"] = json.dumps(matrix.describe(), sort_keys=True)
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
     return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
 
 
-def _colour(rgb_cam: np.ndarray, f: np.ndarray, sd: np.ndarray) -> dict:
-    """``brdf_srgb``, ``brdf_xyz`` and their 1-sigma from camera-RGB f_r (N, 3)."""
+def _colour_matrix(folder: Path, rgb_cam):
+    """The camera -> sRGB matrix: a RAW file's own ColorMatrix1, else LibRaw's journalled
+    ``rgb_cam``, else None (bench/colour_matrix.py)."""
+    for raw in sorted((folder / RAW_DIR).glob("*.dng")) if (folder / RAW_DIR).is_dir() else ():
+        if not raw.name.startswith("."):
+            found = matrix_from_dng(raw)
+            if found is not None:
+                return found
+            break
+    return None if rgb_cam is None else matrix_from_libraw(np.asarray(json.loads(rgb_cam), float))
+
+
+def _colour(matrix: ColourMatrix, f: np.ndarray, sd: np.ndarray) -> dict:
+    """``brdf_srgb``, ``brdf_xyz``, their 1-sigma and the sRGB channel correlation from
+    white-balanced camera-RGB f_r (N, 3)."""
     out = {}
     sr = {"units": "sr^-1"}
-    for name, M, dim, what in (("srgb", rgb_cam, "channel", "linear sRGB (D65)"),
-                               ("xyz", SRGB_TO_XYZ @ rgb_cam, "xyz", "CIE XYZ (D65)")):
-        out[f"brdf_{name}"] = (("point", dim), f @ M.T, {**sr, "long_name": f"f_r in {what}"})
-        out[f"brdf_{name}_std"] = (("point", dim), np.sqrt(sd ** 2 @ (M ** 2).T),
-                                   {**sr, "long_name": f"1-sigma of brdf_{name}"})
+    for name, dim, what in (("srgb", "channel", "linear sRGB (D65)"), ("xyz", "xyz", "CIE XYZ (D65)")):
+        value, std, cov = convert(f, sd, matrix, name)
+        space = {"colour_space": name, "colour_matrix_source": matrix.source}
+        out[f"brdf_{name}"] = (("point", dim), value, {**sr, **space, "long_name": f"f_r in {what}"})
+        out[f"brdf_{name}_std"] = (("point", dim), std, {**sr, **space, "long_name": f"1-sigma of brdf_{name} "
+                                                         "(camera noise; colour matrix uncertainty not included)"})
+        if name == "srgb":
+            pairs = ((1, 2), (0, 2), (0, 1))
+            corr = np.stack([cov[:, a, b] / np.maximum(std[:, a] * std[:, b], 1e-300) for a, b in pairs], 1)
+            out["brdf_srgb_corr"] = (("point", "channel"), corr, {
+                "units": "1", "long_name": "correlation of brdf_srgb's other two channels' noise (R: G-B, "
+                "G: R-B, B: R-G), from the colour matrix mixing independent camera channels"})
     return out
 
 

@@ -52,7 +52,7 @@ def _quiet_reader_cleanup():
         sys.unraisablehook = previous
 
 
-def _open_dataset(path: Path, seed: int = 0):
+def _open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
     """A gonio dataset.nc, a MERL .binary file or an RGL .bsdf file, as Measurements.
 
     MERL and RGL files carry no uncertainty: each value gets a nominal relative 1-sigma (1 %
@@ -91,7 +91,7 @@ def _open_dataset(path: Path, seed: int = 0):
                         raise
                 a = np.radians(load_plan("standard").angles)     # scalar_rgb only: the standard plan
                 return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
-            return load_dataset(path)
+            return load_dataset(path, colour_space=colour_space)
         except GonioError:
             raise
         except MemoryError:
@@ -262,13 +262,17 @@ def budget_line(doc) -> str:
     return ("largest term of u_c^2: " + ", ".join(parts)) if parts else ""
 
 
-def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior):
+def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb"):
     from gonio.fitting import write_json_atomic
 
     from ._preflight import check_output_file, writing
 
+    from gonio.fitting import COLOUR_SPACES
+
+    if colour_space not in COLOUR_SPACES:
+        raise GonioError(f"unknown --colour-space {str(colour_space)[:40]!r}: choose one of {', '.join(COLOUR_SPACES)}")
     check_output_file(out, "fit file (--out)")
-    meas = _open_dataset(dataset, seed)
+    meas = _open_dataset(dataset, seed, colour_space)
     budget = open_budget(dataset, meas)
     _, doc, _ = fit_dataset(meas, model=model, options=parse_options(options), seed=seed, loss=loss,
                             posterior=posterior, dataset_path=dataset, budget=budget)

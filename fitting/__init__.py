@@ -17,7 +17,7 @@ from ._aperture import with_instrument_response
 from ._batch import check_dashboard_address, check_scheduler_address, check_workers, fit_batch, fit_serial
 from ._budget import Budget, BudgetComponent, load_budget
 from ._crlb import crlb, efficiency
-from ._data import DataError, Measurements, direction, load_dataset
+from ._data import COLOUR_SPACES, DataError, Measurements, colour_transform, direction, load_dataset
 from ._fitfile import FitFile, fit_document, load_fit, parse_fit, versions, write_json_atomic
 from ._loss import LOSSES, REAL_DEFAULT_LOSS, default_loss
 from ._optimise import FitResult, fit
@@ -28,6 +28,6 @@ from ._space import ParameterSpace
 
 __all__ = [
     "Budget", "BudgetComponent", "load_budget", "with_instrument_response", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked",
-    "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
+    "COLOUR_SPACES", "colour_transform", "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
     "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers",
 ]

@@ -32,6 +32,7 @@ import dataclasses
 import numpy as np
 
 from . import _loss
+from ._data import colour_transform
 
 __all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "propagate", "gls_covariance", "K_EXPANDED"]
 
@@ -116,8 +117,30 @@ def load_budget(path, meas) -> Budget:
                                  "see docs/interfaces.md 5.1")
             if value.shape != meas.brdf.shape or not np.all(np.isfinite(value[meas.use])):
                 raise ValueError(f"{path}: {v} must be finite at every used value, shape {meas.brdf.shape}")
-            comps.append(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")), groups))
+            comps += _in_colour_space(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")),
+                                                      groups), colour_transform(meas), path)
     return Budget(comps) if comps else budget_from_attrs(meas)
+
+
+def _in_colour_space(comp: BudgetComponent, s, path) -> list:
+    """A camera-RGB component (the dataset's ``u_`` variables are per camera channel) in the
+    fit's colour space through the 3x3 ``s`` (fitting/_data.colour_transform): a signed shared
+    error maps linearly (``s u``); an independent one by its variance (``sqrt(s^2 u^2)``); a
+    per-channel shared one becomes one fully shared component per camera channel."""
+    if s is None:
+        raise ValueError(f"{path}: the fit's colour space needs the dataset's colour matrix to carry u_{comp.name}; "
+                         "re-export the session or fit with --colour-space camera")
+    if np.array_equal(s, np.eye(len(s))):
+        return [comp]
+    if comp.correlation == "none":
+        return [dataclasses.replace(comp, value=np.sqrt(comp.value ** 2 @ (s ** 2).T))]
+    if comp.correlation == "channel":
+        return [dataclasses.replace(comp, name=f"{comp.name}_{c}", value=comp.value[:, [c]] * s[:, c], correlation="full")
+                for c in range(len(s))]
+    if comp.groups is not None and comp.groups.ndim == 2 and np.any(comp.groups != comp.groups[:, :1]):
+        raise ValueError(f"{path}: u_{comp.name} has per-channel groups, which a colour matrix mixes; "
+                         "fit with --colour-space camera")
+    return [dataclasses.replace(comp, value=comp.value @ s.T)]
 
 
 def _sensitivity(result, meas):

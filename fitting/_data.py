@@ -15,7 +15,7 @@ import numpy as np
 
 from gonio.models.geometry import directions as direction
 
-__all__ = ["Measurements", "direction", "load_dataset"]
+__all__ = ["COLOUR_SPACES", "Measurements", "colour_transform", "direction", "load_dataset"]
 
 
 class DataError(ValueError):
@@ -139,6 +139,7 @@ class Measurements:
 
 _MEAS_HEADER = ("channel", "values used", "f_r range (1/sr)", "median rel. 1-sigma")
 
+
 #: Angle units a dataset may declare, and the factor to radians.
 ANGLE_UNITS = {**dict.fromkeys(("deg", "degree", "degrees"), np.pi / 180.0),
                **dict.fromkeys(("rad", "radian", "radians"), 1.0)}
@@ -168,16 +169,120 @@ def _check_sigmas(path, brdf, std, use) -> None:
                         f"brdf = {brdf[i, c]:g} (below {MIN_REL_SIGMA:g} of the value); fix the uncertainties")
 
 
-def load_dataset(path) -> Measurements:
+#: The colour spaces f_r can be fitted in, and the dataset variables that hold each.
+COLOUR_SPACES = {"srgb": "brdf_srgb", "xyz": "brdf_xyz", "camera": "brdf"}
+_CHANNELS = {"srgb": ("R", "G", "B"), "xyz": ("X", "Y", "Z"), "camera": ("R", "G", "B")}
+
+
+def _radians(ds, path, name) -> np.ndarray:
+    """One angle variable in radians, checked (units, numeric, 1-D, finite)."""
+    var = ds[name]
+    unit = " ".join(str(var.attrs.get("units", "degree")).split()).lower()
+    if unit not in ANGLE_UNITS:
+        raise DataError(f"{path}: {name} has units {var.attrs.get('units')!r}; angles must be in "
+                        "degree(s)/deg or radian(s)/rad: fix the units attribute")
+    try:
+        values = np.asarray(var.values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{path}: {name} is not numeric; fix the dataset") from None
+    if values.ndim != 1:
+        raise DataError(f"{path}: {name} must be one value per point, not shape {values.shape}")
+    if not np.all(np.isfinite(values)):
+        raise DataError(f"{path}: {name} is NaN or inf at point {int(np.argmax(~np.isfinite(values)))}; "
+                        "fix or drop that point")
+    return values * ANGLE_UNITS[unit]
+
+
+def _colour_variables(ds, path, colour_space) -> tuple[str, dict]:
+    """The variable holding f_r in ``colour_space`` and what the fit must record about it."""
+    if colour_space not in COLOUR_SPACES:
+        raise DataError(f"unknown colour space {colour_space!r}: use one of {', '.join(COLOUR_SPACES)}")
+    name = COLOUR_SPACES[colour_space]
+    declared = ds["brdf"].attrs.get("colour_space")
+    info = {"space": colour_space, "variable": name, "matrix": None}
+    if name not in ds.variables or f"{name}_std" not in ds.variables:
+        if declared is not None and str(declared) != colour_space:
+            raise DataError(f"{path} holds f_r in {declared} only (no {name}: the session had no colour "
+                            f"matrix); fit with --colour-space {declared}")
+        name, info["variable"] = "brdf", "brdf"
+        if declared is None:
+            info["note"] = f"the dataset declares no colour space: brdf taken as {colour_space}"
+    if isinstance(ds.attrs.get("colour_matrix"), str) and colour_space != "camera":
+        try:
+            info["matrix"] = json.loads(ds.attrs["colour_matrix"])
+        except json.JSONDecodeError:
+            raise DataError(f"{path}: its colour_matrix attribute is not JSON; re-export the session") from None
+    if name != "brdf" and f"{name}_corr" in ds.variables:
+        corr = np.abs(np.asarray(ds[f"{name}_corr"].values, float))
+        info["channel_correlation_max"] = float(np.nanmax(corr)) if np.any(np.isfinite(corr)) else 0.0
+        info["left_out"] = ("the fit weights each channel by its own 1-sigma; the noise correlation between "
+                            f"channels from the colour matrix (|r| up to {info['channel_correlation_max']:.3f}, "
+                            f"{name}_corr in the dataset) and the colour matrix's own uncertainty are not in its covariance")
+    return name, info
+
+
+#: Linear sRGB -> CIE XYZ (D65) as IEC 61966-2-1 publishes it (bench/colour_matrix.SRGB_TO_XYZ's figures).
+_SRGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+
+
+def colour_transform(meas: "Measurements") -> np.ndarray | None:
+    """The 3x3 that took the dataset's camera-RGB ``brdf`` into ``meas``' colour space (the
+    identity for a camera-RGB fit; None where the dataset declares no matrix): what a quantity
+    stated per camera channel (an uncertainty component) must go through to match ``meas``."""
+    colour = meas.attrs.get("colour") or {}
+    if colour.get("space", "camera") == "camera" or colour.get("variable") == "brdf":
+        return np.eye(meas.n_channels)
+    matrix = (colour.get("matrix") or {}).get("srgb_from_cam")
+    if matrix is None:
+        return None
+    m = np.asarray(matrix, float)
+    return _SRGB_TO_XYZ @ m if colour["space"] == "xyz" else m
+
+
+def _values(ds, path, name, n_points):
+    """f_r and 1-sigma (N, C) of one variable, shape-checked."""
+    try:
+        brdf = np.asarray(ds[name].transpose("point", ...).values, dtype=np.float64)
+        std = np.asarray(ds[f"{name}_std"].transpose("point", ...).values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{path}: {name} and {name}_std must be numeric arrays over point (and channel)") from None
+    brdf, std = (a[:, None] if a.ndim == 1 else a for a in (brdf, std))
+    if brdf.ndim != 2 or std.shape != brdf.shape or brdf.shape[0] != n_points:
+        raise DataError(f"{path}: {name} {brdf.shape} and {name}_std {std.shape} must match the {n_points} points")
+    return brdf, std
+
+
+def _attrs(ds) -> dict:
+    """The dataset's attributes as plain Python values (``sample_truth`` parsed from JSON)."""
+    attrs = {k: v.item() if isinstance(v, np.generic) else v.tolist() if isinstance(v, np.ndarray) else v
+             for k, v in ds.attrs.items()}
+    if isinstance(attrs.get("sample_truth"), str):
+        try:
+            attrs["sample_truth"] = json.loads(attrs["sample_truth"])
+        except json.JSONDecodeError:
+            pass
+    return attrs
+
+
+def load_dataset(path, colour_space: str = "srgb") -> Measurements:
     """Read a gonio ``dataset.nc`` into :class:`Measurements`.
+
+    Parameters
+    ----------
+    colour_space : {"srgb", "xyz", "camera"}
+        Which f_r to fit: linear sRGB (D65, Mitsuba's rendering space; the default), CIE XYZ or
+        white-balanced camera RGB. A dataset without ``brdf_srgb``/``brdf_xyz`` (no colour
+        matrix) is fitted in the space its ``brdf`` declares; one that declares none is taken as
+        asked (``attrs["colour"]["note"]`` says so). ``attrs["colour"]`` records the space, the
+        variable, the matrix and what the fit leaves out.
 
     Raises
     ------
     DataError
         When the file lacks the variables of docs/interfaces.md section 5, declares angle
         units other than degrees or radians, has a direction below the horizon (theta outside
-        [0, 90] deg), holds NaN where values are used, or a 1-sigma that is not positive,
-        finite and of a plausible size (see `MIN_REL_SIGMA`).
+        [0, 90] deg), holds NaN where values are used, a 1-sigma that is not positive,
+        finite and of a plausible size (see `MIN_REL_SIGMA`), or has no f_r in ``colour_space``.
     """
     import xarray as xr
 
@@ -187,65 +292,30 @@ def load_dataset(path) -> Measurements:
     missing = [v for v in ("brdf", "brdf_std", "theta_i", "phi_i", "theta_o", "phi_o") if v not in ds.variables]
     if missing:
         raise DataError(f"{path} is not a gonio dataset: missing {', '.join(missing)}")
-
-    def radians(name):
-        var = ds[name]
-        unit = " ".join(str(var.attrs.get("units", "degree")).split()).lower()
-        if unit not in ANGLE_UNITS:
-            raise DataError(f"{path}: {name} has units {var.attrs.get('units')!r}; angles must be in "
-                            "degree(s)/deg or radian(s)/rad: fix the units attribute")
-        try:
-            values = np.asarray(var.values, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise DataError(f"{path}: {name} is not numeric; fix the dataset") from None
-        if values.ndim != 1:
-            raise DataError(f"{path}: {name} must be one value per point, not shape {values.shape}")
-        if not np.all(np.isfinite(values)):
-            raise DataError(f"{path}: {name} is NaN or inf at point {int(np.argmax(~np.isfinite(values)))}; "
-                            "fix or drop that point")
-        return values * ANGLE_UNITS[unit]
-
-    angles = {k: radians(k) for k in ("theta_i", "phi_i", "theta_o", "phi_o")}
+    angles = {k: _radians(ds, path, k) for k in ("theta_i", "phi_i", "theta_o", "phi_o")}
     for k in ("theta_i", "theta_o"):
         bad = (angles[k] < 0) | (angles[k] > np.pi / 2 + 1e-9)
         if np.any(bad):
             i = int(np.argmax(bad))
             raise DataError(f"{path}: {k} = {np.degrees(angles[k][i]):.6g} deg at point {i} is below the horizon "
                             "(theta must be in [0, 90] deg); fix the units or drop the point")
-    wi = direction(angles["theta_i"], angles["phi_i"])
-    wo = direction(angles["theta_o"], angles["phi_o"])
-    try:
-        brdf = np.asarray(ds["brdf"].transpose("point", ...).values, dtype=np.float64)
-        std = np.asarray(ds["brdf_std"].transpose("point", ...).values, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DataError(f"{path}: brdf and brdf_std must be numeric arrays over point (and channel)") from None
-    if brdf.ndim == 1:
-        brdf = brdf[:, None]
-    if std.ndim == 1:
-        std = std[:, None]
-    if brdf.ndim != 2 or std.shape != brdf.shape or brdf.shape[0] != wi.shape[0]:
-        raise DataError(f"{path}: brdf {brdf.shape} and brdf_std {std.shape} must match the {wi.shape[0]} points")
+    wi, wo = direction(angles["theta_i"], angles["phi_i"]), direction(angles["theta_o"], angles["phi_o"])
+    name, colour = _colour_variables(ds, path, colour_space)
+    brdf, std = _values(ds, path, name, wi.shape[0])
     use = np.ones(brdf.shape, dtype=bool)
     if "saturated" in ds.variables:
         sat = np.asarray(ds["saturated"].values, dtype=bool)
-        use &= ~(sat if sat.ndim == 2 else sat[:, None])
+        sat = sat[:, None] if sat.ndim == 1 else sat if name == "brdf" else sat.any(1, keepdims=True)
+        use &= ~sat             # a matrix mixes the channels: one saturated camera channel taints all
     nan_rows = ~np.isfinite(brdf) | ~np.isfinite(std)
     if np.any(nan_rows & use):
         bad = int(np.argwhere(nan_rows & use)[0, 0])
-        raise DataError(f"{path}: brdf or brdf_std is NaN at point {bad} and it is not flagged saturated;"
+        raise DataError(f"{path}: {name} or {name}_std is NaN at point {bad} and it is not flagged saturated;"
                         " re-export the session or drop the point")
     _check_sigmas(path, brdf, std, use)
-    attrs = {}
-    for key, value in ds.attrs.items():
-        if isinstance(value, np.generic):
-            value = value.item()
-        elif isinstance(value, np.ndarray):
-            value = value.tolist()
-        attrs[key] = value
-    if isinstance(attrs.get("sample_truth"), str):
-        try:
-            attrs["sample_truth"] = json.loads(attrs["sample_truth"])
-        except json.JSONDecodeError:
-            pass
-    channels = tuple(str(c) for c in ds["channel"].values) if "channel" in ds.coords else ("R", "G", "B")[: brdf.shape[1]]
+    attrs = {**_attrs(ds), "colour": colour}
+    if name == "brdf" and "channel" in ds.coords:
+        channels = tuple(str(c) for c in ds["channel"].values)
+    else:
+        channels = _CHANNELS[colour_space][: brdf.shape[1]]
     return Measurements(wi, wo, brdf, std, use, attrs, channels)

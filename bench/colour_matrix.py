@@ -1,0 +1,217 @@
+"""Camera RGB -> linear sRGB and CIE XYZ: the colour matrix, where it comes from, and its uncertainty.
+
+The bench's f_r is white-balanced camera RGB by construction: sample and reference share the
+illumination and the reference is spectrally flat, so their per-channel ratio removes the
+lamp's and the sensor's channel gains. One 3x3 ``srgb_from_cam`` (rows sum to 1, a neutral
+stays neutral) then gives linear sRGB (D65), Mitsuba's rendering space, and the IEC 61966-2-1
+matrix gives XYZ. It comes from one of two sources, recorded in ``dataset.nc``:
+
+* ``"dng"``: the RAW file's own tags (Adobe DNG 1.4, chapter 6). With ColorMatrix1 ``CM``
+  (XYZ -> camera for CalibrationIlluminant1 = D65) and ``M`` = colour-science's linear sRGB ->
+  XYZ, ``C = CM M`` maps sRGB to raw camera RGB; normalising its rows to sum 1 white-balances
+  it (the D65 white's raw response is C's row sums, which AsShotNeutral must equal), and
+  ``srgb_from_cam = (diag(1 / C 1) C)^-1`` (the algebra of dcraw's ``cam_xyz_coeff``, read here
+  from the tags exactly instead of through LibRaw's rounded ``color_matrix``). Its uncertainty
+  is not assessed (a maker's matrix states none).
+* ``"chart"``: a capture of an X-Rite ColorChecker (24 patches). Each patch's camera RGB is
+  white-balanced by the chart's white patch (19, "white 9.5", taken as neutral at its
+  reference luminance), and the 3x3 is the least-squares fit to the patches' reference linear
+  sRGB (colour-science ``matrix_colour_correction``, Cheung 2004, 3 terms; reference values
+  ``CCS_COLOURCHECKERS["ColorChecker24 - After November 2014"]``, D50, adapted to D65 with
+  Bradford). Row c's covariance is ``s_c^2 (X^T X)^-1`` (ordinary least squares, ``s_c^2`` the
+  residual variance on 24 - 3 degrees of freedom): the "colour matrix" line of the budget.
+
+Every point's f_r in sRGB takes its 1-sigma and the channel-to-channel covariance from the
+camera's independent channel noise: ``cov = S diag(sigma^2) S^T`` (what the fit's diagonal
+weights leave out is stated in the fit file).
+
+References
+----------
+Cheung, V., Westland, S., Connah, D., Ripamonti, C. (2004). A comparative study of the
+characterisation of colour cameras by means of neural networks and polynomial transforms.
+Coloration Technology 120(1), 19-25.
+IEC 61966-2-1:1999, sRGB. JCGM 100:2008 (GUM), 5.1.2 (propagation of uncertainty).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import os
+
+import numpy as np
+
+from .errors import GonioError
+
+__all__ = ["COLOUR_SPACES", "ColourMatrix", "SRGB_TO_XYZ", "chart_reference_srgb", "colour_matrix_components",
+           "colour_matrix_uncertainty", "convert", "matrix_from_chart", "matrix_from_dng", "matrix_from_libraw"]
+
+#: The spaces a dataset's f_r can be fitted in: linear sRGB (D65), CIE XYZ (D65), camera RGB.
+COLOUR_SPACES = ("srgb", "xyz", "camera")
+#: Linear sRGB -> CIE XYZ (D65) as IEC 61966-2-1 publishes it.
+SRGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+#: The ColorChecker edition whose reference values the chart fit uses.
+CHART_REFERENCE = "ColorChecker24 - After November 2014"
+#: Index of the chart's white patch (19 of 24, "white 9.5"), which white-balances the chart.
+CHART_WHITE = 18
+
+
+@dataclasses.dataclass(frozen=True)
+class ColourMatrix:
+    """White-balanced camera RGB -> linear sRGB, with its source and uncertainty.
+
+    Attributes
+    ----------
+    srgb_from_cam : ndarray (3, 3)
+    source : str
+        ``"dng"``, ``"libraw"`` (LibRaw's rounded ``color_matrix``) or ``"chart"``.
+    cov : ndarray (3, 3, 3) or None
+        ``cov[c]``: covariance of row c's three elements (chart fits); None: not assessed.
+    residual_rms : float or None
+        Chart fit: RMS of the patch residuals in linear sRGB.
+    """
+
+    srgb_from_cam: np.ndarray
+    source: str
+    cov: np.ndarray | None = None
+    residual_rms: float | None = None
+
+    def describe(self) -> dict:
+        """JSON-ready record for the dataset's attributes."""
+        return {"source": self.source, "srgb_from_cam": np.round(self.srgb_from_cam, 12).tolist(),
+                "row_cov": None if self.cov is None else self.cov.tolist(),
+                "residual_rms": self.residual_rms,
+                "uncertainty": "row covariance of the chart fit" if self.cov is not None else "not assessed"}
+
+
+def _srgb_to_xyz_cs() -> np.ndarray:
+    import colour
+
+    return np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ, float)
+
+
+def _check(m: np.ndarray, what: str) -> np.ndarray:
+    m = np.asarray(m, float)
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)) or abs(np.linalg.det(m)) < 1e-9:
+        raise GonioError(f"{what}: the colour matrix is not an invertible 3x3 ({m.tolist()}); "
+                         "the file's colour tags are broken")
+    return m
+
+
+def matrix_from_dng(path: str | os.PathLike | None = None, data: bytes | None = None) -> ColourMatrix | None:
+    """The DNG's ColorMatrix1 as camera -> sRGB (module notes); None if the file declares none,
+    or declares the identity-free placeholder of a file without colour data."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(io.BytesIO(data) if data is not None else path) as tif:
+            tags = tif.pages[0].tags
+            cm, illum = tags.get(50721), tags.get(50778)
+            if cm is None:
+                return None
+            values = np.asarray(cm.value, float).reshape(-1)
+    except (OSError, ValueError, tifffile.TiffFileError) as exc:
+        raise GonioError(f"cannot read the colour tags of {path or 'the RAW file'} ({type(exc).__name__})") from None
+    if values.size == 18:                                     # (numerator, denominator) pairs
+        values = values[0::2] / values[1::2]
+    if values.size != 9:
+        raise GonioError(f"{path or 'RAW file'}: ColorMatrix1 holds {values.size} values, not 9 (a 3-colour sensor)")
+    if illum is not None and int(np.ravel(illum.value)[0]) not in (21, 0):
+        raise GonioError(f"{path or 'RAW file'}: ColorMatrix1 is calibrated for illuminant "
+                         f"{int(np.ravel(illum.value)[0])}, not D65 (21); calibrate with a ColorChecker capture")
+    c = _check(values.reshape(3, 3), str(path)) @ _srgb_to_xyz_cs()
+    rows = c.sum(1)
+    if np.any(rows <= 0):
+        raise GonioError(f"{path or 'RAW file'}: ColorMatrix1 maps white to a non-positive camera response")
+    return ColourMatrix(np.linalg.inv(c / rows[:, None]), "dng")
+
+
+def matrix_from_libraw(rgb_cam) -> ColourMatrix:
+    """LibRaw's ``color_matrix`` (as the capture journalled it) when the DNG cannot be read."""
+    return ColourMatrix(_check(rgb_cam, "journalled rgb_cam"), "libraw")
+
+
+def chart_reference_srgb() -> np.ndarray:
+    """The 24 ColorChecker patches' reference linear sRGB (D65), shape (24, 3)."""
+    import colour
+
+    cc = colour.CCS_COLOURCHECKERS[CHART_REFERENCE]
+    xyz = colour.xyY_to_XYZ(np.array(list(cc.data.values()), float))
+    cat = colour.adaptation.matrix_chromatic_adaptation_VonKries(
+        colour.xy_to_XYZ(cc.illuminant),
+        colour.xy_to_XYZ(colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]), transform="Bradford")
+    return xyz @ (np.linalg.inv(_srgb_to_xyz_cs()) @ cat).T
+
+
+def matrix_from_chart(patches_cam) -> ColourMatrix:
+    """Fit camera -> sRGB to a ColorChecker capture (module notes).
+
+    Parameters
+    ----------
+    patches_cam : (24, 3) array
+        Each patch's mean raw camera RGB (black-subtracted, any common scale), in the chart's
+        reading order (dark skin first, black last).
+    """
+    import colour
+
+    x = np.asarray(patches_cam, float)
+    if x.shape != (24, 3) or not np.all(np.isfinite(x)) or np.any(x[CHART_WHITE] <= 0):
+        raise GonioError(f"a ColorChecker capture needs 24 finite patch means with a lit white patch, "
+                         f"got shape {x.shape}; check the chart's pose and exposure")
+    ref = chart_reference_srgb()
+    x = x / x[CHART_WHITE] * ref[CHART_WHITE].mean()        # white-balanced on the white patch
+    m = np.asarray(colour.characterisation.matrix_colour_correction(x, ref, method="Cheung 2004", terms=3), float)
+    resid = ref - x @ m.T
+    dof = x.shape[0] - 3
+    inv = np.linalg.inv(x.T @ x)
+    cov = np.array([(resid[:, c] @ resid[:, c]) / dof * inv for c in range(3)])
+    return ColourMatrix(_check(m, "chart fit"), "chart", cov, float(np.sqrt(np.mean(resid ** 2))))
+
+
+def convert(f_cam, sd_cam, matrix: ColourMatrix, space: str):
+    """f_r (N, 3) and its 1-sigma from white-balanced camera RGB into ``space``.
+
+    Returns ``(f, sd, cov)``: values, 1-sigma and the (N, 3, 3) channel covariance from the
+    camera's independent channel noise (``S diag(sigma^2) S^T``).
+    """
+    if space not in COLOUR_SPACES:
+        raise ValueError(f"unknown colour space {space!r}; one of {', '.join(COLOUR_SPACES)}")
+    f_cam, sd_cam = np.asarray(f_cam, float), np.asarray(sd_cam, float)
+    s = {"camera": np.eye(3), "srgb": matrix.srgb_from_cam, "xyz": SRGB_TO_XYZ @ matrix.srgb_from_cam}[space]
+    cov = np.einsum("ij,nj,kj->nik", s, sd_cam ** 2, s)
+    return f_cam @ s.T, np.sqrt(np.einsum("nii->ni", cov)), cov
+
+
+def colour_matrix_components(f_cam, matrix: ColourMatrix, space: str = "srgb") -> list[np.ndarray]:
+    """The colour matrix's budget lines: signed (N, 3) arrays, one per independent input.
+
+    The chart fit's nine elements are, per output row, correlated with each other; the
+    eigenvectors of each row's covariance are independent inputs. Each array is the change
+    of f_r (in ``space``) when one of them moves by +1 standard uncertainty (JCGM 100 5.1.3),
+    shared by every point (a fully correlated component: one matrix serves the session).
+    Empty when the matrix's uncertainty is not assessed (``"dng"``, ``"libraw"``) or
+    ``space`` is ``"camera"``.
+    """
+    if matrix.cov is None or space == "camera":
+        return []
+    f_cam = np.asarray(f_cam, float)
+    out = []
+    for c in range(3):
+        lam, vec = np.linalg.eigh(matrix.cov[c])
+        for k in range(3):
+            d_row = np.sqrt(max(lam[k], 0.0)) * vec[:, k]       # one input's +1 sigma move of row c
+            d_srgb = np.zeros(f_cam.shape)
+            d_srgb[:, c] = f_cam @ d_row
+            out.append(d_srgb @ SRGB_TO_XYZ.T if space == "xyz" else d_srgb)
+    return out
+
+
+def colour_matrix_uncertainty(f_cam, matrix: ColourMatrix, space: str = "srgb") -> np.ndarray:
+    """Each value's standard uncertainty (N, 3) from the colour matrix: the root sum of squares
+    of :func:`colour_matrix_components` (zeros where not assessed). Correlation: full (the
+    same matrix for every point)."""
+    parts = colour_matrix_components(f_cam, matrix, space)
+    f_cam = np.asarray(f_cam, float)
+    if not parts:
+        return np.zeros(f_cam.shape)
+    return np.sqrt(np.sum(np.square(parts), axis=0))
