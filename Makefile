@@ -10,7 +10,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.stamp-install
 
-.PHONY: demo test test-fast test-codegen test-latest lock install llvm chromium clean
+.PHONY: demo test test-fast test-codegen test-latest lock install llvm chromium clean docs
 
 demo: $(STAMP)
 	$(VENV)/bin/gonio demo
@@ -38,6 +38,13 @@ test-latest:
 	.venv-latest/bin/python -m pip install -q --upgrade pip
 	.venv-latest/bin/python -m pip install -q --upgrade --upgrade-strategy eager -e ".[test]"
 	.venv-latest/bin/python -m pytest -q -n 2
+
+# API documentation from the numpydoc docstrings (pdoc, pinned in the test extra) into
+# docs/api/ (built, not committed); open docs/api/index.html. The tutorial is docs/tutorial.md.
+API_MODULES := gonio.models gonio.fitting gonio.fitting.formats gonio.fitting.plots gonio.fitting.render \
+	gonio.fitting.preview gonio.sim gonio.bench gonio.bench.plans
+docs: $(STAMP)
+	$(PY) -m pdoc -d numpy --no-show-source -o docs/api $(API_MODULES)
 
 # Re-pin constraints.txt to what the current venv holds (after a deliberate upgrade).
 lock: $(STAMP)
