@@ -90,6 +90,13 @@ def _cmd_capture(args):
 
 
 @_env
+def _cmd_calibrate(args):
+    from .calibrate import calibrate_cli
+
+    return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed)
+
+
+@_env
 def _cmd_export(args):
     from .export import export
 
@@ -309,6 +316,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--restore-session", action="store_true",
                    help="with --resume: put back session.toml as the journal recorded it when the session started")
     c.set_defaults(func=_cmd_capture)
+
+    cal = sub.add_parser("calibrate", help="estimate the bench's systematic errors (alignment: zero offsets and "
+                         "holder tilt; detector linearity; the reference's non-Lambertian factor) into a file")
+    cal.add_argument("--sim", action="store_true", help="calibrate the simulated instrument (in this process)")
+    cal.add_argument("--errors", choices=["ideal", "typical", "poor"],
+                     help="simulated instrument's error preset (default: the settings' [errors], else ideal)")
+    cal.add_argument("--settings", help="instrument settings TOML overriding bench/instrument.toml")
+    cal.add_argument("--seed", type=_seed, default=0, help="seed of the simulated instrument (its hidden errors and noise)")
+    cal.add_argument("--out", required=True, help="calibration file to write (TOML)")
+    cal.set_defaults(func=_cmd_calibrate)
 
     e = sub.add_parser("export", help="write SESSION/dataset.nc from a session's journal")
     e.add_argument("session", help="session folder")

@@ -37,6 +37,8 @@ What a driver must know
 import serial as _serial
 
 from ._clock import SimClock
+from ._errors import PRESETS as ERROR_PRESETS
+from ._errors import ErrorModel, error_model
 from ._faults import FaultSchedule
 from ._instrument import (DEFAULT_REFERENCE, DEFAULT_SAMPLE, DEFAULT_SETTINGS, Instrument,
                           lookup)
@@ -52,7 +54,8 @@ if "gonio.sim" not in _serial.protocol_handler_packages:
 
 
 __all__ = [
-    "DEFAULT_REFERENCE", "DEFAULT_SAMPLE", "DEFAULT_SETTINGS", "FaultSchedule", "Instrument",
+    "DEFAULT_REFERENCE", "DEFAULT_SAMPLE", "DEFAULT_SETTINGS", "ERROR_PRESETS", "ErrorModel", "FaultSchedule",
+    "Instrument", "error_model",
     "Lamp", "PtyServer", "RotaryAxis", "SampleTruth", "SensorModel", "SimClock", "forward", "lookup",
     "mitsuba_variant", "plan_trapezoid", "serve",
 ]

@@ -319,8 +319,10 @@ class ErrorState:
         return None if not any(self.tilt_deg) else _small_rotation(self.tilt_deg)
 
     # ----------------------------------------------------------------- squares
-    def _aperture_mean(self, truth, wi, wo, frame=None) -> np.ndarray:
-        """Mean of f_r cos(theta_i) (3,) over the source and detector disks (sample frame)."""
+    def _aperture_mean(self, truth, wi, wo, frame=None):
+        """Mean of f_r cos(theta_i) (3,) over the source and detector disks (square's face frame,
+        ``frame`` its rotation in the holder), and the value the render shows (the point pair in
+        the holder frame), from one evaluation of ``truth``."""
         ap = self.model.aperture
         di = _cone(wi, math.radians(ap.source_half_deg))
         do = _cone(wo, math.radians(ap.detector_half_deg))
@@ -331,24 +333,28 @@ class ErrorState:
         b = np.tile(do, (len(di), 1))
         if frame is not None:
             a, b = a @ frame, b @ frame       # into the square's own face frame (R.T @ v per row)
+        a, b = np.vstack([a, wi]), np.vstack([b, wo])
         f = np.asarray(truth(a, b), float) * np.maximum(a[:, 2], 0.0)[:, None]
-        return np.einsum("k,kc->c", np.outer(wa, wb).ravel(), f)
+        return np.einsum("k,kc->c", np.outer(wa, wb).ravel(), f[:-1]), f[-1]
 
-    def sample_radiance(self, sample, wi, wo) -> np.ndarray:
-        """The sample square's true radiance per unit irradiance (3,): wedge and apertures."""
+    def sample_radiance(self, sample, wi, wo):
+        """The sample square's true radiance per unit irradiance (3,) (wedge and apertures) and
+        the rendered one (3,)."""
         frame = None if not any(self.wedge_deg) else _small_rotation(self.wedge_deg)
         return self._aperture_mean(sample.eval, wi, wo, frame)
 
-    def reference_radiance(self, reference, wi, wo) -> np.ndarray:
-        """The reference square's (3,): true rho, non-Lambertian factor and apertures."""
+    def reference_radiance(self, reference, wi, wo):
+        """The reference square's (3,) (true rho, non-Lambertian factor, apertures) and the
+        rendered one (3,)."""
         amp = self.model.reference.non_lambertian
 
         def truth(a, b):
-            f = reference.eval(a, b) * self.rho_factor
+            f = np.array(reference.eval(a, b), dtype=float)
+            f[:-1] *= self.rho_factor
             if amp:
-                ti = np.arccos(np.clip(a[:, 2], -1, 1))
-                to = np.arccos(np.clip(b[:, 2], -1, 1))
-                f = f * spectralon_factor(ti, to, amp)[:, None]
+                ti = np.arccos(np.clip(a[:-1, 2], -1, 1))
+                to = np.arccos(np.clip(b[:-1, 2], -1, 1))
+                f[:-1] *= spectralon_factor(ti, to, amp)[:, None]
             return f
         return self._aperture_mean(truth, wi, wo)
 

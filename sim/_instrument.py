@@ -11,6 +11,7 @@ import numpy as np
 
 from ._camera_port import CameraPort
 from ._clock import SimClock
+from ._colour import chart_radiance
 from ._errors import error_model, square_masks
 from ._faults import FaultSchedule
 from ._kinematics import forward
@@ -287,9 +288,10 @@ class Instrument:
         if st.squares_altered:
             wi, wo = np.asarray(g["wi"], float), np.asarray(g["wo"], float)
             ms, mr = square_masks(g, self.settings)
-            cos_i = max(float(wi[2]), 0.0)
-            img[ms] += st.sample_radiance(self.sample, wi, wo) - self.sample.eval(wi, wo)[0] * cos_i
-            img[mr] += st.reference_radiance(self.reference, wi, wo) - self.reference.eval(wi, wo)[0] * cos_i
+            true, shown = st.sample_radiance(self.sample, wi, wo)
+            img[ms] += true - shown
+            true, shown = st.reference_radiance(self.reference, wi, wo)
+            img[mr] += true - shown
         if self.errors.stray.floor:
             img += self.errors.stray.floor / math.pi
         return img
@@ -305,13 +307,15 @@ class Instrument:
 
         ``source="flat"`` images the flat-field source (the lab puts an integrating sphere
         in front of the lens; it fills the frame with uniform radiance), for the
-        photo-response non-uniformity calibration.
+        photo-response non-uniformity calibration. ``source="chart"`` images the ColorChecker
+        in the holder's chart slot under the lamp at normal incidence (sim/_colour.chart_radiance:
+        spectral, the camera's own response to the chart), for the colour calibration.
 
         The noise comes from ``default_rng([seed, 0xCA3E, *pose + 2**31, exposure ns, lamp on,
         flux ppm, lamp dead, flat, frame count at this pose])``: the same pose, exposure, lamp
         state and frame order give the same noise in a new process.
         """
-        if source not in ("scene", "flat"):
+        if source not in ("scene", "flat", "chart"):
             raise ValueError(f"unknown camera source {source!r}")
         flat = source == "flat"
         with self.lock:
@@ -325,16 +329,18 @@ class Instrument:
             self._frame_count += 1
             exposure_ns = int(round(seconds * 1e9))
             key = [self.seed & 0xFFFFFFFF, 0xCA3E, *[(p + 2**31) & 0xFFFFFFFF for p in pose],
-                   exposure_ns, *state, frame]
+                   exposure_ns, *state, frame] + ([0xC4A7] if source == "chart" else [])
             rng = np.random.default_rng(key)
             power = self.FLAT_POWER if flat else lamp.power(t0 + 0.5 * seconds)
             if flat:
                 rad = np.full((self.sensor.height, self.sensor.width, 3), self.FLAT_RADIANCE)
+            elif source == "chart":
+                rad = chart_radiance(self.sensor.colour, self.sensor.height, self.sensor.width)
             elif power > 0.0:
                 rad = self.radiance(pose)
             else:
                 rad = np.zeros((self.sensor.height, self.sensor.width, 3))
-            raw = self.sensor.expose(rad, power, seconds, rng)
+            raw = self.sensor.expose(rad, power, seconds, rng, camera_rgb=source == "chart")
             if self._errors_on:
                 raw = self.error_state.nonlinear(raw, self.sensor.black, self.sensor.white)
             self.clock.advance(seconds)

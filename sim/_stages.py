@@ -146,7 +146,7 @@ class RotaryAxis:
     _halt: tuple | None = None                  # (time, flag) when the motion is cut short
     driver_enabled: bool = True                 # ``driver disable`` de-energises the motor (FD)
     parked: bool = False                        # ``tools parking park``: keeps the reference over a power cycle
-    moves: int = 0                              # motions started (the error model's per-move draws)
+    moves: int = 0                              # motions started that go somewhere (the error model's per-move draws)
     last_dir: int = 0                           # sign of the last motion (+1, -1; 0 before any): backlash
 
     # ---------------------------------------------------------------- state queries
@@ -231,8 +231,8 @@ class RotaryAxis:
         self._halt = None
         self.physical = x
         self._target = float(physical_target)
-        self.moves += 1
-        if self._target != x:
+        if self._target != x:                  # a move to where the axis is does not move it
+            self.moves += 1
             self.last_dir = 1 if self._target > x else -1
         self._segs = plan_trapezoid(x, v, self._target, self.maxspeed, self.accel, t)
         if not self._segs:

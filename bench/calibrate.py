@@ -1,0 +1,502 @@
+"""``gonio calibrate``: estimate the bench's systematic errors and write a calibration file.
+
+Three procedures, run in this order on one bench (:class:`SimBench` drives the virtual
+instrument's physics in this process; a hardware bench offers the same four methods):
+
+1. **Alignment** (:func:`align`): at four azimuths a glossy artefact in the sample slot is
+   scanned across its specular peak, in yaw (tilt stage at 0) and in tilt (yaw at the peak),
+   each scan once upwards and once downwards. The mean of the two passes' peaks is free of
+   backlash; their difference measures it. The peaks fit the yaw and tilt zero offsets and the
+   holder's tilt (bench/_alignment.fit_alignment).
+2. **Linearity** (:func:`linearity`): an exposure ladder on the white reference at one pose,
+   monitor-normalised, fits the integral non-linearity ``gamma``.
+3. **Reference factor** (:func:`reference_factor`): the reference's own signal over a 5 x 5
+   in-plane grid of (theta_i, theta_o), at the calibrated angles, linearity-corrected and
+   divided by the monitor and cos(theta_i), fits its departure from Lambertian; the file
+   carries the ``[reference] factor`` table bench/_measure.ReferenceModel applies.
+
+The file (:func:`write_calibration`) holds values, standard uncertainties, the procedure, the
+seed and the versions. Tables ``[alignment]``, ``[linearity]``, ``[aperture]`` and
+``[reference]`` merge into the instrument settings of a capture that uses it
+(:func:`merge_calibration`), so its session.toml records them.
+
+Per-point standard uncertainties the calibration implies (the GUM budget's type-B inputs;
+docs/interfaces.md, "Calibration"): :func:`calibrated_angles` (the angles a point really had),
+:func:`angle_uncertainty` (their covariance, split into the part shared by every point and the
+part independent per point), :func:`u_reference_factor`, :func:`u_linearity_rel`,
+:func:`u_stray_rel` and :func:`instrument_response` (the source and detector solid angles for
+a forward model of the angular response).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from gonio.models.atomic import atomic_open
+
+from . import _alignment as al
+from . import kinematics
+from .errors import GonioError
+
+__all__ = ["SimBench", "calibrate", "align", "linearity", "reference_factor", "write_calibration",
+           "read_calibration", "merge_calibration", "calibrated_angles", "angle_uncertainty",
+           "u_reference_factor", "u_linearity_rel", "u_stray_rel", "instrument_response",
+           "GLOSSY_ARTEFACT", "calibrate_cli"]
+
+#: The glossy artefact of the alignment (a rough metal, GGX alpha 0.1: a lobe of about 7 deg
+#: FWHM, bright enough for 1/8000 s and wide enough for 0.8 deg steps).
+GLOSSY_ARTEFACT = {"model": "roughconductor", "params": {"alpha": 0.1}}
+SCAN_LAMP_DEG = 60.0
+SCAN_AZIMUTHS = (0.0, 90.0, 180.0, 270.0)
+SCAN_HALF_DEG, SCAN_STEP_DEG = 7.0, 1.0
+FACTOR_ANGLES = (10.0, 25.0, 40.0, 55.0, 70.0)
+
+
+class SimBench:
+    """The simulated instrument's physics, driven directly (no protocol ports).
+
+    Methods a calibration bench offers: ``move(stage_deg)`` (absolute, the four stages),
+    ``frame(exposure_s)`` (raw mosaic minus black, DN, float), ``monitor()`` (lamp power, W) and
+    ``full_scale`` (DN). Moves go through the stages' physics, so zero offsets, backlash and
+    repeatability act as they do in a capture.
+    """
+
+    def __init__(self, inst):
+        self.inst = inst
+        inst.home_all()
+        inst.lamp.switch(inst.clock.now(), True)
+        self.full_scale = float(inst.sensor.white - inst.sensor.black)
+
+    def move(self, stage_deg) -> None:
+        inst = self.inst
+        t = inst.clock.now()
+        ends = []
+        for name, deg in zip(kinematics.AXES, stage_deg):
+            a = inst.axes[inst.axis_names.index(name)]
+            a.move_abs(t, int(round(float(deg) * a.cycle_dist / 360.0)))
+            ends.append(a.end_time(t) or t)
+        inst.clock.advance(max(ends) - t + 1e-3)
+
+    def frame(self, exposure_s: float) -> np.ndarray:
+        import tifffile
+
+        raw = tifffile.imread(io.BytesIO(self.inst.capture(exposure_s)))
+        return raw.astype(np.float64) - self.inst.sensor.black
+
+    def monitor(self, n: int = 10) -> float:
+        inst = self.inst
+        return float(np.mean([inst.meter.read(inst.lamp.power(inst.clock.now())) for _ in range(n)]))
+
+
+# ----------------------------------------------------------------------------- measurements
+def _squares(bench, stage_deg, settings, exposure):
+    """Mean DN of the sample and reference regions (2x2 super-pixels) in one frame."""
+    raw = bench.frame(exposure)
+    h, w = raw.shape[0] // 2, raw.shape[1] // 2
+    sp = raw[:2 * h, :2 * w].reshape(h, 2, w, 2).sum(axis=(1, 3)) / 4.0
+    ms, mr = kinematics.roi_masks(np.asarray(stage_deg, float), settings, binning=2)
+    if ms.sum() < 4 or mr.sum() < 4:
+        raise GonioError(f"calibration pose {list(stage_deg)} does not show both squares; check [holder]")
+    return float(sp[ms].mean()), float(sp[mr].mean()), float(sp[ms].max())
+
+
+def _exposure_for(bench, stage_deg, settings, target=0.6, which=2):
+    """Exposure putting region statistic ``which`` (0 sample mean, 1 reference mean, 2 sample
+    max) at ``target`` of full scale: probes from ``probe_s``, an eighth of it while saturated."""
+    cap = settings["capture"]
+    lo, hi = float(cap["exposure_min_s"]), float(cap["exposure_max_s"])
+    t = float(cap["probe_s"])
+    bench.move(stage_deg)
+    for _ in range(12):
+        level = _squares(bench, stage_deg, settings, t)[which]
+        if level >= 0.9 * bench.full_scale:
+            if t <= lo:
+                return lo
+            t = max(t / 8.0, lo)
+            continue
+        t_new = float(np.clip(t * target * bench.full_scale / max(level, 1e-9), lo, hi))
+        if abs(t_new / t - 1) < 0.3 or t_new in (lo, hi):
+            return t_new
+        t = t_new
+    return t
+
+
+def _scan(bench, settings, base, axis, xs, exposure):
+    """Ratio sample/reference along ``axis`` (0 yaw, 1 tilt) up then down; peak of each pass."""
+    out = []
+    for order in (xs, xs[::-1]):
+        pre = list(base)
+        pre[axis] = order[0] - (order[1] - order[0])          # approach the first point in the pass direction
+        bench.move(pre)
+        ratio = []
+        for x in order:
+            s = list(base)
+            s[axis] = x
+            bench.move(s)
+            smp, ref, _ = _squares(bench, s, settings, exposure)
+            ratio.append(smp / ref)
+        out.append(al.fit_peak(order, ratio)[:2])
+    (up, u_up), (down, u_down) = out
+    return 0.5 * (up + down), 0.5 * math.hypot(u_up, u_down), up - down, math.hypot(u_up, u_down)
+
+
+def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: float = 0.0) -> dict:
+    """Specular cross-scans at four azimuths; returns the ``[alignment]`` table.
+
+    The lamp arm is positioned once per azimuth: its repeatability (``repeat_deg``, the stages'
+    data sheet) moves that azimuth's yaw peak by half of a draw, so half of it adds in
+    quadrature to each yaw peak's uncertainty.
+    """
+    xs0 = np.arange(-SCAN_HALF_DEG, SCAN_HALF_DEG + 1e-9, SCAN_STEP_DEG)
+    L = SCAN_LAMP_DEG
+    peaks, back = [], {"yaw": [], "tilt": []}
+    t = _exposure_for(bench, [0.5 * L, 0.0, SCAN_AZIMUTHS[0], L], settings)     # the artefact is isotropic
+    for k, az in enumerate(SCAN_AZIMUTHS):
+        centre = [0.5 * L, 0.0, az, L]
+        # the lamp arm reaches L from below at two opposite azimuths and from above at the other
+        # two: its backlash is then a parameter of the fit, not a bias of the yaw zero
+        side = -1.0 if k % 2 == 0 else 1.0
+        bench.move([0.5 * L, 0.0, az, L + side])
+        y, uy, by, uby = _scan(bench, settings, centre, 0, 0.5 * L + xs0, t)
+        y_at = round(y * 2000.0) / 2000.0                           # the microstep grid (720000/rev)
+        tc, utc, bt, ubt = _scan(bench, settings, [y_at, 0.0, az, L], 1, xs0, t)
+        peaks.append({"azimuth": az, "lamp": L, "yaw": y, "u_yaw": math.hypot(uy, 0.5 * repeat_deg), "tilt": tc,
+                      "u_tilt": utc,
+                      "tilt_scan_at": 0.0, "yaw_scan_at": y_at, "lamp_side": side})
+        back["yaw"].append((by, uby))
+        back["tilt"].append((bt, ubt))
+    fit = al.fit_alignment(peaks, lamp_zero_u_deg)
+    cov = np.asarray(fit["cov"])
+    table = {name: float(v) for name, v in zip(fit["names"], fit["p"])}
+    table.update({f"u_{name}": float(math.sqrt(cov[i, i])) for i, name in enumerate(fit["names"])})
+    table["cov_deg2"] = cov[:4, :4].tolist()
+    for ax, vals in back.items():
+        b = np.array([v for v, _ in vals])
+        u = np.array([e for _, e in vals])
+        wts = 1.0 / u ** 2
+        table[f"backlash_{ax}_deg"] = float(np.sum(wts * b) / np.sum(wts))
+        table[f"u_backlash_{ax}_deg"] = float(1.0 / math.sqrt(np.sum(wts)))
+    table.update({"lamp_zero_u_deg": float(lamp_zero_u_deg), "chi2": fit["chi2"], "dof": fit["dof"],
+                  "peaks": [[p["azimuth"], p["yaw"], p["u_yaw"], p["tilt"], p["u_tilt"]] for p in peaks]})
+    return table
+
+
+def linearity(bench, settings: Mapping, stage_deg=(20.0, 0.0, 0.0, 50.0), rungs: int = 8, frames: int = 4) -> dict:
+    """Exposure ladder on the reference square up to 80 % of full scale (shot noise and PRNU keep
+    its brightest pixels below saturation); the ``[linearity]`` table."""
+    t_top = _exposure_for(bench, stage_deg, settings, target=0.8, which=1)
+    ts = t_top * np.geomspace(1.0 / 16.0, 1.0, rungs)
+    y, u = [], []
+    m0 = bench.monitor()
+    for t in ts:
+        vals = []
+        for _ in range(frames):
+            vals.append(_squares(bench, stage_deg, settings, float(t))[1] * m0 / bench.monitor())
+        y.append(np.mean(vals))
+        u.append(max(np.std(vals, ddof=1) / math.sqrt(frames), 1e-6 * np.mean(vals)))
+    fit = al.fit_linearity(ts, y, u, bench.full_scale)
+    return {"gamma": fit["gamma"], "u_gamma": fit["u_gamma"], "chi2": fit["chi2"], "dof": fit["dof"],
+            "exposures_s": ts.tolist()}
+
+
+def _linearise(dn, gamma, full_scale):
+    """Invert ``y = x (1 - gamma x / FS)`` (the smaller root)."""
+    if not gamma:
+        return dn
+    return (1.0 - np.sqrt(np.maximum(1.0 - 4.0 * gamma * dn / full_scale, 0.0))) * full_scale / (2.0 * gamma)
+
+
+def reference_factor(bench, settings: Mapping, cal: Mapping) -> dict:
+    """The reference's f_r over a 5 x 5 grid relative to a Lambertian; the ``[reference]`` table."""
+    gamma = float(cal.get("linearity", {}).get("gamma", 0.0))
+    probe = [FACTOR_ANGLES[0], 0.0, 0.0, 2 * FACTOR_ANGLES[0]]
+    t0 = _exposure_for(bench, probe, settings, target=0.5, which=1) * math.cos(math.radians(FACTOR_ANGLES[0]))
+    cap = settings["capture"]
+    ti, to, y, u = [], [], [], []
+    for a_i in FACTOR_ANGLES:
+        for a_o in FACTOR_ANGLES:
+            stage = [a_o, 0.0, 0.0, a_o + a_i]                  # in plane, lamp on the far side
+            t = float(np.clip(t0 / math.cos(math.radians(a_i)), cap["exposure_min_s"], cap["exposure_max_s"]))
+            bench.move(stage)
+            m = bench.monitor()
+            vals = [_linearise(_squares(bench, stage, settings, t)[1], gamma, bench.full_scale) for _ in range(2)]
+            ang = calibrated_angles(cal, stage)[0]
+            sig = np.mean(vals) / (t * m * math.cos(math.radians(ang[0])))
+            ti.append(ang[0]), to.append(ang[2]), y.append(sig)
+            u.append(sig * max(abs(vals[0] - vals[1]) / (math.sqrt(2) * np.mean(vals)), 2e-4))
+    fit = al.fit_reference_factor(ti, to, y, u)
+    return {"factor_theta_i": fit["grid_deg"], "factor_theta_o": fit["grid_deg"], "factor": fit["factor"],
+            "u_factor": fit["u_factor"], "factor_a": fit["a"], "factor_b": fit["b"], "factor_chi2": fit["chi2"],
+            "factor_dof": fit["dof"]}
+
+
+# ----------------------------------------------------------------------------- using a calibration
+def _p(cal: Mapping) -> np.ndarray:
+    a = cal.get("alignment", {})
+    return np.array([float(a.get(k, 0.0)) for k in ("yaw_zero_deg", "tilt_zero_deg", "holder_tilt_x_deg",
+                                                     "holder_tilt_y_deg")])
+
+
+def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0)):
+    s = np.array(stage, dtype=float, copy=True)
+    s[..., 0] += p[0]
+    s[..., 1] += p[1]
+    if axis_err is not None:
+        s = s + axis_err
+    wi, wo = kinematics.forward(s)
+    H = al.holder_rotation(p[2], p[3])
+    if any(wedge):
+        H = H @ al.holder_rotation(*wedge)
+    wi, wo = wi @ H, wo @ H                       # H.T @ w, row-wise: into the holder's (sample's) frame
+    ti, pi_ = kinematics.angles_of(wi)
+    to, po = kinematics.angles_of(wo)
+    return np.stack([ti, pi_, to, po], -1)
+
+
+def calibrated_angles(cal: Mapping, stage_deg) -> np.ndarray:
+    """The angles points at commanded ``stage_deg`` (..., 4) really had: ``(theta_i, phi_i,
+    theta_o, phi_o)`` (..., 4) in degrees, with the calibration's zero offsets and holder tilt.
+
+    With an empty calibration this is ``kinematics.forward_angles``.
+    """
+    return _angles(np.atleast_2d(np.asarray(stage_deg, float)), _p(cal))
+
+
+def _jacobian(stage, p, which, h=1e-3):
+    """d angles / d (error ``which``) by central differences, (N, 4) per error, degrees/degree."""
+    out = []
+    for k in range(len(which)):
+        d = np.zeros(len(which))
+        d[k] = h
+        plus, minus = _eval_errors(stage, p, which, d), _eval_errors(stage, p, which, -d)
+        diff = plus - minus
+        diff[..., 1::2] = (diff[..., 1::2] + 180.0) % 360.0 - 180.0    # phi differences wrap
+        out.append(diff / (2 * h))
+    return np.stack(out, -1)                                          # (N, 4, K)
+
+
+def _eval_errors(stage, p, which, d):
+    pp, ax, wd = p.copy(), np.zeros(4), np.zeros(2)
+    for name, v in zip(which, d):
+        if name in ("p0", "p1", "p2", "p3"):
+            pp[int(name[1])] += v
+        elif name.startswith("axis"):
+            ax[int(name[4])] += v
+        else:
+            wd[int(name[5])] += v
+    return _angles(stage, pp, ax, tuple(wd))
+
+
+def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
+    """Covariance of each point's calibrated angles ``(theta_i, phi_i, theta_o, phi_o)``, deg^2.
+
+    Returns
+    -------
+    dict
+        ``angles`` (N, 4); ``cov_shared`` (N, 4, 4): the alignment fit's covariance (zero
+        offsets, holder tilt), the lamp arm's surveyed zero and the sample's wedge (not seen by
+        the artefact's scan), the same errors at every point, hence correlated across points;
+        ``cov_independent`` (N, 4, 4): each move's repeatability and half the backlash, drawn
+        anew per point; ``u_theta_i``, ``u_theta_o``, ``u_phi_i``, ``u_phi_o`` (N,): the
+        combined standard uncertainties. Multiply by the local slope of f_r (the budget's
+        ``u_angle``).
+    """
+    stage = np.atleast_2d(np.asarray(stage_deg, float))
+    a = cal.get("alignment", {})
+    p = _p(cal)
+    cov_p = np.asarray(a.get("cov_deg2", np.zeros((4, 4))), float)
+    shared = ["p0", "p1", "p2", "p3", "axis3", "wedge0", "wedge1"]
+    cs = np.zeros((7, 7))
+    cs[:4, :4] = cov_p
+    cs[4, 4] = float(a.get("lamp_zero_u_deg", 0.0)) ** 2
+    cs[5, 5] = cs[6, 6] = float(a.get("wedge_u_deg", 0.0)) ** 2
+    rep = float(a.get("repeat_deg", 0.0))
+    half_b = [0.5 * abs(float(a.get(f"backlash_{n}_deg", 0.0))) for n in ("yaw", "tilt")]
+    half_b += [max(half_b), 0.5 * abs(float(a.get("backlash_lamp_deg", max(half_b) * 2)))]   # azimuth: not scanned
+    ci = np.diag([rep ** 2 + b ** 2 for b in half_b])
+    Js = _jacobian(stage, p, shared)
+    Ji = _jacobian(stage, p, ["axis0", "axis1", "axis2", "axis3"])
+    cov_s = np.einsum("nak,kl,nbl->nab", Js, cs, Js)
+    cov_i = np.einsum("nak,kl,nbl->nab", Ji, ci, Ji)
+    tot = np.sqrt(np.diagonal(cov_s + cov_i, axis1=1, axis2=2))
+    return {"angles": _angles(stage, p), "cov_shared": cov_s, "cov_independent": cov_i,
+            "u_theta_i": tot[:, 0], "u_phi_i": tot[:, 1], "u_theta_o": tot[:, 2], "u_phi_o": tot[:, 3]}
+
+
+def u_reference_factor(cal: Mapping, theta_i, theta_o) -> np.ndarray:
+    """Standard uncertainty of the reference's factor at (theta_i, theta_o) deg (bilinear in
+    the calibration's ``u_factor`` table; 0 without one). Correlated across points (one fit)."""
+    ref = cal.get("reference", {})
+    if "u_factor" not in ref:
+        return np.zeros(np.broadcast(np.asarray(theta_i), np.asarray(theta_o)).shape)
+    gi, go = np.asarray(ref["factor_theta_i"], float), np.asarray(ref["factor_theta_o"], float)
+    tab = np.asarray(ref["u_factor"], float)
+    from scipy.interpolate import RegularGridInterpolator
+
+    f = RegularGridInterpolator((gi, go), tab, bounds_error=False, fill_value=None)
+    ti, to = np.broadcast_arrays(np.clip(theta_i, gi[0], gi[-1]), np.clip(theta_o, go[0], go[-1]))
+    return f(np.stack([ti, to], -1))
+
+
+def u_linearity_rel(level_sample, level_reference, u_gamma: float) -> np.ndarray:
+    """Relative standard uncertainty of the sample/reference ratio left by the linearity
+    correction: ``u_gamma |l_s - l_r|`` for signal levels as fractions of full scale (each
+    square's merged DN / (white - black) at the exposure that dominated its merge).
+    Correlated across points (one gamma)."""
+    return float(u_gamma) * np.abs(np.asarray(level_sample, float) - np.asarray(level_reference, float))
+
+
+def u_stray_rel(radiance_sample, radiance_reference, floor: float) -> np.ndarray:
+    """Relative standard uncertainty of the ratio from a stray-light floor known only to lie in
+    [0, ``floor``] (rectangular): ``floor / pi |1 / L_s - 1 / L_r| / sqrt(3)``, radiances per
+    unit irradiance (f_r cos theta_i, sr^-1). Correlated across points (one floor)."""
+    ls = np.maximum(np.asarray(radiance_sample, float), 1e-300)
+    lr = np.maximum(np.asarray(radiance_reference, float), 1e-300)
+    return float(floor) / math.pi * np.abs(1.0 / ls - 1.0 / lr) / math.sqrt(3.0)
+
+
+def instrument_response(cal: Mapping) -> dict:
+    """The instrument's angular response for a forward model: source and detector half-angles
+    (deg) and their profile (``uniform disk``: f_r is averaged over a disk of directions around
+    wi and one around wo). Dataset/session attributes ``aperture_*``."""
+    ap = cal.get("aperture", {})
+    return {"aperture_source_half_deg": float(ap.get("source_half_deg", 0.0)),
+            "aperture_detector_half_deg": float(ap.get("detector_half_deg", 0.0)),
+            "aperture_profile": str(ap.get("profile", "uniform disk"))}
+
+
+# ----------------------------------------------------------------------------- the run and its file
+def _sim_bench(settings: Mapping, seed: int):
+    """The virtual instrument with the glossy artefact in the sample slot (its faces parallel:
+    the sample's wedge is switched off for it; every other drawn error is the session's)."""
+    import gonio.sim
+
+    errors = settings.get("errors")
+    spec = {"preset": errors} if isinstance(errors, str) else dict(errors or {})
+    spec["alignment"] = {**dict(spec.get("alignment", {})), "wedge_deg": 0.0}
+    s = {**settings, "errors": spec}
+    reference = {"model": "diffuse", "params": {"reflectance": settings["reference"]["reflectance"]}}
+    try:
+        inst = gonio.sim.Instrument(s, sample=GLOSSY_ARTEFACT, reference=reference, seed=seed)
+    except (ValueError, KeyError) as exc:
+        raise GonioError(f"cannot build the simulated instrument: {exc}") from None
+    model = gonio.sim.error_model(errors)
+    specs = {"repeat_deg": model.stages.repeat_deg, "wedge_u_deg": model.alignment.wedge_deg,
+             "source_half_deg": model.aperture.source_half_deg,
+             "detector_half_deg": model.aperture.detector_half_deg, "stray_floor": model.stray.floor,
+             "errors": model.to_dict()}
+    return SimBench(inst), specs
+
+
+def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None = None,
+              lamp_zero_u_deg: float = 0.02) -> dict:
+    """Run the three procedures; return the calibration document (tables of plain values).
+
+    ``bench`` None: the simulated instrument built from ``settings`` (its ``[errors]``) and
+    ``seed``. ``specs``: data-sheet values the procedures cannot measure (``repeat_deg``,
+    ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``, ``stray_floor``); with the
+    simulator they come from its error model, on hardware from ``[calibration]`` of the settings.
+    """
+    from ._journal import versions
+
+    t0 = time.perf_counter()
+    sim = bench is None
+    if sim:
+        bench, specs = _sim_bench(settings, seed)
+    specs = dict(specs or settings.get("calibration", {}))
+    cal = {"calibration": {
+        "procedure": (f"specular cross-scans (yaw, tilt; up and down; {SCAN_STEP_DEG} deg steps over "
+                      f"+-{SCAN_HALF_DEG} deg) of a glossy artefact ({GLOSSY_ARTEFACT['model']} alpha "
+                      f"{GLOSSY_ARTEFACT['params']['alpha']}) at azimuths {list(SCAN_AZIMUTHS)}, lamp "
+                      f"{SCAN_LAMP_DEG} deg; exposure ladder on the reference; the reference over a "
+                      f"{len(FACTOR_ANGLES)}x{len(FACTOR_ANGLES)} in-plane grid"),
+        "seed": int(seed), "sim": sim, "versions": versions()}}
+    if sim:
+        cal["calibration"]["errors"] = specs.pop("errors")
+    a = align(bench, settings, lamp_zero_u_deg, float(specs.get("repeat_deg", 0.0)))
+    a["repeat_deg"] = float(specs.get("repeat_deg", 0.0))
+    a["wedge_u_deg"] = float(specs.get("wedge_u_deg", 0.0))
+    cal["alignment"] = a
+    cal["linearity"] = linearity(bench, settings)
+    cal["reference"] = reference_factor(bench, settings, cal)
+    cal["aperture"] = {"source_half_deg": float(specs.get("source_half_deg", 0.0)),
+                       "detector_half_deg": float(specs.get("detector_half_deg", 0.0)),
+                       "profile": "uniform disk"}
+    cal["stray"] = {"floor": float(specs.get("stray_floor", 0.0))}
+    cal["calibration"]["wall_s"] = round(time.perf_counter() - t0, 3)
+    return cal
+
+
+def write_calibration(path: Path, cal: Mapping) -> Path:
+    """Write the calibration document as TOML (atomically; read back before it is renamed)."""
+    from ._journal import session_text
+
+    text = "# gonio calibration file (gonio calibrate): values, standard uncertainties (u_*), procedure, seed\n"
+    text += session_text(cal)
+    with atomic_open(path, "w") as fh:
+        fh.write(text)
+    return Path(path)
+
+
+_CAL_TABLES = ("alignment", "linearity", "reference", "aperture", "stray")
+
+
+def read_calibration(path: Path) -> dict:
+    """Read a calibration file; GonioError (one line) if it is not one."""
+    import tomllib
+
+    try:
+        doc = tomllib.loads(Path(path).read_text())
+    except OSError as exc:
+        raise GonioError(f"cannot read calibration file {path}: {exc.strerror}; check the path") from None
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError):
+        raise GonioError(f"{path} is not a calibration TOML file; give the file `gonio calibrate` wrote") from None
+    if not isinstance(doc.get("calibration"), dict) or not isinstance(doc.get("alignment"), dict):
+        raise GonioError(f"{path} has no [calibration] and [alignment] tables; give the file `gonio calibrate` wrote")
+    for key in ("yaw_zero_deg", "tilt_zero_deg", "holder_tilt_x_deg", "holder_tilt_y_deg"):
+        v = doc["alignment"].get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > 10:
+            raise GonioError(f"{path}: [alignment] {key} is missing or not a finite angle within 10 deg")
+    return doc
+
+
+def merge_calibration(settings: Mapping, cal: Mapping) -> dict:
+    """Settings with the calibration's tables merged in (the reference's factor table replaces
+    the settings'; the certificate's reflectance and rel_std stay)."""
+    out = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in settings.items()}
+    for key in _CAL_TABLES:
+        if key in cal:
+            out[key] = {**dict(out.get(key, {})), **dict(cal[key])}
+    out["calibration"] = {**dict(out.get("calibration", {})),
+                          **{k: v for k, v in cal["calibration"].items() if k != "versions"}}
+    return out
+
+
+def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int) -> int:
+    """``gonio calibrate``: refuse bad input in one line before anything is written."""
+    from ._preflight import check_output_file
+    from ._settings import load_settings
+
+    if not sim:
+        raise GonioError("calibrate runs on the simulated instrument for now (--sim); the hardware procedure "
+                         "needs the drivers' scan loop (not built yet)")
+    s = load_settings(settings)
+    if errors is not None:
+        old = s.get("errors")
+        s["errors"] = {**({} if not isinstance(old, dict) else old), "preset": errors}
+    check_output_file(out, "calibration file")
+    cal = calibrate(s, seed=seed)
+    write_calibration(out, cal)
+    a = cal["alignment"]
+    print(f"wrote {out}: yaw zero {a['yaw_zero_deg']:+.4f} +- {a['u_yaw_zero_deg']:.4f} deg, tilt zero "
+          f"{a['tilt_zero_deg']:+.4f} +- {a['u_tilt_zero_deg']:.4f} deg, holder tilt ({a['holder_tilt_x_deg']:+.4f}, "
+          f"{a['holder_tilt_y_deg']:+.4f}) +- ({a['u_holder_tilt_x_deg']:.4f}, {a['u_holder_tilt_y_deg']:.4f}) deg; "
+          f"gamma {cal['linearity']['gamma']:.5f} +- {cal['linearity']['u_gamma']:.5f}; "
+          f"{cal['calibration']['wall_s']:.1f} s")
+    return 0

@@ -1,0 +1,135 @@
+"""gonio calibrate (bench/calibrate.py, bench/_alignment.py) against the simulator's hidden errors.
+
+Statistics: every check of an estimate against the truth is a two-sided z-test with the
+estimate's own stated standard uncertainty; each test's family of k parameters shares a false
+alarm of 1e-3 (Bonferroni: |z| < Phi^-1(1 - 5e-4 / k)). Power: the simulated offsets are drawn
+with 1-sigma 0.1-0.2 deg and their stated uncertainties are 0.001-0.01 deg, so an alignment that
+found nothing (estimate 0) fails each test with the drawn truth here (checked in the tests).
+Outcomes depend on the seeded noise, not on float summation order (|z| here are below 2.3 in
+16 seeded sessions, the threshold is 3.8 or more).
+"""
+
+import math
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+import gonio.sim as gs
+from gonio.bench import _alignment as al
+from gonio.bench import calibrate as C
+from gonio.bench._settings import default_settings, validate_settings
+from gonio.bench.cli import main
+from gonio.sim._errors import spectralon_factor
+
+SEED = 3
+
+
+def _threshold(k: int, alpha: float = 1e-3) -> float:
+    return float(norm.isf(alpha / (2 * k)))
+
+
+@pytest.fixture(scope="module")
+def run():
+    s = default_settings()
+    s["errors"] = {"preset": "typical"}
+    cal = C.calibrate(s, seed=SEED)
+    truth = gs.Instrument(s, seed=SEED).error_state
+    return s, cal, truth
+
+
+def _effective_tilt(truth):
+    """The holder's normal in the azimuth counter's frame (the azimuth zero turns it) as (ax, ay)."""
+    n = al._rz(math.radians(truth.zero_deg[2])) @ al.holder_rotation(*truth.tilt_deg)[:, 2]
+    return math.degrees(math.atan2(-n[1], n[2])), math.degrees(math.asin(n[0]))
+
+
+def test_alignment_recovers_zero_offsets_tilt_and_backlash(run):
+    s, cal, truth = run
+    a = cal["alignment"]
+    ax, ay = _effective_tilt(truth)
+    b = truth.model.stages.backlash_deg
+    pairs = {"yaw_zero_deg": truth.zero_deg[0], "tilt_zero_deg": truth.zero_deg[1], "holder_tilt_x_deg": ax,
+             "holder_tilt_y_deg": ay, "backlash_yaw_deg": b, "backlash_tilt_deg": b, "backlash_lamp_deg": b}
+    z = {k: (a[k] - v) / a[f"u_{k}"] for k, v in pairs.items()}
+    assert max(abs(v) for v in z.values()) < _threshold(len(z)), z
+    # power: "no alignment" (all zero) is rejected for the offsets drawn here
+    z0 = [abs(pairs[k]) / a[f"u_{k}"] for k in ("yaw_zero_deg", "tilt_zero_deg", "holder_tilt_x_deg", "holder_tilt_y_deg")]
+    assert min(z0) > _threshold(4), z0
+    assert 0 <= a["chi2"] < 16.3                                  # chi2_3 0.999 point: the peaks' u are honest
+
+
+def test_linearity_and_reference_factor(run):
+    s, cal, truth = run
+    lin = cal["linearity"]
+    assert abs(lin["gamma"] - truth.model.linearity.gamma) / lin["u_gamma"] < _threshold(1)
+    assert truth.model.linearity.gamma / lin["u_gamma"] > _threshold(1)      # non-linearity detected
+    ref = cal["reference"]
+    g = np.radians(ref["factor_theta_i"])
+    true = spectralon_factor(g[:, None], g[None, :], truth.model.reference.non_lambertian)
+    u = np.asarray(ref["u_factor"])
+    z = (np.asarray(ref["factor"]) - true)[u > 0] / u[u > 0]
+    assert np.max(np.abs(z)) < _threshold(z.size), z
+    assert np.max(np.abs(true - 1)) / np.max(u) > _threshold(1)            # the departure is resolved
+
+
+def test_calibrated_angles_are_the_true_ones_within_their_uncertainty(run):
+    """At capture poses of the same (typical) instrument the calibrated angles match its hidden
+    geometry within the stated per-point u; the uncalibrated kinematics miss it by more."""
+    s, cal, truth = run
+    sim = gs.Instrument(s, seed=SEED)
+    bench = C.SimBench(sim)
+    poses = [(20.0, 0.0, 0.0, 60.0), (40.0, 10.0, 45.0, 90.0), (-30.0, -15.0, 120.0, 20.0), (55.0, 5.0, 200.0, 110.0)]
+    u = C.angle_uncertainty(cal, poses)
+    est = u["angles"]
+    nominal = C.calibrated_angles({}, poses)
+    zs, miss = [], []
+    for k, pose in enumerate(poses):
+        bench.move(pose)
+        g = sim.geometry()
+        ti, to = (math.degrees(math.acos(g[w][2])) for w in ("wi", "wo"))
+        zs += [(est[k, 0] - ti) / u["u_theta_i"][k], (est[k, 2] - to) / u["u_theta_o"][k]]
+        miss += [abs(nominal[k, 0] - ti) / u["u_theta_i"][k], abs(nominal[k, 2] - to) / u["u_theta_o"][k]]
+    assert max(abs(z) for z in zs) < _threshold(len(zs)), zs
+    assert max(miss) > _threshold(len(zs)), miss
+    assert np.all(u["cov_shared"][:, 0, 0] > 0) and np.all(u["cov_independent"][:, 0, 0] > 0)
+
+
+def test_file_round_trip_merges_into_settings(run, tmp_path):
+    s, cal, _ = run
+    path = C.write_calibration(tmp_path / "cal.toml", cal)
+    back = C.read_calibration(path)
+    assert back["alignment"]["yaw_zero_deg"] == cal["alignment"]["yaw_zero_deg"]
+    assert back["calibration"]["seed"] == SEED and "gonio" in back["calibration"]["versions"]
+    merged = validate_settings(C.merge_calibration(default_settings(), back))
+    assert merged["reference"]["reflectance"] == 0.99 and merged["reference"]["factor"] == cal["reference"]["factor"]
+    assert C.instrument_response(merged) == {"aperture_source_half_deg": 0.5, "aperture_detector_half_deg": 0.5,
+                                             "aperture_profile": "uniform disk"}
+    assert C.u_reference_factor(merged, 40.0, 40.0) > 0
+    (tmp_path / "bad.toml").write_text("[alignment]\nyaw_zero_deg = nan\n[calibration]\n")
+    for bad in (tmp_path / "bad.toml", tmp_path / "missing.toml"):
+        with pytest.raises(C.GonioError):
+            C.read_calibration(bad)
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["calibrate", "--out", "{tmp}/c.toml"], "--sim"),
+    (["calibrate", "--sim", "--out", "{tmp}"], "folder"),
+    (["calibrate", "--sim", "--errors", "awful", "--out", "{tmp}/c.toml"], "invalid choice"),
+])
+def test_cli_refuses_bad_input_in_one_line(tmp_path, capsys, argv, words):
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    try:
+        rc = main(argv)
+    except SystemExit as exc:                      # argparse's own refusals
+        rc = exc.code
+    err = capsys.readouterr().err
+    assert rc == 2 and words in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "c.toml").exists()
+
+
+def test_uncertainty_helpers():
+    assert C.u_linearity_rel(0.8, 0.2, 1e-4) == pytest.approx(6e-5)
+    assert C.u_stray_rel(1.0, 1.0, 1e-3) == 0.0
+    assert C.u_stray_rel(0.01, 0.3, 1e-3) == pytest.approx(1e-3 / math.pi * (100 - 1 / 0.3) / math.sqrt(3))
+    empty = C.angle_uncertainty({}, [(10.0, 0.0, 0.0, 40.0)])
+    assert empty["u_theta_i"][0] == 0.0 and empty["u_theta_o"][0] == 0.0
