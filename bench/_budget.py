@@ -7,7 +7,8 @@ Every value of ``brdf`` carries its standard uncertainty split by component, one
   JCGM 100 4.2) or ``"B"`` (from other information: a certificate, a calibration, a model;
   JCGM 100 4.3);
 * ``correlation``: how the component's errors are shared across values, ``"none"``
-  (independent from value to value), ``"full"`` (one common error: every value moves
+  (independent from value to value), ``"point"`` (one error per point, shared by its
+  channels, independent between points), ``"full"`` (one common error: every value moves
   together), ``"channel"`` (one common error per colour channel, independent between
   channels) or ``"group:<var>"`` (one common error per integer label of the variable
   ``<var>``, on point or (point, channel));
@@ -44,7 +45,7 @@ import numpy as np
 __all__ = ["Component", "budget_variables", "CORRELATIONS", "BUDGET_FORMAT"]
 
 BUDGET_FORMAT = "gonio-budget/1"
-CORRELATIONS = ("none", "full", "channel")
+CORRELATIONS = ("none", "point", "full", "channel")
 _NAME = re.compile(r"^[a-z][a-z0-9_]{0,40}$")
 
 

@@ -43,9 +43,10 @@ STATISTICAL = "statistical"
 
 @dataclasses.dataclass
 class BudgetComponent:
-    """One component: ``value`` (N, C) in sr^-1 (signed where correlated), its GUM type,
-    its correlation (``none``, ``full``, ``channel`` or ``group``) and, for ``group``,
-    integer labels (N, C)."""
+    """One component: ``value`` (N, C) in sr^-1 (signed where correlated), or (K, N, C) for K
+    independent inputs of the same kind; its GUM type; its correlation (``none``: every value
+    its own error; ``point``: one error per point, shared by its channels; ``full``,
+    ``channel``, ``group``: shared across points) and, for ``group``, integer labels (N, C)."""
 
     name: str
     value: np.ndarray
@@ -57,23 +58,44 @@ class BudgetComponent:
     @property
     def statistical(self) -> bool:
         """Type A and independent: represented by the fit's own statistical covariance."""
-        return self.gum_type == "A" and self.correlation == "none"
+        return self.gum_type == "A" and self.correlation == "none" and np.ndim(self.value) == 2
 
-    def columns(self, use: np.ndarray) -> np.ndarray:
-        """The shared-error shifts, (n_groups, N, C): a data shift per unit shared error."""
+    def covariance(self, G: np.ndarray, use: np.ndarray) -> np.ndarray:
+        """Its covariance of the parameters, P x P, from G (P, N, C) (zero at unused values):
+        a sum of g g^T over its shared errors, g = the parameters' shift for +1 sigma of one."""
         v = np.where(use, self.value, 0.0)
-        if self.correlation == "full":
-            return v[None]
-        if self.correlation == "channel":
-            return np.stack([np.where(np.arange(v.shape[1]) == c, v, 0.0) for c in range(v.shape[1])])
-        labels = np.broadcast_to(self.groups, v.shape)
-        return np.stack([np.where(labels == g, v, 0.0) for g in np.unique(labels[use])])
+        v = v[None] if v.ndim == 2 else v
+        P = G.shape[0]
+        cov = np.zeros((P, P))
+        for vk in v:                                    # K independent inputs
+            contrib = G * vk[None]                      # (P, N, C)
+            if self.correlation == "none":
+                g = contrib.reshape(P, -1)
+            elif self.correlation == "point":
+                g = contrib.sum(axis=2)
+            elif self.correlation == "full":
+                g = contrib.sum(axis=(1, 2))[:, None]
+            elif self.correlation == "channel":
+                g = contrib.sum(axis=1)
+            else:
+                labels = np.broadcast_to(self.groups, vk.shape)
+                flat, lab = contrib.reshape(P, -1), labels.reshape(-1)
+                g = np.stack([flat[:, lab == k].sum(axis=1) for k in np.unique(labels[use])], axis=1)
+            cov += g @ g.T
+        return cov
 
 
 @dataclasses.dataclass
 class Budget:
+    """The components, and where the dataset states its angles' uncertainty (degrees):
+    ``angles = {"shared": (K, N, 4), "independent": (J, N, 4)}``, the change of each point's
+    (theta_i, phi_i, theta_o, phi_o) for +1 sigma of each shared input (zero offsets, holder
+    tilt: the same error at every point) and of each per-move input (repeatability, backlash).
+    The fit turns them into f_r by its model's local slope (:func:`angle_components`)."""
+
     components: list
     source: str = "dataset"
+    angles: dict | None = None
 
     def describe(self) -> dict:
         return {c.name: {"gum_type": c.gum_type, "correlation": c.correlation, "source": c.source}
@@ -112,14 +134,37 @@ def load_budget(path, meas) -> Budget:
                 groups = np.broadcast_to(np.asarray(ds[gname].values, np.int64).reshape(value.shape[0], -1),
                                          value.shape).copy()
                 corr = "group"
-            if gtype not in ("A", "B") or corr not in ("none", "full", "channel", "group"):
+            if gtype not in ("A", "B") or corr not in ("none", "point", "full", "channel", "group"):
                 raise ValueError(f"{path}: {v} has gum_type {gtype!r:.10} and correlation {corr!r:.30}; "
                                  "see docs/interfaces.md 5.1")
             if value.shape != meas.brdf.shape or not np.all(np.isfinite(value[meas.use])):
                 raise ValueError(f"{path}: {v} must be finite at every used value, shape {meas.brdf.shape}")
             comps += _in_colour_space(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")),
                                                       groups), colour_transform(meas), path)
-    return Budget(comps) if comps else budget_from_attrs(meas)
+        angles = _angle_shifts(ds, path, meas.n_points)
+    budget = Budget(comps) if comps else budget_from_attrs(meas)
+    return dataclasses.replace(budget, angles=angles)
+
+
+#: the dataset variables of the angles' uncertainty (docs/interfaces.md 5.1), degrees
+ANGLE_SHIFTS = {"shared": "angle_shift_shared", "independent": "angle_shift_independent"}
+
+
+def _angle_shifts(ds, path, n_points):
+    """``{shared, independent}``: (K, N, 4) arrays from ``angle_shift_*`` (input, point, angle); None without."""
+    out = {}
+    for key, name in ANGLE_SHIFTS.items():
+        if name not in ds.variables:
+            continue
+        v = ds[name]
+        try:
+            arr = np.asarray(v.transpose(v.dims[0], "point", "angle").values, float)
+        except (ValueError, KeyError):
+            raise ValueError(f"{path}: {name} must have dimensions (input, point, angle)") from None
+        if arr.ndim != 3 or arr.shape[1:] != (n_points, 4) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{path}: {name} must be finite, (inputs, {n_points} points, 4 angles) in degrees")
+        out[key] = arr
+    return out or None
 
 
 def _in_colour_space(comp: BudgetComponent, s, path) -> list:
@@ -156,6 +201,40 @@ def _sensitivity(result, meas):
     return -np.linalg.pinv(J, rcond=1e-10) * drdy[None, :]
 
 
+def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
+    """d f_r / d (theta_i, phi_i, theta_o, phi_o) (N, C, 4), sr^-1 per degree, by central
+    differences of the model at ``params``."""
+    from gonio.models.geometry import angles, directions
+
+    ti, pi_ = angles(wi)
+    to, po = angles(wo)
+    base = np.stack([ti, pi_, to, po], axis=-1)
+    h = np.radians(h_deg)
+    out = []
+    for a in range(4):
+        plus, minus = base.copy(), base.copy()
+        plus[:, a] += h
+        minus[:, a] -= h
+        fp = model.eval(directions(plus[:, 0], plus[:, 1]), directions(plus[:, 2], plus[:, 3]), params)
+        fm = model.eval(directions(minus[:, 0], minus[:, 1]), directions(minus[:, 2], minus[:, 3]), params)
+        out.append((fp - fm) / (2 * h_deg))
+    return np.stack(out, axis=-1)
+
+
+def angle_components(result, meas, angles: dict) -> list:
+    """``angle_shared`` (B, full, one input per shared angle error) and ``angle_repeatability``
+    (B, point: one error per point, shared by its channels): the angles' shifts times the
+    fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle)."""
+    S = slope(result.model, result.params, meas.wi, meas.wo)
+    out = []
+    for key, name, corr in (("shared", "angle_shared", "full"), ("independent", "angle_repeatability", "point")):
+        d = np.asarray(angles.get(key, np.zeros((0, meas.n_points, 4))), float)
+        if d.size:
+            out.append(BudgetComponent(name, np.einsum("nca,kna->knc", S, d), "B", corr,
+                                       f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
+    return out
+
+
 def propagate(result, meas, budget: Budget, u_stat: np.ndarray) -> dict:
     """The fit file's ``uncertainty`` section (docs/interfaces.md 5.1): per parameter
     ``u_stat``, ``u_combined``, ``U`` (k = 2), ``k`` and ``budget`` (variance fractions).
@@ -163,23 +242,19 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray) -> dict:
     ``u_stat``: the statistical 1-sigma of each parameter (Birge-inflated where so reported).
     Also ``covariance_combined``: the statistical covariance plus the propagated ones.
     """
-    G = _sensitivity(result, meas)
     use = meas.use
     P = result.space.size
+    G = np.zeros((P,) + use.shape)
+    G[:, use] = _sensitivity(result, meas)
     var, stat_share = {}, {}
     cov_b = np.zeros((P, P))
-    for c in budget.components:
+    comps = list(budget.components) + (angle_components(result, meas, budget.angles) if budget.angles else [])
+    for c in comps:
         if c.statistical:
-            g = G * c.value[use][None, :]
+            g = G[:, use] * c.value[use][None, :]
             stat_share[c.name] = np.einsum("pm,pm->p", g, g)
             continue
-        if c.correlation == "none":
-            g = G * c.value[use][None, :]
-            cov = g @ g.T
-        else:
-            cols = c.columns(use)
-            g = np.stack([G @ col[use] for col in cols], axis=1)     # (P, n_groups)
-            cov = g @ g.T
+        cov = c.covariance(G, use)
         var[c.name] = np.diag(cov).copy()
         cov_b += cov
     u_stat = np.asarray(u_stat, float)

@@ -233,3 +233,23 @@ def test_coverage_of_the_combined_uncertainty():
     for lv in LEVELS:
         for name, h, (lo, hi) in zip(names, hits[lv], bounds[lv]):
             assert lo <= h <= hi, f"{lv} {name}: {h} of {N_SUITE} outside [{lo}, {hi}]"
+
+
+def test_an_angle_offset_propagates_as_a_refit_sees_it(glossy):
+    """A shared theta_i offset of 0.05 deg: the data shift S d (S the fitted model's slope) is
+    what the model gives at the shifted angle, and G (S d) is the refit's parameter shift."""
+    from gonio.fitting._budget import _sensitivity, angle_components
+    from gonio.models.geometry import angles, directions as dirs
+
+    meas, res, _ = glossy
+    d = np.zeros((1, meas.n_points, 4))
+    d[0, :, 0] = 0.05
+    (comp,) = angle_components(res, meas, {"shared": d})
+    ti, pi_ = angles(meas.wi)
+    truth_f = MODEL.eval(meas.wi, meas.wo, res.params)
+    moved_f = MODEL.eval(dirs(ti + np.radians(0.05), pi_), meas.wo, res.params)
+    np.testing.assert_allclose(comp.value[0], moved_f - truth_f, rtol=0.05, atol=1e-3 * np.abs(truth_f).max())
+    predicted = _sensitivity(res, meas) @ comp.value[0][meas.use]
+    refit = fit(Measurements(meas.wi, meas.wo, meas.brdf + (moved_f - truth_f), meas.brdf_std, meas.use),
+                MODEL, rng=np.random.default_rng(7))
+    assert np.all(np.abs((refit.x - res.x) - predicted) <= 0.05 * np.abs(predicted) + 0.05 * res.std)
