@@ -6,6 +6,7 @@
 | ``SENSOR?`` | ``<width> <height> <bits> <black> <white> <cfa>`` |
 | ``EXPOSE <seconds> <path>`` | ``OK <sha256>`` once the DNG is at ``<path>``; ``ERR <reason>`` |
 | ``FLAT <seconds> <path>`` | as ``EXPOSE``, of the flat-field source (integrating sphere) |
+| ``CHART <seconds> <path>`` | as ``EXPOSE``, of the ColorChecker in the holder's chart slot (colour calibration) |
 
 The exposure physics lives in ``Instrument.capture``; this module parses and formats.
 Exposures from 1 us to 60 s are accepted; the path is the rest of the line (spaces allowed),
@@ -47,8 +48,8 @@ class CameraPort:
         if cmd == "SENSOR?" and len(parts) == 1:
             s = self.inst.sensor
             return [f"{s.width} {s.height} {s.bits} {s.black} {s.white} {CFA}"]
-        if cmd in ("EXPOSE", "FLAT"):
-            return [self._expose(parts[1:], "flat" if cmd == "FLAT" else "scene")]
+        if cmd in ("EXPOSE", "FLAT", "CHART"):
+            return [self._expose(parts[1:], {"FLAT": "flat", "CHART": "chart"}.get(cmd, "scene"))]
         return ["ERR unknown command"]
 
     def _expose(self, args, source="scene") -> str:

@@ -48,8 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CameraColour", "DEFAULT_CAMERA", "IDENTITY_CAMERA", "camera_colour", "luther_error",
-           "mallett_fidelity", "srgb_matrices"]
+__all__ = ["CHART_BOX", "CHART_BORDER", "CHART_GRID", "CameraColour", "DEFAULT_CAMERA", "IDENTITY_CAMERA",
+           "camera_colour", "chart_radiance", "luther_error", "mallett_fidelity", "srgb_matrices"]
 
 #: The camera whose NPL-measured sensitivities the simulator uses by default.
 DEFAULT_CAMERA = "Nikon 5100 (NPL)"
@@ -189,3 +189,37 @@ def luther_error(camera: CameraColour) -> np.ndarray:
     est = camera.white_balanced(colour.MultiSpectralDistributions(
         refl, colour.SpectralShape(*_SHAPE).wavelengths)) @ camera.srgb_from_cam.T
     return _delta_e(est, truth)
+
+
+#: Where the holder's ColorChecker slot puts the chart in the camera frame: the box (fractions of
+#: width and height: left, top, right, bottom) holding its 6 x 4 patches; each patch is its grid
+#: cell less a 15 % black border on every side (the bench reads the same declared geometry).
+CHART_BOX = (0.1, 0.1, 0.9, 0.9)
+CHART_GRID = (4, 6)
+CHART_BORDER = 0.15
+#: The chart's spectra: the 24 ColorChecker reflectances measured by Ohta (colour-science).
+CHART_SPECTRA = "ColorChecker N Ohta"
+
+
+def chart_radiance(camera: CameraColour, height: int, width: int) -> np.ndarray:
+    """Raw camera RGB (H, W, 3) of the ColorChecker in its slot, lit at normal incidence by unit
+    irradiance (Lambertian: reflectance / pi per sr), by spectral integration of the Ohta spectra
+    (not through the Mallett model: the chart is a real surface). The borders and the
+    surround are black (reflectance 0.03)."""
+    import colour
+
+    sds = colour.SDS_COLOURCHECKERS[CHART_SPECTRA]
+    patches = camera.white_balanced(colour.MultiSpectralDistributions(
+        np.stack([_align(sd) for sd in sds.values()], 1), colour.SpectralShape(*_SHAPE).wavelengths))
+    img = np.full((height, width, 3), 0.03 / np.pi) * camera.neutral
+    rows, cols = CHART_GRID
+    x0, y0, x1, y1 = CHART_BOX
+    ch, cw = (y1 - y0) * height / rows, (x1 - x0) * width / cols
+    yy, xx = np.mgrid[0:height, 0:width] + 0.5
+    for k in range(rows * cols):
+        r, c = divmod(k, cols)
+        top, left = y0 * height + r * ch, x0 * width + c * cw
+        inside = ((yy > top + CHART_BORDER * ch) & (yy < top + (1 - CHART_BORDER) * ch)
+                  & (xx > left + CHART_BORDER * cw) & (xx < left + (1 - CHART_BORDER) * cw))
+        img[inside] = patches[k] * camera.neutral / np.pi
+    return img

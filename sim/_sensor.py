@@ -136,14 +136,21 @@ class SensorModel:
         and the RGGB mosaic -> (H, W) raw camera RGB."""
         return np.einsum("hwj,hwj->hw", radiance_rgb, self._weights)
 
-    def mean_electrons(self, radiance_rgb: np.ndarray, power: float, exposure: float) -> np.ndarray:
-        """Expected photo + dark electrons per pixel (before DSNU), e-."""
-        signal = self.mosaic(radiance_rgb) * (power * exposure * self.sensitivity)
+    def mean_electrons(self, radiance_rgb: np.ndarray, power: float, exposure: float,
+                       camera_rgb: bool = False) -> np.ndarray:
+        """Expected photo + dark electrons per pixel (before DSNU), e-. ``camera_rgb``: the
+        radiance is already raw camera RGB (a spectrally computed scene, e.g. the colour chart)."""
+        if camera_rgb:
+            ch = self.channel_map
+            mosaic = np.take_along_axis(radiance_rgb, ch[..., None], axis=2)[..., 0]
+        else:
+            mosaic = self.mosaic(radiance_rgb)
+        signal = mosaic * (power * exposure * self.sensitivity)
         signal = np.maximum(signal, 0.0) * self.prnu_map
         return signal + self.dark_current * exposure
 
     def expose(self, radiance_rgb: np.ndarray, power: float, exposure: float,
-               rng: np.random.Generator) -> np.ndarray:
+               rng: np.random.Generator, camera_rgb: bool = False) -> np.ndarray:
         """Simulate one raw frame.
 
         Parameters
@@ -156,13 +163,15 @@ class SensorModel:
             Exposure time, s.
         rng : numpy.random.Generator
             Source of shot and read noise for this frame.
+        camera_rgb : bool
+            ``radiance_rgb`` is raw camera RGB already (not linear sRGB).
 
         Returns
         -------
         (H, W) uint16 array
             Raw mosaic, DN.
         """
-        mu = self.mean_electrons(radiance_rgb, power, exposure)
+        mu = self.mean_electrons(radiance_rgb, power, exposure, camera_rgb)
         e = rng.poisson(mu).astype(np.float64)
         e += self.dsnu_map + rng.normal(0.0, self.read_noise, mu.shape)
         dn = np.rint(self.black + e / self.gain)
