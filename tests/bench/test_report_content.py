@@ -1,0 +1,249 @@
+"""`gonio report` reads like a calibration lab's measurement report (issue 19).
+
+Identification first (sample, operator, date, instrument with serials, reference and its
+certificate, plan, band), a status box that says what is incomplete, inadequate or violated,
+the results with u_c and U rounded by JCGM 100:2008 7.2.6, figures with captions and no
+overlapping labels, an offline interactive view, an appendix, and a print stylesheet that
+headless Chromium turns into a PDF. Without a fit the measured BRDF is still shown.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import re
+import shutil
+import sqlite3
+import subprocess
+from pathlib import Path
+
+import pytest
+
+import report_folder
+from gonio.bench import _report_figures as figs
+from gonio.bench._report_meta import gum
+from gonio.bench.report import write_report
+
+SCRIPT = "<script>alert(1)</script>"
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    return report_folder.build(tmp_path_factory.mktemp("content") / "out")
+
+
+@pytest.fixture
+def out(pristine, tmp_path):
+    folder = tmp_path / "out"
+    shutil.copytree(pristine, folder)
+    preview = folder / "render" / "preview" / "preview.json"      # it names its image by absolute path
+    doc = json.loads(preview.read_text())
+    doc["side_by_side_png"] = str(folder / "render" / "preview" / "side_by_side.png")
+    preview.write_text(json.dumps(doc))
+    return folder
+
+
+@pytest.fixture
+def no_figures(monkeypatch):
+    """Tests of the text skip matplotlib (seconds a report); the figures have their own tests."""
+    monkeypatch.setattr(figs, "draw", lambda images, notes, name, fn, *args: None)
+
+
+def edit_fit(folder, change):
+    doc = json.loads((folder / "fit.json").read_text())
+    change(doc)
+    (folder / "fit.json").write_text(json.dumps(doc))
+
+
+def edit_attrs(folder, **attrs):
+    import xarray as xr
+
+    with xr.open_dataset(folder / "dataset.nc", engine="h5netcdf") as ds:
+        ds.load()
+    ds.attrs.update(attrs)
+    (folder / "dataset.nc").unlink()
+    ds.to_netcdf(folder / "dataset.nc", engine="h5netcdf")
+    return ds
+
+
+def journal(folder, ident) -> None:
+    """A session journal holding one identification event, as bench/drivers/identify.record writes it."""
+    (folder / "session").mkdir(exist_ok=True)
+    db = sqlite3.connect(folder / "session" / "journal.sqlite")
+    db.execute("CREATE TABLE events (id INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, kind TEXT NOT NULL, "
+               "text TEXT NOT NULL)")
+    db.execute("INSERT INTO events (time, kind, text) VALUES (1, 'identification', ?)", (json.dumps(ident),))
+    db.commit()
+    db.close()
+
+
+def section(page: str, start: str, end: str) -> str:
+    return page[page.index(start):page.index(end)]
+
+
+@pytest.mark.parametrize("value, u, want", [
+    (100.02147, 0.00035, ("100.02147", "0.00035")),     # JCGM 100:2008 7.2.2: m_s = 100.02147 g, u_c = 0.35 mg
+    (100.02147, 0.00079, ("100.02147", "0.00079")),     # JCGM 100:2008 7.2.4: U = 0.79 mg (k = 2.26)
+    (0.5500496, 7.696e-05, ("0.550050", "0.000077")),   # the issue's `0.55 +- 7.7e-05`, now to u's digit
+    (0.15, 9.96e-05, ("0.15000", "0.00010")),           # u rounds up to the next decade
+    (1234.5, 123.4, ("1230", "120")),                   # whole numbers rounded to u's place
+    (-0.3, 0.012, ("-0.300", "0.012")),
+    (1.23456e-12, 3.4e-15, ("1.2346e-12", "0.0034e-12")),  # one shared power of ten
+    (0.55, float("nan"), ("0.55", "nan")),
+])
+def test_gum_rounding(value, u, want):
+    assert gum(value, u) == want
+
+
+def test_the_report_opens_with_identification_status_and_results(out, no_figures):
+    journal(out, {"zaber_port": "/dev/ttyUSB0", "meter": "Thorlabs,PM100USB,P2001234,1.7.0",
+                  "camera": "Nikon D5100 " + SCRIPT, "meter_port": "USB0::0x1313",
+                  "zaber": [{"address": 1, "device_id": "30342", "serial": "91001", "firmware": "7.38", "build": "18426",
+                             "axes": 4, "peripheral_ids": []}]})
+    settings = {"session": {"sample_id": "S-0042", "sample_description": "white PTFE tile, lot 7", "operator": "A. Tester"},
+                "reference": {"reflectance": 0.99, "rel_std": 0.005, "certificate": "NPL-2026-117"},
+                "meter": {"wavelength_nm": 550}}
+    edit_attrs(out, settings=json.dumps(settings), versions=json.dumps({"created": "2026-11-30T10:00:00+00:00"}))
+    edit_fit(out, lambda d: d.pop("uncertainty", None))      # a fit file without a budget
+    page = write_report(out).read_text()
+    head = section(page, "<h1>", "<h2>Results")
+    for text in ("S-0042", "white PTFE tile, lot 7", "A. Tester", "2026-11-30T10:00:00+00:00", "NPL-2026-117",
+                 "serial 91001", "firmware 7.38", "Thorlabs,PM100USB,P2001234,1.7.0", "source monitor at 550 nm",
+                 "quick: 40 planned points", "Complete: 40 of 40 planned points", "Model adequate"):
+        assert text in head, text
+    assert "&lt;script&gt;" in head and SCRIPT not in page          # device text is hostile text
+    assert "<title>BRDF measurement report: sample S-0042" in page
+    # results: value and u_c by the GUM rule, U = 2 u_c; the statement of what u leaves out
+    fit = json.loads((out / "fit.json").read_text())
+    name, p = next(iter(fit["parameters"].items()))
+    value, u = gum(p["value"], p["std"])
+    results = section(page, "<h2>Results", "Appendix A")
+    assert f'<td class="num">{value}</td><td class="num">{u}</td><td class="num">{gum(p["value"], 2 * p["std"])[1]}' \
+        in results
+    assert "statistical standard uncertainty only" in results and "0.5 % relative" in results
+    # the optimiser benchmark and the internals are in the appendix, after the results
+    appendix = page[page.index('<div class="appendix">'):]
+    for text in ("Optimiser benchmark", "optimiser ", "Model selection", "Mitsuba re-render"):
+        assert text in appendix and text not in results, text
+    assert "white-space:pre-wrap" in page and "@media print" in page
+
+
+def test_combined_uncertainty_from_the_fit_file_is_used(out, no_figures):
+    def add(doc):
+        doc["uncertainty"] = {"k": 2, "components": {"reference_certificate": {"gum_type": "B", "correlation": "full"}},
+                              "parameters": {n: {"u_stat": p["std"], "u_combined": 0.0031, "U": 0.0062, "k": 2,
+                                                 "budget": {"statistical": 0.02, "reference_certificate": 0.98}}
+                                             for n, p in doc["parameters"].items()}}
+    edit_fit(out, add)
+    page = write_report(out).read_text()
+    results = section(page, "<h2>Results", "Appendix A")
+    name, p = next(iter(json.loads((out / "fit.json").read_text())["parameters"].items()))
+    assert f'<td class="num">{gum(p["value"], 0.0031)[0]}</td><td class="num">0.0031</td><td class="num">0.0062' \
+        in results
+    assert "combined standard uncertainty" in results and "reference_certificate 98 %, statistical 2 %" in results
+
+
+def test_the_status_box_says_what_is_incomplete_inadequate_or_violated(out, no_figures):
+    import numpy as np
+
+    ds = edit_attrs(out, plan=json.dumps({"name": "dense", "points": [[0, 0, 0, 0]] * 1053}), complete=0)
+    brdf = ds["brdf"].values.copy()
+    brdf[1] = brdf[0] * 3.0                                  # partners 0 and 1 disagree by many sigma
+    ds["brdf"] = (("point", "channel"), brdf)
+    (out / "dataset.nc").unlink()
+    ds.to_netcdf(out / "dataset.nc", engine="h5netcdf")
+    edit_fit(out, lambda d: (d["goodness"].update(model_adequate=False, chi2_dof=3.8e5),
+                             d["constraints"]["energy"].update(holds=False, max_albedo=1.2)))
+    page = write_report(out).read_text()
+    box = section(page, '<div class="status bad">', "<h2>Results")
+    bad = re.findall(r'<li class="bad">([^<]*)</li>', box)
+    assert any("Incomplete: 40 of 1053 planned points" in b for b in bad), bad
+    assert any("Inadequate model: chi2/dof = 3.8e+05" in b for b in bad), bad
+    assert any("Energy violated" in b and "1.2 &gt; 1" in b for b in bad), bad
+    assert any("Reciprocity violated" in b for b in bad), bad
+    assert np.isfinite(brdf).all()
+
+
+def test_without_a_fit_the_measured_brdf_is_shown(out):
+    for name in ("fit.json", "speed.json"):
+        (out / name).unlink()
+    shutil.rmtree(out / "render")
+    page = write_report(out).read_text()
+    assert 'alt="measured.png' in page and "No fit in this folder" in page and "Not fitted" in page
+    assert 'alt="coverage.png' in page and 'alt="inplane.png' not in page
+    view = json.loads(re.search(r'<script type="application/json" id="view-data">(.*?)</script>', page, re.S)[1])
+    assert view["fitted"] is False and all(g["lobe"] is None for g in view["incidences"])
+    assert sum(len(g["points"]) for g in view["incidences"]) == 40
+
+
+def test_the_interactive_view_is_offline_and_escaped(out, no_figures):
+    import xarray as xr
+
+    with xr.open_dataset(out / "dataset.nc", engine="h5netcdf") as ds:
+        ds.load()
+    ds = ds.assign_coords(channel=[SCRIPT, "G", "</script><b>"])
+    (out / "dataset.nc").unlink()
+    ds.to_netcdf(out / "dataset.nc", engine="h5netcdf")
+    page = write_report(out).read_text()
+    raw = re.search(r'<script type="application/json" id="view-data">(.*?)</script>', page, re.S)[1]
+    assert "<" not in raw and ">" not in raw                 # tojson's \u003c escapes: nothing closes the element
+    view = json.loads(raw)
+    assert view["channels"] == [SCRIPT, "G", "</script><b>"] and view["fitted"] is True
+    lobe = view["incidences"][0]["lobe"]
+    assert len(lobe) == 3 and len(lobe[0]) == len(view["theta_o_grid"]) * len(view["phi_o_grid"])
+    # the one executable script is allowed by its hash, nothing is fetched
+    code = re.findall(r"<script>(.*?)</script>", page, re.S)
+    assert len(code) == 1
+    digest = base64.b64encode(hashlib.sha256(code[0].encode()).digest()).decode()
+    assert f"script-src 'sha256-{digest}'" in page and "default-src 'none'" in page
+    assert not re.search(r"(src|href)=\"(https?:)?//", page) and "fetch(" not in code[0]
+
+
+def test_no_figure_has_overlapping_labels(out, monkeypatch):
+    """matplotlib's tight bounding boxes of the drawn text artists do not intersect, in every
+    figure of the report (the issue found them in polar, mitsuba_vs_measured and corner)."""
+    seen = {}
+    original = figs._png
+
+    def check(fig):
+        seen[len(seen)] = figs.text_overlaps(fig)
+        return original(fig)
+
+    monkeypatch.setattr(figs, "_png", check)
+    write_report(out)
+    assert len(seen) == 7, seen                              # every drawn figure (the preview PNG is not drawn)
+    assert all(not v for v in seen.values()), seen
+    # the check itself sees an overlap when there is one
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.text(0.5, 0.5, "f_r G (1/sr)")
+    ax.text(0.52, 0.5, "180 deg")
+    assert figs.text_overlaps(fig) == [("f_r G (1/sr)", "180 deg")]
+    plt.close(fig)
+
+
+def _browser():
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        pytest.skip("Debian's chromium is not installed (`make chromium`)")
+    return browser
+
+
+def test_print_to_pdf_and_the_view_in_headless_chromium(out, tmp_path):
+    browser = _browser()
+    path = write_report(out)
+    common = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync",
+              "--disable-background-networking", "--disable-component-update", f"--user-data-dir={tmp_path / 'p'}",
+              "--enable-logging=stderr", "--v=0", "--virtual-time-budget=4000"]
+    pdf = tmp_path / "report.pdf"
+    proc = subprocess.run(common + ["--no-pdf-header-footer", f"--print-to-pdf={pdf}", path.as_uri()],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and pdf.read_bytes().startswith(b"%PDF"), proc.stderr[-2000:]
+    pages = len(re.findall(rb"/Type\s*/Page[^s]", pdf.read_bytes()))
+    assert 2 <= pages <= 12, pages                          # A4, the appendix on its own pages
+    proc = subprocess.run(common + ["--dump-dom", path.as_uri()], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "Uncaught" not in proc.stderr, proc.stderr[-2000:]
+    assert '<section id="view">' in proc.stdout              # the script ran under the CSP and showed the view
+    assert re.search(r'<select id="view-incidence">\s*<option', proc.stdout)
