@@ -100,7 +100,7 @@ def _cmd_calibrate(args):
 def _cmd_export(args):
     from .export import export
 
-    path = export(Path(args.session))
+    path = export(Path(args.session), chart=Path(args.colour_chart) if args.colour_chart else None)
     done, planned, complete = _export_counts(path)
     if complete is False or (planned is not None and done is not None and done < planned):
         of = f"{done} of {planned} planned points" if planned is not None else f"{done} points, the plan not finished"
@@ -329,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("export", help="write SESSION/dataset.nc from a session's journal")
     e.add_argument("session", help="session folder")
+    e.add_argument("--colour-chart", metavar="DNG", help="a RAW capture of the ColorChecker in the holder's chart "
+                   "slot: its fit gives the camera -> sRGB matrix and its uncertainty (default: the RAW files' "
+                   "ColorMatrix1)")
     e.set_defaults(func=_cmd_export)
 
     f = sub.add_parser("fit", help="fit a model to a dataset")

@@ -13,13 +13,17 @@ matrix gives XYZ. It comes from one of two sources, recorded in ``dataset.nc``:
   ``srgb_from_cam = (diag(1 / C 1) C)^-1`` (the algebra of dcraw's ``cam_xyz_coeff``, read here
   from the tags exactly instead of through LibRaw's rounded ``color_matrix``). Its uncertainty
   is not assessed (a maker's matrix states none).
-* ``"chart"``: a capture of an X-Rite ColorChecker (24 patches). Each patch's camera RGB is
-  white-balanced by the chart's white patch (19, "white 9.5", taken as neutral at its
-  reference luminance), and the 3x3 is the least-squares fit to the patches' reference linear
-  sRGB (colour-science ``matrix_colour_correction``, Cheung 2004, 3 terms; reference values
+* ``"chart"``: a capture of an X-Rite ColorChecker (24 patches) in the holder's chart slot
+  (``CHART_BOX``: the patches are read from the slot's declared geometry). The 3x3 from raw
+  camera RGB is the least-squares fit to the patches' reference linear sRGB
+  (colour-science ``matrix_colour_correction``, Cheung 2004, 3 terms; reference values
   ``CCS_COLOURCHECKERS["ColorChecker24 - After November 2014"]``, D50, adapted to D65 with
-  Bradford). Row c's covariance is ``s_c^2 (X^T X)^-1`` (ordinary least squares, ``s_c^2`` the
-  residual variance on 24 - 3 degrees of freedom): the "colour matrix" line of the budget.
+  Bradford); the raw response of a perfect white is the one it maps to (1, 1, 1), which
+  white-balances it (rows sum to 1). Its uncertainty has two parts: the estimate's, row c's
+  covariance ``s_c^2 (X^T X)^-1`` (ordinary least squares, ``s_c^2`` the residual variance on
+  24 - 3 degrees of freedom), and the prediction's, each channel's residual RMS relative to
+  the patches' luminance (a 3x3 cannot map every spectrum right: it is the larger part).
+  Both make the "colour matrix" line of the budget, fully correlated across points.
 
 Every point's f_r in sRGB takes its 1-sigma and the channel-to-channel covariance from the
 camera's independent channel noise: ``cov = S diag(sigma^2) S^T`` (what the fit's diagonal
@@ -43,8 +47,9 @@ import numpy as np
 
 from .errors import GonioError
 
-__all__ = ["COLOUR_SPACES", "ColourMatrix", "SRGB_TO_XYZ", "chart_reference_srgb", "colour_matrix_components",
-           "colour_matrix_uncertainty", "convert", "matrix_from_chart", "matrix_from_dng", "matrix_from_libraw"]
+__all__ = ["CHART_BOX", "CHART_BORDER", "CHART_GRID", "COLOUR_SPACES", "ColourMatrix", "SRGB_TO_XYZ", "chart_patches",
+           "chart_reference_srgb", "colour_matrix_components", "colour_matrix_uncertainty", "convert",
+           "matrix_from_chart", "matrix_from_chart_dng", "matrix_from_dng", "matrix_from_libraw"]
 
 #: The spaces a dataset's f_r can be fitted in: linear sRGB (D65), CIE XYZ (D65), camera RGB.
 COLOUR_SPACES = ("srgb", "xyz", "camera")
@@ -52,7 +57,7 @@ COLOUR_SPACES = ("srgb", "xyz", "camera")
 SRGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
 #: The ColorChecker edition whose reference values the chart fit uses.
 CHART_REFERENCE = "ColorChecker24 - After November 2014"
-#: Index of the chart's white patch (19 of 24, "white 9.5"), which white-balances the chart.
+#: Index of the chart's white patch (19 of 24, "white 9.5"): it must be lit for a fit.
 CHART_WHITE = 18
 
 
@@ -69,18 +74,24 @@ class ColourMatrix:
         ``cov[c]``: covariance of row c's three elements (chart fits); None: not assessed.
     residual_rms : float or None
         Chart fit: RMS of the patch residuals in linear sRGB.
+    prediction_rel : ndarray (3,) or None
+        Chart fit: RMS of the patch residuals relative to each patch's luminance, per output
+        channel: how far the one 3x3 misses a surface's colour (metamerism, the Luther
+        condition), the prediction part of the uncertainty (it dominates the estimation part).
     """
 
     srgb_from_cam: np.ndarray
     source: str
     cov: np.ndarray | None = None
     residual_rms: float | None = None
+    prediction_rel: np.ndarray | None = None
 
     def describe(self) -> dict:
         """JSON-ready record for the dataset's attributes."""
         return {"source": self.source, "srgb_from_cam": np.round(self.srgb_from_cam, 12).tolist(),
                 "row_cov": None if self.cov is None else self.cov.tolist(),
                 "residual_rms": self.residual_rms,
+                "prediction_rel": None if self.prediction_rel is None else self.prediction_rel.tolist(),
                 "uncertainty": "row covariance of the chart fit" if self.cov is not None else "not assessed"}
 
 
@@ -92,9 +103,9 @@ def _srgb_to_xyz_cs() -> np.ndarray:
 
 def _check(m: np.ndarray, what: str) -> np.ndarray:
     m = np.asarray(m, float)
-    if m.shape != (3, 3) or not np.all(np.isfinite(m)) or abs(np.linalg.det(m)) < 1e-9:
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)) or not np.linalg.cond(m) < 1e8:
         raise GonioError(f"{what}: the colour matrix is not an invertible 3x3 ({m.tolist()}); "
-                         "the file's colour tags are broken")
+                         "the colour tags or the chart capture are broken")
     return m
 
 
@@ -143,6 +154,49 @@ def chart_reference_srgb() -> np.ndarray:
     return xyz @ (np.linalg.inv(_srgb_to_xyz_cs()) @ cat).T
 
 
+#: The holder's ColorChecker slot in the camera frame (fractions: left, top, right, bottom), its
+#: patch grid (rows, columns) and the black border of each grid cell (fraction of the cell);
+#: sim/_colour.py renders the chart by the same declared geometry.
+CHART_BOX = (0.1, 0.1, 0.9, 0.9)
+CHART_GRID = (4, 6)
+CHART_BORDER = 0.15
+
+
+def chart_patches(planes, box=CHART_BOX, grid=CHART_GRID, border=CHART_BORDER) -> np.ndarray:
+    """Mean camera RGB (24, 3) of each patch of a chart image (3, h, w), from the chart's known
+    geometry in its slot: the central part of each patch (a further quarter of the cell inside
+    its border), in reading order. OpenCV's ``cv2.mcc`` detector needs patches of tens of
+    pixels; the slot's geometry serves the simulator's small frames."""
+    planes = np.asarray(planes, float)
+    _, h, w = planes.shape
+    rows, cols = grid
+    x0, y0, x1, y1 = box
+    ch, cw = (y1 - y0) * h / rows, (x1 - x0) * w / cols
+    inset = border + 0.25 * (1 - 2 * border)
+    out = np.empty((rows * cols, 3))
+    for k in range(rows * cols):
+        r, c = divmod(k, cols)
+        top, left = y0 * h + r * ch, x0 * w + c * cw
+        r0, r1 = int(np.ceil(top + inset * ch - 0.5)), int(np.floor(top + (1 - inset) * ch - 0.5)) + 1
+        c0, c1 = int(np.ceil(left + inset * cw - 0.5)), int(np.floor(left + (1 - inset) * cw - 0.5)) + 1
+        if r1 <= r0 or c1 <= c0:
+            raise GonioError(f"the chart's patches are under one pixel in a {w} x {h} frame; "
+                             "capture it with a larger frame")
+        out[k] = planes[:, r0:r1, c0:c1].mean(axis=(1, 2))
+    return out
+
+
+def matrix_from_chart_dng(path: str | os.PathLike) -> ColourMatrix:
+    """:func:`matrix_from_chart` on a RAW capture of the chart in its slot (black-subtracted,
+    decoded by the camera driver's ``decode_raw``)."""
+    from .drivers.camera import decode_raw
+
+    frame = decode_raw(path, peak=True)
+    if np.any(frame.peak >= frame.full_scale):
+        raise GonioError(f"{path}: the chart capture is saturated; capture it with a shorter exposure")
+    return matrix_from_chart(chart_patches(frame.signal))
+
+
 def matrix_from_chart(patches_cam) -> ColourMatrix:
     """Fit camera -> sRGB to a ColorChecker capture (module notes).
 
@@ -159,13 +213,18 @@ def matrix_from_chart(patches_cam) -> ColourMatrix:
         raise GonioError(f"a ColorChecker capture needs 24 finite patch means with a lit white patch, "
                          f"got shape {x.shape}; check the chart's pose and exposure")
     ref = chart_reference_srgb()
-    x = x / x[CHART_WHITE] * ref[CHART_WHITE].mean()        # white-balanced on the white patch
-    m = np.asarray(colour.characterisation.matrix_colour_correction(x, ref, method="Cheung 2004", terms=3), float)
-    resid = ref - x @ m.T
-    dof = x.shape[0] - 3
-    inv = np.linalg.inv(x.T @ x)
-    cov = np.array([(resid[:, c] @ resid[:, c]) / dof * inv for c in range(3)])
-    return ColourMatrix(_check(m, "chart fit"), "chart", cov, float(np.sqrt(np.mean(resid ** 2))))
+    m_raw = np.asarray(colour.characterisation.matrix_colour_correction(x, ref, method="Cheung 2004", terms=3), float)
+    white = np.linalg.solve(_check(m_raw, "chart fit"), np.ones(3))     # raw of a perfect white
+    if np.any(white <= 0):
+        raise GonioError("the chart fit maps white to a non-positive camera response; check the chart capture")
+    xw = x / white                                    # white-balanced camera RGB of the patches
+    m = m_raw * white                                 # rows sum to 1: white stays white
+    resid = ref - xw @ m.T
+    inv = np.linalg.inv(xw.T @ xw)
+    cov = np.array([(resid[:, c] @ resid[:, c]) / (len(x) - 3) * inv for c in range(3)])
+    lum = ref @ SRGB_TO_XYZ[1]
+    pred = np.sqrt(np.mean((resid / lum[:, None]) ** 2, axis=0))
+    return ColourMatrix(m, "chart", cov, float(np.sqrt(np.mean(resid ** 2))), pred)
 
 
 def convert(f_cam, sd_cam, matrix: ColourMatrix, space: str):
@@ -186,7 +245,8 @@ def colour_matrix_components(f_cam, matrix: ColourMatrix, space: str = "srgb") -
     """The colour matrix's budget lines: signed (N, 3) arrays, one per independent input.
 
     The chart fit's nine elements are, per output row, correlated with each other; the
-    eigenvectors of each row's covariance are independent inputs. Each array is the change
+    eigenvectors of each row's covariance are independent inputs; so is each output channel's
+    prediction error (``prediction_rel`` times the value). Each array is the change
     of f_r (in ``space``) when one of them moves by +1 standard uncertainty (JCGM 100 5.1.3),
     shared by every point (a fully correlated component: one matrix serves the session).
     Empty when the matrix's uncertainty is not assessed (``"dng"``, ``"libraw"``) or
@@ -202,6 +262,12 @@ def colour_matrix_components(f_cam, matrix: ColourMatrix, space: str = "srgb") -
             d_row = np.sqrt(max(lam[k], 0.0)) * vec[:, k]       # one input's +1 sigma move of row c
             d_srgb = np.zeros(f_cam.shape)
             d_srgb[:, c] = f_cam @ d_row
+            out.append(d_srgb @ SRGB_TO_XYZ.T if space == "xyz" else d_srgb)
+    if matrix.prediction_rel is not None:          # the 3x3's miss of a surface's colour, per channel
+        f_srgb = f_cam @ matrix.srgb_from_cam.T
+        for c in range(3):
+            d_srgb = np.zeros(f_cam.shape)
+            d_srgb[:, c] = f_srgb[:, c] * matrix.prediction_rel[c]
             out.append(d_srgb @ SRGB_TO_XYZ.T if space == "xyz" else d_srgb)
     return out
 

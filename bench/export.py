@@ -34,7 +34,7 @@ from ._budget import budget_variables
 from ._cf import cf_encode
 from ._files import commit_file, tmp_name
 from ._journal import RAW_DIR
-from .colour_matrix import SRGB_TO_XYZ, ColourMatrix, convert, matrix_from_dng, matrix_from_libraw
+from .colour_matrix import ColourMatrix, convert, matrix_from_chart_dng, matrix_from_dng, matrix_from_libraw
 from .errors import GonioError, SessionError
 
 __all__ = ["export", "to_dataset", "DATASET_FILE"]
@@ -43,8 +43,10 @@ DATASET_FILE = "dataset.nc"
 
 
 
-def to_dataset(session_dir):
-    """The session's journalled points as an `xarray.Dataset` (see the module docstring)."""
+def to_dataset(session_dir, chart=None):
+    """The session's journalled points as an `xarray.Dataset` (see the module docstring);
+    ``chart``: a RAW capture of the ColorChecker whose fit gives the colour matrix instead of
+    the RAW files' own (bench/colour_matrix.matrix_from_chart_dng)."""
     import xarray as xr
 
     from . import _integrity
@@ -91,7 +93,7 @@ def to_dataset(session_dir):
     # the per-point uncertainty budget, u_<component> and u_combined (bench/_budget.py)
     data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1]))
     data["brdf"][2]["colour_space"] = data["brdf_std"][2]["colour_space"] = "camera"
-    matrix = _colour_matrix(folder, rgb_cam)
+    matrix = matrix_from_chart_dng(chart) if chart is not None else _colour_matrix(folder, rgb_cam)
     if matrix is not None:
         data.update(_colour(matrix, data["brdf"][1], data["brdf_std"][1]))
         coords["xyz"] = ["X", "Y", "Z"]
@@ -112,7 +114,8 @@ def to_dataset(session_dir):
         "title": "gonio BRDF measurement",
     }
     if matrix is not None:
-        attrs["colour_matrix"] = json.dumps(matrix.describe(), sort_keys=True)
+        attrs["colour_matrix"] = json.dumps({**matrix.describe(), "chart_file": None if chart is None else str(chart)},
+                                            sort_keys=True)
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
     return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
@@ -150,7 +153,7 @@ def _colour(matrix: ColourMatrix, f: np.ndarray, sd: np.ndarray) -> dict:
     return out
 
 
-def export(session_dir) -> Path:
+def export(session_dir, chart=None) -> Path:
     """Write ``session_dir/dataset.nc`` from the journal; return its path.
 
     Raises
@@ -161,7 +164,7 @@ def export(session_dir) -> Path:
     from ._preflight import check_free_space, check_output_file, oserror_line
 
     folder = Path(session_dir)
-    ds = to_dataset(folder)
+    ds = to_dataset(folder, chart)
     path = folder / DATASET_FILE
     check_output_file(path, "dataset")
     check_free_space(folder, estimated_bytes(ds), f"{path} (its estimated size)")

@@ -87,3 +87,24 @@ def test_without_the_matrix_the_colour_is_visibly_wrong(session):
     # camera RGB is A rho, not rho: red reads about 0.42 instead of 0.6
     np.testing.assert_allclose(result.params["reflectance"], camera_colour().balanced @ RHO, rtol=0.01)
     assert de > 3.0, de
+
+
+def test_a_chart_capture_gives_the_matrix_and_its_uncertainty(session, tmp_path):
+    """``gonio export --colour-chart``: the matrix from a ColorChecker capture by the same camera,
+    its source and uncertainty recorded; the sample's sRGB lies within it (k = 2)."""
+    from gonio.bench.colour_matrix import colour_matrix_uncertainty, matrix_from_chart_dng
+    from gonio.bench.export import to_dataset
+    from gonio.sim import Instrument
+    from gonio.sim._camera_port import CameraPort
+
+    inst = Instrument(seed=5)
+    inst.lamp.switch(inst.clock.now(), True)
+    assert CameraPort(inst).handle(f"CHART 0.01 {tmp_path / 'chart.dng'}")[0].startswith("OK ")
+    ds = to_dataset(session["folder"], tmp_path / "chart.dng")
+    matrix = json.loads(ds.attrs["colour_matrix"])
+    assert matrix["source"] == "chart" and matrix["chart_file"].endswith("chart.dng")
+    assert matrix["uncertainty"] == "row covariance of the chart fit" and len(matrix["prediction_rel"]) == 3
+    f_cam = ds.brdf.values * np.pi                                   # Lambertian: rho = pi f_r
+    u = colour_matrix_uncertainty(f_cam, matrix_from_chart_dng(tmp_path / "chart.dng"))
+    z = (ds.brdf_srgb.values * np.pi - RHO) / np.hypot(u, ds.brdf_srgb_std.values * np.pi)
+    assert np.all(np.abs(z) < 2.0), z
