@@ -46,7 +46,7 @@ from .errors import GonioError
 
 __all__ = ["SimBench", "calibrate", "align", "linearity", "reference_factor", "write_calibration",
            "read_calibration", "merge_calibration", "calibrated_angles", "angle_uncertainty",
-           "u_reference_factor", "u_linearity_rel", "u_stray_rel", "instrument_response",
+           "u_reference_factor", "u_linearity_rel", "u_stray_rel", "instrument_response", "dataset_angles",
            "GLOSSY_ARTEFACT", "calibrate_cli"]
 
 #: The glossy artefact of the alignment (a rough metal, GGX alpha 0.1: a lobe of about 7 deg
@@ -303,9 +303,12 @@ def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
         offsets, holder tilt), the lamp arm's surveyed zero and the sample's wedge (not seen by
         the artefact's scan), the same errors at every point, hence correlated across points;
         ``cov_independent`` (N, 4, 4): each move's repeatability and half the backlash, drawn
-        anew per point; ``u_theta_i``, ``u_theta_o``, ``u_phi_i``, ``u_phi_o`` (N,): the
-        combined standard uncertainties. Multiply by the local slope of f_r (the budget's
-        ``u_angle``).
+        anew per point; ``shared_modes`` (N, 4, K): the signed change of each point's angles
+        when one of K independent shared errors moves by +1 sigma (``cov_shared`` = sum of the
+        modes' outer products; the budget's correlated components, ``full`` each, after
+        multiplying by df_r/dangle); ``u_theta_i``, ``u_theta_o``, ``u_phi_i``, ``u_phi_o``
+        (N,): the combined standard uncertainties. Multiply by the local slope of f_r (the
+        budget's ``u_angle``).
     """
     stage = np.atleast_2d(np.asarray(stage_deg, float))
     a = cal.get("alignment", {})
@@ -322,10 +325,14 @@ def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
     ci = np.diag([rep ** 2 + b ** 2 for b in half_b])
     Js = _jacobian(stage, p, shared)
     Ji = _jacobian(stage, p, ["axis0", "axis1", "axis2", "axis3"])
+    w, V = np.linalg.eigh(cs)
+    modes = np.einsum("nak,km->nam", Js, V * np.sqrt(np.clip(w, 0.0, None)))      # (N, 4, 7)
+    keep = np.sqrt(np.clip(w, 0.0, None)) > 0
     cov_s = np.einsum("nak,kl,nbl->nab", Js, cs, Js)
     cov_i = np.einsum("nak,kl,nbl->nab", Ji, ci, Ji)
     tot = np.sqrt(np.diagonal(cov_s + cov_i, axis1=1, axis2=2))
     return {"angles": _angles(stage, p), "cov_shared": cov_s, "cov_independent": cov_i,
+            "shared_modes": modes[:, :, keep],
             "u_theta_i": tot[:, 0], "u_phi_i": tot[:, 1], "u_theta_o": tot[:, 2], "u_phi_o": tot[:, 3]}
 
 
@@ -359,6 +366,39 @@ def u_stray_rel(radiance_sample, radiance_reference, floor: float) -> np.ndarray
     ls = np.maximum(np.asarray(radiance_sample, float), 1e-300)
     lr = np.maximum(np.asarray(radiance_reference, float), 1e-300)
     return float(floor) / math.pi * np.abs(1.0 / ls - 1.0 / lr) / math.sqrt(3.0)
+
+
+def dataset_angles(settings: Mapping, stage_deg) -> tuple[dict, dict, dict]:
+    """What export writes for a calibrated session: ``(coords, variables, attrs)``.
+
+    Without an ``[alignment]`` table in the session's settings all three are empty. With one,
+    the coordinates ``theta_i``, ``phi_i``, ``theta_o``, ``phi_o`` become the calibrated angles,
+    the nominal ones (bench/kinematics without calibration) stay as ``<angle>_nominal``, each
+    angle's combined standard uncertainty is ``<angle>_u`` (deg; ``angle_uncertainty`` splits
+    it into shared and independent parts), and the attributes carry the calibration
+    (``angle_calibration``, JSON) and :func:`instrument_response`.
+    """
+    import json
+
+    if not isinstance(settings.get("alignment"), Mapping):
+        return {}, {}, {}
+    stage = np.atleast_2d(np.asarray(stage_deg, float))
+    u = angle_uncertainty(settings, stage)
+    nominal = calibrated_angles({}, stage)
+    names = ("theta_i", "phi_i", "theta_o", "phi_o")
+    deg = {"units": "degree"}
+    coords = {k: ("point", u["angles"][:, j], {**deg, "long_name": f"{k}, calibrated (gonio calibrate)"})
+              for j, k in enumerate(names)}
+    data = {}
+    for j, k in enumerate(names):
+        data[f"{k}_nominal"] = ("point", nominal[:, j], {**deg, "long_name": f"{k} from the kinematics, uncalibrated"})
+        data[f"{k}_u"] = ("point", u[f"u_{k}"], {**deg, "long_name": f"standard uncertainty of the calibrated {k}"})
+    a = settings["alignment"]
+    keys = ("yaw_zero_deg", "tilt_zero_deg", "holder_tilt_x_deg", "holder_tilt_y_deg", "cov_deg2", "repeat_deg",
+            "backlash_yaw_deg", "backlash_tilt_deg", "backlash_lamp_deg", "lamp_zero_u_deg", "wedge_u_deg")
+    attrs = {"angle_calibration": json.dumps({k: a[k] for k in keys if k in a}, sort_keys=True),
+             **instrument_response(settings)}
+    return coords, data, attrs
 
 
 def instrument_response(cal: Mapping) -> dict:

@@ -92,6 +92,12 @@ def test_calibrated_angles_are_the_true_ones_within_their_uncertainty(run):
     assert max(abs(z) for z in zs) < _threshold(len(zs)), zs
     assert max(miss) > _threshold(len(zs)), miss
     assert np.all(u["cov_shared"][:, 0, 0] > 0) and np.all(u["cov_independent"][:, 0, 0] > 0)
+    m = u["shared_modes"]
+    assert np.allclose(np.einsum("nak,nbk->nab", m, m), u["cov_shared"], rtol=1e-9, atol=1e-15)
+    coords, data, attrs = C.dataset_angles(C.merge_calibration(s, cal), poses)
+    assert np.array_equal(coords["theta_o"][1], est[:, 2]) and np.array_equal(data["theta_o_nominal"][1], nominal[:, 2])
+    assert np.array_equal(data["theta_i_u"][1], u["u_theta_i"]) and attrs["aperture_source_half_deg"] == 0.5
+    assert C.dataset_angles(s, poses) == ({}, {}, {})
 
 
 def test_file_round_trip_merges_into_settings(run, tmp_path):
