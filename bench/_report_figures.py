@@ -19,6 +19,16 @@ __all__ = ["draw", "label"]
 COLOURS = ["tab:red", "tab:green", "tab:blue"]
 
 
+def _log_ticks(axis) -> None:
+    """Log-axis labels at 1, 2 and 5 times a power of ten only: over less than a decade
+    matplotlib labelled every minor tick (2x10^-1, 3x10^-1, ...), and they ran into each other."""
+    from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=12))
+    axis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False))
+    axis.set_minor_formatter(NullFormatter())
+
+
 def label(text, limit: int = 40) -> str:
     """Input text made safe for a matplotlib label: no mathtext, bounded length."""
     s = "".join(ch if ch.isprintable() else "?" for ch in str(text))[:limit]
@@ -57,12 +67,14 @@ def coverage(meas) -> dict:
     import matplotlib.pyplot as plt
 
     theta_i, theta_o, _, phi_o = angles(meas)
-    fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.4, 4.4))
+    fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.6, 4.4), layout="constrained")
     sc = ax.scatter(phi_o, theta_o, c=theta_i, cmap="viridis", s=14)
     ax.set_ylim(0, 90)
     ax.set_rticks([30, 60, 90])
+    ax.set_rlabel_position(112.5)
+    ax.tick_params(labelsize=8)
     ax.set_title("detector directions (r = theta_o, colour = theta_i)", fontsize=9)
-    fig.colorbar(sc, ax=ax, shrink=0.7, label="theta_i (deg)")
+    fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.1, label="theta_i (deg)")
     return {"coverage.png": _png(fig)}
 
 
@@ -72,8 +84,9 @@ def _in_plane(meas):
     return phi_d, (phi_d > 175) | (phi_d < 5) | (theta_i < 1) | (theta_o < 1)
 
 
-def inplane(meas, model, params) -> dict:
-    """Measured vs fitted, in the plane of incidence, for up to four incidence angles."""
+def inplane(meas, model=None, params=None) -> dict:
+    """Measured (and fitted, where a fit is given), in the plane of incidence, for up to four
+    incidence angles: ``inplane.png`` with a fit, ``measured.png`` without."""
     import matplotlib.pyplot as plt
 
     theta_i, theta_o, _, _ = angles(meas)
@@ -82,23 +95,33 @@ def inplane(meas, model, params) -> dict:
     if not incidences:
         return {}
     pick = incidences if len(incidences) <= 4 else [incidences[int(k)] for k in np.linspace(0, len(incidences) - 1, 4)]
-    fig, axes = plt.subplots(1, len(pick), figsize=(3.3 * len(pick), 3.2), squeeze=False)
+    fig, axes = plt.subplots(1, len(pick), figsize=(2.9 * len(pick) + 0.6, 3.0), squeeze=False, sharey=True,
+                             layout="constrained")
     for ax, ti in zip(axes[0], pick):
         sel = in_plane & (np.abs(theta_i - ti) < 0.6)
         # signed outgoing angle: negative on the lamp's side
         signed = np.where(phi_d[sel] < 90, -theta_o[sel], theta_o[sel])
         t = np.radians(np.linspace(-89, 89, 241))
-        wi_c = np.tile([np.sin(np.radians(ti)), 0.0, np.cos(np.radians(ti))], (t.size, 1))
-        wo_c = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)  # +t on the mirror side
-        curve = model.eval(wi_c, wo_c, params)
+        curve = None
+        if model is not None:
+            wi_c = np.tile([np.sin(np.radians(ti)), 0.0, np.cos(np.radians(ti))], (t.size, 1))
+            wo_c = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)  # +t on the mirror side
+            curve = model.eval(wi_c, wo_c, params)
         for c in range(meas.n_channels):
-            ax.errorbar(signed, meas.brdf[sel, c], yerr=meas.brdf_std[sel, c], fmt="o", ms=3, color=COLOURS[c % 3])
-            ax.plot(np.degrees(t), curve[:, c], "-", lw=1, color=COLOURS[c % 3])
+            ax.errorbar(signed, meas.brdf[sel, c], yerr=meas.brdf_std[sel, c], fmt="o", ms=3, color=COLOURS[c % 3],
+                        label=label(meas.channels[c], 12) if ax is axes[0][0] else None)
+            if curve is not None:
+                ax.plot(np.degrees(t), curve[:, c], "-", lw=1, color=COLOURS[c % 3])
         ax.set_yscale("log")
-        ax.set_title(f"theta_i = {ti} deg (in plane)", fontsize=9)
-        ax.set_xlabel("theta_o (deg, + = mirror side)")
-    axes[0][0].set_ylabel("f_r (1/sr)")
-    return {"inplane.png": _png(fig)}
+        _log_ticks(ax.yaxis)
+        ax.set_xlim(-90, 90)
+        ax.set_xticks([-60, -30, 0, 30, 60])
+        ax.set_title(f"theta_i = {ti} deg", fontsize=9)
+        ax.set_xlabel("theta_o (deg)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0][0].set_ylabel("f_r (1/sr)", fontsize=8)
+    fig.legend(fontsize=7, loc="outside lower center", frameon=False, ncol=3)
+    return {("inplane.png" if model is not None else "measured.png"): _png(fig)}
 
 
 def polar(meas, model, params) -> dict:
@@ -124,18 +147,29 @@ def polar(meas, model, params) -> dict:
     c = 1 if meas.n_channels > 1 else 0
     grid = model.eval(wi_g, wo_g, params)[:, c].reshape(t.shape)
     norm = matplotlib.colors.LogNorm(vmin=max(float(grid.min()), 1e-4), vmax=float(grid.max()))
-    fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(8.4, 4.0))
-    for ax, title in zip(axes, ("fit (background) and measurement (dots)", "measurement / fit")):
+    # colour bars below their plots: beside them their labels met the next plot's 180 deg label
+    fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(8.4, 4.6), layout="constrained")
+    for ax, title in zip(axes, (f"fit (background), measured (dots); theta_i = {ti:.0f} deg", "measured / fit")):
         ax.set_ylim(0, 85)
+        ax.set_rticks([30, 60])
+        ax.set_rlabel_position(112.5)
+        ax.tick_params(labelsize=7)
         ax.set_title(title, fontsize=9)
     mesh = axes[0].pcolormesh(p, np.degrees(t), grid, norm=norm, cmap="viridis", shading="auto")
     axes[0].scatter(phi_o[sel], theta_o[sel], c=meas.brdf[sel, c], norm=norm, cmap="viridis", edgecolors="white", s=28)
-    fig.colorbar(mesh, ax=axes[0], shrink=0.7, label=f"f_r {label(meas.channels[c])} (1/sr)")
+    bar = fig.colorbar(mesh, ax=axes[0], shrink=0.6, orientation="horizontal", pad=0.08)
+    bar.set_label(f"f_r {label(meas.channels[c])} (1/sr)", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    bar.ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(numticks=4))
+    bar.ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ratio = meas.brdf[sel, c] / np.maximum(fitted[sel, c], 1e-12)
     spread = 3 * float(np.std(ratio - 1) + 1e-6)
     sc = axes[1].scatter(phi_o[sel], theta_o[sel], c=ratio, cmap="coolwarm", s=28, vmin=1 - spread, vmax=1 + spread)
-    fig.colorbar(sc, ax=axes[1], shrink=0.7)
-    fig.suptitle(f"theta_i = {ti:.0f} deg", fontsize=9)
+    bar = fig.colorbar(sc, ax=axes[1], shrink=0.6, orientation="horizontal", pad=0.08)
+    bar.set_label("measured / fit", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    bar.ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(3))
+    bar.ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.4g"))
     return {"polar.png": _png(fig)}
 
 
@@ -144,7 +178,7 @@ def residuals(meas, model, params) -> dict:
 
     theta_i, theta_o, _, _ = angles(meas)
     resid = (meas.brdf - model.eval(meas.wi, meas.wo, params)) / meas.brdf_std
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2), layout="constrained")
     axes[0].hist(resid[meas.use].ravel(), bins=40, color="grey")
     axes[0].set_xlabel("(measured - fit) / sigma")
     axes[0].set_title("fit residuals", fontsize=9)
@@ -163,7 +197,7 @@ def albedo(model, params) -> dict:
     t = np.radians(np.linspace(0, 85, 35))
     wo_a = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)
     alb = model.albedo(wo_a, params)
-    fig, ax = plt.subplots(figsize=(4.2, 3.0))
+    fig, ax = plt.subplots(figsize=(4.2, 3.0), layout="constrained")
     for c in range(alb.shape[1]):
         ax.plot(np.degrees(t), alb[:, c], color=COLOURS[c % 3])
     ax.set_xlabel("theta_o (deg)")
@@ -175,8 +209,34 @@ def albedo(model, params) -> dict:
 def corner_plot(samples: np.ndarray, names, converged: bool) -> dict:
     import corner
 
-    fig = corner.corner(samples, labels=[label(n) for n in names] if names else None, quantiles=[0.05, 0.5, 0.95],
-                        label_kwargs={"fontsize": 8})
+    from matplotlib.ticker import ScalarFormatter
+
+    k = samples.shape[1]
+    # each parameter shown as its offset from the posterior median, so tick labels stay short
+    # (the absolute values made matplotlib print offset texts such as "1e-5+1.2e-1" over them)
+    from matplotlib.ticker import MaxNLocator
+
+    centre = np.median(samples, axis=0)
+    spread = np.std(samples, axis=0)
+    scale = 10.0 ** np.floor(np.log10(np.where(spread > 0, spread, 1.0)))
+    names = [label(n) for n in names] if names else [f"p{i}" for i in range(k)]
+    labels = [f"{n}\n- {c:.6g}" + (f", in {s:.0e}" if s != 1 else "") for n, c, s in zip(names, centre, scale)]
+    fig = corner.corner((samples - centre) / scale, labels=labels, quantiles=[0.05, 0.5, 0.95],
+                        label_kwargs={"fontsize": 7}, max_n_ticks=3, labelpad=0.08)
+    size = max(3.0, 1.9 * k)
+    fig.set_size_inches(size, size)
+    for idx, ax in enumerate(fig.axes):
+        i, j = divmod(idx, k)           # row, column of corner's k x k grid
+        if j > i:                       # its hidden upper triangle
+            continue
+        ax.tick_params(labelsize=6, labelrotation=0)
+        # no tick at an axes' edge (there the labels of neighbouring axes met); labels, without
+        # an offset text, only where corner shows them: the bottom row and the first column
+        axes = [(ax.xaxis, i == k - 1)] + ([(ax.yaxis, j == 0)] if j < i else [])
+        for axis, labelled in axes:
+            axis.set_major_locator(MaxNLocator(3, prune="both"))
+            if labelled:
+                axis.set_major_formatter(ScalarFormatter(useOffset=False))
     fig.suptitle("posterior (emcee)" + ("" if converged else ": chain too short, see advice"), fontsize=9)
     return {"corner.png": _png(fig)}
 
@@ -184,12 +244,43 @@ def corner_plot(samples: np.ndarray, names, converged: bool) -> dict:
 def mitsuba_vs_measured(meas, rendered: np.ndarray) -> dict:
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(4.2, 4.0))
+    fig, ax = plt.subplots(figsize=(4.2, 4.0), layout="constrained")
     for c in range(min(3, rendered.shape[1], meas.n_channels)):
         ax.loglog(meas.brdf[:, c], rendered[:, c], "o", ms=3, color=COLOURS[c])
     positive = meas.brdf[meas.brdf > 0]
     lim = [max(1e-4, float(np.min(positive)) * 0.8 if positive.size else 1e-4), max(float(np.max(meas.brdf)) * 1.2, 1e-3)]
     ax.plot(lim, lim, "k--", lw=0.8)
+    _log_ticks(ax.xaxis)
+    _log_ticks(ax.yaxis)
     ax.set_xlabel("measured f_r (1/sr)")
     ax.set_ylabel("Mitsuba render of the fit (1/sr)")
     return {"mitsuba_vs_measured.png": _png(fig)}
+
+
+def text_overlaps(fig) -> list[tuple[str, str]]:
+    """Pairs of text artists of ``fig`` that a draw actually draws (tick labels outside the view
+    are not) whose tight bounding boxes, in display pixels, intersect: labels printed over
+    each other. Used by the suite on every figure of the report."""
+    from matplotlib.text import Text
+
+    drawn = []
+    original = Text.draw
+
+    def record(self, renderer):
+        original(self, renderer)
+        if self.get_visible() and self.get_text().strip():
+            drawn.append((self.get_text(), self.get_window_extent(renderer)))
+
+    Text.draw = record
+    try:
+        fig.canvas.draw()
+    finally:
+        Text.draw = original
+    out = []
+    for a in range(len(drawn)):
+        for b in range(a + 1, len(drawn)):
+            ba, bb = drawn[a][1], drawn[b][1]
+            # strict intersection (touching edges is not overlapping)
+            if ba.x0 < bb.x1 and bb.x0 < ba.x1 and ba.y0 < bb.y1 and bb.y0 < ba.y1:
+                out.append((drawn[a][0], drawn[b][0]))
+    return out

@@ -212,12 +212,13 @@ def results(fit: Doc, truth_of: dict, rel_std) -> dict:
         v_text, uc_text = gum(value, u_c)
         _, U_text = gum(value, big_u)
         t = truth_of.get(name)
-        z = (value - t) / u_stat if (t is not None and value is not None and u_stat) else None
+        z = (value - t) / u_c if (t is not None and value is not None and u_c) else None
         budget = []
         if q is not None and q.sub("budget") is not None:
             shares = q.need("budget").data
-            budget = [f"{cut(str(c), 40)} {100 * float(s):.0f} %" for c, s in list(shares.items())[:12]
-                      if isinstance(s, (int, float)) and not isinstance(s, bool) and math.isfinite(s)]
+            shares = sorted(((c, float(s)) for c, s in shares.items() if isinstance(s, (int, float))
+                             and not isinstance(s, bool) and math.isfinite(s)), key=lambda cs: -cs[1])
+            budget = [f"{cut(str(c), 40)} {100 * s:.0f} %" for c, s in shares[:12]]
         rows.append({"name": cut(name, 80), "value": v_text, "u": uc_text, "U": U_text, "k": f"{k:g}",
                      "unit": p.text("unit") or "", "truth": "–" if t is None else f"{t:.6g}",
                      "z": "–" if z is None else f"{z:+.2f}", "budget": ", ".join(budget)})

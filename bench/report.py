@@ -25,8 +25,10 @@ from gonio.models.atomic import atomic_open
 
 from . import _fitdoc
 from . import _report_figures as figs
+from . import _report_meta as meta
 from ._fitdoc import truth_for
 from ._report_input import MAX_IMAGE_BYTES, PNG_MAGIC, Doc, Folder, cut, show
+from ._report_view import view_data
 from .errors import GonioError
 
 __all__ = ["find_outputs", "write_report"]
@@ -53,7 +55,8 @@ def find_outputs(folder) -> dict:
     found = {"dataset": first("dataset.nc", "*/dataset.nc"), "fit": first("fit.json", "*/fit.json"),
              "render": first("render/render.json", "render.json", "*/render.json"),
              "preview": first("render/preview/preview.json", "preview/preview.json", "*/preview/preview.json"),
-             "speed": first("speed.json", "*/speed.json")}
+             "speed": first("speed.json", "*/speed.json"),
+             "journal": first("journal.sqlite", "session/journal.sqlite", "*/journal.sqlite")}
     if found["dataset"] is None:
         raise GonioError(f"no dataset.nc under {folder}; run `gonio export SESSION` first")
     for key, path in found.items():
@@ -101,18 +104,9 @@ def _truth_text(truth):
 
 def _reciprocity(dataset_path, meas):
     """Median relative difference between reciprocal partners (wi and wo swapped), or None."""
-    import xarray as xr
-
-    try:
-        with xr.open_dataset(dataset_path, engine="h5netcdf") as ds:
-            if "reciprocal_partner" not in ds.variables:
-                return None
-            partner = np.asarray(ds["reciprocal_partner"].values, dtype=float)
-    except (OSError, ValueError, TypeError, KeyError):
+    partner = _partners(dataset_path, meas.n_points)
+    if partner is None:
         return None
-    if partner.shape != (meas.n_points,) or not np.all(np.isfinite(partner)):
-        return None
-    partner = partner.astype(np.int64)
     i = np.where((partner > np.arange(partner.size)) & (partner < partner.size))[0]
     if i.size == 0:
         return None
@@ -291,19 +285,92 @@ def _load_fit(root: Folder, path: Path):
     return fit, model, params
 
 
+CAPTIONS = {
+    "inplane.png": "Measured f_r (dots, 1-sigma bars) and the fit (lines) in the plane of incidence at up to four "
+                   "incidence angles; theta_o negative on the lamp's side, positive on the mirror side; one colour "
+                   "per camera channel.",
+    "polar.png": "At the incidence with the most out-of-plane points. Left: the fitted lobe over the hemisphere "
+                 "(background) and the measured values (dots) on the same logarithmic colour scale. Right: measured "
+                 "/ fit per point. Radius theta_o (deg), angle phi_o.",
+    "residuals.png": "Left: histogram of (measured - fit) / sigma over every value used in the fit. Right: the rms "
+                     "normalised residual of each point, by incidence and outgoing angle.",
+    "albedo.png": "Directional albedo of the fit against theta_o, one curve per channel; above 1 would violate "
+                  "energy conservation.",
+    "measured.png": "Measured f_r (dots, 1-sigma bars) in the plane of incidence at up to four incidence angles; "
+                    "theta_o negative on the lamp's side; one colour per camera channel. No fit in the folder.",
+    "coverage.png": "The measured directions: radius theta_o (deg), angle phi_o, colour theta_i.",
+    "corner.png": "Posterior samples (emcee) of the parameters, each as its offset from the posterior median in the "
+                  "unit its axis names; dashed: the 5, 50 and 95 % quantiles.",
+    "mitsuba_vs_measured.png": "Mitsuba 3's render of the fitted BSDF at each measured geometry against the measured "
+                               "value (log-log, one colour per channel); dashed: equality.",
+    "preview_side_by_side.png": "Sphere previews: the fit (left) beside the measured or true simulated BSDF (right).",
+}
+ORDER = ["inplane.png", "polar.png", "residuals.png", "albedo.png", "measured.png", "coverage.png", "corner.png",
+         "mitsuba_vs_measured.png", "preview_side_by_side.png"]
+
+
+def _figures(images: dict) -> dict:
+    """Each PNG with its number (in the page's order), caption and alt text."""
+    names = [n for n in ORDER if n in images] + [n for n in images if n not in ORDER]
+    return {name: {"b64": base64.b64encode(images[name]).decode("ascii"), "number": k + 1,
+                   "caption": CAPTIONS.get(name, name), "alt": f"{name}: {CAPTIONS.get(name, name)[:100]}"}
+            for k, name in enumerate(names)}
+
+
+def _partners(dataset_path, n):
+    """The dataset's reciprocal_partner index (int64), or None when absent or malformed."""
+    import xarray as xr
+
+    try:
+        with xr.open_dataset(dataset_path, engine="h5netcdf") as ds:
+            if "reciprocal_partner" not in ds.variables:
+                return None
+            partner = np.asarray(ds["reciprocal_partner"].values, dtype=float)
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+    if partner.shape != (n,) or not np.all(np.isfinite(partner)):
+        return None
+    return partner.astype(np.int64)
+
+
+def _draw_all(meas, model, params, samples, rendered, side, notes) -> dict:
+    images: dict[str, bytes] = {}
+    if model is not None:
+        for name, fn in (("inplane.png", figs.inplane), ("polar.png", figs.polar), ("residuals.png", figs.residuals)):
+            figs.draw(images, notes, name, fn, meas, model, params)
+        figs.draw(images, notes, "albedo.png", figs.albedo, model, params)
+    else:
+        figs.draw(images, notes, "measured.png", figs.inplane, meas)
+    figs.draw(images, notes, "coverage.png", figs.coverage, meas)
+    if samples is not None:
+        figs.draw(images, notes, "corner.png", figs.corner_plot, *samples)
+    if rendered is not None:
+        figs.draw(images, notes, "mitsuba_vs_measured.png", figs.mitsuba_vs_measured, meas, rendered)
+    if side is not None:
+        images["preview_side_by_side.png"] = side
+    return images
+
+
 def build_page(folder, found: dict, root: Folder) -> tuple[str, dict]:
     """Read and check every input, draw the figures and fill the template; write nothing."""
     import jinja2
 
     meas = _load_dataset(root, found["dataset"])
-    ctx = {"title": cut(Path(folder).resolve().name, 200), "notes": [], "fit": None, "speed": None, "render": None,
-           "preview": None, "mitsuba": None}
+    ctx = {"notes": [], "fit": None, "speed": None, "render": None, "preview": None, "mitsuba": None,
+           "results": None}
     ctx["capture"] = capture_section(meas, found["dataset"])
+    ident = meta.identification(meas, root, found.get("journal"))
+    ctx["ident"] = ident
+    ctx["title"] = cut(f"sample {ident['sample_id']}, " if ident["sample_id"] else "", 200) + \
+        cut(f"session folder {Path(folder).resolve().name}", 200)
     fit = model = params = samples = rendered = side = None
     if found["fit"] is not None:
         fit, model, params = _load_fit(root, found["fit"])
         truth = meas.attrs.get("sample_truth")
-        ctx["fit"] = fit_section(fit, truth if isinstance(truth, dict) else None)
+        truth = truth if isinstance(truth, dict) else None
+        ctx["fit"] = fit_section(fit, truth)
+        ctx["results"] = meta.results(fit, truth_for(truth, model.name, [k for k, _ in fit.items("parameters")]),
+                                      meas.attrs.get("scale_rel_std"))
         samples = posterior_samples(fit)
         ctx["mitsuba"] = mitsuba_section(model, params, fit)
     if found["speed"] is not None:
@@ -313,24 +380,16 @@ def build_page(folder, found: dict, root: Folder) -> tuple[str, dict]:
     if found["preview"] is not None:
         ctx["preview"], side = preview_section(root.read_json(found["preview"], "preview summary", fix=FIX_PREVIEW),
                                                root, found["preview"])
+    ctx["status"] = meta.status(meas, ident["planned"], fit, _partners(found["dataset"], meas.n_points))
+    ctx["status_bad"] = any(s["level"] == "bad" for s in ctx["status"])
 
-    # every input is read and checked: now the figures, in the report's order
-    images: dict[str, bytes] = {}
+    # every input is read and checked: now the figures and the view's data
     notes = ctx["notes"]
-    figs.draw(images, notes, "coverage.png", figs.coverage, meas)
-    if model is not None:
-        for name, fn in (("inplane.png", figs.inplane), ("polar.png", figs.polar), ("residuals.png", figs.residuals)):
-            figs.draw(images, notes, name, fn, meas, model, params)
-        figs.draw(images, notes, "albedo.png", figs.albedo, model, params)
-    if samples is not None:
-        figs.draw(images, notes, "corner.png", figs.corner_plot, *samples)
-    if rendered is not None:
-        figs.draw(images, notes, "mitsuba_vs_measured.png", figs.mitsuba_vs_measured, meas, rendered)
-    if side is not None:
-        images["preview_side_by_side.png"] = side
+    images = _draw_all(meas, model, params, samples, rendered, side, notes)
     if ctx["preview"] is not None and ctx["preview"]["note"]:
         notes.append(ctx["preview"]["note"])
-    ctx["figures"] = [{"name": name, "b64": base64.b64encode(data).decode("ascii")} for name, data in images.items()]
+    ctx["figures"] = _figures(images)
+    ctx["view"] = view_data(meas, model, params)
 
     script = (TEMPLATES / "report.js").read_text(encoding="utf-8").removesuffix("\n")
     ctx["script_hash"] = base64.b64encode(hashlib.sha256(script.encode("utf-8")).digest()).decode("ascii")

@@ -103,11 +103,13 @@ class Tags(html.parser.HTMLParser):
 
     def __init__(self):
         super().__init__()
-        self.tags, self.attrs, self.scripts = [], [], []
+        self.tags, self.attrs, self.scripts, self.script_types = [], [], [], []
         self._in_script = False
 
     def handle_starttag(self, tag, attrs):
         self.tags.append(tag)
+        if tag == "script":
+            self.script_types.append(dict(attrs).get("type"))
         self.attrs.extend(name for name, _ in attrs)
         self._in_script = tag == "script"
 
@@ -122,8 +124,10 @@ class Tags(html.parser.HTMLParser):
 def assert_inert(page: str):
     tags = Tags()
     tags.feed(page)
-    assert tags.tags.count("script") == 1, "only the report's own script"
-    assert "data-images-decoded" in tags.scripts[0] and "alert" not in tags.scripts[0]
+    # the report's own script, and the view's data in a JSON element (never executed)
+    assert tags.tags.count("script") == 2 and tags.script_types == ["application/json", None], tags.script_types
+    assert "data-images-decoded" in tags.scripts[1] and "alert" not in tags.scripts[1]
+    json.loads(tags.scripts[0])
     assert not [a for a in tags.attrs if a.startswith("on")], "no event-handler attribute"
     assert tags.tags.count("img") == page.count('src="data:image/png;base64,')
     for bad in (SCRIPT, IMG, "<img src=x", "alert(2)</script>", "\x1b", "49{% raw"):

@@ -108,7 +108,8 @@ def test_report_renders_in_headless_chromium(loop, tmp_path):
          "--virtual-time-budget=5000", "--dump-dom", path.as_uri()],
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "<h1>gonio report" in proc.stdout
+    assert "<h1>BRDF measurement report" in proc.stdout
+    assert '<section id="view" hidden' not in proc.stdout      # the view's script ran under the CSP
     decoded = proc.stdout.split('data-images-decoded="')[1].split('"')[0]
     ok, total = (int(v) for v in decoded.split("/"))
     assert total >= 5 and ok == total, decoded
