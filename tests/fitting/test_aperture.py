@@ -1,0 +1,82 @@
+"""The instrument's angular response in the forward model (issue 15; fitting/_aperture.py)."""
+
+import numpy as np
+import pytest
+
+import gonio.models as gm
+from gonio.fitting import Measurements, fit, with_instrument_response
+from gonio.fitting._aperture import aperture_mean, aperture_ratio, cone, disk_rule
+
+from _simdata import directions
+
+
+def test_disk_rule_is_exact_to_degree_five():
+    """Stroud S2 5-1 on the unit disk: mean of 1, x^2, x^4, x^2 y^2 = 1, 1/4, 1/8, 1/24;
+    odd moments 0 (the uniform disk's moments)."""
+    p, w = disk_rule()
+    x, y = p.T
+    for value, expected in ((1.0, 1.0), (x ** 2, 0.25), (x ** 4, 0.125), (x ** 2 * y ** 2, 1 / 24),
+                            (x, 0.0), (x ** 3 * y, 0.0), (x * y ** 2, 0.0)):
+        assert np.sum(w * value) == pytest.approx(expected, abs=1e-15)
+
+
+def test_cone_directions_are_unit_and_within_the_half_angle():
+    rng = np.random.default_rng(0)
+    w, _ = directions(rng, 50)
+    d = cone(w, np.radians(1.0))
+    assert np.allclose(np.linalg.norm(d, axis=2), 1.0)
+    ang = np.degrees(np.arccos(np.clip(np.einsum("knc,nc->kn", d, w), -1, 1)))
+    assert ang[0].max() < 1e-6 and np.allclose(ang[1:], np.degrees(np.arctan(np.tan(np.radians(1)) * np.sqrt(2 / 3))))
+
+
+def test_a_lambertian_is_unchanged_and_a_narrow_lobe_is_lowered():
+    rng = np.random.default_rng(1)
+    wi, wo = directions(rng, 40, specular_fraction=0.0)
+    lam = gm.get("diffuse")
+    np.testing.assert_allclose(aperture_ratio(lam, wi, wo, {"reflectance": 0.5}, 0.5, 0.5), 1.0, atol=1e-12)
+    m = gm.get("roughplastic", distribution="ggx")
+    truth = {"diffuse_reflectance": 0.3, "alpha": 0.02, "int_ior": 1.5}
+    wi1 = gm.geometry.directions(np.radians([30.0]), [0.0])
+    wo1 = gm.geometry.directions(np.radians([30.0]), [np.pi])
+    # at the mirror direction the averaged peak is lower, more so for the wider aperture
+    c05, c15 = (aperture_ratio(m, wi1, wo1, truth, h, h)[0, 0] for h in (0.5, 1.5))
+    assert 0.5 < c15 < c05 < 0.95
+    assert aperture_mean(m, wi1, wo1, truth, 0.0, 0.0) == pytest.approx(m.eval(wi1, wo1, truth))
+
+
+@pytest.fixture(scope="module")
+def convolved():
+    """A glossy session (alpha 0.05) measured through 0.5 deg source and detector disks."""
+    m = gm.get("roughplastic", distribution="ggx")
+    truth = {"diffuse_reflectance": np.array([0.5, 0.35, 0.2]), "alpha": 0.05, "int_ior": 1.5}
+    rng = np.random.default_rng(11)
+    wi, wo = directions(rng, 300, spread=0.05)
+    f = aperture_mean(m, wi, wo, truth, 0.5, 0.5)
+    sigma = 0.01 * f + 1e-3
+    y = f + sigma * rng.standard_normal(f.shape)
+    attrs = {"aperture_source_half_deg": 0.5, "aperture_detector_half_deg": 0.5}
+    return m, Measurements(wi, wo, y, sigma, np.ones(f.shape, bool), attrs)
+
+
+def test_the_response_removes_the_bias_of_a_narrow_lobe(convolved):
+    """The point model's alpha is > 10 sigma off (figure: tests/fitting/aperture_effect.py);
+    with the response it is within 3 sigma, and the correction is said."""
+    m, meas = convolved
+    refit = lambda d: fit(d, m, rng=np.random.default_rng(0))  # noqa: E731
+    point = refit(meas)
+    i = point.space.names.index("alpha")
+    assert abs(point.x[i] - 0.05) / point.std[i] > 10
+    res, m2, _ = with_instrument_response(meas, None, point, refit)
+    assert abs(res.x[i] - 0.05) / res.std[i] < 3
+    info = res.response
+    assert info["source_half_deg"] == 0.5 and 0.01 < info["max_correction"] < 0.5 and info["last_change"] < 0.05
+    assert m2.attrs["aperture_corrected"] and np.all(m2.brdf_std > 0)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), 45.0])
+def test_impossible_apertures_are_refused(convolved, bad):
+    m, meas = convolved
+    broken = Measurements(meas.wi, meas.wo, meas.brdf, meas.brdf_std, meas.use,
+                          {"aperture_source_half_deg": bad, "aperture_detector_half_deg": 0.5})
+    with pytest.raises(ValueError, match="aperture half-angles"):
+        with_instrument_response(broken, None, None, None)
