@@ -12,6 +12,11 @@ is not saturated (its brightest raw pixel below ``saturation_fraction`` of full 
 ``x = sum(w_k x_k) / sum(w_k)``, ``var(x) = 1 / sum(w_k)``, ``w_k = 1 / var(x_k)``. The
 variances are evaluated at the model's prediction ``x t_k P_k`` (a second pass), not at the
 noisy measured values, which would bias the weights toward low readings.
+
+With a calibrated detector non-linearity ``gamma`` (``[linearity]`` of a calibration, gonio
+calibrate: ``D = L (1 - gamma L / FS)`` for the linear value ``L``, ``FS`` the full scale), each
+value and its dark are linearised first, ``L = FS (1 - sqrt(1 - 4 gamma D / FS)) / (2 gamma)``;
+``gamma = 0`` (the default) leaves them untouched.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import numpy as np
 
 from .drivers.camera import RawFrame
 
-__all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "choose_bracket", "ladder", "flat_gain"]
+__all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "linearise", "choose_bracket", "ladder", "flat_gain"]
 
 
 @dataclass(frozen=True)
@@ -86,8 +91,20 @@ def _saturated(frame: RawFrame, saturation_fraction: float) -> np.ndarray:
 _BLOCK = 1 << 16          # values per channel in one block of rows: the block's arrays stay in cache
 
 
-def merge(exposures: Sequence[Exposure], noise: NoiseModel, saturation_fraction: float = 0.9) -> HdrResult:
-    """Merge a bracket (see the module notes for the formulas).
+def linearise(dn, gamma: float, full_scale: float):
+    """Invert the integral non-linearity ``D = L (1 - gamma L / FS)`` (module notes); dtype kept."""
+    if not gamma:
+        return dn
+    dn = np.asarray(dn)
+    g, fs = dn.dtype.type(gamma), dn.dtype.type(full_scale)
+    root = np.sqrt(np.maximum(dn.dtype.type(1.0) - dn.dtype.type(4.0) * g * dn / fs, dn.dtype.type(0.0)))
+    return (dn.dtype.type(1.0) - root) * fs / (dn.dtype.type(2.0) * g)
+
+
+def merge(exposures: Sequence[Exposure], noise: NoiseModel, saturation_fraction: float = 0.9,
+          gamma: float = 0.0) -> HdrResult:
+    """Merge a bracket (see the module notes for the formulas; ``gamma``: the calibrated
+    non-linearity, 0 for none).
 
     Float32, in blocks of rows: both weighting passes of a block run while it is in cache, and
     no (exposures, 3, h, w) stack is built (the float64 stacks of old took 5 x the memory and
@@ -111,6 +128,9 @@ def merge(exposures: Sequence[Exposure], noise: NoiseModel, saturation_fraction:
         x, inv_ok, dark, var_dark = [], [], [], []
         for e, k, lim in zip(exposures, scale, limit):
             sig, dk = e.frame.signal[:, rows], e.dark.signal[:, rows]
+            if gamma:
+                fs = e.frame.full_scale
+                sig, dk = linearise(sig, gamma, fs), linearise(dk, gamma, fs)
             x.append((sig - dk) / k)
             ok = e.frame.peak[:, rows] < lim
             n_used[:, rows] += ok

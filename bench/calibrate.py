@@ -42,6 +42,7 @@ from gonio.models.atomic import atomic_open
 
 from . import _alignment as al
 from . import kinematics
+from ._hdr import linearise
 from .errors import GonioError
 
 __all__ = ["SimBench", "calibrate", "align", "linearity", "reference_factor", "write_calibration",
@@ -205,13 +206,6 @@ def linearity(bench, settings: Mapping, stage_deg=(20.0, 0.0, 0.0, 50.0), rungs:
             "exposures_s": ts.tolist()}
 
 
-def _linearise(dn, gamma, full_scale):
-    """Invert ``y = x (1 - gamma x / FS)`` (the smaller root)."""
-    if not gamma:
-        return dn
-    return (1.0 - np.sqrt(np.maximum(1.0 - 4.0 * gamma * dn / full_scale, 0.0))) * full_scale / (2.0 * gamma)
-
-
 def reference_factor(bench, settings: Mapping, cal: Mapping) -> dict:
     """The reference's f_r over a 5 x 5 grid relative to a Lambertian; the ``[reference]`` table."""
     gamma = float(cal.get("linearity", {}).get("gamma", 0.0))
@@ -225,7 +219,7 @@ def reference_factor(bench, settings: Mapping, cal: Mapping) -> dict:
             t = float(np.clip(t0 / math.cos(math.radians(a_i)), cap["exposure_min_s"], cap["exposure_max_s"]))
             bench.move(stage)
             m = bench.monitor()
-            vals = [_linearise(_squares(bench, stage, settings, t)[1], gamma, bench.full_scale) for _ in range(2)]
+            vals = [linearise(_squares(bench, stage, settings, t)[1], gamma, bench.full_scale) for _ in range(2)]
             ang = calibrated_angles(cal, stage)[0]
             sig = np.mean(vals) / (t * m * math.cos(math.radians(ang[0])))
             ti.append(ang[0]), to.append(ang[2]), y.append(sig)

@@ -134,6 +134,11 @@ def test_cli_refuses_bad_input_in_one_line(tmp_path, capsys, argv, words):
 
 
 def test_uncertainty_helpers():
+    from gonio.bench._hdr import linearise
+
+    x = np.linspace(0.0, 15000.0, 7)
+    assert np.allclose(linearise(x * (1 - 0.003 * x / 15871.0), 0.003, 15871.0), x, rtol=1e-12, atol=1e-9)
+    assert linearise(x, 0.0, 15871.0) is x
     assert C.u_linearity_rel(0.8, 0.2, 1e-4) == pytest.approx(6e-5)
     assert C.u_stray_rel(1.0, 1.0, 1e-3) == 0.0
     assert C.u_stray_rel(0.01, 0.3, 1e-3) == pytest.approx(1e-3 / math.pi * (100 - 1 / 0.3) / math.sqrt(3))
