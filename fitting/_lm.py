@@ -118,7 +118,7 @@ def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget):
 
 def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, atol: float = 0.0,
                         xtol: float = 1e-10, h: float = 1e-6, budget=None, jac=None,
-                        abandon=None) -> LMResult:
+                        abandon=None, normal=None) -> LMResult:
     """Minimise ``sum(fun(u)**2)`` over the unit box from ``u0``.
 
     Parameters
@@ -137,6 +137,10 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
     abandon : callable, optional
         ``abandon(iteration, cost) -> bool``: give up a start that is clearly worse than one
         already refined (multi-start racing).
+    normal : callable, optional
+        ``normal(u, r) -> (J^T r, J^T J)``, or None where it has no answer (then ``jac``):
+        the step's normal equations without the M x P Jacobian (reduced in a compiled
+        kernel: memory independent of the number of residuals).
 
     Notes
     -----
@@ -154,11 +158,16 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
         if budget is not None and not budget():
             message = "maxeval reached"
             break
-        J = jac(u, r) if jac is not None else None
-        if J is None:
-            J = forward_jacobian(fun, u, r, h)
-        g = J.T @ r
-        A = J.T @ J
+        gA = normal(u, r) if normal is not None else None
+        J = None
+        if gA is not None:
+            g, A = gA
+        else:
+            J = jac(u, r) if jac is not None else None
+            if J is None:
+                J = forward_jacobian(fun, u, r, h)
+            g = J.T @ r
+            A = J.T @ J
         free = ~(((u <= 0.0) & (g > 0)) | ((u >= 1.0) & (g < 0)))
         if not np.any(free) or np.max(np.abs(g[free])) <= 1e-14 * max(cost, 1e-300):
             message, converged = "gradient vanishes", True

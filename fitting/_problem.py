@@ -29,6 +29,7 @@ class Evaluator:
         self.n_evals = 0
         self.fast = False
         self._dirs = None
+        self._yw = None
         worth_it = len(wi) >= FAST_MIN_POINTS or model.structure.compile_always
         if use_fast is not False and n_channels == 3 and (use_fast or worth_it):
             self.fast = _fast_agrees(model)
@@ -44,6 +45,18 @@ class Evaluator:
         if self.fast:
             return fast.eval_resident(self.model, self._resident(), params)
         return np.asarray(self.model.eval(self.wi, self.wo, params), dtype=np.float64)
+
+    def normal(self, params, y, w):
+        """(cost, g, A, entries) of :func:`gonio.models.fast.normal_equations` on the resident
+        directions (one kernel, nothing stored per pair; counted as one evaluation), or None
+        on the numpy path. ``y``, ``w``: (N, 3) data and weights, loaded once per fit."""
+        if not self.fast:
+            return None
+        self.n_evals += 1
+        if self._yw is None or self._yw[0] is not y:
+            d = self._resident()
+            self._yw = (y, d.channels(y, "y"), d.channels(w, "w"))
+        return fast.normal_equations(self.model, self._resident(), params, self._yw[1], self._yw[2])
 
     def jacobian(self, params):
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
@@ -72,7 +85,7 @@ def _fast_agrees(model) -> bool:
             wi, wo = directions(t[0], p[0]), directions(t[1], p[1])
             params = {q.name: q.default for q in model.parameters}
             a = fast.eval(model, wi, wo, params)
-            b = model.eval(wi, wo, params)
+            b = model.eval_reference(wi, wo, params)
             ok = bool(np.allclose(a, b, rtol=1e-8, atol=1e-12 * max(1.0, float(np.max(np.abs(b))))))
     except Exception:  # no compiled kernel for this model, or no working LLVM
         ok = False
@@ -96,6 +109,7 @@ class _Problem:
         self.nl_idx = np.array([i for i in range(space.size) if i not in lin_idx], dtype=int)
         self._lin_index = np.array(lin_idx, dtype=int)
         self._last = (None, None)
+        self._normal_data = None
 
     @property
     def n_evals(self):
@@ -160,6 +174,32 @@ class _Problem:
             s = np.sqrt(1.0 + r * r)
             D = D * (np.sqrt(0.5 * (s + 1.0)) / s)[:, None]  # d rho / dr
         return D
+
+    def lm_normal_u(self, u, _r=None):
+        """(J^T r, J^T J) of :meth:`lm_residuals_u` at u in the unit box, reduced inside the
+        compiled kernel (:meth:`Evaluator.normal`): the Levenberg-Marquardt step without an
+        N x P Jacobian, in memory independent of N (a 1e6-point fit). For the losses whose
+        residual is affine in f_r without a transform (chi2, cosine: r = weight (f - y));
+        None elsewhere, on the numpy path or where a sum is not finite (the caller then
+        asks :meth:`lm_jacobian_u`)."""
+        if self.loss not in ("chi2", "cosine") or not self.eval.fast:
+            return None
+        if self._normal_data is None:
+            use = self.meas.use
+            self._normal_data = (np.where(use, self.meas.brdf, 0.0),
+                                 np.where(use, np.broadcast_to(self.weight, use.shape) ** 2, 0.0))
+        x = self.space.from_unit(u)
+        _, g, A, entries = self.eval.normal(self.space.to_params(x), *self._normal_data)
+        where = {e: i for i, e in enumerate(entries)}
+        try:
+            idx = [where[(e.param, e.channel)] for e in self.space.entries]
+        except KeyError:  # a space the kernel's entries do not span
+            return None
+        s = self.space.dx_du(x)
+        g, A = g[idx] * s, A[np.ix_(idx, idx)] * np.outer(s, s)
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(A))):
+            return None
+        return g, A
 
     # -- variable projection
     def basis(self, x):

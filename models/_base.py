@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,6 +60,16 @@ def eval_inputs(model, wi, wo, params):
     if wi.shape != wo.shape:
         raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
     return wi, wo, model.validate(params)
+
+
+def _compiled(model):
+    """True when ``model.eval`` may run its compiled kernel: the model has one, Dr.Jit's LLVM
+    backend works (probed once per process) and ``GONIO_EVAL_BACKEND`` is not ``numpy``."""
+    if model.structure.kernel is None or os.environ.get("GONIO_EVAL_BACKEND", "").lower() == "numpy":
+        return False
+    from . import _fast
+
+    return _fast.available()
 
 
 def register(cls):
@@ -195,7 +206,14 @@ class Model:
         """Hook for cross-parameter checks (raise ValueError)."""
 
     # -- evaluation ----------------------------------------------------------------------
-    def eval(self, wi, wo, params):
+    #: Pairs from which :meth:`eval` runs the compiled kernel (``backend="auto"``). Measured
+    #: on this project's 2-core machine (``python -m gonio.models.speed --crossover``): the
+    #: compiled call costs ~60 us whatever N up to ~1e4 pairs (validation, the replayed
+    #: kernel, the numpy round trip); numpy's microfacet models cost that at ~10 pairs, the
+    #: diffuse ones at ~500-1000. Models set their own.
+    compiled_min_pairs = 32
+
+    def eval(self, wi, wo, params, backend="auto"):
         """BRDF f_r(wi, wo) in sr^-1, shape (N, 3).
 
         Parameters
@@ -206,6 +224,14 @@ class Model:
             Unit directions toward the detector.
         params : dict
             Parameter values (see :attr:`parameters`); validated on every call.
+        backend : {"auto", "numpy", "drjit"}
+            ``"auto"`` (default): the compiled float64 kernel (:func:`gonio.models.fast.eval`,
+            the same formulas, equal to the reference to ~1e-14 relative; roughplastic
+            Beckmann ~1e-8 through Dr.Jit's erfinv in its tables) from
+            :attr:`compiled_min_pairs` pairs where Dr.Jit's LLVM backend works, otherwise
+            the numpy reference; ``"numpy"``: the reference (:meth:`eval_reference`);
+            ``"drjit"``: the compiled kernel at any size (ValueError where there is none).
+            The environment variable ``GONIO_EVAL_BACKEND=numpy`` makes ``"auto"`` numpy.
 
         Returns
         -------
@@ -213,6 +239,22 @@ class Model:
             f_r without the cosine factor; 0 where either direction is at or below the
             horizon (and for non-finite directions).
         """
+        if backend == "numpy":
+            return self.eval_reference(wi, wo, params)
+        if backend not in ("auto", "drjit"):
+            raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
+        wi, wo, p = eval_inputs(self, wi, wo, params)
+        if backend == "drjit" or (wi.shape[0] >= self.compiled_min_pairs and _compiled(self)):
+            from . import _fast
+
+            if backend == "drjit" and not _compiled(self):
+                raise ValueError(f"{self.name}: no compiled kernel here (Dr.Jit's LLVM backend or the model's kernel missing)")
+            return _fast.eval(self, wi, wo, p)
+        return self.eval_reference(wi, wo, p)
+
+    def eval_reference(self, wi, wo, params):
+        """f_r from the numpy reference implementation (float64, blocks of 65536 pairs);
+        same contract as :meth:`eval`, which equals it to rounding (tests compare them)."""
         wi, wo, p = eval_inputs(self, wi, wo, params)
         n = wi.shape[0]
         out = np.empty((n, CHANNELS))

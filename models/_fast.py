@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 from functools import lru_cache
 
 import numpy as np
@@ -49,6 +50,7 @@ from ._jit import Directions, JitContext, _dr
 from ._jit import _fresnel_conductor  # noqa: F401  (tests check its derivatives as fast._fresnel_conductor)
 
 __all__ = ["available", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad",
+           "normal_equations",
            "affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
 
 _PROBE = (
@@ -164,15 +166,66 @@ def _empty(model, wi, wo, params):
     return eval_inputs(model, wi, wo, params)[0].shape[0] == 0
 
 
-def eval(model, wi, wo, params):
-    """Compiled f_r(wi, wo), shape (N, 3); same contract as ``model.eval``."""
+def _round_trip(model, flat_i, flat_o, lanes, P):
+    """The kernels of :func:`eval`: directions de-interleaved from the flat (3N) numpy-mapped
+    inputs by gathers, non-finite rows made degenerate (f_r = 0, as in the reference), then
+    f_r interleaved into one flat (3N) output by a second, gathering kernel, so that numpy
+    sees an (N, 3) array without a copy in either direction. (Scattering the channels from
+    the model's kernel instead measured 2-3x slower than the model's kernel alone on
+    roughplastic at 1e6 pairs; the second kernel costs ~1.5 ms there.)"""
     dr, F, V3, U = _dr()
-    if _empty(model, wi, wo, params):
+    # sizes only through dr.arange(U, dr.width(input)): a replayed recording follows the new
+    # inputs' widths (``lanes`` has one lane per pair), never a traced Python integer
+    idx = dr.arange(U, dr.width(lanes)) * 3
+    vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
+    vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
+    finite = dr.isfinite(vi.x) & dr.isfinite(vi.y) & dr.isfinite(vi.z)
+    finite &= dr.isfinite(vo.x) & dr.isfinite(vo.y) & dr.isfinite(vo.z)
+    down = V3(0.0, 0.0, -1.0)
+    c0, c1, c2 = _kernel(model, dr.select(finite, vi, down), dr.select(finite, vo, down), P)
+    dr.eval(c0, c1, c2)
+    j = dr.arange(U, dr.width(flat_i))
+    q = j // 3
+    r = j - 3 * q
+    return dr.select(r == 0, dr.gather(F, c0, q), dr.select(r == 1, dr.gather(F, c1, q), dr.gather(F, c2, q)))
+
+
+_FREEZE_LOCK = threading.Lock()
+
+
+@lru_cache(maxsize=64)
+def _frozen_round_trip_for(name, options):
+    """:func:`_round_trip` for one model configuration under ``dr.freeze`` (recorded once per
+    input layout, replayed for any N and parameter values: no tracing, no code generation)."""
+    import drjit as dr
+
+    from . import get
+
+    model = get(name, **dict(options))
+    return dr.freeze(lambda fi, fo, lanes, P: _round_trip(model, fi, fo, lanes, P))
+
+
+def eval(model, wi, wo, params):
+    """Compiled f_r(wi, wo), shape (N, 3) float64; same contract as ``model.eval``
+    (``Model.eval`` calls it above :data:`gonio.models._base.COMPILED_MIN_PAIRS` pairs).
+
+    numpy's memory is mapped into Dr.Jit without a copy, the kernel is replayed from its
+    recording (:func:`_frozen_round_trip_for`) and its interleaved output is handed back
+    to numpy without a copy: per pair 48 bytes read and 24 written, the memory-bandwidth
+    limit ``gonio bench models`` prints."""
+    dr, F, V3, U = _dr()
+    wi, wo, p = eval_inputs(model, wi, wo, params)
+    n = wi.shape[0]
+    if n == 0:
         return np.zeros((0, CHANNELS))
-    vi, vo, P, _, n = _inputs(model, wi, wo, params, grad=False)
-    with dr.suspend_grad():
-        chans = _kernel(model, vi, vo, P)
-        return _interleave(chans, n)
+    P, _ = _param_vars(model, p, F, grad=False)
+    # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the
+    # interleave the trace is long enough (measured 28 us frozen, 57 us traced, 300 pairs)
+    run = _frozen_round_trip_for(model.name, tuple(sorted(model.options.items())))
+    with _FREEZE_LOCK, dr.suspend_grad():  # one recording replayed at a time (threads)
+        out = run(F(wi.reshape(-1)), F(wo.reshape(-1)), dr.empty(U, n), P)
+        dr.eval(out)
+    return np.asarray(out).reshape(n, CHANNELS)
 
 
 def value_and_grad(model, wi, wo, params, cotangent):
@@ -395,3 +448,93 @@ def _chi2_sums(model, wi, wo, P, y, w):
         dr.scatter_reduce(dr.ReduceOp.Add, target, F64(t), zero, mode=dr.ReduceMode.Expand)
         out.append(target)
     return out
+
+
+def _entries(model):
+    """The parameter entries of the normal equations, in model order: (name, channel) for
+    each channel of a per-channel parameter, (name, -1) for a shared one."""
+    out = []
+    for par in model.parameters:
+        out += [(par.name, c) for c in range(CHANNELS)] if par.per_channel else [(par.name, -1)]
+    return out
+
+
+def _normal_sums(model, wi, wo, P, y, w):
+    """[sum w (f - y)^2, then g_a = sum w (f - y) J_a per entry, then A_ab = sum w J_a J_b
+    for every pair a <= b that shares a channel], reduced in the kernel like
+    :func:`_chi2_sums`; channels are independent in every model, so a per-channel entry's
+    J is zero in the other channels and pairs of two different channels are 0 (skipped)."""
+    import drjit as dr
+
+    _, F64, _, U = _dr()
+    f, J = _kernel(model, wi, wo, P, grad=True)
+    res = [fc - yc for fc, yc in zip(f, y)]
+    wr = [wc * rc for wc, rc in zip(w, res)]
+    ent = _entries(model)
+
+    def col(e, c):
+        name, ch = e
+        return J[name][c] if ch in (-1, c) else None
+
+    terms = [sum(a * rc for a, rc in zip(wr, res))]
+    for e in ent:
+        terms.append(sum(wr[c] * col(e, c) for c in range(CHANNELS) if col(e, c) is not None))
+    for i, a in enumerate(ent):
+        for b in ent[i:]:
+            parts = [w[c] * col(a, c) * col(b, c) for c in range(CHANNELS)
+                     if col(a, c) is not None and col(b, c) is not None]
+            if parts:
+                terms.append(sum(parts))
+    zero = dr.zeros(U, 1)
+    out = []
+    for t in terms:
+        target = dr.zeros(F64, 1)
+        dr.scatter_reduce(dr.ReduceOp.Add, target, F64(t), zero, mode=dr.ReduceMode.Expand)
+        out.append(target)
+    return out
+
+
+def normal_equations(model, dirs, params, y, w):
+    """The weighted least-squares normal equations at ``params``, reduced in one kernel that
+    stores nothing per pair: what Gauss-Newton and Levenberg-Marquardt need per iteration,
+    in memory independent of N (no N x P Jacobian).
+
+    With r = f_r - y over pairs and channels and W = ``w``: cost = sum W r^2,
+    g = sum W r J (= J^T W r) and A = sum W J J^T (= J^T W J), J the derivatives of
+    :func:`jacobian` with respect to every parameter entry (:func:`_entries`: a per-channel
+    parameter has one entry per channel). Sums are float64 whatever the batch's precision;
+    their order depends on the thread schedule (last bits).
+
+    Returns
+    -------
+    cost : float
+    g : ndarray (E,)
+    A : ndarray (E, E), symmetric
+    entries : list of (parameter name, channel or -1)
+    """
+    import drjit as dr
+
+    p = model.validate(params)
+    y = y if isinstance(y, list) else dirs.channels(y, "y")
+    w = w if isinstance(w, list) else dirs.channels(w, "w")
+    ent = _entries(model)
+    E = len(ent)
+    if dirs.n == 0:
+        return 0.0, np.zeros(E), np.zeros((E, E)), ent
+    P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
+    # traced on every call, like chi2_grad (~0.3 ms): a recording (dr.freeze) is made anew
+    # for each new batch (its mapped memory's alignment) and measured 0.26-0.47 s to make
+    with dr.suspend_grad():
+        sums = _normal_sums(model, dirs.wi, dirs.wo, P, y, w)
+        dr.eval(*sums)
+    vals = [float(np.asarray(v)[0]) for v in sums]
+    g = np.array(vals[1:1 + E])
+    A = np.zeros((E, E))
+    k = 1 + E
+    for i, a in enumerate(ent):
+        for j in range(i, E):
+            b = ent[j]
+            if a[1] == -1 or b[1] == -1 or a[1] == b[1]:
+                A[i, j] = A[j, i] = vals[k]
+                k += 1
+    return vals[0], g, A, ent

@@ -6,9 +6,10 @@ defaults with the per-channel values spread, so no path can evaluate one channel
 three) and one batch of ``n`` random direction pairs on the upper hemisphere it times,
 best of ``repeat``:
 
-* ``numpy``: the reference implementation, ``model.eval`` (float64);
-* ``drjit64``: :func:`gonio.models._fast.eval`, float64, numpy in and out (what the
-  fitter's general path calls);
+* ``numpy``: the reference implementation, ``model.eval_reference`` (float64);
+* ``eval``: the public API, ``model.eval(wi, wo, p)`` on the numpy arrays: the compiled
+  float64 kernel with the numpy round trip (:func:`gonio.models._fast.eval`; also reported
+  as ``drjit64``);
 * ``drjit32``: :meth:`gonio.models._fast.Bound.eval` (parameters loaded once, as Mitsuba's
   ``load_dict``) on a float32 :class:`~gonio.models._fast.Directions` batch loaded once,
   results left in Dr.Jit;
@@ -21,10 +22,17 @@ best of ``repeat``:
 
 ``drjit32`` and ``mitsuba`` run under the same conditions (float32, resident inputs, one
 fused kernel, outputs evaluated) and are timed head to head, taking turns; their ratio is
-the figure of merit, with ``jac/ev`` and ``grad/ev`` (the Jacobian's and the chi^2
-gradient's times over ``drjit32``'s) and ``grad/ev64`` (the chi^2 gradient over the
-evaluation, both float64 and resident: the fitter's precision). Each timing ends with
-``dr.sync_thread()`` (the LLVM backend launches asynchronously).
+the figure of merit, with ``ev/mi`` (the public ``eval`` over Mitsuba's rate: issue 18's
+goal is >= 0.5), ``jac/ev`` and ``grad/ev`` (the Jacobian's and the chi^2 gradient's times
+over ``drjit32``'s) and ``grad/ev64`` (the chi^2 gradient over the evaluation, both float64
+and resident: the fitter's precision). Each timing ends with ``dr.sync_thread()`` (the
+LLVM backend launches asynchronously).
+
+Physical limit: a resident evaluation reads the two directions and writes f_r, so it can go
+no faster than the machine's memory bandwidth over the bytes it moves per pair (36 in
+float32: Mitsuba's and ``drjit32``'s; 72 in float64 with numpy in and out: ``eval``'s and
+``numpy``'s). The bandwidth is measured in the same run (:func:`copy_bandwidth`: a large
+copy, read + write, on every thread) and the limits are printed beside the figures.
 """
 
 from __future__ import annotations
@@ -101,8 +109,50 @@ def _mitsuba_timer(model, params, wi, wo):
     return go, variant
 
 
-COLUMNS = ("numpy", "drjit64", "drjit32", "jac32", "grad32", "mitsuba")
-EXTRA = ("32/mi", "jac/ev", "grad/ev", "grad/ev64")
+COLUMNS = ("numpy", "eval", "drjit32", "jac32", "grad32", "mitsuba")
+EXTRA = ("32/mi", "ev/mi", "jac/ev", "grad/ev", "grad/ev64", "32/lim", "ev/lim")
+#: Bytes a resident evaluation moves per direction pair: two directions in, f_r out (RGB).
+BYTES_PER_PAIR = {"float32": 3 * 4 * 3, "float64": 3 * 8 * 3}
+
+
+def copy_bandwidth(nbytes=256 << 20, repeat=5):
+    """The machine's copy bandwidth in bytes/s (read + write counted), best of ``repeat``:
+    a copy of ``nbytes`` by Dr.Jit on all its threads (as the kernels run), or by numpy
+    where the compiled path is unavailable."""
+    if fast.available():
+        import drjit as dr
+        from drjit.llvm.ad import Float
+
+        x = dr.zeros(Float, nbytes // 4)
+        dr.make_opaque(x)  # in memory, not a literal
+
+        def go():
+            y = x + 1.0
+            dr.eval(y)
+            dr.sync_thread()
+    else:
+        x = np.zeros(nbytes // 8)
+        y = np.empty_like(x)
+
+        def go():
+            np.copyto(y, x)
+    go()
+    best = min(_timed(go) for _ in range(repeat))
+    return 2.0 * nbytes / best
+
+
+def _limits(bandwidth):
+    """Evaluations/s each column could reach at the copy bandwidth (None where no bound is
+    stated: the Jacobian's output depends on the model)."""
+    b32, b64 = BYTES_PER_PAIR["float32"], BYTES_PER_PAIR["float64"]
+    return {"bandwidth": bandwidth, "numpy": bandwidth / b64, "eval": bandwidth / b64, "drjit32": bandwidth / b32,
+            "mitsuba": bandwidth / b32, "grad32": bandwidth / 48, "jac32": None}
+
+
+def _timed(fn):
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
 
 
 def _resident(fn):
@@ -118,7 +168,7 @@ def _resident(fn):
 
 def _compiled_timers(model, p, wi, wo, dirs, dirs64, rng):
     """The compiled paths' timers for one model (``drjit64`` ... ``grad64``)."""
-    timed = {"drjit64": lambda: fast.eval(model, wi, wo, p)}
+    timed = {"eval": lambda: model.eval(wi, wo, p)}
     bound = fast.Bound(model, p, np.float32)
     timed["drjit32"] = _resident(lambda: bound.eval(dirs, numpy=False))
     timed["jac32"] = _resident(lambda: fast.jacobian(model, dirs, p, numpy=False))
@@ -150,6 +200,8 @@ def _row(name, options, t, head, n):
     row = {"model": name, "options": dict(options)}
     row.update({k: (n / v if v else None) for k, v in t.items() if k in COLUMNS})
     row["ratio"] = (head["mitsuba"] / head["drjit32"]) if (head["mitsuba"] and head["drjit32"]) else None
+    row["eval_ratio"] = (t["mitsuba"] / t["eval"]) if (t.get("mitsuba") and t.get("eval")) else None
+    row["drjit64"] = row.get("eval")
     row.update({f"{k}_h2h": (n / v if v else None) for k, v in head.items()})
     for key, num, den in (("jac_cost", "jac32", "drjit32"), ("grad_cost", "grad32", "drjit32"),
                           ("grad_cost64", "grad64", "eval64")):
@@ -163,7 +215,8 @@ def _print_row(row, name, options, out):
 
     label = name + "".join(f" {v}" for v in options.values())
     print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in COLUMNS)
-          + "".join(fmt(row[k], 10, 1, 2) for k in ("ratio", "jac_cost", "grad_cost", "grad_cost64")), file=out)
+          + "".join(fmt(row[k], 10, 1, 2) for k in ("ratio", "eval_ratio", "jac_cost", "grad_cost", "grad_cost64",
+                                                     "of_limit32", "of_limit64")), file=out)
 
 
 def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
@@ -206,12 +259,15 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     rows = []
     print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat})", file=out)
     print(f"{'model':<26}" + "".join(f"{c:>9}" for c in COLUMNS) + "".join(f"{c:>10}" for c in EXTRA), file=out)
+    limits = _limits(copy_bandwidth())
+    print(f"{'limit (memory bandwidth)':<26}" + "".join(f"{limits[c] * 1e-6:9.0f}" if limits.get(c) else f"{'-':>9}"
+                                                      for c in COLUMNS), file=out)
     variant = None
     for name, options in cases:
         model = get(name, **options)
         p = coloured_params(model)
-        model.eval(wi[:1000], wo[:1000], p)  # warm caches (tables)
-        timed = {"numpy": lambda: model.eval(wi, wo, p)}
+        model.eval_reference(wi[:1000], wo[:1000], p)  # warm caches (tables)
+        timed = {"numpy": lambda: model.eval_reference(wi, wo, p)}
         if compiled:
             timed.update(_compiled_timers(model, p, wi, wo, dirs, dirs64, rng))
         go, variant = _mitsuba_timer(model, p, wi, wo)
@@ -220,10 +276,17 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         t = dict.fromkeys(COLUMNS)
         t.update(_interleaved_best(timed, repeat))
         row = _row(name, options, t, _head_to_head(timed, t, repeat), n)
+        row["limits"] = limits
+        row["of_limit32"] = row["drjit32"] / limits["drjit32"] if row.get("drjit32") else None
+        row["of_limit64"] = row["eval"] / limits["eval"] if row.get("eval") else None
         rows.append(row)
         _print_row(row, name, options, out)
-    print("32/mi: drjit32 against mitsuba timed head to head (the columns: all paths in turn); "
-          "jac/ev, grad/ev: against drjit32 in turn; grad/ev64: float64", file=out)
+    print("32/mi: drjit32 against mitsuba timed head to head (the columns: all paths in turn); ev/mi: the public "
+          "model.eval (float64, numpy in and out) over mitsuba (issue 18's goal >= 0.5); jac/ev, grad/ev: against "
+          "drjit32 in turn; grad/ev64: float64; 32/lim, ev/lim: fraction of the memory-bandwidth limit "
+          f"(copy bandwidth {limits['bandwidth'] * 1e-9:.1f} GB/s measured in this run, read + write; "
+          f"{BYTES_PER_PAIR['float32']} B/pair float32, {BYTES_PER_PAIR['float64']} B/pair float64 with numpy "
+          "in and out; grad32 reads y and w too: 48 B/pair)", file=out)
     if variant is not None:
         print(f"Mitsuba variant: {variant}", file=out)
     if not compiled:

@@ -48,14 +48,42 @@ def test_matches_reference(name, options):
     # inside the transmittance quadrature (table differences ~1e-9, f_r ~1e-8)
     rtol = 1e-7 if (name == "roughplastic" and options["distribution"] == "beckmann") else 1e-10
     for p in [m.defaults()] + [random_params(m, rng, alpha_range=(1e-4, 1.0)) for _ in range(4)]:
-        ref = m.eval(wi, wo, p)
+        ref = m.eval_reference(wi, wo, p)
         got = _fast.eval(m, wi, wo, p)
         assert np.all(np.isfinite(got)) and np.all(got >= 0)
         np.testing.assert_allclose(got, ref, rtol=rtol, atol=1e-300)
     # float32 input and N = 0 behave as the reference
     w32 = wi[:100].astype(np.float32), wo[:100].astype(np.float32)
-    np.testing.assert_allclose(_fast.eval(m, *w32, p), m.eval(*w32, p), rtol=rtol)
+    np.testing.assert_allclose(_fast.eval(m, *w32, p), m.eval_reference(*w32, p), rtol=rtol)
     assert _fast.eval(m, np.zeros((0, 3)), np.zeros((0, 3)), p).shape == (0, 3)
+
+
+@pytest.mark.parametrize("name", ["roughplastic", "diffuse"])
+def test_public_eval_runs_the_compiled_kernel_above_its_crossover(name, monkeypatch):
+    """``Model.eval`` (issue 18): from ``compiled_min_pairs`` pairs it is the compiled kernel
+    (bit for bit ``fast.eval``), below it the reference (bit for bit ``eval_reference``);
+    the replayed recording follows each new batch size (sizes taken in turns, a recording
+    made at one size must not return another's length); ``backend`` and
+    ``GONIO_EVAL_BACKEND=numpy`` choose the reference; a bad backend is refused."""
+    m = gm.get(name)
+    rng = np.random.default_rng(31)
+    k = m.compiled_min_pairs
+    p = random_params(m, rng)
+    for n in (k, 3 * k + 5, k + 1, 2 * k, k - 1, 5000):
+        wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
+        wi[n // 2] = [np.nan, 0.0, 1.0]  # degenerate row: 0 on both paths
+        ref = m.eval_reference(wi, wo, p)
+        got = m.eval(wi, wo, p)
+        assert got.shape == (n, 3) and got.dtype == np.float64 and np.all(got[n // 2] == 0)
+        np.testing.assert_array_equal(got, _fast.eval(m, wi, wo, p) if n >= k else ref)
+        # roughplastic's default is Beckmann: Dr.Jit's erfinv in its tables (see above)
+        np.testing.assert_allclose(got, ref, rtol=1e-7 if name == "roughplastic" else 1e-12, atol=1e-300)
+        np.testing.assert_array_equal(m.eval(wi, wo, p, backend="numpy"), ref)
+    np.testing.assert_array_equal(m.eval(wi[:3], wo[:3], p, backend="drjit"), _fast.eval(m, wi[:3], wo[:3], p))
+    monkeypatch.setenv("GONIO_EVAL_BACKEND", "numpy")
+    np.testing.assert_array_equal(m.eval(wi, wo, p), ref)
+    with pytest.raises(ValueError, match="backend"):
+        m.eval(wi, wo, p, backend="cuda")
 
 
 @pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
@@ -72,7 +100,7 @@ def test_gradient_matches_finite_differences(name, options):
     p = {k: (np.clip(v, 0.05, None) if np.ndim(v) else max(v, 0.05)) if k != "sigma" else max(v, 0.1) for k, v in p.items()}
     p = m.validate(p)
     f, grad = _fast.value_and_grad(m, wi, wo, p, cot)
-    np.testing.assert_allclose(f, m.eval(wi, wo, p), rtol=1e-7)
+    np.testing.assert_allclose(f, m.eval_reference(wi, wo, p), rtol=1e-7)
     for par in m.parameters:
         chans = range(3) if par.per_channel else [None]
         for c in chans:
@@ -85,7 +113,7 @@ def test_gradient_matches_finite_differences(name, options):
                 q1[par.name], q2[par.name] = p[par.name].copy(), p[par.name].copy()
                 q1[par.name][c] += h
                 q2[par.name][c] -= h
-            fd = (np.sum(cot * m.eval(wi, wo, q1)) - np.sum(cot * m.eval(wi, wo, q2))) / (2 * h)
+            fd = (np.sum(cot * m.eval_reference(wi, wo, q1)) - np.sum(cot * m.eval_reference(wi, wo, q2))) / (2 * h)
             ad = grad[par.name] if c is None else grad[par.name][c]
             assert ad == pytest.approx(fd, rel=2e-4, abs=1e-6 * max(1.0, abs(fd))), (par.name, c)
 
@@ -131,7 +159,7 @@ def test_resident_float32_matches_reference(name, options):
     wi, wo = (w.astype(np.float32).astype(np.float64) for w in (wi, wo))
     dirs = _fast.Directions(wi, wo, np.float32)
     for p in [m.defaults()] + [random_params(m, rng, alpha_range=(1e-3, 1.0)) for _ in range(3)]:
-        ref = m.eval(wi, wo, p)
+        ref = m.eval_reference(wi, wo, p)
         got = _fast.eval_resident(m, dirs, p)
         assert got.dtype == np.float32 and got.shape == ref.shape
         assert np.all(np.isfinite(got)) and np.all(got >= 0)
@@ -168,7 +196,7 @@ def test_jacobian_matches_ad_and_finite_differences(name, options):
                     for k, v in p.items()})
     f, J = _fast.jacobian(m, dirs, p)
     rtol = 1e-7 if (name == "roughplastic" and options["distribution"] == "beckmann") else 1e-10  # see above
-    np.testing.assert_allclose(f, m.eval(wi, wo, p), rtol=rtol, atol=1e-300)
+    np.testing.assert_allclose(f, m.eval_reference(wi, wo, p), rtol=rtol, atol=1e-300)
     assert set(J) == {par.name for par in m.parameters}
     for _ in range(2):
         cot = rng.normal(size=(n, 3))
@@ -191,7 +219,7 @@ def test_jacobian_matches_ad_and_finite_differences(name, options):
                 q1[par.name][c] += h
                 q2[par.name][c] -= h
                 cols = c
-            fd = (m.eval(wi, wo, q1) - m.eval(wi, wo, q2))[:, cols] / (2 * h)
+            fd = (m.eval_reference(wi, wo, q1) - m.eval_reference(wi, wo, q2))[:, cols] / (2 * h)
             got = J[par.name][:, cols]
             scale = np.max(np.abs(fd))
             # roughplastic's tables have small steps in alpha and eta (quadrature nodes
@@ -242,7 +270,7 @@ def test_chi2_grad_matches_jacobian():
                           ("cooktorrance", {}), ("orennayar", {})):
         m = gm.get(name, **options)
         p = m.validate(random_params(m, rng, alpha_range=(0.05, 1.0)))
-        f0 = m.eval(wi, wo, p)
+        f0 = m.eval_reference(wi, wo, p)
         y = f0 * (1 + 0.02 * rng.standard_normal(f0.shape))
         w = 1.0 / (0.02 * np.maximum(f0, 1e-3)) ** 2
         for dt, rtol, gtol in ((np.float64, 1e-12, 1e-10), (np.float32, 1e-5, 2e-3)):
@@ -308,10 +336,10 @@ def test_jacobian_with_interpolated_tables_matches_reverse_mode(alpha, eta):
     rng = np.random.default_rng(24)
     wi, wo = random_hemisphere(rng, 1000), random_hemisphere(rng, 1000)
     p = m.validate({"diffuse_reflectance": [0.6, 0.3, 0.2], "alpha": alpha, "int_ior": eta})
-    np.testing.assert_allclose(_fast.eval_resident(m, _fast.Directions(wi, wo, np.float64), p), m.eval(wi, wo, p),
+    np.testing.assert_allclose(_fast.eval_resident(m, _fast.Directions(wi, wo, np.float64), p), m.eval_reference(wi, wo, p),
                                rtol=1e-10)
     f, J = _fast.jacobian(m, _fast.Directions(wi, wo, np.float64), p)
-    np.testing.assert_allclose(f, m.eval(wi, wo, p), rtol=1e-10)
+    np.testing.assert_allclose(f, m.eval_reference(wi, wo, p), rtol=1e-10)
     cot = rng.normal(size=(1000, 3))
     _, grad = _fast.value_and_grad(m, wi, wo, p, cot)
     for par in m.parameters:

@@ -26,7 +26,7 @@ rng = np.random.default_rng(5)
 v = rng.normal(size=(2, 4096, 3)); v[..., 2] = np.abs(v[..., 2]); v /= np.linalg.norm(v, axis=-1)[..., None]
 m = gm.get("roughconductor", distribution="ggx")
 p = m.defaults()
-ref = m.eval(v[0], v[1], p)
+ref = m.eval_reference(v[0], v[1], p)
 f32 = fast.Bound(m, p, np.float32).eval(fast.Directions(v[0], v[1], np.float32))
 f32 = np.asarray(f32, dtype=np.float64).reshape(ref.shape)
 mask = ref * v[0][:, 2:3] > 1e-6
