@@ -37,12 +37,15 @@ from __future__ import annotations
 
 from . import _cooktorrance, _lambertian, _orennayar, _roughconductor, _roughplastic  # noqa: F401  (register models)
 from . import _fast as fast
-from ._base import CHANNELS, Model, Parameter, get, names
+from ._base import CHANNELS, Model, Parameter, get, install_compiled, names
 from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
 from ._structure import Affine, Structure
 from .mitsuba import mitsuba_variant
+
+install_compiled(fast.eval, fast.available)  # Model.eval's compiled path (models/_base cannot import it)
+del install_compiled
 
 __all__ = [
     "get",

@@ -62,14 +62,25 @@ def eval_inputs(model, wi, wo, params):
     return wi, wo, model.validate(params)
 
 
+#: The compiled path, ``(eval, available)`` of :mod:`gonio.models.fast`, installed by the
+#: package (``models/__init__``): this module is below it and does not import it.
+_COMPILED = None
+
+
+def install_compiled(eval_fn, available_fn):
+    """Install the compiled evaluator that :meth:`Model.eval` dispatches to."""
+    global _COMPILED
+    _COMPILED = (eval_fn, available_fn)
+
+
 def _compiled(model):
     """True when ``model.eval`` may run its compiled kernel: the model has one, Dr.Jit's LLVM
     backend works (probed once per process) and ``GONIO_EVAL_BACKEND`` is not ``numpy``."""
-    if model.structure.kernel is None or os.environ.get("GONIO_EVAL_BACKEND", "").lower() == "numpy":
+    if _COMPILED is None or model.structure.kernel is None:
         return False
-    from . import _fast
-
-    return _fast.available()
+    if os.environ.get("GONIO_EVAL_BACKEND", "").lower() == "numpy":
+        return False
+    return _COMPILED[1]()
 
 
 def register(cls):
@@ -245,11 +256,9 @@ class Model:
             raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
         wi, wo, p = eval_inputs(self, wi, wo, params)
         if backend == "drjit" or (wi.shape[0] >= self.compiled_min_pairs and _compiled(self)):
-            from . import _fast
-
             if backend == "drjit" and not _compiled(self):
                 raise ValueError(f"{self.name}: no compiled kernel here (Dr.Jit's LLVM backend or the model's kernel missing)")
-            return _fast.eval(self, wi, wo, p)
+            return _COMPILED[0](self, wi, wo, p)
         return self.eval_reference(wi, wo, p)
 
     def eval_reference(self, wi, wo, params):
