@@ -53,7 +53,7 @@ def _labels(ds):
     """String coordinates as fixed-length char arrays (CF-1.8 section 2.2)."""
     for name, var in ds.variables.items():
         if var.dtype.kind in ("U", "O"):
-            width = max(1, max(len(str(v).encode("utf-8")) for v in np.ravel(var.values)))
+            width = max((len(str(v).encode("utf-8")) for v in np.ravel(var.values)), default=1) or 1
             var.encoding.update(dtype="S1", char_dim_name=f"string{width}")
 
 
