@@ -34,7 +34,8 @@ from ._budget import budget_variables
 from ._cf import cf_encode
 from ._files import commit_file, tmp_name
 from ._journal import RAW_DIR
-from .colour_matrix import ColourMatrix, convert, matrix_from_chart_dng, matrix_from_dng, matrix_from_libraw
+from .colour_matrix import (ColourMatrix, colour_matrix_components, convert, matrix_from_chart_dng, matrix_from_dng,
+                            matrix_from_libraw)
 from .errors import GonioError, SessionError
 
 __all__ = ["export", "to_dataset", "DATASET_FILE"]
@@ -150,6 +151,12 @@ def _colour(matrix: ColourMatrix, f: np.ndarray, sd: np.ndarray) -> dict:
             out["brdf_srgb_corr"] = (("point", "channel"), corr, {
                 "units": "1", "long_name": "correlation of brdf_srgb's other two channels' noise (R: G-B, "
                 "G: R-B, B: R-G), from the colour matrix mixing independent camera channels"})
+    parts = colour_matrix_components(f, matrix, "srgb")
+    if parts:                   # a chart fit's uncertainty: its budget lines (fitting/_budget.py reads them)
+        out["brdf_srgb_u_colour_matrix"] = (("point", "channel", "colour_input"), np.stack(parts, -1), {
+            **sr, "gum_type": "B", "correlation": "full", "colour_space": "srgb",
+            "source": f"colour matrix from a {matrix.source} fit: row covariance and prediction error",
+            "long_name": "change of brdf_srgb for +1 sigma of each independent input of the colour matrix"})
     return out
 
 

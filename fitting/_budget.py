@@ -32,7 +32,7 @@ import dataclasses
 import numpy as np
 
 from . import _loss
-from ._data import colour_transform
+from ._data import _SRGB_TO_XYZ, colour_transform
 
 __all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "propagate", "gls_covariance", "K_EXPANDED"]
 
@@ -142,8 +142,26 @@ def load_budget(path, meas) -> Budget:
             comps += _in_colour_space(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")),
                                                       groups), colour_transform(meas), path)
         angles = _angle_shifts(ds, path, meas.n_points)
+        colour = _colour_matrix_components(ds, meas)
     budget = Budget(comps) if comps else budget_from_attrs(meas)
-    return dataclasses.replace(budget, angles=angles)
+    return dataclasses.replace(budget, components=budget.components + colour, angles=angles)
+
+
+#: The dataset variable holding the colour matrix's budget lines (bench/colour_matrix.py), in linear sRGB.
+COLOUR_MATRIX_U = "brdf_srgb_u_colour_matrix"
+
+
+def _colour_matrix_components(ds, meas) -> list:
+    """The colour matrix's fully shared components (a ColorChecker fit's; one per independent
+    input, signed, in linear sRGB), for a fit in sRGB or XYZ; none for a camera-RGB fit."""
+    space = (meas.attrs.get("colour") or {}).get("space", "camera")
+    if space == "camera" or COLOUR_MATRIX_U not in ds.variables:
+        return []
+    values = np.asarray(ds[COLOUR_MATRIX_U].transpose("point", "channel", ...).values, float)
+    to = _SRGB_TO_XYZ if space == "xyz" else np.eye(3)
+    source = str(ds[COLOUR_MATRIX_U].attrs.get("source", "colour matrix"))
+    return [BudgetComponent(f"colour_matrix_{k}", np.nan_to_num(values[..., k]) @ to.T, "B", "full", source)
+            for k in range(values.shape[-1])]
 
 
 #: the dataset variables of the angles' uncertainty (docs/interfaces.md 5.1), degrees

@@ -199,7 +199,10 @@ def _colour_variables(ds, path, colour_space) -> tuple[str, dict]:
         raise DataError(f"unknown colour space {colour_space!r}: use one of {', '.join(COLOUR_SPACES)}")
     name = COLOUR_SPACES[colour_space]
     declared = ds["brdf"].attrs.get("colour_space")
-    info = {"space": colour_space, "variable": name, "matrix": None}
+    info = {"space": colour_space, "variable": name, "matrix": None,
+            "mitsuba": "rgb values in linear sRGB: the sample's colour" if colour_space == "srgb" else
+            f"rgb values in {colour_space}, which Mitsuba reads as linear sRGB: fit with --colour-space srgb "
+            "for a material of the sample's colour"}
     if name not in ds.variables or f"{name}_std" not in ds.variables:
         if declared is not None and str(declared) != colour_space:
             raise DataError(f"{path} holds f_r in {declared} only (no {name}: the session had no colour "

@@ -108,3 +108,12 @@ def test_a_chart_capture_gives_the_matrix_and_its_uncertainty(session, tmp_path)
     u = colour_matrix_uncertainty(f_cam, matrix_from_chart_dng(tmp_path / "chart.dng"))
     z = (ds.brdf_srgb.values * np.pi - RHO) / np.hypot(u, ds.brdf_srgb_std.values * np.pi)
     assert np.all(np.abs(z) < 2.0), z
+    # the chart's budget lines reach an sRGB fit's budget (fitting/_budget.py), none a camera-RGB one
+    from gonio.fitting import load_budget
+
+    path = tmp_path / "chart.nc"
+    ds.to_netcdf(path, engine="h5netcdf")
+    names = [c.name for c in load_budget(path, load_dataset(path)).components]
+    assert sum(n.startswith("colour_matrix_") for n in names) == 12
+    assert not any(n.startswith("colour_matrix_") for n in
+                   (c.name for c in load_budget(path, load_dataset(path, colour_space="camera")).components))
