@@ -104,7 +104,7 @@ class _Meter:
 
     @contextlib.contextmanager
     def installed(self):
-        from . import capture
+        from . import _session as capture              # the run's module: its names are patched
         from .drivers import stages as _zaber
 
         patches = []

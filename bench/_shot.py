@@ -68,11 +68,6 @@ def write_preview(path: Path, radiance: np.ndarray, sample: np.ndarray, referenc
 
 def take_shot(args, settings, stage, out: Path) -> str:
     """Move (if ``stage`` is given), bracket, dark frames, merge, write; return the summary line."""
-    cap, cam_s = settings["capture"], settings["camera"]
-    noise = NoiseModel(float(cam_s.get("gain_e_per_dn", 2.0)), float(cam_s.get("read_noise_e", 3.0)))
-    sat = float(cap["saturation_fraction"])
-    rungs = ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))
-    probe = float(rungs[np.argmin(np.abs(np.log(rungs / float(cap["probe_s"]))))])
     flux = args.flux if args.flux is not None else float(settings.get("lamp", {}).get("flux", 1.0))
     chain = meter = camera = led = None
     try:
@@ -94,39 +89,14 @@ def take_shot(args, settings, stage, out: Path) -> str:
         out.mkdir(parents=True, exist_ok=True)
         led.set_flux(flux)
         led.on()
-        taken: dict[float, dict] = {}
-
-        def shoot(t: float) -> dict:
-            path, digest = _expose(camera, out, f"shot_{t * 1e6:010.0f}us.dng", t)
-            taken[t] = {"seconds": t, "file": path.name, "sha256": digest, "power": meter.power(),
-                        "frame": decode_raw(path)}
-            return taken[t]
-
-        t = probe
-        while True:                               # down the ladder until the regions are unsaturated
-            f = shoot(t)["frame"]
-            regions = _markers.find_regions(_green(f.signal), stage, settings)
-            both = regions.sample | regions.reference
-            if not both.any():
-                raise GonioError("neither the sample nor the reference square is in view at this pose; "
-                                 "give another --stage/--angles")
-            peak = float(f.peak[:, both].max())
-            if peak < sat * f.full_scale or t <= rungs[0]:
-                break
-            t = float(rungs[max(0, int(np.searchsorted(rungs, t)) - 3)])
-        low = float(max(f.signal[:, both].min(), 1.0))
-        bracket = choose_bracket(rungs, t, peak, low, f.full_scale, noise, sat, float(cap["noise_floor_snr"]))
-        for tb in bracket:
-            if tb not in taken:
-                shoot(tb)
+        taken, used = _bracket(camera, meter, out, stage, settings)
         led.off()
         darks = {}
         for tb in sorted(taken):
             path, digest = _expose(camera, out, f"dark_{tb * 1e6:010.0f}us.dng", tb)
             darks[tb] = {"seconds": tb, "file": path.name, "sha256": digest, "frame": decode_raw(path)}
-        used = sorted(set(bracket) | {t})
         hdr = merge([Exposure(tb, taken[tb]["power"], taken[tb]["frame"], darks[tb]["frame"]) for tb in used],
-                    noise, sat)
+                    _noise(settings), float(settings["capture"]["saturation_fraction"]))
         regions = _markers.find_regions(np.nan_to_num(hdr.radiance[1]), stage, settings)
         stats = {"sample": region_stats(hdr, regions.sample), "reference": region_stats(hdr, regions.reference)}
         angles = kinematics.forward_angles(stage)
@@ -137,23 +107,7 @@ def take_shot(args, settings, stage, out: Path) -> str:
         ident = {"zaber": [_identify.zaber_device(chain, d) for d in sorted({a.device for a in gonio.axes.values()}
                                                                             | {led.device})],
                  "meter": _identify.clean(meter.identify()), "camera": _identify.clean(getattr(camera, "idn", ""))}
-        pose = regions.pose
-        doc = {
-            "stage_deg": dict(zip(AXES, map(float, stage))),
-            "angles_deg": dict(zip(("theta_i", "phi_i", "theta_o", "phi_o"), map(float, angles))),
-            "flux": flux,
-            "exposures": [{k: v for k, v in taken[tb].items() if k != "frame"} for tb in sorted(taken)],
-            "bracket": used,
-            "darks": [{k: v for k, v in darks[tb].items() if k != "frame"} for tb in sorted(darks)],
-            "regions": {"source": regions.source, "why": regions.why,
-                        "pixels": {"sample": int(regions.sample.sum()), "reference": int(regions.reference.sum())},
-                        "holder_pose": None if pose is None else {
-                            "shift": [float(v) for v in pose.shift], "angle_deg": float(pose.angle_deg),
-                            "rms": float(pose.rms), "marker_ids": list(pose.ids)}},
-            "mean": {k: [_num(v) for v in stats[k]["mean"]] for k in stats},
-            "f_r_estimate": [_num(v) for v in f_r],
-            "identification": ident,
-        }
+        doc = _shot_doc(stage, angles, flux, taken, used, darks, regions, stats, f_r, ident)
         atomic_write_text(out / "shot.json", json.dumps(doc, indent=1, allow_nan=False) + "\n")
         where_ = where(gonio)
     finally:
@@ -171,6 +125,67 @@ def take_shot(args, settings, stage, out: Path) -> str:
     src = "markers" if regions.source == "markers" else f"geometry ({regions.why})"
     return (f"shot: {len(used)} exposure{'s' if len(used) != 1 else ''} {', '.join(f'{x:g}' for x in used)} s and {len(darks)} dark{'s' if len(darks) != 1 else ''} in {out}; "
             f"regions from {src}; f_r ~ " + " ".join(f"{v:.4g}" for v in f_r) + f" sr^-1 at {where_}")
+
+
+def _noise(settings) -> NoiseModel:
+    cam_s = settings["camera"]
+    return NoiseModel(float(cam_s.get("gain_e_per_dn", 2.0)), float(cam_s.get("read_noise_e", 3.0)))
+
+
+def _bracket(camera, meter, out: Path, stage, settings) -> tuple[dict[float, dict], list[float]]:
+    """The exposures of the shot, LED on: a probe at ``[capture] probe_s``, down the ladder while
+    the regions saturate, then the rungs `choose_bracket` picks. Returns every exposure taken
+    (by its seconds) and the ones the merge uses."""
+    cap = settings["capture"]
+    sat = float(cap["saturation_fraction"])
+    rungs = ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))
+    taken: dict[float, dict] = {}
+
+    def shoot(t: float) -> dict:
+        path, digest = _expose(camera, out, f"shot_{t * 1e6:010.0f}us.dng", t)
+        taken[t] = {"seconds": t, "file": path.name, "sha256": digest, "power": meter.power(),
+                    "frame": decode_raw(path)}
+        return taken[t]
+
+    t = float(rungs[np.argmin(np.abs(np.log(rungs / float(cap["probe_s"]))))])
+    while True:                               # down the ladder until the regions are unsaturated
+        f = shoot(t)["frame"]
+        regions = _markers.find_regions(_green(f.signal), stage, settings)
+        both = regions.sample | regions.reference
+        if not both.any():
+            raise GonioError("neither the sample nor the reference square is in view at this pose; "
+                             "give another --stage/--angles")
+        peak = float(f.peak[:, both].max())
+        if peak < sat * f.full_scale or t <= rungs[0]:
+            break
+        t = float(rungs[max(0, int(np.searchsorted(rungs, t)) - 3)])
+    low = float(max(f.signal[:, both].min(), 1.0))
+    bracket = choose_bracket(rungs, t, peak, low, f.full_scale, _noise(settings), sat, float(cap["noise_floor_snr"]))
+    for tb in bracket:
+        if tb not in taken:
+            shoot(tb)
+    return taken, sorted(set(bracket) | {t})
+
+
+def _shot_doc(stage, angles, flux, taken, used, darks, regions, stats, f_r, ident) -> dict:
+    """``shot.json``: the pose, the files and their checksums, the regions, the means, f_r."""
+    pose = regions.pose
+    return {
+        "stage_deg": dict(zip(AXES, map(float, stage))),
+        "angles_deg": dict(zip(("theta_i", "phi_i", "theta_o", "phi_o"), map(float, angles))),
+        "flux": flux,
+        "exposures": [{k: v for k, v in taken[tb].items() if k != "frame"} for tb in sorted(taken)],
+        "bracket": used,
+        "darks": [{k: v for k, v in darks[tb].items() if k != "frame"} for tb in sorted(darks)],
+        "regions": {"source": regions.source, "why": regions.why,
+                    "pixels": {"sample": int(regions.sample.sum()), "reference": int(regions.reference.sum())},
+                    "holder_pose": None if pose is None else {
+                        "shift": [float(v) for v in pose.shift], "angle_deg": float(pose.angle_deg),
+                        "rms": float(pose.rms), "marker_ids": list(pose.ids)}},
+        "mean": {k: [_num(v) for v in stats[k]["mean"]] for k in stats},
+        "f_r_estimate": [_num(v) for v in f_r],
+        "identification": ident,
+    }
 
 
 def _num(v: float):

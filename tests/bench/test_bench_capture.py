@@ -275,7 +275,7 @@ def test_bad_inputs_leave_nothing_behind(instrument, tmp_path):
 
 
 def test_reference_model():
-    from gonio.bench.capture import ReferenceModel
+    from gonio.bench._measure import ReferenceModel
     flat = ReferenceModel({"reflectance": 0.99})
     np.testing.assert_allclose(flat.f_r(30, 40), np.full(3, 0.99 / np.pi))
     m = ReferenceModel({"reflectance": [0.98, 0.99, 0.97], "factor_theta_i": [0, 60], "factor_theta_o": [0, 80],
@@ -379,7 +379,7 @@ def test_fast_roi_masks_are_the_geometry_masks_exactly():
     edge decided by `kinematics.roi_masks`' own test) are `roi_masks`' masks, pixel for pixel, on
     the plan's poses and on random ones (posed_masks alone differs at ties on the default camera)."""
     from gonio.bench._settings import merge_settings
-    from gonio.bench.capture import roi_masks_fast
+    from gonio.bench._session import roi_masks_fast
 
     rng = np.random.default_rng(7)
     for w, h in ((64, 48), (320, 240)):

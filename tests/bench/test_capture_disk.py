@@ -176,7 +176,7 @@ SITES = ["camera-dng", "camera-rename", "raw-placeholder", "journal-commit", "jo
 def test_disk_full_during_a_capture_stops_resumably(capsys, tmp_path, plan_file, monkeypatch, site):
     import gonio.bench.drivers.camera as camera
     import gonio.bench.drivers.stages as zaber
-    import gonio.bench.capture as capture
+    import gonio.bench._session as session
     import gonio.bench.session_runner as runner
     import gonio.sim._camera_port as port
     from gonio.bench._journal import Journal
@@ -206,7 +206,7 @@ def test_disk_full_during_a_capture_stops_resumably(capsys, tmp_path, plan_file,
     elif site == "camera-rename":                   # the fsync/rename of the verified file
         monkeypatch.setattr(camera, "commit_file", when_full(camera.commit_file, lambda t, p: _full()))
     elif site == "raw-placeholder":                 # the empty placeholder of a reserved RAW name
-        monkeypatch.setattr(capture, "create_exclusive", when_full(capture.create_exclusive, lambda p: _full(p)))
+        monkeypatch.setattr(session, "create_exclusive", when_full(session.create_exclusive, lambda p: _full(p)))
     elif site == "journal-reserve":
         def boom(self, *a):
             raise sqlite3.OperationalError("database or disk is full")

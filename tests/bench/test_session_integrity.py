@@ -18,6 +18,7 @@ sim = pytest.importorskip("gonio.sim")
 from gonio.bench import capture as capture_mod
 from gonio.bench import plans
 from benchfakes.cameras import InterruptingCamera
+from gonio.bench._hdr import ladder
 from gonio.bench._journal import Journal, SessionLock
 from gonio.bench._settings import default_settings
 from gonio.bench.capture import capture, resume
@@ -43,7 +44,7 @@ def urls(inst):
 
 
 def n_darks():
-    return len(capture_mod.ladder(S["capture"]["exposure_min_s"], S["capture"]["exposure_max_s"]))
+    return len(ladder(S["capture"]["exposure_min_s"], S["capture"]["exposure_max_s"]))
 
 
 def one_line(exc, *needles):
@@ -365,7 +366,7 @@ def test_raw_files_are_never_overwritten(sessions, tmp_path):
     missing = sorted(set(range(len(PLAN))) - set(idx_rows(folder)))
     # every name an exposure of a missing point would have had before (one per rung)
     planted = [f"raw/p{k:05d}_{t * 1e6:010.0f}us.dng" for k in missing
-               for t in capture_mod.ladder(S["capture"]["exposure_min_s"], S["capture"]["exposure_max_s"])]
+               for t in ladder(S["capture"]["exposure_min_s"], S["capture"]["exposure_max_s"])]
     with Journal(folder / "journal.sqlite") as j:
         j.reserve_all(planted)
     for f in planted:

@@ -1,0 +1,536 @@
+"""One run over a session folder, shared by `gonio.bench.capture.capture` and `resume`.
+
+`_Session` prepares the instrument once per session (flags, homing, identification, darks for
+every rung, flats, lamp on), then measures the points the journal lacks in the session's order:
+per point move, bracket (probe, then the rungs `choose_bracket` picks), merge, reduce the
+sample and reference regions, calibrate, journal. The reduction of point k runs in a worker
+thread while the stages move to k+1. The suspenders pause the run while the lamp or the meter
+is not fit to measure. `gonio.bench.capture`'s module notes describe the measurement.
+
+The regions: `roi_masks_fast` (the masks of `kinematics.roi_masks`, mostly from
+`_markers.posed_masks`) or, on a holder with markers, `_markers.find_regions` in the probe.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable, Mapping
+
+import numpy as np
+
+from . import kinematics
+from ._files import TMP_PREFIX, create_exclusive
+from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
+from ._journal import RAW_DIR, Journal
+from ._markers import find_regions, layout_of, posed_masks
+from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
+from ._rig import Bench
+from ._settings import AXES
+from .drivers import MoveError, RawFrame, decode_raw, read_verified
+from .drivers.identify import record as record_identification
+from .errors import CommunicationError, DeviceError, SessionError
+from .plans import plan_from_dict
+
+__all__ = ["roi_masks_fast"]
+
+
+def roi_masks_fast(stage, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
+    """`kinematics.roi_masks`, exactly, at about `_markers.posed_masks`' cost.
+
+    `posed_masks` finds the same regions from the map's affinity but may decide a super-pixel
+    whose corner lies on a square's edge (a tie, common where the pixel grid lines up with the
+    squares) the other way at rounding level. So: the super-pixels that `posed_masks` puts
+    inside with a margin 1e-3 pixel wider are inside, those it leaves out with one 1e-3 pixel
+    narrower are out, and the few in between are decided by `roi_masks`' own corner test.
+    """
+    margin = float(settings.get("capture", {}).get("roi_margin_px", 1.0))
+    hold, s = settings["holder"], float(settings["camera"]["pixel_size"])
+    half, off = hold["sample_half"] - margin * s, hold["offset"]
+    delta = 1e-3
+    inner = posed_masks(stage, settings, None, margin_px=margin + delta)
+    outer = posed_masks(stage, settings, None, margin_px=margin - delta)
+    out = []
+    for sure, maybe, cx in zip(inner, outer, (-off, off)):
+        i, j = np.nonzero(maybe & ~sure)
+        if len(i):
+            xy = np.stack([kinematics.image_to_local(stage, 2 * i + dr, 2 * j + dc, settings)
+                           for dr in (-0.5, 1.5) for dc in (-0.5, 1.5)], 0)
+            ok = np.all((np.abs(xy[..., 0] - cx) <= half) & (np.abs(xy[..., 1]) <= half), axis=0)
+            sure = sure.copy()
+            sure[i[ok], j[ok]] = True
+        out.append(sure)
+    return out[0], out[1]
+
+
+def _runs(mask: np.ndarray) -> np.ndarray:
+    """Where the runs of True in ``mask`` (read row by row) start and end, alternately."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.ravel().view(np.int8), [0]))))
+    return edges[:-1] if len(edges) and edges[-1] == mask.size else edges
+
+
+def _extreme(ufunc, planes: np.ndarray, runs: np.ndarray) -> float:
+    """``ufunc`` (np.maximum, np.minimum) over the values of every plane inside a mask given by its
+    `_runs`: the same value as ``planes[:, mask].max()``, without copying the regions out."""
+    if not len(runs):
+        raise ValueError("no value in the regions")
+    flat = planes.reshape(planes.shape[0], -1)
+    return float(ufunc.reduce(ufunc.reduceat(flat, runs, axis=1)[:, 0::2], axis=None))
+
+
+class _Suspended(Exception):
+    """The lamp or the meter is not fit to measure; the point must wait and be measured again."""
+
+
+class _Session:
+    """One run over a session folder (shared by `capture` and `resume`)."""
+
+    MAX_ATTEMPTS = 5        # measurements of one point interrupted by the lamp before the run stops
+
+    def __init__(self, folder: Path, doc: Mapping, bench: Bench, journal: Journal, progress: bool,
+                 stop: Callable[[], bool]):
+        self.folder = folder
+        self.doc = doc
+        self.settings = doc["settings"]
+        self.plan = plan_from_dict(doc["plan"], source=doc["plan"].get("source", ""))
+        self.order = np.asarray(doc["order"]["order"], int)
+        self.stage = np.asarray(doc["order"]["stage_deg"], float)
+        self.bench = bench
+        self.journal = journal
+        self.progress = progress
+        self.stop = stop
+        cam, cap = self.settings["camera"], self.settings["capture"]
+        self.noise = NoiseModel(float(cam.get("gain_e_per_dn", 2.0)), float(cam.get("read_noise_e", 3.0)))
+        self.sat = float(cap["saturation_fraction"])
+        self.rungs = ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))
+        self.probe = float(self.rungs[np.argmin(np.abs(np.log(self.rungs / float(cap["probe_s"]))))])
+        self.snr = float(cap["noise_floor_snr"])
+        self.reference = ReferenceModel(self.settings["reference"])
+        self.darks: dict[float, RawFrame] = {}
+        self.gain: np.ndarray | None = None          # flat-field relative gain (3, h, w), None if no flat
+        lamp = self.settings.get("lamp", {})
+        self.drift_tol = float(lamp.get("drift_tolerance", 0.2))
+        self.bracket_tol = float(lamp.get("bracket_tolerance", 0.02))
+        self.suspend_poll = float(lamp.get("suspend_poll_s", 5.0))
+        self.suspend_timeout = float(lamp.get("suspend_timeout_s", 120.0))
+        self.p_ref = None
+        self.results: dict[int, tuple[np.ndarray, np.ndarray]] = {
+            r["idx"]: (np.asarray(r["brdf"]), np.asarray(r["brdf_std"])) for r in journal.points()}
+        self.reciprocity: list[dict] = []
+        self.reserved = journal.reserved()
+        self._masks_of: dict[tuple, tuple] = {}      # per pose: the regions (the plan revisits none, a retry does)
+        self.layout = layout_of(self.settings)       # the holder's markers, None where it has none
+
+    def _fresh(self, name: str) -> str:
+        """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
+        created empty with O_EXCL before the camera writes it (its rename replaces the placeholder):
+        an existing RAW file is never overwritten, and every file in raw/ is one the journal names."""
+        stem, dot, ext = name.rpartition(".")
+        k = 0
+        while True:
+            file = f"{RAW_DIR}/{name}" if k == 0 else f"{RAW_DIR}/{stem}_{k}{dot}{ext}"
+            k += 1
+            if file in self.reserved or (self.folder / file).exists():
+                continue
+            self.journal.reserve(file)
+            self.reserved.add(file)
+            if create_exclusive(self.folder / file):
+                return file
+
+    # -- instrument preparation ----------------------------------------------------------
+    def prepare(self) -> None:
+        """Check flags and positions, home if the reference is lost, take missing darks and
+        flats, lamp on."""
+        b = self.bench
+        check_sensor(b.camera, self.settings)
+        flags = b.gonio.connect(clear_faults=True)
+        if any(f in ("WR", "WH") for f in flags):
+            self.journal.event("home", f"stages lost their reference ({' '.join(flags)}): homing")
+            b.gonio.home()
+        b.meter.identify()
+        record_identification(b, self.journal)     # every device's *IDN?, Zaber id, serial, firmware
+        m = self.settings.get("meter", {})
+        b.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))
+        self._take_darks()
+        self._take_flats()
+        cm = next(iter(self.darks.values())).rgb_cam
+        if cm is not None and self.journal.first_event("rgb_cam") is None:
+            self.journal.event("rgb_cam", json.dumps(cm.tolist()))
+        b.led.set_flux(float(self.settings.get("lamp", {}).get("flux", 1.0)))
+        b.led.on()
+        self.p_ref = self._p_ref()
+
+    def _p_ref(self) -> float:
+        known = self.journal.first_event("p_ref")       # a resumed session keeps its reference
+        if known is not None:
+            return float(known)
+        p = self.bench.meter.power()
+        if not p > 0:
+            raise DeviceError(f"the monitor reads {p:g} W with the lamp on; check the LED and the meter, "
+                              "then resume the session")
+        self.journal.event("p_ref", repr(p))
+        return p
+
+    def _load(self, file: str, digest: str, peak: bool = True) -> RawFrame:
+        """A calibration frame, its checksum checked and decoded from one read."""
+        path = self.folder / file
+        try:
+            data, got = read_verified(path) if path.is_file() else (b"", "")
+        except OSError:
+            data, got = b"", ""
+        if got != digest:
+            raise SessionError(f"calibration frame {file} is missing or corrupt; the session folder is damaged")
+        return decode_raw(path, data=data, peak=peak)
+
+    def _take_darks(self) -> None:
+        """Dark frames (lamp off) for every rung of the exposure ladder, journalled once per session."""
+        have = {v[0]: v for v in self.journal.frames("dark").values()}
+        if any(float(t) not in have for t in self.rungs):
+            self.bench.led.off()
+        for t in map(float, self.rungs):
+            if t in have:
+                _, file, digest = have[t]
+            else:
+                self.bench.checkpoint()
+                file = self._fresh(f"dark_{t * 1e6:010.0f}us.dng")
+                digest = self.bench.camera.expose(t, self.folder / file)
+                self.journal.record_frame(f"dark:{t!r}", "dark", t, file, digest)
+            self.darks[t] = self._load(file, digest, peak=False)     # signal only: what a dark is used for
+
+    def _take_flats(self) -> None:
+        """Flat-field frames for the PRNU correction (cameras with a ``flat`` source only).
+
+        The exposure is the longest rung that keeps the flat below 60 % of full scale, found
+        from probe frames; ``[capture] flat_frames`` frames are averaged. An incomplete set
+        (a crash while taking it) is taken again whole. Whether a session has a flat field is
+        decided once, when it starts.
+        """
+        cam = self.bench.camera
+        n = int(self.settings["capture"].get("flat_frames", 16))
+        if self.journal.first_event("no_flat") is not None:
+            return                               # decided when the session started: keep it so
+        have = self.journal.frames("flat")
+        if len(have) != n or n < 1:              # none yet, or a crash while taking them (or none wanted)
+            self.journal.forget_frames("flat")
+            if not hasattr(cam, "flat") or n < 1:
+                self.journal.event("no_flat", "no flat-field source: pixel response non-uniformity not corrected")
+                return
+            t = self._flat_exposure(cam)
+            for k in range(n):
+                self.bench.checkpoint()
+                file = self._fresh(f"flat_{k:03d}.dng")
+                self.journal.record_frame(f"flat:{k:03d}", "flat", t, file, cam.flat(t, self.folder / file))
+            have = self.journal.frames("flat")
+        t = next(iter(have.values()))[0]
+        self.gain = flat_gain((self._load(f, d, peak=False) for _, f, d in have.values()), self.darks[t])
+
+    def _flat_exposure(self, cam) -> float:
+        probe = self.folder / RAW_DIR / f"{TMP_PREFIX}flat-probe.dng"
+        t = self.probe
+        try:
+            for _ in range(len(self.rungs)):
+                cam.flat(t, probe)
+                f = decode_raw(probe)
+                level = float(np.percentile(f.peak - self.darks[t].signal, 99.9)) / f.full_scale
+                i = int(np.searchsorted(self.rungs, t))
+                if level >= self.sat and i > 0:
+                    t = float(self.rungs[max(0, i - 3)])
+                    continue
+                fits = self.rungs[self.rungs * max(level, 1e-6) / t <= 0.6]
+                return float(fits[-1]) if len(fits) else float(self.rungs[0])
+            return t
+        finally:
+            probe.unlink(missing_ok=True)
+
+    # -- suspenders -----------------------------------------------------------------------
+    def _power(self) -> float:
+        """One monitor reading; `_Suspended` if the meter is silent or the lamp is off its level."""
+        try:
+            p = self.bench.meter.power()
+        except CommunicationError as exc:
+            raise _Suspended(f"the power meter is silent ({exc})") from None
+        if not abs(p / self.p_ref - 1.0) <= self.drift_tol:
+            raise _Suspended(f"the lamp monitor reads {p:.4g} W, {100 * (p / self.p_ref - 1):+.0f} % from its "
+                             f"session-start {self.p_ref:.4g} W (tolerance {100 * self.drift_tol:g} %)")
+        return p
+
+    def _wait_until_fit(self, why: str) -> None:
+        """Pause: poll the monitor until it is fit again; `GonioError` after the timeout."""
+        self.journal.event("pause", why)
+        n = max(1, math.ceil(self.suspend_timeout / self.suspend_poll))
+        for _ in range(n):
+            self.bench.sleep(self.suspend_poll)
+            try:
+                self._power()
+            except _Suspended as exc:
+                why = str(exc)
+                continue
+            self.journal.event("resume", "monitor back within tolerance")
+            return
+        raise DeviceError(f"paused {self.suspend_timeout:g} s and {why}; fix the lamp or the meter, "
+                          "then resume the session")
+
+    # -- one point -----------------------------------------------------------------------
+    def _masks(self, stage: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int], np.ndarray]:
+        """The sample and reference regions at ``stage`` (`roi_masks_fast`: the masks of
+        `kinematics.roi_masks`, mostly from the map's affinity) cropped to their bounding box, the box
+        (super-pixel rows and columns) that is all a point decodes, merges and reduces, and the
+        `_runs` of both regions together."""
+        key = tuple(float(v) for v in stage)
+        if key not in self._masks_of:
+            sm, rm = roi_masks_fast(stage, self.settings)
+            both = sm | rm
+            rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
+            if len(rows):
+                box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+            else:                                # no region in view: the whole frame, as before
+                box = (0, sm.shape[0], 0, sm.shape[1])
+            win = np.s_[box[0]:box[1], box[2]:box[3]]
+            while len(self._masks_of) > 1:       # this pose and the next are all a run needs
+                self._masks_of.pop(next(iter(self._masks_of)))
+            self._masks_of[key] = (sm[win], rm[win], box, _runs(both[win]))
+        return self._masks_of[key]
+
+    def _dark(self, t: float, box) -> RawFrame:
+        d = self.darks[t]
+        if box is None:
+            return d
+        return RawFrame(d.signal[:, box[0]:box[1], box[2]:box[3]], None, d.n_raw, d.black, d.white, d.rgb_cam)
+
+    def _expose(self, idx: int, t: float, box, decode: bool = True) -> tuple[Exposure | None, dict]:
+        """One exposure of point ``idx``: its RAW file, the monitor reading, and (``decode``) its
+        frame inside ``box`` (else decoded later, by the point's reduction)."""
+        self.bench.checkpoint()
+        file = self._fresh(f"p{idx:05d}_{t * 1e6:010.0f}us.dng")
+        digest = self.bench.camera.expose(t, self.folder / file)
+        self.bench.checkpoint()
+        p = self._power()
+        d = {"seconds": t, "file": file, "sha256": digest, "power": p}
+        if not decode:
+            return None, d
+        return Exposure(t, p, decode_raw(self.folder / file, window=box), self._dark(t, box)), d
+
+    def _regions_from_markers(self, idx: int, stage) -> tuple[tuple, Exposure, dict, dict]:
+        """The first probe of a point on a holder with markers: decoded whole, the regions found
+        from the markers in it (`_markers.find_regions`; the geometry's where none fit), the frame
+        then cropped to their box like any other."""
+        e, d = self._expose(idx, self.probe, None)
+        sig = e.frame.signal[1] - e.dark.signal[1]
+        found = find_regions(np.asarray(sig, float), stage, self.settings)
+        sm, rm = found.sample, found.reference
+        both = sm | rm
+        rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
+        box = ((int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows)
+               else (0, sm.shape[0], 0, sm.shape[1]))
+        win = np.s_[box[0]:box[1], box[2]:box[3]]
+        f = e.frame
+        e = Exposure(e.seconds, e.power, RawFrame(f.signal[(slice(None), *win)].copy(), f.peak[(slice(None), *win)].copy(), f.n_raw, f.black,
+                                                  f.white, f.rgb_cam), self._dark(e.seconds, box))
+        info = {"source": found.source, "why": found.why}
+        if found.pose is not None:
+            info.update(shift_m=[float(v) for v in found.pose.shift], angle_deg=float(found.pose.angle_deg),
+                        rms_m=float(found.pose.rms), ids=[int(i) for i in found.pose.ids])
+        return (sm[win], rm[win], box), e, d, info
+
+    def _start_move(self, idx: int) -> dict:
+        """Send the stages towards point ``idx`` and return at once (they move on the controller)."""
+        return self.bench.gonio.move_to(dict(zip(AXES, self.stage[idx])), wait=False)
+
+    def _arrive(self, idx: int, goal: dict | None) -> None:
+        """Finish the move to point ``idx`` (``goal``: the one `_start_move` sent; None: move now),
+        then settle."""
+        b = self.bench
+        target = dict(zip(AXES, self.stage[idx]))
+        try:
+            if goal is None:
+                b.gonio.move_to(target)
+            else:
+                b.gonio.finish_move(goal)
+        except MoveError as exc:                 # e.g. WL: clear the flags, try once more
+            self.journal.event("warning", str(exc))
+            b.chain.clear_flags(b.gonio.devices[0])
+            b.gonio.move_to(target)
+        b.sleep(float(self.settings.get("motion", {}).get("settle_s", 0.0)))
+
+    def _bracket(self, idx: int, goal: dict | None = None) -> dict:
+        """Move to point ``idx`` and take its bracket: what the instrument must do at the point.
+        The probe (and a dim probe's confirmation) are decoded here, inside the regions' box, to
+        choose the bracket; the other frames are left to `_reduce`."""
+        self._arrive(idx, goal)
+        stage = self.stage[idx]
+        regions = None
+        if self.layout is None:
+            sm, rm, box, runs = self._masks(stage)
+        p_start = self._power()
+        taken: dict[float, tuple[Exposure | None, dict]] = {}
+        t = self.probe
+        if self.layout is not None:             # the regions from the holder's markers, in the probe
+            (sm, rm, box), e, d, regions = self._regions_from_markers(idx, stage)
+            runs = _runs(sm | rm)
+            taken[t] = (e, d)
+        # probe down the ladder until the regions are unsaturated (or the ladder ends)
+        while True:
+            if t not in taken:
+                taken[t] = self._expose(idx, t, box)
+            e = taken[t][0]
+            peak = _extreme(np.maximum, e.frame.peak, runs)
+            if peak < self.sat * e.frame.full_scale or t <= self.rungs[0]:
+                break
+            k = int(np.searchsorted(self.rungs, t)) - 3
+            t = float(self.rungs[max(0, k)])
+        for _ in range(3):
+            e = taken[t][0]
+            peak = _extreme(np.maximum, e.frame.peak - np.maximum(e.dark.signal, 0), runs)
+            low = _extreme(np.minimum, e.frame.signal - e.dark.signal, runs)
+            bracket = choose_bracket(self.rungs, t, peak, low, e.frame.full_scale, self.noise,
+                                     self.sat, self.snr)
+            if bracket[0] == t or peak > 0.05 * e.frame.full_scale or bracket[0] in taken:
+                break
+            t = bracket[0]                      # dim probe: confirm the shortest rung first
+            taken[t] = self._expose(idx, t, box)
+        for tb in bracket:
+            if tb not in taken:
+                taken[tb] = self._expose(idx, tb, box, decode=False)
+        used = [taken[tb] for tb in sorted(taken)]
+        powers = [d["power"] for _, d in used]
+        if max(powers) / min(powers) - 1.0 > self.bracket_tol:
+            raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
+                             f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
+        return {"idx": idx, "stage": stage, "used": used, "p_start": p_start, "bracket": bracket,
+                "masks": (sm, rm, box), "regions": regions}
+
+    def _reduce(self, shot: dict) -> dict:
+        """Decode what `_bracket` left, merge the bracket, reduce the regions, calibrate: the journal
+        row's fields. Touches no device and no journal, so it runs while the stages move on."""
+        idx, used = shot["idx"], shot["used"]
+        sm, rm, box = shot["masks"]
+        exposures = [e if e is not None else
+                     Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box),
+                              self._dark(d["seconds"], box))
+                     for e, d in used]
+        gain = None if self.gain is None else self.gain[:, box[0]:box[1], box[2]:box[3]]
+        hdr = merge(exposures, self.noise, self.sat).flat_fielded(gain)
+        del exposures
+        stats = {"sample": region_stats(hdr, sm), "reference": region_stats(hdr, rm)}
+        saturated = any(st["n_saturated"] for st in stats.values())
+        s, r = stats["sample"], stats["reference"]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = s["mean"] / r["mean"]
+            brdf = ratio * self.reference.f_r(*self.plan.angles[idx, [0, 2]])
+            rel = np.sqrt((s["se"] / s["mean"]) ** 2 + (r["se"] / r["mean"]) ** 2)
+            std = np.abs(brdf) * rel
+        detail = {
+            "exposures": [d for _, d in used],
+            "p_start": shot["p_start"],
+            "bracket": shot["bracket"],
+            **{f"{k}_{q}": [float(v) for v in stats[k][q]] for k in stats for q in ("mean", "se", "se_model", "n")},
+            "n_saturated": {k: int(stats[k]["n_saturated"]) for k in stats},
+        }
+        if shot.get("regions") is not None:      # a holder with markers: how the regions were found
+            detail["regions"] = shot["regions"]
+        return {"brdf": brdf, "brdf_std": std, "saturated": saturated or not np.all(np.isfinite(brdf)),
+                "detail": detail, "stage": shot["stage"]}
+
+    def measure(self, idx: int) -> dict:
+        """Move to point ``idx``, bracket, merge, calibrate; return the journal row's fields (one
+        point, start to end: `run` overlaps the reduction with the next move instead)."""
+        return self._reduce(self._bracket(idx))
+
+    def _reciprocity(self, idx: int) -> dict | None:
+        j = int(self.plan.partner[idx])
+        if j < 0 or j not in self.results or idx not in self.results:
+            return None
+        (fa, sa), (fb, sb) = self.results[idx], self.results[j]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel = (fa - fb) / (0.5 * (fa + fb))
+            z = (fa - fb) / np.sqrt(sa ** 2 + sb ** 2)
+        return {"i": min(idx, j), "j": max(idx, j), "rel": rel.tolist(), "z": z.tolist()}
+
+    # -- the loop ------------------------------------------------------------------------
+    def _commit(self, idx: int, res: dict, bar: ProgressBar) -> None:
+        """Journal point ``idx`` (its RAW files are complete and fsynced: the camera committed them)."""
+        self.journal.record_point(idx, self.plan.angles[idx], res["stage"], res["brdf"],
+                                  res["brdf_std"], res["saturated"], res["detail"])
+        self.results[idx] = (np.asarray(res["brdf"]), np.asarray(res["brdf_std"]))
+        r = self._reciprocity(idx)
+        if r is not None:
+            self.reciprocity.append(r)
+        bar.advance(res["brdf"], r)
+
+    def run(self) -> tuple[int, str]:
+        """Measure the points the journal lacks, in the session's order.
+
+        Once point k's bracket is taken, the stages are sent to point k+1 at once, and a worker
+        thread decodes, merges and reduces point k while they move (the main thread meanwhile
+        finds k+1's regions); point k is journalled as soon as its reduction is done, still
+        during the move and before k+1's bracket, so a point is in the journal only once its
+        row is complete and its RAW files committed, and a stop (Ctrl-C once, after the point
+        being journalled; a signal, a fault, a full disk) loses at most the point in progress,
+        as before. A move sent ahead when the run stops at a point boundary is stopped.
+        """
+        done = self.journal.done()
+        todo = [int(i) for i in self.order if int(i) not in done]
+        for i in sorted(done):
+            r = self._reciprocity(i)
+            if r is not None and r["i"] == i:
+                self.reciprocity.append(r)
+        bar = ProgressBar(len(self.plan), len(done), self.progress)
+        n_new = 0
+        stopped = ""
+        pending = None                   # (idx, future of its reduction): not yet journalled
+        goal = None                      # the move sent ahead to todo[n], not yet waited for
+        pool = ThreadPoolExecutor(1, thread_name_prefix="gonio-reduce")
+
+        def commit_pending() -> None:
+            nonlocal pending, n_new
+            if pending is not None:
+                idx, fut = pending
+                res = fut.result()
+                pending = None
+                self._commit(idx, res, bar)
+                n_new += 1
+
+        try:
+            try:
+                for n, idx in enumerate(todo):
+                    self.bench.checkpoint()
+                    if self.stop():
+                        stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
+                        break
+                    for attempt in range(self.MAX_ATTEMPTS):
+                        try:
+                            shot = self._bracket(idx, goal)
+                            break
+                        except _Suspended as exc:
+                            goal = None
+                            why = str(exc)
+                            self._wait_until_fit(why)
+                    else:
+                        raise DeviceError(f"point {idx} failed {self.MAX_ATTEMPTS} times ({why}); "
+                                          "check the lamp, then resume the session")
+                    goal = None
+                    ahead = todo[n + 1] if n + 1 < len(todo) and not self.stop() else None
+                    if ahead is not None:
+                        goal = self._start_move(ahead)         # the stages move while the host works
+                    pending = (idx, pool.submit(self._reduce, shot))
+                    del shot
+                    if ahead is not None:
+                        self._masks(self.stage[ahead])         # the next regions, during the move
+                    commit_pending()                           # point k, still during the move
+                if goal is not None:                           # stopped with a move sent ahead
+                    goal = None
+                    self.bench.gonio.stop()
+            except BaseException:
+                # what stops the run keeps a point whose reduction finished (its data is complete)
+                if pending is not None:
+                    try:
+                        commit_pending()
+                    except Exception:
+                        pass
+                raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+            bar.close()
+        return n_new, stopped
