@@ -5,7 +5,11 @@ Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i
 ``saturated``, ``reciprocal_partner`` (dataset index, -1 if none), ``plan_index`` and the
 stage angles; attributes ``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``,
 ``sample_truth`` (simulated sessions), ``scale_rel_std`` (the reference certificate's relative
-1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``), ``complete``.
+1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``), ``complete``. A session
+captured with a calibration (``[alignment]`` in its settings, bench/calibrate.dataset_angles)
+has the calibrated angles as coordinates, ``<angle>_nominal`` and ``<angle>_u`` beside them
+and the attributes ``angle_calibration`` and ``aperture_*`` (also written from an
+``[aperture]`` table alone).
 
 Where the RAW files carry colour matrices, also ``brdf_srgb`` (linear sRGB, D65) and
 ``brdf_xyz`` (CIE XYZ) with their 1-sigma and channel correlation (``brdf_srgb_corr``): the
@@ -32,6 +36,7 @@ import numpy as np
 
 from ._budget import budget_variables
 from ._cf import cf_encode
+from .calibrate import dataset_angles, instrument_response
 from ._files import commit_file, tmp_name
 from ._journal import RAW_DIR
 from .colour_matrix import (ColourMatrix, colour_matrix_components, convert, matrix_from_chart_dng, matrix_from_dng,
@@ -98,6 +103,13 @@ def to_dataset(session_dir, chart=None):
     if matrix is not None:
         data.update(_colour(matrix, data["brdf"][1], data["brdf_std"][1]))
         coords["xyz"] = ["X", "Y", "Z"]
+    # a calibrated session (gonio capture --calibration): the true angles, their u, the apertures
+    stage = np.stack([data[k][1] for k in ("yaw", "tilt", "azimuth", "lamp")], -1)
+    cal_coords, cal_data, cal_attrs = dataset_angles(doc["settings"], stage)
+    coords.update(cal_coords)
+    data.update(cal_data)
+    if not cal_attrs and isinstance(doc["settings"].get("aperture"), dict):
+        cal_attrs = instrument_response(doc["settings"])
     sess = doc.get("session", {})
     attrs = {
         "gonio_version": str(sess.get("gonio", "unknown")),
@@ -119,6 +131,7 @@ def to_dataset(session_dir, chart=None):
                                             sort_keys=True)
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
+    attrs.update(cal_attrs)
     return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
 
 

@@ -144,3 +144,30 @@ def test_uncertainty_helpers():
     assert C.u_stray_rel(0.01, 0.3, 1e-3) == pytest.approx(1e-3 / math.pi * (100 - 1 / 0.3) / math.sqrt(3))
     empty = C.angle_uncertainty({}, [(10.0, 0.0, 0.0, 40.0)])
     assert empty["u_theta_i"][0] == 0.0 and empty["u_theta_o"][0] == 0.0
+
+
+def test_a_calibrated_capture_exports_the_calibrated_angles(run, tmp_path):
+    """gonio capture with a calibration: session.toml keeps the tables, dataset.nc has the
+    calibrated angles (calibrated_angles of the journalled stage angles), the nominal ones, their
+    u, and the aperture attributes fitting's angular response reads."""
+    import xarray as xr
+
+    from gonio.bench import session_runner
+    from gonio.bench.export import export
+    from gonio.bench.plans import Plan
+
+    s, cal, _ = run
+    settings = C.merge_calibration(s, cal)
+    settings["capture"] = {**settings["capture"], "flat_frames": 0}
+    plan = Plan("two", [[30.0, 0.0, 20.0, 180.0], [50.0, 90.0, 10.0, 270.0]])
+    session_runner.capture_sim(tmp_path / "s", sample={"model": "diffuse", "params": {"reflectance": 0.5}},
+                               plan=plan, seed=SEED, settings=settings, progress=False)
+    with xr.open_dataset(export(tmp_path / "s")) as ds:
+        stage = np.stack([ds[k].values for k in ("yaw", "tilt", "azimuth", "lamp")], -1)
+        want = C.calibrated_angles(cal, stage)
+        assert np.allclose(ds["theta_i"].values, want[:, 0], atol=1e-9)
+        assert np.allclose(ds["theta_o"].values, want[:, 2], atol=1e-9)
+        assert np.allclose(ds["theta_i_nominal"].values, [30.0, 50.0], atol=1e-3)
+        assert np.all(ds["theta_i_u"].values > 0)
+        assert ds.attrs["aperture_source_half_deg"] == 0.5
+        assert float(np.max(np.abs(ds["theta_i"].values - [30.0, 50.0]))) > 0.05     # the calibration moved them
