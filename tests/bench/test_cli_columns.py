@@ -147,7 +147,7 @@ def test_export_of_a_partial_session_says_partial(tmp_path, capsys, monkeypatch)
     ds.attrs.update(plan=json.dumps({"name": "dense", "points": [[0, 0, 0, 0]] * 1053}), complete=0)
     path.unlink()
     ds.to_netcdf(path, engine="h5netcdf")
-    monkeypatch.setattr(gonio.bench.export, "export", lambda session: path)
+    monkeypatch.setattr(gonio.bench.export, "export", lambda session, **options: path)
     assert main(["export", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "PARTIAL, 8 of 1053 planned points" in out and f"--resume {tmp_path}" in out
