@@ -93,6 +93,24 @@ class AffineKernel:
         self.n_evals += thetas.shape[0]
         return fast.affine_parts(self.model, self.prep, thetas, tables)
 
+    def tables(self, thetas):
+        """The model's parameter-dependent tables at thetas (K, T), exactly (``fast.affine_tables``)."""
+        return fast.affine_tables(self.model, np.atleast_2d(thetas))
+
+    def exact_q(self, thetas):
+        """q at thetas (K, T), exactly (``fast.affine_q``; 1 for a model without tables)."""
+        return fast.affine_q(self.model, np.atleast_2d(thetas))
+
+    def sums(self, parts):
+        """Per (theta, channel) of ``parts = (base, basis)``: ``A = sum w^2 b^2``,
+        ``Bv = sum w^2 b (y - s)`` and ``C0 = sum w^2 (y - s)^2`` (b the basis, s the base):
+        the cost of a coefficient a is ``C0 - 2 a Bv + a^2 A``."""
+        base, basis = parts
+        A = (basis * basis) @ self.W2
+        Bv = basis @ self.WY - (basis * base) @ self.W2
+        C0 = self.SYY[None, :] - 2.0 * (base @ self.WY) + (base * base) @ self.W2
+        return A, Bv, C0
+
     def coef_bounds(self, thetas, q=None):
         """Bounds of the coefficient per theta (K, C): the affine parameter's bounds / q."""
         q = approx_q(self.model, thetas) if q is None else q
@@ -101,10 +119,7 @@ class AffineKernel:
 
     def solve(self, thetas, parts=None, q=None):
         """Bounded least-squares coefficients and costs: (coef (K, C), cost (K, C), sums)."""
-        base, basis = self.parts(thetas) if parts is None else parts
-        A = (basis * basis) @ self.W2
-        Bv = basis @ self.WY - (basis * base) @ self.W2
-        C0 = self.SYY[None, :] - 2.0 * (base @ self.WY) + (base * base) @ self.W2
+        A, Bv, C0 = self.sums(self.parts(thetas) if parts is None else parts)
         free = np.where(A > 0, Bv / np.where(A > 0, A, 1.0), 0.0)
         lo, hi = self.coef_bounds(np.atleast_2d(thetas), q)
         coef = np.clip(free, lo, hi)
@@ -243,7 +258,7 @@ class AffineFit:
         coef = coef[0]
         if np.any((coef >= hi[0] * (1.0 - 1e-12)) & (hi[0] > 0)):
             return None  # resting on the approximate upper bound: the general path decides exactly
-        q = float(fast.affine_q(model, theta[None, :])[0])
+        q = float(kern.exact_q(theta[None, :])[0])
         rho = coef * q
         lin_lo, lin_hi = space.lower[kern.lin_idx], space.upper[kern.lin_idx]
         if np.any(rho > lin_hi + 1e-12) or np.any(rho < lin_lo - 1e-12):

@@ -37,10 +37,10 @@ import time
 
 import numpy as np
 
-from gonio.models import fast
+from scipy.special import log_ndtr, ndtr, ndtri
 
 from . import _loss
-from ._affine import AffineKernel, applicable, single_threaded_blas
+from ._affine import AffineFit, applicable, single_threaded_blas
 from ._problem import Problem as _Problem
 
 __all__ = ["Posterior", "sample_posterior"]
@@ -88,7 +88,7 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
     space, model = result.space, result.model
 
     affine = None
-    if collapse and applicable(meas, model, space, "chi2", False, None) and _fast_theta(model):
+    if collapse and applicable(meas, model, space, "chi2", False, None) and model.structure.affine.theta:
         affine = _AffinePosterior(meas, result)
         collapsed = True
         sub = affine.nl
@@ -186,18 +186,10 @@ def _run_chain(sampler, state, P, chunk, max_steps, tau_multiple, time_budget_s,
     return tau, False
 
 
-def _fast_theta(model) -> bool:
-    """The batched collapsed posterior needs at least one nonlinear parameter."""
-    spec = fast.affine_spec(model)
-    return spec is not None and len(spec[1]) > 0
-
-
 def _collapsed(problem, x, rng=None):
     """Log marginal likelihood of x's nonlinear part with the per-channel affine parameter
     integrated over its bounds (flat prior), and, with ``rng``, x with that parameter drawn
     from its conditional truncated normal."""
-    from scipy.special import log_ndtr, ndtr, ndtri
-
     space, meas = problem.space, problem.meas
     base, cols = problem.basis(x)
     B = cols[0]
@@ -229,8 +221,12 @@ def _collapsed(problem, x, rng=None):
 
 
 class _AffinePosterior:
-    """Collapsed log posterior of theta, batched over walkers, for the models of
-    :mod:`gonio.fitting._affine` (one kernel call per half-ensemble).
+    """Collapsed log posterior of theta, batched over walkers, for the models that declare an
+    affine per-channel parameter (``model.structure.affine``), one kernel call per half-ensemble.
+
+    It reads the model through the fit loop's own affine problem (:class:`~gonio.fitting._affine.AffineFit`:
+    its kernel's weighted sums, coefficient bounds, exact tables and q), so the likelihood is the
+    fit's chi^2, residual weights included, and nothing here knows a model by name.
 
     The walkers stay within a few sigma of the optimum, where roughplastic's transmittance
     table t(theta) and q(theta) = 1 - R_int are smooth. Both are taken from a local
@@ -251,7 +247,7 @@ class _AffinePosterior:
 
     def __init__(self, meas, result):
         self.model, self.space = result.model, result.space
-        self.kern = AffineKernel(meas, result.model, result.space, 1.0 / meas.brdf_std)
+        self.kern = AffineFit(meas, result.model, result.space, "chi2").kern
         nl = self.kern.nl_idx
         self.nl = nl
         self.lin_idx = self.kern.lin_idx
@@ -268,14 +264,14 @@ class _AffinePosterior:
         if not np.all(hi > lo):
             return
         check = lo + (hi - lo) * np.array([[0.3, 0.2], [0.8, 0.35], [0.15, 0.7], [0.6, 0.9]])
-        t_ex, q_ex = fast.affine_tables(self.model, check), fast.affine_q(self.model, check)
+        t_ex, q_ex = self.kern.tables(check), self.kern.exact_q(check)
         for n in (3, 5, 9):
             c = 0.5 - 0.5 * np.cos(np.pi * np.arange(n) / (n - 1))  # Chebyshev-Lobatto in [0, 1]
             nodes = lo[:, None] + (hi - lo)[:, None] * c[None, :]
             pts = np.array([[a, b] for a in nodes[0] for b in nodes[1]])
             self.box = (lo, hi, nodes)
-            self.node_t = fast.affine_tables(self.model, pts)
-            self.node_q = fast.affine_q(self.model, pts)
+            self.node_t = self.kern.tables(pts)
+            self.node_q = self.kern.exact_q(pts)
             t_s, q_s = self._interp(check)
             err_t = float(np.max(np.abs(t_s - t_ex) / np.maximum(np.abs(t_ex), 1e-12)))
             err_q = float(np.max(np.abs(q_s - q_ex) / q_ex))
@@ -306,40 +302,34 @@ class _AffinePosterior:
         """(tables or None, q) at thetas (K, T): interpolated inside the box, exact outside."""
         if not self.model.structure.affine.tables:
             return None, np.ones(thetas.shape[0])
+        kern = self.kern
         if self.box is None:
-            return fast.affine_tables(self.model, thetas), fast.affine_q(self.model, thetas)
+            return kern.tables(thetas), kern.exact_q(thetas)
         lo, hi, _ = self.box
         inside = np.all((thetas >= lo) & (thetas <= hi), axis=1)
-        t, q = np.empty((thetas.shape[0], 64)), np.empty(thetas.shape[0])
+        t, q = np.empty((thetas.shape[0], self.node_t.shape[1])), np.empty(thetas.shape[0])
         if np.any(inside):
             t[inside], q[inside] = self._interp(thetas[inside])
             if not self.t_ok:
-                t[inside] = fast.affine_tables(self.model, thetas[inside])
+                t[inside] = kern.tables(thetas[inside])
         if np.any(~inside):
-            t[~inside] = fast.affine_tables(self.model, thetas[~inside])
-            q[~inside] = fast.affine_q(self.model, thetas[~inside])
+            t[~inside] = kern.tables(thetas[~inside])
+            q[~inside] = kern.exact_q(thetas[~inside])
         return t, q
 
     def stats(self, thetas):
         """Per (theta, channel): mean and sd of the coefficient, chi2_min, bounds, and q."""
         t, q = self.tables_q(thetas)
-        base, basis = self.kern.parts(thetas, t)
-        k = self.kern
-        A = (basis * basis) @ k.W2
-        Bv = basis @ k.WY - (basis * base) @ k.W2
-        C0 = k.SYY[None, :] - 2.0 * (base @ k.WY) + (base * base) @ k.W2
+        A, Bv, C0 = self.kern.sums(self.kern.parts(thetas, t))
         ok = A > 0
         Asafe = np.where(ok, A, 1.0)
         mu = Bv / Asafe
         sd = 1.0 / np.sqrt(Asafe)
         chi2_min = C0 - Bv * mu
-        lo = self.space.lower[self.lin_idx][None, :] / q[:, None]
-        hi = self.space.upper[self.lin_idx][None, :] / q[:, None]
+        lo, hi = self.kern.coef_bounds(thetas, q)
         return mu, sd, chi2_min, lo, hi, q, ok
 
     def __call__(self, xs):
-        from scipy.special import log_ndtr
-
         xs = np.atleast_2d(xs)
         out = np.full(xs.shape[0], -np.inf)
         inside = np.all((xs >= self.lower) & (xs <= self.upper), axis=1) & np.all(np.isfinite(xs), axis=1)
@@ -360,8 +350,6 @@ class _AffinePosterior:
     def draw(self, thetas, rng, chunk=256):
         """Full parameter vectors: each theta with its affine parameters drawn from their
         exact conditional (truncated normal in the coefficient, times q)."""
-        from scipy.special import ndtr, ndtri
-
         thetas = np.atleast_2d(thetas)
         out = np.empty((thetas.shape[0], self.space.size))
         for s in range(0, thetas.shape[0], chunk):
