@@ -17,7 +17,13 @@ from ..errors import CommunicationError, DeviceError, FaultError, GonioError, Un
 from .zaber import ZaberChain
 from .zaber_protocol import FLAG_MEANINGS
 
-__all__ = ["Goniometer", "MoveError", "shortest_equivalent"]
+__all__ = ["Goniometer", "MoveError", "shortest_equivalent", "NATIVE_PER_SPEED", "NATIVE_PER_ACCEL"]
+
+#: Zaber's native units (ASCII protocol manual, ``maxspeed``, ``move vel`` and ``accel``): speed
+#: data = microsteps/s * 1.6384 (microsteps per 1.6384 s), acceleration data = microsteps/s^2 *
+#: 1.6384 / 10
+NATIVE_PER_SPEED = 1.6384
+NATIVE_PER_ACCEL = 1.6384 / 10
 
 
 def shortest_equivalent(target_deg: float, current_deg: float, lo_deg: float, hi_deg: float) -> float:
@@ -158,6 +164,30 @@ class Goniometer:
     def steps_to_deg(self, name: str, steps: float) -> float:
         """Microsteps -> degrees on axis ``name``."""
         return steps * 360.0 / self.axes[name].cycle_dist
+
+    def motion(self) -> dict[str, tuple[float, float]]:
+        """Each axis's speed limit and acceleration as its controller holds them: ``{name: (deg/s,
+        deg/s^2)}`` from ``maxspeed`` and ``accel`` in native units (needs `connect`)."""
+        out = {}
+        for dev in self.devices:
+            vmax, acc = self.chain.get(dev, 0, "maxspeed"), self.chain.get(dev, 0, "accel")
+            for a in (a for a in self.axes.values() if a.device == dev):
+                deg = 360.0 / a.cycle_dist
+                out[a.name] = (vmax[a.axis - 1] / NATIVE_PER_SPEED * deg, acc[a.axis - 1] / NATIVE_PER_ACCEL * deg)
+        return out
+
+    def set_motion(self, name: str, deg_s: float, deg_s2: float | None = None) -> None:
+        """Set axis ``name``'s speed limit (deg/s) and, if given, its acceleration (deg/s^2), in
+        the controller's native units (rounded to the nearest integer; an axis must be idle)."""
+        a = self.axes[name]
+        for value, key, per, unit in ((deg_s, "maxspeed", NATIVE_PER_SPEED, "deg/s"),
+                                      (deg_s2, "accel", NATIVE_PER_ACCEL, "deg/s^2")):
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+                raise GonioError(f"{key} of {name}: {value!r} {unit} is not a positive number; give one")
+            native = round(value * a.cycle_dist / 360.0 * per)
+            self.chain.set(a.device, a.axis, key, max(1, native))
 
     def positions(self) -> dict[str, float]:
         """Current stage angles in degrees."""
