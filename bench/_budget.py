@@ -38,9 +38,13 @@ extra=[...])``.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 
 import numpy as np
+
+from . import calibrate
+from ._measure import ReferenceModel
 
 __all__ = ["Component", "budget_variables", "CORRELATIONS", "BUDGET_FORMAT"]
 
@@ -121,13 +125,87 @@ def certificate(settings, brdf: np.ndarray) -> list[Component]:
                       "reference certificate: relative 1-sigma [reference] rel_std of its reflectance")]
 
 
+def _levels(rows, settings, key):
+    """Each point's signal level of one square as a fraction of full scale (N, 3), at the
+    longest exposure of its bracket that left the square unsaturated: x t P / FS with x the
+    merged radiance (DN / (s W), bench/_hdr.py), FS = 2^bits (an estimate: the black level
+    is neglected)."""
+    fs = float(2 ** int(settings.get("camera", {}).get("bits", 14)))
+    sat = float(settings.get("capture", {}).get("saturation_fraction", 0.9))
+    out = []
+    for r in rows:
+        x = np.asarray(r["detail"].get(f"{key}_mean", [np.nan] * 3), float)
+        levels = [x * float(e.get("seconds", 0.0)) * float(e.get("power", 0.0)) / fs
+                  for e in r["detail"].get("exposures", [])]
+        ok = [lv for lv in levels if np.all(np.isfinite(lv)) and np.max(lv) < sat]
+        out.append(max(ok, key=np.max) if ok else np.zeros(3))
+    return np.array(out, float).reshape(len(rows), 3)
+
+
+def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
+    """The type-B lines a calibration (gonio calibrate, merged into the session's settings)
+    states, each brdf x its relative uncertainty, correlated across points (one fit each):
+    ``reference_factor`` (the reference's non-Lambertian factor table, calibrate.u_reference_factor),
+    ``linearity`` (calibrate.u_linearity_rel of the two squares' signal levels), ``stray_light``
+    (calibrate.u_stray_rel, the floor known to lie in [0, floor]). Only those the settings hold."""
+    out = []
+    ref = settings.get("reference", {})
+    lin = settings.get("linearity", {})
+    floor = float(settings.get("stray", {}).get("floor", 0.0) or 0.0)
+    if "u_factor" not in ref and not float(lin.get("u_gamma", 0.0) or 0.0) > 0 and not floor > 0:
+        return out
+    ti = np.array([r["theta_i"] for r in rows], float)
+    to = np.array([r["theta_o"] for r in rows], float)
+    if "u_factor" in ref:
+        model = ReferenceModel(ref)
+        factor = np.array([model.factor(a, b) for a, b in zip(ti, to)])
+        rel = np.asarray(calibrate.u_reference_factor(settings, ti, to), float) / factor
+        out.append(Component("reference_factor", brdf * rel[:, None], "B", "full",
+                             "reference factor table's fit (gonio calibrate); sign taken as common to all points"))
+    if float(lin.get("u_gamma", 0.0) or 0.0) > 0:
+        rel = calibrate.u_linearity_rel(_levels(rows, settings, "sample"), _levels(rows, settings, "reference"),
+                                        float(lin["u_gamma"]))
+        out.append(Component("linearity", brdf * rel, "B", "full",
+                             "detector linearity gamma's 1-sigma (gonio calibrate) x |level_sample - level_reference|"))
+    if floor > 0:
+        cos_i = np.cos(np.radians(ti))[:, None]
+        rho_ref = ReferenceModel(ref).rho if "reflectance" in ref else np.ones(3)
+        rel = calibrate.u_stray_rel(np.abs(brdf) * cos_i, rho_ref[None] / math.pi * cos_i, floor)
+        out.append(Component("stray_light", brdf * rel, "B", "full",
+                             "stray-light floor in [0, floor] (rectangular; gonio calibrate)"))
+    return out
+
+
+def angle_variables(rows, settings) -> dict:
+    """``angle_shift_shared`` (angle_input, point, angle) and ``angle_shift_independent``
+    (axis_input, point, angle), degrees: the change of each point's (theta_i, phi_i, theta_o,
+    phi_o) for +1 sigma of each shared error (calibrate.angle_uncertainty's signed modes) and of
+    each per-point one (eigenmodes of its per-point covariance). Empty without an [alignment]."""
+    if not isinstance(settings.get("alignment"), dict):
+        return {}
+    stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rows], float)
+    u = calibrate.angle_uncertainty(settings, stage)
+    w, v = np.linalg.eigh(u["cov_independent"])                    # (N, 4), (N, 4, 4)
+    indep = v * np.sqrt(np.clip(w, 0.0, None))[:, None, :]         # (N, angle, mode)
+    attrs = {"units": "degree", "angles": "theta_i phi_i theta_o phi_o"}
+    return {"angle_shift_shared": (("angle_input", "point", "angle"), np.transpose(u["shared_modes"], (2, 0, 1)),
+                                   {**attrs, "correlation": "full (each input)",
+                                    "long_name": "change of the angles for +1 sigma of each shared calibration error"}),
+            "angle_shift_independent": (("axis_input", "point", "angle"), np.transpose(indep, (2, 0, 1)),
+                                        {**attrs, "correlation": "point (each input)",
+                                         "long_name": "change of the angles for +1 sigma of each per-move error"})}
+
+
 def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, extra=()) -> dict:
-    """The budget's dataset variables: ``u_<component>`` for type A, the certificate and
-    ``extra`` (more :class:`Component`), their ``_group`` labels, and ``u_combined``.
+    """The budget's dataset variables: ``u_<component>`` for type A, the certificate, the
+    calibration's lines (:func:`calibration_components`) and ``extra`` (more :class:`Component`),
+    their ``_group`` labels, ``u_combined``, and the angles' shifts (:func:`angle_variables`;
+    the fit multiplies them by its model's slope).
 
     Raises ValueError when a component is malformed or holds NaN where ``brdf`` is finite.
     """
-    comps = type_a(rows, brdf, brdf_std) + certificate(settings, brdf) + list(extra)
+    comps = (type_a(rows, brdf, brdf_std) + certificate(settings, brdf) + calibration_components(rows, settings, brdf)
+             + list(extra))
     seen, out = set(), {}
     total = np.zeros_like(brdf)
     finite = np.isfinite(brdf)
@@ -153,4 +231,5 @@ def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, ext
     out["u_combined"] = (("point", "channel"), np.sqrt(total), {
         "units": "sr^-1", "budget_format": BUDGET_FORMAT, "components": " ".join(sorted(seen)),
         "long_name": "combined standard uncertainty of brdf (root sum of squares of the u_ components)"})
+    out.update(angle_variables(rows, settings))
     return out

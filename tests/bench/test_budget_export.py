@@ -164,3 +164,42 @@ def test_gonio_fit_reports_the_combined_uncertainty(tmp_path, capsys, monkeypatc
         assert item["u_combined"] >= rho * 0.005 and item["U"] == pytest.approx(2 * item["u_combined"])
     assert "u_c" in proc.stdout and "(k=2)" in proc.stdout and "largest term" in proc.stdout
     assert max(len(line) for line in proc.stdout.splitlines()) <= 80
+
+
+CAL = {"alignment": {"yaw_zero_deg": 0.05, "tilt_zero_deg": -0.03, "holder_tilt_x_deg": 0.1, "holder_tilt_y_deg": 0.0,
+                     "cov_deg2": (np.diag([4e-4, 4e-4, 1e-4, 1e-4])).tolist(), "repeat_deg": 0.01,
+                     "backlash_yaw_deg": 0.02, "backlash_tilt_deg": 0.02, "lamp_zero_u_deg": 0.02, "wedge_u_deg": 0.01},
+       "reference": {"reflectance": 0.99, "rel_std": 0.005, "factor_theta_i": [0.0, 80.0], "factor_theta_o": [0.0, 80.0],
+                     "factor": [[1.0, 0.98], [0.98, 0.95]], "u_factor": [[0.002, 0.004], [0.004, 0.008]]},
+       "linearity": {"gamma": 0.003, "u_gamma": 0.0005}, "stray": {"floor": 1e-4}}
+
+
+def calibrated_rows(rng):
+    rs = rows(rng, 1.0)
+    for k, r in enumerate(rs):
+        r.update(theta_i=10.0 + 5 * k, theta_o=20.0 + 4 * k, yaw=10.0 + k, tilt=5.0, azimuth=0.0, lamp=50.0 + k)
+        r["detail"]["exposures"] = [{"seconds": 0.01, "power": 1e-3}, {"seconds": 0.04, "power": 1e-3}]
+    return rs
+
+
+def test_a_calibrated_session_carries_its_calibrations_lines():
+    """reference factor, linearity and stray light as brdf x their relative uncertainty (fully
+    correlated), and the angles' shared and per-point shifts whose outer products are
+    calibrate.angle_uncertainty's covariances."""
+    from gonio.bench.calibrate import angle_uncertainty
+
+    rs = calibrated_rows(np.random.default_rng(6))
+    f, s = brdf_of(rs)
+    v = budget_variables(rs, CAL, f, s)
+    for name in ("reference_factor", "linearity", "stray_light"):
+        assert v[f"u_{name}"][2]["gum_type"] == "B" and v[f"u_{name}"][2]["correlation"] == "full"
+        assert np.all(np.isfinite(v[f"u_{name}"][1])) and np.all(v[f"u_{name}"][1] >= 0)
+    # the factor's relative uncertainty at (10, 20) deg, bilinear over 0..80 deg (s = 1/8, t = 1/4):
+    # u = 0.0028125 over the factor 0.9921875
+    assert v["u_reference_factor"][1][0, 0] / f[0, 0] == pytest.approx(0.0028125 / 0.9921875, rel=1e-9)
+    stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rs])
+    u = angle_uncertainty(CAL, stage)
+    shared = v["angle_shift_shared"][1]                       # (input, point, angle)
+    np.testing.assert_allclose(np.einsum("kna,knb->nab", shared, shared), u["cov_shared"], atol=1e-12)
+    indep = v["angle_shift_independent"][1]
+    np.testing.assert_allclose(np.einsum("kna,knb->nab", indep, indep), u["cov_independent"], atol=1e-12)

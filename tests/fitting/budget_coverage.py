@@ -34,11 +34,15 @@ sys.path.insert(0, str(Path(__file__).parent))
 import test_budget as T  # noqa: E402
 
 
-def capture_session(seed: int, errors: dict, plan: str, folder: Path):
-    """One simulated capture -> dataset.nc -> fit with its budget: (names, fit, u_c, u_stat, truth)."""
+def capture_session(seed: int, errors: dict, plan: str, folder: Path, calibrated: bool = False):
+    """One simulated capture -> dataset.nc -> fit with its budget: (names, fit, u_c, u_stat, truth).
+
+    ``calibrated``: gonio calibrate first (same instrument seed), its tables merged into the
+    capture's settings (bench/calibrate.merge_calibration), as a calibrated session is."""
     import shutil
 
     from gonio.bench._settings import default_settings
+    from gonio.bench.calibrate import calibrate, merge_calibration
     from gonio.bench.export import export
     from gonio.bench.fit_runner import fit_dataset, open_budget
     from gonio.bench.session_runner import capture_sim
@@ -46,6 +50,8 @@ def capture_session(seed: int, errors: dict, plan: str, folder: Path):
 
     settings = default_settings()
     settings["errors"] = errors
+    if calibrated:
+        settings = merge_calibration(settings, calibrate(settings, seed=seed))
     sample = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.5, 0.35, 0.2], "alpha": 0.15}}
     shutil.rmtree(folder, ignore_errors=True)
     capture_sim(folder, sample=sample, plan=plan, seed=seed, settings=settings, progress=False)
@@ -60,6 +66,64 @@ def capture_session(seed: int, errors: dict, plan: str, folder: Path):
     return (names, np.array([doc["parameters"][n]["value"] for n in names]),
             np.array([u[n]["u_combined"] for n in names]), np.array([u[n]["u_stat"] for n in names]),
             np.array([truth[n] for n in names]))
+
+
+#: the synthetic "typical" instrument (sim/_errors.py's typical preset, in angle space): shared
+#: zero offsets of 0.1 deg before the alignment, 0.02 deg left after it; 0.01 deg per move;
+#: 0.5 deg source and detector half-angles; the certificate's 0.5 %
+TYPICAL = {"offset_deg": 0.1, "residual_deg": 0.02, "repeat_deg": 0.01, "aperture_half_deg": 0.5}
+
+
+def typical_session(seed: int):
+    """(names, [calibrated fit: x, u_c, u_stat], [ignoring calibration and response: x, u_c, u_stat], truth).
+
+    The calibrated fit knows the alignment's estimate of the offsets (true - residual), the
+    apertures (forward model, fitting/_aperture.py) and the budget: type A, certificate,
+    angle_shared (residual 0.02 deg x slope) and angle_repeatability (0.01 deg x slope). The
+    other uses the commanded angles, the point model and type A + certificate (today's fit)."""
+    from gonio.fitting import Budget, BudgetComponent, Measurements, fit, fit_document, with_instrument_response
+    from gonio.fitting._aperture import aperture_mean
+    from gonio.models.geometry import angles, directions as dirs
+
+    rng = np.random.default_rng([seed, 15])
+    wi, wo = T.directions(rng, 300, spread=0.05)
+    ang = np.stack([*angles(wi), *angles(wo)], axis=-1)            # radians, (N, 4)
+    n = len(ang)
+    off_true = TYPICAL["offset_deg"] * rng.standard_normal(4)
+    off_est = off_true - TYPICAL["residual_deg"] * rng.standard_normal(4)
+    true = ang + np.radians(off_true + TYPICAL["repeat_deg"] * rng.standard_normal((n, 4)))
+    ap = TYPICAL["aperture_half_deg"]
+    f = aperture_mean(T.MODEL, dirs(true[:, 0], true[:, 1]), dirs(true[:, 2], true[:, 3]), T.TRUTH, ap, ap)
+    sigma = 0.01 * f + 1e-3
+    y = f / (1.0 + T.SCALE_REL_STD * rng.standard_normal()) + sigma * rng.standard_normal(f.shape)
+    use = np.ones(f.shape, bool)
+    out = []
+    for calibrated in (True, False):
+        a = ang + np.radians(off_est) if calibrated else ang
+        attrs = {"scale_rel_std": T.SCALE_REL_STD, "seed": seed}
+        if calibrated:
+            attrs.update(aperture_source_half_deg=ap, aperture_detector_half_deg=ap)
+        meas = Measurements(dirs(a[:, 0], a[:, 1]), dirs(a[:, 2], a[:, 3]), y, sigma, use, attrs)
+        comps = [BudgetComponent("statistical", sigma, "A", "none"),
+                 BudgetComponent("reference_certificate", y * T.SCALE_REL_STD, "B", "full")]
+        eye = np.eye(4)[:, None, :] * np.ones((1, n, 1))            # (input, point, angle)
+        budget = Budget(comps, angles={"shared": TYPICAL["residual_deg"] * eye,
+                                       "independent": TYPICAL["repeat_deg"] * eye} if calibrated else None)
+        refit = lambda m: fit(m, T.MODEL, rng=np.random.default_rng(seed))  # noqa: E731
+        res, m2, b2 = with_instrument_response(meas, budget, refit(meas), refit)
+        u = fit_document(res, m2, budget=b2)["uncertainty"]["parameters"]
+        names = list(res.space.names)
+        out.append((np.asarray(res.x), np.array([u[k]["u_combined"] for k in names]),
+                    np.array([u[k]["u_stat"] for k in names])))
+    return names, out[0], out[1], T.TRUTH_X
+
+
+def record_typical(names, cal, raw, truth) -> dict:
+    """:func:`record` of the calibrated fit, plus z of the fit that ignores calibration and response."""
+    r = record(names, *cal, truth)
+    r["z_ignoring"] = ((raw[0] - truth) / raw[1]).tolist()
+    r["hit1_ignoring"] = (np.abs(raw[0] - truth) <= raw[1]).tolist()
+    return r
 
 
 def record(names, x, uc, us, truth) -> dict:
@@ -81,16 +145,24 @@ def summarise(rows):
     zc = np.array([r["z_c"] for r in rows])
     print("  rms z against u_c:   " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zc ** 2).mean(0)))))
     print("  rms z against u_stat: " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zs ** 2).mean(0)))))
+    if "z_ignoring" in rows[0]:
+        zi = np.array([r["z_ignoring"] for r in rows])
+        hi = np.mean([r["hit1_ignoring"] for r in rows], axis=0)
+        print("  ignoring calibration and response: mean z " + ", ".join(
+            f"{nm} {m:+.1f}" for nm, m in zip(names, zi.mean(0))) + "; rms z " + ", ".join(
+            f"{nm} {v:.1f}" for nm, v in zip(names, np.sqrt((zi ** 2).mean(0)))) + "; 1-sigma coverage " + ", ".join(
+            f"{nm} {c:.2f}" for nm, c in zip(names, hi)))
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("mode", nargs="?", choices=("synthetic", "capture"))
+    ap.add_argument("mode", nargs="?", choices=("synthetic", "typical", "capture"))
     ap.add_argument("n", nargs="?", type=int, default=100)
     ap.add_argument("--first", type=int, default=100000, help="first seed (the suite's are below 1000)")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--errors", default='{"preset": "ideal", "reference": {"draw_certificate": true}}')
     ap.add_argument("--plan", default="quick")
+    ap.add_argument("--calibrated", action="store_true", help="capture: gonio calibrate first and use it")
     ap.add_argument("--summarise", type=Path)
     a = ap.parse_args(argv)
     if a.summarise:
@@ -103,8 +175,10 @@ def main(argv=None):
     for s in range(a.first, a.first + a.n):
         if a.mode == "synthetic":
             rows.append(record(*T.fit_session(s)))
+        elif a.mode == "typical":
+            rows.append(record_typical(*typical_session(s)))
         else:
-            rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder)))
+            rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated)))
         if a.out and ((s - a.first + 1) % 25 == 0 or s == a.first + a.n - 1):
             a.out.parent.mkdir(parents=True, exist_ok=True)
             a.out.write_text(json.dumps({"mode": a.mode, "first_seed": a.first, "errors": a.errors, "plan": a.plan,
