@@ -104,6 +104,7 @@ class _Session:
         cam, cap = self.settings["camera"], self.settings["capture"]
         self.noise = NoiseModel(float(cam.get("gain_e_per_dn", 2.0)), float(cam.get("read_noise_e", 3.0)))
         self.sat = float(cap["saturation_fraction"])
+        self.gamma = float((self.settings.get("linearity") or {}).get("gamma", 0.0))   # gonio calibrate
         self.rungs = ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))
         self.probe = float(self.rungs[np.argmin(np.abs(np.log(self.rungs / float(cap["probe_s"]))))])
         self.snr = float(cap["noise_floor_snr"])
@@ -411,7 +412,7 @@ class _Session:
                               self._dark(d["seconds"], box))
                      for e, d in used]
         gain = None if self.gain is None else self.gain[:, box[0]:box[1], box[2]:box[3]]
-        hdr = merge(exposures, self.noise, self.sat).flat_fielded(gain)
+        hdr = merge(exposures, self.noise, self.sat, gamma=self.gamma).flat_fielded(gain)
         del exposures
         stats = {"sample": region_stats(hdr, sm), "reference": region_stats(hdr, rm)}
         saturated = any(st["n_saturated"] for st in stats.values())
