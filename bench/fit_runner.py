@@ -279,6 +279,8 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     with writing(out):
         write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None
+    if colour_space != "srgb":
+        truth = None        # the simulated truth is in linear sRGB: no z against values in another space
     print_fit(doc, truth)
     opts = doc["model"]["options"]
     if model != "auto" and doc.get("selection") and "distribution" in opts:
