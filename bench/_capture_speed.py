@@ -73,6 +73,25 @@ class PointTimes:
         return self.wall - self.sim_cpu - self.bound
 
 
+@contextlib.contextmanager
+def _patched(targets):
+    """Replace ``obj.name`` by ``make(obj.name)`` for each ``(obj, name, make)``; restore on exit
+    (an attribute the object only inherited is deleted again)."""
+    patches = []
+    try:
+        for obj, name, make in targets:
+            old = getattr(obj, name)
+            patches.append((obj, name, old, name in vars(obj)))
+            setattr(obj, name, make(old))
+        yield
+    finally:
+        for obj, name, old, own in reversed(patches):
+            if own:
+                setattr(obj, name, old)
+            else:
+                delattr(obj, name)
+
+
 class _Meter:
     """Timers wrapped around the pipeline's functions for one run (restored afterwards)."""
 
@@ -102,121 +121,104 @@ class _Meter:
         ends = [e for e in (a.end_time(t) for a in self.inst.axes) if e is not None]
         return max(ends) - t if ends else 0.0
 
+    # -- timers wrapped around the pipeline's functions (each takes the original, returns the wrapper)
+    def _phase(self, key):
+        def make(fn):
+            def timed(*a, **kw):
+                t = time.perf_counter()
+                try:
+                    return fn(*a, **kw)
+                finally:
+                    with self.lock:
+                        self.phases[key] += time.perf_counter() - t
+            return timed
+        return make
+
+    def _sim_capture(self, fn):
+        def timed(seconds, *a, **kw):
+            with self.idle:                          # the worker never hides in the simulator's computing
+                while self.busy:
+                    self.idle.wait()
+            t = time.perf_counter()
+            try:
+                return fn(seconds, *a, **kw)         # renders, then lets the exposure pass (real time)
+            finally:
+                cpu = max(0.0, time.perf_counter() - t - seconds)
+                with self.lock:
+                    self.sim_cpu += cpu
+                    self.sim_cpu_port += cpu         # camera_port counts the rest of the command
+                    self.exposure += seconds
+                cache = self.inst._radiance          # keep one full-size render, not 16
+                while len(cache) > 1:
+                    cache.popitem(last=False)
+        return timed
+
+    def _camera_port(self, fn):                      # fn: the port's bound method
+        def timed(*a, **kw):
+            t, e = time.perf_counter(), self.exposure
+            try:
+                return fn(*a, **kw)                  # render (timed by _sim_capture), encode, hash, write
+            finally:
+                with self.lock:
+                    inner = self.sim_cpu_port
+                    self.sim_cpu += max(0.0, time.perf_counter() - t - (self.exposure - e) - inner)
+                    self.sim_cpu_port = 0.0
+        return timed
+
+    def _move(self, fn):
+        def timed(gonio, target, *a, wait=True, **kw):
+            self.marks.append(self._mark())          # a point's cycle starts with its move
+            goal = fn(gonio, target, *a, wait=False, **kw)
+            with self.lock:
+                self.motion += self._motion_left() + self.settle
+            if wait:
+                gonio.finish_move(goal)
+            return goal
+        return timed
+
+    def _bracket(self, fn):
+        def timed(sess, idx, *a, **kw):
+            try:
+                return fn(sess, idx, *a, **kw)
+            finally:
+                self.end = self._mark()
+        return timed
+
+    def _reduce(self, fn):
+        def timed(sess, shot):
+            with self.lock:
+                self.busy += 1
+            t = time.perf_counter()
+            try:
+                return fn(sess, shot)
+            finally:
+                with self.idle:
+                    self.reduce += time.perf_counter() - t
+                    self.busy -= 1
+                    self.idle.notify_all()
+        return timed
+
+    def _run(self, fn):
+        def timed(sess):
+            try:
+                return fn(sess)
+            finally:
+                self.run_end = time.perf_counter()
+        return timed
+
     @contextlib.contextmanager
     def installed(self):
+        """The timers in place for the ``with`` block; the originals restored after it."""
         from . import _session as capture              # the run's module: its names are patched
         from .drivers import stages as _zaber
 
-        patches = []
-
-        def patch(obj, name, make):
-            old = getattr(obj, name)
-            patches.append((obj, name, old, name in vars(obj)))
-            setattr(obj, name, make(old))
-
-        def phase(key):
-            def make(fn):
-                def timed(*a, **kw):
-                    t = time.perf_counter()
-                    try:
-                        return fn(*a, **kw)
-                    finally:
-                        with self.lock:
-                            self.phases[key] += time.perf_counter() - t
-                return timed
-            return make
-
-        def sim_capture(fn):
-            def timed(seconds, *a, **kw):
-                with self.idle:                      # the worker never hides in the simulator's computing
-                    while self.busy:
-                        self.idle.wait()
-                t = time.perf_counter()
-                try:
-                    return fn(seconds, *a, **kw)     # renders, then lets the exposure pass (real time)
-                finally:
-                    cpu = max(0.0, time.perf_counter() - t - seconds)
-                    with self.lock:
-                        self.sim_cpu += cpu
-                        self.sim_cpu_port += cpu           # camera_port counts the rest of the command
-                        self.exposure += seconds
-                    cache = self.inst._radiance          # keep one full-size render, not 16
-                    while len(cache) > 1:
-                        cache.popitem(last=False)
-            return timed
-
-        def camera_port(fn):                         # fn: the port's bound method
-            def timed(port, *a, **kw):
-                t, e = time.perf_counter(), self.exposure
-                try:
-                    return fn(*a, **kw)             # render (timed by sim_capture), encode, hash, write
-                finally:
-                    with self.lock:
-                        inner = self.sim_cpu_port
-                        self.sim_cpu += max(0.0, time.perf_counter() - t - (self.exposure - e) - inner)
-                        self.sim_cpu_port = 0.0
-            return timed
-
-        def move(fn):
-            def timed(gonio, target, *a, wait=True, **kw):
-                self.marks.append(self._mark())      # a point's cycle starts with its move
-                goal = fn(gonio, target, *a, wait=False, **kw)
-                with self.lock:
-                    self.motion += self._motion_left() + settle
-                if wait:
-                    gonio.finish_move(goal)
-                return goal
-            return timed
-
-        def bracket(fn):
-            def timed(sess, idx, *a, **kw):
-                try:
-                    return fn(sess, idx, *a, **kw)
-                finally:
-                    self.end = self._mark()
-            return timed
-
-        def reduce(fn):
-            def timed(sess, shot):
-                with self.lock:
-                    self.busy += 1
-                t = time.perf_counter()
-                try:
-                    return fn(sess, shot)
-                finally:
-                    with self.idle:
-                        self.reduce += time.perf_counter() - t
-                        self.busy -= 1
-                        self.idle.notify_all()
-            return timed
-
-        def run(fn):
-            def timed(sess):
-                try:
-                    return fn(sess)
-                finally:
-                    self.run_end = time.perf_counter()
-            return timed
-
-        patch(capture, "decode_raw", phase("decode"))
-        patch(capture, "merge", phase("merge"))
-        patch(capture, "region_stats", phase("stats"))
-        patch(capture, "posed_masks", phase("masks"))
-        settle = self.settle
-        patch(_zaber.Goniometer, "move_to", move)
-        patch(capture._Session, "_bracket", bracket)
-        patch(capture._Session, "_reduce", reduce)
-        patch(capture._Session, "run", run)
-        patch(self.inst, "capture", sim_capture)
-        patch(self.inst.camera, "_expose", lambda fn: (lambda *a, **kw: camera_port(fn)(self.inst.camera, *a, **kw)))
-        try:
+        targets = [(capture, "decode_raw", self._phase("decode")), (capture, "merge", self._phase("merge")),
+                   (capture, "region_stats", self._phase("stats")), (capture, "posed_masks", self._phase("masks")),
+                   (_zaber.Goniometer, "move_to", self._move), (capture._Session, "_bracket", self._bracket),
+                   (capture._Session, "_reduce", self._reduce), (capture._Session, "run", self._run),
+                   (self.inst, "capture", self._sim_capture), (self.inst.camera, "_expose", self._camera_port)]
+        with _patched(targets):
             yield self
-        finally:
-            for obj, name, old, own in reversed(patches):
-                if own:
-                    setattr(obj, name, old)
-                else:
-                    delattr(obj, name)
 
     def points(self) -> tuple[list[PointTimes], float]:
         """The points' cycles (the last one to the end of its bracket) and the tail after it."""

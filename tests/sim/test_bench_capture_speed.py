@@ -1,0 +1,22 @@
+"""`gonio bench capture`, small: one point on the default camera, the simulator in real time."""
+
+import math
+
+from gonio.bench import _capture_speed, _session
+from gonio.bench.drivers import stages
+
+
+def test_one_point_is_timed_and_the_pipeline_restored():
+    originals = (_session.decode_raw, _session.merge, _session._Session._reduce, _session._Session.run,
+                 stages.Goniometer.move_to)
+    lines = []
+    (row,) = _capture_speed.run(n_points=1, full=None, out=lines.append)
+    assert row["camera"] == "64x48" and row["points"] == 1
+    assert all(math.isfinite(v) for v in row.values() if isinstance(v, float))
+    # the bound is the stages' motion (a move from home, > 1 s at 20 deg/s) plus the exposures
+    assert row["motion_s"] > 1.0 and row["exposure_s"] > 0
+    assert row["bound_s"] == row["motion_s"] + row["exposure_s"]
+    assert row["wall_s"] >= row["bound_s"] and row["ratio"] == row["projected_s"] / row["bound_s"]
+    assert len(lines) == 3 and "64x48" in lines[-1]
+    assert (_session.decode_raw, _session.merge, _session._Session._reduce, _session._Session.run,
+            stages.Goniometer.move_to) == originals
