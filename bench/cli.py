@@ -86,7 +86,8 @@ def _cmd_capture(args):
         raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
     return session_runner.capture_cli(Path(args.out) if args.out is not None else None, sim=args.sim, sample=args.sample, plan=args.plan, seed=args.seed,
                                settings=args.settings, port=args.port, meter_port=args.meter_port,
-                               camera=args.camera, dry_run=args.dry_run, progress=not args.quiet)
+                               camera=args.camera, dry_run=args.dry_run, progress=not args.quiet,
+                               errors=args.errors, calibration=args.calibration)
 
 
 @_env
@@ -302,6 +303,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--resume", metavar="DIR", help="finish an interrupted session")
     c.add_argument("--seed", type=int, default=0, help="seed (simulated noise and faults)")
     c.add_argument("--settings", help="instrument settings TOML overriding bench/instrument.toml")
+    c.add_argument("--errors", choices=["ideal", "typical", "poor"],
+                   help="simulated instrument's systematic errors (preset of [errors]; default: the settings', else ideal)")
+    c.add_argument("--calibration", metavar="CAL.toml",
+                   help="calibration file from `gonio calibrate`: angles, reference factor and linearity applied")
     c.add_argument("--port", help="Zaber chain: serial port or pyserial URL (e.g. /dev/ttyUSB0, sim://NAME/zaber)")
     c.add_argument("--meter-port", help="SCPI power meter: serial port or pyserial URL")
     c.add_argument("--camera", help="camera: a serial port/URL of a simulated camera, folder:PATH, or gphoto2")
