@@ -171,3 +171,21 @@ def test_a_calibrated_capture_exports_the_calibrated_angles(run, tmp_path):
         assert np.all(ds["theta_i_u"].values > 0)
         assert ds.attrs["aperture_source_half_deg"] == 0.5
         assert float(np.max(np.abs(ds["theta_i"].values - [30.0, 50.0]))) > 0.05     # the calibration moved them
+
+
+def test_capture_refuses_a_calibration_that_does_not_fit(run, tmp_path, capsys):
+    """--calibration of the simulator for another seed or error model, a damaged file, or
+    --errors on hardware: one line, exit 2, no session folder."""
+    _, cal, _ = run
+    good = C.write_calibration(tmp_path / "cal.toml", cal)
+    (tmp_path / "junk.toml").write_text("not = [toml")
+    out = tmp_path / "session"
+    cases = [(["--sim", "--seed", str(SEED + 1), "--errors", "typical", "--calibration", str(good)], "seed"),
+             (["--sim", "--seed", str(SEED), "--errors", "poor", "--calibration", str(good)], "error model"),
+             (["--sim", "--seed", str(SEED), "--calibration", str(tmp_path / "junk.toml")], "not a calibration"),
+             (["--port", "sim://nowhere/zaber", "--meter-port", "x", "--camera", "y", "--errors", "typical"], "--sim")]
+    for args, words in cases:
+        rc = main(["capture", "--plan", "quick", "--out", str(out), "--quiet", *args])
+        err = capsys.readouterr().err
+        assert rc == 2 and words in err and len(err.strip().splitlines()) == 1, err
+        assert not out.exists()
