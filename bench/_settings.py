@@ -124,11 +124,17 @@ def load_settings(path: str | Path | None = None, options: Mapping[str, Mapping[
     """Load settings: the defaults, overridden by the tables of the TOML file at ``path``, then
     by ``options`` (``{"session": {"operator": ...}}`` from command-line options).
 
+    ``path`` may also be settings already loaded (a mapping, as the CLI hands them on): they are
+    checked again and returned as a copy.
+
     Raises
     ------
     GonioError
         The file is missing or malformed, a table or key is unknown, or a value is invalid.
     """
+    if isinstance(path, Mapping):
+        check_schema(path, "instrument settings")
+        return validate_settings(copy.deepcopy(dict(path)))
     return effective_settings(path, options)[0]
 
 

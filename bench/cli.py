@@ -72,6 +72,10 @@ def _cmd_capture(args):
     from . import session_runner
 
     if args.resume:
+        given = [f for f, v in (("--sample-id", args.sample_id), ("--sample-description", args.sample_description),
+                                ("--operator", args.operator)) if v is not None]
+        if given:
+            raise GonioError(f"{given[0]} is recorded when a session starts; a resume keeps the session's own")
         return session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
                                          camera=args.camera, progress=not args.quiet,
                                          rebuild_journal=args.rebuild_journal, remeasure=args.remeasure,
@@ -84,10 +88,16 @@ def _cmd_capture(args):
         raise GonioError("capture needs --out DIR (a new session folder) or --resume DIR")
     if not args.sim and not args.port:
         raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
-    return session_runner.capture_cli(Path(args.out) if args.out is not None else None, sim=args.sim, sample=args.sample, plan=args.plan, seed=args.seed,
-                               settings=args.settings, port=args.port, meter_port=args.meter_port,
-                               camera=args.camera, dry_run=args.dry_run, progress=not args.quiet,
-                               errors=args.errors, calibration=args.calibration)
+    from ._settings import load_settings
+
+    # the settings file and the [session] options (sample id, description, operator), checked
+    # before anything is written; session.toml records them with the other settings
+    settings = load_settings(args.settings, _session_options(args))
+    return session_runner.capture_cli(Path(args.out) if args.out is not None else None, sim=args.sim,
+                                      sample=args.sample, plan=args.plan, seed=args.seed, settings=settings,
+                                      port=args.port, meter_port=args.meter_port, camera=args.camera,
+                                      dry_run=args.dry_run, progress=not args.quiet,
+                                      errors=args.errors, calibration=args.calibration)
 
 
 @_env
@@ -312,6 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--camera", help="camera: a serial port/URL of a simulated camera, folder:PATH, or gphoto2")
     c.add_argument("--dry-run", action="store_true", help="print point count, duration estimate, unreachable points; move nothing")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_session_options(c)
     c.add_argument("--remeasure", metavar="POINTS",
                    help="with --resume: measure these plan points again, e.g. 3,7,10-12 (points whose RAW files "
                         "are missing or corrupt are measured again without asking)")

@@ -106,3 +106,25 @@ def test_tables_other_modules_check_pass_through(tmp_path):
     f.write_text('[erors]\npreset = "typical"\n')
     with pytest.raises(GonioError, match=r"did you mean \[errors\]\?"):
         load_settings(f)
+
+
+def test_capture_records_the_session_options_in_its_settings(tmp_path, monkeypatch, capsys):
+    """--sample-id/--sample-description/--operator (over a [session] table) reach the capture's
+    settings, which session.toml records, on the simulated and the real instrument alike."""
+    import gonio.bench.session_runner as runner
+    from gonio.bench.cli import main
+
+    seen = {}
+    monkeypatch.setattr(runner, "capture_cli", lambda out, **kw: seen.update(kw) or 0)
+    f = tmp_path / "lab.toml"
+    f.write_text('[session]\noperator = "B. Other"\nsample_description = "PTFE tile"\n')
+    argv = ["capture", "--port", "/dev/ttyUSB0", "--meter-port", "/dev/ttyUSB1", "--camera", "gphoto2",
+            "--out", str(tmp_path / "s"), "--settings", str(f), "--sample-id", "S-0042", "--operator", "A. Tester"]
+    assert main(argv) == 0
+    assert seen["settings"]["session"] == {"operator": "A. Tester", "sample_description": "PTFE tile",
+                                           "sample_id": "S-0042"}
+    assert main(["capture", "--resume", str(tmp_path / "s"), "--operator", "X"]) == 2
+    assert "is recorded when a session starts" in capsys.readouterr().err
+    f.write_text('[sesion]\noperator = "B. Other"\n')
+    assert main(argv) == 2 and "did you mean [session]?" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
