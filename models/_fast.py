@@ -414,8 +414,9 @@ def chi2_grad(model, dirs, params, y, w):
     if dirs.n == 0:
         return 0.0, {par.name: (np.zeros(CHANNELS) if par.per_channel else 0.0) for par in model.parameters}
     P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
-    with dr.suspend_grad():
-        sums = _chi2_sums(model, dirs.wi, dirs.wo, P, y, w)
+    run = _frozen_chi2_for(model.name, tuple(sorted(model.options.items())))  # replayed, as Bound.eval
+    with _FREEZE_LOCK, dr.suspend_grad():
+        sums = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(*sums)
     vals = np.array([float(np.asarray(v)[0]) for v in sums])
     grad, k = {}, 1
@@ -425,6 +426,17 @@ def chi2_grad(model, dirs, params, y, w):
         grad[par.name] = g if par.per_channel else float(g[0])
         k += m
     return float(vals[0]), grad
+
+
+@lru_cache(maxsize=64)
+def _frozen_chi2_for(name, options):
+    """:func:`_chi2_sums` for one model configuration under ``dr.freeze``."""
+    import drjit as dr
+
+    from . import get
+
+    model = get(name, **dict(options))
+    return dr.freeze(lambda wi, wo, P, y, w: _chi2_sums(model, wi, wo, P, y, w))
 
 
 def _chi2_sums(model, wi, wo, P, y, w):
