@@ -13,8 +13,10 @@ The regions: `roi_masks_fast` (the masks of `kinematics.roi_masks`, mostly from
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Mapping
@@ -143,25 +145,53 @@ class _Session:
     # -- instrument preparation ----------------------------------------------------------
     def prepare(self) -> None:
         """Check flags and positions, home if the reference is lost, take missing darks and
-        flats, lamp on."""
-        b = self.bench
-        check_sensor(b.camera, self.settings)
-        flags = b.gonio.connect(clear_faults=True)
-        if any(f in ("WR", "WH") for f in flags):
-            self.journal.event("home", f"stages lost their reference ({' '.join(flags)}): homing")
-            b.gonio.home()
-        b.meter.identify()
-        record_identification(b, self.journal)     # every device's *IDN?, Zaber id, serial, firmware
-        m = self.settings.get("meter", {})
-        b.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))
-        self._take_darks()
-        self._take_flats()
-        cm = next(iter(self.darks.values())).rgb_cam
-        if cm is not None and self.journal.first_event("rgb_cam") is None:
-            self.journal.event("rgb_cam", json.dumps(cm.tolist()))
-        b.led.set_flux(float(self.settings.get("lamp", {}).get("flux", 1.0)))
-        b.led.on()
-        self.p_ref = self._p_ref()
+        flats, lamp on; saying what it does (it took ~5 s with a blank screen)."""
+        with self._status() as say:
+            b = self.bench
+            say("checking the camera and the stages")
+            check_sensor(b.camera, self.settings)
+            flags = b.gonio.connect(clear_faults=True)
+            if any(f in ("WR", "WH") for f in flags):
+                self.journal.event("home", f"stages lost their reference ({' '.join(flags)}): homing")
+                say("homing the stages (they lost their reference)")
+                b.gonio.home()
+            say("identifying the devices")
+            b.meter.identify()
+            record_identification(b, self.journal)     # every device's *IDN?, Zaber id, serial, firmware
+            m = self.settings.get("meter", {})
+            b.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))
+            self._take_darks(say)
+            self._take_flats(say)
+            cm = next(iter(self.darks.values())).rgb_cam
+            if cm is not None and self.journal.first_event("rgb_cam") is None:
+                self.journal.event("rgb_cam", json.dumps(cm.tolist()))
+            say("lamp on, reading the source monitor")
+            b.led.set_flux(float(self.settings.get("lamp", {}).get("flux", 1.0)))
+            b.led.on()
+            self.p_ref = self._p_ref()
+
+    @contextlib.contextmanager
+    def _status(self):
+        """``say(text)``: one updating status line on a terminal (rich), one line per step when
+        stderr is a file or a pipe; nothing without progress output."""
+        if not self.progress:
+            yield lambda text: None
+            return
+        from rich.console import Console
+
+        console = Console(stderr=True)
+        if not console.is_terminal:
+            last = [""]
+
+            def say(text):
+                step = text.split(":")[0]
+                if step != last[0]:         # one line per step, not per frame
+                    last[0] = step
+                    print(f"capture: {step}", file=sys.stderr, flush=True)
+            yield say
+            return
+        with console.status("preparing the instrument") as status:
+            yield lambda text: status.update(f"capture: {text}")
 
     def _p_ref(self) -> float:
         known = self.journal.first_event("p_ref")       # a resumed session keeps its reference
@@ -185,22 +215,23 @@ class _Session:
             raise SessionError(f"calibration frame {file} is missing or corrupt; the session folder is damaged")
         return decode_raw(path, data=data, peak=peak)
 
-    def _take_darks(self) -> None:
+    def _take_darks(self, say=lambda text: None) -> None:
         """Dark frames (lamp off) for every rung of the exposure ladder, journalled once per session."""
         have = {v[0]: v for v in self.journal.frames("dark").values()}
         if any(float(t) not in have for t in self.rungs):
             self.bench.led.off()
-        for t in map(float, self.rungs):
+        for k, t in enumerate(map(float, self.rungs)):
             if t in have:
                 _, file, digest = have[t]
             else:
+                say(f"dark frames, lamp off: {k + 1} of {len(self.rungs)} ({t:g} s)")
                 self.bench.checkpoint()
                 file = self._fresh(f"dark_{t * 1e6:010.0f}us.dng")
                 digest = self.bench.camera.expose(t, self.folder / file)
                 self.journal.record_frame(f"dark:{t!r}", "dark", t, file, digest)
             self.darks[t] = self._load(file, digest, peak=False)     # signal only: what a dark is used for
 
-    def _take_flats(self) -> None:
+    def _take_flats(self, say=lambda text: None) -> None:
         """Flat-field frames for the PRNU correction (cameras with a ``flat`` source only).
 
         The exposure is the longest rung that keeps the flat below 60 % of full scale, found
@@ -218,13 +249,16 @@ class _Session:
             if not hasattr(cam, "flat") or n < 1:
                 self.journal.event("no_flat", "no flat-field source: pixel response non-uniformity not corrected")
                 return
+            say("flat-field frames: finding the exposure")
             t = self._flat_exposure(cam)
             for k in range(n):
+                say(f"flat-field frames: {k + 1} of {n} ({t:g} s each)")
                 self.bench.checkpoint()
                 file = self._fresh(f"flat_{k:03d}.dng")
                 self.journal.record_frame(f"flat:{k:03d}", "flat", t, file, cam.flat(t, self.folder / file))
             have = self.journal.frames("flat")
         t = next(iter(have.values()))[0]
+        say(f"averaging the {len(have)} flat-field frames")
         self.gain = flat_gain((self._load(f, d, peak=False) for _, f, d in have.values()), self.darks[t])
 
     def _flat_exposure(self, cam) -> float:

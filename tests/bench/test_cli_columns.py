@@ -161,3 +161,18 @@ def test_render_checks_the_measured_file_before_writing(tmp_path, capsys):
                  "--measured", str(tmp_path / "missing.binary")]) == 2
     assert "missing.binary does not exist" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_capture_says_what_it_does_before_the_first_point(tmp_path, capsys):
+    """Darks and flats took ~5 s with a blank screen: each preparation step is now a line on
+    stderr (an updating status line on a terminal)."""
+    plan, settings = tmp_path / "two.toml", tmp_path / "s.toml"
+    plan.write_text('name = "two"\npoints = [[30, 0, 20, 180], [30, 0, 40, 180]]\n')
+    settings.write_text("[capture]\nflat_frames = 4\n")
+    assert main(["capture", "--sim", "--plan", str(plan), "--settings", str(settings), "--out", str(tmp_path / "s")]) == 0
+    err = capsys.readouterr().err
+    steps = [line for line in err.splitlines() if line.startswith("capture: ")]
+    assert steps[:2] == ["capture: checking the camera and the stages", "capture: homing the stages (they lost their "
+                                                                          "reference)"], err
+    assert "capture: dark frames, lamp off" in steps and "capture: flat-field frames" in steps
+    assert steps[-1] == "capture: lamp on, reading the source monitor"
