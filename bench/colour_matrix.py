@@ -191,6 +191,8 @@ def matrix_from_chart_dng(path: str | os.PathLike) -> ColourMatrix:
     decoded by the camera driver's ``decode_raw``)."""
     from .drivers.camera import decode_raw
 
+    if not os.path.isfile(path):
+        raise GonioError(f"colour chart capture {path} does not exist; give the chart's RAW file (--colour-chart)")
     frame = decode_raw(path, peak=True)
     if np.any(frame.peak >= frame.full_scale):
         raise GonioError(f"{path}: the chart capture is saturated; capture it with a shorter exposure")
