@@ -124,11 +124,14 @@ def test_bench_runs():
     buf = io.StringIO()
     rows = bench.run(n=2000, repeat=1, cases=(("diffuse", {}), ("roughconductor", {"distribution": "ggx"})), file=buf)
     text = buf.getvalue()
-    assert "roughconductor" in text and "Mevals/s" in text
+    assert "roughconductor" in text and "Mevals/s" in text and "limit (memory bandwidth)" in text
     assert len(rows) == 2
     for r in rows:
         assert all(r[k] > 0 for k in ("numpy", "drjit64", "drjit32", "jac32"))
         assert r["jac_cost"] > 0
+        # the stated limit: the copy bandwidth over the bytes a pair moves (36 B float32, 72 B float64)
+        assert r["limits"]["drjit32"] == pytest.approx(r["limits"]["bandwidth"] / 36)
+        assert r["limits"]["eval"] == pytest.approx(r["limits"]["bandwidth64"] / 72)
 
 
 def test_bench_parameters_are_coloured():
