@@ -172,7 +172,7 @@ def test_capture_says_what_it_does_before_the_first_point(tmp_path, capsys):
     assert main(["capture", "--sim", "--plan", str(plan), "--settings", str(settings), "--out", str(tmp_path / "s")]) == 0
     err = capsys.readouterr().err
     steps = [line for line in err.splitlines() if line.startswith("capture: ")]
-    assert steps[:2] == ["capture: checking the camera and the stages", "capture: homing the stages (they lost their "
-                                                                          "reference)"], err
+    assert steps[:2] == ["capture: checking the camera and the stages",
+                         "capture: homing the stages (they lost their reference)"], err
     assert "capture: dark frames, lamp off" in steps and "capture: flat-field frames" in steps
     assert steps[-1] == "capture: lamp on, reading the source monitor"
