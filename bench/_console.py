@@ -46,14 +46,19 @@ def print_table(console, columns, rows, *, title=None, caption=None) -> None:
     with the first column repeated.
     """
     widths = [_widths(h, [r[i] for r in rows]) for i, (h, _) in enumerate(columns)]
+    full = [max(w, len(h)) for w, (h, _) in zip(widths, columns)]      # headers on one line
     groups = _groups(widths, console.width)
     for k, group in enumerate(groups):
         cols = [0] + group
+        if table_width([full[i] for i in cols]) <= console.width:
+            cols_width = {i: full[i] for i in cols}
+        else:
+            cols_width = {i: widths[i] for i in cols}
         t = Table(title=(title if k == 0 else f"{title} (continued)") if title else None, box=box.SIMPLE_HEAD,
                   caption=caption if k == len(groups) - 1 else None, expand=False)
         for i in cols:
             header, justify = columns[i]
-            t.add_column(header, justify=justify, width=widths[i], overflow="fold")
+            t.add_column(header, justify=justify, width=cols_width[i], overflow="fold")
         for r in rows:
             t.add_row(*[r[i] for i in cols])
         console.print(t)
