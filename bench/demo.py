@@ -160,10 +160,11 @@ def _print_summary(console, out, session, sample, plan, seed, run) -> dict:
         table.add_row(stage, f"{seconds:.2f}")
     table.add_row("total", f"{sum(timings.values()):.2f}")
     console.print(table)
-    print_table(console, [("optimiser", "left"), ("time (s)", "right"), ("evaluations", "right"), ("chi2", "right"),
-                          ("max |fit - truth| / sigma", "right")],
+    print_table(console, [("optimiser", "left"), ("time (s)", "right"), ("evals", "right"), ("chi2", "right"),
+                          ("max pull", "right")],
                 [[row["optimiser"], f"{row['time_s']:.3f}", str(row["evaluations"]), f"{row['chi2']:.2f}",
-                  f"{row['max_pull']:.2f}"] for row in speed["rows"]], title="fit speed against error")
+                  f"{row['max_pull']:.2f}"] for row in speed["rows"]], title="fit speed against error",
+                caption="max pull = max |fit - truth| / sigma over the parameters")
     if with_truth.get("delta_e_mean") is not None:
         console.print(f"preview: fit vs the true sample, mean CIEDE2000 {with_truth['delta_e_mean']:.2f} "
                       f"(Monte Carlo noise floor {_noise_floor(with_truth):.2f})")
