@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import sqlite3
 import tomllib
 from datetime import datetime, timezone
@@ -32,8 +33,11 @@ from typing import Any, Mapping
 import numpy as np
 
 from ._files import atomic_write_text, sha256_file
-from ._journal import JOURNAL_FILE, RAW_DIR, SESSION_FILE, Journal
+from ._journal import JOURNAL_FILE, RAW_DIR, SESSION_FILE, Journal, damaged_files
+from ._preflight import mount_of
+from ._settings import validate_settings
 from .errors import GonioError, SessionError
+from .plans import plan_from_dict
 
 __all__ = ["load_session", "check_doc", "describe_difference", "open_journal", "raw_files", "rebuild_journal",
            "restore_session", "parse_points", "NothingMeasured", "repair", "drop_placeholders"]
@@ -74,9 +78,6 @@ def check_doc(doc: Mapping[str, Any], folder: Path):
 
 
 def _check_doc(doc: Mapping[str, Any], folder: Path):
-    from ._settings import validate_settings
-    from .plans import plan_from_dict
-
     where = f"{folder / SESSION_FILE}"
     for t in TABLES:
         if not isinstance(doc.get(t), Mapping):
@@ -222,10 +223,6 @@ def raw_files(folder: Path) -> list[str]:
 def _no_room(path: Path, exc: BaseException) -> None:
     """An I/O error opening a journal on a full disk is not damage (SQLite needs room beside it, its
     -shm and -wal files, even to read it): say so, rather than send the user to --rebuild-journal."""
-    import shutil
-
-    from ._preflight import mount_of
-
     code = getattr(exc, "sqlite_errorcode", 0) & 0xFF
     if not (isinstance(exc, OSError) or code in (sqlite3.SQLITE_IOERR, sqlite3.SQLITE_FULL, sqlite3.SQLITE_CANTOPEN)):
         return
@@ -512,8 +509,6 @@ def repair(folder: Path, journal: Journal, want: list[int] | None, note) -> None
     """Before a resume measures: take again the calibration frames whose RAW files are missing
     or corrupt, measure again the points whose RAW files are (and the points ``want``, from
     `parse_points`); each said in one line to ``note``. The old rows are kept in ``superseded``."""
-    from ._journal import damaged_files
-
     cal, bad = damaged_files(folder, journal)
     if cal:
         names = sorted(cal)

@@ -23,6 +23,8 @@ is done: a file in ``raw/`` that it does not name means the journal lost commits
 from __future__ import annotations
 
 import errno
+import fcntl
+import hashlib
 import json
 import math
 import os
@@ -30,10 +32,12 @@ import platform
 import sqlite3
 import time
 import tomllib
+from importlib import metadata
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from ._files import sha256_file, write_new_text
+from ._preflight import mount_of
 from .errors import SessionError
 
 __all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "LOCK_FILE", "Journal", "SessionLock", "write_session",
@@ -99,8 +103,6 @@ class SessionLock:
         self.fd = None
 
     def __enter__(self) -> "SessionLock":
-        import fcntl
-
         self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -118,8 +120,6 @@ class SessionLock:
 
 def versions() -> dict[str, str]:
     """Versions of gonio, Python and the packages a dataset depends on."""
-    from importlib import metadata
-
     out = {"python": platform.python_version()}
     for pkg in ("gonio", "numpy", "scipy", "pyserial", "rawpy", "xarray", "h5netcdf"):
         try:
@@ -174,8 +174,6 @@ class Journal:
     # -- the session record and the RAW file names -------------------------------------
     def record_session(self, text: str, doc: Mapping[str, Any]) -> None:
         """Record session.toml (its SHA-256, text and parsed content) once, when the session starts."""
-        import hashlib
-
         rows = [("sha256", hashlib.sha256(text.encode("utf-8")).hexdigest()), ("text", text),
                 ("doc", json.dumps(doc, sort_keys=True, default=str))]
         with self.db:
@@ -332,8 +330,6 @@ def write_session(folder: str | Path, doc: Mapping[str, Any] | str) -> Path:
                            "or choose another --out") from None
     except OSError as exc:
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            from ._preflight import mount_of
-
             raise SessionError(f"cannot write the session to {folder}: the disk at {mount_of(folder)} is full "
                                f"({exc.strerror}); free some space and run the command again, or choose "
                                "another --out") from None

@@ -8,7 +8,11 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Column
 
+from ._hdr import ladder
 from .errors import GonioError
 
 __all__ = ["check_sensor", "ReferenceModel", "region_stats", "ProgressBar", "RawEstimate", "raw_estimate",
@@ -62,8 +66,6 @@ def raw_estimate(settings: Mapping, points: int, *, has_flat: bool, journal=None
     of the exposure ladder not yet journalled, and ``[capture] flat_frames`` flat frames (and the
     probe that sets their exposure) where the camera has a flat-field source and the session has
     not yet taken them (or decided it has none)."""
-    from ._hdr import ladder
-
     cap = settings["capture"]
     rungs = [float(t) for t in ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))]
     n_flat = int(cap.get("flat_frames", 16))
@@ -172,10 +174,6 @@ class ProgressBar:
         self.p = None
         if not enabled:
             return
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-        from rich.table import Column
-
         # the count and the ETA keep their width (an 80-column terminal showed "0:00:…"); the
         # bar and the latest value give way, the latter cut at its end
         self.p = Progress(TextColumn("capture"), BarColumn(bar_width=None, table_column=Column(ratio=1, min_width=8)),

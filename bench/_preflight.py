@@ -18,6 +18,7 @@ import contextlib
 import errno
 import os
 import shutil
+import sqlite3
 import tempfile
 from pathlib import Path
 
@@ -89,7 +90,6 @@ def disk_full(exc: BaseException) -> bool:
     """``exc`` says the disk is full: ENOSPC or EDQUOT, or SQLite's SQLITE_FULL."""
     if isinstance(exc, OSError):
         return exc.errno in (errno.ENOSPC, errno.EDQUOT)
-    import sqlite3
 
     if isinstance(exc, sqlite3.DatabaseError):
         code = getattr(exc, "sqlite_errorcode", None)

@@ -23,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+import gonio.models as gm
+from gonio.fitting.formats import check_rgl_file
+
 from .errors import GonioError
 
 __all__ = ["DEMO_SAMPLE", "load_sample", "check_sample"]
@@ -37,8 +40,6 @@ DEMO_SAMPLE = {
 
 def check_sample(spec: dict) -> dict:
     """Validate a model-based sample spec against gonio.models; return it normalised."""
-    import gonio.models as gm
-
     name = spec.get("model")
     if not isinstance(name, str):
         raise GonioError("sample needs `model = \"NAME\"` (one of: " + ", ".join(gm.names()) + ")")
@@ -74,7 +75,6 @@ def load_sample(source) -> dict:
             head = fh.read(12)
         if not head.startswith(b"tensor_file"):
             raise GonioError(f"{path} is not an RGL-EPFL tensor .bsdf file (bad header)")
-        from gonio.fitting.formats import check_rgl_file
 
         try:
             check_rgl_file(path)       # the whole structure, before any stage moves

@@ -16,6 +16,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from . import _markers, kinematics
 from ._files import atomic_write_text, commit_file, create_exclusive, tmp_name
@@ -45,8 +46,6 @@ def _expose(camera, out: Path, name: str, seconds: float):
 def write_preview(path: Path, radiance: np.ndarray, sample: np.ndarray, reference: np.ndarray) -> None:
     """The HDR radiance (3, h, w) as an 8-bit sRGB PNG, the reference's 99th percentile at 0.9,
     the regions' outlines drawn (sample green, reference blue); written through a temporary name."""
-    from PIL import Image
-
     rad = np.nan_to_num(np.moveaxis(np.asarray(radiance, float), 0, -1), nan=0.0, posinf=0.0, neginf=0.0)
     ref = rad[reference] if reference.any() else rad.reshape(-1, 3)
     scale = float(np.percentile(ref, 99)) if ref.size else 0.0

@@ -34,14 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _integrity
 from ._budget import budget_variables
 from ._cf import cf_encode
 from .calibrate import dataset_angles, instrument_response
 from ._files import commit_file, tmp_name
 from ._journal import RAW_DIR
+from ._preflight import check_free_space, check_output_file, oserror_line
 from .colour_matrix import (ColourMatrix, colour_matrix_components, convert, matrix_from_chart_dng, matrix_from_dng,
                             matrix_from_libraw)
 from .errors import GonioError, SessionError
+from .plans import find_partners
 
 __all__ = ["export", "to_dataset", "DATASET_FILE"]
 
@@ -54,8 +57,6 @@ def to_dataset(session_dir, chart=None):
     ``chart``: a RAW capture of the ColorChecker whose fit gives the colour matrix instead of
     the RAW files' own (bench/colour_matrix.matrix_from_chart_dng)."""
     import xarray as xr
-
-    from . import _integrity
 
     folder = Path(session_dir)
     data, doc, why = _integrity.load_session(folder)
@@ -71,7 +72,6 @@ def to_dataset(session_dir, chart=None):
     idx = np.array([r["idx"] for r in rows], int)
     where = np.full(n_plan, -1, int)
     where[idx] = np.arange(len(idx))
-    from .plans import find_partners
     partner_plan = find_partners(np.asarray(doc["plan"]["points"], float))
     partner = np.array([where[p] if p >= 0 else -1 for p in partner_plan[idx]], int)
     deg = {"units": "degree"}
@@ -181,8 +181,6 @@ def export(session_dir, chart=None) -> Path:
     SessionError
         Not a session folder, or no point measured yet.
     """
-    from ._preflight import check_free_space, check_output_file, oserror_line
-
     folder = Path(session_dir)
     ds = to_dataset(folder, chart)
     path = folder / DATASET_FILE

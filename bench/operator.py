@@ -19,6 +19,7 @@ regions and how they were found, the devices' identification) into a new folder.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 from pathlib import Path
 
@@ -94,8 +95,6 @@ def _settings(args):
 
 def _one_line(func):
     """Environment errors one line; every GonioError message on one line."""
-    import functools
-
     @functools.wraps(func)
     def run(args):
         from ._preflight import environment_errors

@@ -37,6 +37,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from . import kinematics
+from ._ordering import order_moves
 from .errors import PlanError, UnreachableError
 
 __all__ = [
@@ -451,8 +452,6 @@ class DryRun:
 
 def dry_run(plan: Plan, settings: Mapping, per_point_s: float = 2.0) -> DryRun:
     """Point count, move times (plan order, ordered, bound), estimated duration, unreachable points."""
-    from ._ordering import order_moves
-
     bad = check_plan(plan, settings)
     if bad:
         return DryRun(len(plan), bad, 0.0, 0.0, 0.0, per_point_s, np.zeros(0, int), plan.duplicates)

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.fitting import DataError, load_dataset, parse_fit
 from gonio.models.atomic import atomic_open
 
 from . import _fitdoc
@@ -261,9 +262,6 @@ def _check_out(out: Path) -> Path:
 
 
 def _load_dataset(root: Folder, path: Path):
-    from gonio.fitting import load_dataset
-    from gonio.fitting import DataError
-
     root.check(path, "dataset")
     try:
         return load_dataset(path)
@@ -275,8 +273,6 @@ def _load_dataset(root: Folder, path: Path):
 
 
 def _load_fit(root: Folder, path: Path):
-    from gonio.fitting import parse_fit
-
     fit = root.read_json(path, "fit file", fix=FIX_FIT, strict=True)
     try:
         model, params, _ = parse_fit(fit.data, root.label(path))

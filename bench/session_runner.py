@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 from .errors import GonioError
@@ -158,8 +159,6 @@ def _camera(spec: str):
 
 
 def _note(line: str) -> None:
-    import sys
-
     sys.stderr.write(f"gonio: {line}\n")
     sys.stderr.flush()
 

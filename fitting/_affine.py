@@ -34,6 +34,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from gonio.models import fast
 
@@ -155,7 +156,6 @@ def single_threaded_blas():
     so one BLAS thread costs nothing.
     """
     global _CONTROLLER
-    from threadpoolctl import ThreadpoolController
 
     if _CONTROLLER is None:
         _CONTROLLER = ThreadpoolController()

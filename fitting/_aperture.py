@@ -18,9 +18,12 @@ apertures c = 1 to within the noise and nothing changes.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
+
+from ._data import Measurements
 
 __all__ = ["disk_rule", "cone", "aperture_mean", "aperture_ratio", "corrected", "with_instrument_response"]
 
@@ -72,10 +75,6 @@ def aperture_ratio(model, wi, wo, params, source_half_deg: float, detector_half_
 
 def corrected(meas, budget, c: np.ndarray):
     """``meas`` and ``budget`` with every value (f_r, sigma, the components) divided by ``c``."""
-    import dataclasses
-
-    from ._data import Measurements
-
     m = Measurements(meas.wi, meas.wo, meas.brdf / c, meas.brdf_std / c, meas.use,
                      {**meas.attrs, "aperture_corrected": True}, meas.channels, meas.weight)
     if budget is None:
@@ -92,8 +91,6 @@ def with_instrument_response(meas, budget, result, refit, repeats: int = 2):
     Returns (result, meas, budget): the corrected data and budget where corrected, and the
     result's ``response`` (the fit file's ``instrument_response``) saying what was done.
     """
-    import dataclasses
-
     src = float(meas.attrs.get("aperture_source_half_deg", 0.0) or 0.0)
     det = float(meas.attrs.get("aperture_detector_half_deg", 0.0) or 0.0)
     if not (np.isfinite(src) and np.isfinite(det)) or src < 0 or det < 0 or src > 20 or det > 20:

@@ -13,7 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.models.geometry import angles_deg
 from gonio.models.geometry import directions as direction
+
+from ._display import measurements_summary, table_html, text
 
 __all__ = ["COLOUR_SPACES", "Measurements", "colour_transform", "direction", "load_dataset"]
 
@@ -106,14 +109,10 @@ class Measurements:
     # ---- how a dataset shows itself (terminal, notebook) and leaves as xarray (gonio.fitting._display) ----
     def __repr__(self) -> str:
         """Sizes, the f_r range and median relative 1-sigma per channel; no raw arrays."""
-        from ._display import measurements_summary, text
-
         caption, rows, notes = measurements_summary(self)
         return "Measurements: " + text(caption, _MEAS_HEADER, rows, notes)
 
     def _repr_html_(self) -> str:
-        from ._display import measurements_summary, table_html
-
         caption, rows, notes = measurements_summary(self)
         return table_html("Measurements: " + caption, _MEAS_HEADER, rows, notes)
 
@@ -122,8 +121,6 @@ class Measurements:
         (sr^-1), ``use``, ``weight`` where given; the angles ``theta_i``, ``phi_i``, ``theta_o``,
         ``phi_o`` (degrees, gonio.models.geometry's convention) as coordinates."""
         import xarray as xr
-
-        from gonio.models.geometry import angles_deg
 
         (ti, pi_), (to, po) = angles_deg(self.wi), angles_deg(self.wo)
         deg = {"units": "degree"}

@@ -40,6 +40,7 @@ import dataclasses
 import time
 
 import numpy as np
+from scipy.optimize import minimize
 
 __all__ = ["fit_discrepancy", "noise_ml"]
 
@@ -58,8 +59,6 @@ def _variance(sigma0, f_model, rel, absf):
 def noise_ml(r, sigma0, f_model, w, start=(0.1, 1e-3)):
     """(rel, abs, -2 ln L) maximising the weighted Gaussian likelihood of residuals ``r``
     (flattened used values) with s^2 = sigma0^2 + (rel f_model)^2 + abs^2."""
-    from scipy.optimize import minimize
-
     scale = max(float(np.sqrt(np.mean(r * r))), 1e-12)
     # floors keep the likelihood bounded: without them s -> 0 where the model is ~0 and
     # -2 ln L -> -inf (the degenerate direction of any variance proportional to the mean)

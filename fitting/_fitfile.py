@@ -18,13 +18,17 @@ import json
 import platform
 import warnings
 from datetime import datetime, timezone
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
+import gonio.models as gm
 from gonio.models.atomic import atomic_open
 
 from ._budget import K_EXPANDED, budget_from_attrs, propagate
+from ._display import table_html, text, value_pm
+from ._mitsuba_xml import mitsuba_document
 
 
 __all__ = ["model_adequacy", "fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning",
@@ -39,8 +43,6 @@ class NonFiniteWarning(UserWarning):
 
 def versions() -> dict:
     """Versions of gonio and the libraries whose numbers it reports."""
-    from importlib import metadata
-
     out = {"python": platform.python_version()}
     for dist in ("gonio", "numpy", "scipy", "mitsuba", "drjit", "nlopt", "emcee", "xarray", "rawpy", "pyserial"):
         try:
@@ -231,8 +233,6 @@ def parse_fit(doc, path="fit file"):
     Raises ValueError (a one-line reason) when it is not a gonio fit file or its model,
     options or parameter values are not what a fit file holds.
     """
-    import gonio.models as gm
-
     if not isinstance(doc, dict) or doc.get("format") != FIT_FORMAT:
         fmt = doc.get("format") if isinstance(doc, dict) else None
         raise ValueError(f"{path} is not a gonio fit file (format {fmt!r:.60})")
@@ -308,8 +308,6 @@ class FitFile:
 
     def to_mitsuba_xml(self) -> str:
         """A Mitsuba 3 XML file's text (``mitsuba.load_file`` and ``<include>`` load it)."""
-        from ._mitsuba_xml import mitsuba_document
-
         return mitsuba_document(self.model.name, dict(self.model.options), self.params)
 
     def _summary(self):
@@ -329,21 +327,15 @@ class FitFile:
         return caption, rows, notes
 
     def _rows(self):
-        from ._display import value_pm
-
         caption, rows, notes = self._summary()
         out = [(n, value_pm(v, s) if isinstance(v, (int, float)) else str(v), u, ", ".join(f)) for n, v, s, u, f in rows]
         return caption, out, notes
 
     def __repr__(self) -> str:
-        from ._display import text
-
         caption, rows, notes = self._rows()
         return text(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
 
     def _repr_html_(self) -> str:
-        from ._display import table_html
-
         caption, rows, notes = self._rows()
         return table_html(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
 

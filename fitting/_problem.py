@@ -6,6 +6,7 @@ which f_r is affine (detected numerically, never listed by hand).
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from gonio.models import fast
 from gonio.models.geometry import directions
@@ -57,6 +58,17 @@ class Evaluator:
             d = self._resident()
             self._yw = (y, d.channels(y, "y"), d.channels(w, "w"))
         return fast.normal_equations(self.model, self._resident(), params, self._yw[1], self._yw[2])
+
+    def sse(self, params, y, w):
+        """sum w (f_r - y)^2 from one compiled kernel (counted as one evaluation), or None on
+        the numpy path; ``y``, ``w`` as for :meth:`normal`."""
+        if not self.fast:
+            return None
+        self.n_evals += 1
+        if self._yw is None or self._yw[0] is not y:
+            d = self._resident()
+            self._yw = (y, d.channels(y, "y"), d.channels(w, "w"))
+        return fast.weighted_sse(self.model, self._resident(), params, self._yw[1], self._yw[2])
 
     def jacobian(self, params):
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
@@ -175,6 +187,11 @@ class _Problem:
             D = D * (np.sqrt(0.5 * (s + 1.0)) / s)[:, None]  # d rho / dr
         return D
 
+    @property
+    def normal_available(self):
+        """Whether :meth:`lm_normal_u` and :meth:`lm_cost_u` use the compiled kernel's sums."""
+        return self.loss in ("chi2", "cosine") and self.eval.fast
+
     def lm_normal_u(self, u, _r=None):
         """(J^T r, J^T J) of :meth:`lm_residuals_u` at u in the unit box, reduced inside the
         compiled kernel (:meth:`Evaluator.normal`): the Levenberg-Marquardt step without an
@@ -182,14 +199,10 @@ class _Problem:
         residual is affine in f_r without a transform (chi2, cosine: r = weight (f - y));
         None elsewhere, on the numpy path or where a sum is not finite (the caller then
         asks :meth:`lm_jacobian_u`)."""
-        if self.loss not in ("chi2", "cosine") or not self.eval.fast:
+        if not self.normal_available:
             return None
-        if self._normal_data is None:
-            use = self.meas.use
-            self._normal_data = (np.where(use, self.meas.brdf, 0.0),
-                                 np.where(use, np.broadcast_to(self.weight, use.shape) ** 2, 0.0))
         x = self.space.from_unit(u)
-        _, g, A, entries = self.eval.normal(self.space.to_params(x), *self._normal_data)
+        _, g, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data())
         where = {e: i for i, e in enumerate(entries)}
         try:
             idx = [where[(e.param, e.channel)] for e in self.space.entries]
@@ -200,6 +213,28 @@ class _Problem:
         if not (np.all(np.isfinite(g)) and np.all(np.isfinite(A))):
             return None
         return g, A
+
+    def normal_data(self):
+        """(y, W): the data and the squared residual weights, 0 where a value is not used."""
+        if self._normal_data is None:
+            use = self.meas.use
+            self._normal_data = (np.where(use, self.meas.brdf, 0.0),
+                                 np.where(use, np.broadcast_to(self.weight, use.shape) ** 2, 0.0))
+        return self._normal_data
+
+    def lm_cost_u(self, u):
+        """sum of squares of :meth:`lm_residuals_u` at u from one compiled kernel (no residual
+        vector), for the losses :meth:`lm_normal_u` serves; FloatingPointError where f_r is
+        not finite, as :meth:`residuals_x`."""
+        x = self.space.from_unit(u)
+        cost = self.eval.sse(self.space.to_params(x), *self.normal_data())
+        if cost is None:  # numpy path: the residual vector
+            r = self.lm_residuals_u(u)
+            return float(r @ r)
+        if not np.isfinite(cost):
+            raise FloatingPointError(f"model {self.model.name} returned non-finite f_r at "
+                                     f"{dict(zip(self.space.names, np.round(x, 6)))}")
+        return cost
 
     # -- variable projection
     def basis(self, x):
@@ -234,7 +269,6 @@ class _Problem:
             else:
                 a = np.linalg.lstsq(A, b, rcond=None)[0]
                 if np.any(a < lo) or np.any(a > hi):
-                    from scipy.optimize import lsq_linear
                     a = lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
             x[idx] = np.clip(a, lo, hi)
         return x

@@ -38,10 +38,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.optimize
 
+from gonio.models.atomic import atomic_open
 from gonio.models.geometry import directions
 
+from ._loss import REAL_DEFAULT_LOSS
+from ._realdata import merl_samples, rgl_samples
+from ._selection import select
 from ._space import ParameterSpace
+from .formats import RGLBRDF, read_merl
 
 __all__ = ["dense_grid", "metrics", "peer_fit", "run_real", "PEER_STARTS"]
 
@@ -66,8 +72,6 @@ def dense_grid(theta_max_deg=80.0, n_theta_i=N_THETA_I, n_theta_o=N_THETA_O, n_p
 
 def measured_on_grid(path, wi, wo):
     """f_r of the measured file at (wi, wo), (N, 3)."""
-    from .formats import RGLBRDF, read_merl
-
     if str(path).lower().endswith(".binary"):
         f = read_merl(path).eval(wi, wo)
         return np.where(np.isfinite(f), f, 0.0)
@@ -96,8 +100,6 @@ def _log_residuals(model, space, meas, x):
 def peer_fit(meas, model, rng, n_starts=PEER_STARTS):
     """The plain peer: scipy least_squares on the unweighted log residuals with the numpy
     model, from the defaults and ``n_starts - 1`` uniform draws of the box. (x, seconds)."""
-    import scipy.optimize
-
     space = ParameterSpace(model, meas.n_channels)
     starts = [space.default()] + [space.from_unit(rng.uniform(0.02, 0.98, space.size)) for _ in range(n_starts - 1)]
     t0 = time.perf_counter()
@@ -112,10 +114,6 @@ def peer_fit(meas, model, rng, n_starts=PEER_STARTS):
 
 def compare(path, *, seed=0, loss=None, open_data=None):
     """One material: a dict of gonio's chosen fit and the peer's, metrics on the dense grid."""
-    from ._loss import REAL_DEFAULT_LOSS
-    from ._realdata import merl_samples, rgl_samples
-    from ._selection import select
-
     path = Path(path)
     loss = loss or REAL_DEFAULT_LOSS
     if open_data is not None:
@@ -170,7 +168,6 @@ def run_real(files, out=None, seed=0, loss=None, open_data=None) -> list[dict]:
         out = Path(out)
         path = out if out.suffix.lower() == ".csv" else out / "fit_bench_real.csv"
         path.parent.mkdir(parents=True, exist_ok=True)
-        from gonio.models.atomic import atomic_open
 
         with atomic_open(path, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))

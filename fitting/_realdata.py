@@ -35,12 +35,15 @@ Rusinkiewicz, S. (1998). A new change of variables for efficient BRDF representa
 
 from __future__ import annotations
 
+import dataclasses
 
 import numpy as np
 
 from gonio.models.geometry import directions
+from gonio.models.mitsuba import divide_cos, eval_cos, interaction, select_variant
 
 from ._data import Measurements
+from .formats import RGLBRDF, half_diff_angles, merl_to_measurements, rgl_field
 
 __all__ = ["rgl_theta_i", "rgl_samples", "merl_samples", "merl_weights"]
 
@@ -50,8 +53,6 @@ N_SIDE = 24
 
 def rgl_theta_i(path) -> np.ndarray:
     """The measured incident elevations of an RGL ``.bsdf`` file (radians)."""
-    from .formats import rgl_field
-
     values = rgl_field(path, "theta_i").ravel()
     return np.radians(values) if values.max() > 2.0 else values
 
@@ -71,10 +72,6 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
     uniformly at random instead of on the stratified grid -- a random geometry of the same
     layout and weights (the resampling test refits on such geometries)."""
     import mitsuba as mi
-
-    from gonio.models.mitsuba import divide_cos, eval_cos, interaction, select_variant
-
-    from .formats import RGLBRDF
 
     variant = select_variant(variant)
     if not variant.startswith(("llvm", "cuda")):
@@ -128,8 +125,6 @@ def merl_weights(wi, wo) -> np.ndarray:
     """Solid-angle weight of each MERL bin centre: the bin's volume in Rusinkiewicz
     coordinates times the Jacobian sin(theta_h) sin(theta_d) (Rusinkiewicz 1998), up to a
     constant factor (theta_h bins are quadratic: d theta_h = 2 sqrt(theta_h (pi/2)) / 90)."""
-    from .formats import half_diff_angles
-
     th, _, td, _ = half_diff_angles(wi, wo)
     dth = np.sqrt(np.clip(th, 1e-6, None) * (np.pi / 2)) / 45.0
     return np.clip(np.sin(th) * np.sin(td) * dth, 1e-12, None)
@@ -137,10 +132,6 @@ def merl_weights(wi, wo) -> np.ndarray:
 
 def merl_samples(path, *, n: int | None = None, rng=None, theta_max_deg: float = 80.0) -> Measurements:
     """Every MERL bin with data (or a seeded subset of ``n``), weighted (:func:`merl_weights`)."""
-    import dataclasses
-
-    from .formats import merl_to_measurements
-
     meas = merl_to_measurements(path, n=n, rng=rng)
     cmax = np.cos(np.radians(theta_max_deg))
     keep = (meas.wi[:, 2] > cmax) & (meas.wo[:, 2] > cmax) & meas.use.any(axis=1)

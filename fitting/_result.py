@@ -11,10 +11,12 @@ never returned as NaN.
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 
 from . import _loss
+from ._display import fit_summary, table_html, text
 from ._space import ParameterSpace
 
 __all__ = ["FitResult", "jacobian_chi2", "laplace"]
@@ -114,14 +116,10 @@ class FitResult:
     # ---- how a fit shows itself (terminal, notebook) and leaves as a table ----
     def __repr__(self) -> str:
         """The model, the goodness of fit and each parameter as value ± 1-sigma; no raw arrays."""
-        from ._display import fit_summary, text
-
         return text(*_with_header(fit_summary(self)))
 
     def _repr_html_(self) -> str:
         """Jupyter's rich display: the same table as :meth:`__repr__`, as escaped HTML."""
-        from ._display import fit_summary, table_html
-
         caption, rows, notes = fit_summary(self)
         return table_html(caption, _HEADER, rows, notes)
 
@@ -130,8 +128,6 @@ class FitResult:
         ``lower``, ``upper``, ``at_bound``, ``undetermined`` and ``correlation``
         (``parameter`` x ``parameter_b``); ``unit`` a coordinate; the goodness of fit and the
         model in the attributes."""
-        import json
-
         import xarray as xr
 
         names = list(self.space.names)
@@ -271,8 +267,6 @@ def robust_covariance(result, meas, problem):
     """``result`` with the sandwich covariance of its own loss's residuals
     (:func:`sandwich`, one cluster per direction pair) instead of the chi^2 Fisher matrix:
     for the ``log`` and ``cosine`` losses, whose residuals have no noise model."""
-    import dataclasses
-
     J, r = loss_jacobian(problem, result.x, result.loss)
     clusters = np.nonzero(meas.use)[0]
     cov, undetermined = sandwich(J, r, result.space, clusters)

@@ -13,30 +13,33 @@ from __future__ import annotations
 
 import dataclasses
 
-
+import gonio.models as gm
 
 from ._optimise import fit
 
 __all__ = ["CANDIDATES", "Ranked", "option_candidates", "select"]
 
-#: (name, options) tried by ``--model auto``, simplest first.
+#: (name, options) tried by ``--model auto``, simplest first (fewest parameters): every
+#: registered model that does not declare ``auto_candidate = False`` (the model declares,
+#: selection reads: a new model file in gonio.models is a candidate without edits here).
 #: Every microfacet distribution a model declares (``OPTIONS["distribution"]``) is a
 #: candidate of its own: a Beckmann conductor is not "explained" by another model.
-CANDIDATE_MODELS = ("diffuse", "roughplastic", "roughconductor", "cooktorrance")
-
-
-def _candidates(names=CANDIDATE_MODELS):
+def _candidates(names=None):
     import gonio.models as gm
 
     out = []
-    for name in names:
+    for name in names or gm.names():
         try:
-            cls = type(gm.get(name))
+            model = gm.get(name)
         except (KeyError, ValueError):
             continue
+        cls = type(model)
+        if names is None and not getattr(cls, "auto_candidate", True):
+            continue
+        k = sum(3 if p.per_channel else 1 for p in model.parameters)
         for dist in cls.OPTIONS.get("distribution", (None,)):
-            out.append((name, {} if dist is None else {"distribution": dist}))
-    return tuple(out)
+            out.append((k, name, {} if dist is None else {"distribution": dist}))
+    return tuple((name, opts) for _, name, opts in sorted(out, key=lambda t: (t[0], t[1])))
 
 
 CANDIDATES = _candidates()
@@ -46,8 +49,6 @@ def option_candidates(name, options=None):
     """The candidates a named model stands for: one per declared microfacet distribution
     when ``options`` does not choose one (so that ``--model roughplastic`` on a GGX sample
     is not silently fitted as Beckmann), else just ``(name, options)``."""
-    import gonio.models as gm
-
     options = dict(options or {})
     allowed = type(gm.get(name, **options)).OPTIONS.get("distribution")
     if not allowed or "distribution" in options:
@@ -82,8 +83,6 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
     ranking : list of Ranked
         Sorted by BIC, the chosen one flagged.
     """
-    import gonio.models as gm
-
     rows = []
     for name, options in candidates or CANDIDATES:
         try:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import math
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,7 @@ from gonio.models.atomic import atomic_open
 from gonio.models.geometry import angles_deg as _angles_deg
 from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
 
-from ._data import Measurements
+from ._data import Measurements, load_dataset
 from ._mitsuba_xml import MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet
 from ._pabopto import model_pabopto, pabopto_files, write_pabopto
 from ._pabopto import write_files as write_pabopto_files
@@ -360,8 +361,6 @@ def check_rgl_file(path) -> dict:
     ValueError
         With one line saying what is wrong.
     """
-    import struct
-
     path = Path(path)
     size = path.stat().st_size
     if size > _RGL_MAX_BYTES:
@@ -488,8 +487,6 @@ def dataset_to_csv(meas_or_dataset_path, out_csv) -> Path:
         meas = meas_or_dataset_path
         angles = (*_angles_deg(meas.wi), *_angles_deg(meas.wo))
     else:
-        from ._data import load_dataset
-
         path = Path(meas_or_dataset_path)
         meas = load_dataset(path)
         angles = _dataset_angles_deg(path)

@@ -36,6 +36,7 @@ import numpy as np
 
 from gonio.models.atomic import atomic_path
 from gonio.models.mitsuba import bsdf_base, select_variant
+from .formats import MERL_SHAPE, RGLBRDF, MerlBRDF, check_rgl_file, read_merl
 
 __all__ = ["LIGHTINGS", "delta_e_2000", "matched_noise_floor", "measured_bsdf_dict", "preview", "register_merl_bsdf", "render_sphere",
            "sphere_mask"]
@@ -60,8 +61,6 @@ _counter = itertools.count()
 
 
 def _merl_class(mi, dr):
-    from .formats import MERL_SHAPE
-
     n_th, n_td, n_pd = MERL_SHAPE
     half_pi = 0.5 * math.pi
 
@@ -129,8 +128,6 @@ def register_merl_bsdf(merl, variant: str | None = None) -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from .formats import MerlBRDF, read_merl
-
     if not isinstance(merl, MerlBRDF):
         merl = read_merl(merl)
     variant = select_variant(variant)
@@ -149,8 +146,6 @@ def register_merl_bsdf(merl, variant: str | None = None) -> dict:
 
 def measured_bsdf_dict(measured, variant: str | None = None) -> dict:
     """The Mitsuba dict for a measured-data argument of :func:`preview` (see module doc)."""
-    from .formats import MerlBRDF, RGLBRDF
-
     if isinstance(measured, dict):
         return measured
     if isinstance(measured, MerlBRDF):
@@ -162,8 +157,6 @@ def measured_bsdf_dict(measured, variant: str | None = None) -> dict:
         if not path.is_file():
             raise FileNotFoundError(f"measured data not found: {path}")
         if path.suffix.lower() == ".bsdf":
-            from .formats import check_rgl_file
-
             check_rgl_file(path)
             return {"type": "measured", "filename": str(path)}
         if path.suffix.lower() == ".binary":
@@ -231,7 +224,6 @@ def render_sphere(bsdf: dict, lighting: str = "env", size: int = 128, spp: int =
 
 def _render_seeds(bsdf, lighting, size, spp, seeds, variant=None):
     import mitsuba as mi
-
 
     variant = select_variant(variant)
     out = []
@@ -379,7 +371,6 @@ def preview(model, params, out_dir, measured=None, size: int = 128, spp: int = 2
         ``time_s``, ``size``, ``spp``, ``seed``.
     """
     import mitsuba as mi
-
 
     t0 = time.perf_counter()
     variant = select_variant(variant)

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._albedo import albedo
 from ._structure import Structure
 from .geometry import as_directions
 
@@ -297,8 +298,6 @@ class Model:
         the options (``n_theta``, ``n_phi``, ``tol``, ``max_level``, ``return_error``)
         and the stated error (<= 1e-3 absolute, typically < 1e-5).
         """
-        from ._albedo import albedo
-
         return albedo(self, wo, params, **quadrature)
 
     # -- Mitsuba ---------------------------------------------------------------------

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._base import CHANNELS
+from ._rough_tables import RES, _disk, _gl, _mu
 from .geometry import as_directions
 
 __all__ = ["Directions", "JitContext", "channels", "microfacet_lobe"]
@@ -254,8 +255,6 @@ def _lerp_table(dr, F, U, pairs, x, n):
 def _table_grid(kind, n):
     """Parameter-free parts of the table quadrature (numpy): GL nodes and weights and,
     for GGX, the concentric-disk points; flattened index layout (r, i, j)."""
-    from ._rough_tables import RES, _disk, _gl, _mu
-
     mu, wx = _mu()
     u, w = _gl(n)
     h = n // 2

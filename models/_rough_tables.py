@@ -22,6 +22,7 @@ concentric-disk point does not depend on mu at all. Tables are cached (LRU) on
 from __future__ import annotations
 
 from functools import lru_cache
+from importlib.resources import files
 
 import numpy as np
 
@@ -225,8 +226,6 @@ def _load_grid():
     global _GRID
     if _GRID is None:
         try:
-            from importlib.resources import files
-
             with files(__package__).joinpath("data", GRID_FILE).open("rb") as fh:
                 with np.load(fh) as z:
                     data = {k: z[k] for k in z.files}

@@ -8,6 +8,7 @@ import threading
 from collections import OrderedDict
 
 import numpy as np
+import serial
 
 from ._camera_port import CameraPort
 from ._clock import SimClock
@@ -169,8 +170,6 @@ class Instrument:
 
     def open(self, port: str, **kwargs):
         """``serial.serial_for_url`` of one of this (registered) instrument's ports."""
-        import serial
-
         return serial.serial_for_url(self.url(port), **kwargs)
 
     # ------------------------------------------------------------------ truth

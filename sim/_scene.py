@@ -16,6 +16,8 @@ import numpy as np
 
 from gonio.models.mitsuba import mitsuba_variant
 
+from ._holder_markers import holder_transform, marker_shapes
+
 __all__ = ["HolderScene"]
 
 _SQUARE_LIFT = 0.0        # sample and reference squares lie in z = 0
@@ -69,8 +71,6 @@ class HolderScene:
                  pixel_size: float, sample_half: float, offset: float,
                  holder_reflectance: float, spp: int = 4, markers=None, holder_pose=None):
         import mitsuba as mi
-
-        from ._holder_markers import holder_transform, marker_shapes
 
         self.variant = mitsuba_variant()
         self.width, self.height = int(width), int(height)

@@ -35,6 +35,7 @@ import os
 from dataclasses import dataclass, field
 
 import numpy as np
+import tifffile
 
 from gonio.models.atomic import atomic_open
 
@@ -198,8 +199,6 @@ def encode_dng(raw: np.ndarray, *, black: int, white: int, exposure: float | Non
     ``colour`` (default the identity camera) gives ColorMatrix1, AsShotNeutral and
     ForwardMatrix1 (sim/_colour.py); CalibrationIlluminant1 is D65 (21).
     """
-    import tifffile
-
     colour = colour if colour is not None else camera_colour("identity")
 
     extratags = [

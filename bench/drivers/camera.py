@@ -14,6 +14,10 @@ SHA-256 of the bytes it wrote, verified against the file) and ``close()``. Three
 
 Every camera first writes to a temporary name beside ``path``, checks the checksum, then
 fsyncs and renames: a file with the final name is always complete and verified.
+`SimCamera.expose_deferred` returns as soon as the camera has written the file, as a
+`Delivery` whose ``finish()`` does the check, fsync and rename later (a capture's worker
+thread, while the stages move on); `deliver` gives the same object for any camera (one that
+cannot defer has committed the file already).
 
 `decode_raw` opens any RAW rawpy/LibRaw reads (DNG, NEF, CR2, ...) and returns linear,
 black-subtracted per-channel planes: ``raw_image_visible`` minus the per-channel black
@@ -23,6 +27,8 @@ level, never the gamma-encoded ``postprocess`` output.
 from __future__ import annotations
 
 import errno
+import hashlib
+import io
 import math
 import os
 import shutil
@@ -33,13 +39,14 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import rawpy
 import serial
 
 from .._files import commit_file, sha256_file, tmp_name
 from ..errors import CommunicationError, DeviceError, GonioError
 
 __all__ = ["SensorInfo", "RawFrame", "decode_raw", "read_verified", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
-           "RAW_SUFFIXES"]
+           "RAW_SUFFIXES", "BadDelivery", "Delivery", "deliver"]
 
 RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
 
@@ -112,10 +119,6 @@ def decode_raw(path: str | os.PathLike, *, window: tuple[int, int, int, int] | N
     GonioError
         The file is missing or not a RAW file rawpy can read.
     """
-    import io
-
-    import rawpy
-
     path = Path(path)
     if data is None and not path.is_file():
         raise GonioError(f"RAW file {path} is missing; check the session's raw/ folder")
@@ -167,8 +170,6 @@ def decode_raw(path: str | os.PathLike, *, window: tuple[int, int, int, int] | N
 
 def read_verified(path: str | os.PathLike) -> tuple[bytes, str]:
     """A file's bytes and their SHA-256 (hex), from one read (checksum and decode share it)."""
-    import hashlib
-
     with open(path, "rb") as fh:
         data = fh.read()
     return data, hashlib.sha256(data).hexdigest()
@@ -184,6 +185,56 @@ def _commit(tmp: Path, path: Path) -> None:
         if exc.filename is None:
             raise OSError(exc.errno, exc.strerror, str(path)) from None
         raise
+
+
+class BadDelivery(DeviceError):
+    """A deferred RAW file is missing or does not match the camera's checksum (removed)."""
+
+
+@dataclass
+class Delivery:
+    """A RAW file at ``path``: written by the camera under ``tmp`` and not yet checked (``tmp`` None:
+    already checked and committed). ``digest`` is the camera's SHA-256 of it."""
+
+    path: Path
+    digest: str
+    tmp: Path | None = None
+
+    def finish(self) -> bytes | None:
+        """Check the file against ``digest``, then commit it (fsync, rename, fsync the folder);
+        return its bytes, read once for the check and a decode (None: committed before).
+
+        Raises
+        ------
+        BadDelivery
+            The file is missing or its bytes do not match (the temporary file is removed).
+        """
+        if self.tmp is None:
+            return None
+        try:
+            data, digest = read_verified(self.tmp)
+        except FileNotFoundError:
+            raise BadDelivery(f"{self.path.name} vanished before its check") from None
+        if digest != self.digest:
+            self.discard()
+            raise BadDelivery(f"{self.path.name} does not match the camera's checksum")
+        _commit(self.tmp, self.path)
+        self.tmp = None
+        return data
+
+    def discard(self) -> None:
+        """Remove the unchecked file (a point given up)."""
+        if self.tmp is not None:
+            self.tmp.unlink(missing_ok=True)
+            self.tmp = None
+
+
+def deliver(camera, seconds: float, path: str | os.PathLike) -> Delivery:
+    """``camera.expose_deferred`` where the camera has it, else ``expose`` (checked and committed)."""
+    deferred = getattr(camera, "expose_deferred", None)
+    if deferred is not None:
+        return deferred(seconds, path)
+    return Delivery(Path(path), camera.expose(seconds, path))
 
 
 class SimCamera:
@@ -272,7 +323,12 @@ class SimCamera:
         """Expose the flat-field source (uniform radiance over the frame) for ``seconds``: as `expose`."""
         return self._shoot("FLAT", seconds, path)
 
-    def _shoot(self, command: str, seconds: float, path: str | os.PathLike) -> str:
+    def expose_deferred(self, seconds: float, path: str | os.PathLike) -> Delivery:
+        """As `expose`, returning once the camera has written the file: its checksum check, fsync
+        and rename are the returned `Delivery`'s ``finish()`` (a missing file is retried here)."""
+        return self._shoot("EXPOSE", seconds, path, check=False)
+
+    def _shoot(self, command: str, seconds: float, path: str | os.PathLike, check: bool = True):
         path = Path(path).resolve()
         tmp = tmp_name(path)
         why = ""
@@ -292,6 +348,8 @@ class SimCamera:
                 why = "the camera reported a file it did not write"
                 self.retries_used += 1
                 continue
+            if not check:
+                return Delivery(path, digest, tmp)
             if sha256_file(tmp) != digest:
                 why = "checksum mismatch"
                 tmp.unlink()
