@@ -14,7 +14,8 @@ matrix gives XYZ. It comes from one of two sources, recorded in ``dataset.nc``:
   from the tags exactly instead of through LibRaw's rounded ``color_matrix``). Its uncertainty
   is not assessed (a maker's matrix states none).
 * ``"chart"``: a capture of an X-Rite ColorChecker (24 patches) in the holder's chart slot
-  (``CHART_BOX``: the patches are read from the slot's declared geometry). The 3x3 from raw
+  (found by OpenCV contrib's ``cv2.mcc`` detector in frames large enough for it, else read from
+  the slot's declared geometry ``CHART_BOX``). The 3x3 from raw
   camera RGB is the least-squares fit to the patches' reference linear sRGB
   (colour-science ``matrix_colour_correction``, Cheung 2004, 3 terms; reference values
   ``CCS_COLOURCHECKERS["ColorChecker24 - After November 2014"]``, D50, adapted to D65 with
@@ -47,7 +48,7 @@ import numpy as np
 
 from .errors import GonioError
 
-__all__ = ["CHART_BOX", "CHART_BORDER", "CHART_GRID", "COLOUR_SPACES", "ColourMatrix", "SRGB_TO_XYZ", "chart_patches",
+__all__ = ["CHART_BOX", "CHART_BORDER", "CHART_GRID", "COLOUR_SPACES", "ColourMatrix", "SRGB_TO_XYZ", "chart_patches", "find_chart",
            "chart_reference_srgb", "colour_matrix_components", "colour_matrix_uncertainty", "convert",
            "matrix_from_chart", "matrix_from_chart_dng", "matrix_from_dng", "matrix_from_libraw"]
 
@@ -78,6 +79,8 @@ class ColourMatrix:
         Chart fit: RMS of the patch residuals relative to each patch's luminance, per output
         channel: how far the one 3x3 misses a surface's colour (metamerism, the Luther
         condition), the prediction part of the uncertainty (it dominates the estimation part).
+    found_by : str or None
+        Chart fit: ``"mcc"`` (OpenCV's detector) or ``"slot"`` (the slot's geometry).
     """
 
     srgb_from_cam: np.ndarray
@@ -85,6 +88,7 @@ class ColourMatrix:
     cov: np.ndarray | None = None
     residual_rms: float | None = None
     prediction_rel: np.ndarray | None = None
+    found_by: str | None = None
 
     def describe(self) -> dict:
         """JSON-ready record for the dataset's attributes."""
@@ -92,6 +96,7 @@ class ColourMatrix:
                 "row_cov": None if self.cov is None else self.cov.tolist(),
                 "residual_rms": self.residual_rms,
                 "prediction_rel": None if self.prediction_rel is None else self.prediction_rel.tolist(),
+                "chart_found_by": self.found_by,
                 "uncertainty": "row covariance of the chart fit" if self.cov is not None else "not assessed"}
 
 
@@ -186,6 +191,54 @@ def chart_patches(planes, box=CHART_BOX, grid=CHART_GRID, border=CHART_BORDER) -
     return out
 
 
+#: Frames at least this many super-pixels high (and wide) are searched with OpenCV's ``cv2.mcc``
+#: ColorChecker detector first; smaller ones (the simulator's default 32 x 24) are read from the slot.
+MCC_MIN_PX = 200
+
+
+def find_chart(planes) -> tuple[np.ndarray, str]:
+    """The chart's 24 patch means (24, 3) and how they were found: ``"mcc"`` (OpenCV contrib's
+    Macbeth-chart detector, its box mapped onto the 6 x 4 grid by a homography; of the box's
+    corner orders the one whose fit leaves the smallest residual), else ``"slot"``
+    (:func:`chart_patches`, the slot's declared geometry)."""
+    planes = np.asarray(planes, float)
+    if min(planes.shape[1:]) >= MCC_MIN_PX:
+        found = _mcc_patches(planes)
+        if found is not None:
+            return found, "mcc"
+    return chart_patches(planes), "slot"
+
+
+def _mcc_patches(planes):
+    import cv2
+
+    img = np.clip(planes / max(float(np.percentile(planes, 99.5)), 1e-12), 0, 1).transpose(1, 2, 0)
+    bgr = np.ascontiguousarray((255 * img ** (1 / 2.2))[..., ::-1] + 0.5).astype(np.uint8)
+    det = cv2.mcc.CCheckerDetector_create()
+    det.setColorChartType(cv2.mcc.MCC24)
+    if not det.process(bgr, 1):
+        return None
+    box = np.asarray(det.getBestColorChecker().getBox(), np.float32).reshape(4, 2)
+    rows, cols = CHART_GRID
+    unit = np.float32([[0, 0], [cols, 0], [cols, rows], [0, rows]])
+    centres = np.float32([[[c + 0.5, r + 0.5]] for r in range(rows) for c in range(cols)])
+    best = None
+    for corners in [np.roll(box, -k, axis=0) for k in range(4)] + [np.roll(box[::-1], -k, axis=0) for k in range(4)]:
+        pts = cv2.perspectiveTransform(centres, cv2.getPerspectiveTransform(unit, corners))[:, 0]
+        half = max(1, int(0.15 * np.linalg.norm(corners[1] - corners[0]) / cols))
+        if np.any(pts < half) or np.any(pts[:, 0] >= planes.shape[2] - half) or np.any(pts[:, 1] >= planes.shape[1] - half):
+            continue
+        patches = np.array([planes[:, int(y) - half:int(y) + half + 1, int(x) - half:int(x) + half + 1].mean(axis=(1, 2))
+                            for x, y in pts])
+        try:
+            rms = matrix_from_chart(patches).residual_rms
+        except GonioError:
+            continue
+        if best is None or rms < best[0]:
+            best = (rms, patches)
+    return None if best is None else best[1]
+
+
 def matrix_from_chart_dng(path: str | os.PathLike) -> ColourMatrix:
     """:func:`matrix_from_chart` on a RAW capture of the chart in its slot (black-subtracted,
     decoded by the camera driver's ``decode_raw``)."""
@@ -196,7 +249,8 @@ def matrix_from_chart_dng(path: str | os.PathLike) -> ColourMatrix:
     frame = decode_raw(path, peak=True)
     if np.any(frame.peak >= frame.full_scale):
         raise GonioError(f"{path}: the chart capture is saturated; capture it with a shorter exposure")
-    return matrix_from_chart(chart_patches(frame.signal))
+    patches, how = find_chart(frame.signal)
+    return dataclasses.replace(matrix_from_chart(patches), found_by=how)
 
 
 def matrix_from_chart(patches_cam) -> ColourMatrix:
