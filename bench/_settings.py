@@ -206,6 +206,31 @@ def show_settings(path=None, options=None) -> list[str]:
             text = json.dumps(value) if not isinstance(value, (dict, list)) else json.dumps(value, separators=(", ", " = "))
             lines.append(f"{key} = {text}  # {source.get(f'{section}.{key}', 'default')}")
         lines.append("")
+    lines += _preset_lines(settings.get("errors"), source)
     if "session" not in settings:
         lines.append("[session]  # not set: give --sample-id, --sample-description, --operator or a [session] table")
     return lines
+
+
+def _preset_lines(errors, source) -> list[str]:
+    """The simulator's error terms an ``[errors]`` preset expands to, each marked ``preset NAME``
+    or, where the file overrides it, the file's."""
+    import json
+
+    if errors is None:
+        return []
+    try:
+        import gonio.sim
+
+        terms = gonio.sim.error_model(errors).to_dict()
+    except (ValueError, TypeError) as exc:
+        raise GonioError(" ".join(str(exc).split())[:300]) from None
+    given = errors if isinstance(errors, Mapping) else {"preset": errors}
+    name = terms.pop("preset", "ideal")
+    lines = [f"# [errors] preset {name} expands to (sim/_errors.py):"]
+    for term, table in terms.items():
+        mine = given.get(term) if isinstance(given.get(term), Mapping) else {}
+        lines.append(f"[errors.{term}]")
+        lines += [f"{k} = {json.dumps(v)}  # {source.get('errors.' + term, 'file') if k in mine else 'preset ' + name}"
+                  for k, v in table.items()]
+    return lines + [""]

@@ -128,3 +128,20 @@ def test_capture_records_the_session_options_in_its_settings(tmp_path, monkeypat
     f.write_text('[sesion]\noperator = "B. Other"\n')
     assert main(argv) == 2 and "did you mean [session]?" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+
+
+def test_settings_show_expands_an_errors_preset(tmp_path):
+    """`[errors] preset = "typical"` with one term overridden: each term's value says whether the
+    preset or the file set it (the preset's values are sim/_errors.py's PRESETS["typical"])."""
+    import gonio.sim
+    from gonio.bench._settings import show_settings
+
+    f = tmp_path / "e.toml"
+    f.write_text('[errors]\npreset = "typical"\n[errors.stray]\nfloor = 0.0\n')
+    lines = show_settings(f)
+    typical = gonio.sim.error_model("typical").to_dict()
+    assert f"repeat_deg = {typical['stages']['repeat_deg']}  # preset typical" in lines
+    assert f"floor = 0.0  # file {f}" in lines
+    f.write_text('[errors]\npreset = "typo"\n')
+    with pytest.raises(GonioError, match="preset 'typo' is unknown"):
+        show_settings(f)
