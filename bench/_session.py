@@ -31,7 +31,7 @@ from ._markers import find_regions, layout_of, posed_masks
 from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
 from ._rig import Bench
 from ._settings import AXES
-from .drivers import MoveError, RawFrame, decode_raw, read_verified
+from .drivers import BadDelivery, MoveError, RawFrame, decode_raw, deliver, read_verified
 from .drivers.identify import record as record_identification
 from .errors import CommunicationError, DeviceError, SessionError
 from .plans import plan_from_dict
@@ -125,6 +125,7 @@ class _Session:
         self.reserved = journal.reserved()
         self._masks_of: dict[tuple, tuple] = {}      # per pose: the regions (the plan revisits none, a retry does)
         self.layout = layout_of(self.settings)       # the holder's markers, None where it has none
+        self._deliveries: dict = {}                  # RAW file name -> Delivery not yet checked and committed
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -339,7 +340,12 @@ class _Session:
         frame inside ``box`` (else decoded later, by the point's reduction)."""
         self.bench.checkpoint()
         file = self._fresh(f"p{idx:05d}_{t * 1e6:010.0f}us.dng")
-        digest = self.bench.camera.expose(t, self.folder / file)
+        if decode:                               # checked and committed now: decoded now
+            digest = self.bench.camera.expose(t, self.folder / file)
+        else:                                    # checked and committed by the point's reduction
+            delivery = deliver(self.bench.camera, t, self.folder / file)
+            self._deliveries[file] = delivery
+            digest = delivery.digest
         self.bench.checkpoint()
         p = self._power()
         d = {"seconds": t, "file": file, "sha256": digest, "power": p}
@@ -429,22 +435,37 @@ class _Session:
             if tb not in taken:
                 taken[tb] = self._expose(idx, tb, box, decode=False)
         used = [taken[tb] for tb in sorted(taken)]
+        deliveries = {d["file"]: self._deliveries.pop(d["file"]) for _, d in used if d["file"] in self._deliveries}
         powers = [d["power"] for _, d in used]
         if max(powers) / min(powers) - 1.0 > self.bracket_tol:
+            for dl in deliveries.values():
+                dl.discard()
             raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
                              f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
         return {"idx": idx, "stage": stage, "used": used, "p_start": p_start, "bracket": bracket,
-                "masks": (sm, rm, box), "regions": regions}
+                "masks": (sm, rm, box), "regions": regions, "deliveries": deliveries}
 
     def _reduce(self, shot: dict) -> dict:
-        """Decode what `_bracket` left, merge the bracket, reduce the regions, calibrate: the journal
-        row's fields. Touches no device and no journal, so it runs while the stages move on."""
+        """Check and commit the RAW files `_bracket` left (SHA-256 against the camera's, fsync,
+        rename), decode them from the bytes checked, merge the bracket, reduce the regions,
+        calibrate: the journal row's fields. Touches no device and no journal, so it runs while
+        the stages move on; `BadDelivery` (a file spoilt) discards the point's unchecked files."""
         idx, used = shot["idx"], shot["used"]
         sm, rm, box = shot["masks"]
-        exposures = [e if e is not None else
-                     Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box),
-                              self._dark(d["seconds"], box))
-                     for e, d in used]
+        deliveries = shot.get("deliveries", {})
+        exposures = []
+        try:
+            for e, d in used:
+                if e is None:
+                    dl = deliveries.pop(d["file"], None)
+                    data = None if dl is None else dl.finish()
+                    e = Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box, data=data),
+                                 self._dark(d["seconds"], box))
+                exposures.append(e)
+        except BadDelivery:
+            for dl in deliveries.values():
+                dl.discard()
+            raise
         gain = None if self.gain is None else self.gain[:, box[0]:box[1], box[2]:box[3]]
         hdr = merge(exposures, self.noise, self.sat, gamma=self.gamma).flat_fielded(gain)
         del exposures
@@ -498,12 +519,16 @@ class _Session:
         """Measure the points the journal lacks, in the session's order.
 
         Once point k's bracket is taken, the stages are sent to point k+1 at once, and a worker
-        thread decodes, merges and reduces point k while they move (the main thread meanwhile
-        finds k+1's regions); point k is journalled as soon as its reduction is done, still
-        during the move and before k+1's bracket, so a point is in the journal only once its
-        row is complete and its RAW files committed, and a stop (Ctrl-C once, after the point
-        being journalled; a signal, a fault, a full disk) loses at most the point in progress,
-        as before. A move sent ahead when the run stops at a point boundary is stopped.
+        thread checks point k's RAW files against the camera's SHA-256, fsyncs and renames them
+        (the probes were checked at once, to choose the bracket), decodes, merges and reduces
+        point k while they move (the main thread meanwhile finds k+1's regions); point k is
+        journalled as soon as its reduction is done, still during the move and before k+1's
+        bracket, so a point is in the journal only once its row is complete and its RAW files
+        checked and committed, and a stop (Ctrl-C once, after the point being journalled; a
+        signal, a fault, a full disk) loses at most the point in progress, as before. A file
+        found spoilt there sends the stages back: the point is taken again next (at most the
+        camera's ``retries`` times). A move sent ahead when the run stops at a point boundary
+        is stopped.
         """
         done = self.journal.done()
         todo = [int(i) for i in self.order if int(i) not in done]
@@ -522,10 +547,28 @@ class _Session:
             nonlocal pending, n_new
             if pending is not None:
                 idx, fut = pending
-                res = fut.result()
                 pending = None
+                res = fut.result()
                 self._commit(idx, res, bar)
                 n_new += 1
+
+        retakes: dict[int, int] = {}
+
+        def retake(n: int, idx: int, exc: BadDelivery) -> None:
+            """A RAW file of point ``idx`` failed its check after the stages left: take it again next."""
+            nonlocal goal
+            retakes[idx] = retakes.get(idx, 0) + 1
+            cam = self.bench.camera
+            if hasattr(cam, "retries_used"):
+                cam.retries_used += 1
+            if retakes[idx] > getattr(cam, "retries", 2):
+                raise DeviceError(f"camera could not deliver point {idx}'s files ({exc}); "
+                                  "check the camera and disk, then resume the session") from None
+            self.journal.event("warning", f"point {idx}: {exc}; taking it again")
+            if goal is not None:                  # let the move sent ahead end, then go back
+                self.bench.gonio.finish_move(goal)
+                goal = None
+            todo.insert(n + 1, idx)
 
         try:
             try:
@@ -553,7 +596,10 @@ class _Session:
                     del shot
                     if ahead is not None:
                         self._masks(self.stage[ahead])         # the next regions, during the move
-                    commit_pending()                           # point k, still during the move
+                    try:
+                        commit_pending()                       # point k, still during the move
+                    except BadDelivery as exc:
+                        retake(n, idx, exc)
                 if goal is not None:                           # stopped with a move sent ahead
                     goal = None
                     self.bench.gonio.stop()
@@ -567,5 +613,8 @@ class _Session:
                 raise
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
+            for dl in self._deliveries.values():      # a bracket cut short: its unchecked files
+                dl.discard()
+            self._deliveries.clear()
             bar.close()
         return n_new, stopped

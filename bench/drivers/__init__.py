@@ -20,7 +20,8 @@ The capture loop (`gonio.bench.capture`) and the operator commands use the devic
 through these classes; the simulator (`gonio.sim`) speaks the same bytes at the far end.
 """
 
-from .camera import Gphoto2Camera, RawFrame, SimCamera, WatchedFolderCamera, decode_raw, read_verified
+from .camera import (BadDelivery, Delivery, Gphoto2Camera, RawFrame, SimCamera, WatchedFolderCamera, decode_raw, deliver,
+                     read_verified)
 from .led import LedSource
 from .meter import PowerMeter, is_visa_resource
 from .serialport import SerialDevice
@@ -29,8 +30,8 @@ from .zaber import ZaberChain, emergency_stop
 from .zaber_protocol import FLAG_MEANINGS, REJECT_MEANINGS, Reply, format_command, lrc, parse_reply
 
 __all__ = [
-    "FLAG_MEANINGS", "REJECT_MEANINGS", "Gphoto2Camera", "Goniometer", "LedSource", "MoveError",
+    "BadDelivery", "Delivery", "FLAG_MEANINGS", "REJECT_MEANINGS", "Gphoto2Camera", "Goniometer", "LedSource", "MoveError",
     "PowerMeter", "RawFrame", "Reply", "SerialDevice", "SimCamera", "WatchedFolderCamera", "ZaberChain",
-    "decode_raw", "emergency_stop", "format_command", "is_visa_resource", "lrc", "parse_reply",
+    "decode_raw", "deliver", "emergency_stop", "format_command", "is_visa_resource", "lrc", "parse_reply",
     "read_verified", "shortest_equivalent",
 ]
