@@ -169,25 +169,26 @@ def fit_alignment(peaks, lamp_zero_u_deg: float = 0.0) -> dict:
 def fit_linearity(exposure, signal, u_signal, full_scale: float) -> dict:
     """Integral non-linearity from an exposure ladder at constant radiance.
 
-    Model: ``signal = a t (1 - gamma a t / full_scale)`` (dark-subtracted DN, monitor-normalised),
-    linear in ``(a, q = gamma a^2 / full_scale)``; weighted least squares (covariance scaled by
+    Model: ``signal = d + a t (1 - gamma a t / full_scale)`` (black-subtracted DN,
+    monitor-normalised; ``d`` what the black level leaves, dark signal and offsets), linear in
+    ``(d, a, q = gamma a^2 / full_scale)``; weighted least squares (covariance scaled by
     the Birge ratio when chi^2 / dof > 1), gamma's uncertainty by first-order propagation.
 
     Returns ``{"gamma", "u_gamma", "a", "chi2", "dof"}``.
     """
     t, y, u = (np.asarray(v, float) for v in (exposure, signal, u_signal))
-    if t.size < 3:
-        raise ValueError("the linearity ladder needs three exposures at least")
-    A = np.stack([t, -t * t], -1) / u[:, None]
+    if t.size < 4:
+        raise ValueError("the linearity ladder needs four exposures at least")
+    A = np.stack([np.ones_like(t), t, -t * t], -1) / u[:, None]
     coef, *_ = np.linalg.lstsq(A, y / u, rcond=None)
     cov = np.linalg.inv(A.T @ A)
     chi2 = float(np.sum((A @ coef - y / u) ** 2))
-    cov = cov * max(1.0, chi2 / max(t.size - 2, 1))       # Birge ratio (monitor noise, lamp drift)
-    a, q = coef
+    cov = cov * max(1.0, chi2 / max(t.size - 3, 1))       # Birge ratio (monitor noise, lamp drift)
+    _, a, q = coef
     g = q * full_scale / (a * a)
-    grad = np.array([-2.0 * q * full_scale / a ** 3, full_scale / (a * a)])
+    grad = np.array([0.0, -2.0 * q * full_scale / a ** 3, full_scale / (a * a)])
     return {"gamma": float(g), "u_gamma": float(math.sqrt(grad @ cov @ grad)), "a": float(a),
-            "chi2": chi2, "dof": int(t.size - 2)}
+            "chi2": chi2, "dof": int(t.size - 3)}
 
 
 def reference_factor_model(theta_i_deg, theta_o_deg, a: float, b: float):

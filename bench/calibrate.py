@@ -63,9 +63,10 @@ class SimBench:
     """The simulated instrument's physics, driven directly (no protocol ports).
 
     Methods a calibration bench offers: ``move(stage_deg)`` (absolute, the four stages),
-    ``frame(exposure_s)`` (raw mosaic minus black, DN, float), ``monitor()`` (lamp power, W) and
-    ``full_scale`` (DN). Moves go through the stages' physics, so zero offsets, backlash and
-    repeatability act as they do in a capture.
+    ``frame(exposure_s)`` (black-subtracted DN on the 2x2 super-pixel grid, the mean of the
+    tile's R, G, G, B), ``monitor()`` (lamp power, W) and ``full_scale`` (DN). Moves go through
+    the stages' physics, so zero offsets, backlash and repeatability act as they do in a
+    capture. :class:`DriverBench` offers the same through the bench's drivers.
     """
 
     def __init__(self, inst):
@@ -87,20 +88,62 @@ class SimBench:
     def frame(self, exposure_s: float) -> np.ndarray:
         import tifffile
 
-        raw = tifffile.imread(io.BytesIO(self.inst.capture(exposure_s)))
-        return raw.astype(np.float64) - self.inst.sensor.black
+        raw = tifffile.imread(io.BytesIO(self.inst.capture(exposure_s))).astype(np.float64) - self.inst.sensor.black
+        h, w = raw.shape[0] // 2, raw.shape[1] // 2
+        return raw[:2 * h, :2 * w].reshape(h, 2, w, 2).mean(axis=(1, 3))
 
     def monitor(self, n: int = 10) -> float:
         inst = self.inst
         return float(np.mean([inst.meter.read(inst.lamp.power(inst.clock.now())) for _ in range(n)]))
 
 
+class DriverBench:
+    """A calibration bench on the production drivers (bench/_rig.Bench: Zaber stages and LED,
+    the power meter, the camera): real hardware, or the simulator through its ``sim://`` ports
+    (the same bytes). Frames go to ``folder`` as RAW files and are decoded by
+    ``drivers.decode_raw``; each move waits ``[motion] settle_s``.
+    """
+
+    def __init__(self, rig, settings: Mapping, folder: Path):
+        from .drivers import decode_raw
+
+        self.rig, self.folder, self._decode = rig, Path(folder), decode_raw
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.settle = float(settings.get("motion", {}).get("settle_s", 0.0))
+        flags = rig.gonio.connect(clear_faults=True)
+        if any(f in ("WR", "WH") for f in flags):
+            rig.gonio.home()
+        m = settings.get("meter", {})
+        rig.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))
+        rig.led.set_flux(float(settings.get("lamp", {}).get("flux", 1.0)))
+        rig.led.on()
+        self.frames = 0
+        self.full_scale = float(self._frame(float(settings["capture"]["exposure_min_s"])).full_scale)
+
+    def move(self, stage_deg) -> None:
+        self.rig.gonio.move_to(dict(zip(kinematics.AXES, (float(v) for v in stage_deg))))
+        self.rig.sleep(self.settle)
+
+    def _frame(self, exposure_s: float):
+        path = self.folder / f"calibration-{self.frames:05d}.dng"
+        self.frames += 1
+        self.rig.camera.expose(exposure_s, path)
+        frame = self._decode(path, peak=False)
+        path.unlink()
+        return frame
+
+    def frame(self, exposure_s: float) -> np.ndarray:
+        r, g, b = self._frame(exposure_s).signal.astype(np.float64)
+        return 0.25 * (r + 2.0 * g + b)
+
+    def monitor(self, n: int = 1) -> float:
+        return float(np.mean([self.rig.meter.power() for _ in range(n)]))
+
+
 # ----------------------------------------------------------------------------- measurements
 def _squares(bench, stage_deg, settings, exposure):
     """Mean DN of the sample and reference regions (2x2 super-pixels) in one frame."""
-    raw = bench.frame(exposure)
-    h, w = raw.shape[0] // 2, raw.shape[1] // 2
-    sp = raw[:2 * h, :2 * w].reshape(h, 2, w, 2).sum(axis=(1, 3)) / 4.0
+    sp = bench.frame(exposure)
     ms, mr = kinematics.roi_masks(np.asarray(stage_deg, float), settings, binning=2)
     if ms.sum() < 4 or mr.sum() < 4:
         raise GonioError(f"calibration pose {list(stage_deg)} does not show both squares; check [holder]")
@@ -188,20 +231,26 @@ def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: f
     return table
 
 
-def linearity(bench, settings: Mapping, stage_deg=(20.0, 0.0, 0.0, 50.0), rungs: int = 8, frames: int = 4) -> dict:
+def linearity(bench, settings: Mapping, stage_deg=(20.0, 0.0, 0.0, 50.0), rungs: int = 8, frames: int = 6) -> dict:
     """Exposure ladder on the reference square up to 80 % of full scale (shot noise and PRNU keep
-    its brightest pixels below saturation); the ``[linearity]`` table."""
+    its brightest pixels below saturation); the ``[linearity]`` table.
+
+    Each rung's scatter over its ``frames`` frames (monitor-normalised) feeds one smooth noise
+    model ``var = c0 y + c1 y^2`` (shot noise; monitor and lamp noise), fitted over the rungs:
+    a standard deviation from a handful of frames alone would weight the fit at random.
+    """
     t_top = _exposure_for(bench, stage_deg, settings, target=0.8, which=1)
     ts = t_top * np.geomspace(1.0 / 16.0, 1.0, rungs)
-    y, u = [], []
+    y, var = [], []
     m0 = bench.monitor()
     for t in ts:
-        vals = []
-        for _ in range(frames):
-            vals.append(_squares(bench, stage_deg, settings, float(t))[1] * m0 / bench.monitor())
+        vals = [_squares(bench, stage_deg, settings, float(t))[1] * m0 / bench.monitor() for _ in range(frames)]
         y.append(np.mean(vals))
-        u.append(max(np.std(vals, ddof=1) / math.sqrt(frames), 1e-6 * np.mean(vals)))
-    fit = al.fit_linearity(ts, y, u, bench.full_scale)
+        var.append(np.var(vals, ddof=1))
+    y, var = np.asarray(y), np.asarray(var)
+    c, *_ = np.linalg.lstsq(np.stack([y, y * y], -1) / y[:, None], var / y, rcond=None)
+    model = np.maximum(np.stack([y, y * y], -1) @ np.maximum(c, 0.0), (1e-6 * y) ** 2)
+    fit = al.fit_linearity(ts, y, np.sqrt(model / frames), bench.full_scale)
     return {"gamma": fit["gamma"], "u_gamma": fit["u_gamma"], "chi2": fit["chi2"], "dof": fit["dof"],
             "exposures_s": ts.tolist()}
 
@@ -429,21 +478,22 @@ def _sim_bench(settings: Mapping, seed: int):
 
 
 def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None = None,
-              lamp_zero_u_deg: float = 0.02) -> dict:
+              lamp_zero_u_deg: float = 0.02, sim: bool | None = None) -> dict:
     """Run the three procedures; return the calibration document (tables of plain values).
 
     ``bench`` None: the simulated instrument built from ``settings`` (its ``[errors]``) and
     ``seed``. ``specs``: data-sheet values the procedures cannot measure (``repeat_deg``,
     ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``, ``stray_floor``); with the
     simulator they come from its error model, on hardware from ``[calibration]`` of the settings.
+    ``sim``: what the file records (default: ``bench`` is None).
     """
     from ._journal import versions
 
     t0 = time.perf_counter()
-    sim = bench is None
-    if sim:
+    sim = bench is None if sim is None else bool(sim)
+    if bench is None:
         bench, specs = _sim_bench(settings, seed)
-    specs = dict(specs or settings.get("calibration", {}))
+    specs = dict(specs if specs is not None else settings.get("calibration", {}))
     cal = {"calibration": {
         "procedure": (f"specular cross-scans (yaw, tilt; up and down; {SCAN_STEP_DEG} deg steps over "
                       f"+-{SCAN_HALF_DEG} deg) of a glossy artefact ({GLOSSY_ARTEFACT['model']} alpha "
@@ -451,7 +501,7 @@ def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None
                       f"{SCAN_LAMP_DEG} deg; exposure ladder on the reference; the reference over a "
                       f"{len(FACTOR_ANGLES)}x{len(FACTOR_ANGLES)} in-plane grid"),
         "seed": int(seed), "sim": sim, "versions": versions()}}
-    if sim:
+    if "errors" in specs:
         cal["calibration"]["errors"] = specs.pop("errors")
     a = align(bench, settings, lamp_zero_u_deg, float(specs.get("repeat_deg", 0.0)))
     a["repeat_deg"] = float(specs.get("repeat_deg", 0.0))
@@ -512,20 +562,55 @@ def merge_calibration(settings: Mapping, cal: Mapping) -> dict:
     return out
 
 
-def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int) -> int:
-    """``gonio calibrate``: refuse bad input in one line before anything is written."""
+def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=None, meter_port=None,
+                  camera=None) -> int:
+    """``gonio calibrate``: refuse bad input in one line before anything is written.
+
+    ``--sim`` runs the procedures through the production drivers against the simulator's
+    ``sim://`` ports (the bytes a real bench gets); ``--port``/``--meter-port``/``--camera`` run
+    them on hardware, with the glossy artefact mounted in the sample slot and the data-sheet
+    values (``repeat_deg``, ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``,
+    ``stray_floor``) in the settings' ``[calibration]`` table.
+    """
+    import tempfile
+
     from ._preflight import check_output_file
+    from ._rig import Bench
     from ._settings import load_settings
 
-    if not sim:
-        raise GonioError("calibrate runs on the simulated instrument for now (--sim); the hardware procedure "
-                         "needs the drivers' scan loop (not built yet)")
-    s = load_settings(settings)
+    if sim == bool(port):
+        raise GonioError("calibrate needs --sim (the simulated instrument) or --port, --meter-port and --camera")
+    if not sim and (not meter_port or not camera):
+        raise GonioError("a hardware calibration needs --port, --meter-port and --camera")
+    if not sim and errors is not None:
+        raise GonioError("--errors sets the simulated instrument's errors; use it with --sim")
+    s = settings if isinstance(settings, dict) else load_settings(settings)
     if errors is not None:
         old = s.get("errors")
         s["errors"] = {**({} if not isinstance(old, dict) else old), "preset": errors}
     check_output_file(out, "calibration file")
-    cal = calibrate(s, seed=seed)
+    inst = None
+    if sim:
+        physics, specs = _sim_bench(s, seed)
+        inst = physics.inst.register(f"gonio-calibrate-{id(physics):x}")
+        urls, sleep = (inst.url("zaber"), inst.url("meter"), inst.url("camera")), inst.clock.advance
+    else:
+        from .session_runner import _camera
+
+        specs, urls, sleep = None, (port, meter_port, _camera(camera)), time.sleep
+    try:
+        rig = Bench(s, *urls, sleep=sleep)
+        try:
+            with tempfile.TemporaryDirectory(prefix="gonio-calibrate-") as scratch:
+                cal = calibrate(s, seed=seed, bench=DriverBench(rig, s, Path(scratch)), specs=specs, sim=sim)
+        finally:
+            try:
+                rig.led.off()
+            finally:
+                rig.close()
+    finally:
+        if inst is not None:
+            inst.unregister()
     write_calibration(out, cal)
     a = cal["alignment"]
     print(f"wrote {out}: yaw zero {a['yaw_zero_deg']:+.4f} +- {a['u_yaw_zero_deg']:.4f} deg, tilt zero "

@@ -104,7 +104,8 @@ def _cmd_capture(args):
 def _cmd_calibrate(args):
     from .calibrate import calibrate_cli
 
-    return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed)
+    return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed,
+                         port=args.port, meter_port=args.meter_port, camera=args.camera)
 
 
 @_env
@@ -335,7 +336,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     cal = sub.add_parser("calibrate", help="estimate the bench's systematic errors (alignment: zero offsets and "
                          "holder tilt; detector linearity; the reference's non-Lambertian factor) into a file")
-    cal.add_argument("--sim", action="store_true", help="calibrate the simulated instrument (in this process)")
+    cal.add_argument("--sim", action="store_true",
+                     help="calibrate the simulated instrument (in this process, through the drivers and its sim:// ports)")
+    cal.add_argument("--port", help="hardware: Zaber chain port or URL (mount the glossy artefact in the sample slot)")
+    cal.add_argument("--meter-port", help="hardware: SCPI power meter port or URL")
+    cal.add_argument("--camera", help="hardware: camera (a serial port/URL, folder:PATH, or gphoto2)")
     cal.add_argument("--errors", choices=["ideal", "typical", "poor"],
                      help="simulated instrument's error preset (default: the settings' [errors], else ideal)")
     cal.add_argument("--settings", help="instrument settings TOML overriding bench/instrument.toml")

@@ -189,3 +189,34 @@ def test_capture_refuses_a_calibration_that_does_not_fit(run, tmp_path, capsys):
         err = capsys.readouterr().err
         assert rc == 2 and words in err and len(err.strip().splitlines()) == 1, err
         assert not out.exists()
+
+
+def test_driver_bench_sees_what_the_physics_bench_sees(tmp_path):
+    """DriverBench (the production drivers over the simulator's sim:// ports, what hardware runs)
+    and SimBench measure the same squares at the same pose: their means agree within 5 combined
+    standard errors of the frame noise (false alarm 6e-7)."""
+    from gonio.bench._rig import Bench
+
+    s = default_settings()
+    s["errors"] = {"preset": "typical"}
+    sim_bench, _ = C._sim_bench(s, SEED)
+    phys = C._sim_bench(s, SEED)[0]
+    inst = sim_bench.inst.register("test-calibrate-drivers")
+    try:
+        rig = Bench(s, inst.url("zaber"), inst.url("meter"), inst.url("camera"), sleep=inst.clock.advance)
+        try:
+            drv = C.DriverBench(rig, s, tmp_path / "scratch")
+            pose = (20.0, 0.0, 0.0, 50.0)
+            got = []
+            for b in (drv, phys):
+                b.move(pose)
+                got.append(np.array([C._squares(b, pose, s, 0.004)[:2] for _ in range(6)]))
+        finally:
+            rig.close()
+    finally:
+        inst.unregister()
+    mean = [g.mean(0) for g in got]
+    se = np.sqrt(sum(g.var(0, ddof=1) / len(g) for g in got))
+    assert drv.full_scale == phys.full_scale
+    assert np.all(np.abs(mean[0] - mean[1]) < 5 * se + 1e-9), (mean, se)
+    assert not list((tmp_path / "scratch").iterdir())               # RAW scratch files removed
