@@ -103,9 +103,8 @@ def take_shot(args, settings, stage, out: Path) -> str:
             f_r = (stats["sample"]["mean"] / stats["reference"]["mean"]
                    * ReferenceModel(settings["reference"]).f_r(angles[0], angles[2]))
         write_preview(out / "preview.png", hdr.radiance, regions.sample, regions.reference)
-        ident = {"zaber": [_identify.zaber_device(chain, d) for d in sorted({a.device for a in gonio.axes.values()}
-                                                                            | {led.device})],
-                 "meter": _identify.clean(meter.identify()), "camera": _identify.clean(getattr(camera, "idn", ""))}
+        ident = {"zaber": [chain.identify(d) for d in sorted({a.device for a in gonio.axes.values()} | {led.device})],
+                 "meter": _identify.clean(meter.identify()), "camera": _identify.camera_text(camera)}
         doc = _shot_doc(stage, angles, flux, taken, used, darks, regions, stats, f_r, ident)
         atomic_write_text(out / "shot.json", json.dumps(doc, indent=1, allow_nan=False) + "\n")
         where_ = where(gonio)

@@ -128,7 +128,7 @@ def cmd_devices(args) -> int:
             roles = _identify.roles(settings)
             lines.append(f"zaber {args.port}: {len(found)} device{'s' if len(found) != 1 else ''}")
             for dev in found:
-                lines.append("  " + _identify.describe_device(_identify.zaber_device(chain, dev), roles.get(dev, "")))
+                lines.append("  " + _identify.describe_device(chain.identify(dev), roles.get(dev, "")))
             for dev in sorted(set(roles) - set(found)):
                 lines.append(f"  device {dev}: did not answer, but the settings put the {roles[dev]} there")
     if args.meter_port:
@@ -138,7 +138,7 @@ def cmd_devices(args) -> int:
         cam = _operate.open_camera(args.camera)
         try:
             s = getattr(cam, "sensor", None)
-            idn = _identify.clean(getattr(cam, "idn", type(cam).__name__))
+            idn = _identify.camera_text(cam)
             lines.append(f"camera {args.camera}: {idn}" + (f" ({s.width} x {s.height} pixels, {s.bits} bits, "
                                                            f"{s.cfa})" if s is not None else ""))
         finally:

@@ -1,8 +1,12 @@
 """gonio.bench.drivers: the bench's device layer, apart from the capture loop.
 
-One module per device kind, each device a class that opens its port when made, says what it
-is (``identify``), is read and set through typed methods, and is closed with ``close`` (or a
-``with`` block), as ophyd-async's devices and lewis's device/interface split are laid out:
+One module per device kind, laid out as ophyd-async's devices and lewis's device/interface
+split are. Every device says what it is (``identify()``: a Zaber device's ids as a dict, an
+instrument's ``*IDN?`` as text) and is read and set through typed methods (``positions() ->
+dict[str, float]``, ``move_to``, ``power() -> float``, ``set_flux(fraction)``,
+``expose(seconds, path) -> sha256``). The drivers that own a port (`ZaberChain`, `PowerMeter`,
+the cameras) open it when made and close it with ``close()`` or a ``with`` block; the stages
+and the LED are devices on the chain's port and close with it.
 
 * `serialport`: `SerialDevice`, the base of the serial drivers (``serial_for_url`` opens the
   port, so ``sim://NAME/...``, a pty and ``/dev/ttyUSB0`` are the same; one-line port errors).

@@ -362,6 +362,10 @@ class SimCamera:
         raise DeviceError(f"camera could not deliver {path.name} after {self.retries + 1} tries ({why}); "
                           "check the camera and disk, then resume the session")
 
+    def identify(self) -> str:
+        """The camera's ``*IDN?`` answer (read when the port opened)."""
+        return self.idn
+
     def close(self) -> None:
         """Close the port."""
         self._port.close()
@@ -430,6 +434,10 @@ class WatchedFolderCamera:
             self.sleep(self.poll_s)
         raise DeviceError(f"no new RAW file appeared in {self.folder} within {self.timeout_s:g} s; "
                           "check the tethering software, then resume the session")
+
+    def identify(self) -> str:
+        """What this camera is: the folder it watches (the vendor's software says no more)."""
+        return f"{type(self).__name__} {self.folder}"
 
     def close(self) -> None:
         pass
@@ -501,6 +509,10 @@ class Gphoto2Camera:
         digest = sha256_file(tmp)
         _commit(tmp, path)
         return digest
+
+    def identify(self) -> str:
+        """What this camera is: gphoto2 and its port (``gphoto2 --summary`` is not asked)."""
+        return f"{type(self).__name__} {self.port or 'auto'}"
 
     def close(self) -> None:
         pass

@@ -18,7 +18,7 @@ import json
 
 from ..errors import CommunicationError, GonioError
 
-__all__ = ["clean", "describe_device", "discover", "identify_bench", "record", "roles", "zaber_device"]
+__all__ = ["camera_text", "clean", "describe_device", "discover", "identify_bench", "record", "roles", "zaber_device"]
 
 _MAX_TEXT = 64
 _DEVICE_SETTINGS = (("deviceid", "device_id"), ("system.serial", "serial"), ("version", "firmware"),
@@ -63,6 +63,12 @@ def zaber_device(chain, device: int) -> dict:
     return out
 
 
+def camera_text(camera) -> str:
+    """A camera's ``identify()`` as clean text; its class name for a camera object without one."""
+    ident = getattr(camera, "identify", None)
+    return clean(ident()) if callable(ident) else type(camera).__name__
+
+
 def describe_device(d: dict, role: str = "") -> str:
     """One line for ``gonio devices``."""
     def v(key):
@@ -91,14 +97,13 @@ def identify_bench(bench) -> dict:
     """The identification of a `capture.Bench`'s devices (the Zaber addresses its settings name)."""
     addresses = sorted({int(v[0]) for k, v in bench.settings["axes"].items() if isinstance(v, list)}
                        | {int(bench.led.device)})
-    out = {"zaber_port": clean(bench.chain.port_url), "zaber": [zaber_device(bench.chain, d) for d in addresses]}
+    out = {"zaber_port": clean(bench.chain.port_url), "zaber": [bench.chain.identify(d) for d in addresses]}
     try:
         out["meter"] = clean(bench.meter.identify())
     except GonioError:
         out["meter"] = None
     out["meter_port"] = clean(bench.meter.port_url)
-    cam = getattr(bench.camera, "idn", None)
-    out["camera"] = clean(cam) if cam else type(bench.camera).__name__
+    out["camera"] = camera_text(bench.camera)
     return out
 
 

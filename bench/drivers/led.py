@@ -35,6 +35,10 @@ class LedSource:
         self.channel = channel
         self._flux_max: float | None = None
 
+    def identify(self) -> dict:
+        """The identification of the LED controller (`ZaberChain.identify`)."""
+        return self.chain.identify(self.device)
+
     def on(self) -> None:
         """Switch the channel on (``/D C lamp on``)."""
         self.chain.request(self.device, self.channel, "lamp on")

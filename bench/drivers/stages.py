@@ -146,6 +146,10 @@ class Goniometer:
         self._position = None
         return active
 
+    def identify(self) -> list[dict]:
+        """The identification of each stage device (`ZaberChain.identify`), by address."""
+        return [self.chain.identify(dev) for dev in self.devices]
+
     def flags(self) -> list[str]:
         """Active flags of all stage devices."""
         out = []

@@ -31,6 +31,7 @@ from typing import Callable
 import serial
 
 from ..errors import CommunicationError, FaultError, RejectedError
+from .identify import zaber_device
 from .serialport import SerialDevice
 from .zaber_protocol import FLAG_MEANINGS, REJECT_MEANINGS, Reply, format_command, parse_continuation, parse_reply
 
@@ -261,6 +262,11 @@ class ZaberChain(SerialDevice):
         return reply
 
     # -- helpers ---------------------------------------------------------------------------
+    def identify(self, device: int) -> dict:
+        """Device id, serial, firmware, build, axes and peripheral ids of one device on the chain
+        (`gonio.bench.drivers.identify.zaber_device`: what a device does not answer is None)."""
+        return zaber_device(self, device)
+
     def flags(self, device: int) -> list[str]:
         """All active warning flags of ``device`` (``/D 0 warnings``)."""
         reply = self.request(device, 0, "warnings", check=False)

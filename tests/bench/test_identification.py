@@ -41,3 +41,32 @@ def test_capture_journals_the_identification(tmp_path):
 def test_hostile_device_text_is_cleaned():
     assert _identify.clean("ab\x1b[31mc\r\n\x00d") == "ab[31mcd"
     assert len(_identify.clean("x" * 10_000)) == 64 + 3
+
+
+def test_every_driver_identifies_itself(tmp_path):
+    """The device layer's common face: each driver's ``identify()`` gives what the simulated device
+    declares (the Zaber ids of sim/_zaber_device's table, the meter's and camera's *IDN?), and a
+    camera object without ``identify`` is named by its class."""
+    import gonio.sim as gs
+    from gonio.bench._settings import default_settings
+    from gonio.bench.drivers import Goniometer, LedSource, PowerMeter, SimCamera, WatchedFolderCamera, ZaberChain
+
+    inst = gs.Instrument(seed=1).register("ident-drivers")
+    try:
+        settings = default_settings()
+        with ZaberChain(inst.url("zaber")) as chain, PowerMeter(inst.url("meter")) as meter:
+            stages, led = Goniometer(chain, settings), LedSource(chain, 2)
+            (stage,) = stages.identify()
+            assert (stage["address"], stage["device_id"], stage["serial"], stage["axes"]) == (1, "30342", "91001", 4)
+            assert led.identify() == chain.identify(2) and led.identify()["device_id"] == "30311"
+            assert meter.identify() == "gonio,SimPowerMeter,SIM00001,0.1.0"
+        cam = SimCamera(inst.url("camera"))
+        try:
+            assert cam.identify() == "gonio,SimCamera,SIM00001,0.1.0" == _identify.camera_text(cam)
+        finally:
+            cam.close()
+    finally:
+        inst.unregister()
+    folder = WatchedFolderCamera(tmp_path)
+    assert folder.identify() == f"WatchedFolderCamera {tmp_path}"
+    assert _identify.camera_text(object()) == "object"
