@@ -91,7 +91,8 @@ def _devices(root: Folder, journal) -> list[dict]:
     if not isinstance(ident, dict):
         return []
     out = []
-    for d in ident.get("zaber") or []:
+    zaber = ident.get("zaber") if isinstance(ident.get("zaber"), list) else []
+    for d in zaber[:99]:
         if not isinstance(d, dict):
             continue
         parts = [f"{label} {_text(d.get(key), 64)}" for key, label in

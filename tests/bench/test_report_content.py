@@ -246,3 +246,14 @@ def test_print_to_pdf_and_the_view_in_headless_chromium(out, tmp_path):
     assert proc.returncode == 0 and "Uncaught" not in proc.stderr, proc.stderr[-2000:]
     assert '<section id="view">' in proc.stdout              # the script ran under the CSP and showed the view
     assert re.search(r'<select id="view-incidence">\s*<option', proc.stdout)
+
+
+def test_a_damaged_journal_is_said_not_fatal(out, no_figures):
+    (out / "session").mkdir()
+    (out / "session" / "journal.sqlite").write_bytes(b"SQLite format 3\x00" + b"\xff" * 4000)
+    page = write_report(out).read_text()
+    assert "the session journal cannot be read (damaged database)" in page
+    (out / "session" / "journal.sqlite").unlink()
+    journal(out, {"zaber": "not a list of devices", "meter": ["x"], "camera": 7})
+    page = write_report(out).read_text()
+    assert "<th>Zaber device" not in page and "<th>camera</th><td>7</td>" in page
