@@ -570,7 +570,8 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
     ``sim://`` ports (the bytes a real bench gets); ``--port``/``--meter-port``/``--camera`` run
     them on hardware, with the glossy artefact mounted in the sample slot and the data-sheet
     values (``repeat_deg``, ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``,
-    ``stray_floor``) in the settings' ``[calibration]`` table.
+    ``stray_floor``) in the settings' ``[calibration]`` table. ``camera``: a URL or a camera
+    object (``session_runner._camera`` builds one from the command line's spec).
     """
     import tempfile
 
@@ -595,9 +596,7 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
         inst = physics.inst.register(f"gonio-calibrate-{id(physics):x}")
         urls, sleep = (inst.url("zaber"), inst.url("meter"), inst.url("camera")), inst.clock.advance
     else:
-        from .session_runner import _camera
-
-        specs, urls, sleep = None, (port, meter_port, _camera(camera)), time.sleep
+        specs, urls, sleep = None, (port, meter_port, camera), time.sleep
     try:
         rig = Bench(s, *urls, sleep=sleep)
         try:

@@ -103,9 +103,10 @@ def _cmd_capture(args):
 @_env
 def _cmd_calibrate(args):
     from .calibrate import calibrate_cli
+    from .session_runner import _camera
 
     return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed,
-                         port=args.port, meter_port=args.meter_port, camera=args.camera)
+                         port=args.port, meter_port=args.meter_port, camera=_camera(args.camera) if args.camera else None)
 
 
 @_env
