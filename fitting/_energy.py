@@ -48,9 +48,12 @@ def slsqp_energy(problem, x0, energy_wo, maxeval):
     margin = [0.0]  # grows by the gap between this quadrature and model.albedo, if any
 
     def cons(result, u, grad):
-        c = quad(space.from_unit(u)) + margin[0]
+        exact = quad.value_and_grad(u) if grad.size else None  # one compiled Jacobian, not P + 1 quadratures
+        c = (exact[0] if exact is not None else quad(space.from_unit(u))) + margin[0]
         result[:] = c
-        if grad.size:
+        if exact is not None:
+            grad[:] = exact[1]
+        elif grad.size:
             for j in range(u.size):
                 step = 1e-6 if u[j] + 1e-6 <= 1.0 else -1e-6
                 up = u.copy()
@@ -142,6 +145,33 @@ class _AlbedoQuadrature:
     def __call__(self, x):
         f = self.eval(self.space.to_params(x)).reshape(self.k, self.n, -1)
         return (np.einsum("knc,n->kc", f, self.weight) - 1.0).reshape(-1)
+
+    def value_and_grad(self, u):
+        """(albedo - 1, its derivative with respect to the unit-box coordinates u, (K C, P))
+        from the compiled kernel's exact derivatives; None on the numpy path or where a
+        derivative is not finite (the caller then differences)."""
+        space = self.space
+        x = space.from_unit(u)
+        out = self.eval.jacobian(space.to_params(x))
+        if out is None:
+            return None
+        f, J = out
+        c_n = f.shape[1]
+        value = (np.einsum("knc,n->kc", f.reshape(self.k, self.n, -1), self.weight) - 1.0).reshape(-1)
+        G = np.zeros((self.k, c_n, space.size))
+        dx_du = space.dx_du(x)
+        for j, e in enumerate(space.entries):
+            if e.param not in J:
+                return None
+            a = np.einsum("knc,n->kc", np.asarray(J[e.param]).reshape(self.k, self.n, -1), self.weight)
+            if e.channel >= 0:
+                G[:, e.channel, j] = a[:, e.channel] * dx_du[j]
+            else:
+                G[:, :, j] = a * dx_du[j]
+        G = G.reshape(-1, space.size)
+        if not (np.all(np.isfinite(value)) and np.all(np.isfinite(G))):
+            return None
+        return value, G
 
 
 def _status_text(status) -> str:

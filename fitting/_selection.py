@@ -25,8 +25,6 @@ __all__ = ["CANDIDATES", "Ranked", "option_candidates", "select"]
 #: Every microfacet distribution a model declares (``OPTIONS["distribution"]``) is a
 #: candidate of its own: a Beckmann conductor is not "explained" by another model.
 def _candidates(names=None):
-    import gonio.models as gm
-
     out = []
     for name in names or gm.names():
         try:

@@ -38,6 +38,9 @@ class OrenNayar(Model):
         return Structure(kernel=_jit_kernel, freeze=False, affine=Affine("reflectance", ("sigma",), kernel=_jit_affine_parts))
     OPTIONS = {}
     energy_conserving = True
+    #: not tried by ``--model auto`` (fit it by name): the rough-diffuse term is rarely worth its
+    #: second parameter on gonioreflectometer data, and ``diffuse`` is the smooth candidate
+    auto_candidate = False
     compiled_min_pairs = 512  # numpy's few operations beat the compiled call's ~50 us below this (measured)
 
     def _parameters(self):

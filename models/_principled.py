@@ -1,0 +1,187 @@
+"""Model ``principled``: Mitsuba 3's ``principled`` BSDF (the Disney principled BRDF of
+Burley 2012 as Mitsuba implements it), its opaque reflection part, term by term.
+
+Reproduced from Mitsuba 3's ``src/bsdfs/principled.cpp`` and ``principledhelpers.h``
+(read, not copied; the formulas are Burley's), with the conventions of gonio.models
+(``wi`` toward the light = Mitsuba's ``wo``; ``wo`` toward the detector = Mitsuba's
+``si.wi``). ``spec_trans`` (transmission) and ``anisotropic`` are not modelled: a
+gonioreflectometer measures an opaque, isotropic sample in reflection; both are 0 in
+:meth:`Principled.to_mitsuba`, which makes Mitsuba skip those lobes.
+
+References
+----------
+Burley, B. (2012). Physically-based shading at Disney. SIGGRAPH course notes.
+Mitsuba 3, ``principled`` plugin documentation and source (mitsuba-renderer/mitsuba3).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._base import INV_PI, Model, Parameter, register, rgb
+from ._fresnel import fresnel_dielectric
+from ._microfacet import MicrofacetDistribution, smith_g1_xyz
+from ._structure import Structure
+from .geometry import half_vector
+
+__all__ = ["Principled", "LUMINANCE", "specular_to_eta"]
+
+#: Mitsuba's ``luminance`` of a linear sRGB colour (Rec. 709 Y row)
+LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
+
+
+def specular_to_eta(specular):
+    """Mitsuba's map from ``specular`` to the index: eta = 2 / (1 - sqrt(0.08 s)) - 1."""
+    return 2.0 / (1.0 - np.sqrt(0.08 * specular)) - 1.0
+
+
+def schlick_weight(c):
+    """(1 - c)^5 clipped to [0, 1] (Schlick 1994)."""
+    m = np.clip(1.0 - c, 0.0, 1.0)
+    return (m * m) * (m * m) * m
+
+
+def _schlick(r0, cos, eta):
+    """Mitsuba's ``calc_schlick`` for a front-side ray and eta >= 1 (where the transmitted
+    cosine equals the incident one at eta = 1): r0 + (1 - r0) (1 - cos)^5."""
+    w = schlick_weight(np.abs(cos))
+    return r0 + (1.0 - r0) * w
+
+
+def _smith_ggx1(z, dot_vh, alpha):
+    """The clearcoat's Smith G1 (GGX form with a fixed alpha), Mitsuba's ``smith_ggx1``."""
+    c2 = z * z
+    t2 = (1.0 - c2) / np.where(c2 > 0, c2, 1.0)
+    g = 2.0 / (1.0 + np.sqrt(1.0 + alpha * alpha * t2))
+    g = np.where(z == 1.0, 1.0, g)
+    return np.where(dot_vh * z <= 0.0, 0.0, g)
+
+
+def _gtr1(cos_h, alpha):
+    """Burley's GTR1 (Berry) distribution of the clearcoat, normalised as Mitsuba's."""
+    a2 = alpha * alpha
+    r = (a2 - 1.0) / (math.pi * math.log(a2) * (1.0 + (a2 - 1.0) * cos_h * cos_h))
+    return np.where(r * cos_h > 1e-20, r, 0.0)
+
+
+@register
+class Principled(Model):
+    """Mitsuba 3's ``principled`` BSDF, opaque and isotropic.
+
+    Options
+    -------
+    distribution : {"ggx"}
+        The main lobe's distribution: Mitsuba's principled BSDF has GGX only (the
+        clearcoat is GTR1).
+
+    Parameters (``params`` keys; Mitsuba's names)
+    ---------------------------------------------
+    base_color : (3,)
+        Base colour (diffuse albedo, metallic F0), in [0, 1].
+    roughness : float
+        alpha = max(0.001, roughness^2) of the main GGX lobe, in [0.0317, 1].
+    metallic, spec_tint, sheen, sheen_tint, clearcoat, clearcoat_gloss, flatness : float
+        Burley's weights, in [0, 1].
+    specular : float
+        Specular level, eta = 2 / (1 - sqrt(0.08 specular)) - 1, in [0.001, 1].
+
+    Notes
+    -----
+    With h the half vector, c_d = h . wi, F_w(c) = (1 - c)^5, lum the luminance of
+    base_color and c_tint = base_color / lum, m = metallic:
+
+    * main lobe: F D G / (4 cos_i cos_o), D and G GGX (separable Smith), F =
+      (1 - m)(1 - spec_tint) F_dielectric(h . wo, eta) + m Schlick(base_color) +
+      (1 - m) spec_tint Schlick(c_tint R0(eta));
+    * clearcoat: clearcoat / 4 * Schlick(0.04) * GTR1(lerp(0.1, 0.001, gloss)) * G1(0.25)
+      G1(0.25) -- without the 1 / (4 cos_i cos_o) of a microfacet lobe, as Mitsuba writes it;
+    * diffuse: (1 - m) base_color / pi * lerp(f_d + f_retro, f_ss, flatness) with Burley's
+      f_d = (1 - F_w(cos_i)/2)(1 - F_w(cos_o)/2), Rr = 2 roughness c_d^2,
+      f_retro = Rr (F_i + F_o + F_i F_o (Rr - 1)) and the Hanrahan-Krueger-like f_ss;
+    * sheen: sheen (1 - m) F_w(c_d) lerp(1, c_tint, sheen_tint) (no 1/pi, as Mitsuba).
+
+    Not energy-conserving for every parameter (the retro-reflection and sheen terms can
+    push the albedo above 1): ``energy_conserving = False``, so a fit constrains albedo <= 1.
+    """
+
+    name = "principled"
+    OPTIONS = {"distribution": ("ggx",)}
+    energy_conserving = False
+
+    @property
+    def structure(self):
+        return Structure()  # numpy reference only: no compiled kernel, no affine parameter
+
+    def _parameters(self):
+        w = "weight in [0, 1]"
+        return (
+            Parameter("base_color", 0.5, 0.0, 1.0, "1", "base colour (diffuse albedo, metallic F0)", per_channel=True),
+            Parameter("roughness", 0.5, 0.0317, 1.0, "1", "roughness; GGX alpha = roughness^2"),
+            Parameter("metallic", 0.0, 0.0, 1.0, "1", f"metallic {w}"),
+            Parameter("specular", 0.5, 0.001, 1.0, "1", "specular level (eta = 2/(1 - sqrt(0.08 s)) - 1)"),
+            Parameter("spec_tint", 0.0, 0.0, 1.0, "1", f"tint of the specular lobe toward base_color, {w}"),
+            Parameter("sheen", 0.0, 0.0, 1.0, "1", f"sheen {w}"),
+            Parameter("sheen_tint", 0.0, 0.0, 1.0, "1", f"tint of the sheen toward base_color, {w}"),
+            Parameter("clearcoat", 0.0, 0.0, 1.0, "1", f"clear-coat lobe {w}"),
+            Parameter("clearcoat_gloss", 0.0, 0.0, 1.0, "1", "clear-coat gloss (GTR1 alpha 0.1 -> 0.001)"),
+            Parameter("flatness", 0.0, 0.0, 1.0, "1", f"fake subsurface {w}"),
+        )
+
+    def _lobe_distribution(self, p):
+        return MicrofacetDistribution("ggx", max(0.001, p["roughness"] ** 2))
+
+    def _eval_parts(self, wi, wo, p):
+        base = p["base_color"]
+        m, rough = p["metallic"], p["roughness"]
+        eta = specular_to_eta(p["specular"])
+        alpha = max(0.001, rough * rough)
+        ci, co = wi[:, 2], wo[:, 2]
+        h, valid = half_vector(wi, wo)
+        dh_o = np.einsum("ij,ij->i", wo, h)      # Mitsuba's dot(si.wi, wh)
+        dh_i = np.einsum("ij,ij->i", wi, h)      # Mitsuba's dot(wh, wo): cos_theta_d
+        ok = valid & (dh_o > 0.0) & (dh_i > 0.0) & (ci > 0.0) & (co > 0.0)
+        lum = float(LUMINANCE @ base)
+        c_tint = base / lum if lum > 0.0 else np.ones(3)
+        # main GGX lobe
+        D = MicrofacetDistribution("ggx", alpha).D(h)
+        G = smith_g1_xyz("ggx", alpha, alpha, wi[:, 0], wi[:, 1], ci, dh_i) * \
+            smith_g1_xyz("ggx", alpha, alpha, wo[:, 0], wo[:, 1], co, dh_o)
+        F_d = fresnel_dielectric(dh_o, eta)[0][:, None]
+        r0 = ((eta - 1.0) / (eta + 1.0)) ** 2
+        st = p["spec_tint"]
+        F = ((1.0 - m) * (1.0 - st) * F_d + m * _schlick(base, dh_o[:, None], eta)
+             + (1.0 - m) * st * _schlick(c_tint * r0, dh_o[:, None], eta))
+        den = np.where(ok, 4.0 * ci * co, 1.0)
+        lobe = np.where(ok, D * G / den, 0.0)[:, None] * F
+        # clear coat (GTR1, Schlick 0.04, fixed-alpha G; no 1/(4 cos cos), as Mitsuba)
+        cc = p["clearcoat"]
+        if cc > 0.0:
+            a_cc = 0.1 + p["clearcoat_gloss"] * (0.001 - 0.1)
+            Fcc = _schlick(0.04, dh_o, eta)
+            Gcc = _smith_ggx1(co, dh_o, 0.25) * _smith_ggx1(ci, dh_i, 0.25)
+            lobe = lobe + np.where(ok, 0.25 * cc * Fcc * _gtr1(h[:, 2], a_cc) * Gcc, 0.0)[:, None]
+        # diffuse, retro-reflection, fake subsurface
+        Fo, Fi = schlick_weight(ci), schlick_weight(co)
+        f_diff = (1.0 - 0.5 * Fi) * (1.0 - 0.5 * Fo)
+        Rr = 2.0 * rough * dh_i * dh_i
+        f_retro = Rr * (Fo + Fi + Fo * Fi * (Rr - 1.0))
+        shape = f_diff + f_retro
+        if p["flatness"] > 0.0:
+            fss = (1.0 + (0.5 * Rr - 1.0) * Fo) * (1.0 + (0.5 * Rr - 1.0) * Fi)
+            f_ss = 1.25 * (fss * (1.0 / np.where(ok, ci + co, 1.0) - 0.5) + 0.5)
+            shape = shape + p["flatness"] * (f_ss - shape)
+        smooth = np.where(ok, shape, 0.0)[:, None] * ((1.0 - m) * INV_PI * base)
+        if p["sheen"] > 0.0:
+            c_sheen = 1.0 + p["sheen_tint"] * (c_tint - 1.0)
+            smooth = smooth + np.where(ok, schlick_weight(np.abs(dh_i)), 0.0)[:, None] * (p["sheen"] * (1.0 - m) * c_sheen)
+        return smooth, lobe
+
+    def to_mitsuba(self, params):
+        p = self.validate(params)
+        d = {"type": "principled", "base_color": rgb(p["base_color"])}
+        for key in ("roughness", "metallic", "specular", "spec_tint", "sheen", "sheen_tint", "clearcoat",
+                    "clearcoat_gloss", "flatness"):
+            d[key] = float(p[key])
+        return d
