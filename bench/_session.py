@@ -33,7 +33,7 @@ from ._rig import Bench
 from ._settings import AXES
 from .drivers import BadDelivery, MoveError, RawFrame, decode_raw, deliver, read_verified
 from .drivers.identify import record as record_identification
-from .errors import CommunicationError, DeviceError, SessionError
+from .errors import CommunicationError, DeviceError, GonioError, SessionError
 from .plans import plan_from_dict
 
 __all__ = ["roi_masks_fast"]
@@ -170,6 +170,7 @@ class _Session:
             b.led.set_flux(float(self.settings.get("lamp", {}).get("flux", 1.0)))
             b.led.on()
             self.p_ref = self._p_ref()
+            self._take_chart(say)
 
     @contextlib.contextmanager
     def _status(self):
@@ -261,6 +262,26 @@ class _Session:
         t = next(iter(have.values()))[0]
         say(f"averaging the {len(have)} flat-field frames")
         self.gain = flat_gain((self._load(f, d, peak=False) for _, f, d in have.values()), self.darks[t])
+
+    def _take_chart(self, say=lambda text: None) -> None:
+        """One frame of the ColorChecker in the holder's chart slot, lamp on (``[capture]
+        colour_chart = true`` and a camera with a ``chart`` source): export fits the colour
+        matrix to it (bench/colour_matrix.py). The longest rung from the probe down that does
+        not saturate; journalled once per session."""
+        cam = self.bench.camera
+        if not self.settings["capture"].get("colour_chart", False) or self.journal.frames("chart"):
+            return
+        if not hasattr(cam, "chart"):
+            raise GonioError("[capture] colour_chart = true, but this camera has no chart source; "
+                             "capture the ColorChecker yourself and give it to `gonio export --colour-chart`")
+        say("colour chart: one frame of the ColorChecker")
+        for t in self.rungs[self.rungs <= self.probe][::-1]:
+            file = self._fresh("colour_chart.dng")
+            digest = cam.chart(float(t), self.folder / file)
+            frame = decode_raw(self.folder / file)
+            if float(frame.peak.max()) < self.sat * frame.full_scale or t <= self.rungs[0]:
+                self.journal.record_frame("chart:000", "chart", float(t), file, digest)
+                return                    # (a saturated try stays in raw/, reserved, unused)
 
     def _flat_exposure(self, cam) -> float:
         probe = self.folder / RAW_DIR / f"{TMP_PREFIX}flat-probe.dng"

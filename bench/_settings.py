@@ -52,7 +52,8 @@ SCHEMA: dict[str, dict[str, str]] = {
     "capture": {"exposure_min_s": "shortest exposure (s)", "exposure_max_s": "longest exposure (s)",
                 "probe_s": "first exposure at each point (s)", "saturation_fraction": "saturation threshold",
                 "noise_floor_snr": "SNR of the darkest pixel", "flat_frames": "flat-field frames",
-                "roi_margin_px": "ROI margin (pixels)"},
+                "roi_margin_px": "ROI margin (pixels)",
+                "colour_chart": "capture the ColorChecker in the holder's chart slot for the colour matrix"},
     "session": {"sample_id": "the sample's identifier (report, session.toml)",
                 "sample_description": "what the sample is (report)", "operator": "who measured (report)"},
 }

@@ -66,6 +66,7 @@ def to_dataset(session_dir, chart=None):
     with _integrity.open_journal(folder, data, doc, why, write=False) as j:
         rows = j.points()
         rgb_cam = j.first_event("rgb_cam")
+        charts = j.frames("chart")
     if not rows:
         raise SessionError(f"{folder} has no measured point yet; resume the capture first")
     n_plan = len(doc["plan"]["points"])
@@ -99,6 +100,8 @@ def to_dataset(session_dir, chart=None):
     # the per-point uncertainty budget, u_<component> and u_combined (bench/_budget.py)
     data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1]))
     data["brdf"][2]["colour_space"] = data["brdf_std"][2]["colour_space"] = "camera"
+    if chart is None and charts:            # the session's own chart frame ([capture] colour_chart)
+        chart = folder / next(iter(charts.values()))[1]
     matrix = matrix_from_chart_dng(chart) if chart is not None else _colour_matrix(folder, rgb_cam)
     if matrix is not None:
         data.update(_colour(matrix, data["brdf"][1], data["brdf_std"][1]))

@@ -323,6 +323,10 @@ class SimCamera:
         """Expose the flat-field source (uniform radiance over the frame) for ``seconds``: as `expose`."""
         return self._shoot("FLAT", seconds, path)
 
+    def chart(self, seconds: float, path: str | os.PathLike) -> str:
+        """Expose the ColorChecker in the holder's chart slot (the colour calibration): as `expose`."""
+        return self._shoot("CHART", seconds, path)
+
     def expose_deferred(self, seconds: float, path: str | os.PathLike) -> Delivery:
         """As `expose`, returning once the camera has written the file: its checksum check, fsync
         and rename are the returned `Delivery`'s ``finish()`` (a missing file is retried here)."""

@@ -117,3 +117,21 @@ def test_a_chart_capture_gives_the_matrix_and_its_uncertainty(session, tmp_path)
     assert sum(n.startswith("colour_matrix_") for n in names) == 12
     assert not any(n.startswith("colour_matrix_") for n in
                    (c.name for c in load_budget(path, load_dataset(path, colour_space="camera")).components))
+
+
+def test_capture_takes_the_chart_when_asked(tmp_path):
+    """``[capture] colour_chart = true``: the session journals one chart frame and export fits
+    the colour matrix to it (source "chart" in dataset.nc; the settings in session.toml say so)."""
+    from gonio.bench._journal import Journal, read_session
+    from gonio.bench.export import to_dataset
+
+    settings = default_settings()
+    settings["capture"].update(flat_frames=0, colour_chart=True)
+    capture_sim(tmp_path / "s", sample=SAMPLE, plan=plans.Plan("one", PLAN.angles[:2]), seed=12,
+                progress=False, settings=settings)
+    assert read_session(tmp_path / "s")["settings"]["capture"]["colour_chart"] is True
+    with Journal(tmp_path / "s" / "journal.sqlite") as j:
+        (seconds, file, _), = j.frames("chart").values()
+    assert file.endswith("colour_chart.dng") and seconds <= settings["capture"]["probe_s"]
+    matrix = json.loads(to_dataset(tmp_path / "s").attrs["colour_matrix"])
+    assert matrix["source"] == "chart" and matrix["chart_file"].endswith("colour_chart.dng")
