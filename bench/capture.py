@@ -243,6 +243,12 @@ def _check_room(folder: Path, settings: Mapping, points: int, camera, journal: J
                 hint: str) -> None:
     """Refuse (one line) unless the disk holding ``folder`` has room for the RAW files ``points``
     points and the missing calibration frames will write (`gonio.bench._measure.raw_estimate`)."""
+    chart = settings["capture"].get("colour_chart", False)
+    if not isinstance(chart, bool):
+        raise GonioError(f"[capture] colour_chart = {chart!r:.40}: it must be true or false")
+    if chart and not isinstance(camera, str) and not hasattr(camera, "chart"):
+        raise GonioError("[capture] colour_chart = true, but this camera has no chart source; capture the "
+                         "ColorChecker yourself and give it to `gonio export --colour-chart`")
     est = raw_estimate(settings, points, has_flat=_has_flat(camera), journal=journal)
     if est.frames:
         check_free_space(folder, est.bytes, est.describe(what), hint)

@@ -135,3 +135,13 @@ def test_capture_takes_the_chart_when_asked(tmp_path):
     assert file.endswith("colour_chart.dng") and seconds <= settings["capture"]["probe_s"]
     matrix = json.loads(to_dataset(tmp_path / "s").attrs["colour_matrix"])
     assert matrix["source"] == "chart" and matrix["chart_file"].endswith("colour_chart.dng")
+
+
+def test_a_bad_colour_chart_setting_is_refused_before_anything_is_written(tmp_path):
+    from gonio.bench.errors import GonioError
+
+    settings = default_settings()
+    settings["capture"].update(flat_frames=0, colour_chart="yes")
+    with pytest.raises(GonioError, match="colour_chart"):
+        capture_sim(tmp_path / "s", sample=SAMPLE, plan=PLAN, seed=12, progress=False, settings=settings)
+    assert not (tmp_path / "s" / "session.toml").exists()
