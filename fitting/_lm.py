@@ -76,7 +76,15 @@ def _inside(u, step):
     return np.clip(t, 0.0, 1.0)
 
 
-def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget):
+def _value(fun, cost_fn, u):
+    """(residuals or None, cost) at u: from ``cost_fn`` alone where the caller gives one."""
+    if cost_fn is not None:
+        return None, float(cost_fn(u))
+    r = fun(u)
+    return r, float(r @ r)
+
+
+def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget, cost_fn=None):
     """Raise the damping until a step inside the box lowers the cost.
 
     Returns ``(outcome, u_new, r_new, c_new, lam)`` with outcome ``"accepted"``,
@@ -104,8 +112,7 @@ def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget):
             if pred <= ftol * cost + atol:
                 return "predicted", u_new, r_new, c_new, lam
         try:
-            r_new = fun(u_new)
-            c_new = float(r_new @ r_new)
+            r_new, c_new = _value(fun, cost_fn, u_new)
         except FloatingPointError:
             c_new = np.inf
         if c_new < cost:
@@ -118,7 +125,7 @@ def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget):
 
 def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, atol: float = 0.0,
                         xtol: float = 1e-10, h: float = 1e-6, budget=None, jac=None,
-                        abandon=None, normal=None) -> LMResult:
+                        abandon=None, normal=None, cost=None) -> LMResult:
     """Minimise ``sum(fun(u)**2)`` over the unit box from ``u0``.
 
     Parameters
@@ -141,6 +148,10 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
         ``normal(u, r) -> (J^T r, J^T J)``, or None where it has no answer (then ``jac``):
         the step's normal equations without the M x P Jacobian (reduced in a compiled
         kernel: memory independent of the number of residuals).
+    cost : callable, optional
+        ``cost(u) -> sum(fun(u)**2)`` without the residual vector (with ``normal``: then no
+        step needs the residuals, unless ``normal`` has no answer); may raise
+        FloatingPointError. The result's ``r`` is then None.
 
     Notes
     -----
@@ -149,8 +160,8 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
     of the last, useless step.
     """
     u = np.clip(np.asarray(u0, dtype=np.float64), 0.0, 1.0)
-    r = fun(u)
-    cost = float(r @ r)
+    cost_fn = cost if normal is not None else None
+    r, cost = _value(fun, cost_fn, u)
     lam = 1e-4
     message, converged = "max_iter reached", False
     it = 0
@@ -163,6 +174,8 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
         if gA is not None:
             g, A = gA
         else:
+            if r is None:
+                r = fun(u)
             J = jac(u, r) if jac is not None else None
             if J is None:
                 J = forward_jacobian(fun, u, r, h)
@@ -173,7 +186,7 @@ def levenberg_marquardt(fun, u0, *, max_iter: int = 60, ftol: float = 1e-10, ato
             message, converged = "gradient vanishes", True
             break
         outcome, u_new, r_new, c_new, lam = _damped_step(fun, u, r, cost, J, A[np.ix_(free, free)], g[free], free,
-                                                         lam, ftol, atol, budget)
+                                                         lam, ftol, atol, budget, cost_fn)
         if outcome == "predicted":
             return LMResult(u=u, r=r, cost=cost, converged=True,
                             message="predicted decrease below tolerance", n_iter=it)

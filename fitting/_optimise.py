@@ -15,7 +15,9 @@ Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.speed`):
   nonlinear ones; the optimiser only sees the shared nonlinear parameters (roughplastic:
   alpha and eta, 2 instead of 5). This applies to the losses whose residual is affine in
   f_r (``chi2``, ``cosine``); ``robust`` and ``log`` fit all parameters jointly.
-* **Global stage.** The defaults plus ``n_starts`` stratified (Latin hypercube, caller's rng)
+* **Global stage.** (The general problem first refines the defaults alone and stops there when
+  that chi2 fit already matches the data to their noise, :meth:`GeneralFit.acceptable`.)
+  The defaults plus ``n_starts`` stratified (Latin hypercube, caller's rng)
   points of the nonlinear parameters' unit box, scored with the linear parameters set from
   the data, on at most 3000 data rows; the best ``n_local`` starts that lie in distinct
   basins (unit-box distance >= 0.15) are refined.
@@ -91,10 +93,21 @@ def refine_starts(problem, rng, *, n_starts, n_local, maxeval, t0):
     The best starts in distinct basins are refined in turn, each later one raced against the
     best refined so far.
     """
+    best = skip = None
+    if getattr(problem, "default_first", False) and n_starts != 0:
+        # the default start first: where its optimum already fits the data to the noise
+        # (chi2 within 3 sigma of its expectation) no other basin can fit significantly
+        # better, and the global stage is skipped
+        skip = problem.default_start()
+        n0 = problem.n_evals
+        best = problem.refine(skip, lambda: problem.n_evals - n0 < maxeval, lambda it, cost: False)
+        if problem.acceptable(best):
+            return problem.result(best, t0)
     starts, scores = problem.starts(n_starts, rng)
     chosen = choose_starts(starts, scores, n_local, START_RATIO, BASIN_DISTANCE)
-    best = None
     for k in chosen:
+        if skip is not None and np.array_equal(starts[k], skip):
+            continue  # refined already
         n0 = problem.n_evals
 
         def budget(n0=n0):
@@ -131,6 +144,30 @@ class GeneralFit:
     def n_evals(self):
         return self.problem.n_evals
 
+    @property
+    def default_first(self):
+        """Refine the defaults before the global stage (:func:`refine_starts`) where a local run
+        is cheap: the chi2 loss on the compiled kernel's normal equations. (Elsewhere the
+        loop stays as it was: the default start then also races the later ones.)"""
+        return self.loss == "chi2" and self.problem.normal_available and not self.problem.varpro
+
+    def default_start(self):
+        """The declared defaults (affine parameters solved), in the searched coordinates."""
+        return self.u_default[self.free].copy()
+
+    def acceptable(self, res):
+        """True when a refined chi2 fit (``refine``'s result) matches the data to their noise:
+        converged, and sum w r^2 <= E + 3 sd with E = sum w - P and sd = sqrt(2 sum w^2) over
+        the used values (w the relative solid-angle weights, 1 without: then the chi2_dof
+        distribution's mean and sd). A fit this good needs no global search: another basin
+        could lower chi2 only by what the noise allows. Only for the chi2 loss (a measured
+        sigma); never for the others, whose scale is unknown."""
+        x, cost, converged, _ = res
+        if self.loss != "chi2" or x is None or not converged or not np.isfinite(cost):
+            return False
+        w = np.broadcast_to(_loss.value_weight(self.meas) ** 2, self.meas.brdf.shape)[self.meas.use]
+        return bool(cost <= float(np.sum(w)) - self.space.size + 3.0 * np.sqrt(2.0 * float(np.sum(w * w))))
+
     def starts(self, n_starts, rng):
         """Stratified starts over the nonlinear parameters (or all of them), scored on at most
         :data:`SCORE_ROWS` rows."""
@@ -157,7 +194,8 @@ class GeneralFit:
                 u0 = self.u_default.copy()
                 u0[self.free] = start
                 lm = levenberg_marquardt(problem.lm_residuals_u, u0, atol=atol, budget=budget, abandon=abandon,
-                                         jac=problem.lm_jacobian_u, normal=problem.lm_normal_u)
+                                         jac=problem.lm_jacobian_u, normal=problem.lm_normal_u,
+                                         cost=problem.lm_cost_u if problem.normal_available else None)
                 x = space.from_unit(lm.u)
             return (x, _loss.objective(loss, problem.residuals_x(x)), lm.converged, lm.message)
         except FloatingPointError as exc:

@@ -45,7 +45,7 @@ class Evaluator:
         self.n_evals += 1
         if self.fast:
             return fast.eval_resident(self.model, self._resident(), params)
-        return np.asarray(self.model.eval(self.wi, self.wo, params), dtype=np.float64)
+        return np.asarray(self.model.eval_reference(self.wi, self.wo, params), dtype=np.float64)
 
     def normal(self, params, y, w):
         """(cost, g, A, entries) of :func:`gonio.models.fast.normal_equations` on the resident

@@ -50,7 +50,7 @@ from ._jit import Directions, JitContext, _dr
 from ._jit import _fresnel_conductor  # noqa: F401  (tests check its derivatives as fast._fresnel_conductor)
 
 __all__ = ["available", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad",
-           "normal_equations",
+           "normal_equations", "weighted_sse",
            "affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
 
 _PROBE = (
@@ -563,3 +563,45 @@ def normal_equations(model, dirs, params, y, w):
                 A[i, j] = A[j, i] = vals[k]
                 k += 1
     return vals[0], g, A, ent
+
+
+def _sse_sum(model, wi, wo, P, y, w):
+    """sum w (f - y)^2 over pairs and channels, reduced in the kernel (one float64 target)."""
+    import drjit as dr
+
+    _, F64, _, U = _dr()
+    f = _kernel(model, wi, wo, P)
+    t = sum(wc * (fc - yc) * (fc - yc) for fc, yc, wc in zip(f, y, w))
+    target = dr.zeros(F64, 1)
+    dr.scatter_reduce(dr.ReduceOp.Add, target, F64(t), dr.zeros(U, 1), mode=dr.ReduceMode.Expand)
+    return target
+
+
+@lru_cache(maxsize=64)
+def _frozen_sse_for(name, options):
+    """:func:`_sse_sum` for one model configuration under ``dr.freeze``."""
+    import drjit as dr
+
+    from . import get
+
+    model = get(name, **dict(options))
+    return dr.freeze(lambda wi, wo, P, y, w: _sse_sum(model, wi, wo, P, y, w))
+
+
+def weighted_sse(model, dirs, params, y, w):
+    """sum w (f_r - y)^2 over pairs and channels in one kernel that stores nothing per pair
+    (the cost of :func:`normal_equations` alone: a Levenberg-Marquardt trial step's). NaN
+    where f_r is not finite somewhere with w > 0 (the caller raises)."""
+    import drjit as dr
+
+    p = model.validate(params)
+    y = y if isinstance(y, list) else dirs.channels(y, "y")
+    w = w if isinstance(w, list) else dirs.channels(w, "w")
+    if dirs.n == 0:
+        return 0.0
+    P, _ = _param_vars(model, p, dirs.F, grad=False)
+    run = _frozen_sse_for(model.name, tuple(sorted(model.options.items())))
+    with _FREEZE_LOCK, dr.suspend_grad():
+        out = run(dirs.wi, dirs.wo, P, y, w)
+        dr.eval(out)
+    return float(np.asarray(out)[0])

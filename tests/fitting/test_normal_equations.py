@@ -74,3 +74,30 @@ def test_task_chunks_cover_every_dataset_once_in_order():
         assert [i for a, b in chunks for i in range(a, b)] == list(range(n))
         assert len(chunks) == (n if threads == 0 else min(n, 4 * threads))
     assert task_chunks(0, 2) == []
+
+
+def test_default_start_is_accepted_only_when_it_fits_to_the_noise(monkeypatch):
+    """The general problem skips its global stage when the fit from the defaults has
+    chi2 <= E + 3 sd (E = dof for unit weights, sd = sqrt(2 dof)); the optimum is then the one
+    the full multi-start search finds; a chi2 beyond that bound, another loss or an
+    unconverged run is never accepted."""
+    from gonio.fitting._optimise import GeneralFit
+
+    model = gm.get("roughconductor", distribution="ggx")
+    truth = {"eta": np.array([0.2, 0.9, 1.1]), "k": np.array([3.0, 2.5, 2.0]), "alpha": 0.2}
+    meas = simulate(model, truth, np.random.default_rng(6), n=600)
+    space = ParameterSpace(model, 3)
+    gen = GeneralFit(meas, model, space, "chi2", None, False, 2000)
+    dof = meas.n_used - space.size
+    bound = dof + 3.0 * np.sqrt(2.0 * meas.n_used)
+    x = space.default()
+    assert gen.acceptable((x, 0.99 * bound, True, ""))
+    assert not gen.acceptable((x, 1.01 * bound, True, ""))
+    assert not gen.acceptable((x, dof, False, "maxeval reached"))
+    assert not GeneralFit(meas, model, space, "cosine", None, False, 2000).acceptable((x, 0.0, True, ""))
+    quick = fit(meas, model, rng=np.random.default_rng(0))
+    assert quick.chi2 <= bound
+    monkeypatch.setattr(GeneralFit, "acceptable", lambda self, res: False)  # the full global stage
+    full = fit(meas, model, rng=np.random.default_rng(0))
+    assert full.n_evals > quick.n_evals
+    np.testing.assert_allclose(quick.x, full.x, atol=1e-4 * full.std.max())
