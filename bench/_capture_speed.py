@@ -45,7 +45,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import gonio.sim
+
+from ._settings import default_settings, merge_settings
+from .capture import capture
 from .errors import GonioError
+from .plans import Plan, load_plan
 
 __all__ = ["run", "run_cli", "PointTimes"]
 
@@ -236,12 +241,6 @@ class _Meter:
 
 
 def _one(width: int, height: int, n_points: int, seed: int, folder: Path) -> tuple[list[PointTimes], float]:
-    import gonio.sim
-
-    from ._settings import default_settings, merge_settings
-    from .capture import capture
-    from .plans import Plan, load_plan
-
     base = default_settings()
     px = float(base["camera"]["pixel_size"]) * base["camera"]["width"] / width
     settings = merge_settings(base, {

@@ -67,7 +67,7 @@ def create_exclusive(path: str | os.PathLike) -> bool:
     rename then replaces the empty placeholder), so no existing RAW file is ever overwritten.
     """
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)   # the umask decides the mode
     except FileExistsError:
         return False
     os.close(fd)
@@ -75,31 +75,11 @@ def create_exclusive(path: str | os.PathLike) -> bool:
 
 
 def write_new_text(path: str | os.PathLike, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary name, refusing to replace an existing file.
-
-    The final step is a hard link, which (unlike a rename) fails if ``path`` exists:
-    `FileExistsError` then, and nothing is changed. On a file system without hard links the
-    caller's lock must exclude other writers: the name is checked, then the file renamed.
-    """
-    path = Path(path)
-    tmp = tmp_name(path)
-    with open(tmp, "wb") as fh:
+    """Write ``text`` to ``path`` atomically, refusing to replace an existing file
+    (:func:`gonio.models.atomic.atomic_open` with ``replace=False``: `FileExistsError`, and
+    nothing is changed, if ``path`` exists)."""
+    with atomic.atomic_open(path, "wb", replace=False) as fh:
         fh.write(text.encode("utf-8"))
-        fh.flush()
-        os.fsync(fh.fileno())
-    try:
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise
-        except OSError:                      # no hard links here (FAT, some network shares)
-            if os.path.lexists(path):
-                raise FileExistsError(str(path)) from None
-            os.replace(tmp, path)
-    finally:
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
-    fsync_dir(path.parent)
 
 
 def remove_orphans(folder: str | os.PathLike) -> list[Path]:

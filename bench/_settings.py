@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import json
 import math
 import tomllib
 from pathlib import Path
@@ -195,8 +196,6 @@ def validate_settings(s: dict[str, Any], where: str = "instrument settings") -> 
 
 def show_settings(path=None, options=None) -> list[str]:
     """The effective settings as TOML-like lines, each value with where it came from."""
-    import json
-
     settings, source = effective_settings(path, options)
     lines = []
     for section, table in settings.items():
@@ -216,8 +215,6 @@ def show_settings(path=None, options=None) -> list[str]:
 def _preset_lines(errors, source) -> list[str]:
     """The simulator's error terms an ``[errors]`` preset expands to, each marked ``preset NAME``
     or, where the file overrides it, the file's."""
-    import json
-
     if errors is None:
         return []
     try:

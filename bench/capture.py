@@ -54,8 +54,10 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from gonio.models.atomic import is_temporary
+
 from . import _integrity
-from ._files import TMP_PREFIX, remove_orphans
+from ._files import remove_orphans
 from ._journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock,
                        read_session, session_text, versions, write_session)
 from ._measure import ReferenceModel, check_sensor, raw_estimate
@@ -296,7 +298,7 @@ def _leftover(p: Path) -> bool:
     """What a capture stopped before its session.toml existed may leave (an empty folder otherwise)."""
     if p.is_dir():
         return p.name == RAW_DIR and not any(p.iterdir())
-    return p.name.startswith(TMP_PREFIX) or p.name == LOCK_FILE
+    return is_temporary(p.name) or p.name == LOCK_FILE       # the one rule for a temporary
 
 
 def _check_new_folder(folder: Path) -> None:

@@ -8,7 +8,12 @@ left behind (every file is written to a temporary name and renamed).
 from __future__ import annotations
 
 import argparse
+import functools
+import json
+import math
+import signal
 import sys
+from importlib import metadata
 from pathlib import Path
 
 from .errors import GonioError
@@ -25,8 +30,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _version() -> str:
-    from importlib import metadata
-
     try:
         return metadata.version("gonio")
     except metadata.PackageNotFoundError:
@@ -46,8 +49,6 @@ def _seed(text: str) -> int:
 
 def _env(func):
     """Environment errors (disk full, read-only, binary garbage) inside a command: one line, exit 2."""
-    import functools
-
     @functools.wraps(func)
     def run(args):
         from ._preflight import environment_errors
@@ -125,8 +126,6 @@ def _cmd_export(args):
 
 def _export_counts(path):
     """(points in the dataset, points planned, complete) from its attributes; None where not recorded."""
-    import json
-
     import xarray as xr
 
     try:
@@ -204,8 +203,6 @@ def _add_session_options(parser) -> None:
 
 def _check_clock(spec: str) -> None:
     """``--clock``: instant, realtime/real, or a finite time scale factor > 0."""
-    import math
-
     if str(spec).strip().lower() in ("instant", "realtime", "real"):
         return
     try:
@@ -223,7 +220,6 @@ def _cmd_sim_serve(args):
 
     _check_clock(args.clock)
     # SIGTERM and SIGHUP end the server like Ctrl-C: ptys closed, its /tmp/gonio-sim-* folder removed
-    import signal
 
     def _stop(signum, frame):
         raise KeyboardInterrupt

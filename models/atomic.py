@@ -203,9 +203,29 @@ def atomic_path(path, keep_suffix: bool = False):
                 os.unlink(tmp)
 
 
+def _link_new(tmp: str, path: Path) -> None:
+    """Give the finished ``tmp`` the name ``path`` only if nothing has that name: a hard link,
+    which (unlike a rename) fails if ``path`` exists (`FileExistsError`). On a file system
+    without hard links the name is checked, then the file renamed (the caller's lock must
+    exclude other writers there)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise
+    except OSError:                      # no hard links here (FAT, some network shares)
+        if os.path.lexists(path):
+            raise FileExistsError(str(path)) from None
+        os.replace(tmp, path)
+        return
+    os.unlink(tmp)
+
+
 @contextlib.contextmanager
-def atomic_open(path, mode: str = "w", **kwargs):
-    """``with atomic_open(path, "wb") as fh: ...`` writes ``path`` all or nothing."""
+def atomic_open(path, mode: str = "w", *, replace: bool = True, **kwargs):
+    """``with atomic_open(path, "wb") as fh: ...`` writes ``path`` all or nothing.
+
+    ``replace=False`` never replaces an existing file: `FileExistsError` at the end of the
+    block if ``path`` exists then, and nothing is changed (a session's write-once files)."""
     path = Path(path)
     tmp = None
     try:
@@ -214,7 +234,10 @@ def atomic_open(path, mode: str = "w", **kwargs):
             yield fh
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        if replace:
+            os.replace(tmp, path)
+        else:
+            _link_new(tmp, path)
         tmp = None
         _fsync_dir(path.parent)
     finally:

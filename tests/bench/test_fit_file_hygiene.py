@@ -145,3 +145,26 @@ def test_temporaries_of_killed_writers_are_removed_by_the_next_write(tmp_path):
         sleeper.kill()
         sleeper.wait()
     assert strict(target.read_text()) == {"a": 1}
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o002, 0o664)])
+def test_write_once_files_are_atomic_with_the_umask_mode(tmp_path, umask, mode):
+    """session.toml's writer (bench/_files.write_new_text) is the one atomic writer with
+    ``replace=False``: the umask's mode, the one temporary scheme (none left behind), and a
+    second write refused with the first file kept; a RAW placeholder gets the umask's mode too."""
+    from gonio.bench._files import create_exclusive, write_new_text
+    from gonio.models.atomic import is_temporary
+
+    old = os.umask(umask)
+    try:
+        write_new_text(tmp_path / "session.toml", "first")
+        with pytest.raises(FileExistsError):
+            write_new_text(tmp_path / "session.toml", "second")
+        assert create_exclusive(tmp_path / "p.dng") and not create_exclusive(tmp_path / "p.dng")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "session.toml").read_text() == "first"
+    assert (tmp_path / "session.toml").stat().st_mode & 0o777 == mode
+    assert (tmp_path / "p.dng").stat().st_mode & 0o777 == mode
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.dng", "session.toml"]
+    assert not any(is_temporary(p.name) for p in tmp_path.iterdir())
