@@ -148,7 +148,7 @@ class ErrorModel:
             out[name] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
         return out
 
-    def draw(self, seed: int, rho_rel_std: float = 0.0) -> "ErrorState":
+    def draw(self, seed: int, rho_rel_std: float = 0.0) -> ErrorState:
         """The hidden truth of one instrument: ``default_rng([seed, 0xE770])``, fixed draw order."""
         rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0xE770])
         z = rng.standard_normal(4) * np.asarray(self.stages.zero_deg, float)

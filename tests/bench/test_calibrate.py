@@ -10,16 +10,16 @@ Outcomes depend on the seeded noise, not on float summation order (|z| here are 
 """
 
 import math
-import numpy as np
-import pytest
-from scipy.stats import norm
 
 import gonio.sim as gs
+import numpy as np
+import pytest
 from gonio.bench import _alignment as al
 from gonio.bench import calibrate as C
 from gonio.bench._settings import default_settings, validate_settings
 from gonio.bench.cli import main
 from gonio.sim._errors import spectralon_factor
+from scipy.stats import norm
 
 SEED = 3
 
@@ -151,7 +151,6 @@ def test_a_calibrated_capture_exports_the_calibrated_angles(run, tmp_path):
     calibrated angles (calibrated_angles of the journalled stage angles), the nominal ones, their
     u, and the aperture attributes fitting's angular response reads."""
     import xarray as xr
-
     from gonio.bench import session_runner
     from gonio.bench.export import export
     from gonio.bench.plans import Plan

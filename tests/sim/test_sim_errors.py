@@ -2,10 +2,9 @@
 
 import math
 
+import gonio.sim as gs
 import numpy as np
 import pytest
-
-import gonio.sim as gs
 from gonio.sim._errors import PRESETS, disk_rule, error_model, spectralon_factor
 
 GLOSSY = {"model": "roughconductor", "params": {"alpha": 0.1}}
