@@ -30,6 +30,12 @@ def _hemisphere(rng, n):
 
 
 def _random_params(model, rng):
+    """Random parameters in the box; clearcoat_gloss <= 0.5 (GTR1 alpha >= 0.05): Mitsuba's
+    float32 GTR1 denominator 1 + (alpha^2 - 1) cos^2 theta_h cancels at the pole to
+    ~6e-8 / alpha^2 relative (6 % at gloss 1, alpha 0.001), which its own direction-ulp
+    sensitivity does not show (cos theta_h is flat there); measured on 20 x 1e5 pairs with
+    gloss up to 1: 2.2e-4 at gloss 0.76, every pair above 1e-5 within 0.3 deg of the mirror
+    direction. Our float64 formula has no such cancellation."""
     p = {}
     for par in model.parameters:
         lo, hi = par.lower, par.upper
@@ -37,6 +43,8 @@ def _random_params(model, rng):
             v = np.exp(rng.uniform(np.log(max(lo, 1e-3)), np.log(hi), 3 if par.per_channel else None))
         else:
             v = rng.uniform(lo, hi, 3 if par.per_channel else None)
+        if par.name == "clearcoat_gloss":
+            v = 0.5 * v
         p[par.name] = np.float32(v).astype(np.float64) if par.per_channel else float(np.float32(v))
     return model.validate(p)
 

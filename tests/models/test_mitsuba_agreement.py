@@ -151,7 +151,6 @@ CONFIGS = [
     ("roughconductor", {"distribution": "ggx", "anisotropic": True}, 1e-5),
     ("cooktorrance", {}, 1e-5),  # registered Python BSDF (Dr.Jit formula)
     ("orennayar", {}, 1e-5),  # registered Python BSDF
-    ("principled", {}, 1e-5),  # Mitsuba's principled, opaque part (issue 16)
     ("roughplastic2", {"distribution": "beckmann"}, 1e-3),  # blendbsdf of two roughplastics
     ("roughplastic2", {"distribution": "ggx"}, 1e-3),
 ]
