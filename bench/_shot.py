@@ -18,8 +18,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from gonio.models.atomic import atomic_open
+
 from . import _markers, kinematics
-from ._files import atomic_write_text, commit_file, create_exclusive, tmp_name
+from ._files import atomic_write_text, create_exclusive
 from ._hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
 from ._measure import ReferenceModel, check_sensor, region_stats
 from ._operate import move, open_camera, require_homed, where
@@ -45,7 +47,7 @@ def _expose(camera, out: Path, name: str, seconds: float):
 
 def write_preview(path: Path, radiance: np.ndarray, sample: np.ndarray, reference: np.ndarray) -> None:
     """The HDR radiance (3, h, w) as an 8-bit sRGB PNG, the reference's 99th percentile at 0.9,
-    the regions' outlines drawn (sample green, reference blue); written through a temporary name."""
+    the regions' outlines drawn (sample green, reference blue); written atomically."""
     rad = np.nan_to_num(np.moveaxis(np.asarray(radiance, float), 0, -1), nan=0.0, posinf=0.0, neginf=0.0)
     ref = rad[reference] if reference.any() else rad.reshape(-1, 3)
     scale = float(np.percentile(ref, 99)) if ref.size else 0.0
@@ -60,9 +62,8 @@ def write_preview(path: Path, radiance: np.ndarray, sample: np.ndarray, referenc
         inner[:, 1:] &= m[:, :-1]
         inner[:, :-1] &= m[:, 1:]
         img[m & ~inner] = colour
-    tmp = tmp_name(path)
-    Image.fromarray(img).save(tmp, format="PNG")
-    commit_file(tmp, path)
+    with atomic_open(path, "wb") as fh:              # the one atomic writer
+        Image.fromarray(img).save(fh, format="PNG")
 
 
 def take_shot(args, settings, stage, out: Path) -> str:
