@@ -262,6 +262,20 @@ def budget_line(doc) -> str:
     return ("largest term of u_c^2: " + ", ".join(parts)) if parts else ""
 
 
+def print_selection(doc, console=None) -> None:
+    """The BIC ranking of a fit document as a table (80 columns: bench/_console.print_table)."""
+    from rich.console import Console
+
+    sel = doc["selection"]
+    loss = sel[0].get("loss", "chi2")
+    print_table(console or Console(), [("model and options", "left"), ("k", "right"), (f"-2 ln L ({loss})", "right"),
+                                       ("delta BIC", "right"), ("", "left")],
+                [[f"{r['model']} {json.dumps(r['options'])}" if r["options"] else r["model"], str(r["k"]),
+                  f"{r.get('neg2_loglik', r['chi2']):.4g}",
+                  f"{r['delta_bic']:.2f}" if abs(r["delta_bic"]) < 1e4 else f"{r['delta_bic']:.4g}",
+                  "*" if r["chosen"] else ""] for r in sel], title="model selection (BIC)", caption="* chosen")
+
+
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb"):
     from gonio.fitting import write_json_atomic
 
@@ -288,10 +302,7 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
         print(f"distribution: {opts['distribution']} (chosen by BIC over {others}; "
               f"--option distribution=NAME fixes it)")
     if doc.get("selection"):
-        for row in doc["selection"]:
-            print(f"  {'*' if row['chosen'] else ' '} {row['model']:<15} {json.dumps(row['options']):<28} "
-                  f"k={row['k']:<2} -2lnL[{row.get('loss', 'chi2')}]={row.get('neg2_loglik', row['chi2']):<12.4g} "
-                  f"dBIC={row['delta_bic']:.2f}")
+        print_selection(doc)
     print(f"wrote {out}")
 
 

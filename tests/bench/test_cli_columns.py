@@ -9,6 +9,7 @@ inputs before it writes.
 from __future__ import annotations
 
 import io
+import re
 import json
 
 import numpy as np
@@ -176,3 +177,18 @@ def test_capture_says_what_it_does_before_the_first_point(tmp_path, capsys):
                          "capture: homing the stages (they lost their reference)"], err
     assert "capture: dark frames, lamp off" in steps and "capture: flat-field frames" in steps
     assert steps[-1] == "capture: lamp on, reading the source monitor"
+
+
+def test_model_selection_table_fits_80_columns():
+    from gonio.bench.fit_runner import print_selection
+
+    models = [("roughplastic", {"distribution": "ggx"}, 5, 72.21), ("roughplastic2", {"distribution": "beckmann"}, 7, 5798.0),
+              ("cooktorrance", {}, 10, 2.384e5), ("roughconductor", {"distribution": "beckmann"}, 7, 6.977e6)]
+    doc = {"selection": [{"model": m, "options": o, "k": k, "chi2": c, "neg2_loglik": c, "loss": "chi2",
+                          "delta_bic": c - 72.21 + 4.0 * (k - 5), "chosen": m == "roughplastic"} for m, o, k, c in models]}
+    console = _screen()
+    print_selection(doc, console)
+    table = console.export_text()
+    assert "…" not in table and "(continued)" not in table and max(map(len, table.splitlines())) <= 80, table
+    assert 'roughconductor {"distribution": "beckmann"}' in table and "6.977e+06" in table
+    assert re.search(r'roughplastic \{"distribution": "ggx"\}.*\*\s*$', table, re.M), table
