@@ -31,8 +31,12 @@ import dataclasses
 
 import numpy as np
 
+from gonio.models.geometry import angles as _angles_of, directions as _directions
+
 from . import _loss
 from ._data import _SRGB_TO_XYZ, colour_transform
+from ._problem import Problem
+from ._result import loss_jacobian
 
 __all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "propagate", "gls_covariance", "K_EXPANDED"]
 
@@ -208,9 +212,6 @@ def _in_colour_space(comp: BudgetComponent, s, path) -> list:
 
 def _sensitivity(result, meas):
     """G = -(J^T J)^+ J^T diag(dr/dy) restricted to the used values: (P, M), and the mask."""
-    from ._problem import Problem
-    from ._result import loss_jacobian
-
     loss = result.loss if result.loss in ("chi2", "robust", "cosine", "log") else "chi2"
     problem = Problem(meas, result.model, result.space, loss)
     J, _ = loss_jacobian(problem, result.x, loss)
@@ -222,10 +223,8 @@ def _sensitivity(result, meas):
 def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
     """d f_r / d (theta_i, phi_i, theta_o, phi_o) (N, C, 4), sr^-1 per degree, by central
     differences of the model at ``params``."""
-    from gonio.models.geometry import angles, directions
-
-    ti, pi_ = angles(wi)
-    to, po = angles(wo)
+    ti, pi_ = _angles_of(wi)
+    to, po = _angles_of(wo)
     base = np.stack([ti, pi_, to, po], axis=-1)
     h = np.radians(h_deg)
     out = []
@@ -233,8 +232,8 @@ def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
         plus, minus = base.copy(), base.copy()
         plus[:, a] += h
         minus[:, a] -= h
-        fp = model.eval(directions(plus[:, 0], plus[:, 1]), directions(plus[:, 2], plus[:, 3]), params)
-        fm = model.eval(directions(minus[:, 0], minus[:, 1]), directions(minus[:, 2], minus[:, 3]), params)
+        fp = model.eval(_directions(plus[:, 0], plus[:, 1]), _directions(plus[:, 2], plus[:, 3]), params)
+        fm = model.eval(_directions(minus[:, 0], minus[:, 1]), _directions(minus[:, 2], minus[:, 3]), params)
         out.append((fp - fm) / (2 * h_deg))
     return np.stack(out, axis=-1)
 
