@@ -361,18 +361,35 @@ class _Session:
         frame inside ``box`` (else decoded later, by the point's reduction)."""
         self.bench.checkpoint()
         file = self._fresh(f"p{idx:05d}_{t * 1e6:010.0f}us.dng")
-        if decode:                               # checked and committed now: decoded now
-            digest = self.bench.camera.expose(t, self.folder / file)
-        else:                                    # checked and committed by the point's reduction
-            delivery = deliver(self.bench.camera, t, self.folder / file)
-            self._deliveries[file] = delivery
-            digest = delivery.digest
+        frame = None
+        for _ in range(int(getattr(self.bench.camera, "retries", 2)) + 1):
+            delivery = deliver(self.bench.camera, t, self.folder / file)   # checked and committed by
+            self._deliveries[file] = delivery                             # the point's reduction
+            if not decode:
+                break
+            try:                                 # a probe: decoded now, from the bytes to be checked
+                frame = decode_raw(self.folder / file, window=box, data=delivery.read())
+                break
+            except (GonioError, BadDelivery):    # undecodable: a spoilt file is taken again at once
+                if delivery.tmp is None:
+                    raise
+                try:
+                    delivery.finish()
+                except BadDelivery:
+                    self._deliveries.pop(file)
+                    if hasattr(self.bench.camera, "retries_used"):
+                        self.bench.camera.retries_used += 1
+                    continue
+                raise
+        else:
+            raise DeviceError(f"camera could not deliver {file} (spoilt every time); check the camera and "
+                              "disk, then resume the session")
         self.bench.checkpoint()
         p = self._power()
-        d = {"seconds": t, "file": file, "sha256": digest, "power": p}
+        d = {"seconds": t, "file": file, "sha256": delivery.digest, "power": p}
         if not decode:
             return None, d
-        return Exposure(t, p, decode_raw(self.folder / file, window=box), self._dark(t, box)), d
+        return Exposure(t, p, frame, self._dark(t, box)), d
 
     def _regions_from_markers(self, idx: int, stage) -> tuple[tuple, Exposure, dict, dict]:
         """The first probe of a point on a holder with markers: decoded whole, the regions found
@@ -467,9 +484,9 @@ class _Session:
                 "masks": (sm, rm, box), "regions": regions, "deliveries": deliveries}
 
     def _reduce(self, shot: dict) -> dict:
-        """Check and commit the RAW files `_bracket` left (SHA-256 against the camera's, fsync,
-        rename), decode them from the bytes checked, merge the bracket, reduce the regions,
-        calibrate: the journal row's fields. Touches no device and no journal, so it runs while
+        """Check and commit the point's RAW files (SHA-256 against the camera's, fsync, rename;
+        the probes `_bracket` decoded too), decode the others from the bytes checked, merge the
+        bracket, reduce the regions, calibrate: the journal row's fields. Touches no device and no journal, so it runs while
         the stages move on; `BadDelivery` (a file spoilt) discards the point's unchecked files."""
         idx, used = shot["idx"], shot["used"]
         sm, rm, box = shot["masks"]
@@ -477,9 +494,9 @@ class _Session:
         exposures = []
         try:
             for e, d in used:
+                dl = deliveries.pop(d["file"], None)
+                data = None if dl is None else dl.finish()      # probes too: decoded, not yet checked
                 if e is None:
-                    dl = deliveries.pop(d["file"], None)
-                    data = None if dl is None else dl.finish()
                     e = Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box, data=data),
                                  self._dark(d["seconds"], box))
                 exposures.append(e)
@@ -541,7 +558,7 @@ class _Session:
 
         Once point k's bracket is taken, the stages are sent to point k+1 at once, and a worker
         thread checks point k's RAW files against the camera's SHA-256, fsyncs and renames them
-        (the probes were checked at once, to choose the bracket), decodes, merges and reduces
+        (the probes too: decoded at once to choose the bracket), decodes, merges and reduces
         point k while they move (the main thread meanwhile finds k+1's regions); point k is
         journalled as soon as its reduction is done, still during the move and before k+1's
         bracket, so a point is in the journal only once its row is complete and its RAW files

@@ -199,6 +199,17 @@ class Delivery:
     path: Path
     digest: str
     tmp: Path | None = None
+    data: bytes | None = None        # the file's bytes, once `read`
+
+    def read(self) -> bytes | None:
+        """The unchecked file's bytes (kept for `finish`: the file is read once); None where the
+        file is committed already (read it at ``path``)."""
+        if self.tmp is not None and self.data is None:
+            try:
+                self.data = self.tmp.read_bytes()
+            except FileNotFoundError:
+                raise BadDelivery(f"{self.path.name} vanished before its check") from None
+        return self.data
 
     def finish(self) -> bytes | None:
         """Check the file against ``digest``, then commit it (fsync, rename, fsync the folder);
@@ -211,22 +222,19 @@ class Delivery:
         """
         if self.tmp is None:
             return None
-        try:
-            data, digest = read_verified(self.tmp)
-        except FileNotFoundError:
-            raise BadDelivery(f"{self.path.name} vanished before its check") from None
-        if digest != self.digest:
+        data = self.read()
+        if hashlib.sha256(data).hexdigest() != self.digest:
             self.discard()
             raise BadDelivery(f"{self.path.name} does not match the camera's checksum")
         _commit(self.tmp, self.path)
-        self.tmp = None
+        self.tmp, self.data = None, None
         return data
 
     def discard(self) -> None:
         """Remove the unchecked file (a point given up)."""
         if self.tmp is not None:
             self.tmp.unlink(missing_ok=True)
-            self.tmp = None
+            self.tmp, self.data = None, None
 
 
 def deliver(camera, seconds: float, path: str | os.PathLike) -> Delivery:
