@@ -22,6 +22,10 @@ file at each):
   measured norm, sqrt(sum w ((f_model - f) cos_i)^2 / sum w (f cos_i)^2);
 * ``log``: Loew et al. (2012, eq. 11), sqrt(sum w (ln(1 + f_model cos_i) - ln(1 + f cos_i))^2
   / sum w);
+* ``dE00``: the rendered difference, mean CIEDE2000 over the preview sphere's pixels under
+  both preview lightings (:func:`gonio.fitting.preview.preview`: the fitted model and the
+  measured file rendered with the same seeds, :data:`RENDER_SIZE` pixels square at
+  :data:`RENDER_SPP` samples per pixel), with the matched-seed noise floor beside it;
 * time: wall seconds, and the ratio peer / gonio (same run, same machine).
 
 References
@@ -52,6 +56,8 @@ from .formats import RGLBRDF, read_merl
 __all__ = ["dense_grid", "metrics", "peer_fit", "run_real", "PEER_STARTS"]
 
 PEER_STARTS = 8
+#: the rendered comparison: preview sphere size (pixels) and samples per pixel (the issue's 256)
+RENDER_SIZE, RENDER_SPP = 64, 256
 #: dense grid: theta_i and theta_o rings equal in solid angle (cos theta uniform), phi cells
 N_THETA_I, N_THETA_O, N_PHI_O = 12, 24, 48
 
@@ -112,7 +118,20 @@ def peer_fit(meas, model, rng, n_starts=PEER_STARTS):
     return space, best.x, time.perf_counter() - t0
 
 
-def compare(path, *, seed=0, loss=None, open_data=None):
+def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_SPP):
+    """(mean CIEDE2000 over both lightings, its matched-seed noise floor) of the model
+    against the measured file, rendered with the same seeds (images in a temporary folder)."""
+    import tempfile
+
+    from .preview import preview
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = preview(model, params, tmp, measured=Path(path), size=size, spp=spp, seed=seed)
+    floor = float(np.mean([v["noise_mean"] for v in out["delta_e"].values()]))
+    return float(out["delta_e_mean"]), floor
+
+
+def compare(path, *, seed=0, loss=None, open_data=None, render=True):
     """One material: a dict of gonio's chosen fit and the peer's, metrics on the dense grid."""
     path = Path(path)
     loss = loss or REAL_DEFAULT_LOSS
@@ -133,7 +152,12 @@ def compare(path, *, seed=0, loss=None, open_data=None):
     space, x_peer, t_peer = peer_fit(meas, model, np.random.default_rng([seed, 1]))
     p = metrics(model.eval(wi, wo, space.to_params(x_peer)), f_meas, wi)
     label = model.name + (f"-{model.options['distribution']}" if model.options.get("distribution") else "")
-    return {"material": path.stem, "model": label, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
+    de_g = de_p = floor = float("nan")
+    if render:
+        de_g, floor = rendered_delta_e(model, best.params, path, seed)
+        de_p, _ = rendered_delta_e(model, space.to_params(x_peer), path, seed)
+    return {"gonio_de00": de_g, "peer_de00": de_p, "de00_noise": floor,
+            "material": path.stem, "model": label, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
             "gonio_ngan": g["ngan"], "gonio_log": g["log"], "gonio_time_s": best.time_s,
             "gonio_select_s": t_select, "gonio_chi2_dof": best.chi2_dof,
             "peer_ngan": p["ngan"], "peer_log": p["log"], "peer_time_s": t_peer,
@@ -144,9 +168,11 @@ def compare(path, *, seed=0, loss=None, open_data=None):
 COLUMNS = (("material", "<26", "s"), ("model", "<26", "s"), ("loss", "<8", "s"), ("gonio_ngan", ">9", ".3f"),
            ("peer_ngan", ">9", ".3f"), ("gonio_log", ">9", ".4f"), ("peer_log", ">9", ".4f"),
            ("gonio_time_s", ">9", ".2f"), ("peer_time_s", ">9", ".1f"), ("speedup", ">8", ".0f"),
-           ("gonio_select_s", ">9", ".1f"))
+           ("gonio_select_s", ">9", ".1f"), ("gonio_de00", ">8", ".2f"), ("peer_de00", ">8", ".2f"),
+           ("de00_noise", ">7", ".2f"))
 HEADS = {"gonio_ngan": "Ngan g", "peer_ngan": "Ngan p", "gonio_log": "log g", "peer_log": "log p",
-         "gonio_time_s": "t g s", "peer_time_s": "t p s", "speedup": "p/g", "gonio_select_s": "auto s"}
+         "gonio_time_s": "t g s", "peer_time_s": "t p s", "speedup": "p/g", "gonio_select_s": "auto s",
+         "gonio_de00": "dE g", "peer_de00": "dE p", "de00_noise": "floor"}
 
 
 def print_table(rows):
@@ -157,7 +183,9 @@ def print_table(rows):
         print("".join(f"{r[k]:{fmt}{spec if spec != 's' else ''}}" for k, fmt, spec in COLUMNS))
     print("g: gonio's chosen fit (--model auto); p: scipy least_squares, unweighted log loss, "
           f"{PEER_STARTS} starts, numpy model of the same family; t g: the chosen fit's time, "
-          "auto: the whole selection; metrics on one dense equal-solid-angle grid (theta <= 80 deg)")
+          "auto: the whole selection; metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
+          f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
+          "env and area lights, matched seeds), floor: its Monte Carlo noise")
 
 
 def run_real(files, out=None, seed=0, loss=None, open_data=None) -> list[dict]:
