@@ -199,9 +199,10 @@ def test_the_interactive_view_is_offline_and_escaped(out, no_figures):
     assert not re.search(r"(src|href)=\"(https?:)?//", page) and "fetch(" not in code[0]
 
 
-def test_no_figure_has_overlapping_labels(out, monkeypatch):
+def test_no_figure_has_overlapping_labels_and_the_report_prints(out, monkeypatch, tmp_path):
     """matplotlib's tight bounding boxes of the drawn text artists do not intersect, in every
-    figure of the report (the issue found them in polar, mitsuba_vs_measured and corner)."""
+    figure of the report (the issue found them in polar, mitsuba_vs_measured and corner); and
+    headless Chromium prints the report to an A4 PDF through its print stylesheet."""
     seen = {}
     original = figs._png
 
@@ -210,7 +211,7 @@ def test_no_figure_has_overlapping_labels(out, monkeypatch):
         return original(fig)
 
     monkeypatch.setattr(figs, "_png", check)
-    write_report(out)
+    path = write_report(out)
     assert len(seen) == 7, seen                              # every drawn figure (the preview PNG is not drawn)
     assert all(not v for v in seen.values()), seen
     # the check itself sees an overlap when there is one
@@ -222,30 +223,18 @@ def test_no_figure_has_overlapping_labels(out, monkeypatch):
     assert figs.text_overlaps(fig) == [("f_r G (1/sr)", "180 deg")]
     plt.close(fig)
 
-
-def _browser():
+    # print (the view and the executed script are checked by tests/e2e/test_loop.py's browser test)
     browser = shutil.which("chromium") or shutil.which("chromium-browser")
     if browser is None:
         pytest.skip("Debian's chromium is not installed (`make chromium`)")
-    return browser
-
-
-def test_print_to_pdf_and_the_view_in_headless_chromium(out, tmp_path):
-    browser = _browser()
-    path = write_report(out)
-    common = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync",
-              "--disable-background-networking", "--disable-component-update", f"--user-data-dir={tmp_path / 'p'}",
-              "--enable-logging=stderr", "--v=0", "--virtual-time-budget=4000"]
     pdf = tmp_path / "report.pdf"
-    proc = subprocess.run(common + ["--no-pdf-header-footer", f"--print-to-pdf={pdf}", path.as_uri()],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync",
+                           "--disable-background-networking", "--disable-component-update",
+                           f"--user-data-dir={tmp_path / 'p'}", "--no-pdf-header-footer", f"--print-to-pdf={pdf}",
+                           path.as_uri()], capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 0 and pdf.read_bytes().startswith(b"%PDF"), proc.stderr[-2000:]
     pages = len(re.findall(rb"/Type\s*/Page[^s]", pdf.read_bytes()))
-    assert 2 <= pages <= 12, pages                          # A4, the appendix on its own pages
-    proc = subprocess.run(common + ["--dump-dom", path.as_uri()], capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0 and "Uncaught" not in proc.stderr, proc.stderr[-2000:]
-    assert '<section id="view">' in proc.stdout              # the script ran under the CSP and showed the view
-    assert re.search(r'<select id="view-incidence">\s*<option', proc.stdout)
+    assert 2 <= pages <= 12, pages                          # A4, the appendix from a new page
 
 
 def test_a_damaged_journal_is_said_not_fatal(out, no_figures):
