@@ -187,5 +187,9 @@ class Principled(Model):
         d = {"type": "principled", "base_color": rgb(p["base_color"])}
         for key in ("roughness", "metallic", "specular", "spec_tint", "sheen", "sheen_tint", "clearcoat",
                     "clearcoat_gloss", "flatness"):
-            d[key] = float(p[key])
+            # Mitsuba reads each weight's flag back through std::stof of its text, which throws
+            # on a subnormal float32 (a fitted weight at its bound, e.g. 1e-300): below 1e-30
+            # a weight changes nothing measurable, so it is written as 0
+            v = float(p[key])
+            d[key] = v if abs(v) >= 1e-30 else 0.0
         return d

@@ -153,6 +153,8 @@ CONFIGS = [
     ("orennayar", {}, 1e-5),  # registered Python BSDF
     ("roughplastic2", {"distribution": "beckmann"}, 1e-3),  # blendbsdf of two roughplastics
     ("roughplastic2", {"distribution": "ggx"}, 1e-3),
+    ("roughconductor2", {"distribution": "beckmann"}, 1e-5),  # blendbsdf of two roughconductors
+    ("roughconductor2", {"distribution": "ggx"}, 1e-5),
 ]
 
 
