@@ -17,7 +17,6 @@ import contextlib
 import json
 import math
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Mapping
 
@@ -29,6 +28,7 @@ from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
 from ._journal import RAW_DIR, Journal
 from ._markers import find_regions, layout_of, posed_masks
 from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
+from ._pipeline import Pipeline, _Suspended
 from ._rig import Bench
 from ._settings import AXES
 from .drivers import BadDelivery, MoveError, RawFrame, decode_raw, deliver, read_verified
@@ -80,10 +80,6 @@ def _extreme(ufunc, planes: np.ndarray, runs: np.ndarray) -> float:
         raise ValueError("no value in the regions")
     flat = planes.reshape(planes.shape[0], -1)
     return float(ufunc.reduce(ufunc.reduceat(flat, runs, axis=1)[:, 0::2], axis=None))
-
-
-class _Suspended(Exception):
-    """The lamp or the meter is not fit to measure; the point must wait and be measured again."""
 
 
 class _Session:
@@ -575,84 +571,24 @@ class _Session:
             if r is not None and r["i"] == i:
                 self.reciprocity.append(r)
         bar = ProgressBar(len(self.plan), len(done), self.progress)
-        n_new = 0
+        pipe = Pipeline(self, todo, bar)
         stopped = ""
-        pending = None                   # (idx, future of its reduction): not yet journalled
-        goal = None                      # the move sent ahead to todo[n], not yet waited for
-        pool = ThreadPoolExecutor(1, thread_name_prefix="gonio-reduce")
-
-        def commit_pending() -> None:
-            nonlocal pending, n_new
-            if pending is not None:
-                idx, fut = pending
-                pending = None
-                res = fut.result()
-                self._commit(idx, res, bar)
-                n_new += 1
-
-        retakes: dict[int, int] = {}
-
-        def retake(n: int, idx: int, exc: BadDelivery) -> None:
-            """A RAW file of point ``idx`` failed its check after the stages left: take it again next."""
-            nonlocal goal
-            retakes[idx] = retakes.get(idx, 0) + 1
-            cam = self.bench.camera
-            if hasattr(cam, "retries_used"):
-                cam.retries_used += 1
-            if retakes[idx] > getattr(cam, "retries", 2):
-                raise DeviceError(f"camera could not deliver point {idx}'s files ({exc}); "
-                                  "check the camera and disk, then resume the session") from None
-            self.journal.event("warning", f"point {idx}: {exc}; taking it again")
-            if goal is not None:                  # let the move sent ahead end, then go back
-                self.bench.gonio.finish_move(goal)
-                goal = None
-            todo.insert(n + 1, idx)
-
         try:
             try:
-                for n, idx in enumerate(todo):
+                for n, idx in enumerate(todo):          # a point taken again is inserted next
                     self.bench.checkpoint()
                     if self.stop():
                         stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
                         break
-                    for attempt in range(self.MAX_ATTEMPTS):
-                        try:
-                            shot = self._bracket(idx, goal)
-                            break
-                        except _Suspended as exc:
-                            goal = None
-                            why = str(exc)
-                            self._wait_until_fit(why)
-                    else:
-                        raise DeviceError(f"point {idx} failed {self.MAX_ATTEMPTS} times ({why}); "
-                                          "check the lamp, then resume the session")
-                    goal = None
-                    ahead = todo[n + 1] if n + 1 < len(todo) and not self.stop() else None
-                    if ahead is not None:
-                        goal = self._start_move(ahead)         # the stages move while the host works
-                    pending = (idx, pool.submit(self._reduce, shot))
-                    del shot
-                    if ahead is not None:
-                        self._masks(self.stage[ahead])         # the next regions, during the move
-                    try:
-                        commit_pending()                       # point k, still during the move
-                    except BadDelivery as exc:
-                        retake(n, idx, exc)
-                if goal is not None:                           # stopped with a move sent ahead
-                    goal = None
-                    self.bench.gonio.stop()
+                    pipe.step(n, idx)
+                pipe.stop_move_ahead()
             except BaseException:
-                # what stops the run keeps a point whose reduction finished (its data is complete)
-                if pending is not None:
-                    try:
-                        commit_pending()
-                    except Exception:
-                        pass
+                pipe.keep_finished()
                 raise
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+            pipe.close()
             for dl in self._deliveries.values():      # a bracket cut short: its unchecked files
                 dl.discard()
             self._deliveries.clear()
             bar.close()
-        return n_new, stopped
+        return pipe.n_new, stopped

@@ -163,7 +163,9 @@ def test_gonio_fit_reports_the_combined_uncertainty(tmp_path, capsys, monkeypatc
         rho = doc["parameters"][f"reflectance[{c}]"]["value"]
         assert item["u_combined"] >= rho * 0.005 and item["U"] == pytest.approx(2 * item["u_combined"])
     assert "u_c" in proc.stdout and "(k=2)" in proc.stdout and "largest term" in proc.stdout
-    assert max(len(line) for line in proc.stdout.splitlines()) <= 80
+    # every line fits 80 columns except one that names a file: a path is a value, never cut
+    # (under xdist pytest's tmp_path alone is over 60 characters)
+    assert max(len(line) for line in proc.stdout.splitlines() if str(tmp_path) not in line) <= 80, proc.stdout
 
 
 CAL = {"alignment": {"yaw_zero_deg": 0.05, "tilt_zero_deg": -0.03, "holder_tilt_x_deg": 0.1, "holder_tilt_y_deg": 0.0,
