@@ -113,6 +113,14 @@ def to_dataset(session_dir, chart=None):
     data.update(cal_data)
     if not cal_attrs and isinstance(doc["settings"].get("aperture"), dict):
         cal_attrs = instrument_response(doc["settings"])
+    attrs = _attributes(doc, rows, n_plan, monitor, matrix, chart)
+    attrs.update(cal_attrs)
+    return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
+
+
+def _attributes(doc, rows, n_plan, monitor, matrix, chart) -> dict:
+    """The dataset's global attributes: versions, seed, plan and settings, the reference,
+    completeness, the lamp's drift, the colour matrix and the simulated truth."""
     sess = doc.get("session", {})
     attrs = {
         "gonio_version": str(sess.get("gonio", "unknown")),
@@ -134,8 +142,7 @@ def to_dataset(session_dir, chart=None):
                                             sort_keys=True)
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
-    attrs.update(cal_attrs)
-    return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
+    return attrs
 
 
 def _colour_matrix(folder: Path, rgb_cam):

@@ -8,7 +8,7 @@ import pytest
 import xarray as xr
 
 from gonio.bench._budget import Component, budget_variables
-from gonio.fitting import Measurements, load_budget, load_dataset
+from gonio.fitting import load_budget, load_dataset
 
 N = 8
 
