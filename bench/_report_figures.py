@@ -12,6 +12,8 @@ import io
 
 import numpy as np
 
+from gonio.fitting.plots import (in_plane_mask, log_ticks, plot_coverage, plot_in_plane, plot_residuals,
+                                 safe_label)
 from gonio.models.geometry import angles as _angles
 
 __all__ = ["draw", "label"]
@@ -19,20 +21,8 @@ __all__ = ["draw", "label"]
 COLOURS = ["tab:red", "tab:green", "tab:blue"]
 
 
-def _log_ticks(axis) -> None:
-    """Log-axis labels at 1, 2 and 5 times a power of ten only: over less than a decade
-    matplotlib labelled every minor tick (2x10^-1, 3x10^-1, ...), and they ran into each other."""
-    from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
-
-    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=12))
-    axis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False))
-    axis.set_minor_formatter(NullFormatter())
-
-
-def label(text, limit: int = 40) -> str:
-    """Input text made safe for a matplotlib label: no mathtext, bounded length."""
-    s = "".join(ch if ch.isprintable() else "?" for ch in str(text))[:limit]
-    return s.replace("\\", "/").replace("$", r"\$")
+_log_ticks = log_ticks
+label = safe_label
 
 
 def _png(fig) -> bytes:
@@ -64,63 +54,21 @@ def angles(meas):
 
 
 def coverage(meas) -> dict:
-    import matplotlib.pyplot as plt
-
-    theta_i, theta_o, _, phi_o = angles(meas)
-    fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.6, 4.4), layout="constrained")
-    sc = ax.scatter(phi_o, theta_o, c=theta_i, cmap="viridis", s=14)
-    ax.set_ylim(0, 90)
-    ax.set_rticks([30, 60, 90])
-    ax.set_rlabel_position(112.5)
-    ax.tick_params(labelsize=8)
-    ax.set_title("detector directions (r = theta_o, colour = theta_i)", fontsize=9)
-    fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.1, label="theta_i (deg)")
-    return {"coverage.png": _png(fig)}
+    """The detector directions (`gonio.fitting.plots.plot_coverage`)."""
+    return {"coverage.png": _png(plot_coverage(meas))}
 
 
 def _in_plane(meas):
-    theta_i, theta_o, phi_i, phi_o = angles(meas)
-    phi_d = np.degrees(np.abs(np.angle(np.exp(1j * (phi_i - phi_o)))))
-    return phi_d, (phi_d > 175) | (phi_d < 5) | (theta_i < 1) | (theta_o < 1)
+    return in_plane_mask(meas)
 
 
 def inplane(meas, model=None, params=None) -> dict:
     """Measured (and fitted, where a fit is given), in the plane of incidence, for up to four
-    incidence angles: ``inplane.png`` with a fit, ``measured.png`` without."""
-    import matplotlib.pyplot as plt
-
-    theta_i, theta_o, _, _ = angles(meas)
-    phi_d, in_plane = _in_plane(meas)
-    incidences = sorted({round(t) for t in theta_i[in_plane]})
-    if not incidences:
+    incidence angles (`gonio.fitting.plots.plot_in_plane`): ``inplane.png`` with a fit,
+    ``measured.png`` without; nothing when no point lies in the plane."""
+    if not np.any(in_plane_mask(meas)[1]):
         return {}
-    pick = incidences if len(incidences) <= 4 else [incidences[int(k)] for k in np.linspace(0, len(incidences) - 1, 4)]
-    fig, axes = plt.subplots(1, len(pick), figsize=(2.9 * len(pick) + 0.6, 3.0), squeeze=False, sharey=True,
-                             layout="constrained")
-    for ax, ti in zip(axes[0], pick):
-        sel = in_plane & (np.abs(theta_i - ti) < 0.6)
-        # signed outgoing angle: negative on the lamp's side
-        signed = np.where(phi_d[sel] < 90, -theta_o[sel], theta_o[sel])
-        t = np.radians(np.linspace(-89, 89, 241))
-        curve = None
-        if model is not None:
-            wi_c = np.tile([np.sin(np.radians(ti)), 0.0, np.cos(np.radians(ti))], (t.size, 1))
-            wo_c = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)  # +t on the mirror side
-            curve = model.eval(wi_c, wo_c, params)
-        for c in range(meas.n_channels):
-            ax.errorbar(signed, meas.brdf[sel, c], yerr=meas.brdf_std[sel, c], fmt="o", ms=3, color=COLOURS[c % 3],
-                        label=label(meas.channels[c], 12) if ax is axes[0][0] else None)
-            if curve is not None:
-                ax.plot(np.degrees(t), curve[:, c], "-", lw=1, color=COLOURS[c % 3])
-        ax.set_yscale("log")
-        _log_ticks(ax.yaxis)
-        ax.set_xlim(-90, 90)
-        ax.set_xticks([-60, -30, 0, 30, 60])
-        ax.set_title(f"theta_i = {ti} deg", fontsize=9)
-        ax.set_xlabel("theta_o (deg)", fontsize=8)
-        ax.tick_params(labelsize=7)
-    axes[0][0].set_ylabel("f_r (1/sr)", fontsize=8)
-    fig.legend(fontsize=7, loc="outside lower center", frameon=False, ncol=3)
+    fig = plot_in_plane(meas, model, params)
     return {("inplane.png" if model is not None else "measured.png"): _png(fig)}
 
 
@@ -174,20 +122,8 @@ def polar(meas, model, params) -> dict:
 
 
 def residuals(meas, model, params) -> dict:
-    import matplotlib.pyplot as plt
-
-    theta_i, theta_o, _, _ = angles(meas)
-    resid = (meas.brdf - model.eval(meas.wi, meas.wo, params)) / meas.brdf_std
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2), layout="constrained")
-    axes[0].hist(resid[meas.use].ravel(), bins=40, color="grey")
-    axes[0].set_xlabel("(measured - fit) / sigma")
-    axes[0].set_title("fit residuals", fontsize=9)
-    sc = axes[1].scatter(theta_i, theta_o, c=np.sqrt(np.mean(resid ** 2, axis=1)), cmap="magma", s=16)
-    axes[1].set_xlabel("theta_i (deg)")
-    axes[1].set_ylabel("theta_o (deg)")
-    axes[1].set_title("rms residual / sigma per point", fontsize=9)
-    fig.colorbar(sc, ax=axes[1])
-    return {"residuals.png": _png(fig)}
+    """Normalised residuals (`gonio.fitting.plots.plot_residuals`)."""
+    return {"residuals.png": _png(plot_residuals(meas, model, params))}
 
 
 def albedo(model, params) -> dict:

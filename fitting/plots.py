@@ -21,7 +21,7 @@ import numpy as np
 
 from gonio.models.geometry import angles_deg
 
-__all__ = ["plot_coverage", "plot_in_plane", "plot_residuals", "safe_label", "in_plane_mask"]
+__all__ = ["plot_coverage", "plot_in_plane", "plot_residuals", "safe_label", "in_plane_mask", "log_ticks"]
 
 COLOURS = ("tab:red", "tab:green", "tab:blue")
 
@@ -30,6 +30,16 @@ def safe_label(text, limit: int = 40) -> str:
     """Text made safe for a matplotlib label: printable, no mathtext, at most ``limit`` characters."""
     s = "".join(ch if ch.isprintable() else "?" for ch in str(text))[:limit]
     return s.replace("\\", "/").replace("$", r"\$")
+
+
+def log_ticks(axis) -> None:
+    """Log-axis labels at 1, 2 and 5 times a power of ten only: over less than a decade
+    matplotlib labels every minor tick (2x10^-1, 3x10^-1, ...), and they run into each other."""
+    from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=12))
+    axis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def _figure(ax, n=1, **kw):
@@ -96,10 +106,11 @@ def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels:
                 ax.plot(np.degrees(t), curve[:, c], "-", lw=1, color=COLOURS[c % 3])
         if log:
             ax.set_yscale("log")
+            log_ticks(ax.yaxis)
         ax.set_xlim(-90, 90)
         ax.set_xticks([-60, -30, 0, 30, 60])
         ax.set_title(f"theta_i = {ti:g} deg", fontsize=9)
-        ax.set_xlabel("theta_o (deg; < 0 on the light's side)", fontsize=8)
+        ax.set_xlabel("theta_o (deg)", fontsize=8)      # < 0 on the light's side
         ax.tick_params(labelsize=7)
     axes[0].set_ylabel("f_r (1/sr)", fontsize=8)
     fig.legend(fontsize=7, loc="outside lower center", frameon=False, ncol=3)
@@ -113,13 +124,15 @@ def plot_coverage(meas, ax=None):
     theta_i, _ = angles_deg(meas.wi)
     theta_o, phi_o = angles_deg(meas.wo)
     if ax is None:
-        fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.4, 4.4), layout="constrained")
+        fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.6, 4.4), layout="constrained")
     fig = ax.figure
     sc = ax.scatter(np.radians(phi_o), theta_o, c=theta_i, cmap="viridis", s=14)
     ax.set_ylim(0, 90)
     ax.set_rticks([30, 60, 90])
+    ax.set_rlabel_position(112.5)
+    ax.tick_params(labelsize=8)
     ax.set_title("detector directions (r = theta_o, colour = theta_i)", fontsize=9)
-    fig.colorbar(sc, ax=ax, shrink=0.7, label="theta_i (deg)")
+    fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.1, label="theta_i (deg)")
     return fig
 
 
