@@ -108,6 +108,30 @@ def _devices(root: Folder, journal) -> list[dict]:
     return out
 
 
+_SPACES = {"srgb": "linear sRGB (D65; IEC 61966-2-1 primaries, no transfer curve)", "xyz": "CIE 1931 XYZ (D65)",
+           "camera": "the camera's own RGB (its colour filters, white-balanced)"}
+
+
+_MATRIX_SOURCES = {"dng": "the RAW files' own ColorMatrix1 (DNG)", "libraw": "LibRaw's colour matrix of the RAW files",
+                   "chart": "a matrix fitted to a ColorChecker capture"}
+
+
+def _band(meas) -> str:
+    """The channels the report's values are in: the colour space the dataset was read in, and
+    from what (the DNG's matrix or a ColorChecker's), as `load_dataset` recorded it."""
+    colour = meas.attrs.get("colour") if isinstance(meas.attrs.get("colour"), dict) else {}
+    space = colour.get("space") if colour.get("space") in _SPACES else None
+    channels = ", ".join(map(str, meas.channels))
+    if space is None:
+        return f"channels {channels} (colour space not recorded)"
+    text = f"channels {channels} in {_SPACES[space]}"
+    source = colour.get("matrix", {}).get("source") if isinstance(colour.get("matrix"), dict) else None
+    if space != "camera" and _text(source):
+        how = _MATRIX_SOURCES.get(str(source), f"the {_text(source, 40)} colour matrix")
+        text += f", converted from camera RGB by {how}"
+    return text
+
+
 def identification(meas, root: Folder, journal) -> dict:
     """Who, what, when, where: rows of (label, text) for the report's first table."""
     attrs = meas.attrs
@@ -135,9 +159,7 @@ def identification(meas, root: Folder, journal) -> dict:
     rows.append(("Measurement plan", cut(f"{_text(plan.get('name')) or '?'}: {n_plan if n_plan is not None else '?'} "
                                          f"planned points. {_text(plan.get('description'), 300) or ''}".strip(), 500)))
     wl = _text(meter.get("wavelength_nm"))
-    rows.append(("Wavelength band", cut(f"camera channels {', '.join(map(str, meas.channels))} (the camera's colour "
-                                        "filters, raw RGB; see dataset.nc for sRGB and XYZ where recorded)"
-                                        + (f"; source monitor at {wl} nm" if wl else ""), 400)))
+    rows.append(("Wavelength band", cut(_band(meas) + (f"; source monitor at {wl} nm" if wl else ""), 400)))
     devices = _devices(root, journal)
     for d in devices:
         rows.append((d["role"], d["text"]))

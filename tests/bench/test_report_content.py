@@ -246,3 +246,20 @@ def test_a_damaged_journal_is_said_not_fatal(out, no_figures):
     journal(out, {"zaber": "not a list of devices", "meter": ["x"], "camera": 7})
     page = write_report(out).read_text()
     assert "<th>Zaber device" not in page and "<th>camera</th><td>7</td>" in page
+
+
+def test_the_band_row_names_the_colour_space_of_the_values():
+    """The report's values are in the space the dataset was read in (linear sRGB by default,
+    issue 15), not 'raw RGB': the identification table says which, and from which matrix."""
+    from types import SimpleNamespace
+
+    from gonio.bench._report_meta import _band
+
+    def meas(colour):
+        return SimpleNamespace(attrs={"colour": colour}, channels=("R", "G", "B"))
+
+    srgb = _band(meas({"space": "srgb", "matrix": {"source": "chart"}}))
+    assert "linear sRGB" in srgb and "ColorChecker" in srgb and "raw" not in srgb
+    assert "camera's own RGB" in _band(meas({"space": "camera", "matrix": None}))
+    assert "XYZ" in _band(meas({"space": "xyz", "matrix": {"source": "dng"}}))
+    assert "not recorded" in _band(meas(None)) and "not recorded" in _band(meas({"space": "lab"}))
