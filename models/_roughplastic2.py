@@ -16,17 +16,15 @@ energy. Both lobes use the same distribution, and each distribution is an option
 
 from __future__ import annotations
 
-import numpy as np
-
-from ._base import Model, Parameter, eval_inputs, register
+from ._base import Parameter, register
 from ._roughplastic import RoughPlastic
-from ._structure import Structure
+from ._twolobe import TwoLobe
 
 __all__ = ["RoughPlastic2"]
 
 
 @register
-class RoughPlastic2(Model):
+class RoughPlastic2(TwoLobe):
     """Two-lobe rough plastic (see the module).
 
     Options
@@ -57,13 +55,8 @@ class RoughPlastic2(Model):
     #: principled), which would multiply the cost of every automatic selection
     auto_candidate = False
 
-    def __init__(self, **options):
-        super().__init__(**options)
-        self._layer = RoughPlastic(distribution=self.options["distribution"])
-
-    @property
-    def structure(self):
-        return Structure()  # evaluates through roughplastic's own (compiled) path; no kernel of its own
+    LAYER = RoughPlastic
+    COMMON = ("diffuse_reflectance", "int_ior")
 
     def _parameters(self):
         return (
@@ -73,40 +66,3 @@ class RoughPlastic2(Model):
             Parameter("weight", 0.3, 0.0, 1.0, "1", "weight of the second lobe's layer"),
             Parameter("int_ior", 1.49, 1.0001, 4.0, "1", "relative index of refraction of the coating"),
         )
-
-    def layers(self, p):
-        """The two roughplastic parameter sets and the second one's weight."""
-        common = {"diffuse_reflectance": p["diffuse_reflectance"], "int_ior": p["int_ior"]}
-        return dict(common, alpha=p["alpha"]), dict(common, alpha=p["alpha2"]), float(p["weight"])
-
-    def _mix(self, fn, wi, wo, params):
-        wi, wo, p = eval_inputs(self, wi, wo, params)
-        p1, p2, w = self.layers(p)
-        a = fn(wi, wo, p1) if w < 1.0 else 0.0
-        b = fn(wi, wo, p2) if w > 0.0 else 0.0
-        return np.asarray((1.0 - w) * a + w * b, dtype=np.float64) + np.zeros((wi.shape[0], 3))
-
-    def eval(self, wi, wo, params, backend="auto"):
-        if backend not in ("auto", "numpy", "drjit"):
-            raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
-        return self._mix(lambda a, b, p: self._layer.eval(a, b, p, backend=backend), wi, wo, params)
-
-    def eval_reference(self, wi, wo, params):
-        return self._mix(self._layer.eval_reference, wi, wo, params)
-
-    def _eval(self, wi, wo, p):
-        p1, p2, w = self.layers(p)
-        return (1.0 - w) * self._layer._eval(wi, wo, p1) + w * self._layer._eval(wi, wo, p2)
-
-    def albedo(self, wo, params, **quadrature):
-        """The weighted sum of the two layers' albedos (each by roughplastic's quadrature)."""
-        p1, p2, w = self.layers(self.validate(params))
-        out = [self._layer.albedo(wo, q, **quadrature) for q in (p1, p2)]
-        if quadrature.get("return_error"):
-            return (1.0 - w) * out[0][0] + w * out[1][0], np.maximum(out[0][1], out[1][1])
-        return (1.0 - w) * out[0] + w * out[1]
-
-    def to_mitsuba(self, params):
-        p1, p2, w = self.layers(self.validate(params))
-        return {"type": "blendbsdf", "weight": w, "lobe1": self._layer.to_mitsuba(p1),
-                "lobe2": self._layer.to_mitsuba(p2)}
