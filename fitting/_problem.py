@@ -54,10 +54,14 @@ class Evaluator:
         if not self.fast:
             return None
         self.n_evals += 1
+        return fast.normal_equations(self.model, self._resident(), params, *self._loaded(y, w))
+
+    def _loaded(self, y, w):
+        """``y`` and ``w`` as the resident directions' kernels take them, loaded once per fit."""
         if self._yw is None or self._yw[0] is not y:
             d = self._resident()
             self._yw = (y, d.channels(y, "y"), d.channels(w, "w"))
-        return fast.normal_equations(self.model, self._resident(), params, self._yw[1], self._yw[2])
+        return self._yw[1], self._yw[2]
 
     def sse(self, params, y, w):
         """sum w (f_r - y)^2 from one compiled kernel (counted as one evaluation), or None on
@@ -65,10 +69,7 @@ class Evaluator:
         if not self.fast:
             return None
         self.n_evals += 1
-        if self._yw is None or self._yw[0] is not y:
-            d = self._resident()
-            self._yw = (y, d.channels(y, "y"), d.channels(w, "w"))
-        return fast.weighted_sse(self.model, self._resident(), params, self._yw[1], self._yw[2])
+        return fast.weighted_sse(self.model, self._resident(), params, *self._loaded(y, w))
 
     def jacobian(self, params):
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
