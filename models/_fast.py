@@ -193,16 +193,23 @@ def _round_trip(model, flat_i, flat_o, lanes, P):
 _FREEZE_LOCK = threading.Lock()
 
 
-@lru_cache(maxsize=64)
-def _frozen_round_trip_for(name, options):
-    """:func:`_round_trip` for one model configuration under ``dr.freeze`` (recorded once per
-    input layout, replayed for any N and parameter values: no tracing, no code generation)."""
+@lru_cache(maxsize=256)
+def _frozen(fn, name, options):
+    """``fn(model, *inputs)`` for one model configuration under ``dr.freeze``: the first call
+    per input layout traces and records the kernel launch, later calls replay it with the new
+    inputs (parameters are opaque inputs), for any N, skipping Python tracing and Dr.Jit's code
+    generation and hashing (~0.1 ms a call). One recording per (fn, model configuration)."""
     import drjit as dr
 
     from . import get
 
     model = get(name, **dict(options))
-    return dr.freeze(lambda fi, fo, lanes, P: _round_trip(model, fi, fo, lanes, P))
+    return dr.freeze(lambda *inputs: fn(model, *inputs))
+
+
+def _frozen_for(fn, model):
+    """The frozen ``fn`` of ``model``'s configuration (:func:`_frozen`)."""
+    return _frozen(fn, model.name, tuple(sorted(model.options.items())))
 
 
 def eval(model, wi, wo, params):
@@ -210,7 +217,7 @@ def eval(model, wi, wo, params):
     (``Model.eval`` calls it above :data:`gonio.models._base.COMPILED_MIN_PAIRS` pairs).
 
     numpy's memory is mapped into Dr.Jit without a copy, the kernel is replayed from its
-    recording (:func:`_frozen_round_trip_for`) and its interleaved output is handed back
+    recording (:func:`_frozen`) and its interleaved output is handed back
     to numpy without a copy: per pair 48 bytes read and 24 written, the memory-bandwidth
     limit ``gonio bench models`` prints."""
     dr, F, V3, U = _dr()
@@ -221,7 +228,7 @@ def eval(model, wi, wo, params):
     P, _ = _param_vars(model, p, F, grad=False)
     # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the
     # interleave the trace is long enough (measured 28 us frozen, 57 us traced, 300 pairs)
-    run = _frozen_round_trip_for(model.name, tuple(sorted(model.options.items())))
+    run = _frozen_for(_round_trip, model)
     with _FREEZE_LOCK, dr.suspend_grad():  # one recording replayed at a time (threads)
         out = run(F(wi.reshape(-1)), F(wo.reshape(-1)), dr.empty(U, n), P)
         dr.eval(out)
@@ -322,31 +329,13 @@ def eval_resident(model, dirs, params, numpy=True):
     return Bound(model, params, dirs.dtype).eval(dirs, numpy)
 
 
-@lru_cache(maxsize=64)
-def _frozen_kernel_for(name, options):
-    """:func:`_kernel` for one model configuration under ``dr.freeze``: the first call per
-    input layout traces and records the kernel launch, later calls replay it with the new
-    inputs (parameters are opaque inputs), skipping Python tracing and Dr.Jit's code
-    generation and hashing (~0.1 ms a call)."""
-    import drjit as dr
-
-    from . import get
-
-    model = get(name, **dict(options))
-
-    def run(wi, wo, P):
-        return _kernel(model, wi, wo, P)
-
-    return dr.freeze(run)
-
-
 def _frozen_kernel(model):
     # _kernel reads only the model's name and options (tables arrive in P). A model whose
     # trace is so short that replaying a recording costs more (the diffuse ones: ~19 us
     # against ~13 us for 1000 pairs) says so (structure.freeze = False).
     if not model.structure.freeze:
         return lambda wi, wo, P: _kernel(model, wi, wo, P)
-    return _frozen_kernel_for(model.name, tuple(sorted(model.options.items())))
+    return _frozen_for(_kernel, model)
 
 
 def jacobian(model, dirs, params, numpy=True):
@@ -414,7 +403,7 @@ def chi2_grad(model, dirs, params, y, w):
     if dirs.n == 0:
         return 0.0, {par.name: (np.zeros(CHANNELS) if par.per_channel else 0.0) for par in model.parameters}
     P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
-    run = _frozen_chi2_for(model.name, tuple(sorted(model.options.items())))  # replayed, as Bound.eval
+    run = _frozen_for(_chi2_sums, model)  # replayed, as Bound.eval
     with _FREEZE_LOCK, dr.suspend_grad():
         sums = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(*sums)
@@ -426,17 +415,6 @@ def chi2_grad(model, dirs, params, y, w):
         grad[par.name] = g if par.per_channel else float(g[0])
         k += m
     return float(vals[0]), grad
-
-
-@lru_cache(maxsize=64)
-def _frozen_chi2_for(name, options):
-    """:func:`_chi2_sums` for one model configuration under ``dr.freeze``."""
-    import drjit as dr
-
-    from . import get
-
-    model = get(name, **dict(options))
-    return dr.freeze(lambda wi, wo, P, y, w: _chi2_sums(model, wi, wo, P, y, w))
 
 
 def _chi2_sums(model, wi, wo, P, y, w):
@@ -506,17 +484,6 @@ def _normal_sums(model, wi, wo, P, y, w):
     return out
 
 
-@lru_cache(maxsize=64)
-def _frozen_normal_for(name, options):
-    """:func:`_normal_sums` for one model configuration under ``dr.freeze``."""
-    import drjit as dr
-
-    from . import get
-
-    model = get(name, **dict(options))
-    return dr.freeze(lambda wi, wo, P, y, w: _normal_sums(model, wi, wo, P, y, w))
-
-
 def normal_equations(model, dirs, params, y, w):
     """The weighted least-squares normal equations at ``params``, reduced in one kernel that
     stores nothing per pair: what Gauss-Newton and Levenberg-Marquardt need per iteration,
@@ -548,7 +515,7 @@ def normal_equations(model, dirs, params, y, w):
     # replayed (measured 0.05 ms a call at 3000 pairs against ~0.4 ms traced); a new
     # recording is made per alignment of the data's mapped memory (each its own kernel,
     # compiled once, then in Dr.Jit's kernel cache)
-    run = _frozen_normal_for(model.name, tuple(sorted(model.options.items())))
+    run = _frozen_for(_normal_sums, model)
     with _FREEZE_LOCK, dr.suspend_grad():
         sums = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(*sums)
@@ -577,17 +544,6 @@ def _sse_sum(model, wi, wo, P, y, w):
     return target
 
 
-@lru_cache(maxsize=64)
-def _frozen_sse_for(name, options):
-    """:func:`_sse_sum` for one model configuration under ``dr.freeze``."""
-    import drjit as dr
-
-    from . import get
-
-    model = get(name, **dict(options))
-    return dr.freeze(lambda wi, wo, P, y, w: _sse_sum(model, wi, wo, P, y, w))
-
-
 def weighted_sse(model, dirs, params, y, w):
     """sum w (f_r - y)^2 over pairs and channels in one kernel that stores nothing per pair
     (the cost of :func:`normal_equations` alone: a Levenberg-Marquardt trial step's). NaN
@@ -600,7 +556,7 @@ def weighted_sse(model, dirs, params, y, w):
     if dirs.n == 0:
         return 0.0
     P, _ = _param_vars(model, p, dirs.F, grad=False)
-    run = _frozen_sse_for(model.name, tuple(sorted(model.options.items())))
+    run = _frozen_for(_sse_sum, model)
     with _FREEZE_LOCK, dr.suspend_grad():
         out = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(out)
