@@ -451,6 +451,12 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     from gonio.fitting import DataError
+    from gonio.models import fast
+
+    problem = fast.env_problem()
+    if problem is not None:              # before any work: Dr.Jit reads them at its first kernel
+        _say(f"gonio: error: {problem}")
+        return EXIT_REFUSED
 
     try:
         rc = args.func(args)

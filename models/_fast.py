@@ -48,8 +48,9 @@ from ._base import CHANNELS, eval_inputs
 from ._fast_affine import affine_parts, affine_q, affine_spec, affine_tables, prepare
 from ._jit import Directions, JitContext, _dr
 from ._jit import _fresnel_conductor  # noqa: F401  (tests check its derivatives as fast._fresnel_conductor)
+from ._jit_target import env_problem
 
-__all__ = ["available", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad",
+__all__ = ["available", "env_problem", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad",
            "normal_equations", "weighted_sse",
            "affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
 
@@ -78,7 +79,7 @@ def available():
         return False
     from ._jit_target import apply_env
 
-    apply_env()  # GONIO_LLVM_TARGET, before this process compiles its first kernel
+    apply_env()  # GONIO_THREADS, GONIO_LLVM_TARGET: before this process compiles its first kernel
     return True
 
 

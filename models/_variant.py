@@ -77,7 +77,7 @@ def mitsuba_variant():
         if _chosen.startswith("llvm"):
             from ._jit_target import apply_env
 
-            apply_env()  # GONIO_LLVM_TARGET, before Mitsuba compiles its first kernel
+            apply_env()  # GONIO_THREADS, GONIO_LLVM_TARGET: before Mitsuba compiles its first kernel
     elif mi.variant() != _chosen:
         mi.set_variant(_chosen)
     return _chosen

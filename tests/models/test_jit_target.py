@@ -80,3 +80,30 @@ def test_this_run_compiles_for_the_requested_target():
         assert width >= 4
     else:
         assert (cpu, width) == (TARGETS[name][0], TARGETS[name][2])
+
+
+def test_thread_count_from_the_environment(monkeypatch):
+    """GONIO_THREADS sets Dr.Jit's pool; a bad value is one line before any work (exit 2)."""
+    from gonio.models._jit_target import apply_threads, env_problem
+
+    pytest.importorskip("drjit")
+    import drjit as dr
+
+    before = dr.thread_count()
+    monkeypatch.setenv("GONIO_THREADS", "3")
+    try:
+        assert env_problem() is None and apply_threads() == 3 and dr.thread_count() == 3
+    finally:
+        dr.set_thread_count(before)
+    for bad in ("0", "-2", "two", "1e3", "5000"):
+        monkeypatch.setenv("GONIO_THREADS", bad)
+        assert env_problem() == f"GONIO_THREADS = {bad!r}: give a whole number of threads from 1 to 1024; or unset it"
+        with pytest.raises(ValueError, match="^GONIO_THREADS"):
+            apply_threads()
+    monkeypatch.setenv("GONIO_THREADS", "0")
+    r = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "settings", "show"], capture_output=True,
+                       text=True, env=dict(os.environ), timeout=120)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "GONIO_THREADS = '0'" in r.stderr, r.stderr
+    monkeypatch.delenv("GONIO_THREADS")
+    monkeypatch.setenv("GONIO_LLVM_TARGET", "avx1024")
+    assert env_problem().startswith("GONIO_LLVM_TARGET: unknown LLVM target 'avx1024'")
