@@ -44,7 +44,9 @@ Adobe (2012). Digital Negative (DNG) Specification 1.4.0.0, "Mapping Camera Colo
 from __future__ import annotations
 
 import functools
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -57,11 +59,39 @@ DEFAULT_CAMERA = "Nikon 5100 (NPL)"
 _SHAPE = (380.0, 780.0, 5.0)
 
 
-def srgb_matrices() -> tuple[np.ndarray, np.ndarray]:
-    """colour-science's linear sRGB -> XYZ matrix (D65, from the IEC 61966-2-1 primaries) and its inverse."""
+#: colour-science's numbers that every simulated capture needs (the sRGB matrix, the Bradford
+#: D65 -> D50 adaptation, the default camera's ``A`` and ``N``), tabulated so that starting the
+#: simulator does not import colour-science, which imports matplotlib (1.5 s of a 6 s quick
+#: capture). Written by ``python -m gonio.sim._colour --tabulate`` from colour-science itself
+#: (:func:`computed_tables`); tests/sim/test_sim_colour.py checks that the stored values equal a
+#: fresh computation with the installed colour-science.
+TABLES = Path(__file__).parent / "data" / "colour_tables.json"
+
+
+@functools.lru_cache(maxsize=1)
+def _tables() -> dict:
+    return json.loads(TABLES.read_text(encoding="utf-8"))
+
+
+def computed_tables() -> dict:
+    """What :data:`TABLES` holds, computed now with colour-science."""
     import colour
 
     to_xyz = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ, float)
+    white = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]
+    cat = colour.adaptation.matrix_chromatic_adaptation_VonKries(
+        colour.xy_to_XYZ(white["D65"]), colour.xy_to_XYZ(white["D50"]), transform="Bradford")
+    cam = _camera_colour_computed(DEFAULT_CAMERA)
+    return {"colour_science": colour.__version__,
+            "srgb_to_xyz": to_xyz.tolist(),
+            "bradford_d65_to_d50": np.asarray(cat, float).tolist(),
+            "cameras": {DEFAULT_CAMERA: {"balanced": cam.balanced.tolist(), "neutral": cam.neutral.tolist()}}}
+
+
+def srgb_matrices() -> tuple[np.ndarray, np.ndarray]:
+    """colour-science's linear sRGB -> XYZ matrix (D65, from the IEC 61966-2-1 primaries; tabulated
+    in :data:`TABLES`) and its inverse."""
+    to_xyz = np.array(_tables()["srgb_to_xyz"], float)
     return to_xyz, np.linalg.inv(to_xyz)        # the exact inverse (colour ships IEC's rounded one)
 
 
@@ -100,14 +130,10 @@ class CameraColour:
 
     @property
     def forward_matrix(self) -> np.ndarray:
-        """DNG ForwardMatrix1: white-balanced camera RGB -> XYZ of the D50 PCS (Bradford)."""
-        import colour
-
-        cat = colour.adaptation.matrix_chromatic_adaptation_VonKries(
-            colour.xy_to_XYZ(colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]),
-            colour.xy_to_XYZ(colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D50"]),
-            transform="Bradford")
-        return np.asarray(cat, float) @ srgb_matrices()[0] @ self.srgb_from_cam
+        """DNG ForwardMatrix1: white-balanced camera RGB -> XYZ of the D50 PCS (Bradford, as
+        colour-science computes it; tabulated in :data:`TABLES`)."""
+        cat = np.array(_tables()["bradford_d65_to_d50"], float)
+        return cat @ srgb_matrices()[0] @ self.srgb_from_cam
 
     def white_balanced(self, sd) -> np.ndarray:
         """White-balanced camera RGB of a reflectance spectrum (or a multi-spectral set) under D65,
@@ -137,11 +163,19 @@ def _spectral(name: str) -> tuple[np.ndarray, np.ndarray]:
 
 @functools.lru_cache(maxsize=4)
 def camera_colour(name: str = DEFAULT_CAMERA) -> CameraColour:
-    """The :class:`CameraColour` of a camera colour-science ships sensitivities of (or ``"identity"``)."""
-    import colour
-
+    """The :class:`CameraColour` of a camera colour-science ships sensitivities of (or
+    ``"identity"``); the default camera's from :data:`TABLES`."""
     if name == "identity":
         return IDENTITY_CAMERA
+    stored = _tables()["cameras"].get(name)
+    if stored is not None:
+        return CameraColour(name, np.array(stored["balanced"], float), np.array(stored["neutral"], float))
+    return _camera_colour_computed(name)
+
+
+def _camera_colour_computed(name: str) -> CameraColour:
+    import colour
+
     sens, illum = _spectral(name)
     basis = _align(colour.recovery.MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019)
     raw = sens.T @ (illum[:, None] * basis)          # raw[k, j] = integral S_k D65 B_j
@@ -223,3 +257,14 @@ def chart_radiance(camera: CameraColour, height: int, width: int) -> np.ndarray:
                   & (xx > left + CHART_BORDER * cw) & (xx < left + (1 - CHART_BORDER) * cw))
         img[inside] = patches[k] * camera.neutral / np.pi
     return img
+
+
+if __name__ == "__main__":  # python -m gonio.sim._colour --tabulate: rewrite TABLES from colour-science
+    import sys
+
+    from gonio.models.atomic import atomic_open
+
+    if sys.argv[1:] != ["--tabulate"]:
+        sys.exit("usage: python -m gonio.sim._colour --tabulate")
+    with atomic_open(TABLES, "w") as fh:
+        fh.write(json.dumps(computed_tables(), indent=1) + "\n")

@@ -8,7 +8,7 @@ import pytest
 import rawpy
 
 from gonio.sim import SensorModel
-from gonio.sim._colour import camera_colour, luther_error, mallett_fidelity, srgb_matrices
+from gonio.sim._colour import TABLES, camera_colour, computed_tables, luther_error, mallett_fidelity, srgb_matrices
 from gonio.sim._sensor import encode_dng
 
 NIKON = camera_colour("Nikon 5100 (NPL)")
@@ -20,6 +20,28 @@ def test_the_camera_matrix_is_a_real_cameras_not_the_identity():
     assert np.abs(a - np.eye(3)).max() > 0.2                          # the D5100 mixes channels strongly
     assert NIKON.neutral.max() == 1.0 and NIKON.neutral.min() < 0.7  # red is ~0.58 of green under D65
     assert camera_colour("identity").balanced.tolist() == np.eye(3).tolist()
+
+
+def test_the_tabulated_colour_numbers_are_colour_sciences():
+    """sim/data/colour_tables.json (read by every simulated capture instead of importing
+    colour-science) holds exactly what the installed colour-science computes; a new release
+    that changes a number fails here: rewrite it with ``python -m gonio.sim._colour --tabulate``."""
+    import json
+    import subprocess
+    import sys
+
+    stored, fresh = json.loads(TABLES.read_text()), computed_tables()
+    assert stored.keys() == fresh.keys() and stored["cameras"].keys() == fresh["cameras"].keys()
+    for key in ("srgb_to_xyz", "bradford_d65_to_d50"):
+        np.testing.assert_allclose(stored[key], fresh[key], rtol=1e-15, atol=0, err_msg=key)
+    for name, cam in fresh["cameras"].items():
+        for key, value in cam.items():
+            np.testing.assert_allclose(stored["cameras"][name][key], value, rtol=1e-15, atol=0, err_msg=key)
+    # the simulator's start really does without colour-science (and so without matplotlib)
+    probe = ("import sys\nfrom gonio.sim._colour import camera_colour\nc = camera_colour()\n"
+             "c.color_matrix, c.forward_matrix\nprint('colour' in sys.modules, 'matplotlib' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.stdout.split() == ["False", "False"], out.stderr[-2000:]
 
 
 def test_spectral_integration_of_a_mallett_spectrum_equals_the_matrix():
