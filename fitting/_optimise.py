@@ -73,7 +73,7 @@ from ._affine import AffineFit, applicable, single_threaded_blas
 from ._discrepancy import fit_discrepancy
 from ._energy import energy_directions, slsqp_energy
 from ._lm import levenberg_marquardt
-from ._problem import Evaluator, Problem
+from ._problem import NORMAL_LOSSES, Evaluator, Problem
 from ._result import FitResult, jacobian_chi2, laplace, robust_covariance
 from ._space import ParameterSpace
 from ._starts import BASIN_DISTANCE, SCORE_ROWS, START_RATIO, choose_starts, global_starts
@@ -197,6 +197,8 @@ class GeneralFit:
                                          jac=problem.lm_jacobian_u, normal=problem.lm_normal_u,
                                          cost=problem.lm_cost_u if problem.normal_available else None)
                 x = space.from_unit(lm.u)
+                if lm.r is None and loss in NORMAL_LOSSES:  # the cost is the objective: no evaluation
+                    return (x, lm.cost, lm.converged, lm.message)
             return (x, _loss.objective(loss, problem.residuals_x(x)), lm.converged, lm.message)
         except FloatingPointError as exc:
             return (None, np.inf, False, str(exc))
@@ -224,7 +226,7 @@ class GeneralFit:
         cov, undetermined = laplace(J, space)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
 
-        fr = problem.f_x(x)
+        fr = problem.f_x(x, reuse=True)  # the Jacobian's f_r where it had one
         diff = (fr - meas.brdf)[meas.use]
         cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0, 1), fr.shape)[meas.use]
         n_evals = problem.n_evals + (self.scorer.n_evals if self.scorer is not problem else 0)
