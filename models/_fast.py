@@ -383,12 +383,18 @@ def jacobian(model, dirs, params, numpy=True):
         z = np.zeros((0, CHANNELS), dtype=dirs.dtype)
         return z, {par.name: z.copy() for par in model.parameters}
     P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
-    with dr.suspend_grad():
-        f, J = _kernel(model, dirs.wi, dirs.wo, P, grad=True)
+    run = _frozen_for(_jacobian_kernel, model)  # replayed, as Bound.eval (traced: ~1 ms a call)
+    with _FREEZE_LOCK, dr.suspend_grad():
+        f, J = run(dirs.wi, dirs.wo, P)
         dr.eval(*f, *(t for ts in J.values() for t in ts))
     if not numpy:
         return f, J
     return _to_numpy(f, n), {k: _to_numpy(v, n) for k, v in J.items()}
+
+
+def _jacobian_kernel(model, wi, wo, P):
+    """(f, J) of :func:`_kernel` with derivatives, for :func:`_frozen`."""
+    return _kernel(model, wi, wo, P, grad=True)
 
 
 def chi2_grad(model, dirs, params, y, w):

@@ -459,13 +459,15 @@ class Directions:
         wi, wo = as_directions(wi, "wi"), as_directions(wo, "wo")
         if wi.shape != wo.shape:
             raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
-        ok = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
-        down = np.array([0.0, 0.0, -1.0])
+        if not (np.isfinite(wi).all() and np.isfinite(wo).all()):  # (rows only then: 25x slower)
+            ok = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
+            down = np.array([0.0, 0.0, -1.0])
+            wi, wo = np.where(ok[:, None], wi, down), np.where(ok[:, None], wo, down)
         self.n = wi.shape[0]
         self.dtype = dtype
         self.F = F
-        self.wi = V3(np.ascontiguousarray(np.where(ok[:, None], wi, down).T, dtype=dtype))
-        self.wo = V3(np.ascontiguousarray(np.where(ok[:, None], wo, down).T, dtype=dtype))
+        self.wi = V3(np.ascontiguousarray(wi.T, dtype=dtype))
+        self.wo = V3(np.ascontiguousarray(wo.T, dtype=dtype))
         dr.make_opaque(self.wi, self.wo)
 
     def __len__(self):
