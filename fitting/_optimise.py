@@ -5,7 +5,10 @@ Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.speed`):
 * **Evaluation.** f_r comes from :mod:`gonio.models.fast` (Dr.Jit LLVM kernels, float64,
   the directions loaded once per fit; for ``roughplastic`` a new (alpha, eta) costs ~4 ms
   there against ~50 ms in the numpy reference) where it is available and agrees with
-  ``model.eval``; otherwise from ``model.eval``. Derivatives are exact there: the kernels
+  ``model.eval``; otherwise from ``model.eval``. Where the steps come from the compiled
+  normal equations (below) the compiled path runs at any number of points; the others use
+  it from 500 points (:data:`gonio.fitting._problem.FAST_MIN_POINTS`: the problem's shape
+  decides; ``gonio bench fit`` prints the crossover). Derivatives are exact there: the kernels
   compute f_r and d f_r / d parameter together (:func:`gonio.models.fast.jacobian`, one
   call for all parameters, 3-5x an evaluation), chained through the loss and the unit box.
   On the numpy path they are forward differences.
@@ -28,7 +31,10 @@ Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.speed`):
   ``dr.freeze``): no N x P Jacobian per iteration, so the iterations' memory does not grow
   with the parameters (``gonio bench fit`` fits 1e6 points and reports its peak RSS), and
   roughconductor's local stage at 1e4 points fell from 85 to 14 ms of CPU (measured with one
-  Dr.Jit thread). BLAS is held to one thread during a fit (its pool fights Dr.Jit's).
+  Dr.Jit thread). Up to 2e4 points a trial step is costed by the same kernel, so that an
+  accepted step brings the next step's equations: one kernel call per iteration
+  (roughconductor's default-first fit: 11 calls, nlopt SLSQP on the same kernel's
+  gradient ~47). BLAS is held to one thread during a fit (its pool fights Dr.Jit's).
 * **Energy.** For models that can create energy, ``albedo(wo_k) <= 1`` (each channel, fixed
   outgoing directions) is a nonlinear inequality constraint: when the unconstrained optimum
   violates it, nlopt's SLSQP (Kraft 1988) polishes the full parameter vector under the
