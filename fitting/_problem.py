@@ -149,6 +149,7 @@ class _Problem:
         self._last = (None, None)
         self._normal_data = None
         self._normal_last = None
+        self._normal_index = None
         self._f_last = None
 
     @property
@@ -244,15 +245,18 @@ class _Problem:
             return self._normal_last[1]
         x = self.space.from_unit(u)
         cost, g, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data())
-        where = {e: i for i, e in enumerate(entries)}
+        if self._normal_index is None or self._normal_index[0] != entries:
+            where = {e: i for i, e in enumerate(entries)}
+            try:
+                idx = np.array([where[(e.param, e.channel)] for e in self.space.entries])
+                self._normal_index = (entries, idx, np.ix_(idx, idx))
+            except KeyError:  # a space the kernel's entries do not span
+                self._normal_index = (entries, None, None)
+        _, idx, square = self._normal_index
         gA = None
-        try:
-            idx = [where[(e.param, e.channel)] for e in self.space.entries]
-        except KeyError:  # a space the kernel's entries do not span
-            idx = None
         if idx is not None:
             sc = self.space.dx_du(x)
-            g, A = g[idx] * sc, A[np.ix_(idx, idx)] * np.outer(sc, sc)
+            g, A = g[idx] * sc, A[square] * np.outer(sc, sc)
             if np.all(np.isfinite(g)) and np.all(np.isfinite(A)):
                 gA = (g, A)
         self._normal_last = (key, (cost, gA))
