@@ -14,8 +14,9 @@ sigma = rel * f_r + floor. Optimisers:
   finite-difference Jacobian, bounds) on the same chi^2 residuals with the numpy reference
   ``model.eval``, from the defaults -- what a user of scipy would write, the issue's peer.
 
-Reported per cell (mean over ``reps`` captures; each capture's time the median of
-:data:`REPEAT` runs below 1e5 points): wall time, parameter error
+Reported per cell (mean over ``reps`` captures; below 1e5 points each capture's time is the
+median of :data:`REPEAT` runs, after one untimed run of each optimiser per cell): wall time,
+parameter error
 (RMS over parameters of (x - truth) / CRLB, ~1 at the noise limit), RMSE of f_r against the
 noiseless truth, chi^2/dof, and the efficiency CRLB^2 / MSE (worst parameter) from
 :mod:`gonio.fitting._crlb`.
@@ -148,6 +149,8 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
                 names, bound = crlb(caps[0][0], model, truth)
                 for opt in OPTIMISERS:
                     xs, times, rmses, chi, evals = [], [], [], [], []
+                    if n < 100_000:  # untimed: the kernels recorded for this size (every optimiser)
+                        _run_one(opt, caps[0][0], model, 0, fit)
                     for r, (meas, f_true) in enumerate(caps):
                         runs = [_run_one(opt, meas, model, r, fit) for _ in range(REPEAT if n < 100_000 else 1)]
                         x, _, ne, fr, c, space = runs[0]
