@@ -227,9 +227,17 @@ class GeneralFit:
         else:  # the model conserves energy for every parameter in its bounds (tests/models)
             energy.update(max_albedo=None, holds=True, by_construction=True)
 
-        # ---- Laplace uncertainty from the chi^2 residuals (Fisher information)
-        J, r_chi = jacobian_chi2(problem, x)
-        cov, undetermined = laplace(J, space)
+        # ---- Laplace uncertainty from the chi^2 residuals (Fisher information): J^T J from
+        # the compiled normal equations where they serve (the last step's, no N x P
+        # Jacobian), else from the Jacobian
+        reduced = problem.fisher_chi2(x)
+        if reduced is not None:
+            chi2, fisher = reduced
+            cov, undetermined = laplace(None, space, fisher=fisher)
+        else:
+            J, r_chi = jacobian_chi2(problem, x)
+            chi2 = float(r_chi @ r_chi)
+            cov, undetermined = laplace(J, space)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
 
         fr = problem.f_x(x, reuse=True)  # the Jacobian's f_r where it had one
@@ -238,7 +246,7 @@ class GeneralFit:
         n_evals = problem.n_evals + (self.scorer.n_evals if self.scorer is not problem else 0)
         return FitResult(
             model=self.model, space=space, x=x, std=std, cov=cov, loss=self.loss, objective=float(best_val),
-            chi2=float(r_chi @ r_chi), n_used=meas.n_used, n_evals=int(n_evals),
+            chi2=chi2, n_used=meas.n_used, n_evals=int(n_evals),
             time_s=time.perf_counter() - t0, converged=bool(converged), message=message,
             at_bound=[n for n, b in zip(space.names, space.at_bound(x)) if b],
             undetermined=undetermined, energy=energy,

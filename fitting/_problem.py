@@ -150,6 +150,7 @@ class _Problem:
         self._normal_data = None
         self._normal_last = None
         self._normal_index = None
+        self._fisher_last = None
         self._f_last = None
 
     @property
@@ -253,14 +254,36 @@ class _Problem:
             except KeyError:  # a space the kernel's entries do not span
                 self._normal_index = (entries, None, None)
         _, idx, square = self._normal_index
-        gA = None
+        gA = fisher = None
         if idx is not None:
             sc = self.space.dx_du(x)
-            g, A = g[idx] * sc, A[square] * np.outer(sc, sc)
+            fisher = A[square]
+            g, A = g[idx] * sc, fisher * np.outer(sc, sc)
             if np.all(np.isfinite(g)) and np.all(np.isfinite(A)):
                 gA = (g, A)
         self._normal_last = (key, (cost, gA))
+        self._fisher_last = (np.array(x, dtype=np.float64), cost, fisher)
         return cost, gA
+
+    def fisher_chi2(self, x):
+        """(chi^2, J^T J) at x in natural units from the compiled normal equations (the
+        Fisher information of the chi2 loss, without an N x P Jacobian), or None where they
+        do not serve (another loss, the numpy path, a sum not finite). The last step's
+        equations are reused where they were taken at this x (a converged fit: no kernel)."""
+        if self.loss != "chi2" or not self.normal_available:
+            return None
+        last = self._fisher_last
+        if last is None or not np.array_equal(last[0], x):
+            self._normal_u(self.space.to_unit(x))
+            last = self._fisher_last
+            if not np.array_equal(last[0], x):  # x did not survive the unit box's round trip
+                cost, _, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data())
+                idx = self._normal_index[1]
+                last = (x, cost, None if idx is None else A[np.ix_(idx, idx)])
+        _, cost, fisher = last
+        if fisher is None or not (np.isfinite(cost) and np.all(np.isfinite(fisher))):
+            return None
+        return float(cost), fisher
 
     def normal_data(self):
         """(y, W): the data and the squared residual weights, 0 where a value is not used."""

@@ -158,3 +158,22 @@ def test_a_group_found_clearly_not_affine_is_not_probed_again(monkeypatch):
     ct_meas = simulate(ct, ct.defaults(), np.random.default_rng(2), n=200)
     lin = Problem(ct_meas, ct, ParameterSpace(ct, 3), "chi2", use_fast=False).linear
     assert {g["param"] for g in lin} == {"diffuse_reflectance", "specular_reflectance"}
+
+
+def test_laplace_from_the_normal_equations_equals_the_jacobians():
+    """The general chi2 fit on the compiled path takes its Fisher matrix J^T J (and chi2) from
+    the last step's normal equations, without an N x P Jacobian; the Jacobian's give the
+    same covariance."""
+    from gonio.fitting._result import jacobian_chi2, laplace
+
+    if not gm.fast.available():
+        pytest.skip("Dr.Jit LLVM backend unavailable")
+    model, truth, meas = _conductor_capture(1000, r=2)
+    res = fit(meas, model, rng=np.random.default_rng(0))
+    from gonio.fitting._problem import Problem
+
+    J, r = jacobian_chi2(Problem(meas, model, res.space, "chi2"), res.x)
+    cov, undetermined = laplace(J, res.space)
+    np.testing.assert_allclose(res.cov, cov, rtol=1e-8, atol=0)
+    assert res.chi2 == pytest.approx(float(r @ r), rel=1e-10)
+    assert res.undetermined == undetermined
