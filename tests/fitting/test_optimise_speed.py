@@ -160,16 +160,23 @@ def test_a_group_found_clearly_not_affine_is_not_probed_again(monkeypatch):
     assert {g["param"] for g in lin} == {"diffuse_reflectance", "specular_reflectance"}
 
 
-def test_laplace_from_the_normal_equations_equals_the_jacobians():
+@pytest.mark.parametrize("case", ["roughconductor", "cooktorrance"])
+def test_laplace_from_the_normal_equations_equals_the_jacobians(case):
     """The general chi2 fit on the compiled path takes its Fisher matrix J^T J (and chi2) from
-    the last step's normal equations, without an N x P Jacobian; the Jacobian's give the
-    same covariance."""
+    the normal equations (roughconductor: the last step's), without an N x P Jacobian; the
+    Jacobian's give the same covariance (cooktorrance: variable projection, every
+    parameter's entries)."""
     from gonio.fitting._result import jacobian_chi2, laplace
 
     if not gm.fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
-    model, truth, meas = _conductor_capture(1000, r=2)
+    if case == "roughconductor":
+        model, truth, meas = _conductor_capture(1000, r=2)
+    else:
+        model = gm.get("cooktorrance")
+        meas = simulate(model, model.defaults(), np.random.default_rng(4), n=600)
     res = fit(meas, model, rng=np.random.default_rng(0))
+    assert "drjit-llvm" in res.method
     from gonio.fitting._problem import Problem
 
     J, r = jacobian_chi2(Problem(meas, model, res.space, "chi2"), res.x)
