@@ -5,7 +5,10 @@ Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.speed`):
 * **Evaluation.** f_r comes from :mod:`gonio.models.fast` (Dr.Jit LLVM kernels, float64,
   the directions loaded once per fit; for ``roughplastic`` a new (alpha, eta) costs ~4 ms
   there against ~50 ms in the numpy reference) where it is available and agrees with
-  ``model.eval``; otherwise from ``model.eval``. Derivatives are exact there: the kernels
+  ``model.eval``; otherwise from ``model.eval``. Where the steps come from the compiled
+  normal equations (below) the compiled path runs at any number of points; the others use
+  it from 500 points (:data:`gonio.fitting._problem.FAST_MIN_POINTS`: the problem's shape
+  decides; ``gonio bench fit`` prints the crossover). Derivatives are exact there: the kernels
   compute f_r and d f_r / d parameter together (:func:`gonio.models.fast.jacobian`, one
   call for all parameters, 3-5x an evaluation), chained through the loss and the unit box.
   On the numpy path they are forward differences.
@@ -28,7 +31,10 @@ Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.speed`):
   ``dr.freeze``): no N x P Jacobian per iteration, so the iterations' memory does not grow
   with the parameters (``gonio bench fit`` fits 1e6 points and reports its peak RSS), and
   roughconductor's local stage at 1e4 points fell from 85 to 14 ms of CPU (measured with one
-  Dr.Jit thread). BLAS is held to one thread during a fit (its pool fights Dr.Jit's).
+  Dr.Jit thread). Up to 2e4 points a trial step is costed by the same kernel, so that an
+  accepted step brings the next step's equations: one kernel call per iteration
+  (roughconductor's default-first fit: 11 calls, nlopt SLSQP on the same kernel's
+  gradient ~47). BLAS is held to one thread during a fit (its pool fights Dr.Jit's).
 * **Energy.** For models that can create energy, ``albedo(wo_k) <= 1`` (each channel, fixed
   outgoing directions) is a nonlinear inequality constraint: when the unconstrained optimum
   violates it, nlopt's SLSQP (Kraft 1988) polishes the full parameter vector under the
@@ -73,7 +79,7 @@ from ._affine import AffineFit, applicable, single_threaded_blas
 from ._discrepancy import fit_discrepancy
 from ._energy import energy_directions, slsqp_energy
 from ._lm import levenberg_marquardt
-from ._problem import Evaluator, Problem
+from ._problem import NORMAL_LOSSES, Evaluator, Problem
 from ._result import FitResult, jacobian_chi2, laplace, robust_covariance
 from ._space import ParameterSpace
 from ._starts import BASIN_DISTANCE, SCORE_ROWS, START_RATIO, choose_starts, global_starts
@@ -197,6 +203,8 @@ class GeneralFit:
                                          jac=problem.lm_jacobian_u, normal=problem.lm_normal_u,
                                          cost=problem.lm_cost_u if problem.normal_available else None)
                 x = space.from_unit(lm.u)
+                if lm.r is None and loss in NORMAL_LOSSES:  # the cost is the objective: no evaluation
+                    return (x, lm.cost, lm.converged, lm.message)
             return (x, _loss.objective(loss, problem.residuals_x(x)), lm.converged, lm.message)
         except FloatingPointError as exc:
             return (None, np.inf, False, str(exc))
@@ -219,18 +227,26 @@ class GeneralFit:
         else:  # the model conserves energy for every parameter in its bounds (tests/models)
             energy.update(max_albedo=None, holds=True, by_construction=True)
 
-        # ---- Laplace uncertainty from the chi^2 residuals (Fisher information)
-        J, r_chi = jacobian_chi2(problem, x)
-        cov, undetermined = laplace(J, space)
+        # ---- Laplace uncertainty from the chi^2 residuals (Fisher information): J^T J from
+        # the compiled normal equations where they serve (the last step's, no N x P
+        # Jacobian), else from the Jacobian
+        reduced = problem.fisher_chi2(x)
+        if reduced is not None:
+            chi2, fisher = reduced
+            cov, undetermined = laplace(None, space, fisher=fisher)
+        else:
+            J, r_chi = jacobian_chi2(problem, x)
+            chi2 = float(r_chi @ r_chi)
+            cov, undetermined = laplace(J, space)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
 
-        fr = problem.f_x(x)
+        fr = problem.f_x(x, reuse=True)  # the Jacobian's f_r where it had one
         diff = (fr - meas.brdf)[meas.use]
         cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0, 1), fr.shape)[meas.use]
         n_evals = problem.n_evals + (self.scorer.n_evals if self.scorer is not problem else 0)
         return FitResult(
             model=self.model, space=space, x=x, std=std, cov=cov, loss=self.loss, objective=float(best_val),
-            chi2=float(r_chi @ r_chi), n_used=meas.n_used, n_evals=int(n_evals),
+            chi2=chi2, n_used=meas.n_used, n_evals=int(n_evals),
             time_s=time.perf_counter() - t0, converged=bool(converged), message=message,
             at_bound=[n for n, b in zip(space.names, space.at_bound(x)) if b],
             undetermined=undetermined, energy=energy,

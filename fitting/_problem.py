@@ -13,13 +13,30 @@ from gonio.models.geometry import directions
 
 from . import _loss
 
-__all__ = ["Evaluator", "Problem", "FAST_MIN_POINTS"]
+__all__ = ["Evaluator", "Problem", "FAST_MIN_POINTS", "NORMAL_LOSSES", "TRIAL_NORMAL_MAX"]
 
-#: Below this many points the compiled kernels' fixed cost (~1 ms a call) exceeds numpy's.
+#: Below this many points a fit that evaluates f_r itself (variable projection, the robust
+#: and log losses: many calls, each handing N x 3 values to numpy) runs faster on numpy
+#: (cooktorrance's variable projection at 100 points: 150 ms on numpy, 270 ms compiled).
 #: A model whose parameter-dependent precomputation is much cheaper compiled declares it
 #: (``model.structure.compile_always``: roughplastic's quadrature tables, ~4 ms in Dr.Jit
-#: against ~50 ms in numpy) and is compiled at any size.
+#: against ~50 ms in numpy) and is compiled at any size; so is every problem whose
+#: Levenberg-Marquardt steps come from the compiled normal equations (:data:`NORMAL_LOSSES`
+#: without variable projection: a few reduced sums per step, nothing per pair handed back;
+#: roughconductor at 100 points: 20 ms compiled, 60 ms on numpy, and the numpy path's global
+#: stage missed the basin of a Beckmann conductor the compiled default-first run finds).
 FAST_MIN_POINTS = 500
+#: Losses whose residual is affine in f_r without a transform: the compiled kernel reduces
+#: their Levenberg-Marquardt normal equations (:meth:`_Problem.lm_normal_u`).
+NORMAL_LOSSES = ("chi2", "cosine")
+#: Up to this many points a Levenberg-Marquardt trial step is costed by the normal-equation
+#: kernel itself, not the cheaper sum of squares: an accepted step (most of them) then
+#: brings the next step's normal equations with it, one kernel call per iteration instead
+#: of two. Below ~1e4 points a call costs its overhead (roughconductor, minimum of 300
+#: calls: 100 points sum of squares 36 us, normal equations 46 us; 1e4: 63 and 146 us);
+#: above, the normal equations' 36 sums dominate (1e5: 0.44 and 1.3 ms; 1e6: 5.5 and 26 ms)
+#: and a rejected trial would waste them.
+TRIAL_NORMAL_MAX = 20_000
 
 
 class Evaluator:
@@ -118,18 +135,34 @@ class _Problem:
         self.linear = []
         self.linear = _linear_groups(self) if linear is None else linear
         self.varpro = bool(self.linear) and loss in ("chi2", "cosine")
+        if (evaluator is None and use_fast is not False and not self.eval.fast and not self.varpro
+                and loss in NORMAL_LOSSES):
+            # the problem's shape decides (see FAST_MIN_POINTS): steps from the compiled
+            # normal equations pay at any number of points
+            compiled = Evaluator(model, meas.wi, meas.wo, meas.n_channels, use_fast=True)
+            if compiled.fast:
+                compiled.n_evals = self.eval.n_evals
+                self.eval = compiled
         lin_idx = sorted(i for g in self.linear for i in g["index"]) if self.varpro else []
         self.nl_idx = np.array([i for i in range(space.size) if i not in lin_idx], dtype=int)
         self._lin_index = np.array(lin_idx, dtype=int)
         self._last = (None, None)
         self._normal_data = None
+        self._normal_last = None
+        self._normal_index = None
+        self._fisher_last = None
+        self._f_last = None
 
     @property
     def n_evals(self):
         return self.eval.n_evals
 
     # -- plain residuals
-    def f_x(self, x):
+    def f_x(self, x, reuse=False):
+        """f_r at x; with ``reuse``, the compiled Jacobian's f_r where the last one was taken
+        at this x (:meth:`residual_jacobian_x`), without another evaluation."""
+        if reuse and self._f_last is not None and np.array_equal(self._f_last[0], x):
+            return self._f_last[1]
         return self.eval(self.space.to_params(x))
 
     def residuals_x(self, x, loss=None):
@@ -157,6 +190,7 @@ class _Problem:
         if out is None:
             return None
         f, J = out
+        self._f_last = (np.array(x, dtype=np.float64), f)
         meas = self.meas
         r = _loss.residuals(loss, f, meas)
         drdf = np.broadcast_to(_loss.residual_derivative(loss, f, meas), f.shape)
@@ -191,7 +225,7 @@ class _Problem:
     @property
     def normal_available(self):
         """Whether :meth:`lm_normal_u` and :meth:`lm_cost_u` use the compiled kernel's sums."""
-        return self.loss in ("chi2", "cosine") and self.eval.fast
+        return self.loss in NORMAL_LOSSES and self.eval.fast
 
     def lm_normal_u(self, u, _r=None):
         """(J^T r, J^T J) of :meth:`lm_residuals_u` at u in the unit box, reduced inside the
@@ -199,21 +233,57 @@ class _Problem:
         N x P Jacobian, in memory independent of N (a 1e6-point fit). For the losses whose
         residual is affine in f_r without a transform (chi2, cosine: r = weight (f - y));
         None elsewhere, on the numpy path or where a sum is not finite (the caller then
-        asks :meth:`lm_jacobian_u`)."""
+        asks :meth:`lm_jacobian_u`). Where :meth:`lm_cost_u` already reduced them at this u
+        (:data:`TRIAL_NORMAL_MAX`), no kernel runs."""
         if not self.normal_available:
             return None
+        return self._normal_u(u)[1]
+
+    def _normal_u(self, u):
+        """(cost, (g, A) or None) at u from one compiled kernel, the last one kept."""
+        key = np.asarray(u, dtype=np.float64).tobytes()
+        if self._normal_last is not None and self._normal_last[0] == key:
+            return self._normal_last[1]
         x = self.space.from_unit(u)
-        _, g, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data())
-        where = {e: i for i, e in enumerate(entries)}
-        try:
-            idx = [where[(e.param, e.channel)] for e in self.space.entries]
-        except KeyError:  # a space the kernel's entries do not span
+        cost, g, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data())
+        if self._normal_index is None or self._normal_index[0] != entries:
+            where = {e: i for i, e in enumerate(entries)}
+            try:
+                idx = np.array([where[(e.param, e.channel)] for e in self.space.entries])
+                self._normal_index = (entries, idx, np.ix_(idx, idx))
+            except KeyError:  # a space the kernel's entries do not span
+                self._normal_index = (entries, None, None)
+        _, idx, square = self._normal_index
+        gA = fisher = None
+        if idx is not None:
+            sc = self.space.dx_du(x)
+            fisher = A[square]
+            g, A = g[idx] * sc, fisher * np.outer(sc, sc)
+            if np.all(np.isfinite(g)) and np.all(np.isfinite(A)):
+                gA = (g, A)
+        self._normal_last = (key, (cost, gA))
+        self._fisher_last = (np.array(x, dtype=np.float64), cost, fisher)
+        return cost, gA
+
+    def fisher_chi2(self, x):
+        """(chi^2, J^T J) at x in natural units from the compiled normal equations (the
+        Fisher information of the chi2 loss, without an N x P Jacobian), or None where they
+        do not serve (another loss, the numpy path, a sum not finite). The last step's
+        equations are reused where they were taken at this x (a converged fit: no kernel)."""
+        if self.loss != "chi2" or not self.normal_available:
             return None
-        s = self.space.dx_du(x)
-        g, A = g[idx] * s, A[np.ix_(idx, idx)] * np.outer(s, s)
-        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(A))):
+        last = self._fisher_last
+        if last is None or not np.array_equal(last[0], x):
+            self._normal_u(self.space.to_unit(x))
+            last = self._fisher_last
+            if not np.array_equal(last[0], x):  # x did not survive the unit box's round trip
+                cost, _, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data())
+                idx = self._normal_index[1]
+                last = (x, cost, None if idx is None else A[np.ix_(idx, idx)])
+        _, cost, fisher = last
+        if fisher is None or not (np.isfinite(cost) and np.all(np.isfinite(fisher))):
             return None
-        return g, A
+        return float(cost), fisher
 
     def normal_data(self):
         """(y, W): the data and the squared residual weights, 0 where a value is not used."""
@@ -228,7 +298,10 @@ class _Problem:
         vector), for the losses :meth:`lm_normal_u` serves; FloatingPointError where f_r is
         not finite, as :meth:`residuals_x`."""
         x = self.space.from_unit(u)
-        cost = self.eval.sse(self.space.to_params(x), *self.normal_data())
+        if self.normal_available and self.meas.n_points <= TRIAL_NORMAL_MAX:
+            cost = self._normal_u(u)[0]  # the next step's normal equations come with it
+        else:
+            cost = self.eval.sse(self.space.to_params(x), *self.normal_data())
         if cost is None:  # numpy path: the residual vector
             r = self.lm_residuals_u(u)
             return float(r @ r)
@@ -345,17 +418,38 @@ def _linear_groups(problem):
     if not groups:
         return []
     test_u = (np.full(space.size, 0.37), np.full(space.size, 0.61))
+    model = problem.model
+    where = (model.name, tuple(sorted((k, str(v)) for k, v in model.options.items())), space.n_channels,
+             tuple(space.names), tuple(sorted((k, str(v)) for k, v in space.fixed.items())))
     accepted = []
     for name, index in groups.items():
         lo, hi = space.lower[index[0]], space.upper[index[0]]
         v0, v1 = lo + 0.2 * (hi - lo), lo + 0.8 * (hi - lo)
         g = {"param": name, "index": list(index), "v0": float(v0), "v1": float(v1)}
-        if all(_affine_ok(problem, u, accepted + [g]) for u in test_u):
+        key = where + (tuple(a["param"] for a in accepted), name)
+        if key in _NOT_AFFINE:
+            continue
+        verdicts = [_affine_ok(problem, u, accepted + [g]) for u in test_u]
+        if all(v is True for v in verdicts):
             accepted.append(g)
+        elif "clearly not" in verdicts:
+            _NOT_AFFINE.add(key)
     return accepted
 
 
+#: (model configuration, parameter space, groups accepted before, group) found clearly not
+#: affine once: f_r is then not affine in that group as a function, whatever the directions,
+#: so later fits skip its probe (roughconductor's eta and k: 8 of a 1000-point fit's ~30
+#: evaluations). Only a clear failure is remembered (a deviation above 1e-6 of the scale,
+#: a thousand times the test's tolerance); an affine verdict is data-dependent (data where
+#: f_r = 0 pass any test) and is probed every time.
+_NOT_AFFINE: set = set()
+
+
 def _affine_ok(problem, u, gs):
+    """True when f_r is affine in the groups ``gs`` jointly at unit point ``u`` (to 1e-9 of
+    its scale); False otherwise, or the string "clearly not" where it deviates by more than
+    1e-6 of the scale (a property of the function, not of these data)."""
     space = problem.space
     x = space.from_unit(u)
     try:
@@ -374,5 +468,10 @@ def _affine_ok(problem, u, gs):
         f = problem.f_x(xt)
     except (ValueError, FloatingPointError):
         return False
+    if not np.all(np.isfinite(f)):
+        return False
     scale = max(float(np.max(np.abs(f))), 1e-300)
-    return bool(np.all(np.isfinite(f)) and np.max(np.abs(f - pred)) <= 1e-9 * scale)
+    dev = float(np.max(np.abs(f - pred)))
+    if dev <= 1e-9 * scale:
+        return True
+    return "clearly not" if dev > 1e-6 * scale and np.all(np.isfinite(pred)) else False

@@ -195,9 +195,10 @@ def jacobian_chi2(problem, x, rel_step=1e-5):
     return J, r0
 
 
-def laplace(J, space, cond_limit=1e12):
-    """Covariance (J^T J)^-1 and the names of parameters the data does not determine."""
-    fisher = J.T @ J
+def laplace(J, space, cond_limit=1e12, fisher=None):
+    """Covariance (J^T J)^-1 and the names of parameters the data does not determine
+    (``fisher``: J^T J itself, where it was reduced without J)."""
+    fisher = J.T @ J if fisher is None else fisher
     width = space.upper - space.lower
     # Scale to unit diagonal so the condition number measures correlation, not units.
     d = np.sqrt(np.clip(np.diag(fisher), 1e-300, None))

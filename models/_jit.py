@@ -459,13 +459,16 @@ class Directions:
         wi, wo = as_directions(wi, "wi"), as_directions(wo, "wo")
         if wi.shape != wo.shape:
             raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
-        ok = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
-        down = np.array([0.0, 0.0, -1.0])
+        if not (np.isfinite(wi).all() and np.isfinite(wo).all()):  # (rows only then: 25x slower)
+            ok = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
+            down = np.array([0.0, 0.0, -1.0])
+            wi, wo = np.where(ok[:, None], wi, down), np.where(ok[:, None], wo, down)
         self.n = wi.shape[0]
         self.dtype = dtype
         self.F = F
-        self.wi = V3(np.ascontiguousarray(np.where(ok[:, None], wi, down).T, dtype=dtype))
-        self.wo = V3(np.ascontiguousarray(np.where(ok[:, None], wo, down).T, dtype=dtype))
+        # in Dr.Jit's own memory, as for channels(): a new alignment records the kernels again
+        self.wi = dr.copy(V3(np.ascontiguousarray(wi.T, dtype=dtype)))
+        self.wo = dr.copy(V3(np.ascontiguousarray(wo.T, dtype=dtype)))
         dr.make_opaque(self.wi, self.wo)
 
     def __len__(self):
@@ -481,7 +484,11 @@ class Directions:
             raise ValueError(f"{name} must have shape ({self.n}, {CHANNELS}), got {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name} contains NaN or inf")
-        out = [self.F(np.ascontiguousarray(a[:, c], dtype=self.dtype)) for c in range(CHANNELS)]
+        # copied into Dr.Jit's own (aligned) memory: an array mapped from numpy's keeps numpy's
+        # alignment, which differs from array to array, and every new alignment made the
+        # frozen kernels (fast._frozen) record again (a roughconductor fit: ~3 recordings
+        # of ~1-5 ms each, every fit, with new data or weights)
+        out = [dr.copy(self.F(np.ascontiguousarray(a[:, c], dtype=self.dtype))) for c in range(CHANNELS)]
         dr.make_opaque(*out)
         return out
 

@@ -91,3 +91,96 @@ def test_conductor_fits_reach_the_noise_limit_with_exact_derivatives():
             assert res.chi2_dof < 1.3, (r, kw, res.chi2_dof, res.x)
             pull = (res.x - res.space.from_params(model.validate(truth))) / res.std
             assert np.all(np.abs(pull) < 4.0), (r, kw, pull)
+
+
+def _conductor_capture(n, r=0, rel=0.01):
+    import gonio.models as gm
+    from gonio.fitting.speed import MODELS, simulate_capture
+
+    name, options, truth = MODELS[1]
+    model = gm.get(name, **options)
+    truth = {k: np.asarray(v, dtype=np.float64) if isinstance(v, list) else v for k, v in truth.items()}
+    return model, truth, simulate_capture(model, truth, n, np.random.default_rng([3, n, r]), rel)[0]
+
+
+@pytest.mark.parametrize("n", [60, 100])
+def test_small_conductor_fit_chosen_by_shape_equals_the_numpy_path(n):
+    """Below FAST_MIN_POINTS a chi2 problem without variable projection runs on the compiled
+    normal equations (the problem's shape decides, issue 18); the numpy path it replaced
+    finds the same optimum and the same Laplace uncertainty."""
+    from gonio.fitting._problem import FAST_MIN_POINTS
+
+    if not gm.fast.available():
+        pytest.skip("Dr.Jit LLVM backend unavailable")
+    assert n < FAST_MIN_POINTS
+    model, truth, meas = _conductor_capture(n)
+    ours = fit(meas, model, rng=np.random.default_rng(0))
+    slow = fit(meas, model, rng=np.random.default_rng(0), use_fast=False)
+    assert "[drjit-llvm]" in ours.method and "[numpy]" in slow.method
+    assert ours.n_evals < slow.n_evals
+    assert abs(ours.chi2 - slow.chi2) <= 1e-4 * slow.chi2
+    assert np.all(np.abs(ours.x - slow.x) <= 0.05 * ours.std), (ours.x - slow.x) / ours.std  # ends within LM's tolerance
+    np.testing.assert_allclose(ours.std, slow.std, rtol=1e-2)
+
+
+def test_trial_steps_costed_by_normal_equations_equal_the_sum_of_squares(monkeypatch):
+    """Up to TRIAL_NORMAL_MAX points a trial step is costed by the normal-equation kernel
+    (whose sums the next step reuses); the same fit costed by the sum-of-squares kernel
+    takes the same steps to the same optimum, with one more kernel call per iteration."""
+    from gonio.fitting import _problem
+
+    if not gm.fast.available():
+        pytest.skip("Dr.Jit LLVM backend unavailable")
+    model, truth, meas = _conductor_capture(1000, r=1)
+    a = fit(meas, model, rng=np.random.default_rng(0))
+    monkeypatch.setattr(_problem, "TRIAL_NORMAL_MAX", 0)
+    b = fit(meas, model, rng=np.random.default_rng(0))
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-6 * a.std.min())
+    assert a.chi2 == pytest.approx(b.chi2, rel=1e-9)
+    assert a.n_evals < b.n_evals
+
+
+def test_a_group_found_clearly_not_affine_is_not_probed_again(monkeypatch):
+    """roughconductor's eta and k fail the affinity probe clearly: a second problem of the
+    same model and space skips the probe (no evaluation), while cooktorrance's reflectances
+    are still probed and found affine."""
+    from gonio.fitting import ParameterSpace, _problem
+    from gonio.fitting._problem import Problem
+
+    monkeypatch.setattr(_problem, "_NOT_AFFINE", set())  # as in a fresh process
+    model, truth, meas = _conductor_capture(200)
+    space = ParameterSpace(model, 3)
+    first = Problem(meas, model, space, "chi2", use_fast=False)
+    second = Problem(meas, model, space, "chi2", use_fast=False)
+    assert first.linear == [] and second.linear == []
+    assert second.n_evals == 0 < first.n_evals
+    ct = gm.get("cooktorrance")
+    ct_meas = simulate(ct, ct.defaults(), np.random.default_rng(2), n=200)
+    lin = Problem(ct_meas, ct, ParameterSpace(ct, 3), "chi2", use_fast=False).linear
+    assert {g["param"] for g in lin} == {"diffuse_reflectance", "specular_reflectance"}
+
+
+@pytest.mark.parametrize("case", ["roughconductor", "cooktorrance"])
+def test_laplace_from_the_normal_equations_equals_the_jacobians(case):
+    """The general chi2 fit on the compiled path takes its Fisher matrix J^T J (and chi2) from
+    the normal equations (roughconductor: the last step's), without an N x P Jacobian; the
+    Jacobian's give the same covariance (cooktorrance: variable projection, every
+    parameter's entries)."""
+    from gonio.fitting._result import jacobian_chi2, laplace
+
+    if not gm.fast.available():
+        pytest.skip("Dr.Jit LLVM backend unavailable")
+    if case == "roughconductor":
+        model, truth, meas = _conductor_capture(1000, r=2)
+    else:
+        model = gm.get("cooktorrance")
+        meas = simulate(model, model.defaults(), np.random.default_rng(4), n=600)
+    res = fit(meas, model, rng=np.random.default_rng(0))
+    assert "drjit-llvm" in res.method
+    from gonio.fitting._problem import Problem
+
+    J, r = jacobian_chi2(Problem(meas, model, res.space, "chi2"), res.x)
+    cov, undetermined = laplace(J, res.space)
+    np.testing.assert_allclose(res.cov, cov, rtol=1e-8, atol=0)
+    assert res.chi2 == pytest.approx(float(r @ r), rel=1e-10)
+    assert res.undetermined == undetermined
