@@ -199,6 +199,15 @@ _FREEZE_LOCK = threading.Lock()
 EVAL_BLOCK = 1 << 20
 
 
+#: Recordings kept per frozen function (least recently used dropped). Dr.Jit records again
+#: when the inputs' configuration changes, and a public ``Model.eval`` of numpy-mapped arrays
+#: of a new size is often one (measured: 40 sizes, 40 recordings): without a limit the kernels
+#: of every size ever seen stay in memory, and from the 11th Dr.Jit printed a warning
+#: addressed to the developer of the frozen function to the user of ``Model.eval``.
+FREEZE_LIMIT = 24
+_NEVER = 2 ** 31 - 1
+
+
 @lru_cache(maxsize=256)
 def _frozen(fn, name, options):
     """``fn(model, *inputs)`` for one model configuration under ``dr.freeze``: the first call
@@ -210,7 +219,7 @@ def _frozen(fn, name, options):
     from . import get
 
     model = get(name, **dict(options))
-    return dr.freeze(lambda *inputs: fn(model, *inputs))
+    return dr.freeze(lambda *inputs: fn(model, *inputs), limit=FREEZE_LIMIT, warn_after=_NEVER)
 
 
 def _frozen_for(fn, model):

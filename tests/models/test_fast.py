@@ -353,3 +353,22 @@ def test_jacobian_with_interpolated_tables_matches_reverse_mode(alpha, eta):
         proj = np.sum(cot * J[par.name], axis=0)
         got = proj if par.per_channel else proj.sum()
         np.testing.assert_allclose(got, grad[par.name], rtol=1e-9, err_msg=par.name)
+
+
+def test_eval_at_many_sizes_keeps_bounded_recordings_and_says_nothing(capfd):
+    """Model.eval at 40 new sizes: Dr.Jit records the frozen kernel again for many of them;
+    at most fast.FREEZE_LIMIT recordings are kept, nothing is printed to the user (Dr.Jit
+    warned from the 11th recording before), and every value equals the reference."""
+    if not _fast.available():
+        pytest.skip("Dr.Jit's LLVM backend is not available here")
+    m = gm.get("roughconductor", distribution="ggx")
+    rng = np.random.default_rng(402)
+    p = random_params(m, rng)
+    run = _fast._frozen_for(_fast._round_trip, m)
+    for n in range(64, 64 + 40 * 97, 97):
+        wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
+        np.testing.assert_allclose(m.eval(wi, wo, p, backend="drjit"), m.eval_reference(wi, wo, p),
+                                   rtol=1e-10, atol=1e-14)
+    assert run.n_cached_recordings <= _fast.FREEZE_LIMIT
+    out, err = capfd.readouterr()
+    assert "frozen function" not in (out + err).lower(), err[-2000:]
