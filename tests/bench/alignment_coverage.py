@@ -5,8 +5,9 @@
 For each seed: `gonio.bench.calibrate.calibrate` on the virtual instrument with ``[errors]
 preset``, then z = (estimate - truth) / stated u for the yaw and tilt zero offsets, the holder
 tilt (in the azimuth counter's frame), the three backlashes and the detector's gamma. Prints one
-line per seed and, at the end, each parameter's mean z, rms z and largest |z| (an honest u gives
-rms about 1). ``--drivers`` runs the production drivers over the sim:// ports (as
+line per seed and, at the end, each parameter's mean z, rms z with its sampling sd (rms / sqrt(2 n)
+over n seeds) and largest |z| (an honest u gives rms about 1; alignment_chi2 is the alignment
+fit's chi2, 3 degrees of freedom). ``--drivers`` runs the production drivers over the sim:// ports (as
 ``gonio calibrate --sim``) instead of the in-process physics bench (as the test suite).
 The small version of this study is tests/bench/test_calibrate.py (one seed, z-tests at 1e-3).
 """
@@ -73,7 +74,10 @@ def main(argv=None) -> None:
         print(seed, " ".join(f"{k}={v:+.2f}" for k, v in z.items()), flush=True)
     for k in rows[0]:
         v = np.array([r[k] for r in rows])
-        print(f"{k:22s} mean {v.mean():+.2f}  rms {math.sqrt(np.mean(v ** 2)):.2f}  max|.| {np.max(np.abs(v)):.2f}")
+        rms = math.sqrt(np.mean(v ** 2))
+        # rms z over n seeds: relative sd 1 / sqrt(2 n) for normal z (chi2_n / n has variance 2 / n)
+        print(f"{k:22s} mean {v.mean():+.2f}  rms {rms:.2f} +- {rms / math.sqrt(2 * v.size):.2f}  "
+              f"max|.| {np.max(np.abs(v)):.2f}")
 
 
 if __name__ == "__main__":
