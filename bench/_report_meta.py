@@ -240,9 +240,13 @@ def status(meas, planned, fit: Doc | None, partner) -> list[dict]:
         g = fit.need("goodness")
         chi, dof = g.num("chi2_dof"), g.count("dof")
         if g.raw("model_adequate") is False:
+            tail = ("the statistical part of u_c below is Birge-inflated; chi2 weighs the points by their "
+                    "noise alone, so terms of the budget that differ from point to point (angles, stray light) "
+                    "also raise it" if fit.sub("uncertainty") is not None else
+                    "the uncertainties below are Birge-inflated statistical ones and understate the error")
             out.append({"level": "bad", "text": f"Inadequate model: chi2/dof = {chi:.3g} over {dof} degrees of "
-                        "freedom, beyond its 99.9 % point: the model misses the data by more than their noise; "
-                        "the uncertainties below are Birge-inflated statistical ones and understate the error."})
+                        f"freedom, beyond its 99.9 % point: the model misses the data by more than their noise; "
+                        f"{tail}."})
         elif chi is not None:
             out.append({"level": "ok", "text": f"Model adequate: chi2/dof = {chi:.3g} ({dof} dof)."})
         energy = fit.need("constraints").need("energy")

@@ -76,13 +76,17 @@ def _noise_floor(preview: dict) -> float:
     return max(values) if values else float("nan")
 
 
-def _speed_vs_error(meas, result, sample, seed) -> dict:
+def _speed_vs_error(meas, result, sample, seed, doc=None) -> dict:
     """Time and error of gonio's fit and of scipy's least_squares (the peer) on this capture.
 
     Both minimise the same chi^2; the error is the largest |fit - truth| / sigma over the
-    parameters (sigma: gonio's Laplace 1-sigma), so a value below ~3 is at the noise limit.
+    parameters (sigma: the fit document's combined u_c where it has a budget, else gonio's
+    Laplace 1-sigma; with systematic errors the statistical sigma alone says nothing of the
+    truth), so a value below ~3 is at the uncertainty's limit.
     """
     truth = result.space.from_params({k: np.asarray(v, dtype=float) for k, v in sample["params"].items()})
+    unc = ((doc or {}).get("uncertainty") or {}).get("parameters") or {}
+    sigma = np.array([unc[n]["u_combined"] if n in unc else s for n, s in zip(result.space.names, result.std)])
     x_lsq, t_lsq, n_lsq = scipy_lsq(meas, result.model)
     # gonio's fit once more, now that the first one has compiled its kernels in this process:
     # the optimiser's own time, as the peer's numpy has nothing to compile (the first fit's
@@ -94,7 +98,7 @@ def _speed_vs_error(meas, result, sample, seed) -> dict:
         fr = result.model.eval(meas.wi, meas.wo, result.space.to_params(x))
         r = ((fr - meas.brdf) / meas.brdf_std)[meas.use]
         rows.append({"optimiser": name, "time_s": float(seconds), "evaluations": int(evals),
-                     "chi2": float(r @ r), "max_pull": float(np.max(np.abs((x - truth) / result.std))),
+                     "chi2": float(r @ r), "max_pull": float(np.max(np.abs((x - truth) / sigma))),
                      "rmse_fr": float(np.sqrt(np.mean(((fr - meas.brdf)[meas.use]) ** 2)))})
     return {"points": int(meas.n_points), "model": result.model.name, "rows": rows, "seed": seed,
             "versions": versions()}
@@ -183,7 +187,7 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None) -
         timings["posterior (emcee)"] = post.time_s
     write_json_atomic(out / "fit.json", doc)
 
-    speed = _speed_vs_error(meas, result, sample, seed)
+    speed = _speed_vs_error(meas, result, sample, seed, doc)
     write_json_atomic(out / "speed.json", speed)
 
     _step(console, 5, "render: Mitsuba re-render at every measured pose, and sphere previews (fit vs truth)")
@@ -229,7 +233,7 @@ def _print_summary(console, out, session, sample, plan, seed, run) -> dict:
                           ("max pull", "right")],
                 [[row["optimiser"], f"{row['time_s']:.3f}", str(row["evaluations"]), f"{row['chi2']:.2f}",
                   f"{row['max_pull']:.2f}"] for row in speed["rows"]], title="fit speed against error",
-                caption="max pull = max |fit - truth| / sigma over the parameters")
+                caption="max pull = max |fit - truth| / u_c over the parameters")
     if with_truth.get("delta_e_mean") is not None:
         console.print(f"preview: fit vs the true sample, mean CIEDE2000 {with_truth['delta_e_mean']:.2f} "
                       f"(Monte Carlo noise floor {_noise_floor(with_truth):.2f})")
