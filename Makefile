@@ -1,5 +1,5 @@
 # gonio: two commands on a fresh Debian machine.
-#   make demo   full loop on the simulated instrument (capture, export, fit, render, report)
+#   make demo   full loop on the simulated instrument, typical errors (calibrate, capture, export, fit, render, report)
 #   make test   the test suite
 # Each installs what it needs: a virtual environment with gonio and its dependencies at the
 # versions pinned in constraints.txt, and Debian's libllvm19 (Mitsuba's fast LLVM variants)

@@ -69,6 +69,9 @@ def _eval_errors(stage, p, which, d):
     for name, v in zip(which, d):
         if name in ("p0", "p1", "p2", "p3"):
             pp[int(name[1])] += v
+        elif name == "lamp":                 # the lamp zero: the fitted yaw zero is off by half of it
+            ax[3] += v
+            pp[0] += 0.5 * v
         elif name.startswith("axis"):
             ax[int(name[4])] += v
         else:
@@ -83,8 +86,11 @@ def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
     -------
     dict
         ``angles`` (N, 4); ``cov_shared`` (N, 4, 4): the alignment fit's covariance (zero
-        offsets, holder tilt), the lamp arm's surveyed zero and the sample's wedge (not seen by
-        the artefact's scan), the same errors at every point, hence correlated across points;
+        offsets, holder tilt: ``cov_deg2``, the peaks' part), the lamp arm's surveyed zero
+        (``lamp_zero_u_deg``; not identifiable from specular scans, its prior carried as one
+        error that moves the lamp by ``dL`` and the true yaw by ``dL / 2`` from the fitted yaw
+        zero, which absorbed ``-dL / 2``) and the sample's wedge (not seen by the artefact's
+        scan), the same errors at every point, hence correlated across points;
         ``cov_independent`` (N, 4, 4): each move's repeatability and half the backlash, drawn
         anew per point; ``shared_modes`` (N, 4, K): the signed change of each point's angles
         when one of K independent shared errors moves by +1 sigma (``cov_shared`` = sum of the
@@ -97,7 +103,7 @@ def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
     a = cal.get("alignment", {})
     p = _p(cal)
     cov_p = np.asarray(a.get("cov_deg2", np.zeros((4, 4))), float)
-    shared = ["p0", "p1", "p2", "p3", "axis3", "wedge0", "wedge1"]
+    shared = ["p0", "p1", "p2", "p3", "lamp", "wedge0", "wedge1"]
     cs = np.zeros((7, 7))
     cs[:4, :4] = cov_p
     cs[4, 4] = float(a.get("lamp_zero_u_deg", 0.0)) ** 2

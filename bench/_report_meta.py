@@ -132,6 +132,48 @@ def _band(meas) -> str:
     return text
 
 
+def _num(table, key) -> float | None:
+    v = table.get(key) if isinstance(table, dict) else None
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else None
+
+
+def _pm(table, key, fmt=".4f", unit=" deg") -> str:
+    v, u = _num(table, key), _num(table, f"u_{key}")
+    if v is None:
+        return "?"
+    return f"{v:{fmt}}{unit}" if u is None else f"{v:{fmt}} ± {u:{fmt}}{unit}"
+
+
+def _calibration(settings: dict) -> str:
+    """The calibration the session applied (``gonio capture --calibration``), from the settings it
+    merged into: what was estimated and what it corrects; or that none was applied."""
+    cal = settings.get("calibration") if isinstance(settings.get("calibration"), dict) else {}
+    a = settings.get("alignment") if isinstance(settings.get("alignment"), dict) else None
+    if a is None:
+        return ("none applied: the nominal stage angles, no alignment, linearity or reference-factor correction "
+                "(`gonio calibrate`, then `gonio capture --calibration CAL.toml`)")
+    lin = settings.get("linearity") if isinstance(settings.get("linearity"), dict) else {}
+    ref = settings.get("reference") if isinstance(settings.get("reference"), dict) else {}
+    errors = cal.get("errors") if isinstance(cal.get("errors"), dict) else {}
+    made = "the simulated instrument" if cal.get("sim") else "this instrument"
+    if cal.get("sim") and _text(errors.get("preset"), 20):
+        made += f" ({_text(errors.get('preset'), 20)} errors)"
+    head = f"gonio calibrate on {made}, seed {_text(cal.get('seed'), 20) or '?'}"
+    parts = [f"yaw zero {_pm(a, 'yaw_zero_deg')}", f"tilt zero {_pm(a, 'tilt_zero_deg')}",
+             f"holder tilt x {_pm(a, 'holder_tilt_x_deg')}, y {_pm(a, 'holder_tilt_y_deg')}"]
+    if _num(a, "lamp_zero_u_deg") is not None:
+        parts.append(f"lamp-arm zero not identifiable, its surveyed u {_num(a, 'lamp_zero_u_deg'):.3g} deg carried")
+    if _num(lin, "gamma") is not None:
+        parts.append(f"detector non-linearity gamma {_pm(lin, 'gamma', '.5f', '')}")
+    applied = "every point's angles (calibrated, with their u)"
+    if _num(lin, "gamma") is not None:
+        applied += ", the HDR merge's linearisation"
+    if isinstance(ref.get("factor"), list):
+        applied += ", the reference's non-Lambertian factor table"
+    return cut(f"{head}: {'; '.join(parts)}. Applied to {applied}; their uncertainties are components of the "
+               "budget.", 900)
+
+
 def identification(meas, root: Folder, journal) -> dict:
     """Who, what, when, where: rows of (label, text) for the report's first table."""
     attrs = meas.attrs
@@ -165,6 +207,7 @@ def identification(meas, root: Folder, journal) -> dict:
         rows.append((d["role"], d["text"]))
     if not devices:
         rows.append(("Instrument", "no device identification recorded (session journal not in the folder)"))
+    rows.append(("Calibration", _calibration(settings)))
     rows.append(("Software", cut(f"gonio {attrs.get('gonio_version', '?')}, seed {attrs.get('seed', '?')}", 200)))
     return {"rows": rows, "sample_id": sample_id, "planned": n_plan}
 
@@ -197,9 +240,13 @@ def status(meas, planned, fit: Doc | None, partner) -> list[dict]:
         g = fit.need("goodness")
         chi, dof = g.num("chi2_dof"), g.count("dof")
         if g.raw("model_adequate") is False:
+            tail = ("the statistical part of u_c below is Birge-inflated; chi2 weighs the points by their "
+                    "noise alone, so terms of the budget that differ from point to point (angles, stray light) "
+                    "also raise it" if fit.sub("uncertainty") is not None else
+                    "the uncertainties below are Birge-inflated statistical ones and understate the error")
             out.append({"level": "bad", "text": f"Inadequate model: chi2/dof = {chi:.3g} over {dof} degrees of "
-                        "freedom, beyond its 99.9 % point: the model misses the data by more than their noise; "
-                        "the uncertainties below are Birge-inflated statistical ones and understate the error."})
+                        f"freedom, beyond its 99.9 % point: the model misses the data by more than their noise; "
+                        f"{tail}."})
         elif chi is not None:
             out.append({"level": "ok", "text": f"Model adequate: chi2/dof = {chi:.3g} ({dof} dof)."})
         energy = fit.need("constraints").need("energy")

@@ -56,7 +56,7 @@ from .errors import GonioError
 __all__ = ["SimBench", "calibrate", "align", "linearity", "reference_factor", "write_calibration",
            "read_calibration", "merge_calibration", "calibrated_angles", "angle_uncertainty",
            "u_reference_factor", "u_linearity_rel", "u_stray_rel", "instrument_response", "dataset_angles",
-           "GLOSSY_ARTEFACT", "calibrate_cli"]
+           "GLOSSY_ARTEFACT", "run_calibration", "summary", "calibrate_cli"]
 
 #: The glossy artefact of the alignment (a rough metal, GGX alpha 0.1: a lobe of about 7 deg
 #: FWHM, bright enough for 1/8000 s and wide enough for 0.8 deg steps).
@@ -179,8 +179,10 @@ def _exposure_for(bench, stage_deg, settings, target=0.6, which=2):
     return t
 
 
-def _scan(bench, settings, base, axis, xs, exposure):
-    """Ratio sample/reference along ``axis`` (0 yaw, 1 tilt) up then down; peak of each pass."""
+def _scan(bench, settings, base, axis, xs, exposure, repeat_deg=0.0):
+    """Ratio sample/reference along ``axis`` (0 yaw, 1 tilt), one pass up then one down; returns
+    ``(centre, u_centre, backlash, u_backlash)`` (deg, bench/_alignment.fit_passes). Every point
+    is a move of the scanned stage: each abscissa is uncertain by ``repeat_deg``."""
     out = []
     for order in (xs, xs[::-1]):
         pre = list(base)
@@ -193,17 +195,19 @@ def _scan(bench, settings, base, axis, xs, exposure):
             bench.move(s)
             smp, ref, _ = _squares(bench, s, settings, exposure)
             ratio.append(smp / ref)
-        out.append(al.fit_peak(order, ratio)[:2])
-    (up, u_up), (down, u_down) = out
-    return 0.5 * (up + down), 0.5 * math.hypot(u_up, u_down), up - down, math.hypot(u_up, u_down)
+        out.append(np.asarray(ratio))
+    return al.fit_passes(xs, out[0], out[1][::-1], u_x=repeat_deg)
 
 
 def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: float = 0.0) -> dict:
     """Specular cross-scans at four azimuths; returns the ``[alignment]`` table.
 
-    The lamp arm is positioned once per azimuth: its repeatability (``repeat_deg``, the stages'
-    data sheet) moves that azimuth's yaw peak by half of a draw, so half of it adds in
-    quadrature to each yaw peak's uncertainty.
+    ``repeat_deg`` (the stages' data sheet): every scan point is a move of the scanned stage, so
+    each abscissa is uncertain by it (bench/_alignment.fit_peak's effective variance: the
+    flanks, where the centre's information is, are the noisiest points); each peak is fitted to
+    the mean of an up and a down pass (:func:`_scan`). The lamp arm is
+    positioned once per azimuth: its repeatability moves that azimuth's yaw peak by half of a
+    draw, so half of it adds in quadrature to each yaw peak's uncertainty.
     """
     xs0 = np.arange(-SCAN_HALF_DEG, SCAN_HALF_DEG + 1e-9, SCAN_STEP_DEG)
     L = SCAN_LAMP_DEG
@@ -215,9 +219,9 @@ def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: f
         # two: its backlash is then a parameter of the fit, not a bias of the yaw zero
         side = -1.0 if k % 2 == 0 else 1.0
         bench.move([0.5 * L, 0.0, az, L + side])
-        y, uy, by, uby = _scan(bench, settings, centre, 0, 0.5 * L + xs0, t)
+        y, uy, by, uby = _scan(bench, settings, centre, 0, 0.5 * L + xs0, t, repeat_deg)
         y_at = round(y * 2000.0) / 2000.0                           # the microstep grid (720000/rev)
-        tc, utc, bt, ubt = _scan(bench, settings, [y_at, 0.0, az, L], 1, xs0, t)
+        tc, utc, bt, ubt = _scan(bench, settings, [y_at, 0.0, az, L], 1, xs0, t, repeat_deg)
         peaks.append({"azimuth": az, "lamp": L, "yaw": y, "u_yaw": math.hypot(uy, 0.5 * repeat_deg), "tilt": tc,
                       "u_tilt": utc,
                       "tilt_scan_at": 0.0, "yaw_scan_at": y_at, "lamp_side": side})
@@ -227,7 +231,7 @@ def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: f
     cov = np.asarray(fit["cov"])
     table = {name: float(v) for name, v in zip(fit["names"], fit["p"])}
     table.update({f"u_{name}": float(math.sqrt(cov[i, i])) for i, name in enumerate(fit["names"])})
-    table["cov_deg2"] = cov[:4, :4].tolist()
+    table["cov_deg2"] = np.asarray(fit["cov_fit"])[:4, :4].tolist()     # the peaks' (the lamp zero: its own term)
     for ax, vals in back.items():
         b = np.array([v for v, _ in vals])
         u = np.array([e for _, e in vals])
@@ -395,6 +399,50 @@ def merge_calibration(settings: Mapping, cal: Mapping) -> dict:
     return out
 
 
+def run_calibration(settings: Mapping, *, sim: bool, seed: int, port=None, meter_port=None, camera=None) -> dict:
+    """The three procedures through the production drivers; returns the calibration document.
+
+    ``sim``: against the simulated instrument of ``settings`` (its ``[errors]``) and ``seed`` over
+    its ``sim://`` ports (the bytes a real bench gets); otherwise on hardware at ``port``,
+    ``meter_port`` and ``camera`` (a URL or a camera object), with the glossy artefact mounted and
+    the data-sheet values in ``[calibration]``. Nothing is written but scratch RAW files.
+    """
+    import tempfile
+
+    from ._rig import Bench
+
+    inst = None
+    if sim:
+        physics, specs = _sim_bench(settings, seed)
+        inst = physics.inst.register(f"gonio-calibrate-{id(physics):x}")
+        urls, sleep = (inst.url("zaber"), inst.url("meter"), inst.url("camera")), inst.clock.advance
+    else:
+        specs, urls, sleep = None, (port, meter_port, camera), time.sleep
+    try:
+        rig = Bench(settings, *urls, sleep=sleep)
+        try:
+            with tempfile.TemporaryDirectory(prefix="gonio-calibrate-") as scratch:
+                return calibrate(settings, seed=seed, bench=DriverBench(rig, settings, Path(scratch)), specs=specs,
+                                 sim=sim)
+        finally:
+            try:
+                rig.led.off()
+            finally:
+                rig.close()
+    finally:
+        if inst is not None:
+            inst.unregister()
+
+
+def summary(cal: Mapping) -> str:
+    """One line: the zero offsets, the holder tilt and gamma with their standard uncertainties."""
+    a = cal["alignment"]
+    return (f"yaw zero {a['yaw_zero_deg']:+.4f} +- {a['u_yaw_zero_deg']:.4f} deg, tilt zero "
+            f"{a['tilt_zero_deg']:+.4f} +- {a['u_tilt_zero_deg']:.4f} deg, holder tilt ({a['holder_tilt_x_deg']:+.4f}, "
+            f"{a['holder_tilt_y_deg']:+.4f}) +- ({a['u_holder_tilt_x_deg']:.4f}, {a['u_holder_tilt_y_deg']:.4f}) deg; "
+            f"gamma {cal['linearity']['gamma']:.5f} +- {cal['linearity']['u_gamma']:.5f}")
+
+
 def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=None, meter_port=None,
                   camera=None) -> int:
     """``gonio calibrate``: refuse bad input in one line before anything is written.
@@ -406,10 +454,7 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
     ``stray_floor``) in the settings' ``[calibration]`` table. ``camera``: a URL or a camera
     object (``session_runner._camera`` builds one from the command line's spec).
     """
-    import tempfile
-
     from ._preflight import check_output_file
-    from ._rig import Bench
     from ._settings import load_settings
 
     if sim == bool(port):
@@ -423,31 +468,7 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
         old = s.get("errors")
         s["errors"] = {**({} if not isinstance(old, dict) else old), "preset": errors}
     check_output_file(out, "calibration file")
-    inst = None
-    if sim:
-        physics, specs = _sim_bench(s, seed)
-        inst = physics.inst.register(f"gonio-calibrate-{id(physics):x}")
-        urls, sleep = (inst.url("zaber"), inst.url("meter"), inst.url("camera")), inst.clock.advance
-    else:
-        specs, urls, sleep = None, (port, meter_port, camera), time.sleep
-    try:
-        rig = Bench(s, *urls, sleep=sleep)
-        try:
-            with tempfile.TemporaryDirectory(prefix="gonio-calibrate-") as scratch:
-                cal = calibrate(s, seed=seed, bench=DriverBench(rig, s, Path(scratch)), specs=specs, sim=sim)
-        finally:
-            try:
-                rig.led.off()
-            finally:
-                rig.close()
-    finally:
-        if inst is not None:
-            inst.unregister()
+    cal = run_calibration(s, sim=sim, seed=seed, port=port, meter_port=meter_port, camera=camera)
     write_calibration(out, cal)
-    a = cal["alignment"]
-    print(f"wrote {out}: yaw zero {a['yaw_zero_deg']:+.4f} +- {a['u_yaw_zero_deg']:.4f} deg, tilt zero "
-          f"{a['tilt_zero_deg']:+.4f} +- {a['u_tilt_zero_deg']:.4f} deg, holder tilt ({a['holder_tilt_x_deg']:+.4f}, "
-          f"{a['holder_tilt_y_deg']:+.4f}) +- ({a['u_holder_tilt_x_deg']:.4f}, {a['u_holder_tilt_y_deg']:.4f}) deg; "
-          f"gamma {cal['linearity']['gamma']:.5f} +- {cal['linearity']['u_gamma']:.5f}; "
-          f"{cal['calibration']['wall_s']:.1f} s")
+    print(f"wrote {out}: {summary(cal)}; {cal['calibration']['wall_s']:.1f} s")
     return 0

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from .errors import GonioError
 
-__all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument", "EXIT_STOPPED"]
+__all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument", "with_errors_and_calibration",
+           "EXIT_STOPPED"]
 
 EXIT_STOPPED = 3          # the capture stopped before the end; `gonio capture --resume DIR` finishes it
 
@@ -84,7 +85,7 @@ def _print_summary(summary):
     return 0 if summary.complete else EXIT_STOPPED
 
 
-def _with_errors_and_calibration(settings_d: dict, *, sim: bool, seed: int, errors, calibration) -> dict:
+def with_errors_and_calibration(settings_d: dict, *, sim: bool, seed: int, errors, calibration) -> dict:
     """``--errors PRESET`` into ``[errors]`` (simulator only), ``--calibration CAL.toml`` merged
     (bench/calibrate); a calibration of the simulator made for another seed or error model is
     refused (the virtual instrument's errors come from them)."""
@@ -127,7 +128,7 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
     from .plans import dry_run as plan_dry_run
 
     settings_d = settings if isinstance(settings, dict) else _settings(settings)
-    settings_d = _with_errors_and_calibration(settings_d, sim=sim, seed=seed, errors=errors, calibration=calibration)
+    settings_d = with_errors_and_calibration(settings_d, sim=sim, seed=seed, errors=errors, calibration=calibration)
     plan_obj = _plan(plan)
     if dry_run:
         print(plan_dry_run(plan_obj, settings_d).summary())

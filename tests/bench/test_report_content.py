@@ -263,3 +263,26 @@ def test_the_band_row_names_the_colour_space_of_the_values():
     assert "camera's own RGB" in _band(meas({"space": "camera", "matrix": None}))
     assert "XYZ" in _band(meas({"space": "xyz", "matrix": {"source": "dng"}}))
     assert "not recorded" in _band(meas(None)) and "not recorded" in _band(meas({"space": "lab"}))
+
+
+def test_the_calibration_row_says_what_was_applied_or_that_nothing_was():
+    """The identification names the calibration a session applied (`gonio capture --calibration`;
+    issue 15: the report must show it), its estimates with their u, the lamp-arm zero carried as a
+    prior, what it corrects; without one it says none was applied. Values are hostile text."""
+    from gonio.bench._report_meta import _calibration
+
+    assert "none applied" in _calibration({})
+    settings = {"calibration": {"sim": True, "seed": 3, "errors": {"preset": "typical"}},
+                "alignment": {"yaw_zero_deg": 0.1234, "u_yaw_zero_deg": 0.0102, "tilt_zero_deg": -0.05,
+                              "u_tilt_zero_deg": 0.003, "holder_tilt_x_deg": 0.2, "u_holder_tilt_x_deg": 0.004,
+                              "holder_tilt_y_deg": float("nan"), "u_holder_tilt_y_deg": SCRIPT,
+                              "lamp_zero_u_deg": 0.02},
+                "linearity": {"gamma": 0.003, "u_gamma": 0.0001}, "reference": {"factor": [[1.0]]}}
+    text = _calibration(settings)
+    for want in ("gonio calibrate on the simulated instrument (typical errors), seed 3", "yaw zero 0.1234 ± 0.0102 deg",
+                 "holder tilt x 0.2000 ± 0.0040 deg, y ?", "surveyed u 0.02 deg carried", "gamma 0.00300 ± 0.00010",
+                 "every point's angles", "the HDR merge's linearisation", "non-Lambertian factor table"):
+        assert want in text, (want, text)
+    assert SCRIPT not in text
+    hostile = _calibration({"calibration": {"sim": False, "seed": SCRIPT * 100}, "alignment": {}})
+    assert "on this instrument" in hostile and len(hostile) <= 900

@@ -76,16 +76,48 @@ def test_report_is_self_contained(loop):
 
 @pytest.mark.slow
 def test_demo_command_end_to_end(tmp_path):
-    """`gonio demo` as a user runs it (quick plan to keep the suite short)."""
+    """`gonio demo` as a user runs it (quick plan to keep the suite short): the typical errors,
+    a calibration step first, its file recorded in session.toml and dataset.nc and named in the
+    report, and every parameter within 3 u_c of the truth."""
+    import tomllib
+
+    import xarray as xr
+
     proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "demo", "--out", str(tmp_path / "out"),
                            "--plan", "quick", "--seed", "3", "--no-posterior"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "within 3 sigma" in proc.stdout
-    for name in ("dataset.nc", "fit.json", "report.html", "render/render.json", "session/journal.sqlite"):
-        assert (tmp_path / "out" / name).exists(), name
-    fit = json.loads((tmp_path / "out" / "fit.json").read_text())
+    out = tmp_path / "out"
+    for name in ("calibration.toml", "dataset.nc", "fit.json", "report.html", "render/render.json",
+                 "session/journal.sqlite"):
+        assert (out / name).exists(), name
+    fit = json.loads((out / "fit.json").read_text())
     assert fit["provenance"]["seed"] == 3
+    # the calibration step ran first, on the typical instrument of this seed, and said what it found
+    text = " ".join(proc.stdout.split())
+    for k, step in enumerate(("calibrate", "capture", "export", "fit", "render", "report"), 1):
+        assert f"step {k}/6 {step}" in text, step
+    assert text.index("step 1/6 calibrate") < text.index("holder tilt") < text.index("step 2/6 capture")
+    assert "--errors typical" in text and "--calibration" in text
+    cal = tomllib.loads((out / "calibration.toml").read_text())
+    assert cal["calibration"]["sim"] is True and cal["calibration"]["seed"] == 3
+    assert cal["calibration"]["errors"]["preset"] == "typical"
+    # ... and the capture used it: session.toml, dataset.nc (calibrated angles, their u), the report
+    session = tomllib.loads((out / "session" / "session.toml").read_text())
+    settings = session.get("settings", session)
+    assert settings["errors"]["preset"] == "typical"
+    assert settings["alignment"]["holder_tilt_x_deg"] == cal["alignment"]["holder_tilt_x_deg"]
+    assert settings["linearity"]["gamma"] == cal["linearity"]["gamma"]
+    assert settings["calibration"]["seed"] == 3
+    with xr.open_dataset(out / "dataset.nc") as ds:
+        assert "angle_calibration" in ds.attrs and np.all(ds["theta_i_u"].values > 0)
+        assert json.loads(ds.attrs["angle_calibration"])["holder_tilt_y_deg"] == cal["alignment"]["holder_tilt_y_deg"]
+        assert float(np.max(np.abs(ds["theta_o"].values - ds["theta_o_nominal"].values))) > 0.01
+    report = (out / "report.html").read_text()
+    assert "<th>Calibration</th>" in report or ">Calibration<" in report
+    assert "gonio calibrate on the simulated instrument (typical errors), seed 3" in report
+    assert "the HDR merge&#39;s linearisation" in report or "the HDR merge's linearisation" in report
     # a second run replaces the previous demo session instead of refusing
     proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "demo", "--out", str(tmp_path / "out"),
                            "--plan", "quick", "--seed", "3", "--no-posterior"],
