@@ -119,7 +119,7 @@ class _Session:
             r["idx"]: (np.asarray(r["brdf"]), np.asarray(r["brdf_std"])) for r in journal.points()}
         self.reciprocity: list[dict] = []
         self.reserved = journal.reserved()
-        self._masks_of: dict[tuple, tuple] = {}      # per pose: the regions (the plan revisits none, a retry does)
+        self._masks_of: dict[tuple, tuple] = {}      # per holder pose (yaw, tilt, azimuth): the regions
         self.layout = layout_of(self.settings)       # the holder's markers, None where it has none
         self._deliveries: dict = {}                  # RAW file name -> Delivery not yet checked and committed
 
@@ -330,8 +330,9 @@ class _Session:
         """The sample and reference regions at ``stage`` (`roi_masks_fast`: the masks of
         `kinematics.roi_masks`, mostly from the map's affinity) cropped to their bounding box, the box
         (super-pixel rows and columns) that is all a point decodes, merges and reduces, and the
-        `_runs` of both regions together."""
-        key = tuple(float(v) for v in stage)
+        `_runs` of both regions together. Cached per holder pose: the lamp's angle moves no region
+        (`kinematics.rotation` ignores it), so the points that differ only in it share the masks."""
+        key = tuple(float(v) for v in stage[:3])
         if key not in self._masks_of:
             sm, rm = roi_masks_fast(stage, self.settings)
             both = sm | rm
@@ -364,7 +365,7 @@ class _Session:
             if not decode:
                 break
             try:                                 # a probe: decoded now, from the bytes to be checked
-                frame = decode_raw(self.folder / file, window=box, data=delivery.read())
+                frame = decode_raw(self.folder / file, window=box, data=delivery.read(), colour=False)
                 break
             except (GonioError, BadDelivery):    # undecodable: a spoilt file is taken again at once
                 if delivery.tmp is None:
@@ -493,7 +494,8 @@ class _Session:
                 dl = deliveries.pop(d["file"], None)
                 data = None if dl is None else dl.finish()      # probes too: decoded, not yet checked
                 if e is None:
-                    e = Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box, data=data),
+                    e = Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box, data=data,
+                                                                       colour=False),
                                  self._dark(d["seconds"], box))
                 exposures.append(e)
         except BadDelivery:
