@@ -115,8 +115,8 @@ def decode_raw(path: str | os.PathLike, *, window: tuple[int, int, int, int] | N
         The file's bytes, already read (e.g. to check its checksum): not read again.
     colour : bool
         Also the colour matrix (``rgb_cam``). False (a point's frames: only their values are
-        used): ``rgb_cam`` is None, and an uncompressed DNG whose values LibRaw would take
-        unchanged (`_dng_direct`) is read straight from its bytes, window only, without LibRaw
+        used): ``rgb_cam`` is None, and an uncompressed DNG (of 1 MiB or more) whose values LibRaw
+        would take unchanged (`_dng_direct`) is read straight from its bytes, window only, without LibRaw
         unpacking the whole sensor (6000 x 4000: ~0.8 s on the reference machine, most of a
         point's decoding): the same values, bit for bit.
 
@@ -134,7 +134,7 @@ def decode_raw(path: str | os.PathLike, *, window: tuple[int, int, int, int] | N
     if not colour:
         if data is None:
             data = path.read_bytes()
-        direct = _dng_direct(data)
+        direct = _dng_direct(data) if len(data) >= _DIRECT_MIN_BYTES else None
         if direct is not None:
             return _planes(*direct, window, peak, path)
     try:
@@ -189,6 +189,9 @@ def _planes(img: np.ndarray, chan: np.ndarray, blacks: np.ndarray, white: float,
     signal /= count.astype(np.float32)[:, None, None]      # the two greens' mean (exact: a halving)
     return RawFrame(signal, top, count, float(np.mean(blacks)), float(white), None)
 
+
+#: below this size LibRaw's whole unpack costs less than parsing the tags with tifffile (~0.5 ms)
+_DIRECT_MIN_BYTES = 1 << 20
 
 #: DNG tags under which LibRaw's raw values differ from the stored ones, or the stored image is
 #: not the sensor's: linearisation, black-level deltas, active area, masked areas, opcode lists,

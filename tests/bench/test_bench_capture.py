@@ -336,7 +336,7 @@ def test_windowed_decode_is_the_crop_of_the_full_decode(instrument, tmp_path):
     assert np.array_equal(full.signal * 2, np.round(full.signal * 2))
 
 
-def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path):
+def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path, monkeypatch):
     """A point's frames need no colour matrix (``colour=False``): an uncompressed one-image DNG,
     the simulated camera's, is then read straight from its bytes, inside the box only, instead of
     LibRaw unpacking the whole sensor; every value is LibRaw's, bit for bit. Anything else
@@ -346,6 +346,9 @@ def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path):
     from gonio.bench.drivers.camera import _dng_direct, decode_raw
     from gonio.sim._sensor import encode_dng
 
+    from gonio.bench.drivers import camera
+
+    monkeypatch.setattr(camera, "_DIRECT_MIN_BYTES", 0)   # the default camera's frames are small
     inst = instrument("direct")
     for t in (0.0005, 0.01, 0.2):                       # dim, mid, saturated in places
         data = inst.capture(t)
@@ -376,13 +379,15 @@ def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path):
         decode_raw(tmp_path / "t.dng", data=plain[: len(plain) // 2], colour=False)
 
 
-def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path):
+def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path, monkeypatch):
     """The bracket a point's probe picks, read directly (what the capture does now) and through
     LibRaw (what it did), on the poses of a shiny sample's capture: the same at every pose."""
     from gonio.bench._hdr import NoiseModel, choose_bracket, ladder
     from gonio.bench._session import _extreme, _runs, roi_masks_fast
+    from gonio.bench.drivers import camera
     from gonio.bench.drivers.camera import decode_raw
 
+    monkeypatch.setattr(camera, "_DIRECT_MIN_BYTES", 0)   # read directly whatever the size
     inst = instrument("probe", sample={"model": "roughplastic",
                                         "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.03}})
     folder = tmp_path / "s"
