@@ -218,7 +218,7 @@ class _Meter:
         from .drivers import stages as _zaber
 
         targets = [(capture, "decode_raw", self._phase("decode")), (capture, "merge", self._phase("merge")),
-                   (capture, "region_stats", self._phase("stats")), (capture, "posed_masks", self._phase("masks")),
+                   (capture, "region_stats", self._phase("stats")), (capture, "roi_masks_fast", self._phase("masks")),
                    (_zaber.Goniometer, "move_to", self._move), (capture._Session, "_bracket", self._bracket),
                    (capture._Session, "_reduce", self._reduce), (capture._Session, "run", self._run),
                    (self.inst, "capture", self._sim_capture), (self.inst.camera, "_expose", self._camera_port)]

@@ -21,6 +21,9 @@ value and its dark are linearised first, ``L = FS (1 - sqrt(1 - 4 gamma D / FS))
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Iterable, Sequence
 
@@ -123,7 +126,8 @@ def merge(exposures: Sequence[Exposure], noise: NoiseModel, saturation_fraction:
     var = np.empty((3, h, w), f32)
     n_used = np.zeros((3, h, w), np.int64)
     step = max(1, _BLOCK // max(1, w))
-    for r0 in range(0, h, step):
+
+    def block(r0):
         rows = slice(r0, min(h, r0 + step))
         x, inv_ok, dark, var_dark = [], [], [], []
         for e, k, lim in zip(exposures, scale, limit):
@@ -162,7 +166,44 @@ def merge(exposures: Sequence[Exposure], noise: NoiseModel, saturation_fraction:
             safe = np.where(good, wsum, f32(1.0))
             rad[:, rows] = np.where(good, wx / safe, f32(np.nan))
             var[:, rows] = np.where(good, f32(1.0) / safe, f32(np.nan))
+
+    def blocks(starts):
+        for r0 in starts:
+            block(r0)
+
+    starts = range(0, h, step)
+    if len(starts) > 1 and 3 * h * w * len(exposures) >= _PARALLEL and _helpers() > 0:
+        # the blocks are independent (each writes its own rows): the lower half in a helper
+        # thread, the upper here; numpy lets go of the GIL in each block's arithmetic, so the
+        # merge of a full-size point takes both cores, as the capture's worker thread has them
+        # while the stages move (the main thread waits for it then). The same values.
+        half = len(starts) // 2
+        lower = _pool().submit(blocks, starts[:half])
+        try:
+            blocks(starts[half:])
+        finally:
+            lower.result()
+    else:
+        blocks(starts)
     return HdrResult(rad, var, n_used)
+
+
+_PARALLEL = 1 << 21       # values (channels x pixels x exposures) from which a merge takes two threads
+_pool_of: list = []
+_pool_lock = threading.Lock()
+
+
+def _helpers() -> int:
+    """Helper threads a large merge may use: one where the machine has two or more cores."""
+    return 1 if (os.cpu_count() or 1) >= 2 else 0
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The merge's helper thread, started at the first large merge, shared by all."""
+    with _pool_lock:
+        if not _pool_of:
+            _pool_of.append(ThreadPoolExecutor(1, thread_name_prefix="gonio-merge"))
+        return _pool_of[0]
 
 
 def ladder(t_min: float, t_max: float) -> np.ndarray:

@@ -293,10 +293,17 @@ def posed_masks(stage_deg, settings: Mapping, pose: HolderPose | None, binning: 
     offsets added; two outer sums over the grid replace four corner maps (full-size frames:
     about a tenth of `kinematics.roi_masks`' time, same masks but for ties at rounding level).
     """
-    cam, hold = settings["camera"], settings["holder"]
-    W, H, s = cam["width"], cam["height"], cam["pixel_size"]
     if margin_px is None:
         margin_px = float(settings.get("capture", {}).get("roi_margin_px", 1.0))
+    return _posed_masks(stage_deg, settings, pose, binning, (margin_px,))[0]
+
+
+def _posed_masks(stage_deg, settings: Mapping, pose: HolderPose | None, binning: int,
+                 margins_px) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`posed_masks` for each margin of ``margins_px`` (pixels), the grid's holder-plane
+    coordinates computed once for all of them."""
+    cam, hold = settings["camera"], settings["holder"]
+    W, H, s = cam["width"], cam["height"], cam["pixel_size"]
     h, w = H // binning, W // binning
 
     def plane(rows, cols):
@@ -309,16 +316,21 @@ def posed_masks(stage_deg, settings: Mapping, pose: HolderPose | None, binning: 
     corners = np.array([plane(dr, dc) - o for dr in (-0.5, binning - 0.5) for dc in (-0.5, binning - 0.5)])
     lo, hi = corners.min(0), corners.max(0)           # extreme corner offsets per coordinate
     i, j = np.arange(h, dtype=float), np.arange(w, dtype=float)
-    half = hold["sample_half"] - margin_px * s
     off = hold["offset"]
     x = (o[0] + d_row[0] * i)[:, None] + (d_col[0] * j)[None, :]
     y = (o[1] + d_row[1] * i)[:, None] + (d_col[1] * j)[None, :]
-    in_y = (y + hi[1] <= half) & (y + lo[1] >= -half)
+    x_hi, x_lo, y_hi, y_lo = x + hi[0], x + lo[0], y + hi[1], y + lo[1]
+    del x, y
+    out = []
+    for margin_px in margins_px:
+        half = hold["sample_half"] - margin_px * s
+        in_y = (y_hi <= half) & (y_lo >= -half)
 
-    def inside(cx):
-        return in_y & (x + hi[0] <= cx + half) & (x + lo[0] >= cx - half)
+        def inside(cx):
+            return in_y & (x_hi <= cx + half) & (x_lo >= cx - half)
 
-    return inside(-off), inside(off)
+        out.append((inside(-off), inside(off)))
+    return out
 
 
 @dataclass(frozen=True)

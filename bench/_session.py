@@ -26,7 +26,7 @@ from . import kinematics
 from ._files import TMP_PREFIX, create_exclusive
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
 from ._journal import RAW_DIR, Journal
-from ._markers import find_regions, layout_of, posed_masks
+from ._markers import _posed_masks, find_regions, layout_of
 from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
 from ._pipeline import Pipeline, _Suspended
 from ._rig import Bench
@@ -46,14 +46,14 @@ def roi_masks_fast(stage, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
     whose corner lies on a square's edge (a tie, common where the pixel grid lines up with the
     squares) the other way at rounding level. So: the super-pixels that `posed_masks` puts
     inside with a margin 1e-3 pixel wider are inside, those it leaves out with one 1e-3 pixel
-    narrower are out, and the few in between are decided by `roi_masks`' own corner test.
+    narrower are out, and the few in between are decided by `roi_masks`' own corner test. Both
+    margins come from one evaluation of the grid's coordinates (`_markers._posed_masks`).
     """
     margin = float(settings.get("capture", {}).get("roi_margin_px", 1.0))
     hold, s = settings["holder"], float(settings["camera"]["pixel_size"])
     half, off = hold["sample_half"] - margin * s, hold["offset"]
     delta = 1e-3
-    inner = posed_masks(stage, settings, None, margin_px=margin + delta)
-    outer = posed_masks(stage, settings, None, margin_px=margin - delta)
+    inner, outer = _posed_masks(stage, settings, None, 2, (margin + delta, margin - delta))
     out = []
     for sure, maybe, cx in zip(inner, outer, (-off, off)):
         i, j = np.nonzero(maybe & ~sure)
@@ -119,7 +119,7 @@ class _Session:
             r["idx"]: (np.asarray(r["brdf"]), np.asarray(r["brdf_std"])) for r in journal.points()}
         self.reciprocity: list[dict] = []
         self.reserved = journal.reserved()
-        self._masks_of: dict[tuple, tuple] = {}      # per pose: the regions (the plan revisits none, a retry does)
+        self._masks_of: dict[tuple, tuple] = {}      # per holder pose (yaw, tilt, azimuth): the regions
         self.layout = layout_of(self.settings)       # the holder's markers, None where it has none
         self._deliveries: dict = {}                  # RAW file name -> Delivery not yet checked and committed
 
@@ -330,8 +330,9 @@ class _Session:
         """The sample and reference regions at ``stage`` (`roi_masks_fast`: the masks of
         `kinematics.roi_masks`, mostly from the map's affinity) cropped to their bounding box, the box
         (super-pixel rows and columns) that is all a point decodes, merges and reduces, and the
-        `_runs` of both regions together."""
-        key = tuple(float(v) for v in stage)
+        `_runs` of both regions together. Cached per holder pose: the lamp's angle moves no region
+        (`kinematics.rotation` ignores it), so the points that differ only in it share the masks."""
+        key = tuple(float(v) for v in stage[:3])
         if key not in self._masks_of:
             sm, rm = roi_masks_fast(stage, self.settings)
             both = sm | rm
@@ -364,7 +365,7 @@ class _Session:
             if not decode:
                 break
             try:                                 # a probe: decoded now, from the bytes to be checked
-                frame = decode_raw(self.folder / file, window=box, data=delivery.read())
+                frame = decode_raw(self.folder / file, window=box, data=delivery.read(), colour=False)
                 break
             except (GonioError, BadDelivery):    # undecodable: a spoilt file is taken again at once
                 if delivery.tmp is None:
@@ -493,7 +494,8 @@ class _Session:
                 dl = deliveries.pop(d["file"], None)
                 data = None if dl is None else dl.finish()      # probes too: decoded, not yet checked
                 if e is None:
-                    e = Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box, data=data),
+                    e = Exposure(d["seconds"], d["power"], decode_raw(self.folder / d["file"], window=box, data=data,
+                                                                       colour=False),
                                  self._dark(d["seconds"], box))
                 exposures.append(e)
         except BadDelivery:

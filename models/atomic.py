@@ -10,9 +10,16 @@ appends the target's extension). :func:`is_temporary` is the one rule that recog
 temporary, this scheme and the two names of files that another program writes and gonio
 commits (``.tmp-<name>``: the bench's camera copies, the export's netCDF writer; and
 ``<name>.part`` from older versions of the simulated camera). A process killed outright (SIGKILL,
-power cut) cannot remove it, so every write first removes the temporary files of the same
+power cut) cannot remove it, so a write first removes the temporary files of the same
 target left by processes that no longer run (and, for names without a pid, written by older
-versions of gonio, those untouched for ten minutes). The file written gets the mode the
+versions of gonio, those untouched for ten minutes). The folder is listed for them once per
+process (the first write into it, :func:`remove_stale_temporaries`): a process's own
+temporaries are removed by the process itself, and what an earlier, killed process left is
+there when this one starts; listing the folder at every write cost time in proportion to the
+folder's size, so a capture's time grew with the square of its frame count (raw/ of the quick
+plan: 177k names listed for 593 frames). A writer killed while this process runs leaves its
+temporaries to the next process (a capture folder has one writer: its lock; a resume removes
+them, :func:`remove_orphans`). The file written gets the mode the
 user's umask gives a new file (0644 under umask 022), not mkstemp's private 0600; a rename
 replaces a symlink at the target instead of writing through it.
 """
@@ -80,11 +87,12 @@ def _tag(name: str, target: str) -> str | None:
     return None
 
 
-def _stale(tag: str, entry) -> bool:
+def _stale(tag: str, st: os.stat_result) -> bool:
+    """Whether the temporary with writer tag ``tag`` and lstat ``st`` has no running writer."""
     head, sep, _ = tag.partition("-")
     if sep and head.isdigit():
         return not (int(head) == os.getpid() or _pid_alive(int(head)))
-    return time.time() - entry.stat(follow_symlinks=False).st_mtime >= _UNTAGGED_AGE_S
+    return time.time() - st.st_mtime >= _UNTAGGED_AGE_S
 
 
 def _pid_alive(pid: int) -> bool:
@@ -99,25 +107,61 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def remove_stale_temporaries(path) -> list[Path]:
-    """Remove the temporary files of ``path`` that no running writer owns; return them."""
+#: per folder (its absolute path) this process has listed: the names there that may be a
+#: temporary (:data:`_TEMPORARY`) when it was listed, not yet removed or found owned
+_listed: dict[str, set[str]] = {}
+_listed_lock = threading.Lock()
+
+
+def _candidates(folder: Path) -> set[str] | None:
+    """The names in ``folder`` that may be a temporary, listed once per process and folder;
+    None if the folder cannot be read. (A folder made anew at a listed path is not listed
+    again: what it holds was written while this process ran, the case the module notes leave to
+    the next process.)"""
+    key = os.path.abspath(folder)
+    with _listed_lock:
+        names = _listed.get(key)
+        if names is None:
+            try:
+                with os.scandir(folder) as it:
+                    names = {e.name for e in it if _TEMPORARY.match(e.name)}
+            except OSError:
+                return None
+            _listed[key] = names
+        return names
+
+
+def remove_stale_temporaries(path, *, rescan: bool = False) -> list[Path]:
+    """Remove the temporary files of ``path`` that no running writer owns; return them.
+
+    The folder is listed once per process (module notes; ``rescan`` lists it again): the
+    temporaries of ``path`` found then are checked here, at the first write of ``path`` (and
+    at later ones while a live writer still owns one), without listing the folder again.
+    """
     path = Path(path)
     removed = []
-    try:
-        entries = list(os.scandir(path.parent))
-    except OSError:
+    if rescan:
+        with _listed_lock:
+            _listed.pop(os.path.abspath(path.parent), None)
+    names = _candidates(path.parent)
+    if not names:
         return removed
-    for entry in entries:
-        tag = _tag(entry.name, path.name)
-        if tag is None:
-            continue
+    with _listed_lock:
+        mine = [(n, t) for n in names if (t := _tag(n, path.name)) is not None]
+    for name, tag in mine:
+        entry = path.parent / name
         try:
-            if entry.is_dir(follow_symlinks=False) or not _stale(tag, entry):
+            st = os.lstat(entry)
+            if (st.st_mode & 0o170000) == 0o040000 or not _stale(tag, st):
                 continue
-            os.unlink(entry.path)
-            removed.append(Path(entry.path))
+            os.unlink(entry)
+            removed.append(entry)
+        except FileNotFoundError:
+            pass                                  # gone: removed by its writer or someone else
         except OSError:
             continue
+        with _listed_lock:
+            names.discard(name)
     return removed
 
 
@@ -137,7 +181,7 @@ def remove_orphans(folder) -> list[Path]:
             if not entry.is_file(follow_symlinks=False):
                 continue
             if not (name.startswith(RESERVED_PREFIX) or name.endswith(".part")):
-                if not _stale(_TEMPORARY.match(name)["tag"], entry):
+                if not _stale(_TEMPORARY.match(name)["tag"], entry.stat(follow_symlinks=False)):
                     continue
             os.unlink(entry.path)
             removed.append(Path(entry.path))
@@ -221,25 +265,33 @@ def _link_new(tmp: str, path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_open(path, mode: str = "w", *, replace: bool = True, **kwargs):
+def atomic_open(path, mode: str = "w", *, replace: bool = True, durable: bool = True, **kwargs):
     """``with atomic_open(path, "wb") as fh: ...`` writes ``path`` all or nothing.
 
     ``replace=False`` never replaces an existing file: `FileExistsError` at the end of the
-    block if ``path`` exists then, and nothing is changed (a session's write-once files)."""
+    block if ``path`` exists then, and nothing is changed (a session's write-once files).
+
+    ``durable=False`` leaves out the two fsyncs (file, folder): ``path`` is still never seen
+    half-written by another process, and a crash of the writer leaves the old file or the new
+    one, but after a power cut it may be missing or empty. Only for a file that its reader
+    checks and commits durably itself: the simulated camera's frame, which the bench checks
+    against the camera's SHA-256, fsyncs and renames (``bench/drivers/camera.Delivery``)."""
     path = Path(path)
     tmp = None
     try:
         fd, tmp = _temporary(path)
         with os.fdopen(fd, mode, **kwargs) as fh:
             yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
+            if durable:
+                fh.flush()
+                os.fsync(fh.fileno())
         if replace:
             os.replace(tmp, path)
         else:
             _link_new(tmp, path)
         tmp = None
-        _fsync_dir(path.parent)
+        if durable:
+            _fsync_dir(path.parent)
     finally:
         if tmp is not None:
             with contextlib.suppress(OSError):

@@ -227,7 +227,17 @@ def encode_dng(raw: np.ndarray, *, black: int, white: int, exposure: float | Non
 
 
 def write_dng(path: str | os.PathLike, data: bytes) -> str:
-    """Write bytes atomically (:func:`gonio.models.atomic.atomic_open`). Returns their sha256 (hex)."""
-    with atomic_open(path, "wb") as fh:
+    """Write bytes atomically, not durably (:func:`gonio.models.atomic.atomic_open`,
+    ``durable=False``). Returns their sha256 (hex).
+
+    A camera (its tethering software) does not fsync for the bench: the bench checks the file
+    against the SHA-256 the camera reported, then fsyncs it, renames it to its final name and
+    fsyncs the folder (`gonio.bench.drivers.camera.Delivery.finish`), and only then journals the
+    point. The file's fsync there writes its data to disk whoever wrote it, so the simulator's
+    own fsyncs (file and folder, two of the four per frame) bought nothing: after a power cut
+    before the bench's commit, the frame is a reserved ``.tmp-`` name that a resume removes and
+    takes again, with or without them. The rename stays: the protocol's ``OK`` promises a whole
+    file at the path, which another client may read at once."""
+    with atomic_open(path, "wb", durable=False) as fh:
         fh.write(data)
     return hashlib.sha256(data).hexdigest()

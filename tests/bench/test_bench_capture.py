@@ -336,6 +336,88 @@ def test_windowed_decode_is_the_crop_of_the_full_decode(instrument, tmp_path):
     assert np.array_equal(full.signal * 2, np.round(full.signal * 2))
 
 
+def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path, monkeypatch):
+    """A point's frames need no colour matrix (``colour=False``): an uncompressed one-image DNG,
+    the simulated camera's, is then read straight from its bytes, inside the box only, instead of
+    LibRaw unpacking the whole sensor; every value is LibRaw's, bit for bit. Anything else
+    (here an active area, a truncated file) is left to LibRaw, as before."""
+    import tifffile
+
+    from gonio.bench.drivers.camera import _dng_direct, decode_raw
+    from gonio.sim._sensor import encode_dng
+
+    from gonio.bench.drivers import camera
+
+    monkeypatch.setattr(camera, "_DIRECT_MIN_BYTES", 0)   # the default camera's frames are small
+    inst = instrument("direct")
+    for t in (0.0005, 0.01, 0.2):                       # dim, mid, saturated in places
+        data = inst.capture(t)
+        assert _dng_direct(data) is not None
+        full = decode_raw(tmp_path / "x.dng", data=data)
+        h, w = full.signal.shape[1:]
+        for box in (None, (3, h - 5, 7, w - 2), (h // 2, h // 2 + 1, 0, 1), (-4, h + 9, -1, 3), (5, 5, 0, w)):
+            for peak in (True, False):
+                want = decode_raw(tmp_path / "x.dng", window=box, data=data, peak=peak)
+                got = decode_raw(tmp_path / "x.dng", window=box, data=data, peak=peak, colour=False)
+                assert np.array_equal(got.signal, want.signal) and got.signal.dtype == np.float32
+                assert (got.peak is None) == (want.peak is None)
+                assert got.peak is None or np.array_equal(got.peak, want.peak)
+                assert np.array_equal(got.n_raw, want.n_raw) and (got.black, got.white) == (want.black, want.white)
+                assert got.rgb_cam is None
+    (tmp_path / "f.dng").write_bytes(data)              # from the file when no bytes are given
+    assert np.array_equal(decode_raw(tmp_path / "f.dng", colour=False).signal, full.signal)
+    # not read directly: LibRaw decodes (an active area), or refuses (a truncated file)
+    raw = np.arange(16 * 24, dtype=np.uint16).reshape(16, 24) + 600
+    plain = encode_dng(raw, black=512, white=16383)
+    buf = __import__("io").BytesIO()
+    tifffile.imwrite(buf, raw, photometric=32803, metadata=None, extratags=[
+        (50706, "B", 4, (1, 4, 0, 0), True), (33421, "H", 2, (2, 2), True), (33422, "B", 4, (0, 1, 1, 2), True),
+        (50714, "I", 1, (512,), True), (50717, "I", 1, (16383,), True), (50829, "I", 4, (2, 2, 16, 24), True)])
+    for other in (buf.getvalue(), plain[: len(plain) // 2]):
+        assert _dng_direct(other) is None
+    with pytest.raises(GonioError, match="cannot decode"):
+        decode_raw(tmp_path / "t.dng", data=plain[: len(plain) // 2], colour=False)
+
+
+def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path, monkeypatch):
+    """The bracket a point's probe picks, read directly (what the capture does now) and through
+    LibRaw (what it did), on the poses of a shiny sample's capture: the same at every pose."""
+    from gonio.bench._hdr import NoiseModel, choose_bracket, ladder
+    from gonio.bench._session import _extreme, _runs, roi_masks_fast
+    from gonio.bench.drivers import camera
+    from gonio.bench.drivers.camera import decode_raw
+
+    monkeypatch.setattr(camera, "_DIRECT_MIN_BYTES", 0)   # read directly whatever the size
+    inst = instrument("probe", sample={"model": "roughplastic",
+                                        "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.03}})
+    folder = tmp_path / "s"
+    assert run(inst, folder).complete
+    cap = S["capture"]
+    rungs = ladder(float(cap["exposure_min_s"]), float(cap["exposure_max_s"]))
+    noise = NoiseModel(float(S["camera"].get("gain_e_per_dn", 2.0)), float(S["camera"].get("read_noise_e", 3.0)))
+    sat = float(cap["saturation_fraction"])
+    darks = {f.name: f for f in (folder / "raw").iterdir() if f.name.startswith("dark_")}
+    chosen = []
+    for r in Journal(folder / "journal.sqlite").points():
+        sm, rm = roi_masks_fast(np.array([r["yaw"], r["tilt"], r["azimuth"], r["lamp"]]), S)
+        both = sm | rm
+        rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
+        box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+        runs = _runs(both[box[0]:box[1], box[2]:box[3]])
+        for e in r["detail"]["exposures"]:                 # each frame as if it were the probe
+            t = e["seconds"]
+            dk = decode_raw(darks[f"dark_{t * 1e6:010.0f}us.dng"], window=box, peak=False).signal
+            picks = []
+            for colour in (True, False):
+                f = decode_raw(folder / e["file"], window=box, colour=colour)
+                peak = _extreme(np.maximum, f.peak - np.maximum(dk, 0), runs)
+                low = _extreme(np.minimum, f.signal - dk, runs)
+                picks.append(choose_bracket(rungs, t, peak, low, f.full_scale, noise, sat, float(cap["noise_floor_snr"])))
+            assert picks[0] == picks[1], (r["idx"], t, picks)
+            chosen.append(tuple(picks[0]))
+    assert len(set(chosen)) > 2                          # the poses ask for different brackets
+
+
 def test_regions_from_the_holders_markers(tmp_path):
     """Settings that declare holder markers: each point's regions come from the markers in its
     probe (the pose is journalled), so a holder moved by a known offset is measured where it is."""
@@ -391,3 +473,6 @@ def test_fast_roi_masks_are_the_geometry_masks_exactly():
         for stage in stages:
             want, got = kinematics.roi_masks(stage, s), roi_masks_fast(stage, s)
             assert all(np.array_equal(a, b) for a, b in zip(want, got)), (w, stage)
+            # the lamp's angle moves no region: the capture caches the masks per holder pose
+            lamp = roi_masks_fast(np.array([*stage[:3], (stage[3] + 37.0) % 180]), s)
+            assert all(np.array_equal(a, b) for a, b in zip(lamp, got))

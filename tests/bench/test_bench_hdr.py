@@ -66,3 +66,21 @@ def test_choose_bracket():
     # the darkest is never pushed into saturation
     b = choose_bracket(rungs, 0.008, 15000.0, 14000.0, FULL, NOISE, 0.9, 1000.0)
     assert 14000 * b[-1] / 0.008 < 0.9 * FULL
+
+
+def test_merge_in_two_threads_is_the_merge_in_one(monkeypatch):
+    """A large bracket's row blocks are merged half in a helper thread (a full-size point takes
+    both cores while the stages move): the same values, bit for bit, as one thread."""
+    from gonio.bench import _hdr
+
+    rng = np.random.default_rng(3)
+    rate = np.array([1.2e8, 3e7, 5e6])[:, None, None]
+    exps = [Exposure(t, 0.01, frame(rate, t, 0.01, rng), frame(0.0, t, 0.0, rng)) for t in (0.001, 0.004, 0.016)]
+    monkeypatch.setattr(_hdr, "_BLOCK", 64)                 # 2 rows a block: 10 blocks
+    runs = []
+    for limit in (1 << 62, 0):                               # one thread, then two
+        monkeypatch.setattr(_hdr, "_PARALLEL", limit)
+        runs.append(merge(exps, NOISE, 0.9, gamma=0.01))
+    one, two = runs
+    for a, b in ((one.radiance, two.radiance), (one.var, two.var), (one.n_used, two.n_used)):
+        assert np.array_equal(a, b, equal_nan=True)

@@ -168,3 +168,52 @@ def test_write_once_files_are_atomic_with_the_umask_mode(tmp_path, umask, mode):
     assert (tmp_path / "p.dng").stat().st_mode & 0o777 == mode
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.dng", "session.toml"]
     assert not any(is_temporary(p.name) for p in tmp_path.iterdir())
+
+
+def test_a_folder_is_listed_for_stale_temporaries_once_per_process(tmp_path, monkeypatch):
+    """Every write used to list the whole folder for the target's stale temporaries: a capture's
+    raw/ grew by a frame per write, so its cost grew with the square of the frame count. The
+    folder is listed once per process (and again once made anew); a stale temporary found then
+    is still removed at its target's first write, and a writer's own temporary by the writer."""
+    from gonio.models import atomic
+
+    stale = tmp_path / ".p00007.dng.1-zzz.tmp"        # pid 1 is alive: kept, checked at each write
+    dead = tmp_path / ".p00009.dng.999999999-zzz.tmp"  # no such pid: removed at p00009's first write
+    stale.write_text("x")
+    dead.write_text("x")
+    listed = []
+    real = os.scandir
+
+    def scandir(path="."):
+        listed.append(os.fspath(path))
+        return real(path)
+
+    monkeypatch.setattr(atomic.os, "scandir", scandir)
+    for k in range(40):
+        with atomic_open(tmp_path / f"p{k:05d}.dng", "wb") as fh:
+            fh.write(b"raw")
+    assert listed == [os.fspath(tmp_path)]
+    assert stale.exists() and not dead.exists()
+    assert temporaries(tmp_path) == [stale.name]
+    (tmp_path / ".p00011.dng.999999999-zzz.tmp").write_text("x")   # a writer killed meanwhile:
+    with atomic_open(tmp_path / "p00011.dng", "wb") as fh:            # left to the next process
+        fh.write(b"raw")
+    assert len(listed) == 1 and len(temporaries(tmp_path)) == 2
+    atomic.remove_stale_temporaries(tmp_path / "p00011.dng", rescan=True)
+    assert temporaries(tmp_path) == [stale.name] and len(listed) == 2
+
+
+def test_a_file_its_reader_commits_is_written_atomically_without_fsync(tmp_path, monkeypatch):
+    """``durable=False`` (the simulated camera's frames, which the bench checks, fsyncs and
+    renames itself): no fsync, still never half-written under the name, nothing left behind."""
+    calls = []
+    monkeypatch.setattr(os, "fsync", lambda fd: calls.append(fd))
+    with atomic_open(tmp_path / ".tmp-p.dng", "wb", durable=False) as fh:
+        fh.write(b"half")
+        assert not (tmp_path / ".tmp-p.dng").exists()
+        fh.write(b" and the rest")
+    assert (tmp_path / ".tmp-p.dng").read_bytes() == b"half and the rest" and calls == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".tmp-p.dng"]
+    with atomic_open(tmp_path / "fit.json", "w") as fh:
+        fh.write("{}")
+    assert len(calls) == 2                              # the durable default: the file, the folder
