@@ -26,7 +26,7 @@ from . import kinematics
 from ._files import TMP_PREFIX, create_exclusive
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
 from ._journal import RAW_DIR, Journal
-from ._markers import _posed_masks, find_regions, layout_of
+from ._markers import find_regions, layout_of, roi_masks_fast
 from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
 from ._pipeline import Pipeline, _Suspended
 from ._rig import Bench
@@ -36,35 +36,7 @@ from .drivers.identify import record as record_identification
 from .errors import CommunicationError, DeviceError, GonioError, SessionError
 from .plans import plan_from_dict
 
-__all__ = ["roi_masks_fast"]
-
-
-def roi_masks_fast(stage, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
-    """`kinematics.roi_masks`, exactly, at about `_markers.posed_masks`' cost.
-
-    `posed_masks` finds the same regions from the map's affinity but may decide a super-pixel
-    whose corner lies on a square's edge (a tie, common where the pixel grid lines up with the
-    squares) the other way at rounding level. So: the super-pixels that `posed_masks` puts
-    inside with a margin 1e-3 pixel wider are inside, those it leaves out with one 1e-3 pixel
-    narrower are out, and the few in between are decided by `roi_masks`' own corner test. Both
-    margins come from one evaluation of the grid's coordinates (`_markers._posed_masks`).
-    """
-    margin = float(settings.get("capture", {}).get("roi_margin_px", 1.0))
-    hold, s = settings["holder"], float(settings["camera"]["pixel_size"])
-    half, off = hold["sample_half"] - margin * s, hold["offset"]
-    delta = 1e-3
-    inner, outer = _posed_masks(stage, settings, None, 2, (margin + delta, margin - delta))
-    out = []
-    for sure, maybe, cx in zip(inner, outer, (-off, off)):
-        i, j = np.nonzero(maybe & ~sure)
-        if len(i):
-            xy = np.stack([kinematics.image_to_local(stage, 2 * i + dr, 2 * j + dc, settings)
-                           for dr in (-0.5, 1.5) for dc in (-0.5, 1.5)], 0)
-            ok = np.all((np.abs(xy[..., 0] - cx) <= half) & (np.abs(xy[..., 1]) <= half), axis=0)
-            sure = sure.copy()
-            sure[i[ok], j[ok]] = True
-        out.append(sure)
-    return out[0], out[1]
+__all__ = ["roi_masks_fast"]  # re-exported from _markers (tests and the benchmark patch it here)
 
 
 def _runs(mask: np.ndarray) -> np.ndarray:

@@ -174,14 +174,17 @@ class Reachability:
     stage_deg: np.ndarray
 
 
-def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping) -> Reachability:
+def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping, masks=None) -> Reachability:
     """Check direction angles (degrees) against the instrument's geometry and limits.
 
     Reasons, in the order checked: not finite; below the horizon or at grazing (theta outside
     [0, 90)); lamp in front of the camera (L < ``lamp_block_deg``); an axis outside its limits
     (after choosing the equivalent azimuth inside the limits); fewer than `MIN_ROI_PIXELS`
-    super-pixels of the sample or reference square in view.
+    super-pixels of the sample or reference square in view. ``masks(stage, settings)`` gives
+    the two regions (default :func:`roi_masks`; a plan's check uses the capture's own
+    ``_markers.roi_masks_fast``, the same masks at a fraction of the cost on a large sensor).
     """
+    masks = roi_masks if masks is None else masks
     ti, pi_, to, po = (np.atleast_1d(np.asarray(a, float)) for a in (theta_i, phi_i, theta_o, phi_o))
     ti, pi_, to, po = np.broadcast_arrays(ti, pi_, to, po)
     stage = inverse(ti, pi_, to, po)
@@ -211,7 +214,7 @@ def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping) -> Reachability
                         reasons[k] = f"{name} = {v:.1f} deg outside its limits [{lo:g}, {hi:g}]"
                         break
                 if not reasons[k] and "camera" in settings and "holder" in settings:
-                    sm, rm = roi_masks(stage[k], settings)
+                    sm, rm = masks(stage[k], settings)
                     if min(sm.sum(), rm.sum()) < MIN_ROI_PIXELS:
                         reasons[k] = "the sample or reference square is out of the camera's view"
         ok[k] = reasons[k] == ""

@@ -37,6 +37,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from . import kinematics
+from ._markers import roi_masks_fast
 from ._ordering import order_moves
 from .errors import PlanError, UnreachableError
 
@@ -386,8 +387,12 @@ def _plan_from_csv(text: str, path: Path) -> Plan:
 # -- reachability and the dry run ------------------------------------------------------------
 
 def check_plan(plan: Plan, settings: Mapping) -> list[tuple[int, tuple[float, ...], str]]:
-    """Points the instrument cannot reach: ``[(index, (theta_i, phi_i, theta_o, phi_o), reason), ...]``."""
-    r = kinematics.reachable(*plan.angles.T, settings)
+    """Points the instrument cannot reach: ``[(index, (theta_i, phi_i, theta_o, phi_o), reason), ...]``.
+
+    The regions in view are the capture's own (``_markers.roi_masks_fast``): with the exact
+    corner test of ``kinematics.roi_masks`` a 6000 x 4000 camera's check took 2.1 s of CPU a
+    point, 37 minutes for the ``standard`` plan before the first move."""
+    r = kinematics.reachable(*plan.angles.T, settings, masks=roi_masks_fast)
     return [(k, tuple(float(v) for v in plan.angles[k]), r.reason[k]) for k in np.flatnonzero(~r.ok)]
 
 
