@@ -16,7 +16,7 @@ demo: $(STAMP)
 	$(VENV)/bin/gonio demo
 
 # The whole suite on both cores, then the tests whose numbers depend on Dr.Jit's machine
-# code once more under another code generation (AVX2 on an AVX-512 host, SSE4 on an AVX2
+# code once more under another code generation (AVX2 on an AVX-512 host, AVX2 at 4 lanes on an AVX2
 # host): the next CI machine may have the other one (issue 12).
 test: $(STAMP) chromium
 	$(PY) -m pytest -q -n 2 --dist worksteal

@@ -1,6 +1,6 @@
 """Session-wide setup of the suite.
 
-``GONIO_LLVM_TARGET`` (``native``, ``avx2``, ``sse4``) pins the machine code Dr.Jit's LLVM
+``GONIO_LLVM_TARGET`` (``native``, ``avx2``, ``avx2-4``) pins the machine code Dr.Jit's LLVM
 backend generates for the whole run, before any kernel is compiled, so that one machine
 can run the numerical tests under another machine's code generation (issue 12;
 ``make test-avx2``). The header of the run says which target was in effect.

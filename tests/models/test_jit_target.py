@@ -12,7 +12,7 @@ import sys
 import pytest
 
 from gonio.models import _fast
-from gonio.models._jit_target import other_target, set_llvm_target
+from gonio.models._jit_target import _NEEDS, TARGETS, _host_flags, other_target, set_llvm_target
 
 pytestmark = pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable")
 
@@ -51,11 +51,36 @@ def test_forced_target_changes_the_width_and_keeps_the_numbers():
     if not other:
         pytest.skip("this CPU has no second x86-64 code generation to force")
     native, forced = _child(None), _child(other)
-    width = {"avx2": 8, "sse4": 4}[other]
+    width = {"avx2": 8, "avx2-4": 4}[other]
     assert forced["target"][1] == width and native["target"][1] != width, (native, forced)
     # float32 kernels agree with the float64 reference under both code generations
     # (the resident float32 path's documented accuracy: <= 2e-5 where f_r cos > 1e-6)
     assert native["rel"] <= 2e-5 and forced["rel"] <= 2e-5, (native, forced)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", [t for t in TARGETS if t != "native"])
+def test_every_target_runs_the_kernels(target):
+    """Each named target compiles and runs the float32 kernels (fused multiply-adds
+    included) to their documented accuracy: a Nehalem (SSE4) target, the AVX2 host's second
+    pass until 2026-12-02, aborted the process at the first kernel ("LLVM ERROR")."""
+    missing = _NEEDS[target] - _host_flags()
+    if missing:
+        pytest.skip(f"this CPU cannot run the {target} target (it lacks {', '.join(sorted(missing))})")
+    got = _child(target)
+    assert tuple(got["target"]) == (TARGETS[target][0], TARGETS[target][2]) and got["rel"] <= 2e-5, got
+
+
+def test_the_second_code_generation_suits_the_host(monkeypatch):
+    """AVX-512 host: AVX2 (8 lanes); AVX2 host: AVX2 at 4 lanes; nothing below AVX2."""
+    from gonio.models import _jit_target
+
+    avx2 = {"avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "sse4_2", "popcnt"}
+    for flags, want in ((avx2 | {"avx512f"}, "avx2"), (avx2, "avx2-4"), ({"sse4_2", "popcnt"}, ""), (set(), "")):
+        monkeypatch.setattr(_jit_target, "_host_flags", lambda flags=flags: set(flags))
+        assert other_target() == want, (flags, want)
+    with pytest.raises(ValueError, match="unknown LLVM target 'sse4'"):
+        set_llvm_target("sse4")
 
 
 def test_unknown_or_unsupported_targets_are_refused(monkeypatch):
