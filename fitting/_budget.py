@@ -173,6 +173,8 @@ def _colour_matrix_components(ds, meas) -> list:
             for k in range(values.shape[-1])]
 
 
+#: the stage axes of ``angle_shift_independent``'s inputs when it has one group label per axis
+AXES = ("yaw", "tilt", "azimuth", "lamp")
 #: the dataset variables of the angles' uncertainty (docs/interfaces.md 5.1), degrees
 ANGLE_SHIFTS = {"shared": "angle_shift_shared", "independent": "angle_shift_independent"}
 
@@ -191,6 +193,12 @@ def _angle_shifts(ds, path, n_points):
         if arr.ndim != 3 or arr.shape[1:] != (n_points, 4) or not np.all(np.isfinite(arr)):
             raise ValueError(f"{path}: {name} must be finite, (inputs, {n_points} points, 4 angles) in degrees")
         out[key] = arr
+    group = ANGLE_SHIFTS["independent"] + "_group"
+    if "independent" in out and group in ds.variables:
+        g = np.asarray(ds[group].transpose(ds[group].dims[0], "point").values)
+        if g.shape != out["independent"].shape[:2] or not np.issubdtype(g.dtype, np.integer):
+            raise ValueError(f"{path}: {group} must be integer labels (inputs, {n_points} points)")
+        out["independent_groups"] = g.astype(np.int64)
     return out or None
 
 
@@ -246,15 +254,26 @@ def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
 
 def angle_components(result, meas, angles: dict) -> list:
     """``angle_shared`` (B, full, one input per shared angle error) and ``angle_repeatability``
-    (B, point: one error per point, shared by its channels): the angles' shifts times the
-    fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle)."""
+    (B, point: one error per point, shared by its channels), or where the dataset labels each
+    axis's moves (``angle_shift_independent_group``) ``angle_repeatability_<axis>`` (B, group:
+    one error per move of that axis, shared by the points taken without moving it): the angles'
+    shifts times the fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle)."""
     S = slope(result.model, result.params, meas.wi, meas.wo)
     out = []
     for key, name, corr in (("shared", "angle_shared", "full"), ("independent", "angle_repeatability", "point")):
         d = np.asarray(angles.get(key, np.zeros((0, meas.n_points, 4))), float)
-        if d.size:
-            out.append(BudgetComponent(name, np.einsum("nca,kna->knc", S, d), "B", corr,
-                                       f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
+        if not d.size:
+            continue
+        value = np.einsum("nca,kna->knc", S, d)
+        groups = angles.get("independent_groups") if key == "independent" else None
+        if groups is None:
+            out.append(BudgetComponent(name, value, "B", corr, f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
+            continue
+        # one error per move of each axis: the points taken without moving it share it
+        for k, axis in enumerate(AXES if len(value) == len(AXES) else [str(k) for k in range(len(value))]):
+            out.append(BudgetComponent(f"{name}_{axis}", value[k], "B", "group",
+                                       f"the {axis} axis's per-move error x the local slope of the fitted f_r",
+                                       groups=np.repeat(np.asarray(groups[k])[:, None], value.shape[-1], axis=1)))
     return out
 
 
