@@ -157,6 +157,15 @@ def summarise(rows):
     print("  rms z against u_c:   " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zc ** 2).mean(0)))))
     print("  mean z against u_c:  " + ", ".join(f"{nm} {v:+.2f}" for nm, v in zip(names, zc.mean(0))))
     print("  rms z against u_stat: " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zs ** 2).mean(0)))))
+    for key, label in (("z_c_head", "before (a5863e1: Laplace u_stat, Birge sqrt(chi2/dof), per-point angles)"),
+                       ("z_c_nogroup", "the type-A and Birge fix without the axes' move groups")):
+        if key in rows[0]:
+            z = np.array([r[key] for r in rows])
+            print(f"  {label}:")
+            for k, lim in (("1-sigma", 1.0), ("k = 2", 2.0)):
+                c = (np.abs(z) <= lim).mean(0)
+                print(f"    {k:<7}: " + ", ".join(f"{nm} {v:.3f} ({np.sqrt(v * (1 - v) / n):.3f})" for nm, v in zip(names, c)))
+            print("    rms z: " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((z ** 2).mean(0)))))
     if "z_ignoring" in rows[0]:
         zi = np.array([r["z_ignoring"] for r in rows])
         hi = np.mean([r["hit1_ignoring"] for r in rows], axis=0)
