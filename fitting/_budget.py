@@ -90,8 +90,12 @@ class BudgetComponent:
         if self.correlation == "channel":
             return X.sum(axis=1)
         labels = np.broadcast_to(self.groups, X.shape[1:])
-        flat, lab = X.reshape(R, -1), labels.reshape(-1)
-        return np.stack([flat[:, lab == k].sum(axis=1) for k in np.unique(labels[use])], axis=1)
+        keep = np.unique(labels[use])
+        lab = np.searchsorted(keep, labels.reshape(-1))
+        inside = (lab < keep.size) & (keep[np.minimum(lab, keep.size - 1)] == labels.reshape(-1))
+        out = np.zeros((keep.size, R))
+        np.add.at(out, lab[inside], X.reshape(R, -1)[:, inside].T)      # O(R M), one pass
+        return out.T
 
 
 @dataclasses.dataclass
