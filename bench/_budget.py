@@ -176,24 +176,52 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
     return out
 
 
+def move_history(rows) -> tuple[np.ndarray, np.ndarray]:
+    """(labels, last_dir), each (N, 4) over (yaw, tilt, azimuth, lamp), in the rows' order, from
+    the order the points were taken (``finished``; the rows' order where a row has none):
+    ``labels`` counts each axis's moves up to the point (points with one label were taken
+    without moving that axis in between, so they share its per-move error: a stage that is not
+    sent anywhere stays where it was); ``last_dir`` the sign of the axis's last move (0 before
+    its first move from the first point's position, which the journal does not see)."""
+    stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rows], float).reshape(-1, 4)
+    t = np.array([float(r.get("finished", i)) for i, r in enumerate(rows)], float)
+    order = np.argsort(t, kind="stable")
+    step = np.diff(stage[order], axis=0)
+    moved = np.abs(step) > 1e-9
+    labels, last = np.zeros(stage.shape, np.int64), np.zeros(stage.shape)
+    labels[order[1:]] = np.cumsum(moved, axis=0)
+    d = np.zeros(4)
+    for k, n in enumerate(order[1:]):
+        d = np.where(moved[k], np.sign(step[k]), d)
+        last[n] = d
+    return labels, last
+
+
 def angle_variables(rows, settings) -> dict:
-    """``angle_shift_shared`` (angle_input, point, angle) and ``angle_shift_independent``
-    (axis_input, point, angle), degrees: the change of each point's (theta_i, phi_i, theta_o,
-    phi_o) for +1 sigma of each shared error (calibrate.angle_uncertainty's signed modes) and of
-    each per-point one (eigenmodes of its per-point covariance). Empty without an [alignment]."""
+    """``angle_shift_shared`` (angle_input, point, angle), ``angle_shift_independent``
+    (axis_input, point, angle) and ``angle_shift_independent_group`` (axis_input, point),
+    degrees: the change of each point's (theta_i, phi_i, theta_o, phi_o) for +1 sigma of each
+    shared error (calibrate.angle_uncertainty's signed modes, with each axis's lost motion
+    signed by the direction of its last move) and of each axis's per-move error (yaw, tilt,
+    azimuth, lamp), which points taken without moving that axis share (the group labels:
+    :func:`move_history`). Empty without an [alignment]."""
     if not isinstance(settings.get("alignment"), dict):
         return {}
     stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rows], float)
-    u = calibrate.angle_uncertainty(settings, stage)
-    w, v = np.linalg.eigh(u["cov_independent"])                    # (N, 4), (N, 4, 4)
-    indep = v * np.sqrt(np.clip(w, 0.0, None))[:, None, :]         # (N, angle, mode)
+    labels, last = move_history(rows)
+    u = calibrate.angle_uncertainty(settings, stage, last_dir=last)
     attrs = {"units": "degree", "angles": "theta_i phi_i theta_o phi_o"}
     return {"angle_shift_shared": (("angle_input", "point", "angle"), np.transpose(u["shared_modes"], (2, 0, 1)),
                                    {**attrs, "correlation": "full (each input)",
                                     "long_name": "change of the angles for +1 sigma of each shared calibration error"}),
-            "angle_shift_independent": (("axis_input", "point", "angle"), np.transpose(indep, (2, 0, 1)),
-                                        {**attrs, "correlation": "point (each input)",
-                                         "long_name": "change of the angles for +1 sigma of each per-move error"})}
+            "angle_shift_independent": (("axis_input", "point", "angle"),
+                                        np.transpose(u["independent_modes"], (2, 0, 1)),
+                                        {**attrs, "axes": "yaw tilt azimuth lamp",
+                                         "correlation": "group:angle_shift_independent_group (each axis)",
+                                         "long_name": "change of the angles for +1 sigma of each axis's per-move error"}),
+            "angle_shift_independent_group": (("axis_input", "point"), labels.T.astype(np.int32),
+                                              {"long_name": "each axis's move count: points with one label share "
+                                                            "that axis's per-move error"})}
 
 
 def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, extra=()) -> dict:

@@ -79,7 +79,7 @@ def _eval_errors(stage, p, which, d):
     return _angles(stage, pp, ax, tuple(wd))
 
 
-def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
+def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     """Covariance of each point's calibrated angles ``(theta_i, phi_i, theta_o, phi_o)``, deg^2.
 
     Returns
@@ -97,7 +97,15 @@ def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
         modes' outer products; the budget's correlated components, ``full`` each, after
         multiplying by df_r/dangle); ``u_theta_i``, ``u_theta_o``, ``u_phi_i``, ``u_phi_o``
         (N,): the combined standard uncertainties. Multiply by the local slope of f_r (the
-        budget's ``u_angle``).
+        budget's ``u_angle``). ``independent_modes`` (N, 4, 4): the change of each point's
+        angles for +1 sigma of each axis's (yaw, tilt, azimuth, lamp) own per-move error
+        (``cov_independent`` = the sum of their outer products).
+
+    ``last_dir`` (N, 4), optional: the sign of each axis's last move before each point (+1, -1;
+    0 unknown), from the order the points were taken. With it an axis's lost motion is not a
+    per-point error but the same -b/2 for every point its axis last reached moving up and +b/2
+    moving down: one shared error per axis (a mode, signed by the direction), leaving only the
+    repeatability per move; without it (or where 0) half the backlash stays in the per-point part.
     """
     stage = np.atleast_2d(np.asarray(stage_deg, float))
     a = cal.get("alignment", {})
@@ -111,17 +119,25 @@ def angle_uncertainty(cal: Mapping, stage_deg) -> dict:
     rep = float(a.get("repeat_deg", 0.0))
     half_b = [0.5 * abs(float(a.get(f"backlash_{n}_deg", 0.0))) for n in ("yaw", "tilt")]
     half_b += [max(half_b), 0.5 * abs(float(a.get("backlash_lamp_deg", max(half_b) * 2)))]   # azimuth: not scanned
-    ci = np.diag([rep ** 2 + b ** 2 for b in half_b])
+    d = np.zeros(stage.shape) if last_dir is None else np.broadcast_to(np.asarray(last_dir, float), stage.shape)
+    known = d != 0
+    sd_i = np.sqrt(rep ** 2 + np.where(known, 0.0, np.asarray(half_b) ** 2))      # (N, 4) per axis
     Js = _jacobian(stage, p, shared)
     Ji = _jacobian(stage, p, ["axis0", "axis1", "axis2", "axis3"])
     w, V = np.linalg.eigh(cs)
     modes = np.einsum("nak,km->nam", Js, V * np.sqrt(np.clip(w, 0.0, None)))      # (N, 4, 7)
     keep = np.sqrt(np.clip(w, 0.0, None)) > 0
-    cov_s = np.einsum("nak,kl,nbl->nab", Js, cs, Js)
-    cov_i = np.einsum("nak,kl,nbl->nab", Ji, ci, Ji)
+    modes = modes[:, :, keep]
+    lost = [Ji[:, :, k] * (-np.asarray(half_b)[k] * d[:, k])[:, None] for k in range(4)
+            if half_b[k] > 0 and np.any(known[:, k])]                            # the sim: error -b/2 x dir
+    if lost:
+        modes = np.concatenate([modes, np.stack(lost, -1)], axis=-1)
+    indep = Ji * sd_i[:, None, :]                                                 # (N, 4 angles, 4 axes)
+    cov_s = np.einsum("nak,nbk->nab", modes, modes)
+    cov_i = np.einsum("nak,nbk->nab", indep, indep)
     tot = np.sqrt(np.diagonal(cov_s + cov_i, axis1=1, axis2=2))
     return {"angles": _angles(stage, p), "cov_shared": cov_s, "cov_independent": cov_i,
-            "shared_modes": modes[:, :, keep],
+            "shared_modes": modes, "independent_modes": indep,
             "u_theta_i": tot[:, 0], "u_phi_i": tot[:, 1], "u_theta_o": tot[:, 2], "u_phi_o": tot[:, 3]}
 
 

@@ -207,7 +207,9 @@ def print_fit(doc, truth=None, console=None):
         u = unc.get(name)
         sigma = u["u_combined"] if u else p["std"]
         value, _ = gum(p["value"], sigma)
-        row = [name, value, f"{p['std']:.2g}"]
+        # the statistical 1-sigma the budget carries (type A with the channels' correlation,
+        # fitting/_budget.py) where the fit has one; else the fit's own
+        row = [name, value, f"{(u['u_stat'] if u else p['std']):.2g}"]
         if unc:
             row += [gum(p["value"], u["u_combined"])[1], gum(p["value"], u["U"])[1]] if u else ["-", "-"]
         if show_ci:

@@ -59,7 +59,7 @@ __all__ = [
 ]
 
 PRESET_DIR = Path(__file__).with_name("presets")
-PRESETS = ("quick", "standard", "dense")
+PRESETS = ("quick", "standard", "dense", "glossy")
 COLUMNS = ("theta_i", "phi_i", "theta_o", "phi_o")
 #: most points in one plan (the dense preset has about 1000): the ordering's N x N matrices
 #: stay under 128 MiB each, and a generator never runs without bound

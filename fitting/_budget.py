@@ -72,21 +72,30 @@ class BudgetComponent:
         P = G.shape[0]
         cov = np.zeros((P, P))
         for vk in v:                                    # K independent inputs
-            contrib = G * vk[None]                      # (P, N, C)
-            if self.correlation == "none":
-                g = contrib.reshape(P, -1)
-            elif self.correlation == "point":
-                g = contrib.sum(axis=2)
-            elif self.correlation == "full":
-                g = contrib.sum(axis=(1, 2))[:, None]
-            elif self.correlation == "channel":
-                g = contrib.sum(axis=1)
-            else:
-                labels = np.broadcast_to(self.groups, vk.shape)
-                flat, lab = contrib.reshape(P, -1), labels.reshape(-1)
-                g = np.stack([flat[:, lab == k].sum(axis=1) for k in np.unique(labels[use])], axis=1)
+            g = self.input_sums(G * vk[None], use)
             cov += g @ g.T
         return cov
+
+    def input_sums(self, X: np.ndarray, use: np.ndarray) -> np.ndarray:
+        """X (R, N, C) summed over the values that share one error: (R, L), one column per
+        error (L = N C for ``none``, N for ``point``, 1 for ``full``, C for ``channel``, the
+        labels for ``group``)."""
+        R = X.shape[0]
+        if self.correlation == "none":
+            return X.reshape(R, -1)
+        if self.correlation == "point":
+            return X.sum(axis=2)
+        if self.correlation == "full":
+            return X.sum(axis=(1, 2))[:, None]
+        if self.correlation == "channel":
+            return X.sum(axis=1)
+        labels = np.broadcast_to(self.groups, X.shape[1:])
+        keep = np.unique(labels[use])
+        lab = np.searchsorted(keep, labels.reshape(-1))
+        inside = (lab < keep.size) & (keep[np.minimum(lab, keep.size - 1)] == labels.reshape(-1))
+        out = np.zeros((keep.size, R))
+        np.add.at(out, lab[inside], X.reshape(R, -1)[:, inside].T)      # O(R M), one pass
+        return out.T
 
 
 @dataclasses.dataclass
@@ -168,6 +177,8 @@ def _colour_matrix_components(ds, meas) -> list:
             for k in range(values.shape[-1])]
 
 
+#: the stage axes of ``angle_shift_independent``'s inputs when it has one group label per axis
+AXES = ("yaw", "tilt", "azimuth", "lamp")
 #: the dataset variables of the angles' uncertainty (docs/interfaces.md 5.1), degrees
 ANGLE_SHIFTS = {"shared": "angle_shift_shared", "independent": "angle_shift_independent"}
 
@@ -186,6 +197,12 @@ def _angle_shifts(ds, path, n_points):
         if arr.ndim != 3 or arr.shape[1:] != (n_points, 4) or not np.all(np.isfinite(arr)):
             raise ValueError(f"{path}: {name} must be finite, (inputs, {n_points} points, 4 angles) in degrees")
         out[key] = arr
+    group = ANGLE_SHIFTS["independent"] + "_group"
+    if "independent" in out and group in ds.variables:
+        g = np.asarray(ds[group].transpose(ds[group].dims[0], "point").values)
+        if g.shape != out["independent"].shape[:2] or not np.issubdtype(g.dtype, np.integer):
+            raise ValueError(f"{path}: {group} must be integer labels (inputs, {n_points} points)")
+        out["independent_groups"] = g.astype(np.int64)
     return out or None
 
 
@@ -200,7 +217,12 @@ def _in_colour_space(comp: BudgetComponent, s, path) -> list:
     if np.array_equal(s, np.eye(len(s))):
         return [comp]
     if comp.correlation == "none":
-        return [dataclasses.replace(comp, value=np.sqrt(comp.value ** 2 @ (s ** 2).T))]
+        # one error per camera channel and point: in the fit's space it moves the point's three
+        # channels together (s[:, k] times it), so it is K = 3 inputs of correlation "point",
+        # not three independent errors sqrt(s^2 u^2) (that would drop the channels' correlation,
+        # brdf_srgb_corr, up to |r| 0.6 for a consumer camera)
+        return [dataclasses.replace(comp, value=np.stack([comp.value[:, [k]] * s[:, k] for k in range(len(s))]),
+                                    correlation="point")]
     if comp.correlation == "channel":
         return [dataclasses.replace(comp, name=f"{comp.name}_{c}", value=comp.value[:, [c]] * s[:, c], correlation="full")
                 for c in range(len(s))]
@@ -211,12 +233,8 @@ def _in_colour_space(comp: BudgetComponent, s, path) -> list:
 
 
 def _sensitivity(result, meas):
-    """G = -(J^T J)^+ J^T diag(dr/dy) restricted to the used values: (P, M), and the mask."""
-    loss = result.loss if result.loss in ("chi2", "robust", "cosine", "log") else "chi2"
-    problem = Problem(meas, result.model, result.space, loss)
-    J, _ = loss_jacobian(problem, result.x, loss)
-    drdy = -_loss.residual_derivative(loss, meas.brdf, meas)
-    drdy = np.broadcast_to(drdy, meas.brdf.shape)[meas.use]
+    """G = -(J^T J)^+ J^T diag(dr/dy) restricted to the used values: (P, M)."""
+    J, drdy = _loss_sensitivities(result, meas)
     return -np.linalg.pinv(J, rcond=1e-10) * drdy[None, :]
 
 
@@ -240,41 +258,135 @@ def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
 
 def angle_components(result, meas, angles: dict) -> list:
     """``angle_shared`` (B, full, one input per shared angle error) and ``angle_repeatability``
-    (B, point: one error per point, shared by its channels): the angles' shifts times the
-    fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle)."""
+    (B, point: one error per point, shared by its channels), or where the dataset labels each
+    axis's moves (``angle_shift_independent_group``) ``angle_repeatability_<axis>`` (B, group:
+    one error per move of that axis, shared by the points taken without moving it): the angles'
+    shifts times the fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle)."""
     S = slope(result.model, result.params, meas.wi, meas.wo)
     out = []
     for key, name, corr in (("shared", "angle_shared", "full"), ("independent", "angle_repeatability", "point")):
         d = np.asarray(angles.get(key, np.zeros((0, meas.n_points, 4))), float)
-        if d.size:
-            out.append(BudgetComponent(name, np.einsum("nca,kna->knc", S, d), "B", corr,
-                                       f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
+        if not d.size:
+            continue
+        value = np.einsum("nca,kna->knc", S, d)
+        groups = angles.get("independent_groups") if key == "independent" else None
+        if groups is None:
+            out.append(BudgetComponent(name, value, "B", corr, f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
+            continue
+        # one error per move of each axis: the points taken without moving it share it
+        for k, axis in enumerate(AXES if len(value) == len(AXES) else [str(k) for k in range(len(value))]):
+            out.append(BudgetComponent(f"{name}_{axis}", value[k], "B", "group",
+                                       f"the {axis} axis's per-move error x the local slope of the fitted f_r",
+                                       groups=np.repeat(np.asarray(groups[k])[:, None], value.shape[-1], axis=1)))
     return out
 
 
-def propagate(result, meas, budget: Budget, u_stat: np.ndarray) -> dict:
+def _point_independent(c: BudgetComponent) -> bool:
+    """A component whose errors are independent from point to point (``none`` or ``point``)."""
+    return c.correlation in ("none", "point")
+
+
+def birge_against_budget(result, J, drdy, meas, comps) -> dict:
+    """The fit's chi^2 against what the whole budget makes it (:func:`expected_chi2`): a factor
+    sqrt(chi^2 / E) on the statistical covariance where chi^2 exceeds its expectation E by more
+    than 4 standard deviations (fitting/_fitfile.model_adequacy's rule, with E and its spread
+    from the budget instead of dof and sqrt(2 dof)), else 1. The plain Birge ratio
+    sqrt(chi^2/dof) would count again the scatter the type-B lines already carry (the angles'
+    errors times a steep lobe's slope, the reference table's, the stray light's)."""
+    mean, sd = expected_chi2(J, drdy, meas, comps)
+    chi2 = float(result.chi2)
+    factor = float(np.sqrt(chi2 / mean)) if mean > 0 and chi2 > mean + 4.0 * sd else 1.0
+    return {"chi2": chi2, "chi2_expected": mean, "chi2_expected_sd": sd, "factor": factor}
+
+
+def _loss_sensitivities(result, meas):
+    """(J, dr/dy): the loss's residual Jacobian at the optimum (M, P) and dr/dy at the used values (M,)."""
+    loss = result.loss if result.loss in ("chi2", "robust", "cosine", "log") else "chi2"
+    problem = Problem(meas, result.model, result.space, loss)
+    J, _ = loss_jacobian(problem, result.x, loss)
+    drdy = -_loss.residual_derivative(loss, meas.brdf, meas)
+    return J, np.broadcast_to(drdy, meas.brdf.shape)[meas.use]
+
+
+def expected_chi2(J, drdy, meas, comps) -> tuple[float, float]:
+    """(mean, standard deviation) of the fit's chi^2 if the data scatter exactly as ``comps`` say.
+
+    A data error d leaves the residual (I - P)(dr/dy d) after the fit, P = J J^+ the projector on
+    J's columns (the part the parameters absorb). Each error a_l of a component (one value for
+    ``none``, one point for ``point``, one group for the shared ones) adds
+    e_l = ||a_l||^2 - ||Q^T a_l||^2 to the mean, Q an orthonormal basis of J's columns (M x P:
+    nothing M x M is formed); the variance is taken as 2 sum e_l^2 (exact for type A alone,
+    where the mean is M - P = dof and the rule is fitting/_fitfile.model_adequacy's)."""
+    U, sv, _ = np.linalg.svd(J, full_matrices=False)
+    Q = U[:, sv > sv.max() * 1e-10] if sv.size and sv.max() > 0 else U[:, :0]
+    use = meas.use
+    GQ = np.zeros((Q.shape[1],) + use.shape)
+    GQ[:, use] = Q.T
+    D = np.zeros(use.shape)
+    D[use] = drdy
+    mean = var = 0.0
+    for c in comps:
+        v = np.where(use, c.value, 0.0) * D
+        for a in (v[None] if v.ndim == 2 else v):
+            e = c.input_sums((a * a)[None], use)[0] - (c.input_sums(GQ * a[None], use) ** 2).sum(axis=0)
+            mean, var = mean + float(e.sum()), var + 2.0 * float((e * e).sum())
+    return mean, float(np.sqrt(var))
+
+
+def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.ndarray | None = None) -> dict:
     """The fit file's ``uncertainty`` section (docs/interfaces.md 5.1): per parameter
     ``u_stat``, ``u_combined``, ``U`` (k = 2), ``k`` and ``budget`` (variance fractions).
 
-    ``u_stat``: the statistical 1-sigma of each parameter (Birge-inflated where so reported).
-    Also ``covariance_combined``: the statistical covariance plus the propagated ones.
+    ``u_stat``: the fit's statistical 1-sigma of each parameter (Birge-inflated where so
+    reported; ``cov_stat`` its covariance). Returns also ``covariance_statistical`` and
+    ``cov_systematic`` (the propagated type-B and shared lines).
+
+    The statistical covariance is the type-A components propagated through G (the estimator's
+    own covariance, JCGM 102 6.2) wherever the dataset splits type A into ``u_`` lines: the
+    fit's Laplace covariance assumes every value independent with sigma ``brdf_std``, which
+    equals G diag(sigma^2) G^T, but after a colour matrix a camera channel's noise moves the
+    point's three channels together (negatively correlated for a consumer camera: the Laplace
+    sigma of a parameter shared by the channels, such as alpha and int_ior of a white specular
+    lobe, is then 1.7 times the estimator's). The Birge factor that covers a misfit is taken
+    against the budget's own point-wise covariance (type A with its channel correlation plus
+    the point-independent type-B lines, :func:`birge_against_budget`): scatter the budget
+    already carries as ``angle_repeatability`` is not counted again. For losses other than
+    chi2 (sandwich covariances) the fit's ratio u_stat / sqrt(G diag(sigma^2) G^T) is kept.
     """
     use = meas.use
     P = result.space.size
+    J, drdy = _loss_sensitivities(result, meas)
     G = np.zeros((P,) + use.shape)
-    G[:, use] = _sensitivity(result, meas)
+    G[:, use] = -np.linalg.pinv(J, rcond=1e-10) * drdy[None, :]
     var, stat_share = {}, {}
     cov_b = np.zeros((P, P))
+    cov_a = np.zeros((P, P))
     comps = list(budget.components) + (angle_components(result, meas, budget.angles) if budget.angles else [])
+    type_a = [c for c in comps if c.gum_type == "A" and _point_independent(c)]
+    split = bool(type_a) and not (len(type_a) == 1 and type_a[0].name == STATISTICAL)
     for c in comps:
-        if c.statistical:
-            g = G[:, use] * c.value[use][None, :]
-            stat_share[c.name] = np.einsum("pm,pm->p", g, g)
-            continue
         cov = c.covariance(G, use)
+        if split and c.gum_type == "A" and _point_independent(c):
+            cov_a += cov
+            stat_share[c.name] = np.diag(cov).copy()
+            continue
+        if c.statistical:
+            stat_share[c.name] = np.diag(cov).copy()
+            continue
         var[c.name] = np.diag(cov).copy()
         cov_b += cov
     u_stat = np.asarray(u_stat, float)
+    cov_stat = np.diag(u_stat ** 2) if cov_stat is None else np.asarray(cov_stat, float)
+    birge = None
+    if split:
+        if result.loss == "chi2":
+            birge = birge_against_budget(result, J, drdy, meas, comps)
+            scale = np.full(P, birge["factor"])
+        else:
+            naive = np.sqrt(np.einsum("pm,pm->p", G[:, use] * meas.brdf_std[use][None], G[:, use] * meas.brdf_std[use][None]))
+            scale = np.where(naive > 0, u_stat / np.where(naive > 0, naive, 1.0), 1.0)
+        cov_stat = cov_a * np.outer(scale, scale)
+        u_stat = np.sqrt(np.clip(np.diag(cov_stat), 0.0, None))
     total = u_stat ** 2 + np.diag(cov_b)
     out = {}
     s_sum = sum(stat_share.values()) if stat_share else None
@@ -291,7 +403,7 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray) -> dict:
         uc = float(np.sqrt(t))
         out[name] = {"u_stat": float(u_stat[i]), "u_combined": uc, "U": K_EXPANDED * uc, "k": K_EXPANDED,
                      "budget": {k: float(f) for k, f in sorted(frac.items(), key=lambda kv: -kv[1])}}
-    return {"parameters": out, "cov_systematic": cov_b}
+    return {"parameters": out, "cov_systematic": cov_b, "cov_statistical": cov_stat, "birge": birge}
 
 
 def gls_covariance(J: np.ndarray, sigma: np.ndarray, U: np.ndarray) -> np.ndarray:

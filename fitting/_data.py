@@ -217,7 +217,10 @@ def _colour_variables(ds, path, colour_space) -> tuple[str, dict]:
         info["channel_correlation_max"] = float(np.nanmax(corr)) if np.any(np.isfinite(corr)) else 0.0
         info["left_out"] = ("the fit weights each channel by its own 1-sigma; the noise correlation between "
                             f"channels from the colour matrix (|r| up to {info['channel_correlation_max']:.3f}, "
-                            f"{name}_corr in the dataset) and the colour matrix's own uncertainty are not in its covariance")
+                            f"{name}_corr in the dataset) is not in its weights, and not in its covariance (each "
+                            "parameter's std); the uncertainty section's u_stat and u_c carry it where the dataset "
+                            "has its u_ components per camera channel (fitting/_budget.py), and the colour matrix's "
+                            "own uncertainty where the dataset states it (a chart's)")
     return name, info
 
 

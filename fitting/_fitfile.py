@@ -166,11 +166,15 @@ def _uncertainty(result, meas, budget, u_stat, cov_stat) -> dict:
     """The ``uncertainty`` section: combined and expanded uncertainty and budget per parameter
     (docs/interfaces.md 5.1)."""
     budget = budget if budget is not None else budget_from_attrs(meas)
-    out = propagate(result, meas, budget, u_stat)
+    out = propagate(result, meas, budget, u_stat, cov_stat)
     return {"k": K_EXPANDED, "method": "first-order propagation of every budget component through the fit "
                                       "(correlated ones as shared nuisance errors; GUM 5.1, JCGM 102 6.2)",
             "budget_source": budget.source, "components": budget.describe(), "parameters": out["parameters"],
-            "covariance_combined": {"names": list(result.space.names), "matrix": cov_stat + out["cov_systematic"]}}
+            "statistical": ({"method": "type-A components propagated through the fit (their channel correlation "
+                                           "included); Birge factor against the point-wise budget", **out["birge"]}
+                            if out["birge"] else None),
+            "covariance_combined": {"names": list(result.space.names),
+                                    "matrix": out["cov_statistical"] + out["cov_systematic"]}}
 
 
 def model_adequacy(result):

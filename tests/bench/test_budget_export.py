@@ -199,9 +199,28 @@ def test_a_calibrated_session_carries_its_calibrations_lines():
     # the factor's relative uncertainty at (10, 20) deg, bilinear over 0..80 deg (s = 1/8, t = 1/4):
     # u = 0.0028125 over the factor 0.9921875
     assert v["u_reference_factor"][1][0, 0] / f[0, 0] == pytest.approx(0.0028125 / 0.9921875, rel=1e-9)
+    from gonio.bench._budget import move_history
+
     stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rs])
-    u = angle_uncertainty(CAL, stage)
+    labels, last = move_history(rs)
+    u = angle_uncertainty(CAL, stage, last_dir=last)
+    # each axis's per-move error, shared by the points taken without moving the axis
+    np.testing.assert_array_equal(v["angle_shift_independent_group"][1], labels.T)
+    assert v["angle_shift_independent"][2]["correlation"].startswith("group:")
     shared = v["angle_shift_shared"][1]                       # (input, point, angle)
     np.testing.assert_allclose(np.einsum("kna,knb->nab", shared, shared), u["cov_shared"], atol=1e-12)
     indep = v["angle_shift_independent"][1]
     np.testing.assert_allclose(np.einsum("kna,knb->nab", indep, indep), u["cov_independent"], atol=1e-12)
+
+
+def test_move_history_follows_the_order_the_points_were_taken():
+    """Labels count each axis's moves in the order of ``finished`` (not the plan's); a point the
+    axis was not moved to shares the previous one's label; last_dir is the last move's sign."""
+    from gonio.bench._budget import move_history
+
+    pos = [(10.0, 0.0, 0.0, 40.0), (20.0, 0.0, 0.0, 50.0), (20.0, 5.0, 0.0, 30.0), (15.0, 5.0, 0.0, 30.0)]
+    finished = [3.0, 1.0, 2.0, 4.0]            # taken in the order 1, 2, 0, 3
+    rows = [dict(zip(("yaw", "tilt", "azimuth", "lamp"), p), finished=t) for p, t in zip(pos, finished)]
+    labels, last = move_history(rows)
+    np.testing.assert_array_equal(labels[[1, 2, 0, 3]], [[0, 0, 0, 0], [0, 1, 0, 1], [1, 2, 0, 2], [2, 3, 0, 3]])
+    np.testing.assert_array_equal(last[[1, 2, 0, 3]], [[0, 0, 0, 0], [0, 1, 0, -1], [-1, -1, 0, 1], [1, 1, 0, -1]])

@@ -1,7 +1,8 @@
 """Coverage of the combined uncertainty u_c (issue 15): the study, run outside the suite.
 
     .venv/bin/python tests/fitting/budget_coverage.py synthetic N [--first SEED] [--out FILE.json]
-    .venv/bin/python tests/fitting/budget_coverage.py capture N [--first SEED] [--errors TABLE_JSON] [--plan quick]
+    .venv/bin/python tests/fitting/budget_coverage.py capture N [--first SEED] [--errors TABLE_JSON] [--calibrated]
+        [--sample roughplastic|glossy] [--plan PLAN]
     .venv/bin/python tests/fitting/budget_coverage.py --summarise FILE.json
 
 ``synthetic``: the sessions of tests/fitting/test_budget.py (:func:`test_budget.session`):
@@ -17,6 +18,19 @@ For each session and parameter it records whether |fit - truth| <= u_c (1 sigma)
 <= 2 u_c (k = 2), <= 0.8 u_c (an interval 20 % too narrow) and <= u_stat (the budget
 ignored), plus z = (fit - truth) / u_c and / u_stat. ``--summarise`` prints the coverage
 with binomial sigma.
+
+Results (2026-12-02, docs/interfaces.md 5.1): ``capture --calibrated --errors '{"preset": "typical"}'``,
+48 sessions per sample, seeds 400008-400055 (data/budget_coverage/capture_{rough,glossy}_typical_
+calibrated_fixed.json, with the same fits' figures under a5863e1's propagation as ``z_c_head``).
+1-sigma (binomial sigma 0.06-0.07) and k = 2 coverage, R G B alpha int_ior:
+
+    roughplastic-Beckmann 0.15, quick:  1s 0.73 0.75 0.73 0.60 0.79   k2 0.98 0.98 0.98 0.96 0.98
+        before:                          1s 0.73 0.75 0.73 0.77 0.81   k2 0.98 0.98 0.98 1.00 0.98
+    glossy GGX 0.05, plan glossy:       1s 0.75 0.77 0.69 0.67 0.63   k2 0.98 0.96 0.96 0.92 0.96
+        before:                          1s 0.81 0.81 0.85 0.79 0.69   k2 0.98 0.98 0.98 1.00 1.00
+
+rho and int_ior follow the session's certificate draw; these 48 draws themselves cover at 0.729
+(1-sigma) and 0.958 (k = 2).
 """
 
 from __future__ import annotations
@@ -34,7 +48,18 @@ sys.path.insert(0, str(Path(__file__).parent))
 import test_budget as T  # noqa: E402
 
 
-def capture_session(seed: int, errors: dict, plan: str, folder: Path, calibrated: bool = False):
+#: the captured samples: (sample, fit options, truth by parameter name, default plan)
+CAPTURE_SAMPLES = {
+    "roughplastic": ({"model": "roughplastic", "params": {"diffuse_reflectance": [0.5, 0.35, 0.2], "alpha": 0.15}},
+                     {"distribution": "beckmann"}, {"alpha": 0.15, "int_ior": 1.49}, "quick"),
+    "glossy": ({"model": "roughplastic", "options": {"distribution": "ggx"},
+                "params": {"diffuse_reflectance": [0.5, 0.35, 0.2], "alpha": 0.05, "int_ior": 1.5}},
+               {"distribution": "ggx"}, {"alpha": 0.05, "int_ior": 1.5}, "glossy"),
+}
+
+
+def capture_session(seed: int, errors: dict, plan: str | None, folder: Path, calibrated: bool = False,
+                    sample: str = "roughplastic"):
     """One simulated capture -> dataset.nc -> fit with its budget: (names, fit, u_c, u_stat, truth).
 
     ``calibrated``: gonio calibrate first (same instrument seed), its tables merged into the
@@ -52,15 +77,13 @@ def capture_session(seed: int, errors: dict, plan: str, folder: Path, calibrated
     settings["errors"] = errors
     if calibrated:
         settings = merge_calibration(settings, calibrate(settings, seed=seed))
-    sample = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.5, 0.35, 0.2], "alpha": 0.15}}
+    spec, options, shape, default_plan = CAPTURE_SAMPLES[sample]
     shutil.rmtree(folder, ignore_errors=True)
-    capture_sim(folder, sample=sample, plan=plan, seed=seed, settings=settings, progress=False)
+    capture_sim(folder, sample=spec, plan=plan or default_plan, seed=seed, settings=settings, progress=False)
     path = export(folder)
     meas = load_dataset(path)
-    _, doc, _ = fit_dataset(meas, model="roughplastic", options={"distribution": "beckmann"}, seed=seed,
-                            budget=open_budget(path, meas))
-    truth = {"diffuse_reflectance[R]": 0.5, "diffuse_reflectance[G]": 0.35, "diffuse_reflectance[B]": 0.2,
-             "alpha": 0.15, "int_ior": 1.49}
+    _, doc, _ = fit_dataset(meas, model="roughplastic", options=options, seed=seed, budget=open_budget(path, meas))
+    truth = {"diffuse_reflectance[R]": 0.5, "diffuse_reflectance[G]": 0.35, "diffuse_reflectance[B]": 0.2, **shape}
     names = list(doc["parameters"])
     u = doc["uncertainty"]["parameters"]
     return (names, np.array([doc["parameters"][n]["value"] for n in names]),
@@ -128,7 +151,8 @@ def record_typical(names, cal, raw, truth) -> dict:
 
 def record(names, x, uc, us, truth) -> dict:
     d = np.abs(x - truth)
-    return {"names": names, "z_c": ((x - truth) / uc).tolist(), "z_stat": ((x - truth) / us).tolist(),
+    return {"names": names, "x": np.asarray(x).tolist(), "u_c": np.asarray(uc).tolist(),
+            "z_c": ((x - truth) / uc).tolist(), "z_stat": ((x - truth) / us).tolist(),
             "hit1": (d <= uc).tolist(), "hit2": (d <= 2 * uc).tolist(), "narrow": (d <= 0.8 * uc).tolist(),
             "stat": (d <= us).tolist()}
 
@@ -144,7 +168,17 @@ def summarise(rows):
     zs = np.array([r["z_stat"] for r in rows])
     zc = np.array([r["z_c"] for r in rows])
     print("  rms z against u_c:   " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zc ** 2).mean(0)))))
+    print("  mean z against u_c:  " + ", ".join(f"{nm} {v:+.2f}" for nm, v in zip(names, zc.mean(0))))
     print("  rms z against u_stat: " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((zs ** 2).mean(0)))))
+    for key, label in (("z_c_head", "before (a5863e1: Laplace u_stat, Birge sqrt(chi2/dof), per-point angles)"),
+                       ("z_c_nogroup", "the type-A and Birge fix without the axes' move groups")):
+        if key in rows[0]:
+            z = np.array([r[key] for r in rows])
+            print(f"  {label}:")
+            for k, lim in (("1-sigma", 1.0), ("k = 2", 2.0)):
+                c = (np.abs(z) <= lim).mean(0)
+                print(f"    {k:<7}: " + ", ".join(f"{nm} {v:.3f} ({np.sqrt(v * (1 - v) / n):.3f})" for nm, v in zip(names, c)))
+            print("    rms z: " + ", ".join(f"{nm} {v:.2f}" for nm, v in zip(names, np.sqrt((z ** 2).mean(0)))))
     if "z_ignoring" in rows[0]:
         zi = np.array([r["z_ignoring"] for r in rows])
         hi = np.mean([r["hit1_ignoring"] for r in rows], axis=0)
@@ -161,7 +195,9 @@ def main(argv=None):
     ap.add_argument("--first", type=int, default=100000, help="first seed (the suite's are below 1000)")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--errors", default='{"preset": "ideal", "reference": {"draw_certificate": true}}')
-    ap.add_argument("--plan", default="quick")
+    ap.add_argument("--plan", default=None, help="capture: the plan (default: the sample's, quick or glossy)")
+    ap.add_argument("--sample", default="roughplastic", choices=tuple(CAPTURE_SAMPLES),
+                    help="capture: roughplastic-Beckmann alpha 0.15 or glossy roughplastic-GGX alpha 0.05")
     ap.add_argument("--calibrated", action="store_true", help="capture: gonio calibrate first and use it")
     ap.add_argument("--summarise", type=Path)
     a = ap.parse_args(argv)
@@ -178,7 +214,7 @@ def main(argv=None):
         elif a.mode == "typical":
             rows.append(record_typical(*typical_session(s)))
         else:
-            rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated)))
+            rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated, a.sample)))
         if a.out and ((s - a.first + 1) % 25 == 0 or s == a.first + a.n - 1):
             a.out.parent.mkdir(parents=True, exist_ok=True)
             a.out.write_text(json.dumps({"mode": a.mode, "first_seed": a.first, "errors": a.errors, "plan": a.plan,

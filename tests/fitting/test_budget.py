@@ -253,3 +253,82 @@ def test_an_angle_offset_propagates_as_a_refit_sees_it(glossy):
     refit = fit(Measurements(meas.wi, meas.wo, meas.brdf + (moved_f - truth_f), meas.brdf_std, meas.use),
                 MODEL, rng=np.random.default_rng(7))
     assert np.all(np.abs((refit.x - res.x) - predicted) <= 0.05 * np.abs(predicted) + 0.05 * res.std)
+
+
+# ------------------------------------------------------------------ a fit in sRGB of camera-RGB noise
+#: sim/_colour.py's camera (the dataset's srgb_from_cam of a simulated session): sRGB = S camera
+SRGB_FROM_CAM = np.array([[1.628051720083, -0.63184209057, 0.003790370487],
+                          [-0.158502294674, 1.621165619097, -0.462663324423],
+                          [0.016356599574, -0.533241040711, 1.516884441137]])
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    """A glossy session whose noise is independent per camera channel, fitted in sRGB (as gonio
+    fit does on a capture): sRGB noise correlated between channels (r -0.6 to +0.1)."""
+    from gonio.fitting._budget import _in_colour_space
+
+    rng = np.random.default_rng(11)
+    wi, wo = directions(rng, 150, spread=0.05)
+    f = MODEL.eval(wi, wo, TRUTH)
+    cam = f @ np.linalg.inv(SRGB_FROM_CAM).T
+    sigma_cam = 0.01 * np.abs(cam) + 1e-3
+    y = (cam + sigma_cam * rng.standard_normal(cam.shape)) @ SRGB_FROM_CAM.T
+    sigma = np.sqrt(sigma_cam ** 2 @ (SRGB_FROM_CAM ** 2).T)
+    meas = Measurements(wi, wo, y, sigma, np.ones(f.shape, bool), {"seed": 11})
+    res = fit(meas, MODEL, rng=np.random.default_rng(11))
+    comps = _in_colour_space(BudgetComponent("shot_read", sigma_cam, "A", "none"), SRGB_FROM_CAM, "test")
+    return meas, res, sigma_cam, Budget(comps)
+
+
+def test_type_a_after_a_colour_matrix_keeps_the_channels_correlation(mixed):
+    """u_stat is G C G^T with C the points' 3 x 3 blocks S diag(sigma_cam^2) S^T (the estimator's
+    own covariance), not the fit's Laplace sigma, which takes the sRGB channels as independent:
+    for the white specular lobe's alpha and int_ior that is about 1.7 times too wide."""
+    from gonio.fitting._budget import _sensitivity
+
+    meas, res, sigma_cam, budget = mixed
+    (comp,) = budget.components
+    assert comp.correlation == "point" and comp.value.shape == (3,) + meas.brdf.shape
+    out = propagate(res, meas, budget, res.std)
+    G = _sensitivity(res, meas).reshape(res.space.size, meas.n_points, 3)
+    C = np.einsum("ck,nk,dk->ncd", SRGB_FROM_CAM, sigma_cam ** 2, SRGB_FROM_CAM)    # (N, 3, 3) blocks
+    dense = np.einsum("pnc,ncd,qnd->pq", G, C, G)
+    u = np.array([out["parameters"][k]["u_stat"] for k in res.space.names])
+    np.testing.assert_allclose(u, np.sqrt(np.diag(dense)), rtol=1e-9)
+    np.testing.assert_allclose(out["cov_statistical"], dense, rtol=1e-9, atol=1e-30)
+    ratio = dict(zip(res.space.names, res.std / u))
+    assert ratio["alpha"] > 1.3 and ratio["int_ior"] > 1.3, ratio     # the Laplace sigma: too wide
+    assert out["birge"]["factor"] == 1.0
+
+
+def test_expected_chi2_is_the_dof_for_type_a_alone(glossy):
+    """With type A alone the budget's expected chi^2 is M - P = dof (the projector's trace)."""
+    from gonio.fitting._budget import _loss_sensitivities, expected_chi2
+
+    meas, res, _ = glossy
+    J, drdy = _loss_sensitivities(res, meas)
+    mean, sd = expected_chi2(J, drdy, meas, [BudgetComponent("statistical", meas.brdf_std, "A", "none")])
+    assert mean == pytest.approx(res.dof, rel=1e-6)
+    assert sd == pytest.approx(np.sqrt(2 * res.dof), rel=0.05)
+
+
+def test_budget_explained_scatter_is_not_counted_twice(glossy):
+    """A point-wise type-B line (the angles' repeatability times the slope, say) that scatters the
+    data inflates chi^2; the budget's expected chi^2 holds it, so no Birge factor is applied on
+    top of the line itself (the fit's own sqrt(chi^2/dof) would apply 1.7 here)."""
+    meas, _, _ = glossy
+    rng = np.random.default_rng(3)
+    extra = 1.4 * meas.brdf_std
+    noisy = Measurements(meas.wi, meas.wo, meas.brdf + extra * rng.standard_normal(meas.brdf.shape), meas.brdf_std,
+                         meas.use, dict(meas.attrs))
+    res = fit(noisy, MODEL, rng=np.random.default_rng(7))
+    assert res.chi2_dof > 2.0
+    budget = Budget([BudgetComponent("shot_read", meas.brdf_std, "A", "none"),
+                     BudgetComponent("angle_repeatability", extra, "B", "none")])
+    out = propagate(res, noisy, budget, res.std * np.sqrt(res.chi2_dof))
+    assert out["birge"]["factor"] == 1.0
+    assert out["birge"]["chi2_expected"] == pytest.approx(res.dof * (1 + 1.4 ** 2), rel=0.05)
+    # without the line the budget cannot explain the scatter: the factor covers it
+    alone = propagate(res, noisy, Budget(budget.components[:1]), res.std)
+    assert alone["birge"]["factor"] == pytest.approx(np.sqrt(res.chi2_dof), rel=1e-6)
