@@ -248,7 +248,15 @@ def status(meas, planned, fit: Doc | None, partner) -> list[dict]:
                         f"freedom, beyond its 99.9 % point: the model misses the data by more than their noise; "
                         f"{tail}."})
         elif chi is not None:
-            out.append({"level": "ok", "text": f"Model adequate: chi2/dof = {chi:.3g} ({dof} dof)."})
+            unc = fit.sub("uncertainty")
+            stat = unc.sub("statistical") if unc is not None else None
+            expected = stat.num("chi2_expected") if stat is not None else None
+            if expected is not None:
+                out.append({"level": "ok", "text": f"Model adequate: chi2 = {stat.num('chi2'):.4g}, within the "
+                            f"{expected:.4g} +- {stat.num('chi2_expected_sd'):.2g} the uncertainty budget predicts "
+                            f"(chi2/dof = {chi:.3g} over {dof} dof against the type-A noise alone)."})
+            else:
+                out.append({"level": "ok", "text": f"Model adequate: chi2/dof = {chi:.3g} ({dof} dof)."})
         energy = fit.need("constraints").need("energy")
         if energy.raw("holds") is False:
             alb = energy.num("max_albedo")

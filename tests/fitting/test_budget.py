@@ -332,3 +332,18 @@ def test_budget_explained_scatter_is_not_counted_twice(glossy):
     # without the line the budget cannot explain the scatter: the factor covers it
     alone = propagate(res, noisy, Budget(budget.components[:1]), res.std)
     assert alone["birge"]["factor"] == pytest.approx(np.sqrt(res.chi2_dof), rel=1e-6)
+
+
+def test_a_chi2_fit_is_judged_against_its_budgets_expected_chi2():
+    """With a budget, chi2 (weighed by type A alone) is compared with what the budget makes
+    it: within E + 4 sd the fit is adequate and nothing is inflated (the calibrated demo:
+    chi2 1990 against 1907 +- 1929, chi2/dof 6.7); beyond, the factor sqrt(chi2 / E) and a
+    warning that says what it was compared with."""
+    from gonio.fitting._fitfile import budget_adequacy
+
+    assert budget_adequacy({"chi2": 1990.0, "chi2_expected": 1907.0, "chi2_expected_sd": 1929.0,
+                            "factor": 1.0}) == (True, 1.0, None)
+    ok, factor, warning = budget_adequacy({"chi2": 900.0, "chi2_expected": 300.0, "chi2_expected_sd": 25.0,
+                                           "factor": 3.0 ** 0.5})
+    assert not ok and factor == pytest.approx(3.0 ** 0.5)
+    assert warning.startswith("chi2 = 900 exceeds the 300 +- 25 the uncertainty budget predicts")
