@@ -440,7 +440,7 @@ def chi2_grad(model, dirs, params, y, w):
     with _FREEZE_LOCK, dr.suspend_grad():
         sums = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(sums)
-    vals = np.array(sums, dtype=np.float64)
+    vals = _collect(sums)
     grad, k = {}, 1
     for par in model.parameters:
         m = CHANNELS if par.per_channel else 1
@@ -462,20 +462,63 @@ def _chi2_sums(model, wi, wo, P, y, w):
     return _reduced(terms)
 
 
+#: Partial sums per term kept by :func:`_reduced`: lane j of the kernel adds into slot
+#: j mod SLOTS, so the 16 lanes of an AVX-512 packet (8 of an AVX2 one) hit distinct addresses.
+SLOTS = 16
+
+
+def _groups(n_terms):
+    """Packet sizes :func:`_reduced` scatters ``n_terms`` terms in: 8 at a time, the rest in
+    one packet of 2, 4 or 8 (zero padded)."""
+    out = [8] * (n_terms // 8)
+    r = n_terms % 8
+    if r:
+        out.append(2 if r <= 2 else 4 if r <= 4 else 8)
+    return out
+
+
 def _reduced(terms):
-    """The sums over the lanes of each term, reduced inside the kernel into one float64
-    array (element k: term k's sum): each thread adds into its own copy
-    (``ReduceMode.Expand``), merged at the end, so no atomics per lane; read back by one
-    transfer. (A 1-element target per term, each read back on its own, measured 133 us a
-    call against 43 us for roughconductor's 36 normal-equation sums at 100 pairs, and 1.9
-    against 1.4 ms at 1e5: the transfers, not the kernel.)"""
+    """The sums over the lanes of each term, reduced inside the kernel into float64 partial
+    sums (:func:`_collect` adds them up): the terms are packed 8 to a packet and each lane adds
+    its packet into slot (lane mod :data:`SLOTS`) of its thread's copy of the target
+    (``scatter_reduce`` of an 8-wide float64 array, ``ReduceMode.Expand``: one 8-double
+    read-add-write per lane, to distinct addresses within a SIMD packet, so nothing waits
+    on the previous packet's store; merged across threads at the end). Every addition is in
+    float64; only the order differs from a sequential sum.
+
+    Measured (CPU time, one thread, AVX-512, 1e6 lanes): 8 float64 sums cost 0.88 ms this way
+    against 3.49 ms as 8 scalar ``scatter_reduce`` calls (Expand: a horizontal reduction and a
+    dependent scalar read-add-write per term and packet), 4.27 ms with ``ReduceMode.Local``.
+    (A 1-element target per term, each read back on its own, measured 133 us a call against
+    43 us for one target at 100 pairs: the transfers, not the kernel.)"""
     import drjit as dr
+    import drjit.llvm.ad as L
 
     _, F64, _, U = _dr()
-    target = dr.zeros(F64, len(terms))
-    for k, t in enumerate(terms):
-        dr.scatter_reduce(dr.ReduceOp.Add, target, F64(t), dr.zeros(U, 1) + k, mode=dr.ReduceMode.Expand)
+    sizes = _groups(len(terms))
+    target = dr.zeros(F64, SLOTS * sum(sizes))
+    slot = dr.arange(U, dr.width(terms[0])) & (SLOTS - 1)
+    vals = [F64(t) for t in terms]
+    vals += [dr.zeros(F64, 1)] * (sum(sizes) - len(vals))
+    packet = {2: L.Array2f64, 4: L.Array4f64, 8: L.ArrayXf64}
+    start = 0  # in doubles; each group's SLOTS packets of its size are contiguous
+    for size in sizes:
+        chunk = vals[start // SLOTS:start // SLOTS + size]
+        v = packet[size](*chunk) if size < 8 else L.ArrayXf64(chunk)
+        dr.scatter_reduce(dr.ReduceOp.Add, target, v, slot + start // size, mode=dr.ReduceMode.Expand)
+        start += SLOTS * size
     return target
+
+
+def _collect(target):
+    """The per-term sums (float64 numpy) from :func:`_reduced`'s partial sums, added in
+    float64 (padding terms, 0, at the end)."""
+    a = np.asarray(target, dtype=np.float64)
+    out, start = [], 0
+    for size in _groups(a.size // SLOTS):
+        out.append(a[start:start + SLOTS * size].reshape(SLOTS, size).sum(axis=0))
+        start += SLOTS * size
+    return np.concatenate(out)
 
 
 def _entries(model):
@@ -548,7 +591,7 @@ def normal_equations(model, dirs, params, y, w):
     with _FREEZE_LOCK, dr.suspend_grad():
         sums = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(sums)
-    vals = np.array(sums, dtype=np.float64)
+    vals = _collect(sums)
     g = vals[1:1 + E].copy()
     A = np.zeros((E, E))
     k = 1 + E
