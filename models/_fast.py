@@ -440,7 +440,7 @@ def chi2_grad(model, dirs, params, y, w):
     with _FREEZE_LOCK, dr.suspend_grad():
         sums = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(sums)
-    vals = _collect(sums)
+    vals = _collect(sums, dirs.dtype)
     grad, k = {}, 1
     for par in model.parameters:
         m = CHANNELS if par.per_channel else 1
@@ -467,13 +467,18 @@ def _chi2_sums(model, wi, wo, P, y, w):
 SLOTS = 16
 
 
-def _groups(n_terms):
-    """Packet sizes :func:`_reduced` scatters ``n_terms`` terms in: 8 at a time, the rest in
-    one packet of 2, 4 or 8 (zero padded)."""
-    out = [8] * (n_terms // 8)
-    r = n_terms % 8
+_PACKET = {"float32": 8, "float64": 8}
+
+
+def _groups(n_terms, width=8):
+    """Packet sizes :func:`_reduced` scatters ``n_terms`` terms in: ``width`` at a time, the
+    rest in one packet of 1, 2, 4 or 8 (zero padded)."""
+    if width == 1:
+        return [1] * n_terms
+    out = [width] * (n_terms // width)
+    r = n_terms % width
     if r:
-        out.append(2 if r <= 2 else 4 if r <= 4 else 8)
+        out.append(next(p for p in (2, 4, 8) if p >= r))
     return out
 
 
@@ -495,7 +500,7 @@ def _reduced(terms):
     import drjit.llvm.ad as L
 
     _, F64, _, U = _dr()
-    sizes = _groups(len(terms))
+    sizes = _groups(len(terms), _PACKET[_precision(terms[0])])
     target = dr.zeros(F64, SLOTS * sum(sizes))
     slot = dr.arange(U, dr.width(terms[0])) & (SLOTS - 1)
     vals = [F64(t) for t in terms]
@@ -504,18 +509,27 @@ def _reduced(terms):
     start = 0  # in doubles; each group's SLOTS packets of its size are contiguous
     for size in sizes:
         chunk = vals[start // SLOTS:start // SLOTS + size]
-        v = packet[size](*chunk) if size < 8 else L.ArrayXf64(chunk)
-        dr.scatter_reduce(dr.ReduceOp.Add, target, v, slot + start // size, mode=dr.ReduceMode.Expand)
+        if size == 1:  # all lanes into one address (a horizontal sum per SIMD packet)
+            dr.scatter_reduce(dr.ReduceOp.Add, target, chunk[0], dr.zeros(U, 1) + start, mode=dr.ReduceMode.Expand)
+        else:
+            v = packet[size](*chunk) if size < 8 else L.ArrayXf64(chunk)
+            dr.scatter_reduce(dr.ReduceOp.Add, target, v, slot + start // size, mode=dr.ReduceMode.Expand)
         start += SLOTS * size
     return target
 
 
-def _collect(target):
-    """The per-term sums (float64 numpy) from :func:`_reduced`'s partial sums, added in
-    float64 (padding terms, 0, at the end)."""
+def _precision(x):
+    import drjit as dr
+
+    return "float32" if dr.type_v(x) == dr.VarType.Float32 else "float64"
+
+
+def _collect(target, dtype):
+    """The per-term sums (float64 numpy) from :func:`_reduced`'s partial sums for terms of
+    ``dtype`` (the batch's), added in float64 (padding terms, 0, at the end)."""
     a = np.asarray(target, dtype=np.float64)
     out, start = [], 0
-    for size in _groups(a.size // SLOTS):
+    for size in _groups(a.size // SLOTS, _PACKET[np.dtype(dtype).name]):
         out.append(a[start:start + SLOTS * size].reshape(SLOTS, size).sum(axis=0))
         start += SLOTS * size
     return np.concatenate(out)
@@ -591,7 +605,7 @@ def normal_equations(model, dirs, params, y, w):
     with _FREEZE_LOCK, dr.suspend_grad():
         sums = run(dirs.wi, dirs.wo, P, y, w)
         dr.eval(sums)
-    vals = _collect(sums)
+    vals = _collect(sums, dirs.dtype)
     g = vals[1:1 + E].copy()
     A = np.zeros((E, E))
     k = 1 + E
