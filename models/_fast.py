@@ -412,10 +412,11 @@ def chi2_grad(model, dirs, params, y, w):
     every parameter: what a gradient-based fitter (nlopt's SLSQP or MMA, a quasi-Newton
     step) needs, in one fused kernel that stores nothing per pair.
 
-    The derivatives are :func:`jacobian`'s, reduced inside the kernel (``scatter_reduce``
-    with ``ReduceMode.Expand`` into float64 targets, whatever the batch's precision) into
+    The derivatives are :func:`jacobian`'s, reduced inside the kernel (:func:`_reduced`:
+    float64 partial sums, whatever the batch's precision, 16 per term, added in numpy) into
     d chi^2 / d p = 2 sum w (f_r - y) d f_r / d p. The order of the additions depends on the
-    thread schedule: results can differ in the last bits between runs.
+    thread schedule: results can differ in the last bits between runs (tested: within
+    1e-13 of the sum of the terms' absolute values from numpy's float64 sum at 1e6 pairs).
 
     Parameters
     ----------
