@@ -29,6 +29,7 @@ import contextlib
 import errno
 import itertools
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -297,9 +298,25 @@ def _write_png(path, rgb):
     return str(path)
 
 
+_EXR_LOCK = threading.Lock()
+
+
 def _write_exr(mi, path, rgb):
-    with _atomic_image(path) as tmp:
-        mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32)).write(tmp)
+    """``rgb`` as an OpenEXR file through Mitsuba's Bitmap. Mitsuba's EXR writer waits on a
+    pool that has no worker when Dr.Jit's pool has a single thread (``GONIO_THREADS=1``, as
+    the suite's xdist workers have): ``writePixels`` then waits forever (drjit 1.5, mitsuba
+    3.9.1, measured 2026-12-02). The pool has at least two threads while the file is written."""
+    import drjit as dr
+
+    with _EXR_LOCK, _atomic_image(path) as tmp:
+        threads = dr.thread_count()
+        if threads < 2:
+            dr.set_thread_count(2)
+        try:
+            mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32)).write(tmp)
+        finally:
+            if threads < 2:
+                dr.set_thread_count(threads)
     return str(path)
 
 

@@ -89,3 +89,26 @@ def test_model_only_preview(tmp_path):
     img = np.array(mi.Bitmap(out["images"]["area"]["model_exr"]))
     peak = np.percentile(img[..., 0][sphere_mask(48)], 99)
     assert math.isclose(peak, DIFFUSE["reflectance"][0], rel_tol=0.25), peak  # 99th pct: noise biases it up
+
+
+def test_an_exr_is_written_with_a_single_dr_jit_thread(tmp_path):
+    """Mitsuba's EXR writer waited forever when Dr.Jit's pool had one thread (GONIO_THREADS=1,
+    the suite's xdist workers: two workers hung in preview tests on 2026-12-02); the preview's
+    writer gives the pool a second thread for the write and puts the count back."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("mitsuba")
+    child = ("import sys, numpy as np, drjit as dr, mitsuba as mi\n"
+             "from gonio.fitting.preview import _write_exr\n"
+             "from gonio.models.mitsuba import select_variant\n"
+             "dr.set_thread_count(1)\n"
+             "with mi.scoped_set_variant(select_variant(None)):\n"
+             "    _write_exr(mi, sys.argv[1], np.full((8, 8, 3), 0.25))\n"
+             "print(dr.thread_count())\n")
+    out = subprocess.run([sys.executable, "-c", child, str(tmp_path / "a.exr")], capture_output=True, text=True,
+                         timeout=60, env={**os.environ, "GONIO_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["1"]
+    assert (tmp_path / "a.exr").read_bytes()[:4] == bytes([0x76, 0x2F, 0x31, 0x01])  # OpenEXR's magic number
