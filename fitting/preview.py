@@ -39,7 +39,7 @@ from gonio.models.atomic import atomic_path
 from gonio.models.mitsuba import bsdf_base, select_variant
 from .formats import MERL_SHAPE, RGLBRDF, MerlBRDF, check_rgl_file, read_merl
 
-__all__ = ["LIGHTINGS", "delta_e_2000", "matched_noise_floor", "measured_bsdf_dict", "preview", "register_merl_bsdf", "render_sphere",
+__all__ = ["LIGHTINGS", "delta_e_2000", "matched_noise_floor", "measured_bsdf_dict", "preview", "read_exr", "register_merl_bsdf", "render_sphere",
            "sphere_mask"]
 
 LIGHTINGS = ("env", "area")
@@ -301,22 +301,38 @@ def _write_png(path, rgb):
 _EXR_LOCK = threading.Lock()
 
 
-def _write_exr(mi, path, rgb):
-    """``rgb`` as an OpenEXR file through Mitsuba's Bitmap. Mitsuba's EXR writer waits on a
-    pool that has no worker when Dr.Jit's pool has a single thread (``GONIO_THREADS=1``, as
-    the suite's xdist workers have): ``writePixels`` then waits forever (drjit 1.5, mitsuba
-    3.9.1, measured 2026-12-02). The pool has at least two threads while the file is written."""
+@contextlib.contextmanager
+def _exr_threads():
+    """Mitsuba's OpenEXR reader and writer wait on a pool that has no worker when Dr.Jit's pool
+    has a single thread (``GONIO_THREADS=1``, as the suite's xdist workers have): ``writePixels``
+    and ``readPixels`` then wait forever (drjit 1.5, mitsuba 3.9.1, measured 2026-12-02). The
+    pool has at least two threads inside this block."""
     import drjit as dr
 
-    with _EXR_LOCK, _atomic_image(path) as tmp:
+    with _EXR_LOCK:
         threads = dr.thread_count()
         if threads < 2:
             dr.set_thread_count(2)
         try:
-            mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32)).write(tmp)
+            yield
         finally:
             if threads < 2:
                 dr.set_thread_count(threads)
+
+
+def read_exr(path) -> np.ndarray:
+    """An OpenEXR image written by the previews (or any RGB EXR), float32 (H, W, C), through
+    Mitsuba's Bitmap, safe with any Dr.Jit thread count."""
+    import mitsuba as mi
+
+    with mi.scoped_set_variant(select_variant(None)), _exr_threads():
+        return np.array(mi.Bitmap(str(path)))
+
+
+def _write_exr(mi, path, rgb):
+    """``rgb`` as an OpenEXR file through Mitsuba's Bitmap (:func:`_exr_threads`)."""
+    with _exr_threads(), _atomic_image(path) as tmp:
+        mi.Bitmap(np.ascontiguousarray(rgb, dtype=np.float32)).write(tmp)
     return str(path)
 
 

@@ -14,7 +14,7 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting.formats import resample_to_merl, write_merl
-from gonio.fitting.preview import delta_e_2000, measured_bsdf_dict, preview, sphere_mask
+from gonio.fitting.preview import delta_e_2000, measured_bsdf_dict, preview, read_exr, sphere_mask
 
 RGL = Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl" / "paper_white_rgb.bsdf"
 DIFFUSE = {"reflectance": [0.5, 0.4, 0.3]}
@@ -61,7 +61,7 @@ def test_diffuse_vs_glossy_is_clearly_different_and_files_decode(tmp_path):
         assert png.shape[:2] == (48, 48) and png.max() > 0.1
         import mitsuba as mi
 
-        exr = np.array(mi.Bitmap(entry["model_exr"]))
+        exr = read_exr(entry["model_exr"])
         assert exr.shape[:2] == (48, 48) and np.isfinite(exr).all() and exr.max() > 0
     side = mpimg.imread(out["side_by_side_png"])
     assert side.ndim == 3 and side.shape[0] > 100
@@ -86,7 +86,7 @@ def test_model_only_preview(tmp_path):
     # a white Lambertian facing the lamp renders ~1 (the Lab reference white of the Delta E)
     import mitsuba as mi
 
-    img = np.array(mi.Bitmap(out["images"]["area"]["model_exr"]))
+    img = read_exr(out["images"]["area"]["model_exr"])
     peak = np.percentile(img[..., 0][sphere_mask(48)], 99)
     assert math.isclose(peak, DIFFUSE["reflectance"][0], rel_tol=0.25), peak  # 99th pct: noise biases it up
 
@@ -106,6 +106,8 @@ def test_an_exr_is_written_with_a_single_dr_jit_thread(tmp_path):
              "dr.set_thread_count(1)\n"
              "with mi.scoped_set_variant(select_variant(None)):\n"
              "    _write_exr(mi, sys.argv[1], np.full((8, 8, 3), 0.25))\n"
+             "from gonio.fitting.preview import read_exr\n"
+             "assert read_exr(sys.argv[1]).shape == (8, 8, 3)\n"
              "print(dr.thread_count())\n")
     out = subprocess.run([sys.executable, "-c", child, str(tmp_path / "a.exr")], capture_output=True, text=True,
                          timeout=60, env={**os.environ, "GONIO_THREADS": "1"})
