@@ -150,6 +150,15 @@ def _cmd_fit(args):
         return
     if len(args.dataset) != 1:
         raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")
+    if args.scene is not None:
+        from .scene_runner import fit_scene_cli
+
+        if args.posterior or args.colour_space != "srgb":
+            raise GonioError("--scene fits a measured material in linear sRGB; leave out --posterior and --colour-space")
+        fit_scene_cli(Path(args.dataset[0]), scene=args.scene, model=args.model, options=args.option,
+                      out=Path(args.out), seed=args.seed, loss=args.loss, size=args.scene_size, spp=args.scene_spp,
+                      k=args.scene_light_samples, threshold=args.threshold)
+        return
     fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
             loss=args.loss, posterior=args.posterior, colour_space=args.colour_space)
 
@@ -366,6 +375,17 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
                    help="sample the posterior with emcee")
     f.add_argument("--batch", action="store_true", help="fit every DATASET on Dask; --out is then a folder")
+    f.add_argument("--scene", metavar="SCENE",
+                   help="model only what a scene needs: overcast, product-shot, close-up-sun or a Mitsuba scene file "
+                        "(.xml, the sample's material <bsdf ... id=\"sample\">); each candidate is refitted to the "
+                        "scene's pixels and rendered beside the measured material (RGL .bsdf or MERL .binary), and "
+                        "the simplest one within --threshold is chosen")
+    f.add_argument("--threshold", type=float, default=1.0, help="with --scene: mean CIEDE2000 a candidate must be "
+                   "below (default 1)")
+    f.add_argument("--scene-size", type=int, default=32, help="with --scene: render size in pixels (default 32)")
+    f.add_argument("--scene-spp", type=int, default=256, help="with --scene: samples per pixel (default 256)")
+    f.add_argument("--scene-light-samples", type=int, default=64,
+                   help="with --scene: light samples a pixel for the pixel fit (default 64)")
     f.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
     f.add_argument("--workers", type=int, default=2,
                    help="local Dask workers (default 2); the local cluster talks TLS with a certificate made for the run")
