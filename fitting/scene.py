@@ -19,8 +19,9 @@ candidate's BSDF (seconds per 2^16 ``bsdf.eval`` calls, the best of three after 
 first call). The candidates with their (cost, error) form the speed-versus-error front
 (:func:`front`: the candidates no other one beats on both). The chosen one is the simplest
 (fewest parameters, then cheapest) whose mean difference is below ``threshold``; the
-comparison is refused (ValueError) when the noise floor itself is not below half the
-threshold: more samples per pixel are needed to tell.
+comparison is refused (ValueError) when a candidate simpler than the chosen one can be told
+neither good nor bad: its noise floor is not below half the threshold and its difference is
+not clear of the threshold by more than the floor (more samples per pixel are needed).
 
 The fit is the scene's (:func:`fit_to_scene`): each candidate, started from its fit to the
 data, is refitted to the pixels the scene shows of the measured material, the direction pairs
@@ -39,8 +40,8 @@ from gonio.models.mitsuba import select_variant
 from ._scene_fit import SAMPLE_ID
 from .preview import delta_e_2000, matched_noise_floor, measured_bsdf_dict
 
-__all__ = ["PRESETS", "SAMPLE_ID", "scene_dict", "load_scene", "scene_samples", "sample_mask", "fit_to_scene", "render_in_scene",
-           "rank_in_scene", "front"]
+__all__ = ["PRESETS", "SAMPLE_ID", "scene_dict", "load_scene", "scene_samples", "sample_mask", "fit_to_scene",
+           "render_in_scene", "rank_in_scene", "choose", "front"]
 
 PRESETS = ("overcast", "product-shot", "close-up-sun")
 _RESOLVED: set = set()
@@ -218,6 +219,24 @@ def eval_cost(bsdf, variant=None, n=1 << 16):
     return best
 
 
+def choose(rows, threshold, what="scene", spp=None):
+    """The simplest row (fewest parameters ``k``, then cheapest) whose ``delta_e`` is below
+    ``threshold`` with a ``noise`` floor under half of it, flagged ``chosen``; None if every
+    row is clearly worse. Simplest first, each row is good, bad (above the threshold, or clear
+    of it by more than its floor) or unclear: an unclear row before the chosen one raises
+    ValueError (more samples per pixel are needed to tell)."""
+    for r in sorted(rows, key=lambda r: (r["k"], r["cost_s"])):
+        floor_ok = r["noise"] < 0.5 * threshold
+        if floor_ok and r["delta_e"] < threshold:
+            r["chosen"] = True
+            return r
+        if not (floor_ok or r["delta_e"] - r["noise"] > threshold):
+            raise ValueError(f"{what}: the noise floor of the comparison ({r['noise']:.2f} CIEDE2000 for "
+                             f"{r['model']}) is not below half the threshold {threshold:g}: raise spp"
+                             + (f" (now {spp})" if spp else ""))
+    return None
+
+
 def front(rows):
     """The speed-versus-error front: rows no other row beats on both cost and error."""
     return [r for r in rows if not any((o["cost_s"] <= r["cost_s"] and o["delta_e"] < r["delta_e"])
@@ -266,17 +285,6 @@ def rank_in_scene(fits, measured, scene, *, size=32, spp=16, seed=0, threshold=1
         rows.append({"model": res.model.name, "options": dict(res.model.options), "k": int(res.space.size),
                      "delta_e": float(de.mean()), "noise": float(noise.mean()), "cost_s": eval_cost(bsdf, variant),
                      "chosen": False})
-    # a candidate is judged when its difference is clear of the threshold by more than its
-    # noise floor, or when the floor is small against the threshold; otherwise more samples
-    # per pixel are needed to tell
-    unclear = [r for r in rows if not (r["noise"] < 0.5 * threshold or r["delta_e"] - r["noise"] > threshold)]
-    if unclear:
-        worst = max(unclear, key=lambda r: r["noise"])
-        raise ValueError(f"scene {scene}: the noise floor of the comparison ({worst['noise']:.2f} CIEDE2000 for "
-                         f"{worst['model']}) is not below half the threshold {threshold:g}: raise spp (now {spp})")
-    good = [r for r in rows if r["delta_e"] < threshold]
-    chosen = min(good, key=lambda r: (r["k"], r["cost_s"])) if good else None
-    if chosen is not None:
-        chosen["chosen"] = True
+    chosen = choose(rows, threshold, f"scene {scene}", spp)
     return {"rows": rows, "front": sorted(front(rows), key=lambda r: r["cost_s"]), "chosen": chosen,
             "scene": str(scene), "size": int(size), "spp": int(spp), "seed": int(seed), "threshold": float(threshold)}

@@ -123,6 +123,25 @@ OVERCAST_XML = """<scene version="3.0.0">
 """
 
 
+def test_the_simplest_clearly_good_candidate_is_chosen():
+    """choose(): simplest first; a noisy row that is clearly bad (difference above the
+    threshold by more than its floor) does not stop the choice, a noisy row that could be
+    either does, and a noisy row after the chosen one does not matter."""
+    from gonio.fitting.scene import choose
+
+    def row(model, k, de, noise, cost=1.0):
+        return {"model": model, "k": k, "delta_e": de, "noise": noise, "cost_s": cost, "chosen": False}
+
+    rows = [row("lambert", 3, 5.0, 3.0), row("plastic", 5, 0.6, 0.2), row("two-lobe", 9, 0.1, 0.9)]
+    assert choose(rows, 1.0)["model"] == "plastic" and rows[1]["chosen"] and not rows[2]["chosen"]
+    rows = [row("lambert", 3, 1.2, 0.6), row("plastic", 5, 0.6, 0.2)]
+    with pytest.raises(ValueError, match="lambert"):
+        choose(rows, 1.0)
+    rows = [row("b", 5, 0.5, 0.1, cost=2.0), row("a", 5, 0.9, 0.1, cost=1.0)]
+    assert choose(rows, 1.0)["model"] == "a"                 # equal k: the cheaper one
+    assert choose([row("lambert", 3, 2.0, 0.1)], 1.0) is None
+
+
 def test_unknown_scene_is_refused(truth):
     from gonio.fitting.scene import rank_in_scene, scene_samples
 
