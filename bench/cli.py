@@ -173,7 +173,7 @@ def _cmd_render(args):
 
 @_env
 def _cmd_convert(args):
-    from .fit_runner import convert_cli
+    from .convert_runner import convert_cli
 
     convert_cli(Path(args.source), Path(args.out), args.to)
 

@@ -5,13 +5,11 @@ from __future__ import annotations
 import contextlib
 import gc
 import json
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from gonio.models.atomic import atomic_open
 
 from ._console import print_table
 from ._fitdoc import energy_text, truth_for
@@ -134,11 +132,12 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
     if loss not in LOSSES:
         raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
     rng = np.random.default_rng(seed)
-    ranking = None
+    ranking, selection_note = None, None
     if model == "auto":
         if options:
             raise GonioError("--option needs a named --model (auto tries every candidate with its own options)")
         result, ranking = select(meas, rng=rng, loss=loss)
+        result, ranking, selection_note = _rendered_choice(ranking, dataset_path, seed)
     else:
         try:
             candidates = option_candidates(model, options)
@@ -169,7 +168,23 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
                                 **({"chunk": 250} if posterior_budget_s else {}))
     doc = fit_document(result, meas, seed=seed, posterior=post, ranking=ranking, dataset_path=dataset_path,
                        budget=budget)
+    if selection_note:
+        doc["selection_rule"] = selection_note
     return result, doc, post
+
+
+def _rendered_choice(ranking, dataset_path, seed):
+    """BIC's ranking with the default scene's rendered check (fitting.scene.rendered_choice);
+    skipped, and said, where Mitsuba has only its scalar variant (a render would take minutes)."""
+    from gonio.fitting.scene import rendered_choice
+    from gonio.models.mitsuba import mitsuba_variant
+
+    by_bic = next(r for r in ranking if r.chosen)
+    if not mitsuba_variant().startswith("llvm"):
+        return by_bic.result, ranking, "BIC's choice: no vectorised Mitsuba variant for the default scene's renders"
+    path = Path(dataset_path) if dataset_path is not None else None
+    measured = str(path) if path is not None and path.suffix.lower() in (".bsdf", ".binary") else None
+    return rendered_choice(ranking, measured, seed=seed)
 
 
 def _inadequate_text(g) -> str:
@@ -270,12 +285,16 @@ def print_selection(doc, console=None) -> None:
 
     sel = doc["selection"]
     loss = sel[0].get("loss", "chi2")
+    rendered = any("delta_e" in r for r in sel)
     print_table(console or Console(), [("model and options", "left"), ("k", "right"), (f"-2 ln L ({loss})", "right"),
-                                       ("delta BIC", "right"), ("", "left")],
+                                       ("delta BIC", "right")] + ([("dE00", "right")] if rendered else []) + [("", "left")],
                 [[f"{r['model']} {json.dumps(r['options'])}" if r["options"] else r["model"], str(r["k"]),
                   f"{r.get('neg2_loglik', r['chi2']):.4g}",
-                  f"{r['delta_bic']:.2f}" if abs(r["delta_bic"]) < 1e4 else f"{r['delta_bic']:.4g}",
-                  "*" if r["chosen"] else ""] for r in sel], title="model selection (BIC)", caption="* chosen")
+                  f"{r['delta_bic']:.2f}" if abs(r["delta_bic"]) < 1e4 else f"{r['delta_bic']:.4g}"]
+                 + ([f"{r['delta_e']:.2f}" if "delta_e" in r else ""] if rendered else [])
+                 + ["*" if r["chosen"] else ""] for r in sel],
+                title="model selection (BIC" + (", and the rendered difference in the default scene)" if rendered else ")"),
+                caption="* chosen")
 
 
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb"):
@@ -305,6 +324,8 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
               f"--option distribution=NAME fixes it)")
     if doc.get("selection"):
         print_selection(doc)
+    if doc.get("selection_rule"):
+        print(f"selection: {doc['selection_rule']}")
     print(f"wrote {out}")
 
 
@@ -514,97 +535,3 @@ def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, previ
         pv = render_previews(fit_path, out_dir, measured, size, spp)
         de = f"; mean CIEDE2000 vs measured {pv['delta_e_mean']:.2f}" if pv.get("delta_e_mean") is not None else ""
         print(f"previews in {Path(out_dir) / 'preview'} ({pv['time_s']:.1f} s){de}")
-
-
-def convert_cli(source: Path, out: Path, to: str):
-    """Exchange formats: fit -> Mitsuba XML / dict JSON / MERL; dataset -> CSV / MERL (binned)."""
-    from gonio.fitting import load_fit, write_json_atomic
-    from gonio.fitting import formats
-
-    from ._preflight import check_output_dir, check_output_file, writing
-
-    if not source.exists():
-        raise GonioError(f"{source} does not exist")
-    if source.is_dir():
-        raise GonioError(f"{source} is a folder; give a fit file (FIT.json) or a dataset.nc")
-    merl_bytes = 12 + 3 * 90 * 90 * 180 * 8
-    if to == "pabopto":
-        check_output_dir(out, "PAB-Opto output folder (--out)")
-    else:
-        check_output_file(out, "converted file (--out)", need_bytes=merl_bytes if to in ("merl", "merl-data") else 0)
-    if Path(os.path.abspath(out)) == Path(os.path.abspath(source)):
-        raise GonioError(f"--out {out} is the source file; give another file name")
-    made = [p for p in (Path(os.path.abspath(out)), *Path(os.path.abspath(out)).parents) if not p.exists()]
-    try:
-        with writing(out):
-            _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
-    except BaseException:
-        for folder in made:              # innermost first: only the folders this call made, if empty
-            if folder.is_dir() and not any(folder.iterdir()):
-                folder.rmdir()
-        raise
-    print(f"wrote {out}")
-
-
-def _make_parent(out: Path) -> None:
-    """``--out``'s missing folders are made (as ``mkdir -p``) once the source has been read:
-    check_output_file has already checked that their nearest existing ancestor is writable."""
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-
-
-def _convert_pabopto(source, out, formats, load_fit):
-    """``--to pabopto``: a fit's model on a grid, or a dataset's measured values, one file per incidence."""
-    if source.suffix.lower() == ".json":
-        try:
-            loaded = load_fit(source)
-        except (ValueError, KeyError, json.JSONDecodeError) as exc:
-            raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
-        # the fitted channels (R, G, B or X, Y, Z) as the fit file names them
-        named = [p.get("channel") for p in loaded.parameters.values() if isinstance(p, dict) and p.get("channel")]
-        channels = tuple(dict.fromkeys(named)) or ("R", "G", "B")
-        files = formats.model_pabopto(loaded.model, loaded.params, channels=channels, sample_name=source.stem)
-        paths = formats.write_pabopto_files(out, files)
-    else:
-        try:
-            paths = formats.write_pabopto(out, _open_dataset(source), sample_name=source.parent.name or source.stem)
-        except ValueError as exc:
-            raise GonioError(f"{source}: {exc}") from None
-    print(f"{len(paths)} PAB-Opto files (one per incident direction) in {out}; Radiance: pabopto2bsdf {out}/*.dat > sample.sir")
-
-
-def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open):
-    if to == "pabopto":
-        return _convert_pabopto(source, out, formats, load_fit)
-    if to in ("mitsuba-xml", "mitsuba-dict", "merl"):
-        if source.suffix.lower() != ".json":
-            raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
-        try:
-            loaded = load_fit(source)
-            model, params = loaded.model, loaded.params
-        except (ValueError, KeyError, json.JSONDecodeError) as exc:
-            raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
-        if to == "merl":
-            merl = formats.resample_to_merl(model, params)
-            _make_parent(out)
-            formats.write_merl(out, merl)
-        elif to == "mitsuba-dict":
-            _, d = formats.mitsuba_snippet(model.name, dict(model.options), params)
-            _make_parent(out)
-            write_json_atomic(out, d)
-        else:  # a file of its own: mitsuba.load_file and <include> need the root's version
-            xml = formats.mitsuba_document(model.name, dict(model.options), params)
-            _make_parent(out)
-            with atomic_open(out, "w", encoding="utf-8") as fh:
-                fh.write(xml)
-    elif to == "csv":
-        meas = _open_dataset(source)
-        _make_parent(out)
-        formats.dataset_to_csv(meas, out)
-    elif to == "merl-data":
-        merl = formats.dataset_to_merl(_open_dataset(source))
-        _make_parent(out)
-        formats.write_merl(out, merl)
-        print(f"{int(merl.valid.sum())} of {merl.valid.size} MERL bins hold measured data; the rest are marked no-data")
-    else:
-        raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-dict, merl, pabopto (from a fit), csv, merl-data "
-                         "or pabopto (from a dataset)")

@@ -66,10 +66,15 @@ class Ranked:
     result: object = dataclasses.field(repr=False, default=None)
     loss: str = "chi2"
     neg2_loglik: float = 0.0
+    delta_e: float | None = None      # rendered difference in the default scene (fitting.scene.rendered_choice)
+    noise: float | None = None        # ... and its noise floor
 
     def row(self) -> dict:
-        return {"model": self.name, "options": self.options, "k": self.k, "chi2": self.chi2, "loss": self.loss,
-                "neg2_loglik": self.neg2_loglik, "bic": self.bic, "delta_bic": self.delta_bic, "chosen": self.chosen}
+        row = {"model": self.name, "options": self.options, "k": self.k, "chi2": self.chi2, "loss": self.loss,
+               "neg2_loglik": self.neg2_loglik, "bic": self.bic, "delta_bic": self.delta_bic, "chosen": self.chosen}
+        if self.delta_e is not None:
+            row.update(delta_e=self.delta_e, noise=self.noise)
+        return row
 
 
 def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):

@@ -41,7 +41,7 @@ from ._scene_fit import SAMPLE_ID
 from .preview import delta_e_2000, matched_noise_floor, measured_bsdf_dict
 
 __all__ = ["PRESETS", "SAMPLE_ID", "scene_dict", "load_scene", "scene_samples", "sample_mask", "fit_to_scene",
-           "render_in_scene", "rank_in_scene", "choose", "front"]
+           "render_in_scene", "rank_in_scene", "rendered_choice", "choose", "front"]
 
 PRESETS = ("overcast", "product-shot", "close-up-sun")
 _RESOLVED: set = set()
@@ -217,6 +217,48 @@ def eval_cost(bsdf, variant=None, n=1 << 16):
             eval_cos(b, v[0], v[1], variant)
             best = min(best, time.perf_counter() - t0)
     return best
+
+
+def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, spp=128, seed=0, threshold=1.0,
+                    variant=None):
+    """``--model auto`` without a scene: the data's evidence and a default scene together.
+
+    BIC (:func:`gonio.fitting.select`) ranks the candidates by the data's evidence. The
+    reference is the measured material where it can be rendered (``measured``: an RGL / MERL
+    path or a Mitsuba dict), else the candidate the data supports best (lowest BIC). Every
+    candidate no more complex than BIC's choice is rendered beside the reference in ``scene``
+    with matched seeds (:func:`rank_in_scene`), and the simplest one within ``threshold``
+    (:func:`choose`) is chosen: a model the data can tell apart but the scene cannot is not
+    needed there. Without a candidate within the threshold, or when the renders' noise cannot
+    tell, BIC's choice stands. Each rendered row of ``ranking`` gets ``delta_e`` and ``noise``.
+
+    Returns ``(result, ranking, note)``: the chosen FitResult, the ranking with ``chosen``
+    moved, and a line saying what decided.
+    """
+    by_bic = next(r for r in ranking if r.chosen)
+    best = min(ranking, key=lambda r: r.bic)
+    reference = measured if measured is not None else best.result.model.to_mitsuba(best.result.params)
+    rows = [r for r in ranking if r.k <= by_bic.k]
+    try:
+        ranked = rank_in_scene([r.result for r in rows], reference, scene, size=size, spp=spp, seed=seed,
+                               threshold=threshold, variant=variant)
+    except ValueError as exc:
+        return by_bic.result, ranking, f"BIC's choice stands: {exc}"
+    for r, rr in zip(rows, ranked["rows"]):
+        r.delta_e, r.noise = rr["delta_e"], rr["noise"]
+    pick = ranked["chosen"]
+    what = "the measured material" if measured is not None else f"the best-supported fit ({best.name})"
+    if pick is None:
+        return by_bic.result, ranking, (f"BIC's choice stands: no candidate up to it renders within CIEDE2000 "
+                                        f"{threshold:g} of {what} in the {scene} scene")
+    chosen = rows[ranked["rows"].index(pick)]
+    if chosen is by_bic:
+        return by_bic.result, ranking, (f"BIC's choice, and no simpler candidate renders within CIEDE2000 "
+                                        f"{threshold:g} of {what} in the {scene} scene")
+    by_bic.chosen, chosen.chosen = False, True
+    return chosen.result, ranking, (f"{chosen.name} (k = {chosen.k}) renders within CIEDE2000 {threshold:g} of "
+                                    f"{what} in the {scene} scene ({chosen.delta_e:.2f}, floor {chosen.noise:.2f}): "
+                                    f"simpler than BIC's {by_bic.name} (k = {by_bic.k}), which the scene does not need")
 
 
 def choose(rows, threshold, what="scene", spp=None):
