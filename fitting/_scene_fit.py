@@ -9,14 +9,15 @@ module finds the pairs with Mitsuba and fits the pixels.
 
 :func:`scene_pixels` casts one ray through each pixel's centre of the scene's camera
 (``sensor.sample_ray``), keeps the pixels whose hit carries the sample's BSDF (``id="sample"``
-in a scene file; the sphere of a preset), and at each draws ``k`` light samples with the
-scene's own emitter sampling (``Scene.sample_emitter_direction`` with visibility, so shadows
-and every emitter type count: a sun is one exact direction, a sky is sampled), each with its
-radiance / pdf weight. A pixel's value is then the k-sample estimate
-``(1/k) sum_j f_r(wi_j, wo_p) cos(theta_ij) w_j``. The measured BSDF (through Mitsuba's
-``bsdf.eval``) and every candidate are evaluated on the same samples (common random numbers),
-so the comparison has no Monte Carlo noise of its own: the fit matches the candidate's pixels
-to the measured material's pixels as the same estimator sees them.
+in a scene file; the sphere of a preset), and at each samples every emitter of the scene on
+its own with the emitter's own sampling (``Emitter.sample_direction``) and a visibility ray, so
+shadows and every emitter type count: a delta light (a sun, a point) is one exact direction
+with its exact weight, an area light or a sky ``k`` samples, each weighted by radiance / pdf / k.
+A pixel's value is then ``sum_j f_r(wi_j, wo_p) cos(theta_ij) w_j`` over its pairs. The
+measured BSDF (through Mitsuba's ``bsdf.eval``) and every candidate are evaluated on the same
+samples (common random numbers), so the comparison has no Monte Carlo noise of its own: the
+fit matches the candidate's pixels to the measured material's pixels as the same estimator
+sees them.
 
 :func:`fit_in_scene` fits those pixels: scipy's ``least_squares`` (trust-region reflective) in
 the parameter space's unit box, from the pair fit's parameters and the declared defaults, then
@@ -46,9 +47,10 @@ class ScenePixels:
     """The direction pairs a scene asks of the sample, per pixel.
 
     ``wi``, ``wo`` (M, 3) in the sample's local frame (gonio's convention: wi toward the light);
-    ``weight`` (M, 3) the light sample's radiance / pdf; ``pixel`` (M,) the index of the pixel
+    ``weight`` (M, 3) the light sample's radiance / pdf over the samples its emitter drew at
+    the pixel (so a pixel's value is the sum over its pairs); ``pixel`` (M,) the index of the pixel
     (0..n_pixels-1) each pair belongs to; ``mask`` (H, W) the pixels that see the sample,
-    ``k`` the light samples per pixel.
+    ``k`` the light samples per pixel and area or environment emitter.
     """
 
     wi: np.ndarray
@@ -97,26 +99,31 @@ def scene_pixels(scene, *, rng, k: int = 64, variant=None, name: str = "") -> Sc
     idx = np.flatnonzero(on)
     if idx.size == 0:
         raise ValueError("no pixel of the scene's camera sees the sample")
-    # the hits again, only those that see the sample, each repeated k times
-    rep = np.repeat(idx, k)
-    ray_k, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(np.array(pos.x)[rep], np.array(pos.y)[rep]), mi.Point2f(0.5, 0.5))
-    si_k = scene.ray_intersect(ray_k)
-    u = rng.random((2, rep.size)).astype(np.float32)
-    ds, spec = scene.sample_emitter_direction(si_k, mi.Point2f(u[0], u[1]), True)
-    wi = np.array(si_k.to_local(ds.d), dtype=np.float64).T
-    wo = np.array(si_k.wi, dtype=np.float64).T
-    weight = np.array(spec, dtype=np.float64).T
+    # every emitter on its own (no random choice between them): a delta light (a sun, a point)
+    # once a pixel with its exact weight, any other k times; shadows by a visibility ray
+    px, py = np.array(pos.x)[idx], np.array(pos.y)[idx]
+    parts = []
+    for emitter in scene.emitters():
+        n = 1 if mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta) else k
+        rep = np.repeat(np.arange(idx.size), n)
+        ray_n, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px[rep], py[rep]), mi.Point2f(0.5, 0.5))
+        si_n = scene.ray_intersect(ray_n)
+        u = rng.random((2, rep.size)).astype(np.float32)
+        ds, spec = emitter.sample_direction(si_n, mi.Point2f(u[0], u[1]))
+        seen = ~scene.ray_test(si_n.spawn_ray_to(ds.p))
+        w = np.array(spec, dtype=np.float64).T * np.array(seen, dtype=np.float64)[:, None] / n
+        parts.append((np.array(si_n.to_local(ds.d), dtype=np.float64).T, np.array(si_n.wi, dtype=np.float64).T, w, rep))
     dr.eval()
-    pixel = np.repeat(np.arange(idx.size), k)
+    wi, wo, weight, pixel = (np.concatenate([q[i] for q in parts]) for i in range(4))
     keep = (wi[:, 2] > 1e-6) & (wo[:, 2] > 1e-6) & np.all(np.isfinite(weight), axis=1) & np.any(weight > 0, axis=1)
-    return ScenePixels(wi[keep] / np.linalg.norm(wi[keep], axis=1, keepdims=True),
-                       wo[keep] / np.linalg.norm(wo[keep], axis=1, keepdims=True),
-                       weight[keep], pixel[keep], mask, k, str(name))
+    wi, wo, weight, pixel = wi[keep], wo[keep], weight[keep], pixel[keep]
+    return ScenePixels(wi / np.linalg.norm(wi, axis=1, keepdims=True), wo / np.linalg.norm(wo, axis=1, keepdims=True),
+                       weight, pixel, mask, k, str(name))
 
 
 def pixel_values(f_cos: np.ndarray, sp: ScenePixels) -> np.ndarray:
     """(n_pixels, C) pixel estimates from f_r cos(theta_i) (M, C) at ``sp``'s pairs."""
-    contrib = np.asarray(f_cos, dtype=np.float64) * sp.weight / sp.k
+    contrib = np.asarray(f_cos, dtype=np.float64) * sp.weight
     return np.stack([np.bincount(sp.pixel, weights=contrib[:, c], minlength=sp.n_pixels)
                      for c in range(contrib.shape[1])], axis=1)
 

@@ -123,6 +123,31 @@ OVERCAST_XML = """<scene version="3.0.0">
 """
 
 
+def test_scene_pixels_see_the_light_the_scene_sends():
+    """scene_pixels on the presets, checked against closed forms for a Lambertian (rho/pi):
+    under the uniform sky (radiance 0.8, nothing to shadow a convex sphere) every pixel is
+    0.8 rho (the furnace test; 64 sky samples a pixel, the mean over the sphere's pixels
+    within 3 %, > 4 sigma of its Monte Carlo error); under the sun (a delta light, irradiance
+    2.5) each pixel has exactly one sun pair, whose value is rho/pi 2.5 cos(theta_sun)."""
+    import mitsuba as mi
+
+    from gonio.fitting._scene_fit import pixel_values, scene_pixels
+    from gonio.fitting.scene import load_scene
+
+    rho = np.array([0.5, 0.3, 0.2])
+    with mi.scoped_set_variant("llvm_ad_rgb"):
+        sky = scene_pixels(load_scene("overcast", {"type": "diffuse"}, 24, 1), rng=np.random.default_rng(5), k=64)
+        sun = scene_pixels(load_scene("close-up-sun", {"type": "diffuse"}, 24, 1), rng=np.random.default_rng(5), k=8)
+    v = pixel_values(np.broadcast_to(rho / np.pi * sky.wi[:, 2:3], sky.wi.shape), sky)
+    assert sky.n_pixels > 200 and np.allclose(v.mean(axis=0) / (0.8 * rho), 1.0, atol=0.03)
+    counts = np.bincount(sun.pixel, minlength=sun.n_pixels)
+    sun_rows = np.flatnonzero(np.all(np.isclose(sun.weight, 2.5), axis=1))
+    assert np.array_equal(np.bincount(sun.pixel[sun_rows], minlength=sun.n_pixels), np.ones(sun.n_pixels))
+    assert np.all(counts <= 1 + 8)                     # the sun once, the dim sky at most k = 8 times
+    sun_dir = sun.wi[sun_rows]
+    assert np.allclose(np.linalg.norm(sun_dir, axis=1), 1.0) and np.all(sun_dir[:, 2] > 0)
+
+
 def test_the_simplest_clearly_good_candidate_is_chosen():
     """choose(): simplest first; a noisy row that is clearly bad (difference above the
     threshold by more than its floor) does not stop the choice, a noisy row that could be
