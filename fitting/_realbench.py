@@ -145,6 +145,10 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True):
     f_meas = measured_on_grid(path, wi, wo)
     t0 = time.perf_counter()
     best, ranking = select(meas, rng=np.random.default_rng(seed), loss=loss)
+    if render:      # as `gonio fit --model auto`: the data's evidence, then the default scene's renders
+        from .scene import rendered_choice
+
+        best, ranking, _ = rendered_choice(ranking, str(path), seed=seed)
     t_select = time.perf_counter() - t0
     chosen = next(r for r in ranking if r.chosen)
     model = best.model
@@ -181,7 +185,8 @@ def print_table(rows):
     print("-" * len(head))
     for r in rows:
         print("".join(f"{r[k]:{fmt}{spec if spec != 's' else ''}}" for k, fmt, spec in COLUMNS))
-    print("g: gonio's chosen fit (--model auto); p: scipy least_squares, unweighted log loss, "
+    print("g: gonio's chosen fit (--model auto: BIC, then the simplest candidate rendering within CIEDE2000 1 of "
+          "the measured file in the product-shot scene); p: scipy least_squares, unweighted log loss, "
           f"{PEER_STARTS} starts, numpy model of the same family; t g: the chosen fit's time, "
           "auto: the whole selection; metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
           f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
