@@ -35,6 +35,17 @@ cannot exceed it). Each timing ends with ``dr.sync_thread()`` (the LLVM backend 
 asynchronously). With one Dr.Jit thread (``GONIO_THREADS=1``) the times are the process's
 CPU time (:func:`clock`), robust to the other processes of a shared machine.
 
+Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 5-10, one Dr.Jit
+thread, CPU time, 1e6 pairs): ``ev/mi`` 0.06-0.24 (roughplastic 0.18-0.23; 0.02-0.13 before
+the contiguous round trip of :mod:`._roundtrip`). Issue 18's 0.5 is out of reach for a float64
+API here: ``e64/mi``, the float64 kernel alone with no round trip, is 0.50-0.69 (float64 has
+half float32's SIMD lanes), and moving 72 bytes a pair between numpy's (N, 3) arrays and the
+kernel costs ~6.8 ms per 1e6 pairs on one thread (numpy's strided copies; Dr.Jit's own
+stride-3 gathers cost more, see :mod:`._roundtrip`). ``grad/ev`` (float32) stays above 3 for
+roughconductor GGX (3.5-3.9) and cooktorrance (3.8-4.0): reading y and w and summing the
+chi^2 in the kernel already cost 1.6-2.0x the evaluation, 8-11 float64 sums 0.7-1.2 ms more;
+``grad/chi`` is 1.1-2.6 for every model in both precisions.
+
 Physical limit: a resident evaluation reads the two directions and writes f_r, so it can go
 no faster than the machine's memory bandwidth over the bytes it moves per pair (36 in
 float32: Mitsuba's and ``drjit32``'s; 72 in float64 with numpy in and out: ``eval``'s and
