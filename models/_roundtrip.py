@@ -34,8 +34,9 @@ from ._jit import _dr
 __all__ = ["SOA_MIN_PAIRS", "soa_kernel", "to_components", "interleave", "eval_blocks", "SOA_BLOCK"]
 
 #: Pairs from which :func:`gonio.models._fast.eval` takes this path; below it the gathering
-#: kernel's fixed cost is lower (one mapped input per direction, no copies): the copies here
-#: cost ~0.7 ns a value and a few microseconds a call.
+#: kernel's fixed cost is lower (one mapped input per direction, no copies). Measured (CPU
+#: time, one thread, min of 41): diffuse 32/57 us (gathering/here) at 1024 pairs, 142/139 us
+#: at 16384, 455/325 us at 65536; roughplastic GGX 45/69, 183/183, 675/544 us.
 SOA_MIN_PAIRS = 1 << 14
 
 #: Pairs per launch (a block's components and channels stay in the caches between numpy's
