@@ -44,6 +44,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from . import _roundtrip
 from ._base import CHANNELS, eval_inputs
 from ._fast_affine import affine_parts, affine_q, affine_spec, affine_tables, prepare
 from ._jit import Directions, JitContext, _dr
@@ -232,16 +233,21 @@ def eval(model, wi, wo, params):
     """Compiled f_r(wi, wo), shape (N, 3) float64; same contract as ``model.eval``
     (``Model.eval`` calls it above :data:`gonio.models._base.COMPILED_MIN_PAIRS` pairs).
 
-    numpy's memory is mapped into Dr.Jit without a copy, the kernel is replayed from its
-    recording (:func:`_frozen`) and its interleaved output is handed back
-    to numpy without a copy: per pair 48 bytes read and 24 written, the memory-bandwidth
-    limit ``gonio bench models`` prints."""
+    From :data:`._roundtrip.SOA_MIN_PAIRS` pairs numpy copies the direction components into
+    Dr.Jit's memory, the model's kernel reads them as contiguous arrays and numpy interleaves
+    its channels into an output in Dr.Jit's memory (:mod:`._roundtrip`: the kernel's own
+    gathers cost more on AVX-512). Below it numpy's memory is mapped into Dr.Jit without a
+    copy and the kernel gathers (:func:`_round_trip`). Either way the kernel is replayed from
+    its recording (:func:`_frozen`); per pair 48 bytes read and 24 written at least, the
+    memory-bandwidth limit ``gonio bench models`` prints."""
     dr, F, V3, U = _dr()
     wi, wo, p = eval_inputs(model, wi, wo, params)
     n = wi.shape[0]
     if n == 0:
         return np.zeros((0, CHANNELS))
     P, _ = _param_vars(model, p, F, grad=False)
+    if n >= _roundtrip.SOA_MIN_PAIRS:
+        return _eval_soa(model, wi, wo, P)
     # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the
     # interleave the trace is long enough (measured 28 us frozen, 57 us traced, 300 pairs)
     run = _frozen_for(_round_trip, model)
@@ -261,6 +267,16 @@ def eval(model, wi, wo, params):
     for s in range(0, n, EVAL_BLOCK):
         out[s:s + EVAL_BLOCK] = block(wi[s:s + EVAL_BLOCK], wo[s:s + EVAL_BLOCK])
     return out
+
+
+def _soa_kernel(model, *inputs):
+    """The model's kernel on contiguous components (:func:`._roundtrip.soa_kernel`)."""
+    return _roundtrip.soa_kernel(_kernel, model, *inputs)
+
+
+def _eval_soa(model, wi, wo, P):
+    """:func:`eval` on contiguous components (:func:`._roundtrip.eval_blocks`)."""
+    return _roundtrip.eval_blocks(_frozen_for(_soa_kernel, model), wi, wo, P, _FREEZE_LOCK)
 
 
 def value_and_grad(model, wi, wo, params, cotangent):

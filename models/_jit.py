@@ -43,6 +43,13 @@ def _floor(x):
     return 1e-300 if dr.type_v(x) == dr.VarType.Float64 else 1e-30
 
 
+def _is_f32(x):
+    """True for a float32 Dr.Jit array (where rsqrt is cheaper than a division)."""
+    import drjit as dr
+
+    return dr.type_v(x) == dr.VarType.Float32
+
+
 def _safe_sqrt(dr, x):
     # floor at a tiny positive number (not 0): the derivative stays finite, so masked lanes
     # give 0 * finite instead of 0 * inf = NaN in both AD modes
@@ -93,8 +100,10 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
     s2 = 1.0 - c2
     e2, k2 = eta * eta, k * k
     t1 = e2 - k2 - s2
-    A = _safe_sqrt(dr, t1 * t1 + 4.0 * e2 * k2)  # a^2 + b^2
-    a = _safe_sqrt(dr, 0.5 * (A + t1))
+    X = t1 * t1 + 4.0 * e2 * k2
+    A = _safe_sqrt(dr, X)  # a^2 + b^2
+    a2 = 0.5 * (A + t1)
+    a = _safe_sqrt(dr, a2)
     T1 = A + c2
     T2 = 2.0 * c * a
     T3 = A * c2 + s2 * s2
@@ -104,22 +113,33 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
     P, Q = T1 + T2, T3 + T4
     r = 1.0 / (P * Q)
     F = dr.clip((T1 - T2) * T3 * r, 0.0, 1.0)
-    rA = 1.0 / A
+    # 1 / A: in float32 an rsqrt (rsqrt14 and a Newton step: cheaper than a division), in
+    # float64 a division (Dr.Jit's float64 rsqrt is a division and a square root)
+    rA = dr.rsqrt(dr.maximum(X, _floor(X))) if _is_f32(X) else 1.0 / A
     # da without cancellation. For t1 >= 0, a^2 = (A + t1) / 2 >= t1 and da = (dA + dt1) / (4a).
     # For t1 < 0 (k -> 0 with eta below sin(theta)) A + t1 cancels; there
     # a = sqrt(2) eta k / sqrt(R), R = A - t1 >= 2 |t1| (since (A + t1)(A - t1) = 4 eta^2 k^2),
-    # whose derivative stays exact down to k = 0 (one-sided there: F ~ 1 - C k)
+    # whose derivative stays exact down to k = 0 (one-sided there: F ~ 1 - C k):
+    # da = sqrt(2) d(eta k) / sqrt(R) - c1 (dA - dt1), c1 = eta k / (sqrt(2) R^1.5).
+    # Both branches need one reciprocal square root, of R or of a^2: one rsqrt per lane
     neg = t1 < 0
-    rR = dr.rsqrt(dr.select(neg, A - t1, 1.0))
-    ra4 = 1.0 / (4.0 * dr.select(neg, 1.0, a))
+    rq = dr.rsqrt(dr.maximum(dr.select(neg, A - t1, a2), _floor(X)))
+    c1 = (math.sqrt(0.5) * eta * k) * (rq * rq * rq)
+    ra4 = 0.25 * rq
+    # dF is linear in (dA, dT2) with coefficients shared by d/d eta and d/dk (dT1 = dA,
+    # dT3 = c^2 dA, dT4 = s^2 dT2): dF = (al dA + be dT2) / (P Q)^2 with
+    # al = 2 T2 T3 Q + (T1 - T2) s^2 c^2 T2 P, be = -(2 T1 T3 Q + (T1 - T2) s^2 T3 P);
+    # and da = u dA + v (u, v per branch above), dT2 = 2 c da, so dF = g dA + b2 v
+    r2 = r * r
+    m12, s2P = T1 - T2, s2 * P
+    al = (2.0 * T2 * T3 * Q + m12 * s2P * c2 * T2) * r2
+    b2 = -2.0 * c * (2.0 * T1 * T3 * Q + m12 * s2P * T3) * r2
+    g = al + b2 * dr.select(neg, -c1, ra4)
+    sR = math.sqrt(2.0) * rq
     out = [F]
-    for dA_num, dt1, d_ek, x in ((2.0 * eta * (e2 + k2 - s2), 2.0 * eta, k, eta),
-                                 (2.0 * k * (e2 + k2 + s2), -2.0 * k, eta, k)):
-        dA = dA_num * rA
-        da = dr.select(neg, math.sqrt(2.0) * rR * (d_ek - 0.5 * eta * k * (dA - dt1) * rR * rR), (dA + dt1) * ra4)
-        dT2 = 2.0 * c * da
-        dT3, dT4 = c2 * dA, s2 * dT2
-        out.append((2.0 * (dA * T2 - dT2 * T1) * T3 * Q + (T1 - T2) * (dT3 * T4 - dT4 * T3) * P) * r * r)
+    for dA_num, dt1, d_ek in ((2.0 * eta * (e2 + k2 - s2), 2.0 * eta, k), (2.0 * k * (e2 + k2 + s2), -2.0 * k, eta)):
+        v = dr.select(neg, sR * d_ek + c1 * dt1, ra4 * dt1)
+        out.append(g * (dA_num * rA) + b2 * v)
     return tuple(out)
 
 

@@ -17,6 +17,9 @@ best of ``repeat``:
   with respect to every parameter (N x 3 values per parameter, left in Dr.Jit);
 * ``grad32``: :func:`gonio.models._fast.chi2_grad`, the same batch with resident data and
   weights: chi^2 and its gradient with respect to every parameter (reduced in the kernel);
+* ``chi32`` (not printed as a rate): :func:`gonio.models._fast.weighted_sse`, the chi^2 alone
+  on the same data: the function whose gradient ``grad32`` is (``grad/chi``; both read the
+  directions, y and w and sum in the kernel, where ``drjit32`` writes f_r);
 * ``mitsuba``: ``bsdf.eval`` in the variant chosen by :func:`mitsuba_variant`, on the same
   batch already converted to Mitsuba arrays (float32), results left in Dr.Jit.
 
@@ -24,9 +27,24 @@ best of ``repeat``:
 fused kernel, outputs evaluated) and are timed head to head, taking turns; their ratio is
 the figure of merit, with ``ev/mi`` (the public ``eval`` over Mitsuba's rate: issue 18's
 goal is >= 0.5), ``jac/ev`` and ``grad/ev`` (the Jacobian's and the chi^2 gradient's times
-over ``drjit32``'s) and ``grad/ev64`` (the chi^2 gradient over the evaluation, both float64
-and resident: the fitter's precision). Each timing ends with ``dr.sync_thread()`` (the
-LLVM backend launches asynchronously).
+over ``drjit32``'s), ``grad/ev64`` (the chi^2 gradient over the evaluation, both float64
+and resident: the fitter's precision), ``grad/chi`` and ``grad/chi64`` (the gradient over
+the chi^2 it differentiates) and ``e64/mi`` (the resident float64 kernel over Mitsuba's rate:
+the public float64 ``eval`` does that kernel's work plus the numpy round trip, so ``ev/mi``
+cannot exceed it). Each timing ends with ``dr.sync_thread()`` (the LLVM backend launches
+asynchronously). With one Dr.Jit thread (``GONIO_THREADS=1``) the times are the process's
+CPU time (:func:`clock`), robust to the other processes of a shared machine.
+
+Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 5-10, one Dr.Jit
+thread, CPU time, 1e6 pairs): ``ev/mi`` 0.06-0.24 (roughplastic 0.18-0.23; 0.02-0.13 before
+the contiguous round trip of :mod:`._roundtrip`). Issue 18's 0.5 is out of reach for a float64
+API here: ``e64/mi``, the float64 kernel alone with no round trip, is 0.50-0.69 (float64 has
+half float32's SIMD lanes), and moving 72 bytes a pair between numpy's (N, 3) arrays and the
+kernel costs ~6.8 ms per 1e6 pairs on one thread (numpy's strided copies; Dr.Jit's own
+stride-3 gathers cost more, see :mod:`._roundtrip`). ``grad/ev`` (float32) stays above 3 for
+roughconductor GGX (3.5-3.9) and cooktorrance (3.8-4.0): reading y and w and summing the
+chi^2 in the kernel already cost 1.6-2.0x the evaluation, 8-11 float64 sums 0.7-1.2 ms more;
+``grad/chi`` is 1.1-2.6 for every model in both precisions.
 
 Physical limit: a resident evaluation reads the two directions and writes f_r, so it can go
 no faster than the machine's memory bandwidth over the bytes it moves per pair (36 in
@@ -37,6 +55,7 @@ copy, read + write, on every thread) and the limits are printed beside the figur
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 
@@ -71,18 +90,32 @@ def coloured_params(model):
     return model.validate(p)
 
 
+def clock():
+    """The benchmark's clock: the process's CPU time when Dr.Jit runs on one thread
+    (``GONIO_THREADS=1``: every timed path, Mitsuba's included, then runs on one core, and
+    CPU time does not count the time other processes of a shared machine take that core),
+    the wall clock otherwise (CPU time would add the threads up)."""
+    if fast.available():
+        import drjit as dr
+
+        if dr.thread_count() <= 1:
+            return time.process_time
+    return time.perf_counter
+
+
 def _interleaved_best(timed, repeat):
     """Best time of each callable over ``repeat`` rounds, the callables taking turns within
     a round so that all of them see the same machine (a shared host's load drifts); one
     untimed call first (JIT compilation, table caches)."""
+    now = clock()
     for fn in timed.values():
         fn()
     best = dict.fromkeys(timed, float("inf"))
     for _ in range(repeat):
         for key, fn in timed.items():
-            t0 = time.perf_counter()
+            t0 = now()
             fn()
-            best[key] = min(best[key], time.perf_counter() - t0)
+            best[key] = min(best[key], now() - t0)
     return best
 
 
@@ -110,7 +143,7 @@ def _mitsuba_timer(model, params, wi, wo):
 
 
 COLUMNS = ("numpy", "eval", "drjit32", "jac32", "grad32", "mitsuba")
-EXTRA = ("32/mi", "ev/mi", "jac/ev", "grad/ev", "grad/ev64", "32/lim", "ev/lim")
+EXTRA = ("32/mi", "ev/mi", "e64/mi", "jac/ev", "grad/ev", "grad/ev64", "grad/chi", "grad/chi64", "32/lim", "ev/lim")
 #: Bytes a resident evaluation moves per direction pair: two directions in, f_r out (RGB).
 BYTES_PER_PAIR = {"float32": 3 * 4 * 3, "float64": 3 * 8 * 3}
 
@@ -153,9 +186,10 @@ def _limits(bw32, bw64):
 
 
 def _timed(fn):
-    t0 = time.perf_counter()
+    now = clock()
+    t0 = now()
     fn()
-    return time.perf_counter() - t0
+    return now() - t0
 
 
 def _resident(fn):
@@ -181,9 +215,11 @@ def _compiled_timers(model, p, wi, wo, dirs, dirs64, rng):
     y32, w32 = dirs.channels(y_np), dirs.channels(w_np)
     y64, w64 = dirs64.channels(y_np), dirs64.channels(w_np)
     timed["grad32"] = lambda: fast.chi2_grad(model, dirs, p, y32, w32)
+    timed["chi32"] = lambda: fast.weighted_sse(model, dirs, p, y32, w32)
     bound64 = fast.Bound(model, p, np.float64)
     timed["eval64"] = _resident(lambda: bound64.eval(dirs64, numpy=False))
     timed["grad64"] = lambda: fast.chi2_grad(model, dirs64, p, y64, w64)
+    timed["chi64"] = lambda: fast.weighted_sse(model, dirs64, p, y64, w64)
     return timed
 
 
@@ -204,10 +240,12 @@ def _row(name, options, t, head, n):
     row.update({k: (n / v if v else None) for k, v in t.items() if k in COLUMNS})
     row["ratio"] = (head["mitsuba"] / head["drjit32"]) if (head["mitsuba"] and head["drjit32"]) else None
     row["eval_ratio"] = (t["mitsuba"] / t["eval"]) if (t.get("mitsuba") and t.get("eval")) else None
+    row["eval64_ratio"] = (t["mitsuba"] / t["eval64"]) if (t.get("mitsuba") and t.get("eval64")) else None
     row["drjit64"] = row.get("eval")
     row.update({f"{k}_h2h": (n / v if v else None) for k, v in head.items()})
     for key, num, den in (("jac_cost", "jac32", "drjit32"), ("grad_cost", "grad32", "drjit32"),
-                          ("grad_cost64", "grad64", "eval64")):
+                          ("grad_cost64", "grad64", "eval64"), ("grad_chi", "grad32", "chi32"),
+                          ("grad_chi64", "grad64", "chi64")):
         row[key] = (t[num] / t[den]) if (t.get(num) and t.get(den)) else None
     return row
 
@@ -218,8 +256,9 @@ def _print_row(row, name, options, out):
 
     label = name + "".join(f" {v}" for v in options.values())
     print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in COLUMNS)
-          + "".join(fmt(row[k], 10, 1, 2) for k in ("ratio", "eval_ratio", "jac_cost", "grad_cost", "grad_cost64",
-                                                     "of_limit32", "of_limit64")), file=out)
+          + "".join(fmt(row[k], 11, 1, 2) for k in ("ratio", "eval_ratio", "eval64_ratio", "jac_cost", "grad_cost",
+                                                     "grad_cost64", "grad_chi", "grad_chi64", "of_limit32",
+                                                     "of_limit64")), file=out)
 
 
 def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
@@ -261,7 +300,7 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         dirs64 = fast.Directions(wi, wo, np.float64)
     rows = []
     print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat})", file=out)
-    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in COLUMNS) + "".join(f"{c:>10}" for c in EXTRA), file=out)
+    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in COLUMNS) + "".join(f"{c:>11}" for c in EXTRA), file=out)
     # the copy of a working set of the batch's own size (the same caches as the timed paths)
     limits = _limits(copy_bandwidth(n * BYTES_PER_PAIR["float32"]), copy_bandwidth(n * BYTES_PER_PAIR["float64"]))
     print(f"{'limit (memory bandwidth)':<26}" + "".join(f"{limits[c] * 1e-6:9.0f}" if limits.get(c) else f"{'-':>9}"
@@ -285,9 +324,14 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         row["of_limit64"] = row["eval"] / limits["eval"] if row.get("eval") else None
         rows.append(row)
         _print_row(row, name, options, out)
+    print(f"times: {'CPU time of the process (one Dr.Jit thread)' if clock() is time.process_time else 'wall clock'}, "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end", file=out)
     print("32/mi: drjit32 against mitsuba timed head to head (the columns: all paths in turn); ev/mi: the public "
-          "model.eval (float64, numpy in and out) over mitsuba (issue 18's goal >= 0.5); jac/ev, grad/ev: against "
-          "drjit32 in turn; grad/ev64: float64; 32/lim, ev/lim: fraction of the memory-bandwidth limit "
+          "model.eval (float64, numpy in and out) over mitsuba (issue 18's goal >= 0.5); e64/mi: the resident "
+          "float64 kernel alone over mitsuba, the most ev/mi can reach; jac/ev, grad/ev: against "
+          "drjit32 in turn; grad/ev64: float64; grad/chi, grad/chi64: chi2_grad over weighted_sse, the chi^2 "
+          "whose gradient it is (same reads of y and w, in-kernel sums); 32/lim, ev/lim: fraction of the "
+          "memory-bandwidth limit "
           f"(copy bandwidth {limits['bandwidth'] * 1e-9:.1f} GB/s on a float32 batch's working set, "
           f"{limits['bandwidth64'] * 1e-9:.1f} GB/s on a float64 one, measured in this run, read + write; "
           f"{BYTES_PER_PAIR['float32']} B/pair float32, {BYTES_PER_PAIR['float64']} B/pair float64 with numpy "

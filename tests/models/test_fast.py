@@ -132,7 +132,7 @@ def test_bench_runs():
     assert len(rows) == 2
     for r in rows:
         assert all(r[k] > 0 for k in ("numpy", "drjit64", "drjit32", "jac32"))
-        assert r["jac_cost"] > 0
+        assert r["jac_cost"] > 0 and r["grad_chi"] > 0 and r["grad_chi64"] > 0
         # the stated limit: the copy bandwidth over the bytes a pair moves (36 B float32, 72 B float64)
         assert r["limits"]["drjit32"] == pytest.approx(r["limits"]["bandwidth"] / 36)
         assert r["limits"]["eval"] == pytest.approx(r["limits"]["bandwidth64"] / 72)

@@ -1,0 +1,96 @@
+"""The public eval's large-batch round trip (models/_roundtrip.py, issue 18): numpy copies the
+components into Dr.Jit's memory, the kernel reads contiguous arrays, numpy interleaves the
+channels. It must give, bit for bit, what the gathering kernel gives on the same float64
+inputs (the same kernel), in blocks and with the copies spread over threads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import gonio.models as gm
+from gonio.models import _fast, _roundtrip
+
+from models_testutil import random_hemisphere, random_params
+
+pytestmark = [pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable"),
+              pytest.mark.codegen]
+
+CASES = [("diffuse", {}), ("roughconductor", {"distribution": "ggx", "anisotropic": True}),
+         ("roughplastic", {"distribution": "beckmann"}), ("cooktorrance", {}), ("orennayar", {})]
+
+
+def _pairs(rng, n):
+    """Random pairs with the hostile rows of the reference's contract: NaN and inf
+    components (f_r = 0), a direction below the horizon, grazing and normal directions."""
+    wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
+    wi[:6] = [[np.nan, 0, 1], [0, 0, 1], [0.6, 0, -0.8], [1, 0, 1e-12], [0, np.inf, 1], [0, 0, 1]]
+    wo[:6] = [[0, 0, 1], [0, 0, np.nan], [0, 0, 1], [0, 1, 1e-12], [0, 0, 1], [0, 0, 1]]
+    return wi, wo
+
+
+def _gathering(m, wi, wo, p, monkeypatch):
+    monkeypatch.setattr(_roundtrip, "SOA_MIN_PAIRS", 1 << 40)
+    try:
+        return _fast.eval(m, wi, wo, p)
+    finally:
+        monkeypatch.setattr(_roundtrip, "SOA_MIN_PAIRS", 1)
+
+
+@pytest.mark.parametrize("name,options", CASES, ids=[c[0] for c in CASES])
+def test_contiguous_path_equals_gathering_path_bit_for_bit(name, options, monkeypatch):
+    m = gm.get(name, **options)
+    rng = np.random.default_rng(1802)
+    wi, wo = _pairs(rng, 3001)
+    p = random_params(m, rng)
+    want = _gathering(m, wi, wo, p, monkeypatch)
+    monkeypatch.setattr(_roundtrip, "SOA_MIN_PAIRS", 1)
+    wi0, wo0 = wi.copy(), wo.copy()
+    got = m.eval(wi, wo, p)
+    np.testing.assert_array_equal(got, want)
+    assert got.shape == (3001, 3) and got.dtype == np.float64 and got.flags.c_contiguous
+    assert np.all(got[[0, 1, 2, 4]] == 0)
+    np.testing.assert_array_equal(wi, wi0)  # the inputs are read, never written
+    np.testing.assert_array_equal(wo, wo0)
+    rtol = 1e-7 if name == "roughplastic" else 1e-12  # Beckmann tables: Dr.Jit's erfinv (test_fast)
+    # (row 1, wo with a NaN z, is left out here: roughplastic's numpy reference raises an
+    # IndexError on it, reported in issue 18's notes; the compiled paths give 0 there)
+    keep = np.arange(3001) != 1
+    np.testing.assert_allclose(got[keep], m.eval_reference(wi[keep], wo[keep], p), rtol=rtol, atol=1e-300)
+
+
+def test_blocks_threads_and_results_kept_alive(monkeypatch):
+    """In blocks of 1000 pairs (2501 pairs: the last block short) and with the copies on 3
+    threads the result is the same; a result held while later calls run (its memory is
+    Dr.Jit's) keeps its values; non-contiguous inputs are accepted."""
+    m = gm.get("roughplastic", distribution="ggx")
+    rng = np.random.default_rng(1803)
+    wi, wo = _pairs(rng, 2501)
+    p = random_params(m, rng)
+    want = _gathering(m, wi, wo, p, monkeypatch)
+    monkeypatch.setattr(_roundtrip, "SOA_MIN_PAIRS", 1)
+    first = m.eval(wi, wo, p)
+    kept = first.copy()
+    monkeypatch.setattr(_roundtrip, "SOA_BLOCK", 1000)
+    np.testing.assert_array_equal(m.eval(wi, wo, p), want)
+    monkeypatch.setattr(_roundtrip, "_threads", lambda: 3)
+    np.testing.assert_array_equal(m.eval(wi, wo, p), want)
+    monkeypatch.setattr(_roundtrip, "SOA_BLOCK", 1 << 16)
+    for _ in range(3):
+        other = m.eval(wo, wi, p)
+        np.testing.assert_array_equal(first, kept)
+    np.testing.assert_allclose(other, kept, rtol=1e-14, atol=1e-300)  # reciprocity (to rounding)
+    strided_i, strided_o = np.asfortranarray(wi)[::2], wo[::2]
+    np.testing.assert_array_equal(m.eval(strided_i, strided_o, p), want[::2])
+
+
+def test_bad_input_is_refused_before_any_copy(monkeypatch):
+    monkeypatch.setattr(_roundtrip, "SOA_MIN_PAIRS", 1)
+    m = gm.get("diffuse")
+    with pytest.raises(ValueError, match="shape"):
+        m.eval(np.zeros((5, 2)), np.zeros((5, 2)), {})
+    with pytest.raises(ValueError, match="same shape"):
+        m.eval(np.zeros((5, 3)), np.zeros((4, 3)), {})
+    with pytest.raises(ValueError, match="reflectance"):
+        m.eval(np.zeros((5, 3)), np.zeros((5, 3)), {"reflectance": 2.0})
+    assert m.eval(np.zeros((0, 3)), np.zeros((0, 3)), {}, backend="drjit").shape == (0, 3)
