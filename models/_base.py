@@ -272,9 +272,11 @@ class Model:
             for s in range(0, n, _BLOCK):
                 e = min(s + _BLOCK, n)
                 a, b = wi[s:e], wo[s:e]
+                finite = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+                if not finite.all():    # a NaN would index roughplastic's tables: evaluate the normal, give 0
+                    a, b = (np.where(finite[:, None], v, [0.0, 0.0, 1.0]) for v in (a, b))
                 f = self._eval(a, b, p)
-                ok = (a[:, 2] > 0.0) & (b[:, 2] > 0.0)
-                ok &= np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+                ok = finite & (a[:, 2] > 0.0) & (b[:, 2] > 0.0)
                 out[s:e] = np.where(ok[:, None], f, 0.0)
         return out
 

@@ -276,3 +276,20 @@ def test_plastic_rejects_eta_below_one():
     for alpha in (0.0, -0.1):
         with pytest.raises(ValueError, match="alpha"):
             m.validate({"alpha": alpha})
+
+
+@pytest.mark.parametrize("name, options", [(n, o) for n in gm.names() for o in
+                                           ([{"distribution": d} for d in type(gm.get(n)).OPTIONS.get("distribution", ())]
+                                            or [{}])])
+def test_non_finite_directions_give_zero_in_the_reference(name, options):
+    """A NaN or infinite direction component gives f_r = 0 in that row of the numpy reference
+    (as below the horizon), and the other rows are unchanged: roughplastic's table lookup
+    used to raise IndexError on a NaN z."""
+    model = gm.get(name, **options)
+    p = model.validate({})
+    wi = np.array([[0.0, 0.0, 1.0], [0.3, 0.1, 0.95], [0.2, 0.0, 0.98], [0.1, 0.2, 0.97]])
+    wo = np.array([[0.1, 0.1, 0.98], [0.0, 0.0, np.nan], [np.inf, 0.0, 0.5], [-0.2, 0.1, 0.97]])
+    f = model.eval_reference(wi, wo, p)
+    assert np.all(f[1:3] == 0.0) and np.all(np.isfinite(f))
+    keep = [0, 3]
+    assert np.array_equal(f[keep], model.eval_reference(wi[keep], wo[keep], p))
