@@ -18,7 +18,7 @@ material; the noise floor of that comparison from a second matched pair of seeds
 candidate's BSDF (seconds per 2^16 ``bsdf.eval`` calls, the best of three after the JIT's
 first call). The candidates with their (cost, error) form the speed-versus-error front
 (:func:`front`: the candidates no other one beats on both). The chosen one is the simplest
-(fewest parameters, then cheapest) whose mean difference is below ``threshold``; the
+(fewest parameters, then the closest) whose mean difference is below ``threshold``; the
 comparison is refused (ValueError) when a candidate simpler than the chosen one can be told
 neither good nor bad: its noise floor is not below half the threshold and its difference is
 not clear of the threshold by more than the floor (more samples per pixel are needed).
@@ -262,12 +262,13 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
 
 
 def choose(rows, threshold, what="scene", spp=None):
-    """The simplest row (fewest parameters ``k``, then cheapest) whose ``delta_e`` is below
+    """The simplest row (fewest parameters ``k``, then the closest: a timing would make the
+    choice irreproducible) whose ``delta_e`` is below
     ``threshold`` with a ``noise`` floor under half of it, flagged ``chosen``; None if every
     row is clearly worse. Simplest first, each row is good, bad (above the threshold, or clear
     of it by more than its floor) or unclear: an unclear row before the chosen one raises
     ValueError (more samples per pixel are needed to tell)."""
-    for r in sorted(rows, key=lambda r: (r["k"], r["cost_s"])):
+    for r in sorted(rows, key=lambda r: (r["k"], r["delta_e"])):
         floor_ok = r["noise"] < 0.5 * threshold
         if floor_ok and r["delta_e"] < threshold:
             r["chosen"] = True
