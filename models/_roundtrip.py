@@ -30,7 +30,7 @@ import numpy as np
 
 from ._base import CHANNELS
 
-__all__ = ["SOA_MIN_PAIRS", "types", "soa_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
+__all__ = ["SOA_MIN_PAIRS", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
            "eval_gathered", "SOA_BLOCK"]
 
 #: Pairs from which :func:`gonio.models._fast.eval` takes this path; below it the gathering
@@ -141,47 +141,102 @@ def _run(jobs):
     list(_pool(workers).map(lambda job: np.copyto(*job), jobs))
 
 
+def packed_kernel(kernel, model, a0, a1, a2, b0, b1, b2, P):
+    """float32 :func:`soa_kernel` on rows taken two at a time: each direction's block of
+    rows, (2M, 3) float32, read as (M, 3) uint64 words ``(x0, y0), (z0, x1), (y1, z1)``
+    (:func:`to_components` copies 8-byte words: half the elements of a float32 copy, which
+    costs numpy the same per element). The kernel splits each word into its two float32
+    values (integer shifts and reinterpretations, exact), evaluates the model on the even
+    and on the odd rows (two halves of one fused kernel) and packs the six channels of a
+    row pair back into three words ``(r0, g0), (b0, r1), (g1, b1)``: f_r (2M, 3) in C
+    order once :func:`interleave` writes them into the (M, 3) word view of the output."""
+    import drjit as dr
+    from drjit.llvm.ad import Float32, UInt32, UInt64
+
+    def split(w):
+        return dr.reinterpret_array(Float32, UInt32(w & 0xFFFFFFFF)), dr.reinterpret_array(Float32, UInt32(w >> 32))
+
+    def join(lo, hi):
+        return UInt64(dr.reinterpret_array(UInt32, lo)) | (UInt64(dr.reinterpret_array(UInt32, hi)) << 32)
+
+    (ix0, iy0), (iz0, ix1), (iy1, iz1) = split(a0), split(a1), split(a2)
+    (ox0, oy0), (oz0, ox1), (oy1, oz1) = split(b0), split(b1), split(b2)
+    e = soa_kernel(kernel, model, ix0, iy0, iz0, ox0, oy0, oz0, P)
+    o = soa_kernel(kernel, model, ix1, iy1, iz1, ox1, oy1, oz1, P)
+    return join(e[0], e[1]), join(e[2], o[0]), join(o[1], o[2])
+
+
+def _words(w):
+    """The (N, 3) view :func:`to_components` copies columns of: float64 rows as they are,
+    float32 rows (N even) two at a time as uint64 words (:func:`packed_kernel`)."""
+    return w if w.dtype == np.float64 else w.reshape(-1).view(np.uint64).reshape(-1, CHANNELS)
+
+
 def _buffers(n, k, dtype):
-    """k evaluated Dr.Jit arrays of n entries of ``dtype`` and numpy views of them (writable)."""
-    dr, F = types(dtype)[:2]
-    bufs = [dr.empty(F, n) for _ in range(k)]
+    """k evaluated Dr.Jit arrays of n entries of ``dtype`` (float64, or uint64 words for
+    float32 rows) and numpy views of them (writable)."""
+    import drjit as dr
+    from drjit.llvm.ad import Float64, UInt64
+
+    T = Float64 if np.dtype(dtype) == np.float64 else UInt64
+    bufs = [dr.empty(T, n) for _ in range(k)]
     dr.eval(*bufs)
     return bufs, [np.asarray(b) for b in bufs]
 
 
-def to_components(wi, wo):
-    """The six components of two (N, 3) arrays (float32 or float64) as contiguous Dr.Jit
-    arrays of that type."""
-    n = wi.shape[0]
-    bufs, views = _buffers(n, 2 * CHANNELS, wi.dtype)
+def to_components(wi, wo, into=None):
+    """The six component columns of :func:`_words` of two (N, 3) arrays as contiguous Dr.Jit
+    arrays (float64 components, or uint64 words of two float32 rows), written into ``into``
+    (the ``(bufs, views)`` of :func:`_buffers`, of the right size) or into new ones."""
+    wi, wo = _words(wi), _words(wo)
+    bufs, views = into if into is not None else _buffers(wi.shape[0], 2 * CHANNELS, wi.dtype)
     _run([(views[k], w[:, j]) for k, (w, j) in enumerate((w, j) for w in (wi, wo) for j in range(CHANNELS))])
     return bufs
 
 
 def interleave(chans, out):
-    """Write the three evaluated channels into ``out`` (n, 3) (numpy, C order)."""
+    """Write the three evaluated channels (or packed words) into ``out`` (n, 3) (numpy, C
+    order)."""
     src = [np.asarray(c) for c in chans]
+    out = _words(out)
     _run([(out[:, c], src[c]) for c in range(CHANNELS)])
+
+
+def _padded(w):
+    """An odd float32 block with one row (0, 0, 1) more (f_r of it is dropped)."""
+    return np.concatenate([w, np.array([[0.0, 0.0, 1.0]], w.dtype)]) if w.shape[0] % 2 else w
 
 
 def eval_blocks(run, wi, wo, P, lock):
     """f_r (N, 3), of the directions' type, from ``run`` (the frozen :func:`soa_kernel` of a
-    model) in blocks of :data:`SOA_BLOCK` pairs, one replay at a time under ``lock``, written
-    into an output that Dr.Jit allocated (handed to numpy without a copy; Dr.Jit's allocator
-    reuses freed blocks, so a new output's pages are not faulted in on every call). Peak
-    memory: the output plus one block's components and channels (72 bytes a pair in float64,
-    36 in float32)."""
-    dr, F = types(wi.dtype)[:2]
+    model in float64, :func:`packed_kernel` in float32) in blocks of :data:`SOA_BLOCK` pairs,
+    one replay at a time under ``lock``, written into an output that Dr.Jit allocated (handed
+    to numpy without a copy; Dr.Jit's allocator reuses freed blocks, so a new output's pages
+    are not faulted in on every call). The full blocks share one set of component buffers.
+    Peak memory: the output plus one block's components and channels (72 bytes a pair in
+    float64, 36 in float32)."""
+    import drjit as dr
+
+    F = types(wi.dtype)[1]
     n = wi.shape[0]
+    per = 1 if wi.dtype == np.float64 else 2  # rows per word
     buf = dr.empty(F, CHANNELS * n)
     dr.eval(buf)
     out = np.asarray(buf).reshape(n, CHANNELS)
+    full = _buffers(SOA_BLOCK // per, 2 * CHANNELS, wi.dtype) if n >= SOA_BLOCK else None
     for s in range(0, n, SOA_BLOCK):
-        comps = to_components(wi[s:s + SOA_BLOCK], wo[s:s + SOA_BLOCK])
+        a, b = _padded(wi[s:s + SOA_BLOCK]), _padded(wo[s:s + SOA_BLOCK])
+        comps = to_components(a, b, full if a.shape[0] == SOA_BLOCK else None)
         with lock, dr.suspend_grad():
             chans = run(*comps, P)
             dr.eval(*chans)
-        del comps  # before the next block's are allocated
-        interleave(chans, out[s:s + SOA_BLOCK])
+        del comps  # (a short last block's) before the next block's are allocated
+        dst = out[s:s + SOA_BLOCK]
+        if dst.shape[0] == a.shape[0]:
+            interleave(chans, dst)
+        else:  # the padded last block of an odd N
+            tmp = np.empty(a.shape, a.dtype)
+            interleave(chans, tmp)
+            dst[...] = tmp[:dst.shape[0]]
         del chans
     return out

@@ -48,9 +48,12 @@ class TwoLobe(Model):
 
     def eval(self, wi, wo, params, backend="auto"):
         """The two layers' ``eval`` mixed; float32 directions give float32 (each layer's
-        float32 path, mixed in float32), as :meth:`Model.eval`."""
+        float32 path, mixed in float32; ``backend="numpy"``: the float64 reference rounded
+        to float32), as :meth:`Model.eval`."""
         if backend not in ("auto", "numpy", "drjit"):
             raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
+        if backend == "numpy":  # the float64 reference, rounded once (as Model.eval)
+            return self.eval_reference(wi, wo, params).astype(eval_dtype(wi, wo), copy=False)
         return self._mix(lambda a, b, p: self._layer.eval(a, b, p, backend=backend), wi, wo, params,
                          eval_dtype(wi, wo))
 

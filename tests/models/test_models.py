@@ -14,7 +14,7 @@ import pytest
 import gonio.models as gm
 from gonio.models._albedo import QUADRATURE_ERROR
 
-from models_testutil import random_hemisphere, random_params
+from models_testutil import assert_float32_agrees, random_hemisphere, random_params
 
 
 def all_configs():
@@ -87,12 +87,19 @@ def test_eval_shapes_and_dtypes(name, options, rng):
     wi, wo = random_hemisphere(rng, 50), random_hemisphere(rng, 50)
     f = m.eval(wi, wo, p)
     assert f.shape == (50, 3) and f.dtype == np.float64
-    # float32 input gives the float64 result of the rounded directions
-    f32 = m.eval(wi.astype(np.float32), wo.astype(np.float32), p)
-    ref = m.eval(wi.astype(np.float32).astype(np.float64), wo.astype(np.float32).astype(np.float64), p)
-    np.testing.assert_array_equal(f32, ref)
+    # the type follows the directions (issue 18): float32 in, float32 out, the float64
+    # reference on the same rounded directions to float32 precision; mixed types promote to
+    # float64, bit for bit the float64 evaluation of the promoted directions
+    w32 = wi.astype(np.float32), wo.astype(np.float32)
+    f32 = m.eval(*w32, p)
+    assert_float32_agrees(f32, m.eval_reference(*w32, p), w32[0])
+    ref = m.eval(w32[0].astype(np.float64), w32[1].astype(np.float64), p)
+    np.testing.assert_array_equal(m.eval(w32[0], w32[1].astype(np.float64), p), ref)
+    assert m.eval(w32[0].tolist(), w32[1], p).dtype == np.float64  # a list is float64, as numpy has it
+    np.testing.assert_array_equal(m.eval(*w32, p, backend="numpy"), m.eval_reference(*w32, p).astype(np.float32))
     # N = 0
     assert m.eval(np.zeros((0, 3)), np.zeros((0, 3)), p).shape == (0, 3)
+    assert m.eval(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), p).dtype == np.float32
     assert m.albedo(np.zeros((0, 3)), p).shape == (0, 3)
     with pytest.raises(ValueError):
         m.eval(wi, wo[:10], p)
