@@ -131,9 +131,11 @@ def test_bench_runs():
     rows = bench.run(n=2000, repeat=1, cases=(("diffuse", {}), ("roughconductor", {"distribution": "ggx"})), file=buf)
     text = buf.getvalue()
     assert "roughconductor" in text and "Mevals/s" in text and "limit (memory bandwidth)" in text
+    assert "ev32/mi" in text and "numpy round trip included" in text and "load average" in text
     assert len(rows) == 2
     for r in rows:
-        assert all(r[k] > 0 for k in ("numpy", "drjit64", "drjit32", "jac32"))
+        assert all(r[k] > 0 for k in ("numpy", "drjit64", "eval32", "drjit32", "jac32"))
+        assert r["limits"]["eval32"] == pytest.approx(r["limits"]["bandwidth"] / 36)
         assert r["jac_cost"] > 0 and r["grad_chi"] > 0 and r["grad_chi64"] > 0
         # the stated limit: the copy bandwidth over the bytes a pair moves (36 B float32, 72 B float64)
         assert r["limits"]["drjit32"] == pytest.approx(r["limits"]["bandwidth"] / 36)
