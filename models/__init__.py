@@ -4,8 +4,9 @@ Conventions (everywhere in this package)
 ----------------------------------------
 * Local shading frame, +z along the surface normal.
 * ``wi`` points from the surface to the **light**, ``wo`` from the surface to the
-  **detector**; both are unit vectors, arrays of shape (N, 3) (float32 is promoted to
-  float64). ``wm`` is a microfacet normal (the half vector for reflection).
+  **detector**; both are unit vectors, arrays of shape (N, 3). ``eval`` returns the
+  directions' precision: float32 ``wi`` and ``wo`` run the compiled float32 kernel and give
+  float32 (the fast path), anything else gives float64. ``wm`` is a microfacet normal (the half vector for reflection).
 * ``eval`` returns f_r in sr^-1 per colour channel, shape (N, 3), *without* the cosine
   factor; 0 where either direction is at or below the horizon.
 * Mitsuba's ``bsdf.eval(ctx, si, wo_mi)`` has ``si.wi`` = our ``wo`` (camera) and

@@ -38,10 +38,14 @@ cannot exceed it). Each timing ends with ``dr.sync_thread()`` (the LLVM backend 
 asynchronously). With one Dr.Jit thread (``GONIO_THREADS=1``) the times are the process's
 CPU time (:func:`clock`), robust to the other processes of a shared machine.
 
-Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 5-10, one Dr.Jit
-thread, CPU time, 1e6 pairs): ``ev/mi`` 0.06-0.24 (roughplastic 0.18-0.23; 0.02-0.13 before
-the contiguous round trip of :mod:`._roundtrip`). Issue 18's 0.5 is out of reach for a float64
-API here: ``e64/mi``, the float64 kernel alone with no round trip, is 0.50-0.69 (float64 has
+Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 7.6-8.0, one Dr.Jit
+thread, CPU time, 1e6 pairs, one run): ``ev32/mi`` (float32 directions) 0.12-0.45: roughplastic
+0.45 Beckmann, 0.35 GGX, roughconductor 0.38-0.39, cooktorrance 0.29, orennayar 0.24, diffuse
+0.12; ``ev/mi`` (float64) 0.07-0.25 in the same run. Where the float32 time goes (roughplastic
+GGX, 5.9 ms a call): numpy's copies 3.0 ms (1.8 in, 1.2 out: :mod:`._roundtrip`, two float32
+rows per uint64 word), the kernel in blocks 2.9 ms against 1.9 ms resident; so 0.5 needs the
+round trip below ~1 ms, which numpy's strided copies cannot do (and the kernel's own gathers
+cost more, see :mod:`._roundtrip`). Issue 18's 0.5 is out of reach for a float64 API here: ``e64/mi``, the float64 kernel alone with no round trip, is 0.50-0.69 (float64 has
 half float32's SIMD lanes), and moving 72 bytes a pair between numpy's (N, 3) arrays and the
 kernel costs ~6.8 ms per 1e6 pairs on one thread (numpy's strided copies; Dr.Jit's own
 stride-3 gathers cost more, see :mod:`._roundtrip`). ``grad/ev`` (float32) stays above 3 for
