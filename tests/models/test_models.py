@@ -201,33 +201,36 @@ def kib(key):
     with open("/proc/self/status") as fh:
         return next(int(l.split()[1]) for l in fh if l.startswith(key + ":")) * 1024
 
-backend, n = sys.argv[1], int(sys.argv[2])
+backend, n, dtype = sys.argv[1], int(sys.argv[2]), np.dtype(sys.argv[3])
 m = gm.get("diffuse")
-z = np.tile([0.0, 0.0, 1.0], (4096, 1))
+z = np.tile([0.0, 0.0, 1.0], (1 << 17, 1)).astype(dtype)
 m.eval(z, z, {}, backend=backend)  # Dr.Jit loaded and the kernel compiled before measuring
-wi = np.zeros((n, 3))
+wi = np.zeros((n, 3), dtype)
 wi[:, 2] = 1.0
 with open("/proc/self/clear_refs", "w") as fh:
     fh.write("5")  # resets VmHWM, the peak resident set (Linux >= 4.0)
 base = kib("VmRSS")
 f = m.eval(wi, wi, {}, backend=backend)
-assert f.shape == (n, 3) and (f == m.eval_reference(z[:1], z[:1], {})).all()
+ref = m.eval_reference(z[:1], z[:1], {})[0]  # float32: to the float32 contract (models_testutil)
+assert f.shape == (n, 3) and f.dtype == dtype and (f == f[:1]).all()
+assert np.allclose(f[0], ref, rtol=2e-5 if dtype == np.float32 else 0.0, atol=0.0)
 print((kib("VmHWM") - base) / f.nbytes)
 """
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
-@pytest.mark.parametrize("backend", ["auto", "numpy"])
-def test_large_batch_memory(backend):
+@pytest.mark.parametrize("backend,dtype", [("auto", "float64"), ("numpy", "float64"), ("auto", "float32")])
+def test_large_batch_memory(backend, dtype):
     """1e7 pairs evaluate in blocks: the peak resident set above the inputs is the output
-    plus at most half of it in temporaries, on the compiled path as on the numpy one.
+    plus at most half of it in temporaries, on the compiled path as on the numpy one, and
+    on the float32 one (float32 directions, float32 output: the packed words' blocks).
 
     Measured in a child process as the peak RSS (everything: numpy's, Dr.Jit's and LLVM's
     memory), not with tracemalloc, which sees numpy's allocations only and whose stop()
     races with a Dr.Jit thread releasing an array on Python 3.11 (CPython gh-128679: a
     segfault on an AMD EPYC machine, 4 runs in 20). One launch of the compiled kernel on
     all pairs measured 2.03x."""
-    out = subprocess.run([sys.executable, "-c", _PEAK_RSS, backend, str(10_000_000)],
+    out = subprocess.run([sys.executable, "-c", _PEAK_RSS, backend, str(10_000_000), dtype],
                          capture_output=True, text=True, timeout=240)
     assert out.returncode == 0, out.stderr[-2000:]
     ratio = float(out.stdout.split()[-1])
