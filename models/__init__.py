@@ -17,6 +17,7 @@ Conventions (everywhere in this package)
 Public API
 ----------
 ``get(name, **options)``, ``names()``, ``Parameter``, ``Model`` (base class),
+``eval_dtype(wi, wo)`` (the precision ``Model.eval`` gives these directions),
 ``mitsuba_variant()``; ``mitsuba`` (the one boundary to Mitsuba: variant, direction
 convention, batched ``eval_cos``); ``geometry`` (directions from angles and back); ``fast`` (compiled Dr.Jit path: ``fast.available()``,
 ``fast.eval(model, wi, wo, params)``, ``fast.value_and_grad(model, wi, wo, params,
@@ -38,7 +39,7 @@ from __future__ import annotations
 
 from . import _cooktorrance, _lambertian, _orennayar, _principled, _roughconductor, _roughconductor2, _roughplastic, _roughplastic2  # noqa: F401  (register models)
 from . import _fast as fast
-from ._base import CHANNELS, Model, Parameter, get, install_compiled, names
+from ._base import CHANNELS, Model, Parameter, eval_dtype, get, install_compiled, names
 from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
@@ -56,6 +57,7 @@ __all__ = [
     "Structure",
     "Affine",
     "CHANNELS",
+    "eval_dtype",
     "mitsuba_variant",
     "fast",
     "geometry",

@@ -118,6 +118,8 @@ def test_dtype_rules_and_bad_input(monkeypatch):
     rng = np.random.default_rng(1820)
     wi, wo = _pairs(rng, 500)
     p = random_params(m, rng)
+    assert gm.eval_dtype(wi, wo) == np.float32 and gm.eval_dtype(wi, wo.astype(np.float64)) == np.float64
+    assert gm.eval_dtype(wi.tolist(), wo) == np.float64
     f64 = m.eval(wi.astype(np.float64), wo.astype(np.float64), p)
     np.testing.assert_array_equal(m.eval(wi, wo.astype(np.float64), p), f64)
     np.testing.assert_array_equal(m.eval(wi.tolist(), wo, p), f64)
