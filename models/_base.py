@@ -249,7 +249,8 @@ class Model:
             ``"auto"`` (default): the compiled kernel (:func:`gonio.models.fast.eval`, the
             same formulas) from :attr:`compiled_min_pairs` pairs where Dr.Jit's LLVM backend
             works, otherwise the numpy reference; ``"numpy"``: the reference
-            (:meth:`eval_reference`, float64); ``"drjit"``: the compiled kernel at any size
+            (:meth:`eval_reference`, in float64; rounded to float32 for float32 directions);
+            ``"drjit"``: the compiled kernel at any size
             (ValueError where there is none). The environment variable
             ``GONIO_EVAL_BACKEND=numpy`` makes ``"auto"`` numpy.
 
