@@ -38,10 +38,10 @@ cannot exceed it). Each timing ends with ``dr.sync_thread()`` (the LLVM backend 
 asynchronously). With one Dr.Jit thread (``GONIO_THREADS=1``) the times are the process's
 CPU time (:func:`clock`), robust to the other processes of a shared machine.
 
-Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 7.6-8.0, one Dr.Jit
-thread, CPU time, 1e6 pairs, one run): ``ev32/mi`` (float32 directions) 0.12-0.45: roughplastic
-0.45 Beckmann, 0.35 GGX, roughconductor 0.38-0.39, cooktorrance 0.29, orennayar 0.24, diffuse
-0.12; ``ev/mi`` (float64) 0.07-0.25 in the same run. Where the float32 time goes (roughplastic
+Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 7.6-10.4, one Dr.Jit
+thread, CPU time, 1e6 pairs, two runs): ``ev32/mi`` (float32 directions) 0.12-0.46: roughplastic
+0.45-0.46 Beckmann, 0.34-0.35 GGX, roughconductor 0.35-0.42, cooktorrance 0.29-0.30, orennayar
+0.22-0.24, diffuse 0.12; ``ev/mi`` (float64) 0.07-0.25 in the same runs. Where the float32 time goes (roughplastic
 GGX, 5.9 ms a call): numpy's copies 3.0 ms (1.8 in, 1.2 out: :mod:`._roundtrip`, two float32
 rows per uint64 word), the kernel in blocks 2.9 ms against 1.9 ms resident; so 0.5 needs the
 round trip below ~1 ms, which numpy's strided copies cannot do (and the kernel's own gathers
