@@ -4,8 +4,9 @@ Conventions (everywhere in this package)
 ----------------------------------------
 * Local shading frame, +z along the surface normal.
 * ``wi`` points from the surface to the **light**, ``wo`` from the surface to the
-  **detector**; both are unit vectors, arrays of shape (N, 3) (float32 is promoted to
-  float64). ``wm`` is a microfacet normal (the half vector for reflection).
+  **detector**; both are unit vectors, arrays of shape (N, 3). ``eval`` returns the
+  directions' precision: float32 ``wi`` and ``wo`` run the compiled float32 kernel and give
+  float32 (the fast path), anything else gives float64. ``wm`` is a microfacet normal (the half vector for reflection).
 * ``eval`` returns f_r in sr^-1 per colour channel, shape (N, 3), *without* the cosine
   factor; 0 where either direction is at or below the horizon.
 * Mitsuba's ``bsdf.eval(ctx, si, wo_mi)`` has ``si.wi`` = our ``wo`` (camera) and
@@ -16,6 +17,7 @@ Conventions (everywhere in this package)
 Public API
 ----------
 ``get(name, **options)``, ``names()``, ``Parameter``, ``Model`` (base class),
+``eval_dtype(wi, wo)`` (the precision ``Model.eval`` gives these directions),
 ``mitsuba_variant()``; ``mitsuba`` (the one boundary to Mitsuba: variant, direction
 convention, batched ``eval_cos``); ``geometry`` (directions from angles and back); ``fast`` (compiled Dr.Jit path: ``fast.available()``,
 ``fast.eval(model, wi, wo, params)``, ``fast.value_and_grad(model, wi, wo, params,
@@ -37,7 +39,7 @@ from __future__ import annotations
 
 from . import _cooktorrance, _lambertian, _orennayar, _principled, _roughconductor, _roughconductor2, _roughplastic, _roughplastic2  # noqa: F401  (register models)
 from . import _fast as fast
-from ._base import CHANNELS, Model, Parameter, get, install_compiled, names
+from ._base import CHANNELS, Model, Parameter, eval_dtype, get, install_compiled, names
 from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
@@ -55,6 +57,7 @@ __all__ = [
     "Structure",
     "Affine",
     "CHANNELS",
+    "eval_dtype",
     "mitsuba_variant",
     "fast",
     "geometry",

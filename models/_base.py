@@ -12,7 +12,7 @@ from ._albedo import albedo
 from ._structure import Structure
 from .geometry import as_directions
 
-__all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs"]
+__all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs", "eval_dtype"]
 
 #: Number of colour channels (linear camera RGB).
 CHANNELS = 3
@@ -53,11 +53,20 @@ class Parameter:
 _REGISTRY: dict[str, type] = {}
 
 
-def eval_inputs(model, wi, wo, params):
-    """What every evaluation path checks first: directions as (N, 3) float64 arrays of one
-    shape, and the validated parameters. Returns ``(wi, wo, params)``."""
-    wi = as_directions(wi, "wi")
-    wo = as_directions(wo, "wo")
+def eval_dtype(wi, wo):
+    """The precision of an evaluation on these directions, as numpy's arithmetic would give
+    it: float32 when both are float32 arrays (or numpy float32 scalars), float64 otherwise
+    (float64, mixed float32 and float64, integers, float16, lists: promoted to float64)."""
+    f32 = np.dtype(np.float32)
+    return f32 if getattr(wi, "dtype", None) == f32 and getattr(wo, "dtype", None) == f32 else np.dtype(np.float64)
+
+
+def eval_inputs(model, wi, wo, params, dtype=np.float64):
+    """What every evaluation path checks first: directions as C-contiguous (N, 3) arrays of
+    type ``dtype`` (float64 unless told) and one shape, and the validated parameters.
+    Returns ``(wi, wo, params)``."""
+    wi = as_directions(wi, "wi", dtype)
+    wo = as_directions(wo, "wo", dtype)
     if wi.shape != wo.shape:
         raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
     return wi, wo, model.validate(params)
@@ -226,7 +235,7 @@ class Model:
     compiled_min_pairs = 32
 
     def eval(self, wi, wo, params, backend="auto"):
-        """BRDF f_r(wi, wo) in sr^-1, shape (N, 3).
+        """BRDF f_r(wi, wo) in sr^-1, shape (N, 3), in the precision of the directions.
 
         Parameters
         ----------
@@ -237,34 +246,47 @@ class Model:
         params : dict
             Parameter values (see :attr:`parameters`); validated on every call.
         backend : {"auto", "numpy", "drjit"}
-            ``"auto"`` (default): the compiled float64 kernel (:func:`gonio.models.fast.eval`,
-            the same formulas, equal to the reference to ~1e-14 relative; roughplastic
-            Beckmann ~1e-8 through Dr.Jit's erfinv in its tables) from
-            :attr:`compiled_min_pairs` pairs where Dr.Jit's LLVM backend works, otherwise
-            the numpy reference; ``"numpy"``: the reference (:meth:`eval_reference`);
-            ``"drjit"``: the compiled kernel at any size (ValueError where there is none).
-            The environment variable ``GONIO_EVAL_BACKEND=numpy`` makes ``"auto"`` numpy.
+            ``"auto"`` (default): the compiled kernel (:func:`gonio.models.fast.eval`, the
+            same formulas) from :attr:`compiled_min_pairs` pairs where Dr.Jit's LLVM backend
+            works, otherwise the numpy reference; ``"numpy"``: the reference
+            (:meth:`eval_reference`, in float64; rounded to float32 for float32 directions);
+            ``"drjit"``: the compiled kernel at any size
+            (ValueError where there is none). The environment variable
+            ``GONIO_EVAL_BACKEND=numpy`` makes ``"auto"`` numpy.
 
         Returns
         -------
-        ndarray, shape (N, 3), float64
+        ndarray, shape (N, 3), float64 or float32
             f_r without the cosine factor; 0 where either direction is at or below the
-            horizon (and for non-finite directions).
+            horizon (and for non-finite directions). The type follows the directions, as
+            numpy's arithmetic does (:func:`eval_dtype`):
+
+            * float64 (and anything else: lists, integers, float32 mixed with float64):
+              float64, the compiled float64 kernel equal to the reference to ~1e-14
+              relative (roughplastic Beckmann ~1e-8, through Dr.Jit's erfinv in its tables);
+            * ``wi`` and ``wo`` both float32: float32, the compiled float32 kernel (Mitsuba's
+              precision; the fast path, half the bytes and twice the SIMD lanes): equal to
+              the float64 reference on the same float32 directions to 2e-5 relative
+              wherever f_r cos(theta_i) > 1e-6 (measured <= 7.5e-6). The numpy reference
+              (``backend="numpy"``, below :attr:`compiled_min_pairs`, or without Dr.Jit)
+              computes in float64 and returns it rounded to float32.
         """
+        dtype = eval_dtype(wi, wo)
         if backend == "numpy":
-            return self.eval_reference(wi, wo, params)
+            return self.eval_reference(wi, wo, params).astype(dtype, copy=False)
         if backend not in ("auto", "drjit"):
             raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
-        wi, wo, p = eval_inputs(self, wi, wo, params)
+        wi, wo, p = eval_inputs(self, wi, wo, params, dtype)
         if backend == "drjit" or (wi.shape[0] >= self.compiled_min_pairs and _compiled(self)):
             if backend == "drjit" and not _compiled(self):
                 raise ValueError(f"{self.name}: no compiled kernel here (Dr.Jit's LLVM backend or the model's kernel missing)")
             return _COMPILED[0](self, wi, wo, p)
-        return self.eval_reference(wi, wo, p)
+        return self.eval_reference(wi, wo, p).astype(dtype, copy=False)
 
     def eval_reference(self, wi, wo, params):
-        """f_r from the numpy reference implementation (float64, blocks of 65536 pairs);
-        same contract as :meth:`eval`, which equals it to rounding (tests compare them)."""
+        """f_r from the numpy reference implementation: float64 whatever the directions'
+        type (float32 ones are promoted), in blocks of 65536 pairs; otherwise the contract of
+        :meth:`eval`, which equals it to rounding (tests compare them)."""
         wi, wo, p = eval_inputs(self, wi, wo, params)
         n = wi.shape[0]
         out = np.empty((n, CHANNELS))

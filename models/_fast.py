@@ -5,9 +5,10 @@ The numpy implementations are the reference; this module evaluates the same form
 multithreaded LLVM kernels, with their derivatives. It is used only where Dr.Jit's LLVM
 backend works (:func:`available`); nothing else in :mod:`gonio.models` depends on it.
 
-numpy in, numpy out (float64):
+numpy in, numpy out (float64; :func:`eval` float32 as well):
 
-* :func:`eval` -- f_r, shape (N, 3), like ``Model.eval``.
+* :func:`eval` -- f_r, shape (N, 3), like ``Model.eval`` (float32 directions: the float32
+  kernel, float32 out).
 * :func:`value_and_grad` -- f_r and the gradient of ``sum(cotangent * f_r)`` with respect
   to every parameter (Dr.Jit's reverse-mode AD; per-channel parameters get (3,) gradients).
 
@@ -45,7 +46,7 @@ from functools import lru_cache
 import numpy as np
 
 from . import _roundtrip
-from ._base import CHANNELS, eval_inputs
+from ._base import CHANNELS, eval_dtype, eval_inputs
 from ._fast_affine import affine_parts, affine_q, affine_spec, affine_tables, prepare
 from ._jit import Directions, JitContext, _dr
 from ._jit import _fresnel_conductor  # noqa: F401  (tests check its derivatives as fast._fresnel_conductor)
@@ -169,35 +170,11 @@ def _empty(model, wi, wo, params):
     return eval_inputs(model, wi, wo, params)[0].shape[0] == 0
 
 
-def _round_trip(model, flat_i, flat_o, lanes, P):
-    """The kernels of :func:`eval`: directions de-interleaved from the flat (3N) numpy-mapped
-    inputs by gathers, non-finite rows made degenerate (f_r = 0, as in the reference), then
-    f_r interleaved into one flat (3N) output by a second, gathering kernel, so that numpy
-    sees an (N, 3) array without a copy in either direction. (Scattering the channels from
-    the model's kernel instead measured 2-3x slower than the model's kernel alone on
-    roughplastic at 1e6 pairs; the second kernel costs ~1.5 ms there.)"""
-    dr, F, V3, U = _dr()
-    # sizes only through dr.arange(U, dr.width(input)): a replayed recording follows the new
-    # inputs' widths (``lanes`` has one lane per pair), never a traced Python integer
-    idx = dr.arange(U, dr.width(lanes)) * 3
-    vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
-    vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
-    finite = dr.isfinite(vi.x) & dr.isfinite(vi.y) & dr.isfinite(vi.z)
-    finite &= dr.isfinite(vo.x) & dr.isfinite(vo.y) & dr.isfinite(vo.z)
-    down = V3(0.0, 0.0, -1.0)
-    c0, c1, c2 = _kernel(model, dr.select(finite, vi, down), dr.select(finite, vo, down), P)
-    dr.eval(c0, c1, c2)
-    j = dr.arange(U, dr.width(flat_i))
-    q = j // 3
-    r = j - 3 * q
-    return dr.select(r == 0, dr.gather(F, c0, q), dr.select(r == 1, dr.gather(F, c1, q), dr.gather(F, c2, q)))
-
-
 _FREEZE_LOCK = threading.Lock()
 
-#: Pairs per launch of :func:`eval`: up to this many the output is handed to numpy without
-#: a copy; a larger batch is evaluated in blocks of this size and copied into one array
-#: (24 bytes a pair more, so that memory stays bounded; the 1e6-pair benchmark is one block).
+#: Pairs per launch of :func:`eval` below :data:`._roundtrip.SOA_MIN_PAIRS` (the gathering
+#: path, :func:`._roundtrip.eval_gathered`): up to this many the output is handed to numpy
+#: without a copy, a larger batch is evaluated in blocks of this size.
 EVAL_BLOCK = 1 << 20
 
 
@@ -230,43 +207,31 @@ def _frozen_for(fn, model):
 
 
 def eval(model, wi, wo, params):
-    """Compiled f_r(wi, wo), shape (N, 3) float64; same contract as ``model.eval``
-    (``Model.eval`` calls it above :data:`gonio.models._base.COMPILED_MIN_PAIRS` pairs).
+    """Compiled f_r(wi, wo), shape (N, 3); same contract as ``model.eval`` (which calls it
+    from ``compiled_min_pairs`` pairs), the precision included: float32 directions (both)
+    run the float32 kernel and give float32, anything else the float64 kernel and float64
+    (:func:`gonio.models._base.eval_dtype`).
 
     From :data:`._roundtrip.SOA_MIN_PAIRS` pairs numpy copies the direction components into
     Dr.Jit's memory, the model's kernel reads them as contiguous arrays and numpy interleaves
-    its channels into an output in Dr.Jit's memory (:mod:`._roundtrip`: the kernel's own
-    gathers cost more on AVX-512). Below it numpy's memory is mapped into Dr.Jit without a
-    copy and the kernel gathers (:func:`_round_trip`). Either way the kernel is replayed from
-    its recording (:func:`_frozen`); per pair 48 bytes read and 24 written at least, the
-    memory-bandwidth limit ``gonio bench models`` prints."""
-    dr, F, V3, U = _dr()
-    wi, wo, p = eval_inputs(model, wi, wo, params)
+    its channels into an output in Dr.Jit's memory (:func:`._roundtrip.eval_blocks`: the
+    kernel's own gathers cost more on AVX-512). Below it numpy's memory is mapped into Dr.Jit
+    without a copy and the kernel gathers (:func:`._roundtrip.eval_gathered`). Either way
+    the kernel is replayed from its recording (:func:`_frozen`); per pair 48 bytes read and
+    24 written at least in float64 (24 and 12 in float32), the memory-bandwidth limit
+    ``gonio bench models`` prints."""
+    dtype = eval_dtype(wi, wo)
+    wi, wo, p = eval_inputs(model, wi, wo, params, dtype)
     n = wi.shape[0]
     if n == 0:
-        return np.zeros((0, CHANNELS))
-    P, _ = _param_vars(model, p, F, grad=False)
+        return np.zeros((0, CHANNELS), dtype)
+    P, _ = _param_vars(model, p, _roundtrip.types(dtype)[1], grad=False)
     if n >= _roundtrip.SOA_MIN_PAIRS:
-        return _eval_soa(model, wi, wo, P)
+        kern = _soa_kernel if dtype == np.float64 else _packed_kernel
+        return _roundtrip.eval_blocks(_frozen_for(kern, model), wi, wo, P, _FREEZE_LOCK)
     # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the
     # interleave the trace is long enough (measured 28 us frozen, 57 us traced, 300 pairs)
-    run = _frozen_for(_round_trip, model)
-
-    def block(a, b):
-        with _FREEZE_LOCK, dr.suspend_grad():  # one recording replayed at a time (threads)
-            f = run(F(a.reshape(-1)), F(b.reshape(-1)), dr.empty(U, a.shape[0]), P)
-            dr.eval(f)
-        return np.asarray(f).reshape(a.shape[0], CHANNELS)
-
-    if n <= EVAL_BLOCK:
-        return block(wi, wo)
-    # the kernel's channels and its interleaved output are one output's worth each: in
-    # blocks, a large batch needs its output plus two blocks (measured peak RSS over the
-    # inputs, 1e7 diffuse pairs: 2.03x the output in one launch, 1.27x in blocks)
-    out = np.empty((n, CHANNELS))
-    for s in range(0, n, EVAL_BLOCK):
-        out[s:s + EVAL_BLOCK] = block(wi[s:s + EVAL_BLOCK], wo[s:s + EVAL_BLOCK])
-    return out
+    return _roundtrip.eval_gathered(_frozen_for(_round_trip, model), wi, wo, P, _FREEZE_LOCK, EVAL_BLOCK)
 
 
 def _soa_kernel(model, *inputs):
@@ -274,9 +239,14 @@ def _soa_kernel(model, *inputs):
     return _roundtrip.soa_kernel(_kernel, model, *inputs)
 
 
-def _eval_soa(model, wi, wo, P):
-    """:func:`eval` on contiguous components (:func:`._roundtrip.eval_blocks`)."""
-    return _roundtrip.eval_blocks(_frozen_for(_soa_kernel, model), wi, wo, P, _FREEZE_LOCK)
+def _packed_kernel(model, *inputs):
+    """The model's float32 kernel on rows packed in pairs (:func:`._roundtrip.packed_kernel`)."""
+    return _roundtrip.packed_kernel(_kernel, model, *inputs)
+
+
+def _round_trip(model, *inputs):
+    """The model's kernel between gathers (:func:`._roundtrip.gather_kernel`)."""
+    return _roundtrip.gather_kernel(_kernel, model, *inputs)
 
 
 def value_and_grad(model, wi, wo, params, cotangent):

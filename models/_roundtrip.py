@@ -1,9 +1,9 @@
-"""The numpy round trip of the public ``Model.eval`` on large batches (issue 18): (N, 3)
-float64 directions in, f_r (N, 3) float64 out, through a compiled kernel that reads and writes
-contiguous arrays only.
+"""The numpy round trip of the public ``Model.eval`` (issue 18): (N, 3) directions in, f_r
+(N, 3) out, float64 or float32 (the type of the directions: the kernel runs in it), through a
+compiled kernel that reads and writes contiguous arrays only (large batches, :func:`eval_blocks`)
+or that gathers from numpy's memory mapped without a copy (small ones, :func:`eval_gathered`).
 
-Why not gathers inside the kernel (what :func:`gonio.models._fast._round_trip` does for small
-batches): on this project's AVX-512 machine (AMD Zen 5, measured 2026-12-02, CPU time, one
+Why not gathers inside the kernel (what :func:`gather_kernel` does for small batches): on this project's AVX-512 machine (AMD Zen 5, measured 2026-12-02, CPU time, one
 thread, 1e6 pairs) the three stride-3 float64 gathers that de-interleave one (N, 3) array cost
 3.5-3.9 ms (1.0 ms when the same kernel is compiled for AVX2, where LLVM does not use the
 vector gather instruction), and the kernel that interleaves the three channels back 4.7 ms:
@@ -14,8 +14,18 @@ So here numpy copies each direction component into an array that Dr.Jit allocate
 allocator keeps freed blocks: no fresh pages to fault in on every call, which cost as much as
 the copy itself), the model's kernel reads them as contiguous arrays, and numpy interleaves
 the three channels into an output that Dr.Jit allocated as well (handed to numpy without a
-further copy). Every value is the same kernel's on the same float64 inputs: equal, bit for
-bit, to the gathering path (tested).
+further copy). Every value is the same kernel's on the same inputs: equal, bit for bit, to
+the gathering path (tested), in either precision.
+
+float32 (N, 3) directions go through the same copies as uint64 words of two rows each,
+``(x0, y0), (z0, x1), (y1, z1)``: numpy's strided copies cost about the same per element
+whatever its size, so half the elements cost half the time (measured, one thread, 65536 pairs
+in cache: 28 us against 50 us per array); :func:`packed_kernel` splits and packs the words
+exactly. Measured at 1e6 pairs (roughplastic GGX, one thread): copies in 1.8 ms, out 1.2 ms,
+kernel 2.9 ms in blocks, 5.9 ms a call (float64: ~11 ms). Tried and slower: Dr.Jit's packet
+gathers of 4 rows (12 floats, 3 aligned packets) straight from numpy's memory, which Dr.Jit
+emits only for a 64-byte-aligned source (numpy's are 16-aligned: masked gathers), and on a
+copy into aligned memory cost 1.4 ms (diffuse) against 0.3 ms for the resident kernel.
 
 With more than one Dr.Jit thread the copies are spread over that many Python threads (numpy
 releases the GIL while it copies).
@@ -29,9 +39,9 @@ from functools import lru_cache
 import numpy as np
 
 from ._base import CHANNELS
-from ._jit import _dr
 
-__all__ = ["SOA_MIN_PAIRS", "soa_kernel", "to_components", "interleave", "eval_blocks", "SOA_BLOCK"]
+__all__ = ["SOA_MIN_PAIRS", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
+           "eval_gathered", "SOA_BLOCK"]
 
 #: Pairs from which :func:`gonio.models._fast.eval` takes this path; below it the gathering
 #: kernel's fixed cost is lower (one mapped input per direction, no copies). Measured (CPU
@@ -44,15 +54,80 @@ SOA_MIN_PAIRS = 1 << 14
 SOA_BLOCK = 1 << 16
 
 
-def soa_kernel(kernel, model, ix, iy, iz, ox, oy, oz, P):
-    """``kernel(model, wi, wo, P)`` (the model's f_r) on six contiguous component arrays;
-    non-finite directions become degenerate geometry (f_r = 0), as in the reference."""
-    dr, F, V3, U = _dr()
-    vi, vo = V3(ix, iy, iz), V3(ox, oy, oz)
+def types(dtype):
+    """``(dr, F, V3, U)``: Dr.Jit and its LLVM float array, 3-vector and uint32 array types for
+    numpy's float32 or float64."""
+    import drjit as dr
+    from drjit.llvm.ad import Array3f, Array3f64, Float32, Float64, UInt32
+
+    return (dr, Float32, Array3f, UInt32) if np.dtype(dtype) == np.float32 else (dr, Float64, Array3f64, UInt32)
+
+
+def _degenerate(dr, V3, vi, vo):
+    """Non-finite directions made degenerate geometry (f_r = 0), as in the reference."""
     finite = dr.isfinite(vi.x) & dr.isfinite(vi.y) & dr.isfinite(vi.z)
     finite &= dr.isfinite(vo.x) & dr.isfinite(vo.y) & dr.isfinite(vo.z)
     down = V3(0.0, 0.0, -1.0)
-    return kernel(model, dr.select(finite, vi, down), dr.select(finite, vo, down), P)
+    return dr.select(finite, vi, down), dr.select(finite, vo, down)
+
+
+def _types_of(x):
+    import drjit as dr
+
+    return types(np.float32 if dr.type_v(x) == dr.VarType.Float32 else np.float64)
+
+
+def soa_kernel(kernel, model, ix, iy, iz, ox, oy, oz, P):
+    """``kernel(model, wi, wo, P)`` (the model's f_r) on six contiguous component arrays (of
+    either precision); non-finite directions become degenerate geometry (f_r = 0)."""
+    dr, F, V3, U = _types_of(ix)
+    return kernel(model, *_degenerate(dr, V3, V3(ix, iy, iz), V3(ox, oy, oz)), P)
+
+
+def gather_kernel(kernel, model, flat_i, flat_o, lanes, P):
+    """The kernels of :func:`eval_gathered`: directions de-interleaved from the flat (3N)
+    numpy-mapped inputs by gathers, non-finite rows made degenerate, then f_r interleaved
+    into one flat (3N) output by a second, gathering kernel, so that numpy sees an (N, 3)
+    array without a copy in either direction. (Scattering the channels from the model's
+    kernel instead measured 2-3x slower than the model's kernel alone on roughplastic at 1e6
+    pairs; the second kernel costs ~1.5 ms there.)"""
+    dr, F, V3, U = _types_of(flat_i)
+    # sizes only through dr.arange(U, dr.width(input)): a replayed recording follows the new
+    # inputs' widths (``lanes`` has one lane per pair), never a traced Python integer
+    idx = dr.arange(U, dr.width(lanes)) * 3
+    vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
+    vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
+    c0, c1, c2 = kernel(model, *_degenerate(dr, V3, vi, vo), P)
+    dr.eval(c0, c1, c2)
+    j = dr.arange(U, dr.width(flat_i))
+    q = j // 3
+    r = j - 3 * q
+    return dr.select(r == 0, dr.gather(F, c0, q), dr.select(r == 1, dr.gather(F, c1, q), dr.gather(F, c2, q)))
+
+
+def eval_gathered(run, wi, wo, P, lock, block):
+    """f_r (N, 3) from ``run`` (the frozen :func:`gather_kernel` of a model) on numpy's
+    C-contiguous (N, 3) arrays mapped into Dr.Jit without a copy; above ``block`` pairs in
+    blocks of that many, copied into one array (24 or 12 bytes a pair more, so that memory
+    stays bounded)."""
+    dr, F, V3, U = types(wi.dtype)
+
+    def one(a, b):
+        with lock, dr.suspend_grad():  # one recording replayed at a time (threads)
+            f = run(F(a.reshape(-1)), F(b.reshape(-1)), dr.empty(U, a.shape[0]), P)
+            dr.eval(f)
+        return np.asarray(f).reshape(a.shape[0], CHANNELS)
+
+    n = wi.shape[0]
+    if n <= block:
+        return one(wi, wo)
+    # the kernel's channels and its interleaved output are one output's worth each: in
+    # blocks, a large batch needs its output plus two blocks (measured peak RSS over the
+    # inputs, 1e7 diffuse pairs: 2.03x the output in one launch, 1.27x in blocks)
+    out = np.empty((n, CHANNELS), wi.dtype)
+    for s in range(0, n, block):
+        out[s:s + block] = one(wi[s:s + block], wo[s:s + block])
+    return out
 
 
 @lru_cache(maxsize=1)
@@ -76,48 +151,102 @@ def _run(jobs):
     list(_pool(workers).map(lambda job: np.copyto(*job), jobs))
 
 
-def _buffers(n, k):
-    """k evaluated float64 Dr.Jit arrays of n entries and numpy views of them (writable)."""
+def packed_kernel(kernel, model, a0, a1, a2, b0, b1, b2, P):
+    """float32 :func:`soa_kernel` on rows taken two at a time: each direction's block of
+    rows, (2M, 3) float32, read as (M, 3) uint64 words ``(x0, y0), (z0, x1), (y1, z1)``
+    (:func:`to_components` copies 8-byte words: half the elements of a float32 copy, which
+    costs numpy the same per element). The kernel splits each word into its two float32
+    values (integer shifts and reinterpretations, exact), evaluates the model on the even
+    and on the odd rows (two halves of one fused kernel) and packs the six channels of a
+    row pair back into three words ``(r0, g0), (b0, r1), (g1, b1)``: f_r (2M, 3) in C
+    order once :func:`interleave` writes them into the (M, 3) word view of the output."""
     import drjit as dr
+    from drjit.llvm.ad import Float32, UInt32, UInt64
 
-    F = _dr()[1]
-    bufs = [dr.empty(F, n) for _ in range(k)]
+    def split(w):
+        return dr.reinterpret_array(Float32, UInt32(w & 0xFFFFFFFF)), dr.reinterpret_array(Float32, UInt32(w >> 32))
+
+    def join(lo, hi):
+        return UInt64(dr.reinterpret_array(UInt32, lo)) | (UInt64(dr.reinterpret_array(UInt32, hi)) << 32)
+
+    (ix0, iy0), (iz0, ix1), (iy1, iz1) = split(a0), split(a1), split(a2)
+    (ox0, oy0), (oz0, ox1), (oy1, oz1) = split(b0), split(b1), split(b2)
+    e = soa_kernel(kernel, model, ix0, iy0, iz0, ox0, oy0, oz0, P)
+    o = soa_kernel(kernel, model, ix1, iy1, iz1, ox1, oy1, oz1, P)
+    return join(e[0], e[1]), join(e[2], o[0]), join(o[1], o[2])
+
+
+def _words(w):
+    """The (N, 3) view :func:`to_components` copies columns of: float64 rows as they are,
+    float32 rows (N even) two at a time as uint64 words (:func:`packed_kernel`)."""
+    return w if w.dtype == np.float64 else w.reshape(-1).view(np.uint64).reshape(-1, CHANNELS)
+
+
+def _buffers(n, k, dtype):
+    """k evaluated Dr.Jit arrays of n entries of ``dtype`` (float64, or uint64 words for
+    float32 rows) and numpy views of them (writable)."""
+    import drjit as dr
+    from drjit.llvm.ad import Float64, UInt64
+
+    T = Float64 if np.dtype(dtype) == np.float64 else UInt64
+    bufs = [dr.empty(T, n) for _ in range(k)]
     dr.eval(*bufs)
     return bufs, [np.asarray(b) for b in bufs]
 
 
-def to_components(wi, wo):
-    """The six components of two (N, 3) float64 arrays as contiguous Dr.Jit arrays."""
-    n = wi.shape[0]
-    bufs, views = _buffers(n, 2 * CHANNELS)
+def to_components(wi, wo, into=None):
+    """The six component columns of :func:`_words` of two (N, 3) arrays as contiguous Dr.Jit
+    arrays (float64 components, or uint64 words of two float32 rows), written into ``into``
+    (the ``(bufs, views)`` of :func:`_buffers`, of the right size) or into new ones."""
+    wi, wo = _words(wi), _words(wo)
+    bufs, views = into if into is not None else _buffers(wi.shape[0], 2 * CHANNELS, wi.dtype)
     _run([(views[k], w[:, j]) for k, (w, j) in enumerate((w, j) for w in (wi, wo) for j in range(CHANNELS))])
     return bufs
 
 
 def interleave(chans, out):
-    """Write the three evaluated channels into ``out`` (n, 3) (numpy, C order)."""
+    """Write the three evaluated channels (or packed words) into ``out`` (n, 3) (numpy, C
+    order)."""
     src = [np.asarray(c) for c in chans]
+    out = _words(out)
     _run([(out[:, c], src[c]) for c in range(CHANNELS)])
 
 
+def _padded(w):
+    """An odd float32 block with one row (0, 0, 1) more (f_r of it is dropped)."""
+    return np.concatenate([w, np.array([[0.0, 0.0, 1.0]], w.dtype)]) if w.shape[0] % 2 else w
+
+
 def eval_blocks(run, wi, wo, P, lock):
-    """f_r (N, 3) from ``run`` (the frozen :func:`soa_kernel` of a model) in blocks of
-    :data:`SOA_BLOCK` pairs, one replay at a time under ``lock``, written into an output that
-    Dr.Jit allocated (handed to numpy without a copy; Dr.Jit's allocator reuses freed blocks,
-    so a new output's pages are not faulted in on every call). Peak memory: the output plus
-    one block's components and channels (72 bytes a pair)."""
+    """f_r (N, 3), of the directions' type, from ``run`` (the frozen :func:`soa_kernel` of a
+    model in float64, :func:`packed_kernel` in float32) in blocks of :data:`SOA_BLOCK` pairs,
+    one replay at a time under ``lock``, written into an output that Dr.Jit allocated (handed
+    to numpy without a copy; Dr.Jit's allocator reuses freed blocks, so a new output's pages
+    are not faulted in on every call). The full blocks share one set of component buffers.
+    Peak memory: the output plus one block's components and channels (72 bytes a pair in
+    float64, 36 in float32)."""
     import drjit as dr
 
+    F = types(wi.dtype)[1]
     n = wi.shape[0]
-    buf = dr.empty(_dr()[1], CHANNELS * n)
+    per = 1 if wi.dtype == np.float64 else 2  # rows per word
+    buf = dr.empty(F, CHANNELS * n)
     dr.eval(buf)
     out = np.asarray(buf).reshape(n, CHANNELS)
+    full = _buffers(SOA_BLOCK // per, 2 * CHANNELS, wi.dtype) if n >= SOA_BLOCK else None
     for s in range(0, n, SOA_BLOCK):
-        comps = to_components(wi[s:s + SOA_BLOCK], wo[s:s + SOA_BLOCK])
+        a, b = _padded(wi[s:s + SOA_BLOCK]), _padded(wo[s:s + SOA_BLOCK])
+        comps = to_components(a, b, full if a.shape[0] == SOA_BLOCK else None)
         with lock, dr.suspend_grad():
             chans = run(*comps, P)
             dr.eval(*chans)
-        del comps  # before the next block's are allocated
-        interleave(chans, out[s:s + SOA_BLOCK])
+        del comps  # (a short last block's) before the next block's are allocated
+        dst = out[s:s + SOA_BLOCK]
+        if dst.shape[0] == a.shape[0]:
+            interleave(chans, dst)
+        else:  # the padded last block of an odd N
+            tmp = np.empty(a.shape, a.dtype)
+            interleave(chans, tmp)
+            dst[...] = tmp[:dst.shape[0]]
         del chans
     return out

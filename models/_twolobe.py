@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._base import Model, eval_inputs
+from ._base import Model, eval_dtype, eval_inputs
 from ._structure import Structure
 
 __all__ = ["TwoLobe"]
@@ -39,17 +39,23 @@ class TwoLobe(Model):
         common = {k: p[k] for k in self.COMMON}
         return dict(common, alpha=p["alpha"]), dict(common, alpha=p["alpha2"]), float(p["weight"])
 
-    def _mix(self, fn, wi, wo, params):
-        wi, wo, p = eval_inputs(self, wi, wo, params)
+    def _mix(self, fn, wi, wo, params, dtype=np.float64):
+        wi, wo, p = eval_inputs(self, wi, wo, params, dtype)
         p1, p2, w = self.layers(p)
         a = fn(wi, wo, p1) if w < 1.0 else 0.0
         b = fn(wi, wo, p2) if w > 0.0 else 0.0
-        return np.asarray((1.0 - w) * a + w * b, dtype=np.float64) + np.zeros((wi.shape[0], 3))
+        return np.asarray((1.0 - w) * a + w * b, dtype=dtype) + np.zeros((wi.shape[0], 3), dtype)
 
     def eval(self, wi, wo, params, backend="auto"):
+        """The two layers' ``eval`` mixed; float32 directions give float32 (each layer's
+        float32 path, mixed in float32; ``backend="numpy"``: the float64 reference rounded
+        to float32), as :meth:`Model.eval`."""
         if backend not in ("auto", "numpy", "drjit"):
             raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
-        return self._mix(lambda a, b, p: self._layer.eval(a, b, p, backend=backend), wi, wo, params)
+        if backend == "numpy":  # the float64 reference, rounded once (as Model.eval)
+            return self.eval_reference(wi, wo, params).astype(eval_dtype(wi, wo), copy=False)
+        return self._mix(lambda a, b, p: self._layer.eval(a, b, p, backend=backend), wi, wo, params,
+                         eval_dtype(wi, wo))
 
     def eval_reference(self, wi, wo, params):
         return self._mix(self._layer.eval_reference, wi, wo, params)

@@ -41,22 +41,24 @@ def cos_theta(w):
     return w[..., 2]
 
 
-def as_directions(w, name="w"):
-    """Return ``w`` as a C-contiguous float64 array of shape (N, 3).
+def as_directions(w, name="w", dtype=np.float64):
+    """Return ``w`` as a C-contiguous array of shape (N, 3) and type ``dtype``.
 
     Parameters
     ----------
     w : array_like, shape (N, 3) or (3,)
-        Unit directions in the local frame. float32 input is promoted.
+        Unit directions in the local frame (converted to ``dtype``: float32 input is
+        promoted to the default float64).
     name : str
         Used in the error message.
+    dtype : float64 (default) or float32
 
     Raises
     ------
     ValueError
         If the last axis is not of length 3.
     """
-    a = np.asarray(w, dtype=np.float64)
+    a = np.asarray(w, dtype=dtype)
     if a.ndim == 1 and a.shape[0] == 3:
         a = a[None, :]
     if a.ndim != 2 or a.shape[1] != 3:

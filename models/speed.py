@@ -10,6 +10,9 @@ best of ``repeat``:
 * ``eval``: the public API, ``model.eval(wi, wo, p)`` on the numpy arrays: the compiled
   float64 kernel with the numpy round trip (:func:`gonio.models._fast.eval`; also reported
   as ``drjit64``);
+* ``eval32``: the public API on the same directions as float32 numpy arrays (converted once,
+  before timing): ``model.eval(wi32, wo32, p)``, the compiled float32 kernel with the numpy
+  round trip, float32 (N, 3) out (the fast path, issue 18);
 * ``drjit32``: :meth:`gonio.models._fast.Bound.eval` (parameters loaded once, as Mitsuba's
   ``load_dict``) on a float32 :class:`~gonio.models._fast.Directions` batch loaded once,
   results left in Dr.Jit;
@@ -25,8 +28,8 @@ best of ``repeat``:
 
 ``drjit32`` and ``mitsuba`` run under the same conditions (float32, resident inputs, one
 fused kernel, outputs evaluated) and are timed head to head, taking turns; their ratio is
-the figure of merit, with ``ev/mi`` (the public ``eval`` over Mitsuba's rate: issue 18's
-goal is >= 0.5), ``jac/ev`` and ``grad/ev`` (the Jacobian's and the chi^2 gradient's times
+the figure of merit, with ``ev/mi`` and ``ev32/mi`` (the public ``eval``, float64 and float32
+directions, numpy round trip included, over Mitsuba's rate: issue 18's goal is >= 0.5), ``jac/ev`` and ``grad/ev`` (the Jacobian's and the chi^2 gradient's times
 over ``drjit32``'s), ``grad/ev64`` (the chi^2 gradient over the evaluation, both float64
 and resident: the fitter's precision), ``grad/chi`` and ``grad/chi64`` (the gradient over
 the chi^2 it differentiates) and ``e64/mi`` (the resident float64 kernel over Mitsuba's rate:
@@ -35,10 +38,14 @@ cannot exceed it). Each timing ends with ``dr.sync_thread()`` (the LLVM backend 
 asynchronously). With one Dr.Jit thread (``GONIO_THREADS=1``) the times are the process's
 CPU time (:func:`clock`), robust to the other processes of a shared machine.
 
-Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 5-10, one Dr.Jit
-thread, CPU time, 1e6 pairs): ``ev/mi`` 0.06-0.24 (roughplastic 0.18-0.23; 0.02-0.13 before
-the contiguous round trip of :mod:`._roundtrip`). Issue 18's 0.5 is out of reach for a float64
-API here: ``e64/mi``, the float64 kernel alone with no round trip, is 0.50-0.69 (float64 has
+Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 7.6-10.4, one Dr.Jit
+thread, CPU time, 1e6 pairs, two runs): ``ev32/mi`` (float32 directions) 0.12-0.46: roughplastic
+0.45-0.46 Beckmann, 0.34-0.35 GGX, roughconductor 0.35-0.42, cooktorrance 0.29-0.30, orennayar
+0.22-0.24, diffuse 0.12; ``ev/mi`` (float64) 0.07-0.25 in the same runs. Where the float32 time goes (roughplastic
+GGX, 5.9 ms a call): numpy's copies 3.0 ms (1.8 in, 1.2 out: :mod:`._roundtrip`, two float32
+rows per uint64 word), the kernel in blocks 2.9 ms against 1.9 ms resident; so 0.5 needs the
+round trip below ~1 ms, which numpy's strided copies cannot do (and the kernel's own gathers
+cost more, see :mod:`._roundtrip`). Issue 18's 0.5 is out of reach for a float64 API here: ``e64/mi``, the float64 kernel alone with no round trip, is 0.50-0.69 (float64 has
 half float32's SIMD lanes), and moving 72 bytes a pair between numpy's (N, 3) arrays and the
 kernel costs ~6.8 ms per 1e6 pairs on one thread (numpy's strided copies; Dr.Jit's own
 stride-3 gathers cost more, see :mod:`._roundtrip`). ``grad/ev`` (float32) stays above 3 for
@@ -142,8 +149,8 @@ def _mitsuba_timer(model, params, wi, wo):
     return go, variant
 
 
-COLUMNS = ("numpy", "eval", "drjit32", "jac32", "grad32", "mitsuba")
-EXTRA = ("32/mi", "ev/mi", "e64/mi", "jac/ev", "grad/ev", "grad/ev64", "grad/chi", "grad/chi64", "32/lim", "ev/lim")
+COLUMNS = ("numpy", "eval", "eval32", "drjit32", "jac32", "grad32", "mitsuba")
+EXTRA = ("32/mi", "ev/mi", "ev32/mi", "e64/mi", "jac/ev", "grad/ev", "grad/ev64", "grad/chi", "grad/chi64", "32/lim", "ev/lim")
 #: Bytes a resident evaluation moves per direction pair: two directions in, f_r out (RGB).
 BYTES_PER_PAIR = {"float32": 3 * 4 * 3, "float64": 3 * 8 * 3}
 
@@ -181,7 +188,8 @@ def _limits(bw32, bw64):
     model). A model that reads fewer components (the diffuse ones need only the two
     cosines) can pass the limit: it is the bound for reading every component once."""
     b32, b64 = BYTES_PER_PAIR["float32"], BYTES_PER_PAIR["float64"]
-    return {"bandwidth": bw32, "bandwidth64": bw64, "numpy": bw64 / b64, "eval": bw64 / b64, "drjit32": bw32 / b32,
+    return {"bandwidth": bw32, "bandwidth64": bw64, "numpy": bw64 / b64, "eval": bw64 / b64, "eval32": bw32 / b32,
+            "drjit32": bw32 / b32,
             "mitsuba": bw32 / b32, "grad32": bw32 / b32 * (b32 / 48), "jac32": None}
 
 
@@ -205,7 +213,8 @@ def _resident(fn):
 
 def _compiled_timers(model, p, wi, wo, dirs, dirs64, rng):
     """The compiled paths' timers for one model (``drjit64`` ... ``grad64``)."""
-    timed = {"eval": lambda: model.eval(wi, wo, p)}
+    wi32, wo32 = wi.astype(np.float32), wo.astype(np.float32)
+    timed = {"eval": lambda: model.eval(wi, wo, p), "eval32": lambda: model.eval(wi32, wo32, p)}
     bound = fast.Bound(model, p, np.float32)
     timed["drjit32"] = _resident(lambda: bound.eval(dirs, numpy=False))
     timed["jac32"] = _resident(lambda: fast.jacobian(model, dirs, p, numpy=False))
@@ -240,6 +249,7 @@ def _row(name, options, t, head, n):
     row.update({k: (n / v if v else None) for k, v in t.items() if k in COLUMNS})
     row["ratio"] = (head["mitsuba"] / head["drjit32"]) if (head["mitsuba"] and head["drjit32"]) else None
     row["eval_ratio"] = (t["mitsuba"] / t["eval"]) if (t.get("mitsuba") and t.get("eval")) else None
+    row["eval32_ratio"] = (t["mitsuba"] / t["eval32"]) if (t.get("mitsuba") and t.get("eval32")) else None
     row["eval64_ratio"] = (t["mitsuba"] / t["eval64"]) if (t.get("mitsuba") and t.get("eval64")) else None
     row["drjit64"] = row.get("eval")
     row.update({f"{k}_h2h": (n / v if v else None) for k, v in head.items()})
@@ -256,7 +266,7 @@ def _print_row(row, name, options, out):
 
     label = name + "".join(f" {v}" for v in options.values())
     print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in COLUMNS)
-          + "".join(fmt(row[k], 11, 1, 2) for k in ("ratio", "eval_ratio", "eval64_ratio", "jac_cost", "grad_cost",
+          + "".join(fmt(row[k], 11, 1, 2) for k in ("ratio", "eval_ratio", "eval32_ratio", "eval64_ratio", "jac_cost", "grad_cost",
                                                      "grad_cost64", "grad_chi", "grad_chi64", "of_limit32",
                                                      "of_limit64")), file=out)
 
@@ -280,7 +290,9 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     -------
     list of dict
         One dict per case: ``model``, ``options``, and evaluations/s ``numpy``,
-        ``drjit64``, ``drjit32``, ``jac32``, ``mitsuba`` (None where unavailable), ``ratio``
+        ``drjit64`` (= ``eval``), ``eval32``, ``drjit32``, ``jac32``, ``mitsuba`` (None where
+        unavailable), ``eval_ratio`` and ``eval32_ratio`` (mitsuba's time over the public
+        eval's, float64 and float32 directions), ``ratio``
         (drjit32 / mitsuba, head to head; their rates there in ``drjit32_h2h`` and
         ``mitsuba_h2h``), ``jac_cost`` and ``grad_cost`` (time of the Jacobian and of
         chi2_grad / time of drjit32) and ``grad_cost64`` (the same in float64).
@@ -299,7 +311,8 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         dirs = fast.Directions(wi, wo, np.float32)
         dirs64 = fast.Directions(wi, wo, np.float64)
     rows = []
-    print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat})", file=out)
+    print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat}; load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the start)", file=out)
     print(f"{'model':<26}" + "".join(f"{c:>9}" for c in COLUMNS) + "".join(f"{c:>11}" for c in EXTRA), file=out)
     # the copy of a working set of the batch's own size (the same caches as the timed paths)
     limits = _limits(copy_bandwidth(n * BYTES_PER_PAIR["float32"]), copy_bandwidth(n * BYTES_PER_PAIR["float64"]))
@@ -326,16 +339,18 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         _print_row(row, name, options, out)
     print(f"times: {'CPU time of the process (one Dr.Jit thread)' if clock() is time.process_time else 'wall clock'}, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end", file=out)
-    print("32/mi: drjit32 against mitsuba timed head to head (the columns: all paths in turn); ev/mi: the public "
-          "model.eval (float64, numpy in and out) over mitsuba (issue 18's goal >= 0.5); e64/mi: the resident "
+    print("32/mi: drjit32 against mitsuba timed head to head (the columns: all paths in turn); ev/mi, ev32/mi: the "
+          "public model.eval over mitsuba (issue 18's goal >= 0.5), numpy round trip included (numpy (N, 3) "
+          "directions in, numpy (N, 3) f_r out): float64 directions (float64 kernel and out) and float32 ones "
+          "(float32 kernel and out: the fast path), timed in the same rounds; e64/mi: the resident "
           "float64 kernel alone over mitsuba, the most ev/mi can reach; jac/ev, grad/ev: against "
           "drjit32 in turn; grad/ev64: float64; grad/chi, grad/chi64: chi2_grad over weighted_sse, the chi^2 "
           "whose gradient it is (same reads of y and w, in-kernel sums); 32/lim, ev/lim: fraction of the "
           "memory-bandwidth limit "
           f"(copy bandwidth {limits['bandwidth'] * 1e-9:.1f} GB/s on a float32 batch's working set, "
           f"{limits['bandwidth64'] * 1e-9:.1f} GB/s on a float64 one, measured in this run, read + write; "
-          f"{BYTES_PER_PAIR['float32']} B/pair float32, {BYTES_PER_PAIR['float64']} B/pair float64 with numpy "
-          "in and out; grad32 reads y and w too: 48 B/pair)", file=out)
+          f"{BYTES_PER_PAIR['float32']} B/pair float32 (eval32 with numpy in and out too), "
+          f"{BYTES_PER_PAIR['float64']} B/pair float64 with numpy in and out; grad32 reads y and w too: 48 B/pair)", file=out)
     if variant is not None:
         print(f"Mitsuba variant: {variant}", file=out)
     if not compiled:

@@ -27,3 +27,24 @@ def random_params(model, rng, alpha_range=(1e-3, 1.0)):
     return p
 
 
+
+
+#: The float32 contract of ``Model.eval`` (float32 directions in, float32 out): relative error
+#: against the float64 reference on the same float32 directions wherever f_r cos(theta_i) >
+#: F32_FLOOR (the threshold of the Mitsuba agreement tests). float32's unit roundoff is 6e-8
+#: and a model's kernel takes ~100 roundings (its relative condition, with roughplastic's
+#: float32 tables); measured worst case 6.2e-6 (roughconductor Beckmann), so 2e-5 is ~3x margin.
+F32_RTOL = 2e-5
+F32_FLOOR = 1e-6
+
+
+def assert_float32_agrees(got, ref, wi):
+    """``got`` (float32) against the float64 ``ref`` on the same directions: F32_RTOL relative
+    where ref cos(theta_i) > F32_FLOOR, F32_RTOL of the batch's largest value absolute
+    everywhere, exact zeros where the reference is 0 (below the horizon, non-finite rows)."""
+    assert got.dtype == np.float32 and got.shape == ref.shape
+    assert np.all(np.isfinite(got)) and np.all(got >= 0)
+    big = ref * np.clip(np.nan_to_num(np.asarray(wi, np.float64)[:, 2:3]), 0, None) > F32_FLOOR
+    np.testing.assert_allclose(got[big], ref[big], rtol=F32_RTOL, atol=0)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=F32_RTOL * max(float(ref.max(initial=0.0)), F32_FLOOR))
+    assert np.all(got[ref == 0] == 0)

@@ -11,7 +11,7 @@ import pytest
 import gonio.models as gm
 from gonio.models import _fast
 
-from models_testutil import random_hemisphere, random_params
+from models_testutil import assert_float32_agrees, random_hemisphere, random_params
 
 pytestmark = [pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable"),
               pytest.mark.codegen]
@@ -56,9 +56,11 @@ def test_matches_reference(name, options):
         got = _fast.eval(m, wi, wo, p)
         assert np.all(np.isfinite(got)) and np.all(got >= 0)
         np.testing.assert_allclose(got, ref, rtol=rtol, atol=1e-300)
-    # float32 input and N = 0 behave as the reference
+    # float32 input: the float32 kernel (issue 18), the reference to float32 precision; the
+    # same directions promoted: the float64 kernel, as above; N = 0 behaves as the reference
     w32 = wi[:100].astype(np.float32), wo[:100].astype(np.float32)
-    np.testing.assert_allclose(_fast.eval(m, *w32, p), m.eval_reference(*w32, p), rtol=rtol)
+    assert_float32_agrees(_fast.eval(m, *w32, p), m.eval_reference(*w32, p), w32[0])
+    np.testing.assert_allclose(_fast.eval(m, *(w.astype(np.float64) for w in w32), p), m.eval_reference(*w32, p), rtol=rtol)
     assert _fast.eval(m, np.zeros((0, 3)), np.zeros((0, 3)), p).shape == (0, 3)
 
 
@@ -129,9 +131,11 @@ def test_bench_runs():
     rows = bench.run(n=2000, repeat=1, cases=(("diffuse", {}), ("roughconductor", {"distribution": "ggx"})), file=buf)
     text = buf.getvalue()
     assert "roughconductor" in text and "Mevals/s" in text and "limit (memory bandwidth)" in text
+    assert "ev32/mi" in text and "numpy round trip included" in text and "load average" in text
     assert len(rows) == 2
     for r in rows:
-        assert all(r[k] > 0 for k in ("numpy", "drjit64", "drjit32", "jac32"))
+        assert all(r[k] > 0 for k in ("numpy", "drjit64", "eval32", "drjit32", "jac32"))
+        assert r["limits"]["eval32"] == pytest.approx(r["limits"]["bandwidth"] / 36)
         assert r["jac_cost"] > 0 and r["grad_chi"] > 0 and r["grad_chi64"] > 0
         # the stated limit: the copy bandwidth over the bytes a pair moves (36 B float32, 72 B float64)
         assert r["limits"]["drjit32"] == pytest.approx(r["limits"]["bandwidth"] / 36)

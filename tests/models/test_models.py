@@ -14,7 +14,7 @@ import pytest
 import gonio.models as gm
 from gonio.models._albedo import QUADRATURE_ERROR
 
-from models_testutil import random_hemisphere, random_params
+from models_testutil import assert_float32_agrees, random_hemisphere, random_params
 
 
 def all_configs():
@@ -87,12 +87,19 @@ def test_eval_shapes_and_dtypes(name, options, rng):
     wi, wo = random_hemisphere(rng, 50), random_hemisphere(rng, 50)
     f = m.eval(wi, wo, p)
     assert f.shape == (50, 3) and f.dtype == np.float64
-    # float32 input gives the float64 result of the rounded directions
-    f32 = m.eval(wi.astype(np.float32), wo.astype(np.float32), p)
-    ref = m.eval(wi.astype(np.float32).astype(np.float64), wo.astype(np.float32).astype(np.float64), p)
-    np.testing.assert_array_equal(f32, ref)
+    # the type follows the directions (issue 18): float32 in, float32 out, the float64
+    # reference on the same rounded directions to float32 precision; mixed types promote to
+    # float64, bit for bit the float64 evaluation of the promoted directions
+    w32 = wi.astype(np.float32), wo.astype(np.float32)
+    f32 = m.eval(*w32, p)
+    assert_float32_agrees(f32, m.eval_reference(*w32, p), w32[0])
+    ref = m.eval(w32[0].astype(np.float64), w32[1].astype(np.float64), p)
+    np.testing.assert_array_equal(m.eval(w32[0], w32[1].astype(np.float64), p), ref)
+    assert m.eval(w32[0].tolist(), w32[1], p).dtype == np.float64  # a list is float64, as numpy has it
+    np.testing.assert_array_equal(m.eval(*w32, p, backend="numpy"), m.eval_reference(*w32, p).astype(np.float32))
     # N = 0
     assert m.eval(np.zeros((0, 3)), np.zeros((0, 3)), p).shape == (0, 3)
+    assert m.eval(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), p).dtype == np.float32
     assert m.albedo(np.zeros((0, 3)), p).shape == (0, 3)
     with pytest.raises(ValueError):
         m.eval(wi, wo[:10], p)
@@ -194,33 +201,36 @@ def kib(key):
     with open("/proc/self/status") as fh:
         return next(int(l.split()[1]) for l in fh if l.startswith(key + ":")) * 1024
 
-backend, n = sys.argv[1], int(sys.argv[2])
+backend, n, dtype = sys.argv[1], int(sys.argv[2]), np.dtype(sys.argv[3])
 m = gm.get("diffuse")
-z = np.tile([0.0, 0.0, 1.0], (4096, 1))
+z = np.tile([0.0, 0.0, 1.0], (1 << 17, 1)).astype(dtype)
 m.eval(z, z, {}, backend=backend)  # Dr.Jit loaded and the kernel compiled before measuring
-wi = np.zeros((n, 3))
+wi = np.zeros((n, 3), dtype)
 wi[:, 2] = 1.0
 with open("/proc/self/clear_refs", "w") as fh:
     fh.write("5")  # resets VmHWM, the peak resident set (Linux >= 4.0)
 base = kib("VmRSS")
 f = m.eval(wi, wi, {}, backend=backend)
-assert f.shape == (n, 3) and (f == m.eval_reference(z[:1], z[:1], {})).all()
+ref = m.eval_reference(z[:1], z[:1], {})[0]  # float32: to the float32 contract (models_testutil)
+assert f.shape == (n, 3) and f.dtype == dtype and (f == f[:1]).all()
+assert np.allclose(f[0], ref, rtol=2e-5 if dtype == np.float32 else 0.0, atol=0.0)
 print((kib("VmHWM") - base) / f.nbytes)
 """
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
-@pytest.mark.parametrize("backend", ["auto", "numpy"])
-def test_large_batch_memory(backend):
+@pytest.mark.parametrize("backend,dtype", [("auto", "float64"), ("numpy", "float64"), ("auto", "float32")])
+def test_large_batch_memory(backend, dtype):
     """1e7 pairs evaluate in blocks: the peak resident set above the inputs is the output
-    plus at most half of it in temporaries, on the compiled path as on the numpy one.
+    plus at most half of it in temporaries, on the compiled path as on the numpy one, and
+    on the float32 one (float32 directions, float32 output: the packed words' blocks).
 
     Measured in a child process as the peak RSS (everything: numpy's, Dr.Jit's and LLVM's
     memory), not with tracemalloc, which sees numpy's allocations only and whose stop()
     races with a Dr.Jit thread releasing an array on Python 3.11 (CPython gh-128679: a
     segfault on an AMD EPYC machine, 4 runs in 20). One launch of the compiled kernel on
     all pairs measured 2.03x."""
-    out = subprocess.run([sys.executable, "-c", _PEAK_RSS, backend, str(10_000_000)],
+    out = subprocess.run([sys.executable, "-c", _PEAK_RSS, backend, str(10_000_000), dtype],
                          capture_output=True, text=True, timeout=240)
     assert out.returncode == 0, out.stderr[-2000:]
     ratio = float(out.stdout.split()[-1])
