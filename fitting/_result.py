@@ -237,24 +237,25 @@ def loss_jacobian(problem, x, loss, rel_step=1e-5):
     return J, r0
 
 
-def objective_hessian(problem, x, loss, rel_step=1e-4):
+def objective_hessian(problem, x, loss, rel_step=1e-4, at=None):
     """Hessian of (1/2) sum r^2 of ``loss`` at x in natural units, J^T J + sum_k r_k d^2 r_k,
-    by central differences of its exact gradient J^T r (:func:`loss_jacobian`; one-sided at
-    a bound), symmetrised: 2P Jacobians."""
+    by forward differences of its exact gradient J^T r (:func:`loss_jacobian`; the step
+    points into the box, so a parameter at a bound is differenced from inside), symmetrised:
+    P more Jacobians. ``at``: (J, r) at x where the caller has them already."""
     space = problem.space
+    J0, r0 = loss_jacobian(problem, x, loss) if at is None else at
+    g0 = J0.T @ r0
     P = space.size
     H = np.empty((P, P))
     scale = np.maximum(np.abs(x), 1e-3 * (space.upper - space.lower))
     for j in range(P):
         h = rel_step * scale[j]
-        hi, lo = min(x[j] + h, space.upper[j]), max(x[j] - h, space.lower[j])
-        grads = []
-        for v in (hi, lo):
-            xv = x.copy()
-            xv[j] = v
-            Jv, rv = loss_jacobian(problem, xv, loss)
-            grads.append(Jv.T @ rv)
-        H[:, j] = (grads[0] - grads[1]) / (hi - lo)
+        if x[j] + h > space.upper[j]:
+            h = -h
+        xv = x.copy()
+        xv[j] = x[j] + h
+        Jv, rv = loss_jacobian(problem, xv, loss)
+        H[:, j] = (Jv.T @ rv - g0) / (xv[j] - x[j])
     if not np.all(np.isfinite(H)):
         raise FloatingPointError("non-finite Hessian at the optimum")
     return 0.5 * (H + H.T)
@@ -318,7 +319,7 @@ def robust_covariance(result, meas, problem):
     rows = np.nonzero(meas.use)[0]
     clusters = rows if meas.cluster is None else np.unique(meas.cluster[rows], return_inverse=True)[1]
     try:
-        H = objective_hessian(problem, result.x, result.loss)
+        H = objective_hessian(problem, result.x, result.loss, at=(J, r))
     except FloatingPointError:
         H = None
     bread = "Hessian" if H is not None and _positive_definite(H) else "Gauss-Newton J^T J"

@@ -27,9 +27,9 @@ systematic and the objective's curvature along the albedo-alpha-int_ior valley i
 than J^T J says: refits moved 1.25-1.4x the Gauss-Newton step), and one cluster per pair
 (the layout's (U, V) draw recurs at every measured elevation, so its pairs are one unit).
 Now (Hessian bread, clusters = draws), these 10 geometries: covered 7/8/8/8/8 of 10 (alpha,
-int_ior, R, G, B), sum z^2 20.2, 19.1, 17.1, 17.1, 16.2; over 40 geometries coverage
-85-90 %, sum z^2 43-49 for 40 (chi2_40 0.1-99.9 %: 17.9-73.4), each block of 10 within
-1.5-29.6. Runs in ~25 s of CPU (11 fits of ~1.5 s, the Hessian's 10 Jacobians included).
+int_ior, R, G, B), sum z^2 18.8, 17.3, 15.7, 15.6, 14.9; over 40 geometries coverage
+85-90 %, sum z^2 41-46 for 40 (chi2_40 0.1-99.9 %: 17.9-73.4), each block of 10 within
+1.5-29.6. Runs in ~20 s of CPU (11 fits of ~1.5 s, the Hessian's 5 Jacobians included).
 """
 
 from pathlib import Path
