@@ -139,6 +139,8 @@ class Measurements:
                 "use": (("point", "channel"), self.use)}
         if self.weight is not None:
             data["weight"] = ("point", self.weight, {"units": "sr^2"})
+        if self.cluster is not None:
+            data["cluster"] = ("point", self.cluster)
         coords = {"channel": list(self.channels)[: self.n_channels],
                   **{k: ("point", v, deg) for k, v in (("theta_i", ti), ("phi_i", pi_), ("theta_o", to), ("phi_o", po))}}
         return xr.Dataset(data, coords=coords, attrs={k: v for k, v in self.attrs.items() if isinstance(v, (str, int, float))})

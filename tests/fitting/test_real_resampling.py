@@ -103,6 +103,7 @@ def test_rgl_geometry_clusters_are_its_draws():
     assert np.median(np.bincount(meas.cluster)) >= 2 * np.unique(theta_i).size - 2
     sub = meas.subset(slice(0, 10))
     assert np.array_equal(sub.cluster, meas.cluster[:10])
+    assert np.array_equal(meas.to_xarray()["cluster"].values, meas.cluster)
 
 
 def test_cluster_must_be_one_integer_per_point():
