@@ -56,6 +56,11 @@ class Measurements:
     attrs: dict = dataclasses.field(default_factory=dict)
     channels: tuple = ("R", "G", "B")
     weight: np.ndarray | None = None
+    #: the independent unit of the measurement geometry each point belongs to (integers):
+    #: points of one cluster come from one draw of the layout (an RGL file's outgoing sample
+    #: point, shared by every incident elevation), so the cluster-robust sandwich sums their
+    #: scores before squaring; None: every point is its own unit
+    cluster: np.ndarray | None = None
 
     def __post_init__(self):
         self.wi = np.atleast_2d(np.asarray(self.wi, dtype=np.float64))
@@ -82,6 +87,10 @@ class Measurements:
             self.weight = np.asarray(self.weight, dtype=np.float64).reshape(-1)
             if self.weight.shape != (n,) or not np.all(np.isfinite(self.weight)) or np.any(self.weight <= 0):
                 raise DataError(f"weight must hold {n} finite values > 0 (one solid-angle weight per point)")
+        if self.cluster is not None:
+            self.cluster = np.asarray(self.cluster).reshape(-1)
+            if self.cluster.shape != (n,) or not np.issubdtype(self.cluster.dtype, np.integer):
+                raise DataError(f"cluster must hold {n} integers (one geometry unit per point)")
 
     @property
     def n_points(self) -> int:
@@ -98,7 +107,8 @@ class Measurements:
     def subset(self, index) -> "Measurements":
         return Measurements(self.wi[index], self.wo[index], self.brdf[index], self.brdf_std[index],
                             self.use[index], dict(self.attrs), self.channels,
-                            None if self.weight is None else self.weight[index])
+                            None if self.weight is None else self.weight[index],
+                            None if self.cluster is None else self.cluster[index])
 
     def relative_weight(self) -> np.ndarray:
         """Solid-angle weights scaled to mean 1 (ones when there are none), shape (N,)."""
@@ -129,6 +139,8 @@ class Measurements:
                 "use": (("point", "channel"), self.use)}
         if self.weight is not None:
             data["weight"] = ("point", self.weight, {"units": "sr^2"})
+        if self.cluster is not None:
+            data["cluster"] = ("point", self.cluster)
         coords = {"channel": list(self.channels)[: self.n_channels],
                   **{k: ("point", v, deg) for k, v in (("theta_i", ti), ("phi_i", pi_), ("theta_o", to), ("phi_o", po))}}
         return xr.Dataset(data, coords=coords, attrs={k: v for k, v in self.attrs.items() if isinstance(v, (str, int, float))})

@@ -111,6 +111,9 @@ def refine_starts(problem, rng, *, n_starts, n_local, maxeval, t0):
             return problem.result(best, t0)
     starts, scores = problem.starts(n_starts, rng)
     chosen = choose_starts(starts, scores, n_local, START_RATIO, BASIN_DISTANCE)
+    if getattr(problem, "refine_default", False) and skip is None and 0 not in chosen and np.isfinite(scores[0]):
+        # the declared defaults (starts[0]) get a local run too, last, raced like the others
+        chosen.append(0)
     for k in chosen:
         if skip is not None and np.array_equal(starts[k], skip):
             continue  # refined already
@@ -140,7 +143,7 @@ class GeneralFit:
         self.energy_wo = energy_directions()
         self.free = problem.nl_idx if problem.varpro else np.arange(space.size)
         u_default = space.to_unit(space.default())
-        if problem.varpro:
+        if problem.linear:  # affine parameters from the data (searched too where not projected: log, robust)
             u_default = space.to_unit(problem.solve_linear(space.default()))
         self.u_default = u_default
         self.scorer = problem
@@ -156,6 +159,16 @@ class GeneralFit:
         is cheap: the chi2 loss on the compiled kernel's normal equations. (Elsewhere the
         loop stays as it was: the default start then also races the later ones.)"""
         return self.loss == "chi2" and self.problem.normal_available and not self.problem.varpro
+
+    @property
+    def refine_default(self):
+        """Refine the declared defaults whatever their score, when the global stage cannot
+        rank basins by score: without variable projection a start is scored at its own values
+        of every parameter, and a flat region can outscore every start near the optimum (a
+        plastic's lobe-free plateau: alpha -> 1e-4, int_ior at its bound, no specular lobe at
+        all, scored better than any start with a lobe in the wrong place; an RGL geometry's
+        log fit ended there at 6.4x the objective of the basin the defaults reach)."""
+        return not self.problem.varpro
 
     def default_start(self):
         """The declared defaults (affine parameters solved), in the searched coordinates."""

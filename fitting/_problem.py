@@ -123,6 +123,18 @@ def _fast_agrees(model) -> bool:
     return ok
 
 
+def _residual_weight(loss, meas, cos_i):
+    """d residual / d f_r of the loss, for its weighted linear least squares (the affine
+    parameters: variable projection, or a start's albedos): 1 / sigma (chi2, robust), cos
+    theta_i (cosine), and for the log loss its first-order expansion about the measured
+    value, ln(1 + f c) - ln(1 + y c) ~ c (f - y) / (1 + y c)."""
+    if loss in ("chi2", "robust"):
+        return 1.0 / meas.brdf_std
+    if loss == "log":
+        return cos_i / (1.0 + np.maximum(meas.brdf * cos_i, -0.999))
+    return cos_i
+
+
 class _Problem:
     """Residuals of one fit, with the affine parameters projected out where the loss allows."""
 
@@ -131,7 +143,7 @@ class _Problem:
         self.eval = evaluator or Evaluator(model, meas.wi, meas.wo, meas.n_channels, use_fast)
         self.use = meas.use
         cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), meas.brdf.shape)
-        self.weight = (1.0 / meas.brdf_std if loss in ("chi2", "robust") else cos_i) * _loss.value_weight(meas)
+        self.weight = _residual_weight(loss, meas, cos_i) * _loss.value_weight(meas)
         self.linear = []
         self.linear = _linear_groups(self) if linear is None else linear
         self.varpro = bool(self.linear) and loss in ("chi2", "cosine")

@@ -91,7 +91,8 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
     # cosine-distributed set (Malley's method on the stratified grid)
     r, ph = np.sqrt(U), 2.0 * np.pi * V
     cos_set = np.stack([r * np.cos(ph), r * np.sin(ph), np.sqrt(np.clip(1.0 - U, 0.0, 1.0))], axis=-1)
-    wis, wos, weights = [], [], []
+    wis, wos, weights, clusters = [], [], [], []
+    point = np.concatenate([np.arange(m), np.arange(m)])     # the (U, V) draw behind each outgoing direction
     with mi.scoped_set_variant(variant):
         ctx = mi.BSDFContext()
         for t, wband in zip(theta, band):
@@ -111,6 +112,7 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
             wis.append(out[ok])                                 # gonio's wi: toward the light
             wos.append(d[:m][:1].repeat(ok.sum(), 0))           # gonio's wo: the file's incident direction
             weights.append(w_out[ok] * wband)
+            clusters.append(point[ok])
     wi, wo, weight = np.concatenate(wis), np.concatenate(wos), np.concatenate(weights)
     f = divide_cos(eval_cos(rgl._bsdf, wi, wo, variant), wi, wo)
     std = rel_std * np.maximum(np.abs(f), floor)
@@ -118,7 +120,7 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
     attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": variant,
              "nominal_sigma": True, "sampling": f"own layout: {theta.size} measured theta_i <= {theta_max_deg:g} deg, "
              f"{2 * m} outgoing each (half by the material's importance sampling, half cosine), MIS weights"}
-    return Measurements(wi, wo, f, std, use, attrs, weight=weight)
+    return Measurements(wi, wo, f, std, use, attrs, weight=weight, cluster=np.concatenate(clusters))
 
 
 def merl_weights(wi, wo) -> np.ndarray:

@@ -54,6 +54,16 @@ def global_starts(problem, free, u_default, n_starts, rng):
         n_starts = min(24, 4 + 4 * len(shared)) if block else min(24, 4 + 4 * int(free.size))
     if not free.size:
         return [u_default[free]], np.zeros(1)
+    projected = _projected_coords(problem, free)
+    if projected and set(block) <= projected:
+        # the per-channel coordinates are affine parameters the loss does not project out
+        # (log, robust): each start gets them from the data (``problem.solve_linear``) instead
+        # of from a per-channel search over a few stratified values, so that a start's score
+        # ranks its shared coordinates, not how well its random albedos happened to match
+        S = np.vstack([u_default[shared][None, :], stratified(rng, n_starts, len(shared))])
+        starts = [_with_affine(problem, u_default, free, shared, row) for row in S]
+        scores = np.array([_safe_sum(_score(problem, u_default, free, v)) for v in starts])
+        return starts, scores
     if not block:
         starts = [u_default[free]] + list(stratified(rng, n_starts, free.size))
         scores = np.array([_safe_sum(_score(problem, u_default, free, v)) for v in starts])
@@ -86,6 +96,27 @@ def global_starts(problem, free, u_default, n_starts, rng):
         starts.append(v)
         scores.append(float(sum(costs[best_k[c], c] for c in range(C))))
     return starts, np.array(scores)
+
+
+def _projected_coords(problem, free):
+    """Indices (of ``free``) of affine per-channel parameters that the problem searches
+    rather than projects out (``problem.linear`` without variable projection), else empty."""
+    if getattr(problem, "varpro", True) or not getattr(problem, "linear", None):
+        return set()
+    lin = {int(i) for g in problem.linear for i in g["index"]}
+    return {int(i) for i in free if int(i) in lin}
+
+
+def _with_affine(problem, u_default, free, shared, row):
+    """The start ``row`` of the shared coordinates, its affine parameters solved by the
+    problem's weighted linear least squares (bounded), in the searched coordinates."""
+    u = u_default.copy()
+    u[shared] = row
+    try:
+        u = problem.space.to_unit(problem.solve_linear(problem.space.from_unit(u)))
+    except (FloatingPointError, ValueError, np.linalg.LinAlgError):
+        pass  # the model misbehaves here: the start keeps the defaults and scores inf or worse
+    return u[free]
 
 
 def _score(problem, u_default, free, v):
