@@ -136,15 +136,17 @@ class GeneralFit:
     """The general problem for :func:`refine_starts`: all parameters by Levenberg-Marquardt,
     or the nonlinear ones with the affine ones projected out; energy polish; Laplace."""
 
-    def __init__(self, meas, model, space, loss, use_fast, enforce_energy, maxeval):
+    def __init__(self, meas, model, space, loss, use_fast, enforce_energy, maxeval, start=None):
         self.meas, self.model, self.space, self.loss = meas, model, space, loss
         self.enforce_energy, self.maxeval = enforce_energy, maxeval
         self.problem = problem = Problem(meas, model, space, loss, use_fast=use_fast)
         self.energy_wo = energy_directions()
         self.free = problem.nl_idx if problem.varpro else np.arange(space.size)
-        u_default = space.to_unit(space.default())
+        self.given_start = start is not None
+        x_default = space.default() if start is None else space.from_params(model.validate(start))
+        u_default = space.to_unit(x_default)
         if problem.linear:  # affine parameters from the data (searched too where not projected: log, robust)
-            u_default = space.to_unit(problem.solve_linear(space.default()))
+            u_default = space.to_unit(problem.solve_linear(x_default))
         self.u_default = u_default
         self.scorer = problem
         self.atol = 1e-4 if loss in ("chi2", "robust") else 0.0
@@ -167,8 +169,9 @@ class GeneralFit:
         of every parameter, and a flat region can outscore every start near the optimum (a
         plastic's lobe-free plateau: alpha -> 1e-4, int_ior at its bound, no specular lobe at
         all, scored better than any start with a lobe in the wrong place; an RGL geometry's
-        log fit ended there at 6.4x the objective of the basin the defaults reach)."""
-        return not self.problem.varpro
+        log fit ended there at 6.4x the objective of the basin the defaults reach). A given
+        ``start`` is always refined: it was given because it is near the basin wanted."""
+        return not self.problem.varpro or self.given_start
 
     def default_start(self):
         """The declared defaults (affine parameters solved), in the searched coordinates."""
@@ -272,7 +275,7 @@ class GeneralFit:
 
 def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         n_starts: int | None = None, n_local: int = 3, maxeval: int = 2000, enforce_energy: bool | None = None,
-        use_fast: bool | None = None) -> FitResult:
+        use_fast: bool | None = None, start: dict | None = None) -> FitResult:
     """Fit ``model`` to ``meas``.
 
     Parameters
@@ -298,6 +301,12 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         Constrain albedo <= 1; defaults to ``not model.energy_conserving``.
     use_fast : bool, optional
         Use the compiled Dr.Jit kernels (default: where available); False forces numpy.
+    start : dict, optional
+        A starting point (the model's params) that takes the declared defaults' place: the
+        first start, refined like them, the global stage's starts beside it. For a nested
+        model started from the simpler one's fit (:func:`gonio.fitting.select` does this for
+        a model that declares ``start_from``). A model with a declared affine structure is
+        then fitted by the general problem.
 
     Returns
     -------
@@ -308,7 +317,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     _loss.validate_loss(loss)
     if loss == "discrepancy":
         return fit_discrepancy(meas, model, fit, rng=rng, fixed=fixed, n_starts=n_starts, n_local=n_local,
-                               maxeval=maxeval, enforce_energy=enforce_energy, use_fast=use_fast)
+                               maxeval=maxeval, enforce_energy=enforce_energy, use_fast=use_fast, start=start)
     space = ParameterSpace(model, meas.n_channels, fixed, meas.channels)
     if space.size == 0:
         raise ValueError("every parameter is fixed: nothing to fit")
@@ -316,7 +325,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         enforce_energy = not getattr(model, "energy_conserving", True)
     t0 = time.perf_counter()
     loop = {"n_starts": n_starts, "n_local": n_local, "maxeval": maxeval}
-    if applicable(meas, model, space, loss, enforce_energy, use_fast):
+    if start is None and applicable(meas, model, space, loss, enforce_energy, use_fast):
         with single_threaded_blas():
             res = refine_starts(AffineFit(meas, model, space, loss, SCORE_ROWS), rng, t0=t0, **loop)
         if res is not None:
@@ -324,7 +333,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
                 res = robust_covariance(res, meas, Problem(meas, model, space, loss, use_fast=use_fast, linear=[]))
             return res
     with single_threaded_blas():  # as for the affine problem: BLAS's threads fight Dr.Jit's (measured 3-5x)
-        general = GeneralFit(meas, model, space, loss, use_fast, enforce_energy, maxeval)
+        general = GeneralFit(meas, model, space, loss, use_fast, enforce_energy, maxeval, start)
         res = refine_starts(general, rng, t0=t0, **loop)
         return robust_covariance(res, meas, general.problem) if loss in ROBUST_COV else res
 

@@ -77,6 +77,19 @@ class Ranked:
         return row
 
 
+def _nested_start(model, rows):
+    """A model that contains a simpler candidate already fitted (a two-lobe model and its
+    single layer, ``start_from``) starts from that fit: a nested model must fit at least as
+    well as the model it contains."""
+    layer = getattr(model, "_layer", None)
+    if not hasattr(model, "start_from") or layer is None:
+        return None
+    for r in rows:
+        if r.name == layer.name and dict(r.result.model.options) == dict(layer.options):
+            return model.start_from(r.result.params)
+    return None
+
+
 def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
     """Fit each candidate and pick the simplest one the data supports.
 
@@ -92,7 +105,7 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
             model = gm.get(name, **options)
         except (KeyError, ValueError):
             continue  # a candidate this build of gonio.models does not provide
-        result = fit(meas, model, rng=rng, **fit_kwargs)
+        result = fit(meas, model, rng=rng, start=_nested_start(model, rows), **fit_kwargs)
         rows.append(Ranked(name, dict(options), result.space.size, result.chi2, result.bic, 0.0, False, result,
                            result.loss, result.neg2_loglik))
     if not rows:

@@ -72,6 +72,16 @@ class TwoLobe(Model):
             return (1.0 - w) * out[0][0] + w * out[1][0], np.maximum(out[0][1], out[1][1])
         return (1.0 - w) * out[0] + w * out[1]
 
+    def start_from(self, layer_params):
+        """A start next to a fit of the single layer (``layer_params``): that layer as the first
+        lobe, a second lobe three times as rough carrying 10 % of the weight. The two-lobe
+        model contains the one-lobe one (weight 0), so from here its fit can only improve on
+        the layer's; from the declared defaults it may not find that basin (roughconductor2 on
+        an RGL paint ended at 1.2-1.8x the one-lobe model's Ngan error)."""
+        p = dict(self._layer.validate(layer_params))
+        alpha = float(p.pop("alpha"))
+        return dict({k: p[k] for k in self.COMMON}, alpha=alpha, alpha2=min(1.0, 3.0 * alpha), weight=0.1)
+
     def to_mitsuba(self, params):
         p1, p2, w = self.layers(self.validate(params))
         return {"type": "blendbsdf", "weight": w, "lobe1": self._layer.to_mitsuba(p1),
