@@ -16,8 +16,9 @@ run:
   what the host adds to the bound (protocol, polling granularity, the probe's decoding, the
   client's checksum check, fsync and rename of each RAW file, and whatever of the reduction
   the move does not hide);
-* where the host's time goes: RAW decoding, HDR merge, region masks and statistics (per point,
-  whichever thread ran them), and ``reduce``, the worker thread's time per point (decode,
+* where the host's time goes: RAW decoding, HDR merge with the region statistics (one pass:
+  each block of merged rows is reduced while in cache), region masks (per point, whichever
+  thread ran them), and ``reduce``, the worker thread's time per point (decode,
   merge and statistics of point k while the stages move to k+1); ``tail``, the last point's
   reduction and journal row after its bracket (once a run: no move hides it; not in the
   per-point means).
@@ -54,7 +55,7 @@ from .plans import Plan, load_plan
 
 __all__ = ["run", "run_cli", "PointTimes"]
 
-_PHASES = ("decode", "merge", "masks", "stats")
+_PHASES = ("decode", "merge", "masks")
 
 
 @dataclass
@@ -217,8 +218,8 @@ class _Meter:
         from . import _session as capture              # the run's module: its names are patched
         from .drivers import stages as _zaber
 
-        targets = [(capture, "decode_raw", self._phase("decode")), (capture, "merge", self._phase("merge")),
-                   (capture, "region_stats", self._phase("stats")), (capture, "roi_masks_fast", self._phase("masks")),
+        targets = [(capture, "decode_raw", self._phase("decode")), (capture, "roi_masks_fast", self._phase("masks")),
+                   (capture, "merged_region_stats", self._phase("merge")),
                    (_zaber.Goniometer, "move_to", self._move), (capture._Session, "_bracket", self._bracket),
                    (capture._Session, "_reduce", self._reduce), (capture._Session, "run", self._run),
                    (self.inst, "capture", self._sim_capture), (self.inst.camera, "_expose", self._camera_port)]
@@ -287,7 +288,7 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
         row["ratio"] = row["projected_s"] / row["bound_s"] if row["bound_s"] > 0 else math.nan
         rows.append(row)
     head = (f"{'camera':>10} {'pts':>3} {'motion':>7} {'expose':>7} {'bound':>7} {'wall':>7} {'sim':>7} "
-            f"{'host':>7} {'decode':>7} {'merge':>7} {'masks':>7} {'stats':>7} {'proj/bound':>10} {'reduce':>7} "
+            f"{'host':>7} {'decode':>7} {'merge+st':>8} {'masks':>7} {'proj/bound':>10} {'reduce':>7} "
             f"{'tail':>7} {'peak MiB':>8}")
     out("capture pipeline, seconds per point (the simulator in real time; bound = the stages' own motion + "
         "settling + exposures; wall = a point's move start to the next's; sim = the simulator's computing in it; "
@@ -296,8 +297,8 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
     out(head)
     for r in rows:
         out(f"{r['camera']:>10} {r['points']:>3} {r['motion_s']:7.3f} {r['exposure_s']:7.3f} {r['bound_s']:7.3f} "
-            f"{r['wall_s']:7.3f} {r['sim_s']:7.3f} {r['host_s']:7.3f} {r['decode_s']:7.3f} {r['merge_s']:7.3f} "
-            f"{r['masks_s']:7.3f} {r['stats_s']:7.3f} {r['ratio']:9.3f}x {r['reduce_s']:7.3f} {r['tail_s']:7.3f} "
+            f"{r['wall_s']:7.3f} {r['sim_s']:7.3f} {r['host_s']:7.3f} {r['decode_s']:7.3f} {r['merge_s']:8.3f} "
+            f"{r['masks_s']:7.3f} {r['ratio']:9.3f}x {r['reduce_s']:7.3f} {r['tail_s']:7.3f} "
             f"{r['peak_mib']:8.0f}")
     return rows
 

@@ -24,10 +24,10 @@ import numpy as np
 
 from . import kinematics
 from ._files import TMP_PREFIX, create_exclusive
-from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
+from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder
 from ._journal import RAW_DIR, Journal
 from ._markers import find_regions, layout_of, roi_masks_fast
-from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
+from ._measure import ProgressBar, ReferenceModel, check_sensor, merged_region_stats
 from ._pipeline import Pipeline, _Suspended
 from ._rig import Bench
 from ._settings import AXES
@@ -475,9 +475,10 @@ class _Session:
                 dl.discard()
             raise
         gain = None if self.gain is None else self.gain[:, box[0]:box[1], box[2]:box[3]]
-        hdr = merge(exposures, self.noise, self.sat, gamma=self.gamma).flat_fielded(gain)
+        # merged and reduced a block of rows at a time, each block's region sums taken while it is in cache
+        stats = dict(zip(("sample", "reference"),
+                         merged_region_stats(exposures, self.noise, (sm, rm), self.sat, self.gamma, gain)))
         del exposures
-        stats = {"sample": region_stats(hdr, sm), "reference": region_stats(hdr, rm)}
         saturated = any(st["n_saturated"] for st in stats.values())
         s, r = stats["sample"], stats["reference"]
         with np.errstate(invalid="ignore", divide="ignore"):

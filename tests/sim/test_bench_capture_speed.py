@@ -7,7 +7,7 @@ from gonio.bench.drivers import stages
 
 
 def test_one_point_is_timed_and_the_pipeline_restored():
-    originals = (_session.decode_raw, _session.merge, _session._Session._reduce, _session._Session.run,
+    originals = (_session.decode_raw, _session.merged_region_stats, _session._Session._reduce, _session._Session.run,
                  stages.Goniometer.move_to)
     lines = []
     (row,) = _capture_speed.run(n_points=1, full=None, out=lines.append)
@@ -18,5 +18,5 @@ def test_one_point_is_timed_and_the_pipeline_restored():
     assert row["bound_s"] == row["motion_s"] + row["exposure_s"]
     assert row["wall_s"] >= row["bound_s"] and row["ratio"] == row["projected_s"] / row["bound_s"]
     assert len(lines) == 3 and "64x48" in lines[-1]
-    assert (_session.decode_raw, _session.merge, _session._Session._reduce, _session._Session.run,
+    assert (_session.decode_raw, _session.merged_region_stats, _session._Session._reduce, _session._Session.run,
             stages.Goniometer.move_to) == originals
