@@ -383,7 +383,8 @@ def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path, monkeypa
     """The bracket a point's probe picks, read directly (what the capture does now) and through
     LibRaw (what it did), on the poses of a shiny sample's capture: the same at every pose."""
     from gonio.bench._hdr import NoiseModel, choose_bracket, ladder
-    from gonio.bench._session import _extreme, _runs, roi_masks_fast
+    from gonio.bench._measure import _extreme, _runs
+    from gonio.bench._session import roi_masks_fast
     from gonio.bench.drivers import camera
     from gonio.bench.drivers.camera import decode_raw
 

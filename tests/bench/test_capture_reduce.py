@@ -138,3 +138,42 @@ def test_fused_region_stats_are_the_two_pass_ones(monkeypatch):
                     tol = 1e-12 * (scale if q == "mean" else np.abs(np.nan_to_num(want[q])))
                     assert np.all(np.abs(np.nan_to_num(got[q] - want[q])) <= tol), (ctx, q, got[q], want[q])
     assert seen_nan                                          # the saturated scene left values out
+
+
+def test_probe_levels_are_the_whole_frame_extremes(monkeypatch):
+    """The probe's brightest raw value, brightest over its dark and darkest dark-subtracted value
+    in the regions, taken a block of rows at a time, are those of the whole planes exactly (max
+    and min round nothing), for regions of odd shapes: runs across block edges, one pixel, a run
+    from the first value, one to the last; an empty region raises as before."""
+    import pytest
+
+    from gonio.bench import _measure
+    from gonio.bench._measure import _extreme, _runs, probe_levels
+
+    rng = np.random.default_rng(23)
+    h, w = 37, 53
+    monkeypatch.setattr(_measure, "_PROBE_BLOCK", 3 * w)
+    exposures = _bracket(np.array([2e9, 4e7, 1e3])[:, None, None] * rng.random((1, h, w)), rng, h, w)
+    masks = dict(_odd_masks(rng, h, w, 3))
+    ends = np.zeros((h, w), bool)
+    ends[0, :5] = ends[-1, -4:] = ends[10:20, 40:] = True
+    masks["ends"] = ends
+    for k in range(60):                                      # short runs: their ends decide the extremes
+        m = np.zeros((h, w), bool)
+        for _ in range(3):
+            r, c = rng.integers(h), rng.integers(w - 2)
+            m[r, c:c + rng.integers(2, 9)] = True
+        masks[f"short runs {k}"] = m
+    for e in exposures:
+        f, d = e.frame, e.dark
+        for what, mask in masks.items():
+            runs = _runs(mask)
+            if not mask.any():
+                with pytest.raises(ValueError):
+                    probe_levels(f, d, runs)
+                continue
+            want = (_extreme(np.maximum, f.peak, runs), _extreme(np.maximum, f.peak - np.maximum(d.signal, 0), runs),
+                    _extreme(np.minimum, f.signal - d.signal, runs))
+            assert want == (f.peak[:, mask].max(), (f.peak - np.maximum(d.signal, 0))[:, mask].max(),
+                            (f.signal - d.signal)[:, mask].min())
+            assert probe_levels(f, d, runs) == want, what
