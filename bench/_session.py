@@ -377,10 +377,11 @@ class _Session:
         b = self.bench
         target = dict(zip(AXES, self.stage[idx]))
         try:
-            if goal is None:
-                b.gonio.move_to(target)
-            else:
-                b.gonio.finish_move(goal)
+            if goal is None:                     # no move sent ahead (the first point, a retake)
+                goal = b.gonio.move_to(target, wait=False)
+                if self.layout is None:
+                    self._masks(self.stage[idx])  # its regions while the stages move
+            b.gonio.finish_move(goal)
         except MoveError as exc:                 # e.g. WL: clear the flags, try once more
             self.journal.event("warning", str(exc))
             b.chain.clear_flags(b.gonio.devices[0])

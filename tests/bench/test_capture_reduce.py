@@ -177,3 +177,33 @@ def test_probe_levels_are_the_whole_frame_extremes(monkeypatch):
             assert want == (f.peak[:, mask].max(), (f.peak - np.maximum(d.signal, 0))[:, mask].max(),
                             (f.signal - d.signal)[:, mask].min())
             assert probe_levels(f, d, runs) == want, what
+
+
+def test_blocked_decode_is_the_tile_mean_and_max(monkeypatch):
+    """`_raw._planes`, a block of rows at a time: each channel is the mean of its positions in the
+    CFA tile minus their black levels, and its peak their maximum (computed here in float64 from
+    the mosaic), exactly, for RGGB, GRBG and BGGR tiles with a black level per position, blocks
+    of 3 rows, windows cut at block edges, clipped at the frame, of one row, and empty."""
+    from gonio.bench.drivers import _raw
+
+    rng = np.random.default_rng(29)
+    h, w = 37, 53
+    monkeypatch.setattr(_raw, "_DECODE_BLOCK", 3 * w)
+    img = rng.integers(0, 16384, (2 * h, 2 * w)).astype(np.uint16)
+    blacks = np.array([[512.0, 510.0], [514.0, 508.0]])
+    for pattern in ((0, 1, 1, 2), (1, 0, 2, 1), (2, 1, 1, 0)):
+        chan = np.array(pattern).reshape(2, 2)
+        for box in ((0, h, 0, w), (3, 34, 5, 50), (-4, h + 9, -1, 3), (h // 2, h // 2 + 1, 0, w), (5, 5, 0, w)):
+            got = _raw._planes(img, chan, blacks, 16383.0, box, True, "x.dng")
+            r0, r1, c0, c1 = max(0, box[0]), min(h, box[1]), max(0, box[2]), min(w, box[3])
+            want = np.zeros((3, max(0, r1 - r0), max(0, c1 - c0)))
+            top = np.full(want.shape, -np.inf)
+            for dr in range(2):
+                for dc in range(2):
+                    k = chan[dr, dc]
+                    v = img[2 * r0 + dr:2 * r1:2, 2 * c0 + dc:2 * c1:2].astype(float) - blacks[dr, dc]
+                    want[k] += v / np.sum(chan == k)
+                    top[k] = np.maximum(top[k], v)
+            assert got.signal.dtype == np.float32 and np.array_equal(got.signal, want), (pattern, box)
+            assert np.array_equal(got.peak, top) and np.array_equal(got.n_raw, [1, 2, 1])
+            assert _raw._planes(img, chan, blacks, 16383.0, box, False, "x.dng").peak is None
