@@ -31,7 +31,8 @@ import numpy as np
 
 from .drivers.camera import RawFrame
 
-__all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "merge_blocks", "linearise", "choose_bracket", "ladder", "flat_gain"]
+__all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "merge_blocks", "linearise", "choose_bracket", "ladder",
+           "flat_gain"]
 
 
 @dataclass(frozen=True)

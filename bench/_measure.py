@@ -15,8 +15,8 @@ from rich.table import Column
 from ._hdr import ladder, merge_blocks
 from .errors import GonioError
 
-__all__ = ["check_sensor", "ReferenceModel", "region_stats", "merged_region_stats", "ProgressBar", "RawEstimate", "raw_estimate",
-           "FRAMES_PER_POINT", "probe_levels"]
+__all__ = ["check_sensor", "ReferenceModel", "region_stats", "merged_region_stats", "probe_levels", "ProgressBar",
+           "RawEstimate", "raw_estimate", "FRAMES_PER_POINT"]
 
 #: RAW frames per point assumed before a session has measured one: the probe and a bracket of three
 #: rungs (a 16:1 range at factors of 4; the simulated plans take 1 to 3). Once points are measured,

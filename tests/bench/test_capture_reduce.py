@@ -76,9 +76,9 @@ def _bracket(rate, rng, h=37, w=53, times=(0.001, 0.004, 0.016), power=0.01):
         sig, peak = dn.copy(), dn.copy()
         sig[1], peak[1] = 0.5 * (dn[1] + g2), np.maximum(dn[1], g2)
         dark = shot(np.full((3, h, w), 10.0 * t))
-        out.append(Exposure(t, power, RawFrame(sig.astype(np.float32), peak.astype(np.float32), np.array([1.0, 2.0, 1.0]),
-                                               512.0, 16383.0),
-                            RawFrame(dark.astype(np.float32), None, np.array([1.0, 2.0, 1.0]), 512.0, 16383.0)))
+        n_raw = np.array([1.0, 2.0, 1.0])
+        out.append(Exposure(t, power, RawFrame(sig.astype(np.float32), peak.astype(np.float32), n_raw, 512.0, 16383.0),
+                            RawFrame(dark.astype(np.float32), None, n_raw, 512.0, 16383.0)))
     return out
 
 
