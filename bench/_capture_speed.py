@@ -16,11 +16,23 @@ run:
   what the host adds to the bound (protocol, polling granularity, the probe's decoding, the
   client's checksum check, fsync and rename of each RAW file, and whatever of the reduction
   the move does not hide);
-* where the host's time goes: RAW decoding, HDR merge, region masks and statistics (per point,
-  whichever thread ran them), and ``reduce``, the worker thread's time per point (decode,
+* where the host's time goes: RAW decoding, HDR merge with the region statistics (one pass:
+  each block of merged rows is reduced while in cache), region masks (per point, whichever
+  thread ran them), and ``reduce``, the worker thread's time per point (decode,
   merge and statistics of point k while the stages move to k+1); ``tail``, the last point's
   reduction and journal row after its bracket (once a run: no move hides it; not in the
   per-point means).
+
+* **CPU seconds** (the machine is shared: wall times grow with its load, CPU times much less):
+  ``host`` every host thread's CPU in the cycle (the process's, less what it spent while the
+  simulator computed with the worker idle; the simulated devices' protocol handling stays in,
+  an overestimate); ``crit`` the main thread's from the stages' standstill being seen to the
+  next move, less the simulator's: the host work no motion hides; ``lag`` the wall time from
+  the standstill to its being seen (polling); and each phase's CPU, the merge's helper thread
+  included. From them an **idle-machine bound**: ``(bound + crit + one poll interval) /
+  bound``, valid where every point's other host CPU (``host - crit``, serialised on one core)
+  is below its motion, so the move hides it; on an idle machine the critical path's wall is
+  its CPU, and the standstill is seen within one poll.
 
 To keep the accounting honest, the simulator renders a frame only once the worker is idle:
 the worker may overlap the stage motion and the exposures, never the simulator's computing,
@@ -36,6 +48,7 @@ flat-field frame, the quick plan's first points.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import resource
 import sys
@@ -54,13 +67,17 @@ from .plans import Plan, load_plan
 
 __all__ = ["run", "run_cli", "PointTimes"]
 
-_PHASES = ("decode", "merge", "masks", "stats")
+_PHASES = ("decode", "merge", "masks")
+_POLL_S = inspect.signature(capture).parameters["poll_interval_s"].default   # the capture's stage polling
 
 
 @dataclass
 class PointTimes:
     """Seconds of one point's cycle (its move's start to the next's): wall, the simulator's
-    computing, the bound (motion, exposure), and the phases that ran meanwhile."""
+    computing, the bound (motion, exposure), and the phases that ran meanwhile; and CPU seconds
+    (see the module notes): ``host_cpu`` every host thread's, ``crit_cpu`` the main thread's from
+    the stages' standstill being seen to the next move (the part no motion hides), ``lag`` the
+    wall seconds from the standstill to its being seen, ``cpu`` each phase's."""
 
     wall: float = 0.0
     sim_cpu: float = 0.0
@@ -68,6 +85,10 @@ class PointTimes:
     exposure: float = 0.0
     phases: dict = field(default_factory=lambda: dict.fromkeys(_PHASES, 0.0))
     reduce: float = 0.0
+    host_cpu: float = 0.0
+    crit_cpu: float = 0.0
+    lag: float = 0.0
+    cpu: dict = field(default_factory=lambda: dict.fromkeys(_PHASES, 0.0))
 
     @property
     def bound(self) -> float:
@@ -100,6 +121,8 @@ def _patched(targets):
 class _Meter:
     """Timers wrapped around the pipeline's functions for one run (restored afterwards)."""
 
+    _SUMS = ("motion", "sim_cpu", "exposure", "reduce", "sim_proc", "crit", "lag")
+
     def __init__(self, inst, settle_s: float = 0.0):
         self.inst = inst
         self.settle = settle_s
@@ -109,16 +132,27 @@ class _Meter:
         self.sim_cpu = self.exposure = 0.0
         self.sim_cpu_port = 0.0
         self.phases = dict.fromkeys(_PHASES, 0.0)
+        self.cpu = dict.fromkeys(_PHASES, 0.0)
         self.reduce = 0.0
         self.motion = 0.0                   # the stages' own time of the moves sent, s
-        self.marks: list[tuple] = []        # (wall, motion, sim_cpu, exposure, phases, reduce) at each move's start
-        self.end: tuple | None = None       # the same after the last bracket
+        self.sim_proc = 0.0                 # process CPU while the simulator computed (the worker idle)
+        self.sim_main = 0.0                 # the main thread's CPU in the simulator
+        self.crit = self.lag = 0.0
+        self.seen: tuple | None = None      # (main thread CPU, sim_main) when a standstill was seen
+        self.helper = None                  # the merge's helper thread's CPU clock
+        self.marks: list[dict] = []         # the sums at each move's start
+        self.end: dict | None = None        # the same after the last bracket
         self.run_end: float = 0.0
 
-    def _mark(self):
+    def _mark(self) -> dict:
+        """The sums now (on the main thread: a move's start, a bracket's end)."""
         with self.lock:
-            return (time.perf_counter(), self.motion, self.sim_cpu, self.exposure, dict(self.phases),
-                    self.reduce)
+            if self.seen is not None:       # the main thread's work since the standstill was seen
+                tt, sim = self.seen
+                self.crit += time.thread_time() - tt - (self.sim_main - sim)
+                self.seen = None
+            return {"wall": time.perf_counter(), "proc": time.process_time(), "phases": dict(self.phases),
+                    "cpu": dict(self.cpu), **{k: getattr(self, k) for k in self._SUMS}}
 
     def _motion_left(self) -> float:
         """Seconds until the simulated stages stand still (0 when idle)."""
@@ -126,16 +160,21 @@ class _Meter:
         ends = [e for e in (a.end_time(t) for a in self.inst.axes) if e is not None]
         return max(ends) - t if ends else 0.0
 
+    def _helper_cpu(self) -> float:
+        return time.clock_gettime(self.helper) if self.helper is not None else 0.0
+
     # -- timers wrapped around the pipeline's functions (each takes the original, returns the wrapper)
     def _phase(self, key):
         def make(fn):
             def timed(*a, **kw):
-                t = time.perf_counter()
+                t, c, hc = time.perf_counter(), time.thread_time(), self._helper_cpu()
                 try:
                     return fn(*a, **kw)
                 finally:
+                    extra = self._helper_cpu() - hc if key == "merge" else 0.0   # the merge's second thread
                     with self.lock:
                         self.phases[key] += time.perf_counter() - t
+                        self.cpu[key] += time.thread_time() - c + extra
             return timed
         return make
 
@@ -160,7 +199,11 @@ class _Meter:
 
     def _camera_port(self, fn):                      # fn: the port's bound method
         def timed(*a, **kw):
+            with self.idle:                          # the process's CPU meanwhile is the simulator's
+                while self.busy:
+                    self.idle.wait()
             t, e = time.perf_counter(), self.exposure
+            pc, tc = time.process_time(), time.thread_time()
             try:
                 return fn(*a, **kw)                  # render (timed by _sim_capture), encode, hash, write
             finally:
@@ -168,6 +211,19 @@ class _Meter:
                     inner = self.sim_cpu_port
                     self.sim_cpu += max(0.0, time.perf_counter() - t - (self.exposure - e) - inner)
                     self.sim_cpu_port = 0.0
+                    self.sim_proc += time.process_time() - pc
+                    self.sim_main += time.thread_time() - tc
+        return timed
+
+    def _finish_move(self, fn):
+        def timed(gonio, goal, *a, **kw):
+            standstill = time.perf_counter() + self._motion_left()
+            try:
+                return fn(gonio, goal, *a, **kw)
+            finally:
+                with self.lock:
+                    self.lag += max(0.0, time.perf_counter() - standstill)
+                    self.seen = (time.thread_time(), self.sim_main)
         return timed
 
     def _move(self, fn):
@@ -217,11 +273,16 @@ class _Meter:
         from . import _session as capture              # the run's module: its names are patched
         from .drivers import stages as _zaber
 
-        targets = [(capture, "decode_raw", self._phase("decode")), (capture, "merge", self._phase("merge")),
-                   (capture, "region_stats", self._phase("stats")), (capture, "roi_masks_fast", self._phase("masks")),
-                   (_zaber.Goniometer, "move_to", self._move), (capture._Session, "_bracket", self._bracket),
+        targets = [(capture, "decode_raw", self._phase("decode")), (capture, "roi_masks_fast", self._phase("masks")),
+                   (capture, "merged_region_stats", self._phase("merge")),
+                   (_zaber.Goniometer, "move_to", self._move), (_zaber.Goniometer, "finish_move", self._finish_move),
+                   (capture._Session, "_bracket", self._bracket),
                    (capture._Session, "_reduce", self._reduce), (capture._Session, "run", self._run),
                    (self.inst, "capture", self._sim_capture), (self.inst.camera, "_expose", self._camera_port)]
+        from . import _hdr
+
+        if _hdr._helpers() > 0:                    # the merge's helper thread: its CPU clock
+            self.helper = time.pthread_getcpuclockid(_hdr._pool().submit(threading.get_ident).result())
         with _patched(targets):
             yield self
 
@@ -229,14 +290,20 @@ class _Meter:
         """The points' cycles (the last one to the end of its bracket) and the tail after it."""
         marks = [*self.marks, self.end]
         pts = []
-        for (w0, c0, s0, e0, p0, r0), (w1, c1, s1, e1, p1, r1) in zip(marks, marks[1:]):
-            pts.append(PointTimes(w1 - w0, s1 - s0, c1 - c0, e1 - e0, {k: p1[k] - p0[k] for k in _PHASES}, r1 - r0))
+        for m0, m1 in zip(marks, marks[1:]):
+            d = {k: m1[k] - m0[k] for k in ("wall", "proc", *self._SUMS)}
+            pts.append(PointTimes(d["wall"], d["sim_cpu"], d["motion"], d["exposure"],
+                                  {k: m1["phases"][k] - m0["phases"][k] for k in _PHASES}, d["reduce"],
+                                  d["proc"] - d["sim_proc"], d["crit"], d["lag"],
+                                  {k: m1["cpu"][k] - m0["cpu"][k] for k in _PHASES}))
         last = self.end
-        tail = self.run_end - last[0]
+        tail = self.run_end - last["wall"]
         if pts:                                    # what ran after the last bracket belongs to the last point
+            p = pts[-1]
             for k in _PHASES:
-                pts[-1].phases[k] += self.phases[k] - last[4][k]
-            pts[-1].reduce += self.reduce - last[5]
+                p.phases[k] += self.phases[k] - last["phases"][k]
+                p.cpu[k] += self.cpu[k] - last["cpu"][k]
+            p.reduce += self.reduce - last["reduce"]
         return pts, tail
 
 
@@ -282,12 +349,19 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
                "exposure_s": mean(lambda p: p.exposure), "bound_s": mean(lambda p: p.bound),
                "wall_s": mean(lambda p: p.wall), "sim_s": mean(lambda p: p.sim_cpu),
                "host_s": mean(lambda p: p.host), **{k + "_s": mean(lambda p, k=k: p.phases[k]) for k in _PHASES},
-               "reduce_s": mean(lambda p: p.reduce), "tail_s": tail, "peak_mib": _peak_mib()}
+               "reduce_s": mean(lambda p: p.reduce), "tail_s": tail, "peak_mib": _peak_mib(),
+               "host_cpu_s": mean(lambda p: p.host_cpu), "crit_cpu_s": mean(lambda p: p.crit_cpu),
+               "lag_s": mean(lambda p: p.lag), **{k + "_cpu_s": mean(lambda p, k=k: p.cpu[k]) for k in _PHASES}}
         row["projected_s"] = row["bound_s"] + row["host_s"]
         row["ratio"] = row["projected_s"] / row["bound_s"] if row["bound_s"] > 0 else math.nan
+        # an idle machine: the critical path's CPU, the standstill seen within one poll interval; valid
+        # only where every point's work during its move (all threads, serialised) fits in the motion
+        fits = all(p.host_cpu - p.crit_cpu < p.motion for p in pts)
+        row["idle_ratio"] = ((row["bound_s"] + row["crit_cpu_s"] + _POLL_S) / row["bound_s"]
+                             if fits and row["bound_s"] > 0 else math.nan)
         rows.append(row)
     head = (f"{'camera':>10} {'pts':>3} {'motion':>7} {'expose':>7} {'bound':>7} {'wall':>7} {'sim':>7} "
-            f"{'host':>7} {'decode':>7} {'merge':>7} {'masks':>7} {'stats':>7} {'proj/bound':>10} {'reduce':>7} "
+            f"{'host':>7} {'decode':>7} {'merge+st':>8} {'masks':>7} {'proj/bound':>10} {'reduce':>7} "
             f"{'tail':>7} {'peak MiB':>8}")
     out("capture pipeline, seconds per point (the simulator in real time; bound = the stages' own motion + "
         "settling + exposures; wall = a point's move start to the next's; sim = the simulator's computing in it; "
@@ -296,9 +370,18 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
     out(head)
     for r in rows:
         out(f"{r['camera']:>10} {r['points']:>3} {r['motion_s']:7.3f} {r['exposure_s']:7.3f} {r['bound_s']:7.3f} "
-            f"{r['wall_s']:7.3f} {r['sim_s']:7.3f} {r['host_s']:7.3f} {r['decode_s']:7.3f} {r['merge_s']:7.3f} "
-            f"{r['masks_s']:7.3f} {r['stats_s']:7.3f} {r['ratio']:9.3f}x {r['reduce_s']:7.3f} {r['tail_s']:7.3f} "
+            f"{r['wall_s']:7.3f} {r['sim_s']:7.3f} {r['host_s']:7.3f} {r['decode_s']:7.3f} {r['merge_s']:8.3f} "
+            f"{r['masks_s']:7.3f} {r['ratio']:9.3f}x {r['reduce_s']:7.3f} {r['tail_s']:7.3f} "
             f"{r['peak_mib']:8.0f}")
+    out("CPU seconds per point (host = every host thread, the simulator's computing taken out; crit = the main "
+        "thread from the stages' standstill being seen to the next move, what no motion hides; lag = wall from "
+        "the standstill to its being seen; decode, merge+st (both threads), masks: the phases; idle <= "
+        f"(bound + crit + one {_POLL_S:g} s poll) / bound, where each point's other host CPU < its motion)")
+    out(f"{'camera':>10} {'host':>7} {'crit':>7} {'lag':>7} {'decode':>7} {'merge+st':>8} {'masks':>7} {'idle<=':>8}")
+    for r in rows:
+        out(f"{r['camera']:>10} {r['host_cpu_s']:7.3f} {r['crit_cpu_s']:7.3f} {r['lag_s']:7.3f} "
+            f"{r['decode_cpu_s']:7.3f} "
+            f"{r['merge_cpu_s']:8.3f} {r['masks_cpu_s']:7.3f} {r['idle_ratio']:7.3f}x")
     return rows
 
 

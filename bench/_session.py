@@ -24,10 +24,10 @@ import numpy as np
 
 from . import kinematics
 from ._files import TMP_PREFIX, create_exclusive
-from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder, merge
+from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder
 from ._journal import RAW_DIR, Journal
 from ._markers import find_regions, layout_of, roi_masks_fast
-from ._measure import ProgressBar, ReferenceModel, check_sensor, region_stats
+from ._measure import ProgressBar, ReferenceModel, _runs, check_sensor, merged_region_stats, probe_levels
 from ._pipeline import Pipeline, _Suspended
 from ._rig import Bench
 from ._settings import AXES
@@ -37,21 +37,6 @@ from .errors import CommunicationError, DeviceError, GonioError, SessionError
 from .plans import plan_from_dict
 
 __all__ = ["roi_masks_fast"]  # re-exported from _markers (tests and the benchmark patch it here)
-
-
-def _runs(mask: np.ndarray) -> np.ndarray:
-    """Where the runs of True in ``mask`` (read row by row) start and end, alternately."""
-    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.ravel().view(np.int8), [0]))))
-    return edges[:-1] if len(edges) and edges[-1] == mask.size else edges
-
-
-def _extreme(ufunc, planes: np.ndarray, runs: np.ndarray) -> float:
-    """``ufunc`` (np.maximum, np.minimum) over the values of every plane inside a mask given by its
-    `_runs`: the same value as ``planes[:, mask].max()``, without copying the regions out."""
-    if not len(runs):
-        raise ValueError("no value in the regions")
-    flat = planes.reshape(planes.shape[0], -1)
-    return float(ufunc.reduce(ufunc.reduceat(flat, runs, axis=1)[:, 0::2], axis=None))
 
 
 class _Session:
@@ -392,10 +377,11 @@ class _Session:
         b = self.bench
         target = dict(zip(AXES, self.stage[idx]))
         try:
-            if goal is None:
-                b.gonio.move_to(target)
-            else:
-                b.gonio.finish_move(goal)
+            if goal is None:                     # no move sent ahead (the first point, a retake)
+                goal = b.gonio.move_to(target, wait=False)
+                if self.layout is None:
+                    self._masks(self.stage[idx])  # its regions while the stages move
+            b.gonio.finish_move(goal)
         except MoveError as exc:                 # e.g. WL: clear the flags, try once more
             self.journal.event("warning", str(exc))
             b.chain.clear_flags(b.gonio.devices[0])
@@ -418,20 +404,22 @@ class _Session:
             (sm, rm, box), e, d, regions = self._regions_from_markers(idx, stage)
             runs = _runs(sm | rm)
             taken[t] = (e, d)
+        levels = {}                             # per exposure: its `probe_levels`, in one pass
         # probe down the ladder until the regions are unsaturated (or the ladder ends)
         while True:
             if t not in taken:
                 taken[t] = self._expose(idx, t, box)
             e = taken[t][0]
-            peak = _extreme(np.maximum, e.frame.peak, runs)
-            if peak < self.sat * e.frame.full_scale or t <= self.rungs[0]:
+            levels[t] = probe_levels(e.frame, e.dark, runs)
+            if levels[t][0] < self.sat * e.frame.full_scale or t <= self.rungs[0]:
                 break
             k = int(np.searchsorted(self.rungs, t)) - 3
             t = float(self.rungs[max(0, k)])
         for _ in range(3):
             e = taken[t][0]
-            peak = _extreme(np.maximum, e.frame.peak - np.maximum(e.dark.signal, 0), runs)
-            low = _extreme(np.minimum, e.frame.signal - e.dark.signal, runs)
+            if t not in levels:
+                levels[t] = probe_levels(e.frame, e.dark, runs)
+            _, peak, low = levels[t]
             bracket = choose_bracket(self.rungs, t, peak, low, e.frame.full_scale, self.noise,
                                      self.sat, self.snr)
             if bracket[0] == t or peak > 0.05 * e.frame.full_scale or bracket[0] in taken:
@@ -475,9 +463,10 @@ class _Session:
                 dl.discard()
             raise
         gain = None if self.gain is None else self.gain[:, box[0]:box[1], box[2]:box[3]]
-        hdr = merge(exposures, self.noise, self.sat, gamma=self.gamma).flat_fielded(gain)
+        # merged and reduced a block of rows at a time, each block's region sums taken while it is in cache
+        stats = dict(zip(("sample", "reference"),
+                         merged_region_stats(exposures, self.noise, (sm, rm), self.sat, self.gamma, gain)))
         del exposures
-        stats = {"sample": region_stats(hdr, sm), "reference": region_stats(hdr, rm)}
         saturated = any(st["n_saturated"] for st in stats.values())
         s, r = stats["sample"], stats["reference"]
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -346,9 +346,9 @@ def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path, monkeyp
     from gonio.bench.drivers.camera import _dng_direct, decode_raw
     from gonio.sim._sensor import encode_dng
 
-    from gonio.bench.drivers import camera
+    from gonio.bench.drivers import _raw
 
-    monkeypatch.setattr(camera, "_DIRECT_MIN_BYTES", 0)   # the default camera's frames are small
+    monkeypatch.setattr(_raw, "_DIRECT_MIN_BYTES", 0)     # the default camera's frames are small
     inst = instrument("direct")
     for t in (0.0005, 0.01, 0.2):                       # dim, mid, saturated in places
         data = inst.capture(t)
@@ -383,11 +383,12 @@ def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path, monkeypa
     """The bracket a point's probe picks, read directly (what the capture does now) and through
     LibRaw (what it did), on the poses of a shiny sample's capture: the same at every pose."""
     from gonio.bench._hdr import NoiseModel, choose_bracket, ladder
-    from gonio.bench._session import _extreme, _runs, roi_masks_fast
-    from gonio.bench.drivers import camera
+    from gonio.bench._measure import _extreme, _runs
+    from gonio.bench._session import roi_masks_fast
+    from gonio.bench.drivers import _raw
     from gonio.bench.drivers.camera import decode_raw
 
-    monkeypatch.setattr(camera, "_DIRECT_MIN_BYTES", 0)   # read directly whatever the size
+    monkeypatch.setattr(_raw, "_DIRECT_MIN_BYTES", 0)     # read directly whatever the size
     inst = instrument("probe", sample={"model": "roughplastic",
                                         "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.03}})
     folder = tmp_path / "s"
