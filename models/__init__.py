@@ -35,7 +35,7 @@ Example
 
 from __future__ import annotations
 
-from . import _cooktorrance, _lambertian, _orennayar, _principled, _roughconductor, _roughconductor2, _roughplastic, _roughplastic2  # noqa: F401  (register models)
+from . import _cooktorrance, _lambertian, _orennayar, _principled, _roughconductor, _roughconductor2, _roughplastic, _roughplastic2, _tabulated  # noqa: F401  (register models)
 from . import _fast as fast
 from ._base import CHANNELS, Model, Parameter, get, install_compiled, names
 from ._diffuse import lambert, oren_nayar

@@ -128,7 +128,9 @@ def _make_classes(mi, dr):
         def to_string(self):
             return "GonioOrenNayar[]"
 
-    return {"cooktorrance": CookTorranceBSDF, "orennayar": OrenNayarBSDF}
+    from ._tabulated_plugin import make_bsdf as _tabulated_bsdf
+
+    return {"cooktorrance": CookTorranceBSDF, "orennayar": OrenNayarBSDF, "tabulated": _tabulated_bsdf(mi, dr, _Base)}
 
 
 def ensure_registered(model_name):
