@@ -13,7 +13,7 @@ that on the measured samples themselves:
 3. repeated :data:`ROUNDS` times: D at each knot from y / (F G1(wi) G1(wo)), a
    geometric mean with the linear-interpolation (hat) weights of the knot grid (green's
    becomes the shared table, red's and blue's differences give the colour tilts by least
-   squares in the knot index); G1 again from the new D (:func:`gonio.models._tabulated.g1_table`); then F at each Fresnel knot from
+   squares on the tilt's hat functions); G1 again from the new D (:func:`gonio.models._tabulated.g1_table`); then F at each Fresnel knot from
    y / (D G1 G1), the same way in x = 1 - cos(theta_d).
 
 The result becomes the model's declared defaults (:class:`~gonio.models._tabulated.Tabulated`
@@ -28,7 +28,9 @@ Computer Graphics Forum 34(4), 21-30.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import time
 
 import numpy as np
 
@@ -46,6 +48,9 @@ TILT_FLOOR = -10.0
 #: a shared parameter whose Jacobian column is below this fraction of the median is held
 #: at its start (:func:`unseen`)
 WEAK = 0.05
+#: fit rounds at most (:func:`fit_tabulated`), and the relative gain below which it stops
+ROUNDS_FIT = 4
+RESTART_GAIN = 1e-3
 
 
 def _hat(s, n):
@@ -119,20 +124,24 @@ def data_start(meas, model=None) -> dict:
         rel = est - est[:, 1:2]
         green = np.clip(rel[1], *tab.LN_D_BOUNDS)
         green[:tab.FIRST_FREE] = 0.0
-        tilt = np.zeros(3)
-        ramp = np.arange(tab.N_KNOTS) / (tab.N_KNOTS - 1)
-        for c in (0, 2):  # least-squares slope of ln D_c - ln D_g in the ramp, where both were seen
+        B = np.stack(tab.TILT_BASIS, axis=1)  # (K, tilt knots)
+        tilt = np.zeros((3, B.shape[1]))
+        for c in (0, 2):  # least squares of ln D_c - ln D_g on the tilt's hat functions, where both were seen
             use = seen[c] & seen[1] & (green > TILT_FLOOR)
-            if use.sum() >= 3:
-                tilt[c] = np.clip(np.sum((rel[c] - green)[use] * ramp[use]) / np.sum(ramp[use] ** 2), -tab.TILT, tab.TILT)
-        ln_d = green[None, :] + tilt[:, None] * ramp[None, :]
+            if use.sum() >= B.shape[1]:
+                sol = np.linalg.lstsq(B[use], (rel[c] - green)[use], rcond=None)[0]
+                tilt[c] = np.clip(sol, -tab.TILT, tab.TILT)
+        ln_d = green[None, :] + tilt @ B.T
         ln_z, g1 = tab.g1_table(ln_d)
         G = tab._interp(g1, tab.g_index(np.arccos(np.clip(ci, -1, 1)))) * tab._interp(g1, tab.g_index(np.arccos(np.clip(co, -1, 1))))
         D = np.exp(tab._interp(ln_d, s_h) - ln_z[None, :])
         okk = ok & (G * D > 1e-8)
         fe = _knot_log_means(W_f, logy - np.log(np.where(okk, G * D, 1.0)), okk)
         fres = np.clip(np.exp(np.stack([_fill(r, 0.0) for r in fe])), 0.0, 1.0)
-    out = {"diffuse_reflectance": rho, "ndf_tilt_r": tilt[0], "ndf_tilt_b": tilt[2]}
+    out = {"diffuse_reflectance": rho}
+    for c, name in ((0, "r"), (2, "b")):
+        for j, k in enumerate(tab.TILT_KNOTS):
+            out[f"ndf_tilt_{name}_{k}"] = tilt[c, j]
     for k in range(tab.FIRST_FREE, tab.N_KNOTS):
         out[f"ndf_{k}"] = ln_d[1, k]
     for j in range(tab.N_FRESNEL):
@@ -140,16 +149,34 @@ def data_start(meas, model=None) -> dict:
     return model.validate(out)
 
 
-def fit_tabulated(meas, *, rng, loss="log", **kwargs):
+def fit_tabulated(meas, *, rng, loss="log", rounds=ROUNDS_FIT, **kwargs):
     """``tabulated`` fitted to ``meas`` by :func:`gonio.fitting.fit`, starting from
-    :func:`data_start` (the model instance carries it as its defaults). Returns the
-    :class:`FitResult`; its ``model`` is that instance."""
+    :func:`data_start` (the model instance carries it as its defaults), parameters the data
+    do not see held there (:func:`unseen`). While gonio's Levenberg-Marquardt stops at its
+    iteration cap (60) still improving, the fit is run again from its own result, the
+    global stage skipped (``n_starts=0``), at most ``rounds`` times in all, until the
+    objective improves by less than :data:`RESTART_GAIN`. Returns the last
+    :class:`FitResult` with ``time_s`` the total (the start included); its ``model`` is the
+    instance carrying the last start."""
     from ._optimise import fit
 
+    t0 = time.perf_counter()
     model = tab.Tabulated(start=data_start(meas))
     fixed = dict(kwargs.pop("fixed", None) or {})
     fixed.update(unseen(meas, model, loss, exclude=fixed))
-    return fit(meas, model, loss=loss, rng=rng, fixed=fixed or None, **kwargs)
+    res = fit(meas, model, loss=loss, rng=rng, fixed=fixed or None, **kwargs)
+    kwargs["n_starts"] = 0
+    for _ in range(rounds - 1):
+        if res.converged:
+            break
+        model = tab.Tabulated(start=res.params)
+        nxt = fit(meas, model, loss=loss, rng=rng, fixed=fixed or None, **kwargs)
+        gain = res.objective - nxt.objective
+        if gain >= 0:
+            res = nxt
+        if gain < RESTART_GAIN * abs(res.objective):
+            break
+    return dataclasses.replace(res, time_s=time.perf_counter() - t0)
 
 
 def unseen(meas, model, loss="log", weak=WEAK, exclude=()):

@@ -19,11 +19,13 @@ cos theta_d = wi . wh.
   that the integral of D cos(theta_h) over the hemisphere is 1 (Walter et al. 2007, eq. 4).
   The data say the NDF differs per channel (the core of vch is orange, its halo
   yellow-green: g/r of the lobe 0.52 at theta_h < 2 deg, 0.68 at 7-12, 0.79 at 12-20, at
-  theta_d < 20 deg, roughly linear in the knot index), so ln D_c = ln D + t_c k / (K - 1)
-  with a colour tilt t_c for red and blue (t_g = 0): 17 numbers, where 45 independent
+  theta_d < 20 deg; the body at 30-60 deg is green over red), so ln D_c = ln D + t_c(k)
+  with a colour tilt t_c for red and blue (t_g = 0), piecewise linear in the knot index
+  through 0 at the normal and three parameters at 6.4, 40 and 90 deg: 20 numbers, where 45
+  independent
   per-channel knots left gonio's Levenberg-Marquardt stalled by the directions the data do
   not see (the blue lobe of vch is ~0, so its 15 knots are free: measured, log loss 36.9
-  -> 36.75 in 60 iterations, damping at 1e5), and each channel is normalised on its own.
+  -> 36.75 in 60 iterations, damping at 1e5); each channel is normalised on its own.
 * **G1_c** is Smith's, derived from D_c (Heitz 2014, eq. 43; Dupuy et al. 2015, sec. 4):
   G1(w) = cos(theta) / A(theta), A(theta) = int max(0, w . m) D(m) dm, the projected area of
   the microsurface. The azimuthal integral of max(0, a + b cos phi) is closed-form
@@ -84,8 +86,21 @@ N_G = 129
 N_GAUSS = 12
 #: ln D bounds: exp(-25) ~ 1e-11 of the core is "nothing"; up to e^5 above it (a ring)
 LN_D_BOUNDS = (-25.0, 5.0)
-#: bound of the colour tilts |ndf_tilt_r|, |ndf_tilt_b|
+#: bound of the colour tilts |ndf_tilt_<c>_<k>|
 TILT = 10.0
+#: the knots where the colour tilts are parameters (0 at knot 0, linear in the knot index
+#: in between): 6.4, 40 and 90 deg
+TILT_KNOTS = (4, 10, 15)
+
+
+def _tilt_basis():
+    k = np.arange(N_KNOTS, dtype=np.float64)
+    ctrl = np.array((0,) + TILT_KNOTS, dtype=np.float64)
+    return tuple(np.interp(k, ctrl, np.eye(ctrl.size)[j]) for j in range(1, ctrl.size))
+
+
+#: hat functions of the tilt knots on the NDF knots, one (N_KNOTS,) array per tilt knot
+TILT_BASIS = _tilt_basis()
 
 
 def _theta_g(n=N_G):
@@ -186,9 +201,8 @@ def tables(p):
     ln_d = np.zeros((CHANNELS, N_KNOTS))
     for k in range(FIRST_FREE, N_KNOTS):
         ln_d[:, k] = p[f"ndf_{k}"]
-    ramp = np.arange(N_KNOTS) / (N_KNOTS - 1)
-    ln_d[0] += p["ndf_tilt_r"] * ramp
-    ln_d[2] += p["ndf_tilt_b"] * ramp
+    for c, name in ((0, "r"), (2, "b")):
+        ln_d[c] += sum(p[f"ndf_tilt_{name}_{k}"] * b for k, b in zip(TILT_KNOTS, TILT_BASIS))
     ln_z, g1 = g1_table(ln_d)
     fresnel = np.stack([p[f"fresnel_{j}"] for j in range(N_FRESNEL)], axis=1)
     return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, rho=np.asarray(p["diffuse_reflectance"]))
@@ -215,8 +229,9 @@ class Tabulated(Model):
     ndf_2 ... ndf_15 : float
         ln(D(theta_k) / D(0)) of the green channel at theta_k = (pi/2) (k / 15)^2, in [-25, 5]
         (the core is flat: D(theta_1 = 0.4 deg) = D(0)).
-    ndf_tilt_r, ndf_tilt_b : float
-        The red and blue channels' ln D minus green's, t (k / 15) at knot k, t in [-10, 10].
+    ndf_tilt_r_4, ndf_tilt_r_10, ndf_tilt_r_15, and the same for b : float
+        The red and blue channels' ln D minus green's at knots 4, 10, 15 (6.4, 40, 90 deg),
+        0 at the normal, piecewise linear in the knot index, in [-10, 10].
     fresnel_0 ... fresnel_4 : (3,)
         F at 1 - cos(theta_d) = j / 4, in [0, 1].
     """
@@ -254,8 +269,10 @@ class Tabulated(Model):
             pars.append(Parameter(f"ndf_{k}", self._default(f"ndf_{k}", float(np.clip(lnd[k] - lnd[1], *LN_D_BOUNDS))), *LN_D_BOUNDS, "1",
                                   f"ln(D / D(0)) at theta_h = {deg:.2f} deg (green)"))
         for c in "rb":
-            pars.append(Parameter(f"ndf_tilt_{c}", self._default(f"ndf_tilt_{c}", 0.0), -TILT, TILT, "1",
-                                  f"ln(D_{c} / D_g) added at theta_h = 90 deg, linearly in the knot index"))
+            for k in TILT_KNOTS:
+                deg = math.degrees(THETA_KNOTS[k])
+                pars.append(Parameter(f"ndf_tilt_{c}_{k}", self._default(f"ndf_tilt_{c}_{k}", 0.0), -TILT, TILT, "1",
+                                      f"ln(D_{c} / D_g) at theta_h = {deg:.1f} deg (piecewise linear in the knot index)"))
         for j in range(N_FRESNEL):
             x = j / (N_FRESNEL - 1)
             f0 = 0.04 + 0.96 * x**5

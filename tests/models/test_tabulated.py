@@ -34,7 +34,8 @@ def realistic_params(model, rng):
     uniform Fresnel knots and body."""
     alpha = math.exp(rng.uniform(math.log(0.01), math.log(0.8)))
     lnd = tab.ndf_from_function(lambda t: ggx_ratio(t, alpha))
-    p = {"diffuse_reflectance": rng.uniform(0, 1, 3), "ndf_tilt_r": rng.uniform(-3, 3), "ndf_tilt_b": rng.uniform(-3, 3)}
+    p = {"diffuse_reflectance": rng.uniform(0, 1, 3)}
+    p.update({f"ndf_tilt_{c}_{k}": rng.uniform(-3, 3) for c in "rb" for k in tab.TILT_KNOTS})
     for k in range(tab.FIRST_FREE, tab.N_KNOTS):
         p[f"ndf_{k}"] = float(np.clip(lnd[k] - lnd[1] + rng.uniform(-1, 1), *tab.LN_D_BOUNDS))
     for j in range(tab.N_FRESNEL):
