@@ -86,6 +86,8 @@ N_G = 129
 N_GAUSS = 12
 #: ln D bounds: exp(-25) ~ 1e-11 of the core is "nothing"; up to e^5 above it (a ring)
 LN_D_BOUNDS = (-25.0, 5.0)
+#: bounds of the lobe width factors (1 at theta_d = 0)
+WIDTH = (0.25, 4.0)
 #: bound of the colour tilts |ndf_tilt_<c>_<k>|
 TILT = 10.0
 #: the knots where the colour tilts are parameters (0 at knot 0, linear in the knot index
@@ -205,7 +207,9 @@ def tables(p):
         ln_d[c] += sum(p[f"ndf_tilt_{name}_{k}"] * b for k, b in zip(TILT_KNOTS, TILT_BASIS))
     ln_z, g1 = g1_table(ln_d)
     fresnel = np.stack([p[f"fresnel_{j}"] for j in range(N_FRESNEL)], axis=1)
-    return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, rho=np.asarray(p["diffuse_reflectance"]))
+    width = np.array([[1.0] + [p[f"width_{j}"] for j in range(1, N_FRESNEL)]])
+    return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, width=width,
+                           rho=np.asarray(p["diffuse_reflectance"]))
 
 
 def _polar(v):
@@ -279,6 +283,10 @@ class Tabulated(Model):
             pars.append(Parameter(f"fresnel_{j}", self._default(f"fresnel_{j}", f0), 0.0, 1.0, "1",
                                   f"Fresnel factor at theta_d = {math.degrees(math.acos(1.0 - x)):.1f} deg",
                                   per_channel=True))
+        for j in range(1, N_FRESNEL):
+            x = j / (N_FRESNEL - 1)
+            pars.append(Parameter(f"width_{j}", self._default(f"width_{j}", 1.0), WIDTH[0], WIDTH[1], "1",
+                                  f"lobe width factor at theta_d = {math.degrees(math.acos(1.0 - x)):.1f} deg"))
         return tuple(pars)
 
     # -- evaluation -----------------------------------------------------------------------
@@ -293,9 +301,11 @@ class Tabulated(Model):
         wh, valid = half_vector(wi, wo)
         cd = 0.5 * (np.einsum("ij,ij->i", wi, wh) + np.einsum("ij,ij->i", wo, wh))  # symmetric: reciprocal to rounding
         ok = valid & (ci > 0.0) & (co > 0.0) & (wh[:, 2] > 0.0) & (cd > 0.0)
-        D = np.exp(_interp(t.ln_d, knot_index(_polar(wh))) - t.ln_z[None, :])
+        s_f = (N_FRESNEL - 1) * np.clip(1.0 - cd, 0.0, 1.0)
+        w = _interp(t.width, s_f)  # (N, 1): the lobe's width factor at this theta_d
+        D = np.exp(_interp(t.ln_d, knot_index(_polar(wh) / w[:, 0])) - t.ln_z[None, :]) / (w * w)
         G = _interp(t.g1, g_index(_polar(wi))) * _interp(t.g1, g_index(_polar(wo)))
-        F = _interp(t.fresnel, (N_FRESNEL - 1) * np.clip(1.0 - cd, 0.0, 1.0))
+        F = _interp(t.fresnel, s_f)
         den = np.where(ok, 4.0 * ci * co, 1.0)
         return np.where(ok[:, None], F * D * G / den[:, None], 0.0)
 

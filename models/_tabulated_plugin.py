@@ -66,7 +66,8 @@ def make_bsdf(mi, dr, base):
             self.ln_d = mi.Float(np.ascontiguousarray(t.ln_d - t.ln_z[:, None], dtype=np.float32).ravel())
             self.g1 = mi.Float(np.ascontiguousarray(t.g1, dtype=np.float32).ravel())
             self.fresnel = mi.Float(np.ascontiguousarray(t.fresnel, dtype=np.float32).ravel())
-            dr.make_opaque(self.rho, self.ln_d, self.g1, self.fresnel)
+            self.width = mi.Float(np.ascontiguousarray(t.width, dtype=np.float32).ravel())
+            dr.make_opaque(self.rho, self.ln_d, self.g1, self.fresnel, self.width)
             # importance sampling (module notes): the channels' mean D on SAMPLING_BINS rings
             edges = 0.5 * math.pi * (np.linspace(0.0, 1.0, SAMPLING_BINS + 1)) ** 2
             cos_e = np.cos(edges)
@@ -132,11 +133,12 @@ def make_bsdf(mi, dr, base):
             cd = 0.5 * (ix * hx + iy * hy + iz * hz + ox * hx + oy * hy + oz * hz) / dr.select(up64, hn, 1.0)
             up = mi.Bool(up64 & (cd > 0))
             half_pi = 0.5 * math.pi
-            s_h = mi.Float((tab.N_KNOTS - 1) * dr.sqrt(dr.clip(polar64(hx, hy, hz) / half_pi, 0.0, 1.0)))
+            s_f = mi.Float((tab.N_FRESNEL - 1) * dr.clip(1.0 - cd, 0.0, 1.0))
+            w = lerp(self.width, tab.N_FRESNEL, s_f, 0)
+            s_h = mi.Float((tab.N_KNOTS - 1) * dr.sqrt(dr.clip(polar64(hx, hy, hz) / (F64(w) * half_pi), 0.0, 1.0)))
             s_i = mi.Float((tab.N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar64(ix, iy, iz) / half_pi, 0.0, 1.0))))
             s_o = mi.Float((tab.N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar64(ox, oy, oz) / half_pi, 0.0, 1.0))))
-            s_f = mi.Float((tab.N_FRESNEL - 1) * dr.clip(1.0 - cd, 0.0, 1.0))
-            den = 4.0 * dr.select(up, ci * co, 1.0)
+            den = 4.0 * dr.select(up, ci * co, 1.0) * w * w
             lobe = []
             for c in range(CHANNELS):
                 D = dr.exp(lerp(self.ln_d, tab.N_KNOTS, s_h, c))
