@@ -14,7 +14,9 @@ that on the measured samples themselves:
    geometric mean with the linear-interpolation (hat) weights of the knot grid (green's
    becomes the shared table, red's and blue's differences give the colour tilts by least
    squares on the tilt's hat functions); G1 again from the new D (:func:`gonio.models._tabulated.g1_table`); then F at each Fresnel knot from
-   y / (D G1 G1), the same way in x = 1 - cos(theta_d).
+   y / (D G1 G1), the same way in x = 1 - cos(theta_d); then the lobe's width factor at
+   each Fresnel knot by a coordinate search (:func:`_widths`), the knots' D estimated at
+   theta_h / w thereafter.
 
 The result becomes the model's declared defaults (:class:`~gonio.models._tabulated.Tabulated`
 ``start=``), so :func:`fit`'s default-first start and its global stage begin there;
@@ -88,6 +90,33 @@ def _fill(row, fallback_slope=-2.0):
     return out
 
 
+#: candidate width factors of the start's coordinate search (:func:`_widths`)
+WIDTH_GRID = np.exp(np.linspace(-1.0, 1.0, 21))
+
+
+def _widths(width, ln_d, ln_z, theta_h, s_f, W_f, log_y_over_g, ok):
+    """Green's lobe width factor at each Fresnel knot j >= 1, one coordinate at a time over
+    :data:`WIDTH_GRID`: the value whose D_w(theta_h) best explains ln(y / G) up to a
+    constant (the Fresnel factor), samples weighted by the knot's hat function."""
+    width = width.copy()
+    for j in range(1, width.shape[1]):
+        wt = W_f[:, j] * ok
+        if wt.sum() < 5:
+            continue
+        best, best_v = np.inf, width[0, j]
+        for v in WIDTH_GRID:
+            width[0, j] = v
+            w = tab._interp(width, s_f)[:, 0]
+            r = log_y_over_g - (tab._interp(ln_d[None, :], tab.knot_index(theta_h / w))[:, 0] - ln_z - 2.0 * np.log(w))
+            r = np.where(wt > 0, r, 0.0)
+            mean = np.sum(wt * r) / wt.sum()
+            cost = np.sum(wt * (r - mean) ** 2)
+            if cost < best:
+                best, best_v = cost, v
+        width[0, j] = best_v
+    return width
+
+
 def data_start(meas, model=None) -> dict:
     """The starting parameters (validated dict) of ``tabulated`` for ``meas`` (module notes)."""
     model = model or gm.get("tabulated")
@@ -114,11 +143,14 @@ def data_start(meas, model=None) -> dict:
     ln_d = np.zeros((3, tab.N_KNOTS))
     fres = np.stack([p[f"fresnel_{j}"] for j in range(tab.N_FRESNEL)], axis=1)
     g1 = tab.g1_table(ln_d)[1]
+    width = np.ones((1, tab.N_FRESNEL))
+    G = tab._interp(g1, tab.g_index(np.arccos(np.clip(ci, -1, 1)))) * tab._interp(g1, tab.g_index(np.arccos(np.clip(co, -1, 1))))
     for _ in range(ROUNDS):
-        G = tab._interp(g1, tab.g_index(np.arccos(np.clip(ci, -1, 1)))) * tab._interp(g1, tab.g_index(np.arccos(np.clip(co, -1, 1))))
         F = tab._interp(fres, s_f)
+        w = tab._interp(width, s_f)  # (N, 1)
+        W_d = _hat(tab.knot_index(theta_h / w[:, 0]), tab.N_KNOTS)
         okk = ok & (G > 1e-6) & (F > 1e-6)
-        est = _knot_log_means(W_d, logy - np.log(np.where(okk, G * F, 1.0)), okk)  # ln D_norm at knots
+        est = _knot_log_means(W_d, logy - np.log(np.where(okk, G * F, 1.0)) + 2.0 * np.log(w), okk)  # ln D_norm at knots
         seen = np.isfinite(est)
         est = np.stack([_fill(r) for r in est])
         rel = est - est[:, 1:2]
@@ -134,18 +166,22 @@ def data_start(meas, model=None) -> dict:
         ln_d = green[None, :] + tilt @ B.T
         ln_z, g1 = tab.g1_table(ln_d)
         G = tab._interp(g1, tab.g_index(np.arccos(np.clip(ci, -1, 1)))) * tab._interp(g1, tab.g_index(np.arccos(np.clip(co, -1, 1))))
-        D = np.exp(tab._interp(ln_d, s_h) - ln_z[None, :])
+        D = np.exp(tab._interp(ln_d, tab.knot_index(theta_h / w[:, 0])) - ln_z[None, :]) / (w * w)
         okk = ok & (G * D > 1e-8)
         fe = _knot_log_means(W_f, logy - np.log(np.where(okk, G * D, 1.0)), okk)
         fres = np.clip(np.exp(np.stack([_fill(r, 0.0) for r in fe])), 0.0, 1.0)
+        width = _widths(width, ln_d[1], ln_z[1], theta_h, s_f, W_f, logy[:, 1] - np.log(np.maximum(G[:, 1], 1e-300)),
+                        ok[:, 1] & (G[:, 1] > 1e-6))
     out = {"diffuse_reflectance": rho}
     for c, name in ((0, "r"), (2, "b")):
         for j, k in enumerate(tab.TILT_KNOTS):
-            out[f"ndf_tilt_{name}_{k}"] = tilt[c, j]
+            out[f"ndf_tilt_{name}_{k}"] = math.exp(tilt[c, j])
     for k in range(tab.FIRST_FREE, tab.N_KNOTS):
-        out[f"ndf_{k}"] = ln_d[1, k]
+        out[f"ndf_{k}"] = math.exp(ln_d[1, k])
     for j in range(tab.N_FRESNEL):
         out[f"fresnel_{j}"] = fres[:, j]
+    for j in range(1, tab.N_FRESNEL):
+        out[f"width_{j}"] = float(np.clip(width[0, j], *tab.WIDTH))
     return model.validate(out)
 
 

@@ -84,12 +84,16 @@ N_FRESNEL = 5
 N_G = 129
 #: Gauss-Legendre nodes per knot interval of the polar quadratures (normalisation, A)
 N_GAUSS = 12
-#: ln D bounds: exp(-25) ~ 1e-11 of the core is "nothing"; up to e^5 above it (a ring)
+#: ln D bounds: exp(-25) ~ 1e-11 of the core is "nothing"; up to e^5 above it (a ring). The
+#: parameters are the ratios D / D(0) in exp of these (positive, spanning more than 100x: the
+#: fitter's unit box is logarithmic in them, so it moves ln D linearly)
 LN_D_BOUNDS = (-25.0, 5.0)
+D_BOUNDS = (math.exp(LN_D_BOUNDS[0]), math.exp(LN_D_BOUNDS[1]))
 #: bounds of the lobe width factors (1 at theta_d = 0)
 WIDTH = (0.25, 4.0)
-#: bound of the colour tilts |ndf_tilt_<c>_<k>|
+#: bound of the colour tilts |ln ndf_tilt_<c>_<k>|, and the parameter's bounds (ratios)
 TILT = 10.0
+TILT_BOUNDS = (math.exp(-TILT), math.exp(TILT))
 #: the knots where the colour tilts are parameters (0 at knot 0, linear in the knot index
 #: in between): 6.4, 40 and 90 deg
 TILT_KNOTS = (4, 10, 15)
@@ -202,9 +206,9 @@ def tables(p):
     ``ln_z`` (C,), ``g1`` (C, N_G), ``fresnel`` (C, N_FRESNEL), ``rho`` (C,)."""
     ln_d = np.zeros((CHANNELS, N_KNOTS))
     for k in range(FIRST_FREE, N_KNOTS):
-        ln_d[:, k] = p[f"ndf_{k}"]
+        ln_d[:, k] = math.log(p[f"ndf_{k}"])
     for c, name in ((0, "r"), (2, "b")):
-        ln_d[c] += sum(p[f"ndf_tilt_{name}_{k}"] * b for k, b in zip(TILT_KNOTS, TILT_BASIS))
+        ln_d[c] += sum(math.log(p[f"ndf_tilt_{name}_{k}"]) * b for k, b in zip(TILT_KNOTS, TILT_BASIS))
     ln_z, g1 = g1_table(ln_d)
     fresnel = np.stack([p[f"fresnel_{j}"] for j in range(N_FRESNEL)], axis=1)
     width = np.array([[1.0] + [p[f"width_{j}"] for j in range(1, N_FRESNEL)]])
@@ -231,11 +235,14 @@ class Tabulated(Model):
     diffuse_reflectance : (3,)
         rho, Lambertian body in [0, 1].
     ndf_2 ... ndf_15 : float
-        ln(D(theta_k) / D(0)) of the green channel at theta_k = (pi/2) (k / 15)^2, in [-25, 5]
-        (the core is flat: D(theta_1 = 0.4 deg) = D(0)).
+        D(theta_k) / D(0) of the green channel at theta_k = (pi/2) (k / 15)^2, in
+        [e^-25, e^5] (the core is flat: D(theta_1 = 0.4 deg) = D(0)).
     ndf_tilt_r_4, ndf_tilt_r_10, ndf_tilt_r_15, and the same for b : float
-        The red and blue channels' ln D minus green's at knots 4, 10, 15 (6.4, 40, 90 deg),
-        0 at the normal, piecewise linear in the knot index, in [-10, 10].
+        The red and blue channels' D over green's at knots 4, 10, 15 (6.4, 40, 90 deg), in
+        [e^-10, e^10]; the log ratio is 0 at the normal, piecewise linear in the knot index.
+    width_1 ... width_4 : float
+        The lobe's width factor w at the Fresnel knots (theta_d = 41.4 ... 90 deg; 1 at 0),
+        in [0.25, 4]: D is evaluated at theta_h / w and divided by w^2.
     fresnel_0 ... fresnel_4 : (3,)
         F at 1 - cos(theta_d) = j / 4, in [0, 1].
     """
@@ -270,13 +277,13 @@ class Tabulated(Model):
         lnd = ndf_from_function(lambda t: _ggx_ratio(t, self.DEFAULT_ALPHA))
         for k in range(FIRST_FREE, N_KNOTS):
             deg = math.degrees(THETA_KNOTS[k])
-            pars.append(Parameter(f"ndf_{k}", self._default(f"ndf_{k}", float(np.clip(lnd[k] - lnd[1], *LN_D_BOUNDS))), *LN_D_BOUNDS, "1",
-                                  f"ln(D / D(0)) at theta_h = {deg:.2f} deg (green)"))
+            pars.append(Parameter(f"ndf_{k}", self._default(f"ndf_{k}", float(np.exp(np.clip(lnd[k] - lnd[1], *LN_D_BOUNDS)))),
+                                  *D_BOUNDS, "1", f"D / D(0) at theta_h = {deg:.2f} deg (green)"))
         for c in "rb":
             for k in TILT_KNOTS:
                 deg = math.degrees(THETA_KNOTS[k])
-                pars.append(Parameter(f"ndf_tilt_{c}_{k}", self._default(f"ndf_tilt_{c}_{k}", 0.0), -TILT, TILT, "1",
-                                      f"ln(D_{c} / D_g) at theta_h = {deg:.1f} deg (piecewise linear in the knot index)"))
+                pars.append(Parameter(f"ndf_tilt_{c}_{k}", self._default(f"ndf_tilt_{c}_{k}", 1.0), *TILT_BOUNDS, "1",
+                                      f"D_{c} / D_g at theta_h = {deg:.1f} deg (its log piecewise linear in the knot index)"))
         for j in range(N_FRESNEL):
             x = j / (N_FRESNEL - 1)
             f0 = 0.04 + 0.96 * x**5

@@ -21,9 +21,10 @@ def truth():
     alpha = 0.08
     lnd = tab.ndf_from_function(lambda t: 1.0 / (np.cos(t) ** 2 + np.sin(t) ** 2 / alpha**2) ** 2)
     p = {"diffuse_reflectance": [0.05, 0.08, 0.02]}
-    p.update({f"ndf_{k}": lnd[k] - lnd[1] for k in range(tab.FIRST_FREE, tab.N_KNOTS)})
-    p.update({"ndf_tilt_r_4": 0.0, "ndf_tilt_r_10": -0.5, "ndf_tilt_r_15": -1.0,
-              "ndf_tilt_b_4": 0.3, "ndf_tilt_b_10": 0.8, "ndf_tilt_b_15": 1.0})
+    p.update({f"ndf_{k}": math.exp(lnd[k] - lnd[1]) for k in range(tab.FIRST_FREE, tab.N_KNOTS)})
+    p.update({f"ndf_tilt_{c}_{k}": math.exp(v) for (c, k), v in {
+        ("r", 4): 0.0, ("r", 10): -0.5, ("r", 15): -1.0, ("b", 4): 0.3, ("b", 10): 0.8, ("b", 15): 1.0}.items()})
+    p.update({"width_1": 1.1, "width_2": 1.3, "width_3": 1.6, "width_4": 2.0})
     F = np.array([[0.5, 0.3, 0.05], [0.5, 0.3, 0.06], [0.55, 0.35, 0.1], [0.7, 0.6, 0.4], [1.0, 1.0, 1.0]])
     p.update({f"fresnel_{j}": F[j] for j in range(tab.N_FRESNEL)})
     return gm.get("tabulated").validate(p)
@@ -60,23 +61,25 @@ def test_data_start_reads_the_table_off_the_data():
     """Noise-free data of a known table: the start's ln D knots are within 0.3 of the truth
     where the lobe is above the body (theta_h <= 25.6 deg, knots 2-8; measured max 0.25;
     beyond, the lobe is e^-8 of its core and the body's estimate dominates: 0.9 at 40 deg),
-    its colour tilt at 40 deg within 0.3 (measured 0.2), F at normal incidence within 30 %
+    its colour tilt at 40 deg within 0.45 in ln (measured 0.35), F at normal incidence within 30 %
     (measured 26 %: the tail's error moves the normalisation) and the body within 0.01
     (measured 0.005). The fit (next test) takes it from there."""
     p = truth()
     meas = synthetic(p, np.random.default_rng(1))
     s = data_start(meas)
-    err = [abs(s[f"ndf_{k}"] - p[f"ndf_{k}"]) for k in range(tab.FIRST_FREE, 9)]
+    err = [abs(math.log(s[f"ndf_{k}"] / p[f"ndf_{k}"])) for k in range(tab.FIRST_FREE, 9)]
     assert max(err) < 0.3, err
-    assert abs(s["ndf_tilt_r_10"] - p["ndf_tilt_r_10"]) < 0.3
+    assert abs(math.log(s["ndf_tilt_r_10"] / p["ndf_tilt_r_10"])) < 0.45
     np.testing.assert_allclose(s["fresnel_0"][:2], p["fresnel_0"][:2], rtol=0.3)
     np.testing.assert_allclose(s["diffuse_reflectance"], p["diffuse_reflectance"], atol=0.01)
 
 
+@pytest.mark.slow
 def test_fit_tabulated_recovers_the_truth_and_beats_its_start():
     """gonio's fit (log loss) from the start: the objective falls at least 10x and the dense
-    log error is below 2e-3 (measured 3.4e-4) on noise-free data (880 pairs: 8-20 s on the
-    shared 2-core machine, the slowest of these tests)."""
+    log error is below 2e-3 where the data's angles reach (theta <= 60 deg; measured 6.3e-4)
+    on noise-free data. Marked slow: 880 pairs, 39 parameters, 15-48 s on the shared 2-core
+    machine."""
     p = truth()
     meas = synthetic(p, np.random.default_rng(2), n_per=80)
     model0 = tab.Tabulated(start=data_start(meas))
@@ -87,9 +90,11 @@ def test_fit_tabulated_recovers_the_truth_and_beats_its_start():
     rng = np.random.default_rng(3)
     wi = rng.normal(size=(4000, 3))
     wo = rng.normal(size=(4000, 3))
-    for w in (wi, wo):
-        w[:, 2] = np.abs(w[:, 2]) + 0.2
+    for w in (wi, wo):  # theta <= 60 deg: where the data's theta_d reach (the widths beyond are unseen)
+        w[:, 2] = np.abs(w[:, 2])
         w /= np.linalg.norm(w, axis=1, keepdims=True)
+    keep = (wi[:, 2] > 0.5) & (wo[:, 2] > 0.5)
+    wi, wo = wi[keep], wo[keep]
     m = gm.get("tabulated")
     a, b = m.eval(wi, wo, res.params) * wi[:, 2:3], m.eval(wi, wo, p) * wi[:, 2:3]
     err = np.sqrt(np.mean((np.log1p(a) - np.log1p(b)) ** 2))
