@@ -78,7 +78,7 @@ def test_data_start_reads_the_table_off_the_data():
 def test_fit_tabulated_recovers_the_truth_and_beats_its_start():
     """gonio's fit (log loss) from the start: the objective falls at least 10x and the dense
     log error is below 2e-3 where the data's angles reach (theta <= 60 deg; measured 6.3e-4)
-    on noise-free data. Marked slow: 880 pairs, 39 parameters, 15-48 s on the shared 2-core
+    on noise-free data. Marked slow: 880 pairs, 42 numbers, 15-48 s on the shared 2-core
     machine."""
     p = truth()
     meas = synthetic(p, np.random.default_rng(2), n_per=80)
