@@ -37,7 +37,7 @@ import time
 import numpy as np
 
 import gonio.models as gm
-from gonio.models import _tabulated as tab
+from gonio.models import tabulated as tab
 from gonio.models.geometry import half_vector
 
 __all__ = ["data_start", "fit_tabulated", "unseen", "ROUNDS", "WEAK"]

@@ -42,6 +42,7 @@ from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
 from ._structure import Affine, Structure
+from . import _tabulated as tabulated  # the tabulated model's tables and grids (for fitting's data-driven start)
 from .mitsuba import mitsuba_variant
 
 install_compiled(fast.eval, fast.available)  # Model.eval's compiled path (models/_base cannot import it)
@@ -66,4 +67,5 @@ __all__ = [
     "DISTRIBUTIONS",
     "lambert",
     "oren_nayar",
+    "tabulated",
 ]

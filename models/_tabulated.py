@@ -347,9 +347,14 @@ class Tabulated(Model):
 
     # -- Mitsuba ----------------------------------------------------------------------------
     def to_mitsuba(self, params):
-        from ._mitsuba_plugins import ensure_registered
+        import sys
+
+        from ._mitsuba_plugins import add_plugin, ensure_registered
+        from ._tabulated_plugin import make_bsdf
 
         p = self.validate(params)
+        this = sys.modules[__name__]
+        add_plugin("tabulated", lambda mi, dr, base: make_bsdf(mi, dr, base, this))
         d = {"type": ensure_registered("tabulated")}
         for par in self.parameters:
             if par.per_channel:

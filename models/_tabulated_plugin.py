@@ -30,10 +30,9 @@ SAMPLING_BINS = 1024
 Q_MIN, Q_MAX = 0.2, 0.9
 
 
-def make_bsdf(mi, dr, base):
-    """The BSDF class for the active variant, derived from gonio's Python BSDF ``base``."""
-    from . import _tabulated as tab
-
+def make_bsdf(mi, dr, base, tab):
+    """The BSDF class for the active variant, derived from gonio's Python BSDF ``base``;
+    ``tab`` is the model's module (:mod:`._tabulated`, passed in: no import cycle)."""
     model = tab.Tabulated()
 
     def lerp(table, n, s, c):
