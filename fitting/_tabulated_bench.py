@@ -7,6 +7,23 @@ weighted samples) and the peer (:func:`gonio.fitting._realbench.peer_fit`: scipy
 ``least_squares`` on the unweighted log residuals, 8 starts, the same model instance, so
 the same data-driven start as its first). ``python -m gonio.fitting._tabulated_bench
 FILE...`` prints one line per fit.
+
+Measured 2026-12-02 on the shared 2-core machine (two benchmarks running at once, so the
+times are inflated by about 2x; both sides of a row ran in the same process):
+
+=====================  =====  ======  =====  ======  ======  ======  =====
+material               Ngan   log     dE00   time s  peer    peer    peer
+                                      (floor)         Ngan    log     time s
+=====================  =====  ======  =====  ======  ======  ======  =====
+vch_golden_yellow      0.152  0.0224  2.52   58      0.153   0.0232  209
+                                      (0.58)                          (dE 3.55)
+colodur_napoli_4f      0.068  0.0023  0.69   81      0.068   0.0024  137
+                                      (0.24)                          (dE 0.74)
+paper_white            0.105  0.0162  2.91   164     (see the report)
+=====================  =====  ======  =====  ======  ======  ======  =====
+
+paper_white's fit broke albedo <= 1 and the SLSQP polish stopped at its time cap
+(``maxtime reached``): a near-white Lambertian body is not this model's case.
 """
 
 from __future__ import annotations
