@@ -41,7 +41,8 @@ cos theta_d = wi . wh.
   (its normalisation for narrow lobes). The measured paint's lobe broadens toward grazing
   (vch at theta_h = 0: 8.8 sr^-1 at theta_i = 20 deg, 8.2 at 45, 11.7 at 70, where one
   fixed D with its 1 / (4 cos_i cos_o) gave 6.2, 11 and 33); with w the vch fit went from
-  Ngan 0.288 / log 0.0314 / rendered dE 3.63 to 0.152 / 0.0226 / 2.16. With w != 1 the
+  Ngan 0.288 / log 0.0314 / rendered dE 3.63 to 0.152 / 0.0224 / 2.52 (2.16 from a start
+  without the width estimate: the rendered difference is not what the log loss measures). With w != 1 the
   lobe is no longer one microsurface: G1 stays the Smith G1 of the base D (w = 1), an
   approximation the data-driven term accepts.
 * **rho_c** (``diffuse_reflectance``): a Lambertian body.
