@@ -37,13 +37,14 @@ Example
 
 from __future__ import annotations
 
-from . import _cooktorrance, _lambertian, _orennayar, _principled, _roughconductor, _roughconductor2, _roughplastic, _roughplastic2  # noqa: F401  (register models)
+from . import _cooktorrance, _lambertian, _orennayar, _principled, _roughconductor, _roughconductor2, _roughplastic, _roughplastic2, _tabulated  # noqa: F401  (register models)
 from . import _fast as fast
 from ._base import CHANNELS, Model, Parameter, eval_dtype, get, install_compiled, names
 from ._diffuse import lambert, oren_nayar
 from ._fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from ._microfacet import DISTRIBUTIONS, MicrofacetDistribution
 from ._structure import Affine, Structure
+from . import _tabulated as tabulated  # the tabulated model's tables and grids (for fitting's data-driven start)
 from .mitsuba import mitsuba_variant
 
 install_compiled(fast.eval, fast.available)  # Model.eval's compiled path (models/_base cannot import it)
@@ -69,4 +70,5 @@ __all__ = [
     "DISTRIBUTIONS",
     "lambert",
     "oren_nayar",
+    "tabulated",
 ]

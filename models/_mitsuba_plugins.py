@@ -13,7 +13,7 @@ import math
 
 from ._variant import mitsuba_variant
 
-__all__ = ["bsdf_base", "ensure_registered"]
+__all__ = ["bsdf_base", "ensure_registered", "add_plugin"]
 
 _registered: set = set()
 
@@ -128,7 +128,19 @@ def _make_classes(mi, dr):
         def to_string(self):
             return "GonioOrenNayar[]"
 
-    return {"cooktorrance": CookTorranceBSDF, "orennayar": OrenNayarBSDF}
+    classes = {"cooktorrance": CookTorranceBSDF, "orennayar": OrenNayarBSDF}
+    classes.update({name: maker(mi, dr, _Base) for name, maker in _MAKERS.items()})
+    return classes
+
+
+#: BSDF classes that models written elsewhere add (:func:`add_plugin`): name -> maker(mi, dr, base)
+_MAKERS: dict = {}
+
+
+def add_plugin(model_name, maker):
+    """Let a model module add its Python BSDF: ``maker(mi, dr, base)`` returns the class
+    (derived from ``base``, :func:`bsdf_base`); registered by :func:`ensure_registered`."""
+    _MAKERS[model_name] = maker
 
 
 def ensure_registered(model_name):

@@ -31,10 +31,23 @@ CONFIGS = all_configs()
 IDS = ["-".join([n] + [f"{k}={v}" for k, v in o.items()]) for n, o in CONFIGS]
 
 
+#: above this many parameters (2^10 corners) the corners are sampled: the lowest and the
+#: highest, then seeded random ones (``tabulated`` has 21: 2^21 corners)
+MAX_CORNER_PARAMS = 10
+N_SAMPLED_CORNERS = 62
+
+
 def corner_params(model):
-    """Corners of the parameter box (all channels at the same corner)."""
+    """Corners of the parameter box (all channels at the same corner); every corner up to
+    ``MAX_CORNER_PARAMS`` parameters, else the lowest, the highest and seeded random ones."""
     pars = model.parameters
-    for corner in itertools.product(*[(p.lower, p.upper) for p in pars]):
+    if len(pars) <= MAX_CORNER_PARAMS:
+        corners = itertools.product(*[(p.lower, p.upper) for p in pars])
+    else:
+        bits = np.random.default_rng(len(pars)).integers(0, 2, (N_SAMPLED_CORNERS, len(pars)))
+        bits = np.concatenate([np.zeros((1, len(pars)), int), bits, np.ones((1, len(pars)), int)])
+        corners = [[(p.lower, p.upper)[b] for p, b in zip(pars, row)] for row in bits]
+    for corner in corners:
         yield {p.name: v for p, v in zip(pars, corner)}
 
 
