@@ -146,6 +146,10 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
         try:
             if len(candidates) > 1:     # no distribution given: each declared one, chosen by BIC (said)
                 result, ranking = select(meas, rng=rng, loss=loss, candidates=candidates, delta=0.0)
+            elif model == "tabulated":      # data-driven NDF: started from the data, not from defaults
+                from gonio.fitting import fit_tabulated
+
+                result = fit_tabulated(meas, rng=rng, loss=loss)
             else:
                 result = fit(meas, gm.get(model, **candidates[0][1]), rng=rng, loss=loss)
         except ValueError as exc:

@@ -25,9 +25,10 @@ from ._posterior import Posterior, sample_posterior
 from ._realdata import merl_samples, rgl_samples
 from ._selection import CANDIDATES, Ranked, option_candidates, select
 from ._space import ParameterSpace
+from ._tabulated_start import fit_tabulated
 
 __all__ = [
-    "Budget", "BudgetComponent", "load_budget", "with_instrument_response", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked",
+    "Budget", "BudgetComponent", "load_budget", "with_instrument_response", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked", "fit_tabulated",
     "COLOUR_SPACES", "colour_transform", "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
     "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers",
 ]
