@@ -10,7 +10,7 @@ from pathlib import Path
 from gonio.models.atomic import atomic_open
 
 from .errors import GonioError
-from .fit_runner import _open_dataset
+from .fit_runner import _open_dataset, load_fit_file
 
 __all__ = ["convert_cli"]
 
@@ -77,11 +77,7 @@ def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
     if to in ("mitsuba-xml", "mitsuba-dict", "merl"):
         if source.suffix.lower() != ".json":
             raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
-        try:
-            loaded = load_fit(source)
-            model, params = loaded.model, loaded.params
-        except (ValueError, KeyError, json.JSONDecodeError) as exc:
-            raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+        model, params = load_fit_file(source)
         if to == "merl":
             merl = formats.resample_to_merl(model, params)
             _make_parent(out)

@@ -112,6 +112,33 @@ def _model_error(exc, model, auto: bool) -> GonioError:
     return GonioError(" ".join(str(exc.args[0] if exc.args else exc).split())[:300])
 
 
+def resolve_candidates(model, options):
+    """``--model`` and ``--option`` as select's candidates: None for auto (every candidate),
+    else the named model's (one per declared distribution when none is given); one line each
+    for what cannot be."""
+    from gonio.fitting import option_candidates
+
+    if model == "auto":
+        if options:
+            raise GonioError("--option needs a named --model (auto tries every candidate with its own options)")
+        return None
+    try:
+        return option_candidates(model, options)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise _model_error(exc, model, auto=True) from None
+
+
+def load_fit_file(path):
+    """A fit file as (model, params), or one line saying it is not one."""
+    from gonio.fitting import load_fit
+
+    try:
+        loaded = load_fit(path)
+        return loaded.model, loaded.params
+    except (ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise GonioError(f"{path} is not a readable gonio fit file ({exc})") from None
+
+
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
                 posterior_budget_s=None, dataset_path=None, budget=None):
     """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
@@ -122,7 +149,7 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
     ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
     (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file."""
     import gonio.models as gm
-    from gonio.fitting import (default_loss, fit, fit_document, option_candidates, sample_posterior, select,
+    from gonio.fitting import (default_loss, fit, fit_document, sample_posterior, select,
                                with_instrument_response)
 
     from gonio.fitting import LOSSES
@@ -133,16 +160,11 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
         raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
     rng = np.random.default_rng(seed)
     ranking, selection_note = None, None
-    if model == "auto":
-        if options:
-            raise GonioError("--option needs a named --model (auto tries every candidate with its own options)")
+    candidates = resolve_candidates(model, options)
+    if candidates is None:
         result, ranking = select(meas, rng=rng, loss=loss)
         result, ranking, selection_note = _rendered_choice(ranking, dataset_path, seed)
     else:
-        try:
-            candidates = option_candidates(model, options)
-        except (KeyError, ValueError, TypeError) as exc:
-            raise _model_error(exc, model, auto=True) from None
         try:
             if len(candidates) > 1:     # no distribution given: each declared one, chosen by BIC (said)
                 result, ranking = select(meas, rng=rng, loss=loss, candidates=candidates, delta=0.0)
@@ -419,16 +441,12 @@ def _provenance(fit_path, meas=None) -> dict:
 
 def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     """Render the fit at the dataset's geometry; write ``out_dir/render.json``; return its content."""
-    from gonio.fitting import load_fit, write_json_atomic
+    from gonio.fitting import write_json_atomic
     from gonio.fitting.render import loop_closure
 
     if not fit_path.exists():
         raise GonioError(f"fit file {fit_path} does not exist; run `gonio fit DATASET --out FIT.json` first")
-    try:
-        loaded = load_fit(fit_path)
-        model, params = loaded.model, loaded.params
-    except (ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise GonioError(f"{fit_path} is not a readable gonio fit file ({exc})") from None
+    model, params = load_fit_file(fit_path)
     result = loop_closure(model, params, meas, variant=variant)
     result["provenance"] = _provenance(fit_path, meas)
     from ._preflight import writing

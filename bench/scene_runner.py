@@ -62,22 +62,14 @@ def _check_scene_file(path: Path) -> None:
 
 def _fit_candidates(meas, model, options, seed, loss):
     """The data fits of every candidate: (FitResults, ranking rows)."""
-    from gonio.fitting import default_loss, option_candidates, select
+    from gonio.fitting import default_loss, select
 
-    from .fit_runner import _model_error, parse_options
+    from .fit_runner import parse_options, resolve_candidates
 
     options = parse_options(options)
     loss = loss or default_loss(meas)
     rng = np.random.default_rng(seed)
-    if model == "auto":
-        if options:
-            raise GonioError("--option needs a named --model (auto tries every candidate with its own options)")
-        candidates = None
-    else:
-        try:
-            candidates = option_candidates(model, options)
-        except (KeyError, ValueError, TypeError) as exc:
-            raise _model_error(exc, model, auto=True) from None
+    candidates = resolve_candidates(model, options)
     try:
         _, ranking = select(meas, rng=rng, loss=loss, candidates=candidates)
     except ValueError as exc:
