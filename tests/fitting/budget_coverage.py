@@ -207,7 +207,7 @@ def main(argv=None):
     if a.mode is None:
         ap.error("give a mode (synthetic or capture) or --summarise FILE")
     rows, t0 = [], time.perf_counter()
-    folder = Path("/tmp") / f"gonio-budget-coverage-{a.first}"
+    folder = Path("/tmp") / f"gonio-budget-coverage-{a.mode}-{a.sample}-{a.first}"     # two samples can run at once
     for s in range(a.first, a.first + a.n):
         if a.mode == "synthetic":
             rows.append(record(*T.fit_session(s)))
