@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -215,11 +216,16 @@ def main(argv=None):
             rows.append(record_typical(*typical_session(s)))
         else:
             rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated, a.sample)))
-        if a.out and ((s - a.first + 1) % 25 == 0 or s == a.first + a.n - 1):
+        rows[-1]["seed"] = s
+        if a.out and (a.mode == "capture" or (s - a.first + 1) % 25 == 0 or s == a.first + a.n - 1):
+            # a capture session takes 10-40 s: written after each, so a run stopped early keeps them all
             a.out.parent.mkdir(parents=True, exist_ok=True)
-            a.out.write_text(json.dumps({"mode": a.mode, "first_seed": a.first, "errors": a.errors, "plan": a.plan,
+            tmp = a.out.with_name(a.out.name + ".part")          # replaced whole: a stop mid-write loses nothing
+            tmp.write_text(json.dumps({"mode": a.mode, "first_seed": a.first, "errors": a.errors, "plan": a.plan,
+                                         "sample": a.sample, "calibrated": a.calibrated,
                                          "made_by": "tests/fitting/budget_coverage.py",
                                          "versions": T.versions(), "sessions": rows}) + "\n")
+            os.replace(tmp, a.out)
             print(f"{s - a.first + 1} sessions, {time.perf_counter() - t0:.0f} s", flush=True)
     summarise(rows)
     return 0
