@@ -16,7 +16,7 @@ import numpy as np
 from . import _alignment as al
 from . import kinematics
 
-__all__ = ["calibrated_angles", "angle_uncertainty", "u_reference_factor", "u_linearity_rel", "u_stray_rel",
+__all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "u_linearity_rel", "u_stray_rel",
            "dataset_angles", "instrument_response"]
 
 
@@ -42,13 +42,35 @@ def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0)):
     return np.stack([ti, pi_, to, po], -1)
 
 
-def calibrated_angles(cal: Mapping, stage_deg) -> np.ndarray:
+#: the axes whose lost motion gonio calibrate measures (scans both ways): alignment keys by axis
+_MEASURED_BACKLASH = {0: "backlash_yaw_deg", 1: "backlash_tilt_deg", 3: "backlash_lamp_deg"}
+
+
+def lost_motion(cal: Mapping, last_dir) -> np.ndarray:
+    """The correction (N, 4) in degrees for each axis's lost motion: ``-b / 2`` times the sign of
+    the axis's last move (the load lags the motor), with ``b`` the calibration's measured
+    backlash of yaw, tilt and lamp; 0 for the azimuth (not scanned) and where the direction is
+    unknown (0: before the axis's first move in the journal)."""
+    d = np.asarray(last_dir, float)
+    a = cal.get("alignment", {})
+    out = np.zeros(d.shape)
+    for k, key in _MEASURED_BACKLASH.items():
+        if key in a:
+            out[..., k] = -0.5 * abs(float(a[key])) * d[..., k]
+    return out
+
+
+def calibrated_angles(cal: Mapping, stage_deg, last_dir=None) -> np.ndarray:
     """The angles points at commanded ``stage_deg`` (..., 4) really had: ``(theta_i, phi_i,
-    theta_o, phi_o)`` (..., 4) in degrees, with the calibration's zero offsets and holder tilt.
+    theta_o, phi_o)`` (..., 4) in degrees, with the calibration's zero offsets and holder tilt,
+    and with ``last_dir`` (..., 4; the sign of each axis's last move, bench/_budget.move_history)
+    each measured axis's lost motion (:func:`lost_motion`): a known systematic error is corrected
+    (GUM 3.2.4), not carried as an uncertainty around zero (it biased alpha by +0.4 u_c).
 
     With an empty calibration this is ``kinematics.forward_angles``.
     """
-    return _angles(np.atleast_2d(np.asarray(stage_deg, float)), _p(cal))
+    stage = np.atleast_2d(np.asarray(stage_deg, float))
+    return _angles(stage, _p(cal), None if last_dir is None else lost_motion(cal, np.broadcast_to(last_dir, stage.shape)))
 
 
 def _jacobian(stage, p, which, h=1e-3):
@@ -104,8 +126,11 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     ``last_dir`` (N, 4), optional: the sign of each axis's last move before each point (+1, -1;
     0 unknown), from the order the points were taken. With it an axis's lost motion is not a
     per-point error but the same -b/2 for every point its axis last reached moving up and +b/2
-    moving down: one shared error per axis (a mode, signed by the direction), leaving only the
-    repeatability per move; without it (or where 0) half the backlash stays in the per-point part.
+    moving down: the angles are corrected by the measured backlash (:func:`lost_motion`; yaw,
+    tilt, lamp) and what is left is one shared error per axis, the measurement's
+    ``u_backlash_<axis>_deg`` / 2 (a mode, signed by the direction); the azimuth's, not
+    measured, stays a mode of its assumed b/2. Without it (or where 0) half the backlash stays in
+    the per-point part and nothing is corrected.
     """
     stage = np.atleast_2d(np.asarray(stage_deg, float))
     a = cal.get("alignment", {})
@@ -121,6 +146,11 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     half_b += [max(half_b), 0.5 * abs(float(a.get("backlash_lamp_deg", max(half_b) * 2)))]   # azimuth: not scanned
     d = np.zeros(stage.shape) if last_dir is None else np.broadcast_to(np.asarray(last_dir, float), stage.shape)
     known = d != 0
+    # the lost motion left after the correction: the measured axes' u(b)/2, the azimuth's b/2
+    left_b = list(half_b)
+    for k, key in _MEASURED_BACKLASH.items():
+        if key in a:
+            left_b[k] = 0.5 * abs(float(a.get("u_" + key, 0.0)))
     sd_i = np.sqrt(rep ** 2 + np.where(known, 0.0, np.asarray(half_b) ** 2))      # (N, 4) per axis
     Js = _jacobian(stage, p, shared)
     Ji = _jacobian(stage, p, ["axis0", "axis1", "axis2", "axis3"])
@@ -128,15 +158,15 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     modes = np.einsum("nak,km->nam", Js, V * np.sqrt(np.clip(w, 0.0, None)))      # (N, 4, 7)
     keep = np.sqrt(np.clip(w, 0.0, None)) > 0
     modes = modes[:, :, keep]
-    lost = [Ji[:, :, k] * (-np.asarray(half_b)[k] * d[:, k])[:, None] for k in range(4)
-            if half_b[k] > 0 and np.any(known[:, k])]                            # the sim: error -b/2 x dir
+    lost = [Ji[:, :, k] * (-left_b[k] * d[:, k])[:, None] for k in range(4)
+            if left_b[k] > 0 and np.any(known[:, k])]                            # the sim: error -b/2 x dir
     if lost:
         modes = np.concatenate([modes, np.stack(lost, -1)], axis=-1)
     indep = Ji * sd_i[:, None, :]                                                 # (N, 4 angles, 4 axes)
     cov_s = np.einsum("nak,nbk->nab", modes, modes)
     cov_i = np.einsum("nak,nbk->nab", indep, indep)
     tot = np.sqrt(np.diagonal(cov_s + cov_i, axis1=1, axis2=2))
-    return {"angles": _angles(stage, p), "cov_shared": cov_s, "cov_independent": cov_i,
+    return {"angles": _angles(stage, p, lost_motion(cal, d)), "cov_shared": cov_s, "cov_independent": cov_i,
             "shared_modes": modes, "independent_modes": indep,
             "u_theta_i": tot[:, 0], "u_phi_i": tot[:, 1], "u_theta_o": tot[:, 2], "u_phi_o": tot[:, 3]}
 
@@ -173,7 +203,7 @@ def u_stray_rel(radiance_sample, radiance_reference, floor: float) -> np.ndarray
     return float(floor) / math.pi * np.abs(1.0 / ls - 1.0 / lr) / math.sqrt(3.0)
 
 
-def dataset_angles(settings: Mapping, stage_deg) -> tuple[dict, dict, dict]:
+def dataset_angles(settings: Mapping, stage_deg, last_dir=None) -> tuple[dict, dict, dict]:
     """What export writes for a calibrated session: ``(coords, variables, attrs)``.
 
     Without an ``[alignment]`` table in the session's settings all three are empty. With one,
@@ -188,7 +218,7 @@ def dataset_angles(settings: Mapping, stage_deg) -> tuple[dict, dict, dict]:
     if not isinstance(settings.get("alignment"), Mapping):
         return {}, {}, {}
     stage = np.atleast_2d(np.asarray(stage_deg, float))
-    u = angle_uncertainty(settings, stage)
+    u = angle_uncertainty(settings, stage, last_dir=last_dir)
     nominal = calibrated_angles({}, stage)
     names = ("theta_i", "phi_i", "theta_o", "phi_o")
     deg = {"units": "degree"}

@@ -98,6 +98,12 @@ class ReferenceModel:
     ``factor_theta_i``, ``factor_theta_o`` (degrees, ascending) and ``factor`` (a table, rows
     over theta_i, columns over theta_o) from the certificate: the reference's f_r relative to
     a Lambertian of the same reflectance, interpolated bilinearly (clamped at the edges).
+    Where the table came from gonio calibrate's fit (``factor_a``, ``factor_b`` present) the
+    fitted form itself is evaluated (bench/_alignment.reference_factor_model): bilinear
+    interpolation of its 20-degree table overstates the convex sin^2 terms between the nodes,
+    a one-signed error (2.9e-4 low at 30/30 deg, up to 6e-4 over the quick plan's points; at the
+    quick plan's specular peak between nodes it flattened the lobe and biased alpha by about
+    +0.1 u_c) that no budget line carries.
     """
 
     def __init__(self, ref: Mapping):
@@ -112,9 +118,19 @@ class ReferenceModel:
                 raise GonioError("[reference] factor must be a positive len(factor_theta_i) x len(factor_theta_o) "
                                  "table over ascending angles; fix the settings")
             self.table = (ti, to, fac)
+        self.ab = None
+        if "factor_a" in ref or "factor_b" in ref:
+            ab = [ref.get("factor_a"), ref.get("factor_b")]
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in ab):
+                raise GonioError("[reference] factor_a and factor_b must both be finite numbers (gonio calibrate's "
+                                 "fit); fix the settings or remove both")
+            self.ab = (float(ab[0]), float(ab[1]))
 
     def factor(self, theta_i: float, theta_o: float) -> float:
         """The non-Lambertian factor at (theta_i, theta_o) in degrees (1 without a table)."""
+        if self.ab is not None:
+            from ._alignment import reference_factor_model
+            return float(reference_factor_model(theta_i, theta_o, *self.ab))
         if self.table is None:
             return 1.0
         ti, to, fac = self.table

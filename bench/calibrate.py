@@ -46,6 +46,7 @@ from ._calpoint import (
     calibrated_angles,
     dataset_angles,
     instrument_response,
+    lost_motion,
     u_linearity_rel,
     u_reference_factor,
     u_stray_rel,
@@ -54,7 +55,7 @@ from ._hdr import linearise
 from .errors import GonioError
 
 __all__ = ["SimBench", "calibrate", "align", "linearity", "reference_factor", "write_calibration",
-           "read_calibration", "merge_calibration", "calibrated_angles", "angle_uncertainty",
+           "read_calibration", "merge_calibration", "calibrated_angles", "lost_motion", "angle_uncertainty",
            "u_reference_factor", "u_linearity_rel", "u_stray_rel", "instrument_response", "dataset_angles",
            "GLOSSY_ARTEFACT", "run_calibration", "summary", "calibrate_cli"]
 

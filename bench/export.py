@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _integrity
-from ._budget import budget_variables
+from ._budget import budget_variables, move_history
 from ._cf import cf_encode
 from .calibrate import dataset_angles, instrument_response
 from ._files import commit_file, tmp_name
@@ -108,7 +108,7 @@ def to_dataset(session_dir, chart=None):
         coords["xyz"] = ["X", "Y", "Z"]
     # a calibrated session (gonio capture --calibration): the true angles, their u, the apertures
     stage = np.stack([data[k][1] for k in ("yaw", "tilt", "azimuth", "lamp")], -1)
-    cal_coords, cal_data, cal_attrs = dataset_angles(doc["settings"], stage)
+    cal_coords, cal_data, cal_attrs = dataset_angles(doc["settings"], stage, last_dir=move_history(rows)[1])
     coords.update(cal_coords)
     data.update(cal_data)
     if not cal_attrs and isinstance(doc["settings"].get("aperture"), dict):

@@ -287,6 +287,30 @@ def test_reference_model():
         ReferenceModel({"reflectance": 0.99, "factor_theta_i": [0], "factor_theta_o": [0, 1], "factor": [[1.0]]})
 
 
+def test_reference_model_uses_the_calibrations_fitted_form():
+    """With gonio calibrate's fit (factor_a, factor_b) the factor is the fitted form itself
+    (bench/_alignment.reference_factor_model), not the bilinear interpolation of its 20-degree
+    table, which overstates the convex sin^2 between the nodes: for a = 0.05, b = 0.06 (the
+    simulator's Spectralon, sim/_errors.spectralon_factor) the table is 2.9e-4 low at 30/30 deg
+    and exact at its nodes."""
+    from gonio.bench._alignment import fit_reference_factor, reference_factor_model
+    from gonio.bench._measure import ReferenceModel
+    a, b = 0.05, 0.06
+    g = np.array([10.0, 25.0, 40.0, 55.0, 70.0])
+    ti, to = (v.ravel() for v in np.meshgrid(g, g, indexing="ij"))
+    fit = fit_reference_factor(ti, to, reference_factor_model(ti, to, a, b), np.full(ti.size, 1e-4))
+    ref = {"reflectance": 0.99, "factor_theta_i": fit["grid_deg"], "factor_theta_o": fit["grid_deg"],
+           "factor": fit["factor"]}
+    table_only = ReferenceModel(ref)
+    fitted = ReferenceModel({**ref, "factor_a": fit["a"], "factor_b": fit["b"]})
+    exact = float(reference_factor_model(30.0, 30.0, a, b))
+    assert fitted.factor(30.0, 30.0) == pytest.approx(exact, abs=1e-9)
+    assert table_only.factor(30.0, 30.0) - exact < -2.5e-4        # the interpolation's one-signed error
+    assert fitted.factor(40.0, 60.0) == pytest.approx(table_only.factor(40.0, 60.0), abs=1e-9)   # at a node
+    with pytest.raises(GonioError, match="factor_a and factor_b"):
+        ReferenceModel({**ref, "factor_a": 0.05})
+
+
 def test_camera_size_must_match_settings(instrument, tmp_path):
     from gonio.bench._settings import merge_settings
     inst = instrument("size")

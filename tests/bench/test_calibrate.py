@@ -148,8 +148,9 @@ def test_uncertainty_helpers():
 
 def test_a_calibrated_capture_exports_the_calibrated_angles(run, tmp_path):
     """gonio capture with a calibration: session.toml keeps the tables, dataset.nc has the
-    calibrated angles (calibrated_angles of the journalled stage angles), the nominal ones, their
-    u, and the aperture attributes fitting's angular response reads."""
+    calibrated angles (calibrated_angles of the journalled stage angles and the directions of
+    each axis's last move: the measured lost motion corrected), the nominal ones, their u, and
+    the aperture attributes fitting's angular response reads."""
     import xarray as xr
     from gonio.bench import session_runner
     from gonio.bench.export import export
@@ -163,9 +164,18 @@ def test_a_calibrated_capture_exports_the_calibrated_angles(run, tmp_path):
                                plan=plan, seed=SEED, settings=settings, progress=False)
     with xr.open_dataset(export(tmp_path / "s")) as ds:
         stage = np.stack([ds[k].values for k in ("yaw", "tilt", "azimuth", "lamp")], -1)
-        want = C.calibrated_angles(cal, stage)
+        last = np.array([[0.0, 0.0, 0.0, 0.0], np.sign(stage[1] - stage[0])])   # the journal's order: plan order here
+        want = C.calibrated_angles(cal, stage, last_dir=last)
         assert np.allclose(ds["theta_i"].values, want[:, 0], atol=1e-9)
         assert np.allclose(ds["theta_o"].values, want[:, 2], atol=1e-9)
+        # the second point: each axis's measured lost motion -b/2 x (direction of its move) is
+        # corrected; the first point (no move seen in the journal) is not
+        plain = C.calibrated_angles(cal, stage)
+        assert np.allclose(ds["theta_i"].values[0], plain[0, 0], atol=1e-9)
+        shift = C.lost_motion(cal, last)
+        assert np.allclose(shift[1], -0.5 * np.abs([cal["alignment"]["backlash_yaw_deg"], cal["alignment"]["backlash_tilt_deg"],
+                                                    0.0, cal["alignment"]["backlash_lamp_deg"]]) * last[1])
+        assert abs(ds["theta_i"].values[1] - plain[1, 0]) > 1e-4
         assert np.allclose(ds["theta_i_nominal"].values, [30.0, 50.0], atol=1e-3)
         assert np.all(ds["theta_i_u"].values > 0)
         assert ds.attrs["aperture_source_half_deg"] == 0.5
