@@ -358,7 +358,7 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
         # only where every point's work during its move (all threads, serialised) fits in the motion
         fits = all(p.host_cpu - p.crit_cpu < p.motion for p in pts)
         row["idle_ratio"] = ((row["bound_s"] + row["crit_cpu_s"] + _POLL_S) / row["bound_s"]
-                             if fits and row["bound_s"] > 0 else math.nan)
+                             if fits and row["bound_s"] > 0 else None)    # None: no bound can be stated
         rows.append(row)
     head = (f"{'camera':>10} {'pts':>3} {'motion':>7} {'expose':>7} {'bound':>7} {'wall':>7} {'sim':>7} "
             f"{'host':>7} {'decode':>7} {'merge+st':>8} {'masks':>7} {'proj/bound':>10} {'reduce':>7} "
@@ -381,7 +381,10 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
     for r in rows:
         out(f"{r['camera']:>10} {r['host_cpu_s']:7.3f} {r['crit_cpu_s']:7.3f} {r['lag_s']:7.3f} "
             f"{r['decode_cpu_s']:7.3f} "
-            f"{r['merge_cpu_s']:8.3f} {r['masks_cpu_s']:7.3f} {r['idle_ratio']:7.3f}x")
+            f"{r['merge_cpu_s']:8.3f} {r['masks_cpu_s']:7.3f} "
+            + (f"{r['idle_ratio']:7.3f}x" if r["idle_ratio"] is not None else "     n/a"))
+    if any(r["idle_ratio"] is None for r in rows):
+        out("n/a: a point's work beside the critical path took more CPU than its move, so no idle-machine bound follows")
     return rows
 
 
