@@ -111,8 +111,9 @@ def scene_pixels(scene, *, rng, k: int = 64, variant=None, name: str = "") -> Sc
         u = rng.random((2, rep.size)).astype(np.float32)
         ds, spec = emitter.sample_direction(si_n, mi.Point2f(u[0], u[1]))
         seen = ~scene.ray_test(si_n.spawn_ray_to(ds.p))
-        w = np.array(spec, dtype=np.float64).T * np.array(seen, dtype=np.float64)[:, None] / n
-        parts.append((np.array(si_n.to_local(ds.d), dtype=np.float64).T, np.array(si_n.wi, dtype=np.float64).T, w, rep))
+        light = np.array(spec, dtype=np.float64).T * np.array(seen, dtype=np.float64)[:, None] / n
+        parts.append((np.array(si_n.to_local(ds.d), dtype=np.float64).T, np.array(si_n.wi, dtype=np.float64).T, light,
+                      rep))
     dr.eval()
     wi, wo, weight, pixel = (np.concatenate([q[i] for q in parts]) for i in range(4))
     keep = (wi[:, 2] > 1e-6) & (wo[:, 2] > 1e-6) & np.all(np.isfinite(weight), axis=1) & np.any(weight > 0, axis=1)
