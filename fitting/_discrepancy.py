@@ -25,8 +25,9 @@ vanishing sigma nor dominates the fit (the floor ``abs`` absorbs them).
 The Laplace covariance is then the Fisher information with s: on a material the model
 misses, it is wider by about the Birge ratio of the plain chi^2 fit, and it describes how
 the parameters move between different geometries of the same material (the discrepancy at
-randomly chosen directions acts as independent error; tests/fitting/test_real_materials.py
-refits on random geometry subsets).
+randomly chosen directions acts as independent error). The geometry-resampling test
+(tests/fitting/test_real_resampling.py) checks the real-data default, the log loss's
+sandwich intervals; this loss's intervals are not checked that way.
 
 References
 ----------
