@@ -26,7 +26,7 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
 test-codegen: $(STAMP)
-	@other=$$($(PY) -m gonio.models._jit_target --other); \
+	@other=$$($(PY) -c "from gonio.models._jit_target import other_target; print(other_target())"); \
 	if [ -n "$$other" ]; then \
 	  echo "numerical tests again under Dr.Jit's $$other code generation (GONIO_LLVM_TARGET=$$other)"; \
 	  GONIO_LLVM_TARGET=$$other $(PY) -m pytest -q -n 2 --dist worksteal -m codegen; \

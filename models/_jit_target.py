@@ -189,7 +189,7 @@ def other_target() -> str:
     return ""
 
 
-if __name__ == "__main__":  # python -m gonio.models._jit_target --other (used by the Makefile)
+if __name__ == "__main__":  # python -m gonio.models._jit_target [--other] (the Makefile imports other_target)
     import sys
 
     if sys.argv[1:] == ["--other"]:
