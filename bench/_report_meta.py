@@ -50,9 +50,13 @@ def gum(value, u) -> tuple[str, str]:
     if 0 < place and abs(value) < 1e15:           # u >= 100: whole numbers rounded to that place
         q = 10 ** place
         return f"{round(value / q) * q:.0f}", f"{round(u2 / q) * q:.0f}"
-    e = math.floor(math.log10(abs(value))) if value else math.floor(math.log10(u2))
+    # the power of ten of the larger of the two: a value far inside its uncertainty (a parameter at
+    # a bound of 0, 3e-65 +- 1.5e-62) is 0.0 at the uncertainty's place, not 3 +- 1511 of its own
+    e = math.floor(math.log10(max(abs(value), u2)))
     d = max(0, e - place)
-    return f"{value / 10 ** e:.{d}f}e{e:+03d}", f"{u2 / 10 ** e:.{d}f}e{e:+03d}"
+    mant = f"{value / 10 ** e:.{d}f}"
+    mant = mant.lstrip("-") if float(mant) == 0 else mant
+    return f"{mant}e{e:+03d}", f"{u2 / 10 ** e:.{d}f}e{e:+03d}"
 
 
 def _json_attr(attrs, key) -> dict:

@@ -30,9 +30,12 @@ def value_pm(x, u=None) -> str:
     if 1e-3 <= abs(x) < 1e5 or (x == 0 and 1e-3 <= u < 1e5):
         d = max(-last, 0)
         return f"{round(x, -last):.{d}f} ± {round(u, -last):.{d}f}"
-    ex = math.floor(math.log10(abs(x))) if x != 0 else math.floor(math.log10(u))
+    # the power of ten of the larger: a value far inside its 1-sigma (a parameter at a bound of 0,
+    # 3e-65 ± 1.5e-62) is 0.0 at the 1-sigma's place, not (3 ± 1511...)e-65
+    ex = math.floor(math.log10(max(abs(x), u)))
     d = max(ex - last, 0)
-    return f"({x / 10 ** ex:.{d}f} ± {u / 10 ** ex:.{d}f})e{ex:+03d}"
+    mant = f"{x / 10 ** ex:.{d}f}"
+    return f"({mant.lstrip('-') if float(mant) == 0 else mant} ± {u / 10 ** ex:.{d}f})e{ex:+03d}"
 
 
 def parameter_rows(names, values, stds, units, flags=None) -> list[tuple[str, str, str, str]]:

@@ -89,6 +89,8 @@ def section(page: str, start: str, end: str) -> str:
     (1234.5, 123.4, ("1230", "120")),                   # whole numbers rounded to u's place
     (-0.3, 0.012, ("-0.300", "0.012")),
     (1.23456e-12, 3.4e-15, ("1.2346e-12", "0.0034e-12")),  # one shared power of ten
+    (3e-65, 1.511e-62, ("0.0e-62", "1.5e-62")),          # a value far inside u (at a bound of 0): u's power
+    (-4e-20, 1e-15, ("0.0e-15", "1.0e-15")),              # ... rounded to zero, without a sign
     (0.55, float("nan"), ("0.55", "nan")),
 ])
 def test_gum_rounding(value, u, want):
