@@ -40,8 +40,8 @@ from gonio.models.mitsuba import select_variant
 from ._scene_fit import SAMPLE_ID
 from .preview import delta_e_2000, matched_noise_floor, measured_bsdf_dict
 
-__all__ = ["PRESETS", "SAMPLE_ID", "scene_dict", "load_scene", "scene_samples", "sample_mask", "fit_to_scene",
-           "render_in_scene", "rank_in_scene", "rendered_choice", "choose", "front"]
+__all__ = ["PRESETS", "SAMPLE_ID", "scene_dict", "load_scene", "scene_pairs", "scene_samples", "sample_mask",
+           "fit_to_scene", "render_in_scene", "rank_in_scene", "rendered_choice", "choose", "front"]
 
 PRESETS = ("overcast", "product-shot", "close-up-sun")
 _RESOLVED: set = set()
@@ -86,13 +86,11 @@ def scene_samples(measured, preset, *, size=24, rng, k=16, rel_std=0.02, floor=1
     from gonio.models.mitsuba import divide_cos, eval_cos
 
     from ._data import Measurements
-    from ._scene_fit import scene_pixels
-
     if not isinstance(rng, np.random.Generator):
         raise TypeError("scene_samples(rng=...) takes a numpy.random.Generator")
     variant = select_variant(variant)
+    sp = scene_pairs(preset, size, rng=rng, k=k, variant=variant)
     with mi.scoped_set_variant(variant):
-        sp = scene_pixels(load_scene(preset, {"type": "diffuse"}, size, 1, variant), rng=rng, k=k, name=str(preset))
         bsdf = mi.load_dict(measured_bsdf_dict(measured, variant))
         f = divide_cos(eval_cos(bsdf, sp.wi, sp.wo, variant), sp.wi, sp.wo)
     std = rel_std * np.maximum(np.abs(f), floor)
@@ -167,33 +165,36 @@ def render_in_scene(bsdf, scene, size, spp, seeds, variant=None):
         return [np.array(mi.render(s, spp=int(spp), seed=int(seed)), dtype=np.float64)[..., :3] for seed in seeds]
 
 
-def sample_mask(scene, size, variant=None) -> np.ndarray:
-    """(size, size) bool: the pixels whose centre ray sees the sample (not the sky, the lamp or
-    another object), the pixels :func:`rank_in_scene` compares."""
+def scene_pairs(scene, size, *, rng, k=64, variant=None):
+    """The pixels of ``scene`` (a preset or a scene file, ``size`` x ``size``) that see the
+    sample, with ``k`` light samples each (:func:`gonio.fitting._scene_fit.scene_pixels`)."""
     import mitsuba as mi
 
     from ._scene_fit import scene_pixels
 
     variant = select_variant(variant)
     with mi.scoped_set_variant(variant):
-        return scene_pixels(load_scene(scene, {"type": "diffuse"}, size, 1, variant), rng=np.random.default_rng(0),
-                            k=1, name=str(scene)).mask
+        return scene_pixels(load_scene(scene, {"type": "diffuse"}, size, 1, variant), rng=rng, k=k, name=str(scene))
+
+
+def sample_mask(scene, size, variant=None) -> np.ndarray:
+    """(size, size) bool: the pixels whose centre ray sees the sample (not the sky, the lamp or
+    another object), the pixels :func:`rank_in_scene` compares."""
+    return scene_pairs(scene, size, rng=np.random.default_rng(0), k=1, variant=variant).mask
 
 
 def fit_to_scene(fits, measured, scene, *, size=32, k=64, rng, variant=None):
     """Each candidate of ``fits`` (FitResults, their parameters the starts) refitted to the
     scene's pixels of the measured material (:mod:`gonio.fitting._scene_fit`): the fit a
     scene asks for. Returns a list of :class:`~gonio.fitting._scene_fit.SceneFit`."""
-    import mitsuba as mi
 
-    from ._scene_fit import fit_in_scene, measured_pixels, scene_pixels
+    from ._scene_fit import fit_in_scene, measured_pixels
 
     if not isinstance(rng, np.random.Generator):
         raise TypeError("fit_to_scene(rng=...) takes a numpy.random.Generator")
     variant = select_variant(variant)
-    with mi.scoped_set_variant(variant):
-        sp = scene_pixels(load_scene(scene, {"type": "diffuse"}, size, 1, variant), rng=rng, k=k, name=str(scene))
-        target = measured_pixels(measured, sp, variant)
+    sp = scene_pairs(scene, size, rng=rng, k=k, variant=variant)
+    target = measured_pixels(measured, sp, variant)
     return [fit_in_scene(res.model, sp, target, rng=rng, start=res.params) for res in fits]
 
 
