@@ -1,17 +1,45 @@
 """Fit many datasets (a material library, per-texel data) on Dask.
 
-``fit_batch`` submits the datasets' :func:`~gonio.fitting.fit` calls to a dask.distributed
-cluster, a few contiguous datasets per task (:func:`task_chunks`: about four tasks per
-worker thread, so small fits do not each pay for a task's round trip): a local one (processes, one thread each: the model kernels hold the GIL) unless
-``scheduler`` names an existing one. The local cluster is private to this process: its
+``fit_batch`` runs the datasets' :func:`~gonio.fitting.fit` calls on a dask.distributed
+cluster: a local one (worker processes with one thread each) unless ``scheduler`` names an
+existing one or ``client`` is given. How the work is spread (issue 18):
+
+* each worker process runs Dr.Jit's kernels on one thread (``GONIO_THREADS=1`` in the local
+  workers' environment, and :func:`_one_thread_per_worker` in any worker process): Dask
+  parallelises over datasets, and a worker per core each running Dr.Jit's own pool of a
+  thread per core would put twice as many busy threads as cores on the machine;
+* a dataset may be given as a loader (a function of no arguments that returns the
+  Measurements, e.g. ``functools.partial(load_dataset, path)``), called in the worker that
+  fits it: nothing of the data then travels through Dask. Measurements given as they are
+  travel once, straight from this process to the workers (``client.scatter``, one object per
+  task), never inside the task graph (which the scheduler would hold and forward: Dask warned
+  of an 18.9 MB graph for 16 fits of 1e5 points). Shipping is not free: scattering 16
+  roughconductor datasets of 1e5 points (9.9 MB each) over the local cluster's TLS cost
+  1.2 s of CPU (0.4 s over plain TCP), against 1.5 s for their 16 fits on one thread
+  (measured 2026-12-02); from files, loaders are the fast way;
+* contiguous datasets share a task (:func:`task_chunks`): about four tasks per worker thread,
+  fewer where the fits are small, so that a task holds ~50 ms of fitting or more
+  (:data:`MIN_TASK_S`) instead of paying Dask's cost of shipping a task and its result
+  (~10-50 ms) for each small fit;
+* the workers keep glibc's adaptive allocator (:func:`worker_environ`: no
+  ``MALLOC_TRIM_THRESHOLD_``, which Dask sets and which made each fit ~28 % slower);
+* every worker traces and compiles the model's kernels once, before the timed fits, on a
+  slice of the first dataset (:func:`_warm_worker`, once per worker, model and fit options),
+  so no task pays for a first call.
+
+The local cluster is private to this process: its
 scheduler and workers talk TLS with mutual authentication, with a key and self-signed
 certificate generated for this run only and kept in memory (``Security.temporary()`` when
 the ``cryptography`` package is installed, else the ``openssl`` command), so no other user
 or process on the machine can connect to it or run code in a worker; it has no dashboard
 unless one is asked for. Where neither can make a certificate, the workers run as threads
-of this process (``inproc://``: nothing listens on any socket). Dataset i is fitted with
+of this process (``inproc://``: nothing listens on any socket; Dr.Jit's pool is then this
+process's, left as it is). Dataset i is fitted with
 ``rng = numpy.random.default_rng([rng_seed, i])``, so the results equal a serial loop with
-the same seeds, whatever the number of workers or the order in which they finish.
+the same seeds, whatever the number of workers or the order in which they finish: bit for
+bit when the serial loop also runs Dr.Jit on one thread (its reductions then add in a fixed
+order; with several threads the partial sums of a reduction are combined in the order the
+threads finish them, which moves the fitted values by ~1e-15 from run to run).
 Results come back in the order of ``datasets``.
 """
 
@@ -28,7 +56,10 @@ import numpy as np
 import gonio.models as gm
 
 __all__ = ["fit_batch", "fit_serial", "local_security", "check_workers", "check_scheduler_address",
-           "MAX_WORKERS"]
+           "MAX_WORKERS", "WORKER_ENV", "task_chunks", "fit_cost"]
+
+#: the local worker processes' environment: Dr.Jit's pool of one thread (see the module notes)
+WORKER_ENV = {"GONIO_THREADS": "1"}
 
 #: at most this many local workers (processes with one thread each; more than the cores is waste)
 MAX_WORKERS = max(1, min(256, 4 * (os.cpu_count() or 1)))
@@ -105,6 +136,20 @@ def local_security():
                     tls_worker_key=key, tls_worker_cert=cert)
 
 
+def worker_environ() -> dict:
+    """Dask's ``distributed.nanny.pre-spawn-environ`` for the local workers, less
+    ``MALLOC_TRIM_THRESHOLD_``: Dask sets it (65536) so that workers hand freed memory back
+    to the OS, which also turns off glibc's adaptive mmap threshold, so every numpy array
+    above 128 KiB is a fresh mmap whose pages fault in again. Measured (2026-12-02, one
+    Dr.Jit thread, CPU time, roughconductor fits of 1e5 points, best of 5): 84.0 / 89.2 ms a
+    fit without it, 108.1 / 113.9 ms with it (+28 %)."""
+    import dask
+
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    return env
+
+
 def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
     """A private local cluster (see the module notes); the caller closes it."""
     from dask.distributed import LocalCluster
@@ -117,7 +162,7 @@ def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
     security = local_security()
     # Scheduler and workers always start an HTTP server (health, info, JSON routes): without a
     # dashboard they get no routes, and are stopped once the cluster is up (_close_http).
-    config = {"distributed.worker.http.routes": []}
+    config = {"distributed.worker.http.routes": [], "distributed.nanny.pre-spawn-environ": worker_environ()}
     if dashboard_address is None:
         config["distributed.scheduler.http.routes"] = []
     with dask.config.set(config):
@@ -126,7 +171,8 @@ def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
                                    dashboard_address=dashboard_address)
         else:
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, protocol="tls://",
-                                   host="127.0.0.1", security=security, dashboard_address=dashboard_address)
+                                   host="127.0.0.1", security=security, dashboard_address=dashboard_address,
+                                   env=WORKER_ENV)
     return cluster
 
 
@@ -143,15 +189,24 @@ def _close_http(client, keep_scheduler: bool) -> None:
         client.run_on_scheduler(_stop_http)
 
 
-def _one_thread_per_worker():
-    """Inside a Dask worker: one Dr.Jit thread. Dask parallelises over datasets; a worker
-    process per core each running Dr.Jit's own pool of one thread per core would put twice
-    as many busy threads as cores on the machine."""
+def _in_worker_process() -> bool:
+    """True inside a Dask worker that is a process of its own (not a thread of the process
+    that called :func:`fit_batch`, whose Dr.Jit pool is left alone)."""
     try:
         from distributed import get_worker
 
-        get_worker()
+        worker = get_worker()
     except (ImportError, ValueError):
+        return False
+    return not str(getattr(worker, "address", "")).startswith("inproc://")
+
+
+def _one_thread_per_worker():
+    """Inside a Dask worker process: one Dr.Jit thread (the local workers already have it
+    from ``GONIO_THREADS``; this covers the workers of an existing scheduler). Dask
+    parallelises over datasets; a worker process per core each running Dr.Jit's own pool of
+    one thread per core would put twice as many busy threads as cores on the machine."""
+    if not _in_worker_process():
         return
     import drjit as dr
 
@@ -159,10 +214,16 @@ def _one_thread_per_worker():
         dr.set_thread_count(1)
 
 
+def _load(meas):
+    """A dataset as Measurements: ``meas`` itself, or what the loader ``meas()`` returns."""
+    return meas() if callable(meas) else meas
+
+
 def _fit_one(meas, model_spec, i, rng_seed, fit_kwargs):
     from ._optimise import fit
 
     _one_thread_per_worker()
+    meas = _load(meas)
 
     name, options = model_spec
     model = gm.get(name, **options)
@@ -175,16 +236,80 @@ def _fit_many(metas, model_spec, first, rng_seed, fit_kwargs):
     return [_fit_one(m, model_spec, first + k, rng_seed, fit_kwargs) for k, m in enumerate(metas)]
 
 
-def task_chunks(n_datasets: int, n_threads: int, per_thread: int = 4) -> list:
+#: points of the first dataset that :func:`_warm_worker` fits: enough for the compiled path
+#: (above the numpy path's crossover), small enough to cost a few ms once the kernels exist.
+#: Measured (roughconductor, 1e5-point fits, one thread, CPU time): a fresh process's first
+#: fit 565 ms, the next ones 160 ms; after a 2000-point warm fit, 194 ms and 160 ms.
+WARM_POINTS = 2000
+
+_WARMED: set = set()
+
+
+def _warm_key(model_spec, fit_kwargs) -> str:
+    return repr((model_spec, sorted(fit_kwargs.items())))
+
+
+def _subset(meas, k):
+    """The first ``k`` points of ``meas`` (a Measurements), for :func:`_warm_worker`."""
+    import dataclasses
+
+    if meas.wi.shape[0] <= k:
+        return meas
+    cut = {f.name: getattr(meas, f.name) for f in dataclasses.fields(meas)}
+    for name in ("wi", "wo", "brdf", "brdf_std", "use", "weight", "cluster"):
+        if cut.get(name) is not None:
+            cut[name] = cut[name][:k]
+    return type(meas)(**cut)
+
+
+def _warm_worker(model_spec, sample, fit_kwargs):
+    """Run on every worker (``client.run``) before the fits: one Dr.Jit thread, then one fit
+    of ``sample`` (a slice of the first dataset, or its loader: sliced here), which traces and
+    compiles the model's kernels in this process; once per worker for a model and fit
+    options. Returns whether it fitted (False: already warm)."""
+    _one_thread_per_worker()
+    key = _warm_key(model_spec, fit_kwargs)
+    if key in _WARMED:
+        return False
+    try:
+        _fit_one(_subset(_load(sample), WARM_POINTS), model_spec, 0, 0, fit_kwargs)
+    except Exception:      # a sample the fit refuses: the real fit reports it; nothing warmed
+        return False
+    _WARMED.add(key)
+    return True
+
+
+#: a task holds at least about this much fitting (seconds, one Dr.Jit thread, estimated by
+#: :func:`fit_cost`): Dask costs ~10-50 ms to ship a task and its result
+MIN_TASK_S = 0.05
+
+
+def fit_cost(n_points: int) -> float:
+    """A rough estimate of one fit's seconds on one Dr.Jit thread (for :func:`task_chunks`):
+    measured (CPU time, GGX, 2026-12-02) roughconductor 6-9 ms at 300-1e3 points, 71 ms at
+    1e5; roughplastic 41-44 ms at 300-1e3 points, 330 ms at 1e5."""
+    return 0.01 + 1e-6 * float(n_points)
+
+
+def task_chunks(n_datasets: int, n_threads: int, per_thread: int = 4, costs=None,
+                min_cost: float = MIN_TASK_S) -> list:
     """Contiguous ``(start, stop)`` ranges of the datasets, one per Dask task: about
     ``per_thread`` tasks per worker thread (enough to even out fits of unequal length), so
     that many small fits travel as a few tasks instead of paying Dask's cost of shipping a
-    task and its result (~10-50 ms) each."""
+    task and its result (~10-50 ms) each. With ``costs`` (each dataset's estimated seconds,
+    :func:`fit_cost`), fewer tasks where needed for each to hold ``min_cost`` or more, and
+    the ranges cut at equal shares of the total cost instead of equal counts."""
     if n_datasets <= 0:
         return []
     # no worker known yet (a remote scheduler still waiting for them): a task per dataset
     n_tasks = n_datasets if n_threads <= 0 else max(1, min(n_datasets, per_thread * n_threads))
-    edges = np.linspace(0, n_datasets, n_tasks + 1).round().astype(int)
+    if costs is None or n_threads <= 0:
+        edges = np.linspace(0, n_datasets, n_tasks + 1).round().astype(int)
+    else:
+        cum = np.concatenate([[0.0], np.cumsum(np.asarray(costs, dtype=np.float64))])
+        n_tasks = max(1, min(n_tasks, int(cum[-1] // min_cost)))
+        edges = np.searchsorted(cum, np.linspace(0.0, cum[-1], n_tasks + 1)[1:-1], side="left")
+        edges = np.unique(np.concatenate([[0], np.clip(edges, 1, n_datasets - 1), [n_datasets]]))
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
@@ -198,12 +323,15 @@ def fit_serial(datasets, model, *, rng_seed: int = 0, **fit_kwargs) -> list:
 
 
 def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int = 2, rng_seed: int = 0,
-              dashboard_address: str | None = None, **fit_kwargs) -> list:
+              dashboard_address: str | None = None, client=None, **fit_kwargs) -> list:
     """Fit every dataset in ``datasets`` with ``model`` on a Dask cluster.
 
     Parameters
     ----------
-    datasets : sequence of Measurements
+    datasets : sequence of Measurements, or of loaders
+        A loader is a function of no arguments that returns the Measurements (picklable:
+        e.g. ``functools.partial(load_dataset, path)``); it is called in the worker, so the
+        data does not travel through Dask (the workers must see the same files).
     model
         A gonio model, or ``(name, options)``.
     scheduler : str, optional
@@ -214,6 +342,9 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
         1 to :data:`MAX_WORKERS`.
     dashboard_address : str, optional
         Where the local cluster serves its dashboard (e.g. ``127.0.0.1:8787``); default none.
+    client : distributed.Client, optional
+        An open client to use (and leave open) instead of ``scheduler`` or a local cluster:
+        its workers stay warm from one call to the next (:func:`_warm_worker`).
     rng_seed : int
         Dataset i uses ``default_rng([rng_seed, i])``.
     fit_kwargs
@@ -223,9 +354,11 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
     -------
     list of FitResult, in the order of ``datasets``.
     """
+    spec = _spec(model)
+    if client is not None:
+        return _run_batch(client, list(datasets), spec, rng_seed, fit_kwargs)
     from dask.distributed import Client
 
-    spec = _spec(model)
     cluster = None
     if scheduler is None:
         cluster = local_cluster(n_workers, dashboard_address)
@@ -243,12 +376,32 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
             raise ConnectionError(f"{' '.join(str(exc).split())[:200]}; a tls:// scheduler needs its "
                                   "certificates in Dask's configuration (distributed.comm.tls)") from None
     try:
-        datasets = list(datasets)
-        chunks = task_chunks(len(datasets), sum(client.nthreads().values()))
-        futures = [client.submit(_fit_many, datasets[a:b], spec, a, rng_seed, fit_kwargs, pure=False)
-                   for a, b in chunks]
-        return [res for part in client.gather(futures) for res in part]
+        return _run_batch(client, list(datasets), spec, rng_seed, fit_kwargs)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _run_batch(client, datasets, spec, rng_seed, fit_kwargs) -> list:
+    """The fits on ``client``'s workers (see the module notes): warm each worker, scatter one
+    object per task, a task per contiguous chunk, results in order."""
+    if not datasets:
+        return []
+    n_threads = sum(client.nthreads().values())
+    first = datasets[0]
+    if n_threads > 0:
+        client.run(_warm_worker, spec, first if callable(first) else _subset(first, WARM_POINTS), fit_kwargs)
+    loaders = any(callable(m) for m in datasets)
+    chunks = task_chunks(len(datasets), n_threads,
+                         costs=None if loaders else [fit_cost(m.wi.shape[0]) for m in datasets])
+    if loaders:      # small: in the graph
+        parts = [datasets[a:b] for a, b in chunks]
+    else:            # hash=False: no token computed over every array (distinct objects anyway)
+        parts = client.scatter([datasets[a:b] for a, b in chunks], hash=False)
+    futures = [client.submit(_fit_many, part, spec, a, rng_seed, fit_kwargs, pure=False)
+               for part, (a, b) in zip(parts, chunks)]
+    try:
+        return [res for part in client.gather(futures) for res in part]
+    finally:
+        client.cancel(futures + ([] if loaders else list(parts)))

@@ -188,11 +188,12 @@ _NEVER = 2 ** 31 - 1
 
 
 @lru_cache(maxsize=256)
-def _frozen(fn, name, options):
+def _frozen(fn, name, options, threads=None):
     """``fn(model, *inputs)`` for one model configuration under ``dr.freeze``: the first call
     per input layout traces and records the kernel launch, later calls replay it with the new
     inputs (parameters are opaque inputs), for any N, skipping Python tracing and Dr.Jit's code
-    generation and hashing (~0.1 ms a call). One recording per (fn, model configuration)."""
+    generation and hashing (~0.1 ms a call). One recording per (fn, model configuration,
+    size of Dr.Jit's thread pool): see :func:`_frozen_for`."""
     import drjit as dr
 
     from . import get
@@ -202,8 +203,15 @@ def _frozen(fn, name, options):
 
 
 def _frozen_for(fn, model):
-    """The frozen ``fn`` of ``model``'s configuration (:func:`_frozen`)."""
-    return _frozen(fn, model.name, tuple(sorted(model.options.items())))
+    """The frozen ``fn`` of ``model``'s configuration (:func:`_frozen`) for the present size
+    of Dr.Jit's thread pool. A recording keeps the per-thread copies that the in-kernel sums
+    (:func:`._reduce._reduced`, ``ReduceMode.Expand``) were given for the pool it was recorded
+    with: replayed after ``dr.set_thread_count`` had enlarged the pool (recorded on one thread,
+    replayed on two) it segfaulted (Dr.Jit 1.5.0, 2 of 3 runs of a roughconductor fit at 1e5
+    points)."""
+    import drjit as dr
+
+    return _frozen(fn, model.name, tuple(sorted(model.options.items())), dr.thread_count())
 
 
 def eval(model, wi, wo, params):

@@ -24,7 +24,14 @@ best of ``repeat``:
   on the same data: the function whose gradient ``grad32`` is (``grad/chi``; both read the
   directions, y and w and sum in the kernel, where ``drjit32`` writes f_r);
 * ``mitsuba``: ``bsdf.eval`` in the variant chosen by :func:`mitsuba_variant`, on the same
-  batch already converted to Mitsuba arrays (float32), results left in Dr.Jit.
+  batch already converted to Mitsuba arrays (float32), results left in Dr.Jit: Mitsuba's
+  kernel alone, with NO numpy round trip (the issue's ``0.5x Mitsuba`` is measured against
+  this, the hardest peer: gonio's side pays its numpy round trip, Mitsuba's does not);
+* ``mi+np`` (``mitsuba_np``): what a Mitsuba user writes to get f_r from numpy, the peer of
+  the public ``eval32``: the float32 (N, 3) numpy directions through
+  :func:`gonio.models.mitsuba.interaction` (a transposed numpy copy and a Dr.Jit copy of
+  each), ``bsdf.eval``, ``np.asarray(f).T`` (a copy to numpy, seen as (N, 3) through a
+  transposed view: Fortran order, one interleave fewer than gonio's C-order output).
 
 ``drjit32`` and ``mitsuba`` run under the same conditions (float32, resident inputs, one
 fused kernel, outputs evaluated) and are timed head to head, taking turns; their ratio is
@@ -37,6 +44,17 @@ the public float64 ``eval`` does that kernel's work plus the numpy round trip, s
 cannot exceed it). Each timing ends with ``dr.sync_thread()`` (the LLVM backend launches
 asynchronously). With one Dr.Jit thread (``GONIO_THREADS=1``) the times are the process's
 CPU time (:func:`clock`), robust to the other processes of a shared machine.
+
+Measured again (2026-12-02 10:35, same machine, load 7.4-8.7, one Dr.Jit thread, CPU time,
+1e6 pairs, best of 9): ``ev32/mi`` roughplastic GGX 0.64, roughconductor GGX 0.44, diffuse
+0.09; ``ev/mi`` 0.32, 0.23, 0.05; against Mitsuba with its own numpy round trip ``ev32/mnp``
+1.30, 1.18, 1.13 and ``ev/mnp`` 0.66, 0.62, 0.60. Under that load every path's CPU time was
+~2x the quiet figures below and Mitsuba's resident kernel lost more than gonio's round trip
+(8.0 ms against ~2 ms quiet, roughplastic GGX), so ``ev32/mi`` read higher than in the quiet
+runs; the ``mnp`` ratios compare like with like. Tried and not kept: blocks of 2^17-2^19
+pairs (1e6 pairs: float32 within +-5 %, diffuse float64 1.2-1.5x slower; 2^16 kept), the
+float32 kernel scattering its packed words straight into the (N, 3) output (1.7x slower
+than numpy's interleave).
 
 Measured (2026-12-02, AMD EPYC Zen 5 with AVX-512, 2 cores shared, load 7.6-10.4, one Dr.Jit
 thread, CPU time, 1e6 pairs, two runs): ``ev32/mi`` (float32 directions) 0.12-0.46: roughplastic
@@ -127,30 +145,47 @@ def _interleaved_best(timed, repeat):
 
 
 def _mitsuba_timer(model, params, wi, wo):
-    """A callable running Mitsuba's bsdf.eval on the batch, or None without Mitsuba."""
+    """Callables running Mitsuba's bsdf.eval on the batch: ``(resident, with_numpy)``, and
+    the variant (None, None without Mitsuba).
+
+    ``resident``: the batch already converted to Mitsuba's arrays (float32), results left in
+    Dr.Jit (evaluated): Mitsuba's kernel alone. ``with_numpy``: what a Mitsuba user writes to
+    get the same from numpy, the counterpart of the public ``model.eval``: float32 (N, 3)
+    numpy directions in (:func:`gonio.models.mitsuba.interaction`: numpy's transposed copy
+    of each into a (3, N) array, Dr.Jit's copy of that into a ``Vector3f``), ``bsdf.eval``,
+    and numpy out: ``np.asarray(v).T``, Dr.Jit's copy of the (3, N) result into numpy seen
+    as (N, 3) through a transposed view (Fortran order; gonio's ``eval`` returns C order, so
+    this peer does one interleave less)."""
     try:
         variant = mitsuba_variant()
         import drjit as dr
         import mitsuba as mi
     except Exception:  # pragma: no cover - environment dependent
-        return None, None
+        return None, None, None
     if not variant.startswith(("llvm", "cuda")):
-        return None, variant
+        return None, None, variant
     bsdf = mi.load_dict(model.to_mitsuba(params))
     si, w = interaction(wi, wo)
     ctx = mi.BSDFContext()
     dr.eval(si, w)
+    wi32, wo32 = wi.astype(np.float32), wo.astype(np.float32)
 
     def go():
         v = bsdf.eval(ctx, si, w)
         dr.eval(v)
         dr.sync_thread()
 
-    return go, variant
+    def go_numpy():
+        s, d = interaction(wi32, wo32)
+        return np.asarray(bsdf.eval(ctx, s, d)).T
+
+    return go, go_numpy, variant
 
 
-COLUMNS = ("numpy", "eval", "eval32", "drjit32", "jac32", "grad32", "mitsuba")
-EXTRA = ("32/mi", "ev/mi", "ev32/mi", "e64/mi", "jac/ev", "grad/ev", "grad/ev64", "grad/chi", "grad/chi64", "32/lim", "ev/lim")
+COLUMNS = ("numpy", "eval", "eval32", "drjit32", "jac32", "grad32", "mitsuba", "mitsuba_np")
+#: COLUMNS as printed
+HEADERS = {"mitsuba_np": "mi+np"}
+EXTRA = ("32/mi", "ev/mi", "ev32/mi", "ev/mnp", "ev32/mnp", "e64/mi", "jac/ev", "grad/ev", "grad/ev64", "grad/chi", "grad/chi64", "32/lim", "ev/lim")
 #: Bytes a resident evaluation moves per direction pair: two directions in, f_r out (RGB).
 BYTES_PER_PAIR = {"float32": 3 * 4 * 3, "float64": 3 * 8 * 3}
 
@@ -190,7 +225,7 @@ def _limits(bw32, bw64):
     b32, b64 = BYTES_PER_PAIR["float32"], BYTES_PER_PAIR["float64"]
     return {"bandwidth": bw32, "bandwidth64": bw64, "numpy": bw64 / b64, "eval": bw64 / b64, "eval32": bw32 / b32,
             "drjit32": bw32 / b32,
-            "mitsuba": bw32 / b32, "grad32": bw32 / b32 * (b32 / 48), "jac32": None}
+            "mitsuba": bw32 / b32, "mitsuba_np": bw32 / b32, "grad32": bw32 / b32 * (b32 / 48), "jac32": None}
 
 
 def _timed(fn):
@@ -251,6 +286,8 @@ def _row(name, options, t, head, n):
     row["eval_ratio"] = (t["mitsuba"] / t["eval"]) if (t.get("mitsuba") and t.get("eval")) else None
     row["eval32_ratio"] = (t["mitsuba"] / t["eval32"]) if (t.get("mitsuba") and t.get("eval32")) else None
     row["eval64_ratio"] = (t["mitsuba"] / t["eval64"]) if (t.get("mitsuba") and t.get("eval64")) else None
+    row["eval_np_ratio"] = (t["mitsuba_np"] / t["eval"]) if (t.get("mitsuba_np") and t.get("eval")) else None
+    row["eval32_np_ratio"] = (t["mitsuba_np"] / t["eval32"]) if (t.get("mitsuba_np") and t.get("eval32")) else None
     row["drjit64"] = row.get("eval")
     row.update({f"{k}_h2h": (n / v if v else None) for k, v in head.items()})
     for key, num, den in (("jac_cost", "jac32", "drjit32"), ("grad_cost", "grad32", "drjit32"),
@@ -266,7 +303,8 @@ def _print_row(row, name, options, out):
 
     label = name + "".join(f" {v}" for v in options.values())
     print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in COLUMNS)
-          + "".join(fmt(row[k], 11, 1, 2) for k in ("ratio", "eval_ratio", "eval32_ratio", "eval64_ratio", "jac_cost", "grad_cost",
+          + "".join(fmt(row[k], 11, 1, 2) for k in ("ratio", "eval_ratio", "eval32_ratio", "eval_np_ratio", "eval32_np_ratio",
+                                                     "eval64_ratio", "jac_cost", "grad_cost",
                                                      "grad_cost64", "grad_chi", "grad_chi64", "of_limit32",
                                                      "of_limit64")), file=out)
 
@@ -313,7 +351,7 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     rows = []
     print(f"gonio.models benchmark: N = {n:,} pairs, Mevals/s (best of {repeat}; load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the start)", file=out)
-    print(f"{'model':<26}" + "".join(f"{c:>9}" for c in COLUMNS) + "".join(f"{c:>11}" for c in EXTRA), file=out)
+    print(f"{'model':<26}" + "".join(f"{HEADERS.get(c, c):>9}" for c in COLUMNS) + "".join(f"{c:>11}" for c in EXTRA), file=out)
     # the copy of a working set of the batch's own size (the same caches as the timed paths)
     limits = _limits(copy_bandwidth(n * BYTES_PER_PAIR["float32"]), copy_bandwidth(n * BYTES_PER_PAIR["float64"]))
     print(f"{'limit (memory bandwidth)':<26}" + "".join(f"{limits[c] * 1e-6:9.0f}" if limits.get(c) else f"{'-':>9}"
@@ -326,9 +364,10 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         timed = {"numpy": lambda: model.eval_reference(wi, wo, p)}
         if compiled:
             timed.update(_compiled_timers(model, p, wi, wo, dirs, dirs64, rng))
-        go, variant = _mitsuba_timer(model, p, wi, wo)
+        go, go_numpy, variant = _mitsuba_timer(model, p, wi, wo)
         if go is not None:
             timed["mitsuba"] = go
+            timed["mitsuba_np"] = go_numpy
         t = dict.fromkeys(COLUMNS)
         t.update(_interleaved_best(timed, repeat))
         row = _row(name, options, t, _head_to_head(timed, t, repeat), n)
@@ -339,10 +378,19 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
         _print_row(row, name, options, out)
     print(f"times: {'CPU time of the process (one Dr.Jit thread)' if clock() is time.process_time else 'wall clock'}, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end", file=out)
+    print("columns: numpy = model.eval_reference (float64 numpy); eval, eval32 = the public model.eval(wi, wo, p) "
+          "on float64 / float32 numpy (N, 3) directions, numpy (N, 3) f_r out (numpy round trip included: copies in, "
+          "kernel, interleave out); drjit32 = gonio's float32 kernel on a resident batch, f_r left in Dr.Jit; jac32, "
+          "grad32 = its Jacobian and chi^2 gradient, resident; mitsuba = Mitsuba's bsdf.eval on a resident batch "
+          "(already Mitsuba arrays), result left in Dr.Jit: Mitsuba's kernel alone, NO numpy round trip; mi+np = "
+          "Mitsuba with its own numpy round trip from the same float32 (N, 3) numpy directions (interaction(): a "
+          "transposed numpy copy and a Dr.Jit copy of each direction; bsdf.eval; np.asarray(f).T: a copy to numpy, "
+          "(N, 3) as a transposed view, no interleave)", file=out)
     print("32/mi: drjit32 against mitsuba timed head to head (the columns: all paths in turn); ev/mi, ev32/mi: the "
-          "public model.eval over mitsuba (issue 18's goal >= 0.5), numpy round trip included (numpy (N, 3) "
-          "directions in, numpy (N, 3) f_r out): float64 directions (float64 kernel and out) and float32 ones "
-          "(float32 kernel and out: the fast path), timed in the same rounds; e64/mi: the resident "
+          "public model.eval over resident mitsuba (issue 18's goal >= 0.5; gonio's numpy round trip included, "
+          "Mitsuba's not): float64 directions (float64 kernel and out) and float32 ones "
+          "(float32 kernel and out: the fast path), timed in the same rounds; ev/mnp, ev32/mnp: the same over "
+          "mi+np (both sides with their numpy round trip); e64/mi: the resident "
           "float64 kernel alone over mitsuba, the most ev/mi can reach; jac/ev, grad/ev: against "
           "drjit32 in turn; grad/ev64: float64; grad/chi, grad/chi64: chi2_grad over weighted_sse, the chi^2 "
           "whose gradient it is (same reads of y and w, in-kernel sums); 32/lim, ev/lim: fraction of the "

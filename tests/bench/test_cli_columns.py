@@ -126,7 +126,8 @@ def test_fit_batch_warns_on_an_inadequate_fit(tmp_path, capsys, monkeypatch):
     ds.to_netcdf(bad, engine="h5netcdf")
 
     def serial(metas, model, *, rng_seed, loss, **_):      # the Dask cluster's work, in this process
-        return [fit(m, model, rng=np.random.default_rng(rng_seed), loss=loss) for m in metas]
+        # a local cluster is given a loader per file (called in the worker)
+        return [fit(m() if callable(m) else m, model, rng=np.random.default_rng(rng_seed), loss=loss) for m in metas]
 
     monkeypatch.setattr(gonio.fitting, "fit_batch", serial)
     assert main(["fit", "--batch", str(good), str(bad), "--model", "diffuse", "--out", str(tmp_path / "fits")]) == 0

@@ -24,3 +24,36 @@ def test_quick_bench_writes_table_csv_and_plot(tmp_path, capsys):
         if r["optimiser"] == "gonio":
             assert 0.7 < r["chi2_dof"] < 1.4
             assert r["param_err_crlb"] < 3.0
+
+
+@pytest.mark.slow
+def test_dask_bench_prints_both_serial_baselines_and_matches_them(capsys):
+    """bench_dask: serial on one Dr.Jit thread and on the default pool, Dask on 1 and 2
+    single-thread workers (loaders) and 2 with scattered data; speed-ups against both
+    baselines, and which one the issue's 1.8x is measured against. Every Dask run equals the
+    one-thread serial fits bit for bit. (A behaviour test: no timing is asserted.)"""
+    from gonio.fitting.speed import bench_dask
+
+    rows = bench_dask(cases=((4, 800),), repeat=1)
+    text = capsys.readouterr().out
+    assert "serial, 1 Dr.Jit thread" in text and "(default)" in text and "Dask, 2 workers x 1 thread" in text
+    assert "measured against the serial loop on one Dr.Jit thread" in text
+    row = rows["4x800"]
+    runs = [k for k in row if isinstance(row[k], dict)]
+    assert len(runs) == 5
+    for key in runs:
+        assert row[key]["wall_s"] > 0 and row[key]["speedup_vs_serial_1_thread"] > 0
+        if key.startswith("Dask") or key.startswith("serial, 1"):
+            assert row[key]["max_diff"] == 0.0
+
+
+def test_scale_bench_reports_the_fits_own_peak_memory(capsys):
+    """bench_scale prints the fit's time, its peak RSS against the data and the tracemalloc
+    peak (small N here: the behaviour, not the 1e6-point figure)."""
+    from gonio.fitting.speed import bench_scale
+
+    row = bench_scale(n=20_000)
+    text = capsys.readouterr().out
+    assert "peak RSS during the fit" in text and "tracemalloc" in text
+    assert row["peak_rss_bytes"] >= row["rss_before_fit_bytes"] > 0
+    assert row["traced_peak_bytes"] > 0 and row["data_bytes"] == 20_000 * (4 * 24 + 3)

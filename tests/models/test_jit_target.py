@@ -132,3 +132,27 @@ def test_thread_count_from_the_environment(monkeypatch):
     monkeypatch.delenv("GONIO_THREADS")
     monkeypatch.setenv("GONIO_LLVM_TARGET", "avx1024")
     assert env_problem().startswith("GONIO_LLVM_TARGET: unknown LLVM target 'avx1024'")
+
+
+def test_a_recording_is_kept_per_size_of_drjits_pool():
+    """A frozen kernel recorded on one thread and replayed on two segfaulted (the per-thread
+    copies of its in-kernel sums are those of the pool it was recorded with): the recordings
+    are kept per pool size, and a fit after a change of the pool is the one-thread fit."""
+    import drjit as dr
+    import numpy as np
+
+    import gonio.models as gm
+    from gonio.models import _fast
+
+    model = gm.get("roughconductor", distribution="ggx")
+    before = dr.thread_count()
+    try:
+        dr.set_thread_count(1)
+        one = _fast._frozen_for(_fast._normal_sums, model)
+        dr.set_thread_count(2)
+        two = _fast._frozen_for(_fast._normal_sums, model)
+        assert one is not two
+        dr.set_thread_count(1)
+        assert _fast._frozen_for(_fast._normal_sums, model) is one
+    finally:
+        dr.set_thread_count(before)
