@@ -376,8 +376,7 @@ class ZaberChain(SerialDevice):
 
         The budget is counted in polls (``timeout_s / poll_interval_s``) rather than in wall
         time, so it is the same whether ``sleep`` really sleeps or a simulated clock advances;
-        with alerts a poll after an alert counts one poll interval, a silent read window its
-        length.
+        with alerts each poll counts one poll interval and each silent read window its length.
 
         Raises
         ------
@@ -394,7 +393,7 @@ class ZaberChain(SerialDevice):
                 if left <= 1e-9:
                     break
                 came, silent = self._await_alert(device, min(left, max(self.timeout, poll_interval_s)), sleep)
-                left -= silent + (poll_interval_s if came else 0.0)
+                left -= silent + poll_interval_s     # (a device that only sends other lines is bounded too)
                 sleep(0)                          # a safe point before the next poll
             raise CommunicationError(f"Zaber device {device} still moving after {timeout_s:g} s; "
                                      "check for a jammed stage, then resume the session")

@@ -211,3 +211,15 @@ def test_alerts_rejected_or_a_stage_that_never_stops():
     z.enable_alerts(1)
     with pytest.raises(CommunicationError, match="still moving after 0.5 s"):
         z.wait_idle(1, timeout_s=0.5, poll_interval_s=0.05, sleep=lambda s: None)   # 10 alerts: 10 polls' budget
+
+
+def test_a_device_that_only_sends_other_lines_cannot_keep_the_wait_going():
+    """BUSY, then only late replies (never this device's alert, never silence): each round of
+    64 skipped lines ends in a poll, and the polls count against the budget."""
+    junk = "@01 0 77 OK IDLE -- 0\r\n" * 70
+    expect("w5", [(cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n")]
+           + [(cmd(1, 0, k), f"@01 0 {k:02d} OK BUSY -- 0\r\n" + junk) for k in range(1, 12)])
+    z = ZaberChain("expect://w5")
+    z.enable_alerts(1)
+    with pytest.raises(CommunicationError, match="still moving"):
+        z.wait_idle(1, timeout_s=0.5, poll_interval_s=0.05, sleep=lambda s: None)
