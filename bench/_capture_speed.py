@@ -13,7 +13,7 @@ run:
   noise, DNG encoding, the simulated camera hashing and writing its file: what a real camera
   and its tethering do on their side), which is taken out:
   ``proj = wall - sim`` is what the point would take on hardware and ``host = proj - bound``
-  what the host adds to the bound (protocol, polling granularity, the probe's decoding, the
+  what the host adds to the bound (protocol, seeing the standstill, the probe's decoding, the
   client's checksum check, fsync and rename of each RAW file, and whatever of the reduction
   the move does not hide);
 * where the host's time goes: RAW decoding, HDR merge with the region statistics (one pass:
@@ -28,11 +28,14 @@ run:
   simulator computed with the worker idle; the simulated devices' protocol handling stays in,
   an overestimate); ``crit`` the main thread's from the stages' standstill being seen to the
   next move, less the simulator's: the host work no motion hides; ``lag`` the wall time from
-  the standstill to its being seen (polling); and each phase's CPU, the merge's helper thread
-  included. From them an **idle-machine bound**: ``(bound + crit + one poll interval) /
-  bound``, valid where every point's other host CPU (``host - crit``, serialised on one core)
-  is below its motion, so the move hides it; on an idle machine the critical path's wall is
-  its CPU, and the standstill is seen within one poll.
+  the standstill to its being seen (the stages' alert, then one confirming poll:
+  `gonio.bench.drivers.zaber.ZaberChain.wait_idle`); and each phase's CPU, the merge's helper
+  thread included. From them an **idle-machine bound**: ``(bound + crit + lag) / bound``,
+  valid where every point's other host CPU (``host - crit``, serialised on one core) is below
+  its motion, so the move hides it; on an idle machine the critical path's wall is its CPU,
+  and the standstill is seen no later than on the loaded one (``lag`` as measured). With the
+  simulator the waiting read itself costs host CPU (``sim://`` reads wait in 1 ms steps in
+  this process; a serial port's read blocks in the kernel).
 
 To keep the accounting honest, the simulator renders a frame only once the worker is idle:
 the worker may overlap the stage motion and the exposures, never the simulator's computing,
@@ -48,7 +51,6 @@ flat-field frame, the quick plan's first points.
 from __future__ import annotations
 
 import contextlib
-import inspect
 import math
 import resource
 import sys
@@ -68,7 +70,6 @@ from .plans import Plan, load_plan
 __all__ = ["run", "run_cli", "PointTimes"]
 
 _PHASES = ("decode", "merge", "masks")
-_POLL_S = inspect.signature(capture).parameters["poll_interval_s"].default   # the capture's stage polling
 
 
 @dataclass
@@ -354,10 +355,10 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
                "lag_s": mean(lambda p: p.lag), **{k + "_cpu_s": mean(lambda p, k=k: p.cpu[k]) for k in _PHASES}}
         row["projected_s"] = row["bound_s"] + row["host_s"]
         row["ratio"] = row["projected_s"] / row["bound_s"] if row["bound_s"] > 0 else math.nan
-        # an idle machine: the critical path's CPU, the standstill seen within one poll interval; valid
-        # only where every point's work during its move (all threads, serialised) fits in the motion
+        # an idle machine: the critical path's CPU, the standstill seen by its alert (lag as measured);
+        # valid only where every point's work during its move (all threads, serialised) fits in the motion
         fits = all(p.host_cpu - p.crit_cpu < p.motion for p in pts)
-        row["idle_ratio"] = ((row["bound_s"] + row["crit_cpu_s"] + _POLL_S) / row["bound_s"]
+        row["idle_ratio"] = ((row["bound_s"] + row["crit_cpu_s"] + row["lag_s"]) / row["bound_s"]
                              if fits and row["bound_s"] > 0 else None)    # None: no bound can be stated
         rows.append(row)
     head = (f"{'camera':>10} {'pts':>3} {'motion':>7} {'expose':>7} {'bound':>7} {'wall':>7} {'sim':>7} "
@@ -376,7 +377,7 @@ def run(n_points: int = 3, full: tuple[int, int] | None = (6000, 4000), seed: in
     out("CPU seconds per point (host = every host thread, the simulator's computing taken out; crit = the main "
         "thread from the stages' standstill being seen to the next move, what no motion hides; lag = wall from "
         "the standstill to its being seen; decode, merge+st (both threads), masks: the phases; idle <= "
-        f"(bound + crit + one {_POLL_S:g} s poll) / bound, where each point's other host CPU < its motion)")
+        "(bound + crit + lag) / bound, where each point's other host CPU < its motion)")
     out(f"{'camera':>10} {'host':>7} {'crit':>7} {'lag':>7} {'decode':>7} {'merge+st':>8} {'masks':>7} {'idle<=':>8}")
     for r in rows:
         out(f"{r['camera']:>10} {r['host_cpu_s']:7.3f} {r['crit_cpu_s']:7.3f} {r['lag_s']:7.3f} "

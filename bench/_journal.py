@@ -286,13 +286,20 @@ def _toml_value(v) -> str:
         if math.isinf(v):
             return "inf" if v > 0 else "-inf"
         return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, str):        # JSON's escapes are TOML's; TOML also wants DEL escaped
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     if hasattr(v, "tolist"):
         return _toml_value(v.tolist())
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml_key(k) -> str:
+    """A bare key where TOML allows one (A-Za-z0-9_-), else a quoted one."""
+    k = str(k)
+    bare = k.isascii() and k.replace("_", "").replace("-", "").isalnum()
+    return k if bare else _toml_value(k)
 
 
 def dumps_toml(doc: Mapping[str, Any], _prefix: str = "") -> str:
@@ -302,10 +309,10 @@ def dumps_toml(doc: Mapping[str, Any], _prefix: str = "") -> str:
         if isinstance(v, Mapping):
             tables.append((k, v))
         else:
-            lines.append(f"{json.dumps(str(k)) if not str(k).replace('_', '').replace('-', '').isalnum() else k} = {_toml_value(v)}")
+            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
     out = "\n".join(lines) + ("\n" if lines else "")
     for k, v in tables:
-        name = f"{_prefix}{k}"
+        name = f"{_prefix}{_toml_key(k)}"
         out += f"\n[{name}]\n" + dumps_toml(v, name + ".")
     return out
 

@@ -5,9 +5,11 @@ the method, the equipment, the results with their uncertainty) opens with the id
 and a plain statement of what is wrong, then the results. Here:
 
 - :func:`identification` reads the dataset's attributes (``settings`` with its ``[session]``
-  table: sample id, description, operator; ``versions`` with the date; ``plan``) and the
-  session journal's ``identification`` event (each device's ``*IDN?``, Zaber device id, serial,
-  firmware), all as hostile text, cut and escaped by the template;
+  table: sample id, description, operator; ``versions`` with the date; ``plan``), the devices
+  session.toml's ``[devices]`` table records (each device's ``*IDN?``, Zaber device id, serial,
+  firmware; read from the session journal's copy of session.toml, or its ``identification``
+  event for a session from before the table) and what a resume on other hardware found
+  different (``hardware`` events), all as hostile text, cut and escaped by the template;
 - :func:`status` says what is incomplete (points measured of the plan), inadequate (chi2/dof
   beyond its 99.9 % point) or violated (energy, reciprocity beyond the noise);
 - :func:`results` gives each parameter with its combined standard uncertainty u_c and the
@@ -75,23 +77,50 @@ def _text(v, limit=200) -> str | None:
     return cut(str(v), limit) if isinstance(v, (str, int, float)) and not isinstance(v, bool) and str(v).strip() else None
 
 
+def _loads(text):
+    """A JSON object of the journal (hostile text: bounded, checked); None otherwise."""
+    try:
+        doc = json.loads(text) if isinstance(text, str) and len(text) < 1 << 22 else None
+    except (ValueError, RecursionError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def _read_journal(real) -> tuple[dict | None, dict | None, list[str]]:
+    """From the journal: session.toml's ``[devices]`` as recorded when the session started (the
+    ``session`` table's parsed doc; None for a session from before the table, or a journal
+    without it), the last ``identification`` event, and the ``hardware`` events (a resume on
+    other hardware, oldest first)."""
+    db = sqlite3.connect(f"{real.as_uri()}?mode=ro", uri=True)
+    try:
+        row = db.execute("SELECT text FROM events WHERE kind = 'identification' ORDER BY id DESC LIMIT 1").fetchone()
+        hardware = [r[0] for r in db.execute("SELECT text FROM events WHERE kind = 'hardware' ORDER BY id LIMIT 100")]
+        try:
+            doc = db.execute("SELECT value FROM session WHERE key = 'doc'").fetchone()
+        except sqlite3.OperationalError:             # no session table: no session.toml recorded
+            doc = None
+    finally:
+        db.close()
+    devices = (_loads(doc[0]) or {}).get("devices") if doc else None
+    return (devices if isinstance(devices, dict) else None, _loads(row[0]) if row else None,
+            [h for h in hardware if isinstance(h, str)])
+
+
 def _devices(root: Folder, journal) -> list[dict]:
-    """The last ``identification`` event of the session journal, checked field by field."""
+    """session.toml's ``[devices]`` (as the journal recorded it; the last ``identification``
+    event for a session from before the table), checked field by field; then what each resume
+    on other hardware said differs."""
     if journal is None:
         return []
     real = root.check(journal, "session journal")
     try:
-        db = sqlite3.connect(f"{real.as_uri()}?mode=ro", uri=True)
-        try:
-            row = db.execute("SELECT text FROM events WHERE kind = 'identification' ORDER BY id DESC LIMIT 1").fetchone()
-        finally:
-            db.close()
+        recorded, event, hardware = _read_journal(real)
     except sqlite3.Error:
         return [{"role": "devices", "text": "the session journal cannot be read (damaged database)"}]
-    try:
-        ident = json.loads(row[0]) if row and isinstance(row[0], str) and len(row[0]) < 1 << 20 else None
-    except (ValueError, RecursionError):
-        ident = None
+    ident = event
+    if recorded is not None:                     # the table is keyed by address; the event lists them
+        zaber = recorded.get("zaber") if isinstance(recorded.get("zaber"), dict) else {}
+        ident = {**recorded, "zaber": list(zaber.values())}
     if not isinstance(ident, dict):
         return []
     out = []
@@ -109,6 +138,12 @@ def _devices(root: Folder, journal) -> list[dict]:
     port = _text(ident.get("zaber_port")) or ""
     if port.startswith("sim://"):
         out.append({"role": "instrument", "text": "the simulated instrument (gonio.sim) over its serial protocols"})
+    seen = []
+    for h in hardware:
+        if h not in seen:
+            seen.append(h)
+    for h in seen[-5:]:
+        out.append({"role": "Hardware on resume", "text": cut(h, 900)})
     return out
 
 

@@ -33,18 +33,22 @@ class Bench:
     sleep : callable
         Called with seconds to wait (settling, polling); ``time.sleep`` on hardware; a
         simulated clock's ``advance`` in tests.
+    alerts : bool
+        Wait for the stages' moves by their alerts (`Goniometer`'s ``alerts``), polling only
+        where a device rejects them.
     """
 
     def __init__(self, settings: Mapping, zaber_url: str, meter_url: str, camera, *,
                  sleep: Callable[[float], None] = time.sleep, poll_interval_s: float = 0.05,
-                 timeout: float = 1.0, baudrate: int = 115200, on_warning=None):
+                 timeout: float = 1.0, baudrate: int = 115200, on_warning=None, alerts: bool = True):
         self.settings = settings
         self._sleep = sleep
         self.checkpoint: Callable[[], None] = lambda: None    # a run's safe point: may raise StopNow
         self.chain = self.meter = self.camera = None
         try:
             self.chain = ZaberChain(zaber_url, baudrate, timeout, on_warning=on_warning)
-            self.gonio = Goniometer(self.chain, settings, poll_interval_s=poll_interval_s, sleep=self.sleep)
+            self.gonio = Goniometer(self.chain, settings, poll_interval_s=poll_interval_s, sleep=self.sleep,
+                                    alerts=alerts)
             self.led = LedSource(self.chain, int(settings.get("lamp", {}).get("device", 2)))
             self.meter = PowerMeter(meter_url, baudrate, timeout)
             self.camera = _open_camera(camera, 30.0)

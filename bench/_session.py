@@ -32,6 +32,7 @@ from ._pipeline import Pipeline, _Suspended
 from ._rig import Bench
 from ._settings import AXES
 from .drivers import BadDelivery, MoveError, RawFrame, decode_raw, deliver, read_verified
+from .drivers.identify import differences, hardware_note, session_devices
 from .drivers.identify import record as record_identification
 from .errors import CommunicationError, DeviceError, GonioError, SessionError
 from .plans import plan_from_dict
@@ -45,7 +46,8 @@ class _Session:
     MAX_ATTEMPTS = 5        # measurements of one point interrupted by the lamp before the run stops
 
     def __init__(self, folder: Path, doc: Mapping, bench: Bench, journal: Journal, progress: bool,
-                 stop: Callable[[], bool]):
+                 stop: Callable[[], bool], *, ident: Mapping | None = None,
+                 note: Callable[[str], None] = lambda line: None):
         self.folder = folder
         self.doc = doc
         self.settings = doc["settings"]
@@ -79,6 +81,8 @@ class _Session:
         self._masks_of: dict[tuple, tuple] = {}      # per holder pose (yaw, tilt, azimuth): the regions
         self.layout = layout_of(self.settings)       # the holder's markers, None where it has none
         self._deliveries: dict = {}                  # RAW file name -> Delivery not yet checked and committed
+        self.ident = ident                           # a capture's identification, taken before session.toml
+        self.note = note                             # says one line (console and summary notes)
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -111,7 +115,9 @@ class _Session:
                 b.gonio.home()
             say("identifying the devices")
             b.meter.identify()
-            record_identification(b, self.journal)     # every device's *IDN?, Zaber id, serial, firmware
+            ident = record_identification(b, self.journal, self.ident)   # *IDN?s, Zaber ids, serials, firmware
+            if self.ident is None:
+                self._check_hardware(ident)
             m = self.settings.get("meter", {})
             b.meter.configure(float(m.get("wavelength_nm", 550)), int(m.get("averaging", 10)))
             self._take_darks(say)
@@ -124,6 +130,19 @@ class _Session:
             b.led.on()
             self.p_ref = self._p_ref()
             self._take_chart(say)
+
+    def _check_hardware(self, ident: Mapping) -> None:
+        """A resume: say (a console line, the summary's notes, a ``hardware`` journal event the
+        report shows) where the devices differ from what session.toml's ``[devices]`` records;
+        nothing on the same hardware, or for a session.toml from before ``[devices]``."""
+        recorded = self.doc.get("devices")
+        if not isinstance(recorded, Mapping):
+            return
+        diffs = differences(recorded, session_devices(ident))
+        if diffs:
+            line = hardware_note(diffs)
+            self.journal.event("hardware", line)
+            self.note(line)
 
     @contextlib.contextmanager
     def _status(self):

@@ -68,6 +68,7 @@ from ._session import _Session
 from ._settings import default_settings, merge_settings, validate_settings
 from ._signals import Interrupts, StopNow
 from .drivers import emergency_stop
+from .drivers.identify import identify_bench, session_devices
 from .errors import GonioError, SessionError
 from .plans import Plan, require_reachable
 
@@ -160,13 +161,18 @@ def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_ur
 
 
 def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: SessionLock, warnings: list,
-         progress: bool, t0: float, notes: list) -> CaptureSummary:
-    """Measure what the journal lacks. Takes over ``bench``, ``journal`` and ``lock`` (closes them)."""
+         progress: bool, t0: float, notes: list, *, ident: Mapping | None = None,
+         note: Callable[[str], None] | None = None) -> CaptureSummary:
+    """Measure what the journal lacks. Takes over ``bench``, ``journal`` and ``lock`` (closes them).
+
+    ``ident``: the devices' identification a capture took before writing session.toml (a resume
+    identifies them again); ``note``: says a line (a resume on other hardware), else it joins ``notes``."""
     try:
         with Interrupts() as intr:
             bench.checkpoint = intr.check
             try:
-                sess = _Session(folder, doc, bench, journal, progress, lambda: intr.requested)
+                sess = _Session(folder, doc, bench, journal, progress, lambda: intr.requested, ident=ident,
+                                note=note or notes.append)
                 sess.prepare()
                 n_new, stopped = sess.run()
             except StopNow as exc:
@@ -363,16 +369,30 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     bench_kw = dict(sleep=sleep, poll_interval_s=poll_interval_s, timeout=timeout,
                     on_warning=lambda d, f, m: warnings.append((d, f, m)))
     doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta)
-    bench, journal, lock, doc = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
-    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [])
+    bench, journal, lock, doc, ident = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
+    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [], ident=ident)
 
 
-def _start_session(folder: Path, doc: Mapping, ports: tuple, bench_kw: Mapping) -> tuple[Bench, Journal, SessionLock, dict]:
-    """Open every port, then create the folder, take its lock and write ``session.toml`` and the
-    journal: a dead port (or a signal while the ports open) leaves nothing behind, and on any
-    failure what was opened is closed and a half-written session.toml removed.
+def _with_devices(doc: Mapping, devices: dict) -> dict:
+    """``doc`` with its ``[devices]`` table, placed after ``[ports]``."""
+    out: dict = {}
+    for k, v in doc.items():
+        out[k] = v
+        if k == "ports":
+            out["devices"] = devices
+    out.setdefault("devices", devices)
+    return out
 
-    Returns the bench, the journal, the lock (all three handed to `_run`) and the session as read back.
+
+def _start_session(folder: Path, doc: Mapping, ports: tuple,
+                   bench_kw: Mapping) -> tuple[Bench, Journal, SessionLock, dict, dict]:
+    """Open every port and identify the devices, then create the folder, take its lock and write
+    ``session.toml`` (with the identification as its ``[devices]`` table) and the journal: a dead
+    port (or a signal while the ports open) leaves nothing behind, and on any failure what was
+    opened is closed and a half-written session.toml removed.
+
+    Returns the bench, the journal, the lock (all three handed to `_run`), the session as read
+    back and the identification (`identify.identify_bench`, journalled by the run's preparation).
     """
     settings = doc["settings"]
     lock = journal = bench = None
@@ -381,6 +401,8 @@ def _start_session(folder: Path, doc: Mapping, ports: tuple, bench_kw: Mapping) 
             bench = Bench(settings, *ports, **bench_kw)
             check_sensor(bench.camera, settings)
             ReferenceModel(settings["reference"])
+            ident = identify_bench(bench)         # cheap (a few gets and *IDN?s); cleaned device text
+            doc = _with_devices(doc, session_devices(ident))
             text = session_text(doc)
             try:
                 folder.mkdir(parents=True, exist_ok=True)
@@ -416,7 +438,7 @@ def _start_session(folder: Path, doc: Mapping, ports: tuple, bench_kw: Mapping) 
                     pass
             lock.__exit__()
         raise
-    return bench, journal, lock, read
+    return bench, journal, lock, read, ident
 
 
 def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = None, camera=None,
@@ -489,4 +511,4 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
             bench.close()
         lock.__exit__()
         raise
-    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, notes)
+    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, notes, note=note)

@@ -8,17 +8,22 @@ them (``RJ BADCOMMAND``), which is recorded as missing rather than failing. What
 sends is treated as hostile text: only printable ASCII is kept, at most 64 characters.
 
 `record` puts the identification of a bench's devices in the session's journal (an
-``identification`` event, JSON) once per run: a capture calls it after the instrument is
-prepared, and a resume on other hardware records what it ran on.
+``identification`` event, JSON) once per run. A capture identifies the devices as soon as the
+ports are open, before ``session.toml`` is written, and `session_devices` makes that its
+``[devices]`` table (docs/interfaces.md section 5); every resume identifies them again, journals
+what it ran on, and `differences` says what differs from the table (`hardware_note`).
 """
 
 from __future__ import annotations
 
 import json
 
+from typing import Mapping
+
 from ..errors import CommunicationError, GonioError
 
-__all__ = ["camera_text", "clean", "describe_device", "discover", "identify_bench", "record", "roles", "zaber_device"]
+__all__ = ["camera_text", "clean", "describe_device", "differences", "discover", "hardware_note", "identify_bench",
+           "record", "roles", "session_devices", "zaber_device"]
 
 _MAX_TEXT = 64
 _DEVICE_SETTINGS = (("deviceid", "device_id"), ("system.serial", "serial"), ("version", "firmware"),
@@ -107,8 +112,82 @@ def identify_bench(bench) -> dict:
     return out
 
 
-def record(bench, journal) -> dict:
-    """Journal the identification of every device of ``bench`` (an ``identification`` event)."""
-    ident = identify_bench(bench)
+def record(bench, journal, ident: Mapping | None = None) -> dict:
+    """Journal the identification of every device of ``bench`` (an ``identification`` event):
+    ``ident`` where the caller already took it (`identify_bench`), else asked now."""
+    ident = identify_bench(bench) if ident is None else ident
     journal.event("identification", json.dumps(ident, sort_keys=True, allow_nan=False))
     return ident
+
+
+_ZABER_FIELDS = (("device_id", "device id"), ("serial", "serial"), ("firmware", "firmware"), ("build", "build"),
+                 ("axes", "axes"), ("peripheral_ids", "peripheral ids"))
+
+
+def session_devices(ident: Mapping) -> dict:
+    """The ``[devices]`` table of ``session.toml`` for an `identify_bench` result.
+
+    ``zaber_port``, ``meter_port``, ``meter`` (``*IDN?``), ``camera``, and per Zaber address A a
+    table ``[devices.zaber.A]``: ``address``, ``device_id``, ``serial``, ``firmware``, ``build``,
+    ``axes``, ``peripheral_ids``. Every text is `clean`'d again (printable ASCII, at most 64
+    characters: no newline or control character reaches the file, and the TOML writer escapes
+    quotes and backslashes); what a device did not answer is left out (TOML has no null), a
+    peripheral id it did not answer is ``""``.
+    """
+    out: dict = {}
+    for key in ("zaber_port", "meter_port", "meter", "camera"):
+        if ident.get(key) is not None:
+            out[key] = clean(ident[key])
+    zaber: dict = {}
+    for d in ident.get("zaber") or []:
+        address = int(d["address"])
+        row: dict = {"address": address}
+        for key in ("device_id", "serial", "firmware", "build"):
+            if d.get(key) is not None:
+                row[key] = clean(d[key])
+        row["axes"] = int(d.get("axes") or 0)
+        row["peripheral_ids"] = ["" if p is None else clean(p) for p in (d.get("peripheral_ids") or [])[:MAX_AXES]]
+        zaber[str(address)] = row
+    out["zaber"] = zaber
+    return out
+
+
+def _shown(v) -> str:
+    if v is None:
+        return "(none)"
+    if isinstance(v, list):
+        return "[" + " ".join(clean(x) or "-" for x in v[:MAX_AXES]) + "]"
+    return clean(v) or '""'
+
+
+def differences(recorded: Mapping, now: Mapping) -> list[str]:
+    """What differs between ``session.toml``'s ``[devices]`` (``recorded``) and the devices
+    identified now (a `session_devices` table): one clean phrase per difference, e.g.
+    ``"Zaber device 1 serial 91001 -> 91099"``; [] on the same hardware. The ports are not
+    compared (a device may come back on another port); ``recorded`` is read defensively (a
+    field of the wrong type differs)."""
+    out = []
+    rz = recorded.get("zaber") if isinstance(recorded.get("zaber"), Mapping) else {}
+    nz = now.get("zaber") if isinstance(now.get("zaber"), Mapping) else {}
+    for a in sorted(set(rz) | set(nz), key=lambda k: (len(str(k)), str(k)))[:99]:
+        r, n = rz.get(a), nz.get(a)
+        if not isinstance(r, Mapping):
+            out.append(f"Zaber device {clean(a)} is not in session.toml")
+            continue
+        if not isinstance(n, Mapping):
+            out.append(f"Zaber device {clean(a)} (serial {_shown(r.get('serial'))}) did not answer")
+            continue
+        for key, label in _ZABER_FIELDS:
+            if r.get(key) != n.get(key):
+                out.append(f"Zaber device {clean(a)} {label} {_shown(r.get(key))} -> {_shown(n.get(key))}")
+    for key, label in (("meter", "power meter *IDN?"), ("camera", "camera")):
+        if recorded.get(key) != now.get(key):
+            out.append(f"{label} {_shown(recorded.get(key))} -> {_shown(now.get(key))}")
+    return out
+
+
+def hardware_note(diffs: list[str]) -> str:
+    """The one line a resume on other hardware says (console and journal)."""
+    return ("this resume runs on other hardware than session.toml records: " + "; ".join(diffs[:12])
+            + ("; ..." if len(diffs) > 12 else "")
+            + " (session.toml keeps the original; this run's identification is journalled)")

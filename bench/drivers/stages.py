@@ -72,6 +72,9 @@ class Goniometer:
         Seconds between BUSY polls.
     sleep : callable
         Called between polls; ``time.sleep`` on hardware.
+    alerts : bool
+        ``connect`` turns each stage device's alerts on (``set comm.alert 1``) and moves are
+        waited for by their alerts (`ZaberChain.wait_idle`); a device that rejects it is polled.
 
     Notes
     -----
@@ -83,8 +86,10 @@ class Goniometer:
     POSITION_TOLERANCE_STEPS = 2
 
     def __init__(self, chain: ZaberChain, settings: Mapping, *, poll_interval_s: float = 0.05,
-                 sleep: Callable[[float], None] = time.sleep, move_timeout_s: float = 300.0):
+                 sleep: Callable[[float], None] = time.sleep, move_timeout_s: float = 300.0,
+                 alerts: bool = False):
         self.chain = chain
+        self.alerts = alerts
         self.poll_interval_s = poll_interval_s
         self.sleep = sleep
         self.move_timeout_s = move_timeout_s
@@ -124,6 +129,8 @@ class Goniometer:
                                  "then run the session again with --resume", tuple(faults))
             active += flags
         for dev in self.devices:
+            if self.alerts:
+                self.chain.enable_alerts(dev)
             axes = [a for a in self.axes.values() if a.device == dev]
             cyc = self.chain.get(dev, 0, "limit.cycle.dist")
             lo = self.chain.get(dev, 0, "limit.min")

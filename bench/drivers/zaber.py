@@ -18,6 +18,13 @@ in ``#DD A [ID] cont ...`` lines of the same device, axis and message id; ``NA``
 that lacks a setting in an axis-0 ``get``. `ZaberChain` skips the first, joins the second
 and reads ``NA`` as NaN (`Reply.values`), which the callers refuse by name.
 
+Waiting for a move (`ZaberChain.wait_idle`): by polling ``/D 0`` every ``poll_interval_s``, or,
+on a device whose alerts `enable_alerts` turned on (``set comm.alert 1``; a device that rejects
+it is polled), by the alert ``!DD A IDLE WARN`` each axis sends when its motion ends: one poll,
+then, while it says BUSY, a wait for the device's next alert (an alert read meanwhile, between
+the replies of other commands, is kept for it) and a poll to confirm; a silent port for the
+port's timeout also polls (an alert lost on the line only delays the wait).
+
 Retries resend the same command. That is safe for every command the drivers send (absolute
 moves, homing, gets, sets, lamp on/off) and would not be for ``move rel``, which they never send.
 """
@@ -83,20 +90,33 @@ class ZaberChain(SerialDevice):
         self.on_warning = on_warning
         self.retries_used = 0                 # resends after a silent or garbled reply (all time)
         self.warnings_seen: list[tuple[int, str]] = []
+        self.alerting: set[int] = set()       # devices whose alerts are on (`enable_alerts`)
+        self._alerted: set[int] = set()       # devices an alert was read from since their last poll
+        self._partial = b""                   # a line cut by an alert window's end, completed next read
         self._msgid = -1
         self.open()
+
+    def reconnect(self) -> None:
+        self._partial = b""                   # a cut line of the old port is never completed
+        super().reconnect()
 
     # -- one exchange --------------------------------------------------------------------
     def _next_msgid(self) -> int:
         self._msgid = (self._msgid + 1) % 100
         return self._msgid
 
-    def _readline(self) -> bytes:
+    def _readline(self, keep_partial: bool = False) -> bytes:
+        """One line; `_NoReply` on a timeout. ``keep_partial``: a line cut by the timeout is kept
+        and completed by the next read (waiting for an alert in short windows)."""
         try:
             line = self._port.readline()
         except (serial.SerialException, OSError) as exc:
+            self._partial = b""
             raise _NoReply(str(exc)) from None
+        line, self._partial = self._partial + line, b""
         if not line.endswith(b"\n"):
+            if keep_partial and len(line) < 4096:
+                self._partial = line
             raise _NoReply("timeout")
         return line
 
@@ -111,6 +131,7 @@ class ZaberChain(SerialDevice):
         while True:
             line = self._readline()
             if line[:1] in (b"#", b"!"):        # info lines and alerts
+                self._note_alert(line)
                 continue
             try:
                 reply = parse_reply(line)
@@ -136,6 +157,7 @@ class ZaberChain(SerialDevice):
             while True:
                 line = self._readline()
                 if line[:1] == b"!":
+                    self._note_alert(line)
                     continue                      # an alert between the packets
                 if line[:1] != b"#":
                     raise _Garbled(f"continuation expected after {reply.data!r}, got {line!r}")
@@ -222,6 +244,7 @@ class ZaberChain(SerialDevice):
             except (ValueError, UnicodeDecodeError):
                 reply = None
             if reply is None or reply.msgid != msgid or reply.device in by_device:
+                self._note_alert(line)
                 skipped += 1
                 continue
             try:
@@ -285,18 +308,95 @@ class ZaberChain(SerialDevice):
         """``set <setting> <value>``."""
         self.request(device, axis, f"set {setting} {value}")
 
+    # -- alerts ------------------------------------------------------------------------------
+    def _note_alert(self, line: bytes) -> None:
+        """Remember that ``line``, if an alert ``!DD A ...`` of an alerting device, came."""
+        if line[:1] != b"!":
+            return
+        head = line[1:4].split(b" ")[0]
+        if head.isdigit() and int(head) in self.alerting:
+            self._alerted.add(int(head))
+
+    def enable_alerts(self, device: int) -> bool:
+        """``set comm.alert 1``: the device then sends ``!DD A IDLE WARN`` when a motion of an
+        axis ends, which `wait_idle` waits for. False (the device is polled) where it rejects it
+        or does not answer."""
+        try:
+            reply = self.request(device, 0, "set comm.alert 1", check=False)
+        except CommunicationError:
+            reply = None
+        if reply is not None and reply.ok:
+            self.alerting.add(device)
+        else:
+            self.alerting.discard(device)
+        return device in self.alerting
+
+    #: With alerts on, the port is read for an alert in windows this long, with a safe point
+    #: (``sleep(0)``: a stop asked for is acted on) between them.
+    ALERT_WINDOW_S = 0.1
+
+    def _await_alert(self, device: int, patience: float, sleep: Callable[[float], None]) -> tuple[bool, float]:
+        """Read until an alert of ``device`` comes: ``(True, seconds silent)``; ``(False, seconds
+        silent)`` once the port was silent for ``patience`` (counted in read windows, not wall
+        time). Other lines (late replies, info lines, other devices' alerts) are skipped; a line
+        cut by a window's end is kept and completed by the next read."""
+        if device in self._alerted:              # read meanwhile, between other replies
+            return True, 0.0
+        port = self._port
+        window = max(1e-3, min(self.ALERT_WINDOW_S, patience))
+        try:
+            old, port.timeout = port.timeout, window
+        except (serial.SerialException, OSError, ValueError, AttributeError):
+            return False, patience               # poll instead
+        silent = 0.0
+        try:
+            for _ in range(64 + math.ceil(patience / window)):
+                try:
+                    line = self._readline(keep_partial=True)
+                except _NoReply:
+                    silent += window
+                    if silent >= patience - 1e-9:
+                        return False, silent
+                    sleep(0)                      # a safe point between windows
+                    continue
+                self._note_alert(line)
+                if device in self._alerted:
+                    return True, silent
+            return False, silent
+        finally:
+            try:
+                port.timeout = old
+            except (serial.SerialException, OSError, ValueError):
+                pass
+
     def wait_idle(self, device: int, timeout_s: float = 120.0, poll_interval_s: float = 0.05,
                   sleep: Callable[[float], None] = time.sleep) -> Reply:
-        """Poll ``/D 0`` until IDLE.
+        """Poll ``/D 0`` until IDLE; on an alerting device (`enable_alerts`) poll once, then when
+        its alerts say an axis's motion ended, or after the port was silent for its timeout.
 
         The budget is counted in polls (``timeout_s / poll_interval_s``) rather than in wall
-        time, so it is the same whether ``sleep`` really sleeps or a simulated clock advances.
+        time, so it is the same whether ``sleep`` really sleeps or a simulated clock advances;
+        with alerts each poll counts one poll interval and each silent read window its length.
 
         Raises
         ------
         CommunicationError
             Still BUSY after the budget.
         """
+        if device in self.alerting:
+            left = timeout_s
+            while True:
+                reply = self.request(device, 0)
+                if not reply.busy:
+                    return reply
+                self._alerted.discard(device)    # this BUSY is newer than any alert read so far
+                if left <= 1e-9:
+                    break
+                came, silent = self._await_alert(device, min(left, max(self.timeout, poll_interval_s)), sleep)
+                left -= silent + poll_interval_s     # (a device that only sends other lines is bounded too)
+                sleep(0)                          # a safe point before the next poll
+            raise CommunicationError(f"Zaber device {device} still moving after {timeout_s:g} s; "
+                                     "check for a jammed stage, then resume the session")
         n = max(1, math.ceil(timeout_s / poll_interval_s))
         for _ in range(n):
             reply = self.request(device, 0)

@@ -154,3 +154,72 @@ def test_led_with_a_bad_flux_max_is_refused():
     expect("l3", [(cmd(2, 1, 0, "get lamp.flux.max"), "@02 1 00 OK IDLE -- 0\r\n")])
     with pytest.raises(DeviceError, match="lamp.flux.max"):
         LedSource(ZaberChain("expect://l3")).set_flux(0.5)
+
+
+# -- waiting for a move by its alerts (issue 17) ----------------------------------------------
+
+def test_a_move_is_waited_for_by_its_alerts_read_between_other_replies():
+    """``set comm.alert 1``, then ``wait_idle``: one poll (BUSY), the alert of axis 3 read after
+    it (past a late reply, an info line and device 2's alert), a poll (BUSY: axis 1 still
+    moves), axis 1's alert, a poll (IDLE). An alert read before the first poll (here between
+    the packets of ``get pos``) is older than its BUSY and ends nothing. No poll sleeps."""
+    ex = expect("w1", [
+        (cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n"),
+        (cmd(1, 0, 1, "get pos"), "!01 2 IDLE --\r\n@01 0 01 OK BUSY -- 1 2 3 4\r\n"),
+        (cmd(1, 0, 2), "@01 0 02 OK BUSY -- 0\r\n@01 0 17 OK IDLE -- 0\r\n#01 0 info\r\n!02 1 IDLE --\r\n"
+                       + sealed("!", "01 3 IDLE --")),
+        (cmd(1, 0, 3), "@01 0 03 OK BUSY -- 0\r\n!01 1 IDLE --\r\n"),
+        (cmd(1, 0, 4), "@01 0 04 OK IDLE -- 0\r\n"),
+    ])
+    z = ZaberChain("expect://w1")
+    assert z.enable_alerts(1) and z.alerting == {1}
+    z.get(1, 0, "pos")
+    slept = []
+    assert z.wait_idle(1, timeout_s=5.0, poll_interval_s=0.05, sleep=slept.append).status == "IDLE"
+    assert ex.done() and set(slept) == {0} and z.retries_used == 0
+
+
+def test_a_lost_alert_falls_back_to_a_poll_and_a_cut_alert_is_completed():
+    """No alert after a BUSY: the port is read in 0.1 s windows (a safe point, ``sleep(0)``,
+    between them) and polled again once it was silent for its timeout. An alert cut by a
+    window's end is completed by the next read, not taken for a garbled reply."""
+    ex = expect("w2", [
+        (cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n"),
+        (cmd(1, 0, 1), "@01 0 01 OK BUSY -- 0\r\n!01 1 ID"),
+        (cmd(1, 0, 2), "LE --\r\n@01 0 02 OK IDLE -- 0\r\n"),
+    ])
+    z = ZaberChain("expect://w2", timeout=0.5)
+    z.enable_alerts(1)
+    slept = []
+    assert z.wait_idle(1, timeout_s=5.0, poll_interval_s=0.05, sleep=slept.append).status == "IDLE"
+    assert ex.done() and z.retries_used == 0 and slept == [0] * 5   # 4 safe points between 5 windows, 1 before the poll
+
+
+def test_alerts_rejected_or_a_stage_that_never_stops():
+    """A device that rejects ``comm.alert`` is polled as before; with alerts on, a stage BUSY
+    past the budget (silent windows counted, not wall time) is a `CommunicationError`."""
+    expect("w3", [(cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 RJ IDLE -- BADCOMMAND\r\n"),
+                  (cmd(1, 0, 1), "@01 0 01 OK BUSY -- 0\r\n"), (cmd(1, 0, 2), "@01 0 02 OK IDLE -- 0\r\n")])
+    z = ZaberChain("expect://w3")
+    slept = []
+    assert not z.enable_alerts(1) and z.alerting == set()
+    assert z.wait_idle(1, timeout_s=1.0, poll_interval_s=0.1, sleep=slept.append).status == "IDLE"
+    assert slept == [0.1]
+    expect("w4", [(cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n")]
+           + [(cmd(1, 0, k), f"@01 0 {k:02d} OK BUSY -- 0\r\n!01 1 IDLE --\r\n") for k in range(1, 12)])
+    z = ZaberChain("expect://w4", timeout=0.2)
+    z.enable_alerts(1)
+    with pytest.raises(CommunicationError, match="still moving after 0.5 s"):
+        z.wait_idle(1, timeout_s=0.5, poll_interval_s=0.05, sleep=lambda s: None)   # 10 alerts: 10 polls' budget
+
+
+def test_a_device_that_only_sends_other_lines_cannot_keep_the_wait_going():
+    """BUSY, then only late replies (never this device's alert, never silence): each round of
+    64 skipped lines ends in a poll, and the polls count against the budget."""
+    junk = "@01 0 77 OK IDLE -- 0\r\n" * 70
+    expect("w5", [(cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n")]
+           + [(cmd(1, 0, k), f"@01 0 {k:02d} OK BUSY -- 0\r\n" + junk) for k in range(1, 12)])
+    z = ZaberChain("expect://w5")
+    z.enable_alerts(1)
+    with pytest.raises(CommunicationError, match="still moving"):
+        z.wait_idle(1, timeout_s=0.5, poll_interval_s=0.05, sleep=lambda s: None)
