@@ -146,20 +146,23 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True):
     t0 = time.perf_counter()
     best, ranking = select(meas, rng=np.random.default_rng(seed), loss=loss)
     if render:      # as `gonio fit --model auto`: the data's evidence, then the default scene's renders
-        from .scene import rendered_choice
+        from .scene import data_driven, rendered_choice
 
-        best, ranking, _ = rendered_choice(ranking, str(path), seed=seed)
+        best, ranking, _ = rendered_choice(ranking, str(path), seed=seed, fallback=data_driven(meas, seed=seed, loss=loss))
     t_select = time.perf_counter() - t0
     chosen = next(r for r in ranking if r.chosen)
     model = best.model
     g = metrics(model.eval(wi, wo, best.params), f_meas, wi)
-    space, x_peer, t_peer = peer_fit(meas, model, np.random.default_rng([seed, 1]))
-    p = metrics(model.eval(wi, wo, space.to_params(x_peer)), f_meas, wi)
+    import gonio.models as gm
+
+    peer_model = gm.get(model.name, **model.options)   # the family's declared defaults, not gonio's start
+    space, x_peer, t_peer = peer_fit(meas, peer_model, np.random.default_rng([seed, 1]))
+    p = metrics(peer_model.eval(wi, wo, space.to_params(x_peer)), f_meas, wi)
     label = model.name + (f"-{model.options['distribution']}" if model.options.get("distribution") else "")
     de_g = de_p = floor = float("nan")
     if render:
         de_g, floor = rendered_delta_e(model, best.params, path, seed)
-        de_p, _ = rendered_delta_e(model, space.to_params(x_peer), path, seed)
+        de_p, _ = rendered_delta_e(peer_model, space.to_params(x_peer), path, seed)
     return {"gonio_de00": de_g, "peer_de00": de_p, "de00_noise": floor,
             "material": path.stem, "model": label, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
             "gonio_ngan": g["ngan"], "gonio_log": g["log"], "gonio_time_s": best.time_s,
