@@ -5,14 +5,16 @@ Per material (an RGL-EPFL ``.bsdf`` or a MERL ``.binary``):
 
 * **gonio**: ``--model auto`` as the command line runs it (every candidate fitted with the
   real-data default loss, :data:`gonio.fitting.REAL_DEFAULT_LOSS`, on the file's own
-  solid-angle-weighted samples, BIC choice). The time of the chosen candidate's fit and of
-  the whole selection are both reported.
+  solid-angle-weighted samples, BIC choice, then the default scene's rendered check with its
+  data-driven fallback, :func:`gonio.fitting.scene.rendered_choice`). The time of the chosen
+  candidate's fit and of the whole selection are both reported.
 * **peer**: what a scipy user would write, on the same samples: ``scipy.optimize.
   least_squares`` (trust-region reflective, 2-point finite differences, bounds) on the log
   residuals ln(1 + f_model cos) - ln(1 + f_meas cos) without weights, from the declared
   defaults and 7 more starts drawn uniformly in the parameter box (8 starts, seeded
   Generator), the best kept, with gonio's numpy reference model (``model.eval``) of the
-  family gonio chose.
+  family gonio chose (its declared defaults: a data-driven model's instance carries gonio's
+  own start, which the peer does not get).
 
 Metrics, on one dense grid of direction pairs shared by both (:func:`dense_grid`: theta_i
 and theta_o <= 80 deg, equal solid-angle cells so every pair weighs the same, f_r of the
@@ -189,7 +191,9 @@ def print_table(rows):
     for r in rows:
         print("".join(f"{r[k]:{fmt}{spec if spec != 's' else ''}}" for k, fmt, spec in COLUMNS))
     print("g: gonio's chosen fit (--model auto: BIC, then the simplest candidate rendering within CIEDE2000 1 of "
-          "the measured file in the product-shot scene); p: scipy least_squares, unweighted log loss, "
+          "the measured file in the product-shot scene; where none does, the more complex ones and tabulated "
+          "fitted from the data are rendered too and the closest is chosen); p: scipy least_squares, unweighted "
+          "log loss, "
           f"{PEER_STARTS} starts, numpy model of the same family; t g: the chosen fit's time, "
           "auto: the whole selection; metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
           f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
