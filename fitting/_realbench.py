@@ -31,15 +31,12 @@ file at each):
 * time: wall seconds, and the ratio peer / gonio (same run, same machine).
 
 Measured (seed 0, the shared 2-core machine at load 5-9: times are slowed several-fold, the
-ratio is of one run), gonio / peer:
+ratio is of one run), gonio / peer::
 
-========================  ===============  =============  ===============  ==========  =============
-material                  chosen           Ngan           log              dE00 (floor)  time s
-========================  ===============  =============  ===============  ==========  =============
-vch_golden_yellow         tabulated        0.152 / 0.153  0.0224 / 0.0232  1.98 / 3.55 (0.56)  34 / 566
-colodur_napoli_4f         principled-ggx   0.085 / 0.120  0.0030 / 0.0042  0.73 / 1.04 (0.23)  17 / 110
-paper_white               cooktorrance     0.061 / 0.063  0.0099 / 0.0101  0.88 / 0.88 (0.33)  1.0 / 18.5
-========================  ===============  =============  ===============  ==========  =============
+    material            chosen           Ngan           log              dE00 (floor)        time s
+    vch_golden_yellow   tabulated        0.152 / 0.153  0.0224 / 0.0232  1.98 / 3.55 (0.56)  34 / 566
+    colodur_napoli_4f   principled-ggx   0.085 / 0.120  0.0030 / 0.0042  0.73 / 1.04 (0.23)  17 / 110
+    paper_white         cooktorrance     0.061 / 0.063  0.0099 / 0.0101  0.88 / 0.88 (0.33)  1.0 / 18.5
 
 vch before the rendered check's data-driven fallback: roughconductor2-GGX, 0.328 / 0.317,
 0.0326 / 0.0331, 3.66 / 6.67 (0.41): its one lobe colour misses the orange core and the
