@@ -163,7 +163,7 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
     candidates = resolve_candidates(model, options)
     if candidates is None:
         result, ranking = select(meas, rng=rng, loss=loss)
-        result, ranking, selection_note = _rendered_choice(ranking, dataset_path, seed)
+        result, ranking, selection_note = _rendered_choice(ranking, dataset_path, seed, meas=meas, loss=loss)
     else:
         try:
             if len(candidates) > 1:     # no distribution given: each declared one, chosen by BIC (said)
@@ -199,10 +199,12 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
     return result, doc, post
 
 
-def _rendered_choice(ranking, dataset_path, seed):
-    """BIC's ranking with the default scene's rendered check (fitting.scene.rendered_choice);
+def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None):
+    """BIC's ranking with the default scene's rendered check (fitting.scene.rendered_choice;
+    where no candidate renders within its threshold of a measured file, the data-driven
+    ``tabulated`` model fitted from ``meas`` is tried too: fitting.scene.data_driven);
     skipped, and said, where Mitsuba has only its scalar variant (a render would take minutes)."""
-    from gonio.fitting.scene import rendered_choice
+    from gonio.fitting.scene import data_driven, rendered_choice
     from gonio.models.mitsuba import mitsuba_variant
 
     by_bic = next(r for r in ranking if r.chosen)
@@ -210,7 +212,8 @@ def _rendered_choice(ranking, dataset_path, seed):
         return by_bic.result, ranking, "BIC's choice: no vectorised Mitsuba variant for the default scene's renders"
     path = Path(dataset_path) if dataset_path is not None else None
     measured = str(path) if path is not None and path.suffix.lower() in (".bsdf", ".binary") else None
-    return rendered_choice(ranking, measured, seed=seed)
+    fallback = data_driven(meas, seed=seed, loss=loss) if meas is not None and measured is not None else None
+    return rendered_choice(ranking, measured, seed=seed, fallback=fallback)
 
 
 def _inadequate_text(g) -> str:

@@ -275,7 +275,7 @@ class GeneralFit:
 
 def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         n_starts: int | None = None, n_local: int = 3, maxeval: int = 2000, enforce_energy: bool | None = None,
-        use_fast: bool | None = None, start: dict | None = None) -> FitResult:
+        use_fast: bool | None = None, start: dict | None = None, covariance: bool = True) -> FitResult:
     """Fit ``model`` to ``meas``.
 
     Parameters
@@ -307,6 +307,12 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         model started from the simpler one's fit (:func:`gonio.fitting.select` does this for
         a model that declares ``start_from``). A model with a declared affine structure is
         then fitted by the general problem.
+    covariance : bool
+        False: the ``log`` and ``cosine`` losses skip their sandwich covariance
+        (:func:`gonio.fitting._result.robust_covariance`: 2 P + 1 Jacobians, P^2 evaluations
+        without a compiled kernel) and keep the Laplace one, for a fit that is refined again
+        from its own result (:func:`gonio.fitting.fit_tabulated`'s rounds: 25 of its 90 s each
+        on vch at 42 parameters). ``time_s`` never includes it.
 
     Returns
     -------
@@ -329,13 +335,13 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         with single_threaded_blas():
             res = refine_starts(AffineFit(meas, model, space, loss, SCORE_ROWS), rng, t0=t0, **loop)
         if res is not None:
-            if loss in ROBUST_COV:
+            if loss in ROBUST_COV and covariance:
                 res = robust_covariance(res, meas, Problem(meas, model, space, loss, use_fast=use_fast, linear=[]))
             return res
     with single_threaded_blas():  # as for the affine problem: BLAS's threads fight Dr.Jit's (measured 3-5x)
         general = GeneralFit(meas, model, space, loss, use_fast, enforce_energy, maxeval, start)
         res = refine_starts(general, rng, t0=t0, **loop)
-        return robust_covariance(res, meas, general.problem) if loss in ROBUST_COV else res
+        return robust_covariance(res, meas, general.problem) if loss in ROBUST_COV and covariance else res
 
 
 #: losses without a noise model: their covariance is the sandwich of their own residuals

@@ -41,7 +41,8 @@ from ._scene_fit import SAMPLE_ID
 from .preview import delta_e_2000, matched_noise_floor, measured_bsdf_dict
 
 __all__ = ["PRESETS", "SAMPLE_ID", "scene_dict", "load_scene", "scene_pairs", "scene_samples", "sample_mask",
-           "fit_to_scene", "render_in_scene", "rank_in_scene", "rendered_choice", "choose", "front"]
+           "fit_to_scene", "render_in_scene", "rank_in_scene", "rendered_choice", "fallback_choice", "data_driven",
+           "choose", "front"]
 
 PRESETS = ("overcast", "product-shot", "close-up-sun")
 _RESOLVED: set = set()
@@ -221,7 +222,7 @@ def eval_cost(bsdf, variant=None, n=1 << 16):
 
 
 def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, spp=128, seed=0, threshold=1.0,
-                    variant=None):
+                    variant=None, fallback=None):
     """``--model auto`` without a scene: the data's evidence and a default scene together.
 
     BIC (:func:`gonio.fitting.select`) ranks the candidates by the data's evidence. The
@@ -232,6 +233,15 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
     (:func:`choose`) is chosen: a model the data can tell apart but the scene cannot is not
     needed there. Without a candidate within the threshold, or when the renders' noise cannot
     tell, BIC's choice stands. Each rendered row of ``ranking`` gets ``delta_e`` and ``noise``.
+
+    When the reference is the measured material and no candidate up to BIC's choice renders
+    within ``threshold`` (:func:`fallback_choice`), the data's evidence has not found a model
+    the scene accepts: the more complex candidates already fitted are rendered too, and
+    ``fallback`` (a callable returning further FitResults, e.g. :func:`data_driven` fitting
+    the tabulated model from the data) is called and its fits rendered and added to
+    ``ranking``; the simplest row within the threshold is then chosen, else the row rendering
+    closest to the measured material where it is clearly closer than BIC's choice (by more
+    than the two rows' noise floors together), else BIC's choice stands.
 
     Returns ``(result, ranking, note)``: the chosen FitResult, the ranking with ``chosen``
     moved, and a line saying what decided.
@@ -249,6 +259,9 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
         r.delta_e, r.noise = rr["delta_e"], rr["noise"]
     pick = ranked["chosen"]
     what = "the measured material" if measured is not None else f"the best-supported fit ({best.name})"
+    if pick is None and measured is not None:
+        return fallback_choice(ranking, rows, by_bic, measured, scene=scene, size=size, spp=spp, seed=seed,
+                               threshold=threshold, variant=variant, fallback=fallback)
     if pick is None:
         return by_bic.result, ranking, (f"BIC's choice stands: no candidate up to it renders within CIEDE2000 "
                                         f"{threshold:g} of {what} in the {scene} scene")
@@ -260,6 +273,68 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
     return chosen.result, ranking, (f"{chosen.name} (k = {chosen.k}) renders within CIEDE2000 {threshold:g} of "
                                     f"{what} in the {scene} scene ({chosen.delta_e:.2f}, floor {chosen.noise:.2f}): "
                                     f"simpler than BIC's {by_bic.name} (k = {by_bic.k}), which the scene does not need")
+
+
+def fallback_choice(ranking, rendered, by_bic, measured, *, scene, size, spp, seed, threshold, variant=None,
+                    fallback=None):
+    """:func:`rendered_choice` where no candidate up to BIC's choice (``rendered``, rows of
+    ``ranking`` with ``delta_e`` set) renders within ``threshold`` of the measured material:
+    render the more complex candidates of ``ranking`` and ``fallback()``'s fits (added to
+    ``ranking`` as rows of their own, BIC beside the others'), then choose the simplest
+    within the threshold (:func:`choose`), else the closest where it is clearly closer than
+    BIC's choice (its difference lower by more than both noise floors), else BIC's choice.
+    Returns ``(result, ranking, note)`` as :func:`rendered_choice`."""
+    from ._selection import Ranked
+
+    t0 = time.perf_counter()
+    more = [r for r in ranking if r.k > by_bic.k]
+    extra = list(fallback()) if fallback is not None else []
+    best_bic = min(r.bic for r in ranking)
+    for res in extra:
+        ranking.append(Ranked(res.model.name, dict(res.model.options), res.space.size, res.chi2, res.bic,
+                              0.0, False, res, res.loss, res.neg2_loglik))
+    added = more + ranking[len(ranking) - len(extra):]
+    if added:
+        ranked = rank_in_scene([r.result for r in added], measured, scene, size=size, spp=spp, seed=seed,
+                               threshold=threshold, variant=variant)
+        for r, rr in zip(added, ranked["rows"]):
+            r.delta_e, r.noise = rr["delta_e"], rr["noise"]
+    best_bic = min(best_bic, *(r.bic for r in ranking))
+    for r in ranking:
+        r.delta_bic = r.bic - best_bic
+    ranking.sort(key=lambda r: r.bic)
+    cost = f"; the fallback's fits took {sum(r.time_s for r in extra):.1f} s" if extra else ""
+    rows = rendered + added
+    table = [{"model": r.name, "k": r.k, "delta_e": r.delta_e, "noise": r.noise, "chosen": False, "row": r}
+             for r in rows]
+    try:
+        good = choose(table, threshold, f"scene {scene}", spp)
+    except ValueError:
+        good = None
+    if good is not None:
+        chosen = good["row"]
+        why = f"renders within CIEDE2000 {threshold:g} of"
+    else:
+        chosen = min(rows, key=lambda r: r.delta_e)
+        if chosen is by_bic or by_bic.delta_e - chosen.delta_e <= by_bic.noise + chosen.noise:
+            return by_bic.result, ranking, (f"BIC's choice stands: no candidate renders within CIEDE2000 "
+                                            f"{threshold:g} of the measured material in the {scene} scene, and "
+                                            f"none clearly closer than it ({by_bic.delta_e:.2f}){cost}")
+        why = f"renders closest (none within CIEDE2000 {threshold:g}; BIC's {by_bic.name} {by_bic.delta_e:.2f}) to"
+    by_bic.chosen, chosen.chosen = False, True
+    return chosen.result, ranking, (f"{chosen.name} (k = {chosen.k}) {why} the measured material in the "
+                                    f"{scene} scene ({chosen.delta_e:.2f}, floor {chosen.noise:.2f}){cost}; "
+                                    f"the fallback took {time.perf_counter() - t0:.1f} s")
+
+
+def data_driven(meas, *, seed=0, loss=None):
+    """A ``fallback`` for :func:`rendered_choice`: the data-driven ``tabulated`` model fitted
+    from the data (:func:`gonio.fitting.fit_tabulated`), not a ``--model auto`` candidate
+    (42 numbers), fitted only when no candidate renders within the threshold."""
+    from ._loss import REAL_DEFAULT_LOSS
+    from ._tabulated_start import fit_tabulated
+
+    return lambda: [fit_tabulated(meas, rng=np.random.default_rng([seed, 16]), loss=loss or REAL_DEFAULT_LOSS)]
 
 
 def choose(rows, threshold, what="scene", spp=None):

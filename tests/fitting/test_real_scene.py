@@ -200,3 +200,45 @@ def test_auto_without_a_scene_keeps_only_what_the_default_scene_shows(sigma, exp
     assert result.model.name == expected and next(r for r in ranking if r.chosen).name == expected
     assert all(r.delta_e is not None and r.noise < 0.5 for r in ranking)
     assert note.startswith("diffuse (k = 3) renders within" if expected == "diffuse" else "BIC's choice")
+
+
+def test_when_no_candidate_renders_close_the_fallback_is_fitted_rendered_and_chosen(truth):
+    """rendered_choice(fallback=...): where no candidate renders within the threshold of the
+    measured material (here a Lambertian fitted to the glossy plastic: the highlight is
+    missing), the fallback's fits (here the true family, standing for the data-driven
+    ``tabulated`` model, fitting.scene.data_driven) are rendered, added to the ranking and
+    chosen when they render clearly closer; without a fallback BIC's choice stands. This is
+    what moves RGL's vch_golden_yellow from roughconductor2 (preview CIEDE2000 3.66) to the
+    data-driven NDF (1.98) in `gonio bench fit --real`."""
+    from _simdata import simulate
+
+    from gonio.fitting import fit, select
+    from gonio.fitting.scene import rendered_choice
+
+    model, p = truth
+    rng = np.random.default_rng(4)
+    meas = simulate(model, p, rng, n=300, rel=0.01)
+    calls = []
+
+    def fallback():
+        calls.append(1)
+        return [fit(meas, gm.get("roughplastic", distribution="ggx"), rng=np.random.default_rng(1))]
+
+    kw = dict(size=24, spp=32, seed=0)
+    _, ranking = select(meas, rng=np.random.default_rng(0), candidates=[("diffuse", {})])
+    result, ranking, note = rendered_choice(ranking, model.to_mitsuba(p), **kw)
+    assert result.model.name == "diffuse" and "stands" in note          # no fallback: BIC's choice
+    _, ranking = select(meas, rng=np.random.default_rng(0), candidates=[("diffuse", {})])
+    result, ranking, note = rendered_choice(ranking, model.to_mitsuba(p), fallback=fallback, **kw)
+    print(note, [(r.name, r.delta_e, r.noise) for r in ranking])
+    assert calls == [1] and result.model.name == "roughplastic" and "fallback" in note
+    assert [r.name for r in ranking if r.chosen] == ["roughplastic"] and len(ranking) == 2
+    assert all(r.delta_e is not None for r in ranking)
+    rough = next(r for r in ranking if r.name == "roughplastic")
+    diffuse = next(r for r in ranking if r.name == "diffuse")
+    assert rough.delta_e < 1.0 < diffuse.delta_e and rough.delta_bic == 0.0 < diffuse.delta_bic
+    # a candidate within the threshold: the fallback is never fitted
+    calls.clear()
+    _, ranking = select(meas, rng=np.random.default_rng(0), candidates=[("roughplastic", {"distribution": "ggx"})])
+    result, _, _ = rendered_choice(ranking, model.to_mitsuba(p), fallback=fallback, **kw)
+    assert calls == [] and result.model.name == "roughplastic"

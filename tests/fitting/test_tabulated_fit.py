@@ -124,3 +124,27 @@ def test_data_start_refuses_nothing_and_returns_valid(bad):
     bad_meas = Measurements(meas.wi, meas.wo, np.where(use, f, 0.0), std, use, {})
     s = data_start(bad_meas)
     gm.get("tabulated").validate(s)
+
+
+def test_fit_tabulated_computes_the_sandwich_covariance_once(monkeypatch):
+    """The rounds of fit_tabulated (each refitted from the last) skip the sandwich covariance
+    of the log loss (fit(covariance=False)); the result returned gets it once. Two rounds'
+    covariances were 50 of the 90 s of vch's fit, the first one thrown away. The result's
+    covariance is the one fit() would give it, and time_s counts, as fit()'s, the fit without it."""
+    from gonio.fitting import _optimise, _result
+
+    calls = []
+    real = _result.robust_covariance
+
+    def counting(res, meas, problem):
+        calls.append(res.x.copy())
+        return real(res, meas, problem)
+
+    monkeypatch.setattr(_result, "robust_covariance", counting)
+    monkeypatch.setattr(_optimise, "robust_covariance", counting)
+    meas = synthetic(truth(), np.random.default_rng(2), n_per=20)
+    res = fit_tabulated(meas, rng=np.random.default_rng(0), maxeval=40, rounds=2)   # capped: a second round
+    assert len(calls) == 1 and np.array_equal(calls[0], res.x)
+    assert "sandwich" in res.method and np.all(np.isfinite(res.std))
+    plain = fit(meas, res.model, loss="log", rng=np.random.default_rng(0), n_starts=0, maxeval=1, covariance=False)
+    assert len(calls) == 1 and "sandwich" not in plain.method
