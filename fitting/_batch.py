@@ -363,7 +363,10 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
     if scheduler is None:
         cluster = local_cluster(n_workers, dashboard_address)
         try:
-            client = Client(cluster, security=cluster.security)
+            # not Dask's default: gonio's clients must not change the caller's dask.config
+            # (a default client left scheduler='dask.distributed' behind when two were closed
+            # out of order, and every later xarray to_netcdf failed)
+            client = Client(cluster, security=cluster.security, set_as_default=False)
             _close_http(client, keep_scheduler=dashboard_address is not None)
         except BaseException:
             cluster.close()
@@ -371,7 +374,7 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
     else:
         address = check_scheduler_address(scheduler)
         try:
-            client = Client(address, timeout="20s")
+            client = Client(address, timeout="20s", set_as_default=False)
         except (TypeError, ValueError) as exc:       # tls:// without certificates in Dask's config
             raise ConnectionError(f"{' '.join(str(exc).split())[:200]}; a tls:// scheduler needs its "
                                   "certificates in Dask's configuration (distributed.comm.tls)") from None

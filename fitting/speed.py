@@ -505,7 +505,7 @@ def bench_dask(seed=0, model_index=1, cases=((16, 100_000), (64, 1000)), repeat=
         for workers in (1, 2):
             t0 = time.perf_counter()
             cluster = local_cluster(workers)
-            client = Client(cluster, security=cluster.security)
+            client = Client(cluster, security=cluster.security, set_as_default=False)
             _close_http(client, keep_scheduler=False)
             clusters[workers] = (cluster, client, time.perf_counter() - t0)
         return {f"{k}x{n}": _bench_dask_case(k, n, seed, model_index, clusters, repeat, dr.thread_count())
