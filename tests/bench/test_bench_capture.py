@@ -443,6 +443,7 @@ def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path, monkeypa
     assert len(set(chosen)) > 2                          # the poses ask for different brackets
 
 
+@pytest.mark.slow  # 40 s at load 4-5 (a capture with the holder scene rendered): run early (tests/conftest.py)
 def test_regions_from_the_holders_markers(tmp_path):
     """Settings that declare holder markers: each point's regions come from the markers in its
     probe (the pose is journalled), so a holder moved by a known offset is measured where it is."""
