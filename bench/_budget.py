@@ -147,7 +147,10 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
     states, each brdf x its relative uncertainty, correlated across points (one fit each):
     ``reference_factor`` (the reference's non-Lambertian factor table, calibrate.u_reference_factor),
     ``linearity`` (calibrate.u_linearity_rel of the two squares' signal levels), ``stray_light``
-    (calibrate.u_stray_rel, the floor known to lie in [0, floor]). Only those the settings hold."""
+    (with ``[stray] u_floor``, gonio calibrate's: the capture removed the floor's level from both
+    squares and the line is its u, signed, calibrate.stray_shift_rel, none where u_floor is 0;
+    without it: calibrate.u_stray_rel, the floor known only to lie in [0, floor]). Only those the
+    settings hold."""
     out = []
     ref = settings.get("reference", {})
     lin = settings.get("linearity", {})
@@ -167,12 +170,24 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
                                         float(lin["u_gamma"]))
         out.append(Component("linearity", brdf * rel, "B", "full",
                              "detector linearity gamma's 1-sigma (gonio calibrate) x |level_sample - level_reference|"))
-    if floor > 0:
+    stray = settings.get("stray", {})
+    u_floor = float(stray.get("u_floor", 0.0) or 0.0)
+    if floor > 0 and ("u_floor" not in stray or u_floor > 0):
         cos_i = np.cos(np.radians(ti))[:, None]
-        rho_ref = ReferenceModel(ref).rho if "reflectance" in ref else np.ones(3)
-        rel = calibrate.u_stray_rel(np.abs(brdf) * cos_i, rho_ref[None] / math.pi * cos_i, floor)
-        out.append(Component("stray_light", brdf * rel, "B", "full",
-                             "stray-light floor in [0, floor] (rectangular; gonio calibrate)"))
+        model = ReferenceModel(ref) if "reflectance" in ref else None
+        if "u_floor" in stray:
+            # the capture removed the stated floor (bench/_session.py): what is left is its u, signed
+            # (brighter than the reference: down; darker: up)
+            f_ref = (np.array([model.f_r(a, b) for a, b in zip(ti, to)]) if model is not None
+                     else np.full((len(ti), 3), 1.0 / math.pi))
+            rel = calibrate.stray_shift_rel(np.abs(brdf) * cos_i, f_ref * cos_i, u_floor)
+            out.append(Component("stray_light", brdf * rel, "B", "full",
+                                 "stray-light floor's u ([stray] u_floor) after its level was removed from both squares"))
+        else:
+            rho_ref = model.rho if model is not None else np.ones(3)
+            rel = calibrate.u_stray_rel(np.abs(brdf) * cos_i, rho_ref[None] / math.pi * cos_i, floor)
+            out.append(Component("stray_light", brdf * rel, "B", "full",
+                                 "stray-light floor in [0, floor] (rectangular; no level stated, nothing corrected)"))
     return out
 
 

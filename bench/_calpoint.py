@@ -17,6 +17,7 @@ from . import _alignment as al
 from . import kinematics
 
 __all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "u_linearity_rel", "u_stray_rel",
+           "stray_fraction", "stray_corrected", "stray_shift_rel",
            "dataset_angles", "instrument_response"]
 
 
@@ -194,10 +195,38 @@ def u_linearity_rel(level_sample, level_reference, u_gamma: float) -> np.ndarray
     return float(u_gamma) * np.abs(np.asarray(level_sample, float) - np.asarray(level_reference, float))
 
 
+def stray_fraction(radiance_reference, floor: float) -> np.ndarray:
+    """The stray light's share q = (floor / pi) / (L_r + floor / pi) of the reference square's
+    signal, L_r its radiance per unit irradiance (rho F cos theta_i / pi, sr^-1): the floor adds
+    floor / pi to both squares (sim/_errors.py ``stray``: light the lamp-off darks miss)."""
+    s = float(floor) / math.pi
+    return s / (np.asarray(radiance_reference, float) + s)
+
+
+def stray_corrected(ratio, q) -> np.ndarray:
+    """The sample/reference ratio with a known stray floor removed from both squares:
+    ``(R - q) / (1 - q)`` with q = :func:`stray_fraction`. The measured R = (L_s + s) / (L_r + s)
+    becomes L_s / L_r exactly (s = floor / pi)."""
+    q = np.asarray(q, float)
+    return (np.asarray(ratio, float) - q) / (1.0 - q)
+
+
+def stray_shift_rel(radiance_sample, radiance_reference, u_floor: float) -> np.ndarray:
+    """Relative change of the stray-corrected ratio when the true floor is ``u_floor`` above the
+    one corrected for (signed, first order): ``u_floor / pi (1 / L_s - 1 / L_r)``, radiances per
+    unit irradiance. Correlated across points (one floor): the budget's ``stray_light`` line of a
+    corrected session."""
+    ls = np.maximum(np.asarray(radiance_sample, float), 1e-300)
+    lr = np.maximum(np.asarray(radiance_reference, float), 1e-300)
+    return float(u_floor) / math.pi * (1.0 / ls - 1.0 / lr)
+
+
 def u_stray_rel(radiance_sample, radiance_reference, floor: float) -> np.ndarray:
     """Relative standard uncertainty of the ratio from a stray-light floor known only to lie in
     [0, ``floor``] (rectangular): ``floor / pi |1 / L_s - 1 / L_r| / sqrt(3)``, radiances per
-    unit irradiance (f_r cos theta_i, sr^-1). Correlated across points (one floor)."""
+    unit irradiance (f_r cos theta_i, sr^-1). Correlated across points (one floor). Only for a
+    ``[stray]`` table without ``u_floor`` (a calibration that states a bound, not a level, and
+    corrects nothing); gonio calibrate's tables state the level and its u (:func:`stray_corrected`)."""
     ls = np.maximum(np.asarray(radiance_sample, float), 1e-300)
     lr = np.maximum(np.asarray(radiance_reference, float), 1e-300)
     return float(floor) / math.pi * np.abs(1.0 / ls - 1.0 / lr) / math.sqrt(3.0)

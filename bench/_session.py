@@ -27,6 +27,7 @@ from ._files import TMP_PREFIX, create_exclusive
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder
 from ._journal import RAW_DIR, Journal
 from ._markers import find_regions, layout_of, roi_masks_fast
+from ._calpoint import stray_corrected, stray_fraction
 from ._measure import ProgressBar, ReferenceModel, _runs, check_sensor, merged_region_stats, probe_levels
 from ._pipeline import Pipeline, _Suspended
 from ._rig import Bench
@@ -66,6 +67,9 @@ class _Session:
         self.probe = float(self.rungs[np.argmin(np.abs(np.log(self.rungs / float(cap["probe_s"]))))])
         self.snr = float(cap["noise_floor_snr"])
         self.reference = ReferenceModel(self.settings["reference"])
+        # gonio calibrate's stray floor, where it states the level (u_floor present): corrected per point
+        stray = self.settings.get("stray") or {}
+        self.stray_floor = float(stray.get("floor", 0.0) or 0.0) if "u_floor" in stray else 0.0
         self.darks: dict[float, RawFrame] = {}
         self.gain: np.ndarray | None = None          # flat-field relative gain (3, h, w), None if no flat
         lamp = self.settings.get("lamp", {})
@@ -490,16 +494,25 @@ class _Session:
         s, r = stats["sample"], stats["reference"]
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = s["mean"] / r["mean"]
-            brdf = ratio * self.reference.f_r(*self.plan.angles[idx, [0, 2]])
+            f_ref = self.reference.f_r(*self.plan.angles[idx, [0, 2]])
             rel = np.sqrt((s["se"] / s["mean"]) ** 2 + (r["se"] / r["mean"]) ** 2)
+            q = None
+            if self.stray_floor > 0:
+                # a calibrated stray floor (gonio calibrate's [stray] level): removed from both squares
+                q = stray_fraction(f_ref * math.cos(math.radians(self.plan.angles[idx, 0])), self.stray_floor)
+                ratio = stray_corrected(ratio, q)
+                rel = rel / np.where(ratio != 0, np.abs(ratio) * (1.0 - q) / np.abs(s["mean"] / r["mean"]), 1.0)
+            brdf = ratio * f_ref
             std = np.abs(brdf) * rel
         detail = {
             "exposures": [d for _, d in used],
             "p_start": shot["p_start"],
             "bracket": shot["bracket"],
-            **{f"{k}_{q}": [float(v) for v in stats[k][q]] for k in stats for q in ("mean", "se", "se_model", "n")},
+            **{f"{k}_{m}": [float(v) for v in stats[k][m]] for k in stats for m in ("mean", "se", "se_model", "n")},
             "n_saturated": {k: int(stats[k]["n_saturated"]) for k in stats},
         }
+        if q is not None:                        # the stray floor's share of the reference's signal, removed
+            detail["stray_q"] = [float(v) for v in q]
         if shot.get("regions") is not None:      # a holder with markers: how the regions were found
             detail["regions"] = shot["regions"]
         return {"brdf": brdf, "brdf_std": std, "saturated": saturated or not np.all(np.isfinite(brdf)),

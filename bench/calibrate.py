@@ -50,13 +50,17 @@ from ._calpoint import (
     u_linearity_rel,
     u_reference_factor,
     u_stray_rel,
+    stray_corrected,
+    stray_fraction,
+    stray_shift_rel,
 )
 from ._hdr import linearise
 from .errors import GonioError
 
 __all__ = ["SimBench", "calibrate", "align", "linearity", "reference_factor", "write_calibration",
            "read_calibration", "merge_calibration", "calibrated_angles", "lost_motion", "angle_uncertainty",
-           "u_reference_factor", "u_linearity_rel", "u_stray_rel", "instrument_response", "dataset_angles",
+           "u_reference_factor", "u_linearity_rel", "u_stray_rel", "stray_fraction", "stray_corrected",
+           "stray_shift_rel", "instrument_response", "dataset_angles",
            "GLOSSY_ARTEFACT", "run_calibration", "summary", "calibrate_cli"]
 
 #: The glossy artefact of the alignment (a rough metal, GGX alpha 0.1: a lobe of about 7 deg
@@ -321,7 +325,8 @@ def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None
 
     ``bench`` None: the simulated instrument built from ``settings`` (its ``[errors]``) and
     ``seed``. ``specs``: data-sheet values the procedures cannot measure (``repeat_deg``,
-    ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``, ``stray_floor``); with the
+    ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``, ``stray_floor``, ``stray_u_floor``: the
+    floor's level, from a dark-sample or beam-dump reading, and its u); with the
     simulator they come from its error model, on hardware from ``[calibration]`` of the settings.
     ``sim``: what the file records (default: ``bench`` is None).
     """
@@ -350,7 +355,10 @@ def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None
     cal["aperture"] = {"source_half_deg": float(specs.get("source_half_deg", 0.0)),
                        "detector_half_deg": float(specs.get("detector_half_deg", 0.0)),
                        "profile": "uniform disk"}
-    cal["stray"] = {"floor": float(specs.get("stray_floor", 0.0))}
+    # the floor's level and its u (a dark-sample reading or the data sheet): the capture removes
+    # it from both squares (bench/_session.py, stray_corrected) and the budget carries u_floor;
+    # the simulator's floor is its setting, not drawn, so its u is 0
+    cal["stray"] = {"floor": float(specs.get("stray_floor", 0.0)), "u_floor": float(specs.get("stray_u_floor", 0.0))}
     cal["calibration"]["wall_s"] = round(time.perf_counter() - t0, 3)
     return cal
 

@@ -43,6 +43,8 @@ __all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "pro
 #: coverage factor of the expanded uncertainty U = k u_c (about 95 % for a normal distribution, GUM 6.2.2)
 K_EXPANDED = 2.0
 STATISTICAL = "statistical"
+#: the budget line of the shared angle errors' second-order term (:func:`second_order`)
+ANGLE_SECOND_ORDER = "angle_shared_second_order"
 
 
 @dataclasses.dataclass
@@ -281,6 +283,68 @@ def angle_components(result, meas, angles: dict) -> list:
     return out
 
 
+def _tangents(wi, wo, shifts, h: float = 1e-4):
+    """The directions' first-order displacement (K, N, 3) each for wi and wo (radians) for +1 sigma
+    of each input whose angle shifts (K, N, 4) degrees are given: a central difference of the
+    directions along the shift, so a point near a pole (theta ~ 0, where a small tilt is a large
+    change of phi) moves by what the tilt moves it, not along the phi circle."""
+    ti, pi_ = _angles_of(wi)
+    to, po = _angles_of(wo)
+    base = np.stack([ti, pi_, to, po], axis=-1)                              # radians (N, 4)
+    d = np.radians(np.asarray(shifts, float))
+    plus, minus = base[None] + h * d, base[None] - h * d
+    t_i = (_directions(plus[..., 0], plus[..., 1]) - _directions(minus[..., 0], minus[..., 1])) / (2 * h)
+    t_o = (_directions(plus[..., 2], plus[..., 3]) - _directions(minus[..., 2], minus[..., 3])) / (2 * h)
+    return t_i, t_o
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def second_order(result, meas, shifts, G: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shared angle errors' second-order effect on the parameters (GUM 5.1.2 note: the
+    higher-order terms of a Taylor series where the model is markedly non-linear).
+
+    With e ~ N(0, I) the K shared inputs (``shifts`` (K, N, 4): each one's angle change for +1
+    sigma), the data change by f(angles(e)) - f(angles) and the fitted parameters by G times
+    that: a e + (1/2) e^T H e with H_p (K x K) = G_p d^2 f / de_k de_l (central differences of
+    the fitted model at steps of 1 sigma, the directions displaced along each input's tangent:
+    :func:`_tangents`). The first-order part a is the ``angle_shared`` line; the quadratic part
+    has mean b_p = tr(H_p) / 2 and covariance tr(H_p H_q) / 2. Its mean does not vanish: an
+    error of the sample normal (the wedge the alignment cannot see, 0.05 deg) moves a narrow
+    lobe off the specular direction the fit assumes, and the fit broadens the lobe to follow it
+    whichever way the normal tilted (GGX alpha 0.05: b = +0.2 of alpha's u_c on average, up to
+    +0.6 in a session, where the linear term sees nothing). Returns (b (P,), the quadratic
+    part's second moment about zero b b^T + tr(H_p H_q) / 2 (P, P), H (P, K, K))."""
+    shifts = np.asarray(shifts, float)
+    K, P = shifts.shape[0], G.shape[0]
+    if K == 0:
+        return np.zeros(P), np.zeros((P, P)), np.zeros((P, 0, 0))
+    t_i, t_o = _tangents(meas.wi, meas.wo, shifts)
+    model, params = result.model, result.params
+
+    def f(ci, co):
+        return model.eval(_unit(meas.wi + np.einsum("k,knj->nj", ci, t_i)),
+                          _unit(meas.wo + np.einsum("k,knj->nj", co, t_o)), params)
+
+    def proj(v):
+        return np.einsum("pnc,nc->p", np.where(use, G, 0.0), np.where(use, v, 0.0))
+
+    zero = np.zeros(K)
+    f0 = f(zero, zero)
+    H = np.zeros((P, K, K))
+    eye = np.eye(K)
+    for k in range(K):
+        H[:, k, k] = proj(f(eye[k], eye[k]) + f(-eye[k], -eye[k]) - 2.0 * f0)
+        for m in range(k):
+            pp, mm = eye[k] + eye[m], eye[k] - eye[m]
+            H[:, k, m] = H[:, m, k] = proj(f(pp, pp) - f(mm, mm) - f(-mm, -mm) + f(-pp, -pp)) / 4.0
+    b = 0.5 * np.trace(H, axis1=1, axis2=2)
+    cov = np.outer(b, b) + 0.5 * np.einsum("pkl,qlk->pq", H, H)
+    return b, cov, H
+
+
 def _point_independent(c: BudgetComponent) -> bool:
     """A component whose errors are independent from point to point (``none`` or ``point``)."""
     return c.correlation in ("none", "point")
@@ -375,6 +439,14 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
             continue
         var[c.name] = np.diag(cov).copy()
         cov_b += cov
+    bias2 = None
+    shared = np.asarray((budget.angles or {}).get("shared", np.zeros((0,) + use.shape[:1] + (4,))), float)
+    if shared.size:
+        # the shared angle errors' quadratic term (second_order): a narrow lobe's fit answers a
+        # tilted normal by broadening whichever way it tilted; carried by its second moment
+        bias2, cov2, _ = second_order(result, meas, shared, G, use)
+        var[ANGLE_SECOND_ORDER] = np.diag(cov2).copy()
+        cov_b += cov2
     u_stat = np.asarray(u_stat, float)
     cov_stat = np.diag(u_stat ** 2) if cov_stat is None else np.asarray(cov_stat, float)
     birge = None
@@ -403,6 +475,8 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
         uc = float(np.sqrt(t))
         out[name] = {"u_stat": float(u_stat[i]), "u_combined": uc, "U": K_EXPANDED * uc, "k": K_EXPANDED,
                      "budget": {k: float(f) for k, f in sorted(frac.items(), key=lambda kv: -kv[1])}}
+        if bias2 is not None:
+            out[name]["angle_second_order_mean"] = float(bias2[i])
     return {"parameters": out, "cov_systematic": cov_b, "cov_statistical": cov_stat, "birge": birge}
 
 

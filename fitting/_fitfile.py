@@ -172,7 +172,8 @@ def _uncertainty(result, meas, budget, u_stat, cov_stat) -> dict:
     budget = budget if budget is not None else budget_from_attrs(meas)
     out = propagate(result, meas, budget, u_stat, cov_stat)
     return {"k": K_EXPANDED, "method": "first-order propagation of every budget component through the fit "
-                                      "(correlated ones as shared nuisance errors; GUM 5.1, JCGM 102 6.2)",
+                                      "(correlated ones as shared nuisance errors; GUM 5.1, JCGM 102 6.2), and "
+                                      "the shared angle errors' second-order term (its second moment; GUM 5.1.2 note)",
             "budget_source": budget.source, "components": budget.describe(), "parameters": out["parameters"],
             "statistical": ({"method": "type-A components propagated through the fit (their channel correlation "
                                            "included); Birge factor against the point-wise budget", **out["birge"]}
