@@ -14,6 +14,8 @@ capture, measured 2026-12-02). A value set by the caller is kept.
 
 from __future__ import annotations
 
+import pytest
+
 
 def _share_the_cores():
     import os
@@ -55,12 +57,34 @@ def pytest_report_header(config):
     return f"gonio: Dr.Jit LLVM target {os.environ['GONIO_LLVM_TARGET']} = {target[0]}, {target[1]} float32 lanes"
 
 
+
+@pytest.hookimpl(trylast=True)      # after ``-m`` has deselected: the list the workers will run
 def pytest_collection_modifyitems(session, config, items):
-    """The tests marked ``slow`` (a minute or more each on the shared machine; about half the
-    suite's time) run first, the rest after them in their usual order. pytest-xdist's
-    ``worksteal`` hands each worker a contiguous half and an idle worker steals from the end
-    of the other's queue, so with the long tests first the last tests to run are short ones:
-    on 2026-12-02 (load 4-5) the suite's last test was the emcee coverage test (128 s) started
-    at 834 s on one worker while the other had finished at 852 s. A stable sort: the order is
-    the same in every worker, as xdist requires."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """Hand every xdist worker its share of the long tests at the start of its queue.
+
+    pytest-xdist's ``worksteal`` gives worker i the next ``len(pending) // (workers - i)``
+    tests of the collection, in order, and an idle worker steals from the end of another's
+    queue. The tests marked ``slow`` (tens of seconds to two minutes each, about half the
+    suite's time) are dealt out in turn, one to each worker's chunk, each chunk filled up with
+    the other tests in their usual order; so no worker starts a long test near the end while
+    the other stands idle (on 2026-12-02 the emcee coverage test, 128 s, started last, at
+    834 s, on one worker while the other had finished at 852 s). Without xdist the long tests
+    simply run first. Deterministic: every worker computes the same order, as xdist requires."""
+    import itertools
+    import os
+
+    slow = [it for it in items if it.get_closest_marker("slow") is not None]
+    rest = [it for it in items if it.get_closest_marker("slow") is None]
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if workers < 2:
+        items[:] = slow + rest
+        return
+    sizes, left = [], len(items)
+    for i in range(workers):                # worksteal's first split (xdist.scheduler.worksteal)
+        sizes.append(left // (workers - i))
+        left -= sizes[-1]
+    chunks = [slow[w::workers] for w in range(workers)]
+    fill = iter(rest)
+    for chunk, size in zip(chunks, sizes):
+        chunk.extend(itertools.islice(fill, max(0, size - len(chunk))))
+    items[:] = [it for chunk in chunks for it in chunk] + list(fill)
