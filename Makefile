@@ -15,14 +15,13 @@ STAMP  := $(VENV)/.stamp-install
 demo: $(STAMP)
 	$(VENV)/bin/gonio demo
 
-# The whole suite on one xdist worker more than the cores (a fifth of its time is waiting on the
-# simulator's real-time motion and on the commands it starts: on 2 cores, 825 CPU-s in 1035 s of
-# tests, 2026-12-02), then the tests whose numbers depend on Dr.Jit's machine code once more
-# under another code generation (AVX2 on an AVX-512 host, AVX2 at 4 lanes on an AVX2 host), all
-# CPU-bound, one worker a core: the next CI machine may have the other one (issue 12).
-WORKERS := $(shell echo $$(( $$(nproc) + 1 )))
+# The whole suite on both cores, then the tests whose numbers depend on Dr.Jit's machine
+# code once more under another code generation (AVX2 on an AVX-512 host, AVX2 at 4 lanes on an AVX2
+# host): the next CI machine may have the other one (issue 12). (A third worker for the waits on
+# the simulator and on subprocesses was tried: the main pass took 9:32 against 9:25, its CPU
+# time 988 s against 825 s; 2026-12-02, 2-core AVX2 machine.)
 test: $(STAMP) chromium
-	$(PY) -m pytest -q -n $(WORKERS) --dist worksteal
+	$(PY) -m pytest -q -n 2 --dist worksteal
 	@$(MAKE) --no-print-directory test-codegen
 
 test-fast: $(STAMP)
