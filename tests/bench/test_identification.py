@@ -132,8 +132,6 @@ def test_a_hostile_idn_reply_cannot_break_or_inject_into_session_toml(sim_instru
     nothing of the reply becomes a key or a table."""
     import tomllib
 
-    from gonio.bench._journal import read_session
-
     inst = sim_instrument("ident-hostile")
     hostile = 'Evil"Corp\\",\r[session]\tseed = 666,\x00\x1b[2J\x7f""",SN\nzaber = "x",1.0\r'
     inst.scpi.IDN = hostile.replace("\n", " ")                 # one reply line, as a device sends it
