@@ -332,7 +332,7 @@ def _rss_peak() -> int:
                 if line.startswith("VmHWM:"):
                     return int(line.split()[1]) * 1024
     except OSError:
-        pass
+        pass        # no /proc (not Linux): ru_maxrss below
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

@@ -367,7 +367,7 @@ class ZaberChain(SerialDevice):
             try:
                 port.timeout = old
             except (serial.SerialException, OSError, ValueError):
-                pass
+                pass        # the port is gone (unplugged mid-wait): the error that follows says so, not this
 
     def wait_idle(self, device: int, timeout_s: float = 120.0, poll_interval_s: float = 0.05,
                   sleep: Callable[[float], None] = time.sleep) -> Reply:
