@@ -286,11 +286,12 @@ class _AffinePosterior:
         W = np.ones((thetas.shape[0], 1))
         for d in range(thetas.shape[1]):
             x, z = thetas[:, d], nodes[d]
-            L = np.ones((x.size, z.size))
-            for j in range(z.size):
-                for m in range(z.size):
-                    if m != j:
-                        L[:, j] *= (x - z[m]) / (z[j] - z[m])
+            n = z.size
+            off = ~np.eye(n, dtype=bool)
+            # L_j(x) = prod_{m != j} (x - z_m) / (z_j - z_m): the factors of m = j set to 1
+            num = np.where(off[None, :, :], x[:, None, None] - z[None, None, :], 1.0)
+            den = np.where(off, z[:, None] - z[None, :], 1.0)
+            L = np.prod(num / den[None, :, :], axis=2)
             W = (W[:, :, None] * L[:, None, :]).reshape(thetas.shape[0], -1)
         return W
 

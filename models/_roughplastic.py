@@ -262,11 +262,8 @@ def _jit_affine_parts(model, ctx, cols, lanes, K, vi, vo, tables):
     alpha = dr.maximum(cols[0], 1e-4)
     if tables is None:
         t = _t_ext_batch(kind, alpha, cols[1])
-    else:
-        tb = np.asarray(tables, dtype=np.float64)
-        if tb.shape != (K, 64):
-            raise ValueError(f"tables must have shape ({K}, 64), got {tb.shape}")
-        t = F(tb.reshape(-1))
+    else:  # (K * 64,), checked and loaded by fast.affine_parts
+        t = tables
     al = dr.gather(F, alpha, k)
     eta = dr.gather(F, cols[1], k)
     num, den, c, ok = _lobe(dr, kind, al, al, vi, vo)
