@@ -36,34 +36,18 @@ import numpy as np
 import gonio.models as gm
 from gonio.models import fast
 
+from ._bench_dask import bench_dask
+from ._bench_scale import bench_scale
+from ._benchdata import MODELS, simulate_capture
 from ._realbench import run_real
 
 __all__ = ["run", "run_real", "simulate_capture"]
 
-MODELS = (("roughplastic", {"distribution": "ggx"},
-           {"diffuse_reflectance": [0.6, 0.3, 0.15], "alpha": 0.15, "int_ior": 1.6}),
-          ("roughconductor", {"distribution": "ggx"},
-           {"eta": [0.2, 0.9, 1.1], "k": [3.0, 2.5, 2.0], "alpha": 0.2}))
 POINTS = (100, 1000, 10000, 100000)
 NOISE = (0.01, 0.05)
 OPTIMISERS = ("gonio", "gonio-local", "nlopt-mma", "nlopt-slsqp", "scipy-lsq")
 #: nlopt algorithms benchmarked as local stages (exact gradients from the compiled kernel)
 NLOPT_LOCAL = {"nlopt-mma": "LD_MMA", "nlopt-slsqp": "LD_SLSQP"}
-
-
-def simulate_capture(model, truth, n, rng, rel=0.02, floor=1e-3):
-    """Simulated capture: (Measurements, noiseless f_r)."""
-    from ._data import Measurements, direction
-
-    wi = direction(np.arccos(rng.uniform(0.1, 1.0, n)), rng.uniform(-np.pi, np.pi, n))
-    wo = direction(np.arccos(rng.uniform(0.1, 1.0, n)), rng.uniform(-np.pi, np.pi, n))
-    k = n // 2
-    wo[:k] = wi[:k] * np.array([-1.0, -1.0, 1.0]) + 0.15 * rng.standard_normal((k, 3))
-    wo[:k, 2] = np.clip(np.abs(wo[:k, 2]), 1e-3, None)
-    wo[:k] /= np.linalg.norm(wo[:k], axis=1)[:, None]
-    f = model.eval(wi, wo, truth)
-    sigma = rel * f + floor
-    return Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool)), f
 
 
 def scipy_lsq(meas, model):
@@ -313,63 +297,6 @@ def bench_emcee(n=10000, n_walkers=32, seed=0):
     return row
 
 
-def _rss_peak_reset() -> bool:
-    """Reset this process's peak resident set size (Linux: ``5`` into ``/proc/self/clear_refs``);
-    False where that cannot be done (the peak then includes what came before)."""
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def _rss_peak() -> int:
-    """This process's peak resident set size in bytes (``VmHWM``; ``ru_maxrss`` elsewhere)."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass        # no /proc (not Linux): ru_maxrss below
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def _scale_child(n, seed):
-    """In a fresh process: simulate ``n`` points of roughconductor (MODELS[1]), fit them,
-    print one JSON line: the fit's time, the process's peak RSS during the fit (the peak
-    reset after the simulation, where Linux allows it) against the RSS before it and the
-    data's size, and, from a second, identical fit under ``tracemalloc``, the peak of the
-    fit's own numpy and Python allocations (Dr.Jit's arrays are not traced: they are in the
-    RSS)."""
-    import json
-    import tracemalloc
-
-    from ._optimise import fit
-
-    name, options, truth = MODELS[1]
-    model = gm.get(name, **options)
-    truth = {k: np.asarray(v, dtype=np.float64) if isinstance(v, list) else v for k, v in truth.items()}
-    meas, _ = simulate_capture(model, truth, n, np.random.default_rng([seed, 13]), 0.02)
-    reset = _rss_peak_reset()
-    rss0 = _rss_peak()
-    res = fit(meas, model, rng=np.random.default_rng(seed))
-    rss = _rss_peak()
-    tracemalloc.start()
-    fit(meas, model, rng=np.random.default_rng(seed))
-    traced = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    x_true = res.space.from_params(model.validate(truth))
-    data = sum(a.nbytes for a in (meas.wi, meas.wo, meas.brdf, meas.brdf_std, meas.use))
-    print(json.dumps({"points": n, "time_s": res.time_s, "n_evals": res.n_evals, "chi2_dof": res.chi2_dof,
-                      "peak_rss_bytes": rss, "rss_before_fit_bytes": rss0, "peak_reset": reset,
-                      "traced_peak_bytes": traced, "data_bytes": int(data),
-                      "max_err_sigma": float(np.max(np.abs(res.x - x_true) / res.std)), "method": res.method}))
-
-
 #: the sizes of :func:`bench_crossover`
 CROSSOVER_POINTS = (30, 100, 300, 1000, 3000, 10000)
 
@@ -443,190 +370,3 @@ def _clocked(fn):
     t0 = time.perf_counter()
     fn()
     return time.perf_counter() - t0
-
-
-def bench_scale(n=1_000_000, seed=0):
-    """A fit of ``n`` points (roughconductor, the general path: Levenberg-Marquardt on normal
-    equations reduced in the compiled kernel, no N x P Jacobian per iteration) in a child
-    process (:func:`_scale_child`): wall time, the peak resident memory during the fit and
-    the peak of its numpy allocations (tracemalloc), against the data's own size (wi, wo,
-    f_r, sigma: 4 x 24 bytes a point, mask 3)."""
-    import json
-    import subprocess
-    import sys
-
-    code = f"from gonio.fitting.speed import _scale_child; _scale_child({int(n)}, {int(seed)})"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=1800)
-    if out.returncode != 0:
-        print(f"\nscale: the {n}-point fit failed: {out.stderr.strip().splitlines()[-1:]}")
-        return {"points": n, "failed": True}
-    row = json.loads(out.stdout.strip().splitlines()[-1])
-    print(f"\nscale, roughconductor {n:,} points: fit {row['time_s']:.1f} s ({row['n_evals']} evaluations, "
-          f"chi2/dof {row['chi2_dof']:.3f}, worst parameter {row['max_err_sigma']:.1f} sigma from the truth), "
-          f"peak RSS during the fit {row['peak_rss_bytes'] / 2**20:.0f} MiB ("
-          f"{row['rss_before_fit_bytes'] / 2**20:.0f} MiB before it, "
-          f"{'peak reset after the simulation' if row['peak_reset'] else 'peak NOT reset: includes the simulation'}), "
-          f"{(row['peak_rss_bytes'] - row['rss_before_fit_bytes']) / 2**20:.0f} MiB more than before = "
-          f"{(row['peak_rss_bytes'] - row['rss_before_fit_bytes']) / row['data_bytes']:.2f}x the data "
-          f"({row['data_bytes'] / 2**20:.0f} MiB: wi, wo, f_r, sigma, mask); numpy + Python allocations of the fit "
-          f"(tracemalloc peak, a second identical fit) {row['traced_peak_bytes'] / 2**20:.0f} MiB = "
-          f"{row['traced_peak_bytes'] / row['data_bytes']:.2f}x the data; {row['method']}")
-    return row
-
-
-def bench_dask(seed=0, model_index=1, cases=((16, 100_000), (64, 1000)), repeat=5):
-    """``fit_batch`` on private local clusters of 1 and 2 worker processes (one Dr.Jit thread
-    each, ``GONIO_THREADS=1``) against two serial loops in this process: with one Dr.Jit
-    thread, and with Dr.Jit's default pool (a thread per core). Each dataset is read from a
-    file by a loader where it is fitted (a worker, or this process for the serial loops); a
-    fifth run ships the same datasets from memory (scattered). For each (datasets, points)
-    case (roughconductor, the general path): the first ``fit_batch`` call on each cluster
-    (it warms every worker: :func:`gonio.fitting._batch._warm_worker`; printed apart), then
-    ``repeat`` rounds of the five runs in a rotating order, each run's best wall time over
-    the rounds and its CPU time (every thread of every process: this one, the workers, the
-    scheduler) in that same best round, the speed-ups against both serial baselines, and the
-    largest difference from the one-thread serial results (0: bit for bit).
-
-    The issue's goal (>= 1.8x with 2 workers for fits of >= 50 ms) is the per-core scaling:
-    2 workers against the serial loop on one Dr.Jit thread. Against the default-threaded
-    serial loop, which already uses every core inside each fit, 2 workers on a 2-core
-    machine can gain only what the serial loop loses to its per-fit serial parts (the
-    optimiser's Python, short kernels). The first case's fits take ~50-200 ms each on one
-    thread; the second's ~5-10 ms, batched into tasks of >= ~50 ms
-    (:func:`gonio.fitting._batch.task_chunks`). On a shared machine every wall time is the
-    others' load as well: the load average is printed with each case."""
-    import drjit as dr
-    from dask.distributed import Client
-
-    from ._batch import _close_http, local_cluster
-
-    clusters = {}
-    try:
-        for workers in (1, 2):
-            t0 = time.perf_counter()
-            cluster = local_cluster(workers)
-            client = Client(cluster, security=cluster.security, set_as_default=False)
-            _close_http(client, keep_scheduler=False)
-            clusters[workers] = (cluster, client, time.perf_counter() - t0)
-        return {f"{k}x{n}": _bench_dask_case(k, n, seed, model_index, clusters, repeat, dr.thread_count())
-                for k, n in cases}
-    finally:
-        for cluster, client, _ in clusters.values():
-            client.close()
-            cluster.close()
-
-
-def _cpu_all(client):
-    """(CPU seconds so far of this process, of each worker process and of the scheduler;
-    {worker: its CPU seconds so far}) ({} without a client)."""
-    if client is None:
-        return time.process_time(), {}
-    workers = client.run(time.process_time)
-    return time.process_time() + sum(workers.values()) + client.run_on_scheduler(time.process_time), workers
-
-
-def _load_capture(path):
-    """A capture saved by :func:`_bench_dask_case` (``.npz``) as Measurements."""
-    from ._data import Measurements
-
-    with np.load(path) as z:
-        return Measurements(z["wi"], z["wo"], z["brdf"], z["brdf_std"], z["use"])
-
-
-def _bench_dask_case(n_datasets, n, seed, model_index, clusters, repeat, default_threads):
-    import functools
-    import os
-    import tempfile
-
-    import drjit as dr
-
-    from ._batch import fit_batch, fit_serial
-
-    name, options, truth = MODELS[model_index]
-    model = gm.get(name, **options)
-    truth = {k: np.asarray(v, dtype=np.float64) if isinstance(v, list) else v for k, v in truth.items()}
-    data = [simulate_capture(model, truth, n, np.random.default_rng([seed, 11, i]), 0.02)[0] for i in range(n_datasets)]
-    folder = tempfile.TemporaryDirectory(prefix="gonio-bench-dask-")
-    loaders = []
-    for i, m in enumerate(data):
-        path = os.path.join(folder.name, f"capture{i:04d}.npz")
-        np.savez(path, wi=m.wi, wo=m.wo, brdf=m.brdf, brdf_std=m.brdf_std, use=m.use)
-        loaders.append(functools.partial(_load_capture, path))
-
-    def serial(threads):
-        def go():
-            dr.set_thread_count(threads)
-            try:
-                return fit_serial(loaders, model, rng_seed=seed)
-            finally:
-                dr.set_thread_count(default_threads)
-        return go, None
-
-    def dask(workers, datasets):
-        client = clusters[workers][1]
-        return (lambda: fit_batch(datasets, model, client=client, rng_seed=seed)), client
-
-    runs = {"serial, 1 Dr.Jit thread": serial(1),
-            f"serial, {default_threads} Dr.Jit threads (default)": serial(default_threads),
-            "Dask, 1 worker x 1 thread": dask(1, loaders), "Dask, 2 workers x 1 thread": dask(2, loaders),
-            "Dask, 2 workers, in-memory data": dask(2, data)}
-    keys = list(runs)
-    print(f"\nDask fit_batch, {n_datasets} {name} datasets of {n:,} points (load average "
-          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
-    try:
-        first = {}
-        for key in keys:  # untimed: the serial kernels recorded; every worker warmed
-            fn, _ = runs[key]
-            t0 = time.perf_counter()
-            fn()
-            first[key] = time.perf_counter() - t0
-        best = {k: (np.inf, np.nan) for k in keys}
-        ref = runs[keys[0]][0]()
-        diffs, busy = {}, {}
-        for r in range(repeat):
-            k = r % len(keys)
-            for key in keys[k:] + keys[:k]:  # rotating order: no run always follows the same one
-                fn, client = runs[key]
-                c0, w0 = _cpu_all(client)
-                t0 = time.perf_counter()
-                out = fn()
-                dt = time.perf_counter() - t0
-                c1, w1 = _cpu_all(client)
-                busiest = max((w1[w] - w0[w] for w in w1), default=c1 - c0)
-                if dt < best[key][0]:
-                    best[key] = (dt, c1 - c0)
-                busy[key] = min(busy.get(key, np.inf), busiest)
-                diffs[key] = max(diffs.get(key, 0.0), max(float(np.max(np.abs(a.x - b.x))) for a, b in zip(out, ref)))
-    finally:
-        folder.cleanup()
-    s1, sd = best[keys[0]][0], best[keys[1]][0]
-    row = {"datasets": n_datasets, "points": n, "default_threads": default_threads,
-           "load_average": os.getloadavg()[0]}
-    b1 = busy[keys[0]]
-    print(f"  {'run':38s} {'wall s':>7s} {'CPU s':>7s} {'ms/fit':>7s} {'vs 1-thr':>8s} {'vs default':>10s} "
-          f"{'busiest s':>9s} {'1-thr CPU/busiest':>17s} {'max|x-ref|':>10s} {'first call s':>12s}")
-    for key in keys:
-        dt, cpu = best[key]
-        print(f"  {key:38s} {dt:7.2f} {cpu:7.2f} {1e3 * dt / n_datasets:7.1f} {s1 / dt:7.2f}x {sd / dt:9.2f}x "
-              f"{busy[key]:9.2f} {b1 / busy[key]:16.2f}x {diffs[key]:10.1e} {first[key]:12.2f}")
-        row[key] = {"wall_s": dt, "cpu_s": cpu, "speedup_vs_serial_1_thread": s1 / dt,
-                    "speedup_vs_serial_default": sd / dt, "busiest_cpu_s": busy[key],
-                    "cpu_speedup_vs_serial_1_thread": b1 / busy[key], "max_diff": diffs[key],
-                    "first_call_s": first[key]}
-    d2 = best[keys[3]][0]
-    print(f"  issue 18's goal (>= 1.8x with 2 workers, fits >= 50 ms) is measured against the serial loop on one "
-          f"Dr.Jit thread (per-core scaling): {s1 / d2:.2f}x in wall time, {b1 / busy[keys[3]]:.2f}x in the "
-          f"busiest process's CPU time; against the default-threaded serial loop ({default_threads} threads) 2 "
-          f"workers give {sd / d2:.2f}x in wall time.\n"
-          f"  busiest s: the CPU seconds of the busiest worker process (the serial loops: this process), least "
-          f"over the rounds; 1-thr CPU/busiest: the one-thread serial loop's CPU over it, the speed-up on a "
-          f"machine with a free core per worker if no worker ever waited (on a loaded machine the wall time "
-          f"is mostly the others' load).\n"
-          f"  Every run but the last reads each capture from its .npz file (page cache) where it fits it (the "
-          f"serial loops in this process, Dask in the worker: a loader per dataset); the last ships in-memory "
-          f"Measurements to the workers (client.scatter over the cluster's TLS). Wall: best of {repeat} rounds "
-          f"(rotating order); CPU: every thread of every process (this one, the workers, the scheduler) in that "
-          f"round; max|x-ref|: against the one-thread serial fits (0: bit for bit); first call: the first run, "
-          f"which records the serial kernels or warms each worker (cluster start {clusters[1][2]:.1f} s / "
-          f"{clusters[2][2]:.1f} s apart). Load average now {row['load_average']:.1f}.")
-    return row

@@ -40,13 +40,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
 from functools import lru_cache
 
 import numpy as np
 
 from . import _roundtrip
 from ._base import CHANNELS, eval_dtype, eval_inputs
+from ._freeze import _FREEZE_LOCK, FREEZE_LIMIT, _frozen_for  # noqa: F401  (the tests reach FREEZE_LIMIT as fast.*)
 from ._fast_affine import affine_parts, affine_q, affine_spec, affine_tables, prepare
 from ._jit import Directions, JitContext, _dr
 from ._jit import _fresnel_conductor  # noqa: F401  (tests check its derivatives as fast._fresnel_conductor)
@@ -170,48 +170,10 @@ def _empty(model, wi, wo, params):
     return eval_inputs(model, wi, wo, params)[0].shape[0] == 0
 
 
-_FREEZE_LOCK = threading.Lock()
-
 #: Pairs per launch of :func:`eval` below :data:`._roundtrip.SOA_MIN_PAIRS` (the gathering
 #: path, :func:`._roundtrip.eval_gathered`): up to this many the output is handed to numpy
 #: without a copy, a larger batch is evaluated in blocks of this size.
 EVAL_BLOCK = 1 << 20
-
-
-#: Recordings kept per frozen function (least recently used dropped). Dr.Jit records again
-#: when the inputs' configuration changes, and a public ``Model.eval`` of numpy-mapped arrays
-#: of a new size is often one (measured: 40 sizes, 40 recordings): without a limit the kernels
-#: of every size ever seen stay in memory, and from the 11th Dr.Jit printed a warning
-#: addressed to the developer of the frozen function to the user of ``Model.eval``.
-FREEZE_LIMIT = 24
-_NEVER = 2 ** 31 - 1
-
-
-@lru_cache(maxsize=256)
-def _frozen(fn, name, options, threads=None):
-    """``fn(model, *inputs)`` for one model configuration under ``dr.freeze``: the first call
-    per input layout traces and records the kernel launch, later calls replay it with the new
-    inputs (parameters are opaque inputs), for any N, skipping Python tracing and Dr.Jit's code
-    generation and hashing (~0.1 ms a call). One recording per (fn, model configuration,
-    size of Dr.Jit's thread pool): see :func:`_frozen_for`."""
-    import drjit as dr
-
-    from . import get
-
-    model = get(name, **dict(options))
-    return dr.freeze(lambda *inputs: fn(model, *inputs), limit=FREEZE_LIMIT, warn_after=_NEVER)
-
-
-def _frozen_for(fn, model):
-    """The frozen ``fn`` of ``model``'s configuration (:func:`_frozen`) for the present size
-    of Dr.Jit's thread pool. A recording keeps the per-thread copies that the in-kernel sums
-    (:func:`._reduce._reduced`, ``ReduceMode.Expand``) were given for the pool it was recorded
-    with: replayed after ``dr.set_thread_count`` had enlarged the pool (recorded on one thread,
-    replayed on two) it segfaulted (Dr.Jit 1.5.0, 2 of 3 runs of a roughconductor fit at 1e5
-    points)."""
-    import drjit as dr
-
-    return _frozen(fn, model.name, tuple(sorted(model.options.items())), dr.thread_count())
 
 
 def eval(model, wi, wo, params):

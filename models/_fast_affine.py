@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._freeze import _FREEZE_LOCK, _frozen_for
 from ._jit import Directions, JitContext, _cached_tables, _dr, _t_ext_batch
 
 __all__ = ["affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
@@ -122,8 +123,6 @@ def affine_parts(model, prepared, thetas, tables=None):
     # tables given (a sampler's walkers) or none needed: replayed from its recording, which
     # skips the Python trace (~0.35 ms of a 0.5 ms call at 16 x 1000 pairs, emcee's
     # half-ensemble); K and N are part of the recording's key
-    from ._fast import _FREEZE_LOCK, _frozen_for
-
     with _FREEZE_LOCK, dr.suspend_grad():
         base, basis = _frozen_for(_parts_replayed, model)(cols, prepared.wi, prepared.wo, t, K, N)
         return np.asarray(base).reshape(K, N), np.asarray(basis).reshape(K, N)
@@ -143,7 +142,7 @@ def _parts_kernel(model, cols, wi, wo, tables, K, N):
 
 
 def _parts_replayed(model, cols, wi, wo, tables, K, N):
-    """:func:`_parts_kernel` with both outputs evaluated: what ``fast._frozen`` records."""
+    """:func:`_parts_kernel` with both outputs evaluated: what ``_freeze._frozen`` records."""
     import drjit as dr
 
     base, basis = _parts_kernel(model, cols, wi, wo, tables, K, N)

@@ -506,7 +506,7 @@ class Directions:
             raise ValueError(f"{name} contains NaN or inf")
         # copied into Dr.Jit's own (aligned) memory: an array mapped from numpy's keeps numpy's
         # alignment, which differs from array to array, and every new alignment made the
-        # frozen kernels (fast._frozen) record again (a roughconductor fit: ~3 recordings
+        # frozen kernels (_freeze._frozen) record again (a roughconductor fit: ~3 recordings
         # of ~1-5 ms each, every fit, with new data or weights)
         out = [dr.copy(self.F(np.ascontiguousarray(a[:, c], dtype=self.dtype))) for c in range(CHANNELS)]
         dr.make_opaque(*out)
