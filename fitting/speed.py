@@ -178,9 +178,19 @@ REPEAT = 3
 
 
 def _run_one(opt, meas, model, r, fit):
-    """One optimiser on one capture: (x, seconds, evaluations, f_r at x, chi2/dof, space)."""
+    """One optimiser on one capture: (x, seconds, evaluations, f_r at x, chi2/dof, space).
+
+    Every run starts with the per-parameter table caches empty (:func:`gonio.models.fast.
+    clear_parameter_caches`): a run repeated on the same capture (:data:`REPEAT`) would
+    otherwise find every roughplastic table it needs computed by the run before it. A
+    deterministic peer revisits the same (alpha, eta) each time, so its repeats cost nothing
+    but the data kernel (nlopt SLSQP at 1e3 points: 0.010 s with the caches warm, ~1 s cold
+    at 40 ms a new table), while gonio's affine path makes its tables in the kernel and had
+    no such discount: before this, every roughplastic cell up to 1e4 points read "peer ahead"
+    (gonio/SLSQP 3.9-8.3, 2026-12-02)."""
     from ._space import ParameterSpace
 
+    fast.clear_parameter_caches()
     if opt == "scipy-lsq" or opt in NLOPT_LOCAL:
         x, dt, ne = scipy_lsq(meas, model) if opt == "scipy-lsq" else _nlopt_local(meas, model, NLOPT_LOCAL[opt])
         space = ParameterSpace(model, meas.n_channels)

@@ -54,7 +54,7 @@ from ._jit_target import env_problem
 from ._reduce import SLOTS, _collect, _reduced  # noqa: F401  (the tests reach them as fast._reduced, ...)
 
 __all__ = ["available", "env_problem", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad",
-           "normal_equations", "weighted_sse",
+           "normal_equations", "weighted_sse", "clear_parameter_caches",
            "affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
 
 _PROBE = (
@@ -174,6 +174,19 @@ def _empty(model, wi, wo, params):
 #: path, :func:`._roundtrip.eval_gathered`): up to this many the output is handed to numpy
 #: without a copy, a larger batch is evaluated in blocks of this size.
 EVAL_BLOCK = 1 << 20
+
+
+def clear_parameter_caches():
+    """Forget every table cached per parameter value: roughplastic's exact and interpolated
+    transmittance tables and internal reflectance, in numpy (:mod:`._rough_tables`) and in
+    Dr.Jit (:func:`._jit._cached_tables`, their derivatives). What a benchmark calls before
+    each timed run: a fit of a new capture finds none of the tables an earlier, identical run
+    computed (the caches keep the values, not the parameter-independent quadrature grids)."""
+    from . import _jit, _rough_tables
+
+    _rough_tables.clear_cache()
+    _jit._cached_tables.cache_clear()
+    _jit._cached_table_derivs.cache_clear()
 
 
 def eval(model, wi, wo, params):
