@@ -513,6 +513,27 @@ class Directions:
         self.wi = dr.copy(V3(np.ascontiguousarray(wi.T, dtype=dtype)))
         self.wo = dr.copy(V3(np.ascontiguousarray(wo.T, dtype=dtype)))
         dr.make_opaque(self.wi, self.wo)
+        self._geometry = {}
+
+    def geometry(self, model):
+        """The parameter-independent per-pair quantities ``model``'s kernel reads
+        (``model.structure.geometry``), evaluated once per batch and kept (a tuple of
+        Dr.Jit arrays of the batch's precision), or None where the model declares none."""
+        import drjit as dr
+
+        fn = model.structure.geometry
+        if fn is None or model.structure.body is None:
+            return None
+        key = (model.name, tuple(sorted(model.options.items())))
+        if key not in self._geometry:
+            with dr.suspend_grad():
+                g = fn(model, dr, self.wi, self.wo)
+                if g is not None:
+                    g = tuple(dr.copy(x) for x in g)
+                    dr.eval(*g)
+                    dr.make_opaque(*g)
+            self._geometry[key] = g
+        return self._geometry[key]
 
     def __len__(self):
         return self.n

@@ -196,6 +196,47 @@ def test_resident_float64_equals_eval(name, options):
             np.testing.assert_allclose(_fast.eval_resident(m, dirs, p), _fast.eval(m, wi, wo, p), rtol=1e-12, atol=1e-300)
 
 
+GEOMETRY = [(n, o) for n, o in CONFIGS if gm.get(n, **o).structure.geometry is not None]
+
+
+@pytest.mark.parametrize("name,options", GEOMETRY, ids=["-".join([n] + [f"{k}={v}" for k, v in o.items()]) for n, o in GEOMETRY])
+def test_prepared_geometry_equals_the_directions(name, options):
+    """Where a model declares its parameter-independent geometry (issue 18), the resident
+    paths read it prepared once per batch (``Directions.geometry``, kept: the same arrays
+    at the next call) and give what the kernel on the directions gives: f_r, the Jacobian
+    and the chi^2 sums to 1e-12 in float64 (the same formulas; only where the compiler
+    fuses a multiply and an add across the boundary can the last bit differ), f_r in
+    float32 against the float64 reference to 2e-5 (the bound of
+    test_resident_float32_matches_reference, on the same hard pairs)."""
+    m = gm.get(name, **options)
+    rng = np.random.default_rng(24)
+    wi, wo = hard_pairs(rng)
+    wi, wo = (w.astype(np.float32).astype(np.float64) for w in (wi, wo))
+    d64, d32 = _fast.Directions(wi, wo, np.float64), _fast.Directions(wi, wo, np.float32)
+    g = d64.geometry(m)
+    if g is None:
+        pytest.skip("no prepared geometry for these options (the directions are read)")
+    assert d64.geometry(m) is g and all(len(x) == len(wi) for x in g)
+    for p in [m.defaults()] + [random_params(m, rng, alpha_range=(1e-3, 1.0)) for _ in range(2)]:
+        p = m.validate(p)
+        b = _fast.Bound(m, p, np.float64)
+        direct, prepared = b.eval(d64), b.eval(d64, prepared=True)
+        np.testing.assert_allclose(prepared, direct, rtol=1e-12, atol=1e-300)
+        f, J = _fast.jacobian(m, d64, p)  # prepared
+        np.testing.assert_allclose(f, direct, rtol=1e-12, atol=1e-300)
+        P, _ = _fast._param_vars(m, p, d64.F, grad=False, dtables=True)
+        f2, J2 = _fast._kernel(m, d64.wi, d64.wo, P, grad=True)  # on the directions
+        for k in J:
+            np.testing.assert_allclose(J[k], _fast._to_numpy(J2[k], len(wi)), rtol=1e-12,
+                                       atol=1e-12 * np.max(np.abs(J[k])), err_msg=k)
+        ref = m.eval_reference(wi, wo, p)
+        got = _fast.Bound(m, p, np.float32).eval(d32, prepared=True)
+        assert got.dtype == np.float32 and np.all(np.isfinite(got)) and np.all(got >= 0)
+        big = ref * np.clip(wi[:, 2:3], 0, None) > 1e-6
+        np.testing.assert_allclose(got[big], ref[big], rtol=2e-5)
+        assert np.all(got[ref == 0] == 0)
+
+
 @pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
 def test_jacobian_matches_ad_and_finite_differences(name, options):
     """Hand-written forward derivatives against (a) Dr.Jit's reverse-mode AD of the same
