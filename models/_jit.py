@@ -243,20 +243,29 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     return out
 
 
-def _oren_nayar_over_rho(dr, sigma, wi, wo, grad=False):
-    """Qualitative Oren-Nayar (Oren & Nayar 1994, eq. 30) over rho:
-    (A + B max(0, cos(phi_i - phi_o)) sin(theta_max) tan(theta_min)) / pi, written as
-    (A cmax + B max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o); 0 below the
-    horizon. Linear in (A, B), so with ``grad`` the same shape at (dA, dB) / d sigma
-    = (-0.33 sigma / (s^2 + 0.33)^2, 0.081 sigma / (s^2 + 0.09)^2) is d / d sigma."""
+def _oren_nayar_geometry(dr, wi, wo):
+    """The parameter-independent part of :func:`_oren_nayar_over_rho`: (u, v) =
+    (cmax, max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o) (at most 1); 0 below
+    the horizon."""
     ci, co = wi.z, wo.z
     active = (ci > 0) & (co > 0)
     cmax = dr.minimum(dr.maximum(ci, co), 1.0)
     cd = dr.maximum(wi.x * wo.x + wi.y * wo.y, 0.0)
     r = dr.select(active, (1.0 / math.pi) / dr.select(active, cmax, 1.0), 0.0)
+    return cmax * r, cd * r
+
+
+def _oren_nayar_over_rho(dr, sigma, wi, wo, grad=False, geometry=None):
+    """Qualitative Oren-Nayar (Oren & Nayar 1994, eq. 30) over rho:
+    (A + B max(0, cos(phi_i - phi_o)) sin(theta_max) tan(theta_min)) / pi, written as
+    (A cmax + B max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o); 0 below the
+    horizon: A u + B v with (u, v) from :func:`_oren_nayar_geometry` (or ``geometry``, the
+    same prepared). Linear in (A, B), so with ``grad`` the same shape at (dA, dB) / d sigma
+    = (-0.33 sigma / (s^2 + 0.33)^2, 0.081 sigma / (s^2 + 0.09)^2) is d / d sigma."""
+    u, v = geometry if geometry is not None else _oren_nayar_geometry(dr, wi, wo)
 
     def shape(A, B):
-        return (A * cmax + B * cd) * r
+        return A * u + B * v
 
     s2 = sigma * sigma
     value = shape(1.0 - s2 / (2.0 * (s2 + 0.33)), 0.45 * s2 / (s2 + 0.09))
