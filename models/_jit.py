@@ -108,11 +108,9 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
         # the cancellation-free a = sqrt(2) eta k / sqrt(A - t1). In float32 A + t1 cancels
         # wherever t1 < 0 (k -> 0 with eta < sin(theta), and every metal with k > eta: k = 3,
         # eta = 0.2 loses ~8 bits), and that error went into F and both derivatives: F to
-        # 3.1e-4 relative near k = 0, now <= 8.7e-7 (tests/models/test_fast.py); the chi^2
-        # gradient at the bench's coloured defaults (1e5 pairs) 2.4-16x closer to float64's
-        # (roughconductor GGX d/d eta 1.4e-3 -> 1.8e-4 of its largest component). Two
-        # square roots fewer per channel, but no time saved that the bench can see
-        # (roughconductor GGX chi2_grad, AVX2: 13.2-13.5 ms against 13.2-13.9 ms).
+        # 3.1e-4 relative near k = 0, now <= 8.7e-7 (tests/models/test_fast.py). Two square
+        # roots fewer per channel, but no time saved that the bench can see (roughconductor
+        # GGX chi2_grad, AVX2: 13.2-13.5 ms against 13.2-13.9 ms).
         Xf = dr.maximum(X, _floor(X))
         rA = dr.rsqrt(Xf)
         A = Xf * rA
@@ -241,6 +239,83 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     if grad:
         out += (dr.select(ok, gu, 0.0), dr.select(ok, gv, 0.0))
     return out
+
+
+def _lobe_iso_geometry(dr, wi, wo):
+    """The parameter-independent part of :func:`_lobe` for an isotropic roughness, per pair:
+    (cos_i, cos_o, sin^2_i, sin^2_o, sin^2(theta_m), cos(theta_m), c = wi . m), the cosines 0
+    where :func:`_lobe`'s ``ok`` is false (a pair below the horizon, or h = 0)."""
+    ci, co = wi.z, wo.z
+    h = wi + wo
+    h2 = dr.squared_norm(h)
+    ok = (ci > 0) & (co > 0) & (h2 > _floor(h2))
+    inv = dr.rsqrt(dr.select(ok, h2, 1.0))
+    mz = h.z * inv
+    c = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h)) * inv
+    sm2 = (h.x * inv) ** 2 + (h.y * inv) ** 2
+    return (dr.select(ok, ci, 0.0), dr.select(ok, co, 0.0), wi.x * wi.x + wi.y * wi.y, wo.x * wo.x + wo.y * wo.y,
+            sm2, mz, c)
+
+
+def _lobe_iso(dr, kind, alpha, g, grad=False):
+    """:func:`_lobe` for au = av = alpha on :func:`_lobe_iso_geometry`'s quantities ``g``
+    (the same formulas; ``gu + gv`` as one derivative): ``(num, den, c, ok)`` and, with
+    ``grad``, d ln(term) / d alpha."""
+    ci, co, si2, so2, sm2, mz, c = g
+    ok = (ci > 0) & (co > 0)
+    ia2 = 1.0 / (alpha * alpha)
+    a2 = alpha * alpha
+    px2 = sm2 * ia2
+    paa = math.pi * a2
+    ax_i, ax_o = a2 * si2, a2 * so2
+    if kind == "ggx":
+        t = px2 + mz * mz
+        si = _safe_sqrt(dr, ci * ci + ax_i)
+        so = _safe_sqrt(dr, co * co + ax_o)
+        tt = paa * t * t
+        num = 1.0 + 0.0 * ci
+        den = tt * (ci + si) * (co + so)
+        ok &= mz > 1e-20 * tt
+        if grad:
+            w_i = 1.0 / (si * (ci + si))
+            w_o = 1.0 / (so * (co + so))
+            ga = (px2 * (4.0 / t) - 2.0 - ax_i * w_i - ax_o * w_o) * (1.0 / alpha)
+    else:
+        mz2 = dr.select(ok, mz * mz, 1.0)
+        rmz2 = 1.0 / mz2 if grad else None
+        ex = dr.exp(-(px2 * rmz2 if grad else px2 / mz2))
+
+        def g1(z, sin2):
+            s = _safe_sqrt(dr, a2 * sin2)
+            big = z >= 1.6 * s
+            n = dr.select(big, 1.0, 3.535 * s + 2.181 * z)
+            return n, dr.select(big, z, s * s + 2.276 * s * z + 2.577 * z * z), s, big
+
+        ni, di, s_i, big_i = g1(ci, si2)
+        no, do, s_o, big_o = g1(co, so2)
+        dd = paa * mz2 * mz2
+        num = ex * ni * no
+        den = 4.0 * dd * di * do
+        ok &= ex * mz > 1e-20 * dd
+        if grad:
+            def k(n, d, s, z, big):
+                return dr.select(big, 0.0, (3.535 * d - (2.0 * s + 2.276 * z) * n) / dr.select(big, 1.0, s * n * d))
+
+            ga = (2.0 * px2 * rmz2 - 2.0 + ax_i * k(ni, di, s_i, ci, big_i) + ax_o * k(no, do, s_o, co, big_o)) * (1.0 / alpha)
+    ok &= den > 0
+    out = (dr.select(ok, num, 0.0), dr.select(ok, den, 1.0), c, ok)
+    if grad:
+        out += (dr.select(ok, ga, 0.0),)
+    return out
+
+
+def microfacet_lobe_iso(dr, kind, alpha, g, grad):
+    """:func:`microfacet_lobe` for an isotropic roughness on prepared geometry ``g``
+    (:func:`_lobe_iso_geometry`): (s, c, {"alpha": ds / d alpha} or None)."""
+    a = dr.maximum(alpha, 1e-4)
+    num, den, c, ok, *rest = _lobe_iso(dr, kind, a, g, grad)
+    s = num / den
+    return s, c, ({"alpha": dr.select(alpha >= 1e-4, rest[0], 0.0) * s} if grad else None)
 
 
 def _oren_nayar_geometry(dr, wi, wo):

@@ -9,7 +9,8 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
 * ``geometry``: the parameter-independent per-pair quantities its kernel reads (cosines, the
   microfacet term's geometric factors, ...), ``geometry(model, dr, wi, wo) -> tuple of
   arrays``, and ``body(model, ctx, g, P, grad)`` the rest of the kernel on them (``kernel``
-  is then ``body`` after ``geometry``, in one kernel): on a resident batch the chi^2, its
+  computes the same, to rounding: ``body`` after ``geometry`` in one kernel, or, for
+  roughconductor, its own formulas on the directions): on a resident batch the chi^2, its
   gradient, the normal equations and the Jacobian read the geometry prepared once
   (:meth:`gonio.models.fast.Directions.geometry`) instead of the directions (issue 18);
   ``geometry`` returns None for an option it does not cover;
