@@ -20,6 +20,14 @@ On a resident batch (:class:`Directions`, float32 or float64, loaded once):
   by hand next to the values in :func:`_kernel`;
 * :func:`chi2_grad` -- sum w (f_r - y)^2 and its gradient, reduced inside the kernel.
 
+These resident paths (and :func:`weighted_sse`, :func:`normal_equations`) read, for a model
+that declares it (``structure.geometry`` and ``structure.body``: cooktorrance, diffuse,
+orennayar, roughconductor with an isotropic roughness), the parameter-independent part of
+its kernel prepared once per batch (:meth:`Directions.geometry`: the directions never change
+in a fit) instead of the directions: the same formulas, to rounding, with that part done
+once (issue 18: a gradient at most 3x the evaluation's cost). :meth:`Bound.eval` reads the
+directions unless asked (``prepared=True``).
+
 For ``roughplastic`` the transmittance table and internal reflectance follow the
 model's ``exact_tables`` setting: with ``exact_tables=False`` the interpolated grid of
 :func:`gonio.models._rough_tables.rough_tables_interp` (gradients through the spline's

@@ -134,11 +134,14 @@ def test_bench_runs():
     assert "ev32/mi" in text and "numpy round trip included" in text and "load average" in text
     # what each column includes is printed: Mitsuba resident (no round trip) and with its own
     assert "NO numpy round trip" in text and "mi+np" in text and "ev32/mnp" in text
+    # and what the gradient reads: the prepared geometry, against both evaluations
+    assert "grad/evp" in text and "prepared once per batch" in text
     assert len(rows) == 2
     for r in rows:
         assert all(r[k] > 0 for k in ("numpy", "drjit64", "eval32", "drjit32", "jac32"))
         assert r["limits"]["eval32"] == pytest.approx(r["limits"]["bandwidth"] / 36)
         assert r["jac_cost"] > 0 and r["grad_chi"] > 0 and r["grad_chi64"] > 0
+        assert r["grad_cost_p"] > 0 and r["grad_cost_p64"] > 0
         if r["mitsuba"] is not None:
             assert r["mitsuba_np"] > 0 and r["eval32_np_ratio"] > 0 and r["eval_np_ratio"] > 0
         # the stated limit: the copy bandwidth over the bytes a pair moves (36 B float32, 72 B float64)
