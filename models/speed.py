@@ -83,17 +83,18 @@ chi^2 in the kernel already cost 1.6-2.0x the evaluation, 8-11 float64 sums 0.7-
 
 Issue 18's gradient (2026-12-02, another host: AMD EPYC Zen 3, AVX2, 8 float32 lanes, 2 cores
 shared, load 5.0-5.9, one Dr.Jit thread, CPU time, 1e6 pairs, best of 9, the old and the new
-code timed in one process, taking turns). Before any change every ``grad/ev`` cell was <= 3
-on this host but the memory-bound ones near it (float32 diffuse 2.8-3.1, orennayar 2.9-3.0);
-roughconductor GGX 2.6, cooktorrance 1.7. Where the time went (roughconductor GGX float32,
+code timed in one process, taking turns). Before any change the float32 ``grad/ev`` of the
+memory-bound models was at the bound on this host (diffuse 2.6-3.1, orennayar 2.8-3.1 over
+seven runs at load 5-9), the others <= 2.6 (roughconductor GGX 2.6, cooktorrance 1.7). Where the time went (roughconductor GGX float32,
 13.4 ms): the chi^2 alone 6.5 ms, its conductor Fresnel derivatives 5.2 ms, the roughness
-derivative 0.7 ms, the eight float64 sums ~1 ms. The chi^2, its gradient and the fitter's
+derivative 0.7 ms, the eight float64 sums 1-1.7 ms. The chi^2, its gradient and the fitter's
 kernels now read the parameter-independent geometry prepared once per batch (cooktorrance,
 diffuse, orennayar, isotropic roughconductor; ``Directions.geometry``): ``grad32`` 13.40 ->
 11.80 ms (GGX), 14.89 -> 13.39 (Beckmann), 7.95 -> 6.27 (cooktorrance), 3.38 -> 2.82
 (orennayar), 1.99 -> 1.97 (diffuse); float64 27.67 -> 24.52, 30.85 -> 27.88, 12.98 -> 9.04,
 4.83 -> 3.54, 2.95 -> 2.67; ``grad/ev`` float32 2.57 -> 2.26, 2.25 -> 2.02, 1.68 -> 1.51,
-2.90 -> 2.33, 2.82 -> 2.60 (roughplastic: unchanged code, 1.7-2.0 in both); a roughconductor
+2.90 -> 2.33, 2.82 -> 2.60 (roughplastic: unchanged code, 1.7-2.0 in both; diffuse stays
+2.6-3.0 over five runs: its prepared geometry saves 4 of the 32 bytes a pair); a roughconductor
 GGX fit of 1e5 points 78-80 -> 69-73 ms (1e4: 10-11 ms in both). The Zen 5 cells over 3 could
 not be timed here; the static instruction counts of the AVX-512 code (16 lanes) that LLVM makes
 of Dr.Jit's IR for these kernels (llc, icelake-server; a count, not a time) go roughconductor
@@ -102,11 +103,11 @@ cooktorrance 726 -> 492 against 160-164 (4.54 -> 3.0; with the sums in one packe
 :data:`._reduce._PACKET`), roughconductor Beckmann 1012 -> 969 against 331. What the
 roughconductor gradient's count still holds: ~45 operations a channel of Fresnel derivatives
 (written once, shared by d/d eta and d/d k), the transposes and masked read-add-writes of the
-float64 sums (~150), and ~90 of scalar parameter arithmetic LLVM does again each iteration
+float64 sums (~150), and ~80 of scalar parameter arithmetic LLVM does again each iteration
 (e.g. eta^2, 2 eta (eta^2 + k^2)). Tried and not kept (AVX2): square roots of the Fresnel term
 from its reciprocal square roots (no time seen; kept in float32 for accuracy), packets of 4
 terms (roughconductor GGX float32 13.9 -> 16.2 ms), splitting the last packet (no gain), the
-per-channel order of the terms (21 % fewer spills, no time seen), two pairs a lane through
+per-channel order of the terms (18-21 % fewer spill instructions, no time seen), two pairs a lane through
 zero-copy views (GGX 13.7 -> 14.5 ms, cooktorrance 8.3 -> 8.0, diffuse and orennayar slower).
 
 Physical limit: a resident evaluation reads the two directions and writes f_r, so it can go
