@@ -8,7 +8,8 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
   a recorded kernel launch pays off (not for the two diffuse models' short traces);
 * ``geometry``: the parameter-independent per-pair quantities its kernel reads (cosines, the
   microfacet term's geometric factors, ...), ``geometry(model, dr, wi, wo) -> tuple of
-  arrays``, and ``body(model, ctx, g, P, grad)`` the rest of the kernel on them (``kernel``
+  arrays``, and ``body(model, ctx, g, P, grad)`` the rest of the kernel on them (``ctx.active``
+  is None there: the geometry carries the horizon; ``kernel``
   computes the same, to rounding: ``body`` after ``geometry`` in one kernel, or, for
   roughconductor, its own formulas on the directions): on a resident batch the chi^2, its
   gradient, the normal equations and the Jacobian read the geometry prepared once
