@@ -94,7 +94,7 @@ class CookTorrance(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=_jit_kernel)
+        return Structure(kernel=_jit_kernel, geometry=_jit_geometry, body=_jit_body)
     OPTIONS = {}
     energy_conserving = False
 
@@ -125,33 +125,43 @@ class CookTorrance(Model):
         return d
 
 
-def _jit_kernel(model, k, wi, wo, P, grad):
-    """The compiled kernel (value and derivatives by hand)."""
-    dr, active, zero = k.dr, k.active, k.zero
+def _jit_geometry(model, dr, wi, wo):
+    """The kernel's parameter-independent part, per pair: (tan^2(theta_m), the geometric
+    factor sec^4(theta_m) G / (pi ci co), Schlick's (1 - cos)^5, the Lambertian 1 / pi),
+    all 0 where the lobe (the first three) or the pair (the last) is below the horizon."""
     ci, co = wi.z, wo.z
-    J = {}
+    active = (ci > 0) & (co > 0)
     # Ngan et al. 2005: Beckmann D without pi, G = min(1, 2 cos_m min(cos_i, cos_o) / (wi . m)),
     # written with the unnormalised half vector h: cos_m = h_z / |h|, wi . m = (wi . h) / |h|
-    m = P["roughness"]
     h = wi + wo
     h2 = dr.squared_norm(h)
     hz = h.z
     dh = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h))  # |h| (wi . m)
     up = active & (h2 > _floor(h2)) & (hz > 0) & (dh > 0)
     r_hz2 = 1.0 / dr.select(up, hz * hz, 1.0)
-    m2 = m * m
-    e = (h.x * h.x + h.y * h.y) * r_hz2 * (1.0 / m2)  # tan^2(theta_m) / m^2
+    tan2 = dr.select(up, (h.x * h.x + h.y * h.y) * r_hz2, 0.0)
     g_num = 2.0 * hz * dr.minimum(ci, co)
     g_den = dr.select(g_num < dh, dh, g_num)  # G = g_num / g_den = min(1, 2 hz min / dh)
-    # D G / (pi ci co) with D = exp(-e) / (m^2 cos^4(theta_m)), 1 / cos^2 = |h|^2 / hz^2
+    # D G / (pi ci co) = exp(-tan^2 / m^2) / m^2 * sec^4 G / (pi ci co), 1 / cos^2 = |h|^2 / hz^2
     # (ratios first: hz^4 ci co underflows float32 at grazing angles)
     sec2 = h2 * r_hz2
-    s = dr.select(up, dr.exp(-e) * sec2 * sec2 * g_num / (math.pi * m2 * g_den * dr.select(up, ci * co, 1.0)), 0.0)
+    geo = dr.select(up, sec2 * sec2 * g_num / (math.pi * g_den * dr.select(up, ci * co, 1.0)), 0.0)
     x = 1.0 - dr.clip(dh * dr.rsqrt(dr.select(up, h2, 1.0)), 0.0, 1.0)
     x2 = x * x
-    x5 = x2 * x2 * x
+    lam = dr.select(active, 1.0 / math.pi + 0.0 * ci, 0.0)
+    return tan2, geo, dr.select(up, x2 * x2 * x, 0.0), lam
+
+
+def _jit_body(model, k, g, P, grad):
+    """The kernel on :func:`_jit_geometry`'s quantities (value and derivatives by hand)."""
+    dr = k.dr
+    tan2, geo, x5, lam = g
+    J = {}
+    m = P["roughness"]
+    rm2 = 1.0 / (m * m)
+    e = tan2 * rm2  # tan^2(theta_m) / m^2
+    s = dr.exp(-e) * geo * rm2
     rds, rss, f0s = (channels(P, k) for k in ("diffuse_reflectance", "specular_reflectance", "f0"))
-    lam = dr.select(active, 1.0 / math.pi + zero, 0.0)
     f = [rd * lam + rs * (f0 + (1.0 - f0) * x5) * s for rd, rs, f0 in zip(rds, rss, f0s)]
     if grad:
         ds = (2.0 * e - 2.0) * (1.0 / m) * s  # d ln s / dm = (2 e - 2) / m
@@ -160,3 +170,8 @@ def _jit_kernel(model, k, wi, wo, P, grad):
         J["roughness"] = [rs * (f0 + (1.0 - f0) * x5) * ds for rs, f0 in zip(rss, f0s)]
         J["f0"] = [rs * (1.0 - x5) * s for rs in rss]
     return f, J
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """The compiled kernel: :func:`_jit_body` after :func:`_jit_geometry`, in one kernel."""
+    return _jit_body(model, k, _jit_geometry(model, k.dr, wi, wo), P, grad)

@@ -20,6 +20,14 @@ On a resident batch (:class:`Directions`, float32 or float64, loaded once):
   by hand next to the values in :func:`_kernel`;
 * :func:`chi2_grad` -- sum w (f_r - y)^2 and its gradient, reduced inside the kernel.
 
+These resident paths (and :func:`weighted_sse`, :func:`normal_equations`) read, for a model
+that declares it (``structure.geometry`` and ``structure.body``: cooktorrance, diffuse,
+orennayar, roughconductor with an isotropic roughness), the parameter-independent part of
+its kernel prepared once per batch (:meth:`Directions.geometry`: the directions never change
+in a fit) instead of the directions: the same formulas, to rounding, with that part done
+once (issue 18: a gradient at most 3x the evaluation's cost). :meth:`Bound.eval` reads the
+directions unless asked (``prepared=True``).
+
 For ``roughplastic`` the transmittance table and internal reflectance follow the
 model's ``exact_tables`` setting: with ``exact_tables=False`` the interpolated grid of
 :func:`gonio.models._rough_tables.rough_tables_interp` (gradients through the spline's
@@ -110,6 +118,37 @@ def _kernel(model, wi, wo, P, grad=False):
     if not grad:
         return f
     return f, {par.name: J[par.name] for par in model.parameters}
+
+
+def _body(model, g, P, grad=False):
+    """:func:`_kernel` on a batch's prepared geometry ``g`` (:meth:`Directions.geometry`)
+    instead of its directions: the model's ``structure.body``, the same formulas as its
+    kernel after the geometry part."""
+    import drjit as dr
+
+    F = type(g[0])
+    ctx = JitContext(dr, F, dr.uint32_array_t(F), None, dr.zeros(F, dr.width(g[0])))
+    f, J = model.structure.body(model, ctx, g, P, grad)
+    if not grad:
+        return f
+    return f, {par.name: J[par.name] for par in model.parameters}
+
+
+def _fJ(model, src, P, grad):
+    """:func:`_kernel` on ``src``: the directions ``(wi, wo)``, or ``(g,)``, the batch's
+    prepared geometry (:func:`_body`)."""
+    if len(src) == 1:
+        return _body(model, src[0], P, grad)
+    return _kernel(model, *src, P, grad)
+
+
+def _source(model, dirs):
+    """What the resident paths (:func:`chi2_grad`, :func:`weighted_sse`,
+    :func:`normal_equations`, :func:`jacobian`) read: ``(g,)``, the batch's geometry
+    prepared once for the model (:meth:`Directions.geometry`), where the model declares
+    one, else ``(wi, wo)``."""
+    g = dirs.geometry(model)
+    return (g,) if g is not None else (dirs.wi, dirs.wo)
 
 
 def _param_vars(model, p, F, grad, dtables=False):
@@ -300,9 +339,12 @@ class Bound:
         self.dtype = np.dtype(dtype)
         self._P = None
 
-    def eval(self, dirs, numpy=True):
+    def eval(self, dirs, numpy=True, prepared=False):
         """f_r on ``dirs`` (a :class:`Directions` of the same dtype): an (N, 3) numpy array,
-        or (``numpy=False``) the three channels as evaluated Dr.Jit arrays."""
+        or (``numpy=False``) the three channels as evaluated Dr.Jit arrays. With
+        ``prepared``, from the batch's prepared geometry where the model declares one
+        (:meth:`Directions.geometry`, what :func:`chi2_grad` and the fitter's kernels read;
+        prepared at the first such call), else from the directions."""
         import drjit as dr
 
         if dirs.dtype != self.dtype:
@@ -311,10 +353,19 @@ class Bound:
             return np.zeros((0, CHANNELS), dtype=dirs.dtype) if numpy else [dirs.F() for _ in range(CHANNELS)]
         if self._P is None:
             self._P = _param_vars(self.model, self.params, dirs.F, grad=False)[0]
+        g = dirs.geometry(self.model) if prepared else None
         with dr.suspend_grad():
-            chans = _frozen_kernel(self.model)(dirs.wi, dirs.wo, self._P)
+            if g is not None:
+                chans = _frozen_for(_body_f, self.model)(g, self._P)
+            else:
+                chans = _frozen_kernel(self.model)(dirs.wi, dirs.wo, self._P)
             dr.eval(*chans)
         return _to_numpy(chans, dirs.n) if numpy else chans
+
+
+def _body_f(model, g, P):
+    """f_r from prepared geometry (:func:`_body`), for :func:`_frozen`."""
+    return _body(model, g, P)
 
 
 def eval_resident(model, dirs, params, numpy=True):
@@ -365,16 +416,17 @@ def jacobian(model, dirs, params, numpy=True):
     P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
     run = _frozen_for(_jacobian_kernel, model)  # replayed, as Bound.eval (traced: ~1 ms a call)
     with _FREEZE_LOCK, dr.suspend_grad():
-        f, J = run(dirs.wi, dirs.wo, P)
+        f, J = run(*_source(model, dirs), P)
         dr.eval(*f, *(t for ts in J.values() for t in ts))
     if not numpy:
         return f, J
     return _to_numpy(f, n), {k: _to_numpy(v, n) for k, v in J.items()}
 
 
-def _jacobian_kernel(model, wi, wo, P):
-    """(f, J) of :func:`_kernel` with derivatives, for :func:`_frozen`."""
-    return _kernel(model, wi, wo, P, grad=True)
+def _jacobian_kernel(model, *args):
+    """(f, J) of :func:`_kernel` with derivatives, for :func:`_frozen`; ``args``: the
+    :func:`_source` and P."""
+    return _fJ(model, args[:-1], args[-1], grad=True)
 
 
 def chi2_grad(model, dirs, params, y, w):
@@ -409,7 +461,7 @@ def chi2_grad(model, dirs, params, y, w):
     P, _ = _param_vars(model, p, dirs.F, grad=False, dtables=True)
     run = _frozen_for(_chi2_sums, model)  # replayed, as Bound.eval
     with _FREEZE_LOCK, dr.suspend_grad():
-        sums = run(dirs.wi, dirs.wo, P, y, w)
+        sums = run(*_source(model, dirs), P, y, w)
         dr.eval(sums)
     vals = _collect(sums, dirs.dtype)
     grad, k = {}, 1
@@ -421,10 +473,12 @@ def chi2_grad(model, dirs, params, y, w):
     return float(vals[0]), grad
 
 
-def _chi2_sums(model, wi, wo, P, y, w):
+def _chi2_sums(model, *args):
     """[chi^2, then sum w (f - y) d f / d p for each parameter (3 sums for a per-channel
-    one)], reduced in the kernel into one float64 array (:func:`_reduced`)."""
-    f, J = _kernel(model, wi, wo, P, grad=True)
+    one)], reduced in the kernel into one float64 array (:func:`_reduced`); ``args``: the
+    :func:`_source`, P, y, w."""
+    P, y, w = args[-3:]
+    f, J = _fJ(model, args[:-3], P, grad=True)
     wr = [wc * (fc - yc) for fc, yc, wc in zip(f, y, w)]
     terms = [sum(a * (fc - yc) for a, fc, yc in zip(wr, f, y))]
     for par in model.parameters:
@@ -442,12 +496,14 @@ def _entries(model):
     return out
 
 
-def _normal_sums(model, wi, wo, P, y, w):
+def _normal_sums(model, *args):
     """[sum w (f - y)^2, then g_a = sum w (f - y) J_a per entry, then A_ab = sum w J_a J_b
     for every pair a <= b that shares a channel], reduced in the kernel like
     :func:`_chi2_sums`; channels are independent in every model, so a per-channel entry's
-    J is zero in the other channels and pairs of two different channels are 0 (skipped)."""
-    f, J = _kernel(model, wi, wo, P, grad=True)
+    J is zero in the other channels and pairs of two different channels are 0 (skipped).
+    ``args``: the :func:`_source`, P, y, w."""
+    P, y, w = args[-3:]
+    f, J = _fJ(model, args[:-3], P, grad=True)
     res = [fc - yc for fc, yc in zip(f, y)]
     wr = [wc * rc for wc, rc in zip(w, res)]
     ent = _entries(model)
@@ -501,7 +557,7 @@ def normal_equations(model, dirs, params, y, w):
     # compiled once, then in Dr.Jit's kernel cache)
     run = _frozen_for(_normal_sums, model)
     with _FREEZE_LOCK, dr.suspend_grad():
-        sums = run(dirs.wi, dirs.wo, P, y, w)
+        sums = run(*_source(model, dirs), P, y, w)
         dr.eval(sums)
     vals = _collect(sums, dirs.dtype)
     g = vals[1:1 + E].copy()
@@ -516,12 +572,14 @@ def normal_equations(model, dirs, params, y, w):
     return float(vals[0]), g, A, ent
 
 
-def _sse_sum(model, wi, wo, P, y, w):
-    """sum w (f - y)^2 over pairs and channels, reduced in the kernel (one float64 target)."""
+def _sse_sum(model, *args):
+    """sum w (f - y)^2 over pairs and channels, reduced in the kernel (one float64 target);
+    ``args``: the :func:`_source`, P, y, w."""
     import drjit as dr
 
     _, F64, _, U = _dr()
-    f = _kernel(model, wi, wo, P)
+    P, y, w = args[-3:]
+    f = _fJ(model, args[:-3], P, grad=False)
     t = sum(wc * (fc - yc) * (fc - yc) for fc, yc, wc in zip(f, y, w))
     target = dr.zeros(F64, 1)
     dr.scatter_reduce(dr.ReduceOp.Add, target, F64(t), dr.zeros(U, 1), mode=dr.ReduceMode.Expand)
@@ -542,6 +600,6 @@ def weighted_sse(model, dirs, params, y, w):
     P, _ = _param_vars(model, p, dirs.F, grad=False)
     run = _frozen_for(_sse_sum, model)
     with _FREEZE_LOCK, dr.suspend_grad():
-        out = run(dirs.wi, dirs.wo, P, y, w)
+        out = run(*_source(model, dirs), P, y, w)
         dr.eval(out)
     return float(np.asarray(out)[0])

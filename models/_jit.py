@@ -101,9 +101,28 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
     e2, k2 = eta * eta, k * k
     t1 = e2 - k2 - s2
     X = t1 * t1 + 4.0 * e2 * k2
-    A = _safe_sqrt(dr, X)  # a^2 + b^2
-    a2 = 0.5 * (A + t1)
-    a = _safe_sqrt(dr, a2)
+    if grad and _is_f32(X):
+        # float32 with derivatives, which need 1 / A and 1 / sqrt(q) anyway (q = A - t1 where
+        # t1 < 0, a^2 elsewhere; see below): A and a from those two reciprocal square roots
+        # (rsqrt14 and a Newton step), A = X / sqrt(X), a = a^2 / sqrt(a^2) or, where t1 < 0,
+        # the cancellation-free a = sqrt(2) eta k / sqrt(A - t1). In float32 A + t1 cancels
+        # wherever t1 < 0 (k -> 0 with eta < sin(theta), and every metal with k > eta: k = 3,
+        # eta = 0.2 loses ~8 bits), and that error went into F and both derivatives: F to
+        # 3.1e-4 relative near k = 0, now <= 8.7e-7 (tests/models/test_fast.py). Two square
+        # roots fewer per channel, but no time saved that the bench can see (roughconductor
+        # GGX chi2_grad, AVX2: 13.2-13.5 ms against 13.2-13.9 ms).
+        Xf = dr.maximum(X, _floor(X))
+        rA = dr.rsqrt(Xf)
+        A = Xf * rA
+        a2 = 0.5 * (A + t1)
+        neg = t1 < 0
+        q = dr.maximum(dr.select(neg, A - t1, a2), _floor(X))
+        rq = dr.rsqrt(q)
+        a = dr.select(neg, (math.sqrt(2.0) * eta * k) * rq, q * rq)
+    else:
+        A = _safe_sqrt(dr, X)  # a^2 + b^2
+        a2 = 0.5 * (A + t1)
+        a = _safe_sqrt(dr, a2)
     T1 = A + c2
     T2 = 2.0 * c * a
     T3 = A * c2 + s2 * s2
@@ -113,17 +132,19 @@ def _fresnel_conductor(dr, c, eta, k, grad=False):
     P, Q = T1 + T2, T3 + T4
     r = 1.0 / (P * Q)
     F = dr.clip((T1 - T2) * T3 * r, 0.0, 1.0)
-    # 1 / A: in float32 an rsqrt (rsqrt14 and a Newton step: cheaper than a division), in
-    # float64 a division (Dr.Jit's float64 rsqrt is a division and a square root)
-    rA = dr.rsqrt(dr.maximum(X, _floor(X))) if _is_f32(X) else 1.0 / A
+    if not _is_f32(X):
+        # 1 / A: in float64 a division (Dr.Jit's float64 rsqrt is a division and a square root)
+        rA = 1.0 / A
     # da without cancellation. For t1 >= 0, a^2 = (A + t1) / 2 >= t1 and da = (dA + dt1) / (4a).
     # For t1 < 0 (k -> 0 with eta below sin(theta)) A + t1 cancels; there
     # a = sqrt(2) eta k / sqrt(R), R = A - t1 >= 2 |t1| (since (A + t1)(A - t1) = 4 eta^2 k^2),
     # whose derivative stays exact down to k = 0 (one-sided there: F ~ 1 - C k):
     # da = sqrt(2) d(eta k) / sqrt(R) - c1 (dA - dt1), c1 = eta k / (sqrt(2) R^1.5).
     # Both branches need one reciprocal square root, of R or of a^2: one rsqrt per lane
-    neg = t1 < 0
-    rq = dr.rsqrt(dr.maximum(dr.select(neg, A - t1, a2), _floor(X)))
+    # (float32: computed above)
+    if not _is_f32(X):
+        neg = t1 < 0
+        rq = dr.rsqrt(dr.maximum(dr.select(neg, A - t1, a2), _floor(X)))
     c1 = (math.sqrt(0.5) * eta * k) * (rq * rq * rq)
     ra4 = 0.25 * rq
     # dF is linear in (dA, dT2) with coefficients shared by d/d eta and d/dk (dT1 = dA,
@@ -220,20 +241,106 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     return out
 
 
-def _oren_nayar_over_rho(dr, sigma, wi, wo, grad=False):
-    """Qualitative Oren-Nayar (Oren & Nayar 1994, eq. 30) over rho:
-    (A + B max(0, cos(phi_i - phi_o)) sin(theta_max) tan(theta_min)) / pi, written as
-    (A cmax + B max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o); 0 below the
-    horizon. Linear in (A, B), so with ``grad`` the same shape at (dA, dB) / d sigma
-    = (-0.33 sigma / (s^2 + 0.33)^2, 0.081 sigma / (s^2 + 0.09)^2) is d / d sigma."""
+def _lobe_iso_geometry(dr, wi, wo):
+    """The parameter-independent part of :func:`_lobe` for an isotropic roughness, per pair:
+    (cos_i, cos_o, sin^2_i, sin^2_o, sin^2(theta_m), cos(theta_m), c = wi . m), the cosines 0
+    where :func:`_lobe`'s ``ok`` is false (a pair below the horizon, or h = 0)."""
+    ci, co = wi.z, wo.z
+    h = wi + wo
+    h2 = dr.squared_norm(h)
+    ok = (ci > 0) & (co > 0) & (h2 > _floor(h2))
+    inv = dr.rsqrt(dr.select(ok, h2, 1.0))
+    mz = h.z * inv
+    c = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h)) * inv
+    sm2 = (h.x * inv) ** 2 + (h.y * inv) ** 2
+    return (dr.select(ok, ci, 0.0), dr.select(ok, co, 0.0), wi.x * wi.x + wi.y * wi.y, wo.x * wo.x + wo.y * wo.y,
+            sm2, mz, c)
+
+
+def _lobe_iso(dr, kind, alpha, g, grad=False):
+    """:func:`_lobe` for au = av = alpha on :func:`_lobe_iso_geometry`'s quantities ``g``
+    (the same formulas; ``gu + gv`` as one derivative): ``(num, den, c, ok)`` and, with
+    ``grad``, d ln(term) / d alpha."""
+    ci, co, si2, so2, sm2, mz, c = g
+    ok = (ci > 0) & (co > 0)
+    ia2 = 1.0 / (alpha * alpha)
+    a2 = alpha * alpha
+    px2 = sm2 * ia2
+    paa = math.pi * a2
+    ax_i, ax_o = a2 * si2, a2 * so2
+    if kind == "ggx":
+        t = px2 + mz * mz
+        si = _safe_sqrt(dr, ci * ci + ax_i)
+        so = _safe_sqrt(dr, co * co + ax_o)
+        tt = paa * t * t
+        num = 1.0 + 0.0 * ci
+        den = tt * (ci + si) * (co + so)
+        ok &= mz > 1e-20 * tt
+        if grad:
+            w_i = 1.0 / (si * (ci + si))
+            w_o = 1.0 / (so * (co + so))
+            ga = (px2 * (4.0 / t) - 2.0 - ax_i * w_i - ax_o * w_o) * (1.0 / alpha)
+    else:
+        mz2 = dr.select(ok, mz * mz, 1.0)
+        rmz2 = 1.0 / mz2 if grad else None
+        ex = dr.exp(-(px2 * rmz2 if grad else px2 / mz2))
+
+        def g1(z, sin2):
+            s = _safe_sqrt(dr, a2 * sin2)
+            big = z >= 1.6 * s
+            n = dr.select(big, 1.0, 3.535 * s + 2.181 * z)
+            return n, dr.select(big, z, s * s + 2.276 * s * z + 2.577 * z * z), s, big
+
+        ni, di, s_i, big_i = g1(ci, si2)
+        no, do, s_o, big_o = g1(co, so2)
+        dd = paa * mz2 * mz2
+        num = ex * ni * no
+        den = 4.0 * dd * di * do
+        ok &= ex * mz > 1e-20 * dd
+        if grad:
+            def k(n, d, s, z, big):
+                return dr.select(big, 0.0, (3.535 * d - (2.0 * s + 2.276 * z) * n) / dr.select(big, 1.0, s * n * d))
+
+            ga = (2.0 * px2 * rmz2 - 2.0 + ax_i * k(ni, di, s_i, ci, big_i) + ax_o * k(no, do, s_o, co, big_o)) * (1.0 / alpha)
+    ok &= den > 0
+    out = (dr.select(ok, num, 0.0), dr.select(ok, den, 1.0), c, ok)
+    if grad:
+        out += (dr.select(ok, ga, 0.0),)
+    return out
+
+
+def microfacet_lobe_iso(dr, kind, alpha, g, grad):
+    """:func:`microfacet_lobe` for an isotropic roughness on prepared geometry ``g``
+    (:func:`_lobe_iso_geometry`): (s, c, {"alpha": ds / d alpha} or None)."""
+    a = dr.maximum(alpha, 1e-4)
+    num, den, c, ok, *rest = _lobe_iso(dr, kind, a, g, grad)
+    s = num / den
+    return s, c, ({"alpha": dr.select(alpha >= 1e-4, rest[0], 0.0) * s} if grad else None)
+
+
+def _oren_nayar_geometry(dr, wi, wo):
+    """The parameter-independent part of :func:`_oren_nayar_over_rho`: (u, v) =
+    (cmax, max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o) (at most 1); 0 below
+    the horizon."""
     ci, co = wi.z, wo.z
     active = (ci > 0) & (co > 0)
     cmax = dr.minimum(dr.maximum(ci, co), 1.0)
     cd = dr.maximum(wi.x * wo.x + wi.y * wo.y, 0.0)
     r = dr.select(active, (1.0 / math.pi) / dr.select(active, cmax, 1.0), 0.0)
+    return cmax * r, cd * r
+
+
+def _oren_nayar_over_rho(dr, sigma, wi, wo, grad=False, geometry=None):
+    """Qualitative Oren-Nayar (Oren & Nayar 1994, eq. 30) over rho:
+    (A + B max(0, cos(phi_i - phi_o)) sin(theta_max) tan(theta_min)) / pi, written as
+    (A cmax + B max(0, xi xo + yi yo)) / (pi cmax), cmax = max(cos_i, cos_o); 0 below the
+    horizon: A u + B v with (u, v) from :func:`_oren_nayar_geometry` (or ``geometry``, the
+    same prepared). Linear in (A, B), so with ``grad`` the same shape at (dA, dB) / d sigma
+    = (-0.33 sigma / (s^2 + 0.33)^2, 0.081 sigma / (s^2 + 0.09)^2) is d / d sigma."""
+    u, v = geometry if geometry is not None else _oren_nayar_geometry(dr, wi, wo)
 
     def shape(A, B):
-        return (A * cmax + B * cd) * r
+        return A * u + B * v
 
     s2 = sigma * sigma
     value = shape(1.0 - s2 / (2.0 * (s2 + 0.33)), 0.45 * s2 / (s2 + 0.09))
@@ -490,6 +597,27 @@ class Directions:
         self.wi = dr.copy(V3(np.ascontiguousarray(wi.T, dtype=dtype)))
         self.wo = dr.copy(V3(np.ascontiguousarray(wo.T, dtype=dtype)))
         dr.make_opaque(self.wi, self.wo)
+        self._geometry = {}
+
+    def geometry(self, model):
+        """The parameter-independent per-pair quantities ``model``'s kernel reads
+        (``model.structure.geometry``), evaluated once per batch and kept (a tuple of
+        Dr.Jit arrays of the batch's precision), or None where the model declares none."""
+        import drjit as dr
+
+        fn = model.structure.geometry
+        if fn is None or model.structure.body is None:
+            return None
+        key = (model.name, tuple(sorted(model.options.items())))
+        if key not in self._geometry:
+            with dr.suspend_grad():
+                g = fn(model, dr, self.wi, self.wo)
+                if g is not None:
+                    g = tuple(dr.copy(x) for x in g)
+                    dr.eval(*g)
+                    dr.make_opaque(*g)
+            self._geometry[key] = g
+        return self._geometry[key]
 
     def __len__(self):
         return self.n

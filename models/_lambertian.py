@@ -26,7 +26,8 @@ class Diffuse(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=_jit_kernel, freeze=False, affine=Affine("reflectance", kernel=_jit_affine_parts))
+        return Structure(kernel=_jit_kernel, freeze=False, affine=Affine("reflectance", kernel=_jit_affine_parts),
+                         geometry=_jit_geometry, body=_jit_body)
     OPTIONS = {}
     energy_conserving = True
     compiled_min_pairs = 768  # numpy's few operations beat the compiled call's ~50 us below this (measured)
@@ -42,12 +43,23 @@ class Diffuse(Model):
         return {"type": "diffuse", "reflectance": rgb(p["reflectance"])}
 
 
+def _jit_geometry(model, dr, wi, wo):
+    """The kernel's parameter-independent part: 1 / pi above the horizon (both cosines > 0),
+    0 elsewhere."""
+    return (dr.select((wi.z > 0) & (wo.z > 0), 1.0 / math.pi + 0.0 * wi.z, 0.0),)
+
+
+def _jit_body(model, k, g, P, grad):
+    """f_r = rho u, d f / d rho = u, u = :func:`_jit_geometry`'s."""
+    u = g[0]
+    f = [r * u for r in channels(P, "reflectance")]
+    return f, ({"reflectance": [u] * CHANNELS} if grad else {})
+
+
 def _jit_kernel(model, k, wi, wo, P, grad):
-    """The compiled kernel (:mod:`gonio.models.fast`): f_r = rho / pi, d f / d rho = 1 / pi."""
-    dr = k.dr
-    f = [dr.select(k.active, r * (1.0 / math.pi) + k.zero, 0.0) for r in channels(P, "reflectance")]
-    J = {"reflectance": [dr.select(k.active, 1.0 / math.pi + k.zero, 0.0)] * CHANNELS} if grad else {}
-    return f, J
+    """The compiled kernel (:mod:`gonio.models.fast`): f_r = rho / pi, d f / d rho = 1 / pi
+    (:func:`_jit_body` after :func:`_jit_geometry`)."""
+    return _jit_body(model, k, _jit_geometry(model, k.dr, wi, wo), P, grad)
 
 
 def _jit_affine_parts(model, k, cols, lanes, K, vi, vo, tables):

@@ -6,7 +6,7 @@ import math
 
 
 from ._base import CHANNELS, Model, Parameter, register
-from ._jit import _oren_nayar_over_rho, channels
+from ._jit import _oren_nayar_geometry, _oren_nayar_over_rho, channels
 from ._structure import Affine, Structure
 from ._diffuse import oren_nayar
 
@@ -35,7 +35,8 @@ class OrenNayar(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=_jit_kernel, freeze=False, affine=Affine("reflectance", ("sigma",), kernel=_jit_affine_parts))
+        return Structure(kernel=_jit_kernel, freeze=False, affine=Affine("reflectance", ("sigma",), kernel=_jit_affine_parts),
+                         geometry=_jit_geometry, body=_jit_body)
     OPTIONS = {}
     energy_conserving = True
     #: not tried by ``--model auto`` (fit it by name): the rough-diffuse term is rarely worth its
@@ -62,9 +63,15 @@ class OrenNayar(Model):
         return d
 
 
-def _jit_kernel(model, k, wi, wo, P, grad):
-    """The compiled kernel: f_r = rho * shape(sigma), derivatives by hand."""
-    shape = _oren_nayar_over_rho(k.dr, P["sigma"], wi, wo, grad)
+def _jit_geometry(model, dr, wi, wo):
+    """The kernel's parameter-independent part: :func:`._jit._oren_nayar_geometry`'s
+    (u, v), shape(sigma) = A(sigma) u + B(sigma) v."""
+    return _oren_nayar_geometry(dr, wi, wo)
+
+
+def _jit_body(model, k, g, P, grad):
+    """f_r = rho * shape(sigma) on :func:`_jit_geometry`'s quantities, derivatives by hand."""
+    shape = _oren_nayar_over_rho(k.dr, P["sigma"], None, None, grad, g)
     basis, dbasis = shape if grad else (shape, None)
     f = [r * basis for r in channels(P, "reflectance")]
     J = {}
@@ -72,6 +79,11 @@ def _jit_kernel(model, k, wi, wo, P, grad):
         J["reflectance"] = [basis] * CHANNELS
         J["sigma"] = [r * dbasis for r in channels(P, "reflectance")]
     return f, J
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """The compiled kernel: :func:`_jit_body` after :func:`_jit_geometry`, in one kernel."""
+    return _jit_body(model, k, _jit_geometry(model, k.dr, wi, wo), P, grad)
 
 
 def _jit_affine_parts(model, k, cols, lanes, K, vi, vo, tables):

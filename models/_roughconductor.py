@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._base import Model, Parameter, register, rgb
-from ._jit import _fresnel_conductor, channels, microfacet_lobe
+from ._jit import _fresnel_conductor, _lobe_iso_geometry, channels, microfacet_lobe, microfacet_lobe_iso
 from ._structure import Structure
 from ._fresnel import fresnel_conductor
 from .geometry import half_vector
@@ -48,7 +48,7 @@ class RoughConductor(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=_jit_kernel)
+        return Structure(kernel=_jit_kernel, geometry=_jit_geometry, body=_jit_body)
     OPTIONS = {"distribution": ("beckmann", "ggx"), "anisotropic": (False, True)}
     energy_conserving = True
 
@@ -107,12 +107,31 @@ class RoughConductor(Model):
         return d
 
 
+def _jit_geometry(model, dr, wi, wo):
+    """The kernel's parameter-independent part for an isotropic roughness
+    (:func:`._jit._lobe_iso_geometry`: 7 values a pair); None for an anisotropic one."""
+    return None if model.options["anisotropic"] else _lobe_iso_geometry(dr, wi, wo)
+
+
+def _jit_body(model, k, g, P, grad):
+    """The kernel on :func:`_jit_geometry`'s quantities (isotropic): the same formulas as
+    :func:`_jit_kernel`'s, to rounding."""
+    s, c, ds = microfacet_lobe_iso(k.dr, model.options["distribution"], P["alpha"], g, grad)
+    return _conductor(model, k, s, c, ds, P, grad)
+
+
 def _jit_kernel(model, k, wi, wo, P, grad):
     """The compiled kernel: conductor Fresnel times the microfacet term, derivatives by hand."""
     dr = k.dr
     aniso = model.options["anisotropic"]
     alphas = (P["alpha_u"], P["alpha_v"]) if aniso else (P["alpha"], P["alpha"])
     s, c, ds = microfacet_lobe(dr, model.options["distribution"], alphas, wi, wo, grad, aniso)
+    return _conductor(model, k, s, c, ds, P, grad)
+
+
+def _conductor(model, k, s, c, ds, P, grad):
+    """Conductor Fresnel at c times the microfacet term s (and ds per roughness parameter)."""
+    dr = k.dr
     fres = [_fresnel_conductor(dr, c, e, kk, grad) for e, kk in zip(channels(P, "eta"), channels(P, "k"))]
     if not grad:
         return [Fc * s for Fc in fres], {}

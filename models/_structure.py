@@ -6,6 +6,15 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
   runs it: value and exact derivatives), or None; ``kernel_inputs`` adds what the kernel
   needs beyond the parameters (roughplastic: its tables); ``freeze`` says whether replaying
   a recorded kernel launch pays off (not for the two diffuse models' short traces);
+* ``geometry``: the parameter-independent per-pair quantities its kernel reads (cosines, the
+  microfacet term's geometric factors, ...), ``geometry(model, dr, wi, wo) -> tuple of
+  arrays``, and ``body(model, ctx, g, P, grad)`` the rest of the kernel on them (``ctx.active``
+  is None there: the geometry carries the horizon; ``kernel``
+  computes the same, to rounding: ``body`` after ``geometry`` in one kernel, or, for
+  roughconductor, its own formulas on the directions): on a resident batch the chi^2, its
+  gradient, the normal equations and the Jacobian read the geometry prepared once
+  (:meth:`gonio.models.fast.Directions.geometry`) instead of the directions (issue 18);
+  ``geometry`` returns None for an option it does not cover;
 * ``compile_always``: its parameter-dependent precomputation is much cheaper compiled
   (roughplastic's quadrature tables: ~4 ms in Dr.Jit, ~50 ms in numpy), so the compiled path
   pays off at any number of points;
@@ -76,6 +85,8 @@ class Structure:
 
     kernel: Callable | None = None
     kernel_inputs: Callable | None = None
+    geometry: Callable | None = None
+    body: Callable | None = None
     freeze: bool = True
     compile_always: bool = False
     affine: Affine | None = None

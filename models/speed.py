@@ -19,10 +19,20 @@ best of ``repeat``:
 * ``jac32``: :func:`gonio.models._fast.jacobian`, the same batch: f_r and its derivative
   with respect to every parameter (N x 3 values per parameter, left in Dr.Jit);
 * ``grad32``: :func:`gonio.models._fast.chi2_grad`, the same batch with resident data and
-  weights: chi^2 and its gradient with respect to every parameter (reduced in the kernel);
+  weights: chi^2 and its gradient with respect to every parameter (reduced in the kernel).
+  Where the model declares its parameter-independent geometry (``structure.geometry``:
+  cooktorrance, diffuse, orennayar, roughconductor with an isotropic roughness; issue 18)
+  it reads that geometry, prepared once per batch (:meth:`gonio.models._fast.Directions.geometry`,
+  before timing, as a fit prepares it once), instead of the directions; the others read the
+  directions;
 * ``chi32`` (not printed as a rate): :func:`gonio.models._fast.weighted_sse`, the chi^2 alone
-  on the same data: the function whose gradient ``grad32`` is (``grad/chi``; both read the
-  directions, y and w and sum in the kernel, where ``drjit32`` writes f_r);
+  on the same data and the same inputs as ``grad32`` (prepared geometry or directions): the
+  function whose gradient ``grad32`` is (``grad/chi``; both read y and w and sum in the
+  kernel, where ``drjit32`` writes f_r);
+* ``evp32`` (not printed as a rate): ``Bound.eval(prepared=True)``, the evaluation on the
+  same prepared geometry (the directions where the model declares none: then ``drjit32``'s
+  kernel), f_r left in Dr.Jit: ``grad/evp`` is ``grad32`` over it, ``grad/ev`` over
+  ``drjit32``, the evaluation on the directions;
 * ``mitsuba``: ``bsdf.eval`` in the variant chosen by :func:`mitsuba_variant`, on the same
   batch already converted to Mitsuba arrays (float32), results left in Dr.Jit: Mitsuba's
   kernel alone, with NO numpy round trip (the issue's ``0.5x Mitsuba`` is measured against
@@ -70,6 +80,35 @@ stride-3 gathers cost more, see :mod:`._roundtrip`). ``grad/ev`` (float32) stays
 roughconductor GGX (3.5-3.9) and cooktorrance (3.8-4.0): reading y and w and summing the
 chi^2 in the kernel already cost 1.6-2.0x the evaluation, 8-11 float64 sums 0.7-1.2 ms more;
 ``grad/chi`` is 1.1-2.6 for every model in both precisions.
+
+Issue 18's gradient (2026-12-02, another host: AMD EPYC Zen 3, AVX2, 8 float32 lanes, 2 cores
+shared, load 5.0-5.9, one Dr.Jit thread, CPU time, 1e6 pairs, best of 9, the old and the new
+code timed in one process, taking turns). Before any change the float32 ``grad/ev`` of the
+memory-bound models was at the bound on this host (diffuse 2.6-3.1, orennayar 2.8-3.1 over
+seven runs at load 5-9), the others <= 2.6 (roughconductor GGX 2.6, cooktorrance 1.7). Where the time went (roughconductor GGX float32,
+13.4 ms): the chi^2 alone 6.5 ms, its conductor Fresnel derivatives 5.2 ms, the roughness
+derivative 0.7 ms, the eight float64 sums 1-1.7 ms. The chi^2, its gradient and the fitter's
+kernels now read the parameter-independent geometry prepared once per batch (cooktorrance,
+diffuse, orennayar, isotropic roughconductor; ``Directions.geometry``): ``grad32`` 13.40 ->
+11.80 ms (GGX), 14.89 -> 13.39 (Beckmann), 7.95 -> 6.27 (cooktorrance), 3.38 -> 2.82
+(orennayar), 1.99 -> 1.97 (diffuse); float64 27.67 -> 24.52, 30.85 -> 27.88, 12.98 -> 9.04,
+4.83 -> 3.54, 2.95 -> 2.67; ``grad/ev`` float32 2.57 -> 2.26, 2.25 -> 2.02, 1.68 -> 1.51,
+2.90 -> 2.33, 2.82 -> 2.60 (roughplastic: unchanged code, 1.7-2.0 in both; diffuse stays
+2.6-3.0 over five runs: its prepared geometry saves 4 of the 32 bytes a pair); a roughconductor
+GGX fit of 1e5 points 78-80 -> 69-73 ms (1e4: 10-11 ms in both). The Zen 5 cells over 3 could
+not be timed here; the static instruction counts of the AVX-512 code (16 lanes) that LLVM makes
+of Dr.Jit's IR for these kernels (llc, icelake-server; a count, not a time) go roughconductor
+GGX float32 ``chi2_grad`` 871 -> 840 against 236 for the evaluation (3.69 -> 3.56),
+cooktorrance 726 -> 492 against 160-164 (4.54 -> 3.0; with the sums in one packet of 16,
+:data:`._reduce._PACKET`), roughconductor Beckmann 1012 -> 969 against 331. What the
+roughconductor gradient's count still holds: ~45 operations a channel of Fresnel derivatives
+(written once, shared by d/d eta and d/d k), the transposes and masked read-add-writes of the
+float64 sums (~150), and ~80 of scalar parameter arithmetic LLVM does again each iteration
+(e.g. eta^2, 2 eta (eta^2 + k^2)). Tried and not kept (AVX2): square roots of the Fresnel term
+from its reciprocal square roots (no time seen; kept in float32 for accuracy), packets of 4
+terms (roughconductor GGX float32 13.9 -> 16.2 ms), splitting the last packet (no gain), the
+per-channel order of the terms (18-21 % fewer spill instructions, no time seen), two pairs a lane through
+zero-copy views (GGX 13.7 -> 14.5 ms, cooktorrance 8.3 -> 8.0, diffuse and orennayar slower).
 
 Physical limit: a resident evaluation reads the two directions and writes f_r, so it can go
 no faster than the machine's memory bandwidth over the bytes it moves per pair (36 in
@@ -185,7 +224,8 @@ def _mitsuba_timer(model, params, wi, wo):
 COLUMNS = ("numpy", "eval", "eval32", "drjit32", "jac32", "grad32", "mitsuba", "mitsuba_np")
 #: COLUMNS as printed
 HEADERS = {"mitsuba_np": "mi+np"}
-EXTRA = ("32/mi", "ev/mi", "ev32/mi", "ev/mnp", "ev32/mnp", "e64/mi", "jac/ev", "grad/ev", "grad/ev64", "grad/chi", "grad/chi64", "32/lim", "ev/lim")
+EXTRA = ("32/mi", "ev/mi", "ev32/mi", "ev/mnp", "ev32/mnp", "e64/mi", "jac/ev", "grad/ev", "grad/ev64", "grad/chi", "grad/chi64",
+         "grad/evp", "grad/evp64", "32/lim", "ev/lim")
 #: Bytes a resident evaluation moves per direction pair: two directions in, f_r out (RGB).
 BYTES_PER_PAIR = {"float32": 3 * 4 * 3, "float64": 3 * 8 * 3}
 
@@ -258,10 +298,12 @@ def _compiled_timers(model, p, wi, wo, dirs, dirs64, rng):
     w_np = 1.0 / (0.01 * np.maximum(f_true, 1e-3)) ** 2
     y32, w32 = dirs.channels(y_np), dirs.channels(w_np)
     y64, w64 = dirs64.channels(y_np), dirs64.channels(w_np)
+    timed["evalp32"] = _resident(lambda: bound.eval(dirs, numpy=False, prepared=True))
     timed["grad32"] = lambda: fast.chi2_grad(model, dirs, p, y32, w32)
     timed["chi32"] = lambda: fast.weighted_sse(model, dirs, p, y32, w32)
     bound64 = fast.Bound(model, p, np.float64)
     timed["eval64"] = _resident(lambda: bound64.eval(dirs64, numpy=False))
+    timed["evalp64"] = _resident(lambda: bound64.eval(dirs64, numpy=False, prepared=True))
     timed["grad64"] = lambda: fast.chi2_grad(model, dirs64, p, y64, w64)
     timed["chi64"] = lambda: fast.weighted_sse(model, dirs64, p, y64, w64)
     return timed
@@ -292,7 +334,8 @@ def _row(name, options, t, head, n):
     row.update({f"{k}_h2h": (n / v if v else None) for k, v in head.items()})
     for key, num, den in (("jac_cost", "jac32", "drjit32"), ("grad_cost", "grad32", "drjit32"),
                           ("grad_cost64", "grad64", "eval64"), ("grad_chi", "grad32", "chi32"),
-                          ("grad_chi64", "grad64", "chi64")):
+                          ("grad_chi64", "grad64", "chi64"), ("grad_cost_p", "grad32", "evalp32"),
+                          ("grad_cost_p64", "grad64", "evalp64")):
         row[key] = (t[num] / t[den]) if (t.get(num) and t.get(den)) else None
     return row
 
@@ -305,8 +348,8 @@ def _print_row(row, name, options, out):
     print(f"{label:<26}" + "".join(fmt(row[c], 9) for c in COLUMNS)
           + "".join(fmt(row[k], 11, 1, 2) for k in ("ratio", "eval_ratio", "eval32_ratio", "eval_np_ratio", "eval32_np_ratio",
                                                      "eval64_ratio", "jac_cost", "grad_cost",
-                                                     "grad_cost64", "grad_chi", "grad_chi64", "of_limit32",
-                                                     "of_limit64")), file=out)
+                                                     "grad_cost64", "grad_chi", "grad_chi64", "grad_cost_p",
+                                                     "grad_cost_p64", "of_limit32", "of_limit64")), file=out)
 
 
 def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
@@ -392,13 +435,19 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
           "(float32 kernel and out: the fast path), timed in the same rounds; ev/mnp, ev32/mnp: the same over "
           "mi+np (both sides with their numpy round trip); e64/mi: the resident "
           "float64 kernel alone over mitsuba, the most ev/mi can reach; jac/ev, grad/ev: against "
-          "drjit32 in turn; grad/ev64: float64; grad/chi, grad/chi64: chi2_grad over weighted_sse, the chi^2 "
-          "whose gradient it is (same reads of y and w, in-kernel sums); 32/lim, ev/lim: fraction of the "
+          "drjit32 in turn (the evaluation on the directions); grad/ev64: float64; grad/chi, grad/chi64: chi2_grad "
+          "over weighted_sse, the chi^2 whose gradient it is (same inputs, same reads of y and w, in-kernel sums); "
+          "grad32 and chi32 read the geometry prepared once per batch where the model declares it (cooktorrance, "
+          "diffuse, orennayar, isotropic roughconductor; the directions for the others); grad/evp, grad/evp64: "
+          "chi2_grad over the evaluation on that same prepared geometry (Bound.eval(prepared=True)); "
+          "32/lim, ev/lim: fraction of the "
           "memory-bandwidth limit "
           f"(copy bandwidth {limits['bandwidth'] * 1e-9:.1f} GB/s on a float32 batch's working set, "
           f"{limits['bandwidth64'] * 1e-9:.1f} GB/s on a float64 one, measured in this run, read + write; "
           f"{BYTES_PER_PAIR['float32']} B/pair float32 (eval32 with numpy in and out too), "
-          f"{BYTES_PER_PAIR['float64']} B/pair float64 with numpy in and out; grad32 reads y and w too: 48 B/pair)", file=out)
+          f"{BYTES_PER_PAIR['float64']} B/pair float64 with numpy in and out; grad32 on the directions reads y "
+          "and w too: 48 B/pair; on prepared geometry 4 (diffuse), 8 (orennayar), 16 (cooktorrance) or 28 B "
+          "(roughconductor) of it with y and w: 28-52 B/pair)", file=out)
     if variant is not None:
         print(f"Mitsuba variant: {variant}", file=out)
     if not compiled:
