@@ -70,6 +70,7 @@ Kraft, D. (1988). A software package for sequential quadratic programming. DFVLR
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -329,18 +330,20 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         raise ValueError("every parameter is fixed: nothing to fit")
     if enforce_energy is None:
         enforce_energy = not getattr(model, "energy_conserving", True)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     loop = {"n_starts": n_starts, "n_local": n_local, "maxeval": maxeval}
     if start is None and applicable(meas, model, space, loss, enforce_energy, use_fast):
         with single_threaded_blas():
             res = refine_starts(AffineFit(meas, model, space, loss, SCORE_ROWS), rng, t0=t0, **loop)
         if res is not None:
+            res = dataclasses.replace(res, cpu_s=time.process_time() - c0)
             if loss in ROBUST_COV and covariance:
                 res = robust_covariance(res, meas, Problem(meas, model, space, loss, use_fast=use_fast, linear=[]))
             return res
     with single_threaded_blas():  # as for the affine problem: BLAS's threads fight Dr.Jit's (measured 3-5x)
         general = GeneralFit(meas, model, space, loss, use_fast, enforce_energy, maxeval, start)
         res = refine_starts(general, rng, t0=t0, **loop)
+        res = dataclasses.replace(res, cpu_s=time.process_time() - c0)
         return robust_covariance(res, meas, general.problem) if loss in ROBUST_COV and covariance else res
 
 
