@@ -19,7 +19,7 @@ pytestmark = [pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM back
 
 def configs():
     """Every model that declares a compiled kernel (``structure.kernel``; the kernel is
-    optional, issue 13: principled and roughplastic2 have none of their own)."""
+    optional, issue 13: roughplastic2 has none of its own)."""
     for name in gm.names():
         cls = gm.get(name).__class__
         if gm.get(name).structure.kernel is None:
