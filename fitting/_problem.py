@@ -97,8 +97,9 @@ class Evaluator:
     def jacobian(self, params):
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
         derivatives (:func:`gonio.models.fast.jacobian`; one call, counted as one
-        evaluation), or None on the numpy path."""
-        if not self.fast:
+        evaluation), or None on the numpy path and for a kernel of values only
+        (``structure.derivatives``)."""
+        if not self.fast or not self.model.structure.derivatives:
             return None
         self.n_evals += 1
         return fast.jacobian(self.model, self._resident(), params)
@@ -146,6 +147,7 @@ class _Problem:
 
     def __init__(self, meas, model, space, loss, evaluator=None, use_fast=None, linear=None):
         self.meas, self.model, self.space, self.loss = meas, model, space, loss
+        self._residual_fns = {}
         self.eval = evaluator or Evaluator(model, meas.wi, meas.wo, meas.n_channels, use_fast)
         self.use = meas.use
         cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), meas.brdf.shape)
@@ -185,7 +187,10 @@ class _Problem:
 
     def residuals_x(self, x, loss=None):
         fr = self.f_x(x)
-        r = _loss.residuals(loss or self.loss, fr, self.meas)
+        loss = loss or self.loss
+        if loss not in self._residual_fns:  # the data's parts once per fit (bit for bit _loss.residuals)
+            self._residual_fns[loss] = _loss.residual_function(loss, self.meas)
+        r = self._residual_fns[loss](fr)
         if not np.all(np.isfinite(r)):
             raise FloatingPointError(f"model {self.model.name} returned non-finite f_r at "
                                      f"{dict(zip(self.space.names, np.round(x, 6)))}")
@@ -237,7 +242,7 @@ class _Problem:
     @property
     def normal_available(self):
         """Whether :meth:`lm_normal_u` and :meth:`lm_cost_u` use the compiled kernel's sums."""
-        return self.loss in NORMAL_LOSSES and self.eval.fast
+        return self.loss in NORMAL_LOSSES and self.eval.fast and self.model.structure.derivatives
 
     def lm_normal_u(self, u, _r=None):
         """(J^T r, J^T J) of :meth:`lm_residuals_u` at u in the unit box, reduced inside the

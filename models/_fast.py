@@ -105,6 +105,8 @@ def _kernel(model, wi, wo, P, grad=False):
     impl = model.structure.kernel
     if impl is None:
         raise NotImplementedError(f"no compiled kernel for model {model.name!r}")
+    if grad and not model.structure.derivatives:
+        raise NotImplementedError(f"the compiled kernel of {model.name!r} gives values only")
     F = type(wi.z)
     ctx = JitContext(dr, F, dr.uint32_array_t(F), (wi.z > 0) & (wo.z > 0), dr.zeros(F, dr.width(wi.z)))
     f, J = impl(model, ctx, wi, wo, P, grad)
@@ -295,6 +297,7 @@ def value_and_grad(model, wi, wo, params, cotangent):
     Roughness below Mitsuba's floor (1e-4) is clamped, so its gradient is 0 there.
     """
     dr, F, V3, U = _dr()
+    _needs_derivatives(model)  # AD would not see through tables built in numpy either
     if _empty(model, wi, wo, params):
         p = model.validate(params)
         return np.zeros((0, CHANNELS)), {k: (np.zeros(CHANNELS) if np.ndim(v) else 0.0) for k, v in p.items()}
@@ -370,6 +373,13 @@ def eval_resident(model, dirs, params, numpy=True):
     return Bound(model, params, dirs.dtype).eval(dirs, numpy)
 
 
+def _needs_derivatives(model):
+    """NotImplementedError for a kernel of values only (``structure.derivatives = False``),
+    raised before any recording (a frozen function reports its errors as RuntimeError)."""
+    if model.structure.kernel is not None and not model.structure.derivatives:
+        raise NotImplementedError(f"the compiled kernel of {model.name!r} gives values only")
+
+
 def _frozen_kernel(model):
     # _kernel reads only the model's name and options (tables arrive in P). A model whose
     # trace is so short that replaying a recording costs more (the diffuse ones: ~19 us
@@ -403,6 +413,7 @@ def jacobian(model, dirs, params, numpy=True):
     """
     import drjit as dr
 
+    _needs_derivatives(model)
     p = model.validate(params)
     n = dirs.n
     if n == 0:
@@ -447,6 +458,7 @@ def chi2_grad(model, dirs, params, y, w):
     """
     import drjit as dr
 
+    _needs_derivatives(model)
     p = model.validate(params)
     y = y if isinstance(y, list) else dirs.channels(y, "y")
     w = w if isinstance(w, list) else dirs.channels(w, "w")
@@ -579,6 +591,7 @@ def normal_equations(model, dirs, params, y, w, log=False):
     """
     import drjit as dr
 
+    _needs_derivatives(model)
     p = model.validate(params)
     y = y if isinstance(y, list) else dirs.channels(y, "y")
     w = w if isinstance(w, list) else dirs.channels(w, "w")

@@ -6,6 +6,8 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
   runs it: value and exact derivatives), or None; ``kernel_inputs`` adds what the kernel
   needs beyond the parameters (roughplastic: its tables); ``freeze`` says whether replaying
   a recorded kernel launch pays off (not for the two diffuse models' short traces);
+  ``derivatives`` says whether it writes its derivatives too (False: values only, the fit
+  differences them; tabulated, whose 42 parameters act through tables built in numpy);
 * ``compile_always``: its parameter-dependent precomputation is much cheaper compiled
   (roughplastic's quadrature tables: ~4 ms in Dr.Jit, ~50 ms in numpy), so the compiled path
   pays off at any number of points;
@@ -102,6 +104,7 @@ class Structure:
     kernel: Callable | None = None
     kernel_inputs: Callable | None = None
     freeze: bool = True
+    derivatives: bool = True
     compile_always: bool = False
     affine: Affine | None = None
     coupled: tuple = ()

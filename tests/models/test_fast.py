@@ -30,6 +30,10 @@ def configs():
 
 CONFIGS = list(configs())
 IDS = ["-".join([n] + [f"{k}={v}" for k, v in o.items()]) for n, o in CONFIGS]
+#: the kernels that write their derivatives too (``structure.derivatives``; tabulated's
+#: gives values only: its parameters act through tables built in numpy)
+DERIV = [(n, o) for n, o in CONFIGS if gm.get(n, **o).structure.derivatives]
+DERIV_IDS = [i for i, (n, o) in zip(IDS, CONFIGS) if (n, o) in DERIV]
 
 
 def hard_pairs(rng):
@@ -92,7 +96,7 @@ def test_public_eval_runs_the_compiled_kernel_above_its_crossover(name, monkeypa
         m.eval(wi, wo, p, backend="cuda")
 
 
-@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+@pytest.mark.parametrize("name,options", DERIV, ids=DERIV_IDS)
 def test_gradient_matches_finite_differences(name, options):
     """Reverse-mode gradient of sum(c * f_r) against central differences of the numpy
     reference (h = 1e-7 relative; roughplastic's tables have small jumps in alpha and
@@ -151,7 +155,7 @@ def test_bench_parameters_are_coloured():
     for three) and stay inside the bounds."""
     from gonio.models.speed import coloured_params
 
-    for name, options in CONFIGS:
+    for name, options in DERIV:  # the benchmarked kinds (models/speed.py times jacobians too)
         m = gm.get(name, **options)
         p = coloured_params(m)
         for par in m.parameters:
@@ -196,7 +200,7 @@ def test_resident_float64_equals_eval(name, options):
             np.testing.assert_allclose(_fast.eval_resident(m, dirs, p), _fast.eval(m, wi, wo, p), rtol=1e-12, atol=1e-300)
 
 
-@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+@pytest.mark.parametrize("name,options", DERIV, ids=DERIV_IDS)
 def test_jacobian_matches_ad_and_finite_differences(name, options):
     """Hand-written forward derivatives against (a) Dr.Jit's reverse-mode AD of the same
     model (``value_and_grad``) projected on random cotangents, to 1e-9, and (b) central
@@ -409,3 +413,25 @@ def test_eval_at_many_sizes_keeps_bounded_recordings_and_says_nothing(capfd):
     assert run.n_cached_recordings <= _fast.FREEZE_LIMIT
     out, err = capfd.readouterr()
     assert "frozen function" not in (out + err).lower(), err[-2000:]
+
+
+def test_values_only_kernel_refuses_derivatives_and_the_fit_differences_it():
+    """tabulated's kernel gives values only (``structure.derivatives = False``): its
+    derivatives are refused, not returned as zeros (AD cannot see through its numpy tables),
+    and the fit's evaluator runs the kernel for values and hands the Jacobian back to
+    differences (None)."""
+    from gonio.fitting._problem import Evaluator
+
+    m = gm.get("tabulated")
+    rng = np.random.default_rng(41)
+    wi, wo = random_hemisphere(rng, 600), random_hemisphere(rng, 600)
+    p = m.defaults()
+    dirs = _fast.Directions(wi, wo, np.float64)
+    with pytest.raises(NotImplementedError, match="values only"):
+        _fast.jacobian(m, dirs, p)
+    with pytest.raises(NotImplementedError, match="values only"):
+        _fast.value_and_grad(m, wi, wo, p, np.ones((600, 3)))
+    ev = Evaluator(m, wi, wo, 3)
+    assert ev.fast and ev.jacobian(p) is None
+    np.testing.assert_allclose(ev(p), m.eval_reference(wi, wo, p), rtol=1e-10, atol=1e-300)
+    assert np.array_equal(m.eval(wi, wo, p), m.eval_reference(wi, wo, p))  # model.eval: numpy at any size
