@@ -27,10 +27,10 @@ Algorithm (choices measured in ``gonio bench fit``, :mod:`gonio.fitting.speed`):
 * **Local stage.** Levenberg-Marquardt (:mod:`gonio.fitting._lm`) on the residual vector,
   later starts raced against the best refined one (abandoned when clearly worse). For the
   chi2, cosine and log losses on the compiled path each step's normal equations J^T r and
-  J^T J are reduced inside the kernel (the log loss's transform ln(1 + f_r cos_i) applied
-  there too; principled's log fit on colodur_napoli_4f, 7592 pairs, 12 parameters: 11.2 s
-  of CPU on numpy, 4.6 s with the compiled Jacobian handed to numpy, 1.3 s reduced) (:func:`gonio.models.fast.normal_equations`, replayed by
-  ``dr.freeze``): no N x P Jacobian per iteration, so the iterations' memory does not grow
+  J^T J are reduced inside the kernel (:func:`gonio.models.fast.normal_equations`, replayed
+  by ``dr.freeze``; the log loss's transform ln(1 + f_r cos_i) applied there too: principled's
+  log fit on colodur_napoli_4f, 7592 pairs, 12 parameters, best of 2 in one run at load ~6,
+  10.9 s of CPU on numpy, 1.16 s compiled and reduced): no N x P Jacobian per iteration, so the iterations' memory does not grow
   with the parameters (``gonio bench fit`` fits 1e6 points and reports its peak RSS), and
   roughconductor's local stage at 1e4 points fell from 85 to 14 ms of CPU (measured with one
   Dr.Jit thread). Up to 2e4 points a trial step is costed by the same kernel, so that an

@@ -249,8 +249,9 @@ class _Problem:
         compiled kernel (:meth:`Evaluator.normal`): the Levenberg-Marquardt step without an
         N x P Jacobian, in memory independent of N (a 1e6-point fit). For the losses whose
         residual is affine in f_r without a transform (chi2, cosine: r = weight (f - y))
-        and the log loss (its transform in the kernel); None elsewhere, on the numpy path or where a sum is not finite (the caller then
-        asks :meth:`lm_jacobian_u`). Where :meth:`lm_cost_u` already reduced them at this u
+        and the log loss (its transform in the kernel); None elsewhere, on the numpy path,
+        for a kernel of values only or where a sum is not finite (the caller then asks
+        :meth:`lm_jacobian_u`). Where :meth:`lm_cost_u` already reduced them at this u
         (:data:`TRIAL_NORMAL_MAX`), no kernel runs."""
         if not self.normal_available:
             return None
