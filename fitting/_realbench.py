@@ -34,13 +34,13 @@ file at each):
   scipy does not), and their ratios peer / gonio (same run, same machine). Wall time on
   the shared machine moves with its load; CPU time much less.
 
-Measured (seed 0, the shared 2-core machine at load 4-9: wall times are slowed several-fold,
-CPU times much less; each row one run), gonio / peer::
+Measured (seed 0, the shared 2-core machine, each row one run; load 6-9 for vch, 4-5 for the
+others: wall times are slowed by it, CPU times much less), gonio / peer::
 
     material            chosen           Ngan           log              dE00 (floor)        wall s       CPU s
     vch_golden_yellow   tabulated        0.152 / 0.153  0.0224 / 0.0232  1.98 / 3.55 (0.56)  25.1 / 416   11.3 / 268
-    colodur_napoli_4f   principled-ggx   0.085 / 0.120  0.0030 / 0.0042  0.73 / 1.04 (0.23)  3.9 / 118    1.9 / 84
-    paper_white         cooktorrance     0.061 / 0.063  0.0099 / 0.0101  0.88 / 0.88 (0.33)  2.2 / 43.9   1.1 / 23.5
+    colodur_napoli_4f   principled-ggx   0.085 / 0.120  0.0030 / 0.0042  0.73 / 1.04 (0.23)  1.03 / 74.0  1.02 / 78.0
+    paper_white         cooktorrance     0.061 / 0.063  0.0099 / 0.0101  0.88 / 0.88 (0.33)  1.22 / 31.8  1.17 / 31.6
 
 (Before principled's compiled kernel and the log loss's in-kernel normal equations,
 colodur's chosen fit took 9.7 s of wall against the peer's 140 s in one run: 14x.)
