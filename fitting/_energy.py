@@ -8,6 +8,8 @@ from __future__ import annotations
 import nlopt
 import numpy as np
 
+from gonio.models import fast
+
 from . import _loss
 from ._lm import forward_jacobian
 from ._problem import Evaluator
@@ -163,11 +165,8 @@ class _AlbedoQuadrature:
         for j, e in enumerate(space.entries):
             if e.param not in J:
                 return None
-            a = np.einsum("knc,n->kc", np.asarray(J[e.param]).reshape(self.k, self.n, -1), self.weight)
-            if e.channel >= 0:
-                G[:, e.channel, j] = a[:, e.channel] * dx_du[j]
-            else:
-                G[:, :, j] = a * dx_du[j]
+            col = fast.jacobian_column(space.model, J, e.param, e.channel)  # (N, C): every channel it reaches
+            G[:, :, j] = np.einsum("knc,n->kc", col.reshape(self.k, self.n, -1), self.weight) * dx_du[j]
         G = G.reshape(-1, space.size)
         if not (np.all(np.isfinite(value)) and np.all(np.isfinite(G))):
             return None

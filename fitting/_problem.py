@@ -26,9 +26,14 @@ __all__ = ["Evaluator", "Problem", "FAST_MIN_POINTS", "NORMAL_LOSSES", "TRIAL_NO
 #: roughconductor at 100 points: 20 ms compiled, 60 ms on numpy, and the numpy path's global
 #: stage missed the basin of a Beckmann conductor the compiled default-first run finds).
 FAST_MIN_POINTS = 500
-#: Losses whose residual is affine in f_r without a transform: the compiled kernel reduces
-#: their Levenberg-Marquardt normal equations (:meth:`_Problem.lm_normal_u`).
-NORMAL_LOSSES = ("chi2", "cosine")
+#: Losses whose Levenberg-Marquardt normal equations the compiled kernel reduces
+#: (:meth:`_Problem.lm_normal_u`): those whose residual is affine in f_r without a transform,
+#: and ``log``, whose transform ln(1 + f_r cos_i) and its derivative the kernel applies
+#: itself (:func:`gonio.models.fast.normal_equations` with ``log``). Principled on
+#: colodur_napoli_4f (7592 pairs, 12 parameters): an iteration's Jacobian and J^T J from the
+#: N x P Jacobian cost several kernel outputs handed to numpy and the products there; the
+#: reduced sums hand back 91 numbers.
+NORMAL_LOSSES = ("chi2", "cosine", "log")
 #: Up to this many points a Levenberg-Marquardt trial step is costed by the normal-equation
 #: kernel itself, not the cheaper sum of squares: an accepted step (most of them) then
 #: brings the next step's normal equations with it, one kernel call per iteration instead
@@ -64,14 +69,15 @@ class Evaluator:
             return fast.eval_resident(self.model, self._resident(), params)
         return np.asarray(self.model.eval_reference(self.wi, self.wo, params), dtype=np.float64)
 
-    def normal(self, params, y, w):
+    def normal(self, params, y, w, log=False):
         """(cost, g, A, entries) of :func:`gonio.models.fast.normal_equations` on the resident
         directions (one kernel, nothing stored per pair; counted as one evaluation), or None
-        on the numpy path. ``y``, ``w``: (N, 3) data and weights, loaded once per fit."""
+        on the numpy path. ``y``, ``w``: (N, 3) data and weights, loaded once per fit;
+        ``log``: the log loss's residuals (``y`` then the data's log values)."""
         if not self.fast:
             return None
         self.n_evals += 1
-        return fast.normal_equations(self.model, self._resident(), params, *self._loaded(y, w))
+        return fast.normal_equations(self.model, self._resident(), params, *self._loaded(y, w), log=log)
 
     def _loaded(self, y, w):
         """``y`` and ``w`` as the resident directions' kernels take them, loaded once per fit."""
@@ -80,19 +86,20 @@ class Evaluator:
             self._yw = (y, d.channels(y, "y"), d.channels(w, "w"))
         return self._yw[1], self._yw[2]
 
-    def sse(self, params, y, w):
+    def sse(self, params, y, w, log=False):
         """sum w (f_r - y)^2 from one compiled kernel (counted as one evaluation), or None on
-        the numpy path; ``y``, ``w`` as for :meth:`normal`."""
+        the numpy path; ``y``, ``w``, ``log`` as for :meth:`normal`."""
         if not self.fast:
             return None
         self.n_evals += 1
-        return fast.weighted_sse(self.model, self._resident(), params, *self._loaded(y, w))
+        return fast.weighted_sse(self.model, self._resident(), params, *self._loaded(y, w), log=log)
 
     def jacobian(self, params):
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
         derivatives (:func:`gonio.models.fast.jacobian`; one call, counted as one
-        evaluation), or None on the numpy path."""
-        if not self.fast:
+        evaluation), or None on the numpy path and for a kernel of values only
+        (``structure.derivatives``)."""
+        if not self.fast or not self.model.structure.derivatives:
             return None
         self.n_evals += 1
         return fast.jacobian(self.model, self._resident(), params)
@@ -140,6 +147,7 @@ class _Problem:
 
     def __init__(self, meas, model, space, loss, evaluator=None, use_fast=None, linear=None):
         self.meas, self.model, self.space, self.loss = meas, model, space, loss
+        self._residual_fns = {}
         self.eval = evaluator or Evaluator(model, meas.wi, meas.wo, meas.n_channels, use_fast)
         self.use = meas.use
         cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), meas.brdf.shape)
@@ -179,7 +187,10 @@ class _Problem:
 
     def residuals_x(self, x, loss=None):
         fr = self.f_x(x)
-        r = _loss.residuals(loss or self.loss, fr, self.meas)
+        loss = loss or self.loss
+        if loss not in self._residual_fns:  # the data's parts once per fit (bit for bit _loss.residuals)
+            self._residual_fns[loss] = _loss.residual_function(loss, self.meas)
+        r = self._residual_fns[loss](fr)
         if not np.all(np.isfinite(r)):
             raise FloatingPointError(f"model {self.model.name} returned non-finite f_r at "
                                      f"{dict(zip(self.space.names, np.round(x, 6)))}")
@@ -209,13 +220,7 @@ class _Problem:
         D = np.empty((r.size, len(cols)))
         for k, j in enumerate(cols):
             e = self.space.entries[j]
-            dfdx = J[e.param]
-            if e.channel >= 0:
-                col = np.zeros_like(f)
-                col[:, e.channel] = dfdx[:, e.channel] * drdf[:, e.channel]
-            else:
-                col = dfdx * drdf
-            D[:, k] = col[meas.use]
+            D[:, k] = (fast.jacobian_column(self.model, J, e.param, e.channel) * drdf)[meas.use]
         if not (np.all(np.isfinite(D)) and np.all(np.isfinite(r))):
             return None
         return r, D
@@ -237,15 +242,16 @@ class _Problem:
     @property
     def normal_available(self):
         """Whether :meth:`lm_normal_u` and :meth:`lm_cost_u` use the compiled kernel's sums."""
-        return self.loss in NORMAL_LOSSES and self.eval.fast
+        return self.loss in NORMAL_LOSSES and self.eval.fast and self.model.structure.derivatives
 
     def lm_normal_u(self, u, _r=None):
         """(J^T r, J^T J) of :meth:`lm_residuals_u` at u in the unit box, reduced inside the
         compiled kernel (:meth:`Evaluator.normal`): the Levenberg-Marquardt step without an
         N x P Jacobian, in memory independent of N (a 1e6-point fit). For the losses whose
-        residual is affine in f_r without a transform (chi2, cosine: r = weight (f - y));
-        None elsewhere, on the numpy path or where a sum is not finite (the caller then
-        asks :meth:`lm_jacobian_u`). Where :meth:`lm_cost_u` already reduced them at this u
+        residual is affine in f_r without a transform (chi2, cosine: r = weight (f - y))
+        and the log loss (its transform in the kernel); None elsewhere, on the numpy path,
+        for a kernel of values only or where a sum is not finite (the caller then asks
+        :meth:`lm_jacobian_u`). Where :meth:`lm_cost_u` already reduced them at this u
         (:data:`TRIAL_NORMAL_MAX`), no kernel runs."""
         if not self.normal_available:
             return None
@@ -257,7 +263,7 @@ class _Problem:
         if self._normal_last is not None and self._normal_last[0] == key:
             return self._normal_last[1]
         x = self.space.from_unit(u)
-        cost, g, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data())
+        cost, g, A, entries = self.eval.normal(self.space.to_params(x), *self.normal_data(), log=self.loss == "log")
         if self._normal_index is None or self._normal_index[0] != entries:
             where = {e: i for i, e in enumerate(entries)}
             try:
@@ -298,11 +304,18 @@ class _Problem:
         return float(cost), fisher
 
     def normal_data(self):
-        """(y, W): the data and the squared residual weights, 0 where a value is not used."""
+        """(y, W): the data and the squared residual weights, 0 where a value is not used;
+        for the log loss the data's log values ln(1 + f cos_i) and the squared solid-angle
+        weights (:func:`gonio.fitting._loss.residuals`)."""
         if self._normal_data is None:
-            use = self.meas.use
-            self._normal_data = (np.where(use, self.meas.brdf, 0.0),
-                                 np.where(use, np.broadcast_to(self.weight, use.shape) ** 2, 0.0))
+            meas, use = self.meas, self.meas.use
+            if self.loss == "log":
+                cos_i = np.clip(meas.wi[:, 2:3], 0.0, 1.0)
+                y = np.log1p(np.maximum(meas.brdf * cos_i, -0.999))
+                w = _loss.value_weight(meas)
+            else:
+                y, w = meas.brdf, self.weight
+            self._normal_data = (np.where(use, y, 0.0), np.where(use, np.broadcast_to(w, use.shape) ** 2, 0.0))
         return self._normal_data
 
     def lm_cost_u(self, u):
@@ -313,7 +326,7 @@ class _Problem:
         if self.normal_available and self.meas.n_points <= TRIAL_NORMAL_MAX:
             cost = self._normal_u(u)[0]  # the next step's normal equations come with it
         else:
-            cost = self.eval.sse(self.space.to_params(x), *self.normal_data())
+            cost = self.eval.sse(self.space.to_params(x), *self.normal_data(), log=self.loss == "log")
         if cost is None:  # numpy path: the residual vector
             r = self.lm_residuals_u(u)
             return float(r @ r)

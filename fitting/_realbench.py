@@ -12,9 +12,10 @@ Per material (an RGL-EPFL ``.bsdf`` or a MERL ``.binary``):
   least_squares`` (trust-region reflective, 2-point finite differences, bounds) on the log
   residuals ln(1 + f_model cos) - ln(1 + f_meas cos) without weights, from the declared
   defaults and 7 more starts drawn uniformly in the parameter box (8 starts, seeded
-  Generator), the best kept, with gonio's numpy reference model (``model.eval``) of the
-  family gonio chose (its declared defaults: a data-driven model's instance carries gonio's
-  own start, which the peer does not get).
+  Generator), the best kept, with gonio's ``model.eval`` of the family gonio chose (the
+  compiled kernel from ``compiled_min_pairs`` pairs where the family has one, as for every
+  user of ``model.eval``; its declared defaults: a data-driven model's instance carries
+  gonio's own start, which the peer does not get).
 
 Metrics, on one dense grid of direction pairs shared by both (:func:`dense_grid`: theta_i
 and theta_o <= 80 deg, equal solid-angle cells so every pair weighs the same, f_r of the
@@ -28,15 +29,21 @@ file at each):
   both preview lightings (:func:`gonio.fitting.preview.preview`: the fitted model and the
   measured file rendered with the same seeds, :data:`RENDER_SIZE` pixels square at
   :data:`RENDER_SPP` samples per pixel), with the matched-seed noise floor beside it;
-* time: wall seconds, and the ratio peer / gonio (same run, same machine).
+* time: wall seconds and CPU seconds (``time.process_time``: every thread of the process,
+  Dr.Jit's pool and BLAS's included; gonio's fit holds BLAS to one thread, the peer's
+  scipy does not), and their ratios peer / gonio (same run, same machine). Wall time on
+  the shared machine moves with its load; CPU time much less.
 
-Measured (seed 0, the shared 2-core machine at load 5-9: times are slowed several-fold, the
-ratio is of one run), gonio / peer::
+Measured (seed 0, the shared 2-core machine, each row one run; load 6-9 for vch, 4-5 for the
+others: wall times are slowed by it, CPU times much less), gonio / peer::
 
-    material            chosen           Ngan           log              dE00 (floor)        time s
-    vch_golden_yellow   tabulated        0.152 / 0.153  0.0224 / 0.0232  1.98 / 3.55 (0.56)  34 / 566
-    colodur_napoli_4f   principled-ggx   0.085 / 0.120  0.0030 / 0.0042  0.73 / 1.04 (0.23)  17 / 110
-    paper_white         cooktorrance     0.061 / 0.063  0.0099 / 0.0101  0.88 / 0.88 (0.33)  1.0 / 18.5
+    material            chosen           Ngan           log              dE00 (floor)        wall s       CPU s
+    vch_golden_yellow   tabulated        0.152 / 0.153  0.0224 / 0.0232  1.98 / 3.55 (0.56)  25.1 / 416   11.3 / 268
+    colodur_napoli_4f   principled-ggx   0.085 / 0.120  0.0030 / 0.0042  0.73 / 1.04 (0.23)  1.03 / 74.0  1.02 / 78.0
+    paper_white         cooktorrance     0.061 / 0.063  0.0099 / 0.0101  0.88 / 0.88 (0.33)  1.22 / 31.8  1.17 / 31.6
+
+(Before principled's compiled kernel and the log loss's in-kernel normal equations,
+colodur's chosen fit took 9.7 s of wall against the peer's 140 s in one run: 14x.)
 
 vch before the rendered check's data-driven fallback: roughconductor2-GGX, 0.328 / 0.317,
 0.0326 / 0.0331, 3.66 / 6.67 (0.41): its one lobe colour misses the orange core and the
@@ -120,17 +127,18 @@ def _log_residuals(model, space, meas, x):
 
 def peer_fit(meas, model, rng, n_starts=PEER_STARTS):
     """The plain peer: scipy least_squares on the unweighted log residuals with the numpy
-    model, from the defaults and ``n_starts - 1`` uniform draws of the box. (x, seconds)."""
+    model, from the defaults and ``n_starts - 1`` uniform draws of the box. (space, x, wall
+    seconds, CPU seconds)."""
     space = ParameterSpace(model, meas.n_channels)
     starts = [space.default()] + [space.from_unit(rng.uniform(0.02, 0.98, space.size)) for _ in range(n_starts - 1)]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     best = None
     for x0 in starts:
         res = scipy.optimize.least_squares(lambda x: _log_residuals(model, space, meas, x), x0,
                                            bounds=(space.lower, space.upper))
         if best is None or res.cost < best.cost:
             best = res
-    return space, best.x, time.perf_counter() - t0
+    return space, best.x, time.perf_counter() - t0, time.process_time() - c0
 
 
 def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_SPP):
@@ -158,22 +166,23 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True):
         meas = rgl_samples(path)
     wi, wo = dense_grid()
     f_meas = measured_on_grid(path, wi, wo)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     best, ranking = select(meas, rng=np.random.default_rng(seed), loss=loss)
     if render:      # as `gonio fit --model auto`: the data's evidence, then the default scene's renders
         from .scene import data_driven, rendered_choice
 
         best, ranking, _ = rendered_choice(ranking, str(path), seed=seed, fallback=data_driven(meas, seed=seed, loss=loss))
-    t_select = time.perf_counter() - t0
+    t_select, c_select = time.perf_counter() - t0, time.process_time() - c0
     chosen = next(r for r in ranking if r.chosen)
     model = best.model
     g = metrics(model.eval(wi, wo, best.params), f_meas, wi)
     import gonio.models as gm
 
     peer_model = gm.get(model.name, **model.options)   # the family's declared defaults, not gonio's start
-    space, x_peer, t_peer = peer_fit(meas, peer_model, np.random.default_rng([seed, 1]))
+    space, x_peer, t_peer, c_peer = peer_fit(meas, peer_model, np.random.default_rng([seed, 1]))
     p = metrics(peer_model.eval(wi, wo, space.to_params(x_peer)), f_meas, wi)
     label = model.name + (f"-{model.options['distribution']}" if model.options.get("distribution") else "")
+    cpu = best.cpu_s if best.cpu_s is not None else float("nan")
     de_g = de_p = floor = float("nan")
     if render:
         de_g, floor = rendered_delta_e(model, best.params, path, seed)
@@ -181,19 +190,23 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True):
     return {"gonio_de00": de_g, "peer_de00": de_p, "de00_noise": floor,
             "material": path.stem, "model": label, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
             "gonio_ngan": g["ngan"], "gonio_log": g["log"], "gonio_time_s": best.time_s,
-            "gonio_select_s": t_select, "gonio_chi2_dof": best.chi2_dof,
-            "peer_ngan": p["ngan"], "peer_log": p["log"], "peer_time_s": t_peer,
-            "speedup": t_peer / max(best.time_s, 1e-9), "candidates": len(ranking),
+            "gonio_cpu_s": cpu, "gonio_select_s": t_select, "gonio_select_cpu_s": c_select,
+            "gonio_chi2_dof": best.chi2_dof,
+            "peer_ngan": p["ngan"], "peer_log": p["log"], "peer_time_s": t_peer, "peer_cpu_s": c_peer,
+            "speedup": t_peer / max(best.time_s, 1e-9), "speedup_cpu": c_peer / max(cpu, 1e-9),
+            "candidates": len(ranking),
             "chosen_k": chosen.k}
 
 
 COLUMNS = (("material", "<26", "s"), ("model", "<26", "s"), ("loss", "<8", "s"), ("gonio_ngan", ">9", ".3f"),
            ("peer_ngan", ">9", ".3f"), ("gonio_log", ">9", ".4f"), ("peer_log", ">9", ".4f"),
            ("gonio_time_s", ">9", ".2f"), ("peer_time_s", ">9", ".1f"), ("speedup", ">8", ".0f"),
+           ("gonio_cpu_s", ">9", ".2f"), ("peer_cpu_s", ">9", ".1f"), ("speedup_cpu", ">8", ".0f"),
            ("gonio_select_s", ">9", ".1f"), ("gonio_de00", ">8", ".2f"), ("peer_de00", ">8", ".2f"),
            ("de00_noise", ">7", ".2f"))
 HEADS = {"gonio_ngan": "Ngan g", "peer_ngan": "Ngan p", "gonio_log": "log g", "peer_log": "log p",
-         "gonio_time_s": "t g s", "peer_time_s": "t p s", "speedup": "p/g", "gonio_select_s": "auto s",
+         "gonio_time_s": "t g s", "peer_time_s": "t p s", "speedup": "p/g", "gonio_cpu_s": "cpu g s",
+         "peer_cpu_s": "cpu p s", "speedup_cpu": "cpu p/g", "gonio_select_s": "auto s",
          "gonio_de00": "dE g", "peer_de00": "dE p", "de00_noise": "floor"}
 
 
@@ -207,8 +220,8 @@ def print_table(rows):
           "the measured file in the product-shot scene; where none does, the more complex ones and tabulated "
           "fitted from the data are rendered too and the closest is chosen); p: scipy least_squares, unweighted "
           "log loss, "
-          f"{PEER_STARTS} starts, numpy model of the same family; t g: the chosen fit's time, "
-          "auto: the whole selection; metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
+          f"{PEER_STARTS} starts, gonio's model.eval of the same family; t g: the chosen fit's wall time, "
+          "cpu: its CPU time (every thread of the process), auto: the whole selection (wall); metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
           f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
           "env and area lights, matched seeds), floor: its Monte Carlo noise")
 

@@ -55,6 +55,9 @@ class FitResult:
     #: the instrument's angular response applied (fitting/_aperture.py): apertures, the largest
     #: correction, the point model's parameters; None where the dataset declares no apertures
     response: dict | None = None
+    #: CPU seconds of the fit (``time.process_time``: every thread of this process, Dr.Jit's
+    #: pool included), counted over what ``time_s`` counts; None where not measured
+    cpu_s: float | None = None
 
     @property
     def params(self) -> dict:

@@ -201,7 +201,7 @@ def fit_tabulated(meas, *, rng, loss="log", rounds=ROUNDS_FIT, **kwargs):
     from ._problem import Problem
     from ._result import robust_covariance
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     covariance = kwargs.pop("covariance", True)
     kwargs["covariance"] = False
     model = tab.Tabulated(start=data_start(meas))
@@ -219,7 +219,7 @@ def fit_tabulated(meas, *, rng, loss="log", rounds=ROUNDS_FIT, **kwargs):
             res = nxt
         if gain < RESTART_GAIN * abs(res.objective):
             break
-    res = dataclasses.replace(res, time_s=time.perf_counter() - t0)
+    res = dataclasses.replace(res, time_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
     if covariance and loss in ROBUST_COV:
         res = robust_covariance(res, meas, Problem(meas, res.model, res.space, loss, use_fast=kwargs.get("use_fast")))
     return res

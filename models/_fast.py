@@ -61,8 +61,8 @@ from ._jit import _fresnel_conductor  # noqa: F401  (tests check its derivatives
 from ._jit_target import env_problem
 from ._reduce import SLOTS, _collect, _reduced  # noqa: F401  (the tests reach them as fast._reduced, ...)
 
-__all__ = ["available", "env_problem", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian", "chi2_grad",
-           "normal_equations", "weighted_sse", "clear_parameter_caches",
+__all__ = ["available", "env_problem", "eval", "value_and_grad", "Directions", "Bound", "eval_resident", "jacobian",
+           "jacobian_column", "chi2_grad", "normal_equations", "weighted_sse", "clear_parameter_caches",
            "affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
 
 _PROBE = (
@@ -112,12 +112,32 @@ def _kernel(model, wi, wo, P, grad=False):
     impl = model.structure.kernel
     if impl is None:
         raise NotImplementedError(f"no compiled kernel for model {model.name!r}")
+    if grad and not model.structure.derivatives:
+        raise NotImplementedError(f"the compiled kernel of {model.name!r} gives values only")
     F = type(wi.z)
     ctx = JitContext(dr, F, dr.uint32_array_t(F), (wi.z > 0) & (wo.z > 0), dr.zeros(F, dr.width(wi.z)))
     f, J = impl(model, ctx, wi, wo, P, grad)
     if not grad:
         return f
-    return f, {par.name: J[par.name] for par in model.parameters}
+    aux = [c.aux for c in model.structure.coupled]
+    return f, {name: J[name] for name in [par.name for par in model.parameters] + aux}
+
+
+def jacobian_column(model, J, param, channel=-1):
+    """d f_r / d one parameter entry, (N, 3), from :func:`jacobian`'s ``J`` (numpy): a
+    shared parameter (``channel`` -1) acts on every channel, a per-channel one on its own
+    channel only, unless the model declares it coupled (``structure.coupled``, a
+    :class:`gonio.models._structure.Coupling`: principled's base colour), which adds
+    weights[channel] * J[aux] in every channel."""
+    d = np.asarray(J[param])
+    if channel < 0:
+        return d
+    col = np.zeros_like(d)
+    col[:, channel] = d[:, channel]
+    link = model.structure.coupling(param)
+    if link is not None:
+        col = col + link.weights[channel] * np.asarray(J[link.aux])
+    return col
 
 
 def _body(model, g, P, grad=False):
@@ -131,7 +151,8 @@ def _body(model, g, P, grad=False):
     f, J = model.structure.body(model, ctx, g, P, grad)
     if not grad:
         return f
-    return f, {par.name: J[par.name] for par in model.parameters}
+    aux = [c.aux for c in model.structure.coupled]
+    return f, {name: J[name] for name in [par.name for par in model.parameters] + aux}
 
 
 def _fJ(model, src, P, grad):
@@ -290,6 +311,7 @@ def value_and_grad(model, wi, wo, params, cotangent):
     Roughness below Mitsuba's floor (1e-4) is clamped, so its gradient is 0 there.
     """
     dr, F, V3, U = _dr()
+    _needs_derivatives(model)  # AD would not see through tables built in numpy either
     if _empty(model, wi, wo, params):
         p = model.validate(params)
         return np.zeros((0, CHANNELS)), {k: (np.zeros(CHANNELS) if np.ndim(v) else 0.0) for k, v in p.items()}
@@ -377,6 +399,13 @@ def eval_resident(model, dirs, params, numpy=True):
     return Bound(model, params, dirs.dtype).eval(dirs, numpy)
 
 
+def _needs_derivatives(model):
+    """NotImplementedError for a kernel of values only (``structure.derivatives = False``),
+    raised before any recording (a frozen function reports its errors as RuntimeError)."""
+    if model.structure.kernel is not None and not model.structure.derivatives:
+        raise NotImplementedError(f"the compiled kernel of {model.name!r} gives values only")
+
+
 def _frozen_kernel(model):
     # _kernel reads only the model's name and options (tables arrive in P). A model whose
     # trace is so short that replaying a recording costs more (the diffuse ones: ~19 us
@@ -391,9 +420,11 @@ def jacobian(model, dirs, params, numpy=True):
 
     Forward-mode derivatives written out next to the value in :func:`_kernel` (every
     intermediate shared; tested against Dr.Jit's reverse-mode AD and against finite
-    differences of the numpy reference). Channels are independent in every model, so for a
-    per-channel parameter p, ``J[p][:, c]`` is d f_r[c] / d p[c] (and d f_r[c] / d p[c']
-    = 0 for c' != c); for a shared one it is d f_r[c] / d p.
+    differences of the numpy reference). For a per-channel parameter p, ``J[p][:, c]`` is
+    d f_r[c] / d p[c]; channels are independent (d f_r[c] / d p[c'] = 0 for c' != c) except
+    for a parameter the model declares coupled (``structure.coupled``: principled's base
+    colour), whose cross-channel part comes through the extra entry ``J[aux]``
+    (:func:`jacobian_column` assembles any column); for a shared one it is d f_r[c] / d p.
 
     Returns
     -------
@@ -408,6 +439,7 @@ def jacobian(model, dirs, params, numpy=True):
     """
     import drjit as dr
 
+    _needs_derivatives(model)
     p = model.validate(params)
     n = dirs.n
     if n == 0:
@@ -453,6 +485,7 @@ def chi2_grad(model, dirs, params, y, w):
     """
     import drjit as dr
 
+    _needs_derivatives(model)
     p = model.validate(params)
     y = y if isinstance(y, list) else dirs.channels(y, "y")
     w = w if isinstance(w, list) else dirs.channels(w, "w")
@@ -483,6 +516,10 @@ def _chi2_sums(model, *args):
     terms = [sum(a * (fc - yc) for a, fc, yc in zip(wr, f, y))]
     for par in model.parameters:
         t = [a * d for a, d in zip(wr, J[par.name])]
+        link = model.structure.coupling(par.name)
+        if link is not None:  # + weights[k] sum_c w r_c d f_c / d aux
+            s = sum(a * d for a, d in zip(wr, J[link.aux]))
+            t = [tk + float(wk) * s for tk, wk in zip(t, link.weights)]
         terms += t if par.per_channel else [t[0] + t[1] + t[2]]
     return _reduced(terms)
 
@@ -496,20 +533,48 @@ def _entries(model):
     return out
 
 
-def _normal_sums(model, *args):
+def _log_values(dr, f, J, wi):
+    """Loew et al.'s (2012, eq. 11) log values l = ln(1 + max(f cos_i, -0.999)) of f_r and
+    their derivatives dl = cos_i / (1 + f cos_i) df (0 where the floor holds), the transform
+    of the ``log`` loss (:func:`gonio.fitting._loss.residuals`) inside the kernel."""
+    ci = dr.clip(wi.z, 0.0, 1.0)
+    xs = [fc * ci for fc in f]
+    out = [dr.log(1.0 + dr.maximum(x, -0.999)) for x in xs]
+    if J is None:
+        return out, None
+    d = [dr.select(x > -0.999, ci / (1.0 + x), 0.0) for x in xs]
+    return out, {name: [dc * jc for dc, jc in zip(d, cols)] for name, cols in J.items()}
+
+
+def _normal_sums_log(model, wi, wo, P, y, w):
+    """:func:`_normal_sums` of the log values (:func:`_log_values`), on the directions (the
+    log values need cos_i, which the prepared geometry does not carry): ``y`` holds the data's."""
+    return _normal_sums(model, wi, wo, P, y, w, log=True)
+
+
+def _normal_sums(model, *args, log=False):
     """[sum w (f - y)^2, then g_a = sum w (f - y) J_a per entry, then A_ab = sum w J_a J_b
     for every pair a <= b that shares a channel], reduced in the kernel like
-    :func:`_chi2_sums`; channels are independent in every model, so a per-channel entry's
-    J is zero in the other channels and pairs of two different channels are 0 (skipped).
-    ``args``: the :func:`_source`, P, y, w."""
+    :func:`_chi2_sums`; a per-channel entry's J is zero in the other channels (unless the
+    model declares it coupled, :func:`_shares_channel`), so pairs of two different channels
+    are 0 (skipped). ``args``: the :func:`_source` (with ``log``, the directions), P, y, w.
+    With ``log``, f and J are the log values' (:func:`_log_values`)."""
+    import drjit as dr
+
     P, y, w = args[-3:]
     f, J = _fJ(model, args[:-3], P, grad=True)
+    if log:
+        f, J = _log_values(dr, f, J, args[0])
     res = [fc - yc for fc, yc in zip(f, y)]
     wr = [wc * rc for wc, rc in zip(w, res)]
     ent = _entries(model)
 
-    def col(e, c):
+    def col(e, c):  # d f_c / d entry e, None where it is 0
         name, ch = e
+        link = model.structure.coupling(name)
+        if link is not None and ch >= 0:
+            cross = float(link.weights[ch]) * J[link.aux][c]
+            return J[name][c] + cross if ch == c else cross
         return J[name][c] if ch in (-1, c) else None
 
     terms = [sum(a * rc for a, rc in zip(wr, res))]
@@ -517,14 +582,24 @@ def _normal_sums(model, *args):
         terms.append(sum(wr[c] * col(e, c) for c in range(CHANNELS) if col(e, c) is not None))
     for i, a in enumerate(ent):
         for b in ent[i:]:
-            parts = [w[c] * col(a, c) * col(b, c) for c in range(CHANNELS)
-                     if col(a, c) is not None and col(b, c) is not None]
-            if parts:
-                terms.append(sum(parts))
+            if not _shares_channel(model, a, b):
+                continue
+            terms.append(sum(w[c] * col(a, c) * col(b, c) for c in range(CHANNELS)
+                             if col(a, c) is not None and col(b, c) is not None))
     return _reduced(terms)
 
 
-def normal_equations(model, dirs, params, y, w):
+def _shares_channel(model, a, b):
+    """Whether entries a and b (:func:`_entries`) both act on some channel, so that their
+    normal-equation sum can differ from 0: a shared entry acts on every channel, a coupled
+    per-channel one (``structure.coupled``) too, any other on its own channel."""
+    def every(e):
+        return e[1] == -1 or model.structure.coupling(e[0]) is not None
+
+    return every(a) or every(b) or a[1] == b[1]
+
+
+def normal_equations(model, dirs, params, y, w, log=False):
     """The weighted least-squares normal equations at ``params``, reduced in one kernel that
     stores nothing per pair: what Gauss-Newton and Levenberg-Marquardt need per iteration,
     in memory independent of N (no N x P Jacobian).
@@ -535,6 +610,10 @@ def normal_equations(model, dirs, params, y, w):
     parameter has one entry per channel). Sums are float64 whatever the batch's precision;
     their order depends on the thread schedule (last bits).
 
+    With ``log``, the residuals of the ``log`` loss: r = ln(1 + f_r cos_i) - y (``y`` the
+    data's ln(1 + f cos_i)) and J their derivatives, cos_i / (1 + f_r cos_i) d f_r
+    (:func:`_log_values`).
+
     Returns
     -------
     cost : float
@@ -544,6 +623,7 @@ def normal_equations(model, dirs, params, y, w):
     """
     import drjit as dr
 
+    _needs_derivatives(model)
     p = model.validate(params)
     y = y if isinstance(y, list) else dirs.channels(y, "y")
     w = w if isinstance(w, list) else dirs.channels(w, "w")
@@ -555,9 +635,9 @@ def normal_equations(model, dirs, params, y, w):
     # replayed (measured 0.05 ms a call at 3000 pairs against ~0.4 ms traced); a new
     # recording is made per alignment of the data's mapped memory (each its own kernel,
     # compiled once, then in Dr.Jit's kernel cache)
-    run = _frozen_for(_normal_sums, model)
+    run = _frozen_for(_normal_sums_log if log else _normal_sums, model)
     with _FREEZE_LOCK, dr.suspend_grad():
-        sums = run(*_source(model, dirs), P, y, w)
+        sums = run(*((dirs.wi, dirs.wo) if log else _source(model, dirs)), P, y, w)
         dr.eval(sums)
     vals = _collect(sums, dirs.dtype)
     g = vals[1:1 + E].copy()
@@ -566,30 +646,39 @@ def normal_equations(model, dirs, params, y, w):
     for i, a in enumerate(ent):
         for j in range(i, E):
             b = ent[j]
-            if a[1] == -1 or b[1] == -1 or a[1] == b[1]:
+            if _shares_channel(model, a, b):
                 A[i, j] = A[j, i] = vals[k]
                 k += 1
     return float(vals[0]), g, A, ent
 
 
-def _sse_sum(model, *args):
+def _sse_sum_log(model, wi, wo, P, y, w):
+    """:func:`_sse_sum` of the log values (:func:`_log_values`), on the directions."""
+    return _sse_sum(model, wi, wo, P, y, w, log=True)
+
+
+def _sse_sum(model, *args, log=False):
     """sum w (f - y)^2 over pairs and channels, reduced in the kernel (one float64 target);
-    ``args``: the :func:`_source`, P, y, w."""
+    ``args``: the :func:`_source` (with ``log``, the directions), P, y, w; with ``log``, f the
+    log values (:func:`_log_values`)."""
     import drjit as dr
 
     _, F64, _, U = _dr()
     P, y, w = args[-3:]
     f = _fJ(model, args[:-3], P, grad=False)
+    if log:
+        f = _log_values(dr, f, None, args[0])[0]
     t = sum(wc * (fc - yc) * (fc - yc) for fc, yc, wc in zip(f, y, w))
     target = dr.zeros(F64, 1)
     dr.scatter_reduce(dr.ReduceOp.Add, target, F64(t), dr.zeros(U, 1), mode=dr.ReduceMode.Expand)
     return target
 
 
-def weighted_sse(model, dirs, params, y, w):
+def weighted_sse(model, dirs, params, y, w, log=False):
     """sum w (f_r - y)^2 over pairs and channels in one kernel that stores nothing per pair
-    (the cost of :func:`normal_equations` alone: a Levenberg-Marquardt trial step's). NaN
-    where f_r is not finite somewhere with w > 0 (the caller raises)."""
+    (the cost of :func:`normal_equations` alone: a Levenberg-Marquardt trial step's; with
+    ``log``, of the log residuals, as there). NaN where f_r is not finite somewhere with
+    w > 0 (the caller raises)."""
     import drjit as dr
 
     p = model.validate(params)
@@ -598,8 +687,8 @@ def weighted_sse(model, dirs, params, y, w):
     if dirs.n == 0:
         return 0.0
     P, _ = _param_vars(model, p, dirs.F, grad=False)
-    run = _frozen_for(_sse_sum, model)
+    run = _frozen_for(_sse_sum_log if log else _sse_sum, model)
     with _FREEZE_LOCK, dr.suspend_grad():
-        out = run(*_source(model, dirs), P, y, w)
+        out = run(*((dirs.wi, dirs.wo) if log else _source(model, dirs)), P, y, w)
         dr.eval(out)
     return float(np.asarray(out)[0])

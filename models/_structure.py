@@ -6,6 +6,8 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
   runs it: value and exact derivatives), or None; ``kernel_inputs`` adds what the kernel
   needs beyond the parameters (roughplastic: its tables); ``freeze`` says whether replaying
   a recorded kernel launch pays off (not for the two diffuse models' short traces);
+  ``derivatives`` says whether it writes its derivatives too (False: values only, the fit
+  differences them; tabulated, whose 42 parameters act through tables built in numpy);
 * ``geometry``: the parameter-independent per-pair quantities its kernel reads (cosines, the
   microfacet term's geometric factors, ...), ``geometry(model, dr, wi, wo) -> tuple of
   arrays``, and ``body(model, ctx, g, P, grad)`` the rest of the kernel on them (``ctx.active``
@@ -19,7 +21,10 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
   (roughplastic's quadrature tables: ~4 ms in Dr.Jit, ~50 ms in numpy), so the compiled path
   pays off at any number of points;
 * ``affine``: f_r[c] = base(theta) + coef[c] * basis(theta) with base and basis the same in
-  every channel (an :class:`Affine` declaration), or None.
+  every channel (an :class:`Affine` declaration), or None;
+* ``coupled``: per-channel parameters that reach the other channels too, through one
+  weighted sum of their channels (:class:`Coupling`: principled's base colour through its
+  luminance). Every other per-channel parameter acts on its own channel only.
 
 The idea is astropy.modeling's ``linear`` / ``fit_deriv`` declarations and Mitsuba's
 ``traverse``: the model says what it is, the fitter reads it.
@@ -32,7 +37,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["Affine", "Structure"]
+__all__ = ["Affine", "Coupling", "Structure"]
 
 
 @dataclass(frozen=True)
@@ -80,6 +85,28 @@ class Affine:
 
 
 @dataclass(frozen=True)
+class Coupling:
+    """A per-channel parameter p that enters channel c directly and through
+    aux = sum_k weights[k] p[k]: d f[c] / d p[k] = delta_ck J[param][c] + weights[k] J[aux][c],
+    with ``J[param][c]`` the derivative at a fixed aux and ``J[aux][c]`` = d f[c] / d aux, both
+    from the model's kernel (:func:`gonio.models.fast.jacobian_column` assembles them).
+
+    Attributes
+    ----------
+    param : str
+        The per-channel parameter.
+    aux : str
+        The kernel's name for d f / d aux (not a parameter; starts with an underscore).
+    weights : tuple of float
+        The sum's weight of each channel.
+    """
+
+    param: str
+    aux: str
+    weights: tuple
+
+
+@dataclass(frozen=True)
 class Structure:
     """A model's structure (see the module notes)."""
 
@@ -88,5 +115,11 @@ class Structure:
     geometry: Callable | None = None
     body: Callable | None = None
     freeze: bool = True
+    derivatives: bool = True
     compile_always: bool = False
     affine: Affine | None = None
+    coupled: tuple = ()
+
+    def coupling(self, param):
+        """The :class:`Coupling` of ``param``, or None (it acts on its own channel only)."""
+        return next((c for c in self.coupled if c.param == param), None)

@@ -86,6 +86,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ._base import CHANNELS, Model, Parameter, register
+from ._structure import Structure
 from .geometry import half_vector
 
 __all__ = ["Tabulated", "N_KNOTS", "N_FRESNEL", "THETA_KNOTS", "tables", "projected_area", "g1_table",
@@ -273,7 +274,13 @@ class Tabulated(Model):
     #: not a ``--model auto`` candidate: it fits well only from a data-driven start
     #: (``fit_tabulated``), not from declared defaults (module notes)
     auto_candidate = False
-    compiled_min_pairs = 1 << 62  # no compiled kernel
+    #: ``model.eval`` stays on the numpy reference at every size: the compiled kernel
+    #: (values only, :func:`_jit_kernel`) serves the fit's resident evaluations
+    compiled_min_pairs = 1 << 62
+
+    @property
+    def structure(self):
+        return Structure(kernel=_jit_kernel, kernel_inputs=_jit_inputs, derivatives=False)
 
     #: the default NDF: GGX with this alpha; the default Fresnel: Schlick's with F0 = 0.04
     DEFAULT_ALPHA = 0.15
@@ -368,3 +375,63 @@ class Tabulated(Model):
             else:
                 d[par.name] = float(p[par.name])
         return d
+
+
+# -- compiled kernel (values only) -------------------------------------------------------------
+
+
+def _jit_inputs(model, p, P, F, grad, dtables):
+    """The kernel's tables, built by :func:`tables` in numpy (float64) and cast to F:
+    ``P["_tab"]`` = (ln D - ln Z (C K), G1 (C N_G), Fresnel (C N_FRESNEL), width (N_FRESNEL))."""
+    t = tables(p)
+    P["_tab"] = (F(np.ascontiguousarray(t.ln_d - t.ln_z[:, None]).ravel()), F(np.ascontiguousarray(t.g1).ravel()),
+                 F(np.ascontiguousarray(t.fresnel).ravel()), F(np.ascontiguousarray(t.width).ravel()))
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """:meth:`Tabulated._lobe` and the body in Dr.Jit: the same fractional indices and linear
+    interpolation (``dr.gather``) into the tables of :func:`_jit_inputs`; polar angles by
+    atan2(|xy|, z) as :func:`_polar`. Values only (``structure.derivatives = False``: the
+    parameters act through tables built in numpy; the fit differences them)."""
+    if grad:
+        raise NotImplementedError("tabulated's kernel gives values only")
+    dr, U, active = k.dr, k.U, k.active
+    F = k.F
+    ln_d, g1, fresnel, width = P["_tab"]
+
+    def lerp(table, n, s, c):  # s: float64 fractional indices (a float32 one loses 128 * 6e-8 near the end)
+        i = dr.clip(U(dr.floor(s)), 0, n - 2)
+        t = F(dr.clip(s - type(s)(i), 0.0, 1.0))
+        return dr.gather(F, table, c * n + i) * (1.0 - t) + dr.gather(F, table, c * n + i + 1) * t
+
+    def polar(x, y, z):
+        return dr.atan2(dr.sqrt(x * x + y * y), z)
+
+    half_pi = 0.5 * math.pi
+    ci, co = wi.z, wo.z
+    # the table indices from float64 geometry whatever F is (as the Mitsuba plugin: float32's
+    # atan2 is off by a few ulp, which the steep ln D table turns into 3e-4 relative; measured)
+    F64 = dr.float64_array_t(F)
+    vi = [F64(v) for v in (wi.x, wi.y, wi.z)]
+    vo = [F64(v) for v in (wo.x, wo.y, wo.z)]
+    h = [a + b for a, b in zip(vi, vo)]
+    h2 = h[0] * h[0] + h[1] * h[1] + h[2] * h[2]
+    valid = h2 > 1e-300
+    inv = dr.rsqrt(dr.select(valid, h2, 1.0))
+    cd = 0.5 * sum((a + b) * c for a, b, c in zip(vi, vo, h)) * inv
+    ok = active & valid & (h[2] > 0) & (cd > 0)
+    s_f = (N_FRESNEL - 1) * dr.clip(1.0 - cd, 0.0, 1.0)
+    w = lerp(width, N_FRESNEL, s_f, 0)
+    s_h = (N_KNOTS - 1) * dr.sqrt(dr.clip(polar(*h) / F64(w), 0.0, half_pi) / half_pi)
+    s_i = (N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar(*vi) / half_pi, 0.0, 1.0)))
+    s_o = (N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar(*vo) / half_pi, 0.0, 1.0)))
+    den = 4.0 * dr.select(ok, ci * co, 1.0) * w * w
+    body = dr.select(active, 1.0 / math.pi + k.zero, 0.0)
+    rho = P["diffuse_reflectance"]
+    f = []
+    for c in range(CHANNELS):
+        D = dr.exp(lerp(ln_d, N_KNOTS, s_h, c))
+        G = lerp(g1, N_G, s_i, c) * lerp(g1, N_G, s_o, c)
+        Fc = lerp(fresnel, N_FRESNEL, s_f, c)
+        f.append(rho[c] * body + dr.select(ok, Fc * D * G / den, 0.0))
+    return f, {}

@@ -184,3 +184,23 @@ def test_laplace_from_the_normal_equations_equals_the_jacobians(case):
     np.testing.assert_allclose(res.cov, cov, rtol=1e-8, atol=0)
     assert res.chi2 == pytest.approx(float(r @ r), rel=1e-10)
     assert res.undetermined == undetermined
+
+
+def test_residual_function_equals_residuals_bit_for_bit():
+    """The fit's residuals with the data's parts computed once (``_loss.residual_function``:
+    cos theta_i, the measured log values, the solid-angle weights) are ``_loss.residuals``
+    bit for bit, for every loss, with and without weights, and follow a later change of
+    ``meas.use``."""
+    model = gm.get("roughplastic", distribution="ggx")
+    truth = {"diffuse_reflectance": np.array([0.5, 0.3, 0.2]), "alpha": 0.1, "int_ior": 1.5}
+    meas = simulate(model, truth, np.random.default_rng(8), n=300)
+    f = model.eval(meas.wi, meas.wo, {**truth, "alpha": 0.13})
+    for weighted in (False, True):
+        meas.weight = np.random.default_rng(9).uniform(0.2, 3.0, meas.n_points) if weighted else None
+        for loss in ("chi2", "robust", "cosine", "log", "discrepancy"):
+            fn = _loss.residual_function(loss, meas)
+            assert np.array_equal(fn(f), _loss.residuals(loss, f, meas)), (loss, weighted)
+    meas.use[::5, 0] = False
+    assert np.array_equal(fn(f), _loss.residuals("discrepancy", f, meas))
+    with pytest.raises(ValueError, match="unknown loss"):
+        _loss.residual_function("l2", meas)

@@ -19,7 +19,7 @@ pytestmark = [pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM back
 
 def configs():
     """Every model that declares a compiled kernel (``structure.kernel``; the kernel is
-    optional, issue 13: principled and roughplastic2 have none of their own)."""
+    optional, issue 13: roughplastic2 has none of its own)."""
     for name in gm.names():
         cls = gm.get(name).__class__
         if gm.get(name).structure.kernel is None:
@@ -30,6 +30,10 @@ def configs():
 
 CONFIGS = list(configs())
 IDS = ["-".join([n] + [f"{k}={v}" for k, v in o.items()]) for n, o in CONFIGS]
+#: the kernels that write their derivatives too (``structure.derivatives``; tabulated's
+#: gives values only: its parameters act through tables built in numpy)
+DERIV = [(n, o) for n, o in CONFIGS if gm.get(n, **o).structure.derivatives]
+DERIV_IDS = [i for i, (n, o) in zip(IDS, CONFIGS) if (n, o) in DERIV]
 
 
 def hard_pairs(rng):
@@ -92,7 +96,7 @@ def test_public_eval_runs_the_compiled_kernel_above_its_crossover(name, monkeypa
         m.eval(wi, wo, p, backend="cuda")
 
 
-@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+@pytest.mark.parametrize("name,options", DERIV, ids=DERIV_IDS)
 def test_gradient_matches_finite_differences(name, options):
     """Reverse-mode gradient of sum(c * f_r) against central differences of the numpy
     reference (h = 1e-7 relative; roughplastic's tables have small jumps in alpha and
@@ -154,7 +158,7 @@ def test_bench_parameters_are_coloured():
     for three) and stay inside the bounds."""
     from gonio.models.speed import coloured_params
 
-    for name, options in CONFIGS:
+    for name, options in DERIV:  # the benchmarked kinds (models/speed.py times jacobians too)
         m = gm.get(name, **options)
         p = coloured_params(m)
         for par in m.parameters:
@@ -240,7 +244,7 @@ def test_prepared_geometry_equals_the_directions(name, options):
         assert np.all(got[ref == 0] == 0)
 
 
-@pytest.mark.parametrize("name,options", CONFIGS, ids=IDS)
+@pytest.mark.parametrize("name,options", DERIV, ids=DERIV_IDS)
 def test_jacobian_matches_ad_and_finite_differences(name, options):
     """Hand-written forward derivatives against (a) Dr.Jit's reverse-mode AD of the same
     model (``value_and_grad``) projected on random cotangents, to 1e-9, and (b) central
@@ -256,14 +260,18 @@ def test_jacobian_matches_ad_and_finite_differences(name, options):
     f, J = _fast.jacobian(m, dirs, p)
     rtol = 1e-7 if (name == "roughplastic" and options["distribution"] == "beckmann") else 1e-10  # see above
     np.testing.assert_allclose(f, m.eval_reference(wi, wo, p), rtol=rtol, atol=1e-300)
-    assert set(J) == {par.name for par in m.parameters}
+    # a coupled per-channel parameter (principled's base colour, through its luminance) adds
+    # its cross-channel derivative's entry; every column is assembled by jacobian_column
+    assert set(J) == {par.name for par in m.parameters} | {c.aux for c in m.structure.coupled}
     for _ in range(2):
         cot = rng.normal(size=(n, 3))
         _, grad = _fast.value_and_grad(m, wi, wo, p, cot)
         for par in m.parameters:
-            proj = np.sum(cot * J[par.name], axis=0)
             want = grad[par.name]
-            got = proj if par.per_channel else proj.sum()
+            if par.per_channel:
+                got = np.array([np.sum(cot * _fast.jacobian_column(m, J, par.name, c)) for c in range(3)])
+            else:
+                got = np.sum(cot * J[par.name])
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.max(np.abs(want)), err_msg=par.name)
     for par in m.parameters:
         for c in (range(3) if par.per_channel else [None]):
@@ -272,14 +280,14 @@ def test_jacobian_matches_ad_and_finite_differences(name, options):
             q1, q2 = dict(p), dict(p)
             if c is None:
                 q1[par.name], q2[par.name] = x0 + h, x0 - h
-                cols = slice(None)
             else:
                 q1[par.name], q2[par.name] = p[par.name].copy(), p[par.name].copy()
                 q1[par.name][c] += h
                 q2[par.name][c] -= h
-                cols = c
-            fd = (m.eval_reference(wi, wo, q1) - m.eval_reference(wi, wo, q2))[:, cols] / (2 * h)
-            got = J[par.name][:, cols]
+            # every channel: a per-channel parameter's column is 0 in the other channels
+            # unless the model declares it coupled
+            fd = (m.eval_reference(wi, wo, q1) - m.eval_reference(wi, wo, q2)) / (2 * h)
+            got = _fast.jacobian_column(m, J, par.name, -1 if c is None else c)
             scale = np.max(np.abs(fd))
             # roughplastic's tables have small steps in alpha and eta (quadrature nodes
             # crossing a mask): compare where the difference is smooth, i.e. almost everywhere
@@ -457,3 +465,25 @@ def test_eval_at_many_sizes_keeps_bounded_recordings_and_says_nothing(capfd):
     assert run.n_cached_recordings <= _fast.FREEZE_LIMIT
     out, err = capfd.readouterr()
     assert "frozen function" not in (out + err).lower(), err[-2000:]
+
+
+def test_values_only_kernel_refuses_derivatives_and_the_fit_differences_it():
+    """tabulated's kernel gives values only (``structure.derivatives = False``): its
+    derivatives are refused, not returned as zeros (AD cannot see through its numpy tables),
+    and the fit's evaluator runs the kernel for values and hands the Jacobian back to
+    differences (None)."""
+    from gonio.fitting._problem import Evaluator
+
+    m = gm.get("tabulated")
+    rng = np.random.default_rng(41)
+    wi, wo = random_hemisphere(rng, 600), random_hemisphere(rng, 600)
+    p = m.defaults()
+    dirs = _fast.Directions(wi, wo, np.float64)
+    with pytest.raises(NotImplementedError, match="values only"):
+        _fast.jacobian(m, dirs, p)
+    with pytest.raises(NotImplementedError, match="values only"):
+        _fast.value_and_grad(m, wi, wo, p, np.ones((600, 3)))
+    ev = Evaluator(m, wi, wo, 3)
+    assert ev.fast and ev.jacobian(p) is None
+    np.testing.assert_allclose(ev(p), m.eval_reference(wi, wo, p), rtol=1e-10, atol=1e-300)
+    assert np.array_equal(m.eval(wi, wo, p), m.eval_reference(wi, wo, p))  # model.eval: numpy at any size
