@@ -111,6 +111,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 import test_budget as T  # noqa: E402
 
 
+#: the last capture session's fitted values before the second-order correction (capture_session)
+FITTED: list = []
+
 #: the captured samples: (sample, fit options, truth by parameter name, default plan)
 CAPTURE_SAMPLES = {
     "roughplastic": ({"model": "roughplastic", "params": {"diffuse_reflectance": [0.5, 0.35, 0.2], "alpha": 0.15}},
@@ -149,6 +152,9 @@ def capture_session(seed: int, errors: dict, plan: str | None, folder: Path, cal
     truth = {"diffuse_reflectance[R]": 0.5, "diffuse_reflectance[G]": 0.35, "diffuse_reflectance[B]": 0.2, **shape}
     names = list(doc["parameters"])
     u = doc["uncertainty"]["parameters"]
+    # the optimiser's own point beside the reported value (corrected for the shared angle
+    # errors' second-order mean where the dataset has them): z_fitted in the record
+    FITTED[:] = [doc["parameters"][n].get("value_fitted", doc["parameters"][n]["value"]) for n in names]
     return (names, np.array([doc["parameters"][n]["value"] for n in names]),
             np.array([u[n]["u_combined"] for n in names]), np.array([u[n]["u_stat"] for n in names]),
             np.array([truth[n] for n in names]))
@@ -278,6 +284,8 @@ def main(argv=None):
             rows.append(record_typical(*typical_session(s)))
         else:
             rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated, a.sample)))
+            rows[-1]["z_fitted"] = ((np.array(FITTED) - np.array(rows[-1]["x"])) / np.array(rows[-1]["u_c"])
+                                    + np.array(rows[-1]["z_c"])).tolist()
         rows[-1]["seed"] = s
         if a.out and (a.mode == "capture" or (s - a.first + 1) % 25 == 0 or s == a.first + a.n - 1):
             # a capture session takes 10-40 s: written after each, so a run stopped early keeps them all
