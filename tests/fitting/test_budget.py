@@ -462,3 +462,23 @@ def test_a_measured_sigma_reweighs_the_values_a_tilt_moves(glossy):
         assert abs(with_sigma - exact[i]) <= 0.15 * max(abs(exact[i]), 0.1 * uc), (name, with_sigma, exact[i], uc)
         if name == "int_ior":
             assert abs(without - exact[i]) > abs(exact[i]), (without, exact[i])
+    # the fit document reports the value corrected by that mean, the optimiser's point beside it
+    budget = Budget(comps, angles={"shared": np.array(shifts)}, sigma_elasticity=1.0)
+    doc = fit_document(res, meas, budget=budget)["parameters"]["int_ior"]
+    mean = out[1.0]["int_ior"]["angle_second_order_mean"]
+    assert doc["value_fitted"] == x0[names.index("int_ior")]
+    assert doc["value"] == pytest.approx(doc["value_fitted"] - mean, rel=1e-12)
+
+
+def test_sigma_elasticity_is_the_log_log_slope_of_the_measured_sigma():
+    """d ln sigma / d ln f_r across a dataset's values: 0.7 where sigma = c f^0.7 exactly, 0 where
+    sigma is one constant, clipped to 1 where it grows faster (fitting/_budget.sigma_elasticity)."""
+    from gonio.fitting._budget import sigma_elasticity
+
+    rng = np.random.default_rng(15)
+    wi, wo = directions(rng, 50, spread=0.05)
+    f = MODEL.eval(wi, wo, TRUTH)
+    use = np.ones(f.shape, bool)
+    assert sigma_elasticity(Measurements(wi, wo, f, 1e-3 * f ** 0.7, use)) == pytest.approx(0.7, abs=1e-9)
+    assert sigma_elasticity(Measurements(wi, wo, f, np.full(f.shape, 1e-3), use)) == pytest.approx(0.0, abs=1e-9)
+    assert sigma_elasticity(Measurements(wi, wo, f, 1e-3 * f ** 1.5, use)) == 1.0
