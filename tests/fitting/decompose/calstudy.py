@@ -9,7 +9,6 @@ backlashes, written after every seed. Summarised in budget_coverage.py's docstri
 """
 import sys, json, math, time
 import numpy as np
-import gonio.sim as gs
 from gonio.bench import _alignment as al
 from gonio.bench import calibrate as C
 from gonio.bench._settings import default_settings
