@@ -95,9 +95,9 @@ rms z 0.61). Not explained: the glossy int_ior's mean z -0.34 +- 0.10
 on average over those 14 calibrations: a candidate, not shown.
 
 The glossy int_ior bias found (2026-12-02, second pass; tests/fitting/decompose/README.md). Not
-the calibration: the alignment alone over seeds 402000-402074 (decompose/calstudy.py) gives mean
-z lamp backlash -0.15 +- 0.12, yaw zero +0.03 +- 0.03, tilt zero -0.22 +- 0.12, holder tilt
--0.06/+0.06 +- 0.10 (the 14-seed +0.46 was noise), and through the fit's G those residuals are
+the calibration: the alignment alone over seeds 402000-402076 (decompose/calstudy.py; 77 seeds,
+data/budget_coverage/calibration_alignment_typical.json) gives mean z lamp backlash -0.12 +- 0.12,
+yaw zero +0.04 +- 0.03, tilt zero -0.24 +- 0.12, holder tilt -0.01/+0.02 +- 0.11 (the 14-seed +0.46 was noise), and through the fit's G those residuals are
 worth < 0.02 u_c of int_ior. Not the seeds' draws: regressed on each seed's drawn certificate
 factor and sample wedge (decompose/wedge_regression.py) the 401100-401199 run's int_ior keeps
 -0.22 +- 0.06 at a typical wedge, and the three glossy runs (236 sessions) put it in the wedge's
