@@ -5,7 +5,7 @@
 bench/calibrate.align on the typical instrument per seed (about 5 s each): estimates, stated u
 and truth of the yaw and tilt zeros, the holder tilt (azimuth counter's frame) and the three
 backlashes, written after every seed. Summarised in budget_coverage.py's docstring (seeds
-402000-402074: lamp backlash mean z -0.15 +- 0.12, no bias).
+402000-402076: lamp backlash mean z -0.12 +- 0.12, no bias).
 """
 import sys, json, math, time
 import numpy as np
