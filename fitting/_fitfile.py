@@ -100,10 +100,18 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         entry = space.entries[i]
         p = by_name[entry.param]
         std = result.std[i] * inflation
-        item = {"value": result.x[i], "std": std, "unit": p.unit, "parameter": entry.param,
+        # a dataset with shared angle errors: the value corrected for their second-order term's
+        # mean (fitting/_budget.propagate; the optimiser's own point is ``value_fitted``, and the
+        # ``params``/``mitsuba`` tables stay the optimiser's)
+        shift = float(uncertainty["parameters"][name].get("angle_second_order_mean", 0.0))
+        value = float(result.x[i]) - shift
+        item = {"value": value, "std": std, "unit": p.unit, "parameter": entry.param,
                 "channel": space.channels[entry.channel] if entry.channel >= 0 else None,
-                "ci90": [max(result.x[i] - z90 * std, p.lower), min(result.x[i] + z90 * std, p.upper)],
+                "ci90": [max(value - z90 * std, p.lower), min(value + z90 * std, p.upper)],
                 "method": "laplace", "at_bound": name in result.at_bound, "undetermined": name in result.undetermined}
+        if shift != 0.0:
+            item["value_fitted"] = result.x[i]
+            item["angle_second_order_correction"] = -shift
         if inflation != 1.0:
             item["std_statistical"] = result.std[i]
         if posterior is not None and posterior.converged:
@@ -173,7 +181,8 @@ def _uncertainty(result, meas, budget, u_stat, cov_stat) -> dict:
     out = propagate(result, meas, budget, u_stat, cov_stat)
     return {"k": K_EXPANDED, "method": "first-order propagation of every budget component through the fit "
                                       "(correlated ones as shared nuisance errors; GUM 5.1, JCGM 102 6.2), and "
-                                      "the shared angle errors' second-order term (its second moment; GUM 5.1.2 note)",
+                                      "the shared angle errors' second-order term (its mean corrected in the values, GUM 3.2.4 "
+                                      "and 4.1.4 note; its variance carried, GUM 5.1.2 note)",
             "budget_source": budget.source, "components": budget.describe(), "parameters": out["parameters"],
             "statistical": ({"method": "type-A components propagated through the fit (their channel correlation "
                                            "included); Birge factor against the point-wise budget", **out["birge"]}
