@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import gc
 import threading
 from functools import lru_cache
 
@@ -30,7 +31,31 @@ def _frozen(fn, name, options, threads=None):
     from . import get
 
     model = get(name, **dict(options))
-    return dr.freeze(lambda *inputs: fn(model, *inputs), limit=FREEZE_LIMIT, warn_after=_NEVER)
+    return _GcPaused(dr.freeze(lambda *inputs: fn(model, *inputs), limit=FREEZE_LIMIT, warn_after=_NEVER))
+
+
+class _GcPaused:
+    """A frozen function called with Python's cyclic garbage collector paused. A collection
+    that starts while a kernel is being recorded frees whatever unreachable Dr.Jit arrays
+    other code left in reference cycles, and Dr.Jit 1.5.0 aborted the process there (SIGABRT,
+    "Garbage-collecting" inside principled's kernel as ``normal_equations`` recorded it, one
+    suite run in a clean clone, 2026-12-02); the collection runs at the next allocation after
+    the call instead. Attributes (``n_cached_recordings``, ...) are the frozen function's."""
+
+    def __init__(self, frozen):
+        self._frozen = frozen
+
+    def __call__(self, *inputs):
+        if not gc.isenabled():
+            return self._frozen(*inputs)
+        gc.disable()
+        try:
+            return self._frozen(*inputs)
+        finally:
+            gc.enable()
+
+    def __getattr__(self, name):
+        return getattr(self._frozen, name)
 
 
 def _frozen_for(fn, model):

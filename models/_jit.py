@@ -176,6 +176,26 @@ def _beckmann_g1_over_cos(dr, au, av, w):
     return num, dr.select(big, z, s * s + 2.276 * s * z + 2.577 * z * z), s, big
 
 
+def _beckmann_dlog_g1(dr, n, d, s, z, big):
+    """The factor k of d ln(G1 / cos) / d a = (a x)^2 k / a for :func:`_beckmann_g1_over_cos`'s
+    (num, den, s, big) at cosine z: 0 where G1 = 1 (``big``)."""
+    return dr.select(big, 0.0, (3.535 * d - (2.0 * s + 2.276 * z) * n) / dr.select(big, 1.0, s * n * d))
+
+
+def _half_vector(dr, wi, wo):
+    """What :func:`_lobe` and :func:`_lobe_iso_geometry` share: (cos_i, cos_o, h = wi + wo, the
+    mask ``ok`` (both above the horizon and h not vanishing), 1 / |h| (1 where not ok),
+    cos(theta_m) and c = wi . m)."""
+    ci, co = wi.z, wo.z
+    h = wi + wo
+    h2 = dr.squared_norm(h)
+    ok = (ci > 0) & (co > 0) & (h2 > _floor(h2))
+    inv = dr.rsqrt(dr.select(ok, h2, 1.0))
+    mz = h.z * inv
+    c = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h)) * inv
+    return ci, co, h, ok, inv, mz, c
+
+
 def _lobe(dr, kind, au, av, wi, wo, grad=False):
     """Mitsuba's microfacet reflection term D(m) G(wi, wo, m) / (4 cos_i cos_o) as a
     fraction, for the half vector m of (wi, wo) and separable Smith G.
@@ -190,13 +210,7 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     2 ln t + ln(ci + Si) + ln(co + So) with t = (mx/au)^2 + (my/av)^2 + mz^2; Beckmann:
     ln(term) = -e + ln(n_i/d_i) + ln(n_o/d_o) - ln(4 pi au av mz^4) with e = ((mx/au)^2 +
     (my/av)^2) / mz^2 and d s / d au = (au x)^2 / (au s) for each direction."""
-    ci, co = wi.z, wo.z
-    h = wi + wo
-    h2 = dr.squared_norm(h)
-    ok = (ci > 0) & (co > 0) & (h2 > _floor(h2))
-    inv = dr.rsqrt(dr.select(ok, h2, 1.0))
-    mz = h.z * inv
-    c = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h)) * inv
+    ci, co, h, ok, inv, mz, c = _half_vector(dr, wi, wo)
     iau, iav = 1.0 / au, 1.0 / av
     qx, qy = (h.x * inv * iau) ** 2, (h.y * inv * iav) ** 2
     px2 = qx + qy
@@ -228,10 +242,7 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
         den = 4.0 * dd * di * do
         ok &= ex * mz > 1e-20 * dd
         if grad:
-            def k(n, d, s, z, big):
-                return dr.select(big, 0.0, (3.535 * d - (2.0 * s + 2.276 * z) * n) / dr.select(big, 1.0, s * n * d))
-
-            k_i, k_o = k(ni, di, s_i, ci, big_i), k(no, do, s_o, co, big_o)
+            k_i, k_o = _beckmann_dlog_g1(dr, ni, di, s_i, ci, big_i), _beckmann_dlog_g1(dr, no, do, s_o, co, big_o)
             gu = (2.0 * qx * rmz2 - 1.0 + ax_i * k_i + ax_o * k_o) * iau
             gv = (2.0 * qy * rmz2 - 1.0 + ay_i * k_i + ay_o * k_o) * iav
     ok &= den > 0
@@ -245,13 +256,7 @@ def _lobe_iso_geometry(dr, wi, wo):
     """The parameter-independent part of :func:`_lobe` for an isotropic roughness, per pair:
     (cos_i, cos_o, sin^2_i, sin^2_o, sin^2(theta_m), cos(theta_m), c = wi . m), the cosines 0
     where :func:`_lobe`'s ``ok`` is false (a pair below the horizon, or h = 0)."""
-    ci, co = wi.z, wo.z
-    h = wi + wo
-    h2 = dr.squared_norm(h)
-    ok = (ci > 0) & (co > 0) & (h2 > _floor(h2))
-    inv = dr.rsqrt(dr.select(ok, h2, 1.0))
-    mz = h.z * inv
-    c = 0.5 * (dr.dot(wi, h) + dr.dot(wo, h)) * inv
+    ci, co, h, ok, inv, mz, c = _half_vector(dr, wi, wo)
     sm2 = (h.x * inv) ** 2 + (h.y * inv) ** 2
     return (dr.select(ok, ci, 0.0), dr.select(ok, co, 0.0), wi.x * wi.x + wi.y * wi.y, wo.x * wo.x + wo.y * wo.y,
             sm2, mz, c)
@@ -298,10 +303,8 @@ def _lobe_iso(dr, kind, alpha, g, grad=False):
         den = 4.0 * dd * di * do
         ok &= ex * mz > 1e-20 * dd
         if grad:
-            def k(n, d, s, z, big):
-                return dr.select(big, 0.0, (3.535 * d - (2.0 * s + 2.276 * z) * n) / dr.select(big, 1.0, s * n * d))
-
-            ga = (2.0 * px2 * rmz2 - 2.0 + ax_i * k(ni, di, s_i, ci, big_i) + ax_o * k(no, do, s_o, co, big_o)) * (1.0 / alpha)
+            ga = (2.0 * px2 * rmz2 - 2.0 + ax_i * _beckmann_dlog_g1(dr, ni, di, s_i, ci, big_i)
+                  + ax_o * _beckmann_dlog_g1(dr, no, do, s_o, co, big_o)) * (1.0 / alpha)
     ok &= den > 0
     out = (dr.select(ok, num, 0.0), dr.select(ok, den, 1.0), c, ok)
     if grad:

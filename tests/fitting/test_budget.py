@@ -368,17 +368,10 @@ def test_a_tilted_normal_is_carried_to_second_order(glossy):
     within 10 % (the draws' own relative error of either is below 3 %, so 10 % is beyond 3 sigma;
     seeded, so no false alarms), while the first-order line alone misses it by 18 %."""
     from gonio.fitting._budget import ANGLE_SECOND_ORDER, _sensitivity
-    from gonio.models.geometry import angles
 
     meas, res, _ = glossy
-    sd, h = 0.1, 1e-3
-    ang = lambda wi, wo: np.degrees(np.stack([*angles(wi), *angles(wo)], axis=-1))  # noqa: E731
-    shifts = []
-    for k in range(2):
-        e = np.eye(2)[k] * h
-        d = ang(_tilted(meas.wi, *e), _tilted(meas.wo, *e)) - ang(_tilted(meas.wi, *-e), _tilted(meas.wo, *-e))
-        d[:, 1::2] = (d[:, 1::2] + 180.0) % 360.0 - 180.0
-        shifts.append(d / (2 * h) * sd)
+    sd = 0.1
+    shifts = _tilt_shifts(meas, sd)
     budget = Budget([BudgetComponent("statistical", meas.brdf_std, "A", "none")], angles={"shared": np.array(shifts)})
     out = propagate(res, meas, budget, res.std)["parameters"]["alpha"]
     uc2 = out["u_combined"] ** 2
@@ -393,6 +386,24 @@ def test_a_tilted_normal_is_carried_to_second_order(glossy):
     # the values are corrected by the mean (fit_document), the line carries the rest about it
     assert lin + second + out["angle_second_order_mean"] ** 2 == pytest.approx(m2, rel=0.10), (lin, second, m2)
     assert abs(lin / m2 - 1.0) > 0.15, (lin, m2)     # the first-order line alone fails the same check
+
+
+def _tilt_shifts(meas, sd, h=1e-3):
+    """The angle shifts (2, N, 4; deg) of every pair for a tilt of the sample normal by ``sd``
+    deg about x and about y: central differences of (theta_i, phi_i, theta_o, phi_o) at +-h deg
+    (azimuths wrapped), scaled to ``sd``: the budget's shared angle inputs for a tilt."""
+    from gonio.models.geometry import angles
+
+    def ang(wi, wo):
+        return np.degrees(np.stack([*angles(wi), *angles(wo)], axis=-1))
+
+    shifts = []
+    for k in range(2):
+        e = np.eye(2)[k] * h
+        d = ang(_tilted(meas.wi, *e), _tilted(meas.wo, *e)) - ang(_tilted(meas.wi, *-e), _tilted(meas.wo, *-e))
+        d[:, 1::2] = (d[:, 1::2] + 180.0) % 360.0 - 180.0
+        shifts.append(d / (2 * h) * sd)
+    return shifts
 
 
 def _gauss_newton(meas, x):
@@ -428,16 +439,8 @@ def test_a_measured_sigma_reweighs_the_values_a_tilt_moves(glossy):
     from gonio.fitting._budget import _sensitivity
 
     meas, res, _ = glossy
-    sd, h = 0.1, 1e-3
-    from gonio.models.geometry import angles
-
-    ang = lambda wi, wo: np.degrees(np.stack([*angles(wi), *angles(wo)], axis=-1))  # noqa: E731
-    shifts = []
-    for k in range(2):
-        e = np.eye(2)[k] * h
-        d = ang(_tilted(meas.wi, *e), _tilted(meas.wo, *e)) - ang(_tilted(meas.wi, *-e), _tilted(meas.wo, *-e))
-        d[:, 1::2] = (d[:, 1::2] + 180.0) % 360.0 - 180.0
-        shifts.append(d / (2 * h) * sd)
+    sd = 0.1
+    shifts = _tilt_shifts(meas, sd)
     f0 = MODEL.eval(meas.wi, meas.wo, res.params)
     x0 = np.asarray(res.x, float)
 
