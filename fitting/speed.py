@@ -112,7 +112,9 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
     """Run the matrix, print the table; with ``out``, write ``fit_bench.csv`` and ``fit_bench.png``.
 
     ``quick`` (the test's setting, < 1 min): roughplastic only, 100 and 1000 points, one
-    noise level, 2 captures per cell.
+    noise level, 2 captures per cell, each optimiser run once per capture with no untimed
+    run before it (with the tables uncached every run pays for its own: nlopt MMA's ~70
+    evaluations of ~40 ms each made the full repeats 55 s of the suite).
     """
     from ._crlb import crlb, efficiency
     from ._optimise import fit
@@ -133,10 +135,11 @@ def run(quick: bool = False, out: Path | None = None, reps: int | None = None, s
                 names, bound = crlb(caps[0][0], model, truth)
                 for opt in OPTIMISERS:
                     xs, times, rmses, chi, evals = [], [], [], [], []
-                    if n < 100_000:  # untimed: the kernels recorded for this size (every optimiser)
+                    repeat = 1 if quick else (REPEAT if n < 100_000 else 1)
+                    if n < 100_000 and not quick:  # untimed: the kernels recorded for this size (every optimiser)
                         _run_one(opt, caps[0][0], model, 0, fit)
                     for r, (meas, f_true) in enumerate(caps):
-                        runs = [_run_one(opt, meas, model, r, fit) for _ in range(REPEAT if n < 100_000 else 1)]
+                        runs = [_run_one(opt, meas, model, r, fit) for _ in range(repeat)]
                         x, _, ne, fr, c, space = runs[0]
                         dt = float(np.median([run[1] for run in runs]))  # a shared machine's load: the median
                         chi.append(c)
