@@ -255,21 +255,22 @@ def eval(model, wi, wo, params):
     run the float32 kernel and give float32, anything else the float64 kernel and float64
     (:func:`gonio.models._base.eval_dtype`).
 
-    From :data:`._roundtrip.SOA_MIN_PAIRS` pairs numpy copies the direction components into
+    numpy's memory is mapped into Dr.Jit without a copy and the kernel gathers the
+    components (:func:`._roundtrip.eval_gathered`), except where Dr.Jit compiles for
+    AVX-512, whose vector gathers cost more than numpy's copies: there, from
+    :data:`._roundtrip.SOA_MIN_PAIRS` pairs, numpy copies the direction components into
     Dr.Jit's memory, the model's kernel reads them as contiguous arrays and numpy interleaves
-    its channels into an output in Dr.Jit's memory (:func:`._roundtrip.eval_blocks`: the
-    kernel's own gathers cost more on AVX-512). Below it numpy's memory is mapped into Dr.Jit
-    without a copy and the kernel gathers (:func:`._roundtrip.eval_gathered`). Either way
-    the kernel is replayed from its recording (:func:`_frozen`); per pair 48 bytes read and
-    24 written at least in float64 (24 and 12 in float32), the memory-bandwidth limit
-    ``gonio bench models`` prints."""
+    its channels into an output in Dr.Jit's memory (:func:`._roundtrip.eval_blocks`;
+    :func:`._roundtrip.takes_copies`). Either way the kernel is replayed from its recording
+    (:func:`_frozen`); per pair 48 bytes read and 24 written at least in float64 (24 and 12
+    in float32), the memory-bandwidth limit ``gonio bench models`` prints."""
     dtype = eval_dtype(wi, wo)
     wi, wo, p = eval_inputs(model, wi, wo, params, dtype)
     n = wi.shape[0]
     if n == 0:
         return np.zeros((0, CHANNELS), dtype)
     P, _ = _param_vars(model, p, _roundtrip.types(dtype)[1], grad=False)
-    if n >= _roundtrip.SOA_MIN_PAIRS:
+    if _roundtrip.takes_copies(n):
         kern = _soa_kernel if dtype == np.float64 else _packed_kernel
         return _roundtrip.eval_blocks(_frozen_for(kern, model), wi, wo, P, _FREEZE_LOCK)
     # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the

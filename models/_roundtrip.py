@@ -1,31 +1,40 @@
 """The numpy round trip of the public ``Model.eval`` (issue 18): (N, 3) directions in, f_r
 (N, 3) out, float64 or float32 (the type of the directions: the kernel runs in it), through a
-compiled kernel that reads and writes contiguous arrays only (large batches, :func:`eval_blocks`)
-or that gathers from numpy's memory mapped without a copy (small ones, :func:`eval_gathered`).
+compiled kernel that gathers from numpy's memory mapped without a copy (:func:`eval_gathered`)
+or, on CPUs whose vector gathers are slow, through one that reads and writes contiguous arrays
+that numpy copies (:func:`eval_blocks`). Which one a batch takes: :func:`takes_copies`.
 
-Why not gathers inside the kernel (what :func:`gather_kernel` does for small batches): on this project's AVX-512 machine (AMD Zen 5, measured 2026-12-02, CPU time, one
-thread, 1e6 pairs) the three stride-3 float64 gathers that de-interleave one (N, 3) array cost
-3.5-3.9 ms (1.0 ms when the same kernel is compiled for AVX2, where LLVM does not use the
-vector gather instruction), and the kernel that interleaves the three channels back 4.7 ms:
-~12 ms of a ~19 ms call, for a model whose float64 kernel costs 1-4 ms. numpy's strided copies
-do the same in ~2.0 ms per (N, 3) array.
+Why two: the gathers' cost depends on the code LLVM makes for the CPU.
 
-So here numpy copies each direction component into an array that Dr.Jit allocated (its
-allocator keeps freed blocks: no fresh pages to fault in on every call, which cost as much as
-the copy itself), the model's kernel reads them as contiguous arrays, and numpy interleaves
-the three channels into an output that Dr.Jit allocated as well (handed to numpy without a
-further copy). Every value is the same kernel's on the same inputs: equal, bit for bit, to
-the gathering path (tested), in either precision.
+* AVX-512 (16 float32 lanes; this project's AMD Zen 5, measured 2026-12-02, CPU time, one
+  thread, 1e6 pairs): the three stride-3 float64 gathers that de-interleave one (N, 3) array
+  cost 3.5-3.9 ms (1.0 ms when the same kernel is compiled for AVX2, where LLVM does not use
+  the vector gather instruction), and the kernel that interleaves the three channels back
+  4.7 ms: ~12 ms of a ~19 ms call, for a model whose float64 kernel costs 1-4 ms. numpy's
+  strided copies do the same in ~2.0 ms per (N, 3) array: the copies win from
+  :data:`SOA_MIN_PAIRS` pairs.
+* AVX2 (8 lanes; AMD Zen 3, measured 2026-12-02, wall time, Dr.Jit's default 2 threads, best
+  of 15, nothing else running): the gathers win at every size, blocks/gathers time ratio at
+  16384 / 65536 / 262144 / 1048576 / 4194304 pairs: diffuse float32 3.6 1.9 2.0 1.8 1.3,
+  float64 3.0 1.9 2.1 2.3 1.4; roughplastic GGX float32 2.4 1.5 1.6 1.4 1.1, float64 2.1 1.5
+  1.6 1.6 1.3. Every value is the same kernel's on the same inputs either way: equal, bit for
+  bit (tested), so the choice is speed alone.
+
+The copies (:func:`eval_blocks`): numpy copies each direction component into an array that
+Dr.Jit allocated (its allocator keeps freed blocks: no fresh pages to fault in on every call,
+which cost as much as the copy itself), the model's kernel reads them as contiguous arrays,
+and numpy interleaves the three channels into an output that Dr.Jit allocated as well (handed
+to numpy without a further copy).
 
 float32 (N, 3) directions go through the same copies as uint64 words of two rows each,
 ``(x0, y0), (z0, x1), (y1, z1)``: numpy's strided copies cost about the same per element
 whatever its size, so half the elements cost half the time (measured, one thread, 65536 pairs
 in cache: 28 us against 50 us per array); :func:`packed_kernel` splits and packs the words
-exactly. Measured at 1e6 pairs (roughplastic GGX, one thread): copies in 1.8 ms, out 1.2 ms,
-kernel 2.9 ms in blocks, 5.9 ms a call (float64: ~11 ms). Tried and slower: Dr.Jit's packet
-gathers of 4 rows (12 floats, 3 aligned packets) straight from numpy's memory, which Dr.Jit
-emits only for a 64-byte-aligned source (numpy's are 16-aligned: masked gathers), and on a
-copy into aligned memory cost 1.4 ms (diffuse) against 0.3 ms for the resident kernel.
+exactly. Measured at 1e6 pairs (roughplastic GGX, one thread, Zen 5): copies in 1.8 ms, out
+1.2 ms, kernel 2.9 ms in blocks, 5.9 ms a call (float64: ~11 ms). Tried and slower: Dr.Jit's
+packet gathers of 4 rows (12 floats, 3 aligned packets) straight from numpy's memory, which
+Dr.Jit emits only for a 64-byte-aligned source (numpy's are 16-aligned: masked gathers), and
+on a copy into aligned memory cost 1.4 ms (diffuse) against 0.3 ms for the resident kernel.
 
 With more than one Dr.Jit thread the copies are spread over that many Python threads (numpy
 releases the GIL while it copies).
@@ -40,14 +49,39 @@ import numpy as np
 
 from ._base import CHANNELS
 
-__all__ = ["SOA_MIN_PAIRS", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
+__all__ = ["SOA_MIN_PAIRS", "COPIES", "takes_copies", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
            "eval_gathered", "SOA_BLOCK"]
 
-#: Pairs from which :func:`gonio.models._fast.eval` takes this path; below it the gathering
-#: kernel's fixed cost is lower (one mapped input per direction, no copies). Measured (CPU
-#: time, one thread, min of 41): diffuse 32/57 us (gathering/here) at 1024 pairs, 142/139 us
-#: at 16384, 455/325 us at 65536; roughplastic GGX 45/69, 183/183, 675/544 us.
+#: Pairs from which :func:`gonio.models._fast.eval` takes the copies where they are taken at
+#: all (:func:`takes_copies`); below it the gathering kernel's fixed cost is lower (one mapped
+#: input per direction, no copies). Measured on the Zen 5 (CPU time, one thread, min of 41):
+#: diffuse 32/57 us (gathering/copies) at 1024 pairs, 142/139 us at 16384, 455/325 us at
+#: 65536; roughplastic GGX 45/69, 183/183, 675/544 us.
 SOA_MIN_PAIRS = 1 << 14
+
+#: Which round trip a batch of :data:`SOA_MIN_PAIRS` pairs or more takes: ``"auto"`` (the
+#: copies where Dr.Jit compiles for 16 float32 lanes, AVX-512, whose vector gathers cost more
+#: than numpy's copies; the gathers elsewhere: see the module notes), ``"copies"`` or
+#: ``"gathers"``. The results are the same bit for bit; the tests set it to check both.
+COPIES = "auto"
+
+
+def takes_copies(n: int) -> bool:
+    """Whether a batch of ``n`` pairs takes :func:`eval_blocks` (numpy's copies) rather than
+    :func:`eval_gathered` (see :data:`COPIES`)."""
+    if n < SOA_MIN_PAIRS or COPIES == "gathers":
+        return False
+    return COPIES == "copies" or _wide_vectors()
+
+
+@lru_cache(maxsize=1)
+def _wide_vectors() -> bool:
+    """Dr.Jit compiles for 16 float32 lanes (AVX-512's vector gathers) in this process.
+    Asked once: a target changed later (``GONIO_LLVM_TARGET`` is read at import) changes only
+    which path is faster, never a value."""
+    from ._jit_target import llvm_target
+
+    return llvm_target()[1] >= 16
 
 #: Pairs per launch (a block's components and channels stay in the caches between numpy's
 #: copies and the kernel; see :func:`eval_blocks`).
@@ -86,23 +120,46 @@ def soa_kernel(kernel, model, ix, iy, iz, ox, oy, oz, P):
 
 def gather_kernel(kernel, model, flat_i, flat_o, lanes, P):
     """The kernels of :func:`eval_gathered`: directions de-interleaved from the flat (3N)
-    numpy-mapped inputs by gathers, non-finite rows made degenerate, then f_r interleaved
-    into one flat (3N) output by a second, gathering kernel, so that numpy sees an (N, 3)
-    array without a copy in either direction. (Scattering the channels from the model's
-    kernel instead measured 2-3x slower than the model's kernel alone on roughplastic at 1e6
-    pairs; the second kernel costs ~1.5 ms there.)"""
+    numpy-mapped inputs by gathers, non-finite rows made degenerate, the model's three
+    channels evaluated, then interleaved into one flat (3N) output by a second kernel, so that
+    numpy sees an (N, 3) array without a copy in either direction.
+
+    The second kernel: in float32 one lane per pair scatters its three channels; in float64
+    one lane per output value gathers it from its channel (a masked gather per channel, two
+    of them inactive). Measured on the AVX2 Zen 3 (wall time, 2 threads, 2**20 pairs, best of
+    15; ms, the whole round trip): float32 diffuse 4.91 (a lane per value, three unmasked
+    gathers selected: the first version) / 4.30 (masked gathers) / 3.60 (scatters),
+    roughplastic GGX 9.06 / 8.33 / 7.51; float64 diffuse 5.93 / 5.00 / 5.04, roughplastic
+    12.97 / 12.04 / 13.13. (Scattering from the model's own kernel measured 2-3x slower than
+    the model's kernel alone on roughplastic on the Zen 5.)"""
     dr, F, V3, U = _types_of(flat_i)
     # sizes only through dr.arange(U, dr.width(input)): a replayed recording follows the new
     # inputs' widths (``lanes`` has one lane per pair), never a traced Python integer
     idx = dr.arange(U, dr.width(lanes)) * 3
     vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
     vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
-    c0, c1, c2 = kernel(model, *_degenerate(dr, V3, vi, vo), P)
-    dr.eval(c0, c1, c2)
+    chans = kernel(model, *_degenerate(dr, V3, vi, vo), P)
+    dr.eval(*chans)
+    if F is _float32():
+        out = dr.empty(F, dr.width(flat_i))
+        for c, ch in enumerate(chans):
+            dr.scatter(out, ch, idx + c)
+        return out
     j = dr.arange(U, dr.width(flat_i))
     q = j // 3
     r = j - 3 * q
-    return dr.select(r == 0, dr.gather(F, c0, q), dr.select(r == 1, dr.gather(F, c1, q), dr.gather(F, c2, q)))
+    c0, c1, c2 = chans
+    return dr.gather(F, c0, q, r == 0) + dr.gather(F, c1, q, r == 1) + dr.gather(F, c2, q, r == 2)
+
+
+def _float32():
+    from drjit.llvm.ad import Float32
+
+    return Float32
+
+
+#: Above ``block`` pairs :func:`eval_gathered` launches blocks of ``block // BLOCK_SPLIT``.
+BLOCK_SPLIT = 4
 
 
 def eval_gathered(run, wi, wo, P, lock, block):
@@ -123,10 +180,14 @@ def eval_gathered(run, wi, wo, P, lock, block):
         return one(wi, wo)
     # the kernel's channels and its interleaved output are one output's worth each: in
     # blocks, a large batch needs its output plus two blocks (measured peak RSS over the
-    # inputs, 1e7 diffuse pairs: 2.03x the output in one launch, 1.27x in blocks)
-    out = np.empty((n, CHANNELS), wi.dtype)
-    for s in range(0, n, block):
-        out[s:s + block] = one(wi[s:s + block], wo[s:s + block])
+    # inputs, 1e7 diffuse pairs: 2.03x the output in one launch, 1.27x in blocks); the output
+    # in memory that Dr.Jit allocated, as in eval_blocks (no fresh pages faulted in a call)
+    buf = dr.empty(F, CHANNELS * n)
+    dr.eval(buf)
+    out = np.asarray(buf).reshape(n, CHANNELS)
+    step = max(1, block // BLOCK_SPLIT)
+    for s in range(0, n, step):
+        out[s:s + step] = one(wi[s:s + step], wo[s:s + step])
     return out
 
 

@@ -21,6 +21,13 @@ pytestmark = [pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM back
               pytest.mark.codegen]
 
 
+@pytest.fixture(autouse=True)
+def _copies_from_soa_min_pairs(monkeypatch):
+    """Here :data:`_roundtrip.SOA_MIN_PAIRS` alone picks the path (``COPIES = "copies"``):
+    1 forces the copies, 1 << 40 the gathers, whatever this machine's vector width."""
+    monkeypatch.setattr(_roundtrip, "COPIES", "copies")
+
+
 def _configs():
     for name in gm.names():
         cls = gm.get(name).__class__

@@ -16,6 +16,13 @@ from models_testutil import random_hemisphere, random_params
 pytestmark = [pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable"),
               pytest.mark.codegen]
 
+
+@pytest.fixture(autouse=True)
+def _copies_from_soa_min_pairs(monkeypatch):
+    """Here :data:`_roundtrip.SOA_MIN_PAIRS` alone picks the path (``COPIES = "copies"``):
+    1 forces the copies, 1 << 40 the gathers, whatever this machine's vector width."""
+    monkeypatch.setattr(_roundtrip, "COPIES", "copies")
+
 CASES = [("diffuse", {}), ("roughconductor", {"distribution": "ggx", "anisotropic": True}),
          ("roughplastic", {"distribution": "beckmann"}), ("cooktorrance", {}), ("orennayar", {})]
 
@@ -94,3 +101,50 @@ def test_bad_input_is_refused_before_any_copy(monkeypatch):
     with pytest.raises(ValueError, match="reflectance"):
         m.eval(np.zeros((5, 3)), np.zeros((5, 3)), {"reflectance": 2.0})
     assert m.eval(np.zeros((0, 3)), np.zeros((0, 3)), {}, backend="drjit").shape == (0, 3)
+
+
+def test_the_path_follows_the_vector_width(monkeypatch):
+    """``COPIES = "auto"`` (the default): numpy's copies from SOA_MIN_PAIRS pairs where Dr.Jit
+    compiles for 16 lanes (AVX-512's slow vector gathers), the gathers at every size elsewhere
+    (AVX2: 1.1-3.6x faster, measured in the module notes); the settings force either; the
+    two give the same values (2**14 + 1 pairs: an odd last row on the float32 copies)."""
+    monkeypatch.setattr(_roundtrip, "COPIES", "auto")
+    n = _roundtrip.SOA_MIN_PAIRS
+    for wide, want in ((True, [False, True, True]), (False, [False, False, False])):
+        monkeypatch.setattr(_roundtrip, "_wide_vectors", lambda wide=wide: wide)
+        assert [_roundtrip.takes_copies(k) for k in (n - 1, n, 10**7)] == want
+    monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
+    monkeypatch.setattr(_roundtrip, "_wide_vectors", lambda: True)
+    assert not _roundtrip.takes_copies(10**7)
+    monkeypatch.setattr(_roundtrip, "COPIES", "copies")
+    monkeypatch.setattr(_roundtrip, "_wide_vectors", lambda: False)
+    assert _roundtrip.takes_copies(n) and not _roundtrip.takes_copies(n - 1)
+
+    m = gm.get("roughplastic", distribution="ggx")
+    rng = np.random.default_rng(1804)
+    p = random_params(m, rng)
+    for dtype in (np.float64, np.float32):
+        wi, wo = (x.astype(dtype) for x in _pairs(rng, n + 1))
+        got = {}
+        for mode in ("copies", "gathers"):
+            monkeypatch.setattr(_roundtrip, "COPIES", mode)
+            got[mode] = m.eval(wi, wo, p)
+        np.testing.assert_array_equal(got["copies"], got["gathers"])
+        assert got["gathers"].dtype == dtype and got["gathers"].flags.c_contiguous
+
+
+def test_gathered_blocks_join_into_one_output(monkeypatch):
+    """Above EVAL_BLOCK pairs the gathering path runs in blocks written into one output in
+    Dr.Jit's memory: bit for bit one launch, in both precisions, a short last block included."""
+    monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
+    m = gm.get("orennayar")
+    rng = np.random.default_rng(1805)
+    p = random_params(m, rng)
+    for dtype in (np.float64, np.float32):
+        wi, wo = (x.astype(dtype) for x in _pairs(rng, 2501))
+        want = m.eval(wi, wo, p)
+        monkeypatch.setattr(_fast, "EVAL_BLOCK", 1000)
+        got = m.eval(wi, wo, p)
+        monkeypatch.setattr(_fast, "EVAL_BLOCK", 1 << 20)
+        np.testing.assert_array_equal(got, want)
+        assert got.dtype == dtype and got.shape == (2501, 3) and got.flags.c_contiguous
