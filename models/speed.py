@@ -340,6 +340,13 @@ def _row(name, options, t, head, n):
     return row
 
 
+def _copies_here(n):
+    """Whether the public eval of ``n`` pairs takes numpy's copies on this machine."""
+    from ._roundtrip import takes_copies
+
+    return takes_copies(n)
+
+
 def _print_row(row, name, options, out):
     def fmt(x, width, scale=1e-6, digits=1):
         return f"{x * scale:{width}.{digits}f}" if x is not None else f"{'-':>{width}}"
@@ -422,8 +429,9 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     print(f"times: {'CPU time of the process (one Dr.Jit thread)' if clock() is time.process_time else 'wall clock'}, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end", file=out)
     print("columns: numpy = model.eval_reference (float64 numpy); eval, eval32 = the public model.eval(wi, wo, p) "
-          "on float64 / float32 numpy (N, 3) directions, numpy (N, 3) f_r out (numpy round trip included: copies in, "
-          "kernel, interleave out); drjit32 = gonio's float32 kernel on a resident batch, f_r left in Dr.Jit; jac32, "
+          "on float64 / float32 numpy (N, 3) directions, numpy (N, 3) f_r out (numpy round trip included: "
+          f"{'numpy copies in, kernel, interleave out' if _copies_here(n) else 'numpy memory gathered by the kernel, channels interleaved'} "
+          "here: models/_roundtrip.takes_copies); drjit32 = gonio's float32 kernel on a resident batch, f_r left in Dr.Jit; jac32, "
           "grad32 = its Jacobian and chi^2 gradient, resident; mitsuba = Mitsuba's bsdf.eval on a resident batch "
           "(already Mitsuba arrays), result left in Dr.Jit: Mitsuba's kernel alone, NO numpy round trip; mi+np = "
           "Mitsuba with its own numpy round trip from the same float32 (N, 3) numpy directions (interaction(): a "
