@@ -146,3 +146,51 @@ def test_lamp_temperature_rises_over_minutes(make):
     exchange(z, [(b"/2 0 lamp on", b"@02 0 OK IDLE -- 0\r\n")])
     inst.clock.advance(600.0)
     exchange(z, [(b"/2 0 get lamp.temperature", b"@02 0 OK IDLE -- 39.9\r\n")])
+
+
+def test_readline_equals_pyserials_byte_by_byte_reads(make):
+    """sim:// reads a line in one search of the buffer (protocol_sim.Serial.read_until); it
+    must give the bytes and cost the simulated time of pyserial's own read_until, which reads
+    one byte at a time (and of io's readline): whole lines, a line cut by ``size``, a
+    terminator of two bytes, a partial line (no terminator: the timeout is spent once),
+    an empty buffer, and a motion's alert that comes due while the host waits."""
+    from serial.serialutil import SerialBase
+
+    def session(read_until):
+        inst = make()
+        z = serial.serial_for_url(inst.url("zaber"), timeout=0.5)
+        out = []
+
+        def take(*a, **k):
+            out.append((read_until(z, *a, **k), round(inst.clock.now(), 9)))
+
+        z.write(b"/\r\n")                          # two lines waiting
+        take()
+        take(b"\r\n")
+        z.write(b"/1 0 get pos\r\n")
+        take(size=7)
+        take(b"WR")
+        take(b"\n", 3)
+        take()
+        take()                                     # nothing there: the timeout, once
+        z.write(b"/1 0 home\r\n/1 set comm.alert 1\r\n")
+        take(), take()
+        take()                                     # waits: the alert comes due meanwhile
+        z.write(b"/1 0 get pos\r\n")
+        inst.ports["zaber"].out.extend(b"@01 0 partial")   # a line without its end
+        for _ in range(4):
+            take(b"\r\n")
+        return out
+
+    fast = session(lambda z, *a, **k: z.read_until(*a, **k))
+    per_byte = session(lambda z, *a, **k: SerialBase.read_until(z, *a, **k))
+    assert fast == per_byte, (fast, per_byte)
+    assert fast[0][0] == b"@01 0 OK IDLE WR 0\r\n" and fast[1][0] == b"@02 0 OK IDLE -- 0\r\n"
+    assert fast[2][0] == b"@01 0 O" and fast[6] == (b"", fast[5][1] + 0.5)
+    assert any(b"!01" in line for line, _ in fast), fast       # the alert arrived through a read
+    # readline(size) against io's, which also reads a byte at a time (terminator b"\n" only)
+    import io
+
+    lines = session(lambda z, *a, **k: z.readline(k.get("size", a[1] if len(a) > 1 else -1)))
+    io_lines = session(lambda z, *a, **k: io.RawIOBase.readline(z, k.get("size", a[1] if len(a) > 1 else -1)))
+    assert lines == io_lines and len({x[0] for x in lines}) > 4
