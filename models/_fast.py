@@ -275,7 +275,8 @@ def eval(model, wi, wo, params):
         return _roundtrip.eval_blocks(_frozen_for(kern, model), wi, wo, P, _FREEZE_LOCK)
     # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the
     # interleave the trace is long enough (measured 28 us frozen, 57 us traced, 300 pairs)
-    return _roundtrip.eval_gathered(_frozen_for(_round_trip, model), wi, wo, P, _FREEZE_LOCK, EVAL_BLOCK)
+    words = _frozen_for(_round_trip_words, model) if dtype == np.float32 else None
+    return _roundtrip.eval_gathered((_frozen_for(_round_trip, model), words), wi, wo, P, _FREEZE_LOCK, EVAL_BLOCK)
 
 
 def _soa_kernel(model, *inputs):
@@ -291,6 +292,12 @@ def _packed_kernel(model, *inputs):
 def _round_trip(model, *inputs):
     """The model's kernel between gathers (:func:`._roundtrip.gather_kernel`)."""
     return _roundtrip.gather_kernel(_kernel, model, *inputs)
+
+
+def _round_trip_words(model, *inputs):
+    """The model's float32 kernel between gathers of words of two rows
+    (:func:`._roundtrip.word_gather_kernel`)."""
+    return _roundtrip.word_gather_kernel(_kernel, model, *inputs)
 
 
 def value_and_grad(model, wi, wo, params, cotangent):

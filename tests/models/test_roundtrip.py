@@ -148,3 +148,37 @@ def test_gathered_blocks_join_into_one_output(monkeypatch):
         monkeypatch.setattr(_fast, "EVAL_BLOCK", 1 << 20)
         np.testing.assert_array_equal(got, want)
         assert got.dtype == dtype and got.shape == (2501, 3) and got.flags.c_contiguous
+
+
+@pytest.mark.parametrize("name,options", CASES, ids=[c[0] for c in CASES])
+def test_float32_words_equal_the_float_gathers_bit_for_bit(name, options, monkeypatch):
+    """float32 rows read as uint64 words of two (models/_roundtrip.word_gather_kernel): the
+    same values as one float per gather, for even and odd batches (the last row of an odd one
+    by the float kernel), rows that start 4 bytes off an 8-byte boundary (the float path),
+    and blocks; the hostile rows give 0 as everywhere."""
+    monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
+    m = gm.get(name, **options)
+    rng = np.random.default_rng(1806)
+    p = random_params(m, rng)
+    wi, wo = (x.astype(np.float32) for x in _pairs(rng, 2001))
+    words = {}
+    for n in (2000, 2001, 33, 2):
+        words[n] = m.eval(wi[:n], wo[:n], p)
+    if m.structure.kernel is not None:  # the word kernel ran (a model without one: its layers')
+        assert _fast._frozen_for(_fast._round_trip_words, m).n_cached_recordings >= 1
+    monkeypatch.setattr(_roundtrip, "_word_rows", lambda a: False)
+    for n, got in words.items():
+        want = m.eval(wi[:n], wo[:n], p)
+        np.testing.assert_array_equal(got, want)
+        assert got.dtype == np.float32 and got.shape == (n, 3) and got.flags.c_contiguous
+        assert np.all(got[[0, 1, 2, 4]] == 0) if n > 4 else True
+    monkeypatch.undo()
+    monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
+    raw = np.empty(3 * 2000 + 1, np.float32)
+    off = raw[1:] if raw[1:].ctypes.data % 8 else raw[:-1]
+    un = off.reshape(2000, 3)
+    un[...] = wi[:2000]
+    assert un.ctypes.data % 8 == 4 and not _roundtrip._word_rows(un) and _roundtrip._word_rows(wi[:2000])
+    np.testing.assert_array_equal(m.eval(un, wo[:2000], p), words[2000])
+    monkeypatch.setattr(_fast, "EVAL_BLOCK", 1000)
+    np.testing.assert_array_equal(m.eval(wi, wo, p), words[2001])
