@@ -3,7 +3,7 @@
     .venv/bin/python tests/fitting/budget_coverage.py synthetic N [--first SEED] [--out FILE.json]
     .venv/bin/python tests/fitting/budget_coverage.py capture N [--first SEED] [--errors TABLE_JSON] [--calibrated]
         [--sample roughplastic|glossy] [--plan PLAN]
-    .venv/bin/python tests/fitting/budget_coverage.py --summarise FILE.json
+    .venv/bin/python tests/fitting/budget_coverage.py --summarise FILE.json [FILE.json ...]
 
 ``synthetic``: the sessions of tests/fitting/test_budget.py (:func:`test_budget.session`):
 a glossy roughplastic-GGX sample (alpha 0.05, int_ior 1.5), type-A noise, and the reference's
@@ -269,6 +269,21 @@ def record(names, x, uc, us, truth) -> dict:
             "stat": (d <= us).tolist()}
 
 
+def pooled(paths) -> list:
+    """The sessions of several runs of one study (same mode, sample, errors and calibration;
+    distinct seeds), in seed order; ValueError for runs that are not one study."""
+    docs = [json.loads(Path(p).read_text()) for p in paths]
+    keys = ("mode", "sample", "errors", "calibrated")
+    kinds = {tuple(str(d.get(k)) for k in keys) for d in docs}
+    if len(kinds) > 1:
+        raise ValueError(f"not one study: {sorted(kinds)} ({', '.join(keys)})")
+    rows = [r for d in docs for r in d["sessions"]]
+    seeds = [r.get("seed") for r in rows]
+    if None not in seeds and len(set(seeds)) != len(seeds):
+        raise ValueError("the runs share seeds: a session would count twice")
+    return sorted(rows, key=lambda r: r.get("seed", 0))
+
+
 def summarise(rows):
     names = rows[0]["names"]
     n = len(rows)
@@ -311,10 +326,12 @@ def main(argv=None):
     ap.add_argument("--sample", default="roughplastic", choices=tuple(CAPTURE_SAMPLES),
                     help="capture: roughplastic-Beckmann alpha 0.15 or glossy roughplastic-GGX alpha 0.05")
     ap.add_argument("--calibrated", action="store_true", help="capture: gonio calibrate first and use it")
-    ap.add_argument("--summarise", type=Path)
+    ap.add_argument("--summarise", type=Path, nargs="+", metavar="FILE.json",
+                    help="summarise one run, or pool several of the same study (mode, sample, errors, "
+                         "calibration) whose seeds do not overlap")
     a = ap.parse_args(argv)
     if a.summarise:
-        summarise(json.loads(a.summarise.read_text())["sessions"])
+        summarise(pooled(a.summarise))
         return 0
     if a.mode is None:
         ap.error("give a mode (synthetic or capture) or --summarise FILE")
