@@ -588,13 +588,28 @@ def _normal_sums(model, *args, log=False):
     terms = [sum(a * rc for a, rc in zip(wr, res))]
     for e in ent:
         terms.append(sum(wr[c] * col(e, c) for c in range(CHANNELS) if col(e, c) is not None))
-    for i, a in enumerate(ent):
-        for b in ent[i:]:
-            if not _shares_channel(model, a, b):
-                continue
-            terms.append(sum(w[c] * col(a, c) * col(b, c) for c in range(CHANNELS)
-                             if col(a, c) is not None and col(b, c) is not None))
+    for i, j in _shared_pairs(model):
+        a, b = ent[i], ent[j]
+        terms.append(sum(w[c] * col(a, c) * col(b, c) for c in range(CHANNELS)
+                         if col(a, c) is not None and col(b, c) is not None))
     return _reduced(terms)
+
+
+def _shared_pairs(model):
+    """The (i, j), i <= j, of the entries (:func:`_entries`) whose normal-equation sum can
+    differ from 0 (:func:`_shares_channel`), in the order the kernel reduces them; computed
+    once per model configuration (per call it cost ~0.1 ms of a ~0.25 ms roughconductor
+    normal-equations call at 100 pairs: 28 pairs of checks through ``model.structure``)."""
+    return _shared_pairs_of(model.name, tuple(sorted(model.options.items())))
+
+
+@lru_cache(maxsize=None)
+def _shared_pairs_of(name, options):
+    from . import get
+
+    model = get(name, **dict(options))
+    ent = _entries(model)
+    return tuple((i, j) for i, a in enumerate(ent) for j in range(i, len(ent)) if _shares_channel(model, a, ent[j]))
 
 
 def _shares_channel(model, a, b):
@@ -650,13 +665,10 @@ def normal_equations(model, dirs, params, y, w, log=False):
     vals = _collect(sums, dirs.dtype)
     g = vals[1:1 + E].copy()
     A = np.zeros((E, E))
-    k = 1 + E
-    for i, a in enumerate(ent):
-        for j in range(i, E):
-            b = ent[j]
-            if _shares_channel(model, a, b):
-                A[i, j] = A[j, i] = vals[k]
-                k += 1
+    pairs = _shared_pairs(model)
+    if pairs:
+        i, j = np.array(pairs).T
+        A[i, j] = A[j, i] = vals[1 + E:1 + E + len(pairs)]
     return float(vals[0]), g, A, ent
 
 
