@@ -147,14 +147,14 @@ EVAL_BLOCK = 1 << 20
 def clear_parameter_caches():
     """Forget every table cached per parameter value: roughplastic's exact and interpolated
     transmittance tables and internal reflectance, in numpy (:mod:`._rough_tables`) and in
-    Dr.Jit (:func:`._jit._cached_tables`, their derivatives). What a benchmark calls before
+    Dr.Jit (:func:`._jit_tables._cached_tables`, their derivatives). What a benchmark calls before
     each timed run: a fit of a new capture finds none of the tables an earlier, identical run
     computed (the caches keep the values, not the parameter-independent quadrature grids)."""
-    from . import _jit, _rough_tables
+    from . import _jit_tables, _rough_tables
 
     _rough_tables.clear_cache()
-    _jit._cached_tables.cache_clear()
-    _jit._cached_table_derivs.cache_clear()
+    _jit_tables._cached_tables.cache_clear()
+    _jit_tables._cached_table_derivs.cache_clear()
 
 
 def eval(model, wi, wo, params):

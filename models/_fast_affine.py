@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from ._freeze import _FREEZE_LOCK, _frozen_for
-from ._jit import Directions, JitContext, _cached_tables, _dr, _t_ext_batch
+from ._jit import Directions, JitContext, _dr
+from ._jit_tables import _cached_tables, _t_ext_batch
 
 __all__ = ["affine_parts", "affine_q", "affine_spec", "affine_tables", "prepare"]
 

@@ -19,8 +19,8 @@ from ._fresnel import fresnel_dielectric
 from .geometry import half_vector
 from ._microfacet import MicrofacetDistribution, smith_g1_xyz
 from ._rough_tables import _interp, lerp_table, rough_tables, rough_tables_interp
-from ._jit import (_cached_table_derivs, _cached_tables, _dr, _fresnel_outside, _lerp_table, _lobe, _pairs,
-                   _t_ext_batch, _tables, channels, microfacet_lobe)
+from ._jit import _dr, _fresnel_outside, _lerp_table, _lobe, _pairs, channels, microfacet_lobe
+from ._jit_tables import _cached_table_derivs, _cached_tables, _t_ext_batch, _tables
 from ._structure import Affine, Structure
 
 __all__ = ["RoughPlastic"]

@@ -77,14 +77,14 @@ def test_every_timed_run_starts_with_the_parameter_tables_uncached(monkeypatch):
 
     import gonio.models as gm
     from gonio.fitting import fit
-    from gonio.models import _jit, _rough_tables, fast
+    from gonio.models import _jit_tables, _rough_tables, fast
 
     name, options, truth = bench.MODELS[0]
     model = gm.get(name, **options)
     truth = {k: np.asarray(v, dtype=float) if isinstance(v, list) else v for k, v in truth.items()}
     meas, _ = bench.simulate_capture(model, truth, 100, np.random.default_rng(5), 0.01)
-    caches = (_rough_tables.rough_tables, _rough_tables.rough_tables_interp, _jit._cached_tables,
-              _jit._cached_table_derivs)
+    caches = (_rough_tables.rough_tables, _rough_tables.rough_tables_interp, _jit_tables._cached_tables,
+              _jit_tables._cached_table_derivs)
     bench._run_one("nlopt-slsqp", meas, model, 0, fit)
     assert sum(c.cache_info().currsize for c in caches) > 0  # the run filled them
     fast.clear_parameter_caches()
