@@ -92,26 +92,11 @@ class Serial(SerialBase):
             return len(self._ep.out)
 
     def read(self, size=1):
-        self._alive()
-        ep = self._ep
-        clock = ep.inst.clock
-        got = bytearray()
-        deadline = None if self._timeout is None else time.monotonic() + self._timeout
-        while True:
-            with ep.inst.lock:
-                self._alive()
-                ep.poll()
-                got += ep.take(size - len(got))
-            if len(got) >= size:
-                break
-            if clock.instant:
-                if self._timeout:
-                    clock.advance(self._timeout)
-                break
-            if deadline is not None and time.monotonic() >= deadline:
-                break
-            time.sleep(0.001)
-        return bytes(got)
+        def take(got, out):
+            n = max(0, min(len(out), size - len(got)))
+            return n, len(got) + n >= size
+
+        return self._read(take)
 
     def read_until(self, expected=b"\n", size=None):
         """pyserial's ``read_until`` (and :meth:`readline`): bytes up to and including
@@ -124,38 +109,54 @@ class Serial(SerialBase):
         buffer is searched once per wait instead: a simulated capture's hosts read ~49 000
         bytes a session (the quick plan), and the per-byte reads cost 2.0 s of a capture's 4.3 s
         of CPU (cProfile, 2026-12-02)."""
-        self._alive()
         expected = bytes(expected)
         if not expected:
             raise ValueError("read_until needs a non-empty terminator")
+
+        def take(got, out):
+            room = len(out) if size is None else max(0, min(len(out), size - len(got)))
+            # a terminator may straddle what was taken already and what is waiting
+            tail = max(0, len(got) - len(expected) + 1)
+            found = (bytes(got[tail:]) + bytes(out[:room])).find(expected)
+            if found >= 0:
+                return found + len(expected) - (len(got) - tail), True
+            return room, size is not None and len(got) + room >= size
+
+        return self._read(take)
+
+    def _read(self, take):
+        """The reads' loop: under the instrument's lock, with the alerts that came due
+        queued, ``take(got, waiting)`` says how many of the waiting bytes to take and whether
+        the read is then complete; if not, wait (:meth:`_wait`) and look again."""
+        self._alive()
         ep = self._ep
-        clock = ep.inst.clock
         got = bytearray()
         deadline = None if self._timeout is None else time.monotonic() + self._timeout
         while True:
             with ep.inst.lock:
                 self._alive()
                 ep.poll()
-                room = len(ep.out) if size is None else max(0, min(len(ep.out), size - len(got)))
-                # a terminator may straddle what was taken already and what is waiting
-                tail = max(0, len(got) - len(expected) + 1)
-                found = (bytes(got[tail:]) + bytes(ep.out[:room])).find(expected)
-                if found >= 0:
-                    got += ep.take(found + len(expected) - (len(got) - tail))
-                    return bytes(got)
-                got += ep.take(room)
-            if size is not None and len(got) >= size:
+                n, done = take(got, ep.out)
+                got += ep.take(n)
+            if done or not self._wait(deadline):
                 return bytes(got)
-            if clock.instant:
-                if self._timeout:
-                    clock.advance(self._timeout)
-                return bytes(got)
-            if deadline is not None and time.monotonic() >= deadline:
-                return bytes(got)
-            time.sleep(0.001)
+
+    def _wait(self, deadline) -> bool:
+        """A read found too few bytes: False if it returns now (instant clock: the timeout
+        spent on the simulated clock once; scaled: ``deadline`` passed), else True after a
+        millisecond's sleep (look again)."""
+        clock = self._ep.inst.clock
+        if clock.instant:
+            if self._timeout:
+                clock.advance(self._timeout)
+            return False
+        if deadline is not None and time.monotonic() >= deadline:
+            return False
+        time.sleep(0.001)
+        return True
 
     def readline(self, size=-1):
-        """A line (``\n`` included), as io's ``readline`` gives it from ``read(1)``: see
+        """A line, its newline included, as io's ``readline`` gives it from ``read(1)``: see
         :meth:`read_until`."""
         return self.read_until(b"\n", None if size is None or size < 0 else size)
 
