@@ -88,11 +88,12 @@ class Ensemble:
         inds = np.arange(coords.shape[0]) % move.nsplits
         if move.randomize_split:
             random.shuffle(inds)
-        for split in range(move.nsplits):
-            sets = [coords[inds == j] for j in range(move.nsplits)]
+        splits = [inds == j for j in range(move.nsplits)]
+        for split, members in enumerate(splits):
+            sets = [coords[m] for m in splits]  # after the previous half-ensembles' moves
             q, factors = move.get_proposal(sets[split], sets[:split] + sets[split + 1:], random)
             new_lp = self._log_prob(q)
-            walkers = np.flatnonzero(inds == split)
+            walkers = np.flatnonzero(members)
             take = factors + new_lp - lp[walkers] > np.log(random.rand(walkers.size))
             moved = walkers[take]
             coords[moved] = q[take]

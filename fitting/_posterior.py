@@ -285,12 +285,11 @@ class _AffinePosterior:
     def _weights(self, thetas):
         """Tensor-product Lagrange weights (K, n^T) of the box's nodes at thetas."""
         _, _, lagrange = self.box
-        W = np.ones((thetas.shape[0], 1))
+        W = None
         for d, (z, off, den) in enumerate(lagrange):
             # L_j(x) = prod_{m != j} (x - z_m) / (z_j - z_m): the factors of m = j set to 1
-            num = np.where(off, thetas[:, d, None, None] - z, 1.0)
-            L = np.prod(num / den, axis=2)
-            W = (W[:, :, None] * L[:, None, :]).reshape(thetas.shape[0], -1)
+            L = (np.where(off, thetas[:, d, None, None] - z, 1.0) / den).prod(axis=2)
+            W = L if W is None else (W[:, :, None] * L[:, None, :]).reshape(thetas.shape[0], -1)
         return W
 
     def _interp(self, thetas):
@@ -305,7 +304,10 @@ class _AffinePosterior:
         if self.box is None:
             return kern.tables(thetas), kern.exact_q(thetas)
         lo, hi, _ = self.box
-        inside = np.all((thetas >= lo) & (thetas <= hi), axis=1)
+        inside = ((thetas >= lo) & (thetas <= hi)).all(axis=1)
+        if inside.all():  # the walkers' usual case: no scatter into the rows inside
+            t, q = self._interp(thetas)
+            return (t if self.t_ok else kern.tables(thetas)), q
         t, q = np.empty((thetas.shape[0], self.node_t.shape[1])), np.empty(thetas.shape[0])
         if np.any(inside):
             t[inside], q[inside] = self._interp(thetas[inside])
@@ -329,22 +331,27 @@ class _AffinePosterior:
         return mu, sd, chi2_min, lo, hi, q, ok
 
     def __call__(self, xs):
-        xs = np.atleast_2d(xs)
+        """Log posterior of the walkers xs (K, T), finite (:class:`~gonio.fitting._ensemble.Ensemble`
+        checks them, as emcee does): -inf outside the bounds."""
+        inside = ((xs >= self.lower) & (xs <= self.upper)).all(axis=1)
+        if inside.all():
+            return self._log_posterior(xs)
         out = np.full(xs.shape[0], -np.inf)
-        inside = np.all((xs >= self.lower) & (xs <= self.upper), axis=1) & np.all(np.isfinite(xs), axis=1)
-        if not np.any(inside):
-            return out
-        mu, sd, chi2_min, lo, hi, q, ok = self.stats(xs[inside])
+        if inside.any():
+            out[inside] = self._log_posterior(xs[inside])
+        return out
+
+    def _log_posterior(self, thetas):
+        """Log posterior of thetas (K, T) inside the bounds."""
+        mu, sd, chi2_min, lo, hi, q, ok = self.stats(thetas)
         a, b = (lo - mu) / sd, (hi - mu) / sd
         # log(Phi(b) - Phi(a)) stably in either tail
         upper_tail = a > 0
-        la, lb = np.where(upper_tail, log_ndtr(-b), log_ndtr(a)), np.where(upper_tail, log_ndtr(-a), log_ndtr(b))
+        la, lb = log_ndtr(np.where(upper_tail, -b, a)), log_ndtr(np.where(upper_tail, -a, b))
         mass = lb + np.log1p(-np.exp(np.minimum(la - lb, 0.0)) + 1e-300)
         # prior uniform in the model's own parameter: coef = rho / q, so d rho = q d coef
         lp = -0.5 * chi2_min + np.log(sd) + np.log(q)[:, None] + mass
-        lp = np.where(ok & np.isfinite(lp), lp, -np.inf).sum(axis=1)
-        out[inside] = lp
-        return out
+        return np.where(ok & np.isfinite(lp), lp, -np.inf).sum(axis=1)
 
     def draw(self, thetas, rng, chunk=256):
         """Full parameter vectors: each theta with its affine parameters drawn from their
