@@ -8,15 +8,19 @@ draw, emcee's own proposals (``move.get_proposal``), the same uniform draws in t
 order for the acceptance tests, and the chain stored in emcee's own ``Backend``. The chains
 are equal bit for bit (``tests/fitting/test_ensemble.py`` checks them against emcee's).
 
-What it leaves out is the general sampler's bookkeeping, which on the coverage test's small
-ensembles (8 walkers, 1-2 parameters) cost as much as the posterior itself (cProfile,
-2026-12-02, 2-core AMD EPYC Zen 3, AVX2): per step a copy of the RandomState's state for
-``State.random_state`` (``EnsembleSampler.random_state``: 80 us), the acceptance test one
-walker at a time in Python, a new ``State`` per half-ensemble, and per log-probability call
-the blob detection, which walks the results one walker at a time and falls through an
-exception when there are none. The acceptance test is vectorised: ``lnpdiff > log(u)`` per
-walker, with the walker's uniform drawn in walker order as emcee draws them one by one
-(``RandomState.rand(n)`` is n successive ``rand()``), and the same IEEE operations.
+What it leaves out is the general sampler's bookkeeping: per step a copy of the
+RandomState's state for ``State.random_state`` (``EnsembleSampler.random_state``, 80 us), the
+acceptance test one walker at a time in Python, a new ``State`` per half-ensemble, and per
+log-probability call the blob detection, which walks the results one walker at a time and
+falls through an exception when there are none. The acceptance test is vectorised:
+``lnpdiff > log(u)`` per walker, with the walker's uniform drawn in walker order as emcee
+draws them one by one (``RandomState.rand(n)`` is n successive ``rand()``), and the same
+IEEE operations. On the coverage test's small ensembles that bookkeeping weighed as much as
+the log posterior (cProfile of 10 orennayar captures, 40 points, 8 walkers, one parameter:
+emcee's code 1.6 s, the log posterior 1.9 s besides its 1.1 s of Dr.Jit kernels). Measured
+2026-12-02 on a 2-core AMD EPYC (Zen 3, AVX2), 8 walkers, 80 % DEMove and 20 % DESnookerMove
+and a trivial log probability: 273 us a step (1 parameter) and 282 us (2) here, 413 us and
+452 us with ``EnsembleSampler.run_mcmc``.
 
 Only red-blue moves (emcee's ``RedBlueMove`` subclasses: ``DEMove``, ``DESnookerMove``,
 ``StretchMove``, ...) without tuning, and a vectorised log probability without blobs.
@@ -103,11 +107,11 @@ class Ensemble:
 
     def _log_prob(self, xs):
         """The log posterior at xs, with ``compute_log_prob``'s checks (finite positions, no NaN)."""
-        if not np.all(np.isfinite(xs)):
+        if not np.isfinite(xs).all():
             raise ValueError("a walker's position is not finite")
         lp = np.asarray(self.log_prob(xs), dtype=float)
         if lp.shape != (xs.shape[0],):
             raise ValueError(f"log_prob returned shape {lp.shape} for {xs.shape[0]} walkers")
-        if np.any(np.isnan(lp)):
+        if np.isnan(lp).any():
             raise ValueError("Probability function returned NaN")
         return lp
