@@ -41,6 +41,7 @@ from scipy.special import log_ndtr, ndtr, ndtri
 
 from . import _loss
 from ._affine import AffineFit, applicable, single_threaded_blas
+from ._ensemble import Ensemble
 from ._problem import Problem as _Problem
 
 __all__ = ["Posterior", "sample_posterior"]
@@ -110,15 +111,15 @@ def sample_posterior(meas, result, *, rng, n_walkers: int = 32, max_steps: int =
     # integrated autocorrelation time drops from 26.7 steps (emcee's default stretch move)
     # to 7.6, so a chain reaches 50 tau in a third of the steps
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
-    sampler = emcee.EnsembleSampler(n_walkers, P, affine or log_prob, vectorize=True, moves=moves)
-    sampler.random_state = np.random.RandomState(int(rng.integers(2**32 - 1))).get_state()
+    # emcee's EnsembleSampler, draw for draw, without its per-step bookkeeping (_ensemble)
+    sampler = Ensemble(affine or log_prob, start, moves, int(rng.integers(2**32 - 1)))
     t0 = time.perf_counter()
-    tau, converged = _run_chain(sampler, start, P, chunk, max_steps, tau_multiple, time_budget_s, t0)
+    tau, converged = _run_chain(sampler, P, chunk, max_steps, tau_multiple, time_budget_s, t0)
     n_steps = sampler.iteration
     tau_max = float(np.max(tau)) if np.all(np.isfinite(tau)) else float(n_steps)
     burn = int(min(n_steps // 2, 3 * tau_max))
     thin = max(1, int(tau_max / 2))
-    samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
+    samples = sampler.backend.get_chain(discard=burn, thin=thin, flat=True)
     if affine is not None:  # each kept theta gets its affine parameters from the exact conditional
         with single_threaded_blas():
             samples = affine.draw(samples, rng)
@@ -171,14 +172,14 @@ def _walker_start(result, sub, lower, upper, n_walkers, rng):
     return np.clip(start, lower + 1e-9 * span, upper - 1e-9 * span)
 
 
-def _run_chain(sampler, state, P, chunk, max_steps, tau_multiple, time_budget_s, t0):
+def _run_chain(sampler, P, chunk, max_steps, tau_multiple, time_budget_s, t0):
     """Run the ensemble in chunks until it exceeds ``tau_multiple`` tau, the step budget or
     the time budget; returns (tau, converged)."""
     tau = np.full(P, np.inf)
     while sampler.iteration < max_steps:
         with single_threaded_blas():
-            state = sampler.run_mcmc(state, chunk, progress=False)
-        tau = sampler.get_autocorr_time(tol=0)
+            sampler.run(chunk)
+        tau = sampler.backend.get_autocorr_time(tol=0)
         if np.all(np.isfinite(tau)) and sampler.iteration > tau_multiple * np.max(tau):
             return tau, True
         if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
@@ -255,7 +256,8 @@ class _AffinePosterior:
         self.box = None
         self.t_ok = False
         self.surrogate_error = None
-        if not result.model.structure.affine.tables:  # no tables: nothing to interpolate
+        self.tables = bool(result.model.structure.affine.tables)  # (the model builds its structure anew per read)
+        if not self.tables:  # no tables: nothing to interpolate
             return
         theta = result.x[nl]
         sd = np.sqrt(np.clip(np.diag(result.cov)[nl], 0.0, None))
@@ -269,7 +271,7 @@ class _AffinePosterior:
             c = 0.5 - 0.5 * np.cos(np.pi * np.arange(n) / (n - 1))  # Chebyshev-Lobatto in [0, 1]
             nodes = lo[:, None] + (hi - lo)[:, None] * c[None, :]
             pts = np.array([[a, b] for a in nodes[0] for b in nodes[1]])
-            self.box = (lo, hi, nodes)
+            self.box = (lo, hi, [_lagrange_denominators(z) for z in nodes])
             self.node_t = self.kern.tables(pts)
             self.node_q = self.kern.exact_q(pts)
             t_s, q_s = self._interp(check)
@@ -282,17 +284,12 @@ class _AffinePosterior:
 
     def _weights(self, thetas):
         """Tensor-product Lagrange weights (K, n^T) of the box's nodes at thetas."""
-        _, _, nodes = self.box
-        W = np.ones((thetas.shape[0], 1))
-        for d in range(thetas.shape[1]):
-            x, z = thetas[:, d], nodes[d]
-            n = z.size
-            off = ~np.eye(n, dtype=bool)
+        _, _, lagrange = self.box
+        W = None
+        for d, (z, off, den) in enumerate(lagrange):
             # L_j(x) = prod_{m != j} (x - z_m) / (z_j - z_m): the factors of m = j set to 1
-            num = np.where(off[None, :, :], x[:, None, None] - z[None, None, :], 1.0)
-            den = np.where(off, z[:, None] - z[None, :], 1.0)
-            L = np.prod(num / den[None, :, :], axis=2)
-            W = (W[:, :, None] * L[:, None, :]).reshape(thetas.shape[0], -1)
+            L = (np.where(off, thetas[:, d, None, None] - z, 1.0) / den).prod(axis=2)
+            W = L if W is None else (W[:, :, None] * L[:, None, :]).reshape(thetas.shape[0], -1)
         return W
 
     def _interp(self, thetas):
@@ -301,13 +298,16 @@ class _AffinePosterior:
 
     def tables_q(self, thetas):
         """(tables or None, q) at thetas (K, T): interpolated inside the box, exact outside."""
-        if not self.model.structure.affine.tables:
+        if not self.tables:
             return None, np.ones(thetas.shape[0])
         kern = self.kern
         if self.box is None:
             return kern.tables(thetas), kern.exact_q(thetas)
         lo, hi, _ = self.box
-        inside = np.all((thetas >= lo) & (thetas <= hi), axis=1)
+        inside = ((thetas >= lo) & (thetas <= hi)).all(axis=1)
+        if inside.all():  # the walkers' usual case: no scatter into the rows inside
+            t, q = self._interp(thetas)
+            return (t if self.t_ok else kern.tables(thetas)), q
         t, q = np.empty((thetas.shape[0], self.node_t.shape[1])), np.empty(thetas.shape[0])
         if np.any(inside):
             t[inside], q[inside] = self._interp(thetas[inside])
@@ -331,22 +331,27 @@ class _AffinePosterior:
         return mu, sd, chi2_min, lo, hi, q, ok
 
     def __call__(self, xs):
-        xs = np.atleast_2d(xs)
+        """Log posterior of the walkers xs (K, T), finite (:class:`~gonio.fitting._ensemble.Ensemble`
+        checks them, as emcee does): -inf outside the bounds."""
+        inside = ((xs >= self.lower) & (xs <= self.upper)).all(axis=1)
+        if inside.all():
+            return self._log_posterior(xs)
         out = np.full(xs.shape[0], -np.inf)
-        inside = np.all((xs >= self.lower) & (xs <= self.upper), axis=1) & np.all(np.isfinite(xs), axis=1)
-        if not np.any(inside):
-            return out
-        mu, sd, chi2_min, lo, hi, q, ok = self.stats(xs[inside])
+        if inside.any():
+            out[inside] = self._log_posterior(xs[inside])
+        return out
+
+    def _log_posterior(self, thetas):
+        """Log posterior of thetas (K, T) inside the bounds."""
+        mu, sd, chi2_min, lo, hi, q, ok = self.stats(thetas)
         a, b = (lo - mu) / sd, (hi - mu) / sd
         # log(Phi(b) - Phi(a)) stably in either tail
         upper_tail = a > 0
-        la, lb = np.where(upper_tail, log_ndtr(-b), log_ndtr(a)), np.where(upper_tail, log_ndtr(-a), log_ndtr(b))
+        la, lb = log_ndtr(np.where(upper_tail, -b, a)), log_ndtr(np.where(upper_tail, -a, b))
         mass = lb + np.log1p(-np.exp(np.minimum(la - lb, 0.0)) + 1e-300)
         # prior uniform in the model's own parameter: coef = rho / q, so d rho = q d coef
         lp = -0.5 * chi2_min + np.log(sd) + np.log(q)[:, None] + mass
-        lp = np.where(ok & np.isfinite(lp), lp, -np.inf).sum(axis=1)
-        out[inside] = lp
-        return out
+        return np.where(ok & np.isfinite(lp), lp, -np.inf).sum(axis=1)
 
     def draw(self, thetas, rng, chunk=256):
         """Full parameter vectors: each theta with its affine parameters drawn from their
@@ -363,3 +368,11 @@ class _AffinePosterior:
             out[s:s + chunk, self.lin_idx] = np.clip(coef * q[:, None], self.space.lower[self.lin_idx],
                                                      self.space.upper[self.lin_idx])
         return out
+
+
+def _lagrange_denominators(z):
+    """(z, off, den) of the nodes z (n,) for :meth:`_AffinePosterior._weights`, made once per
+    box: ``off`` (1, n, n) marks the factors m != j of L_j, ``den`` (1, n, n) holds z_j - z_m
+    there and 1 on the diagonal."""
+    off = ~np.eye(z.size, dtype=bool)
+    return z, off[None], np.where(off, z[:, None] - z[None, :], 1.0)[None]

@@ -97,25 +97,25 @@ def affine_parts(model, prepared, thetas, tables=None):
         f_r[c] = base + coef[c] * basis at theta_k (0 below the horizon); see the section
         notes for what ``coef`` means per model.
     """
-    spec = affine_spec(model)
-    if spec is None:
+    affine = model.structure.affine  # built anew by every read: read once (10 us a read)
+    if affine is None:
         raise ValueError(f"model {model!r} has no affine-parts kernel")
     dr, F, V3, U = _dr()
-    th = _theta_array(thetas, len(spec[1]))
+    th = _theta_array(thetas, len(affine.theta))
     K, N = th.shape[0], prepared.n
     if N == 0:
         return np.zeros((K, 0)), np.zeros((K, 0))
     cols = [F(np.ascontiguousarray(th[:, j])) for j in range(th.shape[1])]
     if cols:
         dr.make_opaque(*cols)
-    if tables is None and model.structure.affine.tables:
+    if tables is None and affine.tables:
         # the exact tables are made in the same kernel (a fit's trial thetas): traced
         with dr.suspend_grad():
             base, basis = _parts_kernel(model, cols, prepared.wi, prepared.wo, None, K, N)
             dr.eval(base, basis)
             return np.asarray(base).reshape(K, N), np.asarray(basis).reshape(K, N)
     t = None
-    if tables is not None and model.structure.affine.tables:
+    if tables is not None and affine.tables:
         tb = np.asarray(tables, dtype=np.float64)
         if tb.shape != (K, 64):
             raise ValueError(f"tables must have shape ({K}, 64), got {tb.shape}")
