@@ -14,6 +14,8 @@ capture, measured 2026-12-02). A value set by the caller is kept.
 
 from __future__ import annotations
 
+import signal
+
 import pytest
 
 
@@ -88,3 +90,17 @@ def pytest_collection_modifyitems(session, config, items):
     for chunk, size in zip(chunks, sizes):
         chunk.extend(itertools.islice(fill, max(0, size - len(chunk))))
     items[:] = [it for chunk in chunks for it in chunk] + list(fill)
+
+
+@pytest.fixture
+def sigint_default():
+    """For a test that stops a child process with SIGINT: the children it starts get SIGINT's
+    default disposition, and with it Python's KeyboardInterrupt, even when this process
+    ignores SIGINT. A test run started as a background job of a non-interactive shell
+    (``make test &`` in a script) ignores it, as POSIX has the shell do, every child inherits
+    that, and a child Python then never installs KeyboardInterrupt: ``gonio sim serve`` ran on
+    after its SIGINT (2026-12-02, two failures in such a run). A handler set here does not
+    survive the child's exec; an ignored signal would."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
