@@ -14,8 +14,6 @@ capture, measured 2026-12-02). A value set by the caller is kept.
 
 from __future__ import annotations
 
-import signal
-
 import pytest
 
 
@@ -40,10 +38,24 @@ def _share_the_cores():
         pass  # no Dr.Jit: nothing to share
 
 
+def _sigint_as_python_starts_it():
+    """SIGINT's default handler (KeyboardInterrupt) where this process was started with it
+    ignored: a test run launched as a background job of a non-interactive shell (``make test
+    &`` in a script) ignores it, as POSIX has the shell do; every child a test starts would
+    inherit that, a child Python then never installs KeyboardInterrupt, and the tests that stop
+    ``gonio sim serve`` with SIGINT saw it run on (2026-12-02, two failures in such a run). A
+    handler set here does not survive a child's exec: the children get the default."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def pytest_configure(config):
     import os
 
     _share_the_cores()
+    _sigint_as_python_starts_it()
     if os.environ.get("GONIO_LLVM_TARGET"):
         from gonio.models._jit_target import apply_env
 
@@ -90,17 +102,3 @@ def pytest_collection_modifyitems(session, config, items):
     for chunk, size in zip(chunks, sizes):
         chunk.extend(itertools.islice(fill, max(0, size - len(chunk))))
     items[:] = [it for chunk in chunks for it in chunk] + list(fill)
-
-
-@pytest.fixture
-def sigint_default():
-    """For a test that stops a child process with SIGINT: the children it starts get SIGINT's
-    default disposition, and with it Python's KeyboardInterrupt, even when this process
-    ignores SIGINT. A test run started as a background job of a non-interactive shell
-    (``make test &`` in a script) ignores it, as POSIX has the shell do, every child inherits
-    that, and a child Python then never installs KeyboardInterrupt: ``gonio sim serve`` ran on
-    after its SIGINT (2026-12-02, two failures in such a run). A handler set here does not
-    survive the child's exec; an ignored signal would."""
-    old = signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, old)

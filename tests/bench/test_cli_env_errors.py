@@ -262,7 +262,7 @@ def test_sizes_and_values_bounded(capsys, tmp_path):
 
 # ------------------------------------------------------------------- sim serve cleans up
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_sim_serve_removes_its_temporary_folder(tmp_path, sig, sigint_default):
+def test_sim_serve_removes_its_temporary_folder(tmp_path, sig):
     env = dict(os.environ, TMPDIR=str(tmp_path), PYTHONWARNINGS="ignore")
     proc = subprocess.Popen([sys.executable, "-m", "gonio.bench.cli", "sim", "serve", "--clock", "instant"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)

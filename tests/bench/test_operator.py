@@ -240,7 +240,7 @@ def _gonio(*args):
 
 
 @pytest.fixture
-def served(sigint_default):
+def served():
     proc = subprocess.Popen(GONIO + ["sim", "serve", "--clock", "instant", "--seed", "2"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     paths = {}

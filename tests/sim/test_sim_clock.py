@@ -43,7 +43,7 @@ def test_clock_specs(spec, mode, scale):
         gs.SimClock.coerce("sundial")
 
 
-def test_serve_in_another_process(tmp_path, sigint_default):
+def test_serve_in_another_process(tmp_path):
     code = ("import gonio.sim as gs; "
             f"gs.serve(seed=2, clock='scaled:100', link_dir={str(tmp_path)!r})")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
