@@ -187,6 +187,16 @@ def _word_rows(a) -> bool:
     return a.dtype == np.float32 and a.shape[0] % 2 == 0 and a.ctypes.data % 8 == 0 and a.flags.c_contiguous
 
 
+def _output(F, n):
+    """An (n, 3) numpy view of a new, evaluated Dr.Jit array of type F: Dr.Jit's allocator
+    reuses freed blocks, so a large output's pages are not faulted in again on every call."""
+    import drjit as dr
+
+    buf = dr.empty(F, CHANNELS * n)
+    dr.eval(buf)
+    return np.asarray(buf).reshape(n, CHANNELS)
+
+
 #: Above ``block`` pairs :func:`eval_gathered` launches blocks of ``block // BLOCK_SPLIT``.
 BLOCK_SPLIT = 4
 
@@ -222,9 +232,7 @@ def eval_gathered(runs, wi, wo, P, lock, block):
     # blocks, a large batch needs its output plus two blocks (measured peak RSS over the
     # inputs, 1e7 diffuse pairs: 2.03x the output in one launch, 1.27x in blocks); the output
     # in memory that Dr.Jit allocated, as in eval_blocks (no fresh pages faulted in a call)
-    buf = dr.empty(F, CHANNELS * n)
-    dr.eval(buf)
-    out = np.asarray(buf).reshape(n, CHANNELS)
+    out = _output(F, n)
     step = max(2, (block // BLOCK_SPLIT) & ~1) if n > block else n - 1  # even: blocks stay word-aligned
     for s in range(0, n, step):
         out[s:s + step] = one(wi[s:s + step], wo[s:s + step])
@@ -331,9 +339,7 @@ def eval_blocks(run, wi, wo, P, lock):
     F = types(wi.dtype)[1]
     n = wi.shape[0]
     per = 1 if wi.dtype == np.float64 else 2  # rows per word
-    buf = dr.empty(F, CHANNELS * n)
-    dr.eval(buf)
-    out = np.asarray(buf).reshape(n, CHANNELS)
+    out = _output(F, n)
     full = _buffers(SOA_BLOCK // per, 2 * CHANNELS, wi.dtype) if n >= SOA_BLOCK else None
     for s in range(0, n, SOA_BLOCK):
         a, b = _padded(wi[s:s + SOA_BLOCK]), _padded(wo[s:s + SOA_BLOCK])
