@@ -13,7 +13,7 @@ from pathlib import Path
 from gonio.models import atomic
 
 __all__ = ["TMP_PREFIX", "sha256_file", "atomic_write_bytes", "atomic_write_text", "fsync_dir",
-           "commit_file", "create_exclusive", "write_new_text", "remove_orphans"]
+           "commit_file", "make_durable", "create_exclusive", "write_new_text", "remove_orphans"]
 
 TMP_PREFIX = atomic.RESERVED_PREFIX     # reserved names start with this; a resume removes any left behind
 
@@ -42,9 +42,16 @@ def tmp_name(path: str | os.PathLike) -> Path:
     return p.with_name(TMP_PREFIX + p.name)
 
 
-def commit_file(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
-    """fsync ``tmp``, rename it to ``path`` and fsync the folder (gonio.models.atomic.commit)."""
-    atomic.commit(tmp, path)
+def commit_file(tmp: str | os.PathLike, path: str | os.PathLike, *, durable: bool = True) -> None:
+    """fsync ``tmp``, rename it to ``path`` and fsync the folder (gonio.models.atomic.commit);
+    ``durable=False``: the rename alone, for a batch that :func:`make_durable` syncs at once."""
+    atomic.commit(tmp, path, durable=durable)
+
+
+def make_durable(paths) -> None:
+    """Every file of a batch committed with ``durable=False`` made to survive a power cut at
+    once (gonio.models.atomic.make_durable): before anything records the batch as finished."""
+    atomic.make_durable(paths)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:

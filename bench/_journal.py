@@ -160,6 +160,15 @@ class Journal:
             self.db.execute("INSERT OR REPLACE INTO calibration VALUES (?, ?, ?, ?, ?, ?)",
                             (name, kind, seconds, file, sha256, time.time()))
 
+    def record_frames(self, rows: Iterable[tuple[str, str, float, str, str]]) -> None:
+        """Commit a set of calibration frames, ``(name, kind, seconds, file, sha256)`` each, in
+        one transaction: all of them or none (the flat field's set)."""
+        now = time.time()
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany("INSERT OR REPLACE INTO calibration VALUES (?, ?, ?, ?, ?, ?)",
+                                [(*row, now) for row in rows])
+
     def frames(self, kind: str) -> dict[str, tuple[float, str, str]]:
         """``{name: (seconds, file, sha256)}`` of the committed calibration frames of ``kind``."""
         return {r[0]: (r[1], r[2], r[3]) for r in self.db.execute(

@@ -29,12 +29,13 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-__all__ = ["atomic_open", "atomic_path", "commit", "file_mode", "is_temporary", "remove_orphans",
+__all__ = ["atomic_open", "atomic_path", "commit", "file_mode", "is_temporary", "make_durable", "remove_orphans",
            "remove_stale_temporaries", "RESERVED_PREFIX"]
 
 #: The temporary name of a file another program writes before gonio commits it (``.tmp-x``).
@@ -203,16 +204,70 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-def commit(tmp, path) -> None:
+def commit(tmp, path, *, durable: bool = True) -> None:
     """fsync the finished temporary ``tmp``, rename it to ``path`` and fsync the folder, so
-    that ``path`` is either the old file or the whole new one, after a power cut too."""
-    fd = os.open(tmp, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    that ``path`` is either the old file or the whole new one, after a power cut too.
+
+    ``durable=False``: the rename alone (``path`` is never seen half-written, a crash of this
+    process loses nothing); for a batch of files that :func:`make_durable` then syncs at once
+    and that nothing records as finished before it returns."""
+    if durable:
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
     os.replace(tmp, path)
-    _fsync_dir(Path(path).parent)
+    if durable:
+        _fsync_dir(Path(path).parent)
+
+
+def _syncfs():
+    """Linux's syncfs(2) from the C library, or None (another OS, or a C library without it)."""
+    try:
+        import ctypes
+        fn = ctypes.CDLL(None, use_errno=True).syncfs
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int]
+    return fn
+
+
+def make_durable(paths) -> None:
+    """Make every file in ``paths`` (written and renamed without fsync: ``commit(...,
+    durable=False)``) and its folder's entries survive a power cut, as :func:`commit` does for
+    one file, at the cost of one sync of their file system instead of two fsyncs a file.
+
+    Linux: one ``syncfs`` per file system (st_dev) the files are on: their data and the
+    folders' metadata, together, in one journal commit (512 flat frames: 0.09 s against 0.63 s
+    of an fsync each, ext4 on this machine's virtual disk). Where syncfs is missing or reports
+    an error (a full disk's delayed allocation, an I/O error), an fsync of each file and
+    folder, which raises that error as `OSError` naming the file."""
+    paths = [Path(p) for p in paths]
+    if not paths:
+        return
+    sync = _syncfs() if sys.platform.startswith("linux") else None
+    if sync is not None:
+        folders = {}
+        for p in paths:
+            folders.setdefault(os.stat(p.parent).st_dev, p.parent)
+        ok = True
+        for folder in folders.values():
+            fd = os.open(folder, os.O_RDONLY)
+            try:
+                ok = sync(fd) == 0 and ok
+            finally:
+                os.close(fd)
+        if ok:
+            return
+    for p in paths:
+        fd = os.open(p, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    for folder in {p.parent for p in paths}:
+        _fsync_dir(folder)
 
 
 def _temporary(path: Path, suffix: str = "") -> tuple[int, str]:

@@ -59,11 +59,11 @@ class SensorInfo:
     cfa: str = "RGGB"
 
 
-def _commit(tmp: Path, path: Path) -> None:
+def _commit(tmp: Path, path: Path, durable: bool = True) -> None:
     """`commit_file`, with a failed fsync or rename (a full disk) named after ``path``; the
     temporary file is removed."""
     try:
-        commit_file(tmp, path)
+        commit_file(tmp, path, durable=durable)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         if exc.filename is None:
@@ -95,9 +95,11 @@ class Delivery:
                 raise BadDelivery(f"{self.path.name} vanished before its check") from None
         return self.data
 
-    def finish(self) -> bytes | None:
+    def finish(self, durable: bool = True) -> bytes | None:
         """Check the file against ``digest``, then commit it (fsync, rename, fsync the folder);
         return its bytes, read once for the check and a decode (None: committed before).
+        ``durable=False``: the rename alone, for a batch of files that the caller makes durable
+        at once (`gonio.bench._files.make_durable`) before it records them.
 
         Raises
         ------
@@ -110,7 +112,7 @@ class Delivery:
         if hashlib.sha256(data).hexdigest() != self.digest:
             self.discard()
             raise BadDelivery(f"{self.path.name} does not match the camera's checksum")
-        _commit(self.tmp, self.path)
+        _commit(self.tmp, self.path, durable)
         self.tmp, self.data = None, None
         return data
 
@@ -214,6 +216,10 @@ class SimCamera:
     def flat(self, seconds: float, path: str | os.PathLike) -> str:
         """Expose the flat-field source (uniform radiance over the frame) for ``seconds``: as `expose`."""
         return self._shoot("FLAT", seconds, path)
+
+    def flat_deferred(self, seconds: float, path: str | os.PathLike) -> Delivery:
+        """As `flat`, returning once the camera has written the file (see `expose_deferred`)."""
+        return self._shoot("FLAT", seconds, path, check=False)
 
     def chart(self, seconds: float, path: str | os.PathLike) -> str:
         """Expose the ColorChecker in the holder's chart slot (the colour calibration): as `expose`."""

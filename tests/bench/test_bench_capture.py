@@ -254,6 +254,46 @@ def test_flat_field_taken_once_per_session(instrument, tmp_path):
         assert j.frames("flat") == {} and j.first_event("no_flat") is not None
 
 
+class CameraDyingInTheFlats(SimCamera):
+    """The simulated camera, which fails at its ``at``-th flat-field frame."""
+
+    def __init__(self, url, at):
+        super().__init__(url)
+        self.at, self.flats = at, 0
+
+    def flat_deferred(self, seconds, path):
+        self.flats += 1
+        if self.flats == self.at:
+            raise DeviceError("the camera died in the flat field")
+        return super().flat_deferred(seconds, path)
+
+
+def test_flat_set_is_journalled_whole_or_not_at_all(instrument, tmp_path):
+    """The flat field is one unit (bench/_session._take_flat_set): a run that dies in its middle
+    journals none of it; the resume takes the set again whole, under new names, and every file
+    in raw/ is one the journal reserved (the first try's frames included)."""
+    inst = instrument("flatset")
+    folder = tmp_path / "s"
+    n = S["capture"]["flat_frames"]
+    with pytest.raises(DeviceError, match="died in the flat field"):
+        run(inst, folder, camera=CameraDyingInTheFlats(inst.url("camera"), at=n // 2))
+    with Journal(folder / "journal.sqlite") as j:
+        assert j.frames("flat") == {} and j.done() == set()
+        first = {f for f in j.reserved() if "/flat_" in f}
+    assert len(first) == n                                     # the whole set was reserved at once
+    assert sum((folder / f).stat().st_size > 0 for f in first) == n // 2 - 1    # the frames taken
+    res = resume(folder, camera=inst.url("camera"), sleep=inst.clock.advance, progress=False)
+    assert res.complete
+    with Journal(folder / "journal.sqlite") as j:
+        flats = {v[1] for v in j.frames("flat").values()}
+        reserved = j.reserved()
+    assert len(flats) == n and not flats & first               # taken again whole, new names
+    assert {f"raw/{p.name}" for p in (folder / "raw").iterdir()} <= reserved
+    for name, (t, file, digest) in Journal(folder / "journal.sqlite").frames("flat").items():
+        assert sha256_file(folder / file) == digest
+    assert_clean(folder)
+
+
 def test_bad_inputs_leave_nothing_behind(instrument, tmp_path):
     inst = instrument("bad")
     with pytest.raises(CommunicationError, match="cannot open the stage port"):

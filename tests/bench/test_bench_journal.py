@@ -1,11 +1,13 @@
 """Session folder, journal and crash-safe files."""
 
+import os
 import sqlite3
+import sys
 import tomllib
 
 import pytest
 
-from gonio.bench._files import atomic_write_bytes, remove_orphans, sha256_file, tmp_name
+from gonio.bench._files import atomic_write_bytes, make_durable, remove_orphans, sha256_file, tmp_name
 from gonio.bench._journal import Journal, SessionLock, dumps_toml, read_session, write_session
 from gonio.bench.errors import SessionError
 
@@ -51,6 +53,30 @@ def test_atomic_files(tmp_path):
     (tmp_path / "c.dng.part").write_bytes(b"half")
     assert sorted(p.name for p in remove_orphans(tmp_path)) == [".tmp-b.dng", "c.dng.part"]
     assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
+def test_a_batch_is_made_durable_by_one_sync_or_an_fsync_each(tmp_path, monkeypatch):
+    """make_durable (the flat field's set): Linux's syncfs once, no fsync; where syncfs is
+    missing or fails, an fsync of every file and of their folder; an fsync's error raised."""
+    from gonio.models import atomic
+
+    files = [tmp_path / f"flat_{k}.dng" for k in range(5)]
+    for f in files:
+        f.write_bytes(b"frame")
+    fsynced, real = [], os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: fsynced.append(os.readlink(f"/proc/self/fd/{fd}")) or real(fd))
+    if sys.platform.startswith("linux") and atomic._syncfs() is not None:
+        make_durable(files)
+        assert fsynced == []
+    monkeypatch.setattr(atomic, "_syncfs", lambda: (lambda fd: -1))      # syncfs failing
+    make_durable(files)
+    assert sorted(fsynced) == sorted([str(f) for f in files] + [str(tmp_path)])
+    fsynced.clear()
+    monkeypatch.setattr(atomic, "_syncfs", lambda: None)                 # no syncfs here
+    monkeypatch.setattr(os, "fsync", lambda fd: (_ for _ in ()).throw(OSError(28, "No space left on device")))
+    with pytest.raises(OSError, match="No space"):
+        make_durable(files)
+    make_durable([])                                                     # nothing to do
 
 
 def test_session_lock_is_exclusive(tmp_path):
