@@ -22,7 +22,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from . import kinematics
 from ._files import TMP_PREFIX, create_exclusive, make_durable
 from ._hdr import Exposure, NoiseModel, choose_bracket, flat_gain, ladder
 from ._journal import RAW_DIR, Journal
