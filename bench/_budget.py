@@ -213,7 +213,8 @@ def move_history(rows) -> tuple[np.ndarray, np.ndarray]:
 
 
 def angle_variables(rows, settings) -> dict:
-    """``angle_shift_shared`` (angle_input, point, angle), ``angle_shift_independent``
+    """``angle_shift_shared`` (angle_input, point, angle) with ``irradiance_shift_shared``
+    (angle_input, point), ``angle_shift_independent``
     (axis_input, point, angle) and ``angle_shift_independent_group`` (axis_input, point),
     degrees: the change of each point's (theta_i, phi_i, theta_o, phi_o) for +1 sigma of each
     shared error (calibrate.angle_uncertainty's signed modes, with each axis's lost motion
@@ -229,6 +230,11 @@ def angle_variables(rows, settings) -> dict:
     return {"angle_shift_shared": (("angle_input", "point", "angle"), np.transpose(u["shared_modes"], (2, 0, 1)),
                                    {**attrs, "correlation": "full (each input)",
                                     "long_name": "change of the angles for +1 sigma of each shared calibration error"}),
+            "irradiance_shift_shared": (("angle_input", "point"), np.transpose(u["irradiance_modes"]),
+                                        {"units": "1", "correlation": "full (each input, with angle_shift_shared)",
+                                         "long_name": "relative change of the sample's irradiance, not the "
+                                                      "reference's, for +1 sigma of each shared calibration "
+                                                      "error (the sample's wedge: -tan(theta_i) d theta_i)"}),
             "angle_shift_independent": (("axis_input", "point", "angle"),
                                         np.transpose(u["independent_modes"], (2, 0, 1)),
                                         {**attrs, "axes": "yaw tilt azimuth lamp",

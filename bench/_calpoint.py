@@ -118,7 +118,10 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
         anew per point; ``shared_modes`` (N, 4, K): the signed change of each point's angles
         when one of K independent shared errors moves by +1 sigma (``cov_shared`` = sum of the
         modes' outer products; the budget's correlated components, ``full`` each, after
-        multiplying by df_r/dangle); ``u_theta_i``, ``u_theta_o``, ``u_phi_i``, ``u_phi_o``
+        multiplying by df_r/dangle); ``irradiance_modes`` (N, K): with each shared mode, the
+        relative change of the sample's irradiance that the reference does not share (the
+        wedge's, -tan(theta_i) d theta_i; 0 for the others), which the budget multiplies by f_r;
+        ``u_theta_i``, ``u_theta_o``, ``u_phi_i``, ``u_phi_o``
         (N,): the combined standard uncertainties. Multiply by the local slope of f_r (the
         budget's ``u_angle``). ``independent_modes`` (N, 4, 4): the change of each point's
         angles for +1 sigma of each axis's (yaw, tilt, azimuth, lamp) own per-move error
@@ -159,16 +162,28 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     modes = np.einsum("nak,km->nam", Js, V * np.sqrt(np.clip(w, 0.0, None)))      # (N, 4, 7)
     keep = np.sqrt(np.clip(w, 0.0, None)) > 0
     modes = modes[:, :, keep]
+    # the wedge tilts the sample's face alone: its irradiance goes as the cosine of the incidence
+    # on that face, while the reference square beside it (same holder, same stages) keeps its
+    # own, so the ratio the bench measures changes by cos(theta_i') / cos(theta_i) as well as
+    # by f_r's own angles: d ln E = -tan(theta_i) d theta_i (radians) for the wedge's inputs,
+    # nothing for the errors both squares share (they cancel in the ratio)
+    angles = _angles(stage, p, lost_motion(cal, d))
+    ti = np.radians(angles[:, 0])
+    Jr = np.zeros((stage.shape[0], len(shared)))
+    for k in (shared.index("wedge0"), shared.index("wedge1")):
+        Jr[:, k] = -np.tan(ti) * np.radians(Js[:, 0, k])
+    irradiance = (Jr @ (V * np.sqrt(np.clip(w, 0.0, None))))[:, keep]                 # (N, K)
     lost = [Ji[:, :, k] * (-left_b[k] * d[:, k])[:, None] for k in range(4)
             if left_b[k] > 0 and np.any(known[:, k])]                            # the sim: error -b/2 x dir
     if lost:
         modes = np.concatenate([modes, np.stack(lost, -1)], axis=-1)
+        irradiance = np.concatenate([irradiance, np.zeros((stage.shape[0], len(lost)))], axis=-1)
     indep = Ji * sd_i[:, None, :]                                                 # (N, 4 angles, 4 axes)
     cov_s = np.einsum("nak,nbk->nab", modes, modes)
     cov_i = np.einsum("nak,nbk->nab", indep, indep)
     tot = np.sqrt(np.diagonal(cov_s + cov_i, axis1=1, axis2=2))
-    return {"angles": _angles(stage, p, lost_motion(cal, d)), "cov_shared": cov_s, "cov_independent": cov_i,
-            "shared_modes": modes, "independent_modes": indep,
+    return {"angles": angles, "cov_shared": cov_s, "cov_independent": cov_i,
+            "shared_modes": modes, "irradiance_modes": irradiance, "independent_modes": indep,
             "u_theta_i": tot[:, 0], "u_phi_i": tot[:, 1], "u_theta_o": tot[:, 2], "u_phi_o": tot[:, 3]}
 
 

@@ -206,6 +206,9 @@ def _colour_matrix_components(ds, meas) -> list:
 AXES = ("yaw", "tilt", "azimuth", "lamp")
 #: the dataset variables of the angles' uncertainty (docs/interfaces.md 5.1), degrees
 ANGLE_SHIFTS = {"shared": "angle_shift_shared", "independent": "angle_shift_independent"}
+#: with ``angle_shift_shared``: the relative change of the sample's irradiance alone (the wedge's
+#: foreshortening, which the reference square does not share) for +1 sigma of each input
+IRRADIANCE_SHIFT = "irradiance_shift_shared"
 
 
 def _angle_shifts(ds, path, n_points):
@@ -222,6 +225,16 @@ def _angle_shifts(ds, path, n_points):
         if arr.ndim != 3 or arr.shape[1:] != (n_points, 4) or not np.all(np.isfinite(arr)):
             raise ValueError(f"{path}: {name} must be finite, (inputs, {n_points} points, 4 angles) in degrees")
         out[key] = arr
+    if "shared" in out and IRRADIANCE_SHIFT in ds.variables:
+        v = ds[IRRADIANCE_SHIFT]
+        try:
+            r = np.asarray(v.transpose(v.dims[0], "point").values, float)
+        except (ValueError, KeyError):
+            raise ValueError(f"{path}: {IRRADIANCE_SHIFT} must have dimensions (input, point)") from None
+        if r.shape != out["shared"].shape[:2] or not np.all(np.isfinite(r)):
+            raise ValueError(f"{path}: {IRRADIANCE_SHIFT} must be finite, ({out['shared'].shape[0]} inputs, "
+                             f"{n_points} points) as {ANGLE_SHIFTS['shared']}")
+        out["shared_irradiance"] = r
     group = ANGLE_SHIFTS["independent"] + "_group"
     if "independent" in out and group in ds.variables:
         g = np.asarray(ds[group].transpose(ds[group].dims[0], "point").values)
@@ -286,7 +299,10 @@ def angle_components(result, meas, angles: dict) -> list:
     (B, point: one error per point, shared by its channels), or where the dataset labels each
     axis's moves (``angle_shift_independent_group``) ``angle_repeatability_<axis>`` (B, group:
     one error per move of that axis, shared by the points taken without moving it): the angles'
-    shifts times the fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle)."""
+    shifts times the fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle).
+    A shared input that also changes the sample's irradiance alone (``shared_irradiance``, the
+    wedge's foreshortening: the bench's ratio to the reference then moves by that relative
+    change) adds f_r times it."""
     S = slope(result.model, result.params, meas.wi, meas.wo)
     out = []
     for key, name, corr in (("shared", "angle_shared", "full"), ("independent", "angle_repeatability", "point")):
@@ -294,6 +310,9 @@ def angle_components(result, meas, angles: dict) -> list:
         if not d.size:
             continue
         value = np.einsum("nca,kna->knc", S, d)
+        if key == "shared" and angles.get("shared_irradiance") is not None:
+            f = result.model.eval(meas.wi, meas.wo, result.params)
+            value = value + np.asarray(angles["shared_irradiance"], float)[:, :, None] * f[None]
         groups = angles.get("independent_groups") if key == "independent" else None
         if groups is None:
             out.append(BudgetComponent(name, value, "B", corr, f"angle uncertainty ({key}) x the local slope of the fitted f_r"))

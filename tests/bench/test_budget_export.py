@@ -211,6 +211,19 @@ def test_a_calibrated_session_carries_its_calibrations_lines():
     np.testing.assert_allclose(np.einsum("kna,knb->nab", shared, shared), u["cov_shared"], atol=1e-12)
     indep = v["angle_shift_independent"][1]
     np.testing.assert_allclose(np.einsum("kna,knb->nab", indep, indep), u["cov_independent"], atol=1e-12)
+    # with the shared inputs, the sample's own foreshortening: the wedge's inputs alone (here
+    # degenerate with the holder tilt's, u 0.01 deg both: the modes mix them), d ln E =
+    # -tan(theta_i) d theta_i, so its variance over the modes is tan^2 times the wedge's part of
+    # theta_i's variance
+    from gonio.bench._calpoint import _jacobian, _p
+
+    irr = v["irradiance_shift_shared"]
+    assert irr[0] == ("angle_input", "point") and irr[1].shape == shared.shape[:2]
+    Jw = _jacobian(stage, _p(CAL), ["wedge0", "wedge1"])[:, 0, :]           # d theta_i / d wedge
+    ti = np.radians(u["angles"][:, 0])
+    expected = np.tan(ti) ** 2 * np.sum(np.radians(Jw * 0.01) ** 2, axis=1)
+    np.testing.assert_allclose(np.sum(irr[1] ** 2, axis=0), expected, rtol=1e-9)
+    assert np.all(expected > 0)
 
 
 def test_move_history_follows_the_order_the_points_were_taken():

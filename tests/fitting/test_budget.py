@@ -255,6 +255,38 @@ def test_an_angle_offset_propagates_as_a_refit_sees_it(glossy):
     assert np.all(np.abs((refit.x - res.x) - predicted) <= 0.05 * np.abs(predicted) + 0.05 * res.std)
 
 
+def test_the_samples_own_foreshortening_adds_f_r_times_it(glossy, tmp_path):
+    """A shared input that changes the sample's irradiance alone (the wedge's cos(theta_i') /
+    cos(theta_i), ``irradiance_shift_shared``) adds f_r times that relative change to its line;
+    the dataset variable is read with angle_shift_shared and refused, one line, when its shape
+    or values are wrong."""
+    import xarray as xr
+
+    from gonio.fitting._budget import _angle_shifts, angle_components
+
+    meas, res, _ = glossy
+    n = meas.n_points
+    d = np.zeros((2, n, 4))
+    d[0, :, 0] = 0.01
+    r = np.stack([np.zeros(n), np.linspace(-1e-3, 2e-3, n)])
+    plain, = angle_components(res, meas, {"shared": d})
+    (comp,) = angle_components(res, meas, {"shared": d, "shared_irradiance": r})
+    f = MODEL.eval(meas.wi, meas.wo, res.params)
+    np.testing.assert_allclose(comp.value[0], plain.value[0], rtol=0, atol=0)
+    np.testing.assert_allclose(comp.value[1] - plain.value[1], r[1][:, None] * f, rtol=1e-12, atol=1e-18)
+
+    def ds(irr, dim="angle_input"):
+        return xr.Dataset({"angle_shift_shared": (("angle_input", "point", "angle"), d),
+                           "irradiance_shift_shared": ((dim, "point"), irr)})
+    np.testing.assert_array_equal(_angle_shifts(ds(r), "x.nc", n)["shared_irradiance"], r)
+    with pytest.raises(ValueError, match="irradiance_shift_shared must be finite"):
+        _angle_shifts(ds(r[:1], "other_input"), "x.nc", n)
+    bad = r.copy()
+    bad[1, 3] = np.nan
+    with pytest.raises(ValueError, match="irradiance_shift_shared must be finite"):
+        _angle_shifts(ds(bad), "x.nc", n)
+
+
 # ------------------------------------------------------------------ a fit in sRGB of camera-RGB noise
 #: sim/_colour.py's camera (the dataset's srgb_from_cam of a simulated session): sRGB = S camera
 SRGB_FROM_CAM = np.array([[1.628051720083, -0.63184209057, 0.003790370487],
