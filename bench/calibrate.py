@@ -336,6 +336,10 @@ def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None
     sim = bench is None if sim is None else bool(sim)
     if bench is None:
         bench, specs = _sim_bench(settings, seed)
+        try:
+            return calibrate(settings, seed=seed, bench=bench, specs=specs, lamp_zero_u_deg=lamp_zero_u_deg, sim=sim)
+        finally:
+            bench.inst.release()       # its Mitsuba scene now, not when a cyclic collection finds it
     specs = dict(specs if specs is not None else settings.get("calibration", {}))
     cal = {"calibration": {
         "procedure": (f"specular cross-scans (yaw, tilt; up and down; {SCAN_STEP_DEG} deg steps over "

@@ -157,10 +157,29 @@ class Instrument:
         return self
 
     def unregister(self) -> None:
-        """Remove the instrument from the ``sim://`` registry."""
+        """Remove the instrument from the ``sim://`` registry, and release its Mitsuba scene
+        (:meth:`release`)."""
         if self.name is not None and _REGISTRY.get(self.name) is self:
             del _REGISTRY[self.name]
         self.name = None
+        self.release()
+
+    def release(self) -> None:
+        """Let go of the Mitsuba objects (the holder scene, a sample's or reference's loaded
+        BSDF) and the radiance cache; they are made again if the instrument is used again.
+
+        The instrument and its devices refer to one another (a reference cycle), so without
+        this its scene lived until Python's cyclic collector ran, rarely in a long process (it
+        is paused while frozen kernels record). Every Mitsuba object alive stays in Dr.Jit's
+        registry, and each render's BSDF and shape calls are traced over all of them: a
+        process that ran one calibrated capture after another rendered 5 ms a frame at its
+        first session and 17 ms at its ninth (tests/fitting/budget_coverage.py, 2026-12-02)."""
+        self._scene = None
+        self._radiance.clear()
+        self._frame_key = None
+        for truth in (self.sample, self.reference):
+            if getattr(truth, "_bsdf", None) is not None:
+                truth._bsdf = None
 
     def url(self, port: str) -> str:
         """``sim://NAME/PORT`` of a registered instrument."""
