@@ -155,10 +155,7 @@ class Journal:
 
     def record_frame(self, name: str, kind: str, seconds: float, file: str, sha256: str) -> None:
         """Commit a calibration frame (``kind`` "dark" or "flat", exposure s, file relative to the session)."""
-        with self.db:
-            self.db.execute("BEGIN")
-            self.db.execute("INSERT OR REPLACE INTO calibration VALUES (?, ?, ?, ?, ?, ?)",
-                            (name, kind, seconds, file, sha256, time.time()))
+        self.record_frames([(name, kind, seconds, file, sha256)])
 
     def record_frames(self, rows: Iterable[tuple[str, str, float, str, str]]) -> None:
         """Commit a set of calibration frames, ``(name, kind, seconds, file, sha256)`` each, in
