@@ -269,7 +269,7 @@ class CameraDyingInTheFlats(SimCamera):
 
 
 def test_flat_set_is_journalled_whole_or_not_at_all(instrument, tmp_path):
-    """The flat field is one unit (bench/_session._take_flat_set): a run that dies in its middle
+    """The flat field is one unit (bench/_calframes.CalibrationFrames._take_flat_set): a run that dies in its middle
     journals none of it; the resume takes the set again whole, under new names, and every file
     in raw/ is one the journal reserved (the first try's frames included)."""
     inst = instrument("flatset")
