@@ -119,43 +119,35 @@ def soa_kernel(kernel, model, ix, iy, iz, ox, oy, oz, P):
 
 
 def gather_kernel(kernel, model, flat_i, flat_o, lanes, P):
-    """The kernels of :func:`eval_gathered`: directions de-interleaved from the flat (3N)
-    numpy-mapped inputs by gathers, non-finite rows made degenerate, the model's three
-    channels evaluated, then interleaved into one flat (3N) output by a second kernel, so that
+    """The kernel of :func:`eval_gathered`: one lane per pair gathers its two rows from the
+    flat (3N) numpy-mapped inputs, non-finite rows become degenerate geometry, the model's
+    three channels are evaluated and scattered as one row of the flat (3N) output, so that
     numpy sees an (N, 3) array without a copy in either direction.
 
-    The second kernel: in float32 one lane per pair scatters its three channels; in float64
-    one lane per output value gathers it from its channel (a masked gather per channel, two
-    of them inactive). Measured on the AVX2 Zen 3 (wall time, 2 threads, 2**20 pairs, best of
-    15; ms, the whole round trip): float32 diffuse 4.91 (a lane per value, three unmasked
-    gathers selected: the first version) / 4.30 (masked gathers) / 3.60 (scatters),
-    roughplastic GGX 9.06 / 8.33 / 7.51; float64 diffuse 5.93 / 5.00 / 5.04, roughplastic
-    12.97 / 12.04 / 13.13. (Scattering from the model's own kernel measured 2-3x slower than
-    the model's kernel alone on roughplastic on the Zen 5.)"""
+    One fused kernel: Dr.Jit 1.5 keeps a 3-vector gather and scatter (``dr.gather(V3, ...)``,
+    ``dr.scatter(out, V3(...), ...)``) in the kernel that computes the values, where three
+    scatters of one channel each into the same output launch a kernel each, and the channels
+    had to be evaluated first (written to memory and read back). Measured on the AVX2 Zen 3
+    (wall time, 2 threads, 1e6 pairs, best of 15, 2026-12-03), the whole ``Model.eval``, ms,
+    channels evaluated then interleaved by further kernels -> one fused kernel: float64
+    diffuse 4.82 -> 2.90, orennayar 5.73 -> 3.32, roughplastic GGX 10.68 -> 7.98,
+    roughconductor GGX 11.57 -> 9.77, cooktorrance 7.38 -> 5.98; float32 (as words,
+    :func:`word_gather_kernel`) 2.25 -> 1.70, 2.83 -> 2.11, 5.26 -> 4.51, 5.42 -> 4.54,
+    4.04 -> 3.36. The float64 round trip now moves its 72 bytes a pair at about numpy's
+    speed for an ``np.add`` of two such arrays (2.2 ms against 2.3 ms for 1e6 rows, the data
+    alone). Tried: Dr.Jit's packet gathers (2, 4 or 6 words a lane) gain ~25 % of the data's
+    time only where numpy's memory is 64-byte aligned (numpy's large arrays start 16 bytes
+    past it); not taken."""
     dr, F, V3, U = _types_of(flat_i)
     # sizes only through dr.arange(U, dr.width(input)): a replayed recording follows the new
     # inputs' widths (``lanes`` has one lane per pair), never a traced Python integer
-    idx = dr.arange(U, dr.width(lanes)) * 3
-    vi = V3(*(dr.gather(F, flat_i, idx + k) for k in range(3)))
-    vo = V3(*(dr.gather(F, flat_o, idx + k) for k in range(3)))
+    idx = dr.arange(U, dr.width(lanes))
+    vi = dr.gather(V3, flat_i, idx)
+    vo = dr.gather(V3, flat_o, idx)
     chans = kernel(model, *_degenerate(dr, V3, vi, vo), P)
-    dr.eval(*chans)
-    if F is _float32():
-        out = dr.empty(F, dr.width(flat_i))
-        for c, ch in enumerate(chans):
-            dr.scatter(out, ch, idx + c)
-        return out
-    j = dr.arange(U, dr.width(flat_i))
-    q = j // 3
-    r = j - 3 * q
-    c0, c1, c2 = chans
-    return dr.gather(F, c0, q, r == 0) + dr.gather(F, c1, q, r == 1) + dr.gather(F, c2, q, r == 2)
-
-
-def _float32():
-    from drjit.llvm.ad import Float32
-
-    return Float32
+    out = dr.empty(F, dr.width(flat_i))
+    dr.scatter(out, V3(*chans), idx)
+    return out
 
 
 def word_gather_kernel(kernel, model, words_i, words_o, lanes, P):
@@ -163,21 +155,20 @@ def word_gather_kernel(kernel, model, words_i, words_o, lanes, P):
     float32 rows, mapped from numpy as 3M uint64 words ``(x0, y0), (z0, x1), (y1, z1)``,
     gathered three words a lane (half the gathers of a float each), split, evaluated and
     packed by :func:`packed_kernel`, and the three words of a row pair scattered into the
-    output, (2M, 3) float32 to numpy. Measured on the AVX2 Zen 3 (wall time, 2 threads,
-    2**20 pairs, best of 15, nothing else running; ms, the whole ``Model.eval``): diffuse
-    3.77 -> 2.46, roughplastic GGX 8.60 -> 6.46, orennayar 4.36 -> 3.05 (against a float
-    per gather, :func:`gather_kernel`). The same values bit for bit (tested)."""
+    output, (2M, 3) float32 to numpy; one fused kernel, as :func:`gather_kernel` (which
+    has the figures). Against a float per gather (both with the channels evaluated first;
+    AVX2 Zen 3, wall time, 2 threads, 2**20 pairs, best of 15; ms, the whole ``Model.eval``):
+    diffuse 3.77 -> 2.46, roughplastic GGX 8.60 -> 6.46, orennayar 4.36 -> 3.05. The same
+    values bit for bit (tested)."""
     import drjit as dr
-    from drjit.llvm.ad import UInt32, UInt64
+    from drjit.llvm.ad import Array3u64, UInt32, UInt64
 
-    idx = dr.arange(UInt32, dr.width(lanes)) * 3
-    a = [dr.gather(UInt64, words_i, idx + k) for k in range(3)]
-    b = [dr.gather(UInt64, words_o, idx + k) for k in range(3)]
+    idx = dr.arange(UInt32, dr.width(lanes))
+    a = dr.gather(Array3u64, words_i, idx)
+    b = dr.gather(Array3u64, words_o, idx)
     w = packed_kernel(kernel, model, *a, *b, P)
-    dr.eval(*w)
     out = dr.empty(UInt64, dr.width(words_i))
-    for k, wk in enumerate(w):
-        dr.scatter(out, wk, idx + k)
+    dr.scatter(out, Array3u64(*w), idx)
     return out
 
 

@@ -182,3 +182,33 @@ def test_float32_words_equal_the_float_gathers_bit_for_bit(name, options, monkey
     np.testing.assert_array_equal(m.eval(un, wo[:2000], p), words[2000])
     monkeypatch.setattr(_fast, "EVAL_BLOCK", 1000)
     np.testing.assert_array_equal(m.eval(wi, wo, p), words[2001])
+
+
+@pytest.mark.parametrize("dtype,n", [(np.float32, 4096), (np.float32, 4095), (np.float64, 4096)],
+                         ids=["float32-words", "float32-odd", "float64"])
+def test_the_gathering_round_trip_is_one_kernel_a_block(dtype, n, monkeypatch):
+    """models/_roundtrip.gather_kernel and word_gather_kernel: the rows' gathers, the model
+    and the output's scatter in one fused kernel (session 12: channels evaluated first and
+    scattered one at a time launched four kernels, 15-40 % of a 1e6-pair eval). Counted in
+    Dr.Jit's kernel history on a replay; an odd float32 batch is its even part in words and
+    its last row in floats: two. The values are the reference's."""
+    import drjit as dr
+
+    monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
+    m = gm.get("roughplastic", distribution="ggx")
+    rng = np.random.default_rng(1812)
+    p = random_params(m, rng)
+    wi, wo = (x.astype(dtype) for x in _pairs(rng, n))
+    m.eval(wi, wo, p)                                   # recorded
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        got = m.eval(wi, wo, p)                         # replayed
+        launched = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(launched) == (2 if n % 2 and dtype == np.float32 else 1), launched
+    assert max(h["size"] for h in launched) == (n // 2 if dtype == np.float32 else n)
+    want = m.eval_reference(wi.astype(np.float64), wo.astype(np.float64), p)
+    tol = 2e-5 if dtype == np.float32 else 1e-12
+    np.testing.assert_allclose(got, want, rtol=tol, atol=tol * np.abs(want).max())
