@@ -119,7 +119,11 @@ def test_task_chunks_cover_every_dataset_once_in_order():
     for n, threads in ((16, 2), (3, 2), (100, 2), (7, 0), (1, 8)):
         chunks = task_chunks(n, threads)
         assert [i for a, b in chunks for i in range(a, b)] == list(range(n))
-        assert len(chunks) == (n if threads == 0 else min(n, 4 * threads))
+        sizes = [b - a for a, b in chunks]
+        if threads == 0:
+            assert sizes == [1] * n
+        else:                           # factoring: non-increasing, single datasets last
+            assert sizes == sorted(sizes, reverse=True) and sizes[-1] == 1
     assert task_chunks(0, 2) == []
 
 
