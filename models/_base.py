@@ -78,7 +78,8 @@ _COMPILED = None
 
 
 def install_compiled(eval_fn, available_fn):
-    """Install the compiled evaluator that :meth:`Model.eval` dispatches to."""
+    """Install the compiled evaluator that :meth:`Model.eval` dispatches to:
+    ``eval_fn(model, wi, wo, p)`` on what :func:`eval_inputs` returned (checked)."""
     global _COMPILED
     _COMPILED = (eval_fn, available_fn)
 

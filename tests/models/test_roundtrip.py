@@ -212,3 +212,58 @@ def test_the_gathering_round_trip_is_one_kernel_a_block(dtype, n, monkeypatch):
     want = m.eval_reference(wi.astype(np.float64), wo.astype(np.float64), p)
     tol = 2e-5 if dtype == np.float32 else 1e-12
     np.testing.assert_allclose(got, want, rtol=tol, atol=tol * np.abs(want).max())
+
+
+def test_the_public_eval_reuses_a_materials_parameters():
+    """models/_fast._eval_params: the same values again reuse their Dr.Jit scalars (no new
+    scalar made: none of the one-value memsets Dr.Jit launches for each), new values (and
+    -0.0 for 0.0, bit for bit) get their own, at most _EVAL_PARAMS_SIZE sets are kept, and
+    every value is the reference's. A model whose kernel reads more than its parameters
+    (roughplastic's tables follow the instance's exact_tables) is never cached."""
+    import drjit as dr
+
+    monkeypatch = pytest.MonkeyPatch()
+    monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
+    try:
+        _fast.clear_parameter_caches()
+        m = gm.get("roughconductor", distribution="ggx")
+        rng = np.random.default_rng(1813)
+        wi, wo = _pairs(rng, 3000)
+
+        def run(p):
+            dr.set_flag(dr.JitFlag.KernelHistory, True)
+            try:
+                dr.kernel_history()
+                f = m.eval(wi, wo, p)
+                made = sum(h["type"] == dr.KernelType.Memset and h["size"] == 1 for h in dr.kernel_history())
+            finally:
+                dr.set_flag(dr.JitFlag.KernelHistory, False)
+            np.testing.assert_allclose(f, m.eval_reference(wi, wo, p), rtol=1e-10, atol=1e-12)
+            return made
+
+        p = random_params(m, rng)
+        first = run(p)
+        assert first >= 7                                   # eta, k (3 each), alpha
+        assert run(dict(p)) == 0                            # equal values: the same scalars
+        q = dict(p, alpha=p["alpha"] * 1.01)
+        assert run(q) > 0 and run(q) == 0
+        zero = dict(p, k=np.array([0.0, 1.0, 2.0]))
+        neg = dict(p, k=np.array([-0.0, 1.0, 2.0]))
+        kept = len(_fast._EVAL_PARAMS)
+        assert run(zero) > 0 and run(neg) > 0               # -0.0 is not 0.0
+        assert len(_fast._EVAL_PARAMS) == kept + 2 and run(neg) == 0
+        for s in range(10):
+            run(dict(p, alpha=0.1 + 0.01 * s))
+        assert len(_fast._EVAL_PARAMS) == _fast._EVAL_PARAMS_SIZE
+        assert run(p) > 0                                   # dropped, least recently used
+
+        rp = gm.get("roughplastic", distribution="ggx")
+        pr = random_params(rp, rng)
+        want = rp.eval(wi, wo, pr)
+        rp.exact_tables = False                             # another table: other values
+        got = rp.eval(wi, wo, pr)
+        np.testing.assert_allclose(got, rp.eval_reference(wi, wo, pr), rtol=1e-8, atol=1e-12)
+        assert not np.array_equal(got, want)
+    finally:
+        monkeypatch.undo()
+        _fast.clear_parameter_caches()
