@@ -32,7 +32,18 @@ def bench_dask(seed=0, model_index=1, cases=((16, 100_000), (64, 1000)), repeat=
     optimiser's Python, short kernels). The first case's fits take ~50-200 ms each on one
     thread; the second's ~5-10 ms, batched into tasks of >= ~50 ms
     (:func:`gonio.fitting._batch.task_chunks`). On a shared machine every wall time is the
-    others' load as well: the load average is printed with each case."""
+    others' load as well: the load average is printed with each case.
+
+    Where the rest of 2x goes (2026-12-03, AMD EPYC Zen 3, 2 cores, quiet, 16 x 1e5
+    roughconductor from files, 2 workers; Dask's task stream): the first task starts ~12 ms
+    after the call and the result is back ~9 ms after the last one ends (3 %); inside the
+    tasks a fit computes for 76-80 ms against 70-73 ms in the one-thread serial loop, and 72-76
+    ms when the same fits run in a worker through ``client.run`` (outside a task), while two
+    independent processes fitting at once lose nothing to each other: the task's thread in a
+    live worker costs the 5-10 % (Dask's profiler and event loop, tried off and slowed: no
+    change seen). Over eight runs 2 workers gave 1.66-1.80x in wall time, 1.82-1.90x in the
+    busiest worker's CPU; the cut of the tasks (factoring, :func:`gonio.fitting._batch.task_chunks`)
+    matters where fits differ in length, which these hardly do (83-95 ms)."""
     import drjit as dr
     from dask.distributed import Client
 

@@ -110,6 +110,28 @@ terms (roughconductor GGX float32 13.9 -> 16.2 ms), splitting the last packet (n
 per-channel order of the terms (18-21 % fewer spill instructions, no time seen), two pairs a lane through
 zero-copy views (GGX 13.7 -> 14.5 ms, cooktorrance 8.3 -> 8.0, diffuse and orennayar slower).
 
+Session 12 (2026-12-03, AMD EPYC Zen 3, AVX2, 2 cores, quiet, wall time, Dr.Jit's 2 threads,
+1e6 pairs). The gathering round trip became one fused kernel (:func:`._roundtrip.gather_kernel`:
+a 3-vector gather and scatter; the channels had been evaluated first and scattered by three
+more kernels). ``Model.eval``, ms a call, before -> after, float32 diffuse 2.25 -> 1.70,
+orennayar 2.83 -> 2.11, roughplastic GGX 5.26 -> 4.51, roughconductor GGX 5.42 -> 4.54,
+cooktorrance 4.04 -> 3.36; float64 4.82 -> 2.90, 5.73 -> 3.32, 10.68 -> 7.98, 11.57 -> 9.77,
+7.38 -> 5.98. ``gonio bench models`` after it: ``ev32/mi`` diffuse 0.33, roughconductor
+0.69 / 0.62 (Beckmann / GGX), roughplastic 0.96 / 0.88, cooktorrance 0.74, orennayar 0.41;
+``ev/mi`` (float64) 0.18, 0.33 / 0.29, 0.53 / 0.51, 0.41, 0.26; ``ev32/mnp`` 1.87-2.76.
+What bounds diffuse and orennayar: Mitsuba's resident kernel reads the two z components of
+its SoA arrays (8 bytes a pair) and writes 12; the public eval must read numpy's rows whole
+(24 bytes) and write 12: 36 bytes against 20, so at equal bandwidth ``ev32/mi`` cannot pass
+0.56. And on AVX2 LLVM turns Dr.Jit's gathers and scatters into scalar loads and stores: a
+kernel that only moves those 36 bytes a pair (the same three-word gathers and scatter, no
+arithmetic) takes 1.1 ms per 1e6 pairs (0.8 ms with packet gathers where numpy's memory is
+64-byte aligned, which numpy's large arrays are not), about the difference between the
+public eval and the resident kernel (diffuse 1.70 against 0.68 ms, orennayar 2.11 against
+1.02): those instructions add to the kernel's own instead of hiding under its arithmetic.
+The fixed cost of a call fell as well (``Model.eval`` validates once, and the last 8
+parameter sets of a model that reads nothing but its parameters keep their Dr.Jit scalars,
+:func:`._fast._eval_params`): diffuse at 1000 pairs 88 -> 75 us a call.
+
 Physical limit: a resident evaluation reads the two directions and writes f_r, so it can go
 no faster than the machine's memory bandwidth over the bytes it moves per pair (36 in
 float32: Mitsuba's and ``drjit32``'s; 72 in float64 with numpy in and out: ``eval``'s and
