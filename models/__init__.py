@@ -47,7 +47,7 @@ from ._structure import Affine, Structure
 from . import _tabulated as tabulated  # the tabulated model's tables and grids (for fitting's data-driven start)
 from .mitsuba import mitsuba_variant
 
-install_compiled(fast.eval_checked, fast.available)  # Model.eval's compiled path, on what it has checked (models/_base cannot import it)
+install_compiled(fast._eval_checked, fast.available)  # Model.eval's compiled path, on what it has checked (models/_base cannot import it)
 del install_compiled
 
 __all__ = [

@@ -179,10 +179,10 @@ def eval(model, wi, wo, params):
     in float32), the memory-bandwidth limit ``gonio bench models`` prints."""
     dtype = eval_dtype(wi, wo)
     wi, wo, p = eval_inputs(model, wi, wo, params, dtype)
-    return eval_checked(model, wi, wo, p)
+    return _eval_checked(model, wi, wo, p)
 
 
-def eval_checked(model, wi, wo, p):
+def _eval_checked(model, wi, wo, p):
     """:func:`eval` on what :func:`gonio.models._base.eval_inputs` returned (C-contiguous
     (N, 3) directions of one type, validated parameters): ``Model.eval``'s compiled path,
     which has checked them already (a second check cost ~3-6 us a call)."""
