@@ -315,6 +315,11 @@ class Model:
     def _lobe_distribution(self, p):
         return None
 
+    #: f_r is the lobe of :meth:`_eval_parts` alone (its smooth part is zero everywhere):
+    #: :meth:`albedo` then integrates the lobe only, evaluated by the compiled kernel
+    #: (:mod:`._albedo`).
+    lobe_only = False
+
     # -- directional albedo --------------------------------------------------------------
     def albedo(self, wo, params, **quadrature):
         """Directional albedo a(wo) = integral of f_r(wi, wo) cos(theta_i) d(wi), (N, 3).

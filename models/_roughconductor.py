@@ -45,6 +45,7 @@ class RoughConductor(Model):
     """
 
     name = "roughconductor"
+    lobe_only = True   # f_r is the microfacet lobe alone: its albedo's lobe nodes run the compiled kernel
 
     @property
     def structure(self):
