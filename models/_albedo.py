@@ -90,12 +90,12 @@ def _compiled_lobe(model) -> bool:
     parts are non-zero (the kernel gives their sum)."""
     from ._base import _compiled
 
-    return bool(getattr(model, "lobe_only", False)) and _compiled(model)
+    return model.lobe_only and _compiled(model)
 
 
 def _integral(model, p, dist, w, n_theta, n_phi, compiled=False):
     """Albedo of one direction ``w`` at one resolution, shape (3,)."""
-    if getattr(model, "lobe_only", False) and dist is not None:   # the smooth part is zero
+    if model.lobe_only and dist is not None:                     # the smooth part is zero
         return _lobe_integral(model, p, dist, w, n_theta, n_phi, compiled)
     phi_o = math.atan2(w[1], w[0])
     c, s = math.cos(phi_o), math.sin(phi_o)
