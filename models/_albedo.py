@@ -78,25 +78,10 @@ def _rotate(v, c, s):
     return out
 
 
-def _compiled_lobe(model) -> bool:
-    """Whether the lobe is evaluated by the compiled kernel: a model whose f_r is its lobe
-    alone (``lobe_only``: roughconductor) where ``Model.eval``'s kernel works (float64, equal
-    to the reference to ~1e-14 relative). Measured (AVX2 Zen 3, 200 directions, the default
-    resolution, 2026-12-03), ms a direction: roughconductor GGX 34.8 (numpy, the lobe also
-    evaluated at the smooth part's nodes and dropped) -> 19.8 (numpy, the lobe's nodes only)
-    -> 5.8 (compiled), Beckmann 3.95 -> 2.20 -> 1.05; what is left is numpy building the
-    nodes. Not for the smooth models: numpy's Lambert and Oren-Nayar cost less than a
-    compiled call per level (diffuse 0.43 against 0.81 ms a direction), and not where both
-    parts are non-zero (the kernel gives their sum)."""
-    from ._base import _compiled
-
-    return model.lobe_only and _compiled(model)
-
-
-def _integral(model, p, dist, w, n_theta, n_phi, compiled=False):
+def _integral(model, p, dist, w, n_theta, n_phi):
     """Albedo of one direction ``w`` at one resolution, shape (3,)."""
     if model.lobe_only and dist is not None:                     # the smooth part is zero
-        return _lobe_integral(model, p, dist, w, n_theta, n_phi, compiled)
+        return _lobe_integral(model, p, dist, w, n_theta, n_phi)
     phi_o = math.atan2(w[1], w[0])
     c, s = math.cos(phi_o), math.sin(phi_o)
     wi, wgt = _smooth_nodes(w[2], n_theta, n_phi)
@@ -107,7 +92,7 @@ def _integral(model, p, dist, w, n_theta, n_phi, compiled=False):
         if dist is None:
             acc = acc + np.einsum("i,ic->c", wgt, lobe)
         else:
-            acc = acc + _lobe_integral(model, p, dist, w, n_theta, n_phi, compiled)
+            acc = acc + _lobe_integral(model, p, dist, w, n_theta, n_phi)
     return acc
 
 
@@ -139,7 +124,6 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     out = np.zeros((n, 3))
     err = np.zeros((n, 3))
     dist = model._lobe_distribution(p)
-    compiled = _compiled_lobe(model)
     n_theta = max(2, n_theta + n_theta % 2)
     n_phi = max(4, n_phi + (-n_phi) % 4)
     with np.errstate(all="ignore"):
@@ -147,10 +131,10 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
             w = wo[j]
             if not (np.isfinite(w).all() and w[2] > 0.0):
                 continue
-            prev = _integral(model, p, dist, w, n_theta, n_phi, compiled)
+            prev = _integral(model, p, dist, w, n_theta, n_phi)
             e = np.full(3, np.nan)  # no estimate without a second level
             for level in range(1, max_level + 1):
-                cur = _integral(model, p, dist, w, n_theta << level, n_phi << level, compiled)
+                cur = _integral(model, p, dist, w, n_theta << level, n_phi << level)
                 e = np.abs(cur - prev)
                 prev = cur
                 if e.max() <= tol:
@@ -159,7 +143,7 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     return (out, err) if return_error else out  # err is NaN where max_level = 0
 
 
-def _lobe_integral(model, p, dist, w, n_u, n_phi, compiled=False):
+def _lobe_integral(model, p, dist, w, n_u, n_phi):
     """Lobe part integrated over microfacet normals (slope-space map, see module doc);
     phi is measured from the azimuth of ``w``.
 
@@ -193,6 +177,17 @@ def _lobe_integral(model, p, dist, w, n_u, n_phi, compiled=False):
     ok = (d > 0.0) & (wi[:, 2] > 0.0)
     wi = np.where(ok[:, None], wi, np.array([0.0, 0.0, 1.0]))
     wo = np.broadcast_to(w, wi.shape)
-    lobe = model.eval(wi, np.ascontiguousarray(wo), p, backend="drjit") if compiled else model._eval_parts(wi, wo, p)[1]
+    if model.lobe_only:
+        # f_r is the lobe: Model.eval, the compiled float64 kernel where Dr.Jit works (equal to
+        # the reference to ~1e-14 relative), numpy's reference elsewhere. Measured (AVX2 Zen 3,
+        # 200 directions, the default resolution, 2026-12-03), ms a direction: roughconductor
+        # GGX 34.8 (numpy, the lobe also evaluated at the smooth part's nodes and dropped) ->
+        # 19.8 (numpy, the lobe's nodes only) -> 5.8 (compiled), Beckmann 3.95 -> 2.20 -> 1.05;
+        # what is left is numpy building the nodes. Not for the smooth models (numpy's Lambert
+        # and Oren-Nayar cost less than a compiled call per level: diffuse 0.43 against 0.81 ms
+        # a direction), nor where both parts are non-zero (the kernel gives their sum).
+        lobe = model.eval(wi, np.ascontiguousarray(wo), p)
+    else:
+        lobe = model._eval_parts(wi, wo, p)[1]
     weight = np.where(ok, jac * 4.0 * d * wi[:, 2], 0.0)
     return np.einsum("i,ic->c", weight, lobe)

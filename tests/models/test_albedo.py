@@ -67,12 +67,12 @@ def test_albedo_is_integral_of_eval():
                                      {"distribution": "ggx", "anisotropic": True}],
                          ids=["ggx", "beckmann", "ggx-aniso"])
 def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(options, monkeypatch):
-    """models/_albedo: roughconductor (``lobe_only``) integrates its lobe alone, evaluated by
-    the compiled kernel where Dr.Jit works: the lobe's nodes only (no evaluation at the
-    smooth part's nodes), every level one compiled call, and the albedo and its error
-    estimate equal the numpy path's to 1e-12 (the kernel equals the reference to ~1e-14
-    relative), grazing views included."""
-    from gonio.models import _albedo, _fast
+    """models/_albedo: roughconductor (``lobe_only``) integrates its lobe alone through
+    ``Model.eval``, the compiled kernel where Dr.Jit works: the lobe's nodes only (no
+    evaluation at the smooth part's nodes), every level one compiled call, and the albedo and
+    its error estimate equal the numpy path's (GONIO_EVAL_BACKEND=numpy) to 1e-12 (the kernel
+    equals the reference to ~1e-14 relative), grazing views included."""
+    from gonio.models import _base, _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -80,23 +80,25 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(options,
     rng = np.random.default_rng(1812)
     p = {"eta": rng.uniform(0.2, 3.0, 3), "k": rng.uniform(0.0, 5.0, 3)}
     p.update({"alpha_u": 0.3, "alpha_v": 0.05} if options.get("anisotropic") else {"alpha": 0.2})
-    calls = {"drjit": 0, "parts": 0}
-    real_eval, real_parts = type(m).eval, type(m)._eval_parts
+    calls = {"compiled": 0, "parts": 0}
+    real_compiled, real_parts = _base._COMPILED, type(m)._eval_parts
 
-    def spy_eval(self, wi, wo, params, backend="auto"):
-        calls[backend] += 1
-        return real_eval(self, wi, wo, params, backend)
+    def spy_compiled(*args):
+        calls["compiled"] += 1
+        return real_compiled[0](*args)
 
     def spy_parts(self, wi, wo, params):
         calls["parts"] += 1
         return real_parts(self, wi, wo, params)
 
-    monkeypatch.setattr(type(m), "eval", spy_eval)
+    monkeypatch.setattr(_base, "_COMPILED", (spy_compiled, real_compiled[1]))
     monkeypatch.setattr(type(m), "_eval_parts", spy_parts)
     got, got_err = m.albedo(WO, p, return_error=True)
-    assert calls["drjit"] >= 2 * len(WO) and calls["parts"] == 0, calls
-    monkeypatch.setattr(_albedo, "_compiled_lobe", lambda model: False)
+    assert calls["compiled"] >= 2 * len(WO) and calls["parts"] == 0, calls
+    monkeypatch.setenv("GONIO_EVAL_BACKEND", "numpy")
+    compiled = calls["compiled"]
     want, want_err = m.albedo(WO, p, return_error=True)
+    assert calls["compiled"] == compiled and calls["parts"] > 0
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got_err, want_err, rtol=0, atol=1e-12)
     assert np.all(got > 0) and np.all(got <= 1)
