@@ -82,6 +82,8 @@ def _integral(model, p, dist, w, n_theta, n_phi):
     """Albedo of one direction ``w`` at one resolution, shape (3,)."""
     if model.lobe_only and dist is not None:                     # the smooth part is zero
         return _lobe_integral(model, p, dist, w, n_theta, n_phi)
+    if model.lambert_smooth is not None and dist is not None:    # rho / pi: its integral is rho
+        return np.asarray(p[model.lambert_smooth], np.float64) + _lobe_integral(model, p, dist, w, n_theta, n_phi)
     phi_o = math.atan2(w[1], w[0])
     c, s = math.cos(phi_o), math.sin(phi_o)
     wi, wgt = _smooth_nodes(w[2], n_theta, n_phi)
@@ -187,6 +189,11 @@ def _lobe_integral(model, p, dist, w, n_u, n_phi):
         # and Oren-Nayar cost less than a compiled call per level: diffuse 0.43 against 0.81 ms
         # a direction), nor where both parts are non-zero (the kernel gives their sum).
         lobe = model.eval(wi, np.ascontiguousarray(wo), p)
+    elif model.lambert_smooth is not None:
+        # f_r less its Lambertian part (both directions are above the horizon wherever the
+        # weight is not 0): the same lobe to ~1e-16 absolute. cooktorrance (defaults, 200
+        # directions, as above): 3.9 -> 3.5 (numpy, the lobe's nodes only) -> 2.2 ms a direction
+        lobe = model.eval(wi, np.ascontiguousarray(wo), p) - np.asarray(p[model.lambert_smooth]) / math.pi
     else:
         lobe = model._eval_parts(wi, wo, p)[1]
     weight = np.where(ok, jac * 4.0 * d * wi[:, 2], 0.0)

@@ -320,6 +320,12 @@ class Model:
     #: (:mod:`._albedo`).
     lobe_only = False
 
+    #: The parameter whose Lambertian term rho / pi is the whole smooth part of
+    #: :meth:`_eval_parts` (cooktorrance: ``diffuse_reflectance``), or None: :meth:`albedo`
+    #: then takes the smooth part's integral as rho and the lobe as f_r - rho / pi from the
+    #: compiled kernel (:mod:`._albedo`).
+    lambert_smooth = None
+
     # -- directional albedo --------------------------------------------------------------
     def albedo(self, wo, params, **quadrature):
         """Directional albedo a(wo) = integral of f_r(wi, wo) cos(theta_i) d(wi), (N, 3).

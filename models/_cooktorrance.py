@@ -91,6 +91,7 @@ class CookTorrance(Model):
     """
 
     name = "cooktorrance"
+    lambert_smooth = "diffuse_reflectance"   # albedo: smooth part rho_d, the lobe on the compiled kernel
 
     @property
     def structure(self):
