@@ -78,12 +78,21 @@ def _rotate(v, c, s):
     return out
 
 
+def _known_smooth(model, p):
+    """The smooth part's albedo where the model declares it (``lobe_only``: 0; a Lambertian
+    ``lambert_smooth``: its rho), else None (integrated at the smooth part's nodes)."""
+    if model.lobe_only:
+        return 0.0
+    if model.lambert_smooth is not None:
+        return np.asarray(p[model.lambert_smooth], np.float64)
+    return None
+
+
 def _integral(model, p, dist, w, n_theta, n_phi):
     """Albedo of one direction ``w`` at one resolution, shape (3,)."""
-    if model.lobe_only and dist is not None:                     # the smooth part is zero
-        return _lobe_integral(model, p, dist, w, n_theta, n_phi)
-    if model.lambert_smooth is not None and dist is not None:    # rho / pi: its integral is rho
-        return np.asarray(p[model.lambert_smooth], np.float64) + _lobe_integral(model, p, dist, w, n_theta, n_phi)
+    known = _known_smooth(model, p)
+    if known is not None and dist is not None:      # the lobe's nodes alone
+        return known + _lobe_integral(model, p, dist, w, n_theta, n_phi)
     phi_o = math.atan2(w[1], w[0])
     c, s = math.cos(phi_o), math.sin(phi_o)
     wi, wgt = _smooth_nodes(w[2], n_theta, n_phi)
@@ -179,21 +188,20 @@ def _lobe_integral(model, p, dist, w, n_u, n_phi):
     ok = (d > 0.0) & (wi[:, 2] > 0.0)
     wi = np.where(ok[:, None], wi, np.array([0.0, 0.0, 1.0]))
     wo = np.broadcast_to(w, wi.shape)
-    if model.lobe_only:
-        # f_r is the lobe: Model.eval, the compiled float64 kernel where Dr.Jit works (equal to
-        # the reference to ~1e-14 relative), numpy's reference elsewhere. Measured (AVX2 Zen 3,
-        # 200 directions, the default resolution, 2026-12-03), ms a direction: roughconductor
-        # GGX 34.8 (numpy, the lobe also evaluated at the smooth part's nodes and dropped) ->
-        # 19.8 (numpy, the lobe's nodes only) -> 5.8 (compiled), Beckmann 3.95 -> 2.20 -> 1.05;
-        # what is left is numpy building the nodes. Not for the smooth models (numpy's Lambert
-        # and Oren-Nayar cost less than a compiled call per level: diffuse 0.43 against 0.81 ms
-        # a direction), nor where both parts are non-zero (the kernel gives their sum).
-        lobe = model.eval(wi, np.ascontiguousarray(wo), p)
-    elif model.lambert_smooth is not None:
-        # f_r less its Lambertian part (both directions are above the horizon wherever the
-        # weight is not 0): the same lobe to ~1e-16 absolute. cooktorrance (defaults, 200
-        # directions, as above): 3.9 -> 3.5 (numpy, the lobe's nodes only) -> 2.2 ms a direction
-        lobe = model.eval(wi, np.ascontiguousarray(wo), p) - np.asarray(p[model.lambert_smooth]) / math.pi
+    known = _known_smooth(model, p)
+    if known is not None:
+        # the lobe is f_r less the smooth part rho / pi (0 where f_r is the lobe alone; both
+        # directions are above the horizon wherever the weight is not 0), from Model.eval: the
+        # compiled float64 kernel where Dr.Jit works (equal to the reference to ~1e-14
+        # relative), numpy's reference elsewhere. Measured (AVX2 Zen 3, 200 directions, the
+        # default resolution, 2026-12-03), ms a direction: roughconductor GGX 34.8 (numpy, the
+        # lobe also evaluated at the smooth part's nodes and dropped) -> 19.8 (numpy, the
+        # lobe's nodes only) -> 5.8 (compiled), Beckmann 3.95 -> 2.20 -> 1.05, cooktorrance
+        # 3.9 -> 3.5 -> 2.2; what is left is numpy building the nodes. Not for the smooth
+        # models (numpy's Lambert and Oren-Nayar cost less than a compiled call per level:
+        # diffuse 0.43 against 0.81 ms a direction), nor where the smooth part is not known
+        # (roughplastic, principled: the kernel gives the sum).
+        lobe = model.eval(wi, np.ascontiguousarray(wo), p) - known / math.pi
     else:
         lobe = model._eval_parts(wi, wo, p)[1]
     weight = np.where(ok, jac * 4.0 * d * wi[:, 2], 0.0)
