@@ -477,6 +477,9 @@ def main(argv=None) -> int:
     if problem is not None:              # before any work: Dr.Jit reads them at its first kernel
         _say(f"gonio: error: {problem}")
         return EXIT_REFUSED
+    from gonio.fitting import tune_allocator
+
+    tune_allocator()                     # this process is gonio's: the allocator that fits need
 
     try:
         rc = args.func(args)

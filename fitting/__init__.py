@@ -8,7 +8,8 @@
   :func:`select` model selection by BIC ("model only what the data needs").
 - :func:`fit_document` / :func:`write_json_atomic` / :func:`load_fit`: the fit file (read back as a
   :class:`FitFile`: ``.model``, ``.params``, ``.document``, ``to_xarray()``, notebook reprs).
-- :func:`fit_batch`: many datasets on Dask; :func:`crlb`: the Cramer-Rao bound.
+- :func:`fit_batch`: many datasets on Dask; :func:`crlb`: the Cramer-Rao bound;
+  :func:`tune_allocator`: glibc's allocator set for fitting (the ``gonio`` command does it).
 - :mod:`gonio.fitting.render`: Mitsuba re-renders the fit at the measured geometry;
   :mod:`gonio.fitting.formats` (MERL, RGL, Mitsuba snippets, CSV); :mod:`gonio.fitting.preview`.
 """
@@ -20,6 +21,7 @@ from ._crlb import crlb, efficiency
 from ._data import COLOUR_SPACES, DataError, Measurements, colour_transform, direction, load_dataset
 from ._fitfile import FitFile, fit_document, load_fit, parse_fit, versions, write_json_atomic
 from ._loss import LOSSES, REAL_DEFAULT_LOSS, default_loss
+from ._malloc import tune as tune_allocator
 from ._optimise import FitResult, fit
 from ._posterior import Posterior, sample_posterior
 from ._realdata import merl_samples, rgl_samples
@@ -30,5 +32,5 @@ from ._tabulated_start import fit_tabulated
 __all__ = [
     "Budget", "BudgetComponent", "load_budget", "with_instrument_response", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked", "fit_tabulated",
     "COLOUR_SPACES", "colour_transform", "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
-    "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers",
+    "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers", "tune_allocator",
 ]

@@ -56,11 +56,24 @@ import numpy as np
 
 import gonio.models as gm
 
+from ._malloc import MALLOC_ENV
+
 __all__ = ["fit_batch", "fit_serial", "local_security", "check_workers", "check_scheduler_address",
            "MAX_WORKERS", "WORKER_ENV", "task_chunks", "fit_cost"]
 
 #: the local worker processes' environment: Dr.Jit's pool of one thread (see the module notes)
 WORKER_ENV = {"GONIO_THREADS": "1"}
+
+#: Dask's periodic work that only a dashboard shows, slowed or off in a local cluster
+#: without one: the workers' statistical profiler (a look at every thread's stack each 10
+#: ms), the event-loop health tick (20 ms) and the system monitor (500 ms). Each wakes a
+#: worker's event loop, which then takes the GIL from the task's thread; on a machine whose
+#: cores are all fitting, it also takes a core. Measured (2026-12-03, 2 cores, 2 workers,
+#: 16 roughconductor fits of 1e5 points from files, four calls each, two clusters each way):
+#: 0.603-0.623 s a call with Dask's defaults, 0.567-0.604 s without them; the task thread's
+#: wall time then equals its CPU time to 2 %.
+QUIET = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
+         "distributed.admin.system-monitor.interval": "10s"}
 
 #: at most this many local workers (processes with one thread each; more than the cores is waste)
 MAX_WORKERS = max(1, min(256, 4 * (os.cpu_count() or 1)))
@@ -138,16 +151,20 @@ def local_security():
 
 
 def worker_environ() -> dict:
-    """Dask's ``distributed.nanny.pre-spawn-environ`` for the local workers, less
-    ``MALLOC_TRIM_THRESHOLD_``: Dask sets it (65536) so that workers hand freed memory back
-    to the OS, which also turns off glibc's adaptive mmap threshold, so every numpy array
-    above 128 KiB is a fresh mmap whose pages fault in again. Measured (2026-12-02, one
-    Dr.Jit thread, CPU time, roughconductor fits of 1e5 points, best of 5): 84.0 / 89.2 ms a
-    fit without it, 108.1 / 113.9 ms with it (+28 %)."""
+    """Dask's ``distributed.nanny.pre-spawn-environ`` for the local workers, with gonio's
+    allocator settings (:data:`gonio.fitting._malloc.MALLOC_ENV`) in place of Dask's
+    ``MALLOC_TRIM_THRESHOLD_`` (65536: Dask sets it so that workers hand freed memory back to
+    the OS, which also turns off glibc's adaptive mmap threshold, so every numpy array above
+    128 KiB is a fresh mmap whose pages fault in again). Measured, roughconductor fits of 1e5
+    points, one Dr.Jit thread: Dask's setting 108-114 ms a fit, glibc's adaptive defaults
+    84-89 ms (2026-12-02); 8 fits from files in a task of a 2-worker cluster 0.575-0.59 s of
+    the task thread's CPU with the defaults (29,000 page faults in each worker), 0.52-0.53 s
+    with gonio's settings (5-8 page faults) (2026-12-03)."""
     import dask
 
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
     env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    env.update(MALLOC_ENV)
     return env
 
 
@@ -166,6 +183,7 @@ def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
     config = {"distributed.worker.http.routes": [], "distributed.nanny.pre-spawn-environ": worker_environ()}
     if dashboard_address is None:
         config["distributed.scheduler.http.routes"] = []
+        config.update(QUIET)
     with dask.config.set(config):
         if security is None:
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=False,
@@ -267,11 +285,11 @@ def _warm_worker(model_spec, sample, fit_kwargs):
     """Run on every worker (``client.run``) before the fits: one Dr.Jit thread, then one fit
     of ``sample`` (a slice of the first dataset, or its loader: sliced here), which traces and
     compiles the model's kernels in this process; once per worker for a model and fit
-    options. Returns whether it fitted (False: already warm)."""
+    options. Returns whether the worker is warm (False: the sample's fit failed)."""
     _one_thread_per_worker()
     key = _warm_key(model_spec, fit_kwargs)
     if key in _WARMED:
-        return False
+        return True
     try:
         _fit_one(_subset(_load(sample), WARM_POINTS), model_spec, 0, 0, fit_kwargs)
     except Exception:      # a sample the fit refuses: the real fit reports it; nothing warmed
@@ -408,14 +426,19 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
 
 
 def _run_batch(client, datasets, spec, rng_seed, fit_kwargs) -> list:
-    """The fits on ``client``'s workers (see the module notes): warm each worker, scatter one
-    object per task, a task per contiguous chunk, results in order."""
+    """The fits on ``client``'s workers (see the module notes): warm each worker not yet
+    warm, scatter one object per task, a task per contiguous chunk, all submitted in one
+    message (``client.map``: a loop of ``client.submit`` sends the first at once and the rest
+    ~10 ms later, Dask's client batching; the first task then started 12-15 ms after the
+    call, against 4-5 ms), results in order."""
     if not datasets:
         return []
-    n_threads = sum(client.nthreads().values())
+    nthreads = client.nthreads()
+    n_threads = sum(nthreads.values())
     first = datasets[0]
     if n_threads > 0:
-        client.run(_warm_worker, spec, first if callable(first) else _subset(first, WARM_POINTS), fit_kwargs)
+        _warm_workers(client, set(nthreads), spec, first if callable(first) else _subset(first, WARM_POINTS),
+                      fit_kwargs)
     loaders = any(callable(m) for m in datasets)
     chunks = task_chunks(len(datasets), n_threads,
                          costs=None if loaders else [fit_cost(m.wi.shape[0]) for m in datasets])
@@ -423,9 +446,29 @@ def _run_batch(client, datasets, spec, rng_seed, fit_kwargs) -> list:
         parts = [datasets[a:b] for a, b in chunks]
     else:            # hash=False: no token computed over every array (distinct objects anyway)
         parts = client.scatter([datasets[a:b] for a, b in chunks], hash=False)
-    futures = [client.submit(_fit_many, part, spec, a, rng_seed, fit_kwargs, pure=False)
-               for part, (a, b) in zip(parts, chunks)]
+    k = len(chunks)
+    futures = client.map(_fit_many, parts, [spec] * k, [a for a, _ in chunks], [rng_seed] * k, [fit_kwargs] * k,
+                         pure=False)
     try:
         return [res for part in client.gather(futures) for res in part]
     finally:
         client.cancel(futures + ([] if loaders else list(parts)))
+
+
+#: (client id, worker address, model and fit options) that :func:`_warm_worker` has run for
+_WARM_SEEN: set = set()
+
+
+def _warm_workers(client, addresses, spec, sample, fit_kwargs) -> None:
+    """:func:`_warm_worker` on the workers of ``addresses`` this process has not warmed for
+    this model and options through this client (a round trip to every worker, ~2 ms, saved on
+    a warm client's later calls; a worker that restarts has a new address and is warmed
+    again)."""
+    key = _warm_key(spec, fit_kwargs)
+    todo = sorted(a for a in addresses if (client.id, a, key) not in _WARM_SEEN)
+    if not todo:
+        return
+    if len(_WARM_SEEN) > 4096:     # many clients come and gone in one process: forget them
+        _WARM_SEEN.clear()
+    warm = client.run(_warm_worker, spec, sample, fit_kwargs, workers=todo)
+    _WARM_SEEN.update((client.id, a, key) for a, ok in warm.items() if ok)

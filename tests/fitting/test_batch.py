@@ -44,6 +44,7 @@ def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_
     import drjit as dr
 
     from gonio.fitting._batch import _close_http, local_cluster
+    from gonio.fitting._malloc import MALLOC_ENV
     from dask.distributed import Client
 
     model = gm.get("roughconductor", distribution="ggx")
@@ -65,8 +66,9 @@ def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_
         client = Client(cluster, security=cluster.security)
         _close_http(client, keep_scheduler=False)
         assert set(client.run(lambda: __import__("os").environ.get("GONIO_THREADS")).values()) == {"1"}
-        # Dask's MALLOC_TRIM_THRESHOLD_ is not passed on (glibc's adaptive mmap threshold kept)
-        assert set(client.run(lambda: __import__("os").environ.get("MALLOC_TRIM_THRESHOLD_")).values()) == {None}
+        # gonio's allocator settings reach the workers before they start (Dask's 65536 does not)
+        for k, v in MALLOC_ENV.items():
+            assert set(client.run(lambda k=k: __import__("os").environ.get(k)).values()) == {v}
         runs = [fit_batch(data, model, client=client, rng_seed=7), fit_batch(loaders, model, client=client, rng_seed=7)]
         assert set(client.run(lambda: __import__("drjit").thread_count()).values()) == {1}
         client.close()
