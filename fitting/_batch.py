@@ -170,10 +170,6 @@ def worker_environ() -> dict:
 
 def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
     """A private local cluster (see the module notes); the caller closes it."""
-    from dask.distributed import LocalCluster
-
-    import dask
-
     n_workers = check_workers(n_workers)
     if dashboard_address is not None:
         dashboard_address = check_dashboard_address(dashboard_address)
@@ -184,6 +180,25 @@ def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
     if dashboard_address is None:
         config["distributed.scheduler.http.routes"] = []
         config.update(QUIET)
+    # Dask's nannies write their workers' pre-spawn environment (OMP_NUM_THREADS=1, the
+    # allocator's settings) into this process's os.environ before spawning; put it back after
+    saved = dict(os.environ)
+    try:
+        cluster = _start_local(n_workers, dashboard_address, config, security)
+    finally:
+        for key in set(os.environ) - set(saved):
+            del os.environ[key]
+        for key, value in saved.items():
+            if os.environ.get(key) != value:
+                os.environ[key] = value
+    return cluster
+
+
+def _start_local(n_workers, dashboard_address, config, security):
+    from dask.distributed import LocalCluster
+
+    import dask
+
     with dask.config.set(config):
         if security is None:
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=False,

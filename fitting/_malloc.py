@@ -22,7 +22,6 @@ program that imports gonio keeps its allocator as it is unless it calls :func:`t
 from __future__ import annotations
 
 import ctypes
-import os
 
 #: blocks below this many bytes come from the heap (glibc's largest allowed value on 64-bit)
 MMAP_THRESHOLD = 32 << 20
@@ -38,20 +37,37 @@ _M_MMAP_THRESHOLD = -3
 _TUNED: bool | None = None
 
 
+def _startup_environ() -> dict:
+    """The environment this process started with (what glibc read), from
+    ``/proc/self/environ``: ``os.environ`` may have changed since (Dask's nanny writes its
+    workers' ``pre-spawn-environ`` into the process that starts them). Empty where there is
+    no such file."""
+    try:
+        with open("/proc/self/environ", "rb") as fh:
+            raw = fh.read()
+    except OSError:
+        return {}
+    out = {}
+    for item in raw.split(b"\0"):
+        key, sep, value = item.partition(b"=")
+        if sep:
+            out[key.decode("utf-8", "replace")] = value.decode("utf-8", "replace")
+    return out
+
+
 def tune() -> bool:
     """Apply :data:`MMAP_THRESHOLD` and :data:`TRIM_THRESHOLD` to this process's glibc
     allocator (``mallopt``). Returns whether they are in effect: False where the C library
-    is not glibc (musl, macOS, Windows) or where ``MALLOC_MMAP_THRESHOLD_`` or
-    ``MALLOC_TRIM_THRESHOLD_`` is set in the environment (the user's choice is kept).
-    True without a call where the environment already holds :data:`MALLOC_ENV` (a worker
-    started with it). Idempotent."""
+    is not glibc (musl, macOS, Windows) or where the process was started with
+    ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` set to other values (the user's
+    choice is kept). Idempotent."""
     global _TUNED
     if _TUNED is not None:
         return _TUNED
     _TUNED = False
-    if any(k in os.environ for k in MALLOC_ENV):
-        _TUNED = all(os.environ.get(k) == v for k, v in MALLOC_ENV.items())
-        return _TUNED
+    started = _startup_environ()
+    if any(k in started and started[k] != v for k, v in MALLOC_ENV.items()):
+        return False
     try:
         libc = ctypes.CDLL(None)
         libc.gnu_get_libc_version    # glibc's own: mallopt's numbers below are glibc's

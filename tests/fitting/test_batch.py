@@ -40,6 +40,7 @@ def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_
     thread the in-kernel sums add in a fixed order (with several, the per-thread partial sums
     are merged in the order the threads finish: ~1e-15 apart from run to run)."""
     import functools
+    import os
 
     import drjit as dr
 
@@ -61,8 +62,11 @@ def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_
         serial = fit_serial(data, model, rng_seed=7)
     finally:
         dr.set_thread_count(before)
+    environ = dict(os.environ)
     cluster = local_cluster(2)
     try:
+        # Dask's nannies wrote their workers' environment into this process's: put back
+        assert dict(os.environ) == environ
         client = Client(cluster, security=cluster.security)
         _close_http(client, keep_scheduler=False)
         assert set(client.run(lambda: __import__("os").environ.get("GONIO_THREADS")).values()) == {"1"}

@@ -17,7 +17,11 @@ _LOOP = """
 import resource, sys
 import numpy as np
 from gonio.fitting import tune_allocator
-tuned = tune_allocator() if sys.argv[1] == "tune" else None
+if sys.argv[1] == "late-env":      # what Dask's nanny does to the process that starts workers
+    import os
+    from gonio.fitting._malloc import MALLOC_ENV
+    os.environ.update(MALLOC_ENV)
+tuned = tune_allocator() if sys.argv[1] != "keep" else None
 a = np.ones((100_000, 3))
 def rounds(n):
     for _ in range(n):
@@ -48,7 +52,9 @@ def test_tuned_allocator_stops_the_page_faults_of_a_fits_temporaries():
     past the trim threshold), so each round faults its pages in again: 200 rounds of 2.4 MB
     temporaries fault in hundreds of thousands of 4 KiB pages (measured 228,000). With gonio's settings the blocks stay on the heap:
     fewer than 200 faults in those 200 rounds (measured 0-3). The same with the settings
-    given by the environment (a Dask worker of fit_batch's local cluster)."""
+    given by the environment (a Dask worker of fit_batch's local cluster), and when they
+    were written into ``os.environ`` after the process started (glibc read its environment
+    at the start: tune_allocator reads that one, /proc/self/environ)."""
     _, default = _run("keep")
     tuned, faults = _run("tune")
     assert tuned == "True"
@@ -56,6 +62,9 @@ def test_tuned_allocator_stops_the_page_faults_of_a_fits_temporaries():
     assert faults < 200, faults
     tuned_env, faults_env = _run("tune", env=MALLOC_ENV)
     assert tuned_env == "True" and faults_env < 200, (tuned_env, faults_env)
+    # the settings written into os.environ after the start (glibc never saw them): applied
+    tuned_late, faults_late = _run("late-env")
+    assert tuned_late == "True" and faults_late < 200, (tuned_late, faults_late)
 
 
 @glibc
