@@ -22,8 +22,12 @@ existing one or ``client`` is given. How the work is spread (issue 18):
   other; a task holds ~50 ms of fitting or more (:data:`MIN_TASK_S`) where the fits' costs
   are known, instead of paying Dask's cost of shipping a task and its result for each small
   fit;
-* the workers keep glibc's adaptive allocator (:func:`worker_environ`: no
-  ``MALLOC_TRIM_THRESHOLD_``, which Dask sets and which made each fit ~28 % slower);
+* the workers start with gonio's allocator settings (:func:`worker_environ`,
+  :mod:`gonio.fitting._malloc`: a fit's multi-MiB temporaries stay on the heap; Dask's own
+  ``MALLOC_TRIM_THRESHOLD_`` made each fit ~28 % slower, glibc's defaults fault 29,000 pages
+  in a batch of 8 fits of 1e5 points), and without a dashboard Dask's periodic work that
+  only a dashboard shows is off or slowed (:data:`QUIET`); this process's ``os.environ``,
+  which Dask's nannies write their workers' environment into, is put back;
 * every worker traces and compiles the model's kernels once, before the timed fits, on a
   slice of the first dataset (:func:`_warm_worker`, once per worker, model and fit options),
   so no task pays for a first call.

@@ -35,16 +35,28 @@ def bench_dask(seed=0, model_index=1, cases=((16, 100_000), (64, 1000)), repeat=
     (:func:`gonio.fitting._batch.task_chunks`). On a shared machine every wall time is the
     others' load as well: the load average is printed with each case.
 
-    Where the rest of 2x goes (2026-12-03, AMD EPYC Zen 3, 2 cores, quiet, 16 x 1e5
-    roughconductor from files, 2 workers; Dask's task stream): the first task starts ~12 ms
-    after the call and the result is back ~9 ms after the last one ends (3 %); inside the
-    tasks a fit computes for 76-80 ms against 70-73 ms in the one-thread serial loop, and 72-76
-    ms when the same fits run in a worker through ``client.run`` (outside a task), while two
-    independent processes fitting at once lose nothing to each other: the task's thread in a
-    live worker costs the 5-10 % (Dask's profiler and event loop, tried off and slowed: no
-    change seen). Over eight runs 2 workers gave 1.66-1.80x in wall time, 1.82-1.90x in the
-    busiest worker's CPU; the cut of the tasks (factoring, :func:`gonio.fitting._batch.task_chunks`)
-    matters where fits differ in length, which these hardly do (83-95 ms)."""
+    ``tune``: apply gonio's allocator settings to this process first
+    (:func:`gonio.fitting.tune_allocator`, as the ``gonio`` command does), so that the serial
+    loops run on the allocator the workers have; the printout says which was in effect.
+
+    Where 2x went (2026-12-03, AMD EPYC Zen 3, 2 cores, quiet, 16 x 1e5 roughconductor from
+    files, 2 workers). Before: a fit inside a task computed for 76-80 ms against 70-73 ms in
+    the serial loop, and 2 workers gave 1.66-1.80x. Found: (1) the workers faulted in 29,000
+    pages a batch of 8 fits (the numpy temporaries; Dask's allocator setting had been taken
+    out, glibc's adaptive one still hands multi-MiB blocks back): with gonio's allocator
+    settings 5-8 (:mod:`gonio.fitting._malloc`; the serial loop gains the same when its
+    process is tuned); (2) Dask's dashboard-only periodic work (profiler every 10 ms, event
+    loop tick every 20 ms, system monitor) took the GIL and a core from the fits: off or slowed
+    in a cluster without a dashboard (:data:`gonio.fitting._batch.QUIET`), the task thread's
+    wall time then equals its CPU time to 2 %; (3) a loop of ``client.submit`` sent the tasks
+    in two messages ~10 ms apart: one ``client.map``. After, both sides tuned, two runs: 2
+    workers 1.74x and 1.93x the one-thread serial loop (the serial loop's own time
+    moves by 0.97-1.07 s from process to process), 1.86-1.88x one worker of the same setup.
+    What is left: ~4 ms from the call to the first task, ~6-9 ms from the last task's end to
+    the results (Dask's messages over TLS through three processes on two busy cores), and
+    ~2 ms of Dask's CPU per task (8 tasks: 0.560-0.585 s; the same fits as 2 tasks:
+    0.545-0.555 s); factoring's small tasks at the end cost that, and pay where fits differ
+    in length, which these hardly do."""
     import drjit as dr
     from dask.distributed import Client
 
