@@ -49,9 +49,10 @@ def bench_dask(seed=0, model_index=1, cases=((16, 100_000), (64, 1000)), repeat=
     loop tick every 20 ms, system monitor) took the GIL and a core from the fits: off or slowed
     in a cluster without a dashboard (:data:`gonio.fitting._batch.QUIET`), the task thread's
     wall time then equals its CPU time to 2 %; (3) a loop of ``client.submit`` sent the tasks
-    in two messages ~10 ms apart: one ``client.map``. After, both sides tuned, two runs: 2
-    workers 1.74x and 1.93x the one-thread serial loop (the serial loop's own time
-    moves by 0.97-1.07 s from process to process), 1.86-1.88x one worker of the same setup.
+    in two messages ~10 ms apart: one ``client.map``. After, both sides tuned, three runs: 2
+    workers 1.74x, 1.93x and 1.73x the one-thread serial loop (the serial loop's own time
+    moves by 0.96-1.07 s from process to process; the 2 workers' 0.56 s does not), 1.85-1.88x
+    one worker of the same setup, 1.84-2.04x in the busiest worker's CPU time.
     What is left: ~4 ms from the call to the first task, ~6-9 ms from the last task's end to
     the results (Dask's messages over TLS through three processes on two busy cores), and
     ~2 ms of Dask's CPU per task (8 tasks: 0.560-0.585 s; the same fits as 2 tasks:
