@@ -44,38 +44,34 @@ def _gl01(n):
     return 0.5 * x + 0.5, 0.5 * w
 
 
-def _rotate_to_wo(wo):
-    """Per-point frames: rotation about z taking wo to the x-z plane (phi_o = 0)."""
-    phi = np.arctan2(wo[:, 1], wo[:, 0])
-    return np.cos(phi), np.sin(phi)
+#: quadrature nodes evaluated in one call (the directions of a level are cut into chunks of
+#: about this many nodes: a (nodes, 3) float64 array of 0.8 MB, in a core's L2 cache)
+CHUNK_NODES = 1 << 15
 
 
-def _smooth_nodes(cos_o, n_theta, n_phi):
-    """Nodes and weights of the cosine-weighted hemisphere for the smooth part, in a
-    frame whose azimuth 0 is that of wo. u = sin^2(theta_i) is split at sin^2(theta_o)
-    (where max/min(theta_i, theta_o) kinks, e.g. Oren-Nayar) with Gauss-Legendre on each
-    piece; the midpoint rule in phi puts phi = +-pi/2 (kinks of max(0, cos dphi)) on
-    cell boundaries (n_phi multiple of 4)."""
-    s2 = min(max(1.0 - cos_o * cos_o, 0.0), 1.0)
+def _smooth_nodes(W, n_theta, n_phi):
+    """Nodes and weights of the cosine-weighted hemisphere for the smooth part, for each
+    direction of ``W`` (M, 3): (M, K, 3) directions and (M, K) weights, K = n_theta n_phi,
+    azimuths measured from each direction's own. u = sin^2(theta_i) is split at
+    sin^2(theta_o) (where max/min(theta_i, theta_o) kinks, e.g. Oren-Nayar) with
+    Gauss-Legendre on each piece; the midpoint rule in phi puts phi = +-pi/2 (kinks of
+    max(0, cos dphi)) on cell boundaries (n_phi multiple of 4)."""
+    cos_o = W[:, 2]
+    s2 = np.clip(1.0 - cos_o * cos_o, 0.0, 1.0)[:, None]
     x, w = _gl01(n_theta // 2)
-    u = np.concatenate([x * s2, s2 + x * (1.0 - s2)])
-    wu = np.concatenate([w * s2, w * (1.0 - s2)])
+    u = np.concatenate([x * s2, s2 + x * (1.0 - s2)], axis=1)         # (M, n_theta)
+    wu = np.concatenate([w * s2, w * (1.0 - s2)], axis=1)
     phis = (np.arange(n_phi) + 0.5) * (2.0 * math.pi / n_phi)
-    r = np.sqrt(u)
-    cz = np.sqrt(np.maximum(1.0 - u, 0.0))
-    R, P = np.meshgrid(r, phis, indexing="ij")
-    wi = np.stack([(R * np.cos(P)).ravel(), (R * np.sin(P)).ravel(), np.broadcast_to(cz[:, None], R.shape).ravel()], 1)
+    r = np.sqrt(u)[:, :, None]
+    cz = np.sqrt(np.maximum(1.0 - u, 0.0))[:, :, None]
+    lx, ly = r * np.cos(phis), r * np.sin(phis)                      # (M, n_theta, n_phi)
+    phi_o = np.arctan2(W[:, 1], W[:, 0])
+    c, s = np.cos(phi_o)[:, None, None], np.sin(phi_o)[:, None, None]
+    wi = np.stack([c * lx - s * ly, s * lx + c * ly, np.broadcast_to(cz, lx.shape)], -1)
     # cos(theta_i) d(wi) = r dr dphi = du dphi / 2
-    wgt = (np.broadcast_to(wu[:, None], R.shape) * (math.pi / n_phi)).ravel()
-    return wi, wgt
-
-
-def _rotate(v, c, s):
-    """Rotate (M, 3) vectors about z by the angle with cosine c, sine s."""
-    out = v.copy()
-    out[:, 0] = c * v[:, 0] - s * v[:, 1]
-    out[:, 1] = s * v[:, 0] + c * v[:, 1]
-    return out
+    wgt = np.broadcast_to(wu[:, :, None] * (math.pi / n_phi), lx.shape)
+    m = W.shape[0]
+    return wi.reshape(m, -1, 3), wgt.reshape(m, -1)
 
 
 def _known_smooth(model, p):
@@ -88,23 +84,27 @@ def _known_smooth(model, p):
     return None
 
 
-def _integral(model, p, dist, w, n_theta, n_phi):
-    """Albedo of one direction ``w`` at one resolution, shape (3,)."""
+def _weighted(weight, values):
+    """sum_k weight[m, k] values[m, k, c]: (M, C) (C = 1 for a part shared by the channels)."""
+    return np.einsum("mk,mkc->mc", weight, values)
+
+
+def _integral(model, p, dist, W, n_theta, n_phi):
+    """Albedo of each direction of ``W`` (M, 3) at one resolution, (M, 3): every node of
+    every direction in one evaluation (a chunk of :data:`CHUNK_NODES`)."""
     known = _known_smooth(model, p)
     if known is not None and dist is not None:      # the lobe's nodes alone
-        return known + _lobe_integral(model, p, dist, w, n_theta, n_phi)
-    phi_o = math.atan2(w[1], w[0])
-    c, s = math.cos(phi_o), math.sin(phi_o)
-    wi, wgt = _smooth_nodes(w[2], n_theta, n_phi)
-    wi = _rotate(wi, c, s)
-    smooth, lobe = model._eval_parts(wi, np.broadcast_to(w, wi.shape), p)
-    acc = np.einsum("i,ic->c", wgt, smooth)
+        return np.broadcast_to(known + _lobe_integral(model, p, dist, W, n_theta, n_phi), (W.shape[0], 3))
+    wi, wgt = _smooth_nodes(W, n_theta, n_phi)
+    m, k = wgt.shape
+    smooth, lobe = model._eval_parts(wi.reshape(-1, 3), np.repeat(W, k, axis=0), p)
+    acc = _weighted(wgt, np.asarray(smooth).reshape(m, k, -1))
     if lobe is not None:
         if dist is None:
-            acc = acc + np.einsum("i,ic->c", wgt, lobe)
+            acc = acc + _weighted(wgt, lobe.reshape(m, k, -1))
         else:
-            acc = acc + _lobe_integral(model, p, dist, w, n_theta, n_phi)
-    return acc
+            acc = acc + _lobe_integral(model, p, dist, W, n_theta, n_phi)
+    return np.broadcast_to(acc, (m, 3))
 
 
 def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, return_error=False):
@@ -128,6 +128,10 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     -------
     ndarray, shape (N, 3)
         0 for ``wo`` at or below the horizon.
+
+    Every direction still refining at a level is integrated in the same evaluation (chunks
+    of :data:`CHUNK_NODES` nodes): one compiled call a level and chunk where the model's
+    lobe goes through :meth:`Model.eval`, instead of one a direction.
     """
     wo = as_directions(wo, "wo")
     p = model.validate(params)
@@ -137,26 +141,34 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     dist = model._lobe_distribution(p)
     n_theta = max(2, n_theta + n_theta % 2)
     n_phi = max(4, n_phi + (-n_phi) % 4)
+    idx = np.flatnonzero(np.isfinite(wo).all(axis=1) & (wo[:, 2] > 0.0))
+    if idx.size == 0:
+        return (out, err) if return_error else out
+
+    def level_of(sel, level):
+        nt, nph = n_theta << level, n_phi << level
+        step = max(1, CHUNK_NODES // (nt * nph))
+        return np.concatenate([_integral(model, p, dist, wo[sel[a:a + step]], nt, nph)
+                               for a in range(0, sel.size, step)])
+
     with np.errstate(all="ignore"):
-        for j in range(n):
-            w = wo[j]
-            if not (np.isfinite(w).all() and w[2] > 0.0):
-                continue
-            prev = _integral(model, p, dist, w, n_theta, n_phi)
-            e = np.full(3, np.nan)  # no estimate without a second level
-            for level in range(1, max_level + 1):
-                cur = _integral(model, p, dist, w, n_theta << level, n_phi << level)
-                e = np.abs(cur - prev)
-                prev = cur
-                if e.max() <= tol:
-                    break
-            out[j], err[j] = prev, e
+        prev = level_of(idx, 0)
+        e = np.full((idx.size, 3), np.nan)  # no estimate without a second level
+        active = np.arange(idx.size)
+        for level in range(1, max_level + 1):
+            if active.size == 0:
+                break
+            cur = level_of(idx[active], level)
+            e[active] = np.abs(cur - prev[active])
+            prev[active] = cur
+            active = active[~(e[active].max(axis=1) <= tol)]
+    out[idx], err[idx] = prev, e
     return (out, err) if return_error else out  # err is NaN where max_level = 0
 
 
-def _lobe_integral(model, p, dist, w, n_u, n_phi):
-    """Lobe part integrated over microfacet normals (slope-space map, see module doc);
-    phi is measured from the azimuth of ``w``.
+def _lobe_integral(model, p, dist, W, n_u, n_phi):
+    """Lobe part integrated over microfacet normals (slope-space map, see module doc), for
+    each direction of ``W`` (M, 3), (M, 3); phi is measured from each direction's azimuth.
 
     Along each slope azimuth the reflected direction leaves the upper hemisphere at a
     facet inclination theta* with ``a sin(2 theta*) + b cos(2 theta*) = 0`` (``a`` the
@@ -165,44 +177,44 @@ def _lobe_integral(model, p, dist, w, n_u, n_phi):
     """
     au, av = dist.alpha_u, dist.alpha_v
     x, wx = _gl01(n_u)
-    phi_o = math.atan2(w[1], w[0])
-    phis = phi_o + (np.arange(n_phi) + 0.5) * (2.0 * math.pi / n_phi)
+    m = W.shape[0]
+    phi_o = np.arctan2(W[:, 1], W[:, 0])[:, None]
+    phis = phi_o + (np.arange(n_phi) + 0.5) * (2.0 * math.pi / n_phi)     # (M, n_phi)
     wphi = 2.0 * math.pi / n_phi
     cp, sp = np.cos(phis), np.sin(phis)
     proj = np.sqrt((au * cp) ** 2 + (av * sp) ** 2)  # |slope| / t
     # facet azimuth psi of slope (-au t cos phi, -av t sin phi)
     cpsi, spsi = -au * cp / proj, -av * sp / proj
-    a = w[0] * cpsi + w[1] * spsi
-    theta_star = 0.5 * (math.pi - np.arctan2(w[2], a))
+    a = W[:, 0:1] * cpsi + W[:, 1:2] * spsi
+    theta_star = 0.5 * (math.pi - np.arctan2(np.broadcast_to(W[:, 2:3], a.shape), a))
     t_max = np.tan(theta_star) / proj
-    u_max = t_max**2 / (1.0 + t_max**2)
-    U = x[:, None] * u_max[None, :]
-    wU = wx[:, None] * u_max[None, :]
+    u_max = (t_max**2 / (1.0 + t_max**2))[:, None, :]                    # (M, 1, n_phi)
+    U = x[None, :, None] * u_max                                           # (M, n_u, n_phi)
+    wU = wx[None, :, None] * u_max
     t = np.sqrt(U / (1.0 - U))
-    sx, sy = au * t * cp[None, :], av * t * sp[None, :]
+    sx, sy = au * t * cp[:, None, :], av * t * sp[:, None, :]
     inv = 1.0 / np.sqrt(1.0 + sx * sx + sy * sy)
-    wm = np.stack([(-sx * inv).ravel(), (-sy * inv).ravel(), inv.ravel()], 1)
-    jac = (inv**3 * au * av / (2.0 * (1.0 - U) ** 2) * wU * wphi).ravel()
-    d = wm @ w
-    wi = 2.0 * d[:, None] * wm - w[None, :]
-    ok = (d > 0.0) & (wi[:, 2] > 0.0)
-    wi = np.where(ok[:, None], wi, np.array([0.0, 0.0, 1.0]))
-    wo = np.broadcast_to(w, wi.shape)
+    wm = np.stack([-sx * inv, -sy * inv, inv], -1).reshape(m, -1, 3)
+    jac = (inv**3 * au * av / (2.0 * (1.0 - U) ** 2) * wU * wphi).reshape(m, -1)
+    d = np.einsum("mkj,mj->mk", wm, W)
+    wi = 2.0 * d[:, :, None] * wm - W[:, None, :]
+    ok = (d > 0.0) & (wi[:, :, 2] > 0.0)
+    wi = np.where(ok[:, :, None], wi, np.array([0.0, 0.0, 1.0])).reshape(-1, 3)
+    wo = np.repeat(W, ok.shape[1], axis=0)
     known = _known_smooth(model, p)
     if known is not None:
         # the lobe is f_r less the smooth part rho / pi (0 where f_r is the lobe alone; both
         # directions are above the horizon wherever the weight is not 0), from Model.eval: the
         # compiled float64 kernel where Dr.Jit works (equal to the reference to ~1e-14
-        # relative), numpy's reference elsewhere. Measured (AVX2 Zen 3, 200 directions, the
-        # default resolution, 2026-12-03), ms a direction: roughconductor GGX 34.8 (numpy, the
-        # lobe also evaluated at the smooth part's nodes and dropped) -> 19.8 (numpy, the
-        # lobe's nodes only) -> 5.8 (compiled), Beckmann 3.95 -> 2.20 -> 1.05, cooktorrance
-        # 3.9 -> 3.5 -> 2.2; what is left is numpy building the nodes. Not for the smooth
-        # models (numpy's Lambert and Oren-Nayar cost less than a compiled call per level:
-        # diffuse 0.43 against 0.81 ms a direction), nor where the smooth part is not known
-        # (roughplastic, principled: the kernel gives the sum).
-        lobe = model.eval(wi, np.ascontiguousarray(wo), p) - known / math.pi
+        # relative), numpy's reference elsewhere; every direction's nodes in one call.
+        # Measured (AVX2 Zen 3, 200 directions, the default resolution), ms a direction:
+        # roughconductor GGX alpha 0.2: 34.8 (numpy, a direction at a time, the lobe also
+        # evaluated at the smooth part's nodes and dropped) -> 19.8 (numpy, the lobe's nodes
+        # only) -> 5.8 (compiled, a call a direction); alpha 0.1, a call a direction -> a
+        # level's directions in one call: 4.85 -> 4.15, Beckmann 1.16 -> 0.63, cooktorrance
+        # 1.31 -> 0.86 (numpy's node arithmetic is most of what is left).
+        lobe = model.eval(wi, wo, p) - known / math.pi
     else:
         lobe = model._eval_parts(wi, wo, p)[1]
-    weight = np.where(ok, jac * 4.0 * d * wi[:, 2], 0.0)
-    return np.einsum("i,ic->c", weight, lobe)
+    weight = np.where(ok, jac * 4.0 * d * wi.reshape(m, -1, 3)[:, :, 2], 0.0)
+    return _weighted(weight, lobe.reshape(m, ok.shape[1], -1))

@@ -72,10 +72,11 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
     """models/_albedo: roughconductor (``lobe_only``) integrates its lobe alone through
     ``Model.eval``, the compiled kernel where Dr.Jit works; cooktorrance (``lambert_smooth``)
     its Lambertian part as rho and its lobe as f_r - rho / pi: the lobe's nodes only (no
-    evaluation at the smooth part's nodes), every level one compiled call, and the albedo and
+    evaluation at the smooth part's nodes), every level one compiled call for all the
+    directions still refining, and the albedo and
     its error estimate equal the numpy path's (GONIO_EVAL_BACKEND=numpy: the reference, whose
     smooth part the quadrature integrates at its own nodes) to 1e-12, grazing views included."""
-    from gonio.models import _base, _fast
+    from gonio.models import _albedo, _base, _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -99,8 +100,11 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
 
     monkeypatch.setattr(_base, "_COMPILED", (spy_compiled, real_compiled[1]))
     monkeypatch.setattr(type(m), "_eval_parts", spy_parts)
+    monkeypatch.setattr(_albedo, "CHUNK_NODES", 1 << 30)       # a level's nodes in one chunk
     got, got_err = m.albedo(WO, p, return_error=True)
-    assert calls["compiled"] >= 2 * len(WO) and calls["parts"] == 0, calls
+    # every direction still refining at a level in one call: 2 to max_level + 1 = 4 calls
+    # (a call a direction and level was 12 or more for these 6 directions)
+    assert 2 <= calls["compiled"] <= 4 and calls["parts"] == 0, calls
     monkeypatch.setenv("GONIO_EVAL_BACKEND", "numpy")
     monkeypatch.setattr(type(m), "lambert_smooth", None)     # the smooth part at its own nodes
     compiled = calls["compiled"]
@@ -109,3 +113,31 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got_err, want_err, rtol=0, atol=1e-12)
     assert np.all(got > 0) and (np.all(got <= 1) or not m.energy_conserving)   # cooktorrance: > 1 near grazing
+
+
+@pytest.mark.parametrize("name,options,params", [("roughplastic", {}, {"alpha": 0.05}),
+                                                 ("roughconductor", {"distribution": "ggx"}, {"alpha": 0.2}),
+                                                 ("orennayar", {}, {"sigma": 0.5})],
+                         ids=["roughplastic", "roughconductor", "orennayar"])
+def test_albedo_of_many_directions_is_each_directions_albedo(name, options, params, monkeypatch):
+    """The quadrature integrates every refining direction of a level in one evaluation,
+    cut into chunks of CHUNK_NODES nodes: the result does not depend on the company a
+    direction keeps (alone, one chunk, a chunk each) to 1e-14, directions below the horizon
+    or not finite give 0 (error 0), and each direction stops refining at its own level (a
+    grazing view's error estimate is its own, not its neighbours')."""
+    from gonio.models import _albedo
+
+    m = gm.get(name, **options)
+    rng = np.random.default_rng(77)
+    th = np.arccos(rng.uniform(0.02, 1.0, 9))
+    ph = rng.uniform(0.0, 2.0 * math.pi, 9)
+    w = np.concatenate([np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1), WO,
+                        [[0.0, 0.6, -0.8], [np.nan, 0.0, 1.0]]])
+    together, err = m.albedo(w, params, return_error=True)
+    alone = [m.albedo(w[i:i + 1], params, return_error=True) for i in range(len(w))]
+    np.testing.assert_allclose(together, np.concatenate([a for a, _ in alone]), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(err, np.concatenate([e for _, e in alone]), rtol=0, atol=1e-14)
+    monkeypatch.setattr(_albedo, "CHUNK_NODES", 1)        # every direction a chunk of its own
+    np.testing.assert_allclose(m.albedo(w, params), together, rtol=0, atol=1e-14)
+    assert np.all(together[-2:] == 0.0) and np.all(err[-2:] == 0.0)
+    assert np.all(together[:-2] > 0.0) and np.all(np.isfinite(err[:-2]))
