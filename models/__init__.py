@@ -38,6 +38,7 @@ Example
 from __future__ import annotations
 
 from . import _cooktorrance, _lambertian, _orennayar, _principled, _roughconductor, _roughconductor2, _roughplastic, _roughplastic2, _tabulated  # noqa: F401  (register models)
+from . import _albedo, _albedo_jit
 from . import _fast as fast
 from ._base import CHANNELS, Model, Parameter, eval_dtype, get, install_compiled, names
 from ._diffuse import lambert, oren_nayar
@@ -48,6 +49,7 @@ from . import _tabulated as tabulated  # the tabulated model's tables and grids 
 from .mitsuba import mitsuba_variant
 
 install_compiled(fast._eval_checked, fast.available)  # Model.eval's compiled path, on what it has checked (models/_base cannot import it)
+_albedo.install_compiled(_albedo_jit.applies, _albedo_jit.lobe_integral)  # albedo's compiled lobe quadrature (likewise)
 del install_compiled
 
 __all__ = [

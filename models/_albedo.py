@@ -17,6 +17,16 @@ Adaptive resolution: the rule is applied at (n_theta, n_phi) x 2^level until two
 successive levels agree to ``tol`` (default 1e-4 absolute) or ``max_level`` is reached;
 the last difference is returned as the error estimate (``return_error=True``).
 
+Every direction still refining at a level is integrated at once. Where the model's smooth
+part is known without integration (``lobe_only``, ``lambert_smooth``) and Dr.Jit works, the
+lobe's nodes, the model's compiled f_r at them and the sums are one kernel a level
+(:mod:`._albedo_jit`, installed by the package). Measured (AVX2 Zen 3, 2 cores, 200
+directions, default resolution, 2026-12-03), ms a direction, a compiled call a direction (the
+previous code) -> one kernel a level: roughconductor GGX alpha 0.2 3.95 -> 0.70, alpha 0.1
+6.4 -> 1.28, Beckmann alpha 0.1 1.21 -> 0.21, cooktorrance roughness 0.1 1.53 -> 0.19;
+equal to 3e-14. The other models build their nodes in numpy (roughplastic ~3 ms a
+direction, principled ~3, Oren-Nayar 0.8, Lambert 0.4, tabulated 5.7).
+
 Error (tested in tests/models/test_albedo.py against a 16x finer quadrature): below
 :data:`QUADRATURE_ERROR` = 1e-3 absolute for every model over its parameter box, views
 up to 90 deg - 1e-4 included; typically below 1e-5. The hard cases are lobes cut by the
@@ -42,6 +52,26 @@ QUADRATURE_ERROR = 1e-3
 def _gl01(n):
     x, w = np.polynomial.legendre.leggauss(n)
     return 0.5 * x + 0.5, 0.5 * w
+
+
+#: The compiled lobe quadrature, ``(applies(model), lobe_integral(model, p, dist, W, n_u,
+#: n_phi, known))`` of :mod:`._albedo_jit`, installed by the package (``models/__init__``):
+#: this module is below the compiled path and does not import it.
+_COMPILED_LOBE = None
+
+
+def install_compiled(applies, lobe_integral):
+    """Install the compiled lobe quadrature (see :data:`_COMPILED_LOBE`)."""
+    global _COMPILED_LOBE
+    _COMPILED_LOBE = (applies, lobe_integral)
+
+
+def _compiled_lobe(model, dist):
+    """The compiled lobe quadrature where it applies to ``model`` (its smooth part known,
+    a lobe distribution, the compiled path working), else None."""
+    if _COMPILED_LOBE is None or dist is None or (not model.lobe_only and model.lambert_smooth is None):
+        return None
+    return _COMPILED_LOBE[1] if _COMPILED_LOBE[0](model) else None
 
 
 #: quadrature nodes evaluated in one call (the directions of a level are cut into chunks of
@@ -89,12 +119,15 @@ def _weighted(weight, values):
     return np.einsum("mk,mkc->mc", weight, values)
 
 
-def _integral(model, p, dist, W, n_theta, n_phi):
+def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
     """Albedo of each direction of ``W`` (M, 3) at one resolution, (M, 3): every node of
-    every direction in one evaluation (a chunk of :data:`CHUNK_NODES`)."""
+    every direction in one evaluation (a chunk of :data:`CHUNK_NODES`); ``compiled``: the
+    compiled lobe quadrature (:func:`_compiled_lobe`), which builds the nodes itself."""
     known = _known_smooth(model, p)
     if known is not None and dist is not None:      # the lobe's nodes alone
-        return np.broadcast_to(known + _lobe_integral(model, p, dist, W, n_theta, n_phi), (W.shape[0], 3))
+        lobe = (_lobe_integral(model, p, dist, W, n_theta, n_phi) if compiled is None
+                else compiled(model, p, dist, W, n_theta, n_phi, known))
+        return np.broadcast_to(known + lobe, (W.shape[0], 3))
     wi, wgt = _smooth_nodes(W, n_theta, n_phi)
     m, k = wgt.shape
     smooth, lobe = model._eval_parts(wi.reshape(-1, 3), np.repeat(W, k, axis=0), p)
@@ -145,14 +178,18 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     if idx.size == 0:
         return (out, err) if return_error else out
 
+    compiled = _compiled_lobe(model, dist)
+
     def level_of(sel, level):
         nt, nph = n_theta << level, n_phi << level
+        if compiled is not None:        # one kernel for the level; it cuts its own chunks
+            return _integral(model, p, dist, wo[sel], nt, nph, compiled)
         step = max(1, CHUNK_NODES // (nt * nph))
         return np.concatenate([_integral(model, p, dist, wo[sel[a:a + step]], nt, nph)
                                for a in range(0, sel.size, step)])
 
     with np.errstate(all="ignore"):
-        prev = level_of(idx, 0)
+        prev = np.array(level_of(idx, 0))      # written into below (a level may be a broadcast view)
         e = np.full((idx.size, 3), np.nan)  # no estimate without a second level
         active = np.arange(idx.size)
         for level in range(1, max_level + 1):
@@ -207,12 +244,8 @@ def _lobe_integral(model, p, dist, W, n_u, n_phi):
         # directions are above the horizon wherever the weight is not 0), from Model.eval: the
         # compiled float64 kernel where Dr.Jit works (equal to the reference to ~1e-14
         # relative), numpy's reference elsewhere; every direction's nodes in one call.
-        # Measured (AVX2 Zen 3, 200 directions, the default resolution), ms a direction:
-        # roughconductor GGX alpha 0.2: 34.8 (numpy, a direction at a time, the lobe also
-        # evaluated at the smooth part's nodes and dropped) -> 19.8 (numpy, the lobe's nodes
-        # only) -> 5.8 (compiled, a call a direction); alpha 0.1, a call a direction -> a
-        # level's directions in one call: 4.85 -> 4.15, Beckmann 1.16 -> 0.63, cooktorrance
-        # 1.31 -> 0.86 (numpy's node arithmetic is most of what is left).
+        # Where Dr.Jit works the whole quadrature is one kernel a level instead
+        # (:mod:`._albedo_jit`); this is its reference and the path where it does not apply.
         lobe = model.eval(wi, wo, p) - known / math.pi
     else:
         lobe = model._eval_parts(wi, wo, p)[1]

@@ -51,11 +51,23 @@ def _sigint_as_python_starts_it():
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def _allocator_as_gonio_runs_it():
+    """glibc's allocator set as the ``gonio`` command sets it (``gonio.fitting.tune_allocator``):
+    the suite's processes fit as the command does, their numpy temporaries kept on the heap.
+    tests/fitting/test_malloc.py runs its own processes, with and without."""
+    try:
+        from gonio.fitting import tune_allocator
+    except ImportError:
+        return
+    tune_allocator()
+
+
 def pytest_configure(config):
     import os
 
     _share_the_cores()
     _sigint_as_python_starts_it()
+    _allocator_as_gonio_runs_it()
     if os.environ.get("GONIO_LLVM_TARGET"):
         from gonio.models._jit_target import apply_env
 

@@ -69,14 +69,14 @@ def test_albedo_is_integral_of_eval():
                                           ("cooktorrance", {})],
                          ids=["ggx", "beckmann", "ggx-aniso", "cooktorrance"])
 def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, options, monkeypatch):
-    """models/_albedo: roughconductor (``lobe_only``) integrates its lobe alone through
-    ``Model.eval``, the compiled kernel where Dr.Jit works; cooktorrance (``lambert_smooth``)
-    its Lambertian part as rho and its lobe as f_r - rho / pi: the lobe's nodes only (no
-    evaluation at the smooth part's nodes), every level one compiled call for all the
-    directions still refining, and the albedo and
-    its error estimate equal the numpy path's (GONIO_EVAL_BACKEND=numpy: the reference, whose
-    smooth part the quadrature integrates at its own nodes) to 1e-12, grazing views included."""
-    from gonio.models import _albedo, _base, _fast
+    """models/_albedo: roughconductor (``lobe_only``) integrates its lobe alone,
+    cooktorrance (``lambert_smooth``) its Lambertian part as rho and its lobe as
+    f_r - rho / pi, in one Dr.Jit kernel a refinement level (models/_albedo_jit: the nodes,
+    the model's compiled f_r and every direction's sum; no numpy evaluation at all), and the
+    albedo and its error estimate equal the numpy path's (GONIO_EVAL_BACKEND=numpy: the
+    reference, whose smooth part the quadrature integrates at its own nodes) to 1e-12,
+    grazing views included."""
+    from gonio.models import _albedo, _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -87,24 +87,29 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
     else:
         p = {"eta": rng.uniform(0.2, 3.0, 3), "k": rng.uniform(0.0, 5.0, 3)}
         p.update({"alpha_u": 0.3, "alpha_v": 0.05} if options.get("anisotropic") else {"alpha": 0.2})
-    calls = {"compiled": 0, "parts": 0}
-    real_compiled, real_parts = _base._COMPILED, type(m)._eval_parts
+    calls = {"compiled": 0, "parts": 0, "eval": 0}
+    applies, real_lobe = _albedo._COMPILED_LOBE
+    real_parts, real_eval = type(m)._eval_parts, type(m).eval
 
-    def spy_compiled(*args):
+    def spy_lobe(*args):
         calls["compiled"] += 1
-        return real_compiled[0](*args)
+        return real_lobe(*args)
 
     def spy_parts(self, wi, wo, params):
         calls["parts"] += 1
         return real_parts(self, wi, wo, params)
 
-    monkeypatch.setattr(_base, "_COMPILED", (spy_compiled, real_compiled[1]))
+    def spy_eval(self, *args, **kw):
+        calls["eval"] += 1
+        return real_eval(self, *args, **kw)
+
+    monkeypatch.setattr(_albedo, "_COMPILED_LOBE", (applies, spy_lobe))
     monkeypatch.setattr(type(m), "_eval_parts", spy_parts)
-    monkeypatch.setattr(_albedo, "CHUNK_NODES", 1 << 30)       # a level's nodes in one chunk
+    monkeypatch.setattr(type(m), "eval", spy_eval)
     got, got_err = m.albedo(WO, p, return_error=True)
     # every direction still refining at a level in one call: 2 to max_level + 1 = 4 calls
     # (a call a direction and level was 12 or more for these 6 directions)
-    assert 2 <= calls["compiled"] <= 4 and calls["parts"] == 0, calls
+    assert 2 <= calls["compiled"] <= 4 and calls["parts"] == 0 and calls["eval"] == 0, calls
     monkeypatch.setenv("GONIO_EVAL_BACKEND", "numpy")
     monkeypatch.setattr(type(m), "lambert_smooth", None)     # the smooth part at its own nodes
     compiled = calls["compiled"]
@@ -113,6 +118,20 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got_err, want_err, rtol=0, atol=1e-12)
     assert np.all(got > 0) and (np.all(got <= 1) or not m.energy_conserving)   # cooktorrance: > 1 near grazing
+
+
+def test_the_compiled_lobe_quadrature_cuts_a_level_into_chunks_without_changing_it(monkeypatch):
+    """models/_albedo_jit cuts a level's directions into launches of CHUNK_NODES nodes: a
+    direction per launch gives the one-launch albedo to 1e-14."""
+    from gonio.models import _albedo_jit, _fast
+
+    if not _fast.available():
+        pytest.skip("Dr.Jit LLVM backend unavailable")
+    m = gm.get("roughconductor", distribution="beckmann")
+    p = {"alpha": 0.15}
+    whole = m.albedo(WO, p)
+    monkeypatch.setattr(_albedo_jit, "CHUNK_NODES", 1)
+    np.testing.assert_allclose(m.albedo(WO, p), whole, rtol=0, atol=1e-14)
 
 
 @pytest.mark.parametrize("name,options,params", [("roughplastic", {}, {"alpha": 0.05}),
@@ -141,3 +160,27 @@ def test_albedo_of_many_directions_is_each_directions_albedo(name, options, para
     np.testing.assert_allclose(m.albedo(w, params), together, rtol=0, atol=1e-14)
     assert np.all(together[-2:] == 0.0) and np.all(err[-2:] == 0.0)
     assert np.all(together[:-2] > 0.0) and np.all(np.isfinite(err[:-2]))
+
+
+def test_the_compiled_lobe_quadrature_is_the_same_code_for_every_parameter_value():
+    """The roughness and rho enter models/_albedo_jit's kernels as opaque values: an albedo
+    at new parameter values launches kernels of the code already made (their hashes), so a
+    fit that checks its energy at every step compiles nothing after the first."""
+    import drjit as dr
+
+    from gonio.models import _fast
+
+    if not _fast.available():
+        pytest.skip("Dr.Jit LLVM backend unavailable")
+    m = gm.get("cooktorrance")
+    w = np.array([[0.3, 0.1, math.sqrt(0.9)], [0.0, 0.8, 0.6]])
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        hashes = []
+        for p in ({"roughness": 0.12}, {"roughness": 0.21, "diffuse_reflectance": [0.1, 0.2, 0.3]}):
+            dr.kernel_history()
+            m.albedo(w, p)
+            hashes.append({h["hash"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT})
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert hashes[0] and hashes[1] <= hashes[0], hashes
