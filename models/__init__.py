@@ -49,7 +49,7 @@ from . import _tabulated as tabulated  # the tabulated model's tables and grids 
 from .mitsuba import mitsuba_variant
 
 install_compiled(fast._eval_checked, fast.available)  # Model.eval's compiled path, on what it has checked (models/_base cannot import it)
-_albedo.install_compiled(_albedo_jit.applies, _albedo_jit.lobe_integral)  # albedo's compiled lobe quadrature (likewise)
+_albedo.install_compiled(_albedo_jit.applies, _albedo_jit.lobe_integral, _albedo_jit.smooth_integral)  # albedo's compiled quadratures (likewise)
 del install_compiled
 
 __all__ = [

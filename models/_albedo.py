@@ -17,15 +17,21 @@ Adaptive resolution: the rule is applied at (n_theta, n_phi) x 2^level until two
 successive levels agree to ``tol`` (default 1e-4 absolute) or ``max_level`` is reached;
 the last difference is returned as the error estimate (``return_error=True``).
 
-Every direction still refining at a level is integrated at once. Where the model's smooth
-part is known without integration (``lobe_only``, ``lambert_smooth``) and Dr.Jit works, the
-lobe's nodes, the model's compiled f_r at them and the sums are one kernel a level
-(:mod:`._albedo_jit`, installed by the package). Measured (AVX2 Zen 3, 2 cores, 200
-directions, default resolution, 2026-12-03), ms a direction, a compiled call a direction (the
-previous code) -> one kernel a level: roughconductor GGX alpha 0.2 3.95 -> 0.70, alpha 0.1
-6.4 -> 1.28, Beckmann alpha 0.1 1.21 -> 0.21, cooktorrance roughness 0.1 1.53 -> 0.19;
-equal to 3e-14. The other models build their nodes in numpy (roughplastic ~3 ms a
-direction, principled ~3, Oren-Nayar 0.8, Lambert 0.4, tabulated 5.7).
+Every direction still refining at a level is integrated at once. Where Dr.Jit works and the
+model says enough of its parts, each level is one or two Dr.Jit kernels (:mod:`._albedo_jit`,
+installed by the package): the nodes, the model's compiled f_r at them and every direction's
+sums. The parts: a smooth part known without integration (``lobe_only``: roughconductor;
+``lambert_smooth``: cooktorrance) leaves the lobe's nodes alone; no lobe distribution
+(diffuse, Oren-Nayar) means f_r at the smooth part's nodes; parameter values that switch the
+smooth part off (``smooth_off``: roughplastic at rho = 0) split f_r into f_r - f_r(off) at the
+smooth part's nodes and f_r(off) at the lobe's. Elsewhere (principled, tabulated, or
+``GONIO_EVAL_BACKEND=numpy``) numpy builds the nodes and evaluates the reference.
+Measured (AVX2 Zen 3, 2 cores, 200 directions, default resolution, 2026-12-03), ms a
+direction, the previous code (a direction at a time) -> now: Lambert 0.47 -> 0.03, Oren-Nayar
+0.82 -> 0.09, roughplastic 3.5 -> 0.52 (GGX 3.3 -> 0.46), roughconductor GGX alpha 0.1
+6.6 -> 1.28 (Beckmann 1.15 -> 0.21), cooktorrance 1.45 -> 0.27, principled 4.2 -> 2.8,
+tabulated 6.7 -> 4.4 (numpy, batched). Equal to the numpy quadrature to 1e-13, roughplastic to
+1e-9 (its compiled f_r is its reference to 3.4e-9 relative: the coating's tables).
 
 Error (tested in tests/models/test_albedo.py against a 16x finer quadrature): below
 :data:`QUADRATURE_ERROR` = 1e-3 absolute for every model over its parameter box, views
@@ -54,24 +60,36 @@ def _gl01(n):
     return 0.5 * x + 0.5, 0.5 * w
 
 
-#: The compiled lobe quadrature, ``(applies(model), lobe_integral(model, p, dist, W, n_u,
-#: n_phi, known))`` of :mod:`._albedo_jit`, installed by the package (``models/__init__``):
-#: this module is below the compiled path and does not import it.
-_COMPILED_LOBE = None
+#: The compiled quadratures, ``(applies(model), lobe_integral(model, p, dist, W, n_u, n_phi,
+#: known), smooth_integral(model, p, p_off, W, n_theta, n_phi))`` of :mod:`._albedo_jit`,
+#: installed by the package (``models/__init__``): this module is below the compiled path
+#: and does not import it.
+_COMPILED = None
 
 
-def install_compiled(applies, lobe_integral):
-    """Install the compiled lobe quadrature (see :data:`_COMPILED_LOBE`)."""
-    global _COMPILED_LOBE
-    _COMPILED_LOBE = (applies, lobe_integral)
+def install_compiled(applies, lobe_integral, smooth_integral):
+    """Install the compiled quadratures (see :data:`_COMPILED`)."""
+    global _COMPILED
+    _COMPILED = (applies, lobe_integral, smooth_integral)
 
 
-def _compiled_lobe(model, dist):
-    """The compiled lobe quadrature where it applies to ``model`` (its smooth part known,
-    a lobe distribution, the compiled path working), else None."""
-    if _COMPILED_LOBE is None or dist is None or (not model.lobe_only and model.lambert_smooth is None):
+def _compiled_for(model, dist):
+    """The compiled quadratures ``(lobe_integral, smooth_integral)`` where they take the
+    whole albedo of ``model``: its smooth part known (``lobe_only``, ``lambert_smooth``) or
+    switched off by parameter values (``smooth_off``) under a lobe distribution, or no lobe
+    distribution at all (f_r at the smooth part's nodes); the compiled path working. Else
+    None."""
+    if _COMPILED is None:
         return None
-    return _COMPILED_LOBE[1] if _COMPILED_LOBE[0](model) else None
+    known = model.lobe_only or model.lambert_smooth is not None
+    if dist is not None and not known and model.smooth_off is None:
+        return None
+    return _COMPILED[1:] if _COMPILED[0](model) else None
+
+
+def _switched_off(model, p):
+    """``p`` with the model's smooth part switched off (``smooth_off``), validated."""
+    return model.validate({**p, **model.smooth_off})
 
 
 #: quadrature nodes evaluated in one call (the directions of a level are cut into chunks of
@@ -122,12 +140,19 @@ def _weighted(weight, values):
 def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
     """Albedo of each direction of ``W`` (M, 3) at one resolution, (M, 3): every node of
     every direction in one evaluation (a chunk of :data:`CHUNK_NODES`); ``compiled``: the
-    compiled lobe quadrature (:func:`_compiled_lobe`), which builds the nodes itself."""
+    compiled quadratures (:func:`_compiled_for`), which build the nodes themselves."""
     known = _known_smooth(model, p)
+    m = W.shape[0]
     if known is not None and dist is not None:      # the lobe's nodes alone
         lobe = (_lobe_integral(model, p, dist, W, n_theta, n_phi) if compiled is None
-                else compiled(model, p, dist, W, n_theta, n_phi, known))
-        return np.broadcast_to(known + lobe, (W.shape[0], 3))
+                else compiled[0](model, p, dist, W, n_theta, n_phi, known))
+        return np.broadcast_to(known + lobe, (m, 3))
+    if compiled is not None:
+        if dist is None:                            # f_r at the smooth part's nodes
+            return compiled[1](model, p, None, W, n_theta, n_phi)
+        off = _switched_off(model, p)               # smooth: f_r - f_r(off); lobe: f_r(off)
+        return (compiled[1](model, p, off, W, n_theta, n_phi)
+                + compiled[0](model, off, dist, W, n_theta, n_phi, 0.0))
     wi, wgt = _smooth_nodes(W, n_theta, n_phi)
     m, k = wgt.shape
     smooth, lobe = model._eval_parts(wi.reshape(-1, 3), np.repeat(W, k, axis=0), p)
@@ -178,7 +203,7 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     if idx.size == 0:
         return (out, err) if return_error else out
 
-    compiled = _compiled_lobe(model, dist)
+    compiled = _compiled_for(model, dist)
 
     def level_of(sel, level):
         nt, nph = n_theta << level, n_phi << level

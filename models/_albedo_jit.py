@@ -1,14 +1,16 @@
-"""The albedo's lobe quadrature (:func:`gonio.models._albedo._lobe_integral`) as one Dr.Jit
-kernel: the nodes (the slope-space map, the horizon cut), the model's own compiled f_r at
-them and each direction's weighted sum, for every direction of a level at once; numpy
-builds nothing per node and only the (M, 3) sums come back.
+"""The albedo's quadratures (:mod:`gonio.models._albedo`) as Dr.Jit kernels: the nodes, the
+model's own compiled f_r at them and each direction's weighted sum, for every direction of
+a level at once; numpy builds nothing per node and only the (M, 3) sums come back.
 
-For the models whose smooth part the quadrature knows without integrating it (``lobe_only``:
-roughconductor; ``lambert_smooth``: cooktorrance), in float64, where ``Model.eval`` would
-run its compiled kernel (Dr.Jit's LLVM backend works, ``GONIO_EVAL_BACKEND`` is not
-``numpy``). Installed into :mod:`._albedo` by the package (``models/__init__``), which
-does not import this module: :func:`lobe_integral` returns None where it does not apply and
-the numpy nodes are used.
+* :func:`lobe_integral`: the lobe's nodes (the slope-space map, the horizon cut), f_r less
+  a known Lambertian part;
+* :func:`smooth_integral`: the smooth part's nodes (the cosine-warped disk), f_r, or f_r
+  less f_r with the smooth part switched off (``Model.smooth_off``: roughplastic's
+  ``diffuse_reflectance = 0``), whose lobe :func:`lobe_integral` then takes.
+
+In float64, where ``Model.eval`` would run its compiled kernel (:func:`applies`: Dr.Jit's
+LLVM backend works, ``GONIO_EVAL_BACKEND`` is not ``numpy``). Installed into
+:mod:`._albedo` by the package (``models/__init__``), which does not import this module.
 
 The arithmetic is the numpy quadrature's, term for term; Dr.Jit's float64 transcendentals
 (atan2, tan, sin, cos) and its block sums differ from numpy's in the last bits: equal to
@@ -95,3 +97,59 @@ def _chunk(model, P, dist, W, n_u, n_phi, known_over_pi):
     sums = [dr.block_sum(weight * (f[c] - dr.opaque(F, float(known_over_pi[c]))), k) for c in range(CHANNELS)]
     dr.eval(*sums)
     return np.stack([np.asarray(s) for s in sums], axis=1)
+
+
+def smooth_integral(model, p, p_off, W, n_theta, n_phi):
+    """Sum over the smooth part's nodes of weight * f_r (``p_off`` None), or weight *
+    (f_r(p) - f_r(p_off)), for each direction of ``W`` ((M, 3) float64, above the horizon),
+    (M, 3), where :func:`applies`."""
+    from . import _fast
+
+    k = n_theta * n_phi
+    step = max(1, CHUNK_NODES // k)
+    P = _fast._eval_params(model, p, np.float64)
+    P_off = None if p_off is None else _fast._eval_params(model, p_off, np.float64)
+    return np.concatenate([_smooth_chunk(model, P, P_off, W[a:a + step], n_theta, n_phi)
+                           for a in range(0, W.shape[0], step)])
+
+
+def _smooth_chunk(model, P, P_off, W, n_theta, n_phi):
+    """:func:`gonio.models._albedo._smooth_nodes` and the sums, in one kernel: u = sin^2 of
+    the node's inclination by Gauss-Legendre on [0, sin^2 theta_o] and [sin^2 theta_o, 1],
+    the midpoint rule in the azimuth from the direction's own. The node-independent
+    trigonometry (each direction's azimuth, the rule's azimuths) is numpy's, as there."""
+    from ._albedo import _gl01
+    from ._kernels import _kernel
+    from ._roundtrip import types
+
+    dr, F, V3, U = types(np.float64)
+    m, k, half = W.shape[0], n_theta * n_phi, n_theta // 2
+    x, wx = _gl01(half)
+    phis = (np.arange(n_phi) + 0.5) * (2.0 * math.pi / n_phi)
+    phi_o = np.arctan2(W[:, 1], W[:, 0])
+    Wd = V3(*(F(np.ascontiguousarray(W[:, j])) for j in range(3)))
+    idx = dr.arange(U, m * k)
+    di = idx // k
+    r = idx - di * k
+    it = r // n_phi
+    ip = r - it * n_phi
+    w = dr.gather(V3, Wd, di)
+    s2 = dr.clip(1.0 - w.z * w.z, 0.0, 1.0)
+    upper = it >= half                                   # the piece [sin^2 theta_o, 1]
+    xi = dr.select(upper, it - half, it)
+    xg, wg = dr.gather(F, F(x), xi), dr.gather(F, F(wx), xi)
+    u = dr.select(upper, s2 + xg * (1.0 - s2), xg * s2)
+    wu = dr.select(upper, wg * (1.0 - s2), wg * s2)
+    rr = dr.sqrt(u)
+    cz = dr.sqrt(dr.maximum(1.0 - u, 0.0))
+    lx, ly = rr * dr.gather(F, F(np.cos(phis)), ip), rr * dr.gather(F, F(np.sin(phis)), ip)
+    c, s = dr.gather(F, F(np.cos(phi_o)), di), dr.gather(F, F(np.sin(phi_o)), di)
+    wi = V3(c * lx - s * ly, s * lx + c * ly, cz)
+    weight = wu * (math.pi / n_phi)                      # cos(theta_i) d(wi) = du dphi / 2
+    f = _kernel(model, wi, w, P)
+    if P_off is not None:
+        off = _kernel(model, wi, w, P_off)
+        f = [a - b for a, b in zip(f, off)]
+    sums = [dr.block_sum(weight * f[ch], k) for ch in range(CHANNELS)]
+    dr.eval(*sums)
+    return np.stack([np.asarray(v) for v in sums], axis=1)

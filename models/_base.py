@@ -326,6 +326,12 @@ class Model:
     #: compiled kernel (:mod:`._albedo`).
     lambert_smooth = None
 
+    #: Parameter values that switch the smooth part of :meth:`_eval_parts` off, so that f_r is
+    #: the lobe alone (roughplastic: ``{"diffuse_reflectance": 0}``), or None: :meth:`albedo`
+    #: then integrates f_r - f_r(off) at the smooth part's nodes and f_r(off) at the lobe's,
+    #: both on the compiled kernel (:mod:`._albedo`).
+    smooth_off = None
+
     # -- directional albedo --------------------------------------------------------------
     def albedo(self, wo, params, **quadrature):
         """Directional albedo a(wo) = integral of f_r(wi, wo) cos(theta_i) d(wi), (N, 3).

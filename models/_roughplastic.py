@@ -75,6 +75,7 @@ class RoughPlastic(Model):
     """
 
     name = "roughplastic"
+    smooth_off = {"diffuse_reflectance": 0.0}   # albedo: f_r is the specular lobe alone at rho = 0
     OPTIONS = {"distribution": ("beckmann", "ggx"), "nonlinear": (False, True)}
     energy_conserving = True
 

@@ -88,7 +88,7 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
         p = {"eta": rng.uniform(0.2, 3.0, 3), "k": rng.uniform(0.0, 5.0, 3)}
         p.update({"alpha_u": 0.3, "alpha_v": 0.05} if options.get("anisotropic") else {"alpha": 0.2})
     calls = {"compiled": 0, "parts": 0, "eval": 0}
-    applies, real_lobe = _albedo._COMPILED_LOBE
+    applies, real_lobe, real_smooth = _albedo._COMPILED
     real_parts, real_eval = type(m)._eval_parts, type(m).eval
 
     def spy_lobe(*args):
@@ -103,7 +103,7 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
         calls["eval"] += 1
         return real_eval(self, *args, **kw)
 
-    monkeypatch.setattr(_albedo, "_COMPILED_LOBE", (applies, spy_lobe))
+    monkeypatch.setattr(_albedo, "_COMPILED", (applies, spy_lobe, real_smooth))
     monkeypatch.setattr(type(m), "_eval_parts", spy_parts)
     monkeypatch.setattr(type(m), "eval", spy_eval)
     got, got_err = m.albedo(WO, p, return_error=True)
@@ -184,3 +184,48 @@ def test_the_compiled_lobe_quadrature_is_the_same_code_for_every_parameter_value
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert hashes[0] and hashes[1] <= hashes[0], hashes
+
+
+@pytest.mark.parametrize("name,options,params,atol", [
+    ("diffuse", {}, {"reflectance": [0.2, 0.5, 0.9]}, 1e-12),
+    ("orennayar", {}, {"sigma": 0.6}, 1e-12),
+    # the compiled f_r of roughplastic is its reference to 3.4e-9 relative (its tables), and
+    # its rho = 0 part is the same f_r: the albedo's agreement follows
+    ("roughplastic", {}, {"alpha": 0.08, "diffuse_reflectance": [0.3, 0.6, 0.9]}, 2e-9),
+    ("roughplastic", {"distribution": "ggx", "nonlinear": True}, {"alpha": 0.3}, 2e-9)],
+    ids=["diffuse", "orennayar", "roughplastic", "roughplastic-ggx-nonlinear"])
+def test_smooth_models_integrate_on_the_compiled_kernel(name, options, params, atol, monkeypatch):
+    """A model with no lobe distribution (diffuse, orennayar) integrates f_r at the smooth
+    part's nodes, and roughplastic (``smooth_off``: rho = 0 leaves the specular lobe alone)
+    integrates f_r - f_r(rho = 0) there and f_r(rho = 0) at the lobe's nodes, each a Dr.Jit
+    kernel a level (models/_albedo_jit; no numpy evaluation); the albedo and its error
+    estimate equal the numpy quadrature's (GONIO_EVAL_BACKEND=numpy) to ``atol``, grazing
+    views included, and Lambert's is rho to 1e-13."""
+    from gonio.models import _albedo, _fast
+
+    if not _fast.available():
+        pytest.skip("Dr.Jit LLVM backend unavailable")
+    m = gm.get(name, **options)
+    calls = {"lobe": 0, "smooth": 0, "parts": 0}
+    applies, real_lobe, real_smooth = _albedo._COMPILED
+    real_parts = type(m)._eval_parts
+
+    def spy(key, fn):
+        def call(*args):
+            calls[key] += 1
+            return fn(*args)
+        return call
+
+    monkeypatch.setattr(_albedo, "_COMPILED", (applies, spy("lobe", real_lobe), spy("smooth", real_smooth)))
+    monkeypatch.setattr(type(m), "_eval_parts", lambda self, *a: spy("parts", real_parts)(self, *a))
+    got, got_err = m.albedo(WO, params, return_error=True)
+    levels = calls["smooth"]
+    assert 2 <= levels <= 4 and calls["parts"] == 0, calls
+    assert calls["lobe"] == (levels if m.smooth_off is not None else 0), calls
+    monkeypatch.setenv("GONIO_EVAL_BACKEND", "numpy")
+    want, want_err = m.albedo(WO, params, return_error=True)
+    assert calls["parts"] > 0 and calls["smooth"] == levels
+    np.testing.assert_allclose(got, want, rtol=0, atol=atol)
+    np.testing.assert_allclose(got_err, want_err, rtol=0, atol=atol)
+    if name == "diffuse":
+        np.testing.assert_allclose(got, np.broadcast_to([0.2, 0.5, 0.9], got.shape), rtol=1e-13)
