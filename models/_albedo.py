@@ -21,16 +21,17 @@ Every direction still refining at a level is integrated at once. Where Dr.Jit wo
 model says enough of its parts, each level is one or two Dr.Jit kernels (:mod:`._albedo_jit`,
 installed by the package): the nodes, the model's compiled f_r at them and every direction's
 sums. The parts: a smooth part known without integration (``lobe_only``: roughconductor;
-``lambert_smooth``: cooktorrance) leaves the lobe's nodes alone; no lobe distribution
+``lambert_smooth``: cooktorrance, tabulated) leaves the lobe's nodes alone; no lobe distribution
 (diffuse, Oren-Nayar) means f_r at the smooth part's nodes; parameter values that switch the
 smooth part off (``smooth_off``: roughplastic at rho = 0) split f_r into f_r - f_r(off) at the
-smooth part's nodes and f_r(off) at the lobe's. Elsewhere (principled, tabulated, or
-``GONIO_EVAL_BACKEND=numpy``) numpy builds the nodes and evaluates the reference.
+smooth part's nodes and f_r(off) at the lobe's. Elsewhere (principled, whose base colour
+is in its lobe too, or ``GONIO_EVAL_BACKEND=numpy``) numpy builds the nodes and evaluates
+the reference.
 Measured (AVX2 Zen 3, 2 cores, 200 directions, default resolution, 2026-12-03), ms a
 direction, the previous code (a direction at a time) -> now: Lambert 0.47 -> 0.03, Oren-Nayar
 0.82 -> 0.09, roughplastic 3.5 -> 0.52 (GGX 3.3 -> 0.46), roughconductor GGX alpha 0.1
-6.6 -> 1.28 (Beckmann 1.15 -> 0.21), cooktorrance 1.45 -> 0.27, principled 4.2 -> 2.8,
-tabulated 6.7 -> 4.4 (numpy, batched). Equal to the numpy quadrature to 1e-13, roughplastic to
+6.6 -> 1.28 (Beckmann 1.15 -> 0.21), cooktorrance 1.45 -> 0.27, tabulated 4.2 -> 0.38,
+principled 4.2 -> 2.8 (numpy, batched). Equal to the numpy quadrature to 1e-13, roughplastic to
 1e-9 (its compiled f_r is its reference to 3.4e-9 relative: the coating's tables).
 
 Error (tested in tests/models/test_albedo.py against a 16x finer quadrature): below

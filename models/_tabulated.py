@@ -269,6 +269,7 @@ class Tabulated(Model):
     """
 
     name = "tabulated"
+    lambert_smooth = "diffuse_reflectance"   # albedo: the body rho, the lobe on the compiled kernel
     OPTIONS = {}
     energy_conserving = False
     #: not a ``--model auto`` candidate: it fits well only from a data-driven start

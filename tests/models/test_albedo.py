@@ -66,12 +66,12 @@ def test_albedo_is_integral_of_eval():
 @pytest.mark.parametrize("name,options", [("roughconductor", {"distribution": "ggx"}),
                                           ("roughconductor", {"distribution": "beckmann"}),
                                           ("roughconductor", {"distribution": "ggx", "anisotropic": True}),
-                                          ("cooktorrance", {})],
-                         ids=["ggx", "beckmann", "ggx-aniso", "cooktorrance"])
+                                          ("cooktorrance", {}), ("tabulated", {})],
+                         ids=["ggx", "beckmann", "ggx-aniso", "cooktorrance", "tabulated"])
 def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, options, monkeypatch):
     """models/_albedo: roughconductor (``lobe_only``) integrates its lobe alone,
-    cooktorrance (``lambert_smooth``) its Lambertian part as rho and its lobe as
-    f_r - rho / pi, in one Dr.Jit kernel a refinement level (models/_albedo_jit: the nodes,
+    cooktorrance and tabulated (``lambert_smooth``) their Lambertian part as rho and the lobe
+    as f_r - rho / pi, in one Dr.Jit kernel a refinement level (models/_albedo_jit: the nodes,
     the model's compiled f_r and every direction's sum; no numpy evaluation at all), and the
     albedo and its error estimate equal the numpy path's (GONIO_EVAL_BACKEND=numpy: the
     reference, whose smooth part the quadrature integrates at its own nodes) to 1e-12,
@@ -84,6 +84,8 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
     rng = np.random.default_rng(1812)
     if name == "cooktorrance":
         p = {"roughness": 0.1, "diffuse_reflectance": rng.uniform(0, 0.5, 3), "specular_reflectance": rng.uniform(0, 0.5, 3)}
+    elif name == "tabulated":       # the default tables (a GGX-like lobe) under a random body
+        p = {"diffuse_reflectance": rng.uniform(0, 0.5, 3)}
     else:
         p = {"eta": rng.uniform(0.2, 3.0, 3), "k": rng.uniform(0.0, 5.0, 3)}
         p.update({"alpha_u": 0.3, "alpha_v": 0.05} if options.get("anisotropic") else {"alpha": 0.2})
