@@ -24,14 +24,15 @@ sums. The parts: a smooth part known without integration (``lobe_only``: roughco
 ``lambert_smooth``: cooktorrance, tabulated) leaves the lobe's nodes alone; no lobe distribution
 (diffuse, Oren-Nayar) means f_r at the smooth part's nodes; parameter values that switch the
 smooth part off (``smooth_off``: roughplastic at rho = 0) split f_r into f_r - f_r(off) at the
-smooth part's nodes and f_r(off) at the lobe's. Elsewhere (principled, whose base colour
-is in its lobe too, or ``GONIO_EVAL_BACKEND=numpy``) numpy builds the nodes and evaluates
+smooth part's nodes and f_r(off) at the lobe's, and a kernel that gives its lobe alone on
+request (``lobe_switch``: principled, whose base colour is in its lobe too) is split the same
+way. Elsewhere (``GONIO_EVAL_BACKEND=numpy``, no Dr.Jit) numpy builds the nodes and evaluates
 the reference.
 Measured (AVX2 Zen 3, 2 cores, 200 directions, default resolution, 2026-12-03), ms a
 direction, the previous code (a direction at a time) -> now: Lambert 0.47 -> 0.03, Oren-Nayar
 0.82 -> 0.09, roughplastic 3.5 -> 0.52 (GGX 3.3 -> 0.46), roughconductor GGX alpha 0.1
 6.6 -> 1.28 (Beckmann 1.15 -> 0.21), cooktorrance 1.45 -> 0.27, tabulated 4.2 -> 0.38,
-principled 4.2 -> 2.8 (numpy, batched). Equal to the numpy quadrature to 1e-13, roughplastic to
+principled 5.2 -> 0.46 (with sheen, clear coat and flatness 23 -> 3.0). Equal to the numpy quadrature to 1e-13, roughplastic to
 1e-9 (its compiled f_r is its reference to 3.4e-9 relative: the coating's tables).
 
 Error (tested in tests/models/test_albedo.py against a 16x finer quadrature): below
@@ -62,7 +63,7 @@ def _gl01(n):
 
 
 #: The compiled quadratures, ``(applies(model), lobe_integral(model, p, dist, W, n_u, n_phi,
-#: known), smooth_integral(model, p, p_off, W, n_theta, n_phi))`` of :mod:`._albedo_jit`,
+#: known, off=None), smooth_integral(model, p, off, W, n_theta, n_phi))`` of :mod:`._albedo_jit`,
 #: installed by the package (``models/__init__``): this module is below the compiled path
 #: and does not import it.
 _COMPILED = None
@@ -83,13 +84,17 @@ def _compiled_for(model, dist):
     if _COMPILED is None:
         return None
     known = model.lobe_only or model.lambert_smooth is not None
-    if dist is not None and not known and model.smooth_off is None:
+    if dist is not None and not known and model.smooth_off is None and not model.lobe_switch:
         return None
     return _COMPILED[1:] if _COMPILED[0](model) else None
 
 
 def _switched_off(model, p):
-    """``p`` with the model's smooth part switched off (``smooth_off``), validated."""
+    """What switches the model's smooth part off for the compiled quadratures: its
+    parameters with ``smooth_off`` (validated), or ``"lobe"`` (its kernel's
+    ``lobe_switch``)."""
+    if model.smooth_off is None:
+        return "lobe"
     return model.validate({**p, **model.smooth_off})
 
 
@@ -153,7 +158,7 @@ def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
             return compiled[1](model, p, None, W, n_theta, n_phi)
         off = _switched_off(model, p)               # smooth: f_r - f_r(off); lobe: f_r(off)
         return (compiled[1](model, p, off, W, n_theta, n_phi)
-                + compiled[0](model, off, dist, W, n_theta, n_phi, 0.0))
+                + compiled[0](model, p, dist, W, n_theta, n_phi, 0.0, off))
     wi, wgt = _smooth_nodes(W, n_theta, n_phi)
     m, k = wgt.shape
     smooth, lobe = model._eval_parts(wi.reshape(-1, 3), np.repeat(W, k, axis=0), p)

@@ -6,7 +6,8 @@ a level at once; numpy builds nothing per node and only the (M, 3) sums come bac
   a known Lambertian part;
 * :func:`smooth_integral`: the smooth part's nodes (the cosine-warped disk), f_r, or f_r
   less f_r with the smooth part switched off (``Model.smooth_off``: roughplastic's
-  ``diffuse_reflectance = 0``), whose lobe :func:`lobe_integral` then takes.
+  ``diffuse_reflectance = 0``; ``Model.lobe_switch``: principled's kernel asked for its
+  lobe alone), whose lobe :func:`lobe_integral` then takes.
 
 In float64, where ``Model.eval`` would run its compiled kernel (:func:`applies`: Dr.Jit's
 LLVM backend works, ``GONIO_EVAL_BACKEND`` is not ``numpy``). Installed into
@@ -24,6 +25,10 @@ import math
 import numpy as np
 
 from ._base import CHANNELS, _compiled
+from ._structure import LOBE_ONLY
+
+#: ``off`` for a model whose kernel has the lobe switch (``Model.lobe_switch``)
+LOBE = "lobe"
 
 #: nodes a kernel launch covers at most (the directions of a level are cut into chunks): the
 #: weighted values it keeps for the block sums are 24 bytes a node
@@ -36,14 +41,27 @@ def applies(model) -> bool:
     return _compiled(model)
 
 
-def lobe_integral(model, p, dist, W, n_u, n_phi, known):
-    """Sum over the lobe's nodes of weight * (f_r - known / pi) for each direction of ``W``
-    ((M, 3) float64, above the horizon), (M, 3), where :func:`applies`."""
+def _params(model, p, off):
+    """The kernel's parameter maps for ``p`` and for ``off`` (None; :data:`LOBE`: ``p`` with
+    the kernel's lobe switch on; or parameter values that switch the smooth part off)."""
     from . import _fast
 
+    P = _fast._eval_params(model, p, np.float64)
+    if off is None:
+        return P, None
+    if isinstance(off, str) and off == LOBE:
+        return P, {**P, LOBE_ONLY: True}        # a copy: the cached map is shared
+    return P, _fast._eval_params(model, off, np.float64)
+
+
+def lobe_integral(model, p, dist, W, n_u, n_phi, known, off=None):
+    """Sum over the lobe's nodes of weight * (f_r - known / pi) for each direction of ``W``
+    ((M, 3) float64, above the horizon), (M, 3), where :func:`applies`; with ``off``
+    (:func:`_params`), of weight * f_r(off), the lobe alone."""
     k = n_u * n_phi
     step = max(1, CHUNK_NODES // k)
-    P = _fast._eval_params(model, p, np.float64)
+    P, P_off = _params(model, p, off)
+    P = P if P_off is None else P_off
     known = np.broadcast_to(np.asarray(known, np.float64), (CHANNELS,)) / math.pi
     return np.concatenate([_chunk(model, P, dist, W[a:a + step], n_u, n_phi, known) for a in range(0, W.shape[0], step)])
 
@@ -99,16 +117,13 @@ def _chunk(model, P, dist, W, n_u, n_phi, known_over_pi):
     return np.stack([np.asarray(s) for s in sums], axis=1)
 
 
-def smooth_integral(model, p, p_off, W, n_theta, n_phi):
-    """Sum over the smooth part's nodes of weight * f_r (``p_off`` None), or weight *
-    (f_r(p) - f_r(p_off)), for each direction of ``W`` ((M, 3) float64, above the horizon),
-    (M, 3), where :func:`applies`."""
-    from . import _fast
-
+def smooth_integral(model, p, off, W, n_theta, n_phi):
+    """Sum over the smooth part's nodes of weight * f_r (``off`` None), or weight *
+    (f_r - f_r(off)) (:func:`_params`), for each direction of ``W`` ((M, 3) float64, above
+    the horizon), (M, 3), where :func:`applies`."""
     k = n_theta * n_phi
     step = max(1, CHUNK_NODES // k)
-    P = _fast._eval_params(model, p, np.float64)
-    P_off = None if p_off is None else _fast._eval_params(model, p_off, np.float64)
+    P, P_off = _params(model, p, off)
     return np.concatenate([_smooth_chunk(model, P, P_off, W[a:a + step], n_theta, n_phi)
                            for a in range(0, W.shape[0], step)])
 

@@ -332,6 +332,12 @@ class Model:
     #: both on the compiled kernel (:mod:`._albedo`).
     smooth_off = None
 
+    #: True where the compiled kernel gives the lobe of :meth:`_eval_parts` alone when its
+    #: parameter map holds ``_structure.LOBE_ONLY`` (principled, whose base colour is in its
+    #: lobe too, so no parameter value switches the smooth part off): :meth:`albedo` then
+    #: splits f_r as with ``smooth_off``.
+    lobe_switch = False
+
     # -- directional albedo --------------------------------------------------------------
     def albedo(self, wo, params, **quadrature):
         """Directional albedo a(wo) = integral of f_r(wi, wo) cos(theta_i) d(wi), (N, 3).

@@ -24,7 +24,7 @@ from ._base import INV_PI, Model, Parameter, register, rgb
 from ._fresnel import fresnel_dielectric
 from ._jit import _floor, _fresnel_outside, channels, microfacet_lobe
 from ._microfacet import MicrofacetDistribution, smith_g1_xyz
-from ._structure import Coupling, Structure
+from ._structure import LOBE_ONLY, Coupling, Structure
 from .geometry import half_vector
 
 __all__ = ["Principled", "LUMINANCE", "specular_to_eta"]
@@ -120,6 +120,7 @@ class Principled(Model):
     name = "principled"
     OPTIONS = {"distribution": ("ggx",)}
     energy_conserving = False
+    lobe_switch = True   # albedo: the kernel gives its lobe alone on request (models/_albedo_jit)
 
     @property
     def structure(self):
@@ -281,6 +282,8 @@ def _jit_kernel(model, k, wi, wo, P, grad):
     Fcc = 0.04 + 0.96 * w
     coat_unit = 0.25 * Fcc * d1 * g1cc(co) * g1cc(ci)      # d coat / d clearcoat
     coat = cc * coat_unit
+    if P.get(LOBE_ONLY) and not grad:     # the lobe of _eval_parts alone (the albedo's quadrature)
+        return [S * Fcc_c + coat for Fcc_c in Fc], {}
     # diffuse, retro-reflection, fake subsurface (F_o = F_w(cos_i), F_i = F_w(cos_o), as the reference)
     Fo, Fi = fw(ci), fw(co)
     f_diff = (1.0 - 0.5 * Fi) * (1.0 - 0.5 * Fo)

@@ -123,3 +123,8 @@ class Structure:
     def coupling(self, param):
         """The :class:`Coupling` of ``param``, or None (it acts on its own channel only)."""
         return next((c for c in self.coupled if c.param == param), None)
+
+
+#: Key of a compiled kernel's parameter map that asks a kernel which honours it
+#: (``Model.lobe_switch``) for the lobe of ``_eval_parts`` alone, values only.
+LOBE_ONLY = "_lobe_only"

@@ -194,13 +194,17 @@ def test_the_compiled_lobe_quadrature_is_the_same_code_for_every_parameter_value
     # the compiled f_r of roughplastic is its reference to 3.4e-9 relative (its tables), and
     # its rho = 0 part is the same f_r: the albedo's agreement follows
     ("roughplastic", {}, {"alpha": 0.08, "diffuse_reflectance": [0.3, 0.6, 0.9]}, 2e-9),
-    ("roughplastic", {"distribution": "ggx", "nonlinear": True}, {"alpha": 0.3}, 2e-9)],
-    ids=["diffuse", "orennayar", "roughplastic", "roughplastic-ggx-nonlinear"])
-def test_smooth_models_integrate_on_the_compiled_kernel(name, options, params, atol, monkeypatch):
+    ("roughplastic", {"distribution": "ggx", "nonlinear": True}, {"alpha": 0.3}, 2e-9),
+    ("principled", {}, {"base_color": [0.8, 0.3, 0.1], "roughness": 0.2, "metallic": 0.4, "spec_tint": 0.5,
+                        "sheen": 0.7, "sheen_tint": 0.3, "clearcoat": 0.8, "clearcoat_gloss": 0.6,
+                        "flatness": 0.5}, 1e-12)],
+    ids=["diffuse", "orennayar", "roughplastic", "roughplastic-ggx-nonlinear", "principled"])
+def test_smooth_and_layered_models_integrate_on_the_compiled_kernel(name, options, params, atol, monkeypatch):
     """A model with no lobe distribution (diffuse, orennayar) integrates f_r at the smooth
     part's nodes, and roughplastic (``smooth_off``: rho = 0 leaves the specular lobe alone)
-    integrates f_r - f_r(rho = 0) there and f_r(rho = 0) at the lobe's nodes, each a Dr.Jit
-    kernel a level (models/_albedo_jit; no numpy evaluation); the albedo and its error
+    integrates f_r - f_r(rho = 0) there and f_r(rho = 0) at the lobe's nodes, principled
+    (``lobe_switch``: its kernel asked for the specular and clear-coat lobes alone) the same
+    with its kernel's lobe, each a Dr.Jit kernel a level (models/_albedo_jit; no numpy evaluation); the albedo and its error
     estimate equal the numpy quadrature's (GONIO_EVAL_BACKEND=numpy) to ``atol``, grazing
     views included, and Lambert's is rho to 1e-13."""
     from gonio.models import _albedo, _fast
@@ -223,7 +227,7 @@ def test_smooth_models_integrate_on_the_compiled_kernel(name, options, params, a
     got, got_err = m.albedo(WO, params, return_error=True)
     levels = calls["smooth"]
     assert 2 <= levels <= 4 and calls["parts"] == 0, calls
-    assert calls["lobe"] == (levels if m.smooth_off is not None else 0), calls
+    assert calls["lobe"] == (levels if m.smooth_off is not None or m.lobe_switch else 0), calls
     monkeypatch.setenv("GONIO_EVAL_BACKEND", "numpy")
     want, want_err = m.albedo(WO, params, return_error=True)
     assert calls["parts"] > 0 and calls["smooth"] == levels
