@@ -32,8 +32,9 @@ Measured (AVX2 Zen 3, 2 cores, 200 directions, default resolution, 2026-12-03), 
 direction, the previous code (a direction at a time) -> now: Lambert 0.47 -> 0.03, Oren-Nayar
 0.82 -> 0.09, roughplastic 3.5 -> 0.52 (GGX 3.3 -> 0.46), roughconductor GGX alpha 0.1
 6.6 -> 1.28 (Beckmann 1.15 -> 0.21), cooktorrance 1.45 -> 0.27, tabulated 4.2 -> 0.38,
-principled 5.2 -> 0.46 (with sheen, clear coat and flatness 23 -> 3.0). Equal to the numpy quadrature to 1e-13, roughplastic to
-1e-9 (its compiled f_r is its reference to 3.4e-9 relative: the coating's tables).
+principled 5.2 -> 0.46 (with sheen, clear coat and flatness 23 -> 3.0). Equal to the numpy
+quadrature to 1e-13, roughplastic to 1e-9 (its compiled f_r is its reference to 3.4e-9
+relative: the coating's tables).
 
 Error (tested in tests/models/test_albedo.py against a 16x finer quadrature): below
 :data:`QUADRATURE_ERROR` = 1e-3 absolute for every model over its parameter box, views
@@ -48,6 +49,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from ._structure import LOBE_ONLY
 from .geometry import as_directions
 
 __all__ = ["albedo", "QUADRATURE_ERROR"]
@@ -91,10 +93,10 @@ def _compiled_for(model, dist):
 
 def _switched_off(model, p):
     """What switches the model's smooth part off for the compiled quadratures: its
-    parameters with ``smooth_off`` (validated), or ``"lobe"`` (its kernel's
-    ``lobe_switch``)."""
+    parameters with ``smooth_off`` (validated), or :data:`._structure.LOBE_ONLY` (its
+    kernel's ``lobe_switch``)."""
     if model.smooth_off is None:
-        return "lobe"
+        return LOBE_ONLY
     return model.validate({**p, **model.smooth_off})
 
 
@@ -193,9 +195,9 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     ndarray, shape (N, 3)
         0 for ``wo`` at or below the horizon.
 
-    Every direction still refining at a level is integrated in the same evaluation (chunks
-    of :data:`CHUNK_NODES` nodes): one compiled call a level and chunk where the model's
-    lobe goes through :meth:`Model.eval`, instead of one a direction.
+    Every direction still refining at a level is integrated at once: one to three Dr.Jit
+    kernels a level where Dr.Jit works (:mod:`._albedo_jit`), else numpy in chunks of
+    :data:`CHUNK_NODES` nodes.
     """
     wo = as_directions(wo, "wo")
     p = model.validate(params)
@@ -269,16 +271,8 @@ def _lobe_integral(model, p, dist, W, n_u, n_phi):
     ok = (d > 0.0) & (wi[:, :, 2] > 0.0)
     wi = np.where(ok[:, :, None], wi, np.array([0.0, 0.0, 1.0])).reshape(-1, 3)
     wo = np.repeat(W, ok.shape[1], axis=0)
-    known = _known_smooth(model, p)
-    if known is not None:
-        # the lobe is f_r less the smooth part rho / pi (0 where f_r is the lobe alone; both
-        # directions are above the horizon wherever the weight is not 0), from Model.eval: the
-        # compiled float64 kernel where Dr.Jit works (equal to the reference to ~1e-14
-        # relative), numpy's reference elsewhere; every direction's nodes in one call.
-        # Where Dr.Jit works the whole quadrature is one kernel a level instead
-        # (:mod:`._albedo_jit`); this is its reference and the path where it does not apply.
-        lobe = model.eval(wi, wo, p) - known / math.pi
-    else:
-        lobe = model._eval_parts(wi, wo, p)[1]
+    # numpy's reference lobe: where Dr.Jit works the whole quadrature is one kernel a level
+    # instead (:mod:`._albedo_jit`), and this path is what it is tested against
+    lobe = model._eval_parts(wi, wo, p)[1]
     weight = np.where(ok, jac * 4.0 * d * wi.reshape(m, -1, 3)[:, :, 2], 0.0)
     return _weighted(weight, lobe.reshape(m, ok.shape[1], -1))

@@ -27,9 +27,6 @@ import numpy as np
 from ._base import CHANNELS, _compiled
 from ._structure import LOBE_ONLY
 
-#: ``off`` for a model whose kernel has the lobe switch (``Model.lobe_switch``)
-LOBE = "lobe"
-
 #: nodes a kernel launch covers at most (the directions of a level are cut into chunks): the
 #: weighted values it keeps for the block sums are 24 bytes a node
 CHUNK_NODES = 1 << 20
@@ -42,14 +39,14 @@ def applies(model) -> bool:
 
 
 def _params(model, p, off):
-    """The kernel's parameter maps for ``p`` and for ``off`` (None; :data:`LOBE`: ``p`` with
+    """The kernel's parameter maps for ``p`` and for ``off`` (None; ``LOBE_ONLY``: ``p`` with
     the kernel's lobe switch on; or parameter values that switch the smooth part off)."""
     from . import _fast
 
     P = _fast._eval_params(model, p, np.float64)
     if off is None:
         return P, None
-    if isinstance(off, str) and off == LOBE:
+    if isinstance(off, str) and off == LOBE_ONLY:
         return P, {**P, LOBE_ONLY: True}        # a copy: the cached map is shared
     return P, _fast._eval_params(model, off, np.float64)
 
