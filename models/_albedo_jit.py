@@ -14,8 +14,9 @@ LLVM backend works, ``GONIO_EVAL_BACKEND`` is not ``numpy``). Installed into
 :mod:`._albedo` by the package (``models/__init__``), which does not import this module.
 
 The arithmetic is the numpy quadrature's, term for term; Dr.Jit's float64 transcendentals
-(atan2, tan, sin, cos) and its block sums differ from numpy's in the last bits: equal to
-the numpy path to ~1e-15 (tests/models/test_albedo.py holds them to 1e-12).
+(atan2, tan, sin, cos), its block sums and the compiled f_r differ from numpy's in the last
+bits: equal to the numpy path to 1e-13 (roughplastic 1e-9, its compiled f_r's coating
+tables; tests/models/test_albedo.py holds them to 1e-12 and 2e-9).
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ CHUNK_NODES = 1 << 20
 
 
 def applies(model) -> bool:
-    """True where :func:`lobe_integral` runs: the model has a compiled kernel, Dr.Jit's LLVM
-    backend works and ``GONIO_EVAL_BACKEND`` is not ``numpy`` (``Model.eval``'s own rule)."""
+    """True where the compiled quadratures run: the model has a compiled kernel, Dr.Jit's
+    LLVM backend works and ``GONIO_EVAL_BACKEND`` is not ``numpy`` (``Model.eval``'s own
+    rule)."""
     return _compiled(model)
 
 
