@@ -40,29 +40,32 @@ def applies(model) -> bool:
     return _compiled(model)
 
 
-def _params(model, p, off):
-    """The kernel's parameter maps for ``p`` and for ``off`` (None; ``LOBE_ONLY``: ``p`` with
-    the kernel's lobe switch on; or parameter values that switch the smooth part off)."""
+def _map(model, p, off=None):
+    """The kernel's parameter map for ``p`` (``off`` None), or for f_r with the smooth part
+    switched off: ``off`` is ``LOBE_ONLY`` (``p`` with the kernel's lobe switch on) or the
+    parameter values that switch it off."""
     from . import _fast
 
-    P = _fast._eval_params(model, p, np.float64)
-    if off is None:
-        return P, None
-    if isinstance(off, str) and off == LOBE_ONLY:
-        return P, {**P, LOBE_ONLY: True}        # a copy: the cached map is shared
-    return P, _fast._eval_params(model, off, np.float64)
+    if off is None or (isinstance(off, str) and off == LOBE_ONLY):
+        P = _fast._eval_params(model, p, np.float64)
+        return P if off is None else {**P, LOBE_ONLY: True}    # a copy: the cached map is shared
+    return _fast._eval_params(model, off, np.float64)
+
+
+def _chunked(W, k, chunk):
+    """``chunk(W[a:b])`` over the directions of ``W`` cut into launches of at most
+    :data:`CHUNK_NODES` nodes (``k`` a direction, one direction at least), stacked."""
+    step = max(1, CHUNK_NODES // k)
+    return np.concatenate([chunk(W[a:a + step]) for a in range(0, W.shape[0], step)])
 
 
 def lobe_integral(model, p, dist, W, n_u, n_phi, known, off=None):
     """Sum over the lobe's nodes of weight * (f_r - known / pi) for each direction of ``W``
     ((M, 3) float64, above the horizon), (M, 3), where :func:`applies`; with ``off``
-    (:func:`_params`), of weight * f_r(off), the lobe alone."""
-    k = n_u * n_phi
-    step = max(1, CHUNK_NODES // k)
-    P, P_off = _params(model, p, off)
-    P = P if P_off is None else P_off
+    (:func:`_map`), of weight * f_r(off), the lobe alone."""
+    P = _map(model, p, off)
     known = np.broadcast_to(np.asarray(known, np.float64), (CHANNELS,)) / math.pi
-    return np.concatenate([_chunk(model, P, dist, W[a:a + step], n_u, n_phi, known) for a in range(0, W.shape[0], step)])
+    return _chunked(W, n_u * n_phi, lambda w: _chunk(model, P, dist, w, n_u, n_phi, known))
 
 
 def _chunk(model, P, dist, W, n_u, n_phi, known_over_pi):
@@ -118,13 +121,10 @@ def _chunk(model, P, dist, W, n_u, n_phi, known_over_pi):
 
 def smooth_integral(model, p, off, W, n_theta, n_phi):
     """Sum over the smooth part's nodes of weight * f_r (``off`` None), or weight *
-    (f_r - f_r(off)) (:func:`_params`), for each direction of ``W`` ((M, 3) float64, above
+    (f_r - f_r(off)) (:func:`_map`), for each direction of ``W`` ((M, 3) float64, above
     the horizon), (M, 3), where :func:`applies`."""
-    k = n_theta * n_phi
-    step = max(1, CHUNK_NODES // k)
-    P, P_off = _params(model, p, off)
-    return np.concatenate([_smooth_chunk(model, P, P_off, W[a:a + step], n_theta, n_phi)
-                           for a in range(0, W.shape[0], step)])
+    P, P_off = _map(model, p), (None if off is None else _map(model, p, off))
+    return _chunked(W, n_theta * n_phi, lambda w: _smooth_chunk(model, P, P_off, w, n_theta, n_phi))
 
 
 def _smooth_chunk(model, P, P_off, W, n_theta, n_phi):
