@@ -11,12 +11,17 @@ existing one or ``client`` is given. How the work is spread (issue 18):
 * a dataset may be given as a loader (a function of no arguments that returns the
   Measurements, e.g. ``functools.partial(load_dataset, path)``), called in the worker that
   fits it: nothing of the data then travels through Dask. Measurements given as they are
-  travel once, straight from this process to the workers (``client.scatter``, one object per
-  task), never inside the task graph (which the scheduler would hold and forward: Dask warned
-  of an 18.9 MB graph for 16 fits of 1e5 points). Shipping is not free: scattering 16
-  roughconductor datasets of 1e5 points (9.9 MB each) over the local cluster's TLS cost
-  1.2 s of CPU (0.4 s over plain TCP), against 1.5 s for their 16 fits on one thread
-  (measured 2026-12-02); from files, loaders are the fast way;
+  reach worker processes of a local cluster (this process's ``LocalCluster``) through
+  files: each written once to a private temporary folder and mapped by the worker that
+  fits it (:mod:`gonio.fitting._handoff`; 16 roughconductor datasets of 1e5 points: 0.56 s
+  a call on 2 workers against 0.87-0.92 s scattered, 2026-12-03). To workers elsewhere, or
+  where the files cannot be written (a full disk: with a warning), they travel once,
+  straight from this process to the workers (``client.scatter``, one object per task),
+  never inside the task graph (which the scheduler would hold and forward: Dask warned of
+  an 18.9 MB graph for 16 fits of 1e5 points). Shipping over the cluster is not free:
+  scattering those 16 datasets (9.9 MB each) over the local cluster's TLS cost 1.2 s of
+  CPU (0.4 s over plain TCP), against 1.5 s for their 16 fits on one thread (measured
+  2026-12-02);
 * contiguous datasets share a task (:func:`task_chunks`): large tasks first and ever smaller
   ones after them (factoring), so that the workers finish within about one fit of each
   other; a task holds ~50 ms of fitting or more (:data:`MIN_TASK_S`) where the fits' costs
@@ -50,6 +55,7 @@ Results come back in the order of ``datasets``.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -62,8 +68,8 @@ import gonio.models as gm
 
 from ._malloc import MALLOC_ENV
 
-__all__ = ["fit_batch", "fit_serial", "local_security", "check_workers", "check_scheduler_address",
-           "MAX_WORKERS", "WORKER_ENV", "task_chunks", "fit_cost"]
+__all__ = ["fit_batch", "fit_serial", "local_security", "local_cluster", "local_client", "check_workers",
+           "check_scheduler_address", "MAX_WORKERS", "WORKER_ENV", "task_chunks", "fit_cost"]
 
 #: the local worker processes' environment: Dr.Jit's pool of one thread (see the module notes)
 WORKER_ENV = {"GONIO_THREADS": "1"}
@@ -76,8 +82,19 @@ WORKER_ENV = {"GONIO_THREADS": "1"}
 #: 16 roughconductor fits of 1e5 points from files, four calls each, two clusters each way):
 #: 0.603-0.623 s a call with Dask's defaults, 0.567-0.604 s without them; the task thread's
 #: wall time then equals its CPU time to 2 %.
+#: Also slowed, though not only a dashboard's: the memory monitor of each worker and of its
+#: nanny (every 100 ms by default: a worker that outgrows its memory limit is now paused or
+#: restarted within a second instead of a tenth), and off, the scheduler's active memory
+#: manager (every 2 s; it drops extra replicas of results, and gonio's tasks make none) and
+#: the client's refresh of the scheduler's information (every 2 s; the fits ask for the
+#: workers when they need them). Measured (2026-12-03, the same 16 fits, eight calls a
+#: cluster, three clusters each way): 0.537-0.539 s best and 0.543-0.549 s median a call,
+#: against 0.544-0.551 s and 0.551-0.555 s with the three at Dask's defaults.
 QUIET = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
-         "distributed.admin.system-monitor.interval": "10s"}
+         "distributed.admin.system-monitor.interval": "10s",
+         "distributed.worker.memory.monitor-interval": "1s",
+         "distributed.scheduler.active-memory-manager.start": False,
+         "distributed.client.scheduler-info-interval": "60s"}
 
 #: at most this many local workers (processes with one thread each; more than the cores is waste)
 MAX_WORKERS = max(1, min(256, 4 * (os.cpu_count() or 1)))
@@ -186,16 +203,43 @@ def local_cluster(n_workers: int = 2, dashboard_address: str | None = None):
         config.update(QUIET)
     # Dask's nannies write their workers' pre-spawn environment (OMP_NUM_THREADS=1, the
     # allocator's settings) into this process's os.environ before spawning; put it back after
+    with environ_kept():
+        return _start_local(n_workers, dashboard_address, config, security)
+
+
+@contextlib.contextmanager
+def environ_kept():
+    """Put ``os.environ`` back as it was on leaving (for code that starts processes by
+    writing their environment into this process's first: Dask's nannies, and
+    :func:`gonio.fitting._bench_dask`'s plain processes)."""
     saved = dict(os.environ)
     try:
-        cluster = _start_local(n_workers, dashboard_address, config, security)
+        yield
     finally:
         for key in set(os.environ) - set(saved):
             del os.environ[key]
         for key, value in saved.items():
             if os.environ.get(key) != value:
                 os.environ[key] = value
-    return cluster
+
+
+def local_client(cluster, dashboard: bool = False):
+    """A client of a :func:`local_cluster` (the caller closes it): not Dask's default client,
+    so that it does not change the caller's dask.config (a default client left
+    ``scheduler='dask.distributed'`` behind when two were closed out of order, and every later
+    xarray ``to_netcdf`` failed); with :data:`QUIET`'s client settings unless ``dashboard``;
+    the workers' HTTP listeners (and the scheduler's, without a dashboard) stopped."""
+    import dask
+    from dask.distributed import Client
+
+    with dask.config.set({} if dashboard else QUIET):
+        client = Client(cluster, security=cluster.security, set_as_default=False)
+    try:
+        _close_http(client, keep_scheduler=dashboard)
+    except BaseException:
+        client.close()
+        raise
+    return client
 
 
 def _start_local(n_workers, dashboard_address, config, security):
@@ -421,11 +465,7 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
     if scheduler is None:
         cluster = local_cluster(n_workers, dashboard_address)
         try:
-            # not Dask's default: gonio's clients must not change the caller's dask.config
-            # (a default client left scheduler='dask.distributed' behind when two were closed
-            # out of order, and every later xarray to_netcdf failed)
-            client = Client(cluster, security=cluster.security, set_as_default=False)
-            _close_http(client, keep_scheduler=dashboard_address is not None)
+            client = local_client(cluster, dashboard=dashboard_address is not None)
         except BaseException:
             cluster.close()
             raise
@@ -446,10 +486,10 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
 
 def _run_batch(client, datasets, spec, rng_seed, fit_kwargs) -> list:
     """The fits on ``client``'s workers (see the module notes): warm each worker not yet
-    warm, scatter one object per task, a task per contiguous chunk, all submitted in one
-    message (``client.map``: a loop of ``client.submit`` sends the first at once and the rest
-    ~10 ms later, Dask's client batching; the first task then started 12-15 ms after the
-    call, against 4-5 ms), results in order."""
+    warm; then, on this process's local worker processes, a task per worker thread that
+    claims datasets one at a time (:func:`_run_claimed`; Measurements in memory handed over
+    through files), elsewhere a task per contiguous chunk (:func:`_run_chunked`). Results in
+    the order of ``datasets``."""
     if not datasets:
         return []
     nthreads = client.nthreads()
@@ -458,9 +498,77 @@ def _run_batch(client, datasets, spec, rng_seed, fit_kwargs) -> list:
     if n_threads > 0:
         _warm_workers(client, set(nthreads), spec, first if callable(first) else _subset(first, WARM_POINTS),
                       fit_kwargs)
-    loaders = any(callable(m) for m in datasets)
+    if n_threads > 0 and _local_processes(client):
+        prepared = _hand_off(datasets)
+        if prepared is not None:
+            handoff, sent = prepared
+            try:
+                return _run_claimed(client, sent, spec, rng_seed, fit_kwargs, handoff.claims, n_threads)
+            finally:
+                handoff.close()
+    return _run_chunked(client, datasets, spec, rng_seed, fit_kwargs, n_threads)
+
+
+def _fit_claimed(metas, model_spec, rng_seed, fit_kwargs, claims):
+    """A task of :func:`_run_claimed`: the datasets of ``metas`` (loaders) this task claims
+    first (:func:`gonio.fitting._handoff.claim`), fitted in turn as :func:`_fit_one` would;
+    stops when every dataset is claimed or the batch's folder is gone. Returns ``[(index,
+    FitResult), ...]``."""
+    from ._handoff import claim
+
+    out = []
+    for i, meas in enumerate(metas):
+        mine = claim(claims, i)
+        if mine is None:
+            break
+        if mine:
+            out.append((i, _fit_one(meas, model_spec, i, rng_seed, fit_kwargs)))
+    return out
+
+
+def _run_claimed(client, loaders, spec, rng_seed, fit_kwargs, claims, n_threads) -> list:
+    """Self-scheduling on local worker processes: one task per worker thread, each taking
+    the next unclaimed dataset until none is left (a claim is a file created with
+    ``O_EXCL`` in the batch's private folder, ~10 us), so the threads finish within one
+    fit of each other whatever the fits' lengths, and Dask ships two tasks and two results
+    instead of a task per chunk. Measured (2026-12-03, 2 cores, 2 workers, eight calls
+    each): 16 roughconductor fits of 1e5 points 0.499-0.506 s against 0.508-0.513 s in
+    factoring's 8 tasks; 64 of 1e3 points 0.214-0.218 s against 0.223-0.227 s. A dataset
+    whose task was lost with its worker (Dask runs the task again elsewhere, and that run
+    finds it claimed) is fitted again, alone, afterwards."""
+    k = n_threads
+    futures = client.map(_fit_claimed, [loaders] * k, [spec] * k, [rng_seed] * k, [fit_kwargs] * k, [claims] * k,
+                         pure=False)
+    got = {}
+    try:
+        for part in client.gather(futures):
+            got.update(part)
+    except BaseException:
+        client.cancel(futures)
+        raise
+    missing = [i for i in range(len(loaders)) if i not in got]
+    if missing:
+        m = len(missing)
+        redo = client.map(_fit_many, [[loaders[i]] for i in missing], [spec] * m, missing, [rng_seed] * m,
+                          [fit_kwargs] * m, pure=False)
+        try:
+            for i, part in zip(missing, client.gather(redo)):
+                got[i] = part[0]
+        except BaseException:
+            client.cancel(redo)
+            raise
+    return [got[i] for i in range(len(loaders))]
+
+
+def _run_chunked(client, datasets, spec, rng_seed, fit_kwargs, n_threads) -> list:
+    """A task per contiguous chunk (:func:`task_chunks`), all submitted in one message
+    (``client.map``: a loop of ``client.submit`` sends the first at once and the rest ~10 ms
+    later, Dask's client batching; the first task then started 12-15 ms after the call,
+    against 4-5 ms); Measurements scattered, one object per task; results in order."""
+    loaders = all(callable(m) for m in datasets)
     chunks = task_chunks(len(datasets), n_threads,
-                         costs=None if loaders else [fit_cost(m.wi.shape[0]) for m in datasets])
+                         costs=None if any(callable(m) for m in datasets) else
+                         [fit_cost(m.wi.shape[0]) for m in datasets])
     if loaders:      # small: in the graph
         parts = [datasets[a:b] for a, b in chunks]
     else:            # hash=False: no token computed over every array (distinct objects anyway)
@@ -472,6 +580,49 @@ def _run_batch(client, datasets, spec, rng_seed, fit_kwargs) -> list:
         return [res for part in client.gather(futures) for res in part]
     finally:
         client.cancel(futures + ([] if loaders else list(parts)))
+
+
+def _local_processes(client) -> bool:
+    """Whether ``client``'s workers are processes of this machine started by this process:
+    its cluster a ``LocalCluster`` with processes (they see this process's temporary folder,
+    as this user)."""
+    try:
+        from distributed import LocalCluster
+    except ImportError:
+        return False
+    cluster = getattr(client, "cluster", None)
+    return isinstance(cluster, LocalCluster) and bool(getattr(cluster, "processes", False))
+
+
+def _hand_off(datasets):
+    """``(Handoff, datasets with each Measurements replaced by its file's loader)``: the
+    batch's private folder (:class:`gonio.fitting._handoff.Handoff`); None where it cannot
+    be made or written (a full disk, no temporary folder: the batch then runs in chunks,
+    its datasets over the cluster, with a warning that says why)."""
+    from ._handoff import Handoff
+
+    try:
+        handoff = Handoff()
+    except OSError as exc:
+        _handoff_warning(exc)
+        return None
+    try:
+        return handoff, [m if callable(m) else handoff.add(m) for m in datasets]
+    except OSError as exc:
+        handoff.close()
+        _handoff_warning(exc)
+        return None
+    except BaseException:
+        handoff.close()
+        raise
+
+
+def _handoff_warning(exc) -> None:
+    import warnings
+
+    warnings.warn(f"fit_batch: could not write the batch's files for the local workers ({exc}); running it "
+                  "in chunks, datasets in memory sent over the cluster (slower: free space in the temporary "
+                  "folder, or set TMPDIR)", RuntimeWarning, stacklevel=5)
 
 
 #: (client id, worker address, model and fit options) that :func:`_warm_worker` has run for

@@ -32,18 +32,39 @@ def _capture_file(path):
 
 
 @pytest.mark.slow
-def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_bit(tmp_path):
+def _disk_full(meas, path):
+    raise OSError(28, "No space left on device")
+
+
+def _loses_one(metas, model_spec, rng_seed, fit_kwargs, claims):
+    """A claiming task whose worker "was lost" with dataset 1: it claims 1 too and never
+    returns its fit (module level: the workers import it)."""
+    from gonio.fitting._batch import _fit_claimed
+    from gonio.fitting._handoff import claim
+
+    claim(claims, 1)
+    return _fit_claimed(metas, model_spec, rng_seed, fit_kwargs, claims)
+
+
+def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_bit(tmp_path, monkeypatch):
     """The compiled path (2000-point roughconductor fits, above the numpy path's crossover):
     fit_batch's workers run Dr.Jit on one thread (GONIO_THREADS=1), and a serial loop on one
-    thread gives the very same numbers, whether the datasets travel scattered from memory or
-    are read by a loader in the worker, and however they are chunked. Bit for bit: with one
+    thread gives the very same numbers, whether the datasets in memory are handed to the
+    local workers through files (the client's cluster is a LocalCluster: nothing scattered,
+    the files' folder gone afterwards), travel scattered over the cluster (a client that
+    connected by address; or a full disk: then with a warning that says why), or are read by
+    a loader in the worker, however they are chunked or claimed (on local workers a task per
+    worker takes datasets one at a time; one that a lost task had claimed is fitted again
+    afterwards). Bit for bit: with one
     thread the in-kernel sums add in a fixed order (with several, the per-thread partial sums
     are merged in the order the threads finish: ~1e-15 apart from run to run)."""
     import functools
     import os
+    import tempfile
 
     import drjit as dr
 
+    from gonio.fitting import _batch, _handoff
     from gonio.fitting._batch import _close_http, local_cluster
     from gonio.fitting._malloc import MALLOC_ENV
     from dask.distributed import Client
@@ -73,11 +94,30 @@ def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_
         # gonio's allocator settings reach the workers before they start (Dask's 65536 does not)
         for k, v in MALLOC_ENV.items():
             assert set(client.run(lambda k=k: __import__("os").environ.get(k)).values()) == {v}
+        scattered = []
+        scatter = client.scatter
+        client.scatter = lambda *a, **k: scattered.append(len(a[0])) or scatter(*a, **k)
+        monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
         runs = [fit_batch(data, model, client=client, rng_seed=7), fit_batch(loaders, model, client=client, rng_seed=7)]
+        assert scattered == [] and not list(tmp_path.glob("gonio-batch-*"))
+        with monkeypatch.context() as m:
+            m.setattr(_handoff, "write", _disk_full)
+            with pytest.warns(RuntimeWarning, match="TMPDIR"):
+                runs.append(fit_batch(data, model, client=client, rng_seed=7))
+        assert scattered and not list(tmp_path.glob("gonio-batch-*"))
+        with monkeypatch.context() as m:       # a dataset claimed by a lost task is fitted again
+            m.setattr(_batch, "_fit_claimed", _loses_one)
+            runs.append(fit_batch(loaders, model, client=client, rng_seed=7))
         assert set(client.run(lambda: __import__("drjit").thread_count()).values()) == {1}
         client.close()
+        by_address = Client(cluster.scheduler_address, security=cluster.security, set_as_default=False)
+        try:
+            runs.append(fit_batch(data, model, client=by_address, rng_seed=7))
+        finally:
+            by_address.close()
     finally:
         cluster.close()
+    assert len(runs) == 5
     for batch in runs:
         assert len(batch) == len(serial)
         for a, b in zip(batch, serial):

@@ -1,0 +1,98 @@
+"""Measurements handed to local workers through files (gonio.fitting._handoff): what is read
+is what was written, its arrays aligned views of a private map; a file that is not one is
+refused in one line; a failed write leaves no file behind."""
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from gonio.fitting import Measurements
+from gonio.fitting import _handoff
+from gonio.fitting._handoff import ALIGN, Handoff, HandoffError, claim, read, write
+
+
+def _measurements(n=257, seed=5):
+    rng = np.random.default_rng(seed)
+    wi = rng.normal(size=(n, 3))
+    wo = rng.normal(size=(n, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wo[:, 2] = np.abs(wo[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    brdf = rng.uniform(0.01, 2.0, (n, 3))
+    use = rng.uniform(size=(n, 3)) > 0.1
+    return Measurements(wi, wo, brdf, 0.02 * brdf + 1e-4, use, attrs={"seed": seed, "sample": "<b>"},
+                        weight=rng.uniform(0.5, 2.0, n), cluster=np.arange(n) // 3)
+
+
+ARRAYS = ("wi", "wo", "brdf", "brdf_std", "use", "weight", "cluster")
+
+
+def test_what_is_read_is_what_was_written_as_aligned_writable_views(tmp_path):
+    """Every array comes back equal, with its dtype, on a 64-byte boundary, and writable;
+    writing into one changes neither the file nor what the next reader sees (the map is
+    copy-on-write)."""
+    meas = _measurements()
+    path = tmp_path / "m.bin"
+    nbytes = write(meas, path)
+    assert nbytes == os.path.getsize(path)
+    got = read(path)
+    assert isinstance(got, Measurements) and got.attrs == meas.attrs and got.channels == meas.channels
+    for name in ARRAYS:
+        a, b = getattr(meas, name), getattr(got, name)
+        assert b.dtype == a.dtype and np.array_equal(a, b), name
+        assert b.ctypes.data % ALIGN == 0, name
+        assert b.flags.writeable, name
+    got.brdf[:] = -1.0
+    assert np.array_equal(read(path).brdf, meas.brdf)
+
+
+def test_a_file_that_is_not_a_handoff_file_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "m.bin"
+    write(_measurements(), path)
+    good = path.read_bytes()
+    cases = {"empty": b"", "short": good[:10], "other marker": b"NOTGONIO" + good[8:],
+             "trailer past the end": good[:-16] + (len(good)).to_bytes(8, "little") + (5).to_bytes(8, "little"),
+             "cut in the middle": good[:len(good) // 2]}
+    for what, raw in cases.items():
+        bad = tmp_path / "bad.bin"
+        bad.write_bytes(raw)
+        with pytest.raises(HandoffError) as info:
+            read(bad)
+        assert "\n" not in str(info.value) and str(bad) in str(info.value), what
+
+
+def test_write_never_replaces_a_file_and_a_failed_add_leaves_none(tmp_path, monkeypatch):
+    """``write`` refuses an existing path; ``Handoff.add`` that fails half way (the disk full
+    as the trailer is written) removes its half-written file; ``close`` removes the folder."""
+    path = tmp_path / "m.bin"
+    path.write_bytes(b"keep")
+    with pytest.raises(FileExistsError):
+        write(_measurements(), path)
+    assert path.read_bytes() == b"keep"
+
+    class Full:
+        size = _handoff._TRAILER.size
+
+        def pack(self, *values):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    with Handoff() as handoff:
+        loader = handoff.add(_measurements())
+        assert np.array_equal(loader().wi, _measurements().wi)
+        monkeypatch.setattr(_handoff, "_TRAILER", Full())
+        with pytest.raises(OSError, match="No space"):
+            handoff.add(_measurements())
+        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin"]
+        assert (os.stat(handoff.folder).st_mode & 0o777) == 0o700
+    assert not os.path.exists(handoff.folder)
+
+
+def test_a_dataset_is_claimed_once_and_no_claim_outlives_the_batch():
+    """``claim``: True for the first caller only, False for every later one, None once the
+    batch's folder is gone (a claiming task then stops)."""
+    with Handoff() as handoff:
+        assert [claim(handoff.claims, i) for i in (0, 1, 0, 2, 1)] == [True, True, False, True, False]
+    assert claim(handoff.claims, 3) is None
