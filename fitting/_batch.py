@@ -22,11 +22,15 @@ existing one or ``client`` is given. How the work is spread (issue 18):
   scattering those 16 datasets (9.9 MB each) over the local cluster's TLS cost 1.2 s of
   CPU (0.4 s over plain TCP), against 1.5 s for their 16 fits on one thread (measured
   2026-12-02);
-* contiguous datasets share a task (:func:`task_chunks`): large tasks first and ever smaller
-  ones after them (factoring), so that the workers finish within about one fit of each
-  other; a task holds ~50 ms of fitting or more (:data:`MIN_TASK_S`) where the fits' costs
-  are known, instead of paying Dask's cost of shipping a task and its result for each small
-  fit;
+* on this process's local worker processes a task per worker thread takes the datasets one
+  at a time, each claiming the next one not yet taken (:func:`_run_claimed`: a file created
+  with ``O_EXCL`` in the batch's private folder), so the workers finish within one fit of
+  each other whatever the fits' lengths, and Dask ships a task and a result per worker
+  thread, not per chunk. Elsewhere contiguous datasets share a task (:func:`task_chunks`):
+  large tasks first and ever smaller ones after them (factoring), so that the workers finish
+  within about one fit of each other; a task holds ~50 ms of fitting or more
+  (:data:`MIN_TASK_S`) where the fits' costs are known, instead of paying Dask's cost of
+  shipping a task and its result for each small fit;
 * the workers start with gonio's allocator settings (:func:`worker_environ`,
   :mod:`gonio.fitting._malloc`: a fit's multi-MiB temporaries stay on the heap; Dask's own
   ``MALLOC_TRIM_THRESHOLD_`` made each fit ~28 % slower, glibc's defaults fault 29,000 pages
@@ -37,7 +41,8 @@ existing one or ``client`` is given. How the work is spread (issue 18):
   slice of the first dataset (:func:`_warm_worker`, once per worker, model and fit options),
   so no task pays for a first call.
 
-The local cluster is private to this process: its
+The local cluster is private to this process (and so is the batch's folder of handoff files
+and claims: ``tempfile.mkdtemp``, mode 0700, removed when the batch ends): its
 scheduler and workers talk TLS with mutual authentication, with a key and self-signed
 certificate generated for this run only and kept in memory (``Security.temporary()`` when
 the ``cryptography`` package is installed, else the ``openssl`` command), so no other user
@@ -434,6 +439,9 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
         A loader is a function of no arguments that returns the Measurements (picklable:
         e.g. ``functools.partial(load_dataset, path)``); it is called in the worker, so the
         data does not travel through Dask (the workers must see the same files).
+        Measurements reach a local cluster's workers through files in a private temporary
+        folder (``TMPDIR``; about their size in the page cache while the batch runs), and
+        other workers over the cluster.
     model
         A gonio model, or ``(name, options)``.
     scheduler : str, optional

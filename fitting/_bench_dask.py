@@ -56,12 +56,18 @@ def bench_dask(seed=0, model_index=1, cases=((16, 100_000), (64, 1000)), repeat=
     GIL and a core from the fits: off or slowed in a cluster without a dashboard
     (:data:`gonio.fitting._batch.QUIET`), the task thread's wall time then equals its CPU
     time to 2 %; (3) a loop of ``client.submit`` sent the tasks in two messages ~10 ms apart:
-    one ``client.map``. Two plain processes fitting a half each, no Dask: 0.515-0.528 s
-    (1.86-1.96x the same process's sequential time; each fit 2-8 % slower than alone, the
-    cache and memory the two share). What Dask adds to that: ~7 ms from the call to the
-    first task (the graph through the scheduler to a worker, over TLS), ~5-8 ms from the
-    last task's end to the results, and ~1-2 % more CPU in a worker's task thread than in a
-    plain process (8 tasks of factoring against 2 halves: a few ms more)."""
+    one ``client.map``; (4) each task cost ~2.5 ms of a worker's event loop and as much of
+    the scheduler's (per-thread CPU, 20 batches: task threads 508-515 ms a batch, each
+    worker's event loop 9-10 ms, this process's 20 ms, for factoring's 8 tasks): on local
+    workers a task per worker thread now claims datasets one at a time
+    (:func:`gonio.fitting._batch._run_claimed`), 0.508-0.513 -> 0.499-0.506 s. Two plain
+    processes fitting a half each, no Dask: 0.48-0.54 s (1.89-1.96x the serial loop; each
+    fit 2-8 % slower than alone: the cache and memory the two share, and the two cores'
+    clock). What Dask adds to that: ~7 ms from the call to the first task (the graph
+    through the scheduler to a worker, over TLS), ~5-8 ms from the last task's end to the
+    results, and its event loops' CPU. The machine's own speed moves by several % from
+    hour to hour (the serial loop 0.94-1.02 s on 2026-12-03), which is why every ratio here
+    is taken within one run."""
     import drjit as dr
 
     from dask.distributed import Client
