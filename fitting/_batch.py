@@ -12,9 +12,10 @@ existing one or ``client`` is given. How the work is spread (issue 18):
   Measurements, e.g. ``functools.partial(load_dataset, path)``), called in the worker that
   fits it: nothing of the data then travels through Dask. Measurements given as they are
   reach worker processes of a local cluster (this process's ``LocalCluster``) through
-  files: each written once to a private temporary folder and mapped by the worker that
-  fits it (:mod:`gonio.fitting._handoff`; 16 roughconductor datasets of 1e5 points: 0.56 s
-  a call on 2 workers against 0.87-0.92 s scattered, 2026-12-03). To workers elsewhere, or
+  files: each written once to a private temporary folder, while the workers start on the
+  first ones, and mapped by the worker that fits it (:mod:`gonio.fitting._handoff`; 16
+  roughconductor datasets of 1e5 points: 0.49-0.54 s a call on 2 workers against 0.87-0.92 s
+  scattered, 2026-12-03). To workers elsewhere, or
   where the files cannot be written (a full disk: with a warning), they travel once,
   straight from this process to the workers (``client.scatter``, one object per task),
   never inside the task graph (which the scheduler would hold and forward: Dask warned of
@@ -89,10 +90,10 @@ WORKER_ENV = {"GONIO_THREADS": "1"}
 #: wall time then equals its CPU time to 2 %.
 #: Also slowed, though not only a dashboard's: the memory monitor of each worker and of its
 #: nanny (every 100 ms by default: a worker that outgrows its memory limit is now paused or
-#: restarted within a second instead of a tenth), and off, the scheduler's active memory
-#: manager (every 2 s; it drops extra replicas of results, and gonio's tasks make none) and
-#: the client's refresh of the scheduler's information (every 2 s; the fits ask for the
-#: workers when they need them). Measured (2026-12-03, the same 16 fits, eight calls a
+#: restarted within a second instead of a tenth), the client's refresh of the scheduler's
+#: information (every 2 s, now every minute; a batch asks for the workers when it starts),
+#: and, off, the scheduler's active memory manager (every 2 s; it drops extra replicas of
+#: results, and gonio's tasks make none). Measured (2026-12-03, the same 16 fits, eight calls a
 #: cluster, three clusters each way): 0.537-0.539 s best and 0.543-0.549 s median a call,
 #: against 0.544-0.551 s and 0.551-0.555 s with the three at Dask's defaults.
 QUIET = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
@@ -507,22 +508,32 @@ def _run_batch(client, datasets, spec, rng_seed, fit_kwargs) -> list:
         _warm_workers(client, set(nthreads), spec, first if callable(first) else _subset(first, WARM_POINTS),
                       fit_kwargs)
     if n_threads > 0 and _local_processes(client):
-        prepared = _hand_off(datasets)
-        if prepared is not None:
-            handoff, sent = prepared
+        from ._handoff import Handoff
+
+        try:
+            handoff = Handoff()
+        except OSError as exc:
+            _handoff_warning(exc)
+        else:
             try:
-                return _run_claimed(client, sent, spec, rng_seed, fit_kwargs, handoff.claims, n_threads)
+                return _run_claimed(client, datasets, spec, rng_seed, fit_kwargs, handoff, n_threads)
+            except _HandoffFailed as exc:
+                _handoff_warning(exc.__cause__)
             finally:
                 handoff.close()
     return _run_chunked(client, datasets, spec, rng_seed, fit_kwargs, n_threads)
 
 
+class _HandoffFailed(Exception):
+    """The batch's files could not be written (its cause): run it in chunks instead."""
+
+
 def _fit_claimed(metas, model_spec, rng_seed, fit_kwargs, claims):
     """A task of :func:`_run_claimed`: the datasets of ``metas`` (loaders) this task claims
     first (:func:`gonio.fitting._handoff.claim`), fitted in turn as :func:`_fit_one` would;
-    stops when every dataset is claimed or the batch's folder is gone. Returns ``[(index,
-    FitResult), ...]``."""
-    from ._handoff import claim
+    stops when every dataset is claimed or the batch is over (its folder gone, or its
+    writer failed). Returns ``[(index, FitResult), ...]``."""
+    from ._handoff import BatchOver, claim
 
     out = []
     for i, meas in enumerate(metas):
@@ -530,23 +541,40 @@ def _fit_claimed(metas, model_spec, rng_seed, fit_kwargs, claims):
         if mine is None:
             break
         if mine:
-            out.append((i, _fit_one(meas, model_spec, i, rng_seed, fit_kwargs)))
+            try:
+                out.append((i, _fit_one(meas, model_spec, i, rng_seed, fit_kwargs)))
+            except BatchOver:
+                break
     return out
 
 
-def _run_claimed(client, loaders, spec, rng_seed, fit_kwargs, claims, n_threads) -> list:
+def _run_claimed(client, datasets, spec, rng_seed, fit_kwargs, handoff, n_threads) -> list:
     """Self-scheduling on local worker processes: one task per worker thread, each taking
     the next unclaimed dataset until none is left (a claim is a file created with
     ``O_EXCL`` in the batch's private folder, ~10 us), so the threads finish within one
     fit of each other whatever the fits' lengths, and Dask ships two tasks and two results
     instead of a task per chunk. Measured (2026-12-03, 2 cores, 2 workers, eight calls
     each): 16 roughconductor fits of 1e5 points 0.499-0.506 s against 0.508-0.513 s in
-    factoring's 8 tasks; 64 of 1e3 points 0.214-0.218 s against 0.223-0.227 s. A dataset
+    factoring's 8 tasks; 64 of 1e3 points 0.214-0.218 s against 0.223-0.227 s.
+
+    Measurements in memory are promised to the tasks (:meth:`Handoff.promise`) and written
+    once the tasks are on their way (:meth:`Handoff.write_pending`), in claiming order, so
+    the workers start on the first while the later ones are written; a write that fails
+    (a full disk) raises :class:`_HandoffFailed` after cancelling the tasks. A dataset
     whose task was lost with its worker (Dask runs the task again elsewhere, and that run
     finds it claimed) is fitted again, alone, afterwards."""
+    loaders = [m if callable(m) else handoff.promise(m) for m in datasets]
     k = n_threads
-    futures = client.map(_fit_claimed, [loaders] * k, [spec] * k, [rng_seed] * k, [fit_kwargs] * k, [claims] * k,
-                         pure=False)
+    futures = client.map(_fit_claimed, [loaders] * k, [spec] * k, [rng_seed] * k, [fit_kwargs] * k,
+                         [handoff.claims] * k, pure=False)
+    try:
+        handoff.write_pending()
+    except OSError as exc:
+        client.cancel(futures)
+        raise _HandoffFailed() from exc
+    except BaseException:
+        client.cancel(futures)
+        raise
     got = {}
     try:
         for part in client.gather(futures):
@@ -602,35 +630,12 @@ def _local_processes(client) -> bool:
     return isinstance(cluster, LocalCluster) and bool(getattr(cluster, "processes", False))
 
 
-def _hand_off(datasets):
-    """``(Handoff, datasets with each Measurements replaced by its file's loader)``: the
-    batch's private folder (:class:`gonio.fitting._handoff.Handoff`); None where it cannot
-    be made or written (a full disk, no temporary folder: the batch then runs in chunks,
-    its datasets over the cluster, with a warning that says why)."""
-    from ._handoff import Handoff
-
-    try:
-        handoff = Handoff()
-    except OSError as exc:
-        _handoff_warning(exc)
-        return None
-    try:
-        return handoff, [m if callable(m) else handoff.add(m) for m in datasets]
-    except OSError as exc:
-        handoff.close()
-        _handoff_warning(exc)
-        return None
-    except BaseException:
-        handoff.close()
-        raise
-
-
 def _handoff_warning(exc) -> None:
     import warnings
 
     warnings.warn(f"fit_batch: could not write the batch's files for the local workers ({exc}); running it "
                   "in chunks, datasets in memory sent over the cluster (slower: free space in the temporary "
-                  "folder, or set TMPDIR)", RuntimeWarning, stacklevel=5)
+                  "folder, or set TMPDIR)", RuntimeWarning, stacklevel=4)
 
 
 #: (client id, worker address, model and fit options) that :func:`_warm_worker` has run for

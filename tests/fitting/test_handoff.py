@@ -96,3 +96,43 @@ def test_a_dataset_is_claimed_once_and_no_claim_outlives_the_batch():
     with Handoff() as handoff:
         assert [claim(handoff.claims, i) for i in (0, 1, 0, 2, 1)] == [True, True, False, True, False]
     assert claim(handoff.claims, 3) is None
+
+
+def test_a_promised_dataset_is_read_once_written_and_never_half_written(monkeypatch):
+    """``promise`` gives the loader before the file exists: a reader waits for it
+    (``read_when_written``) and gets the whole dataset once ``write_pending`` has written it
+    (under another name, then renamed); where the writer fails (the disk full), the readers
+    stop with ``BatchOver`` instead of waiting for ever, and so do they once the folder is
+    gone."""
+    import threading
+
+    from gonio.fitting._handoff import BatchOver
+
+    meas = _measurements()
+    with Handoff() as handoff:
+        loader = handoff.promise(meas)
+        got = {}
+        reader = threading.Thread(target=lambda: got.update(m=loader()))
+        reader.start()
+        reader.join(0.05)
+        assert reader.is_alive() and os.listdir(handoff.folder) == ["claims"]
+        handoff.write_pending()
+        reader.join(5)
+        assert not reader.is_alive() and np.array_equal(got["m"].brdf, meas.brdf)
+        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin"]
+
+        class Full:
+            size = _handoff._TRAILER.size
+
+            def pack(self, *values):
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+        late = handoff.promise(meas)
+        monkeypatch.setattr(_handoff, "_TRAILER", Full())
+        with pytest.raises(OSError, match="No space"):
+            handoff.write_pending()
+        assert not [f for f in os.listdir(handoff.folder) if f.endswith(".part")]
+        with pytest.raises(BatchOver, match="ended"):
+            late()
+    with pytest.raises(BatchOver):
+        loader()
