@@ -141,12 +141,11 @@ class Handoff:
     (:attr:`claims`, for :func:`claim`); :meth:`close` removes it all (also on leaving a
     ``with`` block).
 
-    :meth:`add` writes a dataset's file and returns its loader (a picklable function of no
-    arguments: ``functools.partial(read, path)``). :meth:`promise` returns the loader first
-    (``functools.partial(read_when_written, path)``) and :meth:`write_pending` writes the
-    promised files afterwards, in order, each whole under its final name (written as
-    ``.part``, then renamed), so that workers may start on the first datasets while the
-    later ones are written."""
+    :meth:`promise` returns a dataset's loader (a picklable function of no arguments:
+    ``functools.partial(read_when_written, path)``) before its file exists, and
+    :meth:`write_pending` writes the promised files afterwards, in order, each whole under
+    its final name (written as ``.part``, then renamed), so that workers may start on the
+    first datasets while the later ones are written."""
 
     def __init__(self):
         self.folder = tempfile.mkdtemp(prefix="gonio-batch-")     # mode 0700
@@ -176,13 +175,6 @@ class Handoff:
             except OSError:
                 pass
             raise
-
-    def add(self, meas):
-        import functools
-
-        path = self._path()
-        self._write(meas, path)
-        return functools.partial(read, path)
 
     def promise(self, meas):
         import functools

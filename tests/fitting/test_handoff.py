@@ -64,9 +64,10 @@ def test_a_file_that_is_not_a_handoff_file_is_refused_in_one_line(tmp_path):
         assert "\n" not in str(info.value) and str(bad) in str(info.value), what
 
 
-def test_write_never_replaces_a_file_and_a_failed_add_leaves_none(tmp_path, monkeypatch):
-    """``write`` refuses an existing path; ``Handoff.add`` that fails half way (the disk full
-    as the trailer is written) removes its half-written file; ``close`` removes the folder."""
+def test_write_never_replaces_a_file_and_a_failed_write_leaves_none(tmp_path, monkeypatch):
+    """``write`` refuses an existing path; ``Handoff.write_pending`` that fails half way (the
+    disk full as the trailer is written) removes its half-written file; ``close`` removes the
+    folder."""
     path = tmp_path / "m.bin"
     path.write_bytes(b"keep")
     with pytest.raises(FileExistsError):
@@ -80,12 +81,14 @@ def test_write_never_replaces_a_file_and_a_failed_add_leaves_none(tmp_path, monk
             raise OSError(errno.ENOSPC, "No space left on device")
 
     with Handoff() as handoff:
-        loader = handoff.add(_measurements())
+        loader = handoff.promise(_measurements())
+        handoff.write_pending()
         assert np.array_equal(loader().wi, _measurements().wi)
         monkeypatch.setattr(_handoff, "_TRAILER", Full())
+        handoff.promise(_measurements())
         with pytest.raises(OSError, match="No space"):
-            handoff.add(_measurements())
-        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin"]
+            handoff.write_pending()
+        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin", _handoff.FAILED]
         assert (os.stat(handoff.folder).st_mode & 0o777) == 0o700
     assert not os.path.exists(handoff.folder)
 
