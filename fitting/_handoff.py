@@ -18,6 +18,10 @@ written first, then fitted, 0.54-0.77 s (writing alone 0.04-0.27 s: the kernel's
 cache, whose page allocation is the spread); written while fitting, 0.49-0.50 s, as fast as
 the same datasets read by loaders from .npz files; the fits bit for bit the same.
 
+The same folder holds the batch's claims (:func:`claim`): on local workers ``fit_batch``
+runs a task per worker thread, and each takes the next dataset not yet taken by creating
+its claim file with ``O_EXCL`` (atomic on a local file system: exactly one creator wins).
+
 The folder is removed when the batch ends, whatever its outcome; a process killed with
 SIGKILL leaves it behind (``gonio-batch-*`` in the temporary folder). A file is read only
 by a worker of the cluster this process started, as this user; the reader still checks
