@@ -140,13 +140,17 @@ class _PlainProcesses:
         self.pipes, self.procs = [], []
         with environ_kept():
             os.environ.update({k: str(v) for k, v in worker_environ().items()})
-            for _ in range(n):
-                ours, theirs = ctx.Pipe()
-                proc = ctx.Process(target=_plain_main, args=(theirs,), daemon=True, name="gonio-bench-plain")
-                proc.start()
-                theirs.close()
-                self.pipes.append(ours)
-                self.procs.append(proc)
+            try:
+                for _ in range(n):
+                    ours, theirs = ctx.Pipe()
+                    self.pipes.append(ours)
+                    proc = ctx.Process(target=_plain_main, args=(theirs,), daemon=True, name="gonio-bench-plain")
+                    proc.start()
+                    theirs.close()      # a child that dies then ends the parent's recv (EOFError)
+                    self.procs.append(proc)
+            except BaseException:
+                self.close()
+                raise
 
     def run(self, jobs):
         """``jobs``: one ``(datasets, spec, first, seed, threads)`` per process, all sent at
