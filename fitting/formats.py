@@ -32,7 +32,6 @@ from pathlib import Path
 
 import numpy as np
 
-import gonio.models as gm
 from gonio.models.atomic import atomic_open
 from gonio.models.geometry import angles_deg as _angles_deg
 from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
