@@ -191,13 +191,54 @@ def _eval_checked(model, wi, wo, p):
     if n == 0:
         return np.zeros((0, CHANNELS), dtype)
     P = _eval_params(model, p, dtype)
-    if _roundtrip.takes_copies(n):
-        kern = _soa_kernel if dtype == np.float64 else _packed_kernel
+    return _eval_path(model, wi, wo, P, _roundtrip.takes_copies(n, dtype))
+
+
+def _eval_path(model, wi, wo, P, copies: bool):
+    """f_r through numpy's copies (:func:`._roundtrip.eval_blocks`) or the kernel's gathers
+    (:func:`._roundtrip.eval_gathered`): the same values, bit for bit."""
+    if copies:
+        kern = _soa_kernel if wi.dtype == np.float64 else _packed_kernel
         return _roundtrip.eval_blocks(_frozen_for(kern, model), wi, wo, P, _FREEZE_LOCK)
     # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the
     # interleave the trace is long enough (measured 28 us frozen, 57 us traced, 300 pairs)
-    words = _frozen_for(_round_trip_words, model) if dtype == np.float32 else None
+    words = _frozen_for(_round_trip_words, model) if wi.dtype == np.float32 else None
     return _roundtrip.eval_gathered((_frozen_for(_round_trip, model), words), wi, wo, P, _FREEZE_LOCK, EVAL_BLOCK)
+
+
+#: Pairs each round trip evaluates in :func:`round_trip_race`: large enough that the round
+#: trip, not the launch, is what is timed (where the copies win, at 65536 pairs they do by
+#: 1.4x: the Zen 5's diffuse in :mod:`._roundtrip`'s notes; where the gathers win, by 1.9x
+#: on the Zen 3 and 4.4x on the Intel Xeon).
+RACE_PAIRS = 1 << 16
+
+
+def round_trip_race(dtype, repeat: int = 7):
+    """``(gathers s, copies s)``: the public eval's two numpy round trips
+    (:func:`._roundtrip.eval_gathered`, :func:`._roundtrip.eval_blocks`) timed on this
+    machine for ``dtype`` directions, the best of ``repeat`` calls each, taken in turn after
+    one untimed call (which records the kernels): the diffuse model, whose kernel is the
+    cheapest, so the round trip is most of what is timed, on :data:`RACE_PAIRS` fixed
+    directions. :func:`._roundtrip.takes_copies` runs it once per process and precision
+    (~5 ms, and the four kernels' recordings on a first call)."""
+    import time
+
+    from . import get
+
+    dtype = np.dtype(dtype)
+    model = get("diffuse")
+    rng = np.random.default_rng(20261203)
+    wi, wo = (np.abs(rng.standard_normal((RACE_PAIRS, CHANNELS))) + 0.1 for _ in range(2))
+    wi, wo = ((w / np.linalg.norm(w, axis=1, keepdims=True)).astype(dtype) for w in (wi, wo))
+    P = _eval_params(model, model.defaults(), dtype)
+    best = [np.inf, np.inf]
+    for r in range(repeat + 1):
+        for k in (0, 1) if r % 2 else (1, 0):
+            t0 = time.perf_counter()
+            _eval_path(model, wi, wo, P, copies=bool(k))
+            if r:
+                best[k] = min(best[k], time.perf_counter() - t0)
+    return best[0], best[1]
 
 
 #: The parameters of the last few public evaluations as Dr.Jit scalars, by model

@@ -2,23 +2,34 @@
 (N, 3) out, float64 or float32 (the type of the directions: the kernel runs in it), through a
 compiled kernel that gathers from numpy's memory mapped without a copy (:func:`eval_gathered`)
 or, on CPUs whose vector gathers are slow, through one that reads and writes contiguous arrays
-that numpy copies (:func:`eval_blocks`). Which one a batch takes: :func:`takes_copies`.
+that numpy copies (:func:`eval_blocks`). Which one a batch takes: :func:`takes_copies`, from a
+race of the two run once per process and precision (:func:`gonio.models._fast.round_trip_race`).
 
-Why two: the gathers' cost depends on the code LLVM makes for the CPU.
+Why two, and why a race: the gathers' cost depends on the CPU, not on its vector width alone.
 
-* AVX-512 (16 float32 lanes; this project's AMD Zen 5, measured 2026-12-02, CPU time, one
-  thread, 1e6 pairs): the three stride-3 float64 gathers that de-interleave one (N, 3) array
-  cost 3.5-3.9 ms (1.0 ms when the same kernel is compiled for AVX2, where LLVM does not use
-  the vector gather instruction), and the kernel that interleaves the three channels back
-  4.7 ms: ~12 ms of a ~19 ms call, for a model whose float64 kernel costs 1-4 ms. numpy's
+* AMD Zen 5, AVX-512 (16 float32 lanes; measured 2026-12-02, CPU time, one thread, 1e6
+  pairs): the three stride-3 float64 gathers that de-interleave one (N, 3) array cost
+  3.5-3.9 ms (1.0 ms when the same kernel is compiled for AVX2, where LLVM does not use the
+  vector gather instruction), and the kernel that interleaves the three channels back 4.7
+  ms: ~12 ms of a ~19 ms call, for a model whose float64 kernel costs 1-4 ms. numpy's
   strided copies do the same in ~2.0 ms per (N, 3) array: the copies win from
   :data:`SOA_MIN_PAIRS` pairs.
-* AVX2 (8 lanes; AMD Zen 3, measured 2026-12-02, wall time, Dr.Jit's default 2 threads, best
+* AMD Zen 3, AVX2 (8 lanes; measured 2026-12-02, wall time, Dr.Jit's default 2 threads, best
   of 15, nothing else running): the gathers win at every size, blocks/gathers time ratio at
   16384 / 65536 / 262144 / 1048576 / 4194304 pairs: diffuse float32 3.6 1.9 2.0 1.8 1.3,
   float64 3.0 1.9 2.1 2.3 1.4; roughplastic GGX float32 2.4 1.5 1.6 1.4 1.1, float64 2.1 1.5
-  1.6 1.6 1.3. Every value is the same kernel's on the same inputs either way: equal, bit for
-  bit (tested), so the choice is speed alone.
+  1.6 1.6 1.3.
+* Intel Xeon, AVX-512 with FP16 (a 2-core virtual machine; 2026-12-03, same method): the
+  gathers win at every size, by more: diffuse float32 4.9 4.4 5.6 9.5 3.6, float64 3.7 4.3
+  6.9 11.1 3.9; roughplastic GGX float32 2.9 3.6 3.4 4.4 2.9, float64 3.6 2.9 3.9 5.2 2.9.
+  Choosing by vector width, as gonio did until then, made its public float32 eval 4.7x
+  slower there than it could be (roughplastic GGX, 1e6 pairs: 10.5 ms against 2.2 ms).
+  Intel's gathers are not fast everywhere either: the microcode against Gather Data
+  Sampling (Intel SA-00828, 2023) slows them on Skylake to Tiger Lake, AVX2 included.
+
+Every value is the same kernel's on the same inputs either way: equal, bit for bit (tested),
+so the choice is speed alone, and a race that a loaded machine decides wrongly costs speed,
+never a value.
 
 The copies (:func:`eval_blocks`): numpy copies each direction component into an array that
 Dr.Jit allocated (its allocator keeps freed blocks: no fresh pages to fault in on every call,
@@ -60,28 +71,30 @@ __all__ = ["SOA_MIN_PAIRS", "COPIES", "takes_copies", "types", "soa_kernel", "pa
 SOA_MIN_PAIRS = 1 << 14
 
 #: Which round trip a batch of :data:`SOA_MIN_PAIRS` pairs or more takes: ``"auto"`` (the
-#: copies where Dr.Jit compiles for 16 float32 lanes, AVX-512, whose vector gathers cost more
-#: than numpy's copies; the gathers elsewhere: see the module notes), ``"copies"`` or
-#: ``"gathers"``. The results are the same bit for bit; the tests set it to check both.
+#: faster of the two on this machine, raced once per process and precision:
+#: :func:`gonio.models._fast.round_trip_race`), ``"copies"`` or ``"gathers"``. The results
+#: are the same bit for bit; the tests set it to check both.
 COPIES = "auto"
 
 
-def takes_copies(n: int) -> bool:
-    """Whether a batch of ``n`` pairs takes :func:`eval_blocks` (numpy's copies) rather than
-    :func:`eval_gathered` (see :data:`COPIES`)."""
+def takes_copies(n: int, dtype=np.float32) -> bool:
+    """Whether a batch of ``n`` pairs of ``dtype`` directions takes :func:`eval_blocks`
+    (numpy's copies) rather than :func:`eval_gathered` (see :data:`COPIES`)."""
     if n < SOA_MIN_PAIRS or COPIES == "gathers":
         return False
-    return COPIES == "copies" or _wide_vectors()
+    return COPIES == "copies" or _copies_faster(np.dtype(dtype).char)
 
 
-@lru_cache(maxsize=1)
-def _wide_vectors() -> bool:
-    """Dr.Jit compiles for 16 float32 lanes (AVX-512's vector gathers) in this process.
-    Asked once: a target changed later (``GONIO_LLVM_TARGET`` is read at import) changes only
+@lru_cache(maxsize=None)
+def _copies_faster(char: str) -> bool:
+    """Whether numpy's copies beat the kernel's gathers for ``char`` (numpy's type code)
+    directions in this process: :func:`gonio.models._fast.round_trip_race`, run once. A
+    code generation changed later (``GONIO_LLVM_TARGET`` is read at import) changes only
     which path is faster, never a value."""
-    from ._jit_target import llvm_target
+    from . import _fast
 
-    return llvm_target()[1] >= 16
+    gathers, copies = _fast.round_trip_race(np.dtype(char))
+    return copies < gathers
 
 #: Pairs per launch (a block's components and channels stay in the caches between numpy's
 #: copies and the kernel; see :func:`eval_blocks`).

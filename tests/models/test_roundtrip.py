@@ -103,21 +103,26 @@ def test_bad_input_is_refused_before_any_copy(monkeypatch):
     assert m.eval(np.zeros((0, 3)), np.zeros((0, 3)), {}, backend="drjit").shape == (0, 3)
 
 
-def test_the_path_follows_the_vector_width(monkeypatch):
-    """``COPIES = "auto"`` (the default): numpy's copies from SOA_MIN_PAIRS pairs where Dr.Jit
-    compiles for 16 lanes (AVX-512's slow vector gathers), the gathers at every size elsewhere
-    (AVX2: 1.1-3.6x faster, measured in the module notes); the settings force either; the
-    two give the same values (2**14 + 1 pairs: an odd last row on the float32 copies)."""
+def test_the_path_follows_the_race(monkeypatch):
+    """``COPIES = "auto"`` (the default): numpy's copies from SOA_MIN_PAIRS pairs where they
+    won this process's race for the directions' precision, the gathers at every size
+    elsewhere (the race: :func:`_fast.round_trip_race`, run once per precision; measured
+    margins in the module notes); the settings force either; the two give the same values
+    (2**14 + 1 pairs: an odd last row on the float32 copies)."""
     monkeypatch.setattr(_roundtrip, "COPIES", "auto")
     n = _roundtrip.SOA_MIN_PAIRS
-    for wide, want in ((True, [False, True, True]), (False, [False, False, False])):
-        monkeypatch.setattr(_roundtrip, "_wide_vectors", lambda wide=wide: wide)
-        assert [_roundtrip.takes_copies(k) for k in (n - 1, n, 10**7)] == want
+    for won, want in ((True, [False, True, True]), (False, [False, False, False])):
+        monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char, won=won: won)
+        for dtype in (np.float32, np.float64):
+            assert [_roundtrip.takes_copies(k, dtype) for k in (n - 1, n, 10**7)] == want
+    # each precision follows its own race
+    monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char: char == "d")
+    assert _roundtrip.takes_copies(n, np.float64) and not _roundtrip.takes_copies(n, np.float32)
     monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
-    monkeypatch.setattr(_roundtrip, "_wide_vectors", lambda: True)
+    monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char: True)
     assert not _roundtrip.takes_copies(10**7)
     monkeypatch.setattr(_roundtrip, "COPIES", "copies")
-    monkeypatch.setattr(_roundtrip, "_wide_vectors", lambda: False)
+    monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char: False)
     assert _roundtrip.takes_copies(n) and not _roundtrip.takes_copies(n - 1)
 
     m = gm.get("roughplastic", distribution="ggx")
@@ -132,6 +137,29 @@ def test_the_path_follows_the_vector_width(monkeypatch):
         np.testing.assert_array_equal(got["copies"], got["gathers"])
         assert got["gathers"].dtype == dtype and got["gathers"].flags.c_contiguous
 
+
+
+def test_the_race_times_both_round_trips_and_decides_once(monkeypatch):
+    """:func:`_fast.round_trip_race` times each round trip (positive, finite seconds: both
+    really ran), and ``auto`` takes whichever it says is faster, asking once per precision."""
+    for dtype in (np.float32, np.float64):
+        gathers, copies = _fast.round_trip_race(dtype, repeat=2)
+        assert 0 < gathers < 1 and 0 < copies < 1
+    calls = []
+
+    def race(dtype, repeat=7):
+        calls.append(np.dtype(dtype).char)
+        return (2.0, 1.0) if np.dtype(dtype) == np.float64 else (1.0, 2.0)
+
+    monkeypatch.setattr(_fast, "round_trip_race", race)
+    monkeypatch.setattr(_roundtrip, "COPIES", "auto")
+    _roundtrip._copies_faster.cache_clear()
+    try:
+        n = _roundtrip.SOA_MIN_PAIRS
+        got = [_roundtrip.takes_copies(n, dt) for dt in (np.float64, np.float32, np.float64, np.float32)]
+        assert got == [True, False, True, False] and sorted(calls) == ["d", "f"]
+    finally:
+        _roundtrip._copies_faster.cache_clear()     # the next test races for real
 
 def test_gathered_blocks_join_into_one_output(monkeypatch):
     """Above EVAL_BLOCK pairs the gathering path runs in blocks written into one output in
