@@ -169,12 +169,12 @@ def eval(model, wi, wo, params):
     (:func:`gonio.models._base.eval_dtype`).
 
     numpy's memory is mapped into Dr.Jit without a copy and the kernel gathers the
-    components (:func:`._roundtrip.eval_gathered`), except where Dr.Jit compiles for
-    AVX-512, whose vector gathers cost more than numpy's copies: there, from
-    :data:`._roundtrip.SOA_MIN_PAIRS` pairs, numpy copies the direction components into
-    Dr.Jit's memory, the model's kernel reads them as contiguous arrays and numpy interleaves
-    its channels into an output in Dr.Jit's memory (:func:`._roundtrip.eval_blocks`;
-    :func:`._roundtrip.takes_copies`). Either way the kernel is replayed from its recording
+    components (:func:`._roundtrip.eval_gathered`), except on CPUs whose vector gathers
+    cost more than numpy's copies (a race decides, once per process and precision:
+    :func:`round_trip_race`): there, from :data:`._roundtrip.SOA_MIN_PAIRS` pairs, numpy
+    copies the direction components into Dr.Jit's memory, the model's kernel reads them as
+    contiguous arrays and numpy interleaves its channels into an output in Dr.Jit's memory
+    (:func:`._roundtrip.eval_blocks`; :func:`._roundtrip.takes_copies`). Either way the kernel is replayed from its recording
     (:func:`_frozen`); per pair 48 bytes read and 24 written at least in float64 (24 and 12
     in float32), the memory-bandwidth limit ``gonio bench models`` prints."""
     dtype = eval_dtype(wi, wo)

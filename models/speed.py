@@ -386,6 +386,34 @@ def _print_row(row, name, options, out):
                                                      "grad_cost_p64", "of_limit32", "of_limit64")), file=out)
 
 
+def _print_goals(rows, out):
+    """Issue 18's goals in words, from this run's rows: the public eval of its example model
+    (roughplastic) over Mitsuba's resident kernel (>= 0.5) for float32 and float64
+    directions, with the float64 kernel's own ratio (the ceiling for float64 directions),
+    and the largest gradient/evaluation ratio (<= 3)."""
+    def span(key, sel=lambda r: True):
+        vals = [r[key] for r in rows if r.get(key) is not None and sel(r)]
+        return (min(vals), max(vals)) if vals else None
+
+    plastic = span("eval32_ratio", lambda r: r["model"] == "roughplastic")
+    if plastic is None:
+        return
+    p64, e64 = span("eval_ratio", lambda r: r["model"] == "roughplastic"), \
+        span("eval64_ratio", lambda r: r["model"] == "roughplastic")
+    g32, g64 = span("grad_cost"), span("grad_cost64")
+    if None in (p64, e64, g32, g64):
+        return
+
+    def verdict(lo, goal, above=True):
+        return "met" if (lo >= goal if above else lo <= goal) else "NOT met"
+    print(f"issue 18, gm.get('roughplastic').eval(wi, wo, p) over Mitsuba's resident kernel (goal >= 0.5, numpy "
+          f"round trip included): float32 directions (Mitsuba's own precision) {plastic[0]:.3f}-{plastic[1]:.3f}, "
+          f"{verdict(plastic[0], 0.5)}; float64 directions {p64[0]:.3f}-{p64[1]:.3f}, {verdict(p64[0], 0.5)} "
+          f"(the resident float64 kernel alone reaches {e64[0]:.3f}-{e64[1]:.3f} of Mitsuba's float32 one: the "
+          f"ceiling for float64 directions on this CPU). Gradient over evaluation (goal <= 3): float32 at most "
+          f"{g32[1]:.2f}, float64 at most {g64[1]:.2f}, {verdict(max(g32[1], g64[1]), 3.0, above=False)}.", file=out)
+
+
 def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     """Print evaluations per second per model and return the figures.
 
@@ -485,6 +513,7 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
           "(roughconductor) of it with y and w: 28-52 B/pair)", file=out)
     if variant is not None:
         print(f"Mitsuba variant: {variant}", file=out)
+    _print_goals(rows, out)
     if not compiled:
         print("Dr.Jit LLVM backend unavailable: compiled paths not timed", file=out)
     return rows

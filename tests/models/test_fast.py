@@ -153,6 +153,27 @@ def test_bench_runs():
         assert r["limits"]["eval"] == pytest.approx(r["limits"]["bandwidth64"] / 72)
 
 
+def test_bench_states_issue_18s_goals():
+    """The goals line reads this run's rows: the worst roughplastic row decides the public
+    eval's verdict in each precision, the worst model the gradient's."""
+    from gonio.models import speed as bench
+
+    def row(model, ev32, ev64, e64, g32, g64):
+        return {"model": model, "eval32_ratio": ev32, "eval_ratio": ev64, "eval64_ratio": e64,
+                "grad_cost": g32, "grad_cost64": g64}
+
+    buf = io.StringIO()
+    bench._print_goals([row("roughplastic", 0.62, 0.36, 0.46, 2.4, 1.9), row("roughplastic", 0.67, 0.499, 0.5, 2.3, 1.8),
+                        row("diffuse", 0.31, 0.17, 0.55, 2.25, 3.2)], buf)
+    text = buf.getvalue()
+    assert "float32 directions (Mitsuba's own precision) 0.620-0.670, met" in text
+    assert "float64 directions 0.360-0.499, NOT met" in text and "alone reaches 0.460-0.500" in text
+    assert "float64 at most 3.20, NOT met" in text
+    buf = io.StringIO()
+    bench._print_goals([row("diffuse", 0.31, 0.17, 0.55, 2.25, 2.3)], buf)   # no roughplastic: nothing said
+    assert buf.getvalue() == ""
+
+
 def test_bench_parameters_are_coloured():
     """The benchmark's parameters differ per channel (so no path can evaluate one channel
     for three) and stay inside the bounds."""
