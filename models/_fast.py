@@ -48,6 +48,7 @@ models that declare an affine parameter in :mod:`._fast_affine` (re-exported her
 
 from __future__ import annotations
 
+import functools
 import subprocess
 import sys
 import threading
@@ -202,8 +203,11 @@ def _eval_path(model, wi, wo, P, copies: bool):
         return _roundtrip.eval_blocks(_frozen_for(kern, model), wi, wo, P, _FREEZE_LOCK)
     # replayed even for the diffuse models (unlike Bound.eval): with the gathers and the
     # interleave the trace is long enough (measured 28 us frozen, 57 us traced, 300 pairs)
-    words = _frozen_for(_round_trip_words, model) if wi.dtype == np.float32 else None
-    return _roundtrip.eval_gathered((_frozen_for(_round_trip, model), words), wi, wo, P, _FREEZE_LOCK, EVAL_BLOCK)
+    f32 = wi.dtype == np.float32
+    runs = (_frozen_for(_round_trip, model), _frozen_for(_round_trip_words, model) if f32 else None,
+            functools.partial(_roundtrip.gather_into_kernel, _kernel, model),
+            functools.partial(_roundtrip.word_gather_into_kernel, _kernel, model) if f32 else None)
+    return _roundtrip.eval_gathered(runs, wi, wo, P, _FREEZE_LOCK, EVAL_BLOCK)
 
 
 #: Pairs each round trip evaluates in :func:`round_trip_race`: large enough that the round
