@@ -262,11 +262,11 @@ def eval_gathered(runs, wi, wo, P, lock, block):
     odd_words = run_words is not None and n % 2 == 1 and n > 1
     if n <= block and not odd_words:
         return one(wi, wo)
-    # in blocks, a large batch needs its output and one block's channels (measured peak RSS
-    # over the inputs, 1e7 diffuse pairs: 2.03x the output in one launch, 1.27x in blocks
-    # copied into the output); the output in memory that Dr.Jit allocated, as in
-    # eval_blocks (no fresh pages faulted in a call), each block's kernel scattering into
-    # its rows. Measured (Intel Xeon, AVX-512, 2 Dr.Jit threads, 2026-12-03, 4M pairs, best
+    # in blocks, a large batch needs its output and little more (peak RSS over what was
+    # resident before the call, 1e7 diffuse float64 pairs, 2026-12-03: 1.05x the output;
+    # 1.27x when each block had its own output, copied into place); the output in memory
+    # that Dr.Jit allocated, as in eval_blocks (no fresh pages faulted in a call), each
+    # block's kernel scattering into its rows. Measured (Intel Xeon, AVX-512, 2 Dr.Jit threads, 2026-12-03, 4M pairs, best
     # of 7, ms a call), each block's own output copied into place -> written in place (one
     # launch): diffuse float32 11.1-12.2 -> 5.9 (4.6), float64 21.4 -> 11.4 (10.1);
     # roughplastic GGX float32 17.4 -> 11.8 (9.0), float64 32.0 -> 18.4 (16.4)
