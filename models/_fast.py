@@ -175,7 +175,7 @@ def eval(model, wi, wo, params):
     :func:`round_trip_race`): there, from :data:`._roundtrip.SOA_MIN_PAIRS` pairs, numpy
     copies the direction components into Dr.Jit's memory, the model's kernel reads them as
     contiguous arrays and numpy interleaves its channels into an output in Dr.Jit's memory
-    (:func:`._roundtrip.eval_blocks`; :func:`._roundtrip.takes_copies`). Either way the kernel is replayed from its recording
+    (:func:`._roundtrip.eval_blocks`; :func:`takes_copies`). Either way the kernel is replayed from its recording
     (:func:`_frozen`); per pair 48 bytes read and 24 written at least in float64 (24 and 12
     in float32), the memory-bandwidth limit ``gonio bench models`` prints."""
     dtype = eval_dtype(wi, wo)
@@ -192,7 +192,7 @@ def _eval_checked(model, wi, wo, p):
     if n == 0:
         return np.zeros((0, CHANNELS), dtype)
     P = _eval_params(model, p, dtype)
-    return _eval_path(model, wi, wo, P, _roundtrip.takes_copies(n, dtype))
+    return _eval_path(model, wi, wo, P, takes_copies(n, dtype))
 
 
 def _eval_path(model, wi, wo, P, copies: bool):
@@ -210,6 +210,28 @@ def _eval_path(model, wi, wo, P, copies: bool):
     return _roundtrip.eval_gathered(runs, wi, wo, P, _FREEZE_LOCK, EVAL_BLOCK)
 
 
+def takes_copies(n: int, dtype=np.float32) -> bool:
+    """Whether the public eval of ``n`` pairs of ``dtype`` directions takes numpy's copies
+    (:func:`._roundtrip.eval_blocks`) rather than the kernel's gathers
+    (:func:`._roundtrip.eval_gathered`): never below :data:`._roundtrip.SOA_MIN_PAIRS`,
+    else as :data:`._roundtrip.COPIES` says (``"auto"``: the winner of
+    :func:`round_trip_race`, run once per process and precision)."""
+    mode = _roundtrip.COPIES
+    if n < _roundtrip.SOA_MIN_PAIRS or mode == "gathers":
+        return False
+    return mode == "copies" or _copies_faster(np.dtype(dtype).char)
+
+
+@lru_cache(maxsize=None)
+def _copies_faster(char: str) -> bool:
+    """Whether numpy's copies beat the kernel's gathers for ``char`` (numpy's type code)
+    directions in this process (:func:`round_trip_race`, run once). A code generation
+    changed later (``GONIO_LLVM_TARGET`` is read at import) changes only which path is
+    faster, never a value."""
+    gathers, copies = round_trip_race(np.dtype(char))
+    return copies < gathers
+
+
 #: Pairs each round trip evaluates in :func:`round_trip_race`: large enough that the round
 #: trip, not the launch, is what is timed (where the copies win, at 65536 pairs they do by
 #: 1.4x: the Zen 5's diffuse in :mod:`._roundtrip`'s notes; where the gathers win, by 1.9x
@@ -223,7 +245,7 @@ def round_trip_race(dtype, repeat: int = 7):
     machine for ``dtype`` directions, the best of ``repeat`` calls each, taken in turn after
     one untimed call (which records the kernels): the diffuse model, whose kernel is the
     cheapest, so the round trip is most of what is timed, on :data:`RACE_PAIRS` fixed
-    directions. :func:`._roundtrip.takes_copies` runs it once per process and precision
+    directions. :func:`takes_copies` runs it once per process and precision
     (~5 ms, and the four kernels' recordings on a first call)."""
     import time
 

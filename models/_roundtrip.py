@@ -2,8 +2,9 @@
 (N, 3) out, float64 or float32 (the type of the directions: the kernel runs in it), through a
 compiled kernel that gathers from numpy's memory mapped without a copy (:func:`eval_gathered`)
 or, on CPUs whose vector gathers are slow, through one that reads and writes contiguous arrays
-that numpy copies (:func:`eval_blocks`). Which one a batch takes: :func:`takes_copies`, from a
-race of the two run once per process and precision (:func:`gonio.models._fast.round_trip_race`).
+that numpy copies (:func:`eval_blocks`). Which one a batch takes:
+:func:`gonio.models._fast.takes_copies`, from a race of the two run once per process and
+precision (:func:`gonio.models._fast.round_trip_race`).
 
 Why two, and why a race: the gathers' cost depends on the CPU, not on its vector width alone.
 
@@ -60,41 +61,23 @@ import numpy as np
 
 from ._base import CHANNELS
 
-__all__ = ["SOA_MIN_PAIRS", "COPIES", "takes_copies", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
+__all__ = ["SOA_MIN_PAIRS", "COPIES", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
            "eval_gathered", "word_gather_kernel", "SOA_BLOCK"]
 
 #: Pairs from which :func:`gonio.models._fast.eval` takes the copies where they are taken at
-#: all (:func:`takes_copies`); below it the gathering kernel's fixed cost is lower (one mapped
-#: input per direction, no copies). Measured on the Zen 5 (CPU time, one thread, min of 41):
+#: all (:func:`gonio.models._fast.takes_copies`); below it the gathering kernel's fixed cost
+#: is lower (one mapped input per direction, no copies). Measured on the Zen 5 (CPU time, one thread, min of 41):
 #: diffuse 32/57 us (gathering/copies) at 1024 pairs, 142/139 us at 16384, 455/325 us at
 #: 65536; roughplastic GGX 45/69, 183/183, 675/544 us.
 SOA_MIN_PAIRS = 1 << 14
 
-#: Which round trip a batch of :data:`SOA_MIN_PAIRS` pairs or more takes: ``"auto"`` (the
-#: faster of the two on this machine, raced once per process and precision:
-#: :func:`gonio.models._fast.round_trip_race`), ``"copies"`` or ``"gathers"``. The results
+#: Which round trip a batch of :data:`SOA_MIN_PAIRS` pairs or more takes
+#: (:func:`gonio.models._fast.takes_copies`): ``"auto"`` (the faster of the two on this
+#: machine, raced once per process and precision: :func:`gonio.models._fast.round_trip_race`),
+#: ``"copies"`` or ``"gathers"``. The results
 #: are the same bit for bit; the tests set it to check both.
 COPIES = "auto"
 
-
-def takes_copies(n: int, dtype=np.float32) -> bool:
-    """Whether a batch of ``n`` pairs of ``dtype`` directions takes :func:`eval_blocks`
-    (numpy's copies) rather than :func:`eval_gathered` (see :data:`COPIES`)."""
-    if n < SOA_MIN_PAIRS or COPIES == "gathers":
-        return False
-    return COPIES == "copies" or _copies_faster(np.dtype(dtype).char)
-
-
-@lru_cache(maxsize=None)
-def _copies_faster(char: str) -> bool:
-    """Whether numpy's copies beat the kernel's gathers for ``char`` (numpy's type code)
-    directions in this process: :func:`gonio.models._fast.round_trip_race`, run once. A
-    code generation changed later (``GONIO_LLVM_TARGET`` is read at import) changes only
-    which path is faster, never a value."""
-    from . import _fast
-
-    gathers, copies = _fast.round_trip_race(np.dtype(char))
-    return copies < gathers
 
 #: Pairs per launch (a block's components and channels stay in the caches between numpy's
 #: copies and the kernel; see :func:`eval_blocks`).

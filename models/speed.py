@@ -364,8 +364,8 @@ def _row(name, options, t, head, n):
 
 def _round_trips_here(n):
     """Which numpy round trip the public eval of ``n`` pairs takes on this machine, float64
-    and float32 (:func:`._roundtrip.takes_copies`: a race run once per process)."""
-    from ._roundtrip import takes_copies
+    and float32 (:func:`._fast.takes_copies`: a race run once per process)."""
+    from ._fast import takes_copies
 
     def which(dtype):
         return "numpy copies in, kernel, interleave out" if takes_copies(n, dtype) else \
@@ -486,7 +486,7 @@ def run(n=1_000_000, repeat=9, cases=CASES, file=None, seed=0):
     print("columns: numpy = model.eval_reference (float64 numpy); eval, eval32 = the public model.eval(wi, wo, p) "
           "on float64 / float32 numpy (N, 3) directions, numpy (N, 3) f_r out (numpy round trip included: "
           f"{_round_trips_here(n)} here, the faster of the two in a race on this machine: "
-          "models/_roundtrip.takes_copies); drjit32 = gonio's float32 kernel on a resident batch, f_r left in Dr.Jit; jac32, "
+          "models/_fast.takes_copies); drjit32 = gonio's float32 kernel on a resident batch, f_r left in Dr.Jit; jac32, "
           "grad32 = its Jacobian and chi^2 gradient, resident; mitsuba = Mitsuba's bsdf.eval on a resident batch "
           "(already Mitsuba arrays), result left in Dr.Jit: Mitsuba's kernel alone, NO numpy round trip; mi+np = "
           "Mitsuba with its own numpy round trip from the same float32 (N, 3) numpy directions (interaction(): a "

@@ -112,18 +112,18 @@ def test_the_path_follows_the_race(monkeypatch):
     monkeypatch.setattr(_roundtrip, "COPIES", "auto")
     n = _roundtrip.SOA_MIN_PAIRS
     for won, want in ((True, [False, True, True]), (False, [False, False, False])):
-        monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char, won=won: won)
+        monkeypatch.setattr(_fast, "_copies_faster", lambda char, won=won: won)
         for dtype in (np.float32, np.float64):
-            assert [_roundtrip.takes_copies(k, dtype) for k in (n - 1, n, 10**7)] == want
+            assert [_fast.takes_copies(k, dtype) for k in (n - 1, n, 10**7)] == want
     # each precision follows its own race
-    monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char: char == "d")
-    assert _roundtrip.takes_copies(n, np.float64) and not _roundtrip.takes_copies(n, np.float32)
+    monkeypatch.setattr(_fast, "_copies_faster", lambda char: char == "d")
+    assert _fast.takes_copies(n, np.float64) and not _fast.takes_copies(n, np.float32)
     monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
-    monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char: True)
-    assert not _roundtrip.takes_copies(10**7)
+    monkeypatch.setattr(_fast, "_copies_faster", lambda char: True)
+    assert not _fast.takes_copies(10**7)
     monkeypatch.setattr(_roundtrip, "COPIES", "copies")
-    monkeypatch.setattr(_roundtrip, "_copies_faster", lambda char: False)
-    assert _roundtrip.takes_copies(n) and not _roundtrip.takes_copies(n - 1)
+    monkeypatch.setattr(_fast, "_copies_faster", lambda char: False)
+    assert _fast.takes_copies(n) and not _fast.takes_copies(n - 1)
 
     m = gm.get("roughplastic", distribution="ggx")
     rng = np.random.default_rng(1804)
@@ -153,13 +153,13 @@ def test_the_race_times_both_round_trips_and_decides_once(monkeypatch):
 
     monkeypatch.setattr(_fast, "round_trip_race", race)
     monkeypatch.setattr(_roundtrip, "COPIES", "auto")
-    _roundtrip._copies_faster.cache_clear()
+    _fast._copies_faster.cache_clear()
     try:
         n = _roundtrip.SOA_MIN_PAIRS
-        got = [_roundtrip.takes_copies(n, dt) for dt in (np.float64, np.float32, np.float64, np.float32)]
+        got = [_fast.takes_copies(n, dt) for dt in (np.float64, np.float32, np.float64, np.float32)]
         assert got == [True, False, True, False] and sorted(calls) == ["d", "f"]
     finally:
-        _roundtrip._copies_faster.cache_clear()     # the next test races for real
+        _fast._copies_faster.cache_clear()     # the next test races for real
 
 def test_gathered_blocks_join_into_one_output(monkeypatch):
     """Above EVAL_BLOCK pairs the gathering path runs in blocks written into one output in
