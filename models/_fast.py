@@ -175,9 +175,10 @@ def eval(model, wi, wo, params):
     :func:`round_trip_race`): there, from :data:`._roundtrip.SOA_MIN_PAIRS` pairs, numpy
     copies the direction components into Dr.Jit's memory, the model's kernel reads them as
     contiguous arrays and numpy interleaves its channels into an output in Dr.Jit's memory
-    (:func:`._roundtrip.eval_blocks`; :func:`takes_copies`). Either way the kernel is replayed from its recording
-    (:func:`_frozen`); per pair 48 bytes read and 24 written at least in float64 (24 and 12
-    in float32), the memory-bandwidth limit ``gonio bench models`` prints."""
+    (:func:`._roundtrip.eval_blocks`; :func:`takes_copies`). Either way the kernel is
+    replayed from its recording (:func:`_frozen`); per pair 48 bytes read and 24 written at
+    least in float64 (24 and 12 in float32), the memory-bandwidth limit ``gonio bench
+    models`` prints."""
     dtype = eval_dtype(wi, wo)
     wi, wo, p = eval_inputs(model, wi, wo, params, dtype)
     return _eval_checked(model, wi, wo, p)
@@ -245,8 +246,9 @@ def round_trip_race(dtype, repeat: int = 7):
     machine for ``dtype`` directions, the best of ``repeat`` calls each, taken in turn after
     one untimed call (which records the kernels): the diffuse model, whose kernel is the
     cheapest, so the round trip is most of what is timed, on :data:`RACE_PAIRS` fixed
-    directions. :func:`takes_copies` runs it once per process and precision
-    (~5 ms, and the four kernels' recordings on a first call)."""
+    directions. :func:`takes_copies` runs it once per process and precision (measured on
+    the Intel Xeon, 2026-12-03: ~20 ms, ~70 ms with the kernels' recordings on a first
+    call)."""
     import time
 
     from . import get
