@@ -61,13 +61,14 @@ import numpy as np
 
 from ._base import CHANNELS
 
-__all__ = ["SOA_MIN_PAIRS", "COPIES", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components", "interleave", "eval_blocks",
-           "eval_gathered", "word_gather_kernel", "SOA_BLOCK"]
+__all__ = ["SOA_MIN_PAIRS", "COPIES", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components",
+           "interleave", "eval_blocks", "eval_gathered", "word_gather_kernel", "gather_into_kernel",
+           "word_gather_into_kernel", "SOA_BLOCK"]
 
 #: Pairs from which :func:`gonio.models._fast.eval` takes the copies where they are taken at
 #: all (:func:`gonio.models._fast.takes_copies`); below it the gathering kernel's fixed cost
-#: is lower (one mapped input per direction, no copies). Measured on the Zen 5 (CPU time, one thread, min of 41):
-#: diffuse 32/57 us (gathering/copies) at 1024 pairs, 142/139 us at 16384, 455/325 us at
+#: is lower (one mapped input per direction, no copies). Measured on the Zen 5 (CPU time, one
+#: thread, min of 41): diffuse 32/57 us (gathering/copies) at 1024 pairs, 142/139 us at 16384, 455/325 us at
 #: 65536; roughplastic GGX 45/69, 183/183, 675/544 us.
 SOA_MIN_PAIRS = 1 << 14
 
@@ -249,10 +250,11 @@ def eval_gathered(runs, wi, wo, P, lock, block):
     # resident before the call, 1e7 diffuse float64 pairs, 2026-12-03: 1.05x the output;
     # 1.27x when each block had its own output, copied into place); the output in memory
     # that Dr.Jit allocated, as in eval_blocks (no fresh pages faulted in a call), each
-    # block's kernel scattering into its rows. Measured (Intel Xeon, AVX-512, 2 Dr.Jit threads, 2026-12-03, 4M pairs, best
-    # of 7, ms a call), each block's own output copied into place -> written in place (one
-    # launch): diffuse float32 11.1-12.2 -> 5.9 (4.6), float64 21.4 -> 11.4 (10.1);
-    # roughplastic GGX float32 17.4 -> 11.8 (9.0), float64 32.0 -> 18.4 (16.4)
+    # block's kernel scattering into its rows. Measured (Intel Xeon, AVX-512, 2 Dr.Jit
+    # threads, 2026-12-03, 4M pairs, best of 7, ms a call), each block's own output copied
+    # into place -> written in place (one launch): diffuse float32 11.1-12.2 -> 5.9 (4.6),
+    # float64 21.4 -> 11.4 (10.1); roughplastic GGX float32 17.4 -> 11.8 (9.0), float64
+    # 32.0 -> 18.4 (16.4)
     out = _output(F, n)
     step = max(2, (block // BLOCK_SPLIT) & ~1) if n > block else n - 1  # even: blocks stay word-aligned
     with lock, dr.suspend_grad():
