@@ -22,10 +22,16 @@ The same folder holds the batch's claims (:func:`claim`): on local workers ``fit
 runs a task per worker thread, and each takes the next dataset not yet taken by creating
 its claim file with ``O_EXCL`` (atomic on a local file system: exactly one creator wins).
 
-The folder is removed when the batch ends, whatever its outcome; a process killed with
-SIGKILL leaves it behind (``gonio-batch-*`` in the temporary folder). A file is read only
-by a worker of the cluster this process started, as this user; the reader still checks
-what it maps (its marker, its trailer's bounds) and says what is wrong in one line.
+The folder is removed when the batch ends, whatever its outcome. A process killed with
+SIGKILL (the kernel's out-of-memory killer, a lab's watchdog) cannot remove it: its
+datasets' files would stay in the temporary folder, in memory where that is a tmpfs, until
+the next reboot. So each folder names its owner (an ``owner`` file: process id and, on
+Linux, the process's start time, so that a reused id is told apart), and every new batch
+first removes this user's ``gonio-batch-*`` folders whose owner is gone
+(:func:`sweep_stale`); a folder whose owner file is not written yet, or cannot be read, is
+left alone. A file is read only by a worker of the cluster this process started, as this
+user; the reader still checks what it maps (its marker, its trailer's bounds) and says what
+is wrong in one line.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ import mmap
 import os
 import pickle
 import shutil
+import stat
 import struct
 import tempfile
 
@@ -140,10 +147,86 @@ def read_when_written(path, poll_s: float = 0.002):
 FAILED = "writer-failed"
 
 
+#: the prefix of a batch's folder in the temporary folder
+PREFIX = "gonio-batch-"
+#: the file in a batch's folder that names the process that made it
+OWNER = "owner"
+
+
+def _start_time(pid: int):
+    """Process ``pid``'s start time in clock ticks since boot (``/proc/PID/stat``, field 22),
+    or None where there is no such file (not Linux, or no such process)."""
+    try:
+        with open(f"/proc/{int(pid)}/stat", "rb") as fh:
+            raw = fh.read()
+    except OSError:
+        return None
+    try:  # the command name (field 2) may hold spaces and parentheses: split after its last ')'
+        return int(raw[raw.rindex(b")") + 2:].split()[19])
+    except (ValueError, IndexError):
+        return None
+
+
+def _owner_text() -> str:
+    pid = os.getpid()
+    start = _start_time(pid)
+    return f"{pid} {start if start is not None else '-'}\n"
+
+
+def _owner_gone(text: str) -> bool:
+    """Whether the process an ``owner`` file names has ended (its id unused, or used by a
+    process that started at another time). False where the text does not read."""
+    try:
+        pid_s, start_s = text.split()
+        pid = int(pid_s)
+    except ValueError:
+        return False
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:       # a live process of another user: the id was reused
+        return True
+    if start_s == "-":
+        return False
+    start = _start_time(pid)
+    return start is not None and str(start) != start_s
+
+
+def sweep_stale(folder=None) -> list:
+    """Remove this user's batch folders in ``folder`` (the temporary folder by default) whose
+    owner process has ended (killed before it could remove them). Returns the paths removed;
+    never raises for a folder it cannot read or remove."""
+    folder = tempfile.gettempdir() if folder is None else os.fspath(folder)
+    removed = []
+    try:
+        names = [n for n in os.listdir(folder) if n.startswith(PREFIX)]
+    except OSError:
+        return removed
+    uid = os.getuid()
+    for name in names:
+        path = os.path.join(folder, name)
+        try:
+            st = os.lstat(path)
+            if not stat.S_ISDIR(st.st_mode) or st.st_uid != uid:
+                continue
+            with open(os.path.join(path, OWNER), encoding="ascii", errors="replace") as fh:
+                text = fh.read(100)
+        except OSError:           # no owner file yet (its batch is starting), or unreadable
+            continue
+        if _owner_gone(text):
+            shutil.rmtree(path, ignore_errors=True)
+            if not os.path.exists(path):
+                removed.append(path)
+    return removed
+
+
 class Handoff:
-    """A batch's private temporary folder: handoff files and the datasets' claims
-    (:attr:`claims`, for :func:`claim`); :meth:`close` removes it all (also on leaving a
-    ``with`` block).
+    """A batch's private temporary folder: handoff files, the datasets' claims
+    (:attr:`claims`, for :func:`claim`) and its ``owner`` file; :meth:`close` removes it all
+    (also on leaving a ``with`` block). Made after :func:`sweep_stale`.
 
     :meth:`promise` returns a dataset's loader (a picklable function of no arguments:
     ``functools.partial(read_when_written, path)``) before its file exists, and
@@ -152,10 +235,15 @@ class Handoff:
     first datasets while the later ones are written."""
 
     def __init__(self):
-        self.folder = tempfile.mkdtemp(prefix="gonio-batch-")     # mode 0700
+        sweep_stale()
+        self.folder = tempfile.mkdtemp(prefix=PREFIX)     # mode 0700
         self.claims = os.path.join(self.folder, "claims")
         try:
             os.mkdir(self.claims, 0o700)
+            owner = os.path.join(self.folder, OWNER)
+            with open(owner + ".part", "x", encoding="ascii") as fh:
+                fh.write(_owner_text())
+            os.replace(owner + ".part", owner)      # whole, or not there (a sweep skips it)
         except BaseException:
             shutil.rmtree(self.folder, ignore_errors=True)
             raise

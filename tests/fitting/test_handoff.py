@@ -4,6 +4,7 @@ refused in one line; a failed write leaves no file behind."""
 
 import errno
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -88,7 +89,7 @@ def test_write_never_replaces_a_file_and_a_failed_write_leaves_none(tmp_path, mo
         handoff.promise(_measurements())
         with pytest.raises(OSError, match="No space"):
             handoff.write_pending()
-        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin", _handoff.FAILED]
+        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin", _handoff.OWNER, _handoff.FAILED]
         assert (os.stat(handoff.folder).st_mode & 0o777) == 0o700
     assert not os.path.exists(handoff.folder)
 
@@ -118,11 +119,11 @@ def test_a_promised_dataset_is_read_once_written_and_never_half_written(monkeypa
         reader = threading.Thread(target=lambda: got.update(m=loader()))
         reader.start()
         reader.join(0.05)
-        assert reader.is_alive() and os.listdir(handoff.folder) == ["claims"]
+        assert reader.is_alive() and sorted(os.listdir(handoff.folder)) == ["claims", _handoff.OWNER]
         handoff.write_pending()
         reader.join(5)
         assert not reader.is_alive() and np.array_equal(got["m"].brdf, meas.brdf)
-        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin"]
+        assert sorted(os.listdir(handoff.folder)) == ["claims", "dataset000000.bin", _handoff.OWNER]
 
         class Full:
             size = _handoff._TRAILER.size
@@ -139,3 +140,51 @@ def test_a_promised_dataset_is_read_once_written_and_never_half_written(monkeypa
             late()
     with pytest.raises(BatchOver):
         loader()
+
+
+def test_a_batch_folder_left_by_a_killed_process_is_removed_by_the_next_batch(tmp_path, monkeypatch):
+    """A process killed with SIGKILL cannot remove its batch folder (its datasets' files,
+    in memory where the temporary folder is a tmpfs): the next Handoff removes it, and only
+    folders whose owner is gone (a live process's, one whose owner file is not written
+    yet, another name, a file of that name are all left alone)."""
+    import signal
+    import subprocess
+    import sys
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    code = ("import time\nfrom gonio.fitting._handoff import Handoff\nh = Handoff()\n"
+            "print(h.folder, flush=True)\ntime.sleep(120)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "TMPDIR": str(tmp_path)})
+    try:
+        killed = proc.stdout.readline().strip()
+        assert os.path.dirname(killed) == str(tmp_path) and os.path.isdir(killed)
+        Path(killed, "dataset000000.bin").write_bytes(b"x" * 4096)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(30)
+        proc.stdout.close()
+    assert os.path.isdir(killed)                                   # SIGKILL left it behind
+    starting = tmp_path / f"{_handoff.PREFIX}starting"               # mkdtemp done, owner not yet written
+    starting.mkdir()
+    reused = tmp_path / f"{_handoff.PREFIX}reused"                   # this process's id, another start time
+    reused.mkdir()
+    (reused / _handoff.OWNER).write_text(f"{os.getpid()} 1\n")
+    garbled = tmp_path / f"{_handoff.PREFIX}garbled"
+    garbled.mkdir()
+    (garbled / _handoff.OWNER).write_text("not a process\n")
+    not_a_folder = tmp_path / f"{_handoff.PREFIX}file"
+    not_a_folder.write_text("1 1\n")
+    other = tmp_path / "other-batch"
+    other.mkdir()
+    (other / _handoff.OWNER).write_text("999999999 1\n")
+    with Handoff() as live:
+        assert not os.path.exists(killed)
+        assert not reused.exists() or _handoff._start_time(os.getpid()) is None
+        assert starting.is_dir() and garbled.is_dir() and not_a_folder.is_file() and other.is_dir()
+        with Handoff() as second:                                  # a live batch's folder stays
+            assert os.path.isdir(live.folder) and os.path.isdir(second.folder)
+            owner = (Path(second.folder) / _handoff.OWNER).read_text().split()
+            assert int(owner[0]) == os.getpid()
+    assert _handoff.sweep_stale(tmp_path / "missing") == []        # a folder that is not there: nothing, no error
