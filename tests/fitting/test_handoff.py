@@ -4,6 +4,7 @@ refused in one line; a failed write leaves no file behind."""
 
 import errno
 import os
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +58,12 @@ def test_a_file_that_is_not_a_handoff_file_is_refused_in_one_line(tmp_path):
     cases = {"empty": b"", "short": good[:10], "other marker": b"NOTGONIO" + good[8:],
              "trailer past the end": good[:-16] + (len(good)).to_bytes(8, "little") + (5).to_bytes(8, "little"),
              "cut in the middle": good[:len(good) // 2]}
+    offset, length = _handoff._TRAILER.unpack(good[-_handoff._TRAILER.size:])
+    cases["index not a pickle"] = good[:offset] + b"\xff" * length + good[offset + length:]
+    meta, index = pickle.loads(good[offset:offset + length])
+    for name, span in (("an array past the data", (index[0][0], offset)), ("an array in the marker", (0, 8))):
+        tail = pickle.dumps((meta, [span] + list(index[1:])), protocol=5)
+        cases[name] = good[:offset] + tail + _handoff._TRAILER.pack(offset, len(tail))
     for what, raw in cases.items():
         bad = tmp_path / "bad.bin"
         bad.write_bytes(raw)
