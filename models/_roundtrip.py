@@ -135,15 +135,9 @@ def gather_kernel(kernel, model, flat_i, flat_o, lanes, P):
     alone). Tried: Dr.Jit's packet gathers (2, 4 or 6 words a lane) gain ~25 % of the data's
     time only where numpy's memory is 64-byte aligned (numpy's large arrays start 16 bytes
     past it); not taken."""
-    dr, F, V3, U = _types_of(flat_i)
-    # sizes only through dr.arange(U, dr.width(input)): a replayed recording follows the new
-    # inputs' widths (``lanes`` has one lane per pair), never a traced Python integer
-    idx = dr.arange(U, dr.width(lanes))
-    vi = dr.gather(V3, flat_i, idx)
-    vo = dr.gather(V3, flat_o, idx)
-    chans = kernel(model, *_degenerate(dr, V3, vi, vo), P)
+    dr, F = _types_of(flat_i)[:2]
     out = dr.empty(F, dr.width(flat_i))
-    dr.scatter(out, V3(*chans), idx)
+    gather_into_kernel(kernel, model, flat_i, flat_o, out, lanes, P)
     return out
 
 
@@ -158,25 +152,23 @@ def word_gather_kernel(kernel, model, words_i, words_o, lanes, P):
     diffuse 3.77 -> 2.46, roughplastic GGX 8.60 -> 6.46, orennayar 4.36 -> 3.05. The same
     values bit for bit (tested)."""
     import drjit as dr
-    from drjit.llvm.ad import Array3u64, UInt32, UInt64
+    from drjit.llvm.ad import UInt64
 
-    idx = dr.arange(UInt32, dr.width(lanes))
-    a = dr.gather(Array3u64, words_i, idx)
-    b = dr.gather(Array3u64, words_o, idx)
-    w = packed_kernel(kernel, model, *a, *b, P)
     out = dr.empty(UInt64, dr.width(words_i))
-    dr.scatter(out, Array3u64(*w), idx)
+    word_gather_into_kernel(kernel, model, words_i, words_o, out, lanes, P)
     return out
 
 
 def gather_into_kernel(kernel, model, flat_i, flat_o, out, lanes, P):
-    """:func:`gather_kernel` writing its rows into ``out`` (a Dr.Jit array mapped from a
-    slice of numpy's output: the scatter writes numpy's memory in place) instead of a new
-    array: the blocks of a large batch (:func:`eval_gathered`) land where they belong, with
-    no copy. Traced, not replayed: a recording's scatter into an input did not reach the
-    mapped memory (Dr.Jit 1.5.0), and a block's trace (~0.1 ms) is small against its
-    ~1e5 pairs."""
+    """:func:`gather_kernel`'s work, its rows written into ``out``: a new array there, and,
+    for the blocks of a large batch (:func:`eval_gathered`), a Dr.Jit array mapped from a
+    slice of numpy's output (the scatter writes numpy's memory in place), so that each block
+    lands where it belongs, with no copy. For the blocks it is traced, not replayed: a
+    recording's scatter into an input did not reach the mapped memory (Dr.Jit 1.5.0), and a
+    block's trace (~0.1 ms) is small against its ~1e5 pairs."""
     dr, F, V3, U = _types_of(flat_i)
+    # sizes only through dr.arange(U, dr.width(input)): a replayed recording follows the new
+    # inputs' widths (``lanes`` has one lane per pair), never a traced Python integer
     idx = dr.arange(U, dr.width(lanes))
     vi = dr.gather(V3, flat_i, idx)
     vo = dr.gather(V3, flat_o, idx)
@@ -185,8 +177,9 @@ def gather_into_kernel(kernel, model, flat_i, flat_o, out, lanes, P):
 
 
 def word_gather_into_kernel(kernel, model, words_i, words_o, out, lanes, P):
-    """:func:`word_gather_kernel` writing into ``out`` (uint64 words mapped from a slice of
-    numpy's float32 output), as :func:`gather_into_kernel`."""
+    """:func:`word_gather_kernel`'s work, its words written into ``out`` (a new array, or
+    uint64 words mapped from a slice of numpy's float32 output), as
+    :func:`gather_into_kernel`."""
     import drjit as dr
     from drjit.llvm.ad import Array3u64, UInt32
 
