@@ -138,7 +138,6 @@ def test_the_path_follows_the_race(monkeypatch):
         assert got["gathers"].dtype == dtype and got["gathers"].flags.c_contiguous
 
 
-
 def test_the_race_times_both_round_trips_and_decides_once(monkeypatch):
     """:func:`_fast.round_trip_race` times each round trip (positive, finite seconds: both
     really ran), and ``auto`` takes whichever it says is faster, asking once per precision."""
@@ -161,9 +160,11 @@ def test_the_race_times_both_round_trips_and_decides_once(monkeypatch):
     finally:
         _fast._copies_faster.cache_clear()     # the next test races for real
 
+
 def test_gathered_blocks_join_into_one_output(monkeypatch):
-    """Above EVAL_BLOCK pairs the gathering path runs in blocks written into one output in
-    Dr.Jit's memory: bit for bit one launch, in both precisions, a short last block included."""
+    """Above EVAL_BLOCK pairs the gathering path runs in blocks, each kernel writing its rows
+    of one output in Dr.Jit's memory in place (were the writes lost, the output would be
+    uninitialised): bit for bit one launch, in both precisions, a short last block included."""
     monkeypatch.setattr(_roundtrip, "COPIES", "gathers")
     m = gm.get("orennayar")
     rng = np.random.default_rng(1805)
