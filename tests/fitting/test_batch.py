@@ -31,7 +31,6 @@ def _capture_file(path):
         return Measurements(z["wi"], z["wo"], z["brdf"], z["brdf_std"], z["use"])
 
 
-@pytest.mark.slow
 def _disk_full(meas, path):
     raise OSError(28, "No space left on device")
 
@@ -46,6 +45,7 @@ def _loses_one(metas, model_spec, rng_seed, fit_kwargs, claims):
     return _fit_claimed(metas, model_spec, rng_seed, fit_kwargs, claims)
 
 
+@pytest.mark.slow
 def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_bit(tmp_path, monkeypatch):
     """The compiled path (2000-point roughconductor fits, above the numpy path's crossover):
     fit_batch's workers run Dr.Jit on one thread (GONIO_THREADS=1), and a serial loop on one
