@@ -28,7 +28,7 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
 test-codegen: $(STAMP)
-	@other=$$($(PY) -c "from gonio.models._jit_target import other_target; print(other_target())"); \
+	@other=$$($(PY) -c "from gonio.models.engine.target import other_target; print(other_target())"); \
 	if [ -n "$$other" ]; then \
 	  echo "numerical tests again under Dr.Jit's $$other code generation (GONIO_LLVM_TARGET=$$other)"; \
 	  GONIO_LLVM_TARGET=$$other $(PY) -m pytest -q -n 2 --dist worksteal -m codegen; \
@@ -44,7 +44,7 @@ test-latest:
 # API documentation from the numpydoc docstrings (pdoc, pinned in the test extra) into
 # docs/api/ (built, not committed); open docs/api/index.html. The tutorial is docs/tutorial.md.
 API_MODULES := gonio.models gonio.fitting gonio.fitting.formats gonio.fitting.plots gonio.fitting.render \
-	gonio.fitting.preview gonio.sim gonio.bench gonio.bench.plans
+	gonio.fitting.render.preview gonio.sim gonio.bench gonio.bench.plan.plans
 docs: $(STAMP)
 	$(PY) -m pdoc -d numpy --no-show-source -o docs/api $(API_MODULES)
 

@@ -31,7 +31,7 @@ def _share_the_cores():
 
     threadpool_limits(int(os.environ["OPENBLAS_NUM_THREADS"]))  # this worker's numpy and scipy
     try:
-        from gonio.models._jit_target import apply_threads
+        from gonio.models.engine.target import apply_threads
 
         apply_threads()  # this worker's Dr.Jit, also where a test starts Mitsuba itself
     except ImportError:
@@ -69,7 +69,7 @@ def pytest_configure(config):
     _sigint_as_python_starts_it()
     _allocator_as_gonio_runs_it()
     if os.environ.get("GONIO_LLVM_TARGET"):
-        from gonio.models._jit_target import apply_env
+        from gonio.models.engine.target import apply_env
 
         config._gonio_llvm_target = apply_env()
 

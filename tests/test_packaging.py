@@ -36,8 +36,8 @@ def test_citation_cff_is_cff_1_2_0_of_this_version():
 
 
 def test_every_package_data_pattern_matches_files():
-    dirs = PYPROJECT["tool"]["setuptools"]["package-dir"]
     for package, patterns in PYPROJECT["tool"]["setuptools"]["package-data"].items():
-        folder = ROOT / dirs[package]
+        folder = ROOT.joinpath(*package.split("."))
+        assert (folder / "__init__.py").is_file(), f"{package} is not a package folder"
         for pattern in patterns:
             assert [p for p in folder.glob(pattern) if p.is_file()], f"{package}: {pattern} matches no file"

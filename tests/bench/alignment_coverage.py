@@ -14,7 +14,7 @@ tests/bench/test_alignment_peak.py checks the peak estimator's u on synthetic sc
 
 Figures (typical preset, physics bench; rms z +- its sampling sd rms / sqrt(2 n)), 2026-12-02:
 
-    before bench/_alignment.fit_passes, seeds 1-48:  holder tilt x 1.13 +- 0.12, y 1.28 +- 0.13
+    before gonio/bench/measure/alignment.fit_passes, seeds 1-48:  holder tilt x 1.13 +- 0.12, y 1.28 +- 0.13
         (the passes fitted apart and averaged as independent; the up - down differences of the
         same peaks had rms z 0.86 and 0.89 over 192 pairs each: the passes share noise, which
         cancels in the difference and not in the mean), tilt zero 1.02, yaw zero 0.31
@@ -35,9 +35,9 @@ from pathlib import Path
 
 import gonio.sim as gs
 import numpy as np
-from gonio.bench import _alignment as al
+from gonio.bench.measure import alignment as al
 from gonio.bench import calibrate as C
-from gonio.bench._settings import default_settings
+from gonio.bench.settings import default_settings
 
 
 def _seeds(text: str) -> list[int]:
@@ -49,7 +49,7 @@ def one(preset: str, seed: int, drivers: bool) -> dict:
     s = default_settings()
     s["errors"] = {"preset": preset}
     if drivers:
-        from gonio.bench._rig import Bench
+        from gonio.bench.drivers.rig import Bench
 
         phys, specs = C._sim_bench(s, seed)
         inst = phys.inst.register(f"coverage-{seed}")

@@ -19,7 +19,7 @@ def _dataset(path: Path, n: int = 40) -> None:
     import xarray as xr
 
     import gonio.models as gm
-    from gonio.fitting._data import direction
+    from gonio.fitting.measurements import direction
 
     rng = np.random.default_rng(0)
     ti = np.tile([0.0, 20.0, 40.0, 60.0], n // 4)
@@ -61,7 +61,7 @@ def _png(path: Path) -> None:
 
 def build(out: Path) -> Path:
     """Write the folder under ``out``; return ``out``."""
-    from gonio.bench.fit_runner import fit_dataset
+    from gonio.cli.fit import fit_dataset
     from gonio.fitting import load_dataset, write_json_atomic
 
     out = Path(out)

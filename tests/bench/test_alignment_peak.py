@@ -1,5 +1,5 @@
-"""The alignment's peak estimator and the lamp zero's place in the angle budget (bench/_alignment.py,
-bench/_calpoint.py), on synthetic scans whose truth is known.
+"""The alignment's peak estimator and the lamp zero's place in the angle budget (gonio/bench/measure/alignment.py,
+gonio/bench/measure/calpoint.py), on synthetic scans whose truth is known.
 
 Why: over 48 seeded typical instruments (tests/bench/alignment_coverage.py) the holder tilt's
 rms z was 1.13 and 1.28 (+- 0.12): each peak was the mean of an up and a down pass fitted
@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 import pytest
-from gonio.bench import _alignment as al
+from gonio.bench.measure import alignment as al
 from gonio.bench import calibrate as C
 from scipy import stats
 

@@ -10,7 +10,7 @@ import tifffile
 
 from benchfakes import expect
 from gonio.bench.drivers.camera import (Gphoto2Camera, SimCamera, WatchedFolderCamera, decode_raw, shutter_value)
-from gonio.bench.errors import CommunicationError, DeviceError, GonioError
+from gonio.core.errors import CommunicationError, DeviceError, GonioError
 
 
 def write_dng(path, mosaic, black=512, white=16383):

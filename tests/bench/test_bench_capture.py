@@ -9,15 +9,16 @@ import xarray as xr
 
 sim = pytest.importorskip("gonio.sim")
 
-from gonio.bench import kinematics, plans
+from gonio.bench.plan import kinematics
+from gonio.bench.plan import plans
 from gonio.bench.drivers.camera import SimCamera
-from gonio.bench._files import sha256_file
-from gonio.bench._journal import Journal, read_session
-from gonio.bench._settings import default_settings
-from gonio.bench.capture import capture, resume
+from gonio.core.files import sha256_file
+from gonio.bench.session.journal import Journal, read_session
+from gonio.bench.settings import default_settings
+from gonio.bench.session.capture import capture, resume
 from benchfakes.cameras import InterruptingCamera
-from gonio.bench.errors import CommunicationError, DeviceError, GonioError, SessionError, UnreachableError
-from gonio.bench.export import export
+from gonio.core.errors import CommunicationError, DeviceError, GonioError, SessionError, UnreachableError
+from gonio.bench.dataset.export import export
 
 S = default_settings()
 GLOSSY = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.15}}
@@ -47,7 +48,7 @@ def chi2(folder, inst):
     rows = Journal(folder / "journal.sqlite").points()
     wi = np.array([kinematics.directions(r["theta_i"], r["phi_i"]) for r in rows])
     wo = np.array([kinematics.directions(r["theta_o"], r["phi_o"]) for r in rows])
-    # the journal holds white-balanced camera RGB: the sRGB truth seen through the camera (sim/_colour.py)
+    # the journal holds white-balanced camera RGB: the sRGB truth seen through the camera (gonio/sim/physics/colour.py)
     truth = inst.true_brdf(wi, wo) @ inst.sensor.colour.balanced.T
     f, s = np.array([r["brdf"] for r in rows]), np.array([r["brdf_std"] for r in rows])
     return np.mean(((f - truth) / s) ** 2), rows
@@ -196,7 +197,7 @@ def test_stage_port_vanishing_stops_resumably(instrument, tmp_path):
 
 
 def test_ctrl_c_twice_stops_the_stages(instrument, tmp_path):
-    from gonio.bench.capture import CaptureInterrupted
+    from gonio.bench.session.capture import CaptureInterrupted
     inst = instrument("cc")
 
     with pytest.raises(CaptureInterrupted, match="resumable"):        # Ctrl-C twice: stop now
@@ -269,7 +270,7 @@ class CameraDyingInTheFlats(SimCamera):
 
 
 def test_flat_set_is_journalled_whole_or_not_at_all(instrument, tmp_path):
-    """The flat field is one unit (bench/_calframes.CalibrationFrames._take_flat_set): a run that dies in its middle
+    """The flat field is one unit (gonio/bench/session/calframes.CalibrationFrames._take_flat_set): a run that dies in its middle
     journals none of it; the resume takes the set again whole, under new names, and every file
     in raw/ is one the journal reserved (the first try's frames included)."""
     inst = instrument("flatset")
@@ -315,7 +316,7 @@ def test_bad_inputs_leave_nothing_behind(instrument, tmp_path):
 
 
 def test_reference_model():
-    from gonio.bench._measure import ReferenceModel
+    from gonio.bench.measure.point import ReferenceModel
     flat = ReferenceModel({"reflectance": 0.99})
     np.testing.assert_allclose(flat.f_r(30, 40), np.full(3, 0.99 / np.pi))
     m = ReferenceModel({"reflectance": [0.98, 0.99, 0.97], "factor_theta_i": [0, 60], "factor_theta_o": [0, 80],
@@ -329,12 +330,12 @@ def test_reference_model():
 
 def test_reference_model_uses_the_calibrations_fitted_form():
     """With gonio calibrate's fit (factor_a, factor_b) the factor is the fitted form itself
-    (bench/_alignment.reference_factor_model), not the bilinear interpolation of its 20-degree
+    (gonio/bench/measure/alignment.reference_factor_model), not the bilinear interpolation of its 20-degree
     table, which overstates the convex sin^2 between the nodes: for a = 0.05, b = 0.06 (the
-    simulator's Spectralon, sim/_errors.spectralon_factor) the table is 2.9e-4 low at 30/30 deg
+    simulator's Spectralon, gonio/sim/physics/errors.spectralon_factor) the table is 2.9e-4 low at 30/30 deg
     and exact at its nodes."""
-    from gonio.bench._alignment import fit_reference_factor, reference_factor_model
-    from gonio.bench._measure import ReferenceModel
+    from gonio.bench.measure.alignment import fit_reference_factor, reference_factor_model
+    from gonio.bench.measure.point import ReferenceModel
     a, b = 0.05, 0.06
     g = np.array([10.0, 25.0, 40.0, 55.0, 70.0])
     ti, to = (v.ravel() for v in np.meshgrid(g, g, indexing="ij"))
@@ -352,7 +353,7 @@ def test_reference_model_uses_the_calibrations_fitted_form():
 
 
 def test_camera_size_must_match_settings(instrument, tmp_path):
-    from gonio.bench._settings import merge_settings
+    from gonio.bench.settings import merge_settings
     inst = instrument("size")
     wrong = merge_settings(S, {"camera": {"width": 128}})
     with pytest.raises(GonioError, match="camera reports 64x48 pixels"):
@@ -408,9 +409,9 @@ def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path, monkeyp
     import tifffile
 
     from gonio.bench.drivers.camera import _dng_direct, decode_raw
-    from gonio.sim._sensor import encode_dng
+    from gonio.sim.physics.sensor import encode_dng
 
-    from gonio.bench.drivers import _raw
+    from gonio.bench.drivers import raw as _raw
 
     monkeypatch.setattr(_raw, "_DIRECT_MIN_BYTES", 0)     # the default camera's frames are small
     inst = instrument("direct")
@@ -446,10 +447,10 @@ def test_a_simple_dng_is_read_directly_bit_for_bit(instrument, tmp_path, monkeyp
 def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path, monkeypatch):
     """The bracket a point's probe picks, read directly (what the capture does now) and through
     LibRaw (what it did), on the poses of a shiny sample's capture: the same at every pose."""
-    from gonio.bench._hdr import NoiseModel, choose_bracket, ladder
-    from gonio.bench._measure import _extreme, _runs
-    from gonio.bench._session import roi_masks_fast
-    from gonio.bench.drivers import _raw
+    from gonio.bench.measure.hdr import NoiseModel, choose_bracket, ladder
+    from gonio.bench.measure.point import _extreme, _runs
+    from gonio.bench.session.run import roi_masks_fast
+    from gonio.bench.drivers import raw as _raw
     from gonio.bench.drivers.camera import decode_raw
 
     monkeypatch.setattr(_raw, "_DIRECT_MIN_BYTES", 0)     # read directly whatever the size
@@ -487,8 +488,8 @@ def test_the_direct_probe_chooses_libraws_bracket(instrument, tmp_path, monkeypa
 def test_regions_from_the_holders_markers(tmp_path):
     """Settings that declare holder markers: each point's regions come from the markers in its
     probe (the pose is journalled), so a holder moved by a known offset is measured where it is."""
-    from gonio.bench import _markers
-    from gonio.bench._settings import merge_settings
+    from gonio.bench.plan import markers as _markers
+    from gonio.bench.settings import merge_settings
 
     bench = merge_settings(default_settings(), {"camera": {"width": 480, "height": 360, "pixel_size": 0.0027}})
     bench["holder"] = {**bench["holder"], "markers": _markers.example_layout()}
@@ -526,8 +527,8 @@ def test_fast_roi_masks_are_the_geometry_masks_exactly():
     """The capture's regions (`roi_masks_fast`: `_markers.posed_masks` with the ties on a square's
     edge decided by `kinematics.roi_masks`' own test) are `roi_masks`' masks, pixel for pixel, on
     the plan's poses and on random ones (posed_masks alone differs at ties on the default camera)."""
-    from gonio.bench._settings import merge_settings
-    from gonio.bench._session import roi_masks_fast
+    from gonio.bench.settings import merge_settings
+    from gonio.bench.session.run import roi_masks_fast
 
     rng = np.random.default_rng(7)
     for w, h in ((64, 48), (320, 240)):

@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 
-GONIO = [sys.executable, "-m", "gonio.bench.cli"]
+GONIO = [sys.executable, "-m", "gonio.cli.main"]
 
 
 def run(*args, cwd=None, timeout=120):

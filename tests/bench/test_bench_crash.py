@@ -17,9 +17,9 @@ import pytest
 
 sim = pytest.importorskip("gonio.sim")
 
-from gonio.bench import plans
-from gonio.bench._journal import Journal, verify_files
-from gonio.bench._settings import default_settings, merge_settings
+from gonio.bench.plan import plans
+from gonio.bench.session.journal import Journal, verify_files
+from gonio.bench.settings import default_settings, merge_settings
 
 S = merge_settings(default_settings(), {"motion": {"settle_s": 0.0}})
 GLOSSY = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.15}}
@@ -45,8 +45,8 @@ def counting(*a, **kw):
     port.write = w
     return port
 serial.serial_for_url = counting
-from gonio.bench.capture import capture, resume
-from gonio.bench.plans import plan_from_dict
+from gonio.bench.session.capture import capture, resume
+from gonio.bench.plan.plans import plan_from_dict
 p = args["ports"]
 if os.path.exists(os.path.join(args["folder"], "session.toml")):
     r = resume(args["folder"], progress=False, poll_interval_s=0.001)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gonio.bench.drivers.camera import RawFrame
-from gonio.bench._hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
+from gonio.bench.measure.hdr import Exposure, NoiseModel, choose_bracket, ladder, merge
 
 NOISE = NoiseModel(gain=2.0, read_noise=3.0)
 FULL = 16383 - 512
@@ -71,7 +71,7 @@ def test_choose_bracket():
 def test_merge_in_two_threads_is_the_merge_in_one(monkeypatch):
     """A large bracket's row blocks are merged half in a helper thread (a full-size point takes
     both cores while the stages move): the same values, bit for bit, as one thread."""
-    from gonio.bench import _hdr
+    from gonio.bench.measure import hdr as _hdr
 
     rng = np.random.default_rng(3)
     rate = np.array([1.2e8, 3e7, 5e6])[:, None, None]

@@ -7,9 +7,9 @@ import tomllib
 
 import pytest
 
-from gonio.bench._files import atomic_write_bytes, make_durable, remove_orphans, sha256_file, tmp_name
-from gonio.bench._journal import Journal, SessionLock, dumps_toml, read_session, write_session
-from gonio.bench.errors import SessionError
+from gonio.core.files import atomic_write_bytes, make_durable, remove_orphans, sha256_file, tmp_name
+from gonio.bench.session.journal import Journal, SessionLock, dumps_toml, read_session, write_session
+from gonio.core.errors import SessionError
 
 
 def test_journal_pragmas_and_rows(tmp_path):
@@ -58,7 +58,7 @@ def test_atomic_files(tmp_path):
 def test_a_batch_is_made_durable_by_one_sync_or_an_fsync_each(tmp_path, monkeypatch):
     """make_durable (the flat field's set): Linux's syncfs once, no fsync; where syncfs is
     missing or fails, an fsync of every file and of their folder; an fsync's error raised."""
-    from gonio.models import atomic
+    from gonio.core import atomic
 
     files = [tmp_path / f"flat_{k}.dng" for k in range(5)]
     for f in files:

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from gonio.bench import kinematics as k
-from gonio.bench._ordering import mirror
-from gonio.bench._settings import default_settings
+from gonio.bench.plan import kinematics as k
+from gonio.bench.plan.ordering import mirror
+from gonio.bench.settings import default_settings
 
 S = default_settings()
 

@@ -3,9 +3,10 @@
 import numpy as np
 import pytest
 
-from gonio.bench import kinematics, plans
-from gonio.bench._ordering import _variants, cost_matrix, move_time, order_moves, path_time
-from gonio.bench._settings import default_settings
+from gonio.bench.plan import kinematics
+from gonio.bench.plan import plans
+from gonio.bench.plan.ordering import _variants, cost_matrix, move_time, order_moves, path_time
+from gonio.bench.settings import default_settings
 
 S = default_settings()
 

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from gonio.bench import plans
-from gonio.bench._settings import default_settings
-from gonio.bench.errors import GonioError, PlanError, UnreachableError
+from gonio.bench.plan import plans
+from gonio.bench.settings import default_settings
+from gonio.core.errors import GonioError, PlanError, UnreachableError
 
 S = default_settings()
 

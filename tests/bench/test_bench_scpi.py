@@ -4,7 +4,7 @@ import pytest
 
 from benchfakes import expect
 from gonio.bench.drivers.meter import PowerMeter
-from gonio.bench.errors import CommunicationError, DeviceError, GonioError
+from gonio.core.errors import CommunicationError, DeviceError, GonioError
 
 
 def test_identify_configure_read():

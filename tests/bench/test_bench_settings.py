@@ -2,8 +2,8 @@
 
 import pytest
 
-from gonio.bench._settings import default_settings, load_settings, merge_settings
-from gonio.bench.errors import GonioError
+from gonio.bench.settings import default_settings, load_settings, merge_settings
+from gonio.core.errors import GonioError
 
 
 def test_defaults_match_the_contract():
@@ -57,14 +57,14 @@ def test_unknown_or_misspelt_settings_are_refused_with_a_suggestion(tmp_path, te
 
 
 def test_every_default_key_is_declared_in_the_schema():
-    from gonio.bench._settings import SCHEMA
+    from gonio.bench.settings import SCHEMA
 
     for section, table in default_settings().items():
         assert set(table) <= set(SCHEMA[section]), section
 
 
 def test_effective_settings_say_where_each_value_came_from(tmp_path):
-    from gonio.bench._settings import effective_settings
+    from gonio.bench.settings import effective_settings
 
     f = tmp_path / "lab.toml"
     f.write_text("[reference]\nreflectance = 0.97\ncertificate = \"NPL-123\"\n[session]\noperator = \"A. B.\"\n")
@@ -75,7 +75,7 @@ def test_effective_settings_say_where_each_value_came_from(tmp_path):
 
 
 def test_settings_show_cli(tmp_path, capsys):
-    from gonio.bench.cli import main
+    from gonio.cli.main import main
 
     f = tmp_path / "lab.toml"
     f.write_text("[reference]\nreflectance = 0.97\n")
@@ -91,7 +91,7 @@ def test_settings_show_cli(tmp_path, capsys):
 
 def test_capture_dry_run_needs_no_out(capsys):
     """The README's `gonio capture --sim --plan standard --dry-run` (it said: capture needs --out DIR)."""
-    from gonio.bench.cli import main
+    from gonio.cli.main import main
 
     assert main(["capture", "--sim", "--plan", "quick", "--dry-run"]) == 0
     assert "points; estimated duration" in capsys.readouterr().out
@@ -111,8 +111,8 @@ def test_tables_other_modules_check_pass_through(tmp_path):
 def test_capture_records_the_session_options_in_its_settings(tmp_path, monkeypatch, capsys):
     """--sample-id/--sample-description/--operator (over a [session] table) reach the capture's
     settings, which session.toml records, on the simulated and the real instrument alike."""
-    import gonio.bench.session_runner as runner
-    from gonio.bench.cli import main
+    import gonio.cli.capture as runner
+    from gonio.cli.main import main
 
     seen = {}
     monkeypatch.setattr(runner, "capture_cli", lambda out, **kw: seen.update(kw) or 0)
@@ -132,9 +132,9 @@ def test_capture_records_the_session_options_in_its_settings(tmp_path, monkeypat
 
 def test_settings_show_expands_an_errors_preset(tmp_path):
     """`[errors] preset = "typical"` with one term overridden: each term's value says whether the
-    preset or the file set it (the preset's values are sim/_errors.py's PRESETS["typical"])."""
+    preset or the file set it (the preset's values are gonio/sim/physics/errors.py's PRESETS["typical"])."""
     import gonio.sim
-    from gonio.bench._settings import show_settings
+    from gonio.bench.settings import show_settings
 
     f = tmp_path / "e.toml"
     f.write_text('[errors]\npreset = "typical"\n[errors.stray]\nfloor = 0.0\n')

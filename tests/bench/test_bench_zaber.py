@@ -3,10 +3,10 @@
 import pytest
 
 from benchfakes import expect
-from gonio.bench._settings import default_settings
+from gonio.bench.settings import default_settings
 from gonio.bench.drivers import (Goniometer, LedSource, ZaberChain, format_command, lrc, parse_reply,
                                  shortest_equivalent)
-from gonio.bench.errors import CommunicationError, FaultError, GonioError, RejectedError, UnreachableError
+from gonio.core.errors import CommunicationError, FaultError, GonioError, RejectedError, UnreachableError
 
 
 def cmd(device, axis, msgid, text=""):
@@ -223,7 +223,7 @@ def test_led_commands():
 
 
 def test_broadcast_estop():
-    from gonio.bench.capture import estop
+    from gonio.bench.session.capture import estop
     ex = expect("e1", [(cmd(0, 0, 0, "estop"), "@01 0 00 OK IDLE NI 0\r\n@02 0 00 OK IDLE -- 0\r\n")])
     assert estop("expect://e1") == 2
     assert ex.done()

@@ -1,5 +1,5 @@
-"""The per-point uncertainty budget in dataset.nc (issue 15; bench/_budget.py, docs/interfaces.md 5.1)
-and how gonio fit reads it back (fitting/_budget.py): components, their attributes, bad input."""
+"""The per-point uncertainty budget in dataset.nc (issue 15; gonio/bench/dataset/budget.py, docs/interfaces.md 5.1)
+and how gonio fit reads it back (gonio/fitting/uncertainty/budget.py): components, their attributes, bad input."""
 
 import json
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from gonio.bench._budget import Component, budget_variables
+from gonio.bench.dataset.budget import Component, budget_variables
 from gonio.fitting import load_budget, load_dataset
 
 N = 8
@@ -129,7 +129,7 @@ class Proc:
 
 def gonio_fit(path, out, capsys, monkeypatch):
     """``gonio fit PATH --model diffuse --out OUT`` in this process (an 80-column terminal)."""
-    from gonio.bench.cli import main
+    from gonio.cli.main import main
 
     monkeypatch.setenv("COLUMNS", "80")
     rc = main(["fit", str(path), "--model", "diffuse", "--out", str(out)])
@@ -199,7 +199,7 @@ def test_a_calibrated_session_carries_its_calibrations_lines():
     # the factor's relative uncertainty at (10, 20) deg, bilinear over 0..80 deg (s = 1/8, t = 1/4):
     # u = 0.0028125 over the factor 0.9921875
     assert v["u_reference_factor"][1][0, 0] / f[0, 0] == pytest.approx(0.0028125 / 0.9921875, rel=1e-9)
-    from gonio.bench._budget import move_history
+    from gonio.bench.dataset.budget import move_history
 
     stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rs])
     labels, last = move_history(rs)
@@ -215,7 +215,7 @@ def test_a_calibrated_session_carries_its_calibrations_lines():
     # degenerate with the holder tilt's, u 0.01 deg both: the modes mix them), d ln E =
     # -tan(theta_i) d theta_i, so its variance over the modes is tan^2 times the wedge's part of
     # theta_i's variance
-    from gonio.bench._calpoint import _jacobian, _p
+    from gonio.bench.measure.calpoint import _jacobian, _p
 
     irr = v["irradiance_shift_shared"]
     assert irr[0] == ("angle_input", "point") and irr[1].shape == shared.shape[:2]
@@ -229,7 +229,7 @@ def test_a_calibrated_session_carries_its_calibrations_lines():
 def test_move_history_follows_the_order_the_points_were_taken():
     """Labels count each axis's moves in the order of ``finished`` (not the plan's); a point the
     axis was not moved to shares the previous one's label; last_dir is the last move's sign."""
-    from gonio.bench._budget import move_history
+    from gonio.bench.dataset.budget import move_history
 
     pos = [(10.0, 0.0, 0.0, 40.0), (20.0, 0.0, 0.0, 50.0), (20.0, 5.0, 0.0, 30.0), (15.0, 5.0, 0.0, 30.0)]
     finished = [3.0, 1.0, 2.0, 4.0]            # taken in the order 1, 2, 0, 3

@@ -1,4 +1,4 @@
-"""gonio calibrate (bench/calibrate.py, bench/_alignment.py) against the simulator's hidden errors.
+"""gonio calibrate (gonio/bench/calibrate.py, gonio/bench/measure/alignment.py) against the simulator's hidden errors.
 
 Statistics: every check of an estimate against the truth is a two-sided z-test with the
 estimate's own stated standard uncertainty; each test's family of k parameters shares a false
@@ -14,11 +14,11 @@ import math
 import gonio.sim as gs
 import numpy as np
 import pytest
-from gonio.bench import _alignment as al
+from gonio.bench.measure import alignment as al
 from gonio.bench import calibrate as C
-from gonio.bench._settings import default_settings, validate_settings
-from gonio.bench.cli import main
-from gonio.sim._errors import spectralon_factor
+from gonio.bench.settings import default_settings, validate_settings
+from gonio.cli.main import main
+from gonio.sim.physics.errors import spectralon_factor
 from scipy.stats import norm
 
 SEED = 3
@@ -134,7 +134,7 @@ def test_cli_refuses_bad_input_in_one_line(tmp_path, capsys, argv, words):
 
 
 def test_uncertainty_helpers():
-    from gonio.bench._hdr import linearise
+    from gonio.bench.measure.hdr import linearise
 
     x = np.linspace(0.0, 15000.0, 7)
     assert np.allclose(linearise(x * (1 - 0.003 * x / 15871.0), 0.003, 15871.0), x, rtol=1e-12, atol=1e-9)
@@ -170,9 +170,9 @@ def test_a_capture_removes_the_stated_stray_floor(tmp_path):
     false alarm 1e-3), the same captured frames (one seed) giving both, and the budget has no
     stray line for u_floor = 0 (the bound-only table keeps its rectangular line)."""
     import xarray as xr
-    from gonio.bench import session_runner
-    from gonio.bench.export import export
-    from gonio.bench.plans import Plan
+    from gonio.cli import capture as session_runner
+    from gonio.bench.dataset.export import export
+    from gonio.bench.plan.plans import Plan
 
     plan = Plan("six", [[10.0, 0.0, 30.0, 180.0], [30.0, 0.0, 10.0, 180.0], [50.0, 0.0, 20.0, 180.0],
                         [20.0, 90.0, 50.0, 270.0], [60.0, 0.0, 0.0, 0.0], [40.0, 45.0, 40.0, 225.0]])
@@ -201,9 +201,9 @@ def test_a_calibrated_capture_exports_the_calibrated_angles(run, tmp_path):
     each axis's last move: the measured lost motion corrected), the nominal ones, their u, and
     the aperture attributes fitting's angular response reads."""
     import xarray as xr
-    from gonio.bench import session_runner
-    from gonio.bench.export import export
-    from gonio.bench.plans import Plan
+    from gonio.cli import capture as session_runner
+    from gonio.bench.dataset.export import export
+    from gonio.bench.plan.plans import Plan
 
     s, cal, _ = run
     settings = C.merge_calibration(s, cal)
@@ -253,7 +253,7 @@ def test_driver_bench_sees_what_the_physics_bench_sees(tmp_path):
     """DriverBench (the production drivers over the simulator's sim:// ports, what hardware runs)
     and SimBench measure the same squares at the same pose: their means agree within 5 combined
     standard errors of the frame noise (false alarm 6e-7)."""
-    from gonio.bench._rig import Bench
+    from gonio.bench.drivers.rig import Bench
 
     s = default_settings()
     s["errors"] = {"preset": "typical"}

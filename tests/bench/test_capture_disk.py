@@ -26,8 +26,8 @@ from pathlib import Path
 
 import pytest
 
-from gonio.bench import cli
-from gonio.bench._preflight import mount_of
+from gonio.cli import main as cli
+from gonio.core.preflight import mount_of
 
 ENOSPC = "No space left on device"
 
@@ -60,7 +60,7 @@ def journal(session: Path):
 @pytest.fixture
 def little_space(monkeypatch):
     """The disk of every path has 2 MiB free."""
-    import gonio.bench._preflight as pf
+    import gonio.core.preflight as pf
 
     real = shutil.disk_usage
     monkeypatch.setattr(pf.shutil, "disk_usage", lambda p: real(p)._replace(free=2 << 20))
@@ -93,8 +93,8 @@ def test_capture_refused_up_front_when_the_disk_is_too_small(capsys, tmp_path, l
 
 
 def test_capture_refused_when_the_out_folder_is_read_only(capsys, tmp_path):
-    from gonio.bench._preflight import check_output_dir
-    from gonio.bench.errors import GonioError
+    from gonio.core.preflight import check_output_dir
+    from gonio.core.errors import GonioError
 
     def unwritable(folder):
         try:
@@ -118,8 +118,8 @@ def test_capture_refused_when_the_out_folder_is_read_only(capsys, tmp_path):
 
 
 def test_the_estimate_follows_the_plan_the_ladder_and_the_frame_size(tmp_path):
-    from gonio.bench._measure import FRAMES_PER_POINT, raw_estimate
-    from gonio.bench._settings import default_settings, merge_settings
+    from gonio.bench.measure.point import FRAMES_PER_POINT, raw_estimate
+    from gonio.bench.settings import default_settings, merge_settings
 
     s = default_settings()
     e = raw_estimate(s, 100, has_flat=True)
@@ -131,8 +131,8 @@ def test_the_estimate_follows_the_plan_the_ladder_and_the_frame_size(tmp_path):
 
 
 def test_resume_refused_up_front_for_what_is_left(capsys, tmp_path, plan_file, monkeypatch):
-    import gonio.bench._preflight as pf
-    from gonio.bench._journal import Journal
+    import gonio.core.preflight as pf
+    from gonio.bench.session.journal import Journal
 
     out = tmp_path / "s"
     real_record = Journal.record_point
@@ -176,10 +176,10 @@ SITES = ["camera-dng", "camera-rename", "raw-placeholder", "journal-commit", "jo
 def test_disk_full_during_a_capture_stops_resumably(capsys, tmp_path, plan_file, monkeypatch, site):
     import gonio.bench.drivers.camera as camera
     import gonio.bench.drivers.stages as zaber
-    import gonio.bench._session as session
-    import gonio.bench.session_runner as runner
-    import gonio.sim._camera_port as port
-    from gonio.bench._journal import Journal
+    import gonio.bench.session.run as session
+    import gonio.cli.capture as runner
+    import gonio.sim.devices.camera_port as port
+    from gonio.bench.session.journal import Journal
 
     out = tmp_path / "s"
     done = []
@@ -253,7 +253,7 @@ def test_disk_full_during_a_capture_stops_resumably(capsys, tmp_path, plan_file,
 
 def test_disk_full_while_the_session_is_created(capsys, tmp_path, plan_file, monkeypatch):
     """session.toml written, the journal's first commit fails: stopped, and the resume starts it."""
-    from gonio.bench._journal import Journal
+    from gonio.bench.session.journal import Journal
 
     out = tmp_path / "s"
     real = Journal.record_session
@@ -273,7 +273,7 @@ def test_disk_full_while_the_session_is_created(capsys, tmp_path, plan_file, mon
 
 
 def test_disk_full_writing_session_toml_leaves_a_folder_to_capture_into(capsys, tmp_path, plan_file, monkeypatch):
-    import gonio.bench._files as files
+    import gonio.core.files as files
 
     out = tmp_path / "s"
     real = files.os.fsync
@@ -290,8 +290,8 @@ def test_disk_full_writing_session_toml_leaves_a_folder_to_capture_into(capsys, 
 # ------------------------------------------------------------------- export
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    from gonio.bench._samples import load_sample
-    from gonio.bench.session_runner import capture_sim
+    from gonio.bench.samples import load_sample
+    from gonio.cli.capture import capture_sim
 
     root = tmp_path_factory.mktemp("disk")
     capture_sim(root / "s", sample=load_sample(None), plan="quick", seed=1, progress=False)
@@ -312,8 +312,8 @@ def test_export_refused_up_front_on_a_small_disk(capsys, session, monkeypatch, l
 def test_export_disk_full_at_the_write_leaves_no_partial_file(capsys, session, monkeypatch, where):
     import builtins
 
-    import gonio.bench._files as files
-    import gonio.bench.export as export
+    import gonio.core.files as files
+    import gonio.bench.dataset.export as export
 
     (session / "dataset.nc").unlink(missing_ok=True)
     rc, _, err = gonio(capsys, "export", session)             # a first export: kept as it was
@@ -355,7 +355,7 @@ def test_h5py_never_writes_to_the_disk(session, monkeypatch):
     """The dataset is serialised in memory: h5py (which crashed on a full disk) gets no path."""
     import xarray as xr
 
-    from gonio.bench.export import export
+    from gonio.bench.dataset.export import export
 
     seen = []
     real = xr.Dataset.to_netcdf
@@ -382,7 +382,7 @@ def test_a_real_full_disk(tmp_path, session):
         pytest.skip("cannot mount a small tmpfs here (needs root)")
     try:
         env = {**os.environ, "COLUMNS": "200"}
-        run = [sys.executable, "-m", "gonio.bench.cli"]
+        run = [sys.executable, "-m", "gonio.cli.main"]
         r = subprocess.run(run + ["capture", "--sim", "--plan", "quick", "--out", str(disk / "s"), "--quiet"],
                            capture_output=True, text=True, env=env, timeout=120)
         assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, r.stderr
@@ -416,7 +416,7 @@ def test_a_real_full_disk(tmp_path, session):
 def test_a_real_disk_filling_during_a_capture(capsys, tmp_path, plan_file, monkeypatch):
     """A tmpfs that passes the up-front check fills after the 6th point: the real ENOSPC / SQLITE_FULL
     of the camera's write or the journal stops the capture resumably; space freed, the resume finishes."""
-    from gonio.bench._journal import Journal
+    from gonio.bench.session.journal import Journal
 
     disk = tmp_path / "disk"
     if not _tmpfs(disk, "32m"):

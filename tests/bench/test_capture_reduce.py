@@ -3,8 +3,10 @@ statistics accumulated inside the HDR merge's row blocks (both against the plain
 
 import numpy as np
 
-from gonio.bench import _markers, kinematics, plans
-from gonio.bench._settings import default_settings, merge_settings
+from gonio.bench.plan import markers as _markers
+from gonio.bench.plan import kinematics
+from gonio.bench.plan import plans
+from gonio.bench.settings import default_settings, merge_settings
 
 
 def _grid_masks(stage, settings, pose, margin_px, binning=2):
@@ -61,7 +63,7 @@ def _bracket(rate, rng, h=37, w=53, times=(0.001, 0.004, 0.016), power=0.01):
     """Exposures of a scene of ``rate`` (3, h, w) DN / (s W) on a 14-bit sensor with the noise
     model's shot and read noise (gain 2 e/DN, read noise 3 e), its two greens averaged, clipped
     at full scale; a dark frame per exposure (10 DN/s)."""
-    from gonio.bench._hdr import Exposure
+    from gonio.bench.measure.hdr import Exposure
     from gonio.bench.drivers.camera import RawFrame
 
     full = 16383 - 512
@@ -105,9 +107,9 @@ def test_fused_region_stats_are_the_two_pass_ones(monkeypatch):
     be ~1e-7). On dim (radiance near 0, negative values), mid and saturated scenes (red saturated
     in every exposure in places: NaN, left out), with and without a flat field and a
     non-linearity, in one thread and two, with blocks of 3 rows and masks of odd shapes there."""
-    from gonio.bench import _hdr
-    from gonio.bench._hdr import NoiseModel, merge
-    from gonio.bench._measure import merged_region_stats, region_stats
+    from gonio.bench.measure import hdr as _hdr
+    from gonio.bench.measure.hdr import NoiseModel, merge
+    from gonio.bench.measure.point import merged_region_stats, region_stats
 
     rng = np.random.default_rng(17)
     h, w = 37, 53
@@ -147,8 +149,8 @@ def test_probe_levels_are_the_whole_frame_extremes(monkeypatch):
     from the first value, one to the last; an empty region raises as before."""
     import pytest
 
-    from gonio.bench import _measure
-    from gonio.bench._measure import _extreme, _runs, probe_levels
+    from gonio.bench.measure import point as _measure
+    from gonio.bench.measure.point import _extreme, _runs, probe_levels
 
     rng = np.random.default_rng(23)
     h, w = 37, 53
@@ -184,7 +186,7 @@ def test_blocked_decode_is_the_tile_mean_and_max(monkeypatch):
     CFA tile minus their black levels, and its peak their maximum (computed here in float64 from
     the mosaic), exactly, for RGGB, GRBG and BGGR tiles with a black level per position, blocks
     of 3 rows, windows cut at block edges, clipped at the frame, of one row, and empty."""
-    from gonio.bench.drivers import _raw
+    from gonio.bench.drivers import raw as _raw
 
     rng = np.random.default_rng(29)
     h, w = 37, 53

@@ -17,7 +17,7 @@ import pytest
 from rich.console import Console
 
 import report_folder
-from gonio.bench.cli import main
+from gonio.cli.main import main
 
 LONG = ["diffuse_reflectance[R]", "diffuse_reflectance[G]", "diffuse_reflectance[B]", "alpha", "int_ior"]
 
@@ -47,7 +47,7 @@ def _screen(width=80):
 
 @pytest.mark.parametrize("uncertainty", [True, False])
 def test_fit_table_at_80_columns_keeps_every_value_whole(uncertainty):
-    from gonio.bench.fit_runner import print_fit
+    from gonio.cli.fit import print_fit
 
     console = _screen()
     truth = {"model": "roughplastic", "options": {"distribution": "ggx"},
@@ -69,7 +69,7 @@ def test_fit_table_at_80_columns_keeps_every_value_whole(uncertainty):
 
 
 def test_print_table_continues_below_instead_of_cutting():
-    from gonio.bench._console import print_table, table_width
+    from gonio.cli.console import print_table, table_width
 
     console = _screen()
     cols = [("key", "left")] + [(f"a long header {k}", "right") for k in range(6)]
@@ -84,7 +84,7 @@ def test_print_table_continues_below_instead_of_cutting():
 
 
 def test_progress_bar_keeps_count_and_eta_at_80_columns():
-    from gonio.bench._measure import ProgressBar
+    from gonio.bench.measure.point import ProgressBar
 
     console = _screen()
     bar = ProgressBar(1053, 110, True, console=console)
@@ -115,7 +115,7 @@ def test_fit_batch_warns_on_an_inadequate_fit(tmp_path, capsys, monkeypatch):
     import xarray as xr
 
     import gonio.fitting
-    from gonio.fitting import fit
+    from gonio.fitting import fit_serial
 
     good = tmp_path / "good.nc"
     report_folder._dataset(good, n=40)
@@ -126,8 +126,9 @@ def test_fit_batch_warns_on_an_inadequate_fit(tmp_path, capsys, monkeypatch):
     ds.to_netcdf(bad, engine="h5netcdf")
 
     def serial(metas, model, *, rng_seed, loss, **_):      # the Dask cluster's work, in this process
-        # a local cluster is given a loader per file (called in the worker)
-        return [fit(m() if callable(m) else m, model, rng=np.random.default_rng(rng_seed), loss=loss) for m in metas]
+        # a local cluster is given a loader per file (called in the worker), and the model as
+        # (name, options): each fitted as `gonio fit` fits it (fit_serial: the workers' code)
+        return fit_serial(metas, model, rng_seed=rng_seed, loss=loss)
 
     monkeypatch.setattr(gonio.fitting, "fit_batch", serial)
     assert main(["fit", "--batch", str(good), str(bad), "--model", "diffuse", "--out", str(tmp_path / "fits")]) == 0
@@ -140,7 +141,7 @@ def test_fit_batch_warns_on_an_inadequate_fit(tmp_path, capsys, monkeypatch):
 def test_export_of_a_partial_session_says_partial(tmp_path, capsys, monkeypatch):
     import xarray as xr
 
-    import gonio.bench.export
+    import gonio.bench.dataset.export
 
     path = tmp_path / "dataset.nc"
     report_folder._dataset(path, n=8)
@@ -149,7 +150,7 @@ def test_export_of_a_partial_session_says_partial(tmp_path, capsys, monkeypatch)
     ds.attrs.update(plan=json.dumps({"name": "dense", "points": [[0, 0, 0, 0]] * 1053}), complete=0)
     path.unlink()
     ds.to_netcdf(path, engine="h5netcdf")
-    monkeypatch.setattr(gonio.bench.export, "export", lambda session, **options: path)
+    monkeypatch.setattr(gonio.bench.dataset.export, "export", lambda session, **options: path)
     assert main(["export", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "PARTIAL, 8 of 1053 planned points" in out and f"--resume {tmp_path}" in out
@@ -181,7 +182,7 @@ def test_capture_says_what_it_does_before_the_first_point(tmp_path, capsys):
 
 
 def test_model_selection_table_fits_80_columns():
-    from gonio.bench.fit_runner import print_selection
+    from gonio.cli.fit import print_selection
 
     models = [("roughplastic", {"distribution": "ggx"}, 5, 72.21), ("roughplastic2", {"distribution": "beckmann"}, 7, 5798.0),
               ("cooktorrance", {}, 10, 2.384e5), ("roughconductor", {"distribution": "beckmann"}, 7, 6.977e6)]

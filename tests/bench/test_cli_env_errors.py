@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from gonio.bench import cli
-from gonio.bench._preflight import check_output_dir, check_output_file
-from gonio.bench.errors import GonioError
+from gonio.cli import main as cli
+from gonio.core.preflight import check_output_dir, check_output_file
+from gonio.core.errors import GonioError
 
 RGL = Path("/work/shared/data/rgl/paper_white_rgb.bsdf")
 
@@ -45,10 +45,10 @@ def listing(folder):
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     """A quick simulated dataset.nc and a diffuse fit of it."""
-    from gonio.bench.export import export
-    from gonio.bench.fit_runner import fit_cli
-    from gonio.bench.session_runner import capture_sim
-    from gonio.bench._samples import load_sample
+    from gonio.bench.dataset.export import export
+    from gonio.cli.fit import fit_cli
+    from gonio.cli.capture import capture_sim
+    from gonio.bench.samples import load_sample
 
     root = tmp_path_factory.mktemp("envdata")
     capture_sim(root / "session", sample=load_sample(None), plan="quick", seed=1, progress=False)
@@ -83,7 +83,7 @@ def unwritable(tmp_path):
 @pytest.fixture
 def no_fit(monkeypatch):
     """Fail the test if a fit starts: the output must be checked before."""
-    import gonio.bench.fit_runner as fr
+    import gonio.cli.fit as fr
 
     def boom(*a, **k):
         raise AssertionError("the fit ran before the output was checked")
@@ -155,7 +155,7 @@ def test_report_and_convert_out(capsys, data, unwritable, tmp_path):
 
 
 def test_demo_out_refused_before_capture(capsys, unwritable, tmp_path, monkeypatch):
-    import gonio.bench.session_runner as sr
+    import gonio.cli.capture as sr
 
     monkeypatch.setattr(sr, "capture_sim", lambda *a, **k: pytest.fail("captured before checking --out"))
     refused(capsys, "demo", "--out", unwritable / "demo", "--plan", "quick", needles=("not writable",))
@@ -172,7 +172,7 @@ def _enospc(*args, **kwargs):
 
 @pytest.mark.parametrize("to,suffix", [("mitsuba-xml", ".xml"), ("mitsuba-dict", ".json")])
 def test_disk_full_while_converting_leaves_nothing(capsys, data, tmp_path, monkeypatch, to, suffix):
-    import gonio.models.atomic as io
+    import gonio.core.atomic as io
 
     monkeypatch.setattr(io.os, "fsync", _enospc)
     out = tmp_path / "out" / f"x{suffix}"
@@ -182,7 +182,7 @@ def test_disk_full_while_converting_leaves_nothing(capsys, data, tmp_path, monke
 
 
 def test_disk_full_while_writing_the_fit(capsys, data, tmp_path, monkeypatch):
-    import gonio.models.atomic as io
+    import gonio.core.atomic as io
 
     monkeypatch.setattr(io.os, "fsync", _enospc)
     refused(capsys, "fit", data["dataset"], "--model", "diffuse", "--out", tmp_path / "fit.json",
@@ -193,7 +193,7 @@ def test_disk_full_while_writing_the_fit(capsys, data, tmp_path, monkeypatch):
 def test_too_little_free_space_is_refused_up_front(capsys, data, tmp_path, monkeypatch):
     import shutil
 
-    import gonio.bench._preflight as pf
+    import gonio.core.preflight as pf
 
     real = shutil.disk_usage
     monkeypatch.setattr(pf.shutil, "disk_usage", lambda p: real(p)._replace(free=2 ** 20))
@@ -264,7 +264,7 @@ def test_sizes_and_values_bounded(capsys, tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_sim_serve_removes_its_temporary_folder(tmp_path, sig):
     env = dict(os.environ, TMPDIR=str(tmp_path), PYTHONWARNINGS="ignore")
-    proc = subprocess.Popen([sys.executable, "-m", "gonio.bench.cli", "sim", "serve", "--clock", "instant"],
+    proc = subprocess.Popen([sys.executable, "-m", "gonio.cli.main", "sim", "serve", "--clock", "instant"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         seen = []

@@ -22,14 +22,14 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from gonio.bench import cli
+from gonio.cli import main as cli
 
 FUZZ = settings(max_examples=int(os.environ.get("GONIO_FUZZ_EXAMPLES", "25")), deadline=timedelta(seconds=30),
                 database=None, derandomize=not os.environ.get("GONIO_FUZZ_RANDOM"), print_blob=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
                                        HealthCheck.data_too_large])
 
-from gonio.bench._journal import _toml_value as journal_toml_value  # noqa: E402
+from gonio.bench.session.journal import _toml_value as journal_toml_value  # noqa: E402
 
 MODELS = ["diffuse", "roughplastic", "cooktorrance", "orennayar", "roughconductor"]
 
@@ -134,10 +134,10 @@ mutations = st.lists(st.tuples(st.lists(st.integers(0, 50), min_size=1, max_size
 @pytest.fixture(scope="module")
 def real(tmp_path_factory):
     """A real dataset.nc and fit.json to mutate."""
-    from gonio.bench._samples import load_sample
-    from gonio.bench.export import export
-    from gonio.bench.fit_runner import fit_cli
-    from gonio.bench.session_runner import capture_sim
+    from gonio.bench.samples import load_sample
+    from gonio.bench.dataset.export import export
+    from gonio.cli.fit import fit_cli
+    from gonio.cli.capture import capture_sim
 
     root = tmp_path_factory.mktemp("fuzzdata")
     capture_sim(root / "session", sample=load_sample(None), plan="quick", seed=2, progress=False)
@@ -320,7 +320,7 @@ def test_fuzz_batch_and_small_commands(real, data):
             argv = ["fit", "--batch", ds, "--model", "diffuse", "--out", out, "--workers",
                     data.draw(st.one_of(st.integers(-(2 ** 40), 0), st.integers(10 ** 4, 2 ** 64)))]
         elif kind == "scheduler":
-            from gonio.fitting._batch import check_scheduler_address
+            from gonio.fitting.batch.dask_batch import check_scheduler_address
 
             address = data.draw(st.text(max_size=30))
             try:

@@ -1,20 +1,20 @@
-"""Camera RGB -> sRGB (bench/colour_matrix.py): from the DNG, from a ColorChecker capture, with
+"""Camera RGB -> sRGB (gonio/bench/measure/colour_matrix.py): from the DNG, from a ColorChecker capture, with
 its uncertainty; the colour-space choice of load_dataset and gonio fit, and its refusals."""
 
 import numpy as np
 import pytest
 import xarray as xr
 
-from gonio.bench.cli import main
-from gonio.bench.colour_matrix import (CHART_BORDER, CHART_BOX, CHART_GRID, chart_reference_srgb,
+from gonio.cli.main import main
+from gonio.bench.measure.colour_matrix import (CHART_BORDER, CHART_BOX, CHART_GRID, chart_reference_srgb,
                                        colour_matrix_components, colour_matrix_uncertainty, convert,
                                        matrix_from_chart_dng, matrix_from_dng)
-from gonio.bench.errors import GonioError
+from gonio.core.errors import GonioError
 from gonio.fitting import DataError, load_dataset
 from gonio.sim import Instrument, SensorModel
-from gonio.sim import _colour as simcolour
-from gonio.sim._camera_port import CameraPort
-from gonio.sim._sensor import encode_dng
+from gonio.sim.physics import colour as simcolour
+from gonio.sim.devices.camera_port import CameraPort
+from gonio.sim.physics.sensor import encode_dng
 
 RHO = np.array([0.6, 0.1, 0.05])
 
@@ -128,7 +128,7 @@ def test_opencv_mcc_finds_the_chart_in_a_large_frame(tmp_path):
     the slot geometry's to 0.3 % measured (bound 1 %), and the fit records how it was found."""
     import copy
 
-    from gonio.bench.colour_matrix import chart_patches, find_chart
+    from gonio.bench.measure.colour_matrix import chart_patches, find_chart
     from gonio.bench.drivers.camera import decode_raw
     from gonio.sim import DEFAULT_SETTINGS
 

@@ -17,9 +17,9 @@ pytest.importorskip("compliance_checker")
 # compliance-checker 6.1 deprecates its ioos_sos checker when it loads every checker
 pytestmark = pytest.mark.filterwarnings("ignore:The ioos_sos checker is deprecated:DeprecationWarning")
 
-from gonio.bench._cf import CF_CONVENTIONS
+from gonio.bench.dataset.cf import CF_CONVENTIONS
 from gonio.fitting import load_dataset
-from gonio.models.geometry import directions_deg
+from gonio.core.geometry import directions_deg
 
 
 def cf_failures(path):
@@ -36,10 +36,10 @@ def cf_failures(path):
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from gonio.bench import plans
-    from gonio.bench._samples import load_sample
-    from gonio.bench.export import export
-    from gonio.bench.session_runner import capture_sim
+    from gonio.bench.plan import plans
+    from gonio.bench.samples import load_sample
+    from gonio.bench.dataset.export import export
+    from gonio.cli.capture import capture_sim
 
     root = tmp_path_factory.mktemp("cf")
     plan = plans.Plan("cf", plans.with_reciprocal([[30, 0, 40, 180], [45, 0, 20, 0], [20, 0, 50, 90]]))

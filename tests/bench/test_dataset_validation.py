@@ -10,7 +10,7 @@ import pytest
 import xarray as xr
 
 from gonio.fitting import load_dataset
-from gonio.fitting._data import DataError
+from gonio.fitting.measurements import DataError
 
 N = 6
 
@@ -95,7 +95,7 @@ def test_fit_of_a_hostile_dataset_is_one_line_and_status_2(tmp_path):
     for path, needle in ((write(tmp_path / "a.nc", units="furlong"), "furlong"),
                          (write(tmp_path / "b.nc", theta_i=[10, 20, 120, 30, 40, 50]), "below the horizon"),
                          (write(tmp_path / "c.nc", brdf=f, std=s), "absurdly small")):
-        proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "fit", str(path), "--model", "diffuse",
+        proc = subprocess.run([sys.executable, "-m", "gonio.cli.main", "fit", str(path), "--model", "diffuse",
                                "--out", str(tmp_path / "fit.json")], capture_output=True, text=True, env=env,
                               timeout=300)
         lines = [x for x in proc.stderr.splitlines() if x.strip()]

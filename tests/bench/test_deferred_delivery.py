@@ -11,11 +11,11 @@ import pytest
 
 sim = pytest.importorskip("gonio.sim")
 
-from gonio.bench import plans  # noqa: E402
-from gonio.bench._files import sha256_file  # noqa: E402
-from gonio.bench._journal import Journal  # noqa: E402
-from gonio.bench._settings import default_settings  # noqa: E402
-from gonio.bench.capture import capture  # noqa: E402
+from gonio.bench.plan import plans  # noqa: E402
+from gonio.core.files import sha256_file  # noqa: E402
+from gonio.bench.session.journal import Journal  # noqa: E402
+from gonio.bench.settings import default_settings  # noqa: E402
+from gonio.bench.session.capture import capture  # noqa: E402
 from gonio.bench.drivers import BadDelivery, Delivery, SimCamera  # noqa: E402
 
 S = default_settings()

@@ -11,10 +11,10 @@ import math
 import pytest
 
 from benchfakes import expect
-from gonio.bench._settings import default_settings
+from gonio.bench.settings import default_settings
 from gonio.bench.drivers import Goniometer, LedSource, ZaberChain, emergency_stop, format_command, lrc, parse_reply
 from gonio.bench.drivers.zaber_protocol import parse_continuation
-from gonio.bench.errors import CommunicationError, GonioError
+from gonio.core.errors import CommunicationError, GonioError
 
 
 def cmd(device, axis, msgid, text=""):
@@ -150,7 +150,7 @@ def test_led_as_zaber_motion_drives_it():
 
 
 def test_led_with_a_bad_flux_max_is_refused():
-    from gonio.bench.errors import DeviceError
+    from gonio.core.errors import DeviceError
     expect("l3", [(cmd(2, 1, 0, "get lamp.flux.max"), "@02 1 00 OK IDLE -- 0\r\n")])
     with pytest.raises(DeviceError, match="lamp.flux.max"):
         LedSource(ZaberChain("expect://l3")).set_flux(0.5)

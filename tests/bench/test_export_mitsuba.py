@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.bench import cli
+from gonio.cli import main as cli
 from gonio.fitting import fit, fit_document, write_json_atomic
 from gonio.fitting.formats import MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet
-from gonio.fitting.speed import simulate_capture
+from gonio.perf.fit import simulate_capture
 
 mi = pytest.importorskip("mitsuba")
 
@@ -99,7 +99,7 @@ def test_snippet_has_no_version_and_attributes_are_escaped():
 
     xml, _ = mitsuba_snippet("diffuse", {}, {"reflectance": [0.5, 0.5, 0.5]})
     assert "version=" not in xml
-    from gonio.fitting._mitsuba_xml import _xml_lines
+    from gonio.fitting.formats.mitsuba_xml import _xml_lines
 
     line = _xml_lines({"type": "x", "s": 'a"<b>&--'}, "")[0]
     assert ET.fromstring(line).get("value") == 'a"<b>&--'

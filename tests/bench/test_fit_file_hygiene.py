@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from gonio.fitting import load_fit, write_json_atomic
-from gonio.fitting._fitfile import NonFiniteWarning, _jsonable
-from gonio.models.atomic import atomic_open
+from gonio.fitting.formats.fitfile import NonFiniteWarning, _jsonable
+from gonio.core.atomic import atomic_open
 
 
 def strict(text: str):
@@ -118,7 +118,7 @@ def test_temporaries_of_killed_writers_are_removed_by_the_next_write(tmp_path):
     """A writer SIGKILLed mid-write leaves its temporary; the next write of that file removes
     it (and untagged ones older than ten minutes), but not one a live writer still owns."""
     target = tmp_path / "fit.json"
-    code = ("import os, signal, sys\nfrom gonio.models.atomic import atomic_open\n"
+    code = ("import os, signal, sys\nfrom gonio.core.atomic import atomic_open\n"
             "with atomic_open(sys.argv[1], 'w') as fh:\n    fh.write('half'); fh.flush()\n"
             "    os.kill(os.getpid(), signal.SIGKILL)\n")
     proc = subprocess.run([sys.executable, "-c", code, str(target)], timeout=60)
@@ -149,11 +149,11 @@ def test_temporaries_of_killed_writers_are_removed_by_the_next_write(tmp_path):
 
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o002, 0o664)])
 def test_write_once_files_are_atomic_with_the_umask_mode(tmp_path, umask, mode):
-    """session.toml's writer (bench/_files.write_new_text) is the one atomic writer with
+    """session.toml's writer (gonio/core/files.write_new_text) is the one atomic writer with
     ``replace=False``: the umask's mode, the one temporary scheme (none left behind), and a
     second write refused with the first file kept; a RAW placeholder gets the umask's mode too."""
-    from gonio.bench._files import create_exclusive, write_new_text
-    from gonio.models.atomic import is_temporary
+    from gonio.core.files import create_exclusive, write_new_text
+    from gonio.core.atomic import is_temporary
 
     old = os.umask(umask)
     try:
@@ -175,7 +175,7 @@ def test_a_folder_is_listed_for_stale_temporaries_once_per_process(tmp_path, mon
     raw/ grew by a frame per write, so its cost grew with the square of the frame count. The
     folder is listed once per process (and again once made anew); a stale temporary found then
     is still removed at its target's first write, and a writer's own temporary by the writer."""
-    from gonio.models import atomic
+    from gonio.core import atomic
 
     stale = tmp_path / ".p00007.dng.1-zzz.tmp"        # pid 1 is alive: kept, checked at each write
     dead = tmp_path / ".p00009.dng.999999999-zzz.tmp"  # no such pid: removed at p00009's first write

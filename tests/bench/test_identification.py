@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from gonio.bench.drivers import identify as _identify
-from gonio.bench._journal import Journal
-from gonio.bench.plans import Plan
-from gonio.bench.session_runner import capture_sim
+from gonio.bench.session.journal import Journal
+from gonio.bench.plan.plans import Plan
+from gonio.cli.capture import capture_sim
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -45,10 +45,10 @@ def test_hostile_device_text_is_cleaned():
 
 def test_every_driver_identifies_itself(tmp_path):
     """The device layer's common face: each driver's ``identify()`` gives what the simulated device
-    declares (the Zaber ids of sim/_zaber_device's table, the meter's and camera's *IDN?), and a
+    declares (the Zaber ids of gonio/sim/devices/zaber_common's table, the meter's and camera's *IDN?), and a
     camera object without ``identify`` is named by its class."""
     import gonio.sim as gs
-    from gonio.bench._settings import default_settings
+    from gonio.bench.settings import default_settings
     from gonio.bench.drivers import Goniometer, LedSource, PowerMeter, SimCamera, WatchedFolderCamera, ZaberChain
 
     inst = gs.Instrument(seed=1).register("ident-drivers")
@@ -80,7 +80,7 @@ ONE = Plan("one", np.array([[30.0, 0.0, 30.0, 180.0]]))
 @pytest.fixture
 def sim_instrument():
     import gonio.sim as gs
-    from gonio.bench._settings import default_settings
+    from gonio.bench.settings import default_settings
 
     made = []
 
@@ -95,8 +95,8 @@ def sim_instrument():
 
 
 def _capture(inst, folder):
-    from gonio.bench.capture import capture
-    from gonio.bench._settings import default_settings
+    from gonio.bench.session.capture import capture
+    from gonio.bench.settings import default_settings
 
     return capture(folder, ONE, default_settings(), inst.url("zaber"), inst.url("meter"), inst.url("camera"),
                    seed=1, progress=False, sleep=inst.clock.advance)
@@ -110,7 +110,7 @@ def _events(folder, kind):
 def test_session_toml_records_every_devices_identification(sim_instrument, tmp_path):
     """A capture identifies the devices before it writes session.toml: its [devices] table is the
     identification the journal records for that run (docs/interfaces.md section 5)."""
-    from gonio.bench._journal import read_session
+    from gonio.bench.session.journal import read_session
 
     inst = sim_instrument("ident-toml")
     folder = tmp_path / "s"
@@ -151,7 +151,7 @@ def test_the_toml_writer_escapes_what_toml_forbids():
     is not a bare key) reads back as it was."""
     import tomllib
 
-    from gonio.bench._journal import session_text
+    from gonio.bench.session.journal import session_text
 
     doc = {"devices": {"meter": 'a"b\\c\x7fd\x00e\nf\rg\th\x1b', "zaber": {"1": {"serial": "9]\n[x"}}},
            "odd keys": {"k.e y\x7f": "v"}}
@@ -163,9 +163,9 @@ def test_resume_on_other_hardware_is_said_and_reported(sim_instrument, tmp_path)
     stage controller of another serial journals its identification, says the difference (a
     console line: the summary's notes and ``notify``) and the report shows session.toml's devices
     and that difference."""
-    from gonio.bench._report_input import Folder
-    from gonio.bench._report_meta import _devices
-    from gonio.bench.capture import resume
+    from gonio.bench.report.inputs import Folder
+    from gonio.bench.report.meta import _devices
+    from gonio.bench.session.capture import resume
 
     inst = sim_instrument("ident-resume")
     folder = tmp_path / "s"

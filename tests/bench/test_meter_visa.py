@@ -4,7 +4,7 @@ import pytest
 
 import gonio.sim as gs
 from gonio.bench.drivers.meter import PowerMeter, is_visa_resource
-from gonio.bench.errors import CommunicationError
+from gonio.core.errors import CommunicationError
 
 pytest.importorskip("pyvisa", reason="PyVISA is not installed")
 pytest.importorskip("pyvisa_py", reason="pyvisa-py is not installed")

@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 
 import gonio.sim as gs
-from gonio.bench import _markers, kinematics
+from gonio.bench.plan import markers as _markers
+from gonio.bench.plan import kinematics
 from gonio.bench.drivers.camera import decode_raw
-from gonio.bench._settings import AXES, default_settings, merge_settings
-from gonio.bench.cli import main
+from gonio.bench.settings import AXES, default_settings, merge_settings
+from gonio.cli.main import main
 
 pytestmark = pytest.mark.timeout(300)
 _count = iter(range(10 ** 6))
@@ -231,7 +232,7 @@ def test_malformed_marker_table_is_one_line(capsys):
 
 
 # -- a real `gonio sim serve` process and real `gonio` processes on its ptys -------------------
-GONIO = [sys.executable, "-m", "gonio.bench.cli"]
+GONIO = [sys.executable, "-m", "gonio.cli.main"]
 
 
 def _gonio(*args):
@@ -294,7 +295,7 @@ def test_shot_finds_the_regions_from_the_markers_of_a_moved_holder(capsys, tmp_p
     toml.write_text("[camera]\nwidth = 480\nheight = 360\npixel_size = 0.0027\n[holder]\n"
                     f"markers = {{ dictionary = \"DICT_4X4_50\", size = {layout['size']!r}, "
                     f"ids = {layout['ids']!r}, centres = [{cent}] }}\n")
-    from gonio.bench._settings import load_settings
+    from gonio.bench.settings import load_settings
 
     bench = load_settings(toml)
     sim = merge_settings(bench, {"holder": {"sim_pose": [0.03, 0.02, -2.0]}})

@@ -20,8 +20,8 @@ import subprocess
 import pytest
 
 import report_folder
-from gonio.bench import _report_figures as figs
-from gonio.bench._report_meta import gum
+from gonio.bench.report import figures as figs
+from gonio.bench.report.meta import gum
 from gonio.bench.report import write_report
 
 SCRIPT = "<script>alert(1)</script>"
@@ -67,7 +67,7 @@ def edit_attrs(folder, **attrs):
 
 
 def journal(folder, ident) -> None:
-    """A session journal holding one identification event, as bench/drivers/identify.record writes it."""
+    """A session journal holding one identification event, as gonio/bench/drivers/identify.record writes it."""
     (folder / "session").mkdir(exist_ok=True)
     db = sqlite3.connect(folder / "session" / "journal.sqlite")
     db.execute("CREATE TABLE events (id INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, kind TEXT NOT NULL, "
@@ -255,7 +255,7 @@ def test_the_band_row_names_the_colour_space_of_the_values():
     issue 15), not 'raw RGB': the identification table says which, and from which matrix."""
     from types import SimpleNamespace
 
-    from gonio.bench._report_meta import _band
+    from gonio.bench.report.meta import _band
 
     def meas(colour):
         return SimpleNamespace(attrs={"colour": colour}, channels=("R", "G", "B"))
@@ -271,7 +271,7 @@ def test_the_calibration_row_says_what_was_applied_or_that_nothing_was():
     """The identification names the calibration a session applied (`gonio capture --calibration`;
     issue 15: the report must show it), its estimates with their u, the lamp-arm zero carried as a
     prior, what it corrects; without one it says none was applied. Values are hostile text."""
-    from gonio.bench._report_meta import _calibration
+    from gonio.bench.report.meta import _calibration
 
     assert "none applied" in _calibration({})
     settings = {"calibration": {"sim": True, "seed": 3, "errors": {"preset": "typical"}},

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 import report_folder
-from gonio.bench.errors import GonioError
+from gonio.core.errors import GonioError
 from gonio.bench.report import write_report
 
 SCRIPT = "<script>alert(1)</script>"
@@ -367,7 +367,7 @@ def test_interrupted_report_leaves_no_temporary(out, monkeypatch):
 
 def test_cli_prints_one_line_and_exits_2(out):
     edit(out, "fit.json", lambda d: d["goodness"].update(dof=SCRIPT))
-    proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "report", str(out)], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "gonio.cli.main", "report", str(out)], capture_output=True,
                           text=True, timeout=120, env=dict(os.environ, PYTHONWARNINGS="ignore"))
     assert proc.returncode == 2, proc.stderr
     lines = [x for x in proc.stderr.splitlines() if x.strip()]

@@ -15,15 +15,15 @@ import pytest
 
 sim = pytest.importorskip("gonio.sim")
 
-from gonio.bench import capture as capture_mod
-from gonio.bench import plans
+from gonio.bench.session import capture as capture_mod
+from gonio.bench.plan import plans
 from benchfakes.cameras import InterruptingCamera
-from gonio.bench._hdr import ladder
-from gonio.bench._journal import Journal, SessionLock
-from gonio.bench._settings import default_settings
-from gonio.bench.capture import capture, resume
-from gonio.bench.errors import SessionError
-from gonio.bench.export import export
+from gonio.bench.measure.hdr import ladder
+from gonio.bench.session.journal import Journal, SessionLock
+from gonio.bench.settings import default_settings
+from gonio.bench.session.capture import capture, resume
+from gonio.core.errors import SessionError
+from gonio.bench.dataset.export import export
 
 S = default_settings()
 GLOSSY = {"model": "roughplastic", "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.15}}
@@ -142,7 +142,7 @@ def test_two_captures_started_together_one_wins(tmp_path):
     plan = tmp_path / "p.csv"
     plan.write_text("theta_i,phi_i,theta_o,phi_o\n30,0,40,180\n20,0,50,90\n")
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    cmds = [[sys.executable, "-m", "gonio.bench.cli", "capture", "--sim", "--plan", p, "--seed", str(s),
+    cmds = [[sys.executable, "-m", "gonio.cli.main", "capture", "--sim", "--plan", p, "--seed", str(s),
              "--out", str(folder), "--quiet"] for p, s in ((str(plan), 1), ("quick", 2))]
     procs = [subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) for c in cmds]
     outs = [p.communicate(timeout=300) for p in procs]
@@ -166,7 +166,7 @@ def test_two_captures_started_together_one_wins(tmp_path):
 def _edit(folder, fn):
     import tomllib
 
-    from gonio.bench._journal import dumps_toml
+    from gonio.bench.session.journal import dumps_toml
     doc = tomllib.loads((folder / "session.toml").read_text())
     fn(doc)
     (folder / "session.toml").write_text(dumps_toml(doc))
@@ -238,7 +238,7 @@ def test_comment_or_garbage_in_session_toml_then_restore(sessions, tmp_path):
     with pytest.raises(SessionError) as e:
         resume_on(folder)
     one_line(e, "no longer valid TOML", "--restore-session")
-    from gonio.bench._integrity import restore_session
+    from gonio.bench.session.integrity import restore_session
     line = restore_session(folder)
     assert "restored" in line and (folder / "session.toml").read_bytes() == original
     assert any(p.name.startswith("session.toml.changed-") for p in folder.iterdir())
@@ -247,7 +247,7 @@ def test_comment_or_garbage_in_session_toml_then_restore(sessions, tmp_path):
 
 
 def test_session_toml_is_written_once(tmp_path):
-    from gonio.bench._journal import write_session
+    from gonio.bench.session.journal import write_session
     write_session(tmp_path / "s", {"a": 1})
     with pytest.raises(SessionError, match="already holds a session"):
         write_session(tmp_path / "s", {"a": 2})
@@ -255,8 +255,8 @@ def test_session_toml_is_written_once(tmp_path):
 
 
 def test_session_toml_is_written_once_without_hard_links(tmp_path, monkeypatch):
-    from gonio.bench import _files
-    from gonio.bench._journal import write_session
+    from gonio.core import files as _files
+    from gonio.bench.session.journal import write_session
 
     def no_links(*a):
         raise PermissionError(1, "Operation not permitted")

@@ -1,10 +1,10 @@
 """The sample's wedge in the budget's angle lines (issue 15): what the simulator measures.
 
-A wedge tilts the sample's face alone. The simulator's squares (sim/_errors.ErrorState) then
+A wedge tilts the sample's face alone. The simulator's squares (gonio/sim/physics/errors.ErrorState) then
 show f_r(wi', wo') cos(theta_i') for the sample, in its own face frame, beside the reference's
 rho / pi cos(theta_i) in the holder's: the ratio the bench measures moves by f_r's change with
 the angles and by the foreshortening cos(theta_i') / cos(theta_i), which the reference does not
-share. The budget's first-order line for each shared input is S d + f_r r (fitting/_budget.
+share. The budget's first-order line for each shared input is S d + f_r r (gonio/fitting/uncertainty/budget.
 angle_components: S the fitted model's slope, d the mode's angle shifts, r its
 ``irradiance_modes``). Before r, the Beckmann coverage study (295 sessions,
 budget_coverage.py) regressed int_ior's z on the drawn wedge at 0.362 per sd against the
@@ -15,15 +15,16 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.bench import calibrate, kinematics
-from gonio.bench._calpoint import _jacobian
-from gonio.bench.plans import load_plan
-from gonio.fitting._budget import slope
-from gonio.sim._errors import AlignmentErrors, ErrorModel, ErrorState
+from gonio.bench import calibrate
+from gonio.bench.plan import kinematics
+from gonio.bench.measure.calpoint import _jacobian
+from gonio.bench.plan.plans import load_plan
+from gonio.fitting.uncertainty.budget import slope
+from gonio.sim.physics.errors import AlignmentErrors, ErrorModel, ErrorState
 
 PARAMS = {"diffuse_reflectance": np.array([0.5, 0.35, 0.2]), "alpha": 0.15, "int_ior": 1.5}
 RHO_REF = 0.99
-WEDGE_U = 0.05                      # deg: the typical preset's wedge (sim/_errors.py)
+WEDGE_U = 0.05                      # deg: the typical preset's wedge (gonio/sim/physics/errors.py)
 
 
 class _Sample:

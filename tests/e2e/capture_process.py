@@ -8,7 +8,7 @@ import subprocess
 import sys
 import time
 
-GONIO = [sys.executable, "-m", "gonio.bench.cli"]
+GONIO = [sys.executable, "-m", "gonio.cli.main"]
 ENV = dict(os.environ, PYTHONWARNINGS="ignore")
 
 

@@ -10,7 +10,7 @@ with the dataset's budget (u_ lines per camera channel) and fitted in linear sRG
 
 What it checks: the certificate's shared scale carried through the colour matrix into rho
 and int_ior, and the type-A noise carried with the channels' correlation the colour matrix
-gives (fitting/_budget.py). Before that fix alpha's u_c was the Laplace sigma of a fit that
+gives (gonio/fitting/uncertainty/budget.py). Before that fix alpha's u_c was the Laplace sigma of a fit that
 treats sRGB channels as independent: 1.68 times the estimator's own (rms z 0.60 in the
 100-session study, tests/fitting/budget_coverage.py).
 
@@ -49,12 +49,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from gonio.bench._fitdoc import truth_by_name as _truth_by_name
-from gonio.bench._samples import DEMO_SAMPLE, check_sample
-from gonio.bench._settings import default_settings
-from gonio.bench.export import export
-from gonio.bench.fit_runner import fit_dataset, open_budget
-from gonio.bench.session_runner import capture_sim
+from gonio.bench.report.fitdoc import truth_by_name as _truth_by_name
+from gonio.bench.samples import DEMO_SAMPLE, check_sample
+from gonio.bench.settings import default_settings
+from gonio.bench.dataset.export import export
+from gonio.cli.fit import fit_dataset, open_budget
+from gonio.cli.capture import capture_sim
 from gonio.fitting import load_dataset
 
 N_CAPTURES = int(os.environ.get("GONIO_N_CAPTURES", 20))

@@ -2,9 +2,9 @@
 linear sRGB, exported to Mitsuba, renders its true colour.
 
 The virtual sample is Lambertian with rho = (0.6, 0.1, 0.05) in linear sRGB; the simulated
-camera has the NPL-measured Nikon D5100 sensitivities (sim/_colour.py), so its white-balanced
+camera has the NPL-measured Nikon D5100 sensitivities (gonio/sim/physics/colour.py), so its white-balanced
 RGB of that sample is about (0.42, 0.12, 0.07). The bench takes the camera -> sRGB matrix from
-the DNG's ColorMatrix1 (bench/colour_matrix.py), the fit runs on ``brdf_srgb``, and Mitsuba
+the DNG's ColorMatrix1 (gonio/bench/measure/colour_matrix.py), the fit runs on ``brdf_srgb``, and Mitsuba
 renders the fitted material on the preview sphere (``env`` lighting) beside the true one, with
 the same sampler seed: the mean CIEDE2000 over the sphere is 0.01 measured (bound 1). The same
 pipeline fitted in camera RGB (no matrix applied, as before issue 15) gives 5.9 measured (the
@@ -21,15 +21,15 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from gonio.bench import plans
-from gonio.bench._settings import default_settings
-from gonio.bench.colour_matrix import matrix_from_dng
-from gonio.bench.export import export
-from gonio.bench.session_runner import capture_sim
+from gonio.bench.plan import plans
+from gonio.bench.settings import default_settings
+from gonio.bench.measure.colour_matrix import matrix_from_dng
+from gonio.bench.dataset.export import export
+from gonio.cli.capture import capture_sim
 from gonio.fitting import fit, load_dataset
-from gonio.fitting.preview import delta_e_2000, render_sphere, sphere_mask
+from gonio.fitting.render.preview import delta_e_2000, render_sphere, sphere_mask
 import gonio.models as gm
-from gonio.sim._colour import camera_colour
+from gonio.sim.physics.colour import camera_colour
 
 RHO = np.array([0.6, 0.1, 0.05])
 SAMPLE = {"model": "diffuse", "params": {"reflectance": RHO.tolist()}}
@@ -92,10 +92,10 @@ def test_without_the_matrix_the_colour_is_visibly_wrong(session):
 def test_a_chart_capture_gives_the_matrix_and_its_uncertainty(session, tmp_path):
     """``gonio export --colour-chart``: the matrix from a ColorChecker capture by the same camera,
     its source and uncertainty recorded; the sample's sRGB lies within it (k = 2)."""
-    from gonio.bench.colour_matrix import colour_matrix_uncertainty, matrix_from_chart_dng
-    from gonio.bench.export import to_dataset
+    from gonio.bench.measure.colour_matrix import colour_matrix_uncertainty, matrix_from_chart_dng
+    from gonio.bench.dataset.export import to_dataset
     from gonio.sim import Instrument
-    from gonio.sim._camera_port import CameraPort
+    from gonio.sim.devices.camera_port import CameraPort
 
     inst = Instrument(seed=5)
     inst.lamp.switch(inst.clock.now(), True)
@@ -108,7 +108,7 @@ def test_a_chart_capture_gives_the_matrix_and_its_uncertainty(session, tmp_path)
     u = colour_matrix_uncertainty(f_cam, matrix_from_chart_dng(tmp_path / "chart.dng"))
     z = (ds.brdf_srgb.values * np.pi - RHO) / np.hypot(u, ds.brdf_srgb_std.values * np.pi)
     assert np.all(np.abs(z) < 2.0), z
-    # the chart's budget lines reach an sRGB fit's budget (fitting/_budget.py), none a camera-RGB one
+    # the chart's budget lines reach an sRGB fit's budget (gonio/fitting/uncertainty/budget.py), none a camera-RGB one
     from gonio.fitting import load_budget
 
     path = tmp_path / "chart.nc"
@@ -122,8 +122,8 @@ def test_a_chart_capture_gives_the_matrix_and_its_uncertainty(session, tmp_path)
 def test_capture_takes_the_chart_when_asked(tmp_path):
     """``[capture] colour_chart = true``: the session journals one chart frame and export fits
     the colour matrix to it (source "chart" in dataset.nc; the settings in session.toml say so)."""
-    from gonio.bench._journal import Journal, read_session
-    from gonio.bench.export import to_dataset
+    from gonio.bench.session.journal import Journal, read_session
+    from gonio.bench.dataset.export import to_dataset
 
     settings = default_settings()
     settings["capture"].update(flat_frames=0, colour_chart=True)
@@ -138,7 +138,7 @@ def test_capture_takes_the_chart_when_asked(tmp_path):
 
 
 def test_a_bad_colour_chart_setting_is_refused_before_anything_is_written(tmp_path):
-    from gonio.bench.errors import GonioError
+    from gonio.core.errors import GonioError
 
     settings = default_settings()
     settings["capture"].update(flat_frames=0, colour_chart="yes")

@@ -13,12 +13,12 @@ import sys
 import numpy as np
 import pytest
 
-from gonio.bench._samples import DEMO_SAMPLE, check_sample
-from gonio.bench.export import export
-from gonio.bench.fit_runner import fit_dataset, render_closure
-from gonio.bench._fitdoc import truth_by_name as _truth_by_name
+from gonio.bench.samples import DEMO_SAMPLE, check_sample
+from gonio.bench.dataset.export import export
+from gonio.cli.fit import fit_dataset, render_closure
+from gonio.bench.report.fitdoc import truth_by_name as _truth_by_name
 from gonio.bench.report import write_report
-from gonio.bench.session_runner import capture_sim
+from gonio.cli.capture import capture_sim
 from gonio.fitting import load_dataset, write_json_atomic
 
 from capture_process import start_capture
@@ -83,7 +83,7 @@ def test_demo_command_end_to_end(tmp_path):
 
     import xarray as xr
 
-    proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "demo", "--out", str(tmp_path / "out"),
+    proc = subprocess.run([sys.executable, "-m", "gonio.cli.main", "demo", "--out", str(tmp_path / "out"),
                            "--plan", "quick", "--seed", "3", "--no-posterior"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -119,7 +119,7 @@ def test_demo_command_end_to_end(tmp_path):
     assert "gonio calibrate on the simulated instrument (typical errors), seed 3" in report
     assert "the HDR merge&#39;s linearisation" in report or "the HDR merge's linearisation" in report
     # a second run replaces the previous demo session instead of refusing
-    proc = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "demo", "--out", str(tmp_path / "out"),
+    proc = subprocess.run([sys.executable, "-m", "gonio.cli.main", "demo", "--out", str(tmp_path / "out"),
                            "--plan", "quick", "--seed", "3", "--no-posterior"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -159,7 +159,7 @@ def test_cli_sim_capture_killed_then_resumed(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert 3 <= done < 30
-    res = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "capture", "--resume", str(session), "--quiet"],
+    res = subprocess.run([sys.executable, "-m", "gonio.cli.main", "capture", "--resume", str(session), "--quiet"],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "30/30 points" in res.stdout

@@ -72,12 +72,12 @@ def test_exit_status_is_documented():
 
 def test_sigterm_during_a_move_stops_the_stages_and_switches_the_led_off(tmp_path):
     """In process against the simulator: the signal arrives while a stage moves."""
-    from gonio.bench import plans
-    from gonio.bench._settings import default_settings
-    from gonio.bench.capture import CaptureInterrupted, capture, resume
+    from gonio.bench.plan import plans
+    from gonio.bench.settings import default_settings
+    from gonio.bench.session.capture import CaptureInterrupted, capture, resume
 
     S = default_settings()
-    from gonio.sim._clock import SimClock
+    from gonio.sim.physics.clock import SimClock
     inst = sim.Instrument(S, seed=1, clock=SimClock("instant", jump_on_busy=False)).register(f"sigterm-{os.getpid()}")
     plan = plans.Plan("three", [[30, 0, 40, 180], [20, 0, 50, 90], [60, 0, 10, 0]])
     sent = []
@@ -109,7 +109,8 @@ def test_sigterm_during_a_move_stops_the_stages_and_switches_the_led_off(tmp_pat
 
 def test_a_fault_mid_run_exits_3_and_a_refusal_exits_2(tmp_path, monkeypatch, capsys):
     """A stall while measuring leaves a resumable session: status 3, one line; bad input: 2."""
-    from gonio.bench import cli, session_runner
+    from gonio.cli import main as cli
+    from gonio.cli import capture as session_runner
 
     real = session_runner.sim_instrument
 
@@ -132,10 +133,11 @@ def test_a_fault_mid_run_exits_3_and_a_refusal_exits_2(tmp_path, monkeypatch, ca
 def test_sigterm_while_a_capture_or_resume_sets_up_stops_cleanly(tmp_path, monkeypatch):
     """A signal while the ports open (capture) or the session is checked (resume): one line, no
     half-done step; the resume's checks and repairs finish whole first."""
-    from gonio.bench import _integrity, plans
-    from gonio.bench import capture as capture_mod
-    from gonio.bench._settings import default_settings
-    from gonio.bench.capture import CaptureInterrupted, capture, resume
+    from gonio.bench.session import integrity as _integrity
+    from gonio.bench.plan import plans
+    from gonio.bench.session import capture as capture_mod
+    from gonio.bench.settings import default_settings
+    from gonio.bench.session.capture import CaptureInterrupted, capture, resume
 
     S = default_settings()
     inst = sim.Instrument(S, seed=1).register(f"setup-{os.getpid()}")

@@ -3,7 +3,7 @@
     .venv/bin/python tests/fitting/aperture_effect.py [--out docs/figures/aperture_alpha.png]
 
 For roughplastic-GGX (rho 0.5/0.35/0.2, int_ior 1.5) at alpha from 0.01 to 0.5, the data are
-f_r averaged over source and detector disks of half-angle a (0.5 deg: sim/_errors.py's
+f_r averaged over source and detector disks of half-angle a (0.5 deg: gonio/sim/physics/errors.py's
 "typical"; 1.5 deg: "poor"), without noise, on the coverage sessions' kind of geometry (300
 pairs, half near the mirror direction, spread 0.1); the point model is fitted to them and its alpha
 bias is stated in units of the statistical 1-sigma the same geometry has with 1 % + 1e-3 sr^-1
@@ -24,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import gonio.models as gm  # noqa: E402
 from gonio.fitting import Measurements, fit  # noqa: E402
-from gonio.fitting._aperture import aperture_mean, aperture_ratio  # noqa: E402
-from gonio.models.geometry import directions  # noqa: E402
+from gonio.fitting.likelihood.aperture import aperture_mean, aperture_ratio  # noqa: E402
+from gonio.core.geometry import directions  # noqa: E402
 
 from _simdata import directions as pairs  # noqa: E402
 

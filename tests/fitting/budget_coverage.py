@@ -10,7 +10,7 @@ a glossy roughplastic-GGX sample (alpha 0.05, int_ior 1.5), type-A noise, and th
 true reflectance drawn from its certificate (one factor 1 + s N(0, 1), s = scale_rel_std,
 for every value: the bench's f_r is then f_true / factor), fitted with chi2; the budget is
 the dataset's: type A = brdf_std, certificate = brdf x s, fully correlated.
-``capture``: real simulated captures (sim/_errors.py, settings ``[errors]``, default: only
+``capture``: real simulated captures (gonio/sim/physics/errors.py, settings ``[errors]``, default: only
 the certificate draw) through capture, export (dataset.nc with its u_ variables) and
 ``gonio fit``'s path (load_budget, fit_dataset).
 
@@ -62,7 +62,7 @@ alignment's artefact). What was missing is that input's second-order effect: the
 effect on alpha minus its first-order part was +0.20 u_c on average (rms 0.30, up to +0.63) on
 the glossy sample, +0.03 on the Beckmann one: a tilted normal moves a narrow lobe off the
 specular direction the fit assumes, and the fit broadens it whichever way it tilted
-(fitting/_budget.second_order predicts +0.25, rms 0.39, and +0.03). It is now a budget line,
+(gonio/fitting/uncertainty/budget.second_order predicts +0.25, rms 0.39, and +0.03). It is now a budget line,
 ``angle_shared_second_order`` (its second moment), and the stray floor is removed at capture
 (gonio calibrate states its level; rho's offset was +0.025 +0.046 +0.10 u_c every session).
 
@@ -102,7 +102,7 @@ worth < 0.02 u_c of int_ior. Not the seeds' draws: regressed on each seed's draw
 factor and sample wedge (decompose/wedge_regression.py) the 401100-401199 run's int_ior keeps
 -0.22 +- 0.06 at a typical wedge, and the three glossy runs (236 sessions) put it in the wedge's
 square: error / u_c has w0^2, w1^2 coefficients -0.09 +- 0.03, -0.17 +- 0.03 (wedge in sd units),
-so -0.26 u_c on average and +0.03 at zero wedge. fitting/_budget.second_order predicted +0.04:
+so -0.26 u_c on average and +0.03 at zero wedge. gonio/fitting/uncertainty/budget.second_order predicted +0.04:
 it held the fit's weights fixed, while brdf_std is measured from each value's own signal
 (sigma ~ f^0.9 across a capture's values), so a tilt that moves the lobe's values moves their
 weights and the values pushed down weigh more (exact refits of noise-free simulator data, seed
@@ -212,14 +212,14 @@ def capture_session(seed: int, errors: dict, plan: str | None, folder: Path, cal
     """One simulated capture -> dataset.nc -> fit with its budget: (names, fit, u_c, u_stat, truth).
 
     ``calibrated``: gonio calibrate first (same instrument seed), its tables merged into the
-    capture's settings (bench/calibrate.merge_calibration), as a calibrated session is."""
+    capture's settings (gonio/bench/calibrate.merge_calibration), as a calibrated session is."""
     import shutil
 
-    from gonio.bench._settings import default_settings
+    from gonio.bench.settings import default_settings
     from gonio.bench.calibrate import calibrate, merge_calibration
-    from gonio.bench.export import export
-    from gonio.bench.fit_runner import fit_dataset, open_budget
-    from gonio.bench.session_runner import capture_sim
+    from gonio.bench.dataset.export import export
+    from gonio.cli.fit import fit_dataset, open_budget
+    from gonio.cli.capture import capture_sim
     from gonio.fitting import load_dataset
 
     settings = default_settings()
@@ -243,7 +243,7 @@ def capture_session(seed: int, errors: dict, plan: str | None, folder: Path, cal
             np.array([truth[n] for n in names]))
 
 
-#: the synthetic "typical" instrument (sim/_errors.py's typical preset, in angle space): shared
+#: the synthetic "typical" instrument (gonio/sim/physics/errors.py's typical preset, in angle space): shared
 #: zero offsets of 0.1 deg before the alignment, 0.02 deg left after it; 0.01 deg per move;
 #: 0.5 deg source and detector half-angles; the certificate's 0.5 %
 TYPICAL = {"offset_deg": 0.1, "residual_deg": 0.02, "repeat_deg": 0.01, "aperture_half_deg": 0.5}
@@ -253,12 +253,12 @@ def typical_session(seed: int):
     """(names, [calibrated fit: x, u_c, u_stat], [ignoring calibration and response: x, u_c, u_stat], truth).
 
     The calibrated fit knows the alignment's estimate of the offsets (true - residual), the
-    apertures (forward model, fitting/_aperture.py) and the budget: type A, certificate,
+    apertures (forward model, gonio/fitting/likelihood/aperture.py) and the budget: type A, certificate,
     angle_shared (residual 0.02 deg x slope) and angle_repeatability (0.01 deg x slope). The
     other uses the commanded angles, the point model and type A + certificate (today's fit)."""
     from gonio.fitting import Budget, BudgetComponent, Measurements, fit, fit_document, with_instrument_response
-    from gonio.fitting._aperture import aperture_mean
-    from gonio.models.geometry import angles, directions as dirs
+    from gonio.fitting.likelihood.aperture import aperture_mean
+    from gonio.core.geometry import angles, directions as dirs
 
     rng = np.random.default_rng([seed, 15])
     wi, wo = T.directions(rng, 300, spread=0.05)

@@ -1,11 +1,11 @@
-"""The instrument's angular response in the forward model (issue 15; fitting/_aperture.py)."""
+"""The instrument's angular response in the forward model (issue 15; gonio/fitting/likelihood/aperture.py)."""
 
 import numpy as np
 import pytest
 
 import gonio.models as gm
 from gonio.fitting import Measurements, fit, with_instrument_response
-from gonio.fitting._aperture import aperture_mean, aperture_ratio, cone, disk_rule
+from gonio.fitting.likelihood.aperture import aperture_mean, aperture_ratio, cone, disk_rule
 
 from _simdata import directions
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.fitting._batch import fit_batch, fit_serial
+from gonio.fitting.batch.dask_batch import fit_batch, fit_serial
 
 from _simdata import simulate
 
@@ -38,8 +38,8 @@ def _disk_full(meas, path):
 def _loses_one(metas, model_spec, rng_seed, fit_kwargs, claims):
     """A claiming task whose worker "was lost" with dataset 1: it claims 1 too and never
     returns its fit (module level: the workers import it)."""
-    from gonio.fitting._batch import _fit_claimed
-    from gonio.fitting._handoff import claim
+    from gonio.fitting.batch.dask_batch import _fit_claimed
+    from gonio.fitting.batch.handoff import claim
 
     claim(claims, 1)
     return _fit_claimed(metas, model_spec, rng_seed, fit_kwargs, claims)
@@ -64,9 +64,10 @@ def test_batch_on_single_thread_workers_equals_a_one_thread_serial_loop_bit_for_
 
     import drjit as dr
 
-    from gonio.fitting import _batch, _handoff
-    from gonio.fitting._batch import _close_http, local_cluster
-    from gonio.fitting._malloc import MALLOC_ENV
+    from gonio.fitting.batch import dask_batch as _batch
+    from gonio.fitting.batch import handoff as _handoff
+    from gonio.fitting.batch.dask_batch import _close_http, local_cluster
+    from gonio.fitting.batch.malloc import MALLOC_ENV
     from dask.distributed import Client
 
     model = gm.get("roughconductor", distribution="ggx")
@@ -128,7 +129,7 @@ def test_task_chunks_hold_enough_work_each():
     """Chunked by estimated cost (fit_cost), large tasks first (factoring): 16 fits of 1e5
     points on 2 threads are 4, 4, 2, 2, 1, 1, 1, 1 fits; 64 small ones tasks of >= 50 ms each;
     4 tiny ones one task; contiguous, in order; a cost that is not a number is refused."""
-    from gonio.fitting._batch import MIN_TASK_S, fit_cost, task_chunks
+    from gonio.fitting.batch.dask_batch import MIN_TASK_S, fit_cost, task_chunks
 
     sizes = {(16, 100_000): [4, 4, 2, 2, 1, 1, 1, 1], (4, 300): [4], (64, 1000): [16, 16, 8, 8, 5, 5, 6],
              (10, 2000): [5, 5]}
@@ -150,7 +151,7 @@ def test_task_chunks_let_the_threads_finish_together():
     (what Dask's queue does): factoring's single-fit tasks at the end bring the batch
     within one fit of the even share in every draw, and on average 1.5x closer to it than
     four equal tasks per thread (the previous cut; 27 against 43 ms over 500 draws)."""
-    from gonio.fitting._batch import fit_cost, task_chunks
+    from gonio.fitting.batch.dask_batch import fit_cost, task_chunks
 
     def makespan(chunks, costs, threads=2):
         free = [0.0] * threads

@@ -13,7 +13,7 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting import direction
-from gonio.fitting._batch_render import render_brdf_batch
+from gonio.fitting.render.batch import render_brdf_batch
 from gonio.fitting.render import scene_check
 from gonio.models.mitsuba import eval_cos as eval_bsdf_cos
 

@@ -11,7 +11,7 @@ import psutil
 import pytest
 
 import gonio.models as gm
-from gonio.fitting._batch import (MAX_WORKERS, _close_http, check_scheduler_address, check_workers, fit_batch,
+from gonio.fitting.batch.dask_batch import (MAX_WORKERS, _close_http, check_scheduler_address, check_workers, fit_batch,
                                   fit_serial, local_cluster, local_security)
 
 from _simdata import simulate
@@ -137,7 +137,7 @@ def test_a_tls_scheduler_without_certificates_is_one_connection_error():
 
 
 def test_dashboard_address_is_validated():
-    from gonio.fitting._batch import check_dashboard_address
+    from gonio.fitting.batch.dask_batch import check_dashboard_address
 
     assert check_dashboard_address("127.0.0.1:8787") == "127.0.0.1:8787"
     for bad in ("x y", "tcp://127.0.0.1:8787", ":::", "host:70000"):

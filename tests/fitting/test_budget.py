@@ -1,4 +1,4 @@
-"""The uncertainty budget carried into the fitted parameters (issue 15; fitting/_budget.py).
+"""The uncertainty budget carried into the fitted parameters (issue 15; gonio/fitting/uncertainty/budget.py).
 
 Physics and behaviour:
 * a fully correlated scale error moves rho by rho s where the model absorbs it (``diffuse``),
@@ -37,7 +37,7 @@ from scipy import stats
 
 import gonio.models as gm
 from gonio.fitting import Budget, BudgetComponent, Measurements, fit, fit_document, versions  # noqa: F401
-from gonio.fitting._budget import gls_covariance, propagate
+from gonio.fitting.uncertainty.budget import gls_covariance, propagate
 
 from _simdata import directions
 
@@ -105,7 +105,7 @@ def test_rho_is_never_more_certain_than_its_certificate(glossy):
 def test_propagation_is_the_shift_of_a_refit(glossy):
     """G u, the first-order shift, equals what a refit of the data shifted by +1 sigma of the
     certificate (every value x (1 + s)) finds, for every parameter (alpha barely moves)."""
-    from gonio.fitting._budget import _sensitivity
+    from gonio.fitting.uncertainty.budget import _sensitivity
 
     meas, res, doc = glossy
     u = meas.brdf * SCALE_REL_STD
@@ -238,8 +238,8 @@ def test_coverage_of_the_combined_uncertainty():
 def test_an_angle_offset_propagates_as_a_refit_sees_it(glossy):
     """A shared theta_i offset of 0.05 deg: the data shift S d (S the fitted model's slope) is
     what the model gives at the shifted angle, and G (S d) is the refit's parameter shift."""
-    from gonio.fitting._budget import _sensitivity, angle_components
-    from gonio.models.geometry import angles, directions as dirs
+    from gonio.fitting.uncertainty.budget import _sensitivity, angle_components
+    from gonio.core.geometry import angles, directions as dirs
 
     meas, res, _ = glossy
     d = np.zeros((1, meas.n_points, 4))
@@ -262,7 +262,7 @@ def test_the_samples_own_foreshortening_adds_f_r_times_it(glossy, tmp_path):
     or values are wrong."""
     import xarray as xr
 
-    from gonio.fitting._budget import _angle_shifts, angle_components
+    from gonio.fitting.uncertainty.budget import _angle_shifts, angle_components
 
     meas, res, _ = glossy
     n = meas.n_points
@@ -288,7 +288,7 @@ def test_the_samples_own_foreshortening_adds_f_r_times_it(glossy, tmp_path):
 
 
 # ------------------------------------------------------------------ a fit in sRGB of camera-RGB noise
-#: sim/_colour.py's camera (the dataset's srgb_from_cam of a simulated session): sRGB = S camera
+#: gonio/sim/physics/colour.py's camera (the dataset's srgb_from_cam of a simulated session): sRGB = S camera
 SRGB_FROM_CAM = np.array([[1.628051720083, -0.63184209057, 0.003790370487],
                           [-0.158502294674, 1.621165619097, -0.462663324423],
                           [0.016356599574, -0.533241040711, 1.516884441137]])
@@ -298,7 +298,7 @@ SRGB_FROM_CAM = np.array([[1.628051720083, -0.63184209057, 0.003790370487],
 def mixed():
     """A glossy session whose noise is independent per camera channel, fitted in sRGB (as gonio
     fit does on a capture): sRGB noise correlated between channels (r -0.6 to +0.1)."""
-    from gonio.fitting._budget import _in_colour_space
+    from gonio.fitting.uncertainty.budget import _in_colour_space
 
     rng = np.random.default_rng(11)
     wi, wo = directions(rng, 150, spread=0.05)
@@ -317,7 +317,7 @@ def test_type_a_after_a_colour_matrix_keeps_the_channels_correlation(mixed):
     """u_stat is G C G^T with C the points' 3 x 3 blocks S diag(sigma_cam^2) S^T (the estimator's
     own covariance), not the fit's Laplace sigma, which takes the sRGB channels as independent:
     for the white specular lobe's alpha and int_ior that is about 1.7 times too wide."""
-    from gonio.fitting._budget import _sensitivity
+    from gonio.fitting.uncertainty.budget import _sensitivity
 
     meas, res, sigma_cam, budget = mixed
     (comp,) = budget.components
@@ -336,7 +336,7 @@ def test_type_a_after_a_colour_matrix_keeps_the_channels_correlation(mixed):
 
 def test_expected_chi2_is_the_dof_for_type_a_alone(glossy):
     """With type A alone the budget's expected chi^2 is M - P = dof (the projector's trace)."""
-    from gonio.fitting._budget import _loss_sensitivities, expected_chi2
+    from gonio.fitting.uncertainty.budget import _loss_sensitivities, expected_chi2
 
     meas, res, _ = glossy
     J, drdy = _loss_sensitivities(res, meas)
@@ -371,7 +371,7 @@ def test_a_chi2_fit_is_judged_against_its_budgets_expected_chi2():
     it: within E + 4 sd the fit is adequate and nothing is inflated (the calibrated demo:
     chi2 1990 against 1907 +- 1929, chi2/dof 6.7); beyond, the factor sqrt(chi2 / E) and a
     warning that says what it was compared with."""
-    from gonio.fitting._fitfile import budget_adequacy
+    from gonio.fitting.formats.fitfile import budget_adequacy
 
     assert budget_adequacy({"chi2": 1990.0, "chi2_expected": 1907.0, "chi2_expected_sd": 1929.0,
                             "factor": 1.0}) == (True, 1.0, None)
@@ -399,7 +399,7 @@ def test_a_tilted_normal_is_carried_to_second_order(glossy):
     and its second moment about zero equals the budget's angle_shared + angle_shared_second_order
     within 10 % (the draws' own relative error of either is below 3 %, so 10 % is beyond 3 sigma;
     seeded, so no false alarms), while the first-order line alone misses it by 18 %."""
-    from gonio.fitting._budget import ANGLE_SECOND_ORDER, _sensitivity
+    from gonio.fitting.uncertainty.budget import ANGLE_SECOND_ORDER, _sensitivity
 
     meas, res, _ = glossy
     sd = 0.1
@@ -424,7 +424,7 @@ def _tilt_shifts(meas, sd, h=1e-3):
     """The angle shifts (2, N, 4; deg) of every pair for a tilt of the sample normal by ``sd``
     deg about x and about y: central differences of (theta_i, phi_i, theta_o, phi_o) at +-h deg
     (azimuths wrapped), scaled to ``sd``: the budget's shared angle inputs for a tilt."""
-    from gonio.models.geometry import angles
+    from gonio.core.geometry import angles
 
     def ang(wi, wo):
         return np.degrees(np.stack([*angles(wi), *angles(wo)], axis=-1))
@@ -441,9 +441,9 @@ def _tilt_shifts(meas, sd, h=1e-3):
 def _gauss_newton(meas, x):
     """The chi2 estimate from ``x`` by undamped Gauss-Newton steps to machine precision (noise-free
     data near ``x``: a refit without the global stage's starts)."""
-    from gonio.fitting._problem import Problem
-    from gonio.fitting._result import loss_jacobian
-    from gonio.fitting._space import ParameterSpace
+    from gonio.fitting.likelihood.problem import Problem
+    from gonio.fitting.optimise.result import loss_jacobian
+    from gonio.fitting.optimise.space import ParameterSpace
 
     problem = Problem(meas, MODEL, ParameterSpace(MODEL), "chi2")
     x = np.array(x, float)
@@ -468,7 +468,7 @@ def test_a_measured_sigma_reweighs_the_values_a_tilt_moves(glossy):
     u_c-scaled figures for int_ior and alpha; the data-curvature term alone (kappa = 0) misses
     int_ior's by more than its whole size (the issue-15 bias: the simulator's glossy int_ior
     came out 0.26 u_c low on average, the kappa = 0 term predicting +0.04)."""
-    from gonio.fitting._budget import _sensitivity
+    from gonio.fitting.uncertainty.budget import _sensitivity
 
     meas, res, _ = glossy
     sd = 0.1
@@ -507,8 +507,8 @@ def test_a_measured_sigma_reweighs_the_values_a_tilt_moves(glossy):
 
 def test_sigma_elasticity_is_the_log_log_slope_of_the_measured_sigma():
     """d ln sigma / d ln f_r across a dataset's values: 0.7 where sigma = c f^0.7 exactly, 0 where
-    sigma is one constant, clipped to 1 where it grows faster (fitting/_budget.sigma_elasticity)."""
-    from gonio.fitting._budget import sigma_elasticity
+    sigma is one constant, clipped to 1 where it grows faster (gonio/fitting/uncertainty/budget.sigma_elasticity)."""
+    from gonio.fitting.uncertainty.budget import sigma_elasticity
 
     rng = np.random.default_rng(15)
     wi, wo = directions(rng, 50, spread=0.05)

@@ -6,7 +6,7 @@ import emcee
 import numpy as np
 import pytest
 
-from gonio.fitting._ensemble import Ensemble
+from gonio.fitting.uncertainty.ensemble import Ensemble
 
 PRECISION = np.array([[4.0, 1.5, 0.0], [1.5, 2.0, 0.3], [0.0, 0.3, 1.0]])
 

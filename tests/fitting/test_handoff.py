@@ -1,4 +1,4 @@
-"""Measurements handed to local workers through files (gonio.fitting._handoff): what is read
+"""Measurements handed to local workers through files (gonio.fitting.batch.handoff): what is read
 is what was written, its arrays aligned views of a private map; a file that is not one is
 refused in one line; a failed write leaves no file behind."""
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from gonio.fitting import Measurements
-from gonio.fitting import _handoff
-from gonio.fitting._handoff import ALIGN, Handoff, HandoffError, claim, read, write
+from gonio.fitting.batch import handoff as _handoff
+from gonio.fitting.batch.handoff import ALIGN, Handoff, HandoffError, claim, read, write
 
 
 def _measurements(n=257, seed=5):
@@ -117,7 +117,7 @@ def test_a_promised_dataset_is_read_once_written_and_never_half_written(monkeypa
     gone."""
     import threading
 
-    from gonio.fitting._handoff import BatchOver
+    from gonio.fitting.batch.handoff import BatchOver
 
     meas = _measurements()
     with Handoff() as handoff:
@@ -160,7 +160,7 @@ def test_a_batch_folder_left_by_a_killed_process_is_removed_by_the_next_batch(tm
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    code = ("import time\nfrom gonio.fitting._handoff import Handoff\nh = Handoff()\n"
+    code = ("import time\nfrom gonio.fitting.batch.handoff import Handoff\nh = Handoff()\n"
             "print(h.folder, flush=True)\ntime.sleep(120)")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
                             env={**os.environ, "TMPDIR": str(tmp_path)})

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from gonio.fitting._malloc import MALLOC_ENV
+from gonio.fitting.batch.malloc import MALLOC_ENV
 
 glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or os.confstr("CS_GNU_LIBC_VERSION") is None,
                            reason="mallopt's settings are glibc's")
@@ -19,7 +19,7 @@ import numpy as np
 from gonio.fitting import tune_allocator
 if sys.argv[1] == "late-env":      # what Dask's nanny does to the process that starts workers
     import os
-    from gonio.fitting._malloc import MALLOC_ENV
+    from gonio.fitting.batch.malloc import MALLOC_ENV
     os.environ.update(MALLOC_ENV)
 tuned = tune_allocator() if sys.argv[1] != "keep" else None
 a = np.ones((100_000, 3))

@@ -9,9 +9,9 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting import fit
-from gonio.fitting._batch import task_chunks
-from gonio.fitting._problem import Problem
-from gonio.fitting._space import ParameterSpace
+from gonio.fitting.batch.dask_batch import task_chunks
+from gonio.fitting.likelihood.problem import Problem
+from gonio.fitting.optimise.space import ParameterSpace
 from gonio.models import fast
 
 from _simdata import simulate
@@ -132,7 +132,7 @@ def test_default_start_is_accepted_only_when_it_fits_to_the_noise(monkeypatch):
     chi2 <= E + 3 sd (E = dof for unit weights, sd = sqrt(2 dof)); the optimum is then the one
     the full multi-start search finds; a chi2 beyond that bound, another loss or an
     unconverged run is never accepted."""
-    from gonio.fitting._optimise import GeneralFit
+    from gonio.fitting.optimise.mle import GeneralFit
 
     model = gm.get("roughconductor", distribution="ggx")
     truth = {"eta": np.array([0.2, 0.9, 1.1]), "k": np.array([3.0, 2.5, 2.0]), "alpha": 0.2}

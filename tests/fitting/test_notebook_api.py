@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.fitting import FitFile, Measurements, fit, fit_document, load_fit, plots, write_json_atomic
-from gonio.fitting._display import value_pm
-from gonio.fitting.speed import simulate_capture
-from gonio.models.geometry import directions_deg
+from gonio.fitting import FitFile, Measurements, fit, fit_document, load_fit, write_json_atomic
+from gonio.fitting import plots
+from gonio.fitting.display import value_pm
+from gonio.perf.fit import simulate_capture
+from gonio.core.geometry import directions_deg
 
 TRUTH = {"diffuse_reflectance": np.array([0.6, 0.4, 0.2]), "alpha": 0.15, "int_ior": 1.5}
 

@@ -7,8 +7,9 @@ import pytest
 import scipy.optimize
 
 import gonio.models as gm
-from gonio.fitting import ParameterSpace, _loss, fit
-from gonio.fitting._optimise import Evaluator
+from gonio.fitting import ParameterSpace, fit
+from gonio.fitting.likelihood import loss as _loss
+from gonio.fitting.optimise.mle import Evaluator
 
 from _simdata import simulate
 
@@ -76,7 +77,7 @@ def test_conductor_fits_reach_the_noise_limit_with_exact_derivatives():
     channel onto a face of the box (k = 0, where F depends on k^2 and the Jacobian column
     vanishes) and left it there: chi^2/dof 13 before steps were bounded and kept inside."""
     import gonio.models as gm
-    from gonio.fitting.speed import MODELS, simulate_capture
+    from gonio.perf.fit import MODELS, simulate_capture
 
     if not gm.fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable: no exact derivatives to test")
@@ -95,7 +96,7 @@ def test_conductor_fits_reach_the_noise_limit_with_exact_derivatives():
 
 def _conductor_capture(n, r=0, rel=0.01):
     import gonio.models as gm
-    from gonio.fitting.speed import MODELS, simulate_capture
+    from gonio.perf.fit import MODELS, simulate_capture
 
     name, options, truth = MODELS[1]
     model = gm.get(name, **options)
@@ -108,7 +109,7 @@ def test_small_conductor_fit_chosen_by_shape_equals_the_numpy_path(n):
     """Below FAST_MIN_POINTS a chi2 problem without variable projection runs on the compiled
     normal equations (the problem's shape decides, issue 18); the numpy path it replaced
     finds the same optimum and the same Laplace uncertainty."""
-    from gonio.fitting._problem import FAST_MIN_POINTS
+    from gonio.fitting.likelihood.problem import FAST_MIN_POINTS
 
     if not gm.fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -127,7 +128,7 @@ def test_trial_steps_costed_by_normal_equations_equal_the_sum_of_squares(monkeyp
     """Up to TRIAL_NORMAL_MAX points a trial step is costed by the normal-equation kernel
     (whose sums the next step reuses); the same fit costed by the sum-of-squares kernel
     takes the same steps to the same optimum, with one more kernel call per iteration."""
-    from gonio.fitting import _problem
+    from gonio.fitting.likelihood import problem as _problem
 
     if not gm.fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -144,8 +145,9 @@ def test_a_group_found_clearly_not_affine_is_not_probed_again(monkeypatch):
     """roughconductor's eta and k fail the affinity probe clearly: a second problem of the
     same model and space skips the probe (no evaluation), while cooktorrance's reflectances
     are still probed and found affine."""
-    from gonio.fitting import ParameterSpace, _problem
-    from gonio.fitting._problem import Problem
+    from gonio.fitting import ParameterSpace
+    from gonio.fitting.likelihood import problem as _problem
+    from gonio.fitting.likelihood.problem import Problem
 
     monkeypatch.setattr(_problem, "_NOT_AFFINE", set())  # as in a fresh process
     model, truth, meas = _conductor_capture(200)
@@ -166,7 +168,7 @@ def test_laplace_from_the_normal_equations_equals_the_jacobians(case):
     the normal equations (roughconductor: the last step's), without an N x P Jacobian; the
     Jacobian's give the same covariance (cooktorrance: variable projection, every
     parameter's entries)."""
-    from gonio.fitting._result import jacobian_chi2, laplace
+    from gonio.fitting.optimise.result import jacobian_chi2, laplace
 
     if not gm.fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -177,7 +179,7 @@ def test_laplace_from_the_normal_equations_equals_the_jacobians(case):
         meas = simulate(model, model.defaults(), np.random.default_rng(4), n=600)
     res = fit(meas, model, rng=np.random.default_rng(0))
     assert "drjit-llvm" in res.method
-    from gonio.fitting._problem import Problem
+    from gonio.fitting.likelihood.problem import Problem
 
     J, r = jacobian_chi2(Problem(meas, model, res.space, "chi2"), res.x)
     cov, undetermined = laplace(J, res.space)

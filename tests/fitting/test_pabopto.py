@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.bench import cli
+from gonio.cli import main as cli
 from gonio.fitting import Measurements, fit, fit_document, write_json_atomic
 from gonio.fitting.formats import model_pabopto, pabopto_files, write_pabopto
-from gonio.fitting._pabopto import SRGB_TO_XYZ
-from gonio.models.geometry import directions_deg
+from gonio.fitting.formats.pabopto import SRGB_TO_XYZ
+from gonio.core.geometry import directions_deg
 
 
 def read_pabopto(text):

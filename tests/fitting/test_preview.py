@@ -14,7 +14,7 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting.formats import resample_to_merl, write_merl
-from gonio.fitting.preview import delta_e_2000, measured_bsdf_dict, preview, read_exr, sphere_mask
+from gonio.fitting.render.preview import delta_e_2000, measured_bsdf_dict, preview, read_exr, sphere_mask
 
 RGL = Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl" / "paper_white_rgb.bsdf"
 DIFFUSE = {"reflectance": [0.5, 0.4, 0.3]}
@@ -101,12 +101,12 @@ def test_an_exr_is_written_with_a_single_dr_jit_thread(tmp_path):
 
     pytest.importorskip("mitsuba")
     child = ("import sys, numpy as np, drjit as dr, mitsuba as mi\n"
-             "from gonio.fitting.preview import _write_exr\n"
+             "from gonio.fitting.render.preview import _write_exr\n"
              "from gonio.models.mitsuba import select_variant\n"
              "dr.set_thread_count(1)\n"
              "with mi.scoped_set_variant(select_variant(None)):\n"
              "    _write_exr(mi, sys.argv[1], np.full((8, 8, 3), 0.25))\n"
-             "from gonio.fitting.preview import read_exr\n"
+             "from gonio.fitting.render.preview import read_exr\n"
              "assert read_exr(sys.argv[1]).shape == (8, 8, 3)\n"
              "print(dr.thread_count())\n")
     out = subprocess.run([sys.executable, "-c", child, str(tmp_path / "a.exr")], capture_output=True, text=True,

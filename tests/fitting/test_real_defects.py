@@ -82,7 +82,7 @@ def test_every_distribution_is_a_candidate():
 
 def test_named_model_without_distribution_selects_it():
     """--model roughplastic on a GGX sample: both distributions fitted, GGX chosen, said."""
-    from gonio.bench.fit_runner import fit_dataset
+    from gonio.cli.fit import fit_dataset
 
     model = gm.get("roughplastic", distribution="ggx")
     truth = {"diffuse_reflectance": [0.3, 0.3, 0.3], "alpha": 0.08, "int_ior": 1.5}
@@ -122,8 +122,8 @@ def test_inadequate_fit_inflates_intervals_and_warns():
 
 
 def test_unknown_loss_refused_before_fitting():
-    from gonio.bench.errors import GonioError
-    from gonio.bench.fit_runner import fit_dataset
+    from gonio.core.errors import GonioError
+    from gonio.cli.fit import fit_dataset
 
     meas = simulate(gm.get("diffuse"), {"reflectance": [0.5, 0.4, 0.3]}, np.random.default_rng(1), n=50)
     with pytest.raises(GonioError, match="unknown loss"):

@@ -9,7 +9,7 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting import Measurements, default_loss, fit
-from gonio.fitting.speed import simulate_capture
+from gonio.perf.fit import simulate_capture
 
 RGL = Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl"
 needs_rgl = pytest.mark.skipif(not (RGL / "vch_golden_yellow_rgb.bsdf").exists(), reason="no RGL data here")
@@ -67,7 +67,7 @@ def test_metrics_reference_values():
     """Ngan's relative L2: f_model = 1.1 f gives exactly 0.1; Loew's log error of a model
     equal to the data is 0 and of f + c / cos is ln-exact; the dense grid's pairs are equal
     solid-angle cells within 80 deg."""
-    from gonio.fitting._realbench import dense_grid, metrics
+    from gonio.perf.real import dense_grid, metrics
 
     wi, wo = dense_grid()
     assert np.degrees(np.arccos(min(wi[:, 2].min(), wo[:, 2].min()))) <= 80.0
@@ -84,7 +84,7 @@ def test_metrics_reference_values():
 
 
 def test_bench_real_bad_input_is_one_line(tmp_path, capsys):
-    from gonio.bench.cli import main
+    from gonio.cli.main import main
 
     bad = tmp_path / "x.txt"
     bad.write_text("no")
@@ -102,7 +102,7 @@ def test_bench_real_gonio_beats_the_peer(tmp_path):
     render is within CIEDE2000 1 of the measured file's; the table is written as CSV. (The speed ratio is printed, never asserted.)"""
     import csv
 
-    from gonio.fitting.speed import run_real
+    from gonio.perf.fit import run_real
 
     rows = run_real([RGL / "paper_white_rgb.bsdf"], out=tmp_path / "real.csv")
     r = rows[0]
@@ -117,7 +117,7 @@ def test_bench_real_gonio_beats_the_peer(tmp_path):
 
 
 def test_fit_loss_help_lists_every_loss():
-    from gonio.bench.cli import build_parser
+    from gonio.cli.main import build_parser
     from gonio.fitting import LOSSES
 
     fit_parser = build_parser()._subparsers._group_actions[0].choices["fit"]
@@ -139,9 +139,9 @@ def test_auto_on_the_golden_paint_falls_back_to_the_data_driven_ndf():
     2.5 minutes at load 6-9 on the shared 2-core machine: the selection, the tabulated fit
     (57 s) and the renders."""
     from gonio.fitting import REAL_DEFAULT_LOSS, select
-    from gonio.fitting._realbench import dense_grid, measured_on_grid, metrics, rendered_delta_e
-    from gonio.fitting._realdata import rgl_samples
-    from gonio.fitting.scene import data_driven, rendered_choice
+    from gonio.perf.real import dense_grid, measured_on_grid, metrics, rendered_delta_e
+    from gonio.fitting.realdata import rgl_samples
+    from gonio.fitting.selection.by_scene import data_driven, rendered_choice
 
     path = RGL / "vch_golden_yellow_rgb.bsdf"
     meas = rgl_samples(path)

@@ -18,7 +18,7 @@ def test_noise_floor_uses_matched_seeds(tmp_path):
     so the noise floor (and the difference) is exactly 0. The old floor (the model against
     itself at seed + 1: two independent renders) reported > 0 here, so any difference "below
     the floor" proved nothing."""
-    from gonio.fitting.preview import matched_noise_floor, preview
+    from gonio.fitting.render.preview import matched_noise_floor, preview
 
     model = gm.get("roughplastic", distribution="ggx")
     params = {"diffuse_reflectance": [0.4, 0.3, 0.2], "alpha": 0.15, "int_ior": 1.5}
@@ -53,7 +53,7 @@ def test_rgl_own_layout_weights_and_peak():
 
 @needs_rgl
 def test_cli_fits_rgl_on_its_own_samples():
-    from gonio.bench.fit_runner import _open_dataset
+    from gonio.cli.fit import _open_dataset
 
     meas = _open_dataset(RGL / "paper_white_rgb.bsdf")
     assert meas.n_points > 5000 and meas.weight is not None and "own layout" in meas.attrs["sampling"]

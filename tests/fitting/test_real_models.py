@@ -130,8 +130,8 @@ def test_selection_reads_what_models_declare():
     and ``auto_candidate = False`` (orennayar; roughplastic2, whose tables make a fit 13-26 s)
     keeps one out."""
     from gonio.fitting import CANDIDATES
-    from gonio.fitting._selection import _candidates
-    from gonio.models import _base
+    from gonio.fitting.selection.by_data import _candidates
+    from gonio.models import base as _base
 
     assert ("principled", {"distribution": "ggx"}) in CANDIDATES
     assert ("roughconductor2", {"distribution": "beckmann"}) in CANDIDATES

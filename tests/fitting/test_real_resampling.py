@@ -121,9 +121,9 @@ def test_sandwich_bread_is_the_objective_hessian():
     diagonal), and differs from J^T J where the residuals are systematic (here: data up to
     3x brighter toward grazing than a roughplastic can follow)."""
     from gonio.fitting import Measurements, fit
-    from gonio.fitting._problem import Problem
-    from gonio.fitting._result import loss_jacobian, objective_hessian
-    from gonio.fitting.speed import simulate_capture
+    from gonio.fitting.likelihood.problem import Problem
+    from gonio.fitting.optimise.result import loss_jacobian, objective_hessian
+    from gonio.perf.fit import simulate_capture
 
     model = gm.get("roughplastic", distribution="ggx")
     truth = {"diffuse_reflectance": np.array([0.5, 0.3, 0.2]), "alpha": 0.2, "int_ior": 1.5}

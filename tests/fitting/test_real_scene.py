@@ -35,7 +35,7 @@ def test_sunlit_close_up_needs_the_lobe_and_reports_the_front(truth):
     rows no other row beats on both cost and error."""
     from _simdata import simulate
 
-    from gonio.fitting.scene import front, rank_in_scene
+    from gonio.fitting.selection.by_scene import front, rank_in_scene
 
     model, p = truth
     rng = np.random.default_rng(16)
@@ -65,7 +65,7 @@ def test_overcast_picks_a_simpler_model_than_a_sunlit_close_up():
     silver's albedo (0.85-0.97 in every channel), which a fit to the pairs cannot give: weighted
     by their light, the pairs off the lobe (f_r ~ 0) pull a constant far down."""
     from gonio.fitting import fit
-    from gonio.fitting.scene import fit_to_scene, rank_in_scene, scene_samples
+    from gonio.fitting.selection.by_scene import fit_to_scene, rank_in_scene, scene_samples
 
     model = gm.get("roughconductor", distribution="ggx")
     measured = model.to_mitsuba(model.validate(SILVER))
@@ -92,7 +92,7 @@ def test_a_scene_file_is_the_same_scene(truth, tmp_path):
     the overcast preset written as a file gives the same sample pixels and the same renders."""
     import mitsuba as mi
 
-    from gonio.fitting.scene import render_in_scene, sample_mask
+    from gonio.fitting.selection.by_scene import render_in_scene, sample_mask
 
     model, p = truth
     xml = tmp_path / "overcast.xml"
@@ -131,8 +131,8 @@ def test_scene_pixels_see_the_light_the_scene_sends():
     2.5) each pixel has exactly one sun pair, whose value is rho/pi 2.5 cos(theta_sun)."""
     import mitsuba as mi
 
-    from gonio.fitting._scene_fit import pixel_values, scene_pixels
-    from gonio.fitting.scene import load_scene
+    from gonio.fitting.selection.scene_fit import pixel_values, scene_pixels
+    from gonio.fitting.selection.by_scene import load_scene
 
     rho = np.array([0.5, 0.3, 0.2])
     with mi.scoped_set_variant("llvm_ad_rgb"):
@@ -152,7 +152,7 @@ def test_the_simplest_clearly_good_candidate_is_chosen():
     """choose(): simplest first; a noisy row that is clearly bad (difference above the
     threshold by more than its floor) does not stop the choice, a noisy row that could be
     either does, and a noisy row after the chosen one does not matter."""
-    from gonio.fitting.scene import choose
+    from gonio.fitting.selection.by_scene import choose
 
     def row(model, k, de, noise, cost=1.0):
         return {"model": model, "k": k, "delta_e": de, "noise": noise, "cost_s": cost, "chosen": False}
@@ -168,7 +168,7 @@ def test_the_simplest_clearly_good_candidate_is_chosen():
 
 
 def test_unknown_scene_is_refused(truth):
-    from gonio.fitting.scene import rank_in_scene, scene_samples
+    from gonio.fitting.selection.by_scene import rank_in_scene, scene_samples
 
     model, p = truth
     with pytest.raises(ValueError, match="overcast"):
@@ -188,7 +188,7 @@ def test_auto_without_a_scene_keeps_only_what_the_default_scene_shows(sigma, exp
     from _simdata import simulate
 
     from gonio.fitting import select
-    from gonio.fitting.scene import rendered_choice
+    from gonio.fitting.selection.by_scene import rendered_choice
 
     model = gm.get("orennayar")
     rng = np.random.default_rng(3)
@@ -213,7 +213,7 @@ def test_when_no_candidate_renders_close_the_fallback_is_fitted_rendered_and_cho
     from _simdata import simulate
 
     from gonio.fitting import fit, select
-    from gonio.fitting.scene import rendered_choice
+    from gonio.fitting.selection.by_scene import rendered_choice
 
     model, p = truth
     rng = np.random.default_rng(4)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-GONIO = [sys.executable, "-m", "gonio.bench.cli"]
+GONIO = [sys.executable, "-m", "gonio.cli.main"]
 RGL = Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl"
 PAPER = RGL / "paper_white_rgb.bsdf"
 
@@ -27,8 +27,8 @@ def _run(*args, cwd):
     (["--scene", "BROKEN"], "not a readable XML"),
 ])
 def test_bad_scene_input_is_one_line_and_exit_2(tmp_path, capsys, extra, says):
-    """In-process (gonio.bench.cli.main), as the CLI's other refusal tests."""
-    from gonio.bench import cli
+    """In-process (gonio.cli.main.main), as the CLI's other refusal tests."""
+    from gonio.cli import main as cli
 
     data = tmp_path / "m.bsdf"
     data.write_bytes(b"not really")      # never read: the scene's options are checked first

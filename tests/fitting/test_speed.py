@@ -4,7 +4,7 @@ import csv
 
 import pytest
 
-from gonio.fitting import speed as bench
+from gonio.perf import fit as bench
 
 
 @pytest.mark.slow
@@ -45,7 +45,7 @@ def test_dask_bench_prints_both_serial_baselines_and_matches_them(capsys):
 
     import dask
 
-    from gonio.fitting.speed import bench_dask
+    from gonio.perf.fit import bench_dask
 
     before = dask.config.get("scheduler", None)
     rows = bench_dask(cases=((4, 800),), repeat=1)
@@ -67,7 +67,7 @@ def test_dask_bench_prints_both_serial_baselines_and_matches_them(capsys):
 def test_scale_bench_reports_the_fits_own_peak_memory(capsys):
     """bench_scale prints the fit's time, its peak RSS against the data and the tracemalloc
     peak (small N here: the behaviour, not the 1e6-point figure)."""
-    from gonio.fitting.speed import bench_scale
+    from gonio.perf.fit import bench_scale
 
     row = bench_scale(n=20_000)
     text = capsys.readouterr().out
@@ -85,7 +85,9 @@ def test_every_timed_run_starts_with_the_parameter_tables_uncached(monkeypatch):
 
     import gonio.models as gm
     from gonio.fitting import fit
-    from gonio.models import _jit_tables, _rough_tables, fast
+    from gonio.models import fast
+    from gonio.models.engine import jit_tables as _jit_tables
+    from gonio.models.physics import rough_tables as _rough_tables
 
     name, options, truth = bench.MODELS[0]
     model = gm.get(name, **options)

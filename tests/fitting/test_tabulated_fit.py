@@ -11,9 +11,9 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting import fit
-from gonio.fitting._data import Measurements
-from gonio.fitting._tabulated_start import data_start, fit_tabulated, unseen
-from gonio.models import _tabulated as tab
+from gonio.fitting.measurements import Measurements
+from gonio.fitting.optimise.tabulated_start import data_start, fit_tabulated, unseen
+from gonio.models.catalogue import tabulated as tab
 
 
 def truth():
@@ -131,7 +131,8 @@ def test_fit_tabulated_computes_the_sandwich_covariance_once(monkeypatch):
     of the log loss (fit(covariance=False)); the result returned gets it once. Two rounds'
     covariances were 50 of the 90 s of vch's fit, the first one thrown away. The result's
     covariance is the one fit() would give it, and time_s counts, as fit()'s, the fit without it."""
-    from gonio.fitting import _optimise, _result
+    from gonio.fitting.optimise import mle as _optimise
+    from gonio.fitting.optimise import result as _result
 
     calls = []
     real = _result.robust_covariance

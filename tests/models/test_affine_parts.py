@@ -1,4 +1,4 @@
-"""The fitter's batched kernel (gonio.models._fast.affine_parts) against the reference
+"""The fitter's batched kernel (gonio.models.engine.fast.affine_parts) against the reference
 model.eval: f_r = base + coef * basis with coef = rho / q, at several parameter sets in one
 call, including directions below the horizon and non-finite ones (f_r = 0 there)."""
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models import _fast
+from gonio.models.engine import fast as _fast
 
 pytestmark = pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable")
 

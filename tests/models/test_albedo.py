@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models._albedo import QUADRATURE_ERROR
+from gonio.models.physics.albedo import QUADRATURE_ERROR
 
 TH = np.array([0.0, 0.7, 1.2, 1.45, 1.55, math.pi / 2 - 1e-4])
 WO = np.stack([np.sin(TH) * math.cos(2.0), np.sin(TH) * math.sin(2.0), np.cos(TH)], 1)
@@ -69,14 +69,15 @@ def test_albedo_is_integral_of_eval():
                                           ("cooktorrance", {}), ("tabulated", {})],
                          ids=["ggx", "beckmann", "ggx-aniso", "cooktorrance", "tabulated"])
 def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, options, monkeypatch):
-    """models/_albedo: roughconductor (``lobe_only``) integrates its lobe alone,
+    """gonio/models/physics/albedo: roughconductor (``lobe_only``) integrates its lobe alone,
     cooktorrance and tabulated (``lambert_smooth``) their Lambertian part as rho and the lobe
-    as f_r - rho / pi, in one Dr.Jit kernel a refinement level (models/_albedo_jit: the nodes,
+    as f_r - rho / pi, in one Dr.Jit kernel a refinement level (gonio/models/engine/albedo: the nodes,
     the model's compiled f_r and every direction's sum; no numpy evaluation at all), and the
     albedo and its error estimate equal the numpy path's (GONIO_EVAL_BACKEND=numpy: the
     reference, whose smooth part the quadrature integrates at its own nodes) to 1e-12,
     grazing views included."""
-    from gonio.models import _albedo, _fast
+    from gonio.models.physics import albedo as _albedo
+    from gonio.models.engine import fast as _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -123,9 +124,10 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
 
 
 def test_the_compiled_lobe_quadrature_cuts_a_level_into_chunks_without_changing_it(monkeypatch):
-    """models/_albedo_jit cuts a level's directions into launches of CHUNK_NODES nodes: a
+    """gonio/models/engine/albedo cuts a level's directions into launches of CHUNK_NODES nodes: a
     direction per launch gives the one-launch albedo to 1e-14."""
-    from gonio.models import _albedo_jit, _fast
+    from gonio.models.engine import albedo as _albedo_jit
+    from gonio.models.engine import fast as _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -146,7 +148,7 @@ def test_albedo_of_many_directions_is_each_directions_albedo(name, options, para
     direction keeps (alone, one chunk, a chunk each) to 1e-14, directions below the horizon
     or not finite give 0 (error 0), and each direction stops refining at its own level (a
     grazing view's error estimate is its own, not its neighbours')."""
-    from gonio.models import _albedo
+    from gonio.models.physics import albedo as _albedo
 
     m = gm.get(name, **options)
     rng = np.random.default_rng(77)
@@ -165,12 +167,12 @@ def test_albedo_of_many_directions_is_each_directions_albedo(name, options, para
 
 
 def test_the_compiled_lobe_quadrature_is_the_same_code_for_every_parameter_value():
-    """The roughness and rho enter models/_albedo_jit's kernels as opaque values: an albedo
+    """The roughness and rho enter gonio/models/engine/albedo's kernels as opaque values: an albedo
     at new parameter values launches kernels of the code already made (their hashes), so a
     fit that checks its energy at every step compiles nothing after the first."""
     import drjit as dr
 
-    from gonio.models import _fast
+    from gonio.models.engine import fast as _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")
@@ -204,10 +206,11 @@ def test_smooth_and_layered_models_integrate_on_the_compiled_kernel(name, option
     part's nodes, and roughplastic (``smooth_off``: rho = 0 leaves the specular lobe alone)
     integrates f_r - f_r(rho = 0) there and f_r(rho = 0) at the lobe's nodes, principled
     (``lobe_switch``: its kernel asked for the specular and clear-coat lobes alone) the same
-    with its kernel's lobe, each a Dr.Jit kernel a level (models/_albedo_jit; no numpy evaluation); the albedo and its error
+    with its kernel's lobe, each a Dr.Jit kernel a level (gonio/models/engine/albedo; no numpy evaluation); the albedo and its error
     estimate equal the numpy quadrature's (GONIO_EVAL_BACKEND=numpy) to ``atol``, grazing
     views included, and Lambert's is rho to 1e-13."""
-    from gonio.models import _albedo, _fast
+    from gonio.models.physics import albedo as _albedo
+    from gonio.models.engine import fast as _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit LLVM backend unavailable")

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models import _fast, _roundtrip
+from gonio.models.engine import fast as _fast
+from gonio.models.engine import roundtrip as _roundtrip
 
 from models_testutil import assert_float32_agrees, random_hemisphere, random_params
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models import _fast
+from gonio.models.engine import fast as _fast
 
 from models_testutil import assert_float32_agrees, random_hemisphere, random_params
 
@@ -129,7 +129,7 @@ def test_gradient_matches_finite_differences(name, options):
 
 
 def test_bench_runs():
-    from gonio.models import speed as bench
+    from gonio.perf import models as bench
 
     buf = io.StringIO()
     rows = bench.run(n=2000, repeat=1, cases=(("diffuse", {}), ("roughconductor", {"distribution": "ggx"})), file=buf)
@@ -156,7 +156,7 @@ def test_bench_runs():
 def test_bench_states_issue_18s_goals():
     """The goals line reads this run's rows: the worst roughplastic row decides the public
     eval's verdict in each precision, the worst model the gradient's."""
-    from gonio.models import speed as bench
+    from gonio.perf import models as bench
 
     def row(model, ev32, ev64, e64, g32, g64):
         return {"model": model, "eval32_ratio": ev32, "eval_ratio": ev64, "eval64_ratio": e64,
@@ -177,9 +177,9 @@ def test_bench_states_issue_18s_goals():
 def test_bench_parameters_are_coloured():
     """The benchmark's parameters differ per channel (so no path can evaluate one channel
     for three) and stay inside the bounds."""
-    from gonio.models.speed import coloured_params
+    from gonio.perf.models import coloured_params
 
-    for name, options in DERIV:  # the benchmarked kinds (models/speed.py times jacobians too)
+    for name, options in DERIV:  # the benchmarked kinds (gonio/perf/models.py times jacobians too)
         m = gm.get(name, **options)
         p = coloured_params(m)
         for par in m.parameters:
@@ -450,7 +450,7 @@ def test_jacobian_with_interpolated_tables_matches_reverse_mode(alpha, eta):
     falls back to the exact tables (0.23, 1.62: this case once interpolated a table paired
     twice, f_r off by 20 %): values equal the reference, and the Jacobian projected on random
     cotangents equals Dr.Jit's reverse mode through the same tables (``value_and_grad``)."""
-    from gonio.models._rough_tables import _interp
+    from gonio.models.physics.rough_tables import _interp
 
     m = gm.get("roughplastic", distribution="ggx", exact_tables=False)
     assert (_interp("ggx", alpha, eta) is None) == (alpha == 0.23)
@@ -493,7 +493,7 @@ def test_values_only_kernel_refuses_derivatives_and_the_fit_differences_it():
     derivatives are refused, not returned as zeros (AD cannot see through its numpy tables),
     and the fit's evaluator runs the kernel for values and hands the Jacobian back to
     differences (None)."""
-    from gonio.fitting._problem import Evaluator
+    from gonio.fitting.likelihood.problem import Evaluator
 
     m = gm.get("tabulated")
     rng = np.random.default_rng(41)

@@ -1,4 +1,4 @@
-"""Frozen kernels and Python's garbage collector (models/_freeze.py)."""
+"""Frozen kernels and Python's garbage collector (gonio/models/engine/freeze.py)."""
 
 import subprocess
 import sys

@@ -11,8 +11,8 @@ import sys
 
 import pytest
 
-from gonio.models import _fast
-from gonio.models._jit_target import _NEEDS, TARGETS, _host_flags, other_target, set_llvm_target
+from gonio.models.engine import fast as _fast
+from gonio.models.engine.target import _NEEDS, TARGETS, _host_flags, other_target, set_llvm_target
 
 pytestmark = pytest.mark.skipif(not _fast.available(), reason="Dr.Jit LLVM backend unavailable")
 
@@ -20,7 +20,7 @@ _CHILD = r"""
 import json, numpy as np, drjit as dr
 import gonio.models as gm
 from gonio.models import fast
-from gonio.models._jit_target import llvm_target
+from gonio.models.engine.target import llvm_target
 assert fast.available()
 rng = np.random.default_rng(5)
 v = rng.normal(size=(2, 4096, 3)); v[..., 2] = np.abs(v[..., 2]); v /= np.linalg.norm(v, axis=-1)[..., None]
@@ -73,7 +73,7 @@ def test_every_target_runs_the_kernels(target):
 
 def test_the_second_code_generation_suits_the_host(monkeypatch):
     """AVX-512 host: AVX2 (8 lanes); AVX2 host: AVX2 at 4 lanes; nothing below AVX2."""
-    from gonio.models import _jit_target
+    from gonio.models.engine import target as _jit_target
 
     avx2 = {"avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "sse4_2", "popcnt"}
     for flags, want in ((avx2 | {"avx512f"}, "avx2"), (avx2, "avx2-4"), ({"sse4_2", "popcnt"}, ""), (set(), "")):
@@ -86,7 +86,7 @@ def test_the_second_code_generation_suits_the_host(monkeypatch):
 def test_unknown_or_unsupported_targets_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="unknown LLVM target 'avx1024'"):
         set_llvm_target("avx1024")
-    from gonio.models._jit_target import apply_env
+    from gonio.models.engine.target import apply_env
 
     monkeypatch.setenv("GONIO_LLVM_TARGET", "avx1024")
     with pytest.raises(ValueError, match="^GONIO_LLVM_TARGET: unknown LLVM target 'avx1024'"):
@@ -97,7 +97,7 @@ def test_unknown_or_unsupported_targets_are_refused(monkeypatch):
 def test_this_run_compiles_for_the_requested_target():
     """Under GONIO_LLVM_TARGET (make test's second pass) this very process, an xdist worker
     included, compiles for that width: the pass is not a silent copy of the first one."""
-    from gonio.models._jit_target import TARGETS, llvm_target
+    from gonio.models.engine.target import TARGETS, llvm_target
 
     name = os.environ.get("GONIO_LLVM_TARGET", "").strip().lower()
     cpu, width = llvm_target()
@@ -109,7 +109,7 @@ def test_this_run_compiles_for_the_requested_target():
 
 def test_thread_count_from_the_environment(monkeypatch):
     """GONIO_THREADS sets Dr.Jit's pool; a bad value is one line before any work (exit 2)."""
-    from gonio.models._jit_target import apply_threads, env_problem
+    from gonio.models.engine.target import apply_threads, env_problem
 
     pytest.importorskip("drjit")
     import drjit as dr
@@ -126,7 +126,7 @@ def test_thread_count_from_the_environment(monkeypatch):
         with pytest.raises(ValueError, match="^GONIO_THREADS"):
             apply_threads()
     monkeypatch.setenv("GONIO_THREADS", "0")
-    r = subprocess.run([sys.executable, "-m", "gonio.bench.cli", "settings", "show"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "gonio.cli.main", "settings", "show"], capture_output=True,
                        text=True, env=dict(os.environ), timeout=120)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "GONIO_THREADS = '0'" in r.stderr, r.stderr
     monkeypatch.delenv("GONIO_THREADS")
@@ -142,7 +142,7 @@ def test_a_recording_is_kept_per_size_of_drjits_pool():
     import numpy as np
 
     import gonio.models as gm
-    from gonio.models import _fast
+    from gonio.models.engine import fast as _fast
 
     model = gm.get("roughconductor", distribution="ggx")
     before = dr.thread_count()

@@ -194,10 +194,10 @@ def _scaled(fn, factor):
 MUTANTS = [
     # (config, module attribute, factor): Schlick's F in cooktorrance; one Smith G1 factor
     # of roughconductor (f_r carries G1(wi) G1(wo), so sqrt(1 + 1e-4) on each is 1e-4 on G)
-    (("cooktorrance", {}, 1e-5), "gonio.models._cooktorrance.fresnel_schlick", 1.0 + 1e-4),
-    (("roughconductor", {"distribution": "ggx"}, 1e-5), "gonio.models._roughconductor.smith_g1_xyz",
+    (("cooktorrance", {}, 1e-5), "gonio.models.catalogue.cooktorrance.fresnel_schlick", 1.0 + 1e-4),
+    (("roughconductor", {"distribution": "ggx"}, 1e-5), "gonio.models.catalogue.roughconductor.smith_g1_xyz",
      float(np.sqrt(1.0 + 1e-4))),
-    (("roughconductor", {"distribution": "beckmann"}, 1e-5), "gonio.models._roughconductor.fresnel_conductor",
+    (("roughconductor", {"distribution": "beckmann"}, 1e-5), "gonio.models.catalogue.roughconductor.fresnel_conductor",
      1.0 - 1e-4),
 ]
 

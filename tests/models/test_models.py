@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models._albedo import QUADRATURE_ERROR
+from gonio.models.physics.albedo import QUADRATURE_ERROR
 
 from models_testutil import assert_float32_agrees, random_hemisphere, random_params
 
@@ -253,7 +253,7 @@ def test_large_batch_memory(backend, dtype):
 def test_blocks_of_the_compiled_eval_join_exactly(monkeypatch):
     """Above ``fast.EVAL_BLOCK`` pairs the compiled eval runs in blocks; the joined result
     equals the numpy reference at every pair, the ones beside each block edge included."""
-    from gonio.models import _fast
+    from gonio.models.engine import fast as _fast
 
     if not _fast.available():
         pytest.skip("Dr.Jit's LLVM backend is not available here")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gonio.models import fresnel_dielectric
-from gonio.models._rough_tables import RES, lerp_table, rough_tables
+from gonio.models.physics.rough_tables import RES, lerp_table, rough_tables
 
 
 def fdr_deon_irving(eta):
@@ -63,17 +63,17 @@ def test_lerp_table():
     assert out[2] == pytest.approx(0.5 * (table[31] + table[32]))
 
 
-# -- interpolated tables (models/data/roughplastic_tables.npz) ----------------------------
+# -- interpolated tables (gonio/models/physics/data/roughplastic_tables.npz) ----------------------------
 
-from gonio.models import _rough_tables as rt  # noqa: E402
-from gonio.models._rough_tables import rough_tables_interp  # noqa: E402
+from gonio.models.physics import rough_tables as rt  # noqa: E402
+from gonio.models.physics.rough_tables import rough_tables_interp  # noqa: E402
 
 KINDS = ("beckmann", "ggx")
 
 
 def _grid():
     g = rt._load_grid()
-    assert g, "models/data/roughplastic_tables.npz missing or unreadable"
+    assert g, "gonio/models/physics/data/roughplastic_tables.npz missing or unreadable"
     return g
 
 
@@ -82,7 +82,7 @@ def test_grid_file_present_and_consistent():
 
     import gonio.models as gm
 
-    path = files("gonio.models").joinpath("data", rt.GRID_FILE)
+    path = files("gonio.models.physics").joinpath("data", rt.GRID_FILE)
     with path.open("rb") as fh, np.load(fh) as z:
         x, y = z["log_alpha"], z["y_eta"]
         shift = float(z["eta_shift"])
@@ -208,7 +208,7 @@ def test_fast_path_follows_interpolated_tables():
     """The Dr.Jit path uses the same interpolated tables (and the spline's derivative for
     the gradient) when the model has exact_tables=False."""
     import gonio.models as gm
-    from gonio.models import _fast
+    from gonio.models.engine import fast as _fast
 
     from models_testutil import random_hemisphere
 

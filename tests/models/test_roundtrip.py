@@ -1,4 +1,4 @@
-"""The public eval's large-batch round trip (models/_roundtrip.py, issue 18): numpy copies the
+"""The public eval's large-batch round trip (gonio/models/engine/roundtrip.py, issue 18): numpy copies the
 components into Dr.Jit's memory, the kernel reads contiguous arrays, numpy interleaves the
 channels. It must give, bit for bit, what the gathering kernel gives on the same float64
 inputs (the same kernel), in blocks and with the copies spread over threads."""
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models import _fast, _roundtrip
+from gonio.models.engine import fast as _fast
+from gonio.models.engine import roundtrip as _roundtrip
 
 from models_testutil import random_hemisphere, random_params
 
@@ -181,7 +182,7 @@ def test_gathered_blocks_join_into_one_output(monkeypatch):
 
 @pytest.mark.parametrize("name,options", CASES, ids=[c[0] for c in CASES])
 def test_float32_words_equal_the_float_gathers_bit_for_bit(name, options, monkeypatch):
-    """float32 rows read as uint64 words of two (models/_roundtrip.word_gather_kernel): the
+    """float32 rows read as uint64 words of two (gonio/models/engine/roundtrip.word_gather_kernel): the
     same values as one float per gather, for even and odd batches (the last row of an odd one
     by the float kernel), rows that start 4 bytes off an 8-byte boundary (the float path),
     and blocks; the hostile rows give 0 as everywhere."""
@@ -216,7 +217,7 @@ def test_float32_words_equal_the_float_gathers_bit_for_bit(name, options, monkey
 @pytest.mark.parametrize("dtype,n", [(np.float32, 4096), (np.float32, 4095), (np.float64, 4096)],
                          ids=["float32-words", "float32-odd", "float64"])
 def test_the_gathering_round_trip_is_one_kernel_a_block(dtype, n, monkeypatch):
-    """models/_roundtrip.gather_kernel and word_gather_kernel: the rows' gathers, the model
+    """gonio/models/engine/roundtrip.gather_kernel and word_gather_kernel: the rows' gathers, the model
     and the output's scatter in one fused kernel (session 12: channels evaluated first and
     scattered one at a time launched four kernels, 15-40 % of a 1e6-pair eval). Counted in
     Dr.Jit's kernel history on a replay; an odd float32 batch is its even part in words and
@@ -244,7 +245,7 @@ def test_the_gathering_round_trip_is_one_kernel_a_block(dtype, n, monkeypatch):
 
 
 def test_the_public_eval_reuses_a_materials_parameters():
-    """models/_fast._eval_params: the same values again reuse their Dr.Jit scalars (no new
+    """gonio/models/engine/fast._eval_params: the same values again reuse their Dr.Jit scalars (no new
     scalar made: none of the one-value memsets Dr.Jit launches for each), new values (and
     -0.0 for 0.0, bit for bit) get their own, at most _EVAL_PARAMS_SIZE sets are kept, and
     every value is the reference's. A model whose kernel reads more than its parameters

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models import _tabulated as tab
-from gonio.models._albedo import QUADRATURE_ERROR
+from gonio.models.catalogue import tabulated as tab
+from gonio.models.physics.albedo import QUADRATURE_ERROR
 
 from models_testutil import random_hemisphere
 

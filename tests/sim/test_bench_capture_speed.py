@@ -2,7 +2,8 @@
 
 import math
 
-from gonio.bench import _capture_speed, _session
+from gonio.perf import capture as _capture_speed
+from gonio.bench.session import run as _session
 from gonio.bench.drivers import stages
 
 

@@ -97,7 +97,7 @@ def test_pymeasure_thorlabs_pm100usb(meter):
         pm.wavelength = 5000                              # PyMeasure truncates to the sensor's range
         assert pm.wavelength == 1100
         pm.wavelength = 550
-        assert pm.power == pytest.approx(0.01 * 0.1, rel=0.01)    # p0 * splitter (sim/_lamp, sim/_scpi)
+        assert pm.power == pytest.approx(0.01 * 0.1, rel=0.01)    # p0 * splitter (gonio/sim/physics/lamp, gonio/sim/devices/scpi_meter)
         assert pm.id == "gonio,SimPowerMeter,SIM00001,0.1.0"
         assert pm.ask("SYST:ERR?").strip() == '0,"No error"'
     finally:

@@ -3,7 +3,7 @@
 The clients are Zaber's own; the bytes they send are theirs (message ids and ``:CC``
 checksums from zaber-motion, bare commands from zaber.serial). Reference behaviour: Zaber's
 ASCII protocol manual (replies, alerts ``!DD A STATUS WARN``, continuation ``\\`` + ``cont``);
-values are the simulator's (sim/_zaber_stage.py, sim/_zaber_led.py).
+values are the simulator's (gonio/sim/devices/zaber_stage.py, gonio/sim/devices/zaber_led.py).
 """
 
 import http.server

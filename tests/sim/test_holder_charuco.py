@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 
 import gonio.sim as gs
-from gonio.bench import _markers, kinematics
-from gonio.bench._settings import default_settings, merge_settings
-from gonio.bench.errors import GonioError
+from gonio.bench.plan import markers as _markers
+from gonio.bench.plan import kinematics
+from gonio.bench.settings import default_settings, merge_settings
+from gonio.core.errors import GonioError
 
 AXES = ("yaw", "tilt", "azimuth", "lamp")
 CAMERA = {"width": 600, "height": 450, "pixel_size": 0.0024}

@@ -5,10 +5,10 @@ import math
 import pytest
 
 import gonio.sim as gs
-from gonio.bench._settings import default_settings
+from gonio.bench.settings import default_settings
 from gonio.bench.drivers.stages import Goniometer
 from gonio.bench.drivers.zaber import ZaberChain
-from gonio.bench.errors import GonioError
+from gonio.core.errors import GonioError
 
 
 @pytest.fixture

@@ -132,7 +132,7 @@ def test_flat_field_source_reveals_the_prnu_map(tmp_path):
     (PRNU 1 %) far above chance.
     """
     from gonio.sim import Instrument
-    from gonio.sim._camera_port import CameraPort
+    from gonio.sim.devices.camera_port import CameraPort
 
     inst = Instrument(seed=5)
     cam = CameraPort(inst)
@@ -143,8 +143,8 @@ def test_flat_field_source_reveals_the_prnu_map(tmp_path):
         with rawpy.imread(str(tmp_path / f"f{k}.dng")) as raw:
             frames.append(raw.raw_image_visible.astype(float) - inst.sensor.black)
     mean = np.mean(frames, axis=0)
-    # per colour channel, as bench/_hdr.flat_gain does: a white source is not grey in camera RGB
-    # (the camera's AsShotNeutral, sim/_colour.py)
+    # per colour channel, as gonio/bench/measure/hdr.flat_gain does: a white source is not grey in camera RGB
+    # (the camera's AsShotNeutral, gonio/sim/physics/colour.py)
     ch = inst.sensor.channel_map
     level = np.array([mean[ch == k].mean() for k in range(3)])
     est = mean / level[ch]

@@ -9,7 +9,7 @@ import pytest
 import serial
 
 import gonio.sim as gs
-from gonio.sim import _clock
+from gonio.sim.physics import clock as _clock
 
 
 def test_instant_clock_never_sleeps(monkeypatch):

@@ -1,4 +1,4 @@
-"""The simulated camera's colour (sim/_colour.py): sensitivities -> matrices -> DNG tags LibRaw reads."""
+"""The simulated camera's colour (gonio/sim/physics/colour.py): sensitivities -> matrices -> DNG tags LibRaw reads."""
 
 import io
 
@@ -8,8 +8,8 @@ import pytest
 import rawpy
 
 from gonio.sim import SensorModel
-from gonio.sim._colour import TABLES, camera_colour, computed_tables, luther_error, mallett_fidelity, srgb_matrices
-from gonio.sim._sensor import encode_dng
+from gonio.sim.physics.colour import TABLES, camera_colour, computed_tables, luther_error, mallett_fidelity, srgb_matrices
+from gonio.sim.physics.sensor import encode_dng
 
 NIKON = camera_colour("Nikon 5100 (NPL)")
 
@@ -47,7 +47,7 @@ def test_the_tabulated_colour_numbers_are_colour_sciences():
     """sim/data/colour_tables.json (read by every simulated capture instead of importing
     colour-science) holds what the installed colour-science computes, up to the rounding of
     another summation order (:data:`ROUNDING_EPS`); a new release that changes a number
-    fails here: rewrite it with ``python -m gonio.sim._colour --tabulate``."""
+    fails here: rewrite it with ``python -m gonio.sim.physics.colour --tabulate``."""
     import json
     import subprocess
     import sys
@@ -60,7 +60,7 @@ def test_the_tabulated_colour_numbers_are_colour_sciences():
         for key, value in cam.items():
             _same_up_to_rounding(stored["cameras"][name][key], value, f"{name}: {key}")
     # the simulator's start really does without colour-science (and so without matplotlib)
-    probe = ("import sys\nfrom gonio.sim._colour import camera_colour\nc = camera_colour()\n"
+    probe = ("import sys\nfrom gonio.sim.physics.colour import camera_colour\nc = camera_colour()\n"
              "c.color_matrix, c.forward_matrix\nprint('colour' in sys.modules, 'matplotlib' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert out.stdout.split() == ["False", "False"], out.stderr[-2000:]

@@ -1,11 +1,11 @@
-"""The virtual instrument's error model (sim/_errors.py): presets, overrides, physics of each term."""
+"""The virtual instrument's error model (gonio/sim/physics/errors.py): presets, overrides, physics of each term."""
 
 import math
 
 import gonio.sim as gs
 import numpy as np
 import pytest
-from gonio.sim._errors import PRESETS, disk_rule, error_model, spectralon_factor
+from gonio.sim.physics.errors import PRESETS, disk_rule, error_model, spectralon_factor
 
 GLOSSY = {"model": "roughconductor", "params": {"alpha": 0.1}}
 

@@ -7,7 +7,7 @@ import pytest
 import serial
 
 import gonio.sim as gs
-from gonio.sim._pty import PtyServer
+from gonio.sim.pty_server import PtyServer
 
 
 def _ask(port, cmd, end=b"\r\n"):

@@ -118,13 +118,13 @@ def test_unregister_releases_the_scene_and_a_reuse_renders_the_same(make):
 
 
 def test_a_simulated_calibration_leaves_no_scene_behind():
-    """gonio calibrate's simulator (bench/calibrate.SimBench: the physics driven directly, never
+    """gonio calibrate's simulator (gonio/bench/calibrate.SimBench: the physics driven directly, never
     registered) releases its instrument's scene when it returns, without a cyclic collection."""
     import gc
 
-    from gonio.bench._settings import default_settings
+    from gonio.bench.settings import default_settings
     from gonio.bench.calibrate import calibrate
-    from gonio.sim._scene import HolderScene
+    from gonio.sim.physics.scene import HolderScene
 
     gc.collect()
     gc.disable()

@@ -7,7 +7,7 @@ import pytest
 import rawpy
 
 from gonio.sim import SensorModel
-from gonio.sim._sensor import encode_dng, write_dng
+from gonio.sim.physics.sensor import encode_dng, write_dng
 
 
 def test_photon_transfer_curve_slope_is_inverse_gain():

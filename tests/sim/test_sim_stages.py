@@ -7,7 +7,7 @@ import pytest
 import serial
 
 import gonio.sim as gs
-from gonio.sim._stages import RotaryAxis, plan_trapezoid
+from gonio.sim.physics.stages import RotaryAxis, plan_trapezoid
 
 
 def _axis(**kw):

@@ -3,7 +3,7 @@
 import serial
 
 import gonio.sim  # noqa: F401 - registers sim://
-from gonio.sim._zaber import lrc
+from gonio.sim.devices.zaber_chain import lrc
 
 from sim_helpers import exchange
 

@@ -1,14 +1,14 @@
 """Byte-exact exchanges of what issue 17 added to the simulated Zaber chain.
 
 Formats from Zaber's ASCII protocol manual (reply, alert ``!DD A STATUS WARN``, continuation
-``...\\`` + ``#DD A [ID] cont ...``, ``NA``); values from sim/_zaber_stage.py and
-sim/_zaber_led.py (several invented where the documents are silent, marked there).
+``...\\`` + ``#DD A [ID] cont ...``, ``NA``); values from gonio/sim/devices/zaber_stage.py and
+gonio/sim/devices/zaber_led.py (several invented where the documents are silent, marked there).
 """
 
 import serial
 
 import gonio.sim  # noqa: F401 - registers sim://
-from gonio.sim._zaber import lrc
+from gonio.sim.devices.zaber_chain import lrc
 
 from sim_helpers import exchange
 

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from gonio.bench._settings import default_settings
+from gonio.bench.settings import default_settings
 from gonio.bench.drivers.stages import Goniometer
 from gonio.bench.drivers.zaber import ZaberChain
 

@@ -9,12 +9,13 @@ import pickle, sys, math, json
 from pathlib import Path
 import numpy as np
 import budget_coverage as BC
-from gonio.sim._errors import _small_rotation
-from gonio.bench import _calpoint as CP, kinematics
-from gonio.bench._budget import move_history
+from gonio.sim.physics.errors import _small_rotation
+from gonio.bench.measure import calpoint as CP
+from gonio.bench.plan import kinematics
+from gonio.bench.dataset.budget import move_history
 from gonio.fitting import load_dataset, fit, with_instrument_response
-from gonio.bench.fit_runner import open_budget
-from gonio.fitting._budget import _loss_sensitivities, slope, angle_components
+from gonio.cli.fit import open_budget
+from gonio.fitting.uncertainty.budget import _loss_sensitivities, slope, angle_components
 import gonio.models as gm
 
 def angles(w):

@@ -2,16 +2,16 @@
 
     .venv/bin/python tests/fitting/decompose/calstudy.py FIRST_SEED END_SEED OUT.json
 
-bench/calibrate.align on the typical instrument per seed (about 5 s each): estimates, stated u
+gonio/bench/calibrate.align on the typical instrument per seed (about 5 s each): estimates, stated u
 and truth of the yaw and tilt zeros, the holder tilt (azimuth counter's frame) and the three
 backlashes, written after every seed. Summarised in budget_coverage.py's docstring (seeds
 402000-402076: lamp backlash mean z -0.12 +- 0.12, no bias).
 """
 import sys, json, math, time
 import numpy as np
-from gonio.bench import _alignment as al
+from gonio.bench.measure import alignment as al
 from gonio.bench import calibrate as C
-from gonio.bench._settings import default_settings
+from gonio.bench.settings import default_settings
 
 def one(seed, preset="typical"):
     s = default_settings(); s["errors"] = {"preset": preset}

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 import budget_coverage as BC
-import gonio.sim._instrument as SI
-from gonio.sim._errors import _small_rotation
+import gonio.sim.instrument as SI
+from gonio.sim.physics.errors import _small_rotation
 
 REC = []
 _orig = SI.Instrument.geometry
@@ -37,12 +37,12 @@ SI.Instrument.geometry = geometry
 
 
 def run(seed, sample):
-    from gonio.bench._settings import default_settings
+    from gonio.bench.settings import default_settings
     from gonio.bench.calibrate import calibrate, merge_calibration
-    from gonio.bench.export import export
-    from gonio.bench.fit_runner import fit_dataset, open_budget
-    from gonio.bench.session_runner import capture_sim
-    from gonio.bench import _integrity
+    from gonio.bench.dataset.export import export
+    from gonio.cli.fit import fit_dataset, open_budget
+    from gonio.cli.capture import capture_sim
+    from gonio.bench.session import integrity as _integrity
     from gonio.fitting import load_dataset
     settings = default_settings()
     settings["errors"] = {"preset": "typical"}

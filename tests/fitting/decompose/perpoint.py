@@ -7,8 +7,8 @@ WORK.mkdir(parents=True, exist_ok=True)
 _sys.path[:0] = [str(_HERE), str(_HERE.parent)]
 import sys, numpy as np
 from recon import recon
-from gonio.fitting._aperture import aperture_mean
-from gonio.models.geometry import directions as dirs
+from gonio.fitting.likelihood.aperture import aperture_mean
+from gonio.core.geometry import directions as dirs
 import json
 sample, seed = sys.argv[1], int(sys.argv[2])
 R = recon(sample, seed)

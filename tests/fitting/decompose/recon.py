@@ -11,12 +11,12 @@ import numpy as np
 from analyse import analyse
 import budget_coverage as BC
 import gonio.sim
-from gonio.bench._settings import default_settings
+from gonio.bench.settings import default_settings
 from gonio.bench.calibrate import merge_calibration
-from gonio.bench.session_runner import _reference_for
-from gonio.bench._measure import ReferenceModel
-from gonio.fitting._aperture import aperture_mean
-from gonio.models.geometry import directions as dirs
+from gonio.cli.capture import _reference_for
+from gonio.bench.measure.point import ReferenceModel
+from gonio.fitting.likelihood.aperture import aperture_mean
+from gonio.core.geometry import directions as dirs
 
 def recon(sample, seed):
     out, A = analyse(sample, seed, nmc=10, verbose=False)
@@ -62,8 +62,8 @@ if __name__ == "__main__" and len(sys.argv) == 3:
 
 
 def parts(sample, seed, brow):
-    from gonio.sim._errors import _cone, disk_rule, _small_rotation
-    from gonio.fitting._aperture import aperture_ratio
+    from gonio.sim.physics.errors import _cone, disk_rule, _small_rotation
+    from gonio.fitting.likelihood.aperture import aperture_ratio
     R = recon(sample, seed)
     A, out = R["A"], R["out"]
     st, inst = R["st"], R["inst"]

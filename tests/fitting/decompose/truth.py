@@ -7,7 +7,7 @@ WORK.mkdir(parents=True, exist_ok=True)
 _sys.path[:0] = [str(_HERE), str(_HERE.parent)]
 import sys, numpy as np
 from analyse import analyse
-from gonio.bench import _calpoint as CP
+from gonio.bench.measure import calpoint as CP
 import gonio.sim
 sample, seed = sys.argv[1], int(sys.argv[2])
 out, A = analyse(sample, seed, nmc=200, verbose=False)

@@ -7,7 +7,7 @@ WORK.mkdir(parents=True, exist_ok=True)
 _sys.path[:0] = [str(_HERE), str(_HERE.parent)]
 import sys, json, numpy as np
 from analyse import analyse
-from gonio.fitting._budget import second_order
+from gonio.fitting.uncertainty.budget import second_order
 sample = sys.argv[1]
 parts = {p["seed"]: p for p in json.load(open(f"{WORK}/parts-{sample}.json"))}
 rows = []

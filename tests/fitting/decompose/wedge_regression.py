@@ -2,7 +2,7 @@
 
     .venv/bin/python tests/fitting/decompose/wedge_regression.py FILE.json [FILE.json ...]
 
-For each session the seed's hidden truth (sim/_errors.ErrorModel.draw: the certificate factor
+For each session the seed's hidden truth (gonio/sim/physics/errors.ErrorModel.draw: the certificate factor
 n_rho, the sample's wedge w0, w1 in units of its 0.05 deg) is redrawn, and each parameter's
 error (fit - truth) / mean u_c, and its z, are fitted by least squares on
 [1, n_rho, w0, w1, w0^2 - 1, w1^2 - 1, w0 w1]: the intercept is the mean error at a typical
@@ -14,7 +14,7 @@ import json
 import sys
 
 import numpy as np
-from gonio.sim._errors import error_model
+from gonio.sim.physics.errors import error_model
 
 TRUTH = np.array([0.5, 0.35, 0.2, 0.05, 1.5])
 LABELS = ["1", "n_rho", "w0", "w1", "w0^2-1", "w1^2-1", "w0w1"]

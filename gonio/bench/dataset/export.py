@@ -1,0 +1,221 @@
+"""Export a session's journal to ``dataset.nc`` (docs/interfaces.md section 5).
+
+Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i``,
+``theta_o``, ``phi_o`` (degrees); variables ``brdf`` and ``brdf_std`` (sr^-1, 1-sigma),
+``saturated``, ``reciprocal_partner`` (dataset index, -1 if none), ``plan_index`` and the
+stage angles; attributes ``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``,
+``sample_truth`` (simulated sessions), ``scale_rel_std`` (the reference certificate's relative
+1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``), ``complete``. A session
+captured with a calibration also has ``<angle>_nominal``, ``<angle>_u``, ``angle_calibration``
+and ``aperture_*``. Where the RAW files carry colour matrices, also ``brdf_srgb`` (linear sRGB,
+D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and ``brdf_srgb_corr``; every f_r variable
+says its space (``colour_space``). The file is written atomically: a full disk is one line and
+leaves no partial file (an older ``dataset.nc`` stays as it was).
+"""
+
+# Calibration: a session captured with a calibration ([alignment] in its settings,
+# gonio.bench.measure.calpoint.dataset_angles) has the calibrated angles as coordinates and
+# the nominal ones beside them; the aperture_* attributes are also written from an [aperture]
+# table alone.
+# Colour: the camera-RGB f_r is white-balanced by construction (the reference is spectrally
+# flat and shares the illumination), so the camera -> sRGB matrix
+# (gonio/bench/measure/colour_matrix.py: from a RAW file's ColorMatrix1, else LibRaw's
+# journalled one) applies to it directly, and XYZ = M_sRGB->XYZ sRGB (IEC 61966-2-1). Camera
+# channel noise is independent, so the sRGB channels' covariance is S diag(sigma^2) S^T. The
+# attribute colour_matrix records the matrix and its source.
+# Writing: serialised with xarray's h5netcdf engine in memory (h5py never writes to the disk:
+# on a full disk it crashed the process), after a check that the disk has room for it; then
+# written to a temporary name in the session folder, fsynced and renamed.
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from gonio.bench.session import integrity as _integrity
+from gonio.bench.dataset.budget import budget_variables, move_history
+from gonio.bench.dataset.cf import cf_encode
+from gonio.bench.calibrate import dataset_angles, instrument_response
+from gonio.core.files import commit_file, tmp_name
+from gonio.bench.session.journal import RAW_DIR
+from gonio.core.preflight import check_free_space, check_output_file, oserror_line
+from gonio.bench.measure.colour_matrix import (ColourMatrix, colour_matrix_components, convert, matrix_from_chart_dng, matrix_from_dng, matrix_from_libraw)
+from gonio.core.errors import GonioError, SessionError
+from gonio.bench.plan.plans import find_partners
+
+__all__ = ["export", "to_dataset", "DATASET_FILE"]
+
+DATASET_FILE = "dataset.nc"
+
+
+
+def to_dataset(session_dir, chart=None):
+    """The session's journalled points as an `xarray.Dataset` (see the module docstring);
+    ``chart``: a RAW capture of the ColorChecker whose fit gives the colour matrix instead of
+    the RAW files' own (gonio/bench/measure/colour_matrix.matrix_from_chart_dng)."""
+    import xarray as xr
+
+    folder = Path(session_dir)
+    data, doc, why = _integrity.load_session(folder)
+    if doc is None:
+        raise SessionError(f"{folder / 'session.toml'} is not valid TOML ({why}); the session cannot be exported")
+    # the same checks as a resume: session.toml as journalled, the journal whole, no unknown RAW file
+    with _integrity.open_journal(folder, data, doc, why, write=False) as j:
+        rows = j.points()
+        rgb_cam = j.first_event("rgb_cam")
+        charts = j.frames("chart")
+    if not rows:
+        raise SessionError(f"{folder} has no measured point yet; resume the capture first")
+    n_plan = len(doc["plan"]["points"])
+    idx = np.array([r["idx"] for r in rows], int)
+    where = np.full(n_plan, -1, int)
+    where[idx] = np.arange(len(idx))
+    partner_plan = find_partners(np.asarray(doc["plan"]["points"], float))
+    partner = np.array([where[p] if p >= 0 else -1 for p in partner_plan[idx]], int)
+    deg = {"units": "degree"}
+    coords = {
+        "point": np.arange(len(rows)),
+        "channel": ["R", "G", "B"],
+        **{k: ("point", np.array([r[k] for r in rows], float), deg) for k in ("theta_i", "phi_i", "theta_o", "phi_o")},
+    }
+    sr = {"units": "sr^-1"}
+    data = {
+        "brdf": (("point", "channel"), np.array([r["brdf"] for r in rows], float),
+                 {**sr, "long_name": "bidirectional reflectance distribution function f_r (no cosine factor)"}),
+        "brdf_std": (("point", "channel"), np.array([r["brdf_std"] for r in rows], float),
+                     {**sr, "long_name": "1-sigma of brdf from shot and read noise (scale uncertainty: scale_rel_std)"}),
+        "saturated": ("point", np.array([bool(r["saturated"]) for r in rows]),
+                      {"long_name": "some region pixel was saturated in every exposure (value less reliable)"}),
+        "reciprocal_partner": ("point", partner, {"long_name": "index of the point with wi and wo swapped, -1 if none"}),
+        "plan_index": ("point", idx, {"long_name": "index of the point in the session's plan"}),
+        **{k: ("point", np.array([r[k] for r in rows], float), {**deg, "long_name": f"stage angle {k}"})
+           for k in ("yaw", "tilt", "azimuth", "lamp")},
+    }
+    monitor = np.array([float(r["detail"].get("p_start", np.nan)) for r in rows])
+    data["monitor_power"] = ("point", monitor, {"units": "W", "long_name": "power-meter reading of the lamp "
+                                                "monitor at the start of the point"})
+    # the per-point uncertainty budget, u_<component> and u_combined (gonio/bench/dataset/budget.py)
+    data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1]))
+    data["brdf"][2]["colour_space"] = data["brdf_std"][2]["colour_space"] = "camera"
+    if chart is None and charts:            # the session's own chart frame ([capture] colour_chart)
+        chart = folder / next(iter(charts.values()))[1]
+    matrix = matrix_from_chart_dng(chart) if chart is not None else _colour_matrix(folder, rgb_cam)
+    if matrix is not None:
+        data.update(_colour(matrix, data["brdf"][1], data["brdf_std"][1]))
+        coords["xyz"] = ["X", "Y", "Z"]
+    # a calibrated session (gonio capture --calibration): the true angles, their u, the apertures
+    stage = np.stack([data[k][1] for k in ("yaw", "tilt", "azimuth", "lamp")], -1)
+    cal_coords, cal_data, cal_attrs = dataset_angles(doc["settings"], stage, last_dir=move_history(rows)[1])
+    coords.update(cal_coords)
+    data.update(cal_data)
+    if not cal_attrs and isinstance(doc["settings"].get("aperture"), dict):
+        cal_attrs = instrument_response(doc["settings"])
+    attrs = _attributes(doc, rows, n_plan, monitor, matrix, chart)
+    attrs.update(cal_attrs)
+    return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
+
+
+def _attributes(doc, rows, n_plan, monitor, matrix, chart) -> dict:
+    """The dataset's global attributes: versions, seed, plan and settings, the reference,
+    completeness, the lamp's drift, the colour matrix and the simulated truth."""
+    sess = doc.get("session", {})
+    attrs = {
+        "gonio_version": str(sess.get("gonio", "unknown")),
+        "seed": int(sess.get("seed", -1)),
+        "plan": json.dumps(doc["plan"], sort_keys=True),
+        "settings": json.dumps(doc["settings"], sort_keys=True),
+        "versions": json.dumps(sess, sort_keys=True),
+        "scale_rel_std": float(doc["settings"]["reference"].get("rel_std", 0.0)),
+        "reference_reflectance": json.dumps(doc["settings"]["reference"]["reflectance"]),
+        "complete": int(len(rows) == n_plan),
+        # relative span of the monitor over the session: what normalisation had to correct
+        "lamp_drift": float((np.nanmax(monitor) - np.nanmin(monitor)) / np.nanmedian(monitor))
+        if np.any(np.isfinite(monitor)) and np.nanmedian(monitor) > 0 else 0.0,
+        "capture_wall_s": float(max(r["finished"] for r in rows) - min(r["finished"] for r in rows)),
+        "title": "gonio BRDF measurement",
+    }
+    if matrix is not None:
+        attrs["colour_matrix"] = json.dumps({**matrix.describe(), "chart_file": None if chart is None else str(chart)},
+                                            sort_keys=True)
+    if "sample_truth" in doc:
+        attrs["sample_truth"] = str(doc["sample_truth"]["json"])
+    return attrs
+
+
+def _colour_matrix(folder: Path, rgb_cam):
+    """The camera -> sRGB matrix: a RAW file's own ColorMatrix1, else LibRaw's journalled
+    ``rgb_cam``, else None (gonio/bench/measure/colour_matrix.py)."""
+    for raw in sorted((folder / RAW_DIR).glob("*.dng")) if (folder / RAW_DIR).is_dir() else ():
+        if not raw.name.startswith("."):
+            found = matrix_from_dng(raw)
+            if found is not None:
+                return found
+            break
+    return None if rgb_cam is None else matrix_from_libraw(np.asarray(json.loads(rgb_cam), float))
+
+
+def _colour(matrix: ColourMatrix, f: np.ndarray, sd: np.ndarray) -> dict:
+    """``brdf_srgb``, ``brdf_xyz``, their 1-sigma and the sRGB channel correlation from
+    white-balanced camera-RGB f_r (N, 3)."""
+    out = {}
+    sr = {"units": "sr^-1"}
+    for name, dim, what in (("srgb", "channel", "linear sRGB (D65)"), ("xyz", "xyz", "CIE XYZ (D65)")):
+        value, std, cov = convert(f, sd, matrix, name)
+        space = {"colour_space": name, "colour_matrix_source": matrix.source}
+        out[f"brdf_{name}"] = (("point", dim), value, {**sr, **space, "long_name": f"f_r in {what}"})
+        out[f"brdf_{name}_std"] = (("point", dim), std, {**sr, **space, "long_name": f"1-sigma of brdf_{name} "
+                                                         "(camera noise; colour matrix uncertainty not included)"})
+        if name == "srgb":
+            pairs = ((1, 2), (0, 2), (0, 1))
+            corr = np.stack([cov[:, a, b] / np.maximum(std[:, a] * std[:, b], 1e-300) for a, b in pairs], 1)
+            out["brdf_srgb_corr"] = (("point", "channel"), corr, {
+                "units": "1", "long_name": "correlation of brdf_srgb's other two channels' noise (R: G-B, "
+                "G: R-B, B: R-G), from the colour matrix mixing independent camera channels"})
+    parts = colour_matrix_components(f, matrix, "srgb")
+    if parts:                   # a chart fit's uncertainty: its budget lines (gonio/fitting/uncertainty/budget.py reads them)
+        out["brdf_srgb_u_colour_matrix"] = (("point", "channel", "colour_input"), np.stack(parts, -1), {
+            **sr, "gum_type": "B", "correlation": "full", "colour_space": "srgb",
+            "source": f"colour matrix from a {matrix.source} fit: row covariance and prediction error",
+            "long_name": "change of brdf_srgb for +1 sigma of each independent input of the colour matrix"})
+    return out
+
+
+def export(session_dir, chart=None) -> Path:
+    """Write ``session_dir/dataset.nc`` from the journal; return its path.
+
+    Raises
+    ------
+    SessionError
+        Not a session folder, or no point measured yet.
+    """
+    folder = Path(session_dir)
+    ds = to_dataset(folder, chart)
+    path = folder / DATASET_FILE
+    check_output_file(path, "dataset")
+    check_free_space(folder, estimated_bytes(ds), f"{path} (its estimated size)")
+    data = ds.to_netcdf(engine="h5netcdf")          # in memory: bytes (a memoryview)
+    check_free_space(folder, len(data), f"{path} ({len(data) / 2 ** 20:.1f} MiB)")
+    tmp = tmp_name(path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+        commit_file(tmp, path)
+    except OSError as exc:
+        raise GonioError(oserror_line(OSError(exc.errno or errno.EIO, exc.strerror or str(exc), str(path)))) from None
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def estimated_bytes(ds) -> int:
+    """An upper estimate of the netCDF-4 file of ``ds``: its arrays, its attributes and about
+    4 KiB of HDF5 structure per variable (a quick plan's file is 37 KB for 10 KB of values)."""
+    attrs = sum(len(str(v)) for v in ds.attrs.values())
+    names = list(ds.variables)
+    attrs += sum(len(str(v)) for n in names for v in ds[n].attrs.values())
+    return int(ds.nbytes) + attrs + 4096 * len(names) + (64 << 10)

@@ -1,0 +1,39 @@
+"""gonio.bench.drivers: the bench's device layer, apart from the capture loop.
+
+One module per device kind. Every device says what it is (``identify()``) and is read and set
+through typed methods (``positions() -> dict[str, float]``, ``move_to``, ``power() -> float``,
+``set_flux(fraction)``, ``expose(seconds, path) -> sha256``). The drivers that own a port
+(`ZaberChain`, `PowerMeter`, the cameras) open it when made and close it with ``close()`` or
+a ``with`` block; the stages and the LED are devices on the chain's port and close with it.
+
+Modules: `serialport` (`SerialDevice`, the serial base), `zaber_protocol` (the Zaber ASCII
+bytes, pure functions), `zaber` (`ZaberChain`, `emergency_stop`), `stages` (`Goniometer`),
+`led` (`LedSource`), `meter` (`PowerMeter`, SCPI), `camera` (`SimCamera`,
+`WatchedFolderCamera`, `Gphoto2Camera`, RAW decoding), `identify` (what is on each port).
+The capture loop (`gonio.bench.session.capture`) and the operator commands use the devices
+only through these classes; the simulator (`gonio.sim`) speaks the same bytes at the far end.
+"""
+
+# Layout as ophyd-async's devices and lewis's device/interface split. identify() gives a
+# Zaber device's ids as a dict, an instrument's *IDN? as text.
+# serialport: serial_for_url opens the port, so sim://NAME/..., a pty and /dev/ttyUSB0 are
+# the same; one-line port errors. zaber_protocol: lrc, format_command, parse_reply, Reply, the
+# flag and rejection meanings. zaber: the daisy chain on one port (message ids, retries,
+# continued replies, alerts, broadcast). stages: the rotary axes in degrees (limits,
+# shortest-way moves, homing). led: the lamp on the chain. meter: the SCPI source monitor
+# (pyserial or VISA). identify: Zaber device ids and *IDN?, journalled once per run.
+
+from gonio.bench.drivers.camera import (BadDelivery, Delivery, Gphoto2Camera, RawFrame, SimCamera, WatchedFolderCamera, decode_raw, deliver, read_verified)
+from gonio.bench.drivers.led import LedSource
+from gonio.bench.drivers.meter import PowerMeter, is_visa_resource
+from gonio.bench.drivers.serialport import SerialDevice
+from gonio.bench.drivers.stages import Goniometer, MoveError, shortest_equivalent
+from gonio.bench.drivers.zaber import ZaberChain, emergency_stop
+from gonio.bench.drivers.zaber_protocol import (FLAG_MEANINGS, REJECT_MEANINGS, Reply, format_command, lrc, parse_reply)
+
+__all__ = [
+    "BadDelivery", "Delivery", "FLAG_MEANINGS", "REJECT_MEANINGS", "Gphoto2Camera", "Goniometer", "LedSource", "MoveError",
+    "PowerMeter", "RawFrame", "Reply", "SerialDevice", "SimCamera", "WatchedFolderCamera", "ZaberChain",
+    "decode_raw", "deliver", "emergency_stop", "format_command", "is_visa_resource", "lrc", "parse_reply",
+    "read_verified", "shortest_equivalent",
+]

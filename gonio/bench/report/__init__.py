@@ -1,0 +1,422 @@
+"""One self-contained HTML report of a session: capture, fit, and the Mitsuba loop closure.
+
+The report reads what the other commands wrote (``dataset.nc``, ``fit.json``, ``speed.json``,
+``render/render.json``, ``render/preview/preview.json``) and embeds matplotlib PNGs as
+base64, so the single file reads offline; the PNGs are also written beside it for reuse.
+
+It treats every one of those files as hostile (gonio/bench/report/inputs.py): it reads only files
+that resolve inside the output folder, refuses a file reference that points out of it and a
+field of the wrong type with one line (:class:`GonioError`, exit status 2) before it writes
+anything, and builds the page from one Jinja2 template with autoescape: each section is a
+function below that returns plain values (strings, numbers, lists), never HTML.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from gonio.fitting import DataError, load_dataset, parse_fit
+from gonio.core.atomic import atomic_open
+
+from gonio.bench.report import fitdoc as _fitdoc
+from gonio.bench.report import figures as figs
+from gonio.bench.report import meta
+from gonio.bench.report.fitdoc import truth_for
+from gonio.bench.report.inputs import MAX_IMAGE_BYTES, PNG_MAGIC, Doc, Folder, cut, show
+from gonio.bench.report.view import view_data
+from gonio.core.errors import GonioError
+
+__all__ = ["find_outputs", "write_report"]
+
+TEMPLATES = Path(__file__).with_name("templates")
+FIX_FIT = "re-run `gonio fit DATASET --out FIT.json`"
+FIX_RENDER = "re-run `gonio render FIT.json --dataset DATASET --out DIR/render`"
+FIX_PREVIEW = "re-run `gonio render FIT.json --dataset DATASET --out DIR/render --preview`"
+FIX_SPEED = "re-run `gonio demo` or delete speed.json"
+
+
+def find_outputs(folder) -> dict:
+    """Locate the dataset, fit file and render summary under ``folder`` (inside it only)."""
+    root = Folder(folder)
+    folder = root.path
+
+    def first(*patterns):
+        for pattern in patterns:
+            hits = sorted(folder.glob(pattern))
+            if hits:
+                return hits[0]
+        return None
+
+    found = {"dataset": first("dataset.nc", "*/dataset.nc"), "fit": first("fit.json", "*/fit.json"),
+             "render": first("render/render.json", "render.json", "*/render.json"),
+             "preview": first("render/preview/preview.json", "preview/preview.json", "*/preview/preview.json"),
+             "speed": first("speed.json", "*/speed.json"),
+             "journal": first("journal.sqlite", "session/journal.sqlite", "*/journal.sqlite")}
+    if found["dataset"] is None:
+        raise GonioError(f"no dataset.nc under {folder}; run `gonio export SESSION` first")
+    for key, path in found.items():
+        if path is not None:
+            root.check(path, "input file")
+    return found
+
+
+def _fmt(v, digits=4) -> str:
+    """A value as plain text for the template (which escapes it); never HTML."""
+    if v is None:
+        return "–"
+    if isinstance(v, (list, tuple)):
+        return cut("[" + ", ".join(_fmt(x, digits) for x in v[:50]) + (", ..." if len(v) > 50 else "") + "]")
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.{digits}g}"
+    return cut(str(v))
+
+
+def _plan_text(plan):
+    if not plan:
+        return None
+    try:
+        doc = json.loads(plan) if isinstance(plan, str) else plan
+    except (ValueError, RecursionError):
+        return cut(str(plan), 200)
+    if not isinstance(doc, dict):
+        return cut(str(plan), 200)
+    points = doc.get("points") or doc.get("angles") or []
+    n = len(points) if isinstance(points, (list, tuple)) else "?"
+    return cut(f"{doc.get('name', '?')}: {n} points. {doc.get('description', '')}".strip())
+
+
+def _truth_text(truth):
+    if not isinstance(truth, dict):
+        return None
+    try:
+        return cut(f"{truth.get('model', truth.get('bsdf_file', '?'))} {json.dumps(truth.get('options', {}))} "
+                   f"{json.dumps(truth.get('params', {}))}")
+    except (ValueError, TypeError, RecursionError):
+        return None
+
+
+def _reciprocity(dataset_path, meas):
+    """Median relative difference between reciprocal partners (wi and wo swapped), or None."""
+    partner = _partners(dataset_path, meas.n_points)
+    if partner is None:
+        return None
+    i = np.where((partner > np.arange(partner.size)) & (partner < partner.size))[0]
+    if i.size == 0:
+        return None
+    a, b = meas.brdf[i], meas.brdf[partner[i]]
+    rel = np.abs(a - b) / np.maximum(0.5 * np.abs(a + b), 1e-12)
+    return f"{float(np.median(rel)):.2e} over {i.size} pairs (max {float(rel.max()):.2e})"
+
+
+# --------------------------------------------------------------------------- sections
+def capture_section(meas, dataset_path) -> dict:
+    attrs = meas.attrs
+    rows = [("points", meas.n_points), ("usable values", meas.n_used), ("seed", attrs.get("seed")),
+            ("plan", _plan_text(attrs.get("plan"))), ("sample (simulated truth)", _truth_text(attrs.get("sample_truth"))),
+            ("reciprocity (median |f_a - f_b| / mean over pairs)", _reciprocity(dataset_path, meas)),
+            ("capture wall time, first to last point (s)", attrs.get("capture_wall_s")),
+            ("lamp drift over the session (monitor span / median)", attrs.get("lamp_drift")),
+            ("reference scale uncertainty (relative 1-sigma)", attrs.get("scale_rel_std")),
+            ("gonio version", attrs.get("gonio_version"))]
+    return {"rows": [(k, _fmt(v)) for k, v in rows if v is not None]}
+
+
+def fit_section(fit: Doc, truth) -> dict:
+    spec = fit.need("model")
+    name = spec.text("name", required=True)
+    params = fit.items("parameters")
+    truths = truth_for(truth, name, [k for k, _ in params])
+    rows = []
+    for pname, p in params:
+        value, std, t = p.num("value"), p.num("std"), truths.get(pname)
+        z = (value - t) / std if (t is not None and value is not None and std) else None
+        flags = ", ".join(f for f, on in (("at bound", p.flag("at_bound")), ("undetermined", p.flag("undetermined"))) if on)
+        rows.append({"name": cut(pname, 80), "value": _fmt(value), "std": _fmt(std, 2), "ci90": _fmt(p.numbers("ci90"), 7),
+                     "truth": _fmt(t), "z": _fmt(z, 2), "unit": p.text("unit") or "", "method": p.text("method") or "",
+                     "flags": flags})
+    g, opt = fit.need("goodness"), fit.need("optimiser")
+    nulled = fit.raw("non_finite") if isinstance(fit.raw("non_finite"), list) else []
+    energy = fit.need("constraints").need("energy")
+    energy_text = _fitdoc.energy_text({"by_construction": energy.flag("by_construction"), "holds": energy.flag("holds"),
+                                "max_albedo": energy.num("max_albedo")})
+    out = {"model": name, "options": spec.json_text("options"), "rows": rows,
+           "chi2_dof": _fmt(g.num("chi2_dof")), "dof": _fmt(g.count("dof")), "rmse_fr": _fmt(g.num("rmse_fr")),
+           "rmse_cos_fr": _fmt(g.num("rmse_cos_fr")), "method": opt.text("method") or "–",
+           "evaluations": _fmt(opt.count("evaluations")), "time_s": _fmt(opt.num("time_s"), 3), "energy": energy_text,
+           "non_finite": cut(", ".join(x for x in nulled if isinstance(x, str))),
+           # a poor fit says so beside its intervals (Birge-inflated or discrepancy ones)
+           "warning": cut(g.text("warning") or "", 400) or (
+               "" if g.raw("model_adequate") is not False else
+               f"chi2/dof = {_fmt(g.num('chi2_dof'))}: the model misses the data by more than its noise; "
+               "the 1-sigma values are statistical only")}
+    post = fit.sub("posterior")
+    out["posterior"] = None if post is None else {
+        "walkers": _fmt(post.count("walkers")), "steps": _fmt(post.count("steps")),
+        "independent": _fmt(post.num("independent_samples"), 3), "converged": str(post.flag("converged")),
+        "advice": post.text("advice") or ""}
+    out["selection"] = [{"model": r.text("model", required=True), "options": r.json_text("options"),
+                         "k": _fmt(r.count("k")), "chi2": _fmt(r.num("chi2")), "delta_bic": _fmt(r.num("delta_bic"), 3),
+                         "chosen": "yes" if r.flag("chosen") else ""} for r in fit.rows("selection")]
+    return out
+
+
+def posterior_samples(fit: Doc):
+    """(samples (N, k), names, converged) for the corner plot, or None; refuse malformed ones."""
+    post = fit.sub("posterior")
+    if post is None or not post.raw("samples"):
+        return None
+    raw, names = post.raw("samples"), post.raw("names")
+    try:
+        samples = np.asarray(raw, dtype=float) if isinstance(raw, list) and len(raw) <= 100_000 else None
+    except (ValueError, TypeError):
+        samples = None
+    if samples is None or samples.ndim != 2 or samples.shape[1] > 64 or not np.all(np.isfinite(samples)):
+        post.refuse("samples", "a table of finite numbers (draws x parameters)", raw)
+    if names is not None and (not isinstance(names, list) or len(names) != samples.shape[1]
+                              or not all(isinstance(n, str) for n in names)):
+        post.refuse("names", f"a list of {samples.shape[1]} names", names)
+    return samples, names, post.flag("converged")
+
+
+def speed_section(sp: Doc) -> dict:
+    return {"points": _fmt(sp.count("points")), "model": sp.text("model") or "–",
+            "rows": [{"optimiser": r.text("optimiser") or "–", "time_s": _fmt(r.num("time_s"), 3),
+                      "evaluations": _fmt(r.count("evaluations")), "chi2": _fmt(r.num("chi2")),
+                      "max_pull": _fmt(r.num("max_pull"), 3), "rmse_fr": _fmt(r.num("rmse_fr"), 3)}
+                     for r in sp.rows("rows")]}
+
+
+def render_section(rd: Doc, meas) -> tuple[dict, np.ndarray]:
+    sc, s = rd.sub("scene_check") or Doc({}, rd.label, "scene_check", fix=rd.fix), rd.need("summary")
+    section = {"variant": rd.text("variant") or "–", "points": _fmt(rd.count("points")), "time_s": _fmt(rd.num("time_s"), 3),
+               "poses": _fmt(sc.count("poses") or 0), "scene_variant": sc.text("variant") or "None",
+               "max_rel": _fmt(sc.num("max_rel"), 2), "export_max_rel": _fmt(s.num("export_max_rel")),
+               "rms": _fmt(s.num("residual_rms_sigma"), 3), "max": _fmt(s.num("residual_max_sigma"), 3),
+               "worst": [{"point": _fmt(w.count("point")), **{k: _fmt(w.num(k), 3) for k in
+                                                              ("theta_i", "phi_i", "theta_o", "phi_o", "residual_sigma")}}
+                         for w in s.rows("worst", limit=1000)]}
+    raw = rd.raw("brdf_render")
+    try:
+        rendered = np.asarray(raw, dtype=float) if isinstance(raw, list) else None
+    except (ValueError, TypeError):
+        rendered = None
+    if rendered is None or rendered.ndim != 2 or rendered.shape[1] < 1:
+        rd.refuse("brdf_render", "a table of numbers (points x channels)", raw)
+    if rendered.shape[0] != meas.n_points:
+        raise GonioError(f"{rd.label} holds {rendered.shape[0]} rendered points, the dataset {meas.n_points}: "
+                         f"it was rendered from another capture; {rd.fix}")
+    return section, rendered
+
+
+def preview_section(pv: Doc, root: Folder, path: Path) -> tuple[dict, bytes | None]:
+    section = {"size": _fmt(pv.count("size")), "spp": _fmt(pv.count("spp")), "variant": pv.text("variant") or "None",
+               "time_s": _fmt(pv.num("time_s"), 3), "note": None,
+               "rows": [{"lighting": cut(k, 80), "mean": _fmt(v.num("mean"), 3), "p95": _fmt(v.num("p95"), 3),
+                         "noise": _fmt(v.num("noise_mean"), 3)} for k, v in pv.items("delta_e")]}
+    side = pv.raw("side_by_side_png")
+    if side is None:
+        return section, None
+    real = root.reference(side, path, "side_by_side_png", fix=FIX_PREVIEW)
+    if real is None:
+        section["note"] = (f"The side-by-side image that {root.label(path)} names ({cut(str(side), 200)}) is missing "
+                           "from the folder; re-run the preview to include it.")
+        return section, None
+    data = root.read_bytes(real, "side_by_side_png", MAX_IMAGE_BYTES)
+    if not data.startswith(PNG_MAGIC):
+        raise GonioError(f"{root.label(path)}: side_by_side_png {show(side)} is not a PNG image; {FIX_PREVIEW}")
+    return section, data
+
+
+def mitsuba_section(model, params, fit: Doc) -> dict:
+    from gonio.fitting.formats import mitsuba_snippet
+
+    xml, _ = mitsuba_snippet(model.name, dict(model.options), params)
+    try:
+        as_json = json.dumps(fit.raw("mitsuba"), indent=1)
+    except (ValueError, TypeError, RecursionError):
+        fit.refuse("mitsuba", "a plain JSON object", fit.raw("mitsuba"))
+    return {"xml": xml, "dict": cut(as_json, 20_000)}
+
+
+# --------------------------------------------------------------------------- the report
+def _check_out(out: Path) -> Path:
+    """The report's figure folder, after checking that both can be written; refuse otherwise."""
+    image_dir = out.with_name(out.stem + "_files")
+    if out.is_dir():
+        raise GonioError(f"--out {out} is a folder; give a file name such as {out / 'report.html'}")
+    parent = out.parent if str(out.parent) else Path(".")
+    probe = next((p for p in (parent, *parent.parents) if p.exists()), None)
+    if probe is None or not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise GonioError(f"cannot write the report in {parent}: not a writable folder; choose another --out")
+    if image_dir.is_symlink() or (image_dir.exists() and not image_dir.is_dir()):
+        raise GonioError(f"{image_dir} exists and is not a plain folder (a link or a file); remove it and run again")
+    return image_dir
+
+
+def _load_dataset(root: Folder, path: Path):
+    root.check(path, "dataset")
+    try:
+        return load_dataset(path)
+    except DataError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise GonioError(f"{root.label(path)} is not a readable gonio dataset ({' '.join(str(exc).split())[:160]}); "
+                         "re-export the session with `gonio export SESSION`") from None
+
+
+def _load_fit(root: Folder, path: Path):
+    fit = root.read_json(path, "fit file", fix=FIX_FIT, strict=True)
+    try:
+        model, params, _ = parse_fit(fit.data, root.label(path))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise GonioError(f"{' '.join(str(exc).split())[:300]}; {FIX_FIT}") from None
+    return fit, model, params
+
+
+CAPTIONS = {
+    "inplane.png": "Measured f_r (dots, 1-sigma bars) and the fit (lines) in the plane of incidence at up to four "
+                   "incidence angles; theta_o negative on the lamp's side, positive on the mirror side; one colour "
+                   "per camera channel.",
+    "polar.png": "At the incidence with the most out-of-plane points. Left: the fitted lobe over the hemisphere "
+                 "(background) and the measured values (dots) on the same logarithmic colour scale. Right: measured "
+                 "/ fit per point. Radius theta_o (deg), angle phi_o.",
+    "residuals.png": "Left: histogram of (measured - fit) / sigma over every value used in the fit. Right: the rms "
+                     "normalised residual of each point, by incidence and outgoing angle.",
+    "albedo.png": "Directional albedo of the fit against theta_o, one curve per channel; above 1 would violate "
+                  "energy conservation.",
+    "measured.png": "Measured f_r (dots, 1-sigma bars) in the plane of incidence at up to four incidence angles; "
+                    "theta_o negative on the lamp's side; one colour per camera channel. No fit in the folder.",
+    "coverage.png": "The measured directions: radius theta_o (deg), angle phi_o, colour theta_i.",
+    "corner.png": "Posterior samples (emcee) of the parameters, each as its offset from the posterior median in the "
+                  "unit its axis names; dashed: the 5, 50 and 95 % quantiles.",
+    "mitsuba_vs_measured.png": "Mitsuba 3's render of the fitted BSDF at each measured geometry against the measured "
+                               "value (log-log, one colour per channel); dashed: equality.",
+    "preview_side_by_side.png": "Sphere previews: the fit (left) beside the measured or true simulated BSDF (right).",
+}
+ORDER = ["inplane.png", "polar.png", "residuals.png", "albedo.png", "measured.png", "coverage.png", "corner.png",
+         "mitsuba_vs_measured.png", "preview_side_by_side.png"]
+
+
+def _figures(images: dict) -> dict:
+    """Each PNG with its number (in the page's order), caption and alt text."""
+    names = [n for n in ORDER if n in images] + [n for n in images if n not in ORDER]
+    return {name: {"b64": base64.b64encode(images[name]).decode("ascii"), "number": k + 1,
+                   "caption": CAPTIONS.get(name, name), "alt": f"{name}: {CAPTIONS.get(name, name)[:100]}"}
+            for k, name in enumerate(names)}
+
+
+def _partners(dataset_path, n):
+    """The dataset's reciprocal_partner index (int64), or None when absent or malformed."""
+    import xarray as xr
+
+    try:
+        with xr.open_dataset(dataset_path, engine="h5netcdf") as ds:
+            if "reciprocal_partner" not in ds.variables:
+                return None
+            partner = np.asarray(ds["reciprocal_partner"].values, dtype=float)
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+    if partner.shape != (n,) or not np.all(np.isfinite(partner)):
+        return None
+    return partner.astype(np.int64)
+
+
+def _draw_all(meas, model, params, samples, rendered, side, notes) -> dict:
+    images: dict[str, bytes] = {}
+    if model is not None:
+        for name, fn in (("inplane.png", figs.inplane), ("polar.png", figs.polar), ("residuals.png", figs.residuals)):
+            figs.draw(images, notes, name, fn, meas, model, params)
+        figs.draw(images, notes, "albedo.png", figs.albedo, model, params)
+    else:
+        figs.draw(images, notes, "measured.png", figs.inplane, meas)
+    figs.draw(images, notes, "coverage.png", figs.coverage, meas)
+    if samples is not None:
+        figs.draw(images, notes, "corner.png", figs.corner_plot, *samples)
+    if rendered is not None:
+        figs.draw(images, notes, "mitsuba_vs_measured.png", figs.mitsuba_vs_measured, meas, rendered)
+    if side is not None:
+        images["preview_side_by_side.png"] = side
+    return images
+
+
+def build_page(folder, found: dict, root: Folder) -> tuple[str, dict]:
+    """Read and check every input, draw the figures and fill the template; write nothing."""
+    import jinja2
+
+    meas = _load_dataset(root, found["dataset"])
+    ctx = {"notes": [], "fit": None, "speed": None, "render": None, "preview": None, "mitsuba": None,
+           "results": None}
+    ctx["capture"] = capture_section(meas, found["dataset"])
+    ident = meta.identification(meas, root, found.get("journal"))
+    ctx["ident"] = ident
+    ctx["title"] = cut(f"sample {ident['sample_id']}, " if ident["sample_id"] else "", 200) + \
+        cut(f"session folder {Path(folder).resolve().name}", 200)
+    fit = model = params = samples = rendered = side = None
+    if found["fit"] is not None:
+        fit, model, params = _load_fit(root, found["fit"])
+        truth = meas.attrs.get("sample_truth")
+        truth = truth if isinstance(truth, dict) else None
+        ctx["fit"] = fit_section(fit, truth)
+        ctx["results"] = meta.results(fit, truth_for(truth, model.name, [k for k, _ in fit.items("parameters")]),
+                                      meas.attrs.get("scale_rel_std"))
+        samples = posterior_samples(fit)
+        ctx["mitsuba"] = mitsuba_section(model, params, fit)
+    if found["speed"] is not None:
+        ctx["speed"] = speed_section(root.read_json(found["speed"], "speed file", fix=FIX_SPEED))
+    if found["render"] is not None:
+        ctx["render"], rendered = render_section(root.read_json(found["render"], "render summary", fix=FIX_RENDER), meas)
+    if found["preview"] is not None:
+        ctx["preview"], side = preview_section(root.read_json(found["preview"], "preview summary", fix=FIX_PREVIEW),
+                                               root, found["preview"])
+    ctx["status"] = meta.status(meas, ident["planned"], fit, _partners(found["dataset"], meas.n_points))
+    ctx["status_bad"] = any(s["level"] == "bad" for s in ctx["status"])
+
+    # every input is read and checked: now the figures and the view's data
+    notes = ctx["notes"]
+    images = _draw_all(meas, model, params, samples, rendered, side, notes)
+    if ctx["preview"] is not None and ctx["preview"]["note"]:
+        notes.append(ctx["preview"]["note"])
+    ctx["figures"] = _figures(images)
+    ctx["view"] = view_data(meas, model, params)
+
+    script = (TEMPLATES / "report.js").read_text(encoding="utf-8").removesuffix("\n")
+    ctx["script_hash"] = base64.b64encode(hashlib.sha256(script.encode("utf-8")).digest()).decode("ascii")
+    env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
+                             undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
+    return env.get_template("report.html.j2").render(**ctx), images
+
+
+def write_report(folder, out=None) -> Path:
+    """Write the HTML report for ``folder``; returns its path.
+
+    Every input is read and checked before anything is written; a bad one is refused with a
+    one-line :class:`GonioError`. The report and its ``*_files`` PNGs are written atomically,
+    with the mode the user's umask gives.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+    found = find_outputs(folder)
+    root = Folder(folder)
+    out = Path(out) if out else Path(folder) / "report.html"
+    image_dir = _check_out(out)
+    page, images = build_page(folder, found, root)
+    try:
+        image_dir.mkdir(parents=True, exist_ok=True)
+        for name, data in images.items():
+            with atomic_open(image_dir / name, "wb") as fh:
+                fh.write(data)
+        with atomic_open(out, "w", encoding="utf-8") as fh:
+            fh.write(page)
+    except OSError as exc:
+        raise GonioError(f"cannot write the report {out}: {exc.strerror or exc}; free space or choose another --out") from None
+    return out

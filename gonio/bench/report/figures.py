@@ -1,0 +1,222 @@
+"""The report's figures (matplotlib, PNG bytes), drawn from values the report has checked.
+
+Each figure function returns ``{file name: PNG bytes}``; :func:`draw` runs them and turns a
+figure that cannot be drawn (a degenerate posterior, values matplotlib refuses) into a note
+for the report instead of a traceback. Text from input files reaches a figure only through
+:func:`label`, which stops matplotlib reading it as mathtext.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from gonio.fitting.plots import (in_plane_mask, log_ticks, plot_coverage, plot_in_plane, plot_residuals,
+                                 safe_label)
+from gonio.core.geometry import angles as _angles
+
+__all__ = ["draw", "label"]
+
+COLOURS = ["tab:red", "tab:green", "tab:blue"]
+
+
+_log_ticks = log_ticks
+label = safe_label
+
+
+def _png(fig) -> bytes:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def draw(images: dict, notes: list, name: str, fn, *args) -> None:
+    """Add ``fn(*args)``'s figures to ``images``; on failure add a note saying which and why."""
+    import matplotlib.pyplot as plt
+
+    try:
+        images.update(fn(*args))
+    except (ValueError, TypeError, IndexError, OverflowError, FloatingPointError, RuntimeError) as exc:
+        plt.close("all")
+        notes.append(f"figure {name} could not be drawn: {' '.join(str(exc).split())[:200]}")
+
+
+def angles(meas):
+    theta_i, phi_i = _angles(meas.wi)
+    theta_o, phi_o = _angles(meas.wo)
+    return np.degrees(theta_i), np.degrees(theta_o), phi_i, phi_o
+
+
+def coverage(meas) -> dict:
+    """The detector directions (`gonio.fitting.plots.plot_coverage`)."""
+    return {"coverage.png": _png(plot_coverage(meas))}
+
+
+def _in_plane(meas):
+    return in_plane_mask(meas)
+
+
+def inplane(meas, model=None, params=None) -> dict:
+    """Measured (and fitted, where a fit is given), in the plane of incidence, for up to four
+    incidence angles (`gonio.fitting.plots.plot_in_plane`): ``inplane.png`` with a fit,
+    ``measured.png`` without; nothing when no point lies in the plane."""
+    if not np.any(in_plane_mask(meas)[1]):
+        return {}
+    fig = plot_in_plane(meas, model, params)
+    return {("inplane.png" if model is not None else "measured.png"): _png(fig)}
+
+
+def polar(meas, model, params) -> dict:
+    """At the incidence with the most out-of-plane points: the fit over the whole hemisphere
+    (background), the measurements on the same colour scale (dots), and their ratio."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    theta_i, theta_o, phi_i, phi_o = angles(meas)
+    _, in_plane = _in_plane(meas)
+    out_of_plane = ~in_plane
+    if not out_of_plane.any():
+        return {}
+    fitted = model.eval(meas.wi, meas.wo, params)
+    groups, counts = np.unique(np.round(theta_i[out_of_plane]), return_counts=True)
+    ti = float(groups[np.argmax(counts)])
+    sel = np.abs(theta_i - ti) < 0.6
+    phi_in = float(np.median(phi_i[sel]))
+    t, p = np.meshgrid(np.radians(np.linspace(0, 85, 60)), np.radians(np.linspace(-180, 180, 121)))
+    wo_g = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1).reshape(-1, 3)
+    wi_g = np.tile([np.sin(np.radians(ti)) * np.cos(phi_in), np.sin(np.radians(ti)) * np.sin(phi_in),
+                    np.cos(np.radians(ti))], (wo_g.shape[0], 1))
+    c = 1 if meas.n_channels > 1 else 0
+    grid = model.eval(wi_g, wo_g, params)[:, c].reshape(t.shape)
+    norm = matplotlib.colors.LogNorm(vmin=max(float(grid.min()), 1e-4), vmax=float(grid.max()))
+    # colour bars below their plots: beside them their labels met the next plot's 180 deg label
+    fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(8.4, 4.6), layout="constrained")
+    for ax, title in zip(axes, (f"fit (background), measured (dots); theta_i = {ti:.0f} deg", "measured / fit")):
+        ax.set_ylim(0, 85)
+        ax.set_rticks([30, 60])
+        ax.set_rlabel_position(112.5)
+        ax.tick_params(labelsize=7)
+        ax.set_title(title, fontsize=9)
+    mesh = axes[0].pcolormesh(p, np.degrees(t), grid, norm=norm, cmap="viridis", shading="auto")
+    axes[0].scatter(phi_o[sel], theta_o[sel], c=meas.brdf[sel, c], norm=norm, cmap="viridis", edgecolors="white", s=28)
+    bar = fig.colorbar(mesh, ax=axes[0], shrink=0.6, orientation="horizontal", pad=0.08)
+    bar.set_label(f"f_r {label(meas.channels[c])} (1/sr)", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    bar.ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(numticks=4))
+    bar.ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ratio = meas.brdf[sel, c] / np.maximum(fitted[sel, c], 1e-12)
+    spread = 3 * float(np.std(ratio - 1) + 1e-6)
+    sc = axes[1].scatter(phi_o[sel], theta_o[sel], c=ratio, cmap="coolwarm", s=28, vmin=1 - spread, vmax=1 + spread)
+    bar = fig.colorbar(sc, ax=axes[1], shrink=0.6, orientation="horizontal", pad=0.08)
+    bar.set_label("measured / fit", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    bar.ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(3))
+    bar.ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.4g"))
+    return {"polar.png": _png(fig)}
+
+
+def residuals(meas, model, params) -> dict:
+    """Normalised residuals (`gonio.fitting.plots.plot_residuals`)."""
+    return {"residuals.png": _png(plot_residuals(meas, model, params))}
+
+
+def albedo(model, params) -> dict:
+    """Directional albedo of the fit."""
+    import matplotlib.pyplot as plt
+
+    t = np.radians(np.linspace(0, 85, 35))
+    wo_a = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)
+    alb = model.albedo(wo_a, params)
+    fig, ax = plt.subplots(figsize=(4.2, 3.0), layout="constrained")
+    for c in range(alb.shape[1]):
+        ax.plot(np.degrees(t), alb[:, c], color=COLOURS[c % 3])
+    ax.set_xlabel("theta_o (deg)")
+    ax.set_ylabel("directional albedo")
+    ax.set_ylim(0, max(1.05, float(alb.max()) * 1.05))
+    return {"albedo.png": _png(fig)}
+
+
+def corner_plot(samples: np.ndarray, names, converged: bool) -> dict:
+    import corner
+
+    from matplotlib.ticker import ScalarFormatter
+
+    k = samples.shape[1]
+    # each parameter shown as its offset from the posterior median, so tick labels stay short
+    # (the absolute values made matplotlib print offset texts such as "1e-5+1.2e-1" over them)
+    from matplotlib.ticker import MaxNLocator
+
+    centre = np.median(samples, axis=0)
+    spread = np.std(samples, axis=0)
+    scale = 10.0 ** np.floor(np.log10(np.where(spread > 0, spread, 1.0)))
+    names = [label(n) for n in names] if names else [f"p{i}" for i in range(k)]
+    labels = [f"{n}\n- {c:.6g}" + (f", in {s:.0e}" if s != 1 else "") for n, c, s in zip(names, centre, scale)]
+    fig = corner.corner((samples - centre) / scale, labels=labels, quantiles=[0.05, 0.5, 0.95],
+                        label_kwargs={"fontsize": 7}, max_n_ticks=3, labelpad=0.08)
+    size = max(3.0, 1.9 * k)
+    fig.set_size_inches(size, size)
+    for idx, ax in enumerate(fig.axes):
+        i, j = divmod(idx, k)           # row, column of corner's k x k grid
+        if j > i:                       # its hidden upper triangle
+            continue
+        ax.tick_params(labelsize=6, labelrotation=0)
+        # no tick at an axes' edge (there the labels of neighbouring axes met); labels, without
+        # an offset text, only where corner shows them: the bottom row and the first column
+        axes = [(ax.xaxis, i == k - 1)] + ([(ax.yaxis, j == 0)] if j < i else [])
+        for axis, labelled in axes:
+            axis.set_major_locator(MaxNLocator(3, prune="both"))
+            if labelled:
+                axis.set_major_formatter(ScalarFormatter(useOffset=False))
+    fig.suptitle("posterior (emcee)" + ("" if converged else ": chain too short, see advice"), fontsize=9)
+    return {"corner.png": _png(fig)}
+
+
+def mitsuba_vs_measured(meas, rendered: np.ndarray) -> dict:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.2, 4.0), layout="constrained")
+    for c in range(min(3, rendered.shape[1], meas.n_channels)):
+        ax.loglog(meas.brdf[:, c], rendered[:, c], "o", ms=3, color=COLOURS[c])
+    positive = meas.brdf[meas.brdf > 0]
+    lim = [max(1e-4, float(np.min(positive)) * 0.8 if positive.size else 1e-4), max(float(np.max(meas.brdf)) * 1.2, 1e-3)]
+    ax.plot(lim, lim, "k--", lw=0.8)
+    _log_ticks(ax.xaxis)
+    _log_ticks(ax.yaxis)
+    ax.set_xlabel("measured f_r (1/sr)")
+    ax.set_ylabel("Mitsuba render of the fit (1/sr)")
+    return {"mitsuba_vs_measured.png": _png(fig)}
+
+
+def text_overlaps(fig) -> list[tuple[str, str]]:
+    """Pairs of text artists of ``fig`` that a draw actually draws (tick labels outside the view
+    are not) whose tight bounding boxes, in display pixels, intersect: labels printed over
+    each other. Used by the suite on every figure of the report."""
+    from matplotlib.text import Text
+
+    drawn = []
+    original = Text.draw
+
+    def record(self, renderer):
+        original(self, renderer)
+        if self.get_visible() and self.get_text().strip():
+            drawn.append((self.get_text(), self.get_window_extent(renderer)))
+
+    Text.draw = record
+    try:
+        fig.canvas.draw()
+    finally:
+        Text.draw = original
+    out = []
+    for a in range(len(drawn)):
+        for b in range(a + 1, len(drawn)):
+            ba, bb = drawn[a][1], drawn[b][1]
+            # strict intersection (touching edges is not overlapping)
+            if ba.x0 < bb.x1 and bb.x0 < ba.x1 and ba.y0 < bb.y1 and bb.y0 < ba.y1:
+                out.append((drawn[a][0], drawn[b][0]))
+    return out

@@ -1,0 +1,402 @@
+"""The session folder and its crash-safe journal.
+
+::
+
+    session/
+      .lock           flock'ed by the one process that writes into the folder (taken first)
+      session.toml    plan, instrument settings, ports, versions, seed, sample truth: written
+                      ONCE, before the first move (checked by `gonio.bench.session.integrity`)
+      journal.sqlite  WAL, synchronous=FULL: one committed row per finished point and per dark
+                      frame, with the RAW files' SHA-256; RAW names reserved before writing
+      raw/            RAW files (temporary name, fsync, rename; never overwritten)
+      dataset.nc      after export
+
+A point's row is written in one transaction after everything about it succeeded; a crash at
+any moment leaves either the whole row or none of it.
+"""
+
+# The lock is taken before anything else is written. session.toml goes through a temporary
+# name; its SHA-256 and text are recorded in the journal and checked by every resume and
+# export. Every RAW file's name is reserved (committed) before the camera writes it, and the
+# journal is the only record of what is done: a file in raw/ that it does not name means the
+# journal lost commits.
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import hashlib
+import json
+import math
+import os
+import platform
+import sqlite3
+import time
+import tomllib
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from gonio.core.files import sha256_file, write_new_text
+from gonio.core.preflight import mount_of
+from gonio.core.errors import SessionError
+
+__all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "LOCK_FILE", "Journal", "SessionLock", "write_session",
+           "read_session", "session_text", "verify_files", "damaged_files", "dumps_toml", "versions"]
+
+SESSION_FILE = "session.toml"
+JOURNAL_FILE = "journal.sqlite"
+RAW_DIR = "raw"
+LOCK_FILE = ".lock"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS calibration (   -- dark and flat-field frames
+    name TEXT PRIMARY KEY,       -- e.g. "dark:0.004", "flat:3"
+    kind TEXT NOT NULL,          -- "dark" | "flat"
+    seconds REAL NOT NULL,
+    file TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    finished REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS points (
+    idx INTEGER PRIMARY KEY,
+    theta_i REAL, phi_i REAL, theta_o REAL, phi_o REAL,
+    yaw REAL, tilt REAL, azimuth REAL, lamp REAL,
+    brdf TEXT NOT NULL,          -- JSON [R, G, B], sr^-1
+    brdf_std TEXT NOT NULL,      -- JSON [R, G, B], sr^-1, 1-sigma
+    saturated INTEGER NOT NULL,
+    detail TEXT NOT NULL,        -- JSON: exposures, files, checksums, monitor, region statistics
+    finished REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS session (       -- what session.toml was when the session started
+    key TEXT PRIMARY KEY,        -- "sha256", "text", "doc" (canonical JSON)
+    value TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS files (         -- every RAW file name, reserved before it is written
+    file TEXT PRIMARY KEY,
+    reserved REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS superseded (    -- point rows replaced by a new measurement
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    idx INTEGER NOT NULL,
+    row TEXT NOT NULL,           -- JSON of the old points row
+    why TEXT NOT NULL,
+    time REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    time REAL NOT NULL,
+    kind TEXT NOT NULL,
+    text TEXT NOT NULL
+);
+"""
+
+
+class SessionLock:
+    """An exclusive lock on a session folder while a process measures into it.
+
+    ``flock`` on ``.lock``: the kernel releases it when the process dies, however it dies, so
+    a killed capture never leaves a stale lock behind.
+    """
+
+    def __init__(self, folder: str | Path):
+        self.path = Path(folder) / LOCK_FILE
+        self.fd = None
+
+    def __enter__(self) -> "SessionLock":
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.fd)
+            self.fd = None
+            raise SessionError(f"{self.path.parent} is in use by another capture; wait for it or stop it first") from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def versions() -> dict[str, str]:
+    """Versions of gonio, Python and the packages a dataset depends on."""
+    out = {"python": platform.python_version()}
+    for pkg in ("gonio", "numpy", "scipy", "pyserial", "rawpy", "xarray", "h5netcdf"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "unknown"
+    return out
+
+
+class Journal:
+    """The SQLite journal of a session (WAL mode, ``synchronous=FULL``)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        try:
+            self.db = sqlite3.connect(str(self.path), isolation_level=None, timeout=30.0)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.executescript(_SCHEMA)
+        except sqlite3.DatabaseError as exc:
+            if getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL or "disk is full" in str(exc):
+                raise                            # not damage: the caller says the disk is full
+            raise SessionError(f"journal {self.path} is unreadable ({exc}); the session folder is damaged") from None
+
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> "Journal":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def record_frame(self, name: str, kind: str, seconds: float, file: str, sha256: str) -> None:
+        """Commit a calibration frame (``kind`` "dark" or "flat", exposure s, file relative to the session)."""
+        self.record_frames([(name, kind, seconds, file, sha256)])
+
+    def record_frames(self, rows: Iterable[tuple[str, str, float, str, str]]) -> None:
+        """Commit a set of calibration frames, ``(name, kind, seconds, file, sha256)`` each, in
+        one transaction: all of them or none (the flat field's set)."""
+        now = time.time()
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany("INSERT OR REPLACE INTO calibration VALUES (?, ?, ?, ?, ?, ?)",
+                                [(*row, now) for row in rows])
+
+    def frames(self, kind: str) -> dict[str, tuple[float, str, str]]:
+        """``{name: (seconds, file, sha256)}`` of the committed calibration frames of ``kind``."""
+        return {r[0]: (r[1], r[2], r[3]) for r in self.db.execute(
+            "SELECT name, seconds, file, sha256 FROM calibration WHERE kind = ? ORDER BY name", (kind,))}
+
+    def forget_frames(self, kind: str) -> None:
+        """Drop the calibration frames of ``kind`` (an incomplete set is taken again whole)."""
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("DELETE FROM calibration WHERE kind = ?", (kind,))
+
+    # -- the session record and the RAW file names -------------------------------------
+    def record_session(self, text: str, doc: Mapping[str, Any]) -> None:
+        """Record session.toml (its SHA-256, text and parsed content) once, when the session starts."""
+        rows = [("sha256", hashlib.sha256(text.encode("utf-8")).hexdigest()), ("text", text),
+                ("doc", json.dumps(doc, sort_keys=True, default=str))]
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany("INSERT INTO session VALUES (?, ?)", rows)
+
+    def session_record(self) -> dict[str, str]:
+        """``{"sha256", "text", "doc"}`` as recorded (empty if the session was never recorded)."""
+        return dict(self.db.execute("SELECT key, value FROM session"))
+
+    def reserve(self, file: str) -> None:
+        """Commit a RAW file's name before the camera writes it (so no file goes unaccounted for)."""
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("INSERT INTO files VALUES (?, ?)", (file, time.time()))
+
+    def reserve_all(self, files: Iterable[str]) -> None:
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany("INSERT OR IGNORE INTO files VALUES (?, ?)", [(f, time.time()) for f in files])
+
+    def reserved(self) -> set[str]:
+        """Every RAW file name the journal ever reserved."""
+        return {r[0] for r in self.db.execute("SELECT file FROM files")}
+
+    def supersede(self, idxs: Iterable[int], why: str) -> list[int]:
+        """Move the rows of points ``idxs`` to ``superseded`` (one transaction): they are measured again."""
+        idxs = sorted({int(i) for i in idxs})
+        moved = []
+        with self.db:
+            self.db.execute("BEGIN")
+            for i in idxs:
+                cur = self.db.execute("SELECT * FROM points WHERE idx = ?", (i,))
+                row = cur.fetchone()
+                if row is None:
+                    continue
+                names = [d[0] for d in cur.description]
+                self.db.execute("INSERT INTO superseded (idx, row, why, time) VALUES (?, ?, ?, ?)",
+                                (i, json.dumps(dict(zip(names, row))), why, time.time()))
+                self.db.execute("DELETE FROM points WHERE idx = ?", (i,))
+                moved.append(i)
+        return moved
+
+    def forget_frame(self, name: str) -> None:
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("DELETE FROM calibration WHERE name = ?", (name,))
+
+    def insert_rows(self, table: str, rows: list[dict[str, Any]]) -> None:
+        """Insert rows salvaged from a damaged journal (``--rebuild-journal``) as they were."""
+        if not rows:
+            return
+        names = list(rows[0])
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.executemany(f"INSERT INTO {table} ({', '.join(names)}) VALUES ({', '.join('?' * len(names))})",
+                                [tuple(r[n] for n in names) for r in rows])
+
+    def record_point(self, idx: int, angles: Iterable[float], stage: Iterable[float], brdf, brdf_std,
+                     saturated: bool, detail: Mapping[str, Any]) -> None:
+        """Commit one finished point in a single transaction."""
+        row = (int(idx), *map(float, angles), *map(float, stage),
+               json.dumps([float(v) for v in brdf]), json.dumps([float(v) for v in brdf_std]),
+               int(bool(saturated)), json.dumps(detail, sort_keys=True), time.time())
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("INSERT INTO points VALUES (" + ",".join("?" * len(row)) + ")", row)
+
+    def done(self) -> set[int]:
+        """Indices of the committed points."""
+        return {r[0] for r in self.db.execute("SELECT idx FROM points")}
+
+    def points(self) -> list[dict[str, Any]]:
+        """Every committed point as a dict (JSON columns decoded), by plan index."""
+        cur = self.db.execute("SELECT * FROM points ORDER BY idx")
+        names = [d[0] for d in cur.description]
+        out = []
+        for r in cur:
+            d = dict(zip(names, r))
+            for k in ("brdf", "brdf_std", "detail"):
+                d[k] = json.loads(d[k])
+            out.append(d)
+        return out
+
+    def event(self, kind: str, text: str) -> None:
+        """Log an event (pause, resume, warning, fault) with the wall time."""
+        with self.db:
+            self.db.execute("BEGIN")
+            self.db.execute("INSERT INTO events (time, kind, text) VALUES (?, ?, ?)", (time.time(), kind, text))
+
+    def first_event(self, kind: str) -> str | None:
+        """Text of the first event of ``kind`` (e.g. the session's reference monitor reading), or None."""
+        row = self.db.execute("SELECT text FROM events WHERE kind = ? ORDER BY id LIMIT 1", (kind,)).fetchone()
+        return None if row is None else row[0]
+
+    def events(self) -> list[tuple[float, str, str]]:
+        return list(self.db.execute("SELECT time, kind, text FROM events ORDER BY id"))
+
+
+# -- session.toml ---------------------------------------------------------------------------
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):        # JSON's escapes are TOML's; TOML also wants DEL escaped
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if hasattr(v, "tolist"):
+        return _toml_value(v.tolist())
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml_key(k) -> str:
+    """A bare key where TOML allows one (A-Za-z0-9_-), else a quoted one."""
+    k = str(k)
+    bare = k.isascii() and k.replace("_", "").replace("-", "").isalnum()
+    return k if bare else _toml_value(k)
+
+
+def dumps_toml(doc: Mapping[str, Any], _prefix: str = "") -> str:
+    """Serialise nested dicts of scalars and lists to TOML (enough for session.toml)."""
+    lines, tables = [], []
+    for k, v in doc.items():
+        if isinstance(v, Mapping):
+            tables.append((k, v))
+        else:
+            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v in tables:
+        name = f"{_prefix}{_toml_key(k)}"
+        out += f"\n[{name}]\n" + dumps_toml(v, name + ".")
+    return out
+
+
+def session_text(doc: Mapping[str, Any]) -> str:
+    """The text of ``session.toml`` for ``doc`` (checked to read back)."""
+    text = dumps_toml(doc)
+    tomllib.loads(text)                     # never write what cannot be read back
+    return text
+
+
+def write_session(folder: str | Path, doc: Mapping[str, Any] | str) -> Path:
+    """Create the session folder (and ``raw/``) and write ``session.toml`` once, through a
+    temporary name; `SessionError` if the folder already has one (it is never replaced)."""
+    folder = Path(folder)
+    text = doc if isinstance(doc, str) else session_text(doc)
+    try:
+        (folder / RAW_DIR).mkdir(parents=True, exist_ok=True)
+        write_new_text(folder / SESSION_FILE, text)
+    except FileExistsError:
+        raise SessionError(f"{folder} already holds a session; resume it with --resume {folder} "
+                           "or choose another --out") from None
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise SessionError(f"cannot write the session to {folder}: the disk at {mount_of(folder)} is full "
+                               f"({exc.strerror}); free some space and run the command again, or choose "
+                               "another --out") from None
+        raise SessionError(f"cannot write the session to {folder} ({exc.strerror}); choose another --out") from None
+    return folder / SESSION_FILE
+
+
+def read_session(folder: str | Path) -> dict[str, Any]:
+    """Read ``session.toml``; `SessionError` (one line) if the folder is not a session."""
+    folder = Path(folder)
+    path = folder / SESSION_FILE
+    if not path.is_file():
+        raise SessionError(f"{folder} is not a gonio session (no {SESSION_FILE}); give the folder a capture wrote")
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SessionError(f"{path} is corrupt ({exc}); the session cannot be resumed") from None
+
+
+def _bad(folder: Path, file: str, digest: str) -> bool:
+    p = folder / file
+    try:
+        return not p.is_file() or sha256_file(p) != digest
+    except OSError:
+        return True
+
+
+def damaged_files(folder: str | Path, journal: Journal) -> tuple[dict[str, str], dict[int, str]]:
+    """Journalled RAW files that are missing or whose checksum does not match.
+
+    Returns ``({calibration name: file}, {point index: first bad file})``.
+    """
+    folder = Path(folder)
+    cal = {name: file for kind in ("dark", "flat") for name, (_, file, digest) in journal.frames(kind).items()
+           if _bad(folder, file, digest)}
+    points = {}
+    for row in journal.points():
+        for e in row["detail"].get("exposures", []):
+            if _bad(folder, e["file"], e["sha256"]):
+                points[int(row["idx"])] = e["file"]
+                break
+    return cal, points
+
+
+def verify_files(folder: str | Path, journal: Journal) -> list[str]:
+    """RAW files the journal names whose checksum does not match (missing or corrupt)."""
+    folder = Path(folder)
+    bad = []
+    for _, file, digest in [v for kind in ("dark", "flat") for v in journal.frames(kind).values()]:
+        if _bad(folder, file, digest):
+            bad.append(file)
+    for row in journal.points():
+        for e in row["detail"].get("exposures", []):
+            if _bad(folder, e["file"], e["sha256"]):
+                bad.append(e["file"])
+    return bad

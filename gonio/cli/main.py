@@ -1,0 +1,521 @@
+"""The ``gonio`` command line: a thin layer over library calls.
+
+Every command has ``--help``. Errors the user can fix print one line on stderr
+(``gonio: error: ...``) and exit with status 2, without a traceback; nothing half-written is
+left behind (every file is written to a temporary name and renamed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import signal
+import sys
+from importlib import metadata
+from pathlib import Path
+
+from gonio.core.errors import GonioError
+
+__all__ = ["main", "build_parser"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (usage stays available through --help)."""
+
+    def error(self, message):
+        sys.stderr.write(f"gonio: error: {message} (see `{self.prog} --help`)\n")
+        raise SystemExit(2)
+
+
+def _version() -> str:
+    try:
+        return metadata.version("gonio")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _seed(text: str) -> int:
+    """A seed: an integer from 0 to 2**63 - 1 (numpy's generators take no negative seed)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid seed {text!r}: give an integer from 0 to 2**63 - 1") from None
+    if not 0 <= value < 2 ** 63:
+        raise argparse.ArgumentTypeError(f"seed {value} is out of range: give an integer from 0 to 2**63 - 1")
+    return value
+
+
+def _env(func):
+    """Environment errors (disk full, read-only, binary garbage) inside a command: one line, exit 2."""
+    @functools.wraps(func)
+    def run(args):
+        from gonio.core.preflight import environment_errors
+
+        if getattr(args, "out", None) is not None and not str(args.out).strip():
+            raise GonioError("--out is empty; give a path")
+        with environment_errors():
+            return func(args)
+    return run
+
+
+# --------------------------------------------------------------------------- commands
+@_env
+def _cmd_demo(args):
+    from gonio.cli.demo import run_demo
+
+    run_demo(out=Path(args.out), seed=args.seed, plan=args.plan, posterior=args.posterior)
+
+
+@_env
+def _cmd_capture(args):
+    from gonio.cli import capture as session_runner
+
+    if args.resume:
+        given = [f for f, v in (("--sample-id", args.sample_id), ("--sample-description", args.sample_description),
+                                ("--operator", args.operator)) if v is not None]
+        if given:
+            raise GonioError(f"{given[0]} is recorded when a session starts; a resume keeps the session's own")
+        return session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
+                                         camera=args.camera, progress=not args.quiet,
+                                         rebuild_journal=args.rebuild_journal, remeasure=args.remeasure,
+                                         restore_session=args.restore_session)
+    for flag, given in (("--rebuild-journal", args.rebuild_journal), ("--remeasure", args.remeasure),
+                        ("--restore-session", args.restore_session)):
+        if given:
+            raise GonioError(f"{flag} repairs an existing session: use it with --resume DIR")
+    if args.out is None and not args.dry_run:       # a dry run writes nothing: no folder needed
+        raise GonioError("capture needs --out DIR (a new session folder) or --resume DIR")
+    if not args.sim and not args.port:
+        raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
+    from gonio.bench.settings import load_settings
+
+    # the settings file and the [session] options (sample id, description, operator), checked
+    # before anything is written; session.toml records them with the other settings
+    settings = load_settings(args.settings, _session_options(args))
+    return session_runner.capture_cli(Path(args.out) if args.out is not None else None, sim=args.sim,
+                                      sample=args.sample, plan=args.plan, seed=args.seed, settings=settings,
+                                      port=args.port, meter_port=args.meter_port, camera=args.camera,
+                                      dry_run=args.dry_run, progress=not args.quiet,
+                                      errors=args.errors, calibration=args.calibration)
+
+
+@_env
+def _cmd_calibrate(args):
+    from gonio.bench.calibrate import calibrate_cli
+    from gonio.cli.capture import _camera
+
+    return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed,
+                         port=args.port, meter_port=args.meter_port, camera=_camera(args.camera) if args.camera else None)
+
+
+@_env
+def _cmd_export(args):
+    from gonio.bench.dataset.export import export
+
+    path = export(Path(args.session), chart=Path(args.colour_chart) if args.colour_chart else None)
+    done, planned, complete = _export_counts(path)
+    if complete is False or (planned is not None and done is not None and done < planned):
+        of = f"{done} of {planned} planned points" if planned is not None else f"{done} points, the plan not finished"
+        print(f"wrote {path}: PARTIAL, {of} (the session stopped early; "
+              f"`gonio capture --resume {args.session}` measures the rest, then export again)")
+    else:
+        print(f"wrote {path}" + (f" ({done} points)" if done is not None else ""))
+
+
+def _export_counts(path):
+    """(points in the dataset, points planned, complete) from its attributes; None where not recorded."""
+    import xarray as xr
+
+    try:
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            done = int(ds.sizes.get("point", 0))
+            plan = json.loads(ds.attrs.get("plan", "{}"))
+            complete = ds.attrs.get("complete")
+    except (OSError, ValueError, TypeError):
+        return None, None, None
+    planned = len(plan["points"]) if isinstance(plan, dict) and isinstance(plan.get("points"), list) else None
+    return done, planned, (None if complete is None else bool(int(complete)))
+
+
+@_env
+def _cmd_fit(args):
+    from gonio.cli.fit import fit_batch_cli, fit_cli
+
+    if args.batch:
+        fit_batch_cli([Path(d) for d in args.dataset], model=args.model, options=args.option, out=Path(args.out),
+                      seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers,
+                      dashboard=args.dashboard)
+        return
+    if len(args.dataset) != 1:
+        raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")
+    if args.scene is not None:
+        from gonio.cli.scene import fit_scene_cli
+
+        if args.posterior or args.colour_space != "srgb":
+            raise GonioError("--scene fits a measured material in linear sRGB; leave out --posterior and --colour-space")
+        fit_scene_cli(Path(args.dataset[0]), scene=args.scene, model=args.model, options=args.option,
+                      out=Path(args.out), seed=args.seed, loss=args.loss, size=args.scene_size, spp=args.scene_spp,
+                      k=args.scene_light_samples, threshold=args.threshold)
+        return
+    fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
+            loss=args.loss, posterior=args.posterior, colour_space=args.colour_space)
+
+
+@_env
+def _cmd_render(args):
+    from gonio.cli.fit import render_cli
+
+    render_cli(Path(args.fit), Path(args.dataset), Path(args.out), variant=args.variant, preview=args.preview,
+               measured=args.measured, size=args.size, spp=args.spp)
+
+
+@_env
+def _cmd_convert(args):
+    from gonio.cli.convert import convert_cli
+
+    convert_cli(Path(args.source), Path(args.out), args.to)
+
+
+@_env
+def _cmd_report(args):
+    from gonio.core.preflight import check_output_file
+    from gonio.bench.report import write_report
+
+    folder = Path(args.folder)
+    if folder.is_dir():     # (a missing folder gets write_report's own one line)
+        check_output_file(Path(args.out) if args.out else folder / "report.html", "report file")
+    path = write_report(folder, Path(args.out) if args.out else None)
+    print(f"wrote {path}")
+
+
+def _cmd_settings_show(args):
+    from gonio.bench.settings import show_settings
+
+    print("\n".join(show_settings(args.settings, _session_options(args))))
+
+
+def _session_options(args) -> dict:
+    """``--sample-id``, ``--sample-description``, ``--operator`` as a ``[session]`` settings table."""
+    return {"session": {"sample_id": getattr(args, "sample_id", None),
+                        "sample_description": getattr(args, "sample_description", None),
+                        "operator": getattr(args, "operator", None)}}
+
+
+def _add_session_options(parser) -> None:
+    parser.add_argument("--sample-id", help="the sample's identifier, recorded in session.toml and the report "
+                                            "(or [session] sample_id in the settings)")
+    parser.add_argument("--sample-description", help="what the sample is (recorded; shown in the report)")
+    parser.add_argument("--operator", help="who measures (recorded; shown in the report)")
+
+
+def _check_clock(spec: str) -> None:
+    """``--clock``: instant, realtime/real, or a finite time scale factor > 0."""
+    if str(spec).strip().lower() in ("instant", "realtime", "real"):
+        return
+    try:
+        scale = float(spec)
+    except ValueError:
+        scale = math.nan
+    if not (math.isfinite(scale) and 1e-6 <= scale <= 1e6):
+        raise GonioError(f"--clock {spec!r}: use instant, realtime or a time scale factor between 1e-6 and 1e6 "
+                         "such as 10")
+
+
+@_env
+def _cmd_sim_serve(args):
+    from gonio.cli import capture as session_runner
+
+    _check_clock(args.clock)
+    # SIGTERM and SIGHUP end the server like Ctrl-C: ptys closed, its /tmp/gonio-sim-* folder removed
+
+    def _stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        session_runner.serve_cli(sample=args.sample, seed=args.seed, settings=args.settings, clock=args.clock,
+                                 faults=args.faults)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _cmd_estop(args):
+    from gonio.bench.drivers.zaber import emergency_stop
+
+    emergency_stop(args.port, baudrate=args.baud)
+    print("emergency stop sent to every device")
+
+
+@_env
+def _cmd_bench_models(args):
+    try:
+        from gonio.perf.models import run
+    except ImportError:
+        raise GonioError("this build of gonio.models has no benchmark") from None
+    if not 1_000 <= args.n <= 10_000_000:
+        raise GonioError(f"-n {args.n}: give a batch of direction pairs between 1000 and 10000000")
+    run(n=args.n)
+
+
+@_env
+def _cmd_bench_fit(args):
+    from gonio.perf.fit import run, run_real
+
+    if args.real:
+        files = [Path(f) for f in args.real]
+        for f in files:
+            if not f.is_file() or f.suffix.lower() not in (".bsdf", ".binary"):
+                raise GonioError(f"--real {f}: give measured RGL .bsdf or MERL .binary files that exist")
+        if args.quick:
+            raise GonioError("--quick is for the synthetic matrix; --real fits each file in full")
+        try:
+            run_real(files, out=Path(args.out) if args.out else None, seed=args.seed)
+        except ValueError as exc:
+            raise GonioError(" ".join(str(exc).split())[:300]) from None
+        return
+    run(quick=args.quick, out=Path(args.out) if args.out else None)
+
+
+# --------------------------------------------------------------------------- parser
+LOSS_HELP = ("chi2 (the data's Gaussian noise; default for dataset.nc), robust (pseudo-Huber on chi2's residuals), "
+             "cosine (Ngan 2005 cosine-weighted L2), log (Loew 2012 ln(1 + f cos) residuals, sandwich covariance; "
+             "default for RGL .bsdf and MERL .binary files, which carry no uncertainty), discrepancy (chi2 with a "
+             "relative and absolute model-discrepancy variance fitted with the model; experimental); every loss "
+             "weights each sample by its solid angle")
+EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_STOPPED = 0, 1, 2, 3
+
+EPILOG = """exit status:
+  0  done (a capture: every point of the plan measured)
+  1  failed: an unexpected error (a bug: please report the traceback)
+  2  refused: bad input or environment, said in one line; nothing was written or changed
+  3  stopped, resumable: a capture stopped before the end (Ctrl-C, SIGTERM, SIGHUP, a fault,
+     the lamp or a port lost); the session is consistent: `gonio capture --resume DIR`
+  130 interrupted (Ctrl-C) outside a capture"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="gonio", description="Physically based BRDF measurement and validation bench.",
+                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"gonio {_version()}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    d = sub.add_parser("demo", help="full loop on the simulated instrument: capture, export, fit, render, report")
+    d.add_argument("--out", default="gonio-out", help="output folder (default ./gonio-out)")
+    d.add_argument("--seed", type=_seed, default=1, help="seed of the simulated instrument and the fit (default 1)")
+    d.add_argument("--plan", default="standard", help="plan preset or TOML file (default standard)")
+    d.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=True,
+                   help="also sample the posterior with emcee (default on)")
+    d.set_defaults(func=_cmd_demo)
+
+    c = sub.add_parser("capture", help="run a capture session (simulated or real instrument)",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    c.add_argument("--sim", action="store_true", help="use the simulated instrument in this process")
+    c.add_argument("--sample", help="sample TOML or measured .bsdf file (simulated instrument only)")
+    c.add_argument("--plan", default="standard", help="preset (quick, standard, dense) or plan TOML/CSV file")
+    c.add_argument("--out", help="new session folder")
+    c.add_argument("--resume", metavar="DIR", help="finish an interrupted session")
+    c.add_argument("--seed", type=int, default=0, help="seed (simulated noise and faults)")
+    c.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
+    c.add_argument("--errors", choices=["ideal", "typical", "poor"],
+                   help="simulated instrument's systematic errors (preset of [errors]; default: the settings', else ideal)")
+    c.add_argument("--calibration", metavar="CAL.toml",
+                   help="calibration file from `gonio calibrate`: angles, reference factor and linearity applied")
+    c.add_argument("--port", help="Zaber chain: serial port or pyserial URL (e.g. /dev/ttyUSB0, sim://NAME/zaber)")
+    c.add_argument("--meter-port", help="SCPI power meter: serial port or pyserial URL")
+    c.add_argument("--camera", help="camera: a serial port/URL of a simulated camera, folder:PATH, or gphoto2")
+    c.add_argument("--dry-run", action="store_true", help="print point count, duration estimate, unreachable points; move nothing")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_session_options(c)
+    c.add_argument("--remeasure", metavar="POINTS",
+                   help="with --resume: measure these plan points again, e.g. 3,7,10-12 (points whose RAW files "
+                        "are missing or corrupt are measured again without asking)")
+    c.add_argument("--rebuild-journal", action="store_true",
+                   help="with --resume: replace a missing or damaged journal.sqlite, keeping the points whose RAW "
+                        "files match their recorded checksums (the old journal is kept beside it)")
+    c.add_argument("--restore-session", action="store_true",
+                   help="with --resume: put back session.toml as the journal recorded it when the session started")
+    c.set_defaults(func=_cmd_capture)
+
+    cal = sub.add_parser("calibrate", help="estimate the bench's systematic errors (alignment: zero offsets and "
+                         "holder tilt; detector linearity; the reference's non-Lambertian factor) into a file")
+    cal.add_argument("--sim", action="store_true",
+                     help="calibrate the simulated instrument (in this process, through the drivers and its sim:// ports)")
+    cal.add_argument("--port", help="hardware: Zaber chain port or URL (mount the glossy artefact in the sample slot)")
+    cal.add_argument("--meter-port", help="hardware: SCPI power meter port or URL")
+    cal.add_argument("--camera", help="hardware: camera (a serial port/URL, folder:PATH, or gphoto2)")
+    cal.add_argument("--errors", choices=["ideal", "typical", "poor"],
+                     help="simulated instrument's error preset (default: the settings' [errors], else ideal)")
+    cal.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
+    cal.add_argument("--seed", type=_seed, default=0, help="seed of the simulated instrument (its hidden errors and noise)")
+    cal.add_argument("--out", required=True, help="calibration file to write (TOML)")
+    cal.set_defaults(func=_cmd_calibrate)
+
+    e = sub.add_parser("export", help="write SESSION/dataset.nc from a session's journal")
+    e.add_argument("session", help="session folder")
+    e.add_argument("--colour-chart", metavar="DNG", help="a RAW capture of the ColorChecker in the holder's chart "
+                   "slot: its fit gives the camera -> sRGB matrix and its uncertainty (default: the RAW files' "
+                   "ColorMatrix1)")
+    e.set_defaults(func=_cmd_export)
+
+    f = sub.add_parser("fit", help="fit a model to a dataset")
+    f.add_argument("dataset", nargs="+", help="dataset.nc, a MERL .binary or an RGL .bsdf file (several with --batch)")
+    f.add_argument("--model", default="auto", help="model name, or auto for BIC model selection (default)")
+    f.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="model option, e.g. distribution=beckmann (repeatable)")
+    f.add_argument("--out", required=True, help="fit file to write (JSON)")
+    f.add_argument("--seed", type=_seed, default=0, help="seed of the multi-start and the sampler")
+    f.add_argument("--loss", default=None, help=LOSS_HELP)
+    f.add_argument("--colour-space", default="srgb", metavar="SPACE",
+                   help="fit f_r in srgb (linear sRGB, D65: Mitsuba's rendering space; default), xyz (CIE XYZ) "
+                        "or camera (white-balanced camera RGB); dataset.nc only")
+    f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
+                   help="sample the posterior with emcee")
+    f.add_argument("--batch", action="store_true", help="fit every DATASET on Dask; --out is then a folder")
+    f.add_argument("--scene", metavar="SCENE",
+                   help="model only what a scene needs: overcast, product-shot, close-up-sun or a Mitsuba scene file "
+                        "(.xml, the sample's material <bsdf ... id=\"sample\">); each candidate is refitted to the "
+                        "scene's pixels and rendered beside the measured material (RGL .bsdf or MERL .binary), and "
+                        "the simplest one within --threshold is chosen")
+    f.add_argument("--threshold", type=float, default=1.0, help="with --scene: mean CIEDE2000 a candidate must be "
+                   "below (default 1)")
+    f.add_argument("--scene-size", type=int, default=32, help="with --scene: render size in pixels (default 32)")
+    f.add_argument("--scene-spp", type=int, default=256, help="with --scene: samples per pixel (default 256)")
+    f.add_argument("--scene-light-samples", type=int, default=64,
+                   help="with --scene: light samples a pixel for the pixel fit (default 64)")
+    f.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
+    f.add_argument("--workers", type=int, default=2,
+                   help="local Dask workers (default 2); the local cluster talks TLS with a certificate made for the run")
+    f.add_argument("--dashboard", metavar="HOST:PORT",
+                   help="serve the local cluster's Dask dashboard there, e.g. 127.0.0.1:8787 (default: none)")
+    f.set_defaults(func=_cmd_fit)
+
+    r = sub.add_parser("render", help="re-render a fit in Mitsuba at the dataset's geometry and compare")
+    r.add_argument("fit", help="fit file (JSON)")
+    r.add_argument("--dataset", required=True, help="dataset.nc")
+    r.add_argument("--out", required=True, help="output folder (render.json)")
+    r.add_argument("--variant", help="Mitsuba variant (default: llvm_ad_rgb when it works, else scalar_rgb)")
+    r.add_argument("--preview", action="store_true", help="also render sphere previews under two lightings")
+    r.add_argument("--measured", help="measured data to preview beside the fit: MERL .binary or RGL .bsdf")
+    r.add_argument("--size", type=int, default=128, help="preview size in pixels (default 128)")
+    r.add_argument("--spp", type=int, default=256, help="preview samples per pixel (default 256)")
+    r.set_defaults(func=_cmd_render)
+
+    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict, MERL or PAB-Opto, "
+                                        "a dataset to CSV, MERL or PAB-Opto")
+    cv.add_argument("source", help="fit file (JSON) or dataset.nc")
+    cv.add_argument("--to", required=True,
+                    choices=["mitsuba-xml", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto"],
+                    help="from a fit: mitsuba-xml (a file mitsuba.load_file and <include> load), mitsuba-dict, "
+                         "merl (the model resampled), pabopto (the model on a grid); from a dataset: csv, "
+                         "merl-data (measured values binned, the rest no-data), pabopto (measured values); "
+                         "pabopto writes one file per incident direction into the --out folder, for Radiance's "
+                         "pabopto2bsdf")
+    cv.add_argument("--out", required=True, help="file to write (a folder for --to pabopto); missing folders are made")
+    cv.set_defaults(func=_cmd_convert)
+
+    rep = sub.add_parser("report", help="write a self-contained HTML report of an output folder")
+    rep.add_argument("folder", help="folder with dataset.nc (and fit.json, render/render.json)")
+    rep.add_argument("--out", help="report file (default FOLDER/report.html)")
+    rep.set_defaults(func=_cmd_report)
+
+    st = sub.add_parser("settings", help="instrument settings: show the effective values and where each came from")
+    stsub = st.add_subparsers(dest="settings_command", metavar="WHAT", parser_class=_Parser)
+    stsub.required = True
+    show = stsub.add_parser("show", help="print the effective settings, each value with its source "
+                                         "(default: gonio/bench/instrument.toml, file, option)")
+    show.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
+    _add_session_options(show)
+    show.set_defaults(func=_env(_cmd_settings_show))
+
+    s = sub.add_parser("sim", help="the simulated instrument")
+    ssub = s.add_subparsers(dest="sim_command", metavar="SIMCOMMAND", parser_class=_Parser)
+    ssub.required = True
+    serve = ssub.add_parser("serve", help="serve the simulated instrument on pseudo-terminals and print their paths")
+    serve.add_argument("--sample", help="sample TOML or measured .bsdf file")
+    serve.add_argument("--seed", type=_seed, default=0)
+    serve.add_argument("--settings", help="instrument settings TOML")
+    serve.add_argument("--clock", default="realtime", help="instant, realtime, or a time scale factor such as 10")
+    serve.add_argument("--faults", help="fault schedule TOML")
+    serve.set_defaults(func=_cmd_sim_serve)
+
+    es = sub.add_parser("estop", help="send the emergency stop to every Zaber device at once")
+    es.add_argument("--port", required=True, help="Zaber chain port or URL")
+    es.add_argument("--baud", type=int, default=115200)
+    es.set_defaults(func=_cmd_estop)
+
+    b = sub.add_parser("perf", aliases=["bench"], help="benchmarks: figures as ratios against a peer or a limit")
+    bsub = b.add_subparsers(dest="bench_command", metavar="WHAT", parser_class=_Parser)
+    bsub.required = True
+    bm = bsub.add_parser("models", help="model evaluations per second next to Mitsuba's bsdf.eval")
+    bm.add_argument("-n", type=int, default=1_000_000)
+    bm.set_defaults(func=_cmd_bench_models)
+    bf = bsub.add_parser("fit", help="fit speed against error: gonio vs scipy least_squares, CRLB efficiency")
+    bf.add_argument("--quick", action="store_true", help="a small matrix (about 10 s)")
+    bf.add_argument("--out", help="folder for the CSV table and the PNG plot (with --real: a .csv file or a folder)")
+    bf.add_argument("--real", nargs="+", metavar="FILE",
+                    help="measured materials (RGL .bsdf, MERL .binary): gonio's chosen fit beside a scipy log-loss "
+                         "peer, Ngan and log errors on one dense grid, times from the same run")
+    bf.add_argument("--seed", type=_seed, default=0, help="seed of the fits' starts (with --real)")
+    bf.set_defaults(func=_cmd_bench_fit)
+    from gonio.cli.operator import register as _operator_commands     # devices, home, move, jog, shot; bench capture
+
+    _operator_commands(sub, bsub)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from gonio.fitting import DataError
+    from gonio.models import fast
+
+    problem = fast.env_problem()
+    if problem is not None:              # before any work: Dr.Jit reads them at its first kernel
+        _say(f"gonio: error: {problem}")
+        return EXIT_REFUSED
+    from gonio.fitting import tune_allocator
+
+    tune_allocator()                     # this process is gonio's: the allocator that fits need
+
+    try:
+        rc = args.func(args)
+    except GonioError as exc:
+        session = getattr(exc, "session_dir", None)
+        if type(exc).__name__ == "CaptureInterrupted":      # Ctrl-C twice, SIGTERM, SIGHUP
+            _say(f"gonio: stopped: {exc}")
+            return EXIT_STOPPED
+        if session is not None:                 # raised while measuring: the session stays resumable
+            msg = str(exc)
+            if f"--resume {session}" not in msg:
+                msg += f" (the session is resumable: `gonio capture --resume {session}`)"
+            _say(f"gonio: stopped: {msg}")
+            return EXIT_STOPPED
+        _say(f"gonio: error: {exc}")
+        return EXIT_REFUSED
+    except DataError as exc:
+        sys.stderr.write(f"gonio: error: {' '.join(str(exc).split())}\n")
+        return 2
+    except FileNotFoundError as exc:
+        sys.stderr.write(f"gonio: error: {exc.filename or exc}: no such file; check the path\n")
+        return 2
+    except KeyboardInterrupt:
+        _say("gonio: interrupted")
+        return 130
+    return int(rc or 0)
+
+
+def _say(line: str) -> None:
+    """One line on stderr; a closed terminal (SIGHUP) must not turn it into a traceback."""
+    try:
+        sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

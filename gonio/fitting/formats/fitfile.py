@@ -1,0 +1,420 @@
+"""The fit file (JSON): what was fitted, how well, how sure, and how to render it.
+
+Layout (docs/interfaces.md, architecture.md "A fit file"):
+``model`` {name, options}; ``parameters`` {name: {value, std, ci90, unit, per_channel,
+at_bound, undetermined, method}}; ``covariance`` {names, matrix}; ``constraints``;
+``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used}; ``optimiser``;
+``posterior`` (or null); ``selection`` (for ``--model auto``); ``mitsuba`` (the BSDF dict);
+``provenance`` (versions, seed, dataset path and checksum); ``uncertainty`` (per parameter
+u_stat, u_combined, U = k u_combined with k = 2, and its budget: docs/interfaces.md 5.1);
+``non_finite`` (only when a
+figure was NaN or infinite: the dotted paths written as null, since JSON has no NaN).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import warnings
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+import gonio.models as gm
+from gonio.core.atomic import atomic_open
+
+from gonio.fitting.uncertainty.budget import K_EXPANDED, budget_from_attrs, propagate
+from gonio.fitting.display import table_html, text, value_pm
+from gonio.fitting.formats.mitsuba_xml import mitsuba_document
+
+
+__all__ = ["model_adequacy", "fit_document", "write_json_atomic", "load_fit", "parse_fit", "versions", "NonFiniteWarning",
+           "FitFile"]
+
+FIT_FORMAT = "gonio-fit/1"
+
+
+class NonFiniteWarning(UserWarning):
+    """A document held NaN or inf, which strict JSON cannot; they were written as null."""
+
+
+def versions() -> dict:
+    """Versions of gonio and the libraries whose numbers it reports."""
+    out = {"python": platform.python_version()}
+    for dist in ("gonio", "numpy", "scipy", "mitsuba", "drjit", "nlopt", "emcee", "xarray", "rawpy", "pyserial"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def _jsonable(value, where: str = "", non_finite: list | None = None):
+    """``value`` as plain JSON types; NaN and +-inf become None (JSON null).
+
+    Where ``non_finite`` is a list, the dotted path of every value replaced is appended to it
+    (``goodness.chi2_dof``, ``covariance.matrix[0][1]``), so the writer can say so.
+    """
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v, f"{where}.{k}" if where else str(k), non_finite) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v, f"{where}[{i}]", non_finite) for i, v in enumerate(value)]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist(), where, non_finite)
+    if isinstance(value, np.generic):
+        return _jsonable(value.item(), where, non_finite)
+    if isinstance(value, float) and not np.isfinite(value):
+        if non_finite is not None:
+            non_finite.append(where or "(top level)")
+        return None
+    return value
+
+
+def sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, dataset_path=None, budget=None) -> dict:
+    """Build the fit file's content from a FitResult (and optional posterior and ranking).
+
+    ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting.uncertainty.budget.load_budget`);
+    None reads it from ``meas.attrs`` (type A and ``scale_rel_std``). It fills ``uncertainty``.
+    """
+    space = result.space
+    z90 = 1.6448536269514722  # two-sided 90 % of a standard normal
+    adequate, inflation, warning = model_adequacy(result)
+    uncertainty = _uncertainty(result, meas, budget, result.std * inflation, result.cov * inflation ** 2)
+    if uncertainty["statistical"] is not None and result.loss == "chi2":
+        # the dataset's budget says how far chi2 (weighed by type A alone) should exceed dof
+        adequate, inflation, warning = budget_adequacy(uncertainty["statistical"])
+    params = {}
+    by_name = {p.name: p for p in result.model.parameters}
+    for i, name in enumerate(space.names):
+        entry = space.entries[i]
+        p = by_name[entry.param]
+        std = result.std[i] * inflation
+        # a dataset with shared angle errors: the value corrected for their second-order term's
+        # mean (gonio/fitting/uncertainty/budget.propagate; the optimiser's own point is ``value_fitted``, and the
+        # ``params``/``mitsuba`` tables stay the optimiser's)
+        shift = float(uncertainty["parameters"][name].get("angle_second_order_mean", 0.0))
+        value = float(result.x[i]) - shift
+        item = {"value": value, "std": std, "unit": p.unit, "parameter": entry.param,
+                "channel": space.channels[entry.channel] if entry.channel >= 0 else None,
+                "ci90": [max(value - z90 * std, p.lower), min(value + z90 * std, p.upper)],
+                "method": "laplace", "at_bound": name in result.at_bound, "undetermined": name in result.undetermined}
+        if shift != 0.0:
+            item["value_fitted"] = result.x[i]
+            item["angle_second_order_correction"] = -shift
+        if inflation != 1.0:
+            item["std_statistical"] = result.std[i]
+        if posterior is not None and posterior.converged:
+            item.update(median=posterior.quantiles[50][i],
+                        std_posterior=0.5 * (posterior.quantiles[84][i] - posterior.quantiles[16][i]),
+                        ci90=[posterior.quantiles[5][i], posterior.quantiles[95][i]], method="emcee")
+        params[name] = item
+    doc = {
+        "format": FIT_FORMAT,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "model": {"name": result.model.name, "options": dict(result.model.options)},
+        "params": _jsonable(result.params),
+        "parameters": params,
+        "covariance": {"names": space.names, "matrix": result.cov * inflation ** 2, "inflation": inflation},
+        "constraints": {"energy": result.energy,
+                        "reciprocity": {"by_construction": True,
+                                        "note": "every gonio model is reciprocal (tests/models); data pairs are checked at capture"}},
+        "goodness": {"loss": result.loss, "chi2": result.chi2, "dof": result.dof, "chi2_dof": result.chi2_dof,
+                     "rmse_fr": result.rmse_fr, "rmse_cos_fr": result.rmse_cos_fr, "n_used": result.n_used,
+                     "bic": result.bic,
+                     # sqrt(chi2/dof) (Birge 1932): well above 1 means the model misses the data
+                     # by more than its noise, and the 1-sigma values are statistical only
+                     "birge_ratio": float(np.sqrt(result.chi2_dof)),
+                     "model_adequate": adequate, "std_inflation": inflation, "warning": warning,
+                     "criterion": {"loss": result.loss, "neg2_loglik": result.neg2_loglik, "k": result.k_criterion,
+                                   "bic": result.bic},
+                     "discrepancy": ({k: v for k, v in result.discrepancy.items() if not k.startswith("_")}
+                                     if result.discrepancy else None)},
+        "optimiser": {"method": result.method, "evaluations": result.n_evals, "time_s": result.time_s,
+                      "converged": result.converged, "message": result.message,
+                      "solved_linearly": list(result.linear)},
+        "correlated": [list(pair) for pair in result.correlated],
+        "posterior": None,
+        "selection": [r.row() for r in ranking] if ranking else None,
+        "mitsuba": result.model.to_mitsuba(result.params),
+        # the colour space of every per-channel value here (gonio/fitting/measurements.load_dataset), the matrix
+        # and what the fit leaves out; Mitsuba reads rgb as linear sRGB: only an srgb fit renders true colour
+        "colour": meas.attrs.get("colour"),
+        "scale_rel_std": meas.attrs.get("scale_rel_std"),
+        "uncertainty": uncertainty,
+        # the instrument's angular response in the forward model (gonio/fitting/likelihood/aperture.py), or null
+        "instrument_response": getattr(result, "response", None),
+        "provenance": {"versions": versions(), "seed": seed, "dataset": str(dataset_path) if dataset_path else None,
+                       "dataset_sha256": sha256_file(dataset_path) if dataset_path and Path(dataset_path).exists() else None,
+                       "dataset_seed": meas.attrs.get("seed")},
+    }
+    if posterior is not None:
+        # at most 2000 thinned draws: enough for a corner plot, small enough for JSON
+        samples = posterior.samples[:: max(1, len(posterior.samples) // 2000)][:2000]
+        doc["posterior"] = {"converged": posterior.converged, "walkers": posterior.n_walkers,
+                            "names": list(posterior.names), "samples": samples,
+                            "steps": posterior.n_steps, "tau": posterior.tau, "independent_samples": posterior.n_independent,
+                            "acceptance": posterior.acceptance, "time_s": posterior.time_s, "advice": posterior.advice,
+                            "table_surrogate_error": posterior.surrogate_error}
+    bad: list = []
+    doc = _jsonable(doc, non_finite=bad)
+    if bad:
+        # said in the file: these figures were NaN or infinite and are written as null
+        doc["non_finite"] = bad
+    return doc
+
+
+def _uncertainty(result, meas, budget, u_stat, cov_stat) -> dict:
+    """The ``uncertainty`` section: combined and expanded uncertainty and budget per parameter
+    (docs/interfaces.md 5.1)."""
+    budget = budget if budget is not None else budget_from_attrs(meas)
+    out = propagate(result, meas, budget, u_stat, cov_stat)
+    return {"k": K_EXPANDED, "method": "first-order propagation of every budget component through the fit "
+                                      "(correlated ones as shared nuisance errors; GUM 5.1, JCGM 102 6.2), and "
+                                      "the shared angle errors' second-order term (its mean corrected in the values, GUM 3.2.4 "
+                                      "and 4.1.4 note; its variance carried, GUM 5.1.2 note)",
+            "budget_source": budget.source, "components": budget.describe(), "parameters": out["parameters"],
+            "statistical": ({"method": "type-A components propagated through the fit (their channel correlation "
+                                           "included); Birge factor against the point-wise budget", **out["birge"]}
+                            if out["birge"] else None),
+            "covariance_combined": {"names": list(result.space.names),
+                                    "matrix": out["cov_statistical"] + out["cov_systematic"]}}
+
+
+def budget_adequacy(statistical) -> tuple[bool, float, str | None]:
+    """(adequate, std inflation, warning or None) of a chi2 fit judged against its dataset's
+    uncertainty budget (``uncertainty.statistical``: gonio.fitting.uncertainty.budget.birge_against_budget).
+
+    chi^2 weighs the points by their type-A noise alone, so terms of the budget that scatter
+    the points independently (each angle's repeatability times the local slope of f_r, stray
+    light) raise it above dof without any fault of the model: a calibrated `--errors typical`
+    capture of the demo sample has chi2/dof 6.7 against a budget that predicts about that. The
+    fit is adequate while chi^2 stays within 4 standard deviations of the budget's expectation;
+    beyond, the statistical covariance is inflated by sqrt(chi^2 / E), as the budget did."""
+    chi2, mean, sd = (float(statistical[k]) for k in ("chi2", "chi2_expected", "chi2_expected_sd"))
+    if chi2 <= mean + 4.0 * sd:
+        return True, 1.0, None
+    factor = float(statistical["factor"])
+    return False, factor, (f"chi2 = {chi2:.4g} exceeds the {mean:.4g} +- {sd:.2g} the uncertainty budget predicts: "
+                           "the model misses the data by more than the budget's scatter; the statistical "
+                           f"uncertainties are inflated by {factor:.3g}; fit with --loss discrepancy for a "
+                           "fitted model-discrepancy term")
+
+
+def model_adequacy(result):
+    """(adequate, std inflation, warning or None) of a fit.
+
+    A fit is adequate when chi^2/dof lies within 4 standard deviations of 1
+    (sd sqrt(2 / dof)). When it is not, the model misses the data by more than the noise
+    and the Laplace sigma describe only the noise: they are multiplied by the Birge ratio
+    sqrt(chi^2/dof) (Birge 1932), the scale that makes chi^2/dof = 1, and the fit file says
+    so. The ``log`` and ``cosine`` losses report the sandwich covariance of their own
+    residuals (:func:`gonio.fitting.optimise.result.sandwich`), which already holds the discrepancy,
+    so it is not inflated. The ``discrepancy`` likelihood fits that excess variance itself (its chi^2 is
+    against it), so its sigma are reported as they are.
+    """
+    chi2_dof = float(result.chi2_dof)
+    adequate = bool(chi2_dof < 1.0 + 4.0 * np.sqrt(2.0 / result.dof))
+    if adequate:
+        return True, 1.0, None
+    if result.loss == "discrepancy":
+        return False, 1.0, (f"chi2/dof = {chi2_dof:.3g} against the fitted discrepancy variance: the intervals "
+                            "include the model discrepancy but the fit is still poor")
+    if result.loss in ("log", "cosine"):
+        return False, 1.0, (f"chi2/dof = {chi2_dof:.3g} against the nominal sigma: the model misses the data; the "
+                            f"intervals are the sandwich covariance of the {result.loss} residuals, which includes "
+                            "the model's discrepancy (not inflated again)")
+    birge = float(np.sqrt(chi2_dof))
+    return False, birge, (f"chi2/dof = {chi2_dof:.3g}: the model misses the data by more than its noise; 1-sigma "
+                          f"and 90 % intervals are inflated by the Birge ratio {birge:.3g} (std_statistical keeps "
+                          "the noise-only values); fit with --loss discrepancy for a fitted model-discrepancy term")
+
+
+def write_json_atomic(path, doc) -> Path:
+    """Write strict JSON (RFC 8259) to a temporary file beside ``path``, fsync, rename.
+
+    NaN and +-inf, which JSON cannot hold, are written as null. A gonio fit document lists
+    the places under ``non_finite``; for any other document a :class:`NonFiniteWarning` names them.
+    Nothing is written when ``doc`` cannot be serialised.
+    """
+    bad: list = []
+    clean = _jsonable(doc, non_finite=bad)
+    if bad:
+        if isinstance(clean, dict) and clean.get("format") == FIT_FORMAT:
+            clean["non_finite"] = sorted(set(clean.get("non_finite") or []) | set(bad))
+        else:
+            warnings.warn(f"{path}: NaN or infinite values written as null at {', '.join(bad[:5])}"
+                          + (f" and {len(bad) - 5} more" if len(bad) > 5 else ""), NonFiniteWarning, stacklevel=2)
+    text = json.dumps(clean, indent=2, allow_nan=False) + "\n"
+    with atomic_open(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
+    return Path(path)
+
+
+def _refuse_constant(name):
+    raise ValueError(f"{name} is not JSON (a fit file is strict JSON; non-finite values are written as null)")
+
+
+def parse_fit(doc, path="fit file"):
+    """Check a fit document read from ``path``; return (model, params, document).
+
+    Raises ValueError (a one-line reason) when it is not a gonio fit file or its model,
+    options or parameter values are not what a fit file holds.
+    """
+    if not isinstance(doc, dict) or doc.get("format") != FIT_FORMAT:
+        fmt = doc.get("format") if isinstance(doc, dict) else None
+        raise ValueError(f"{path} is not a gonio fit file (format {fmt!r:.60})")
+    spec = doc.get("model")
+    if not isinstance(spec, dict) or not isinstance(spec.get("name"), str) or not isinstance(spec.get("options", {}), dict):
+        raise ValueError(f"{path}: 'model' must hold a name and an options table")
+    if not isinstance(doc.get("params"), dict):
+        raise ValueError(f"{path}: 'params' must be a table of parameter values")
+    try:
+        model = gm.get(spec["name"], **spec.get("options", {}))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: model {spec['name']!r:.60} with options {spec.get('options')!r:.80}: "
+                         f"{' '.join(str(exc).split())}") from None
+    params = {}
+    for k, v in doc["params"].items():
+        ok = (isinstance(v, (int, float)) and not isinstance(v, bool)) or (
+            isinstance(v, list) and v and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v))
+        if not ok:
+            raise ValueError(f"{path}: params.{k:.60} must be a number or a list of numbers, not {v!r:.60}")
+        arr = np.asarray(v, dtype=np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{path}: params.{k:.60} is not finite")
+        params[k] = arr if isinstance(v, list) else float(v)
+    return model, params, doc
+
+
+class FitFile:
+    """A fit file read back (:func:`load_fit`): the model, its parameter values, the document.
+
+    Attributes
+    ----------
+    model : gonio.models.Model
+        The fitted model with its options.
+    params : dict
+        Parameter values (``model.eval(wi, wo, params)``), floats or per-channel arrays.
+    document : dict
+        The whole fit file (layout in this module's docstring).
+    path : pathlib.Path or None
+        Where it was read from.
+
+    Unpacking it as ``model, params, doc = load_fit(path)`` still works (the tuple that
+    ``load_fit`` returned before) but is deprecated.
+    """
+
+    def __init__(self, model, params: dict, document: dict, path=None):
+        self.model, self.params, self.document = model, params, document
+        self.path = Path(path) if path is not None else None
+
+    def __iter__(self):
+        warnings.warn("unpacking load_fit() as (model, params, document) is deprecated; use its .model, "
+                      ".params and .document", DeprecationWarning, stacklevel=2)
+        return iter((self.model, self.params, self.document))
+
+    @property
+    def parameters(self) -> dict:
+        """``{name: {value, std, unit, ci90, ...}}`` per fitted parameter (one per channel)."""
+        table = self.document.get("parameters")
+        return table if isinstance(table, dict) else {}
+
+    @property
+    def goodness(self) -> dict:
+        """chi2, dof, chi2_dof, rmse_fr, the adequacy verdict and its warning."""
+        table = self.document.get("goodness")
+        return table if isinstance(table, dict) else {}
+
+    def eval(self, wi, wo):
+        """f_r (N, C) in sr^-1 of the fit at unit directions ``wi`` (to the light), ``wo`` (to the detector)."""
+        return self.model.eval(wi, wo, self.params)
+
+    def to_mitsuba(self) -> dict:
+        """The Mitsuba 3 BSDF dict (``mitsuba.load_dict`` accepts it)."""
+        return self.model.to_mitsuba(self.params)
+
+    def to_mitsuba_xml(self) -> str:
+        """A Mitsuba 3 XML file's text (``mitsuba.load_file`` and ``<include>`` load it)."""
+        return mitsuba_document(self.model.name, dict(self.model.options), self.params)
+
+    def _summary(self):
+        rows = []
+        for name, item in self.parameters.items():
+            item = item if isinstance(item, dict) else {}
+            flags = [f for f, key in (("at bound", "at_bound"), ("undetermined", "undetermined")) if item.get(key)]
+            rows.append((name, item.get("value"), item.get("std"), item.get("unit", ""), flags))
+        g = self.goodness
+        options = ", ".join(f"{k}={v}" for k, v in dict(self.model.options).items())
+        caption = f"{self.model.name}({options}) fit" + (f" from {self.path.name}" if self.path else "")
+        notes = []
+        if isinstance(g.get("chi2_dof"), (int, float)):
+            notes.append(f"chi2/dof = {g['chi2_dof']:.4g} (dof {g.get('dof')}), loss {g.get('loss')}")
+        if g.get("warning"):
+            notes.append(str(g["warning"]))
+        return caption, rows, notes
+
+    def _rows(self):
+        caption, rows, notes = self._summary()
+        out = [(n, value_pm(v, s) if isinstance(v, (int, float)) else str(v), u, ", ".join(f)) for n, v, s, u, f in rows]
+        return caption, out, notes
+
+    def __repr__(self) -> str:
+        caption, rows, notes = self._rows()
+        return text(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
+
+    def _repr_html_(self) -> str:
+        caption, rows, notes = self._rows()
+        return table_html(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
+
+    def to_xarray(self):
+        """The fitted parameters as an :class:`xarray.Dataset` over ``parameter`` (``value``,
+        ``std``, ``ci90_low``, ``ci90_high``; ``unit`` a coordinate; goodness in the attributes)."""
+        import xarray as xr
+
+        _, rows, _ = self._summary()
+        names = [r[0] for r in rows]
+        table = self.parameters
+
+        def column(key, k=None):
+            out = []
+            for n in names:
+                v = table[n].get(key) if isinstance(table[n], dict) else None
+                v = v[k] if k is not None and isinstance(v, list) and len(v) > k else v
+                out.append(float(v) if isinstance(v, (int, float)) else np.nan)
+            return "parameter", np.array(out)
+
+        attrs = {k: v for k, v in self.goodness.items() if isinstance(v, (int, float, str)) and not isinstance(v, bool)}
+        attrs.update(model=self.model.name, options=json.dumps(dict(self.model.options), sort_keys=True))
+        return xr.Dataset({"value": column("value"), "std": column("std"),
+                           "ci90_low": column("ci90", 0), "ci90_high": column("ci90", 1)},
+                          coords={"parameter": names, "unit": ("parameter", [str(r[3]) for r in rows])}, attrs=attrs)
+
+
+def load_fit(path) -> FitFile:
+    """Read a fit file into a :class:`FitFile` (``.model``, ``.params``, ``.document``).
+
+    Raises
+    ------
+    ValueError
+        A one-line reason when it is not a gonio fit file.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant)
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a gonio fit file (not UTF-8 text)") from None
+    except RecursionError:
+        raise ValueError(f"{path} is not a gonio fit file (nested too deeply)") from None
+    model, params, doc = parse_fit(doc, path)
+    return FitFile(model, params, doc, path)

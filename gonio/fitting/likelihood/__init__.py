@@ -1,0 +1,3 @@
+"""What a fit compares: losses, the model's discrepancy term, the instrument's aperture
+response and the fit problem (f_r at fixed directions, residuals, Jacobians).
+"""

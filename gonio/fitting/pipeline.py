@@ -1,0 +1,162 @@
+"""One fit of one dataset, the same wherever it is asked for.
+
+``gonio fit``, ``gonio fit --batch`` (each worker), the demo and a notebook all call
+:func:`fit_measurements` (the fit) or :func:`fit_dataset` (the fit, its posterior and its
+fit document), so a single fit and a batch fit of the same data, model, options and seed
+give the same model, options and parameters.
+
+``model`` is a registered name or ``"auto"``; ``options`` are the user's. A named model
+whose options leave its microfacet distribution open is fitted once per declared
+distribution and the better one by BIC is kept (said in the ranking); ``tabulated`` starts
+from the data; every fit is refined with the instrument's angular response where the
+dataset declares its apertures. The starts draw from ``numpy.random.default_rng(seed)``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gonio.core.errors import GonioError
+
+__all__ = ["fit_dataset", "fit_measurements", "parse_options", "resolve_candidates", "model_error"]
+
+
+def parse_options(pairs) -> dict:
+    """``["distribution=ggx", "anisotropic=true"]`` -> ``{"distribution": "ggx", "anisotropic": True}``."""
+    out = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise GonioError(f"model option {pair!r} is not KEY=VALUE (e.g. distribution=beckmann)")
+        low = value.lower()
+        out[key] = True if low == "true" else False if low == "false" else value
+    return out
+
+
+def model_error(exc, model, auto: bool) -> GonioError:
+    """One line for a model the registry refused: the known models only when the model is the
+    unknown thing (a bad option value names the option's own choices), and once."""
+    import gonio.models as gm
+
+    if model not in gm.names():
+        return GonioError(f"unknown model {str(model)[:40]!r}: choose one of {', '.join(gm.names())}"
+                          + (", or auto" if auto else ""))
+    return GonioError(" ".join(str(exc.args[0] if exc.args else exc).split())[:300])
+
+
+def resolve_candidates(model, options):
+    """``model`` and ``options`` as select's candidates: None for auto (every candidate),
+    else the named model's (one per declared distribution when none is given); one line each
+    for what cannot be."""
+    from gonio.fitting.selection.by_data import option_candidates
+
+    if model == "auto":
+        if options:
+            raise GonioError("--option needs a named --model (auto tries every candidate with its own options)")
+        return None
+    try:
+        return option_candidates(model, options)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise model_error(exc, model, auto=True) from None
+
+
+def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None):
+    """BIC's ranking with the default scene's rendered check (selection.by_scene.rendered_choice;
+    where no candidate renders within its threshold of a measured file, the data-driven
+    ``tabulated`` model fitted from ``meas`` is tried too: selection.by_scene.data_driven);
+    skipped, and said, where Mitsuba has only its scalar variant (a render would take minutes)."""
+    from gonio.fitting.selection.by_scene import data_driven, rendered_choice
+    from gonio.models.mitsuba import mitsuba_variant
+
+    by_bic = next(r for r in ranking if r.chosen)
+    if not mitsuba_variant().startswith("llvm"):
+        return by_bic.result, ranking, "BIC's choice: no vectorised Mitsuba variant for the default scene's renders"
+    path = Path(dataset_path) if dataset_path is not None else None
+    measured = str(path) if path is not None and path.suffix.lower() in (".bsdf", ".binary") else None
+    fallback = data_driven(meas, seed=seed, loss=loss) if meas is not None and measured is not None else None
+    return rendered_choice(ranking, measured, seed=seed, fallback=fallback)
+
+
+def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, budget=None, dataset_path=None,
+                     rng=None):
+    """Fit (or select) a model on ``meas``.
+
+    Returns ``(result, meas, budget, ranking, note)``: the FitResult; the Measurements and
+    budget as the instrument's angular response left them; the BIC ranking where candidates
+    were compared (else None); the selection rule where the rendered check decided (else None).
+    ``loss`` None: chi2 for a dataset with measured sigma, the real-data default otherwise.
+    ``rng``: the Generator of the starts (default ``numpy.random.default_rng(seed)``); the
+    refit with the angular response always starts from ``default_rng(seed)``.
+    """
+    import gonio.models as gm
+    from gonio.fitting.likelihood.aperture import with_instrument_response
+    from gonio.fitting.likelihood.loss import LOSSES, default_loss
+    from gonio.fitting.optimise.mle import fit
+    from gonio.fitting.selection.by_data import select
+
+    if loss is None:
+        loss = default_loss(meas)
+    if loss not in LOSSES:
+        raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
+    rng = np.random.default_rng(seed) if rng is None else rng
+    ranking, note = None, None
+    candidates = resolve_candidates(model, options)
+    if candidates is None:
+        result, ranking = select(meas, rng=rng, loss=loss)
+        result, ranking, note = _rendered_choice(ranking, dataset_path, seed, meas=meas, loss=loss)
+    else:
+        try:
+            if len(candidates) > 1:     # no distribution given: each declared one, chosen by BIC (said)
+                result, ranking = select(meas, rng=rng, loss=loss, candidates=candidates, delta=0.0)
+            elif model == "tabulated":      # data-driven NDF: started from the data, not from defaults
+                from gonio.fitting.optimise.tabulated_start import fit_tabulated
+
+                result = fit_tabulated(meas, rng=rng, loss=loss)
+            else:
+                result = fit(meas, gm.get(model, **candidates[0][1]), rng=rng, loss=loss)
+        except ValueError as exc:
+            raise GonioError(str(exc)) from None
+    # the instrument's angular response, where the dataset declares its apertures (likelihood/aperture.py)
+    chosen = result.model
+    try:
+        result, meas, budget = with_instrument_response(
+            meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
+    except ValueError as exc:
+        raise GonioError(str(exc)) from None
+    return result, meas, budget, ranking, note
+
+
+def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
+                posterior_budget_s=None, dataset_path=None, budget=None):
+    """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
+
+    ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting.load_budget`; None:
+    from ``meas.attrs``), carried into every parameter's combined uncertainty.
+
+    ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
+    (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file."""
+    from gonio.fitting.formats.fitfile import fit_document
+    from gonio.fitting.likelihood.loss import default_loss
+    from gonio.fitting.uncertainty.posterior import sample_posterior
+
+    if loss is None:
+        loss = default_loss(meas)
+    if posterior and loss != "chi2":
+        raise GonioError("--posterior needs the chi2 loss (the likelihood of the data's noise model)")
+    rng = np.random.default_rng(seed)       # the starts, then the posterior's walkers: one stream
+    result, meas, budget, ranking, note = fit_measurements(meas, model=model, options=options, seed=seed, loss=loss,
+                                                           budget=budget, dataset_path=dataset_path, rng=rng)
+    post = None
+    if posterior:
+        # With a time budget: chunks of 250 steps, so the budget is checked every second or
+        # two (the sampler integrates the linear parameters out and evaluates the walkers in
+        # one batch: 32 walkers on 100 points take ~2 ms a step).
+        post = sample_posterior(meas, result, rng=rng, time_budget_s=posterior_budget_s,
+                                **({"chunk": 250} if posterior_budget_s else {}))
+    doc = fit_document(result, meas, seed=seed, posterior=post, ranking=ranking, dataset_path=dataset_path,
+                       budget=budget)
+    if note:
+        doc["selection_rule"] = note
+    return result, doc, post

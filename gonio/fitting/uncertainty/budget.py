@@ -1,0 +1,578 @@
+"""The uncertainty budget carried into the fitted parameters (GUM, JCGM 100:2008).
+
+A dataset's budget (docs/interfaces.md 5.1: ``u_<component>`` variables with ``gum_type``
+and ``correlation``) is read by :func:`load_budget`; a dataset without one gets
+:func:`budget_from_attrs` (type A = ``brdf_std`` and a fully correlated certificate term
+brdf x ``scale_rel_std``). :func:`propagate` carries every component into the parameters by
+linearised nuisance parameters: a shift d of the data moves the fit by G d with
+G = -(J^T J)^+ J^T diag(dr/dy); a correlated component adds (G u_g)(G u_g)^T per group, an
+independent one G diag(u^2) G^T (only P x M matrices are formed, never M x M). A fit's own
+statistical covariance stands for the type-A independent components.
+
+References: JCGM 100:2008 (GUM) 5.1-5.2 and 6.2 (k = 2); JCGM 102:2011 6.2 (propagation of
+a multivariate covariance, U_y = C U_x C^T); Woodbury (1950), Hager (1989) for the inverse of
+a diagonal plus low-rank matrix.
+"""
+
+# Method: the fit is the weighted least-squares estimate x(y) of its own loss (residuals
+# r(x, y)); to first order a shift d of the data moves it by G d, J = dr/dx at the optimum
+# (the implicit-function theorem applied to J^T r = 0). A correlated component is a shared
+# error e ~ N(0, 1) per group with brdf shifted by e u_group (u signed): one group for full,
+# three for channel, one per label for group:<var>.
+# Why this and not a generalised least-squares refit with V = D + U U^T: the estimate the
+# optimiser computes is the weighted one, and this is its covariance under V exactly to first
+# order (the GLS covariance (J^T V^-1 J)^-1 belongs to another estimator); for the dominant
+# term, a scale error that the model absorbs (u in the span of J), both coincide
+# (gls_covariance, Woodbury, is kept to show it in the tests).
+# The fit's own covariance is Laplace or sandwich, Birge-inflated where the model misses; the
+# type-A components' propagated shares only split it in the budget.
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from gonio.core.geometry import angles as _angles_of, directions as _directions
+
+from gonio.fitting.likelihood import loss as _loss
+from gonio.fitting.measurements import _SRGB_TO_XYZ, colour_transform
+from gonio.fitting.likelihood.problem import Problem
+from gonio.fitting.optimise.result import loss_jacobian
+
+__all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "propagate", "gls_covariance", "K_EXPANDED"]
+
+#: coverage factor of the expanded uncertainty U = k u_c (about 95 % for a normal distribution, GUM 6.2.2)
+K_EXPANDED = 2.0
+STATISTICAL = "statistical"
+#: the budget line of the shared angle errors' second-order term (:func:`second_order`)
+ANGLE_SECOND_ORDER = "angle_shared_second_order"
+
+
+@dataclasses.dataclass
+class BudgetComponent:
+    """One component: ``value`` (N, C) in sr^-1 (signed where correlated), or (K, N, C) for K
+    independent inputs of the same kind; its GUM type; its correlation (``none``: every value
+    its own error; ``point``: one error per point, shared by its channels; ``full``,
+    ``channel``, ``group``: shared across points) and, for ``group``, integer labels (N, C)."""
+
+    name: str
+    value: np.ndarray
+    gum_type: str
+    correlation: str
+    source: str = ""
+    groups: np.ndarray | None = None
+
+    @property
+    def statistical(self) -> bool:
+        """Type A and independent: represented by the fit's own statistical covariance."""
+        return self.gum_type == "A" and self.correlation == "none" and np.ndim(self.value) == 2
+
+    def covariance(self, G: np.ndarray, use: np.ndarray) -> np.ndarray:
+        """Its covariance of the parameters, P x P, from G (P, N, C) (zero at unused values):
+        a sum of g g^T over its shared errors, g = the parameters' shift for +1 sigma of one."""
+        v = np.where(use, self.value, 0.0)
+        v = v[None] if v.ndim == 2 else v
+        P = G.shape[0]
+        cov = np.zeros((P, P))
+        for vk in v:                                    # K independent inputs
+            g = self.input_sums(G * vk[None], use)
+            cov += g @ g.T
+        return cov
+
+    def input_sums(self, X: np.ndarray, use: np.ndarray) -> np.ndarray:
+        """X (R, N, C) summed over the values that share one error: (R, L), one column per
+        error (L = N C for ``none``, N for ``point``, 1 for ``full``, C for ``channel``, the
+        labels for ``group``)."""
+        R = X.shape[0]
+        if self.correlation == "none":
+            return X.reshape(R, -1)
+        if self.correlation == "point":
+            return X.sum(axis=2)
+        if self.correlation == "full":
+            return X.sum(axis=(1, 2))[:, None]
+        if self.correlation == "channel":
+            return X.sum(axis=1)
+        labels = np.broadcast_to(self.groups, X.shape[1:])
+        keep = np.unique(labels[use])
+        lab = np.searchsorted(keep, labels.reshape(-1))
+        inside = (lab < keep.size) & (keep[np.minimum(lab, keep.size - 1)] == labels.reshape(-1))
+        out = np.zeros((keep.size, R))
+        np.add.at(out, lab[inside], X.reshape(R, -1)[:, inside].T)      # O(R M), one pass
+        return out.T
+
+
+@dataclasses.dataclass
+class Budget:
+    """The components, and where the dataset states its angles' uncertainty (degrees):
+    ``angles = {"shared": (K, N, 4), "independent": (J, N, 4)}``, the change of each point's
+    (theta_i, phi_i, theta_o, phi_o) for +1 sigma of each shared input (zero offsets, holder
+    tilt: the same error at every point) and of each per-move input (repeatability, backlash).
+    The fit turns them into f_r by its model's local slope (:func:`angle_components`)."""
+
+    components: list
+    source: str = "dataset"
+    angles: dict | None = None
+    #: how the fit's weights follow the data: d ln(brdf_std) / d ln|brdf| (0: sigma given, not
+    #: measured). A bench dataset's type A is evaluated from each point's own signal (the HDR
+    #: merge's noise model and pixel scatter, its exposures following the signal), so a shared
+    #: error that moves a value moves its weight too (:func:`second_order`; :func:`sigma_elasticity`)
+    sigma_elasticity: float = 0.0
+
+    def describe(self) -> dict:
+        return {c.name: {"gum_type": c.gum_type, "correlation": c.correlation, "source": c.source}
+                for c in self.components}
+
+
+def budget_from_attrs(meas) -> Budget:
+    """Type A = ``brdf_std``; type B = the certificate, brdf x ``scale_rel_std``, fully correlated."""
+    comps = [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none", "brdf_std (the fit's weights)")]
+    rel = float(meas.attrs.get("scale_rel_std", 0.0) or 0.0)
+    if rel > 0:
+        comps.append(BudgetComponent("reference_certificate", meas.brdf * rel, "B", "full",
+                                     "scale_rel_std (reference certificate)"))
+    return Budget(comps, "scale_rel_std attribute" if rel > 0 else "brdf_std only")
+
+
+def load_budget(path, meas) -> Budget:
+    """The budget of ``dataset.nc`` at ``path`` (its ``u_`` variables), aligned with ``meas``;
+    :func:`budget_from_attrs` when the file has none. ValueError (one line) when a
+    component is malformed."""
+    import xarray as xr
+
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        names = [v for v in ds.data_vars if v.startswith("u_") and "gum_type" in ds[v].attrs]
+        comps = []
+        for v in names:
+            var = ds[v]
+            corr = str(var.attrs.get("correlation", ""))
+            gtype = str(var.attrs.get("gum_type", ""))
+            value = np.asarray(var.transpose("point", "channel").values, float)
+            groups = None
+            if corr.startswith("group:"):
+                gname = corr.split(":", 1)[1]
+                if gname not in ds.variables:
+                    raise ValueError(f"{path}: {v} names the group variable {gname!r:.40}, which is not in the dataset")
+                groups = np.broadcast_to(np.asarray(ds[gname].values, np.int64).reshape(value.shape[0], -1),
+                                         value.shape).copy()
+                corr = "group"
+            if gtype not in ("A", "B") or corr not in ("none", "point", "full", "channel", "group"):
+                raise ValueError(f"{path}: {v} has gum_type {gtype!r:.10} and correlation {corr!r:.30}; "
+                                 "see docs/interfaces.md 5.1")
+            if value.shape != meas.brdf.shape or not np.all(np.isfinite(value[meas.use])):
+                raise ValueError(f"{path}: {v} must be finite at every used value, shape {meas.brdf.shape}")
+            comps += _in_colour_space(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")),
+                                                      groups), colour_transform(meas), path)
+        angles = _angle_shifts(ds, path, meas.n_points)
+        colour = _colour_matrix_components(ds, meas)
+        measured = "u_shot_read" in ds.variables      # the bench's type A: from each point's own signal
+    budget = Budget(comps) if comps else budget_from_attrs(meas)
+    return dataclasses.replace(budget, components=budget.components + colour, angles=angles,
+                               sigma_elasticity=sigma_elasticity(meas) if measured and angles else 0.0)
+
+
+def sigma_elasticity(meas) -> float:
+    """d ln(brdf_std) / d ln|brdf| across the used values (least squares in log-log, clipped to
+    [0, 1]): how a value's standard deviation grows with its signal when both come from the
+    same observation (shot noise alone gives 1/2 at one exposure; an HDR bracket that follows
+    the signal, or a fixed-pattern share, brings it towards 1). 0 where it cannot be judged."""
+    ok = meas.use & (meas.brdf > 0) & (meas.brdf_std > 0) & np.isfinite(meas.brdf) & np.isfinite(meas.brdf_std)
+    if ok.sum() < 3:
+        return 0.0
+    ly, ls = np.log(meas.brdf[ok]), np.log(meas.brdf_std[ok])
+    var = float(np.var(ly))
+    if not var > 1e-6:
+        return 0.0
+    k = float(np.mean((ly - ly.mean()) * (ls - ls.mean()))) / var
+    return float(np.clip(k, 0.0, 1.0)) if np.isfinite(k) else 0.0
+
+
+#: The dataset variable holding the colour matrix's budget lines (gonio/bench/measure/colour_matrix.py), in linear sRGB.
+COLOUR_MATRIX_U = "brdf_srgb_u_colour_matrix"
+
+
+def _colour_matrix_components(ds, meas) -> list:
+    """The colour matrix's fully shared components (a ColorChecker fit's; one per independent
+    input, signed, in linear sRGB), for a fit in sRGB or XYZ; none for a camera-RGB fit."""
+    space = (meas.attrs.get("colour") or {}).get("space", "camera")
+    if space == "camera" or COLOUR_MATRIX_U not in ds.variables:
+        return []
+    values = np.asarray(ds[COLOUR_MATRIX_U].transpose("point", "channel", ...).values, float)
+    to = _SRGB_TO_XYZ if space == "xyz" else np.eye(3)
+    source = str(ds[COLOUR_MATRIX_U].attrs.get("source", "colour matrix"))
+    return [BudgetComponent(f"colour_matrix_{k}", np.nan_to_num(values[..., k]) @ to.T, "B", "full", source)
+            for k in range(values.shape[-1])]
+
+
+#: the stage axes of ``angle_shift_independent``'s inputs when it has one group label per axis
+AXES = ("yaw", "tilt", "azimuth", "lamp")
+#: the dataset variables of the angles' uncertainty (docs/interfaces.md 5.1), degrees
+ANGLE_SHIFTS = {"shared": "angle_shift_shared", "independent": "angle_shift_independent"}
+#: with ``angle_shift_shared``: the relative change of the sample's irradiance alone (the wedge's
+#: foreshortening, which the reference square does not share) for +1 sigma of each input
+IRRADIANCE_SHIFT = "irradiance_shift_shared"
+
+
+def _angle_shifts(ds, path, n_points):
+    """``{shared, independent}``: (K, N, 4) arrays from ``angle_shift_*`` (input, point, angle); None without."""
+    out = {}
+    for key, name in ANGLE_SHIFTS.items():
+        if name not in ds.variables:
+            continue
+        v = ds[name]
+        try:
+            arr = np.asarray(v.transpose(v.dims[0], "point", "angle").values, float)
+        except (ValueError, KeyError):
+            raise ValueError(f"{path}: {name} must have dimensions (input, point, angle)") from None
+        if arr.ndim != 3 or arr.shape[1:] != (n_points, 4) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{path}: {name} must be finite, (inputs, {n_points} points, 4 angles) in degrees")
+        out[key] = arr
+    if "shared" in out and IRRADIANCE_SHIFT in ds.variables:
+        v = ds[IRRADIANCE_SHIFT]
+        try:
+            r = np.asarray(v.transpose(v.dims[0], "point").values, float)
+        except (ValueError, KeyError):
+            raise ValueError(f"{path}: {IRRADIANCE_SHIFT} must have dimensions (input, point)") from None
+        if r.shape != out["shared"].shape[:2] or not np.all(np.isfinite(r)):
+            raise ValueError(f"{path}: {IRRADIANCE_SHIFT} must be finite, ({out['shared'].shape[0]} inputs, "
+                             f"{n_points} points) as {ANGLE_SHIFTS['shared']}")
+        out["shared_irradiance"] = r
+    group = ANGLE_SHIFTS["independent"] + "_group"
+    if "independent" in out and group in ds.variables:
+        g = np.asarray(ds[group].transpose(ds[group].dims[0], "point").values)
+        if g.shape != out["independent"].shape[:2] or not np.issubdtype(g.dtype, np.integer):
+            raise ValueError(f"{path}: {group} must be integer labels (inputs, {n_points} points)")
+        out["independent_groups"] = g.astype(np.int64)
+    return out or None
+
+
+def _in_colour_space(comp: BudgetComponent, s, path) -> list:
+    """A camera-RGB component (the dataset's ``u_`` variables are per camera channel) in the
+    fit's colour space through the 3x3 ``s`` (gonio/fitting/measurements.colour_transform): a signed shared
+    error maps linearly (``s u``); an independent one by its variance (``sqrt(s^2 u^2)``); a
+    per-channel shared one becomes one fully shared component per camera channel."""
+    if s is None:
+        raise ValueError(f"{path}: the fit's colour space needs the dataset's colour matrix to carry u_{comp.name}; "
+                         "re-export the session or fit with --colour-space camera")
+    if np.array_equal(s, np.eye(len(s))):
+        return [comp]
+    if comp.correlation == "none":
+        # one error per camera channel and point: in the fit's space it moves the point's three
+        # channels together (s[:, k] times it), so it is K = 3 inputs of correlation "point",
+        # not three independent errors sqrt(s^2 u^2) (that would drop the channels' correlation,
+        # brdf_srgb_corr, up to |r| 0.6 for a consumer camera)
+        return [dataclasses.replace(comp, value=np.stack([comp.value[:, [k]] * s[:, k] for k in range(len(s))]),
+                                    correlation="point")]
+    if comp.correlation == "channel":
+        return [dataclasses.replace(comp, name=f"{comp.name}_{c}", value=comp.value[:, [c]] * s[:, c], correlation="full")
+                for c in range(len(s))]
+    if comp.groups is not None and comp.groups.ndim == 2 and np.any(comp.groups != comp.groups[:, :1]):
+        raise ValueError(f"{path}: u_{comp.name} has per-channel groups, which a colour matrix mixes; "
+                         "fit with --colour-space camera")
+    return [dataclasses.replace(comp, value=comp.value @ s.T)]
+
+
+def _sensitivity(result, meas):
+    """G = -(J^T J)^+ J^T diag(dr/dy) restricted to the used values: (P, M)."""
+    J, drdy = _loss_sensitivities(result, meas)
+    return -np.linalg.pinv(J, rcond=1e-10) * drdy[None, :]
+
+
+def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
+    """d f_r / d (theta_i, phi_i, theta_o, phi_o) (N, C, 4), sr^-1 per degree, by central
+    differences of the model at ``params``."""
+    ti, pi_ = _angles_of(wi)
+    to, po = _angles_of(wo)
+    base = np.stack([ti, pi_, to, po], axis=-1)
+    h = np.radians(h_deg)
+    out = []
+    for a in range(4):
+        plus, minus = base.copy(), base.copy()
+        plus[:, a] += h
+        minus[:, a] -= h
+        fp = model.eval(_directions(plus[:, 0], plus[:, 1]), _directions(plus[:, 2], plus[:, 3]), params)
+        fm = model.eval(_directions(minus[:, 0], minus[:, 1]), _directions(minus[:, 2], minus[:, 3]), params)
+        out.append((fp - fm) / (2 * h_deg))
+    return np.stack(out, axis=-1)
+
+
+def angle_components(result, meas, angles: dict) -> list:
+    """``angle_shared`` (B, full, one input per shared angle error) and ``angle_repeatability``
+    (B, point: one error per point, shared by its channels), or where the dataset labels each
+    axis's moves (``angle_shift_independent_group``) ``angle_repeatability_<axis>`` (B, group:
+    one error per move of that axis, shared by the points taken without moving it): the angles'
+    shifts times the fitted model's local slope (GUM 5.1.3: c_i u(x_i) with c_i = d f_r / d angle).
+    A shared input that also changes the sample's irradiance alone (``shared_irradiance``, the
+    wedge's foreshortening: the bench's ratio to the reference then moves by that relative
+    change) adds f_r times it."""
+    S = slope(result.model, result.params, meas.wi, meas.wo)
+    out = []
+    for key, name, corr in (("shared", "angle_shared", "full"), ("independent", "angle_repeatability", "point")):
+        d = np.asarray(angles.get(key, np.zeros((0, meas.n_points, 4))), float)
+        if not d.size:
+            continue
+        value = np.einsum("nca,kna->knc", S, d)
+        if key == "shared" and angles.get("shared_irradiance") is not None:
+            f = result.model.eval(meas.wi, meas.wo, result.params)
+            value = value + np.asarray(angles["shared_irradiance"], float)[:, :, None] * f[None]
+        groups = angles.get("independent_groups") if key == "independent" else None
+        if groups is None:
+            out.append(BudgetComponent(name, value, "B", corr, f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
+            continue
+        # one error per move of each axis: the points taken without moving it share it
+        for k, axis in enumerate(AXES if len(value) == len(AXES) else [str(k) for k in range(len(value))]):
+            out.append(BudgetComponent(f"{name}_{axis}", value[k], "B", "group",
+                                       f"the {axis} axis's per-move error x the local slope of the fitted f_r",
+                                       groups=np.repeat(np.asarray(groups[k])[:, None], value.shape[-1], axis=1)))
+    return out
+
+
+def _tangents(wi, wo, shifts, h: float = 1e-4):
+    """The directions' first-order displacement (K, N, 3) each for wi and wo (radians) for +1 sigma
+    of each input whose angle shifts (K, N, 4) degrees are given: a central difference of the
+    directions along the shift, so a point near a pole (theta ~ 0, where a small tilt is a large
+    change of phi) moves by what the tilt moves it, not along the phi circle."""
+    ti, pi_ = _angles_of(wi)
+    to, po = _angles_of(wo)
+    base = np.stack([ti, pi_, to, po], axis=-1)                              # radians (N, 4)
+    d = np.radians(np.asarray(shifts, float))
+    plus, minus = base[None] + h * d, base[None] - h * d
+    t_i = (_directions(plus[..., 0], plus[..., 1]) - _directions(minus[..., 0], minus[..., 1])) / (2 * h)
+    t_o = (_directions(plus[..., 2], plus[..., 3]) - _directions(minus[..., 2], minus[..., 3])) / (2 * h)
+    return t_i, t_o
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def second_order(result, meas, shifts, G: np.ndarray, use: np.ndarray,
+                 elasticity: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shared angle errors' second-order effect on the parameters (GUM 5.1.2 note: the
+    higher-order terms of a Taylor series where the model is markedly non-linear).
+
+    With e ~ N(0, I) the K shared inputs (``shifts`` (K, N, 4): each one's angle change for +1
+    sigma), the data change by f(angles(e)) - f(angles) and the fitted parameters by G times
+    that: a e + (1/2) e^T H e with H_p (K x K) = G_p d^2 f / de_k de_l (central differences of
+    the fitted model at steps of 1 sigma, the directions displaced along each input's tangent:
+    :func:`_tangents`). The first-order part a is the ``angle_shared`` line; the quadratic part
+    has mean b_p = tr(H_p) / 2 and covariance tr(H_p H_q) / 2. Its mean does not vanish: an
+    error of the sample normal (the wedge the alignment cannot see, 0.05 deg) moves a narrow
+    lobe off the specular direction the fit assumes, and the fit broadens the lobe to follow it
+    whichever way the normal tilted (GGX alpha 0.05: b = +0.2 of alpha's u_c on average, up to
+    +0.6 in a session, where the linear term sees nothing).
+
+    ``elasticity`` (kappa = d ln sigma / d ln f_r, :attr:`Budget.sigma_elasticity`): a chi^2 fit
+    whose sigma is measured from each value's own signal reweighs its values when a shared
+    error moves them: with w = 1/sigma^2 and dw = -2 kappa w d / f the normal equations
+    J^T W (f(x) - y) = 0 gain the second-order term sum dw J (J dx1 - d), so the estimate moves
+    by -2 kappa G [(d / f) eps] more, eps = d - J dx1 the part of the shift d the parameters
+    cannot absorb (H_p gains -2 kappa G_p [(a_k eps_l + a_l eps_k) / f], a_k the data's
+    first-order change for input k). Values pushed down weigh more, so a narrow lobe that a
+    tilted normal moves off the fit's specular direction loses height whichever way it tilted:
+    glossy GGX alpha 0.05 under the typical simulator, int_ior's mean error was -0.26 u_c
+    (+0.03 at zero wedge; 236 sessions regressed on the drawn wedge), the data-curvature term
+    alone predicting +0.04 (budget_coverage.py). Returns (b (P,), the quadratic part's second
+    moment about zero b b^T + tr(H_p H_q) / 2 (P, P), H (P, K, K))."""
+    shifts = np.asarray(shifts, float)
+    K, P = shifts.shape[0], G.shape[0]
+    if K == 0:
+        return np.zeros(P), np.zeros((P, P)), np.zeros((P, 0, 0))
+    t_i, t_o = _tangents(meas.wi, meas.wo, shifts)
+    model, params = result.model, result.params
+
+    def f(ci, co):
+        return model.eval(_unit(meas.wi + np.einsum("k,knj->nj", ci, t_i)),
+                          _unit(meas.wo + np.einsum("k,knj->nj", co, t_o)), params)
+
+    def proj(v):
+        return np.einsum("pnc,nc->p", np.where(use, G, 0.0), np.where(use, v, 0.0))
+
+    zero = np.zeros(K)
+    f0 = f(zero, zero)
+    H = np.zeros((P, K, K))
+    eye = np.eye(K)
+    for k in range(K):
+        H[:, k, k] = proj(f(eye[k], eye[k]) + f(-eye[k], -eye[k]) - 2.0 * f0)
+        for m in range(k):
+            pp, mm = eye[k] + eye[m], eye[k] - eye[m]
+            H[:, k, m] = H[:, m, k] = proj(f(pp, pp) - f(mm, mm) - f(-mm, -mm) + f(-pp, -pp)) / 4.0
+    if elasticity > 0.0:
+        # the data's first-order change per input (a_k), the parameters' (G a_k) and the part of
+        # a_k the model cannot follow (eps_k = a_k - J G a_k, J = df/dx by central differences)
+        a = np.stack([0.5 * (f(eye[k], eye[k]) - f(-eye[k], -eye[k])) for k in range(K)])      # (K, N, C)
+        dx1 = np.stack([proj(a[k]) for k in range(K)])                                           # (K, P)
+        x0 = np.asarray(result.x, float)
+        step = 1e-4 * np.maximum(np.abs(x0), 1e-3 * (result.space.upper - result.space.lower))
+        jf = []
+        for p in range(P):
+            xp, xm = x0.copy(), x0.copy()
+            xp[p] += step[p]
+            xm[p] -= step[p]
+            jf.append((model.eval(meas.wi, meas.wo, result.space.to_params(xp))
+                       - model.eval(meas.wi, meas.wo, result.space.to_params(xm))) / (2.0 * step[p]))
+        eps = a - np.einsum("kp,pnc->knc", dx1, np.stack(jf))
+        inv_f = 1.0 / np.maximum(np.abs(f0), 1e-12 * max(float(np.max(np.abs(f0[use]))), 1e-300))
+        for k in range(K):
+            for m in range(k + 1):
+                Hw = -2.0 * elasticity * proj((a[k] * eps[m] + a[m] * eps[k]) * inv_f)
+                H[:, k, m] += Hw
+                if m != k:
+                    H[:, m, k] += Hw
+    b = 0.5 * np.trace(H, axis1=1, axis2=2)
+    cov = np.outer(b, b) + 0.5 * np.einsum("pkl,qlk->pq", H, H)
+    return b, cov, H
+
+
+def _point_independent(c: BudgetComponent) -> bool:
+    """A component whose errors are independent from point to point (``none`` or ``point``)."""
+    return c.correlation in ("none", "point")
+
+
+def birge_against_budget(result, J, drdy, meas, comps) -> dict:
+    """The fit's chi^2 against what the whole budget makes it (:func:`expected_chi2`): a factor
+    sqrt(chi^2 / E) on the statistical covariance where chi^2 exceeds its expectation E by more
+    than 4 standard deviations (gonio/fitting/formats/fitfile.model_adequacy's rule, with E and its spread
+    from the budget instead of dof and sqrt(2 dof)), else 1. The plain Birge ratio
+    sqrt(chi^2/dof) would count again the scatter the type-B lines already carry (the angles'
+    errors times a steep lobe's slope, the reference table's, the stray light's)."""
+    mean, sd = expected_chi2(J, drdy, meas, comps)
+    chi2 = float(result.chi2)
+    factor = float(np.sqrt(chi2 / mean)) if mean > 0 and chi2 > mean + 4.0 * sd else 1.0
+    return {"chi2": chi2, "chi2_expected": mean, "chi2_expected_sd": sd, "factor": factor}
+
+
+def _loss_sensitivities(result, meas):
+    """(J, dr/dy): the loss's residual Jacobian at the optimum (M, P) and dr/dy at the used values (M,)."""
+    loss = result.loss if result.loss in ("chi2", "robust", "cosine", "log") else "chi2"
+    problem = Problem(meas, result.model, result.space, loss)
+    J, _ = loss_jacobian(problem, result.x, loss)
+    drdy = -_loss.residual_derivative(loss, meas.brdf, meas)
+    return J, np.broadcast_to(drdy, meas.brdf.shape)[meas.use]
+
+
+def expected_chi2(J, drdy, meas, comps) -> tuple[float, float]:
+    """(mean, standard deviation) of the fit's chi^2 if the data scatter exactly as ``comps`` say.
+
+    A data error d leaves the residual (I - P)(dr/dy d) after the fit, P = J J^+ the projector on
+    J's columns (the part the parameters absorb). Each error a_l of a component (one value for
+    ``none``, one point for ``point``, one group for the shared ones) adds
+    e_l = ||a_l||^2 - ||Q^T a_l||^2 to the mean, Q an orthonormal basis of J's columns (M x P:
+    nothing M x M is formed); the variance is taken as 2 sum e_l^2 (exact for type A alone,
+    where the mean is M - P = dof and the rule is gonio/fitting/formats/fitfile.model_adequacy's)."""
+    U, sv, _ = np.linalg.svd(J, full_matrices=False)
+    Q = U[:, sv > sv.max() * 1e-10] if sv.size and sv.max() > 0 else U[:, :0]
+    use = meas.use
+    GQ = np.zeros((Q.shape[1],) + use.shape)
+    GQ[:, use] = Q.T
+    D = np.zeros(use.shape)
+    D[use] = drdy
+    mean = var = 0.0
+    for c in comps:
+        v = np.where(use, c.value, 0.0) * D
+        for a in (v[None] if v.ndim == 2 else v):
+            e = c.input_sums((a * a)[None], use)[0] - (c.input_sums(GQ * a[None], use) ** 2).sum(axis=0)
+            mean, var = mean + float(e.sum()), var + 2.0 * float((e * e).sum())
+    return mean, float(np.sqrt(var))
+
+
+def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.ndarray | None = None) -> dict:
+    """The fit file's ``uncertainty`` section (docs/interfaces.md 5.1): per parameter
+    ``u_stat``, ``u_combined``, ``U`` (k = 2), ``k`` and ``budget`` (variance fractions).
+
+    ``u_stat``: the fit's statistical 1-sigma of each parameter (Birge-inflated where so
+    reported; ``cov_stat`` its covariance). Returns also ``covariance_statistical`` and
+    ``cov_systematic`` (the propagated type-B and shared lines).
+
+    The statistical covariance is the type-A components propagated through G (the estimator's
+    own covariance, JCGM 102 6.2) wherever the dataset splits type A into ``u_`` lines: the
+    fit's Laplace covariance assumes every value independent with sigma ``brdf_std``, which
+    equals G diag(sigma^2) G^T, but after a colour matrix a camera channel's noise moves the
+    point's three channels together (negatively correlated for a consumer camera: the Laplace
+    sigma of a parameter shared by the channels, such as alpha and int_ior of a white specular
+    lobe, is then 1.7 times the estimator's). The Birge factor that covers a misfit is taken
+    against the budget's own point-wise covariance (type A with its channel correlation plus
+    the point-independent type-B lines, :func:`birge_against_budget`): scatter the budget
+    already carries as ``angle_repeatability`` is not counted again. For losses other than
+    chi2 (sandwich covariances) the fit's ratio u_stat / sqrt(G diag(sigma^2) G^T) is kept.
+    """
+    use = meas.use
+    P = result.space.size
+    J, drdy = _loss_sensitivities(result, meas)
+    G = np.zeros((P,) + use.shape)
+    G[:, use] = -np.linalg.pinv(J, rcond=1e-10) * drdy[None, :]
+    var, stat_share = {}, {}
+    cov_b = np.zeros((P, P))
+    cov_a = np.zeros((P, P))
+    comps = list(budget.components) + (angle_components(result, meas, budget.angles) if budget.angles else [])
+    type_a = [c for c in comps if c.gum_type == "A" and _point_independent(c)]
+    split = bool(type_a) and not (len(type_a) == 1 and type_a[0].name == STATISTICAL)
+    for c in comps:
+        cov = c.covariance(G, use)
+        if split and c.gum_type == "A" and _point_independent(c):
+            cov_a += cov
+            stat_share[c.name] = np.diag(cov).copy()
+            continue
+        if c.statistical:
+            stat_share[c.name] = np.diag(cov).copy()
+            continue
+        var[c.name] = np.diag(cov).copy()
+        cov_b += cov
+    bias2 = None
+    shared = np.asarray((budget.angles or {}).get("shared", np.zeros((0,) + use.shape[:1] + (4,))), float)
+    if shared.size:
+        # the shared angle errors' quadratic term (second_order): a narrow lobe's fit answers a
+        # tilted normal by broadening whichever way it tilted, and a measured sigma reweighs the
+        # values it moved. Its mean b is a known systematic effect: the fit document's values are
+        # corrected by -b (GUM 3.2.4; 4.1.4 note: the estimate of a non-linear function is the mean
+        # of its distribution) and the line carries what is left about it, tr(H_p H_q) / 2
+        kappa = float(getattr(budget, "sigma_elasticity", 0.0) or 0.0) if result.loss == "chi2" else 0.0
+        bias2, cov2, _ = second_order(result, meas, shared, G, use, elasticity=kappa)
+        cov2 = cov2 - np.outer(bias2, bias2)
+        var[ANGLE_SECOND_ORDER] = np.diag(cov2).copy()
+        cov_b += cov2
+    u_stat = np.asarray(u_stat, float)
+    cov_stat = np.diag(u_stat ** 2) if cov_stat is None else np.asarray(cov_stat, float)
+    birge = None
+    if split:
+        if result.loss == "chi2":
+            birge = birge_against_budget(result, J, drdy, meas, comps)
+            scale = np.full(P, birge["factor"])
+        else:
+            naive = np.sqrt(np.einsum("pm,pm->p", G[:, use] * meas.brdf_std[use][None], G[:, use] * meas.brdf_std[use][None]))
+            scale = np.where(naive > 0, u_stat / np.where(naive > 0, naive, 1.0), 1.0)
+        cov_stat = cov_a * np.outer(scale, scale)
+        u_stat = np.sqrt(np.clip(np.diag(cov_stat), 0.0, None))
+    total = u_stat ** 2 + np.diag(cov_b)
+    out = {}
+    s_sum = sum(stat_share.values()) if stat_share else None
+    for i, name in enumerate(result.space.names):
+        t = float(total[i])
+        frac = {}
+        if s_sum is not None and s_sum[i] > 0:
+            for k, v in stat_share.items():
+                frac[k] = u_stat[i] ** 2 * v[i] / s_sum[i] / t if t > 0 else 0.0
+        else:
+            frac[STATISTICAL] = u_stat[i] ** 2 / t if t > 0 else 1.0
+        for k, v in var.items():
+            frac[k] = float(v[i]) / t if t > 0 else 0.0
+        uc = float(np.sqrt(t))
+        out[name] = {"u_stat": float(u_stat[i]), "u_combined": uc, "U": K_EXPANDED * uc, "k": K_EXPANDED,
+                     "budget": {k: float(f) for k, f in sorted(frac.items(), key=lambda kv: -kv[1])}}
+        if bias2 is not None:
+            # the estimate's expected shift from the shared angle errors' second-order term; the
+            # fit document reports value = fitted - this (gonio/fitting/formats/fitfile.fit_document)
+            out[name]["angle_second_order_mean"] = float(bias2[i])
+    return {"parameters": out, "cov_systematic": cov_b, "cov_statistical": cov_stat, "birge": birge}
+
+
+def gls_covariance(J: np.ndarray, sigma: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """(J^T V^-1 J)^-1 for V = diag(sigma^2) + U U^T by the Woodbury identity
+    V^-1 = D^-1 - D^-1 U (I + U^T D^-1 U)^-1 U^T D^-1 (J: M x P in data units, U: M x r);
+    O(M P r), no M x M matrix."""
+    Dinv = 1.0 / sigma ** 2
+    DJ, DU = J * Dinv[:, None], U * Dinv[:, None]
+    core = np.eye(U.shape[1]) + U.T @ DU
+    A = J.T @ DJ - (DJ.T @ U) @ np.linalg.solve(core, U.T @ DJ)
+    return np.linalg.inv(A)
+

@@ -1,0 +1,142 @@
+"""Model ``roughconductor``: Mitsuba 3's rough conductor (microfacet metal)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gonio.models.base import Model, Parameter, register, rgb
+from gonio.models.engine.jit import (_fresnel_conductor, _lobe_iso_geometry, channels, microfacet_lobe, microfacet_lobe_iso)
+from gonio.models.structure import Structure
+from gonio.models.physics.fresnel import fresnel_conductor
+from gonio.core.geometry import half_vector
+from gonio.models.physics.microfacet import MicrofacetDistribution, smith_g1_xyz
+
+__all__ = ["RoughConductor"]
+
+
+@register
+class RoughConductor(Model):
+    """Rough conductor BRDF (Mitsuba 3 ``roughconductor``).
+
+    Options
+    -------
+    distribution : {"beckmann", "ggx"}
+        Microfacet distribution (default "beckmann", Mitsuba's default).
+    anisotropic : bool
+        False: one roughness ``alpha``; True: ``alpha_u`` (local x) and ``alpha_v`` (y).
+
+    Parameters (``params`` keys)
+    ----------------------------
+    eta : (3,)
+        Real part of the relative complex index per channel, in [0.01, 10].
+    k : (3,)
+        Imaginary part (extinction coefficient) per channel, in [0, 10].
+    alpha, or alpha_u and alpha_v : float
+        Roughness (GGX alpha / Beckmann RMS slope), in [1e-4, 1].
+
+    Notes
+    -----
+    .. math:: f_r = \\frac{F(w_i\\cdot w_m; \\eta + i k)\\,D(w_m)\\,G_1(w_i,w_m)\\,G_1(w_o,w_m)}
+                         {4\\cos\\theta_i\\cos\\theta_o}
+
+    with the exact conductor Fresnel term, the separable Smith G of Mitsuba (rational
+    Beckmann G1) and ``wm`` the half vector (Walter et al. 2007, eq. 20).
+    Energy-conserving (single scattering loses energy at large alpha).
+    """
+
+    name = "roughconductor"
+    lobe_only = True   # f_r is the microfacet lobe alone: its albedo's lobe nodes run the compiled kernel
+
+    @property
+    def structure(self):
+        return Structure(kernel=_jit_kernel, geometry=_jit_geometry, body=_jit_body)
+    OPTIONS = {"distribution": ("beckmann", "ggx"), "anisotropic": (False, True)}
+    energy_conserving = True
+
+    def _parameters(self):
+        common = (
+            Parameter("eta", 0.2, 0.01, 10.0, "1", "real part of the complex index of refraction", per_channel=True),
+            Parameter("k", 3.0, 0.0, 10.0, "1", "extinction coefficient (imaginary part of the index)", per_channel=True),
+        )
+        if self.options["anisotropic"]:
+            return common + (
+                Parameter("alpha_u", 0.1, 1e-4, 1.0, "1", "roughness along the local x (tangent) axis"),
+                Parameter("alpha_v", 0.1, 1e-4, 1.0, "1", "roughness along the local y (bitangent) axis"),
+            )
+        return common + (Parameter("alpha", 0.1, 1e-4, 1.0, "1", "roughness (GGX alpha or Beckmann RMS slope)"),)
+
+    def _alphas(self, p):
+        if self.options["anisotropic"]:
+            return p["alpha_u"], p["alpha_v"]
+        return p["alpha"], p["alpha"]
+
+    def _lobe_distribution(self, p):
+        return MicrofacetDistribution(self.options["distribution"], *self._alphas(p))
+
+    def _eval_parts(self, wi, wo, p):
+        kind = self.options["distribution"]
+        dist = self._lobe_distribution(p)
+        au, av = dist.alpha_u, dist.alpha_v
+        ci, co = wi[:, 2], wo[:, 2]
+        wm, valid = half_vector(wi, wo)
+        di = np.einsum("ij,ij->i", wi, wm)
+        do = np.einsum("ij,ij->i", wo, wm)
+        D = dist.D(wm)
+        G = smith_g1_xyz(kind, au, av, wi[:, 0], wi[:, 1], ci, di) * smith_g1_xyz(kind, au, av, wo[:, 0], wo[:, 1], co, do)
+        den = 4.0 * ci * co
+        ok = valid & (den > 0.0)
+        s = np.where(ok, D * G / np.where(ok, den, 1.0), 0.0)
+        F = fresnel_conductor(0.5 * (di + do)[:, None], p["eta"], p["k"])
+        return np.zeros((wi.shape[0], 3)), F * s[:, None]
+
+    def _eval(self, wi, wo, p):
+        return self._eval_parts(wi, wo, p)[1]
+
+    def to_mitsuba(self, params):
+        p = self.validate(params)
+        d = {
+            "type": "roughconductor",
+            "distribution": self.options["distribution"],
+            "eta": rgb(p["eta"]),
+            "k": rgb(p["k"]),
+        }
+        au, av = self._alphas(p)
+        if self.options["anisotropic"]:
+            d["alpha_u"], d["alpha_v"] = au, av
+        else:
+            d["alpha"] = au
+        return d
+
+
+def _jit_geometry(model, dr, wi, wo):
+    """The kernel's parameter-independent part for an isotropic roughness
+    (:func:`gonio.models.engine.jit._lobe_iso_geometry`: 7 values a pair); None for an anisotropic one."""
+    return None if model.options["anisotropic"] else _lobe_iso_geometry(dr, wi, wo)
+
+
+def _jit_body(model, k, g, P, grad):
+    """The kernel on :func:`_jit_geometry`'s quantities (isotropic): the same formulas as
+    :func:`_jit_kernel`'s, to rounding."""
+    s, c, ds = microfacet_lobe_iso(k.dr, model.options["distribution"], P["alpha"], g, grad)
+    return _conductor(model, k, s, c, ds, P, grad)
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """The compiled kernel: conductor Fresnel times the microfacet term, derivatives by hand."""
+    dr = k.dr
+    aniso = model.options["anisotropic"]
+    alphas = (P["alpha_u"], P["alpha_v"]) if aniso else (P["alpha"], P["alpha"])
+    s, c, ds = microfacet_lobe(dr, model.options["distribution"], alphas, wi, wo, grad, aniso)
+    return _conductor(model, k, s, c, ds, P, grad)
+
+
+def _conductor(model, k, s, c, ds, P, grad):
+    """Conductor Fresnel at c times the microfacet term s (and ds per roughness parameter)."""
+    dr = k.dr
+    fres = [_fresnel_conductor(dr, c, e, kk, grad) for e, kk in zip(channels(P, "eta"), channels(P, "k"))]
+    if not grad:
+        return [Fc * s for Fc in fres], {}
+    J = {"eta": [Fc[1] * s for Fc in fres], "k": [Fc[2] * s for Fc in fres]}
+    for key, d in ds.items():
+        J[key] = [Fc[0] * d for Fc in fres]
+    return [Fc[0] * s for Fc in fres], J

@@ -1,0 +1,428 @@
+"""Model ``tabulated``: an isotropic microfacet BRDF with a data-driven (tabulated) NDF.
+
+    f_c(wi, wo) = rho_c / pi + F_c(cos theta_d) D_c(theta_h) G1_c(wi) G1_c(wo) / (4 cos_i cos_o)
+
+per colour channel c (Dupuy et al. 2015), wh the half vector. D_c: piecewise linear in ln D on
+:data:`N_KNOTS` warped knots theta_k = (pi/2) (k / (K-1))^2 (``ndf_k`` = ln(D(theta_k) / D(0)),
+k >= 1, plus a colour tilt for red and blue), normalised per channel (Walter et al. 2007,
+eq. 4); G1_c: Smith's, derived from D_c (Heitz 2014, eq. 43); F_c: piecewise linear on
+:data:`N_FRESNEL` knots in 1 - cos theta_d (``fresnel_j`` in [0, 1]); ``width_j``: a lobe width
+factor w(theta_d); rho_c: ``diffuse_reflectance``. Reciprocal and non-negative, not energy
+conserving (``energy_conserving = False``: the fit enforces albedo <= 1). Not a ``--model auto``
+candidate from its defaults (``auto_candidate = False``):
+:func:`gonio.fitting.optimise.tabulated_start.fit_tabulated` starts it from the data. Rendered
+by the ``gonio_tabulated`` plugin (:mod:`gonio.models.mitsuba.tabulated_plugin`), built from
+:func:`tables`. Design notes and full references: the comment below.
+"""
+
+# Design notes (measured figures: docs/performance.md, gonio.models.catalogue.tabulated).
+#
+# Why: measured glossy paints have specular peaks that no analytic distribution follows, a sharp
+# bright core on a wide halo. Dupuy et al. (2015) recover such a distribution from the data and
+# derive the shadowing from it; this model does the same with an NDF whose knots are fit
+# parameters. theta_h is the half vector's polar angle, cos theta_d = wi . wh.
+#
+# * D_c: K = N_KNOTS = 16 knots at 0, 0.4, 1.6, 3.6, 6.4, 10, ... 90 deg, so the core is
+#   resolved. ln D(0) = 0 before normalisation, so that the scale, which the normalisation
+#   fixes, is not a parameter. D_c is divided by Z_c = 2 pi int D cos(theta) sin(theta) d(theta),
+#   so that the integral of D cos(theta_h) over the hemisphere is 1 (Walter et al. 2007, eq. 4).
+#   The NDF differs per channel in measured data, so ln D_c = ln D + t_c(k) with a colour tilt
+#   t_c for red and blue (t_g = 0), piecewise linear in the knot index through 0 at the normal
+#   and three parameters at 6.4, 40 and 90 deg: 20 numbers, where 45 independent per-channel
+#   knots left gonio's Levenberg-Marquardt stalled by the directions the data do not see. Each
+#   channel is normalised on its own.
+# * G1_c (Heitz 2014, eq. 43; Dupuy et al. 2015, sec. 4): G1(w) = cos(theta) / A(theta),
+#   A(theta) = int max(0, w . m) D(m) dm, the projected area of the microsurface. The azimuthal
+#   integral of max(0, a + b cos phi) is closed-form (2 (a phi_c + b sin phi_c),
+#   cos phi_c = -a/b), the polar one is Gauss-Legendre on every knot interval (N_GAUSS nodes
+#   each); A is tabulated at N_G directions (dense toward grazing) whenever the parameters
+#   change and G1 is interpolated linearly in between. A(theta) >= cos(theta) for a normalised
+#   D, so 0 <= G1 <= 1.
+# * F_c: N_FRESNEL = 5 uniform knots in x = 1 - cos(theta_d) (theta_d = 0, 41.4, 60, 75.5,
+#   90 deg), per channel, in [0, 1]: the colour change toward grazing (e.g. the whitening of a
+#   clear coat).
+# * w(theta_d): tabulated like F (width_j, j >= 1; w = 1 at theta_d = 0, shared by the
+#   channels): D is evaluated at theta_h / w and divided by w^2 (its normalisation for narrow
+#   lobes), because measured lobes broaden toward grazing. With w != 1 the lobe is no longer one
+#   microsurface: G1 stays the Smith G1 of the base D (w = 1), an approximation the data-driven
+#   term accepts.
+# * Energy: every factor is symmetric in wi, wo. With w = 1 the lobe's albedo is at most max F_c
+#   (Smith's G1 and a normalised D), the body adds rho_c, so the sum can exceed 1 (and w != 1
+#   moves the lobe's albedo too); gonio's fit applies its albedo <= 1 constraint
+#   (enforce_energy).
+# * Selection: selection fits candidates from their defaults (a GGX table), and this model's 42
+#   numbers weigh 42 ln n in BIC, hence auto_candidate = False. --model auto fits it from the
+#   data only where no candidate renders within CIEDE2000 1 of the measured file in the default
+#   scene (gonio.fitting.selection.by_scene.data_driven, the fallback of
+#   gonio.fitting.selection.by_scene.rendered_choice), and chooses it where it renders clearly
+#   closer.
+# * Rendering: the plugin uses the same tables and interpolation in Dr.Jit; it samples a mixture
+#   of the channels' mean D and cosine-weighted directions.
+#
+# References
+# Dupuy, J., Heitz, E., Iehl, J.-C., Poulin, P., Ostromoukhov, V. (2015). Extracting
+# microfacet-based BRDF parameters from arbitrary materials with power iterations. Computer
+# Graphics Forum 34(4) (EGSR), 21-30.
+# Heitz, E. (2014). Understanding the masking-shadowing function in microfacet-based BRDFs.
+# JCGT 3(2), 48-107.
+# Walter, B., Marschner, S. R., Li, H., Torrance, K. E. (2007). Microfacet models for
+# refraction through rough surfaces. EGSR.
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+
+from gonio.models.base import CHANNELS, Model, Parameter, register
+from gonio.models.structure import Structure
+from gonio.core.geometry import half_vector
+
+__all__ = ["Tabulated", "N_KNOTS", "N_FRESNEL", "THETA_KNOTS", "tables", "projected_area", "g1_table",
+           "knot_index", "g_index", "ndf_from_function"]
+
+#: NDF knots (ln D piecewise linear on theta_k = (pi/2) (k / (K-1))^2)
+N_KNOTS = 16
+#: the first knot that is a parameter: ln D(theta_0) = ln D(theta_1) = 0, a flat core of
+#: 0.4 deg (a free ln D(theta_1) left a direction the data cannot see: the Gauss-Newton
+#: matrix of vch had an eigenvalue 1e-11 of its largest along the core knots, measured)
+FIRST_FREE = 2
+THETA_KNOTS = 0.5 * math.pi * (np.arange(N_KNOTS) / (N_KNOTS - 1)) ** 2
+#: Fresnel knots, uniform in x = 1 - cos(theta_d)
+N_FRESNEL = 5
+#: G1 table: theta = (pi/2) (1 - (1 - v)^2), v uniform on [0, 1] (dense toward grazing)
+N_G = 129
+#: Gauss-Legendre nodes per knot interval of the polar quadratures (normalisation, A)
+N_GAUSS = 12
+#: ln D bounds: exp(-25) ~ 1e-11 of the core is "nothing"; up to e^5 above it (a ring). The
+#: parameters are the ratios D / D(0) in exp of these (positive, spanning more than 100x: the
+#: fitter's unit box is logarithmic in them, so it moves ln D linearly)
+LN_D_BOUNDS = (-25.0, 5.0)
+D_BOUNDS = (math.exp(LN_D_BOUNDS[0]), math.exp(LN_D_BOUNDS[1]))
+#: bounds of the lobe width factors (1 at theta_d = 0)
+WIDTH = (0.25, 4.0)
+#: bound of the colour tilts |ln ndf_tilt_<c>_<k>|, and the parameter's bounds (ratios)
+TILT = 10.0
+TILT_BOUNDS = (math.exp(-TILT), math.exp(TILT))
+#: the knots where the colour tilts are parameters (0 at knot 0, linear in the knot index
+#: in between): 6.4, 40 and 90 deg
+TILT_KNOTS = (4, 10, 15)
+
+
+def _tilt_basis():
+    k = np.arange(N_KNOTS, dtype=np.float64)
+    ctrl = np.array((0,) + TILT_KNOTS, dtype=np.float64)
+    return tuple(np.interp(k, ctrl, np.eye(ctrl.size)[j]) for j in range(1, ctrl.size))
+
+
+#: hat functions of the tilt knots on the NDF knots, one (N_KNOTS,) array per tilt knot
+TILT_BASIS = _tilt_basis()
+
+
+def _theta_g(n=N_G):
+    v = np.linspace(0.0, 1.0, n)
+    return 0.5 * math.pi * (1.0 - (1.0 - v) ** 2)
+
+
+def knot_index(theta_h, n_knots=N_KNOTS):
+    """Fractional knot index of polar angles on the warped grid: (K - 1) sqrt(theta / (pi/2))."""
+    return (n_knots - 1) * np.sqrt(np.clip(theta_h, 0.0, 0.5 * math.pi) / (0.5 * math.pi))
+
+
+def g_index(theta, n=N_G):
+    """Fractional index into the G1 table: (n - 1) (1 - sqrt(1 - theta / (pi/2)))."""
+    return (n - 1) * (1.0 - np.sqrt(np.clip(1.0 - theta / (0.5 * math.pi), 0.0, 1.0)))
+
+
+def _interp(table, s):
+    """Linear interpolation of table (C, n) at fractional indices s (N,) -> (N, C)."""
+    n = table.shape[1]
+    i = np.clip(np.floor(s), 0, n - 2).astype(np.int64)
+    t = np.clip(s - i, 0.0, 1.0)[:, None]
+    rows = np.ascontiguousarray(table.T)  # (n, C): gathering rows is ~5x faster than columns
+    return rows[i] * (1.0 - t) + rows[i + 1] * t
+
+
+def _polar_nodes(theta_knots, n_gauss=N_GAUSS):
+    """Gauss-Legendre nodes and weights on every knot interval, and the fractional knot
+    index of each node (ln D is linear in the index between knots)."""
+    x, w = np.polynomial.legendre.leggauss(n_gauss)
+    k = np.arange(theta_knots.size - 1)
+    s = (k[:, None] + 0.5 * (x[None, :] + 1.0)).ravel()  # fractional index
+    a, b = theta_knots[:-1, None], theta_knots[1:, None]
+    # theta as a function of the index: the grid is (pi/2)(s/(K-1))^2, smooth in s on each piece
+    kk = theta_knots.size - 1
+    theta = 0.5 * math.pi * (s / kk) ** 2
+    dtheta_ds = math.pi * s / kk**2
+    ws = np.broadcast_to(0.5 * w[None, :], (kk, n_gauss)).ravel()
+    del a, b
+    return theta, ws * dtheta_ds, s
+
+
+_NODES = _polar_nodes(THETA_KNOTS)
+
+
+def _azimuthal(theta_o, theta_m):
+    """int_0^{2 pi} max(0, cos(theta_o) cos(theta_m) + sin(theta_o) sin(theta_m) cos(phi)) dphi,
+    shape (len(theta_o), len(theta_m)) (closed form)."""
+    a = np.cos(theta_o)[:, None] * np.cos(theta_m)[None, :]
+    b = np.sin(theta_o)[:, None] * np.sin(theta_m)[None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(b > 0.0, np.clip(-a / np.where(b > 0.0, b, 1.0), -1.0, 1.0), np.where(a > 0.0, -1.0, 1.0))
+    phi_c = np.arccos(c)
+    return 2.0 * (a * phi_c + b * np.sin(phi_c))
+
+
+_KERNEL = _azimuthal(_theta_g(), _NODES[0])  # (N_G, nodes): fixed, computed once
+
+
+def projected_area(theta_o, theta_m, weights, d_m):
+    """A(theta_o) = int max(0, w_o . m) D(m) dm for an isotropic D given at polar nodes
+    ``theta_m`` with quadrature ``weights`` (d theta) and values ``d_m`` (..., nodes).
+    Heitz 2014, eq. 43's denominator; equals cos(theta_o) (1 + Lambda(theta_o))."""
+    K = _azimuthal(np.atleast_1d(theta_o), theta_m)
+    return np.einsum("on,...n->...o", K, d_m * np.sin(theta_m) * weights)
+
+
+def ndf_from_function(D, theta_knots=THETA_KNOTS):
+    """ln(D(theta_k) / D(0)) at the knots: a table filled from an analytic D(theta)."""
+    d = np.asarray(D(theta_knots), dtype=np.float64)
+    return np.log(d / d[0])
+
+
+def g1_table(ln_d, theta_knots=THETA_KNOTS, n=N_G, n_gauss=N_GAUSS):
+    """(ln Z, G1 table) of knot tables ``ln_d`` (C, K): Z the normalisation of exp(ln D)
+    (2 pi int D cos sin d theta) and G1 = cos(theta) / A(theta) at the :func:`g_index` grid
+    (C, n), for any knot grid of the warped form."""
+    if theta_knots is THETA_KNOTS and n == N_G and n_gauss == N_GAUSS:
+        theta_m, w, s = _NODES
+        kernel = _KERNEL
+    else:
+        theta_m, w, s = _polar_nodes(theta_knots, n_gauss)
+        kernel = _azimuthal(_theta_g(n), theta_m)
+    lnd_m = _interp(ln_d, s).T  # (C, nodes)
+    top = lnd_m.max(axis=1, keepdims=True)  # scale out before exp: no overflow
+    d_m = np.exp(lnd_m - top)
+    z = 2.0 * math.pi * (d_m * np.cos(theta_m) * np.sin(theta_m) * w).sum(axis=1)
+    area = (d_m * np.sin(theta_m) * w) @ kernel.T / z[:, None]  # A with the normalised D
+    cos_t = np.cos(_theta_g(n))
+    cos_t[-1] = 0.0
+    g1 = np.clip(cos_t[None, :] / area, 0.0, 1.0)
+    return np.log(z) + top[:, 0], g1
+
+
+def tables(p):
+    """The tables of a validated parameter dict: ``ln_d`` (C, K) (ln D(theta_k) / D(0)),
+    ``ln_z`` (C,), ``g1`` (C, N_G), ``fresnel`` (C, N_FRESNEL), ``rho`` (C,)."""
+    ln_d = np.zeros((CHANNELS, N_KNOTS))
+    for k in range(FIRST_FREE, N_KNOTS):
+        ln_d[:, k] = math.log(p[f"ndf_{k}"])
+    for c, name in ((0, "r"), (2, "b")):
+        ln_d[c] += sum(math.log(p[f"ndf_tilt_{name}_{k}"]) * b for k, b in zip(TILT_KNOTS, TILT_BASIS))
+    ln_z, g1 = g1_table(ln_d)
+    fresnel = np.stack([p[f"fresnel_{j}"] for j in range(N_FRESNEL)], axis=1)
+    width = np.array([[1.0] + [p[f"width_{j}"] for j in range(1, N_FRESNEL)]])
+    return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, width=width,
+                           rho=np.asarray(p["diffuse_reflectance"]))
+
+
+def _polar(v):
+    """Polar angle of (N, 3) vectors (not necessarily unit) without acos's loss near 0."""
+    return np.arctan2(np.hypot(v[:, 0], v[:, 1]), v[:, 2])
+
+
+def _ggx_ratio(theta, alpha):
+    c2 = np.cos(theta) ** 2
+    return 1.0 / (c2 + (1.0 - c2) / alpha**2) ** 2
+
+
+@register
+class Tabulated(Model):
+    """Isotropic microfacet BRDF with a tabulated NDF per channel (see the module).
+
+    Parameters (``params`` keys)
+    ----------------------------
+    diffuse_reflectance : (3,)
+        rho, Lambertian body in [0, 1].
+    ndf_2 ... ndf_15 : float
+        D(theta_k) / D(0) of the green channel at theta_k = (pi/2) (k / 15)^2, in
+        [e^-25, e^5] (the core is flat: D(theta_1 = 0.4 deg) = D(0)).
+    ndf_tilt_r_4, ndf_tilt_r_10, ndf_tilt_r_15, and the same for b : float
+        The red and blue channels' D over green's at knots 4, 10, 15 (6.4, 40, 90 deg), in
+        [e^-10, e^10]; the log ratio is 0 at the normal, piecewise linear in the knot index.
+    width_1 ... width_4 : float
+        The lobe's width factor w at the Fresnel knots (theta_d = 41.4 ... 90 deg; 1 at 0),
+        in [0.25, 4]: D is evaluated at theta_h / w and divided by w^2.
+    fresnel_0 ... fresnel_4 : (3,)
+        F at 1 - cos(theta_d) = j / 4, in [0, 1].
+    """
+
+    name = "tabulated"
+    lambert_smooth = "diffuse_reflectance"   # albedo: the body rho, the lobe on the compiled kernel
+    OPTIONS = {}
+    energy_conserving = False
+    #: not a ``--model auto`` candidate: it fits well only from a data-driven start
+    #: (``fit_tabulated``), not from declared defaults (module notes)
+    auto_candidate = False
+    #: ``model.eval`` stays on the numpy reference at every size: the compiled kernel
+    #: (values only, :func:`_jit_kernel`) serves the fit's resident evaluations
+    compiled_min_pairs = 1 << 62
+
+    @property
+    def structure(self):
+        return Structure(kernel=_jit_kernel, kernel_inputs=_jit_inputs, derivatives=False)
+
+    #: the default NDF: GGX with this alpha; the default Fresnel: Schlick's with F0 = 0.04
+    DEFAULT_ALPHA = 0.15
+
+    def __init__(self, start=None, **options):
+        """``start``: a parameter dict that replaces the declared defaults (a data-driven
+        starting point, :func:`gonio.fitting.optimise.tabulated_start.data_start`)."""
+        self._start = None if start is None else {k: np.array(v, dtype=np.float64) for k, v in start.items()}
+        super().__init__(**options)
+        if start is not None:
+            self.validate(start)
+
+    def _default(self, name, value):
+        if self._start is not None and name in self._start:
+            return self._start[name]
+        return value
+
+    def _parameters(self):
+        pars = [Parameter("diffuse_reflectance", self._default("diffuse_reflectance", 0.1), 0.0, 1.0, "1", "Lambertian body rho", per_channel=True)]
+        lnd = ndf_from_function(lambda t: _ggx_ratio(t, self.DEFAULT_ALPHA))
+        for k in range(FIRST_FREE, N_KNOTS):
+            deg = math.degrees(THETA_KNOTS[k])
+            pars.append(Parameter(f"ndf_{k}", self._default(f"ndf_{k}", float(np.exp(np.clip(lnd[k] - lnd[1], *LN_D_BOUNDS)))),
+                                  *D_BOUNDS, "1", f"D / D(0) at theta_h = {deg:.2f} deg (green)"))
+        for c in "rb":
+            for k in TILT_KNOTS:
+                deg = math.degrees(THETA_KNOTS[k])
+                pars.append(Parameter(f"ndf_tilt_{c}_{k}", self._default(f"ndf_tilt_{c}_{k}", 1.0), *TILT_BOUNDS, "1",
+                                      f"D_{c} / D_g at theta_h = {deg:.1f} deg (its log piecewise linear in the knot index)"))
+        for j in range(N_FRESNEL):
+            x = j / (N_FRESNEL - 1)
+            f0 = 0.04 + 0.96 * x**5
+            pars.append(Parameter(f"fresnel_{j}", self._default(f"fresnel_{j}", f0), 0.0, 1.0, "1",
+                                  f"Fresnel factor at theta_d = {math.degrees(math.acos(1.0 - x)):.1f} deg",
+                                  per_channel=True))
+        for j in range(1, N_FRESNEL):
+            x = j / (N_FRESNEL - 1)
+            pars.append(Parameter(f"width_{j}", self._default(f"width_{j}", 1.0), WIDTH[0], WIDTH[1], "1",
+                                  f"lobe width factor at theta_d = {math.degrees(math.acos(1.0 - x)):.1f} deg"))
+        return tuple(pars)
+
+    # -- evaluation -----------------------------------------------------------------------
+    def _eval_parts(self, wi, wo, p):
+        t = tables(p)
+        n = wi.shape[0]
+        diffuse = np.broadcast_to(t.rho / math.pi, (n, CHANNELS))
+        return diffuse, self._lobe(wi, wo, t)
+
+    def _lobe(self, wi, wo, t):
+        ci, co = wi[:, 2], wo[:, 2]
+        wh, valid = half_vector(wi, wo)
+        cd = 0.5 * (np.einsum("ij,ij->i", wi, wh) + np.einsum("ij,ij->i", wo, wh))  # symmetric: reciprocal to rounding
+        ok = valid & (ci > 0.0) & (co > 0.0) & (wh[:, 2] > 0.0) & (cd > 0.0)
+        s_f = (N_FRESNEL - 1) * np.clip(1.0 - cd, 0.0, 1.0)
+        w = _interp(t.width, s_f)  # (N, 1): the lobe's width factor at this theta_d
+        D = np.exp(_interp(t.ln_d, knot_index(_polar(wh) / w[:, 0])) - t.ln_z[None, :]) / (w * w)
+        G = _interp(t.g1, g_index(_polar(wi))) * _interp(t.g1, g_index(_polar(wo)))
+        F = _interp(t.fresnel, s_f)
+        den = np.where(ok, 4.0 * ci * co, 1.0)
+        return np.where(ok[:, None], F * D * G / den[:, None], 0.0)
+
+    def _lobe_distribution(self, p):
+        """Node placement for :func:`gonio.models.physics.albedo.albedo`'s lobe quadrature: the GGX
+        width with the same median microfacet inclination under D cos(theta) dm (for GGX
+        that CDF is tan^2 / (alpha^2 + tan^2), median at tan(theta) = alpha), narrowest
+        channel."""
+        t = tables(p)
+        edges = 0.5 * math.pi * np.linspace(0.0, 1.0, 2049) ** 2
+        cos_e = np.cos(edges)
+        mid = knot_index(0.5 * (edges[:-1] + edges[1:]))
+        mass = np.exp(_interp(t.ln_d, mid) - t.ln_z[None, :]) * (0.5 * (cos_e[:-1] + cos_e[1:]) * (cos_e[:-1] - cos_e[1:]))[:, None]
+        cdf = np.cumsum(mass, axis=0) / mass.sum(axis=0)
+        median = edges[1:][np.argmax(cdf >= 0.5, axis=0)]
+        alpha = float(np.clip(np.tan(median.min()), 1e-3, 1.0))
+        return SimpleNamespace(alpha_u=alpha, alpha_v=alpha)
+
+    # -- Mitsuba ----------------------------------------------------------------------------
+    def to_mitsuba(self, params):
+        import sys
+
+        from gonio.models.mitsuba.plugins import add_plugin, ensure_registered
+        from gonio.models.mitsuba.tabulated_plugin import make_bsdf
+
+        p = self.validate(params)
+        this = sys.modules[__name__]
+        add_plugin("tabulated", lambda mi, dr, base: make_bsdf(mi, dr, base, this))
+        d = {"type": ensure_registered("tabulated")}
+        for par in self.parameters:
+            if par.per_channel:
+                for c, v in zip("rgb", p[par.name]):
+                    d[f"{par.name}_{c}"] = float(v)
+            else:
+                d[par.name] = float(p[par.name])
+        return d
+
+
+# -- compiled kernel (values only) -------------------------------------------------------------
+
+
+def _jit_inputs(model, p, P, F, grad, dtables):
+    """The kernel's tables, built by :func:`tables` in numpy (float64) and cast to F:
+    ``P["_tab"]`` = (ln D - ln Z (C K), G1 (C N_G), Fresnel (C N_FRESNEL), width (N_FRESNEL))."""
+    t = tables(p)
+    P["_tab"] = (F(np.ascontiguousarray(t.ln_d - t.ln_z[:, None]).ravel()), F(np.ascontiguousarray(t.g1).ravel()),
+                 F(np.ascontiguousarray(t.fresnel).ravel()), F(np.ascontiguousarray(t.width).ravel()))
+
+
+def _jit_kernel(model, k, wi, wo, P, grad):
+    """:meth:`Tabulated._lobe` and the body in Dr.Jit: the same fractional indices and linear
+    interpolation (``dr.gather``) into the tables of :func:`_jit_inputs`; polar angles by
+    atan2(|xy|, z) as :func:`_polar`. Values only (``structure.derivatives = False``: the
+    parameters act through tables built in numpy; the fit differences them)."""
+    if grad:
+        raise NotImplementedError("tabulated's kernel gives values only")
+    dr, U, active = k.dr, k.U, k.active
+    F = k.F
+    ln_d, g1, fresnel, width = P["_tab"]
+
+    def lerp(table, n, s, c):  # s: float64 fractional indices (a float32 one loses 128 * 6e-8 near the end)
+        i = dr.clip(U(dr.floor(s)), 0, n - 2)
+        t = F(dr.clip(s - type(s)(i), 0.0, 1.0))
+        return dr.gather(F, table, c * n + i) * (1.0 - t) + dr.gather(F, table, c * n + i + 1) * t
+
+    def polar(x, y, z):
+        return dr.atan2(dr.sqrt(x * x + y * y), z)
+
+    half_pi = 0.5 * math.pi
+    ci, co = wi.z, wo.z
+    # the table indices from float64 geometry whatever F is (as the Mitsuba plugin: float32's
+    # atan2 is off by a few ulp, which the steep ln D table turns into 3e-4 relative; measured)
+    F64 = dr.float64_array_t(F)
+    vi = [F64(v) for v in (wi.x, wi.y, wi.z)]
+    vo = [F64(v) for v in (wo.x, wo.y, wo.z)]
+    h = [a + b for a, b in zip(vi, vo)]
+    h2 = h[0] * h[0] + h[1] * h[1] + h[2] * h[2]
+    valid = h2 > 1e-300
+    inv = dr.rsqrt(dr.select(valid, h2, 1.0))
+    cd = 0.5 * sum((a + b) * c for a, b, c in zip(vi, vo, h)) * inv
+    ok = active & valid & (h[2] > 0) & (cd > 0)
+    s_f = (N_FRESNEL - 1) * dr.clip(1.0 - cd, 0.0, 1.0)
+    w = lerp(width, N_FRESNEL, s_f, 0)
+    s_h = (N_KNOTS - 1) * dr.sqrt(dr.clip(polar(*h) / F64(w), 0.0, half_pi) / half_pi)
+    s_i = (N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar(*vi) / half_pi, 0.0, 1.0)))
+    s_o = (N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar(*vo) / half_pi, 0.0, 1.0)))
+    den = 4.0 * dr.select(ok, ci * co, 1.0) * w * w
+    body = dr.select(active, 1.0 / math.pi + k.zero, 0.0)
+    rho = P["diffuse_reflectance"]
+    f = []
+    for c in range(CHANNELS):
+        D = dr.exp(lerp(ln_d, N_KNOTS, s_h, c))
+        G = lerp(g1, N_G, s_i, c) * lerp(g1, N_G, s_o, c)
+        Fc = lerp(fresnel, N_FRESNEL, s_f, c)
+        f.append(rho[c] * body + dr.select(ok, Fc * D * G / den, 0.0))
+    return f, {}

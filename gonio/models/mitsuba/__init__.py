@@ -1,0 +1,121 @@
+"""gonio's one boundary to Mitsuba 3: the variant, the direction convention, batched eval.
+
+Everything in gonio that talks to Mitsuba goes through this module (Mitsuba is imported lazily:
+``import gonio.models`` does not import it):
+
+* :func:`mitsuba_variant` chooses the process-global variant once (``llvm_ad_rgb`` when LLVM
+  works, else ``scalar_rgb`` with one line on stderr saying so; ``GONIO_MITSUBA_VARIANT``
+  forces one); :func:`select_variant` is the same for callers that may name a variant;
+  :data:`SCENE_VARIANT` is the variant of the one-ray-per-pose scenes (scalar).
+* :func:`interaction` is the one place the direction convention is converted: Mitsuba's
+  ``si.wi`` points to the sensor (gonio's ``wo``) and the direction ``bsdf.eval`` is asked
+  about is gonio's ``wi`` (toward the light); ``bsdf.eval`` returns f_r * cos(theta_i).
+* :func:`eval_cos` evaluates a BSDF dict or object on a batch in gonio's convention (chunked),
+  :func:`divide_cos` turns it into f_r; :func:`bsdf_base`, :func:`ensure_registered`: gonio's
+  Python BSDF plugins.
+"""
+
+# SCENE_VARIANT is scalar: a single ray renders faster there than a kernel launch. eval_cos runs
+# one kernel per chunk in LLVM, a loop in scalar.
+
+from __future__ import annotations
+
+import numpy as np
+
+from gonio.core.geometry import finite_directions
+from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
+from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
+
+__all__ = ["mitsuba_variant", "select_variant", "interaction", "eval_cos", "divide_cos", "bsdf_base",
+           "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
+
+
+def select_variant(variant=None):
+    """The variant to use (gonio's process choice when None); makes sure one is set globally."""
+    import mitsuba as mi
+
+    if variant is None:
+        variant = mitsuba_variant()
+    if mi.variant() is None:  # scoped_set_variant cannot restore "no variant"
+        mi.set_variant(variant)
+    return variant
+
+
+def interaction(wi, wo):
+    """A wavefront ``SurfaceInteraction3f`` and the direction to evaluate, gonio -> Mitsuba.
+
+    ``wi``, ``wo`` (N, 3) in gonio's convention (toward the light, toward the detector);
+    returns ``(si, w)`` for ``bsdf.eval(ctx, si, w)`` in the active (vectorised) variant:
+    ``si.wi`` = gonio's ``wo`` (Mitsuba's points to the sensor), ``w`` = gonio's ``wi``,
+    identity shading frame (the flat sample's). Directions are rounded to float32.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    si = dr.zeros(mi.SurfaceInteraction3f, wi.shape[0])
+    si.wi = mi.Vector3f(np.ascontiguousarray(wo.T, dtype=np.float32))
+    si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
+    si.n = mi.Normal3f(0.0, 0.0, 1.0)
+    return si, mi.Vector3f(np.ascontiguousarray(wi.T, dtype=np.float32))
+
+
+def eval_cos(bsdf, wi, wo, variant: str | None = None, chunk: int = 1 << 20) -> np.ndarray:
+    """Mitsuba's ``bsdf.eval`` in gonio's convention, batched.
+
+    Parameters
+    ----------
+    bsdf : dict or mitsuba.BSDF
+        A ``mitsuba.load_dict`` dict (loaded in ``variant``) or a BSDF already loaded in it.
+    wi, wo : array_like, shape (N, 3)
+        Toward the light and toward the detector (local frame, +z the normal).
+    variant : str, optional
+        Mitsuba variant; gonio's choice (:func:`mitsuba_variant`) when None.
+
+    Returns
+    -------
+    ndarray, shape (N, 3), float64
+        f_r(wi, wo) * cos(theta_i) as Mitsuba computes it (float32 inside); 0 below the
+        horizon.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    variant = select_variant(variant)
+    wi = finite_directions(wi, "wi")
+    wo = finite_directions(wo, "wo")
+    if wi.shape != wo.shape:
+        raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
+    n = wi.shape[0]
+    out = np.zeros((n, 3))
+    if n == 0:
+        return out
+    with mi.scoped_set_variant(variant):
+        if isinstance(bsdf, dict):
+            bsdf = mi.load_dict(bsdf)
+        ctx = mi.BSDFContext()
+        if variant.startswith(("llvm", "cuda")):
+            for start in range(0, n, chunk):
+                stop = min(n, start + chunk)
+                si, w = interaction(wi[start:stop], wo[start:stop])
+                value = bsdf.eval(ctx, si, w)
+                out[start:stop] = np.array(value, dtype=np.float64).reshape(3, stop - start).T
+        else:
+            si = dr.zeros(mi.SurfaceInteraction3f)
+            si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
+            si.n = mi.Normal3f(0.0, 0.0, 1.0)
+            wi32 = wi.astype(np.float32).tolist()
+            wo32 = wo.astype(np.float32).tolist()
+            for j in range(n):
+                si.wi = mi.Vector3f(*wo32[j])  # Mitsuba's si.wi points to the sensor: gonio's wo
+                value = bsdf.eval(ctx, si, mi.Vector3f(*wi32[j]))
+                out[j] = (value[0], value[1], value[2])
+    return out
+
+
+def divide_cos(values, wi, wo):
+    """f_r from f_r * cos(theta_i); 0 where either direction is at or below the horizon."""
+    cos_i = wi[:, 2].astype(np.float32).astype(np.float64)  # the cosine Mitsuba multiplied by
+    ok = (wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9)
+    fr = np.zeros_like(values)
+    fr[ok] = values[ok] / cos_i[ok, None]
+    return fr

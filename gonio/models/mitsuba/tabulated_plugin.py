@@ -1,0 +1,151 @@
+"""Mitsuba 3 Python BSDF of the ``tabulated`` model (registered as ``gonio_tabulated``).
+
+Registered by :func:`gonio.models.mitsuba.plugins.ensure_registered`. The constructor rebuilds
+the model's tables from the plugin's properties with the numpy code of
+:func:`gonio.models.catalogue.tabulated.tables` (ln D knots, the normalisation, the Smith G1
+table derived from D, the Fresnel knots); ``eval`` interpolates them exactly as the numpy model
+does (the same fractional indices, linear interpolation by ``dr.gather``), in float32. Polar
+angles come from ``atan2(|xy|, z)``, well conditioned near the normal where ``acos`` is not.
+
+Sampling: a mixture of cosine-weighted directions and reflections about microfacet normals m
+drawn from the channels' mean D (normalised, so ``D cos(theta_m)`` is a density of m), piecewise
+constant on :data:`SAMPLING_BINS` rings of the warped theta grid (uniform in solid angle within
+a ring); pdf(wo) = q p_m(h) / (4 wo . h) + (1 - q) cos(theta_o) / pi, q the mean Fresnel
+factor's share of (mean F + mean rho), clipped to [Q_MIN, Q_MAX]. ``pdf`` is evaluated from the
+same rings, so it is exactly the density ``sample`` draws from.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gonio.models.base import CHANNELS
+
+#: rings of the sampled microfacet normal (warped like the knots: dense at the core)
+SAMPLING_BINS = 1024
+#: bounds of the probability of sampling the lobe (the rest: cosine-weighted)
+Q_MIN, Q_MAX = 0.2, 0.9
+
+
+def make_bsdf(mi, dr, base, tab):
+    """The BSDF class for the active variant, derived from gonio's Python BSDF ``base``;
+    ``tab`` is the model's module (:mod:`gonio.models.catalogue.tabulated`, passed in: no import cycle)."""
+    model = tab.Tabulated()
+
+    def lerp(table, n, s, c):
+        """Channel ``c`` of a flattened (C, n) table at fractional indices ``s``."""
+        i = dr.clip(mi.UInt32(dr.floor(s)), 0, n - 2)
+        t = dr.clip(s - mi.Float(i), 0.0, 1.0)
+        lo = dr.gather(mi.Float, table, c * n + i)
+        hi = dr.gather(mi.Float, table, c * n + i + 1)
+        return lo * (1.0 - t) + hi * t
+
+    F64 = dr.float64_array_t(mi.Float)
+
+    def polar(v):
+        return dr.atan2(dr.sqrt(v.x * v.x + v.y * v.y), v.z)
+
+    def polar64(x, y, z):
+        """Polar angle in float64 (float32's atan2 is off by a few ulp, which a steep ln D
+        table turns into 1e-5 relative; measured)."""
+        return dr.atan2(dr.sqrt(x * x + y * y), z)
+
+    class TabulatedBSDF(base):
+        def __init__(self, props):
+            base.__init__(self, props)
+            params = {}
+            for par in model.parameters:
+                params[par.name] = ([float(props[f"{par.name}_{c}"]) for c in "rgb"] if par.per_channel
+                                    else float(props[par.name]))
+            t = tab.tables(model.validate(params))
+            self.rho = mi.Color3f(*[float(x) for x in t.rho / math.pi])
+            self.ln_d = mi.Float(np.ascontiguousarray(t.ln_d - t.ln_z[:, None], dtype=np.float32).ravel())
+            self.g1 = mi.Float(np.ascontiguousarray(t.g1, dtype=np.float32).ravel())
+            self.fresnel = mi.Float(np.ascontiguousarray(t.fresnel, dtype=np.float32).ravel())
+            self.width = mi.Float(np.ascontiguousarray(t.width, dtype=np.float32).ravel())
+            dr.make_opaque(self.rho, self.ln_d, self.g1, self.fresnel, self.width)
+            # importance sampling (module notes): the channels' mean D on SAMPLING_BINS rings
+            edges = 0.5 * math.pi * (np.linspace(0.0, 1.0, SAMPLING_BINS + 1)) ** 2
+            cos_e = np.cos(edges)
+            cos_e[-1] = 0.0
+            mid = tab.knot_index(0.5 * (edges[:-1] + edges[1:]))
+            d_mid = np.exp(tab._interp(t.ln_d, mid) - t.ln_z[None, :]).mean(axis=1)
+            ring = 2.0 * math.pi * (cos_e[:-1] - cos_e[1:])  # solid angle of each ring
+            mass = d_mid * 0.5 * (cos_e[:-1] + cos_e[1:]) * ring  # int D cos dm over the ring
+            self.dist = mi.DiscreteDistribution(mi.Float(mass.astype(np.float32)))
+            self.density = mi.Float((mass / mass.sum() / ring).astype(np.float32))  # pdf of m per sr
+            self.cos_lo = mi.Float(cos_e[1:].astype(np.float32))
+            self.cos_hi = mi.Float(cos_e[:-1].astype(np.float32))
+            spec = float(np.mean(t.fresnel))
+            self.q = mi.Float(float(np.clip(spec / max(spec + float(np.mean(t.rho)), 1e-12), Q_MIN, Q_MAX)))
+            dr.make_opaque(self.density, self.cos_lo, self.cos_hi, self.q)
+
+        def _pdf_m(self, m):
+            """pdf of the sampled microfacet normal m per steradian (piecewise constant)."""
+            b = mi.UInt32(dr.clip(dr.floor(SAMPLING_BINS * dr.sqrt(dr.clip(polar(m) / (0.5 * math.pi), 0.0, 1.0))),
+                                  0, SAMPLING_BINS - 1))
+            return dr.gather(mi.Float, self.density, b)
+
+        def pdf(self, ctx, si, wo, active=True):
+            ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0)
+            h = dr.normalize(si.wi + wo)
+            dh = dr.dot(wo, h)
+            p_spec = dr.select(dh > 0, self._pdf_m(h) / (4.0 * dr.select(dh > 0, dh, 1.0)), 0.0)
+            p_cos = mi.warp.square_to_cosine_hemisphere_pdf(wo)
+            return dr.select(ok, self.q * p_spec + (1.0 - self.q) * p_cos, 0.0)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            spec = sample1 < self.q
+            b, u = self.dist.sample_reuse(sample2.x)
+            lo, hi = dr.gather(mi.Float, self.cos_lo, b), dr.gather(mi.Float, self.cos_hi, b)
+            cos_m = lo + (hi - lo) * u  # uniform in solid angle within the ring
+            sin_m = dr.sqrt(dr.maximum(0.0, 1.0 - cos_m * cos_m))
+            phi = 2.0 * math.pi * sample2.y
+            m = mi.Vector3f(sin_m * dr.cos(phi), sin_m * dr.sin(phi), cos_m)
+            w_spec = 2.0 * dr.dot(si.wi, m) * m - si.wi
+            bs = mi.BSDFSample3f()
+            bs.wo = dr.select(spec, w_spec, mi.warp.square_to_cosine_hemisphere(sample2))
+            bs.pdf = self.pdf(ctx, si, bs.wo, active)
+            bs.eta = 1.0
+            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
+            bs.sampled_component = mi.UInt32(0)
+            ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(bs.wo) > 0) & (bs.pdf > 0)
+            value = self.eval(ctx, si, bs.wo, ok) / dr.select(ok, bs.pdf, 1.0)
+            return bs, dr.select(ok, value, 0.0)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
+
+        def _f(self, si, wo):
+            wi_g, wo_g = wo, si.wi  # gonio: wi toward the light, wo toward the detector
+            ci = mi.Frame3f.cos_theta(wi_g)
+            co = mi.Frame3f.cos_theta(wo_g)
+            # the geometry of the table indices in float64 (the directions are float32)
+            ix, iy, iz = F64(wi_g.x), F64(wi_g.y), F64(wi_g.z)
+            ox, oy, oz = F64(wo_g.x), F64(wo_g.y), F64(wo_g.z)
+            hx, hy, hz = ix + ox, iy + oy, iz + oz
+            hn = dr.sqrt(hx * hx + hy * hy + hz * hz)
+            up64 = (hn > 0) & (hz > 0)
+            cd = 0.5 * (ix * hx + iy * hy + iz * hz + ox * hx + oy * hy + oz * hz) / dr.select(up64, hn, 1.0)
+            up = mi.Bool(up64 & (cd > 0))
+            half_pi = 0.5 * math.pi
+            s_f = mi.Float((tab.N_FRESNEL - 1) * dr.clip(1.0 - cd, 0.0, 1.0))
+            w = lerp(self.width, tab.N_FRESNEL, s_f, 0)
+            s_h = mi.Float((tab.N_KNOTS - 1) * dr.sqrt(dr.clip(polar64(hx, hy, hz) / (F64(w) * half_pi), 0.0, 1.0)))
+            s_i = mi.Float((tab.N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar64(ix, iy, iz) / half_pi, 0.0, 1.0))))
+            s_o = mi.Float((tab.N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar64(ox, oy, oz) / half_pi, 0.0, 1.0))))
+            den = 4.0 * dr.select(up, ci * co, 1.0) * w * w
+            lobe = []
+            for c in range(CHANNELS):
+                D = dr.exp(lerp(self.ln_d, tab.N_KNOTS, s_h, c))
+                G = lerp(self.g1, tab.N_G, s_i, c) * lerp(self.g1, tab.N_G, s_o, c)
+                F = lerp(self.fresnel, tab.N_FRESNEL, s_f, c)
+                lobe.append(dr.select(up, F * D * G / den, 0.0))
+            return self.rho + mi.Color3f(*lobe)
+
+        def to_string(self):
+            return "GonioTabulated[]"
+
+    return TabulatedBSDF

@@ -1,0 +1,82 @@
+"""Camera port server (docs/interfaces.md section 4): line-based ASCII, ``\\n`` terminated.
+
+| command | reply |
+|---|---|
+| ``*IDN?`` | ``gonio,SimCamera,SIM00001,0.1.0`` |
+| ``SENSOR?`` | ``<width> <height> <bits> <black> <white> <cfa>`` |
+| ``EXPOSE <seconds> <path>`` | ``OK <sha256>`` once the DNG is at ``<path>``; ``ERR <reason>`` |
+| ``FLAT <seconds> <path>`` | as ``EXPOSE``, of the flat-field source (integrating sphere) |
+| ``CHART <seconds> <path>`` | as ``EXPOSE``, of the ColorChecker in the holder's chart slot (colour calibration) |
+
+The exposure physics lives in ``Instrument.capture``; this module parses and formats.
+Exposures from 1 us to 60 s are accepted; the path is the rest of the line (spaces allowed),
+its folder must exist. Errors: ``ERR bad exposure``, ``ERR missing path``,
+``ERR no such directory``, ``ERR disk full`` (ENOSPC or EDQUOT: the client stops resumably),
+``ERR write failed``, ``ERR unknown command``.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+
+from gonio.sim.physics.sensor import CFA, write_dng
+
+__all__ = ["CameraPort"]
+
+
+class CameraPort:
+    """Camera protocol server; ``armed`` holds pending camera faults (``nothing``, ``truncated``)."""
+
+    IDN = "gonio,SimCamera,SIM00001,0.1.0"
+    #: command lines are UTF-8: the path of an exposure may hold any character (Zaber and SCPI are ASCII)
+    encoding = "utf-8"
+
+    def __init__(self, instrument):
+        self.inst = instrument
+        self.armed: list[str] = []
+
+    def handle(self, text: str) -> list[str]:
+        text = text.strip()
+        if not text:
+            return []
+        parts = text.split(None, 2)
+        cmd = parts[0].upper()
+        if cmd == "*IDN?" and len(parts) == 1:
+            return [self.IDN]
+        if cmd == "SENSOR?" and len(parts) == 1:
+            s = self.inst.sensor
+            return [f"{s.width} {s.height} {s.bits} {s.black} {s.white} {CFA}"]
+        if cmd in ("EXPOSE", "FLAT", "CHART"):
+            return [self._expose(parts[1:], {"FLAT": "flat", "CHART": "chart"}.get(cmd, "scene"))]
+        return ["ERR unknown command"]
+
+    def _expose(self, args, source="scene") -> str:
+        try:
+            seconds = float(args[0])
+        except (IndexError, ValueError):
+            return "ERR bad exposure"
+        if not 1e-6 <= seconds <= 60.0:
+            return "ERR bad exposure"
+        if len(args) < 2 or not args[1].strip():
+            return "ERR missing path"
+        path = args[1].strip()
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(folder):
+            return "ERR no such directory"
+        data = self.inst.capture(seconds, source)
+        fault = self.armed.pop(0) if self.armed else None
+        try:
+            if fault == "nothing":
+                digest = hashlib.sha256(data).hexdigest()
+            elif fault == "truncated":
+                write_dng(path, data[: len(data) // 2])
+                digest = hashlib.sha256(data).hexdigest()
+            else:
+                digest = write_dng(path, data)
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                return "ERR disk full"
+            return "ERR write failed"
+        return f"OK {digest}"
