@@ -150,13 +150,10 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
 
 
 def _camera(spec: str):
-    from gonio.bench.drivers import Gphoto2Camera, WatchedFolderCamera
+    """``--camera`` as capture and calibrate take it (read in one place: the driver's)."""
+    from gonio.bench.drivers.camera import camera_from_spec
 
-    if spec == "gphoto2":
-        return Gphoto2Camera()
-    if spec.startswith("folder:"):
-        return WatchedFolderCamera(spec[len("folder:"):])
-    return spec  # a serial port or URL of a simulated camera
+    return camera_from_spec(spec)
 
 
 def _note(line: str) -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.core.channels import COLOUR_SPACE_CHANNELS
 from gonio.core.geometry import angles_deg
 from gonio.core.geometry import directions as direction
 
@@ -180,7 +181,7 @@ def _check_sigmas(path, brdf, std, use) -> None:
 
 #: The colour spaces f_r can be fitted in, and the dataset variables that hold each.
 COLOUR_SPACES = {"srgb": "brdf_srgb", "xyz": "brdf_xyz", "camera": "brdf"}
-_CHANNELS = {"srgb": ("R", "G", "B"), "xyz": ("X", "Y", "Z"), "camera": ("R", "G", "B")}
+_CHANNELS = COLOUR_SPACE_CHANNELS     # the one declaration (gonio.core.channels)
 
 
 def _radians(ds, path, name) -> np.ndarray:

@@ -33,7 +33,7 @@ from gonio.models.catalogue import tabulated as _tabulated  # noqa: F401  (regis
 from gonio.models.physics import albedo as _albedo
 from gonio.models.engine import albedo as _albedo_jit
 from gonio.models.engine import fast
-from gonio.models.base import CHANNELS, Model, Parameter, eval_dtype, get, install_compiled, names
+from gonio.models.base import CHANNELS, Model, Parameter, eval_dtype, get, names
 from gonio.models.physics.diffuse import lambert, oren_nayar
 from gonio.models.physics.fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
 from gonio.models.physics.microfacet import DISTRIBUTIONS, MicrofacetDistribution
@@ -41,9 +41,6 @@ from gonio.models.structure import Affine, Structure
 from gonio.models.catalogue import tabulated  # the tabulated model's tables and grids (for fitting's data-driven start)
 from gonio.models.mitsuba import mitsuba_variant
 
-install_compiled(fast._eval_checked, fast.available)  # Model.eval's compiled path, on what it has checked (gonio/models/base cannot import it)
-_albedo.install_compiled(_albedo_jit.applies, _albedo_jit.lobe_integral, _albedo_jit.smooth_integral)  # albedo's compiled quadratures (likewise)
-del install_compiled
 
 __all__ = [
     "get",

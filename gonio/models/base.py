@@ -1,21 +1,21 @@
-"""Model base class, :class:`Parameter` declaration and the model registry."""
+"""Model base class and the :class:`Parameter` declaration (the registry: :mod:`gonio.models.registry`)."""
 
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS
+from gonio.models.engine import albedo as _compiled_albedo
+from gonio.models.engine import fast as _engine
+from gonio.models.inputs import eval_dtype, eval_inputs
 from gonio.models.physics.albedo import albedo
+from gonio.models.registry import _REGISTRY, get, names, register  # noqa: F401  (re-exported)
 from gonio.models.structure import Structure
-from gonio.core.geometry import as_directions
 
 __all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs", "eval_dtype"]
-
-#: Number of colour channels (linear camera RGB).
-CHANNELS = 3
 
 #: Points per block in :meth:`Model.eval` (bounds temporaries: ~10 MB per array).
 _BLOCK = 1 << 16
@@ -48,76 +48,6 @@ class Parameter:
     unit: str
     description: str
     per_channel: bool = False
-
-
-_REGISTRY: dict[str, type] = {}
-
-
-def eval_dtype(wi, wo):
-    """The precision of an evaluation on these directions, as numpy's arithmetic would give
-    it: float32 when both are float32 arrays (or numpy float32 scalars), float64 otherwise
-    (float64, mixed float32 and float64, integers, float16, lists: promoted to float64)."""
-    f32 = np.dtype(np.float32)
-    return f32 if getattr(wi, "dtype", None) == f32 and getattr(wo, "dtype", None) == f32 else np.dtype(np.float64)
-
-
-def eval_inputs(model, wi, wo, params, dtype=np.float64):
-    """What every evaluation path checks first: directions as C-contiguous (N, 3) arrays of
-    type ``dtype`` (float64 unless told) and one shape, and the validated parameters.
-    Returns ``(wi, wo, params)``."""
-    wi = as_directions(wi, "wi", dtype)
-    wo = as_directions(wo, "wo", dtype)
-    if wi.shape != wo.shape:
-        raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
-    return wi, wo, model.validate(params)
-
-
-#: The compiled path, ``(eval, available)`` of :mod:`gonio.models.fast`, installed by the
-#: package (``models/__init__``): this module is below it and does not import it.
-_COMPILED = None
-
-
-def install_compiled(eval_fn, available_fn):
-    """Install the compiled evaluator that :meth:`Model.eval` dispatches to:
-    ``eval_fn(model, wi, wo, p)`` on what :func:`eval_inputs` returned (checked)."""
-    global _COMPILED
-    _COMPILED = (eval_fn, available_fn)
-
-
-def _compiled(model):
-    """True when ``model.eval`` may run its compiled kernel: the model has one, Dr.Jit's LLVM
-    backend works (probed once per process) and ``GONIO_EVAL_BACKEND`` is not ``numpy``."""
-    if _COMPILED is None or model.structure.kernel is None:
-        return False
-    if os.environ.get("GONIO_EVAL_BACKEND", "").lower() == "numpy":
-        return False
-    return _COMPILED[1]()
-
-
-def register(cls):
-    """Class decorator: add a :class:`Model` subclass to the registry under ``cls.name``."""
-    _REGISTRY[cls.name] = cls
-    return cls
-
-
-def names():
-    """Names of the registered models, sorted."""
-    return tuple(sorted(_REGISTRY))
-
-
-def get(name, **options):
-    """Return the model ``name`` configured with discrete ``options``.
-
-    Raises
-    ------
-    ValueError
-        Unknown model name or option.
-    """
-    try:
-        cls = _REGISTRY[name]
-    except KeyError:
-        raise ValueError(f"unknown model {name!r}; known models: {', '.join(names())}") from None
-    return cls(**options)
 
 
 class Model:
@@ -278,10 +208,10 @@ class Model:
         if backend not in ("auto", "drjit"):
             raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
         wi, wo, p = eval_inputs(self, wi, wo, params, dtype)
-        if backend == "drjit" or (wi.shape[0] >= self.compiled_min_pairs and _compiled(self)):
-            if backend == "drjit" and not _compiled(self):
+        if backend == "drjit" or (wi.shape[0] >= self.compiled_min_pairs and _engine.compiled_for(self)):
+            if backend == "drjit" and not _engine.compiled_for(self):
                 raise ValueError(f"{self.name}: no compiled kernel here (Dr.Jit's LLVM backend or the model's kernel missing)")
-            return _COMPILED[0](self, wi, wo, p)
+            return _engine.eval_checked(self, wi, wo, p)
         return self.eval_reference(wi, wo, p).astype(dtype, copy=False)
 
     def eval_reference(self, wi, wo, params):
@@ -346,7 +276,7 @@ class Model:
         the options (``n_theta``, ``n_phi``, ``tol``, ``max_level``, ``return_error``)
         and the stated error (<= 1e-3 absolute, typically < 1e-5).
         """
-        return albedo(self, wo, params, **quadrature)
+        return albedo(self, wo, params, compiled=_compiled_albedo.quadratures(self), **quadrature)
 
     # -- Mitsuba ---------------------------------------------------------------------
     def to_mitsuba(self, params):

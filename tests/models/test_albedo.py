@@ -91,7 +91,9 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
         p = {"eta": rng.uniform(0.2, 3.0, 3), "k": rng.uniform(0.0, 5.0, 3)}
         p.update({"alpha_u": 0.3, "alpha_v": 0.05} if options.get("anisotropic") else {"alpha": 0.2})
     calls = {"compiled": 0, "parts": 0, "eval": 0}
-    applies, real_lobe, real_smooth = _albedo._COMPILED
+    from gonio.models.engine import albedo as _albedo_jit
+
+    real_lobe, real_smooth = _albedo_jit.lobe_integral, _albedo_jit.smooth_integral
     real_parts, real_eval = type(m)._eval_parts, type(m).eval
 
     def spy_lobe(*args):
@@ -106,7 +108,7 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
         calls["eval"] += 1
         return real_eval(self, *args, **kw)
 
-    monkeypatch.setattr(_albedo, "_COMPILED", (applies, spy_lobe, real_smooth))
+    monkeypatch.setattr(_albedo_jit, "lobe_integral", spy_lobe)
     monkeypatch.setattr(type(m), "_eval_parts", spy_parts)
     monkeypatch.setattr(type(m), "eval", spy_eval)
     got, got_err = m.albedo(WO, p, return_error=True)
@@ -216,7 +218,9 @@ def test_smooth_and_layered_models_integrate_on_the_compiled_kernel(name, option
         pytest.skip("Dr.Jit LLVM backend unavailable")
     m = gm.get(name, **options)
     calls = {"lobe": 0, "smooth": 0, "parts": 0}
-    applies, real_lobe, real_smooth = _albedo._COMPILED
+    from gonio.models.engine import albedo as _albedo_jit
+
+    real_lobe, real_smooth = _albedo_jit.lobe_integral, _albedo_jit.smooth_integral
     real_parts = type(m)._eval_parts
 
     def spy(key, fn):
@@ -225,7 +229,8 @@ def test_smooth_and_layered_models_integrate_on_the_compiled_kernel(name, option
             return fn(*args)
         return call
 
-    monkeypatch.setattr(_albedo, "_COMPILED", (applies, spy("lobe", real_lobe), spy("smooth", real_smooth)))
+    monkeypatch.setattr(_albedo_jit, "lobe_integral", spy("lobe", real_lobe))
+    monkeypatch.setattr(_albedo_jit, "smooth_integral", spy("smooth", real_smooth))
     monkeypatch.setattr(type(m), "_eval_parts", lambda self, *a: spy("parts", real_parts)(self, *a))
     got, got_err = m.albedo(WO, params, return_error=True)
     levels = calls["smooth"]

@@ -23,7 +23,7 @@ only through these classes; the simulator (`gonio.sim`) speaks the same bytes at
 # shortest-way moves, homing). led: the lamp on the chain. meter: the SCPI source monitor
 # (pyserial or VISA). identify: Zaber device ids and *IDN?, journalled once per run.
 
-from gonio.bench.drivers.camera import (BadDelivery, Delivery, Gphoto2Camera, RawFrame, SimCamera, WatchedFolderCamera, decode_raw, deliver, read_verified)
+from gonio.bench.drivers.camera import (BadDelivery, Delivery, Gphoto2Camera, RawFrame, SimCamera, WatchedFolderCamera, camera_from_spec, decode_raw, deliver, open_camera, read_verified)
 from gonio.bench.drivers.led import LedSource
 from gonio.bench.drivers.meter import PowerMeter, is_visa_resource
 from gonio.bench.drivers.serialport import SerialDevice
@@ -34,6 +34,6 @@ from gonio.bench.drivers.zaber_protocol import (FLAG_MEANINGS, REJECT_MEANINGS, 
 __all__ = [
     "BadDelivery", "Delivery", "FLAG_MEANINGS", "REJECT_MEANINGS", "Gphoto2Camera", "Goniometer", "LedSource", "MoveError",
     "PowerMeter", "RawFrame", "Reply", "SerialDevice", "SimCamera", "WatchedFolderCamera", "ZaberChain",
-    "decode_raw", "deliver", "emergency_stop", "format_command", "is_visa_resource", "lrc", "parse_reply",
+    "camera_from_spec", "decode_raw", "deliver", "emergency_stop", "open_camera", "format_command", "is_visa_resource", "lrc", "parse_reply",
     "read_verified", "shortest_equivalent",
 ]

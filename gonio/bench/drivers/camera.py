@@ -41,7 +41,7 @@ from gonio.core.files import commit_file, sha256_file, tmp_name
 from gonio.core.errors import CommunicationError, DeviceError, GonioError
 from gonio.bench.drivers.raw import RawFrame, _dng_direct, decode_raw, read_verified  # noqa: F401  (re-exported)
 
-__all__ = ["SensorInfo", "RawFrame", "decode_raw", "read_verified", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
+__all__ = ["camera_from_spec", "open_camera", "SensorInfo", "RawFrame", "decode_raw", "read_verified", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
            "RAW_SUFFIXES", "BadDelivery", "Delivery", "deliver"]
 
 RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
@@ -418,3 +418,21 @@ class Gphoto2Camera:
 
     def close(self) -> None:
         pass
+
+
+def camera_from_spec(spec: str):
+    """``--camera``'s value, read here and nowhere else: a :class:`Gphoto2Camera` for
+    ``gphoto2``, a :class:`WatchedFolderCamera` for ``folder:PATH``, else the serial port or
+    URL of a camera port itself (a capture's rig opens it as a :class:`SimCamera`)."""
+    if spec == "gphoto2":
+        return Gphoto2Camera()
+    if spec.startswith("folder:"):
+        return WatchedFolderCamera(spec[len("folder:"):])
+    return spec
+
+
+def open_camera(spec: str, *, timeout: float = 30.0):
+    """The camera ``--camera`` names, opened (:func:`camera_from_spec`; a port as a
+    :class:`SimCamera` with ``timeout``)."""
+    camera = camera_from_spec(spec)
+    return SimCamera(camera, timeout=timeout) if isinstance(camera, str) else camera

@@ -91,11 +91,7 @@ def where(gonio) -> str:
 
 
 def open_camera(spec: str):
-    """A camera from ``--camera``: ``gphoto2``, ``folder:PATH`` or a serial URL of a camera port."""
-    from gonio.bench.drivers import Gphoto2Camera, SimCamera, WatchedFolderCamera
+    """A camera from ``--camera`` (:func:`gonio.bench.drivers.camera.open_camera`)."""
+    from gonio.bench.drivers.camera import open_camera as _open
 
-    if spec == "gphoto2":
-        return Gphoto2Camera()
-    if spec.startswith("folder:"):
-        return WatchedFolderCamera(spec[len("folder:"):])
-    return SimCamera(spec, timeout=30.0)
+    return _open(spec, timeout=30.0)

@@ -26,7 +26,8 @@ import math
 
 import numpy as np
 
-from gonio.models.base import CHANNELS, _compiled
+from gonio.core.channels import CHANNELS
+from gonio.models.engine.fast import compiled_for
 from gonio.models.structure import LOBE_ONLY
 
 #: nodes a kernel launch covers at most (the directions of a level are cut into chunks): the
@@ -38,7 +39,14 @@ def applies(model) -> bool:
     """True where the compiled quadratures run: the model has a compiled kernel, Dr.Jit's
     LLVM backend works and ``GONIO_EVAL_BACKEND`` is not ``numpy`` (``Model.eval``'s own
     rule)."""
-    return _compiled(model)
+    return compiled_for(model)
+
+
+def quadratures(model):
+    """``(lobe_integral, smooth_integral)`` where they run for ``model`` (:func:`applies`),
+    else None: what :meth:`gonio.models.Model.albedo` hands the quadrature
+    (:func:`gonio.models.physics.albedo.albedo`), looked up when called."""
+    return (lobe_integral, smooth_integral) if applies(model) else None
 
 
 def _map(model, p, off=None):

@@ -39,6 +39,7 @@ recompile. Pieces: :mod:`.jit`, :mod:`.kernels`, :mod:`.sums`, :mod:`.roundtrip`
 from __future__ import annotations
 
 import functools
+import os
 import subprocess
 import sys
 import threading
@@ -48,7 +49,8 @@ from functools import lru_cache
 import numpy as np
 
 from gonio.models.engine import roundtrip as _roundtrip
-from gonio.models.base import CHANNELS, eval_dtype, eval_inputs
+from gonio.core.channels import CHANNELS
+from gonio.models.inputs import eval_dtype, eval_inputs
 from gonio.models.engine.freeze import _FREEZE_LOCK, FREEZE_LIMIT, _frozen_for  # noqa: F401  (the tests reach FREEZE_LIMIT as fast.*)
 from gonio.models.engine.affine import affine_parts, affine_q, affine_spec, affine_tables, prepare
 from gonio.models.engine.jit import Directions, _dr
@@ -70,6 +72,16 @@ _PROBE = (
     "dr.eval(x)\n"
     "print(x)\n"
 )
+
+
+def compiled_for(model) -> bool:
+    """True when ``model.eval`` may run its compiled kernel: the model has one, Dr.Jit's LLVM
+    backend works (probed once per process) and ``GONIO_EVAL_BACKEND`` is not ``numpy``."""
+    if model.structure.kernel is None:
+        return False
+    if os.environ.get("GONIO_EVAL_BACKEND", "").lower() == "numpy":
+        return False
+    return available()
 
 
 @lru_cache(maxsize=1)
@@ -172,10 +184,10 @@ def eval(model, wi, wo, params):
     models`` prints."""
     dtype = eval_dtype(wi, wo)
     wi, wo, p = eval_inputs(model, wi, wo, params, dtype)
-    return _eval_checked(model, wi, wo, p)
+    return eval_checked(model, wi, wo, p)
 
 
-def _eval_checked(model, wi, wo, p):
+def eval_checked(model, wi, wo, p):
     """:func:`eval` on what :func:`gonio.models.base.eval_inputs` returned (C-contiguous
     (N, 3) directions of one type, validated parameters): ``Model.eval``'s compiled path,
     which has checked them already (a second check cost ~3-6 us a call)."""
@@ -242,7 +254,7 @@ def round_trip_race(dtype, repeat: int = 7):
     call)."""
     import time
 
-    from gonio.models import get
+    from gonio.models.registry import get
 
     dtype = np.dtype(dtype)
     model = get("diffuse")

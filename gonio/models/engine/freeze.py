@@ -28,7 +28,7 @@ def _frozen(fn, name, options, threads=None):
     size of Dr.Jit's thread pool): see :func:`_frozen_for`."""
     import drjit as dr
 
-    from gonio.models import get
+    from gonio.models.registry import get
 
     model = get(name, **dict(options))
     return _GcPaused(dr.freeze(lambda *inputs: fn(model, *inputs), limit=FREEZE_LIMIT, warn_after=_NEVER))

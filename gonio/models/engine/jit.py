@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gonio.models.base import CHANNELS
+from gonio.core.channels import CHANNELS
 from gonio.core.geometry import as_directions
 
 __all__ = ["Directions", "JitContext", "channels", "microfacet_lobe"]

@@ -30,7 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from gonio.models.base import CHANNELS
+from gonio.core.channels import CHANNELS
 
 __all__ = ["SOA_MIN_PAIRS", "COPIES", "types", "soa_kernel", "packed_kernel", "gather_kernel", "to_components",
            "interleave", "eval_blocks", "eval_gathered", "word_gather_kernel", "gather_into_kernel",

@@ -10,7 +10,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from gonio.models.base import CHANNELS
+from gonio.core.channels import CHANNELS
 from gonio.models.engine.freeze import _FREEZE_LOCK, _frozen_for
 from gonio.models.engine.jit import _dr
 from gonio.models.engine.kernels import _fJ, _needs_derivatives, _param_vars, _source
@@ -153,7 +153,7 @@ def _shared_pairs(model):
 
 @lru_cache(maxsize=None)
 def _shared_pairs_of(name, options):
-    from gonio.models import get
+    from gonio.models.registry import get
 
     model = get(name, **dict(options))
     ent = _entries(model)

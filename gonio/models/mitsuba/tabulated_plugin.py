@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from gonio.models.base import CHANNELS
+from gonio.core.channels import CHANNELS
 
 #: rings of the sampled microfacet normal (warped like the knots: dense at the core)
 SAMPLING_BINS = 1024

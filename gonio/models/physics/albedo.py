@@ -57,31 +57,18 @@ def _gl01(n):
     return 0.5 * x + 0.5, 0.5 * w
 
 
-#: The compiled quadratures, ``(applies(model), lobe_integral(model, p, dist, W, n_u, n_phi,
-#: known, off=None), smooth_integral(model, p, off, W, n_theta, n_phi))`` of :mod:`gonio.models.engine.albedo`,
-#: installed by the package (``models/__init__``): this module is below the compiled path
-#: and does not import it.
-_COMPILED = None
-
-
-def install_compiled(applies, lobe_integral, smooth_integral):
-    """Install the compiled quadratures (see :data:`_COMPILED`)."""
-    global _COMPILED
-    _COMPILED = (applies, lobe_integral, smooth_integral)
-
-
-def _compiled_for(model, dist):
+def _compiled_for(model, dist, compiled):
     """The compiled quadratures ``(lobe_integral, smooth_integral)`` where they take the
     whole albedo of ``model``: its smooth part known (``lobe_only``, ``lambert_smooth``) or
     switched off by parameter values (``smooth_off``) under a lobe distribution, or no lobe
     distribution at all (f_r at the smooth part's nodes); the compiled path working. Else
     None."""
-    if _COMPILED is None:
+    if compiled is None:
         return None
     known = model.lobe_only or model.lambert_smooth is not None
     if dist is not None and not known and model.smooth_off is None and not model.lobe_switch:
         return None
-    return _COMPILED[1:] if _COMPILED[0](model) else None
+    return compiled
 
 
 def _switched_off(model, p):
@@ -166,7 +153,7 @@ def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
     return np.broadcast_to(acc, (m, 3))
 
 
-def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, return_error=False):
+def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, return_error=False, compiled=None):
     """Directional albedo of ``model`` for each ``wo``; shape (N, 3).
 
     Parameters
@@ -182,6 +169,11 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
         successive estimates differ by less than ``tol`` in every channel.
     return_error : bool
         Also return the error estimate (the last difference), shape (N, 3).
+    compiled : tuple, optional
+        The compiled quadratures ``(lobe_integral, smooth_integral)`` of
+        :mod:`gonio.models.engine.albedo` where they run for ``model``
+        (:func:`gonio.models.engine.albedo.quadratures`; :meth:`gonio.models.Model.albedo`
+        passes them); None: numpy.
 
     Returns
     -------
@@ -204,7 +196,7 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     if idx.size == 0:
         return (out, err) if return_error else out
 
-    compiled = _compiled_for(model, dist)
+    compiled = _compiled_for(model, dist, compiled)
 
     def level_of(sel, level):
         nt, nph = n_theta << level, n_phi << level
