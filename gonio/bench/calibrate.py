@@ -475,3 +475,38 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
     write_calibration(out, cal)
     print(f"wrote {out}: {summary(cal)}; {cal['calibration']['wall_s']:.1f} s")
     return 0
+
+
+def with_errors_and_calibration(settings_d: dict, *, sim: bool, seed: int, errors, calibration) -> dict:
+    """``--errors PRESET`` into ``[errors]`` (simulator only), ``--calibration CAL.toml`` merged
+    (gonio/bench/calibrate); a calibration of the simulator made for another seed or error model is
+    refused (the virtual instrument's errors come from them)."""
+    if errors is not None:
+        if not sim:
+            raise GonioError("--errors sets the simulated instrument's errors; use it with --sim")
+        old = settings_d.get("errors")
+        settings_d = {**settings_d, "errors": {**(old if isinstance(old, dict) else {}), "preset": errors}}
+    if sim and settings_d.get("errors") is not None:
+        import gonio.sim
+
+        try:
+            gonio.sim.error_model(settings_d["errors"])
+        except ValueError as exc:
+            raise GonioError(f"settings: {exc}") from None
+    if calibration is None:
+        return settings_d
+    cal = read_calibration(Path(calibration))
+    made = cal["calibration"]
+    if bool(made.get("sim")) != bool(sim):
+        raise GonioError(f"{calibration} calibrated {'the simulated' if made.get('sim') else 'a real'} instrument; "
+                         f"use it with {'--sim' if made.get('sim') else 'the hardware ports'}")
+    if sim:
+        import gonio.sim
+
+        if int(made.get("seed", -1)) != int(seed):
+            raise GonioError(f"{calibration} calibrated the simulated instrument of seed {made.get('seed')}; capture "
+                             f"with --seed {made.get('seed')} (its errors come from the seed) or calibrate again")
+        if made.get("errors") != gonio.sim.error_model(settings_d.get("errors")).to_dict():
+            raise GonioError(f"{calibration} calibrated another error model ([calibration.errors] preset "
+                             f"{(made.get('errors') or {}).get('preset')!r}); give the same --errors / [errors]")
+    return merge_calibration(settings_d, cal)

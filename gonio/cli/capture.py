@@ -10,61 +10,17 @@ after a power cut, it comes back un-homed and the resume re-homes it.
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
+from gonio.bench.calibrate import with_errors_and_calibration  # noqa: F401  (the CLI's names)
+from gonio.bench.session.simulated import _plan, _reference_for, _settings, capture_sim, sim_instrument  # noqa: F401
 from gonio.core.errors import GonioError
 
 __all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument", "with_errors_and_calibration",
            "EXIT_STOPPED"]
 
 EXIT_STOPPED = 3          # the capture stopped before the end; `gonio capture --resume DIR` finishes it
-
-
-def _settings(path):
-    from gonio.bench.settings import load_settings
-
-    return load_settings(path)
-
-
-def _plan(spec):
-    from gonio.bench.plan.plans import load_plan
-
-    return load_plan(spec)
-
-
-def _reference_for(settings) -> dict:
-    return {"model": "diffuse", "params": {"reflectance": float(settings["reference"]["reflectance"])}}
-
-
-def sim_instrument(settings, sample, seed, clock="instant", faults=None, name=None):
-    """A registered simulated instrument matching the bench's settings."""
-    import gonio.sim
-
-    try:
-        inst = gonio.sim.Instrument(settings, sample=sample, reference=_reference_for(settings), seed=seed,
-                                    clock=clock, faults=faults)
-    except (ValueError, KeyError, OSError) as exc:
-        raise GonioError(f"cannot build the simulated instrument: {exc}") from None
-    return inst.register(name or f"gonio-{os.getpid()}-{id(inst):x}")
-
-
-def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, progress=True, demo=False,
-                faults=None):
-    """Capture ``plan`` of a virtual ``sample`` on the simulated instrument (instant clock)."""
-    from gonio.bench.session.capture import capture
-
-    settings = settings if isinstance(settings, dict) else _settings(settings)
-    plan = plan if hasattr(plan, "angles") else _plan(plan)
-    inst = sim_instrument(settings, sample, seed, faults=faults)
-    try:
-        return capture(session, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
-                       seed=seed, progress=progress, sample_truth=sample, sleep=inst.clock.advance,
-                       meta={"sim": True, "demo": bool(demo), "sim_name": inst.name,
-                             "sample": json.dumps(sample, sort_keys=True)})
-    finally:
-        inst.unregister()
 
 
 def _print_summary(summary):
@@ -83,43 +39,6 @@ def _print_summary(summary):
         lines.append(f"incomplete: finish with `gonio capture --resume {summary.session_dir}`")
     print("\n".join(lines), flush=True)
     return 0 if summary.complete else EXIT_STOPPED
-
-
-def with_errors_and_calibration(settings_d: dict, *, sim: bool, seed: int, errors, calibration) -> dict:
-    """``--errors PRESET`` into ``[errors]`` (simulator only), ``--calibration CAL.toml`` merged
-    (gonio/bench/calibrate); a calibration of the simulator made for another seed or error model is
-    refused (the virtual instrument's errors come from them)."""
-    if errors is not None:
-        if not sim:
-            raise GonioError("--errors sets the simulated instrument's errors; use it with --sim")
-        old = settings_d.get("errors")
-        settings_d = {**settings_d, "errors": {**(old if isinstance(old, dict) else {}), "preset": errors}}
-    if sim and settings_d.get("errors") is not None:
-        import gonio.sim
-
-        try:
-            gonio.sim.error_model(settings_d["errors"])
-        except ValueError as exc:
-            raise GonioError(f"settings: {exc}") from None
-    if calibration is None:
-        return settings_d
-    from gonio.bench.calibrate import merge_calibration, read_calibration
-
-    cal = read_calibration(Path(calibration))
-    made = cal["calibration"]
-    if bool(made.get("sim")) != bool(sim):
-        raise GonioError(f"{calibration} calibrated {'the simulated' if made.get('sim') else 'a real'} instrument; "
-                         f"use it with {'--sim' if made.get('sim') else 'the hardware ports'}")
-    if sim:
-        import gonio.sim
-
-        if int(made.get("seed", -1)) != int(seed):
-            raise GonioError(f"{calibration} calibrated the simulated instrument of seed {made.get('seed')}; capture "
-                             f"with --seed {made.get('seed')} (its errors come from the seed) or calibrate again")
-        if made.get("errors") != gonio.sim.error_model(settings_d.get("errors")).to_dict():
-            raise GonioError(f"{calibration} calibrated another error model ([calibration.errors] preset "
-                             f"{(made.get('errors') or {}).get('preset')!r}); give the same --errors / [errors]")
-    return merge_calibration(settings_d, cal)
 
 
 def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress,

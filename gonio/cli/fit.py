@@ -2,103 +2,22 @@
 
 from __future__ import annotations
 
-import contextlib
-import gc
 import json
 import sys
 from pathlib import Path
-
-import numpy as np
 
 
 from gonio.cli.console import print_table
 from gonio.bench.report.fitdoc import energy_text, truth_for
 from gonio.bench.report.meta import gum
 from gonio.core.errors import GonioError
-from gonio.fitting.pipeline import fit_dataset, model_error as _model_error, parse_options, resolve_candidates
+from gonio.bench.dataset.reader import open_budget, open_dataset as _open_dataset  # noqa: F401  (the CLI's names)
+from gonio.fitting.pipeline import (fit_dataset, load_fit_file, model_error as _model_error, parse_options,  # noqa: F401
+                                    resolve_candidates)
+from gonio.fitting.render.closure import (check_measured as _check_measured, check_preview_options, check_variant,  # noqa: F401
+                                          render_closure, render_previews)
 
 __all__ = ["fit_dataset", "fit_cli", "render_cli", "parse_options", "print_fit"]
-
-
-@contextlib.contextmanager
-def _quiet_reader_cleanup():
-    """A damaged NetCDF file leaves a half-built h5netcdf File whose ``close`` raises when it is
-    collected ("Exception ignored in ... Traceback" on stderr): collect it here, quietly."""
-    previous = sys.unraisablehook
-
-    def hook(unraisable):
-        module = str(getattr(getattr(unraisable, "object", None), "__module__", "") or "")
-        if not module.startswith(("h5netcdf", "h5py")):
-            previous(unraisable)
-
-    sys.unraisablehook = hook
-    try:
-        yield
-    finally:
-        gc.collect()
-        sys.unraisablehook = previous
-
-
-def _open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
-    """A gonio dataset.nc, a MERL .binary file or an RGL .bsdf file, as Measurements.
-
-    MERL and RGL files carry no uncertainty: each value gets a nominal relative 1-sigma (1 %
-    MERL, 2 % RGL; ``attrs["nominal_sigma"]``) and a solid-angle weight. A MERL table is
-    subsampled to 5000 of its bins (seeded); an RGL file is sampled on its own measured
-    layout (:func:`gonio.fitting.rgl_samples`: every measured theta_i <= 80 deg, 1152 outgoing
-    directions each, half by the material's importance sampling so the peak is resolved),
-    or at the ``standard`` plan's geometry where only scalar Mitsuba runs.
-    """
-    from gonio.fitting import load_dataset
-
-    if not path.exists():
-        raise GonioError(f"dataset {path} does not exist; run `gonio export SESSION` to write one")
-    if path.is_dir():
-        hint = f" (e.g. {path / 'dataset.nc'})" if (path / "dataset.nc").exists() else ""
-        raise GonioError(f"dataset {path} is a folder; give the dataset file{hint}")
-    suffix = path.suffix.lower()
-    # a damaged file leaves half-built reader objects behind, freed with the exception: all
-    # inside the quiet hook, so that their failing close() prints nothing
-    with _quiet_reader_cleanup():
-        try:
-            if suffix == ".binary":
-                from gonio.fitting import merl_samples
-
-                return merl_samples(path, n=5000, rng=np.random.default_rng(seed))
-            if suffix == ".bsdf":
-                from gonio.fitting import direction, rgl_samples
-                from gonio.fitting.formats import rgl_measurements
-
-                from gonio.bench.plan.plans import load_plan
-
-                try:        # the file's own measured layout, solid-angle weighted
-                    return rgl_samples(path)
-                except ValueError as exc:
-                    if "vectorised Mitsuba variant" not in str(exc):
-                        raise
-                a = np.radians(load_plan("standard").angles)     # scalar_rgb only: the standard plan
-                return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
-            return load_dataset(path, colour_space=colour_space)
-        except GonioError:
-            raise
-        except MemoryError:
-            message = f"{path} is too large to read on this machine"
-        except Exception as exc:            # a damaged file: HDF5 answers KeyError, RuntimeError, ...
-            reason = " ".join(str(exc).split())[:300] or type(exc).__name__
-            message = (f"cannot read {path} ({reason}); give a dataset.nc written by "
-                       "gonio export, a MERL .binary or an RGL .bsdf file")
-    raise GonioError(message)
-
-
-def load_fit_file(path):
-    """A fit file as (model, params), or one line saying it is not one."""
-    from gonio.fitting import load_fit
-
-    try:
-        loaded = load_fit(path)
-        return loaded.model, loaded.params
-    except (ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise GonioError(f"{path} is not a readable gonio fit file ({exc})") from None
 
 
 def _inadequate_text(g) -> str:
@@ -168,18 +87,6 @@ def print_fit(doc, truth=None, console=None):
         console.print(f"[yellow]the data cannot determine: {', '.join(flagged)}[/yellow]")
     if doc.get("posterior") and doc["posterior"].get("advice"):
         console.print(f"[yellow]{doc['posterior']['advice']}[/yellow]")
-
-
-def open_budget(path: Path, meas):
-    """The uncertainty budget of a dataset.nc (None for MERL/RGL files: from ``meas.attrs``)."""
-    from gonio.fitting import load_budget
-
-    if path.suffix.lower() in (".binary", ".bsdf"):
-        return None
-    try:
-        return load_budget(path, meas)
-    except ValueError as exc:
-        raise GonioError(" ".join(str(exc).split())) from None
 
 
 def budget_line(doc) -> str:
@@ -268,7 +175,7 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
         raise GonioError(str(exc)) from None
     check_output_dir(out, "batch output folder (--out)")
     try:
-        m = gm.get(model, **parse_options(options))
+        gm.get(model, **parse_options(options))         # a model and options the registry knows
     except (KeyError, ValueError, TypeError) as exc:
         raise _model_error(exc, model, auto=False) from None
     metas = [_open_dataset(d, seed) for d in datasets]
@@ -326,110 +233,6 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
         print(f"warning: {len(poor)} of {len(results)} fits miss their data by more than its noise: "
               f"{', '.join(poor[:10])}{' ...' if len(poor) > 10 else ''}", file=sys.stderr)
     print(f"wrote {len(results)} fit files to {out}")
-
-
-def _provenance(fit_path, meas=None) -> dict:
-    """Versions, and the fit and dataset a derived file was made from."""
-    from gonio.fitting import versions
-
-    out = {"versions": versions(), "fit": str(fit_path)}
-    if meas is not None:
-        out["dataset_seed"] = meas.attrs.get("seed")
-    return out
-
-
-def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
-    """Render the fit at the dataset's geometry; write ``out_dir/render.json``; return its content."""
-    from gonio.fitting import write_json_atomic
-    from gonio.fitting.render import loop_closure
-
-    if not fit_path.exists():
-        raise GonioError(f"fit file {fit_path} does not exist; run `gonio fit DATASET --out FIT.json` first")
-    model, params = load_fit_file(fit_path)
-    result = loop_closure(model, params, meas, variant=variant)
-    result["provenance"] = _provenance(fit_path, meas)
-    from gonio.core.preflight import writing
-
-    with writing(Path(out_dir) / "render.json"):
-        write_json_atomic(Path(out_dir) / "render.json", result)
-    return result
-
-
-def _check_measured(path: Path) -> None:
-    """``--measured``: an existing MERL .binary or a well-formed RGL .bsdf file."""
-    from gonio.fitting.formats import check_rgl_file, read_merl
-
-    if not path.is_file():
-        raise GonioError(f"measured data {path} does not exist or is not a file; give a MERL .binary or RGL .bsdf file")
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".bsdf":
-            check_rgl_file(path)
-        elif suffix == ".binary":
-            read_merl(path)
-        else:
-            raise GonioError(f"measured data {path}: give a MERL .binary or an RGL .bsdf file")
-    except ValueError as exc:
-        raise GonioError(f"measured data {path} is not readable ({' '.join(str(exc).split())[:200]})") from None
-
-
-def render_previews(fit_path: Path, out_dir: Path, measured=None, size: int = 128, spp: int = 256) -> dict:
-    """Sphere previews of the fit (and of the measured data) with CIEDE2000; writes preview.json."""
-    from gonio.fitting import load_fit, write_json_atomic
-    from gonio.fitting.render.preview import preview
-
-    loaded = load_fit(fit_path)
-    model, params = loaded.model, loaded.params
-    if isinstance(measured, (str, Path)) and not Path(measured).exists():
-        raise GonioError(f"measured data {measured} does not exist; give a MERL .binary or RGL .bsdf file")
-    result = preview(model, params, Path(out_dir) / "preview", measured=measured, size=size, spp=spp)
-    summary = {k: (str(v) if isinstance(v, Path) else v) for k, v in result.items() if k != "images"}
-    summary["images"] = {lighting: {k: str(v) for k, v in paths.items()} for lighting, paths in result["images"].items()}
-    summary["provenance"] = _provenance(fit_path)
-    write_json_atomic(Path(out_dir) / "preview" / "preview.json", summary)
-    return summary
-
-
-#: preview bounds: a size x size image at spp samples per pixel, rendered four times
-PREVIEW_SIZE = (8, 2048)
-PREVIEW_SPP = (1, 16384)
-PREVIEW_MAX_SAMPLES = 1 << 30
-
-
-def check_variant(variant):
-    """``--variant``: a Mitsuba RGB variant that this machine can run (None: gonio's choice)."""
-    if variant is None:
-        return None
-    import mitsuba as mi
-
-    import gonio.models as gm
-
-    known = [v for v in mi.variants() if v.endswith("_rgb")]
-    if variant not in known:
-        raise GonioError(f"--variant {str(variant)[:60]!r}: use one of {', '.join(known)} (gonio renders RGB)")
-    if mi.variant() is None:
-        mi.set_variant(gm.mitsuba_variant())
-    try:
-        with mi.scoped_set_variant(variant):
-            mi.load_dict({"type": "diffuse"})
-    except (ImportError, RuntimeError) as exc:
-        first = str(exc).split(".")[0][:160]
-        raise GonioError(f"--variant {variant} does not run on this machine ({first}); "
-                         f"use {gm.mitsuba_variant()} or scalar_rgb") from None
-    return variant
-
-
-def check_preview_options(size, spp):
-    """``--size`` and ``--spp`` within bounds (one line otherwise)."""
-    lo, hi = PREVIEW_SIZE
-    if not lo <= int(size) <= hi:
-        raise GonioError(f"--size {size}: give a preview size from {lo} to {hi} pixels")
-    lo, hi = PREVIEW_SPP
-    if not lo <= int(spp) <= hi:
-        raise GonioError(f"--spp {spp}: give from {lo} to {hi} samples per pixel")
-    if int(size) ** 2 * int(spp) > PREVIEW_MAX_SAMPLES:
-        raise GonioError(f"--size {size} with --spp {spp} is {int(size) ** 2 * int(spp):.3g} samples per image; "
-                         f"keep size^2 x spp at most {PREVIEW_MAX_SAMPLES:.3g}")
 
 
 def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, preview=False, measured=None,

@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from gonio.core.errors import GonioError
+from gonio.fitting.formats.fitfile import load_fit_file  # noqa: F401  (re-exported: the use cases read fit files)
 
-__all__ = ["fit_dataset", "fit_measurements", "parse_options", "resolve_candidates", "model_error"]
+__all__ = ["fit_dataset", "fit_measurements", "load_fit_file", "parse_options", "resolve_candidates", "model_error"]
 
 
 def parse_options(pairs) -> dict:

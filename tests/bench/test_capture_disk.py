@@ -177,7 +177,7 @@ def test_disk_full_during_a_capture_stops_resumably(capsys, tmp_path, plan_file,
     import gonio.bench.drivers.camera as camera
     import gonio.bench.drivers.stages as zaber
     import gonio.bench.session.run as session
-    import gonio.cli.capture as runner
+    import gonio.bench.session.simulated as runner     # where capture_sim builds its instrument
     import gonio.sim.devices.camera_port as port
     from gonio.bench.session.journal import Journal
 

@@ -110,7 +110,7 @@ def test_sigterm_during_a_move_stops_the_stages_and_switches_the_led_off(tmp_pat
 def test_a_fault_mid_run_exits_3_and_a_refusal_exits_2(tmp_path, monkeypatch, capsys):
     """A stall while measuring leaves a resumable session: status 3, one line; bad input: 2."""
     from gonio.cli import main as cli
-    from gonio.cli import capture as session_runner
+    from gonio.bench.session import simulated as session_runner     # where capture_sim builds its instrument
 
     real = session_runner.sim_instrument
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import gonio.models as gm
+from gonio.core.errors import GonioError
 from gonio.core.atomic import atomic_open
 
 from gonio.fitting.uncertainty.budget import K_EXPANDED, budget_from_attrs, propagate
@@ -418,3 +419,12 @@ def load_fit(path) -> FitFile:
         raise ValueError(f"{path} is not a gonio fit file (nested too deeply)") from None
     model, params, doc = parse_fit(doc, path)
     return FitFile(model, params, doc, path)
+
+
+def load_fit_file(path):
+    """A fit file as (model, params), or one line saying it is not one."""
+    try:
+        loaded = load_fit(path)
+        return loaded.model, loaded.params
+    except (ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise GonioError(f"{path} is not a readable gonio fit file ({exc})") from None

@@ -1,0 +1,98 @@
+"""Any dataset a user gives, opened as the fitter sees it: a gonio ``dataset.nc``, a MERL
+``.binary`` or an RGL ``.bsdf`` file as Measurements, and a dataset.nc's uncertainty budget;
+one line (GonioError) for what is missing, a folder, damaged or too large."""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from gonio.core.errors import GonioError
+
+__all__ = ["open_dataset", "open_budget"]
+
+
+@contextlib.contextmanager
+def _quiet_reader_cleanup():
+    """A damaged NetCDF file leaves a half-built h5netcdf File whose ``close`` raises when it is
+    collected ("Exception ignored in ... Traceback" on stderr): collect it here, quietly."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        module = str(getattr(getattr(unraisable, "object", None), "__module__", "") or "")
+        if not module.startswith(("h5netcdf", "h5py")):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        gc.collect()
+        sys.unraisablehook = previous
+
+
+def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
+    """A gonio dataset.nc, a MERL .binary file or an RGL .bsdf file, as Measurements.
+
+    MERL and RGL files carry no uncertainty: each value gets a nominal relative 1-sigma (1 %
+    MERL, 2 % RGL; ``attrs["nominal_sigma"]``) and a solid-angle weight. A MERL table is
+    subsampled to 5000 of its bins (seeded); an RGL file is sampled on its own measured
+    layout (:func:`gonio.fitting.rgl_samples`: every measured theta_i <= 80 deg, 1152 outgoing
+    directions each, half by the material's importance sampling so the peak is resolved),
+    or at the ``standard`` plan's geometry where only scalar Mitsuba runs.
+    """
+    from gonio.fitting import load_dataset
+
+    if not path.exists():
+        raise GonioError(f"dataset {path} does not exist; run `gonio export SESSION` to write one")
+    if path.is_dir():
+        hint = f" (e.g. {path / 'dataset.nc'})" if (path / "dataset.nc").exists() else ""
+        raise GonioError(f"dataset {path} is a folder; give the dataset file{hint}")
+    suffix = path.suffix.lower()
+    # a damaged file leaves half-built reader objects behind, freed with the exception: all
+    # inside the quiet hook, so that their failing close() prints nothing
+    with _quiet_reader_cleanup():
+        try:
+            if suffix == ".binary":
+                from gonio.fitting import merl_samples
+
+                return merl_samples(path, n=5000, rng=np.random.default_rng(seed))
+            if suffix == ".bsdf":
+                from gonio.fitting import direction, rgl_samples
+                from gonio.fitting.formats import rgl_measurements
+
+                from gonio.bench.plan.plans import load_plan
+
+                try:        # the file's own measured layout, solid-angle weighted
+                    return rgl_samples(path)
+                except ValueError as exc:
+                    if "vectorised Mitsuba variant" not in str(exc):
+                        raise
+                a = np.radians(load_plan("standard").angles)     # scalar_rgb only: the standard plan
+                return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
+            return load_dataset(path, colour_space=colour_space)
+        except GonioError:
+            raise
+        except MemoryError:
+            message = f"{path} is too large to read on this machine"
+        except Exception as exc:            # a damaged file: HDF5 answers KeyError, RuntimeError, ...
+            reason = " ".join(str(exc).split())[:300] or type(exc).__name__
+            message = (f"cannot read {path} ({reason}); give a dataset.nc written by "
+                       "gonio export, a MERL .binary or an RGL .bsdf file")
+    raise GonioError(message)
+
+
+def open_budget(path: Path, meas):
+    """The uncertainty budget of a dataset.nc (None for MERL/RGL files: from ``meas.attrs``)."""
+    from gonio.fitting import load_budget
+
+    if path.suffix.lower() in (".binary", ".bsdf"):
+        return None
+    try:
+        return load_budget(path, meas)
+    except ValueError as exc:
+        raise GonioError(" ".join(str(exc).split())) from None

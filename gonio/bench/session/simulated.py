@@ -1,0 +1,57 @@
+"""Sessions on the simulated instrument: the virtual instrument that matches the bench's
+settings, and a capture on it. ``gonio capture --sim``, the demo and the tests all call these."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from gonio.core.errors import GonioError
+
+__all__ = ["capture_sim", "sim_instrument"]
+
+
+def _settings(path):
+    from gonio.bench.settings import load_settings
+
+    return load_settings(path)
+
+
+def _plan(spec):
+    from gonio.bench.plan.plans import load_plan
+
+    return load_plan(spec)
+
+
+def _reference_for(settings) -> dict:
+    return {"model": "diffuse", "params": {"reflectance": float(settings["reference"]["reflectance"])}}
+
+
+def sim_instrument(settings, sample, seed, clock="instant", faults=None, name=None):
+    """A registered simulated instrument matching the bench's settings."""
+    import gonio.sim
+
+    try:
+        inst = gonio.sim.Instrument(settings, sample=sample, reference=_reference_for(settings), seed=seed,
+                                    clock=clock, faults=faults)
+    except (ValueError, KeyError, OSError) as exc:
+        raise GonioError(f"cannot build the simulated instrument: {exc}") from None
+    return inst.register(name or f"gonio-{os.getpid()}-{id(inst):x}")
+
+
+def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, progress=True, demo=False,
+                faults=None):
+    """Capture ``plan`` of a virtual ``sample`` on the simulated instrument (instant clock)."""
+    from gonio.bench.session.capture import capture
+
+    settings = settings if isinstance(settings, dict) else _settings(settings)
+    plan = plan if hasattr(plan, "angles") else _plan(plan)
+    inst = sim_instrument(settings, sample, seed, faults=faults)
+    try:
+        return capture(session, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
+                       seed=seed, progress=progress, sample_truth=sample, sleep=inst.clock.advance,
+                       meta={"sim": True, "demo": bool(demo), "sim_name": inst.name,
+                             "sample": json.dumps(sample, sort_keys=True)})
+    finally:
+        inst.unregister()
