@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from gonio.bench.calibrate import with_errors_and_calibration  # noqa: F401  (the CLI's names)
-from gonio.bench.session.simulated import _plan, _reference_for, _settings, capture_sim, sim_instrument  # noqa: F401
+from gonio.bench.session.simulated import capture_sim, reference_for, sim_instrument  # noqa: F401  (the CLI's names)
 from gonio.core.errors import GonioError
 
 __all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument", "with_errors_and_calibration",
@@ -41,14 +41,26 @@ def _print_summary(summary):
     return 0 if summary.complete else EXIT_STOPPED
 
 
+def _load_settings(path):
+    from gonio.bench.settings import load_settings
+
+    return load_settings(path)
+
+
+def _load_plan(spec):
+    from gonio.bench.plan.plans import load_plan
+
+    return load_plan(spec)
+
+
 def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress,
                 errors=None, calibration=None):
     from gonio.bench.samples import load_sample
     from gonio.bench.plan.plans import dry_run as plan_dry_run
 
-    settings_d = settings if isinstance(settings, dict) else _settings(settings)
+    settings_d = settings if isinstance(settings, dict) else _load_settings(settings)
     settings_d = with_errors_and_calibration(settings_d, sim=sim, seed=seed, errors=errors, calibration=calibration)
-    plan_obj = _plan(plan)
+    plan_obj = _load_plan(plan)
     if dry_run:
         print(plan_dry_run(plan_obj, settings_d).summary())
         return 0
@@ -115,7 +127,8 @@ def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_jou
         except (KeyError, TypeError, ValueError):
             raise GonioError(f"{session / 'session.toml'}: [meta] sample is missing or not JSON; "
                              "the simulated instrument cannot be rebuilt") from None
-        inst = sim_instrument(settings, sample, int(doc["session"]["seed"]), name=meta.get("sim_name"))
+        inst = sim_instrument(settings, sample, int(doc["session"]["seed"]), name=meta.get("sim_name"),
+                              camera_root=session)
         try:
             summary = resume(session, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
                              sleep=inst.clock.advance, **kw)
@@ -131,7 +144,7 @@ def serve_cli(*, sample, seed, settings, clock, faults):
 
     from gonio.bench.samples import load_sample
 
-    settings_d = _settings(settings)
+    settings_d = _load_settings(settings)
     schedule = None
     if faults:
         path = Path(faults)
@@ -150,7 +163,7 @@ def serve_cli(*, sample, seed, settings, clock, faults):
     print("gonio sim serve: Ctrl-C stops; connect with `gonio capture --port ZABER --meter-port METER --camera CAMERA`",
           flush=True)
     try:
-        gonio.sim.serve(settings_d, sample=load_sample(sample), reference=_reference_for(settings_d), seed=seed,
+        gonio.sim.serve(settings_d, sample=load_sample(sample), reference=reference_for(settings_d), seed=seed,
                         clock=clock_spec, faults=schedule, block=True)
     except KeyboardInterrupt:
         pass

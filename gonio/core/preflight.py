@@ -1,7 +1,9 @@
 """Checks before work starts, and environment errors as one line.
 
 Every command that writes checks its output first (``check_output_file``,
-``check_output_dir``): the path is encodable, not a folder where a file is wanted (or the
+``check_output_dir``): the path is encodable and free of control characters (a newline in
+``--out`` would otherwise reach a device's line protocol as a second command:
+`control_character`), not a folder where a file is wanted (or the
 reverse), its nearest existing folder is writable (probed by creating and removing a hidden
 temporary entry: permission bits alone say nothing for root or a read-only mount), and,
 where a size estimate exists, the disk holding it has room (``check_free_space``).
@@ -17,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import shutil
 import sqlite3
 import tempfile
@@ -25,17 +28,35 @@ from pathlib import Path
 from gonio.core.errors import GonioError
 
 __all__ = ["check_output_file", "check_output_dir", "check_free_space", "check_input_file",
-           "environment_errors", "writing", "mount_of", "disk_full", "oserror_line", "MiB"]
+           "environment_errors", "writing", "mount_of", "disk_full", "oserror_line", "MiB",
+           "control_character"]
 
 MiB = 1 << 20
 #: kept free beyond an estimate: a file system at 100 % fails in ways no estimate sees
 MARGIN = 16 * MiB
 
 
+#: C0 controls (newline, CR, NUL, ESC, ...), DEL, C1 controls (NEL ``\x85``, CSI ``\x9b``, ...) and
+#: the Unicode line and paragraph separators: what ends or rewrites a line of a device's text
+#: protocol, a terminal or a log. Shared by the drivers (what they send) and the simulated
+#: devices (what they accept).
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def control_character(text: str) -> str | None:
+    """The first control character of ``text`` (C0, DEL, C1, U+2028, U+2029), None if none."""
+    m = _CONTROL.search(text)
+    return m.group() if m else None
+
+
 def _encodable(path: Path, what: str) -> None:
     text = str(path)
     if "\x00" in text:
         raise GonioError(f"{what} {text!r} holds a NUL byte; give a plain path")
+    bad = control_character(text)
+    if bad is not None:
+        raise GonioError(f"{what} {text!r} holds the control character {bad!r}; "
+                         "give a path without control characters (newline, CR, ESC, ...)")
     try:
         os.fsencode(text)
     except UnicodeError:

@@ -39,6 +39,7 @@ import serial
 
 from gonio.core.files import commit_file, sha256_file, tmp_name
 from gonio.core.errors import CommunicationError, DeviceError, GonioError
+from gonio.core.preflight import control_character
 from gonio.bench.drivers.raw import RawFrame, _dng_direct, decode_raw, read_verified  # noqa: F401  (re-exported)
 
 __all__ = ["camera_from_spec", "open_camera", "SensorInfo", "RawFrame", "decode_raw", "read_verified", "SimCamera", "WatchedFolderCamera", "Gphoto2Camera",
@@ -144,6 +145,11 @@ class SimCamera:
         Exposures retried after a missing, truncated or mismatching file.
     """
 
+    #: Longest command line (UTF-8 bytes, without the newline): ``EXPOSE``, the exposure and a
+    #: path of up to 4096 bytes (PATH_MAX). The simulated camera refuses longer lines
+    #: (``gonio.sim.devices.camera_port.CameraPort.MAX_LINE``, the same figure).
+    MAX_LINE = 4200
+
     def __init__(self, port_url: str, baudrate: int = 115200, timeout: float = 30.0, *, retries: int = 2):
         self.port_url = port_url
         self.baudrate = baudrate
@@ -183,8 +189,28 @@ class SimCamera:
                 self._port.timeout = self.timeout
         return line if line.endswith(b"\n") else None
 
+    @classmethod
+    def _check_line(cls, text: str) -> str:
+        """``text`` as one command line of the camera protocol, else `GonioError`: no control
+        character (a newline in a path would end the line and start a second command: issue
+        36), UTF-8 encodable, at most `MAX_LINE` bytes."""
+        bad = control_character(text)
+        if bad is not None:
+            raise GonioError(f"camera command {text[:60]!r} holds the control character {bad!r}; "
+                             "give file paths without control characters (newline, CR, ESC, ...)")
+        try:
+            n = len(text.encode("utf-8"))
+        except UnicodeEncodeError:
+            raise GonioError(f"camera command {text[:60]!r} cannot be sent as UTF-8 (a file name in another "
+                             "encoding); give a path of UTF-8 characters") from None
+        if n > cls.MAX_LINE:
+            raise GonioError(f"camera command {text[:60]!r}... is {n} bytes long, more than the camera "
+                             f"protocol's {cls.MAX_LINE}; give a shorter path")
+        return text
+
     def _query(self, text: str, timeout: float | None = None) -> str:
         """Send a line, return the reply; after a silent or failed port, reconnect once and resend."""
+        text = self._check_line(text)
         line = self._once(text, timeout)
         if line is None:
             self.retries_used += 1
@@ -231,6 +257,7 @@ class SimCamera:
         return self._shoot("EXPOSE", seconds, path, check=False)
 
     def _shoot(self, command: str, seconds: float, path: str | os.PathLike, check: bool = True):
+        self._check_line(f"{command} {seconds:.9g} {os.fspath(path)}")   # before resolve() meets a NUL
         path = Path(path).resolve()
         tmp = tmp_name(path)
         why = ""

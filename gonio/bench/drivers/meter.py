@@ -21,6 +21,11 @@ from gonio.bench.drivers.serialport import SerialDevice
 
 __all__ = ["PowerMeter", "is_visa_resource"]
 
+#: Longest program message sent (characters, without the newline): a guard against a value gone
+#: wrong (the simulator refuses longer lines: ``gonio.sim.devices.scpi_grammar.ScpiMeter.MAX_LINE``).
+MAX_COMMAND = 256
+_NOT_PRINTABLE = re.compile("[^ -~]")
+
 _VISA = re.compile(r"^(ASRL|USB\d*|TCPIP\d*|GPIB\d*|VXI\d*|PXI\d*)[^\s]*::(INSTR|SOCKET)$", re.IGNORECASE)
 
 
@@ -117,6 +122,23 @@ class PowerMeter(SerialDevice):
         except (serial.SerialException, OSError, AttributeError, NotImplementedError):
             pass
 
+    @staticmethod
+    def _checked(text: str) -> str:
+        """``text`` as one SCPI program message unit: printable ASCII (a control character such
+        as a newline would end the line and start another command), no ``;`` (which chains
+        another unit), at most `MAX_COMMAND` characters; else `GonioError`."""
+        text = str(text)
+        bad = _NOT_PRINTABLE.search(text)
+        if bad is not None:
+            raise GonioError(f"power-meter command {text[:40]!r} holds {bad.group()!r}, not printable ASCII; "
+                             "send one command of printable characters")
+        if ";" in text:
+            raise GonioError(f"power-meter command {text[:40]!r} chains commands with ';'; send one at a time")
+        if len(text) > MAX_COMMAND:
+            raise GonioError(f"power-meter command {text[:40]!r}... is {len(text)} characters long, "
+                             f"more than {MAX_COMMAND}; send a shorter command")
+        return text
+
     def _write(self, text: str) -> bool:
         """Send one line; False if the port failed (the caller retries, then reconnects)."""
         self._drain()
@@ -140,6 +162,7 @@ class PowerMeter(SerialDevice):
 
     def query(self, text: str, parse=str):
         """Send a query and return its parsed one-line answer (retries, then a reconnect)."""
+        text = self._checked(text)
         last = "no answer"
         if self._port is None:                 # a reconnect failed earlier: try again now
             self.open()
@@ -162,6 +185,7 @@ class PowerMeter(SerialDevice):
 
     def command(self, text: str) -> None:
         """Send a set command, then read the error queue; raise `DeviceError` on an error."""
+        text = self._checked(text)
         if self._port is None:
             self.open()
         if not self._write(text):

@@ -10,12 +10,20 @@ protocol manual: message format, checksums, message ids, "message continuation")
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
-from gonio.core.errors import CommunicationError
+from gonio.core.errors import CommunicationError, GonioError
 
 __all__ = ["FLAG_MEANINGS", "REJECT_MEANINGS", "Reply", "lrc", "format_command", "parse_reply",
-           "parse_continuation"]
+           "parse_continuation", "MAX_COMMAND"]
+
+#: Longest command line sent (characters, without the newline). The manual bounds a packet
+#: (``comm.packet.size.max``, 80 on the simulator); the bench's commands are far shorter, so
+#: this is a guard against a value gone wrong, not a protocol figure (the simulator refuses
+#: longer lines too: ``gonio.sim.devices.zaber_chain.ZaberChain.MAX_LINE``).
+MAX_COMMAND = 256
+_NOT_PRINTABLE = re.compile("[^ -~]")
 
 FLAG_MEANINGS = {
     "FS": "stalled and stopped",
@@ -86,7 +94,22 @@ def format_command(device: int, axis: int, command: str = "", msgid: int | None 
         Message id 0..99, echoed in the reply.
     checksum : bool
         Append ``:CC`` (LRC).
+
+    Raises
+    ------
+    GonioError
+        An address or message id out of range, a command that is not printable ASCII (a
+        control character such as a newline would end the line and start another command), or
+        a line longer than `MAX_COMMAND`.
     """
+    for name, value in (("device", device), ("axis", axis), ("message id", msgid)):
+        if value is not None and not 0 <= int(value) <= 99:
+            raise GonioError(f"Zaber {name} {value!r} is out of range; give 0..99")
+    command = str(command)
+    bad = _NOT_PRINTABLE.search(command)
+    if bad is not None:
+        raise GonioError(f"Zaber command {command[:40]!r} holds {bad.group()!r}, not printable ASCII; "
+                         "send one command of printable characters")
     body = f"{int(device)} {int(axis)}"
     if msgid is not None:
         body += f" {int(msgid):02d}"
@@ -94,6 +117,9 @@ def format_command(device: int, axis: int, command: str = "", msgid: int | None 
         body += f" {command}"
     if checksum:
         body += ":" + lrc(body.encode("ascii"))
+    if 1 + len(body) > MAX_COMMAND:
+        raise GonioError(f"Zaber command {command[:40]!r}... makes a line of {1 + len(body)} characters, "
+                         f"more than {MAX_COMMAND}; send a shorter command")
     return ("/" + body + "\n").encode("ascii")
 
 

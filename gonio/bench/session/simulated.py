@@ -9,7 +9,7 @@ from pathlib import Path
 
 from gonio.core.errors import GonioError
 
-__all__ = ["capture_sim", "sim_instrument"]
+__all__ = ["capture_sim", "sim_instrument", "reference_for"]
 
 
 def _settings(path):
@@ -24,19 +24,21 @@ def _plan(spec):
     return load_plan(spec)
 
 
-def _reference_for(settings) -> dict:
+def reference_for(settings) -> dict:
     return {"model": "diffuse", "params": {"reflectance": float(settings["reference"]["reflectance"])}}
 
 
-def sim_instrument(settings, sample, seed, clock="instant", faults=None, name=None):
-    """A registered simulated instrument matching the bench's settings."""
+def sim_instrument(settings, sample, seed, clock="instant", faults=None, name=None, camera_root=None):
+    """A registered simulated instrument matching the bench's settings; ``camera_root``: the
+    only folder its camera writes into (a session's folder)."""
     import gonio.sim
 
     try:
-        inst = gonio.sim.Instrument(settings, sample=sample, reference=_reference_for(settings), seed=seed,
+        inst = gonio.sim.Instrument(settings, sample=sample, reference=reference_for(settings), seed=seed,
                                     clock=clock, faults=faults)
     except (ValueError, KeyError, OSError) as exc:
         raise GonioError(f"cannot build the simulated instrument: {exc}") from None
+    inst.camera.root = camera_root
     return inst.register(name or f"gonio-{os.getpid()}-{id(inst):x}")
 
 
@@ -47,7 +49,7 @@ def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, 
 
     settings = settings if isinstance(settings, dict) else _settings(settings)
     plan = plan if hasattr(plan, "angles") else _plan(plan)
-    inst = sim_instrument(settings, sample, seed, faults=faults)
+    inst = sim_instrument(settings, sample, seed, faults=faults, camera_root=session)
     try:
         return capture(session, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
                        seed=seed, progress=progress, sample_truth=sample, sleep=inst.clock.advance,

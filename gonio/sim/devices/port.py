@@ -4,16 +4,32 @@ Shared by the ``sim://`` transport (``protocol_sim.py``) and the pseudo-terminal
 (``_pty.py``). A host writes bytes; each complete line costs ``clock.latency`` of simulated
 time (instant clock), passes the fault schedule and reaches the protocol server; its reply
 lines are queued for reading.
+
+Both buffers are bounded, as a device's are. An input line longer than the server's
+``MAX_LINE`` bytes (``DEFAULT_MAX_LINE`` if it has none) is not buffered: its first
+``MAX_LINE`` bytes are kept, the rest is dropped up to the terminator, and the server's
+``overlong(prefix)`` answers it (its protocol's error; nothing is executed). Replies wait for
+the host in at most ``MAX_OUT`` bytes: a reply line that does not fit is dropped whole (a
+host that writes without reading loses answers, as with a full tty buffer, and the process's
+memory stays bounded); ``overrun`` counts the lines dropped.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import string
 
 __all__ = ["PortEndpoint", "PortVanished"]
 
 _GARBLE_CHARS = (string.ascii_letters + string.digits + "#@/:.- ").encode()
+_END_LF = re.compile(b"\n")
+_END_CR_LF = re.compile(b"[\r\n]")
+
+#: longest input line (bytes, without the terminator) of a server that declares no ``MAX_LINE``
+DEFAULT_MAX_LINE = 4096
+#: most reply bytes waiting for the host
+MAX_OUT = 1 << 16
 
 
 class PortVanished(Exception):
@@ -48,7 +64,10 @@ class PortEndpoint:
         self.vanished_until: float | None = None
         self.silent_until = -math.inf
         self.on_vanish = []               # callbacks(endpoint, duration) for the pty server
-        self._in = bytearray()
+        self.max_line = int(getattr(server, "MAX_LINE", DEFAULT_MAX_LINE))
+        self.overrun = 0                  # reply lines dropped: the host did not read them
+        self._in = bytearray()            # the line being received (at most max_line bytes)
+        self._long = False                # it is longer than max_line: the rest is dropped
         self.out = bytearray()
 
     # ------------------------------------------------------------------ presence
@@ -66,6 +85,7 @@ class PortEndpoint:
         self.generation += 1
         self.vanished_until = self.inst.clock.now() + float(duration)
         self._in.clear()
+        self._long = False
         self.out.clear()
         for cb in list(self.on_vanish):
             cb(self, duration)
@@ -77,23 +97,32 @@ class PortEndpoint:
 
     # ------------------------------------------------------------------ bytes in
     def feed(self, data: bytes) -> None:
-        """Bytes from the host; complete lines are executed at once."""
+        """Bytes from the host; complete lines are executed at once. At most ``max_line`` bytes
+        of a line are kept (see the module's note)."""
+        data = bytes(data)
+        end = _END_CR_LF if self.split_cr else _END_LF
+        encoding = getattr(self.server, "encoding", "ascii")
         with self.inst.lock:
-            self._in += data
-            while True:
-                buf = bytes(self._in)
-                if self.split_cr:
-                    cuts = [i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0]
-                else:
-                    cuts = [i for i in (buf.find(b"\n"),) if i >= 0]
-                if not cuts:
+            start = 0
+            while start < len(data):
+                m = end.search(data, start)
+                stop = m.start() if m else len(data)
+                if not self._long:
+                    room = self.max_line - len(self._in)
+                    self._in += data[start:min(stop, start + room)]
+                    self._long = stop - start > room
+                if m is None:
                     break
-                i = min(cuts)
-                line = buf[:i]
-                del self._in[: i + 1]
-                self._line(line.decode(getattr(self.server, "encoding", "ascii"), "replace").strip())
+                start = stop + 1
+                line, long_ = bytes(self._in), self._long
+                self._in.clear()
+                self._long = False
+                generation = self.generation
+                self._line(line.decode(encoding, "replace").strip(" \r\n"), long_)
+                if self.generation != generation:
+                    break                 # the port vanished: the rest of the write is lost
 
-    def _line(self, text: str) -> None:
+    def _line(self, text: str, overlong: bool = False) -> None:
         if not text:
             return
         inst = self.inst
@@ -130,6 +159,9 @@ class PortEndpoint:
             return
         if again:
             replies = self.server.again(text)
+        elif execute and overlong:
+            refuse = getattr(self.server, "overlong", None)
+            replies = refuse(text) if refuse is not None else []
         elif execute:
             replies = self.server.handle(text)
         else:
@@ -155,7 +187,14 @@ class PortEndpoint:
                 replies[0] = line[: int(rng.integers(1, max(2, len(line))))]
                 ends[0] = b""
         for r, e in zip(replies, ends):
-            self.out += r.encode("ascii", "replace") + e
+            self._queue(r.encode("ascii", "replace") + e)
+
+    def _queue(self, line: bytes) -> None:
+        """Queue one reply line for the host, or drop it whole where ``MAX_OUT`` would be passed."""
+        if len(self.out) + len(line) > MAX_OUT:
+            self.overrun += 1
+            return
+        self.out += line
 
     def poll(self) -> int:
         """Queue the spontaneous lines (Zaber alerts) that came due by now; return how many.
@@ -171,7 +210,7 @@ class PortEndpoint:
                 return 0
             lines = alerts()
             for line in lines:
-                self.out += line.encode("ascii", "replace") + self.reply_end
+                self._queue(line.encode("ascii", "replace") + self.reply_end)
             return len(lines)
 
     # ------------------------------------------------------------------ bytes out

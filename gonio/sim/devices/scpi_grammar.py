@@ -28,17 +28,24 @@ Headers (case-insensitive, long or short, optional leading colon, optional nodes
 # - FETC? before any INIT (or after *RST): error -230, no reply. MEAS? without a function
 #   measures power. CONF? answers POW.
 # - *TST? answers 0 (self-test passed); SYST:VERS? answers 1999.0.
+# - A line longer than MAX_LINE characters (the port endpoint keeps no more of it) is discarded
+#   unexecuted with error -363 (input buffer overrun); one holding a control character (C0, DEL,
+#   C1; IEEE 488.2 would read most as white space) is discarded with error -101 (invalid
+#   character). Neither gets a response.
 
 from __future__ import annotations
 
 import math
 
+from gonio.core.preflight import control_character
+
 __all__ = ["ScpiMeter"]
 
 ERRORS = {
-    -102: "Syntax error", -104: "Data type error", -108: "Parameter not allowed",
+    -101: "Invalid character", -102: "Syntax error", -104: "Data type error", -108: "Parameter not allowed",
     -109: "Missing parameter", -113: "Undefined header", -131: "Invalid suffix",
     -222: "Data out of range", -230: "Data corrupt or stale", -350: "Queue overflow",
+    -363: "Input buffer overrun",
 }
 _LONG = {
     "SENSE": "SENS", "CORRECTION": "CORR", "WAVELENGTH": "WAV", "AVERAGE": "AVER",
@@ -89,6 +96,8 @@ class ScpiMeter:
     WAV_RANGE = (400.0, 1100.0)
     WAV_DEFAULT = 550.0
     AVER_RANGE = (1, 10000)
+    #: longest program message (characters, without the terminator) the meter reads
+    MAX_LINE = 256
 
     def __init__(self, instrument):
         self.inst = instrument
@@ -117,8 +126,13 @@ class ScpiMeter:
         header's path (SCPI-1999, 6.2.4); the responses of the queries of one line come back
         joined by ``;`` in one line (IEEE 488.2, 8.4).
         """
-        text = text.strip()
+        text = text.strip(" \r\n")
         if not text:
+            return []
+        if len(text) > self.MAX_LINE:
+            return self.overlong(text)
+        if control_character(text) is not None:
+            self._error(-101)
             return []
         answers: list[str] = []
         base: list[str] = []
@@ -148,6 +162,11 @@ class ScpiMeter:
             if reply is not None:
                 answers.append(reply)
         return [";".join(answers)] if answers else []
+
+    def overlong(self, text: str) -> list[str]:
+        """A line longer than ``MAX_LINE`` (``text``: its first characters): error -363, no response."""
+        self._error(-363)
+        return []
 
     # ------------------------------------------------------------------ commands
     def _common(self, header: str, arg: str | None) -> str | None:

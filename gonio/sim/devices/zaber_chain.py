@@ -40,9 +40,14 @@ The behaviour chosen where the manual leaves room, which the bench relies on: th
 #   "176000 \" came out as "176000  360000"). The manual does not say how a checksum combines
 #   with the marker: the simulator puts :CC after it (invented), over the text between the
 #   leading "@"/"#" and the colon.
+# - A command line longer than MAX_LINE characters (the port endpoint keeps no more of it) or
+#   one holding a control character (C0, DEL, C1) is executed by no device: the devices it
+#   addresses (read from its first characters) answer "RJ ... BADDATA" (invented: the manual
+#   names no reason for it).
 
 from __future__ import annotations
 
+from gonio.core.preflight import control_character
 from gonio.sim.devices.zaber_common import (FLAG_PRIORITY, PACKET_SIZE_MAX, Command, Device, Reject, int_arg, lrc, parse, sort_flags)
 from gonio.sim.devices.zaber_led import LedDevice
 from gonio.sim.devices.zaber_stage import StageDevice
@@ -66,6 +71,8 @@ class ZaberChain:
 
     STAGE_DEVICE = 1
     LED_DEVICE = 2
+    #: longest command line (characters, without the terminator) a device reads
+    MAX_LINE = 256
 
     def __init__(self, instrument):
         self.inst = instrument
@@ -137,6 +144,21 @@ class ZaberChain:
         cmd = parse(text)
         if cmd is None:
             return []
+        body = text.strip(" \r\n")
+        if len(body) > self.MAX_LINE or control_character(body) is not None:
+            cmd.error = "BADDATA"                 # nothing executed (see the notes above)
+        return self._answer(cmd)
+
+    def overlong(self, text: str) -> list[str]:
+        """The answer to a line longer than ``MAX_LINE`` (``text``: its first characters):
+        ``RJ ... BADDATA`` from the devices it addresses, nothing executed."""
+        cmd = parse(text)
+        if cmd is None:
+            return []
+        cmd.error = "BADDATA"
+        return self._answer(cmd)
+
+    def _answer(self, cmd: Command) -> list[str]:
         out = self.alerts()
         for dev in self.devices(cmd):
             unit = self.units[dev]
