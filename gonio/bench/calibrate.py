@@ -373,14 +373,15 @@ _CAL_TABLES = ("alignment", "linearity", "reference", "aperture", "stray")
 
 def read_calibration(path: Path) -> dict:
     """Read a calibration file; GonioError (one line) if it is not one."""
-    import tomllib
+    from gonio.core.tomlfile import read_toml
 
     try:
-        doc = tomllib.loads(Path(path).read_text())
-    except OSError as exc:
-        raise GonioError(f"cannot read calibration file {path}: {exc.strerror}; check the path") from None
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError):
-        raise GonioError(f"{path} is not a calibration TOML file; give the file `gonio calibrate` wrote") from None
+        doc = read_toml(path, "calibration file")
+    except GonioError as exc:
+        if not Path(path).is_file():
+            raise
+        raise GonioError(f"{path} is not a calibration TOML file ({' '.join(str(exc).split())[:160]}); "
+                         "give the file `gonio calibrate` wrote") from None
     if not isinstance(doc.get("calibration"), dict) or not isinstance(doc.get("alignment"), dict):
         raise GonioError(f"{path} has no [calibration] and [alignment] tables; give the file `gonio calibrate` wrote")
     for key in ("yaw_zero_deg", "tilt_zero_deg", "holder_tilt_x_deg", "holder_tilt_y_deg"):

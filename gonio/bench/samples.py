@@ -17,12 +17,13 @@ dict the simulator takes (docs/interfaces.md section 4), ``{"model", "options", 
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
 import gonio.models as gm
+from gonio.core.preflight import check_input_file
+from gonio.core.tomlfile import read_toml
 from gonio.fitting.formats import check_rgl_file
 
 from gonio.core.errors import GonioError
@@ -69,6 +70,7 @@ def load_sample(source) -> dict:
     path = Path(source)
     if not path.exists():
         raise GonioError(f"sample file {path} does not exist; give a sample TOML or a measured .bsdf file")
+    check_input_file(path, "sample file")          # a regular file: a FIFO or device would block
     if path.suffix.lower() == ".bsdf":
         with open(path, "rb") as fh:
             head = fh.read(12)
@@ -80,12 +82,5 @@ def load_sample(source) -> dict:
         except ValueError as exc:
             raise GonioError(f"sample {' '.join(str(exc).split())}") from None
         return {"bsdf_file": str(path.resolve())}
-    try:
-        spec = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise GonioError(f"sample file {path} is not valid TOML ({exc}); fix the syntax") from None
-    except UnicodeDecodeError:
-        raise GonioError(f"sample file {path} is not UTF-8 text; give a sample TOML or a measured .bsdf file") from None
-    except OSError as exc:
-        raise GonioError(f"cannot read sample file {path} ({exc.strerror}); check the path") from None
+    spec = read_toml(path, "sample file")
     return check_sample(spec)

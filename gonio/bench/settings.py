@@ -108,16 +108,9 @@ def merge_settings(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict
 
 
 def _read_user(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise GonioError(f"cannot read settings file {path}: {exc.strerror}; check the path") from None
-    except UnicodeDecodeError:
-        raise GonioError(f"settings file {path} is not UTF-8 text; give a settings TOML file") from None
-    try:
-        user = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise GonioError(f"settings file {path} is not valid TOML ({exc}); fix the syntax") from None
+    from gonio.core.tomlfile import read_toml
+
+    user = read_toml(path, "settings file")
     check_schema(user, f"settings file {path}")
     return user
 

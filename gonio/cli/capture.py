@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from gonio.bench.calibrate import with_errors_and_calibration  # noqa: F401  (the CLI's names)
+from gonio.bench.session import simulated as _simulated
 from gonio.bench.session.simulated import capture_sim, reference_for, sim_instrument  # noqa: F401  (the CLI's names)
 from gonio.core.errors import GonioError
 
@@ -127,7 +128,7 @@ def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_jou
         except (KeyError, TypeError, ValueError):
             raise GonioError(f"{session / 'session.toml'}: [meta] sample is missing or not JSON; "
                              "the simulated instrument cannot be rebuilt") from None
-        inst = sim_instrument(settings, sample, int(doc["session"]["seed"]), name=meta.get("sim_name"),
+        inst = _simulated.sim_instrument(settings, sample, int(doc["session"]["seed"]), name=meta.get("sim_name"),
                               camera_root=session)
         try:
             summary = resume(session, inst.url("zaber"), inst.url("meter"), inst.url("camera"),

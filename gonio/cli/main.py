@@ -318,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--plan", default="standard", help="preset (quick, standard, dense) or plan TOML/CSV file")
     c.add_argument("--out", help="new session folder")
     c.add_argument("--resume", metavar="DIR", help="finish an interrupted session")
-    c.add_argument("--seed", type=int, default=0, help="seed (simulated noise and faults)")
+    c.add_argument("--seed", type=_seed, default=0, help="seed (simulated noise and faults)")
     c.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
     c.add_argument("--errors", choices=["ideal", "typical", "poor"],
                    help="simulated instrument's systematic errors (preset of [errors]; default: the settings', else ideal)")

@@ -22,6 +22,7 @@ import os
 import re
 import shutil
 import sqlite3
+import stat
 import tempfile
 from pathlib import Path
 
@@ -163,14 +164,21 @@ def check_output_dir(path, what: str = "output folder", *, need_bytes: int = 0) 
     return path
 
 
-def check_input_file(path, what: str = "input file") -> Path:
-    """``path`` names an existing regular file that can be opened; returns it as a Path."""
+def check_input_file(path, what: str = "input file", max_bytes: int | None = None) -> Path:
+    """``path`` names an existing regular file (not a FIFO, device or socket, which could block
+    or never end), of at most ``max_bytes`` where given, that can be opened; returns it as a Path."""
     path = Path(path)
     _encodable(path, what)
     if not path.exists():
         raise GonioError(f"{what} {path} does not exist; check the path")
     if path.is_dir():
         raise GonioError(f"{what} {path} is a folder; give a file")
+    st = path.stat()
+    if not stat.S_ISREG(st.st_mode):
+        raise GonioError(f"{what} {path} is not a regular file (a FIFO, device or socket); give a file")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise GonioError(f"{what} {path} is {st.st_size / MiB:.1f} MiB, more than such a file can be "
+                         f"({max_bytes / MiB:.3g} MiB); give the right file")
     try:
         with open(path, "rb"):
             pass

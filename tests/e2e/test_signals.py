@@ -114,8 +114,8 @@ def test_a_fault_mid_run_exits_3_and_a_refusal_exits_2(tmp_path, monkeypatch, ca
 
     real = session_runner.sim_instrument
 
-    def stalling(settings, sample, seed, clock="instant", faults=None, name=None):
-        return real(settings, sample, seed, clock, [{"kind": "stall", "port": "zaber", "at_command": [70]}], name)
+    def stalling(settings, sample, seed, clock="instant", faults=None, name=None, **kw):
+        return real(settings, sample, seed, clock, [{"kind": "stall", "port": "zaber", "at_command": [70]}], name, **kw)
     monkeypatch.setattr(session_runner, "sim_instrument", stalling)
     session = tmp_path / "s"
     rc = cli.main(["capture", "--sim", "--plan", "quick", "--out", str(session), "--quiet"])

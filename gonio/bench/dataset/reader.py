@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from gonio.core.errors import GonioError
+from gonio.core.preflight import check_input_file
 
 __all__ = ["open_dataset", "open_budget"]
 
@@ -52,6 +53,7 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
     if path.is_dir():
         hint = f" (e.g. {path / 'dataset.nc'})" if (path / "dataset.nc").exists() else ""
         raise GonioError(f"dataset {path} is a folder; give the dataset file{hint}")
+    check_input_file(path, "dataset")           # a regular file: a FIFO would block, /dev/zero never end
     suffix = path.suffix.lower()
     # a damaged file leaves half-built reader objects behind, freed with the exception: all
     # inside the quiet hook, so that their failing close() prints nothing

@@ -33,10 +33,12 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from gonio.core.preflight import check_input_file
+from gonio.core.tomlfile import MAX_BYTES, parse_toml
 from gonio.bench.plan import kinematics
 from gonio.bench.plan.markers import roi_masks_fast
 from gonio.bench.plan.ordering import order_moves
-from gonio.core.errors import PlanError, UnreachableError
+from gonio.core.errors import GonioError, PlanError, UnreachableError
 
 __all__ = [
     "Plan",
@@ -351,6 +353,11 @@ def load_plan(spec: str | Path) -> Plan:
         if not path.exists():
             raise PlanError(f"unknown plan {spec_s!r}: use a preset ({', '.join(preset_names())}) "
                             "or a .toml/.csv plan file")
+    if path.exists() and not path.is_dir():
+        try:
+            check_input_file(path, "plan file", max_bytes=MAX_BYTES)   # a FIFO or device would block
+        except GonioError as exc:
+            raise PlanError(str(exc)) from None
     try:
         text = path.read_text()
     except OSError as exc:
@@ -361,9 +368,9 @@ def load_plan(spec: str | Path) -> Plan:
     if path.suffix.lower() == ".csv":
         return _plan_from_csv(text, path)
     try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise PlanError(f"plan file {path} is not valid TOML ({exc}); fix the syntax") from None
+        doc = parse_toml(text, f"plan file {path}")
+    except GonioError as exc:
+        raise PlanError(str(exc)) from None
     return plan_from_dict(doc, path.stem, source=str(path))
 
 

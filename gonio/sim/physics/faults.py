@@ -44,7 +44,6 @@ give the same bytes.
 from __future__ import annotations
 
 import os
-import tomllib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -116,12 +115,13 @@ class FaultSchedule:
     @classmethod
     def from_toml(cls, source: str | os.PathLike) -> "FaultSchedule":
         """Read a schedule from a TOML file path or a TOML string."""
+        from gonio.core.tomlfile import parse_toml, read_toml
+
         text = os.fspath(source)
         if "\n" not in text and os.path.exists(text):
-            with open(text, "rb") as fh:
-                data = tomllib.load(fh)
+            data = read_toml(text, "fault schedule")
         else:
-            data = tomllib.loads(text)
+            data = parse_toml(text, "fault schedule")
         return cls(data.get("fault", []), data.get("seed"))
 
     @classmethod
