@@ -28,6 +28,10 @@ from gonio.sim.instrument import DEFAULT_REFERENCE, DEFAULT_SAMPLE, Instrument
 __all__ = ["PtyServer", "serve"]
 
 
+#: bytes a port keeps for a client that does not read (then the oldest whole lines go)
+MAX_PENDING = 1 << 16
+
+
 class PtyServer:
     """Pseudo-terminal server of one instrument.
 
@@ -45,6 +49,8 @@ class PtyServer:
         self.link_dir = link_dir or tempfile.mkdtemp(prefix="gonio-sim-")
         os.makedirs(self.link_dir, exist_ok=True)
         self._fds: dict[str, tuple[int, int]] = {}      # port -> (master, slave)
+        self._pending: dict[str, bytes] = {}            # port -> bytes its client has not taken yet
+        self.dropped: dict[str, int] = {}               # port -> bytes dropped for a client that does not read
         self._back_at: dict[str, float] = {}            # vanished port -> wall time it returns
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -80,6 +86,7 @@ class PtyServer:
         os.replace(tmp, link)
 
     def _close(self, name: str) -> None:
+        self._pending.pop(name, None)
         fds = self._fds.pop(name, None)
         if fds:
             for fd in fds:
@@ -115,19 +122,30 @@ class PtyServer:
         self._flush(name)
 
     def _flush(self, name: str) -> None:
-        """Write the endpoint's queued reply and alert bytes to the pty."""
+        """Write what the pty takes now of the endpoint's queued reply and alert bytes; keep the
+        rest for the next pass (never wait on one client: a client that does not read must not
+        stop the other ports). What waits is bounded: beyond :data:`MAX_PENDING` bytes the
+        oldest whole lines are dropped (counted in ``dropped``), as a device's own output
+        buffer overruns."""
         master, _ = self._fds[name]
         ep = self.instrument.ports[name]
         ep.poll()
-        out = ep.take(len(ep.out))
+        out = self._pending.pop(name, b"") + ep.take(len(ep.out))
+        if len(out) > MAX_PENDING:
+            cut = out.find(b"\n", len(out) - MAX_PENDING)
+            kept = out[cut + 1:] if cut >= 0 else b""
+            self.dropped[name] = self.dropped.get(name, 0) + len(out) - len(kept)
+            out = kept
         while out:
             try:
                 n = os.write(master, out)
                 out = out[n:]
             except BlockingIOError:
-                select.select([], [master], [], 0.05)
-            except OSError:
                 break
+            except OSError:
+                out = b""
+        if out:
+            self._pending[name] = out
 
     def run(self) -> None:
         """Serve until ``stop()`` (blocking)."""

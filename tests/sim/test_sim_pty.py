@@ -70,3 +70,25 @@ def test_camera_exposes_through_the_pty(server, tmp_path):
     assert reply[0] == "OK"
     assert hashlib.sha256((tmp_path / "frame.dng").read_bytes()).hexdigest() == reply[1]
     c.close()
+
+
+def test_a_client_that_never_reads_does_not_stop_the_other_ports(server):
+    """Issue 36, probe 4: a client floods the Zaber port and never reads its replies. The
+    server kept retrying its write to that pty and stopped serving every other port; now it
+    writes what the pty takes, keeps at most MAX_PENDING bytes for that client (the oldest
+    whole lines dropped, counted) and the meter answers at once."""
+    import gonio.sim.pty_server as ps
+
+    z = serial.Serial(server.paths["zaber"], 115200, timeout=2, write_timeout=5)
+    m = serial.Serial(server.paths["meter"], timeout=5)    # an answer within 5 s: served, not stuck
+    for _ in range(100):                       # 10000 commands: ~250 kB of replies, never read
+        z.write(b"/1 0\r\n" * 100)
+    deadline = time.monotonic() + 10.0
+    while getattr(server, "dropped", {}).get("zaber", 0) == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _ask(m, b"*IDN?", b"\n").startswith(b"gonio,"), "the meter did not answer while the flood waited"
+    assert server.dropped.get("zaber", 0) > 0, "the flood never overran the client's buffer"
+    assert len(server._pending.get("zaber", b"")) <= ps.MAX_PENDING
+    z.reset_input_buffer()
+    z.close()
+    m.close()
