@@ -107,3 +107,27 @@ def test_a_seed_beyond_int64_is_refused_by_every_command(capsys, tmp_path):
                  ["demo", "--out", tmp_path / "d", "--seed", big]):
         refused(capsys, *args, needle="--seed")
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("alpha", [1e300, -0.5])
+def test_a_fit_file_with_values_outside_their_bounds_is_one_line(capsys, tmp_path, alpha):
+    """A fit.json edited to alpha 1e300 or -0.5: convert, render and report ended in a traceback
+    (the model's bound check, deep inside); now the reader refuses it, naming the value."""
+    import json
+
+    from gonio.core.atomic import atomic_open
+
+    doc = {"format": "gonio-fit/1", "model": {"name": "roughconductor", "options": {"distribution": "ggx"}},
+           "params": {"alpha": alpha, "eta": [0.2, 0.4, 1.5], "k": [3.0, 2.5, 1.9]}}
+    from gonio.fitting.formats.fitfile import FIT_FORMAT
+
+    doc["format"] = FIT_FORMAT
+    fit = tmp_path / "fit.json"
+    with atomic_open(fit, "w") as fh:
+        json.dump(doc, fh)
+    from gonio.fitting import load_fit
+
+    with pytest.raises(ValueError, match=r"alpha=.* outside its bounds"):
+        load_fit(fit)
+    refused(capsys, "convert", fit, "--to", "mitsuba-xml", "--out", tmp_path / "o.xml", needle="outside its bounds")
+    assert not (tmp_path / "o.xml").exists()

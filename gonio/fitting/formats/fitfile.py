@@ -295,6 +295,10 @@ def parse_fit(doc, path="fit file"):
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"{path}: params.{k:.60} is not finite")
         params[k] = arr if isinstance(v, list) else float(v)
+    try:                                # every value within its parameter's bounds (the model's own check)
+        model.validate(params)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: {' '.join(str(exc).split())[:200]}") from None
     return model, params, doc
 
 
