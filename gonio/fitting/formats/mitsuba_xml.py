@@ -49,10 +49,13 @@ def _xml_lines(d: dict, indent: str) -> list[str]:
                 lines.append(_rgb(key, value["value"], indent))
             elif kind == "spectrum" and not isinstance(value.get("value"), (list, tuple)):
                 lines.append(f'{indent}<spectrum name={quoteattr(key)} value="{_fmt_float(value["value"])}"/>')
-            else:  # a nested plugin (a texture)
-                lines.append(f"{indent}<texture type={quoteattr(str(kind))} name={quoteattr(key)}>")
+            else:  # a nested plugin: a BSDF (blendbsdf's lobes), a texture, ... as Mitsuba knows it
+                from gonio.models.mitsuba import plugin_kind
+
+                tag = plugin_kind(str(kind))
+                lines.append(f"{indent}<{tag} type={quoteattr(str(kind))} name={quoteattr(key)}>")
                 lines.extend(_xml_lines(value, indent + "    "))
-                lines.append(f"{indent}</texture>")
+                lines.append(f"{indent}</{tag}>")
         elif isinstance(value, (bool, np.bool_)):
             lines.append(f'{indent}<boolean name={quoteattr(key)} value="{"true" if value else "false"}"/>')
         elif isinstance(value, (int, np.integer)):

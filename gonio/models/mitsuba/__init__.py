@@ -26,7 +26,7 @@ from gonio.core.geometry import finite_directions
 from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
 from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
 
-__all__ = ["mitsuba_variant", "select_variant", "interaction", "eval_cos", "divide_cos", "bsdf_base",
+__all__ = ["mitsuba_variant", "select_variant", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
            "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
 
 
@@ -119,3 +119,19 @@ def divide_cos(values, wi, wo):
     fr = np.zeros_like(values)
     fr[ok] = values[ok] / cos_i[ok, None]
     return fr
+
+
+def plugin_kind(name: str) -> str:
+    """What Mitsuba's plugin ``name`` makes, as its XML tag: ``"bsdf"``, ``"texture"``,
+    ``"emitter"`` and so on (gonio's own plugins registered first); ``"texture"`` for a name
+    Mitsuba does not know, which is how a scene refers to a texture."""
+    import mitsuba as mi
+
+    select_variant()
+    if str(name).startswith("gonio_"):
+        ensure_registered(str(name)[len("gonio_"):])
+    try:
+        kind = mi.PluginManager.instance().plugin_type(str(name))
+    except Exception:
+        return "texture"
+    return str(kind).rsplit(".", 1)[-1].lower()
