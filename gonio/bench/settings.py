@@ -110,6 +110,8 @@ def merge_settings(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict
 def _read_user(path: Path) -> dict[str, Any]:
     from gonio.core.tomlfile import read_toml
 
+    if not Path(path).exists():
+        raise GonioError(f"cannot read settings file {path}: no such file; check the path")
     user = read_toml(path, "settings file")
     check_schema(user, f"settings file {path}")
     return user
