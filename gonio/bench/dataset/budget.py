@@ -8,7 +8,8 @@ signed, c_k u(x) (JCGM 100 5.1.3); a value's standard uncertainty from it is its
 ``u_combined`` is the root sum of squares over the components at each value (JCGM 100
 5.1.2), and the type-A components add up to ``brdf_std`` exactly.
 
-Components assembled here: ``shot_read`` and ``fixed_pattern`` (A, none) and
+Components assembled here: ``shot_read`` and ``fixed_pattern`` (A, none), ``dark_frame`` (A,
+full, one input per correlated mode: ``u_dark_frame`` (point, channel, dark_input)) and
 ``reference_certificate`` (B, full by default). Other modules supply further components as
 :class:`Component` values: ``budget_variables(..., extra=[...])``.
 """
@@ -45,7 +46,9 @@ import re
 import numpy as np
 
 from gonio.bench import calibrate
+from gonio.bench.measure.hdr import NoiseModel, dark_sensitivity
 from gonio.bench.measure.point import ReferenceModel
+from gonio.bench.plan.markers import roi_masks_fast
 
 __all__ = ["Component", "budget_variables", "CORRELATIONS", "BUDGET_FORMAT"]
 
@@ -89,12 +92,14 @@ def _detail(rows, key, fallback):
     return np.array([r["detail"].get(key, fallback) for r in rows], float)
 
 
-def type_a(rows, brdf: np.ndarray, brdf_std: np.ndarray) -> list[Component]:
+def type_a(rows, brdf: np.ndarray, brdf_std: np.ndarray, dark_var: np.ndarray | None = None) -> list[Component]:
     """``shot_read`` and ``fixed_pattern`` from the journalled region statistics.
 
     The noise model's relative standard error of the sample/reference ratio (``se_model``) is
     capped at the empirical one (``se``), whose square is split exactly: shot/read the model's
     share, fixed pattern the excess. A journal without ``se_model`` puts it all in shot_read.
+    ``dark_var`` (N, 3): the share of the model's variance that the dark frames' noise makes
+    and the ``dark_frame`` line carries (:func:`dark_frame`), taken out of shot_read.
     """
     nan3 = [np.nan] * 3
     rel2_model = np.zeros_like(brdf)
@@ -107,10 +112,165 @@ def type_a(rows, brdf: np.ndarray, brdf_std: np.ndarray) -> list[Component]:
         model = np.abs(brdf) * np.sqrt(rel2_model)
     shot = np.where(np.isfinite(model), np.minimum(model, brdf_std), brdf_std)
     fixed = np.sqrt(np.clip(brdf_std ** 2 - shot ** 2, 0.0, None))
+    if dark_var is not None:
+        shot = np.sqrt(np.clip(shot ** 2 - dark_var, 0.0, None))
     return [Component("shot_read", shot, "A", "none",
-                      "HDR merge noise model (shot + read noise) of the sample and reference regions"),
+                      "HDR merge noise model (shot + read noise) of the sample and reference regions"
+                      + (", the dark frames' share apart (dark_frame)" if dark_var is not None else "")),
             Component("fixed_pattern", fixed, "A", "none",
                       "pixel scatter in the regions beyond the noise model (fixed pattern, flat-field residual)")]
+
+
+#: the dark frames' correlated modes kept as shared inputs: those whose variance, in units of
+#: the values' own brdf_std^2, is at least this (the rest stays in shot_read, independent)
+DARK_MODE_MIN = 0.01
+#: raw pixels behind each super-pixel value of the RGGB mosaic (gonio/bench/drivers/raw.py)
+_N_RAW = np.array([1.0, 2.0, 1.0])
+#: the most cells of the overlap grid (super-pixels, or blocks of them on a large sensor)
+_CELLS = 1 << 16
+
+
+def _padded_exposures(rows):
+    """(seconds, power, present) (N, K): each point's exposures, padded with absent ones."""
+    exps = [r["detail"].get("exposures") or [] for r in rows]
+    K = max((len(e) for e in exps), default=0)
+    t, p, ok = np.ones((len(rows), K)), np.ones((len(rows), K)), np.zeros((len(rows), K), bool)
+    for i, e in enumerate(exps):
+        for k, d in enumerate(e):
+            t[i, k], p[i, k], ok[i, k] = float(d.get("seconds", np.nan)), float(d.get("power", np.nan)), True
+    return t, p, ok & np.isfinite(t) & np.isfinite(p) & (t > 0) & (p > 0)
+
+
+def _dark_rate(x, n, se_model, t, kk, ok, noise) -> np.ndarray:
+    """The darks' level as a rate (DN/s, per channel) that makes the merge's noise model give
+    the journalled se_model of the regions (least squares in log over every region; the level
+    is not journalled): the dark current's shot noise is half a dark value's variance at the
+    long exposures."""
+    grid = np.concatenate([[0.0], np.logspace(-2, 5, 141)])
+    out = np.zeros(3)
+    for c in range(3):
+        good = np.isfinite(x[..., c]) & (n[..., c] > 0) & np.isfinite(se_model[..., c]) & (se_model[..., c] > 0)
+        if not good.any():
+            continue
+        best = None
+        for rate in grid:
+            var, _ = dark_sensitivity(x[..., c], kk, rate * t, noise, _N_RAW[c], ok[..., c])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                err = np.log(np.sqrt(var / np.maximum(n[..., c], 1.0))) - np.log(se_model[..., c])
+            cost = float(np.nansum(np.where(good, err, 0.0) ** 2))
+            if best is None or cost < best[0]:
+                best = (cost, rate)
+        out[c] = best[1]
+    return out
+
+
+def _overlap_cells(rows, settings):
+    """Each point's sample and reference regions as cell counts (N, cells) each, for their
+    overlaps; None where the rows carry no stage angles."""
+    if (not all(k in r for r in rows for k in ("yaw", "tilt", "azimuth", "lamp"))
+            or not {"sample_half", "offset"} <= set(settings.get("holder", {}))
+            or not {"pixel_size", "width", "height"} <= set(settings.get("camera", {}))):
+        return None
+    cache, S, R = {}, [], []
+    for r in rows:
+        stage = np.array([r[k] for k in ("yaw", "tilt", "azimuth", "lamp")], float)
+        key = tuple(stage[:3])
+        if key not in cache:
+            sm, rm = roi_masks_fast(stage, settings)
+            f = max(1, int(np.ceil(np.sqrt(sm.size / _CELLS))))
+            if f > 1:                       # a large sensor: counts on blocks of f x f super-pixels
+                h, w = (sm.shape[0] // f) * f, (sm.shape[1] // f) * f
+                sm = sm[:h, :w].reshape(h // f, f, w // f, f).sum(axis=(1, 3))
+                rm = rm[:h, :w].reshape(h // f, f, w // f, f).sum(axis=(1, 3))
+            cache[key] = (np.asarray(sm, float).ravel(), np.asarray(rm, float).ravel(), f * f)
+        S.append(cache[key][0])
+        R.append(cache[key][1])
+    area = next(iter(cache.values()))[2]
+    return np.array(S), np.array(R), area
+
+
+def dark_frame(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``dark_frame``: the dark frames' noise, shared by every point that subtracts them, as
+    (values (K, N, 3), signed, one per shared input; the variance they carry (N, 3)); None
+    where the journal lacks what it takes (exposures, region statistics, stage angles).
+
+    One dark frame a rung is taken per session (gonio/bench/session/calframes.py), and each
+    point's merge subtracts it from every value of its regions: its noise (read noise and the
+    dark current's shot noise, as much as a value's own at zero signal) moves the region's
+    mean by coef x its mean over the region (`gonio.bench.measure.hdr.dark_sensitivity`), and
+    two points whose regions overlap move together. Per channel the covariance of brdf from
+    it is C[a, b] = sum_k s_k^2 sum over the super-pixels in both (c_a c_b), the regions from the
+    plan's geometry (`roi_masks_fast`, as the capture finds them without markers), the darks'
+    level from the journalled se_model (:func:`_dark_rate`). Its eigenvectors (scaled by the
+    values' brdf_std, :data:`DARK_MODE_MIN`) are the shared inputs; what they leave, and the
+    variance as a whole, stays in shot_read's independent line."""
+    if not rows or not all("exposures" in r.get("detail", {}) for r in rows):
+        return None
+    cells = _overlap_cells(rows, settings)
+    if cells is None:
+        return None
+    S, R, area = cells
+    cam = settings.get("camera", {})
+    noise = NoiseModel(float(cam.get("gain_e_per_dn", 2.0)), float(cam.get("read_noise_e", 3.0)))
+    fs = float(2 ** int(cam.get("bits", 14)))
+    sat = float(settings.get("capture", {}).get("saturation_fraction", 0.9))
+    nan3 = [np.nan] * 3
+    t, p, ok = _padded_exposures(rows)
+    kk = (t * p).T                                               # (K, N)
+    x = np.stack([_detail(rows, f"{k}_mean", nan3) for k in ("sample", "reference")])        # (2, N, 3)
+    n = np.stack([_detail(rows, f"{k}_n", nan3) for k in ("sample", "reference")])
+    se_model = np.stack([_detail(rows, f"{k}_se_model", nan3) for k in ("sample", "reference")])
+    if not np.any(np.isfinite(se_model)):
+        return None
+    # usable exposures: present and the region's level below saturation (its mean: an estimate)
+    usable = ok.T[:, None, :, None] & (np.nan_to_num(x)[None] * kk[:, None, :, None] < sat * fs)   # (K, 2, N, 3)
+    kk4 = kk[:, None, :, None]
+    t4 = t.T[:, None, :, None]
+    rate = _dark_rate(x, n, se_model, t4[..., 0], kk4[..., 0], usable, noise)
+    dark_dn = rate * t4                                          # (K, 1, N, 3)
+    _, coef = dark_sensitivity(x, kk4, dark_dn, noise, _N_RAW, usable)          # (K, 2, N, 3)
+    sigma = np.sqrt((np.maximum(dark_dn, 0.0) / noise.gain + (noise.read_noise / noise.gain) ** 2 + 1.0 / 12.0)
+                    / _N_RAW)                                    # a dark value's 1-sigma, DN
+    ti = np.array([r.get("theta_i", np.nan) for r in rows], float)
+    to = np.array([r.get("theta_o", np.nan) for r in rows], float)
+    ref = settings.get("reference", {})
+    if "reflectance" in ref:
+        model = ReferenceModel(ref)
+        f_ref = np.array([model.f_r(a, b) for a, b in zip(ti, to)]).reshape(-1, 3)
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f_ref = brdf * x[1] / x[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # brdf = f_ref x_s / x_r: a dark reading of +1 sigma at one super-pixel of a region
+        # lowers that region's mean by coef sigma / n
+        alpha_s = -(f_ref / x[1]) * coef[:, 0] * sigma[:, 0] / n[0]          # (K, N, 3)
+        alpha_r = (brdf / x[1]) * coef[:, 1] * sigma[:, 0] / n[1]
+    alpha_s, alpha_r = np.nan_to_num(alpha_s), np.nan_to_num(alpha_r)
+    # the rungs: exposures of one length share one dark frame
+    lengths = np.unique(np.round(t[ok], 12))
+    SS, SR, RR = (S @ S.T) / area, (S @ R.T) / area, (R @ R.T) / area
+    scale = np.where(np.isfinite(brdf_std) & (brdf_std > 0), brdf_std, np.inf)
+    values, var = [], np.zeros(brdf.shape)
+    for c in range(3):
+        G = np.zeros((len(rows), len(rows)))
+        for tl in lengths:
+            at = np.isclose(t, tl, rtol=1e-9, atol=0.0) & ok                   # (N, K)
+            a_s = np.where(at.T, alpha_s[..., c], 0.0).sum(axis=0)             # (N,)
+            a_r = np.where(at.T, alpha_r[..., c], 0.0).sum(axis=0)
+            G += (np.outer(a_s, a_s) * SS + np.outer(a_s, a_r) * SR + np.outer(a_r, a_s) * SR.T
+                  + np.outer(a_r, a_r) * RR)
+        Gw = G / np.outer(scale[:, c], scale[:, c])
+        lam, vec = np.linalg.eigh(0.5 * (Gw + Gw.T))
+        keep = lam >= DARK_MODE_MIN
+        modes = vec[:, keep] * np.sqrt(lam[keep]) * np.where(np.isfinite(scale[:, c]), scale[:, c], 0.0)[:, None]
+        for m in modes.T:
+            v = np.zeros(brdf.shape)
+            v[:, c] = m
+            values.append(v)
+            var[:, c] += m * m
+    if not values:
+        return None
+    return np.array(values), var
 
 
 def certificate(settings, brdf: np.ndarray) -> list[Component]:
@@ -254,10 +414,26 @@ def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, ext
 
     Raises ValueError when a component is malformed or holds NaN where ``brdf`` is finite.
     """
-    comps = (type_a(rows, brdf, brdf_std) + certificate(settings, brdf) + calibration_components(rows, settings, brdf)
-             + list(extra))
+    dark = dark_frame(rows, settings, brdf, brdf_std)
+    if dark is not None:
+        # the dark inputs carry at most the noise model's share (the type-A lines stay brdf_std)
+        shot_model = type_a(rows, brdf, brdf_std)[0].value
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shrink = np.where(dark[1] > shot_model ** 2, np.sqrt(shot_model ** 2 / dark[1]), 1.0)
+        dark = (dark[0] * np.nan_to_num(shrink)[None], dark[1] * np.nan_to_num(shrink) ** 2)
+    comps = (type_a(rows, brdf, brdf_std, None if dark is None else dark[1]) + certificate(settings, brdf)
+             + calibration_components(rows, settings, brdf) + list(extra))
     seen, out = set(), {}
     total = np.zeros_like(brdf)
+    if dark is not None:
+        seen.add("dark_frame")
+        out["u_dark_frame"] = (("point", "channel", "dark_input"), np.moveaxis(dark[0], 0, -1), {
+            "units": "sr^-1", "gum_type": "A", "correlation": "full",
+            "source": "the dark frames' noise (one frame a rung, subtracted by every point that uses the rung): "
+                      "one input per correlated mode of the regions' overlaps",
+            "long_name": "standard uncertainty of brdf from the dark frames (signed: the change for +1 sigma "
+                         "of each independent input)"})
+        total += dark[1]
     finite = np.isfinite(brdf)
     for c in comps:
         c.check(brdf.shape)

@@ -17,7 +17,14 @@ its dark are linearised first; ``gamma = 0`` (the default) leaves them untouched
 # Details: S counts photo and dark electrons; n = 2 for the two greens of a CFA tile.
 # var(x_k) = (var(D_k) + var(K_k)) / (t_k P_k)^2; x = sum(w_k x_k) / sum(w_k), w_k = 1 / var(x_k).
 # The variances are evaluated at the prediction, not at the noisy measured values, which would
-# bias the weights toward low readings. Linearisation (gamma from gonio calibrate):
+# bias the weights toward low readings. For the same reason the dark's level in them is the
+# dark frame's mean over the block of rows (per channel), not each value's own dark: a value's
+# dark noise enters x_k with the opposite sign, so weights from it favoured the exposures whose
+# dark read low, and a region at zero signal merged to +0.1 of its pixels' standard deviation
+# (1.7 standard errors of a 300-value region's mean: the dark points of a glossy gold capture
+# sat at z = +1.5 and its fit at chi2/dof 1.33-1.54). The dark frame itself, one a rung, is
+# shared by every point that subtracts it: its noise is a correlated line of the budget
+# (`dark_sensitivity`; gonio/bench/dataset/budget.py). Linearisation (gamma from gonio calibrate):
 # L = FS (1 - sqrt(1 - 4 gamma D / FS)) / (2 gamma).
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ import numpy as np
 from gonio.bench.drivers.camera import RawFrame
 
 __all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "merge_blocks", "linearise", "choose_bracket", "ladder",
-           "flat_gain"]
+           "flat_gain", "dark_sensitivity"]
 
 
 @dataclass(frozen=True)
@@ -167,7 +174,11 @@ def merge_blocks(exposures: Sequence[Exposure], noise: NoiseModel, consume, satu
             if count_used:
                 used = ok.astype(np.int64) if used is None else used + ok
             inv_ok.append(ok)
-            d = np.maximum(dk, f32(0.0))
+            # the dark's level in the weights is its mean over the block (per channel), not each
+            # value's own dark: a value's dark noise is in x_k with the opposite sign, so weights
+            # from it favour the exposures whose dark read low, a positive bias at low signal
+            # (module notes)
+            d = np.maximum(dk.mean(axis=(1, 2), dtype=np.float64, keepdims=True), 0.0).astype(f32)
             dark.append(d)
             var_dark.append((d * inv_g + floor) / n)
 
@@ -236,6 +247,33 @@ def _pool() -> ThreadPoolExecutor:
         if not _pool_of:
             _pool_of.append(ThreadPoolExecutor(1, thread_name_prefix="gonio-merge"))
         return _pool_of[0]
+
+
+def dark_sensitivity(x, scales, dark_dn, noise: NoiseModel, n_raw=1.0, usable=None) -> tuple[np.ndarray, np.ndarray]:
+    """What the merge makes of a value's darks: (var, coef) for merged radiance ``x`` (DN per s
+    per W, shape S), exposures of ``scales`` t_k P_k (K, or (K,) + S), darks of level
+    ``dark_dn`` (DN, broadcast to (K,) + S) and ``usable`` (K,) + S (unsaturated; default all).
+
+    ``var`` (S) is the merge's variance of the value (`merge_blocks`' second pass at the
+    prediction x); ``coef`` ((K,) + S) = w_k / (sum_j w_j t_k P_k), minus the change of the
+    merged value per DN of exposure k's dark frame: a dark frame's noise (variance
+    ``(dark/g + (sigma_read/g)^2 + 1/12) / n_raw`` a value) moves every value that subtracts it,
+    in every point that uses it (gonio/bench/dataset/budget.py carries it as a shared line)."""
+    kk = np.asarray(scales, float)
+    x = np.maximum(np.asarray(x, float), 0.0)
+    kk = kk.reshape(kk.shape + (1,) * (x.ndim + 1 - kk.ndim)) if kk.ndim == 1 else kk
+    d = np.maximum(np.asarray(dark_dn, float), 0.0)
+    floor = (noise.read_noise / noise.gain) ** 2 + 1.0 / 12.0
+    v_dark = (d / noise.gain + floor) / n_raw
+    v = ((x * kk + d) / noise.gain + floor) / n_raw + v_dark
+    w = kk * kk / v
+    if usable is not None:
+        w = np.where(usable, w, 0.0)
+    wsum = w.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = np.where(wsum > 0, 1.0 / wsum, np.nan)
+        coef = np.where(wsum > 0, w / (wsum * kk), 0.0)
+    return var, coef
 
 
 def ladder(t_min: float, t_max: float) -> np.ndarray:

@@ -3,7 +3,8 @@
 Layout (docs/interfaces.md, architecture.md "A fit file"):
 ``model`` {name, options}; ``parameters`` {name: {value, std, ci90, unit, per_channel,
 at_bound, undetermined, method}}; ``covariance`` {names, matrix}; ``constraints``;
-``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used}; ``optimiser``;
+``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used, model_adequate and the
+``adequacy`` test behind it: test, statistic, dof, p_value, alpha, verdict}; ``optimiser``;
 ``posterior`` (or null); ``selection`` (for ``--model auto``); ``mitsuba`` (the BSDF dict);
 ``provenance`` (versions, seed, dataset path and checksum); ``uncertainty`` (per parameter
 u_stat, u_combined, U = k u_combined with k = 2, and its budget: docs/interfaces.md 5.1);
@@ -27,6 +28,7 @@ import gonio.models as gm
 from gonio.core.errors import GonioError
 from gonio.core.atomic import atomic_open
 
+from gonio.fitting.uncertainty.adequacy import TEST_BUDGET, nominal_test
 from gonio.fitting.uncertainty.budget import K_EXPANDED, budget_from_attrs, propagate
 from gonio.fitting.display import table_html, text, value_pm
 from gonio.fitting.formats.mitsuba_xml import mitsuba_document
@@ -90,11 +92,22 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
     """
     space = result.space
     z90 = 1.6448536269514722  # two-sided 90 % of a standard normal
-    adequate, inflation, warning = model_adequacy(result)
-    uncertainty = _uncertainty(result, meas, budget, result.std * inflation, result.cov * inflation ** 2)
+    budget = budget if budget is not None else budget_from_attrs(meas)
+    # the adequacy test (goodness.adequacy): a chi2 fit against its budget's covariance
+    # (gonio.fitting.uncertainty.adequacy.adequacy_test, computed with the propagation), any
+    # other loss against its nominal chi2 distribution
+    test = None if result.loss == "chi2" else nominal_test(result)
+    uncertainty = _uncertainty(result, meas, budget, result.std, result.cov, test)
+    test = uncertainty.pop("adequacy")
     if uncertainty["statistical"] is not None and result.loss == "chi2":
-        # the dataset's budget says how far chi2 (weighed by type A alone) should exceed dof
-        adequate, inflation, warning = budget_adequacy(uncertainty["statistical"])
+        # the budget split type A into u_ lines: the statistical covariance is the type-A lines
+        # propagated, scaled by sqrt(chi2 / E) where the test rejects the model
+        adequate, inflation, warning = budget_adequacy(uncertainty["statistical"], test, result.chi2_dof)
+    else:
+        adequate, inflation, warning = model_adequacy(result, test)
+        if inflation != 1.0:
+            uncertainty = _uncertainty(result, meas, budget, result.std * inflation, result.cov * inflation ** 2, test)
+            uncertainty.pop("adequacy")
     params = {}
     by_name = {p.name: p for p in result.model.parameters}
     for i, name in enumerate(space.names):
@@ -137,6 +150,7 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                      # by more than its noise, and the 1-sigma values are statistical only
                      "birge_ratio": float(np.sqrt(result.chi2_dof)),
                      "model_adequate": adequate, "std_inflation": inflation, "warning": warning,
+                     "adequacy": _adequacy_entry(test),
                      "criterion": {"loss": result.loss, "neg2_loglik": result.neg2_loglik, "k": result.k_criterion,
                                    "bic": result.bic},
                      "discrepancy": ({k: v for k, v in result.discrepancy.items() if not k.startswith("_")}
@@ -175,11 +189,12 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
     return doc
 
 
-def _uncertainty(result, meas, budget, u_stat, cov_stat) -> dict:
+def _uncertainty(result, meas, budget, u_stat, cov_stat, adequacy=None) -> dict:
     """The ``uncertainty`` section: combined and expanded uncertainty and budget per parameter
-    (docs/interfaces.md 5.1)."""
+    (docs/interfaces.md 5.1), and (key ``adequacy``, for the caller to take out) the adequacy
+    test: ``adequacy`` where given, else the one the propagation computed."""
     budget = budget if budget is not None else budget_from_attrs(meas)
-    out = propagate(result, meas, budget, u_stat, cov_stat)
+    out = propagate(result, meas, budget, u_stat, cov_stat, adequacy)
     return {"k": K_EXPANDED, "method": "first-order propagation of every budget component through the fit "
                                       "(correlated ones as shared nuisance errors; GUM 5.1, JCGM 102 6.2), and "
                                       "the shared angle errors' second-order term (its mean corrected in the values, GUM 3.2.4 "
@@ -189,34 +204,60 @@ def _uncertainty(result, meas, budget, u_stat, cov_stat) -> dict:
                                            "included); Birge factor against the point-wise budget", **out["birge"]}
                             if out["birge"] else None),
             "covariance_combined": {"names": list(result.space.names),
-                                    "matrix": out["cov_statistical"] + out["cov_systematic"]}}
+                                    "matrix": out["cov_statistical"] + out["cov_systematic"]},
+            "adequacy": out["adequacy"] if out["adequacy"] is not None else nominal_test(result)}
 
 
-def budget_adequacy(statistical) -> tuple[bool, float, str | None]:
+#: what each adequacy test compares (goodness.adequacy.description)
+_TESTS = {
+    TEST_BUDGET: "chi-square test of the residuals against the dataset's uncertainty budget: the generalised "
+                 "least-squares chi^2 r^T V^-1 r with V the budget's covariance (point-wise components, and one "
+                 "nuisance input per shared error, each profiled out), chi^2 distributed with dof degrees of "
+                 "freedom when the data scatter as the budget says",
+    "chi2": "chi-square test of the residuals against the fit's sigma (brdf_std, the budget's type A): chi^2 "
+            "against the chi^2 distribution with dof degrees of freedom",
+}
+
+
+def _adequacy_entry(test: dict) -> dict:
+    """``goodness.adequacy``: which test, its statistic, dof, p-value and level alpha (its
+    false-alarm rate), and the verdict."""
+    desc = _TESTS.get(test["test"], test["test"])
+    return {"test": test["test"], "description": desc, "statistic": test["statistic"], "dof": test["dof"],
+            "p_value": test["p_value"], "alpha": test["alpha"], "false_alarm_rate": test["alpha"],
+            "nuisance_inputs": test.get("nuisance_inputs", 0), "refined_steps": test.get("refined_steps", 0),
+            "verdict": "adequate" if test["adequate"] else "inadequate"}
+
+
+def _said(test: dict, chi2_dof: float) -> str:
+    """The warning's head: chi2/dof, then the test that rejected the model, its p and level."""
+    return (f"chi2/dof = {chi2_dof:.3g}; adequacy test {test['test']} = {test['statistic']:.4g} on {test['dof']} dof, "
+            f"p = {test['p_value']:.2g} < alpha = {test['alpha']:g}")
+
+
+def budget_adequacy(statistical, test: dict, chi2_dof: float | None = None) -> tuple[bool, float, str | None]:
     """(adequate, std inflation, warning or None) of a chi2 fit judged against its dataset's
-    uncertainty budget (``uncertainty.statistical``: gonio.fitting.uncertainty.budget.birge_against_budget).
-
-    chi^2 weighs the points by their type-A noise alone, so terms of the budget that scatter
-    the points independently (each angle's repeatability times the local slope of f_r, stray
-    light) raise it above dof without any fault of the model: a calibrated `--errors typical`
-    capture of the demo sample has chi2/dof 6.7 against a budget that predicts about that. The
-    fit is adequate while chi^2 stays within 4 standard deviations of the budget's expectation;
-    beyond, the statistical covariance is inflated by sqrt(chi^2 / E), as the budget did."""
-    chi2, mean, sd = (float(statistical[k]) for k in ("chi2", "chi2_expected", "chi2_expected_sd"))
-    if chi2 <= mean + 4.0 * sd:
+    uncertainty budget: the verdict is ``test``'s
+    (:func:`gonio.fitting.uncertainty.adequacy.adequacy_test`, at its level alpha); the inflation
+    of a rejected model is ``statistical``'s factor sqrt(chi^2 / E)
+    (gonio.fitting.uncertainty.budget.birge_against_budget: E what the budget makes chi^2 by
+    itself; the plain Birge ratio would count the type-B lines' scatter again)."""
+    if test["adequate"]:
         return True, 1.0, None
     factor = float(statistical["factor"])
-    return False, factor, (f"chi2 = {chi2:.4g} exceeds the {mean:.4g} +- {sd:.2g} the uncertainty budget predicts: "
-                           "the model misses the data by more than the budget's scatter; the statistical "
-                           f"uncertainties are inflated by {factor:.3g}; fit with --loss discrepancy for a "
-                           "fitted model-discrepancy term")
+    chi2_dof = float(statistical["chi2"]) / max(int(test["dof"]), 1) if chi2_dof is None else float(chi2_dof)
+    return False, factor, (f"{_said(test, chi2_dof)}: the model misses the data by more than the uncertainty budget allows "
+                           f"(chi2 = {float(statistical['chi2']):.4g} against the {float(statistical['chi2_expected']):.4g} "
+                           f"the budget predicts); the statistical uncertainties are inflated by {factor:.3g}; "
+                           "fit with --loss discrepancy for a fitted model-discrepancy term")
 
 
-def model_adequacy(result):
+def model_adequacy(result, test: dict | None = None):
     """(adequate, std inflation, warning or None) of a fit.
 
-    A fit is adequate when chi^2/dof lies within 4 standard deviations of 1
-    (sd sqrt(2 / dof)). When it is not, the model misses the data by more than the noise
+    The verdict is ``test``'s (default :func:`gonio.fitting.uncertainty.adequacy.nominal_test`:
+    chi^2 against the chi^2 distribution with the fit's dof, at level alpha =
+    ``gonio.fitting.uncertainty.adequacy.ADEQUACY_ALPHA``). When it rejects, the model misses the data by more than the noise
     and the Laplace sigma describe only the noise: they are multiplied by the Birge ratio
     sqrt(chi^2/dof) (Birge 1932), the scale that makes chi^2/dof = 1, and the fit file says
     so. The ``log`` and ``cosine`` losses report the sandwich covariance of their own
@@ -224,21 +265,22 @@ def model_adequacy(result):
     so it is not inflated. The ``discrepancy`` likelihood fits that excess variance itself (its chi^2 is
     against it), so its sigma are reported as they are.
     """
-    chi2_dof = float(result.chi2_dof)
-    adequate = bool(chi2_dof < 1.0 + 4.0 * np.sqrt(2.0 / result.dof))
-    if adequate:
+    test = test if test is not None else nominal_test(result)
+    if test["adequate"]:
         return True, 1.0, None
+    chi2_dof = float(result.chi2_dof)
     if result.loss == "discrepancy":
-        return False, 1.0, (f"chi2/dof = {chi2_dof:.3g} against the fitted discrepancy variance: the intervals "
-                            "include the model discrepancy but the fit is still poor")
+        return False, 1.0, (f"{_said(test, chi2_dof)} against the fitted discrepancy variance: "
+                            "the intervals include the model discrepancy but the fit is still poor")
     if result.loss in ("log", "cosine"):
-        return False, 1.0, (f"chi2/dof = {chi2_dof:.3g} against the nominal sigma: the model misses the data; the "
-                            f"intervals are the sandwich covariance of the {result.loss} residuals, which includes "
-                            "the model's discrepancy (not inflated again)")
+        return False, 1.0, (f"{_said(test, chi2_dof)} against the nominal sigma: the model misses "
+                            f"the data; the intervals are the sandwich covariance of the {result.loss} residuals, "
+                            "which includes the model's discrepancy (not inflated again)")
     birge = float(np.sqrt(chi2_dof))
-    return False, birge, (f"chi2/dof = {chi2_dof:.3g}: the model misses the data by more than its noise; 1-sigma "
-                          f"and 90 % intervals are inflated by the Birge ratio {birge:.3g} (std_statistical keeps "
-                          "the noise-only values); fit with --loss discrepancy for a fitted model-discrepancy term")
+    return False, birge, (f"{_said(test, chi2_dof)}: the model misses the data by more than its "
+                          f"noise; 1-sigma and 90 % intervals are inflated by the Birge ratio {birge:.3g} "
+                          "(std_statistical keeps the noise-only values); fit with --loss discrepancy for a fitted "
+                          "model-discrepancy term")
 
 
 def write_json_atomic(path, doc) -> Path:
