@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from gonio.core.errors import GonioError
+from gonio.core.hdf5check import check_hdf5
 from gonio.core.preflight import check_input_file
 
 __all__ = ["open_dataset", "open_budget"]
@@ -76,6 +77,7 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
                         raise
                 a = np.radians(load_plan("standard").angles)     # scalar_rgb only: the standard plan
                 return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
+            check_hdf5(path)            # a damaged file can loop in HDF5 for ever: walked first, in a child
             return load_dataset(path, colour_space=colour_space)
         except GonioError:
             raise

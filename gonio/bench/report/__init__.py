@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.core.hdf5check import check_hdf5
 from gonio.fitting import DataError, load_dataset, parse_fit
 from gonio.core.atomic import atomic_open
 
@@ -263,6 +264,7 @@ def _check_out(out: Path) -> Path:
 
 def _load_dataset(root: Folder, path: Path):
     root.check(path, "dataset")
+    check_hdf5(path, root.label(path))      # a damaged file can loop in HDF5 for ever: walked first, in a child
     try:
         return load_dataset(path)
     except DataError:
