@@ -21,7 +21,8 @@ compiled Dr.Jit path); ``fresnel_*``, ``MicrofacetDistribution``, ``lambert``, `
 from __future__ import annotations
 
 from gonio.core import atomic, geometry  # noqa: F401  (public as gonio.models.geometry, .atomic)
-from gonio.models.catalogue import cooktorrance as _cooktorrance
+# the catalogue registers its models on import
+from gonio.models.catalogue import cooktorrance as _cooktorrance  # noqa: F401
 from gonio.models.catalogue import lambertian as _lambertian
 from gonio.models.catalogue import orennayar as _orennayar
 from gonio.models.catalogue import principled as _principled
@@ -30,8 +31,6 @@ from gonio.models.catalogue import roughconductor2 as _roughconductor2
 from gonio.models.catalogue import roughplastic as _roughplastic
 from gonio.models.catalogue import roughplastic2 as _roughplastic2
 from gonio.models.catalogue import tabulated as _tabulated  # noqa: F401  (register models)
-from gonio.models.physics import albedo as _albedo
-from gonio.models.engine import albedo as _albedo_jit
 from gonio.models.engine import fast
 from gonio.models.base import CHANNELS, Model, Parameter, eval_dtype, get, names
 from gonio.models.physics.diffuse import lambert, oren_nayar

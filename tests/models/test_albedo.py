@@ -93,7 +93,7 @@ def test_a_lobe_only_model_integrates_its_lobe_with_the_compiled_kernel(name, op
     calls = {"compiled": 0, "parts": 0, "eval": 0}
     from gonio.models.engine import albedo as _albedo_jit
 
-    real_lobe, real_smooth = _albedo_jit.lobe_integral, _albedo_jit.smooth_integral
+    real_lobe = _albedo_jit.lobe_integral
     real_parts, real_eval = type(m)._eval_parts, type(m).eval
 
     def spy_lobe(*args):
