@@ -70,8 +70,8 @@ def load_sample(source) -> dict:
     path = Path(source)
     if not path.exists():
         raise GonioError(f"sample file {path} does not exist; give a sample TOML or a measured .bsdf file")
-    check_input_file(path, "sample file")          # a regular file: a FIFO or device would block
     if path.suffix.lower() == ".bsdf":
+        check_input_file(path, "sample file")      # a regular file: a FIFO or device would block
         with open(path, "rb") as fh:
             head = fh.read(12)
         if not head.startswith(b"tensor_file"):

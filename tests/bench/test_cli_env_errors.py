@@ -14,47 +14,18 @@ from pathlib import Path
 
 import pytest
 
-from gonio.cli import main as cli
 from gonio.core.preflight import check_output_dir, check_output_file
 from gonio.core.errors import GonioError
 
+from cli_refusal import gonio, listing, quick_session, refused
+
 RGL = Path("/work/shared/data/rgl/paper_white_rgb.bsdf")
-
-
-def gonio(capsys, *args):
-    """(exit status, the stderr lines) of ``gonio ARGS`` in this process."""
-    rc = cli.main([str(a) for a in args])
-    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    return rc, err
-
-
-def refused(capsys, *args, needles=()):
-    rc, err = gonio(capsys, *args)
-    assert rc == 2, (rc, err)
-    assert len(err) == 1, err
-    assert err[0].startswith("gonio: error:"), err
-    for needle in needles:
-        assert needle in err[0], err[0]
-    return err[0]
-
-
-def listing(folder):
-    return sorted(str(p.relative_to(folder)) for p in Path(folder).rglob("*"))
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     """A quick simulated dataset.nc and a diffuse fit of it."""
-    from gonio.bench.dataset.export import export
-    from gonio.cli.fit import fit_cli
-    from gonio.cli.capture import capture_sim
-    from gonio.bench.samples import load_sample
-
-    root = tmp_path_factory.mktemp("envdata")
-    capture_sim(root / "session", sample=load_sample(None), plan="quick", seed=1, progress=False)
-    dataset = export(root / "session")
-    fit_cli(dataset, model="diffuse", options=[], out=root / "fit.json", seed=0, loss="chi2", posterior=False)
-    return {"dataset": dataset, "fit": root / "fit.json", "root": root}
+    return quick_session(tmp_path_factory.mktemp("envdata"))
 
 
 def _is_unwritable(folder: Path) -> bool:

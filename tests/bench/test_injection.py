@@ -11,13 +11,13 @@ Runs ``main()`` in this process, as tests/bench/test_cli_env_errors.py does.
 
 import itertools
 import shutil
-from pathlib import Path
 
 import pytest
 
 import gonio.sim as gs
-from gonio.cli import main as cli
 from gonio.core.errors import GonioError
+
+from cli_refusal import listing, quick_session, refused
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -27,41 +27,10 @@ IDS = ["LF", "CR", "NUL", "ESC", "NEL"]
 _names = itertools.count()
 
 
-def gonio(capsys, *args):
-    """(exit status, the stderr lines) of ``gonio ARGS`` in this process."""
-    rc = cli.main([str(a) for a in args])
-    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    return rc, err
-
-
-def refused(capsys, *args, needles=()):
-    """``gonio ARGS`` exits 2 with one line on stderr (tests/bench/test_cli_env_errors.py's)."""
-    rc, err = gonio(capsys, *args)
-    assert rc == 2, (rc, err)
-    assert len(err) == 1, err
-    assert err[0].startswith("gonio: error:"), err
-    for needle in needles:
-        assert needle in err[0], err[0]
-    return err[0]
-
-
-def listing(folder):
-    return sorted(str(p.relative_to(folder)) for p in Path(folder).rglob("*"))
-
-
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     """A quick simulated session, its dataset.nc and a diffuse fit of it."""
-    from gonio.bench.dataset.export import export
-    from gonio.bench.samples import load_sample
-    from gonio.cli.capture import capture_sim
-    from gonio.cli.fit import fit_cli
-
-    root = tmp_path_factory.mktemp("injdata")
-    capture_sim(root / "session", sample=load_sample(None), plan="quick", seed=1, progress=False)
-    dataset = export(root / "session")
-    fit_cli(dataset, model="diffuse", options=[], out=root / "fit.json", seed=0, loss="chi2", posterior=False)
-    return {"session": root / "session", "dataset": dataset, "fit": root / "fit.json", "root": root}
+    return quick_session(tmp_path_factory.mktemp("injdata"))
 
 
 # --------------------------------------------------------------------------- the original exploit

@@ -8,19 +8,22 @@
 | ``FLAT <seconds> <path>`` | as ``EXPOSE``, of the flat-field source (integrating sphere) |
 | ``CHART <seconds> <path>`` | as ``EXPOSE``, of the ColorChecker in the holder's chart slot (colour calibration) |
 
-The exposure physics lives in ``Instrument.capture``; this module parses and formats.
-Exposures from 1 us to 60 s are accepted; the path is the rest of the line (spaces allowed),
-its folder must exist. Errors: ``ERR bad exposure``, ``ERR missing path``,
-``ERR no such directory``, ``ERR disk full`` (ENOSPC or EDQUOT: the client stops resumably),
-``ERR write failed``, ``ERR unknown command``.
-
-A line is at most ``MAX_LINE`` bytes (UTF-8, without the newline; a longer one is answered
-``ERR line too long`` and discarded) and holds no control character (C0, DEL, C1, U+2028,
-U+2029; ``ERR control character``): a path never carries a second command. The camera writes
-only inside the folder it serves (``root``; None: any folder): the path is resolved (symbolic
-links followed) and must lie in ``root``; a path with a ``..`` component is refused whatever
-``root`` is (``ERR path outside the camera folder``).
+The exposure physics lives in ``Instrument.capture``; this module parses and formats, and
+refuses what could reach outside its folder: lines over ``MAX_LINE`` bytes, control
+characters, paths outside ``root`` (the rules below).
 """
+
+# Exposures from 1 us to 60 s are accepted; the path is the rest of the line (spaces allowed),
+# its folder must exist. Errors: ``ERR bad exposure``, ``ERR missing path``,
+# ``ERR no such directory``, ``ERR disk full`` (ENOSPC or EDQUOT: the client stops resumably),
+# ``ERR write failed``, ``ERR unknown command``.
+#
+# A line is at most ``MAX_LINE`` bytes (UTF-8, without the newline; a longer one is answered
+# ``ERR line too long`` and discarded) and holds no control character (C0, DEL, C1, U+2028,
+# U+2029; ``ERR control character``): a path never carries a second command. The camera writes
+# only inside the folder it serves (``root``; None: any folder): the path is resolved (symbolic
+# links followed) and must lie in ``root``; a path with a ``..`` component is refused whatever
+# ``root`` is (``ERR path outside the camera folder``).
 
 from __future__ import annotations
 
