@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gonio.core.channels import COLOUR_SPACE_CHANNELS
+from gonio.core.sides import Side, parse_sides
 from gonio.core.geometry import angles_deg
 from gonio.core.geometry import directions as direction
 
@@ -309,8 +310,14 @@ def load_dataset(path, colour_space: str = "srgb") -> Measurements:
     if missing:
         raise DataError(f"{path} is not a gonio dataset: missing {', '.join(missing)}")
     angles = {k: _radians(ds, path, k) for k in ("theta_i", "phi_i", "theta_o", "phi_o")}
+    try:
+        sides = parse_sides(ds.attrs.get("sides", "reflect"), str(path))
+    except ValueError as exc:
+        raise DataError(f"{exc}; fix the file's 'sides' attribute") from None
     for k in ("theta_i", "theta_o"):
         bad = (angles[k] < 0) | (angles[k] > np.pi / 2 + 1e-9)
+        if k == "theta_o" and Side.TRANSMIT in sides:
+            bad &= ~((angles[k] >= np.pi / 2 - 1e-9) & (angles[k] <= np.pi))
         if np.any(bad):
             i = int(np.argmax(bad))
             raise DataError(f"{path}: {k} = {np.degrees(angles[k][i]):.6g} deg at point {i} is below the horizon "

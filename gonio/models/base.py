@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gonio.core.channels import CHANNELS
+from gonio.core.sides import sides_mask
 from gonio.models.engine import albedo as _compiled_albedo
 from gonio.models.engine import fast as _engine
 from gonio.models.inputs import eval_dtype, eval_inputs
@@ -229,7 +230,7 @@ class Model:
                 if not finite.all():    # a NaN would index roughplastic's tables: evaluate the normal, give 0
                     a, b = (np.where(finite[:, None], v, [0.0, 0.0, 1.0]) for v in (a, b))
                 f = self._eval(a, b, p)
-                ok = finite & (a[:, 2] > 0.0) & (b[:, 2] > 0.0)
+                ok = finite & sides_mask(self.structure.sides, a[:, 2], b[:, 2])
                 out[s:e] = np.where(ok[:, None], f, 0.0)
         return out
 

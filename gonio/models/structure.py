@@ -11,6 +11,8 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
   compiled path pays off at any number of points;
 * ``affine``: f_r[c] = base(theta) + coef[c] * basis(theta) with base and basis the same in
   every channel (an :class:`Affine` declaration), or None;
+* ``sides``: the sides it scatters into (:mod:`gonio.core.sides`; reflection by default),
+  which every horizon mask of the reference, the kernels and the Mitsuba twin reads;
 * ``coupled``: per-channel parameters that reach the other channels through one weighted sum of
   their channels (:class:`Coupling`); every other per-channel parameter acts on its own channel.
 """
@@ -37,6 +39,8 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+
+from gonio.core.sides import REFLECTION_ONLY
 
 __all__ = ["Affine", "Coupling", "Structure"]
 
@@ -120,6 +124,7 @@ class Structure:
     compile_always: bool = False
     affine: Affine | None = None
     coupled: tuple = ()
+    sides: tuple = REFLECTION_ONLY
 
     def coupling(self, param):
         """The :class:`Coupling` of ``param``, or None (it acts on its own channel only)."""

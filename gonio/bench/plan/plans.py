@@ -34,6 +34,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from gonio.core.preflight import check_input_file
+from gonio.core.sides import REFLECTION_ONLY, Side, parse_sides
 from gonio.core.tomlfile import MAX_BYTES, parse_toml
 from gonio.bench.plan import kinematics
 from gonio.bench.plan.markers import roi_masks_fast
@@ -87,6 +88,9 @@ class Plan:
     duplicates : int
         Points given more than once and dropped (the first occurrence is kept), whatever the
         plan's format: a plan holds each point once.
+    sides : tuple of Side
+        The sides its points lie on (:mod:`gonio.core.sides`; reflection unless the plan
+        file says ``sides``); every theta_o must lie on one of them.
     """
 
     name: str
@@ -95,9 +99,10 @@ class Plan:
     description: str = ""
     source: str = ""
     duplicates: int = 0
+    sides: tuple = REFLECTION_ONLY
 
     def __post_init__(self):
-        a = _validated_angles(self.angles, self.name)
+        a = _validated_angles(self.angles, self.name, self.sides)
         a, dropped = dedupe(a)
         self.angles = a
         self.duplicates += dropped
@@ -109,11 +114,14 @@ class Plan:
 
     def to_dict(self) -> dict[str, Any]:
         """A TOML-friendly dict (`plan_from_dict` reads it back to the same plan)."""
-        return {"name": self.name, "description": self.description, "source": self.source,
-                "points": [[float(v) for v in row] for row in self.angles]}
+        d = {"name": self.name, "description": self.description, "source": self.source,
+             "points": [[float(v) for v in row] for row in self.angles]}
+        if self.sides != REFLECTION_ONLY:
+            d["sides"] = [s.value for s in self.sides]
+        return d
 
 
-def _validated_angles(angles, name: str) -> np.ndarray:
+def _validated_angles(angles, name: str, sides=REFLECTION_ONLY) -> np.ndarray:
     try:
         a = np.array(angles, dtype=float)
     except (TypeError, ValueError):
@@ -132,12 +140,19 @@ def _validated_angles(angles, name: str) -> np.ndarray:
     if bad.any():
         k = int(np.argmax(bad))
         raise PlanError(f"plan {name!r}: point {k} has a non-finite angle {a[k].tolist()}; fix the plan file")
-    th = a[:, [0, 2]]
-    bad = ~((th >= 0) & (th < 90)).all(1)
+    bad = ~((a[:, 0] >= 0) & (a[:, 0] < 90))
+    on_side = np.zeros(a.shape[0], dtype=bool)
+    for s in sides:
+        on_side |= s.holds_theta_o(a[:, 2])
+    bad |= ~on_side
     if bad.any():
         k = int(np.argmax(bad))
-        raise PlanError(f"plan {name!r}: point {k} {a[k].tolist()} has theta outside [0, 90) deg; "
-                        "fix the plan file")
+        if tuple(sides) == REFLECTION_ONLY:
+            raise PlanError(f"plan {name!r}: point {k} {a[k].tolist()} has theta outside [0, 90) deg; "
+                            "fix the plan file")
+        ranges = " or ".join("[0, 90)" if s is Side.REFLECT else "(90, 180]" for s in sides)
+        raise PlanError(f"plan {name!r}: point {k} {a[k].tolist()} has theta_i outside [0, 90) deg or theta_o "
+                        f"outside {ranges} deg (sides: {', '.join(s.value for s in sides)}); fix the plan file")
     a[:, [1, 3]] = (a[:, [1, 3]] + 180.0) % 360.0 - 180.0
     return a
 
@@ -296,7 +311,7 @@ def _scan(spec: Mapping[str, Any], name: str, k: int) -> np.ndarray:
             a = isotropic_grid(_nums(spec["theta_i"]), _nums(spec["theta_o"]), _nums(spec["phi_d"]),
                                float(spec.get("exclude_backscatter_deg", 8.0)))
         else:
-            a = _validated_angles(spec["points"], name)
+            a = _validated_angles(spec["points"], name, tuple(Side))   # the plan's sides are checked on the whole
     except KeyError as exc:
         raise PlanError(f"plan {name!r}: scan {k} ({kind}) lacks {exc}; add it") from None
     except (TypeError, ValueError):
@@ -316,13 +331,17 @@ def _nums(v) -> list[float]:
 def plan_from_dict(d: Mapping[str, Any], default_name: str = "plan", source: str = "") -> Plan:
     """Build a `Plan` from a parsed TOML document (see the module docstring)."""
     name = str(d.get("name", default_name))
-    unknown = set(d) - {"name", "description", "points", "scan", "source"}
+    unknown = set(d) - {"name", "description", "points", "scan", "source", "sides"}
     if unknown:
         raise PlanError(f"plan {name!r} has unknown keys {sorted(unknown)}; allowed: name, description, "
-                        "points, [[scan]]")
+                        "sides, points, [[scan]]")
+    try:
+        sides = parse_sides(d.get("sides", "reflect"), f"plan {name!r}")
+    except ValueError as exc:
+        raise PlanError(f"{exc}; fix the plan file") from None
     parts = []
     if "points" in d:
-        parts.append(_validated_angles(d["points"], name))
+        parts.append(_validated_angles(d["points"], name, sides))
     scans = d.get("scan", [])
     if not isinstance(scans, list):
         raise PlanError(f"plan {name!r}: 'scan' must be an array of tables ([[scan]]); fix the plan file")
@@ -332,8 +351,9 @@ def plan_from_dict(d: Mapping[str, Any], default_name: str = "plan", source: str
         parts.append(_scan(spec, name, k))
     if not parts:
         raise PlanError(f"plan {name!r} has no points; add 'points' or [[scan]] tables")
-    angles = _validated_angles(np.vstack(parts), name)     # Plan drops repeated points, keeping the first
-    return Plan(name, angles, description=str(d.get("description", "")), source=source or str(d.get("source", "")))
+    angles = _validated_angles(np.vstack(parts), name, sides)     # Plan drops repeated points, keeping the first
+    return Plan(name, angles, description=str(d.get("description", "")), source=source or str(d.get("source", "")),
+                sides=sides)
 
 
 def load_plan(spec: str | Path) -> Plan:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from gonio.core.sides import sides_mask
 from gonio.models.base import CHANNELS, Model, Parameter, register, rgb
 from gonio.models.engine.jit import channels
 from gonio.models.structure import Affine, Structure
@@ -44,9 +45,9 @@ class Diffuse(Model):
 
 
 def _jit_geometry(model, dr, wi, wo):
-    """The kernel's parameter-independent part: 1 / pi above the horizon (both cosines > 0),
-    0 elsewhere."""
-    return (dr.select((wi.z > 0) & (wo.z > 0), 1.0 / math.pi + 0.0 * wi.z, 0.0),)
+    """The kernel's parameter-independent part: 1 / pi on the model's sides (reflection: both
+    cosines > 0), 0 elsewhere."""
+    return (dr.select(sides_mask(model.structure.sides, wi.z, wo.z), 1.0 / math.pi + 0.0 * wi.z, 0.0),)
 
 
 def _jit_body(model, k, g, P, grad):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gonio.core.sides import sides_mask
 from gonio.models.engine.freeze import _FREEZE_LOCK, _frozen_for
 from gonio.models.engine.jit import Directions, JitContext, _dr
 from gonio.models.engine.jit_tables import _cached_tables, _t_ext_batch
@@ -137,7 +138,7 @@ def _parts_kernel(model, cols, wi, wo, tables, K, N):
     i = lane - k * N
     vi = dr.gather(V3, wi, i)
     vo = dr.gather(V3, wo, i)
-    active = (vi.z > 0) & (vo.z > 0)
+    active = sides_mask(model.structure.sides, vi.z, vo.z)
     ctx = JitContext(dr, F, U, active, None)
     return model.structure.affine.kernel(model, ctx, cols, k, K, vi, vo, tables)
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gonio.core.sides import sides_mask
 from gonio.models.engine.jit import JitContext
 
 
@@ -29,7 +30,7 @@ def _kernel(model, wi, wo, P, grad=False):
     if grad and not model.structure.derivatives:
         raise NotImplementedError(f"the compiled kernel of {model.name!r} gives values only")
     F = type(wi.z)
-    ctx = JitContext(dr, F, dr.uint32_array_t(F), (wi.z > 0) & (wo.z > 0), dr.zeros(F, dr.width(wi.z)))
+    ctx = JitContext(dr, F, dr.uint32_array_t(F), sides_mask(model.structure.sides, wi.z, wo.z), dr.zeros(F, dr.width(wi.z)))
     f, J = impl(model, ctx, wi, wo, P, grad)
     if not grad:
         return f

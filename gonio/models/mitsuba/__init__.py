@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from gonio.core.geometry import finite_directions
+from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
 from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
 
@@ -112,10 +113,11 @@ def eval_cos(bsdf, wi, wo, variant: str | None = None, chunk: int = 1 << 20) -> 
     return out
 
 
-def divide_cos(values, wi, wo):
-    """f_r from f_r * cos(theta_i); 0 where either direction is at or below the horizon."""
+def divide_cos(values, wi, wo, sides=REFLECTION_ONLY):
+    """f_r from f_r * cos(theta_i); 0 for pairs on none of ``sides`` (reflection: either direction
+    at or below the horizon)."""
     cos_i = wi[:, 2].astype(np.float32).astype(np.float64)  # the cosine Mitsuba multiplied by
-    ok = (wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9)
+    ok = sides_mask(sides, wi[:, 2], wo[:, 2], 1e-9)
     fr = np.zeros_like(values)
     fr[ok] = values[ok] / cos_i[ok, None]
     return fr

@@ -23,6 +23,7 @@ import os
 import numpy as np
 
 import gonio.models as gm
+from gonio.core.sides import Side
 from gonio.models.mitsuba import eval_cos, mitsuba_variant
 
 __all__ = ["SampleTruth", "mitsuba_variant", "resolve_sample"]
@@ -31,7 +32,7 @@ def _diffuse_fallback(params: dict) -> tuple[dict, callable]:
     rho = np.broadcast_to(np.asarray(params.get("reflectance", 0.5), dtype=float), (3,)).copy()
 
     def eval_(wi, wo):
-        ok = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        ok = Side.REFLECT.mask(wi[:, 2], wo[:, 2])
         return np.where(ok[:, None], rho[None, :] / np.pi, 0.0)
 
     return {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho.tolist()}}, eval_
@@ -99,7 +100,7 @@ class SampleTruth:
                 self._bsdf = mi.load_dict(self.mitsuba)
         out = eval_cos(self._bsdf, wi, wo, variant)
         cos_i = wi[:, 2]
-        ok = (cos_i > 0) & (wo[:, 2] > 0)
+        ok = Side.REFLECT.mask(cos_i, wo[:, 2])
         return np.where(ok[:, None], out / np.where(ok, cos_i, 1.0)[:, None], 0.0)
 
 
