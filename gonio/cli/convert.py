@@ -63,12 +63,14 @@ def _convert_pabopto(source, out, formats, load_fit):
         channels = tuple(dict.fromkeys(named)) or ("R", "G", "B")
         files = formats.model_pabopto(loaded.model, loaded.params, channels=channels, sample_name=source.stem)
         paths = formats.write_pabopto_files(out, files)
+        line = f"{len(paths)} PAB-Opto files (one per incident direction)"
     else:
         try:
-            paths = formats.write_pabopto(out, _open_dataset(source), sample_name=source.parent.name or source.stem)
+            done = formats.export_pabopto(out, _open_dataset(source), sample_name=source.parent.name or source.stem)
         except ValueError as exc:
             raise GonioError(f"{source}: {exc}") from None
-    print(f"{len(paths)} PAB-Opto files (one per incident direction) in {out}; Radiance: pabopto2bsdf {out}/*.dat > sample.sir")
+        line = done.summary()
+    print(f"{line} in {out}; Radiance: pabopto2bsdf {out}/*.dat > sample.sir")
 
 
 def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open):

@@ -40,14 +40,15 @@ from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
 
 from gonio.fitting.measurements import Measurements, load_dataset
 from gonio.fitting.formats.mitsuba_xml import MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet
-from gonio.fitting.formats.pabopto import model_pabopto, pabopto_files, write_pabopto
+from gonio.fitting.formats._verify import ExportError
+from gonio.fitting.formats.pabopto import PaboptoExport, export_pabopto, model_pabopto, pabopto_files, write_pabopto
 from gonio.fitting.formats.pabopto import write_files as write_pabopto_files
 
 __all__ = [
     "MERL_SCALE", "MERL_SHAPE", "MerlBRDF", "RGLBRDF", "dataset_to_csv", "dataset_to_merl", "half_diff_angles",
     "merl_bin_directions", "merl_to_measurements", "mitsuba_document", "mitsuba_snippet", "MITSUBA_XML_VERSION",
     "read_merl", "resample_to_merl", "model_pabopto", "pabopto_files", "write_pabopto", "write_pabopto_files",
-    "rgl_measurements", "write_merl", "check_rgl_file",
+    "rgl_measurements", "write_merl", "check_rgl_file", "ExportError", "PaboptoExport", "export_pabopto",
 ]
 
 #: Grid size (theta_h, theta_d, phi_d) of a MERL table.
