@@ -1,4 +1,4 @@
-"""The simulated gonioreflectometer: physics state plus its three protocol ports."""
+"""The simulated gonioreflectometer: physics state plus one protocol port per declared port."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from collections import OrderedDict
 import numpy as np
 import serial
 
+from gonio.core.devices import PORT_NAMES
 from gonio.sim.devices.camera_port import CameraPort
 from gonio.sim.physics.clock import SimClock
 from gonio.sim.physics.colour import chart_radiance
@@ -25,7 +26,7 @@ from gonio.sim.physics.sensor import SensorModel, encode_dng
 from gonio.sim.physics.stages import RotaryAxis
 from gonio.sim.devices.zaber_chain import ZaberChain
 
-__all__ = ["Instrument", "DEFAULT_SETTINGS", "DEFAULT_SAMPLE", "DEFAULT_REFERENCE", "lookup"]
+__all__ = ["Instrument", "DEFAULT_SETTINGS", "DEFAULT_SAMPLE", "DEFAULT_REFERENCE", "SIM_DEVICES", "lookup"]
 
 #: docs/interfaces.md section 3.
 DEFAULT_SETTINGS = {
@@ -45,6 +46,15 @@ DEFAULT_REFERENCE = {"model": "diffuse", "params": {"reflectance": 0.99}}
 _AXIS_NAMES = ("yaw", "tilt", "azimuth", "lamp")
 
 _REGISTRY: dict[str, "Instrument"] = {}
+
+#: The simulated twin of each port :data:`gonio.core.devices.PORTS` declares: the attribute the
+#: instrument keeps it under, its class, the line end of its replies, and whether a bare CR ends
+#: a request line (the meter takes CR, LF or CRLF; the camera's protocol ends lines with LF only).
+SIM_DEVICES = {
+    "zaber": ("zaber", ZaberChain, b"\r\n", True),
+    "meter": ("scpi", ScpiMeter, b"\n", True),
+    "camera": ("camera", CameraPort, b"\n", False),
+}
 
 
 def lookup(name: str) -> "Instrument":
@@ -134,14 +144,11 @@ class Instrument:
         self.error_state = self.errors.draw(self.seed, rel_std)
         self._errors_on = self.errors.active
 
-        self.zaber = ZaberChain(self)
-        self.scpi = ScpiMeter(self)
-        self.camera = CameraPort(self)
-        self.ports = {
-            "zaber": PortEndpoint(self, "zaber", self.zaber, b"\r\n", split_cr=True),
-            "meter": PortEndpoint(self, "meter", self.scpi, b"\n", split_cr=True),   # \r, \n or \r\n end a line
-            "camera": PortEndpoint(self, "camera", self.camera, b"\n", split_cr=False),
-        }
+        self.ports = {}
+        for name in PORT_NAMES:                     # one simulated device per declared port
+            attr, cls, eol, split_cr = SIM_DEVICES[name]
+            setattr(self, attr, cls(self))
+            self.ports[name] = PortEndpoint(self, name, getattr(self, attr), eol, split_cr=split_cr)
         self._scene: HolderScene | None = None
         self._radiance = OrderedDict()
         self._frame_key = None

@@ -58,7 +58,7 @@ class Serial(SerialBase):
         except KeyError:
             raise SerialException(f"no simulated instrument registered as {parts.netloc!r}") from None
         if port not in inst.ports:
-            raise SerialException(f"unknown port {port!r} (zaber, meter, camera)")
+            raise SerialException(f"unknown port {port!r} ({', '.join(inst.ports)})")
         return inst.ports[port]
 
     def from_url(self, url):

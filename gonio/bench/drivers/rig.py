@@ -1,5 +1,7 @@
-"""The bench's devices opened together: the Zaber chain (stages and LED), the power meter and
-the camera of one capture, closed together on failure (`gonio.bench.drivers` holds the drivers)."""
+"""The bench's devices opened together, one driver per declared port (`gonio.core.devices`):
+the Zaber chain (stages and LED), the power meter and the camera of one capture, closed
+together on failure (`gonio.bench.drivers` holds the drivers; :data:`DRIVERS` maps a port to
+the function that opens its driver)."""
 
 from __future__ import annotations
 
@@ -7,9 +9,10 @@ import time
 from typing import Callable, Mapping
 
 from gonio.bench.drivers import Goniometer, LedSource, PowerMeter, SimCamera, ZaberChain
+from gonio.core.devices import PORT_NAMES
 from gonio.core.errors import GonioError
 
-__all__ = ["Bench"]
+__all__ = ["Bench", "DRIVERS"]
 
 
 def _open_camera(camera, timeout: float):
@@ -18,6 +21,27 @@ def _open_camera(camera, timeout: float):
     if not hasattr(camera, "expose"):
         raise GonioError(f"camera {camera!r} is neither a URL nor a camera object; give a camera URL")
     return camera
+
+
+def _open_zaber(bench: "Bench", url, kw: Mapping):
+    bench.chain = bench.opened(ZaberChain(url, kw["baudrate"], kw["timeout"], on_warning=kw["on_warning"]))
+    bench.gonio = Goniometer(bench.chain, bench.settings, poll_interval_s=kw["poll_interval_s"], sleep=bench.sleep,
+                             alerts=kw["alerts"])
+    bench.led = LedSource(bench.chain, int(bench.settings.get("lamp", {}).get("device", 2)))
+
+
+def _open_meter(bench: "Bench", url, kw: Mapping):
+    bench.meter = bench.opened(PowerMeter(url, kw["baudrate"], kw["timeout"]))
+
+
+def _open_camera_port(bench: "Bench", camera, kw: Mapping):
+    bench.camera = bench.opened(_open_camera(camera, 30.0))
+
+
+#: How the bench opens the driver of each declared port: ``open(bench, url, options)`` sets the
+#: bench's attributes for it and hands each connection it opens to ``bench.opened`` (closed by
+#: ``close``, in reverse order, even when a later step fails).
+DRIVERS: dict[str, Callable] = {"zaber": _open_zaber, "meter": _open_meter, "camera": _open_camera_port}
 
 
 class Bench:
@@ -45,16 +69,28 @@ class Bench:
         self._sleep = sleep
         self.checkpoint: Callable[[], None] = lambda: None    # a run's safe point: may raise StopNow
         self.chain = self.meter = self.camera = None
+        self._opened: list = []
+        urls = dict(zip(PORT_NAMES, (zaber_url, meter_url, camera)))
+        kw = {"baudrate": baudrate, "timeout": timeout, "on_warning": on_warning, "poll_interval_s": poll_interval_s,
+              "alerts": alerts}
         try:
-            self.chain = ZaberChain(zaber_url, baudrate, timeout, on_warning=on_warning)
-            self.gonio = Goniometer(self.chain, settings, poll_interval_s=poll_interval_s, sleep=self.sleep,
-                                    alerts=alerts)
-            self.led = LedSource(self.chain, int(settings.get("lamp", {}).get("device", 2)))
-            self.meter = PowerMeter(meter_url, baudrate, timeout)
-            self.camera = _open_camera(camera, 30.0)
+            for name in PORT_NAMES:
+                DRIVERS[name](self, urls[name], kw)
         except BaseException:
             self.close()
             raise
+
+    @classmethod
+    def from_ports(cls, settings: Mapping, ports: Mapping[str, object], **kw) -> "Bench":
+        """The bench of ``ports``, a mapping of every declared port's name to its URL (the camera
+        may be a camera object); ValueError naming what is missing or unknown."""
+        missing = [p for p in PORT_NAMES if p not in ports]
+        unknown = sorted(set(ports) - set(PORT_NAMES))
+        if missing or unknown:
+            raise ValueError(f"the bench needs a URL for each of {', '.join(PORT_NAMES)}"
+                             + (f"; missing {', '.join(missing)}" if missing else "")
+                             + (f"; unknown {', '.join(map(str, unknown))}" if unknown else ""))
+        return cls(settings, *(ports[p] for p in PORT_NAMES), **kw)
 
     def sleep(self, seconds: float) -> None:
         """Wait (a stage poll, a settle, a pause): a safe point to stop at."""
@@ -62,10 +98,14 @@ class Bench:
         self._sleep(seconds)
         self.checkpoint()
 
+    def opened(self, connection):
+        """Record ``connection`` for :meth:`close`; returns it."""
+        self._opened.append(connection)
+        return connection
+
     def close(self) -> None:
-        for dev in (self.camera, self.meter, self.chain):
-            if dev is not None:
-                try:
-                    dev.close()
-                except Exception:
-                    pass
+        for dev in reversed(self._opened):
+            try:
+                dev.close()
+            except Exception:
+                pass

@@ -48,6 +48,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gonio.core.devices import PORT_NAMES
+
 __all__ = ["Fault", "FaultSchedule", "KINDS"]
 
 KINDS = {
@@ -55,7 +57,6 @@ KINDS = {
     "power_cycle", "vanish", "camera_nothing", "camera_truncated", "lamp_dies",
 }
 _ZABER_ONLY = {"bad_checksum", "again", "stall", "limit", "power_cycle"}
-_PORTS = {"zaber", "meter", "camera"}
 _LINE_KINDS = {"timeout", "garble", "truncate", "bad_checksum", "again"}
 
 
@@ -101,8 +102,8 @@ class FaultSchedule:
             if kind not in KINDS:
                 raise ValueError(f"fault {i}: unknown kind {kind!r}")
             port = d.pop("port", "camera" if kind.startswith("camera_") else "zaber")
-            if port not in _PORTS:
-                raise ValueError(f"fault {i}: unknown port {port!r}")
+            if port not in PORT_NAMES:
+                raise ValueError(f"fault {i}: unknown port {port!r}; the rig's ports are {', '.join(PORT_NAMES)}")
             if kind in _ZABER_ONLY and port != "zaber" and kind != "power_cycle":
                 raise ValueError(f"fault {i}: {kind} only applies to the zaber port")
             at = d.pop("at_command", ())
