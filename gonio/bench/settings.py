@@ -55,6 +55,12 @@ SCHEMA: dict[str, dict[str, str]] = {
                 "noise_floor_snr": "SNR of the darkest pixel", "flat_frames": "flat-field frames",
                 "roi_margin_px": "ROI margin (pixels)",
                 "colour_chart": "capture the ColorChecker in the holder's chart slot for the colour matrix"},
+    "systematics": {"zero_deg": "stage zero offsets, 1-sigma [yaw, tilt, azimuth, lamp] (deg)",
+                    "holder_tilt_deg": "holder normal's tilt, 1-sigma per component (deg)",
+                    "wedge_deg": "sample wedge, 1-sigma per component (deg)",
+                    "repeat_deg": "per-move repeatability, 1-sigma (deg)", "backlash_deg": "lost motion (deg)",
+                    "stray_floor": "stray-light floor bound", "linearity_gamma": "non-linearity bound at full scale",
+                    "source": "where the sizes come from (text)"},
     "session": {"sample_id": "the sample's identifier (report, session.toml)",
                 "sample_description": "what the sample is (report)", "operator": "who measured (report)"},
 }
@@ -62,7 +68,7 @@ SCHEMA: dict[str, dict[str, str]] = {
 #: error model (gonio/sim/physics/errors.error_model) and the calibration's tables (gonio/bench/calibrate.py)
 OPEN_SECTIONS = {"errors": "gonio.sim error model", "calibration": "gonio calibrate", "alignment": "gonio calibrate",
                  "linearity": "gonio calibrate", "aperture": "gonio calibrate", "stray": "gonio calibrate"}
-_TEXT_KEYS = {("session", "sample_id"), ("session", "sample_description"), ("session", "operator"),
+_TEXT_KEYS = {("systematics", "source"), ("session", "sample_id"), ("session", "sample_description"), ("session", "operator"),
               ("reference", "certificate")}
 
 

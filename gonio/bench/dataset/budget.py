@@ -47,6 +47,7 @@ import numpy as np
 
 from gonio.bench import calibrate
 from gonio.bench.measure.hdr import NoiseModel, dark_sensitivity
+from gonio.bench.measure import systematics
 from gonio.bench.measure.point import ReferenceModel
 from gonio.bench.plan.markers import roi_masks_fast
 
@@ -311,8 +312,13 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
     (with ``[stray] u_floor``, gonio calibrate's: the capture removed the floor's level from both
     squares and the line is its u, signed, calibrate.stray_shift_rel, none where u_floor is 0;
     without it: calibrate.u_stray_rel, the floor known only to lie in [0, floor]). Only those the
-    settings hold."""
+    settings hold. Without a calibration, ``[systematics]``'s stray floor and non-linearity
+    bounds (gonio.bench.measure.systematics.settings_for_budget), their sources saying so."""
     out = []
+    uncal = systematics.alignment_table(settings) is not None and all("theta_i" in r for r in rows)
+    if uncal:
+        settings = systematics.settings_for_budget(settings)
+    desc = f" (not calibrated; {systematics.describe(settings)})" if uncal else ""
     ref = settings.get("reference", {})
     lin = settings.get("linearity", {})
     floor = float(settings.get("stray", {}).get("floor", 0.0) or 0.0)
@@ -330,7 +336,10 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
         rel = calibrate.u_linearity_rel(_levels(rows, settings, "sample"), _levels(rows, settings, "reference"),
                                         float(lin["u_gamma"]))
         out.append(Component("linearity", brdf * rel, "B", "full",
-                             "detector linearity gamma's 1-sigma (gonio calibrate) x |level_sample - level_reference|"))
+                             ("detector non-linearity bound / sqrt(3) ([systematics] linearity_gamma, rectangular, "
+                              "nothing linearised)" + desc if uncal else
+                              "detector linearity gamma's 1-sigma (gonio calibrate)")
+                             + " x |level_sample - level_reference|"))
     stray = settings.get("stray", {})
     u_floor = float(stray.get("u_floor", 0.0) or 0.0)
     if floor > 0 and ("u_floor" not in stray or u_floor > 0):
@@ -348,7 +357,8 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
             rho_ref = model.rho if model is not None else np.ones(3)
             rel = calibrate.u_stray_rel(np.abs(brdf) * cos_i, rho_ref[None] / math.pi * cos_i, floor)
             out.append(Component("stray_light", brdf * rel, "B", "full",
-                                 "stray-light floor in [0, floor] (rectangular; no level stated, nothing corrected)"))
+                                 "stray-light floor in [0, floor] (rectangular; no level stated, nothing corrected)"
+                                 + ("; floor from [systematics] stray_floor" + desc if uncal else "")))
     return out
 
 
@@ -381,13 +391,21 @@ def angle_variables(rows, settings) -> dict:
     shared error (calibrate.angle_uncertainty's signed modes, with each axis's lost motion
     signed by the direction of its last move) and of each axis's per-move error (yaw, tilt,
     azimuth, lamp), which points taken without moving that axis share (the group labels:
-    :func:`move_history`). Empty without an [alignment]."""
-    if not isinstance(settings.get("alignment"), dict):
+    :func:`move_history`). Without an [alignment], from ``[systematics]`` (nothing corrected:
+    gonio.bench.measure.systematics.alignment_table); empty without either."""
+    uncal = systematics.alignment_table(settings)
+    if uncal is not None and all(k in r for r in rows for k in ("yaw", "tilt", "azimuth", "lamp")):
+        settings, source = {"alignment": uncal}, ("not calibrated: the instrument description's stage zero "
+                                                  "offsets, holder tilt, wedge, repeatability and lost motion "
+                                                  f"([systematics]; {systematics.describe(settings)})")
+    elif isinstance(settings.get("alignment"), dict):
+        source = "gonio calibrate's alignment (the fit's covariance, the surveyed lamp zero, the wedge's data sheet)"
+    else:
         return {}
     stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rows], float)
     labels, last = move_history(rows)
     u = calibrate.angle_uncertainty(settings, stage, last_dir=last)
-    attrs = {"units": "degree", "angles": "theta_i phi_i theta_o phi_o"}
+    attrs = {"units": "degree", "angles": "theta_i phi_i theta_o phi_o", "source": source}
     return {"angle_shift_shared": (("angle_input", "point", "angle"), np.transpose(u["shared_modes"], (2, 0, 1)),
                                    {**attrs, "correlation": "full (each input)",
                                     "long_name": "change of the angles for +1 sigma of each shared calibration error"}),

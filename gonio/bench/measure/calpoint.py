@@ -146,7 +146,9 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     cs[4, 4] = float(a.get("lamp_zero_u_deg", 0.0)) ** 2
     cs[5, 5] = cs[6, 6] = float(a.get("wedge_u_deg", 0.0)) ** 2
     rep = float(a.get("repeat_deg", 0.0))
-    half_b = [0.5 * abs(float(a.get(f"backlash_{n}_deg", 0.0))) for n in ("yaw", "tilt")]
+    # an axis the calibration did not scan: the data sheet's ``backlash_deg`` (uncalibrated: all)
+    spec_b = 0.5 * abs(float(a.get("backlash_deg", 0.0)))
+    half_b = [0.5 * abs(float(a.get(f"backlash_{n}_deg", 2 * spec_b))) for n in ("yaw", "tilt")]
     half_b += [max(half_b), 0.5 * abs(float(a.get("backlash_lamp_deg", max(half_b) * 2)))]   # azimuth: not scanned
     d = np.zeros(stage.shape) if last_dir is None else np.broadcast_to(np.asarray(last_dir, float), stage.shape)
     known = d != 0

@@ -47,7 +47,10 @@ def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, 
     """Capture ``plan`` of a virtual ``sample`` on the simulated instrument (instant clock)."""
     from gonio.bench.session.capture import capture
 
+    from gonio.bench.measure.systematics import for_session
+
     settings = settings if isinstance(settings, dict) else _settings(settings)
+    settings = for_session(settings)       # an uncalibrated capture states the error model's systematics
     plan = plan if hasattr(plan, "angles") else _plan(plan)
     inst = sim_instrument(settings, sample, seed, faults=faults, camera_root=session)
     try:
