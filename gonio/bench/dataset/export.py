@@ -10,7 +10,9 @@ captured with a calibration also has ``<angle>_nominal``, ``<angle>_u``, ``angle
 and ``aperture_*``. Where the RAW files carry colour matrices, also ``brdf_srgb`` (linear sRGB,
 D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and ``brdf_srgb_corr``; every f_r variable
 says its space (``colour_space``). The file is written atomically: a full disk is one line and
-leaves no partial file (an older ``dataset.nc`` stays as it was).
+leaves no partial file (an older ``dataset.nc`` stays as it was). What was serialised is read
+back before it is written: every variable, its point count and its values as they were, or
+nothing is written. A journal with a damaged point row is refused (`gonio verify`).
 """
 
 # Calibration: a session captured with a calibration ([alignment] in its settings,
@@ -197,7 +199,8 @@ def export(session_dir, chart=None) -> Path:
     path = folder / DATASET_FILE
     check_output_file(path, "dataset")
     check_free_space(folder, estimated_bytes(ds), f"{path} (its estimated size)")
-    data = ds.to_netcdf(engine="h5netcdf")          # in memory: bytes (a memoryview)
+    data = _serialise(ds)                           # in memory: bytes (a memoryview)
+    _check_read_back(data, ds, path)
     check_free_space(folder, len(data), f"{path} ({len(data) / 2 ** 20:.1f} MiB)")
     tmp = tmp_name(path)
     try:
@@ -210,6 +213,39 @@ def export(session_dir, chart=None) -> Path:
         if os.path.lexists(tmp):
             os.unlink(tmp)
     return path
+
+
+def _serialise(ds):
+    return ds.to_netcdf(engine="h5netcdf")
+
+
+def _check_read_back(data, ds, path: Path) -> None:
+    """Read the serialised file back from memory: every variable of ``ds``, with as many points
+    and the same values (NaN where NaN); `GonioError` naming the first difference otherwise."""
+    import io
+
+    import xarray as xr
+
+    want = int(ds.sizes.get("point", 0))
+    try:
+        with xr.open_dataset(io.BytesIO(bytes(data)), engine="h5netcdf") as back:
+            got = int(back.sizes.get("point", 0))
+            problem = f"{got} point(s) of the {want} written" if got != want else ""
+            for name in ds.variables if not problem else ():
+                a = np.asarray(ds[name].values)
+                if name not in back.variables:
+                    problem = f"no variable {name}"
+                    break
+                b = np.asarray(back[name].values)
+                if a.shape != b.shape or not np.array_equal(a, b, equal_nan=a.dtype.kind in "fc" and b.dtype.kind in "fc"):
+                    problem = f"other values of {name} than were written"
+                    break
+    except (OSError, ValueError, TypeError, KeyError, RuntimeError) as exc:
+        problem = f"an unreadable file ({' '.join(str(exc).split())[:200]})"
+    if problem:
+        raise GonioError(f"{path} was not written: the NetCDF serialisation reads back {problem}; nothing was "
+                         "changed (a fault in the NetCDF writer: report it with the versions of xarray, h5netcdf "
+                         "and h5py)")
 
 
 def estimated_bytes(ds) -> int:

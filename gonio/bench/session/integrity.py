@@ -35,13 +35,14 @@ import numpy as np
 
 from gonio.core.files import atomic_write_text, sha256_file
 from gonio.bench.session.journal import JOURNAL_FILE, RAW_DIR, SESSION_FILE, Journal, damaged_files
+from gonio.bench.session.salvage import salvage
 from gonio.core.preflight import mount_of
 from gonio.bench.settings import validate_settings
 from gonio.core.errors import GonioError, SessionError
 from gonio.bench.plan.plans import plan_from_dict
 
 __all__ = ["load_session", "check_doc", "describe_difference", "open_journal", "raw_files", "rebuild_journal",
-           "restore_session", "parse_points", "NothingMeasured", "repair", "drop_placeholders"]
+           "restore_session", "parse_points", "NothingMeasured", "repair", "drop_placeholders", "row_matches"]
 
 class NothingMeasured(SessionError):
     """The session has no journal yet and raw/ is empty: nothing was measured."""
@@ -309,6 +310,8 @@ def open_journal(folder: Path, data: bytes, doc: Mapping[str, Any] | None, why: 
     try:
         rec = j.session_record()
         if rec["sha256"] != hashlib.sha256(data).hexdigest():
+            if hashlib.sha256(rec.get("text", "").encode("utf-8", "surrogatepass")).hexdigest() != rec["sha256"]:
+                raise SessionError(f"{path}: its record of session.toml is damaged; {_rebuild_hint(folder)}")
             if doc is None:
                 raise _changed(folder, f"it is no longer valid TOML ({why})")
             raise _changed(folder, describe_difference(json.loads(rec["doc"]), _canonical(doc)))
@@ -322,16 +325,21 @@ def open_journal(folder: Path, data: bytes, doc: Mapping[str, Any] | None, why: 
         stage = np.asarray(doc["order"]["stage_deg"], float)
         for r in j.points():
             k = int(r["idx"])
-            if not (0 <= k < len(plan)) or not _row_matches(r, plan.angles[k], stage[k]):
+            if not (0 <= k < len(plan)) or not row_matches(r, plan.angles[k], stage[k]):
                 raise SessionError(f"{path}: journalled point {k} is not point {k} of the plan; the journal is "
                                    f"damaged; {_rebuild_hint(folder)}")
+    except sqlite3.DatabaseError as exc:
+        j.close()
+        _no_room(path, exc)
+        raise SessionError(f"{path} is damaged ({exc}); {_rebuild_hint(folder)}") from None
     except BaseException:
         j.close()
         raise
     return j
 
 
-def _row_matches(row: Mapping[str, Any], angles, stage) -> bool:
+def row_matches(row: Mapping[str, Any], angles, stage) -> bool:
+    """Whether a journalled point row has the plan point's angles and stage pose."""
     got = [row.get(k) for k in ("theta_i", "phi_i", "theta_o", "phi_o")]
     pose = [row.get(k) for k in ("yaw", "tilt", "azimuth", "lamp")]
     try:
@@ -342,46 +350,6 @@ def _row_matches(row: Mapping[str, Any], angles, stage) -> bool:
 
 
 # -- recovery ------------------------------------------------------------------------------------
-
-def _salvage(path: Path, n: int) -> dict[str, Any]:
-    """What a damaged journal still yields, row by row (unreadable rows are skipped)."""
-    out: dict[str, Any] = {"session": {}, "calibration": [], "points": [], "events": [], "readable": False}
-    if not path.exists() or path.stat().st_size == 0:
-        return out
-    try:
-        db = sqlite3.connect(str(path), timeout=30.0)
-    except sqlite3.Error:
-        return out
-
-    def rows(sql, args=()):
-        try:
-            cur = db.execute(sql, args)
-            names = [d[0] for d in cur.description]
-            got = []
-            while True:
-                try:
-                    r = cur.fetchone()
-                except sqlite3.DatabaseError:
-                    break
-                if r is None:
-                    break
-                got.append(dict(zip(names, r)))
-            return got
-        except sqlite3.DatabaseError:
-            return []
-
-    try:
-        out["session"] = {r["key"]: r["value"] for r in rows("SELECT key, value FROM session")}
-        out["calibration"] = rows("SELECT * FROM calibration")
-        for k in range(n):                   # one lookup per index: a bad page loses only its rows
-            out["points"] += rows("SELECT * FROM points WHERE idx = ?", (k,))
-        out["events"] = [r for r in rows("SELECT * FROM events ORDER BY id")
-                         if r.get("kind") in ("p_ref", "rgb_cam", "no_flat")]
-        out["readable"] = True
-    finally:
-        db.close()
-    return out
-
 
 def _verified(folder: Path, file, digest) -> bool:
     try:
@@ -412,25 +380,22 @@ def rebuild_journal(folder: Path, data: bytes, doc: Mapping[str, Any] | None, wh
             raise SessionError(f"{path} is whole and consistent; nothing to rebuild: resume without "
                                "--rebuild-journal")
     n = len(plan)
-    old = _salvage(path, n)
-    sha = hashlib.sha256(data).hexdigest()
-    if old["session"].get("sha256") and old["session"]["sha256"] != sha:
-        try:
-            what = describe_difference(json.loads(old["session"]["doc"]), _canonical(doc))
-        except (KeyError, ValueError, TypeError):
-            what = "its checksum differs from the journal's"
-        raise _changed(folder, what)
+    old = salvage(path, n)
+    _same_session(folder, old["session"], data, doc)
     stage = np.asarray(doc["order"]["stage_deg"], float)
     cal = [r for r in old["calibration"] if _verified(folder, r.get("file"), r.get("sha256"))]
-    points = []
-    for r in old["points"]:
+    points, damaged = [], dict(old["damaged"])
+    for r, d in zip(old["points"], old["decoded"]):
+        k = d["idx"]
         try:
-            k = int(r["idx"])
-            detail = json.loads(r["detail"])
-            ok = (0 <= k < n and _row_matches(r, plan.angles[k], stage[k]) and detail.get("exposures")
-                  and all(_verified(folder, e["file"], e["sha256"]) for e in detail["exposures"]))
-        except (KeyError, TypeError, ValueError):
-            ok = False
+            ok = row_matches(d, plan.angles[k], stage[k])
+            if not ok:
+                damaged[k] = "its journal row is not the plan's point"
+            elif not d["detail"].get("exposures") or not all(
+                    _verified(folder, e["file"], e["sha256"]) for e in d["detail"]["exposures"]):
+                ok = False                  # measured again by the resume, as a corrupt RAW file always is
+        except (KeyError, TypeError, ValueError, AttributeError):
+            ok, damaged[k] = False, "its journal row is malformed"
         if ok:
             points.append(r)
     stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
@@ -448,13 +413,34 @@ def rebuild_journal(folder: Path, data: bytes, doc: Mapping[str, Any] | None, wh
         j.insert_rows("calibration", cal)
         j.insert_rows("points", points)
         j.insert_rows("events", [{k: e[k] for k in ("time", "kind", "text")} for e in old["events"]])
-        line = (f"rebuilt the journal: {len(points)} point(s) recovered (RAW files match their recorded checksums), "
-                f"{n - len(points)} to measure")
+        line = (f"rebuilt the journal: {len(points)} point(s) recovered (rows and RAW files match their recorded "
+                f"checksums), {n - len(points)} to measure")
+        if damaged:
+            idx = sorted(damaged)
+            line += (f" ({len(idx)} damaged: {', '.join(map(str, idx[:10]))}" + (" ..." if len(idx) > 10 else "")
+                     + "; measured again)")
         line += f"; the old journal is kept as {kept}" if kept else "; there was no old journal"
         j.event("rebuild", line)
     finally:
         j.close()
     return line
+
+
+def _same_session(folder: Path, rec: Mapping[str, str], data: bytes, doc: Mapping[str, Any]) -> None:
+    """Refuse to rebuild a journal for a session.toml other than the one it recorded. A record
+    whose text does not match its own checksum is damaged: then its parsed content decides."""
+    if not rec.get("sha256") or rec["sha256"] == hashlib.sha256(data).hexdigest():
+        return
+    text = rec.get("text")
+    intact = text is not None and hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest() == rec["sha256"]
+    try:
+        recorded = json.loads(rec["doc"])
+    except (KeyError, ValueError, TypeError):
+        recorded = None
+    if not intact and (recorded is None or recorded == _canonical(doc)):
+        return
+    raise _changed(folder, "its checksum differs from the journal's" if recorded is None
+                   else describe_difference(recorded, _canonical(doc)))
 
 
 def restore_session(folder: Path) -> str:

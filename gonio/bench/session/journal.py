@@ -7,12 +7,14 @@
       session.toml    plan, instrument settings, ports, versions, seed, sample truth: written
                       ONCE, before the first move (checked by `gonio.bench.session.integrity`)
       journal.sqlite  WAL, synchronous=FULL: one committed row per finished point and per dark
-                      frame, with the RAW files' SHA-256; RAW names reserved before writing
+                      frame, with the RAW files' SHA-256; RAW names reserved before writing;
+                      each point row carries the SHA-256 of its own stored values
       raw/            RAW files (temporary name, fsync, rename; never overwritten)
       dataset.nc      after export
 
 A point's row is written in one transaction after everything about it succeeded; a crash at
-any moment leaves either the whole row or none of it.
+any moment leaves either the whole row or none of it. Its ``checksum`` (`point_checksum`) is
+checked whenever the row is read: a damaged row is never used as a measurement.
 """
 
 # The lock is taken before anything else is written. session.toml goes through a temporary
@@ -42,7 +44,8 @@ from gonio.core.preflight import mount_of
 from gonio.core.errors import SessionError
 
 __all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "LOCK_FILE", "Journal", "SessionLock", "write_session",
-           "read_session", "session_text", "verify_files", "damaged_files", "dumps_toml", "versions"]
+           "read_session", "session_text", "verify_files", "damaged_files", "dumps_toml", "versions",
+           "POINT_COLUMNS", "point_checksum", "decode_point"]
 
 SESSION_FILE = "session.toml"
 JOURNAL_FILE = "journal.sqlite"
@@ -66,7 +69,8 @@ CREATE TABLE IF NOT EXISTS points (
     brdf_std TEXT NOT NULL,      -- JSON [R, G, B], sr^-1, 1-sigma
     saturated INTEGER NOT NULL,
     detail TEXT NOT NULL,        -- JSON: exposures, files, checksums, monitor, region statistics
-    finished REAL NOT NULL
+    finished REAL NOT NULL,
+    checksum TEXT                -- point_checksum of the columns above (NULL: journalled before checksums)
 );
 CREATE TABLE IF NOT EXISTS session (       -- what session.toml was when the session started
     key TEXT PRIMARY KEY,        -- "sha256", "text", "doc" (canonical JSON)
@@ -90,6 +94,61 @@ CREATE TABLE IF NOT EXISTS events (
     text TEXT NOT NULL
 );
 """
+
+
+POINT_COLUMNS = ("idx", "theta_i", "phi_i", "theta_o", "phi_o", "yaw", "tilt", "azimuth", "lamp", "brdf",
+                 "brdf_std", "saturated", "detail", "finished")
+_REAL = frozenset(range(1, 9)) | {13}           # the REAL columns of POINT_COLUMNS
+_TEXT = (9, 10, 12)                             # the TEXT columns (JSON)
+# the stored values, text as bytes: a damaged row never fails inside SQLite's UTF-8 decoding
+_SELECT_POINTS = ("SELECT " + ", ".join(f"CAST({c} AS BLOB)" if k in _TEXT else c for k, c in enumerate(POINT_COLUMNS))
+                  + ", checksum FROM points")
+
+
+def point_checksum(values) -> str:
+    """SHA-256 (hex) of a points row's stored values, in `POINT_COLUMNS` order.
+
+    Canonical form: the values as a compact JSON list, text as UTF-8 text, every REAL a float
+    (``-0.0`` as ``0.0`` and NaN as null: what SQLite gives back for them). Raises
+    `UnicodeDecodeError` for text that is not UTF-8 (a damaged row).
+    """
+    canon = []
+    for k, v in enumerate(values):
+        if isinstance(v, (bytes, bytearray, memoryview)):
+            v = bytes(v).decode("utf-8")
+        elif k in _REAL and isinstance(v, (int, float)) and not isinstance(v, bool):
+            v = None if math.isnan(v) else float(v) + 0.0
+        canon.append(v)
+    text = json.dumps(canon, ensure_ascii=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def decode_point(values, checksum) -> tuple[dict[str, Any] | None, str]:
+    """``(row, "")`` of a points row's stored values (`POINT_COLUMNS` order, text as bytes or
+    str) and its stored checksum, JSON columns decoded; ``(None, why)`` if the row is damaged.
+    A row without a checksum (journalled before checksums) is decoded unchecked."""
+    values = list(values)
+    if len(values) != len(POINT_COLUMNS):
+        return None, "its row has the wrong number of columns"
+    try:
+        if checksum is not None:
+            if isinstance(checksum, (bytes, bytearray)):
+                checksum = bytes(checksum).decode("ascii")
+            if point_checksum(values) != checksum:
+                return None, "its journal row fails its checksum"
+        row = {}
+        for k, (name, v) in enumerate(zip(POINT_COLUMNS, values)):
+            if isinstance(v, (bytes, bytearray, memoryview)):
+                v = bytes(v).decode("utf-8")
+            if k in _REAL and isinstance(v, int) and not isinstance(v, bool):
+                v = float(v)
+            row[name] = json.loads(v) if k in _TEXT else v
+    except (UnicodeDecodeError, ValueError, TypeError):
+        return None, "its journal row is not readable"
+    if not isinstance(row["idx"], int) or not all(isinstance(row[c], list) for c in ("brdf", "brdf_std")) \
+            or not isinstance(row["detail"], dict):
+        return None, "its journal row is malformed"
+    return row, ""
 
 
 class SessionLock:
@@ -241,29 +300,60 @@ class Journal:
 
     def record_point(self, idx: int, angles: Iterable[float], stage: Iterable[float], brdf, brdf_std,
                      saturated: bool, detail: Mapping[str, Any]) -> None:
-        """Commit one finished point in a single transaction."""
+        """Commit one finished point and its checksum in a single transaction."""
         row = (int(idx), *map(float, angles), *map(float, stage),
                json.dumps([float(v) for v in brdf]), json.dumps([float(v) for v in brdf_std]),
                int(bool(saturated)), json.dumps(detail, sort_keys=True), time.time())
+        if len(row) != len(POINT_COLUMNS):
+            raise ValueError(f"a point row has {len(POINT_COLUMNS)} values, not {len(row)}")
         with self.db:
             self.db.execute("BEGIN")
-            self.db.execute("INSERT INTO points VALUES (" + ",".join("?" * len(row)) + ")", row)
+            if not self._has_checksums():           # a journal from before checksums: given the column
+                self.db.execute("ALTER TABLE points ADD COLUMN checksum TEXT")
+            self.db.execute(f"INSERT INTO points ({', '.join(POINT_COLUMNS)}, checksum) VALUES "
+                            f"({','.join('?' * (len(row) + 1))})", (*row, point_checksum(row)))
+
+    def _has_checksums(self) -> bool:
+        return any(r[1] == "checksum" for r in self.db.execute("PRAGMA table_info(points)"))
 
     def done(self) -> set[int]:
         """Indices of the committed points."""
         return {r[0] for r in self.db.execute("SELECT idx FROM points")}
 
+    def checked_points(self) -> tuple[list[dict[str, Any]], dict[int, str], int]:
+        """``(rows, damaged, unchecked)``: the committed points whose row is whole (JSON columns
+        decoded, by plan index), ``{index: why}`` of those whose row fails its checksum or does
+        not decode, and how many rows carry no checksum (journalled before checksums).
+        `sqlite3.DatabaseError` where SQLite cannot read the table."""
+        sql = _SELECT_POINTS if self._has_checksums() else _SELECT_POINTS.replace(", checksum FROM", ", NULL FROM")
+        rows, damaged, unchecked = [], {}, 0
+        for r in self.db.execute(sql + " ORDER BY idx"):
+            row, why = decode_point(r[:-1], r[-1])
+            if row is None:
+                damaged[int(r[0]) if isinstance(r[0], int) else -1] = why
+                continue
+            unchecked += r[-1] is None
+            rows.append(row)
+        return rows, damaged, unchecked
+
     def points(self) -> list[dict[str, Any]]:
-        """Every committed point as a dict (JSON columns decoded), by plan index."""
-        cur = self.db.execute("SELECT * FROM points ORDER BY idx")
-        names = [d[0] for d in cur.description]
-        out = []
-        for r in cur:
-            d = dict(zip(names, r))
-            for k in ("brdf", "brdf_std", "detail"):
-                d[k] = json.loads(d[k])
-            out.append(d)
-        return out
+        """Every committed point as a dict (JSON columns decoded), by plan index.
+
+        Raises a one-line `SessionError` if a row is damaged (fails its checksum, does not
+        decode) or SQLite cannot read the table: no damaged row is ever used."""
+        folder = self.path.parent
+        try:
+            rows, damaged, _ = self.checked_points()
+        except sqlite3.DatabaseError as exc:
+            raise SessionError(f"{self.path} is damaged ({exc}); see `gonio verify {folder}` and recover with "
+                               f"`gonio capture --resume {folder} --rebuild-journal`") from None
+        if damaged:
+            idx = sorted(damaged)
+            shown = ", ".join(map(str, idx[:10])) + (f" and {len(idx) - 10} more" if len(idx) > 10 else "")
+            raise SessionError(f"{self.path}: {len(idx)} point(s) are damaged ({shown}: {damaged[idx[0]]}); see "
+                               f"`gonio verify {folder}` and recover with `gonio capture --resume {folder} "
+                               "--rebuild-journal`")
+        return rows
 
     def event(self, kind: str, text: str) -> None:
         """Log an event (pause, resume, warning, fault) with the wall time."""
