@@ -70,6 +70,7 @@ from gonio.bench.drivers import emergency_stop
 from gonio.bench.drivers.identify import identify_bench, session_devices
 from gonio.core.errors import GonioError, SessionError
 from gonio.bench.plan.plans import Plan, require_reachable
+from gonio.bench.plan.strategy import strategy_from_doc
 
 __all__ = ["capture", "resume", "CaptureSummary", "CaptureInterrupted", "StopNow", "Bench", "estop"]
 
@@ -91,13 +92,13 @@ class CaptureSummary:
     ----------
     session_dir : Path
     n_points : int
-        Points in the plan.
+        Points the plan strategy measures (its budget: every point of a fixed plan).
     n_done : int
         Points journalled now (all runs).
     n_new : int
         Points measured by this call.
     complete : bool
-        Every point is journalled.
+        Every point the strategy asked for is journalled.
     stopped : str
         Why the run stopped early ("" if it did not).
     reciprocity : list of dict
@@ -141,7 +142,7 @@ estop = emergency_stop        # ``gonio estop --port``: /0 0 estop to every devi
 
 
 def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_url, camera,
-                 sample_truth, meta) -> dict[str, Any]:
+                 sample_truth, meta, strategy: Mapping) -> dict[str, Any]:
     doc = {
         "session": {"created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "seed": -1 if seed is None else int(seed), **versions()},
@@ -151,6 +152,7 @@ def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_ur
         "order": {"order": [int(i) for i in order.order], "stage_deg": order.stage_deg.tolist(),
                   "naive_s": order.naive_s, "ordered_s": order.ordered_s, "bound_s": order.bound_s},
         "settings": dict(settings),
+        "strategy": dict(strategy),
     }
     if sample_truth is not None:
         doc["sample_truth"] = {"json": sample_truth if isinstance(sample_truth, str) else json.dumps(sample_truth, sort_keys=True)}
@@ -215,12 +217,14 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
                         _event(journal, "lamp", "LED off")
                     except (GonioError, OSError) as exc:
                         _event(journal, "warning", f"could not switch the LED off ({exc}); switch it off by hand")
-        if intr.requested and not stopped and len(journal.done()) < len(sess.plan):
+        budget = sess.strategy.budget
+        if intr.requested and not stopped and len(journal.done()) < budget:
             stopped = "stopped by a signal; run the capture again with --resume to finish"
         remove_orphans(folder / RAW_DIR)        # late files of a killed earlier process, if any
         n_done = len(journal.done())
         o = doc["order"]
-        return CaptureSummary(folder, len(sess.plan), n_done, n_new, n_done == len(sess.plan), stopped,
+        complete = n_done >= budget or (sess.exhausted and not stopped)
+        return CaptureSummary(folder, budget, n_done, n_new, complete, stopped,
                               sess.reciprocity, o["naive_s"], o["ordered_s"], o["bound_s"],
                               time.perf_counter() - t0, notes)
     finally:
@@ -318,7 +322,7 @@ def _check_new_folder(folder: Path) -> None:
 def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_url: str, camera,
             seed: int | None = None, progress: bool = True, *, sample_truth=None, meta: Mapping | None = None,
             sleep: Callable[[float], None] = time.sleep, poll_interval_s: float = 0.05,
-            timeout: float = 1.0) -> CaptureSummary:
+            timeout: float = 1.0, strategy: Mapping | None = None) -> CaptureSummary:
     """Create a session folder and measure ``plan``.
 
     Parameters
@@ -343,6 +347,9 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     sleep : callable
         Waits (settling, polling, pauses): ``time.sleep`` on hardware, a simulated clock's
         ``advance`` against the simulator.
+    strategy : dict, optional
+        session.toml's ``[strategy]`` table: how the next point is chosen from the plan's
+        (`gonio.bench.plan.strategy`); default ``{"name": "fixed"}``, every point in move order.
 
     Returns
     -------
@@ -360,6 +367,11 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     _check_new_folder(folder)
     stage = require_reachable(plan, settings)
     order = order_moves(stage, settings)
+    strategy = dict(strategy or {"name": "fixed"})
+    try:
+        strategy_from_doc({"strategy": strategy, "order": {"order": order.order}}, plan)
+    except ValueError as exc:
+        raise GonioError(f"{exc}; give one of them") from None
     # before any port opens or anything is written: the folder writable, room for the RAW files
     check_output_dir(folder, "session folder (--out)")
     _check_room(folder, settings, len(plan), camera, None, f"the RAW files of session {folder}",
@@ -367,7 +379,7 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     warnings: list = []
     bench_kw = dict(sleep=sleep, poll_interval_s=poll_interval_s, timeout=timeout,
                     on_warning=lambda d, f, m: warnings.append((d, f, m)))
-    doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta)
+    doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta, strategy)
     bench, journal, lock, doc, ident = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
     return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [], ident=ident)
 

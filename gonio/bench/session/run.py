@@ -36,8 +36,9 @@ from gonio.bench.settings import AXES
 from gonio.bench.drivers import BadDelivery, MoveError, RawFrame, decode_raw, deliver
 from gonio.bench.drivers.identify import differences, hardware_note, session_devices
 from gonio.bench.drivers.identify import record as record_identification
-from gonio.core.errors import CommunicationError, DeviceError, GonioError
+from gonio.core.errors import CommunicationError, DeviceError, GonioError, SessionError
 from gonio.bench.plan.plans import plan_from_dict
+from gonio.bench.plan.strategy import strategy_from_doc
 
 __all__ = ["roi_masks_fast"]  # re-exported from _markers (tests and the benchmark patch it here)
 
@@ -55,6 +56,10 @@ class _Session(CalibrationFrames):
         self.settings = doc["settings"]
         self.plan = plan_from_dict(doc["plan"], source=doc["plan"].get("source", ""))
         self.order = np.asarray(doc["order"]["order"], int)
+        try:
+            self.strategy = strategy_from_doc(doc, self.plan)
+        except ValueError as exc:
+            raise SessionError(f"{folder / 'session.toml'}: {exc}") from None
         self.stage = np.asarray(doc["order"]["stage_deg"], float)
         self.bench = bench
         self.journal = journal
@@ -88,6 +93,7 @@ class _Session(CalibrationFrames):
         self._deliveries: dict = {}                  # RAW file name -> Delivery not yet checked and committed
         self.ident = ident                           # a capture's identification, taken before session.toml
         self.note = note                             # says one line (console and summary notes)
+        self.exhausted = False                       # the run measured every point its strategy asked for
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -461,6 +467,18 @@ class _Session(CalibrationFrames):
             self.reciprocity.append(r)
         bar.advance(res["brdf"], r)
 
+    def _checked(self, points, done, queued) -> list[int]:
+        """The strategy's new points, each a plan point neither done nor queued, within its budget."""
+        n, seen, out = len(self.plan), set(done) | set(queued), []
+        for p in points:
+            i = int(p)
+            if not 0 <= i < n:
+                raise SessionError(f"plan strategy {self.strategy.name!r} asked for point {i} of a plan of {n}")
+            if i not in seen and len(seen) < self.strategy.budget:
+                seen.add(i)
+                out.append(i)
+        return out
+
     def run(self) -> tuple[int, str]:
         """Measure the points the journal lacks, in the session's order.
 
@@ -477,12 +495,12 @@ class _Session(CalibrationFrames):
         is stopped.
         """
         done = self.journal.done()
-        todo = [int(i) for i in self.order if int(i) not in done]
+        todo = self._checked(self.strategy.first(set(done)), done, [])
         for i in sorted(done):
             r = self._reciprocity(i)
             if r is not None and r["i"] == i:
                 self.reciprocity.append(r)
-        bar = ProgressBar(len(self.plan), len(done), self.progress)
+        bar = ProgressBar(self.strategy.budget, len(done), self.progress)
         pipe = Pipeline(self, todo, bar)
         stopped = ""
         try:
@@ -492,7 +510,10 @@ class _Session(CalibrationFrames):
                     if self.stop():
                         stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
                         break
+                    todo.extend(self._checked(self.strategy.more(self.results, tuple(todo)), done, todo))
                     pipe.step(n, idx)
+                else:
+                    self.exhausted = True               # the strategy asked for nothing more
                 pipe.stop_move_ahead()
             except BaseException:
                 pipe.keep_finished()
