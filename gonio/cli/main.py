@@ -102,6 +102,13 @@ def _cmd_capture(args):
 
 
 @_env
+def _cmd_verify(args):
+    from gonio.cli.verify import verify_cli
+
+    return verify_cli(args.session)
+
+
+@_env
 def _cmd_calibrate(args):
     from gonio.bench.calibrate import calibrate_cli
     from gonio.cli.capture import _camera
@@ -360,6 +367,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "slot: its fit gives the camera -> sRGB matrix and its uncertainty (default: the RAW files' "
                    "ColorMatrix1)")
     e.set_defaults(func=_cmd_export)
+
+    v = sub.add_parser("verify", help="which measured points of a session are intact, which damaged, and how to recover "
+                       "(exit 0 all intact, 1 damage found, 2 bad input)")
+    v.add_argument("session", help="session folder")
+    v.set_defaults(func=_cmd_verify)
 
     f = sub.add_parser("fit", help="fit a model to a dataset")
     f.add_argument("dataset", nargs="+", help="dataset.nc, a MERL .binary or an RGL .bsdf file (several with --batch)")
