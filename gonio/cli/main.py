@@ -164,7 +164,7 @@ def _cmd_fit(args):
             raise GonioError("--scene fits a measured material in linear sRGB; leave out --posterior and --colour-space")
         fit_scene_cli(Path(args.dataset[0]), scene=args.scene, model=args.model, options=args.option,
                       out=Path(args.out), seed=args.seed, loss=args.loss, size=args.scene_size, spp=args.scene_spp,
-                      k=args.scene_light_samples, threshold=args.threshold)
+                      k=args.scene_light_samples, threshold=args.threshold, time_limit=args.scene_time_limit)
         return
     fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
             loss=args.loss, posterior=args.posterior, colour_space=args.colour_space)
@@ -398,6 +398,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--scene-spp", type=int, default=256, help="with --scene: samples per pixel (default 256)")
     f.add_argument("--scene-light-samples", type=int, default=64,
                    help="with --scene: light samples a pixel for the pixel fit (default 64)")
+    f.add_argument("--scene-time-limit", type=float, default=1800.0, metavar="SECONDS",
+                   help="with --scene: seconds the scene's renders and pixel fits may take (default 1800)")
     f.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
     f.add_argument("--workers", type=int, default=2,
                    help="local Dask workers (default 2); the local cluster talks TLS with a certificate made for the run")

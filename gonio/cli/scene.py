@@ -22,9 +22,12 @@ from gonio.core.errors import GonioError
 __all__ = ["check_scene_options", "fit_scene_cli"]
 
 RENDERABLE = (".bsdf", ".binary")
+#: seconds the scene's renders and pixel fits may take together (the defaults take ~30 s)
+TIME_LIMIT_S = 1800.0
 
 
-def check_scene_options(scene, dataset: Path, size: int, spp: int, k: int, threshold: float) -> None:
+def check_scene_options(scene, dataset: Path, size: int, spp: int, k: int, threshold: float,
+                        time_limit: float = TIME_LIMIT_S) -> None:
     """Everything about ``--scene`` that can be checked before any work: one line each."""
     from gonio.fitting.selection.by_scene import PRESETS
 
@@ -41,21 +44,19 @@ def check_scene_options(scene, dataset: Path, size: int, spp: int, k: int, thres
                                 ("--scene-light-samples", k, 1, 4096)):
         if not lo <= int(value) <= hi:
             raise GonioError(f"{name} {value}: give an integer from {lo} to {hi}")
+    if not (math.isfinite(time_limit) and 1 <= time_limit <= 7 * 86400):
+        raise GonioError(f"--scene-time-limit {time_limit}: give seconds from 1 to {7 * 86400}")
     if not (math.isfinite(threshold) and threshold > 0):
         raise GonioError(f"--threshold {threshold}: give a positive CIEDE2000 difference (default 1)")
 
 
 def _check_scene_file(path: Path) -> None:
-    import xml.etree.ElementTree as ET
-
     from gonio.fitting.selection.by_scene import SAMPLE_ID
+    from gonio.fitting.selection.scene_file import checked_scene
 
-    try:
-        root = ET.parse(path).getroot()
-    except (ET.ParseError, OSError) as exc:
-        raise GonioError(f"--scene {path}: not a readable XML file ({' '.join(str(exc).split())[:120]})") from None
+    root = checked_scene(path)
     n = sum(1 for e in root.iter("bsdf") if e.get("id") == SAMPLE_ID)
-    if root.tag != "scene" or n != 1:
+    if n != 1:
         raise GonioError(f"--scene {path}: a Mitsuba <scene> with exactly one material <bsdf ... id=\"{SAMPLE_ID}\"> "
                          f"(the sample's) is needed; found {n}")
 
@@ -77,22 +78,32 @@ def _fit_candidates(meas, model, options, seed, loss):
     return ranking
 
 
-def fit_scene_cli(dataset: Path, *, scene, model, options, out: Path, seed, loss, size=32, spp=256, k=64,
-                  threshold=1.0):
-    from gonio.fitting import fit_document, write_json_atomic
+def _scene_work(data_fits, dataset, scene, size, spp, k, seed, threshold):
+    """The Mitsuba part of ``--scene`` (run in a child with a deadline): scene fits and ranking."""
     from gonio.fitting.selection.by_scene import fit_to_scene, rank_in_scene
 
+    scene_fits = fit_to_scene(data_fits, dataset, scene, size=size, k=k, rng=np.random.default_rng(seed))
+    return scene_fits, rank_in_scene(scene_fits, dataset, scene, size=size, spp=spp, seed=seed, threshold=threshold)
+
+
+def fit_scene_cli(dataset: Path, *, scene, model, options, out: Path, seed, loss, size=32, spp=256, k=64,
+                  threshold=1.0, time_limit=TIME_LIMIT_S):
+    from gonio.fitting import fit_document, write_json_atomic
+
+    from gonio.core.deadline import call_with_deadline
     from gonio.core.preflight import check_output_file, writing
     from gonio.cli.fit import _open_dataset, print_selection
 
-    check_scene_options(scene, dataset, size, spp, k, threshold)
+    check_scene_options(scene, dataset, size, spp, k, threshold, time_limit)
     check_output_file(out, "fit file (--out)")
     meas = _open_dataset(dataset, seed)
     ranking = _fit_candidates(meas, model, options, seed, loss)
     data_fits = [r.result for r in ranking]
     try:
-        scene_fits = fit_to_scene(data_fits, dataset, scene, size=size, k=k, rng=np.random.default_rng(seed))
-        ranked = rank_in_scene(scene_fits, dataset, scene, size=size, spp=spp, seed=seed, threshold=threshold)
+        scene_fits, ranked = call_with_deadline(
+            _scene_work, (data_fits, dataset, scene, size, spp, k, seed, threshold), seconds=time_limit,
+            what=f"rendering scene {scene}", hint="give a smaller --scene-size or --scene-spp, a simpler scene, or a "
+                                                 "larger --scene-time-limit")
     except ValueError as exc:
         raise GonioError(str(exc)) from None
     rows = ranked["rows"]

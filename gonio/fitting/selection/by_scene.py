@@ -44,7 +44,6 @@ __all__ = ["PRESETS", "SAMPLE_ID", "scene_dict", "load_scene", "scene_pairs", "s
            "choose", "front"]
 
 PRESETS = ("overcast", "product-shot", "close-up-sun")
-_RESOLVED: set = set()
 _SUN = np.array([-0.45, 0.55, 0.7]) / np.linalg.norm([-0.45, 0.55, 0.7])   # toward the sun
 
 
@@ -113,26 +112,27 @@ def load_scene(scene, bsdf, size, spp, variant=None):
     bsdf = {**bsdf, "id": SAMPLE_ID}
     if str(scene) in PRESETS:
         return mi.load_dict(scene_dict(mi, str(scene), bsdf, int(size), int(spp)))
-    return mi.load_string(_scene_file_with(scene, bsdf, int(size), int(spp)))
+    text = _scene_file_with(scene, bsdf, int(size), int(spp))
+    try:
+        return mi.load_string(text)
+    except RuntimeError as exc:
+        raise ValueError(f"scene {scene}: Mitsuba cannot load it ({' '.join(str(exc).split())[:200]})") from None
 
 
 def _scene_file_with(path, bsdf, size, spp) -> str:
-    """The scene file's XML with the sample's BSDF replaced by ``bsdf`` and the film and
-    sampler set (see :func:`load_scene`)."""
+    """The scene file's XML, checked (:func:`gonio.fitting.selection.scene_file.checked_scene`:
+    confined to its folder, bounded), with the sample's BSDF replaced by ``bsdf`` and every
+    sensor's film and sampler set (see :func:`load_scene`)."""
     import xml.etree.ElementTree as ET
     from pathlib import Path
 
-    import mitsuba as mi
-
     from gonio.fitting.formats.mitsuba_xml import _xml_lines
+    from gonio.fitting.selection.scene_file import checked_scene
 
     path = Path(path)
     if path.suffix.lower() != ".xml" or not path.is_file():
         raise ValueError(f"scene {str(path)!r}: choose one of {', '.join(PRESETS)} or give a Mitsuba scene file (.xml)")
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise ValueError(f"scene {path}: not readable XML ({exc})") from None
+    root = checked_scene(path)
     parents = {c: p for p in root.iter() for c in p}
     found = [e for e in root.iter("bsdf") if e.get("id") == SAMPLE_ID]
     if len(found) != 1:
@@ -143,15 +143,16 @@ def _scene_file_with(path, bsdf, size, spp) -> str:
                                     "</bsdf>"]))
     parent = parents[found[0]]
     parent[list(parent).index(found[0])] = new
+    for sensor in root.iter("sensor"):           # a film or a size left out would be Mitsuba's 768 x 576
+        if sensor.find("film") is None:
+            ET.SubElement(sensor, "film", {"type": "hdrfilm"})
+        if sensor.find("sampler") is None:
+            ET.SubElement(sensor, "sampler", {"type": "independent"})
     for tag, name, value in (("film", "width", size), ("film", "height", size), ("sampler", "sample_count", spp)):
         for el in root.iter(tag):
-            for child in el.findall("integer"):
-                if child.get("name") == name:
-                    child.set("value", str(int(value)))
-    folder = str(path.resolve().parent)
-    if folder not in _RESOLVED:                  # once: the resolver is the process's
-        mi.file_resolver().prepend(folder)
-        _RESOLVED.add(folder)
+            mine = [c for c in el.findall("integer") if c.get("name") == name]
+            for child in mine or [ET.SubElement(el, "integer", {"name": name})]:
+                child.set("value", str(int(value)))
     return ET.tostring(root, encoding="unicode")
 
 
