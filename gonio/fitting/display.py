@@ -14,7 +14,15 @@ import math
 
 import numpy as np
 
-__all__ = ["value_pm", "parameter_rows", "table_html", "fit_summary", "measurements_summary"]
+__all__ = ["value_pm", "parameter_rows", "table_html", "fit_summary", "measurements_summary", "parameter_flags",
+           "uncertainty_rows", "FLAGS", "UNCERTAINTY_HEADER"]
+
+#: a fit file's parameter flags (``parameters.<name>.flags``) and what each says
+FLAGS = {"at_bound": "at bound", "undetermined": "undetermined",
+         "interval_wider_than_range": "U wider than the range",
+         "outside_bounds": "non-physical (outside its bounds)"}
+#: the columns of :func:`uncertainty_rows`
+UNCERTAINTY_HEADER = ("parameter", "value", "u_stat", "u_c", "U", "k", "unit", "flags")
 
 
 def value_pm(x, u=None) -> str:
@@ -42,6 +50,53 @@ def parameter_rows(names, values, stds, units, flags=None) -> list[tuple[str, st
     """(name, value ± 1-sigma, unit, flags) per parameter."""
     flags = flags or {}
     return [(str(n), value_pm(v, s), str(u), ", ".join(flags.get(n, ()))) for n, v, s, u in zip(names, values, stds, units)]
+
+
+def parameter_flags(item: dict, lower: float, upper: float) -> list:
+    """The flags (keys of :data:`FLAGS`) of one fitted parameter ``item`` (value, U, at_bound,
+    undetermined) against its bounds: at a bound, undetermined, an expanded interval 2U wider
+    than the physical range (upper - lower), a value outside the bounds (a corrected value can
+    leave them)."""
+    out = [k for k in ("at_bound", "undetermined") if item.get(k)]
+    v, big_u = float(item.get("value", np.nan)), float(item.get("U", np.nan))
+    if math.isfinite(lower) and math.isfinite(upper) and math.isfinite(big_u) and 2 * big_u > upper - lower:
+        out.append("interval_wider_than_range")
+    if math.isfinite(v) and not lower <= v <= upper:
+        out.append("outside_bounds")
+    return out
+
+
+def uncertainty_rows(doc: dict) -> list:
+    """The one uncertainty statement of a fit document, a row per parameter (:data:`UNCERTAINTY_HEADER`):
+    value and u_c by the GUM rounding, u_stat, U, k, unit and flags (text). The fit file, its
+    repr, ``to_xarray``, the report and the CLI show these; a document without an ``uncertainty``
+    section gives u_c = std."""
+    params = doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {}
+    unc = ((doc.get("uncertainty") or {}).get("parameters") or {}) if isinstance(doc.get("uncertainty"), dict) else {}
+    rows = []
+    for name, p in params.items():
+        p = p if isinstance(p, dict) else {}
+        q = unc.get(name) if isinstance(unc.get(name), dict) else {}
+
+        def num(key, *tables):
+            for t in tables:
+                v = t.get(key)
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    return float(v)
+            return math.nan
+        value, std = num("value", p), num("std", p)
+        u_stat = num("u_stat", q, p) if q else std
+        u_c = num("u_combined", p, q)
+        u_c = std if not math.isfinite(u_c) else u_c
+        k = num("k", p, q)
+        k = 2.0 if not math.isfinite(k) else k
+        big_u = num("U", p, q)
+        big_u = k * u_c if not math.isfinite(big_u) else big_u
+        flags = p.get("flags") if isinstance(p.get("flags"), list) else [
+            f for f in ("at_bound", "undetermined") if p.get(f)]
+        rows.append((str(name), value_pm(value, u_c), f"{u_stat:.2g}", f"{u_c:.2g}", f"{big_u:.2g}", f"{k:g}",
+                     str(p.get("unit") or ""), ", ".join(FLAGS.get(str(f), str(f)) for f in flags)))
+    return rows
 
 
 def table_html(caption: str, header, rows, notes=()) -> str:

@@ -145,7 +145,12 @@ class Measurements:
             data["cluster"] = ("point", self.cluster)
         coords = {"channel": list(self.channels)[: self.n_channels],
                   **{k: ("point", v, deg) for k, v in (("theta_i", ti), ("phi_i", pi_), ("theta_o", to), ("phi_o", po))}}
-        return xr.Dataset(data, coords=coords, attrs={k: v for k, v in self.attrs.items() if isinstance(v, (str, int, float))})
+        # the space of these values (load_dataset's choice), not the dataset file's camera RGB
+        space = str((self.attrs.get("colour") or {}).get("space", "camera"))
+        for key in ("brdf", "brdf_std"):
+            data[key][2]["colour_space"] = space
+        attrs = {k: v for k, v in self.attrs.items() if isinstance(v, (str, int, float))}
+        return xr.Dataset(data, coords=coords, attrs={**attrs, "colour_space": space})
 
 
 _MEAS_HEADER = ("channel", "values used", "f_r range (1/sr)", "median rel. 1-sigma")

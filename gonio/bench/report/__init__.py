@@ -136,11 +136,25 @@ def fit_section(fit: Doc, truth) -> dict:
     params = fit.items("parameters")
     truths = truth_for(truth, name, [k for k, _ in params])
     rows = []
+    # the fit file's one statement (gonio.fitting.display.uncertainty_rows): z against u_c, the
+    # flags as the file states them
+    from gonio.fitting.display import FLAGS
+
+    unc = fit.raw("uncertainty") if isinstance(fit.raw("uncertainty"), dict) else {}
+    per = unc.get("parameters") if isinstance(unc.get("parameters"), dict) else {}
     for pname, p in params:
         value, std, t = p.num("value"), p.num("std"), truths.get(pname)
-        z = (value - t) / std if (t is not None and value is not None and std) else None
-        flags = ", ".join(f for f, on in (("at bound", p.flag("at_bound")), ("undetermined", p.flag("undetermined"))) if on)
-        rows.append({"name": cut(pname, 80), "value": _fmt(value), "std": _fmt(std, 2), "ci90": _fmt(p.numbers("ci90"), 7),
+        q = per.get(pname) if isinstance(per.get(pname), dict) else {}
+        u_c = p.num("u_combined")
+        if u_c is None and isinstance(q.get("u_combined"), (int, float)):
+            u_c = float(q["u_combined"])
+        u_c = std if u_c is None else u_c
+        z = (value - t) / u_c if (t is not None and value is not None and u_c) else None
+        listed = p.raw("flags") if isinstance(p.raw("flags"), list) else [
+            f for f in ("at_bound", "undetermined") if p.flag(f)]
+        flags = ", ".join(FLAGS.get(str(f), cut(str(f), 40)) for f in listed)
+        rows.append({"name": cut(pname, 80), "value": _fmt(value), "std": _fmt(std, 2), "u_c": _fmt(u_c, 2),
+                     "ci90": _fmt(p.numbers("ci90"), 7),
                      "truth": _fmt(t), "z": _fmt(z, 2), "unit": p.text("unit") or "", "method": p.text("method") or "",
                      "flags": flags})
     g, opt = fit.need("goodness"), fit.need("optimiser")

@@ -1,8 +1,8 @@
 """The fit file (JSON): what was fitted, how well, how sure, and how to render it.
 
 Layout (docs/interfaces.md, architecture.md "A fit file"):
-``model`` {name, options}; ``parameters`` {name: {value, std, ci90, unit, per_channel,
-at_bound, undetermined, method}}; ``covariance`` {names, matrix}; ``constraints``;
+``model`` {name, options}; ``parameters`` {name: {value, std (statistical), u_combined, U, k,
+ci90 (from u_combined), unit, at_bound, undetermined, flags, method}}; ``covariance`` {names, matrix}; ``constraints``;
 ``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used, model_adequate and the
 ``adequacy`` test behind it: test, statistic, dof, p_value, alpha, verdict}; ``optimiser``;
 ``posterior`` (or null); ``selection`` (for ``--model auto``); ``mitsuba`` (the BSDF dict);
@@ -30,7 +30,7 @@ from gonio.core.atomic import atomic_open
 
 from gonio.fitting.uncertainty.adequacy import TEST_BUDGET, nominal_test
 from gonio.fitting.uncertainty.budget import K_EXPANDED, budget_from_attrs, propagate
-from gonio.fitting.display import table_html, text, value_pm
+from gonio.fitting.display import UNCERTAINTY_HEADER, parameter_flags, table_html, text, uncertainty_rows
 from gonio.fitting.formats.mitsuba_xml import mitsuba_document
 
 
@@ -119,9 +119,14 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         # ``params``/``mitsuba`` tables stay the optimiser's)
         shift = float(uncertainty["parameters"][name].get("angle_second_order_mean", 0.0))
         value = float(result.x[i]) - shift
-        item = {"value": value, "std": std, "unit": p.unit, "parameter": entry.param,
+        # one uncertainty statement: u_c, U and k beside the value (the uncertainty section's), the
+        # 90 % interval from u_c (the statistical std alone left the truth out where type B dominates)
+        unc = uncertainty["parameters"].get(name, {})
+        u_c = float(unc.get("u_combined", std))
+        item = {"value": value, "std": std, "u_combined": u_c, "U": float(unc.get("U", K_EXPANDED * u_c)),
+                "k": float(unc.get("k", K_EXPANDED)), "unit": p.unit, "parameter": entry.param,
                 "channel": space.channels[entry.channel] if entry.channel >= 0 else None,
-                "ci90": [max(value - z90 * std, p.lower), min(value + z90 * std, p.upper)],
+                "ci90": [max(value - z90 * u_c, p.lower), min(value + z90 * u_c, p.upper)],
                 "method": "laplace", "at_bound": name in result.at_bound, "undetermined": name in result.undetermined}
         if shift != 0.0:
             item["value_fitted"] = result.x[i]
@@ -132,6 +137,7 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
             item.update(median=posterior.quantiles[50][i],
                         std_posterior=0.5 * (posterior.quantiles[84][i] - posterior.quantiles[16][i]),
                         ci90=[posterior.quantiles[5][i], posterior.quantiles[95][i]], method="emcee")
+        item["flags"] = parameter_flags(item, p.lower, p.upper)
         params[name] = item
     doc = {
         "format": FIT_FORMAT,
@@ -396,56 +402,64 @@ class FitFile:
         return mitsuba_document(self.model.name, dict(self.model.options), self.params)
 
     def _summary(self):
-        rows = []
-        for name, item in self.parameters.items():
-            item = item if isinstance(item, dict) else {}
-            flags = [f for f, key in (("at bound", "at_bound"), ("undetermined", "undetermined")) if item.get(key)]
-            rows.append((name, item.get("value"), item.get("std"), item.get("unit", ""), flags))
         g = self.goodness
         options = ", ".join(f"{k}={v}" for k, v in dict(self.model.options).items())
         caption = f"{self.model.name}({options}) fit" + (f" from {self.path.name}" if self.path else "")
         notes = []
         if isinstance(g.get("chi2_dof"), (int, float)):
             notes.append(f"chi2/dof = {g['chi2_dof']:.4g} (dof {g.get('dof')}), loss {g.get('loss')}")
+        unc = self.document.get("uncertainty")
+        if isinstance(unc, dict) and isinstance(unc.get("components"), dict):
+            notes.append("u_c: combined standard uncertainty of the budget (" + ", ".join(map(str, unc["components"]))
+                         + f"); U = k u_c, k = {unc.get('k', 2)}")
         if g.get("warning"):
             notes.append(str(g["warning"]))
-        return caption, rows, notes
-
-    def _rows(self):
-        caption, rows, notes = self._summary()
-        out = [(n, value_pm(v, s) if isinstance(v, (int, float)) else str(v), u, ", ".join(f)) for n, v, s, u, f in rows]
-        return caption, out, notes
+        return caption, uncertainty_rows(self.document), notes
 
     def __repr__(self) -> str:
-        caption, rows, notes = self._rows()
-        return text(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
+        caption, rows, notes = self._summary()
+        return text(caption, UNCERTAINTY_HEADER, rows, notes)
 
     def _repr_html_(self) -> str:
-        caption, rows, notes = self._rows()
-        return table_html(caption, ("parameter", "value ± 1-sigma", "unit", "flags"), rows, notes)
+        caption, rows, notes = self._summary()
+        return table_html(caption, UNCERTAINTY_HEADER, rows, notes)
 
     def to_xarray(self):
-        """The fitted parameters as an :class:`xarray.Dataset` over ``parameter`` (``value``,
-        ``std``, ``ci90_low``, ``ci90_high``; ``unit`` a coordinate; goodness in the attributes)."""
+        """The fitted parameters as an :class:`xarray.Dataset` over ``parameter``: ``value``,
+        ``std`` (statistical), ``u_combined``, ``U`` and ``k`` (the budget's, as the fit file
+        states them), ``ci90_low``, ``ci90_high``, ``flags`` (text); ``unit`` a coordinate;
+        goodness, the colour space and the budget's components in the attributes."""
         import xarray as xr
 
-        _, rows, _ = self._summary()
+        rows = uncertainty_rows(self.document)
         names = [r[0] for r in rows]
         table = self.parameters
+        unc = self.document.get("uncertainty") if isinstance(self.document.get("uncertainty"), dict) else {}
+        per = unc.get("parameters") if isinstance(unc.get("parameters"), dict) else {}
 
-        def column(key, k=None):
+        def column(key, k=None, fallback=None):
             out = []
             for n in names:
-                v = table[n].get(key) if isinstance(table[n], dict) else None
+                item = table[n] if isinstance(table[n], dict) else {}
+                v = item.get(key, (per.get(n) or {}).get(key) if isinstance(per.get(n), dict) else None)
                 v = v[k] if k is not None and isinstance(v, list) and len(v) > k else v
+                if not isinstance(v, (int, float)) and fallback is not None:
+                    v = item.get(fallback)
                 out.append(float(v) if isinstance(v, (int, float)) else np.nan)
             return "parameter", np.array(out)
 
         attrs = {k: v for k, v in self.goodness.items() if isinstance(v, (int, float, str)) and not isinstance(v, bool)}
-        attrs.update(model=self.model.name, options=json.dumps(dict(self.model.options), sort_keys=True))
-        return xr.Dataset({"value": column("value"), "std": column("std"),
-                           "ci90_low": column("ci90", 0), "ci90_high": column("ci90", 1)},
-                          coords={"parameter": names, "unit": ("parameter", [str(r[3]) for r in rows])}, attrs=attrs)
+        colour = self.document.get("colour") if isinstance(self.document.get("colour"), dict) else {}
+        attrs.update(model=self.model.name, options=json.dumps(dict(self.model.options), sort_keys=True),
+                     colour_space=str(colour.get("space", "camera")), k=float(unc.get("k", K_EXPANDED)),
+                     budget=json.dumps(unc.get("components") or {}, sort_keys=True))
+        u_c = column("u_combined", fallback="std")
+        return xr.Dataset({"value": column("value"), "std": column("std"), "u_combined": u_c,
+                           "U": ("parameter", np.where(np.isfinite(column("U")[1]), column("U")[1],
+                                                       attrs["k"] * u_c[1])),
+                           "ci90_low": column("ci90", 0), "ci90_high": column("ci90", 1),
+                           "flags": ("parameter", [r[7] for r in rows])},
+                          coords={"parameter": names, "unit": ("parameter", [r[6] for r in rows])}, attrs=attrs)
 
 
 def load_fit(path) -> FitFile:
