@@ -1,5 +1,5 @@
-"""``gonio convert``: exchange formats. A fit -> Mitsuba XML / dict JSON / MERL / PAB-Opto; a
-dataset -> CSV / MERL (binned) / PAB-Opto."""
+"""``gonio convert``: exchange formats. A fit -> Mitsuba XML (a plain Mitsuba's, or with gonio's
+plugins) / dict JSON / MERL / PAB-Opto; a dataset -> CSV / MERL (binned) / PAB-Opto."""
 
 from __future__ import annotations
 
@@ -76,7 +76,7 @@ def _convert_pabopto(source, out, formats, load_fit):
 def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open):
     if to == "pabopto":
         return _convert_pabopto(source, out, formats, load_fit)
-    if to in ("mitsuba-xml", "mitsuba-dict", "merl"):
+    if to in ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl"):
         if source.suffix.lower() != ".json":
             raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
         model, params = load_fit_file(source)
@@ -84,15 +84,15 @@ def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
             merl = formats.resample_to_merl(model, params)
             _make_parent(out)
             formats.write_merl(out, merl)
-        elif to == "mitsuba-dict":
-            _, d = formats.mitsuba_snippet(model.name, dict(model.options), params)
-            _make_parent(out)
-            write_json_atomic(out, d)
-        else:  # a file of its own: mitsuba.load_file and <include> need the root's version
-            xml = formats.mitsuba_document(model.name, dict(model.options), params)
-            _make_parent(out)
-            with atomic_open(out, "w", encoding="utf-8") as fh:
-                fh.write(xml)
+            return
+        # a plain Mitsuba loads mitsuba-xml and mitsuba-dict (the closest native family where the model has no
+        # plugin); mitsuba-xml-gonio keeps gonio's Python plugin (exact, for a process that imports gonio)
+        plugins = "gonio" if to == "mitsuba-xml-gonio" else "native"
+        writer = formats.write_mitsuba_dict if to == "mitsuba-dict" else formats.write_mitsuba_document
+        _make_parent(out)
+        note = writer(out, model.name, dict(model.options), params, plugins=plugins)
+        if note:
+            print(note)
     elif to == "csv":
         meas = _open_dataset(source)
         _make_parent(out)
@@ -103,5 +103,5 @@ def _convert(source, out, to, formats, load_fit, write_json_atomic, atomic_open)
         formats.write_merl(out, merl)
         print(f"{int(merl.valid.sum())} of {merl.valid.size} MERL bins hold measured data; the rest are marked no-data")
     else:
-        raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-dict, merl, pabopto (from a fit), csv, merl-data "
+        raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-xml-gonio, mitsuba-dict, merl, pabopto (from a fit), csv, merl-data "
                          "or pabopto (from a dataset)")

@@ -94,3 +94,56 @@ def test_convert_prints_the_true_count(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "29 of 30 points in 10 PAB-Opto files" in printed and "1 left out" in printed, printed
     assert _records(out) == 29
+
+
+def test_merl_csv_and_mitsuba_writers_refuse_a_file_that_differs(tmp_path, monkeypatch, capsys):
+    """Each writer reads its file back: a value lost on the way (simulated here) is one line, exit 2
+    at the command line, and no file."""
+    import csv
+
+    from gonio.fitting import fit_document, fit, write_json_atomic
+    from gonio.fitting import formats
+    from gonio.fitting.formats import mitsuba_xml
+
+    merl = formats.resample_to_merl(gm.get("diffuse"), {"reflectance": [0.5, 0.4, 0.3]})
+    real_read = formats.read_merl
+
+    def damaged(path):
+        back = real_read(path)
+        back.raw[0, 10, 10, 10] = -1.0                       # one bin lost
+        return back
+
+    monkeypatch.setattr(formats, "read_merl", damaged)
+    with pytest.raises(ExportError, match="MERL bins with data"):
+        formats.write_merl(tmp_path / "m.binary", merl)
+    monkeypatch.setattr(formats, "read_merl", real_read)
+
+    real_writer = csv.writer
+
+    class Lossy:
+        def __init__(self, fh):
+            self.w = real_writer(fh)
+
+        def writerow(self, row):
+            self.w.writerow(row)
+
+        def writerows(self, rows):
+            self.w.writerows(rows[:-1])                      # the last point lost
+
+    monkeypatch.setattr(csv, "writer", Lossy)
+    with pytest.raises(ExportError, match="CSV rows"):
+        formats.dataset_to_csv(_meas(), tmp_path / "d.csv")
+    monkeypatch.setattr(csv, "writer", real_writer)
+
+    real_lines = mitsuba_xml._xml_lines
+    monkeypatch.setattr(mitsuba_xml, "_xml_lines", lambda d, indent: real_lines(d, indent)[:-1])  # a property lost
+    with pytest.raises(ExportError, match="Mitsuba XML properties"):
+        mitsuba_xml.write_mitsuba_document(tmp_path / "r.xml", "roughplastic", {}, {})
+    meas = _meas()
+    fit_path = write_json_atomic(tmp_path / "fit.json", fit_document(
+        fit(meas, gm.get("diffuse"), rng=np.random.default_rng(0), n_starts=2), meas, seed=0))
+    capsys.readouterr()
+    assert cli.main(["convert", str(fit_path), "--to", "mitsuba-xml", "--out", str(tmp_path / "x.xml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Mitsuba XML properties: had 1, the file holds 0" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.json"]

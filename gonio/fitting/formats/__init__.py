@@ -34,13 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from gonio.core.atomic import atomic_open
 from gonio.core.geometry import angles_deg as _angles_deg
 from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
 
 from gonio.fitting.measurements import Measurements, load_dataset
-from gonio.fitting.formats.mitsuba_xml import MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet
-from gonio.fitting.formats._verify import ExportError
+from gonio.fitting.formats.mitsuba_xml import (MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet,
+                                               write_mitsuba_dict, write_mitsuba_document)
+from gonio.fitting.formats.native import NativeBSDF, native_bsdf
+from gonio.fitting.formats._verify import ExportError, expect, written
 from gonio.fitting.formats.pabopto import PaboptoExport, export_pabopto, model_pabopto, pabopto_files, write_pabopto
 from gonio.fitting.formats.pabopto import write_files as write_pabopto_files
 
@@ -49,12 +50,15 @@ __all__ = [
     "merl_bin_directions", "merl_to_measurements", "mitsuba_document", "mitsuba_snippet", "MITSUBA_XML_VERSION",
     "read_merl", "resample_to_merl", "model_pabopto", "pabopto_files", "write_pabopto", "write_pabopto_files",
     "rgl_measurements", "write_merl", "check_rgl_file", "ExportError", "PaboptoExport", "export_pabopto",
+    "write_mitsuba_document", "write_mitsuba_dict", "NativeBSDF", "native_bsdf",
 ]
 
 #: Grid size (theta_h, theta_d, phi_d) of a MERL table.
 MERL_SHAPE = (90, 90, 180)
 #: f_r = stored value * scale, per channel R, G, B (BRDFRead.cpp's RED/GREEN/BLUE_SCALE).
 MERL_SCALE = np.array([1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0])
+#: A MERL file's colour channels (R, G, B: the format's, whatever gonio measures)
+_MERL_RGB = len(MERL_SCALE)
 _HALF_PI = 0.5 * math.pi
 
 
@@ -139,7 +143,7 @@ class MerlBRDF:
 
     def __init__(self, raw, path=None):
         raw = np.asarray(raw, dtype=np.float64)
-        if raw.shape != (3, *MERL_SHAPE):
+        if raw.shape != (_MERL_RGB, *MERL_SHAPE):
             raise ValueError(f"a MERL table has shape (3, 90, 90, 180), got {raw.shape}")
         self.raw = raw
         self.path = None if path is None else str(path)
@@ -148,7 +152,7 @@ class MerlBRDF:
     def from_brdf(cls, table, path=None) -> "MerlBRDF":
         """From f_r values (3, 90, 90, 180) in sr^-1; NaN or negative = no data (stored -1)."""
         table = np.asarray(table, dtype=np.float64)
-        if table.shape != (3, *MERL_SHAPE):
+        if table.shape != (_MERL_RGB, *MERL_SHAPE):
             raise ValueError(f"a MERL table has shape (3, 90, 90, 180), got {table.shape}")
         raw = table / MERL_SCALE[:, None, None, None]
         raw[~np.isfinite(raw) | (raw < 0)] = -1.0
@@ -185,7 +189,7 @@ class MerlBRDF:
         wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
         wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
         idx = self.indices(wi, wo)
-        raw = self.raw.reshape(3, -1)[:, idx].T
+        raw = self.raw.reshape(_MERL_RGB, -1)[:, idx].T
         out = raw * MERL_SCALE
         out[np.any(raw < 0, axis=1)] = missing
         out[(wi[:, 2] <= 0) | (wo[:, 2] <= 0)] = 0.0
@@ -221,21 +225,32 @@ def read_merl(path) -> MerlBRDF:
     expected = 12 + 3 * n * 8
     if len(data) != expected:
         raise ValueError(f"{path}: {len(data)} bytes, a MERL file has {expected}")
-    raw = np.frombuffer(data[12:], dtype="<f8").astype(np.float64).reshape(3, *MERL_SHAPE)
+    raw = np.frombuffer(data[12:], dtype="<f8").astype(np.float64).reshape(_MERL_RGB, *MERL_SHAPE)
     return MerlBRDF(raw, path)
 
 
 def write_merl(path, table) -> Path:
-    """Write a MERL ``.binary`` file atomically (temporary file in the same folder, rename).
+    """Write a MERL ``.binary`` file atomically (temporary file in the same folder, rename),
+    after reading it back: it must hold every value, else ``ExportError`` and nothing written.
 
     ``table`` is a :class:`MerlBRDF` (its stored values are written unchanged) or f_r values
     of shape (3, 90, 90, 180) in sr^-1 (divided by the scale factors; NaN/negative -> -1).
     """
     merl = table if isinstance(table, MerlBRDF) else MerlBRDF.from_brdf(table)
     path = Path(path)
-    with atomic_open(path, "wb") as fh:
-        fh.write(np.asarray(MERL_SHAPE, dtype="<i4").tobytes())
-        fh.write(np.ascontiguousarray(merl.raw, dtype="<f8").tobytes())
+
+    def write(tmp):
+        with open(tmp, "wb") as fh:
+            fh.write(np.asarray(MERL_SHAPE, dtype="<i4").tobytes())
+            fh.write(np.ascontiguousarray(merl.raw, dtype="<f8").tobytes())
+
+    def check(tmps):
+        back = read_merl(tmps[path])
+        expect("MERL bins with data", int(merl.valid.sum()), int(back.valid.sum()))
+        same = np.array_equal(back.raw, merl.raw, equal_nan=True)
+        expect("MERL values read back", merl.raw.size, merl.raw.size if same else int(np.sum(back.raw == merl.raw)))
+
+    written({path: write}, check)
     return path
 
 
@@ -268,15 +283,15 @@ def resample_to_merl(eval_fn, params=None, *, chunk: int = 200_000) -> MerlBRDF:
     wi, wo = merl_bin_directions()
     n = wi.shape[0]
     up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    values = np.full((n, 3), np.nan)
+    values = np.full((n, _MERL_RGB), np.nan)
     todo = np.flatnonzero(up)
     for start in range(0, todo.size, chunk):
         sel = todo[start:start + chunk]
         f = np.asarray(fn(wi[sel], wo[sel]), dtype=np.float64)
-        values[sel] = np.broadcast_to(f.reshape(sel.size, -1), (sel.size, 3))
+        values[sel] = np.broadcast_to(f.reshape(sel.size, -1), (sel.size, _MERL_RGB))
     bad = ~np.isfinite(values)
     values = np.where(bad, np.nan, np.clip(values, 0.0, None))
-    return MerlBRDF.from_brdf(values.T.reshape(3, *MERL_SHAPE))
+    return MerlBRDF.from_brdf(values.T.reshape(_MERL_RGB, *MERL_SHAPE))
 
 
 def dataset_to_merl(meas) -> MerlBRDF:
@@ -291,14 +306,14 @@ def dataset_to_merl(meas) -> MerlBRDF:
     theta_h, _, theta_d, phi_d = half_diff_angles(meas.wi[use], meas.wo[use])
     idx = _merl_indices(theta_h, theta_d, phi_d)
     n_bins = int(np.prod(MERL_SHAPE))
-    table = np.full((3, n_bins), np.nan)
-    for c in range(3):
+    table = np.full((_MERL_RGB, n_bins), np.nan)
+    for c in range(_MERL_RGB):
         w = 1.0 / meas.brdf_std[use, c] ** 2
         wsum = np.bincount(idx, weights=w, minlength=n_bins)
         fsum = np.bincount(idx, weights=w * meas.brdf[use, c], minlength=n_bins)
         hit = wsum > 0
         table[c, hit] = np.maximum(fsum[hit] / wsum[hit], 0.0)
-    return MerlBRDF.from_brdf(table.reshape(3, *MERL_SHAPE))
+    return MerlBRDF.from_brdf(table.reshape(_MERL_RGB, *MERL_SHAPE))
 
 
 def merl_to_measurements(merl, wi=None, wo=None, *, n: int | None = None, rng=None, rel_std: float = 0.01,
@@ -500,15 +515,28 @@ def dataset_to_csv(meas_or_dataset_path, out_csv) -> Path:
     header += [f"brdf_std_{c} [1/sr]" for c in channels]
     header += [f"use_{c} [0/1]" for c in channels]
     out_csv = Path(out_csv)
-    with atomic_open(out_csv, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(header)
-        for k in range(meas.n_points):
-            row = [f"{a[k]:.6f}" for a in angles]
-            row += [repr(float(v)) for v in meas.brdf[k]]
-            row += [repr(float(v)) for v in meas.brdf_std[k]]
-            row += [str(int(u)) for u in meas.use[k]]
-            writer.writerow(row)
+    rows = []
+    for k in range(meas.n_points):
+        row = [f"{a[k]:.6f}" for a in angles]
+        row += [repr(float(v)) for v in meas.brdf[k]]
+        row += [repr(float(v)) for v in meas.brdf_std[k]]
+        row += [str(int(u)) for u in meas.use[k]]
+        rows.append(row)
+
+    def write(tmp):
+        with open(tmp, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(header)
+            writer.writerows(rows)
+
+    def check(tmps):
+        with open(tmps[out_csv], newline="") as fh:
+            back = list(csv.reader(fh))
+        expect("CSV header", header, back[0] if back else None)
+        expect("CSV rows (one per point)", meas.n_points, len(back) - 1)
+        expect("CSV values read back", meas.n_points, sum(a == b for a, b in zip(rows, back[1:])))
+
+    written({out_csv: write}, check)
     return out_csv
 
 
