@@ -422,8 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
                                         "a dataset to CSV, MERL or PAB-Opto")
     cv.add_argument("source", help="fit file (JSON) or dataset.nc")
     cv.add_argument("--to", required=True,
-                    choices=["mitsuba-xml", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto"],
-                    help="from a fit: mitsuba-xml (a file mitsuba.load_file and <include> load), mitsuba-dict, "
+                    choices=["mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto"],
+                    help="from a fit: mitsuba-xml (a file a plain Mitsuba 3 loads with mitsuba.load_file and "
+                         "<include>: a model without a Mitsuba plugin is written as the closest native BSDF fitted "
+                         "to it, its error printed), mitsuba-xml-gonio (gonio's own plugins, exact, for a process "
+                         "that imports gonio), mitsuba-dict, "
                          "merl (the model resampled), pabopto (the model on a grid); from a dataset: csv, "
                          "merl-data (measured values binned, the rest no-data), pabopto (measured values); "
                          "pabopto writes one file per incident direction into the --out folder, for Radiance's "
