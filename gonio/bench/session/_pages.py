@@ -110,14 +110,13 @@ class _File:
             s = 65536 if s == 1 else s
             if 512 <= s <= 65536 and s & (s - 1) == 0 and len(d) % s == 0:
                 return s
-        best, size = -1, 4096              # a damaged header: the size at which most pages are b-tree pages
+        # a damaged header: the smallest size at which nearly as many pages as at any size are b-tree pages
+        share = {}
         for s in (512 << k for k in range(8)):
-            if len(d) % s or len(d) < s:
-                continue
-            good = sum(_leaf_header_ok(d[o:o + s], 100 if o == 0 else 0) for o in range(0, len(d), s))
-            if good > best:
-                best, size = good, s
-        return size
+            if len(d) >= s and len(d) % s == 0:
+                share[s] = sum(_btree_ok(d[o:o + s], 100 if o == 0 else 0) for o in range(0, len(d), s)) / (len(d) // s)
+        best = max(share.values(), default=0.0)
+        return min((s for s, v in share.items() if v >= 0.8 * best and v > 0), default=4096)
 
     def _read_wal(self, w: bytes) -> None:
         if len(w) < 32 or int.from_bytes(w[:4], "big") not in _WAL_MAGIC:
@@ -146,11 +145,16 @@ class _File:
         return bytes(out)
 
 
-def _leaf_header_ok(page: bytes, hdr: int) -> bool:
-    if len(page) < hdr + 8 or page[hdr] != _LEAF:
+def _btree_ok(page: bytes, hdr: int) -> bool:
+    """Whether ``page`` looks like a b-tree page of its length: a b-tree type, its cell pointers inside it."""
+    if len(page) < hdr + 12 or page[hdr] not in (_LEAF, _INTERIOR, _INDEX_LEAF, _INDEX_INTERIOR):
         return False
+    first = hdr + (8 if page[hdr] in (_LEAF, _INDEX_LEAF) else 12)
     n = int.from_bytes(page[hdr + 3:hdr + 5], "big")
-    return hdr + 8 + 2 * n <= len(page)
+    if first + 2 * n > len(page):
+        return False
+    return all(first + 2 * n <= int.from_bytes(page[first + 2 * k:first + 2 * k + 2], "big") < len(page)
+               for k in range(n))
 
 
 def _local(f: _File, total: int) -> int:
