@@ -35,16 +35,16 @@ def from_error_model(model) -> dict:
     from its error model (gonio/sim/physics/errors.py; the virtual instrument's data sheet).
 
     Drawn terms (zero offsets, holder tilt, wedge, repeatability) enter as their 1-sigma; fixed
-    ones as their stated size: backlash, the stray floor and gamma as bounds the truth reaches.
-    The apertures (a design property, modelled by the fit) and the reference's non-Lambertian
-    factor (its certificate's, ``factor_a``/``factor_b`` of gonio.sim's Spectralon form) are
-    stated, not carried. Empty tables for the ideal instrument.
+    ones as their stated size: backlash and gamma as bounds the truth reaches. The stray floor's
+    level (``[stray]``, removed at capture; a rectangular bound left rho +0.5 u_c high on a
+    glossy sample), the apertures (a design property, modelled by the fit) and the reference's
+    non-Lambertian factor (its certificate's, ``factor_a``/``factor_b`` of gonio.sim's Spectralon
+    form) are stated, not carried. Empty tables for the ideal instrument.
     """
     st, al, ap = model.stages, model.alignment, model.aperture
     sysm = {"zero_deg": [float(v) for v in st.zero_deg], "holder_tilt_deg": float(al.tilt_deg),
             "wedge_deg": float(al.wedge_deg), "repeat_deg": float(st.repeat_deg),
-            "backlash_deg": float(st.backlash_deg), "stray_floor": float(model.stray.floor),
-            "linearity_gamma": float(model.linearity.gamma)}
+            "backlash_deg": float(st.backlash_deg), "linearity_gamma": float(model.linearity.gamma)}
     out = {}
     if any(v for k, v in sysm.items() if k != "zero_deg") or any(sysm["zero_deg"]):
         out["systematics"] = {**sysm, "source": f"gonio.sim error model, preset {model.preset!r} "
@@ -52,6 +52,9 @@ def from_error_model(model) -> dict:
     if ap.source_half_deg or ap.detector_half_deg:
         out["aperture"] = {"source_half_deg": float(ap.source_half_deg),
                            "detector_half_deg": float(ap.detector_half_deg), "profile": "uniform disk"}
+    if model.stray.floor:
+        # the model states the floor's level (not drawn): removed at capture, as gonio calibrate's is
+        out["stray"] = {"floor": float(model.stray.floor), "u_floor": 0.0}
     amp = float(model.reference.non_lambertian)
     if amp:
         # gonio.sim.spectralon_factor: 1 + A (-0.05 (si2 + so2) / 2 + 0.06 si2 so2)
@@ -72,8 +75,9 @@ def for_session(settings: Mapping) -> dict:
     out = {k: v for k, v in settings.items() if k != "systematics"}
     if "systematics" in desc:
         out["systematics"] = desc["systematics"]
-    if "aperture" in desc and not isinstance(settings.get("aperture"), Mapping):
-        out["aperture"] = desc["aperture"]
+    for key in ("aperture", "stray"):
+        if key in desc and not isinstance(settings.get(key), Mapping):
+            out[key] = desc[key]
     ref = dict(settings.get("reference", {}))
     if "reference" in desc and "factor" not in ref and "factor_a" not in ref:
         out["reference"] = {**ref, **desc["reference"]}
