@@ -1,14 +1,99 @@
 """The channels a measurement carries, declared once: every layer reads them from here.
 
-Today three colour channels (linear camera RGB, or the colour space a dataset is converted
-to). A spectral measurement changes this declaration (a list of wavelengths), not the layers
-that read it (docs/architecture.md, "What each coming capability touches").
+A :class:`Channels` names the values of every f_r, parameter and uncertainty: three colour
+channels in a colour space (linear camera RGB, sRGB, CIE XYZ), or a list of wavelengths (a
+spectral measurement). It says how a value goes to Mitsuba (an ``rgb`` or a ``spectrum``),
+which Mitsuba variant renders it and what dataset.nc's channel coordinate holds. Today every
+measurement is :data:`RGB`; a spectral one changes this declaration, not the layers that read
+it (docs/architecture.md, "What each coming capability touches").
 """
 
-__all__ = ["CHANNELS", "COLOUR_SPACE_CHANNELS"]
+from __future__ import annotations
 
-#: Number of channels of every f_r value, parameter and uncertainty (linear camera RGB).
-CHANNELS = 3
+import math
+from dataclasses import dataclass
+
+__all__ = ["Channels", "RGB", "CHANNELS", "COLOUR_SPACE_CHANNELS", "colour_space", "spectral"]
+
+
+@dataclass(frozen=True)
+class Channels:
+    """The channels of one measurement.
+
+    Attributes
+    ----------
+    names : tuple of str
+        One label per channel (``("R", "G", "B")``, or ``"550nm"`` per wavelength).
+    space : str
+        ``"camera"``, ``"srgb"``, ``"xyz"`` or ``"spectral"``.
+    wavelengths_nm : tuple of float, optional
+        The wavelength of each channel (spectral only), strictly increasing.
+    """
+
+    names: tuple[str, ...]
+    space: str
+    wavelengths_nm: tuple[float, ...] | None = None
+
+    def __post_init__(self):
+        if not self.names:
+            raise ValueError("a measurement has at least one channel")
+        if self.space == "spectral":
+            w = self.wavelengths_nm or ()
+            if len(w) != len(self.names) or not all(math.isfinite(x) and 200.0 <= x <= 2500.0 for x in w) \
+                    or any(b <= a for a, b in zip(w, w[1:])):
+                raise ValueError("spectral channels need one finite wavelength per channel, increasing, in "
+                                 "200-2500 nm")
+        elif self.wavelengths_nm is not None:
+            raise ValueError(f"{self.space} channels have no wavelengths")
+
+    @property
+    def n(self) -> int:
+        """The number of channels."""
+        return len(self.names)
+
+    @property
+    def is_spectral(self) -> bool:
+        return self.space == "spectral"
+
+    @property
+    def variant_suffix(self) -> str:
+        """The colour mode of the Mitsuba variants that render these channels."""
+        return "spectral" if self.is_spectral else "rgb"
+
+    def mitsuba(self, value) -> dict:
+        """``value`` (one per channel) as a Mitsuba 3 property: ``{"type": "rgb", ...}`` or an
+        irregular ``spectrum`` of (wavelength, value) pairs."""
+        v = [float(x) for x in value]
+        if len(v) != self.n:
+            raise ValueError(f"{len(v)} values for {self.n} channels")
+        if self.is_spectral:
+            return {"type": "spectrum", "value": list(zip(self.wavelengths_nm, v))}
+        return {"type": "rgb", "value": v}
+
+
+#: The measurement's channels today: linear camera RGB.
+RGB = Channels(("R", "G", "B"), "camera")
+
+#: Number of channels of every f_r value, parameter and uncertainty.
+CHANNELS = RGB.n
+
+#: The channels of each colour space a dataset may be fitted in.
+_SPACES = {space: Channels(names, space) for space, names in
+           (("srgb", ("R", "G", "B")), ("xyz", ("X", "Y", "Z")), ("camera", ("R", "G", "B")))}
 
 #: The channel names of each colour space a dataset may be fitted in.
-COLOUR_SPACE_CHANNELS = {"srgb": ("R", "G", "B"), "xyz": ("X", "Y", "Z"), "camera": ("R", "G", "B")}
+COLOUR_SPACE_CHANNELS = {space: c.names for space, c in _SPACES.items()}
+
+
+def colour_space(name: str) -> Channels:
+    """The channels of colour space ``name``; ValueError naming the known spaces otherwise."""
+    try:
+        return _SPACES[name]
+    except KeyError:
+        raise ValueError(f"unknown colour space {str(name)[:40]!r}; give one of {', '.join(_SPACES)}") from None
+
+
+def spectral(wavelengths_nm) -> Channels:
+    """Channels at ``wavelengths_nm`` (a monochromator's steps)."""
+    w = tuple(float(x) for x in wavelengths_nm)
+    return Channels(tuple(f"{x:g}nm" for x in w), "spectral", w)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gonio.core.channels import CHANNELS
+from gonio.core.channels import CHANNELS, RGB
 from gonio.core.sides import sides_mask
 from gonio.models.engine import albedo as _compiled_albedo
 from gonio.models.engine import fast as _engine
@@ -286,8 +286,9 @@ class Model:
 
 
 def rgb(value):
-    """Mitsuba RGB texture dict for a (3,) array."""
-    return {"type": "rgb", "value": [float(x) for x in np.broadcast_to(value, (CHANNELS,))]}
+    """Mitsuba texture dict of a per-channel value (:meth:`gonio.core.channels.Channels.mitsuba`:
+    an ``rgb`` for the RGB channels)."""
+    return RGB.mitsuba(np.broadcast_to(value, (RGB.n,)))
 
 
 INV_PI = 1.0 / math.pi

@@ -10,6 +10,7 @@ from collections import OrderedDict
 import numpy as np
 import serial
 
+from gonio.core.channels import CHANNELS
 from gonio.core.devices import PORT_NAMES
 from gonio.sim.devices.camera_port import CameraPort
 from gonio.sim.physics.clock import SimClock
@@ -293,7 +294,7 @@ class Instrument:
             lamp_deg = abs((math.degrees(self.geometry_angle(pose, "lamp")) + 180.0) % 360.0 - 180.0)
             if lamp_deg < float(self.settings["axes"].get("lamp_block_deg", 0.0)):
                 # the lamp head stands between the sample and the camera: nothing to see
-                img = np.zeros((self.sensor.height, self.sensor.width, 3))
+                img = np.zeros((self.sensor.height, self.sensor.width, CHANNELS))
             else:
                 img = self.scene.render(g["wi"], g["wo"], g["right"], g["up"])
                 if self._errors_on:
@@ -358,13 +359,13 @@ class Instrument:
             rng = np.random.default_rng(key)
             power = self.FLAT_POWER if flat else lamp.power(t0 + 0.5 * seconds)
             if flat:
-                rad = np.full((self.sensor.height, self.sensor.width, 3), self.FLAT_RADIANCE)
+                rad = np.full((self.sensor.height, self.sensor.width, CHANNELS), self.FLAT_RADIANCE)
             elif source == "chart":
                 rad = chart_radiance(self.sensor.colour, self.sensor.height, self.sensor.width)
             elif power > 0.0:
                 rad = self.radiance(pose)
             else:
-                rad = np.zeros((self.sensor.height, self.sensor.width, 3))
+                rad = np.zeros((self.sensor.height, self.sensor.width, CHANNELS))
             raw = self.sensor.expose(rad, power, seconds, rng, camera_rgb=source == "chart")
             if self._errors_on:
                 raw = self.error_state.nonlinear(raw, self.sensor.black, self.sensor.white)

@@ -37,6 +37,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS
 from gonio.bench.drivers.camera import RawFrame
 
 __all__ = ["NoiseModel", "Exposure", "HdrResult", "merge", "merge_blocks", "linearise", "choose_bracket", "ladder",
@@ -125,9 +126,9 @@ def merge(exposures: Sequence[Exposure], noise: NoiseModel, saturation_fraction:
     if not exposures:
         raise ValueError("empty bracket")
     _, h, w = exposures[0].frame.signal.shape
-    rad = np.empty((3, h, w), np.float32)
-    var = np.empty((3, h, w), np.float32)
-    n_used = np.empty((3, h, w), np.int64)
+    rad = np.empty((CHANNELS, h, w), np.float32)
+    var = np.empty((CHANNELS, h, w), np.float32)
+    n_used = np.empty((CHANNELS, h, w), np.int64)
 
     def keep(k, rows, rad_b, var_b, used_b):
         rad[:, rows], var[:, rows], n_used[:, rows] = rad_b, var_b, used_b

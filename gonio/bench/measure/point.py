@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Column
 
+from gonio.core.channels import CHANNELS
 from gonio.bench.measure.hdr import ladder, merge_blocks
 from gonio.core.errors import GonioError
 
@@ -107,7 +108,7 @@ class ReferenceModel:
     """
 
     def __init__(self, ref: Mapping):
-        self.rho = np.broadcast_to(np.asarray(ref["reflectance"], float), (3,)).copy()
+        self.rho = np.broadcast_to(np.asarray(ref["reflectance"], float), (CHANNELS,)).copy()
         self.table = None
         if "factor" in ref:
             ti = np.asarray(ref.get("factor_theta_i", []), float)
@@ -147,7 +148,7 @@ def _sums(radiance: np.ndarray, var: np.ndarray, mask: np.ndarray) -> tuple:
     finite values, their float64 sum, their sum of squared deviations from their own mean, and
     the float64 sum of their variances (3,) each; and the count of values left out (NaN)."""
     x, v = radiance[:, mask], var[:, mask]                      # (3, k), the region's values
-    n, s, m2, sv = (np.zeros(3, np.int64), np.zeros(3), np.zeros(3), np.zeros(3))
+    n, s, m2, sv = (np.zeros(CHANNELS, np.int64), np.zeros(CHANNELS), np.zeros(CHANNELS), np.zeros(CHANNELS))
     good = np.isfinite(x)
     bad = 0 if good.all() else int((~good).sum())
     for c in range(3):
@@ -170,8 +171,8 @@ def _combined(parts) -> dict[str, Any]:
     n = np.sum([p[0] for p in parts], axis=0)
     total = np.sum([p[1] for p in parts], axis=0)
     sv = np.sum([p[3] for p in parts], axis=0)
-    mean, se, se_model = np.full(3, np.nan), np.full(3, np.nan), np.full(3, np.nan)
-    m2 = np.zeros(3)
+    mean, se, se_model = np.full(CHANNELS, np.nan), np.full(CHANNELS, np.nan), np.full(CHANNELS, np.nan)
+    m2 = np.zeros(CHANNELS)
     some = n > 0
     mean[some] = total[some] / n[some]
     for nb, sb, m2b, _, _ in parts:

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from gonio.core.channels import RGB
+
 __all__ = ["CHANNEL_NAMES", "energy_text", "truth_by_name", "truth_for"]
 
 #: The names of the colour channels in a fit vector's names (``diffuse_reflectance[R]``).
-CHANNEL_NAMES = ["R", "G", "B"]
+CHANNEL_NAMES = list(RGB.names)
 
 
 def truth_by_name(truth, names):

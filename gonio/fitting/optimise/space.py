@@ -16,6 +16,8 @@ import dataclasses
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS, RGB
+
 __all__ = ["ParameterSpace"]
 
 
@@ -38,15 +40,15 @@ class ParameterSpace:
     model
         A gonio model (see docs/interfaces.md section 2).
     n_channels : int
-        Colour channels of the data (3 for RGB).
+        Channels of the data (:data:`gonio.core.channels.CHANNELS` for RGB).
     fixed : dict, optional
         Parameters held at a given value rather than fitted.
     """
 
-    def __init__(self, model, n_channels: int = 3, fixed: dict | None = None, channels=None):
+    def __init__(self, model, n_channels: int = CHANNELS, fixed: dict | None = None, channels=None):
         self.model = model
         self.n_channels = int(n_channels)
-        self.channels = tuple(channels or ("R", "G", "B", "A")[: self.n_channels])
+        self.channels = tuple(channels or (RGB.names + ("A",))[: self.n_channels])
         self.fixed = dict(fixed or {})
         entries = []
         for p in model.parameters:

@@ -36,6 +36,7 @@ import time
 import numpy as np
 
 import gonio.models as gm
+from gonio.core.channels import CHANNELS
 from gonio.models import tabulated as tab
 from gonio.core.geometry import half_vector
 
@@ -127,7 +128,7 @@ def data_start(meas, model=None) -> dict:
     x = np.clip(1.0 - 0.5 * (np.einsum("ij,ij->i", wi, wh) + np.einsum("ij,ij->i", wo, wh)), 0.0, 1.0)
     good = valid & (ci > 1e-3) & (co > 1e-3)
     far = good & (theta_h > math.radians(BODY_THETA_H))
-    rho = np.zeros(3)
+    rho = np.zeros(CHANNELS)
     for c in range(3):
         v = f[far, c]
         v = v[np.isfinite(v)]
@@ -139,7 +140,7 @@ def data_start(meas, model=None) -> dict:
     ok = good[:, None] & np.isfinite(y) & (y > 0.0)
     logy = np.log(np.where(ok, y, 1.0))
     p = model.defaults()
-    ln_d = np.zeros((3, tab.N_KNOTS))
+    ln_d = np.zeros((CHANNELS, tab.N_KNOTS))
     fres = np.stack([p[f"fresnel_{j}"] for j in range(tab.N_FRESNEL)], axis=1)
     g1 = tab.g1_table(ln_d)[1]
     width = np.ones((1, tab.N_FRESNEL))
@@ -156,7 +157,7 @@ def data_start(meas, model=None) -> dict:
         green = np.clip(rel[1], *tab.LN_D_BOUNDS)
         green[:tab.FIRST_FREE] = 0.0
         B = np.stack(tab.TILT_BASIS, axis=1)  # (K, tilt knots)
-        tilt = np.zeros((3, B.shape[1]))
+        tilt = np.zeros((CHANNELS, B.shape[1]))
         for c in (0, 2):  # least squares of ln D_c - ln D_g on the tilt's hat functions, where both were seen
             use = seen[c] & seen[1] & (green > TILT_FLOOR)
             if use.sum() >= B.shape[1]:

@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS
 from gonio.core.geometry import angles_deg, finite_directions
 from gonio.models.mitsuba import SCENE_VARIANT
 
@@ -118,7 +119,7 @@ class VirtualGonio:
     def brdf(self, wi, wo) -> np.ndarray:
         """f_r as rendered, shape (N, 3); 0 where either direction is at or below the horizon."""
         wi, wo = np.atleast_2d(wi), np.atleast_2d(wo)
-        out = np.zeros((wi.shape[0], 3))
+        out = np.zeros((wi.shape[0], CHANNELS))
         with self._mi.scoped_set_variant(self.variant):
             for n in range(wi.shape[0]):
                 cos_i = wi[n, 2]

@@ -112,7 +112,7 @@ class CookTorrance(Model):
 
     def _eval_parts(self, wi, wo, p):
         n = wi.shape[0]
-        diffuse = np.broadcast_to(p["diffuse_reflectance"] / math.pi, (n, 3))
+        diffuse = np.broadcast_to(p["diffuse_reflectance"] / math.pi, (n, CHANNELS))
         return diffuse, cook_torrance_lobe(wi, wo, p["roughness"], p["f0"]) * p["specular_reflectance"]
 
     def to_mitsuba(self, params):

@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS
 from gonio.models.base import INV_PI, Model, Parameter, register, rgb
 from gonio.models.physics.fresnel import fresnel_dielectric
 from gonio.models.engine.jit import _floor, _fresnel_outside, channels, microfacet_lobe
@@ -158,7 +159,7 @@ class Principled(Model):
         dh_i = np.einsum("ij,ij->i", wi, h)      # Mitsuba's dot(wh, wo): cos_theta_d
         ok = valid & (dh_o > 0.0) & (dh_i > 0.0) & (ci > 0.0) & (co > 0.0)
         lum = float(LUMINANCE @ base)
-        c_tint = base / lum if lum > 0.0 else np.ones(3)
+        c_tint = base / lum if lum > 0.0 else np.ones(CHANNELS)
         # main GGX lobe
         D = MicrofacetDistribution("ggx", alpha).D(h)
         G = smith_g1_xyz("ggx", alpha, alpha, wi[:, 0], wi[:, 1], ci, dh_i) * \
@@ -316,9 +317,9 @@ def _jit_kernel(model, k, wi, wo, P, grad):
     J["spec_tint"] = [S * one_m * (-Fd + w + t * r0 * (1.0 - w)) for t in tint]
     J["sheen"] = [wd * one_m * (1.0 + sht * (t - 1.0)) for t in tint]
     J["sheen_tint"] = [wd * sh * one_m * (t - 1.0) for t in tint]
-    J["clearcoat"] = [coat_unit] * 3
+    J["clearcoat"] = [coat_unit] * CHANNELS
     dlnd = (1.0 / (a2 - 1.0) - 1.0 / (a2 * dr.log(a2)) - mz * mz / E) * (2.0 * a_cc) * (0.001 - 0.1)
-    J["clearcoat_gloss"] = [coat * dlnd] * 3
+    J["clearcoat_gloss"] = [coat * dlnd] * CHANNELS
     J["flatness"] = [dr.select(ok, f_ss - shape0, 0.0) * kd * b for b in base]
     dt = S * one_m * st * r0 * (1.0 - w) + wd * sh * one_m * sht      # d f_c / d t_c (the same for every c)
     J["base_color"] = [S * m * (1.0 - w) + shape * kd + dr.select(pos, dt * rl, 0.0) for _ in base]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS
 from gonio.models.base import Model, Parameter, register, rgb
 from gonio.models.engine.jit import (_fresnel_conductor, _lobe_iso_geometry, channels, microfacet_lobe, microfacet_lobe_iso)
 from gonio.models.structure import Structure
@@ -87,7 +88,7 @@ class RoughConductor(Model):
         ok = valid & (den > 0.0)
         s = np.where(ok, D * G / np.where(ok, den, 1.0), 0.0)
         F = fresnel_conductor(0.5 * (di + do)[:, None], p["eta"], p["k"])
-        return np.zeros((wi.shape[0], 3)), F * s[:, None]
+        return np.zeros((wi.shape[0], CHANNELS)), F * s[:, None]
 
     def _eval(self, wi, wo, p):
         return self._eval_parts(wi, wo, p)[1]

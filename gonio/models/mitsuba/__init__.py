@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS
 from gonio.core.geometry import finite_directions
 from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
@@ -87,7 +88,7 @@ def eval_cos(bsdf, wi, wo, variant: str | None = None, chunk: int = 1 << 20) -> 
     if wi.shape != wo.shape:
         raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
     n = wi.shape[0]
-    out = np.zeros((n, 3))
+    out = np.zeros((n, CHANNELS))
     if n == 0:
         return out
     with mi.scoped_set_variant(variant):
@@ -99,7 +100,7 @@ def eval_cos(bsdf, wi, wo, variant: str | None = None, chunk: int = 1 << 20) -> 
                 stop = min(n, start + chunk)
                 si, w = interaction(wi[start:stop], wo[start:stop])
                 value = bsdf.eval(ctx, si, w)
-                out[start:stop] = np.array(value, dtype=np.float64).reshape(3, stop - start).T
+                out[start:stop] = np.array(value, dtype=np.float64).reshape(CHANNELS, stop - start).T
         else:
             si = dr.zeros(mi.SurfaceInteraction3f)
             si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))

@@ -42,6 +42,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from gonio.core.channels import CHANNELS
 from gonio.models.structure import LOBE_ONLY
 from gonio.core.geometry import as_directions
 
@@ -134,7 +135,7 @@ def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
     if known is not None and dist is not None:      # the lobe's nodes alone
         lobe = (_lobe_integral(model, p, dist, W, n_theta, n_phi) if compiled is None
                 else compiled[0](model, p, dist, W, n_theta, n_phi, known))
-        return np.broadcast_to(known + lobe, (m, 3))
+        return np.broadcast_to(known + lobe, (m, CHANNELS))
     if compiled is not None:
         if dist is None:                            # f_r at the smooth part's nodes
             return compiled[1](model, p, None, W, n_theta, n_phi)
@@ -150,7 +151,7 @@ def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
             acc = acc + _weighted(wgt, lobe.reshape(m, k, -1))
         else:
             acc = acc + _lobe_integral(model, p, dist, W, n_theta, n_phi)
-    return np.broadcast_to(acc, (m, 3))
+    return np.broadcast_to(acc, (m, CHANNELS))
 
 
 def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, return_error=False, compiled=None):
@@ -187,8 +188,8 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     wo = as_directions(wo, "wo")
     p = model.validate(params)
     n = wo.shape[0]
-    out = np.zeros((n, 3))
-    err = np.zeros((n, 3))
+    out = np.zeros((n, CHANNELS))
+    err = np.zeros((n, CHANNELS))
     dist = model._lobe_distribution(p)
     n_theta = max(2, n_theta + n_theta % 2)
     n_phi = max(4, n_phi + (-n_phi) % 4)
@@ -208,7 +209,7 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
 
     with np.errstate(all="ignore"):
         prev = np.array(level_of(idx, 0))      # written into below (a level may be a broadcast view)
-        e = np.full((idx.size, 3), np.nan)  # no estimate without a second level
+        e = np.full((idx.size, CHANNELS), np.nan)  # no estimate without a second level
         active = np.arange(idx.size)
         for level in range(1, max_level + 1):
             if active.size == 0:

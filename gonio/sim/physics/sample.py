@@ -23,13 +23,14 @@ import os
 import numpy as np
 
 import gonio.models as gm
+from gonio.core.channels import CHANNELS
 from gonio.core.sides import Side
 from gonio.models.mitsuba import eval_cos, mitsuba_variant
 
 __all__ = ["SampleTruth", "mitsuba_variant", "resolve_sample"]
 
 def _diffuse_fallback(params: dict) -> tuple[dict, callable]:
-    rho = np.broadcast_to(np.asarray(params.get("reflectance", 0.5), dtype=float), (3,)).copy()
+    rho = np.broadcast_to(np.asarray(params.get("reflectance", 0.5), dtype=float), (CHANNELS,)).copy()
 
     def eval_(wi, wo):
         ok = Side.REFLECT.mask(wi[:, 2], wo[:, 2])
