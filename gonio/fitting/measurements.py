@@ -165,10 +165,14 @@ ANGLE_UNITS = {**dict.fromkeys(("deg", "degree", "degrees"), np.pi / 180.0),
 MIN_REL_SIGMA = 1e-9
 #: ... nor is one below this, whatever the values (sr^-1): its inverse square overflows.
 MIN_SIGMA = 1e-100
+#: No measured |f_r| or 1-sigma exceeds this (sr^-1): a mirror seen through a 0.01-degree aperture
+#: is ~3e7; beyond it a value is damage, and its square (the fit's chi^2) overflows near 1e154.
+MAX_BRDF = 1e10
 
 
 def _check_sigmas(path, brdf, std, use) -> None:
-    """brdf_std must be positive, finite, normal and not absurdly small at every usable value."""
+    """brdf_std must be positive, finite, normal and not absurdly small, and f_r and brdf_std at
+    most :data:`MAX_BRDF`, at every usable value."""
     if not np.any(use):
         return
     bad = use & ~(std > 0)
@@ -176,6 +180,11 @@ def _check_sigmas(path, brdf, std, use) -> None:
         i, c = (int(v) for v in np.argwhere(bad)[0])
         raise DataError(f"{path}: brdf_std = {std[i, c]:g} at point {i} (channel {c}) is not positive; "
                         "every used value needs a 1-sigma > 0 (flag the point saturated or drop it)")
+    bad = use & ((np.abs(brdf) > MAX_BRDF) | (std > MAX_BRDF))
+    if np.any(bad):
+        i, c = (int(v) for v in np.argwhere(bad)[0])
+        raise DataError(f"{path}: f_r = {brdf[i, c]:g} +- {std[i, c]:g} at point {i} (channel {c}) is beyond any "
+                        f"measured BRDF (at most {MAX_BRDF:g} sr^-1); fix the dataset or drop the point")
     typical = float(np.median(np.abs(brdf[use])))
     floor = np.maximum(MIN_REL_SIGMA * np.maximum(np.abs(brdf), typical), MIN_SIGMA)
     bad = use & ((std < floor) | (std < np.finfo(np.float64).tiny))
