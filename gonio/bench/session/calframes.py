@@ -37,6 +37,7 @@ class CalibrationFrames:
     def _take_darks(self, say=lambda text: None) -> None:
         """Dark frames (lamp off) for every rung of the exposure ladder, journalled once per session."""
         have = {v[0]: v for v in self.journal.frames("dark").values()}
+        self._drop_uncommitted("dark_", {v[1] for v in have.values()})
         if any(float(t) not in have for t in self.rungs):
             self.bench.led.off()
         for k, t in enumerate(map(float, self.rungs)):
@@ -63,7 +64,8 @@ class CalibrationFrames:
         checked, then all made durable with one file-system sync and journalled in one
         transaction. A frame at a time (two fsyncs and two journal commits a frame) the
         default 512 frames cost ~4 s of a quick session's ~6 s on this machine's disk, for a
-        durability that the retake of an incomplete set never used.
+        durability that the retake of an incomplete set never used. The frames of an incomplete
+        set are deleted before it is taken again (a kill left up to ``flat_frames - 1`` of them).
         """
         cam = self.bench.camera
         n = int(self.settings["capture"].get("flat_frames", 16))
@@ -72,6 +74,7 @@ class CalibrationFrames:
         have = self.journal.frames("flat")
         if len(have) != n or n < 1:              # none yet, or a crash while taking them (or none wanted)
             self.journal.forget_frames("flat")
+            self._drop_uncommitted("flat_", set())   # the frames a killed run took of its set
             if not hasattr(cam, "flat") or n < 1:
                 self.journal.event("no_flat", "no flat-field source: pixel response non-uniformity not corrected")
                 return
@@ -114,6 +117,15 @@ class CalibrationFrames:
         make_durable([self.folder / file for file in files])
         self.journal.record_frames(rows)
         return gain
+
+    def _drop_uncommitted(self, prefix: str, committed: set) -> None:
+        """Delete the RAW files ``raw/PREFIX*`` a killed run reserved and wrote but never
+        committed (not in ``committed``): they are taken again under new names. Called before
+        any is taken, holding the session lock; a kill between two deletions leaves the rest
+        to the next run."""
+        for file in sorted(self.reserved):
+            if file.startswith(f"{RAW_DIR}/{prefix}") and file not in committed:
+                (self.folder / file).unlink(missing_ok=True)
 
     def _take_chart(self, say=lambda text: None) -> None:
         """One frame of the ColorChecker in the holder's chart slot, lamp on (``[capture]
