@@ -41,7 +41,7 @@ from gonio.fitting.measurements import Measurements, load_dataset
 from gonio.fitting.formats.mitsuba_xml import (MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet,
                                                write_mitsuba_dict, write_mitsuba_document)
 from gonio.fitting.formats.native import NativeBSDF, native_bsdf
-from gonio.fitting.formats._verify import ExportError, expect, written
+from gonio.fitting.formats.readback import ExportError, expect, written
 from gonio.fitting.formats.pabopto import PaboptoExport, export_pabopto, model_pabopto, pabopto_files, write_pabopto
 from gonio.fitting.formats.pabopto import write_files as write_pabopto_files
 

@@ -29,7 +29,7 @@ import numpy as np
 
 import gonio.models as gm
 from gonio.core.channels import CHANNELS
-from gonio.fitting.formats._verify import expect, written
+from gonio.fitting.formats.readback import expect, written
 
 __all__ = ["MITSUBA_XML_VERSION", "PLUGINS", "mitsuba_document", "mitsuba_snippet", "write_mitsuba_document",
            "write_mitsuba_dict"]

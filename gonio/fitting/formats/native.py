@@ -24,7 +24,7 @@ import numpy as np
 import gonio.models as gm
 from gonio.core.channels import CHANNELS
 from gonio.core.geometry import directions_deg
-from gonio.fitting.formats._verify import ExportError
+from gonio.fitting.formats.readback import ExportError
 
 __all__ = ["FAMILIES", "N_CHECK", "NativeBSDF", "native_bsdf", "check_directions", "relative_error"]
 

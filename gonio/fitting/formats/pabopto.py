@@ -31,7 +31,7 @@ import numpy as np
 
 from gonio.core.channels import CHANNELS
 from gonio.core.geometry import angles_deg, directions_deg
-from gonio.fitting.formats._verify import expect, written
+from gonio.fitting.formats.readback import expect, written
 
 __all__ = ["SRGB_TO_XYZ", "PaboptoExport", "pabopto_files", "export_pabopto", "write_pabopto", "model_pabopto",
            "write_files", "LEFT_OUT_NAME"]
@@ -154,7 +154,7 @@ def write_files(folder, files: dict, *, n_points: int | None = None, extra: dict
 
     Every file is read back before it gets its name; ``n_points`` (the directions the texts were
     made from; by default what their headers count) must be what they hold, else
-    :class:`~gonio.fitting.formats._verify.ExportError` and no file is written. ``extra``:
+    :class:`~gonio.fitting.formats.readback.ExportError` and no file is written. ``extra``:
     ``{name: text}`` written beside them (ASCII), read back byte for byte.
     """
     folder = Path(folder)
@@ -230,7 +230,7 @@ def export_pabopto(folder, meas, *, sample_name="gonio") -> PaboptoExport:
     at or below the horizon (PAB-Opto needs theta < 90 deg as written, to 1e-6) or when a value is
     not finite; those points are listed in ``left_out.tsv`` (point, angles, reason) and each
     file's header counts its directions. The files are read back before they get their names;
-    a mismatch raises :class:`~gonio.fitting.formats._verify.ExportError` and writes nothing.
+    a mismatch raises :class:`~gonio.fitting.formats.readback.ExportError` and writes nothing.
     """
     (ti, pi_), (to, po) = angles_deg(meas.wi), angles_deg(meas.wo)
     n = meas.n_points

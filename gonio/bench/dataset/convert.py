@@ -1,0 +1,114 @@
+"""``gonio convert``'s use case: one file in an exchange format, from a fit or a dataset.
+
+A fit -> Mitsuba XML (a plain Mitsuba's, or with gonio's plugins) / dict JSON / MERL /
+PAB-Opto; a dataset -> CSV / MERL (binned) / PAB-Opto. Every output is checked before anything
+is written (one line naming what to fix), written through the formats' checked writers, and
+what a failed call made (folders) is removed. :func:`convert` says its lines through ``say``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Callable
+
+from gonio.bench.dataset.reader import open_dataset
+from gonio.core.channels import RGB
+from gonio.core.errors import GonioError
+from gonio.core.preflight import check_output_dir, check_output_file, writing
+from gonio.fitting import formats, load_fit
+from gonio.fitting.pipeline import load_fit_file
+
+__all__ = ["convert", "TARGETS"]
+
+#: What ``--to`` accepts.
+TARGETS = ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "pabopto", "csv", "merl-data")
+
+
+def convert(source: Path, out: Path, to: str, say: Callable[[str], None] = print) -> None:
+    """Write ``source`` (a fit file or a dataset) to ``out`` in format ``to``."""
+    source, out = Path(source), Path(out)
+    if not source.exists():
+        raise GonioError(f"{source} does not exist")
+    if source.is_dir():
+        raise GonioError(f"{source} is a folder; give a fit file (FIT.json) or a dataset.nc")
+    merl_bytes = 12 + 3 * 90 * 90 * 180 * 8
+    if to == "pabopto":
+        check_output_dir(out, "PAB-Opto output folder (--out)")
+    else:
+        check_output_file(out, "converted file (--out)", need_bytes=merl_bytes if to in ("merl", "merl-data") else 0)
+    if Path(os.path.abspath(out)) == Path(os.path.abspath(source)):
+        raise GonioError(f"--out {out} is the source file; give another file name")
+    made = [p for p in (Path(os.path.abspath(out)), *Path(os.path.abspath(out)).parents) if not p.exists()]
+    try:
+        with writing(out):
+            _convert(source, out, to, say)
+    except BaseException:
+        for folder in made:              # innermost first: only the folders this call made, if empty
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+        raise
+    say(f"wrote {out}")
+
+
+def _make_parent(out: Path) -> None:
+    """``--out``'s missing folders are made (as ``mkdir -p``) once the source has been read:
+    check_output_file has already checked that their nearest existing ancestor is writable."""
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+
+
+def _convert_pabopto(source, out, say):
+    """``--to pabopto``: a fit's model on a grid, or a dataset's measured values, one file per incidence."""
+    if source.suffix.lower() == ".json":
+        try:
+            loaded = load_fit(source)
+        except (ValueError, KeyError, json.JSONDecodeError) as exc:
+            raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+        # the fitted channels (R, G, B or X, Y, Z) as the fit file names them
+        named = [p.get("channel") for p in loaded.parameters.values() if isinstance(p, dict) and p.get("channel")]
+        channels = tuple(dict.fromkeys(named)) or RGB.names
+        files = formats.model_pabopto(loaded.model, loaded.params, channels=channels, sample_name=source.stem)
+        paths = formats.write_pabopto_files(out, files)
+        line = f"{len(paths)} PAB-Opto files (one per incident direction)"
+    else:
+        try:
+            done = formats.export_pabopto(out, open_dataset(source), sample_name=source.parent.name or source.stem)
+        except ValueError as exc:
+            raise GonioError(f"{source}: {exc}") from None
+        line = done.summary()
+    say(f"{line} in {out}; Radiance: pabopto2bsdf {out}/*.dat > sample.sir")
+
+
+def _convert(source, out, to, say):
+    if to == "pabopto":
+        return _convert_pabopto(source, out, say)
+    if to in ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl"):
+        if source.suffix.lower() != ".json":
+            raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")
+        model, params = load_fit_file(source)
+        if to == "merl":
+            merl = formats.resample_to_merl(model, params)
+            _make_parent(out)
+            formats.write_merl(out, merl)
+            return
+        # a plain Mitsuba loads mitsuba-xml and mitsuba-dict (the closest native family where the model has no
+        # plugin); mitsuba-xml-gonio keeps gonio's Python plugin (exact, for a process that imports gonio)
+        plugins = "gonio" if to == "mitsuba-xml-gonio" else "native"
+        writer = formats.write_mitsuba_dict if to == "mitsuba-dict" else formats.write_mitsuba_document
+        _make_parent(out)
+        note = writer(out, model.name, dict(model.options), params, plugins=plugins)
+        if note:
+            say(note)
+    elif to == "csv":
+        meas = open_dataset(source)
+        _make_parent(out)
+        formats.dataset_to_csv(meas, out)
+    elif to == "merl-data":
+        merl = formats.dataset_to_merl(open_dataset(source))
+        _make_parent(out)
+        formats.write_merl(out, merl)
+        say(f"{int(merl.valid.sum())} of {merl.valid.size} MERL bins hold measured data; the rest are marked no-data")
+    else:
+        raise GonioError(f"unknown --to {to!r}: mitsuba-xml, mitsuba-xml-gonio, mitsuba-dict, merl, pabopto (from a fit), csv, merl-data "
+                         "or pabopto (from a dataset)")
