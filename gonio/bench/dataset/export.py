@@ -237,7 +237,8 @@ def _check_read_back(data, ds, path: Path) -> None:
                     problem = f"no variable {name}"
                     break
                 b = np.asarray(back[name].values)
-                if a.shape != b.shape or not np.array_equal(a, b, equal_nan=a.dtype.kind in "fc" and b.dtype.kind in "fc"):
+                nan = a.dtype.kind in "fc" and b.dtype.kind in "fc"
+                if a.shape != b.shape or not np.array_equal(a, b, equal_nan=nan):
                     problem = f"other values of {name} than were written"
                     break
     except (OSError, ValueError, TypeError, KeyError, RuntimeError) as exc:

@@ -167,8 +167,8 @@ def _local(f: _File, total: int) -> int:
     return k if k <= x else m
 
 
-def _cell(f: _File, page: bytes, o: int, end: int, allow_overflow: bool) -> tuple[int, tuple] | None:
-    """(rowid, values) of the table-leaf cell at offset ``o``, or None."""
+def _cell(f: _File, page: bytes, o: int, end: int, allow_overflow: bool) -> tuple[int, tuple, int] | None:
+    """(rowid, values, bytes the cell takes on its page) of the table-leaf cell at offset ``o``, or None."""
     try:
         total, i = _varint(page, o, end)
         rowid, i = _varint(page, i, end)
@@ -190,29 +190,72 @@ def _cell(f: _File, page: bytes, o: int, end: int, allow_overflow: bool) -> tupl
             return None
         payload = bytes(payload) + more
     values = _record(payload)
-    return None if values is None else (rowid - (1 << 64) if rowid >= 1 << 63 else rowid, values)
+    if values is None:
+        return None
+    return rowid - (1 << 64) if rowid >= 1 << 63 else rowid, values, i + local + (4 if local < total else 0) - o
+
+
+def _free_bytes(page: bytes, hdr: int, end: int) -> int | None:
+    """Bytes of the page's freeblock chain and fragments; None if the chain is not well formed."""
+    total, o, seen = page[hdr + 7], int.from_bytes(page[hdr + 1:hdr + 3], "big"), 0
+    while o:
+        if o + 4 > end or seen > end // 4:
+            return None
+        size = int.from_bytes(page[o + 2:o + 4], "big")
+        total += size
+        o, seen = int.from_bytes(page[o:o + 2], "big"), seen + 1
+    return total
+
+
+def _interior_ok(f: _File, page: bytes, hdr: int) -> bool:
+    """Whether a table interior page's cells (child page, key), freeblocks and fragments fill its
+    cell content area exactly."""
+    n = int.from_bytes(page[hdr + 3:hdr + 5], "big")
+    if hdr + 12 + 2 * n > f.usable:
+        return False
+    used = 0
+    for k in range(n):
+        o = int.from_bytes(page[hdr + 12 + 2 * k:hdr + 14 + 2 * k], "big")
+        if not hdr + 12 + 2 * n <= o < f.usable - 4:
+            return False
+        try:
+            used += _varint(page, o + 4, f.usable)[1] - o
+        except IndexError:
+            return False
+    start = int.from_bytes(page[hdr + 5:hdr + 7], "big") or 65536
+    free = _free_bytes(page, hdr, f.usable)
+    return free is not None and used + free == f.usable - start
 
 
 def _parse(f: _File, page: bytes, hdr: int) -> tuple[list[tuple[int, tuple]], bool]:
-    """(cells, clean) of a page read through its header and cell pointers."""
+    """(cells, clean) of a page read through its header and cell pointers. Clean: every cell
+    parsed, and cells, freeblocks and fragments fill the cell content area exactly (a damaged
+    cell count or pointer leaves bytes unaccounted for)."""
     if len(page) < hdr + 8:
         return [], False
     kind = page[hdr]
-    if kind in (_INTERIOR, _INDEX_LEAF, _INDEX_INTERIOR):
+    if kind in (_INDEX_LEAF, _INDEX_INTERIOR):
         return [], True                       # no table rows on it
+    if kind == _INTERIOR:                     # no rows either, if it is one (a leaf's 0x0D is one bit away)
+        return [], _interior_ok(f, page, hdr)
     if kind != _LEAF:
         return [], False
     n = int.from_bytes(page[hdr + 3:hdr + 5], "big")
     if hdr + 8 + 2 * n > f.usable:
         return [], False
-    cells, clean = [], True
+    cells, clean, used = [], True, 0
     for k in range(n):
         o = int.from_bytes(page[hdr + 8 + 2 * k:hdr + 10 + 2 * k], "big")
         got = _cell(f, page, o, f.usable, True) if hdr + 8 + 2 * n <= o < f.usable else None
         if got is None:
             clean = False
         else:
-            cells.append(got)
+            cells.append(got[:2])
+            used += got[2]
+    start = int.from_bytes(page[hdr + 5:hdr + 7], "big") or 65536
+    free = _free_bytes(page, hdr, f.usable)
+    if free is None or used + free != f.usable - start:
+        clean = False
     return cells, clean
 
 
@@ -225,7 +268,7 @@ def _search(f: _File, page: bytes, hdr: int) -> list[tuple[int, tuple]]:
             continue
         got = _cell(f, page, o, end, False)
         if got is not None and got[1]:
-            out.append(got)
+            out.append(got[:2])
     return out
 
 
