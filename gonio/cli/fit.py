@@ -11,7 +11,7 @@ from gonio.cli.console import print_table
 from gonio.bench.report.fitdoc import energy_text, truth_for
 from gonio.bench.report.meta import gum
 from gonio.core.errors import GonioError
-from gonio.bench.dataset.reader import open_budget, open_dataset as _open_dataset  # noqa: F401  (the CLI's names)
+from gonio.bench.dataset.reader import open_budget, open_dataset as _open_dataset, open_fit_input  # noqa: F401  (the CLI's names)
 from gonio.fitting.pipeline import (fit_dataset, load_fit_file, model_error as _model_error, parse_options,  # noqa: F401
                                     resolve_candidates)
 from gonio.fitting.render.closure import (check_measured as _check_measured, check_preview_options, check_variant,  # noqa: F401
@@ -128,10 +128,10 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     if colour_space not in COLOUR_SPACES:
         raise GonioError(f"unknown --colour-space {str(colour_space)[:40]!r}: choose one of {', '.join(COLOUR_SPACES)}")
     check_output_file(out, "fit file (--out)")
-    meas = _open_dataset(dataset, seed, colour_space)
-    budget = open_budget(dataset, meas)
-    _, doc, _ = fit_dataset(meas, model=model, options=parse_options(options), seed=seed, loss=loss,
-                            posterior=posterior, dataset_path=dataset, budget=budget)
+    inp = open_fit_input(dataset, seed, colour_space)
+    meas = inp.meas
+    _, doc, _ = fit_dataset(inp, model=model, options=parse_options(options), seed=seed, loss=loss,
+                            posterior=posterior, dataset_path=dataset)
     with writing(out):
         write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None
@@ -154,7 +154,8 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
     """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``."""
     import gonio.models as gm
     from gonio.fitting import (LOSSES, check_dashboard_address, check_scheduler_address, check_workers, fit_batch,
-                               fit_document, write_json_atomic)
+                               write_json_atomic)
+    from gonio.fitting.pipeline import fit_document_of
 
     from gonio.core.preflight import check_output_dir, writing
 
@@ -178,11 +179,12 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
         gm.get(model, **parse_options(options))         # a model and options the registry knows
     except (KeyError, ValueError, TypeError) as exc:
         raise _model_error(exc, model, auto=False) from None
-    metas = [_open_dataset(d, seed) for d in datasets]
+    # each dataset as `gonio fit` opens it: Measurements and budget (one FitInput)
+    inputs = [open_fit_input(d, seed) for d in datasets]
     if loss is None:
         from gonio.fitting import default_loss
 
-        defaults = sorted({default_loss(m) for m in metas})
+        defaults = sorted({default_loss(i.meas) for i in inputs})
         if len(defaults) > 1:
             raise GonioError(f"these datasets have different default losses ({', '.join(defaults)}: measured sigma "
                              "or none); give --loss, or fit them in separate batches")
@@ -197,12 +199,12 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
     if scheduler is None:
         import functools
 
-        work = [functools.partial(_open_dataset, d, seed) for d in datasets]
+        work = [functools.partial(open_fit_input, d, seed) for d in datasets]
     else:
-        work = metas
+        work = inputs
     try:
         # (name, the user's options): each worker fits as `gonio fit` does (gonio.fitting.pipeline)
-        results = fit_batch(work, (model, parse_options(options)), scheduler=scheduler, n_workers=min(workers, len(metas)), rng_seed=seed,
+        results = fit_batch(work, (model, parse_options(options)), scheduler=scheduler, n_workers=min(workers, len(inputs)), rng_seed=seed,
                             loss=loss, dashboard_address=dashboard)
     except (OSError, TimeoutError) as exc:
         if scheduler is None:
@@ -218,8 +220,8 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
         raise
     out.mkdir(parents=True, exist_ok=True)
     poor = []
-    for path, meas, result, stem in zip(datasets, metas, results, stems):
-        doc = fit_document(result, meas, seed=seed, dataset_path=path)
+    for path, inp, result, stem in zip(datasets, inputs, results, stems):
+        doc = fit_document_of(result, inp, seed=seed, dataset_path=path)
         with writing(out / f"{stem}.fit.json"):
             write_json_atomic(out / f"{stem}.fit.json", doc)
         print(f"{stem}: chi2/dof {result.chi2_dof:.3f}, " + ", ".join(

@@ -23,7 +23,7 @@ from gonio.fitting.formats.fitfile import FitFile, fit_document, load_fit, parse
 from gonio.fitting.likelihood.loss import LOSSES, REAL_DEFAULT_LOSS, default_loss
 from gonio.fitting.batch.malloc import tune as tune_allocator
 from gonio.fitting.optimise.mle import FitResult, fit
-from gonio.fitting.pipeline import fit_dataset, fit_measurements
+from gonio.fitting.pipeline import FitInput, fit_dataset, fit_document_of, fit_measurements
 from gonio.fitting.uncertainty.posterior import Posterior, sample_posterior
 from gonio.fitting.realdata import merl_samples, rgl_samples
 from gonio.fitting.selection.by_data import CANDIDATES, Ranked, option_candidates, select
@@ -31,7 +31,7 @@ from gonio.fitting.optimise.space import ParameterSpace
 from gonio.fitting.optimise.tabulated_start import fit_tabulated
 
 __all__ = [
-    "fit_dataset", "fit_measurements",
+    "FitInput", "fit_dataset", "fit_document_of", "fit_measurements",
     "Budget", "BudgetComponent", "load_budget", "with_instrument_response", "CANDIDATES", "DataError", "FitFile", "FitResult", "crlb", "efficiency", "fit_batch", "fit_serial", "LOSSES", "REAL_DEFAULT_LOSS", "default_loss", "Measurements", "ParameterSpace", "Posterior", "Ranked", "fit_tabulated",
     "COLOUR_SPACES", "colour_transform", "direction", "fit", "option_candidates", "rgl_samples", "merl_samples", "fit_document", "load_dataset", "load_fit", "sample_posterior", "select", "versions",
     "write_json_atomic", "parse_fit", "check_dashboard_address", "check_scheduler_address", "check_workers", "tune_allocator",

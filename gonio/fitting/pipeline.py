@@ -10,10 +10,13 @@ whose options leave its microfacet distribution open is fitted once per declared
 distribution and the better one by BIC is kept (said in the ranking); ``tabulated`` starts
 from the data; every fit is refined with the instrument's angular response where the
 dataset declares its apertures. The starts draw from ``numpy.random.default_rng(seed)``.
+A dataset reaches every path as one :class:`FitInput` (its Measurements and its budget), and
+:func:`fit_document_of` writes the fit file from it wherever the fit ran.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +24,28 @@ import numpy as np
 from gonio.core.errors import GonioError
 from gonio.fitting.formats.fitfile import load_fit_file  # noqa: F401  (re-exported: the use cases read fit files)
 
-__all__ = ["fit_dataset", "fit_measurements", "load_fit_file", "parse_options", "resolve_candidates", "model_error"]
+__all__ = ["FitInput", "as_fit_input", "fit_dataset", "fit_document_of", "fit_measurements", "load_fit_file",
+           "parse_options", "resolve_candidates", "model_error"]
+
+
+@dataclasses.dataclass
+class FitInput:
+    """What a fit of one dataset needs: its Measurements and its uncertainty budget.
+
+    ``budget`` None: the budget of ``meas.attrs`` (:func:`gonio.fitting.uncertainty.budget.budget_from_attrs`:
+    type A and the certificate). A dataset.nc's budget holds more (its ``u_`` lines, the shared
+    angle inputs of an uncalibrated capture), so a file is opened once, as a FitInput
+    (:func:`gonio.bench.dataset.reader.open_fit_input`), and the single fit, each batch worker
+    and the fit document all take that.
+    """
+
+    meas: object
+    budget: object = None
+
+
+def as_fit_input(data) -> FitInput:
+    """``data`` (a FitInput or Measurements) as a FitInput."""
+    return data if isinstance(data, FitInput) else FitInput(data, None)
 
 
 def parse_options(pairs) -> dict:
@@ -93,6 +117,11 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     """
     import gonio.models as gm
     from gonio.fitting.likelihood.aperture import with_instrument_response
+
+    if isinstance(meas, FitInput):
+        if budget is not None:
+            raise TypeError("give the budget in the FitInput or as budget=, not both")
+        meas, budget = meas.meas, meas.budget
     from gonio.fitting.likelihood.loss import LOSSES, default_loss
     from gonio.fitting.optimise.mle import fit
     from gonio.fitting.selection.by_data import select
@@ -138,10 +167,13 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
 
     ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
     (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file."""
-    from gonio.fitting.formats.fitfile import fit_document
     from gonio.fitting.likelihood.loss import default_loss
     from gonio.fitting.uncertainty.posterior import sample_posterior
 
+    if isinstance(meas, FitInput):
+        if budget is not None:
+            raise TypeError("give the budget in the FitInput or as budget=, not both")
+        meas, budget = meas.meas, meas.budget
     if loss is None:
         loss = default_loss(meas)
     if posterior and loss != "chi2":
@@ -156,8 +188,27 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
         # one batch: 32 walkers on 100 points take ~2 ms a step).
         post = sample_posterior(meas, result, rng=rng, time_budget_s=posterior_budget_s,
                                 **({"chunk": 250} if posterior_budget_s else {}))
-    doc = fit_document(result, meas, seed=seed, posterior=post, ranking=ranking, dataset_path=dataset_path,
-                       budget=budget)
+    doc = fit_document_of(result, FitInput(meas, budget), seed=seed, posterior=post, ranking=ranking,
+                          dataset_path=dataset_path, fitted=True)
     if note:
         doc["selection_rule"] = note
     return result, doc, post
+
+
+def fit_document_of(result, data, *, seed=None, posterior=None, ranking=None, dataset_path=None,
+                    fitted: bool = False) -> dict:
+    """The fit file of ``result``, a fit of ``data`` (FitInput or Measurements, as the dataset
+    was opened): the data and budget as the instrument's angular response left them (the
+    result's own correction applied again where ``fitted`` is False), then
+    :func:`gonio.fitting.formats.fitfile.fit_document`. ``fitted`` True: ``data`` is already
+    what :func:`fit_measurements` returned."""
+    from gonio.fitting.formats.fitfile import fit_document
+    from gonio.fitting.likelihood.aperture import corrected
+
+    inp = as_fit_input(data)
+    meas, budget = inp.meas, inp.budget
+    factor = getattr(result, "response_factor", None)
+    if factor is not None and not fitted:
+        meas, budget = corrected(meas, budget, factor)
+    return fit_document(result, meas, seed=seed, posterior=posterior, ranking=ranking, dataset_path=dataset_path,
+                        budget=budget)

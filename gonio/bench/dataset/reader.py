@@ -1,6 +1,6 @@
 """Any dataset a user gives, opened as the fitter sees it: a gonio ``dataset.nc``, a MERL
 ``.binary`` or an RGL ``.bsdf`` file as Measurements, and a dataset.nc's uncertainty budget;
-one line (GonioError) for what is missing, a folder, damaged or too large."""
+:func:`open_fit_input` both, as every fit path takes them (`gonio fit`, each batch worker); one line (GonioError) for what is missing, a folder, damaged or too large."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from gonio.core.errors import GonioError
 from gonio.core.hdf5check import check_hdf5
 from gonio.core.preflight import check_input_file
 
-__all__ = ["open_dataset", "open_budget"]
+__all__ = ["open_dataset", "open_budget", "open_fit_input"]
 
 
 @contextlib.contextmanager
@@ -100,3 +100,14 @@ def open_budget(path: Path, meas):
         return load_budget(path, meas)
     except ValueError as exc:
         raise GonioError(" ".join(str(exc).split())) from None
+
+
+def open_fit_input(path: Path, seed: int = 0, colour_space: str = "srgb"):
+    """What a fit of the dataset at ``path`` needs (:class:`gonio.fitting.pipeline.FitInput`):
+    :func:`open_dataset`'s Measurements and :func:`open_budget`'s budget. The one way a file
+    becomes a fit's input, so that a single fit and a batch worker fit the same thing."""
+    from gonio.fitting.pipeline import FitInput
+
+    path = Path(path)
+    meas = open_dataset(path, seed, colour_space)
+    return FitInput(meas, open_budget(path, meas))

@@ -296,8 +296,14 @@ def _one_thread_per_worker():
 
 
 def _load(meas):
-    """A dataset as Measurements: ``meas`` itself, or what the loader ``meas()`` returns."""
+    """A dataset as Measurements or FitInput: ``meas`` itself, or what the loader ``meas()`` returns."""
     return meas() if callable(meas) else meas
+
+
+def _points(data) -> int:
+    from gonio.fitting.pipeline import as_fit_input
+
+    return as_fit_input(data).meas.wi.shape[0]
 
 
 def _fit_one(meas, model_spec, i, rng_seed, fit_kwargs):
@@ -306,18 +312,18 @@ def _fit_one(meas, model_spec, i, rng_seed, fit_kwargs):
     options leave open; starts from ``default_rng(rng_seed)``, as a single fit with that seed);
     with fit options beyond the loss (``fixed``, ``n_starts``, ...), the named model's own fit
     with those options."""
+    from gonio.fitting.pipeline import as_fit_input, fit_measurements
+
     _one_thread_per_worker()
-    meas = _load(meas)
+    inp = as_fit_input(_load(meas))
     name, options = model_spec
     rng = np.random.default_rng(rng_seed)
     if set(fit_kwargs) <= {"loss"}:
-        from gonio.fitting.pipeline import fit_measurements
-
-        return fit_measurements(meas, model=name, options=options, seed=rng_seed, rng=rng,
+        return fit_measurements(inp, model=name, options=options, seed=rng_seed, rng=rng,
                                 loss=fit_kwargs.get("loss", "chi2"))[0]
     from gonio.fitting.optimise.mle import fit
 
-    return fit(meas, gm.get(name, **options), rng=rng, **fit_kwargs)
+    return fit(inp.meas, gm.get(name, **options), rng=rng, **fit_kwargs)
 
 
 def fit_many(metas, model_spec, first, rng_seed, fit_kwargs):
@@ -340,9 +346,13 @@ def _warm_key(model_spec, fit_kwargs) -> str:
 
 
 def _subset(meas, k):
-    """The first ``k`` points of ``meas`` (a Measurements), for :func:`_warm_worker`."""
+    """The first ``k`` points of ``meas`` (Measurements; a FitInput's, without its budget),
+    for :func:`_warm_worker`."""
     import dataclasses
 
+    from gonio.fitting.pipeline import as_fit_input
+
+    meas = as_fit_input(meas).meas
     if meas.wi.shape[0] <= k:
         return meas
     cut = {f.name: getattr(meas, f.name) for f in dataclasses.fields(meas)}
@@ -438,10 +448,12 @@ def fit_batch(datasets, model, *, scheduler: str | None = None, n_workers: int =
 
     Parameters
     ----------
-    datasets : sequence of Measurements, or of loaders
-        A loader is a function of no arguments that returns the Measurements (picklable:
-        e.g. ``functools.partial(load_dataset, path)``); it is called in the worker, so the
-        data does not travel through Dask (the workers must see the same files).
+    datasets : sequence of FitInput or Measurements, or of loaders
+        A FitInput (:class:`gonio.fitting.pipeline.FitInput`) carries the dataset's budget,
+        which the fit needs where the dataset declares apertures; Measurements alone count as
+        a FitInput without one. A loader is a function of no arguments that returns either
+        (picklable: e.g. ``functools.partial(open_fit_input, path)``); it is called in the
+        worker, so the data does not travel through Dask (the workers must see the same files).
         Measurements reach a local cluster's workers through files in a private temporary
         folder (``TMPDIR``; about their size in the page cache while the batch runs), and
         other workers over the cluster.
@@ -608,7 +620,7 @@ def _run_chunked(client, datasets, spec, rng_seed, fit_kwargs, n_threads) -> lis
     loaders = all(callable(m) for m in datasets)
     chunks = task_chunks(len(datasets), n_threads,
                          costs=None if any(callable(m) for m in datasets) else
-                         [fit_cost(m.wi.shape[0]) for m in datasets])
+                         [fit_cost(_points(m)) for m in datasets])
     if loaders:      # small: in the graph
         parts = [datasets[a:b] for a, b in chunks]
     else:            # hash=False: no token computed over every array (distinct objects anyway)

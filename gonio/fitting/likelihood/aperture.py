@@ -111,4 +111,4 @@ def with_instrument_response(meas, budget, result, refit, repeats: int = 2):
             "method": f"data divided by c = <f_r>/f_r at the fitted parameters, refitted {repeats} times",
             "max_correction": float(np.max(np.abs(c - 1.0)[meas.use])), "last_change": change,
             "point_model_params": dict(zip(first.space.names, np.asarray(first.x).tolist()))}
-    return dataclasses.replace(result, response=info), m, b
+    return dataclasses.replace(result, response=info, response_factor=c), m, b

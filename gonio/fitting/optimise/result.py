@@ -55,6 +55,9 @@ class FitResult:
     #: the instrument's angular response applied (gonio/fitting/likelihood/aperture.py): apertures, the largest
     #: correction, the point model's parameters; None where the dataset declares no apertures
     response: dict | None = None
+    #: the factor c the data and budget were divided by for that response (N, C; the last
+    #: refit's), so the fit document can be built from the dataset as opened; None: none applied
+    response_factor: np.ndarray | None = dataclasses.field(default=None, repr=False)
     #: CPU seconds of the fit (``time.process_time``: every thread of this process, Dr.Jit's
     #: pool included), counted over what ``time_s`` counts; None where not measured
     cpu_s: float | None = None
