@@ -10,7 +10,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.stamp-install
 
-.PHONY: demo test test-fast test-codegen test-latest lock install llvm chromium clean docs
+.PHONY: demo test test-fast test-long test-codegen test-latest lock install llvm chromium clean docs
 
 demo: $(STAMP)
 	$(VENV)/bin/gonio demo
@@ -26,6 +26,12 @@ test: $(STAMP) chromium
 
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
+
+# The tests marked ``long`` (pyproject's addopts leave them out of every other run): the fuzz
+# tests with many more examples, the corpora of damaged files in full; the many-seed studies
+# also need GONIO_LONG=1.
+test-long: $(STAMP)
+	$(PY) -m pytest -q -n 2 --dist worksteal -m long
 
 test-codegen: $(STAMP)
 	@other=$$($(PY) -c "from gonio.models.engine.target import other_target; print(other_target())"); \
