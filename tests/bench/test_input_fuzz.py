@@ -5,7 +5,8 @@ truncation; ``open_dataset`` with its HDF5 walk in a child, then ``open_budget``
 
 The property everywhere: an input is read, or refused with the reader's one-line error
 (GonioError; ValueError for the fit file's parser) -- never another exception, never a hang
-(each example under a deadline). The default run draws a fixed, small set of examples
+(each example under a deadline; a damaged dataset.nc whose HDF5 walk loops costs
+check_hdf5's 20 s, so the long runs may take an hour). The default run draws a fixed, small set of examples
 (derandomized, ~20 s in all); ``pytest -m long`` (``make test-long``) draws many more.
 """
 
@@ -101,6 +102,7 @@ def test_fuzz_toml(tmp_path, data):
 
 
 @pytest.mark.long
+@pytest.mark.timeout(3600)
 @LONG
 @given(data=st.data())
 def test_fuzz_toml_long(tmp_path, data):
@@ -193,6 +195,7 @@ def test_fuzz_scene_file(scene_folder, data):
 
 
 @pytest.mark.long
+@pytest.mark.timeout(3600)
 @LONG
 @given(data=st.data())
 def test_fuzz_scene_file_long(scene_folder, data):
@@ -253,6 +256,7 @@ def test_fuzz_fit_file(tmp_path, data):
 
 
 @pytest.mark.long
+@pytest.mark.timeout(3600)
 @LONG
 @given(data=st.data())
 def test_fuzz_fit_file_long(tmp_path, data):
@@ -305,6 +309,7 @@ def test_fuzz_damaged_dataset(dataset, tmp_path, data):
 
 
 @pytest.mark.long
+@pytest.mark.timeout(3600)
 @LONG_NC
 @given(data=st.data())
 def test_fuzz_damaged_dataset_long(dataset, tmp_path, data):
