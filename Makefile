@@ -31,7 +31,7 @@ test-fast: $(STAMP)
 # tests with many more examples, the corpora of damaged files in full; the many-seed studies
 # also need GONIO_LONG=1.
 test-long: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist worksteal -m long
+	GONIO_LONG=1 $(PY) -m pytest -q -n 2 --dist worksteal -m long
 
 test-codegen: $(STAMP)
 	@other=$$($(PY) -c "from gonio.models.engine.target import other_target; print(other_target())"); \
