@@ -9,7 +9,6 @@ from pathlib import Path
 
 from gonio.cli.console import print_table
 from gonio.bench.report.fitdoc import energy_text, truth_for
-from gonio.bench.report.meta import gum
 from gonio.core.errors import GonioError
 from gonio.bench.dataset.reader import open_budget, open_dataset as _open_dataset, open_fit_input  # noqa: F401  (the CLI's names)
 from gonio.fitting.pipeline import (fit_dataset, load_fit_file, model_error as _model_error, parse_options,  # noqa: F401
@@ -27,50 +26,33 @@ def _inadequate_text(g) -> str:
 
 
 def print_fit(doc, truth=None, console=None):
-    """A rich table of the fit: value, 1-sigma, 90 % interval (and the truth when known)."""
+    """The fit file's one uncertainty statement as a table (gonio.fitting.display.uncertainty_rows:
+    value, u_stat, u_c, U, k, unit, flags), the 90 % interval where it says more than
+    value +- 1.645 u_c, and the truth with z = (value - truth) / u_c where it is known."""
     from rich.console import Console
 
+    from gonio.fitting.display import UNCERTAINTY_HEADER, interval_column, uncertainty_rows, uncertainty_values
+
     console = console or Console()
-    names = list(doc["parameters"])
-    truths = truth_for(truth, doc["model"]["name"], names)
-    params = doc["parameters"]
-    # A Laplace 90 % interval is value +- 1.645 sigma: it gets a column only where it says more
-    # (an emcee interval, or one clipped at a bound); units only where some are not "1".
-    show_ci = any(p["method"] != "laplace" or p["at_bound"] for p in params.values())
-    show_unit = any((p["unit"] or "1") != "1" for p in params.values())
-    caption = "; ".join(c for c in ("z = (fit - truth) / " + ("u_c" if doc.get("uncertainty") else "sigma")
-                                    if truths else "",
-                                    "1-sigma statistical, u_c combined (budget), U = 2 u_c"
-                                    if doc.get("uncertainty") else "",
-                                    "" if show_ci else "90 % interval = value +- 1.645 sigma",
-                                    "" if show_unit else "all parameters dimensionless") if c)
-    unc = (doc.get("uncertainty") or {}).get("parameters") or {}
-    # values rounded by the GUM rule (to their uncertainty's second digit); at 80 columns the
-    # table continues below instead of cutting values (gonio/cli/console.py)
-    columns = [("parameter", "left"), ("value", "right"), ("1-sigma (stat)", "right")] \
-        + ([("u_c", "right"), ("U (k=2)", "right")] if unc else []) + ([("90 % interval", "right")] if show_ci else []) \
-        + ([("unit", "left")] if show_unit else []) + ([("truth", "right"), ("z", "right")] if truths else [])
+    values = uncertainty_values(doc)
+    truths = truth_for(truth, doc["model"]["name"], list(values))
+    intervals, interval_caption = interval_column(doc)
+    caption = "; ".join(["value ± u_c; u_stat statistical, u_c combined (budget), U = k u_c", interval_caption]
+                        + (["z = (value - truth) / u_c"] if truths else []))
+    # at 80 columns the table continues below instead of cutting values (gonio/cli/console.py)
+    columns = [(h, "left" if h in ("parameter", "unit", "flags") else "right") for h in UNCERTAINTY_HEADER] \
+        + ([("90 % interval", "right")] if intervals else []) + ([("truth", "right"), ("z", "right")] if truths else [])
     rows = []
-    for name, p in params.items():
-        u = unc.get(name)
-        sigma = u["u_combined"] if u else p["std"]
-        value, _ = gum(p["value"], sigma)
-        # the statistical 1-sigma the budget carries (type A with the channels' correlation,
-        # gonio/fitting/uncertainty/budget.py) where the fit has one; else the fit's own
-        row = [name, value, f"{(u['u_stat'] if u else p['std']):.2g}"]
-        if unc:
-            row += [gum(p["value"], u["u_combined"])[1], gum(p["value"], u["U"])[1]] if u else ["-", "-"]
-        if show_ci:
-            row.append(f"{p['ci90'][0]:.6g} .. {p['ci90'][1]:.6g}")
-        if show_unit:
-            row.append(p["unit"] or "")
+    for row in uncertainty_rows(doc):
+        name, v = row[0], values[row[0]]
+        cells = list(row) + ([intervals.get(name, "-")] if intervals else [])
         if truths:
             t = truths.get(name)
-            row += [f"{t:.5g}" if t is not None else "-",
-                    f"{(p['value'] - t) / sigma:+.2f}" if (t is not None and sigma > 0) else "-"]
-        rows.append(row)
+            cells += [f"{t:.5g}" if t is not None else "-",
+                      f"{(v['value'] - t) / v['u_c']:+.2f}" if (t is not None and v["u_c"] > 0) else "-"]
+        rows.append(cells)
     print_table(console, columns, rows, title=f"fit: {doc['model']['name']} {json.dumps(doc['model']['options'])}",
-                caption=caption or None)
+                caption=caption)
     g = doc["goodness"]
     console.print(f"chi2/dof = {g['chi2_dof']:.3f} ({g['dof']} dof), RMSE f_r = {g['rmse_fr']:.3g} 1/sr, "
                   f"energy {energy_text(doc['constraints']['energy'])}, "
@@ -82,9 +64,6 @@ def print_fit(doc, truth=None, console=None):
     dominant = budget_line(doc)
     if dominant:
         console.print(dominant)
-    flagged = [n for n, p in doc["parameters"].items() if p["undetermined"]]
-    if flagged:
-        console.print(f"[yellow]the data cannot determine: {', '.join(flagged)}[/yellow]")
     if doc.get("posterior") and doc["posterior"].get("advice"):
         console.print(f"[yellow]{doc['posterior']['advice']}[/yellow]")
 

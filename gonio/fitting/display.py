@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 __all__ = ["value_pm", "parameter_rows", "table_html", "fit_summary", "measurements_summary", "parameter_flags",
-           "uncertainty_rows", "FLAGS", "UNCERTAINTY_HEADER"]
+           "uncertainty_rows", "uncertainty_values", "interval_column", "FLAGS", "UNCERTAINTY_HEADER"]
 
 #: a fit file's parameter flags (``parameters.<name>.flags``) and what each says
 FLAGS = {"at_bound": "at bound", "undetermined": "undetermined",
@@ -66,14 +66,14 @@ def parameter_flags(item: dict, lower: float, upper: float) -> list:
     return out
 
 
-def uncertainty_rows(doc: dict) -> list:
-    """The one uncertainty statement of a fit document, a row per parameter (:data:`UNCERTAINTY_HEADER`):
-    value and u_c by the GUM rounding, u_stat, U, k, unit and flags (text). The fit file, its
-    repr, ``to_xarray``, the report and the CLI show these; a document without an ``uncertainty``
-    section gives u_c = std."""
+def uncertainty_values(doc: dict) -> dict:
+    """Each parameter's ``{"value", "std", "u_stat", "u_c", "U", "k", "unit", "flags"}`` as a fit
+    document states them (numbers; NaN where missing; a document without an ``uncertainty``
+    section gives u_c = std and u_stat = std): what :func:`uncertainty_rows` prints, and
+    what z = (value - truth) / u_c is taken against."""
     params = doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {}
     unc = ((doc.get("uncertainty") or {}).get("parameters") or {}) if isinstance(doc.get("uncertainty"), dict) else {}
-    rows = []
+    out = {}
     for name, p in params.items():
         p = p if isinstance(p, dict) else {}
         q = unc.get(name) if isinstance(unc.get(name), dict) else {}
@@ -94,9 +94,37 @@ def uncertainty_rows(doc: dict) -> list:
         big_u = k * u_c if not math.isfinite(big_u) else big_u
         flags = p.get("flags") if isinstance(p.get("flags"), list) else [
             f for f in ("at_bound", "undetermined") if p.get(f)]
-        rows.append((str(name), value_pm(value, u_c), f"{u_stat:.2g}", f"{u_c:.2g}", f"{big_u:.2g}", f"{k:g}",
-                     str(p.get("unit") or ""), ", ".join(FLAGS.get(str(f), str(f)) for f in flags)))
-    return rows
+        out[str(name)] = {"value": value, "std": std, "u_stat": u_stat, "u_c": u_c, "U": big_u, "k": k,
+                          "unit": str(p.get("unit") or ""), "flags": [str(f) for f in flags]}
+    return out
+
+
+def interval_column(doc: dict) -> tuple[dict, str]:
+    """The 90 % interval of each parameter as text (``lo .. hi``) where one of them says more
+    than value +- 1.645 u_c (an emcee posterior's, or one clipped at a bound; else ``{}``), and
+    the caption that says what the interval is on."""
+    params = doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {}
+    items = {str(n): p for n, p in params.items() if isinstance(p, dict)}
+    emcee = any(p.get("method") == "emcee" for p in items.values())
+    if not (emcee or any(p.get("at_bound") for p in items.values())):
+        return {}, "90 % interval = value ± 1.645 u_c"
+    out = {}
+    for name, p in items.items():
+        ci = p.get("ci90")
+        ok = isinstance(ci, list) and len(ci) == 2 and all(isinstance(v, (int, float)) for v in ci)
+        out[name] = f"{ci[0]:.6g} .. {ci[1]:.6g}" if ok else "-"
+    return out, ("90 % interval: the posterior's (emcee) where sampled, else value ± 1.645 u_c clipped at the bounds"
+                 if emcee else "90 % interval = value ± 1.645 u_c, clipped at the bounds")
+
+
+def uncertainty_rows(doc: dict) -> list:
+    """The one uncertainty statement of a fit document, a row per parameter (:data:`UNCERTAINTY_HEADER`):
+    value and u_c by the GUM rounding, u_stat, U, k, unit and flags (text). The fit file, its
+    repr, ``to_xarray``, the report and the CLI show these; a document without an ``uncertainty``
+    section gives u_c = std."""
+    return [(name, value_pm(v["value"], v["u_c"]), f"{v['u_stat']:.2g}", f"{v['u_c']:.2g}", f"{v['U']:.2g}",
+             f"{v['k']:g}", v["unit"], ", ".join(FLAGS.get(f, f) for f in v["flags"]))
+            for name, v in uncertainty_values(doc).items()]
 
 
 def table_html(caption: str, header, rows, notes=()) -> str:
