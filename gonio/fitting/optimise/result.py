@@ -129,29 +129,18 @@ class FitResult:
         caption, rows, notes = fit_summary(self)
         return table_html(caption, _HEADER, rows, notes)
 
-    def to_xarray(self):
-        """The fit as an :class:`xarray.Dataset` over ``parameter``: ``value``, ``std``,
-        ``lower``, ``upper``, ``at_bound``, ``undetermined`` and ``correlation``
-        (``parameter`` x ``parameter_b``); ``unit`` a coordinate; the goodness of fit and the
-        model in the attributes."""
-        import xarray as xr
+    def to_xarray(self, meas=None, budget=None):
+        """The fit as an :class:`xarray.Dataset` in the fit file's one layout
+        (:func:`gonio.fitting.formats.fitfile.fit_to_xarray`: value, u_c, U, k, the 90 %
+        interval, bounds, flags, correlation, colour space and budget).
 
-        names = list(self.space.names)
+        With ``meas`` (the Measurements fitted; ``budget`` the dataset's, None: from
+        ``meas.attrs``) u_c is the budget's, as in the fit file; without them the fit alone
+        knows only its statistical uncertainty, and u_c = std (budget ``statistical``)."""
+        from gonio.fitting.formats.fitfile import fit_document, fit_to_xarray, result_document
 
-        def flag(chosen):
-            return "parameter", np.array([n in chosen for n in names])
-
-        return xr.Dataset(
-            {"value": ("parameter", np.asarray(self.x, float)), "std": ("parameter", np.asarray(self.std, float)),
-             "lower": ("parameter", np.asarray(self.space.lower, float)),
-             "upper": ("parameter", np.asarray(self.space.upper, float)),
-             "at_bound": flag(self.at_bound), "undetermined": flag(self.undetermined),
-             "correlation": (("parameter", "parameter_b"), self.correlation)},
-            coords={"parameter": names, "parameter_b": names, "unit": ("parameter", [e.unit for e in self.space.entries])},
-            attrs={"model": self.model.name, "options": json.dumps(dict(self.model.options), sort_keys=True),
-                   "loss": self.loss, "chi2": float(self.chi2), "dof": int(self.dof), "chi2_dof": float(self.chi2_dof),
-                   "n_used": int(self.n_used), "bic": float(self.bic), "converged": int(bool(self.converged)),
-                   "method": self.method})
+        doc = fit_document(self, meas, budget=budget) if meas is not None else result_document(self)
+        return fit_to_xarray(doc, self.model)
 
 
 _HEADER = ("parameter", "value ± 1-sigma", "unit", "flags")
