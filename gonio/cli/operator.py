@@ -112,37 +112,13 @@ def _one_line(func):
 # --------------------------------------------------------------------------- commands
 @_one_line
 def cmd_devices(args) -> int:
-    if not (args.port or args.meter_port or args.camera):
-        raise GonioError("devices needs --port (the Zaber chain), --meter-port or --camera")
-    settings = _settings(args)
-    lines = []
-    from gonio.bench.drivers import PowerMeter, ZaberChain
-    from gonio.bench.drivers import identify as _identify
+    from gonio.bench.drivers.probe import probe_ports
+    from gonio.core.devices import PORTS
 
-    if args.port:
-        with ZaberChain(args.port, args.baud, 0.5, retries=1) as chain:
-            found = _identify.discover(chain)
-            if not found:
-                raise GonioError(f"no Zaber device answered on {args.port}; check power, cable and --baud")
-            roles = _identify.roles(settings)
-            lines.append(f"zaber {args.port}: {len(found)} device{'s' if len(found) != 1 else ''}")
-            for dev in found:
-                lines.append("  " + _identify.describe_device(chain.identify(dev), roles.get(dev, "")))
-            for dev in sorted(set(roles) - set(found)):
-                lines.append(f"  device {dev}: did not answer, but the settings put the {roles[dev]} there")
-    if args.meter_port:
-        with PowerMeter(args.meter_port, args.baud, 1.0) as meter:
-            lines.append(f"meter {args.meter_port}: {_identify.clean(meter.identify())}")
-    if args.camera:
-        cam = _operate.open_camera(args.camera)
-        try:
-            s = getattr(cam, "sensor", None)
-            idn = _identify.camera_text(cam)
-            lines.append(f"camera {args.camera}: {idn}" + (f" ({s.width} x {s.height} pixels, {s.bits} bits, "
-                                                           f"{s.cfa})" if s is not None else ""))
-        finally:
-            cam.close()
-    print("\n".join(lines))
+    urls = {p.name: getattr(args, p.option.lstrip("-").replace("-", "_"), None) for p in PORTS}
+    if not any(urls.values()):
+        probe_ports(urls, {}, args.baud)           # says which options name the ports
+    print("\n".join(probe_ports(urls, _settings(args), args.baud)))
     return 0
 
 

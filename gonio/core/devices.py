@@ -39,8 +39,8 @@ class PortSpec:
 
 #: Every port of the rig, in the order the bench opens them (and closes them in reverse).
 PORTS: tuple[PortSpec, ...] = (
-    PortSpec("zaber", "the Zaber chain (the four rotary stages and the LED source)", "Zaber ASCII", "--port"),
-    PortSpec("meter", "the source monitor (SCPI power meter)", "SCPI-1999 over serial", "--meter-port"),
+    PortSpec("zaber", "the Zaber chain of the four rotary stages and the LED source", "Zaber ASCII", "--port"),
+    PortSpec("meter", "the SCPI power meter that monitors the source", "SCPI-1999 over serial", "--meter-port"),
     PortSpec("camera", "the RAW camera", "gonio camera text protocol", "--camera"),
 )
 
