@@ -2,7 +2,7 @@
 
 Two readings of a private copy of ``journal.sqlite`` (and its ``-wal``), merged: SQLite's,
 one query per plan point (a damaged page loses only its own rows), and a reading of the
-file's pages without SQLite (`gonio.bench.session._pages`), which still finds the rows when
+file's pages without SQLite (`gonio.bench.session.pages`), which still finds the rows when
 the header page, the schema or the points table's root page is damaged. A point row counts
 as whole only if it matches its checksum (`gonio.bench.session.journal.point_checksum`);
 rows journalled before checksums are taken as SQLite reads them (the rebuild then checks them
@@ -20,7 +20,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from gonio.bench.session import _pages
+from gonio.bench.session import pages
 from gonio.bench.session.journal import POINT_COLUMNS, decode_point
 
 __all__ = ["salvage"]
@@ -135,7 +135,7 @@ def _judge(rowid, values):
 def _page_pass(path: Path, n: int, pts: _Points, out: dict, superseded: set) -> None:
     """The pages' reading: points always; the other tables where SQLite could not read them."""
     try:
-        cells = _pages.scan(path, _judge)
+        cells = pages.scan(path, _judge)
     except (OSError, MemoryError):
         return
     cal: dict[bytes, dict] = {}
