@@ -60,6 +60,7 @@ SCHEMA: dict[str, dict[str, str]] = {
                     "wedge_deg": "sample wedge, 1-sigma per component (deg)",
                     "repeat_deg": "per-move repeatability, 1-sigma (deg)", "backlash_deg": "lost motion (deg)",
                     "stray_floor": "stray-light floor bound", "linearity_gamma": "non-linearity bound at full scale",
+                    "linearity_compressive": "the non-linearity is known to compress (true) or of unknown sign",
                     "source": "where the sizes come from (text)"},
     "session": {"sample_id": "the sample's identifier (report, session.toml)",
                 "sample_description": "what the sample is (report)", "operator": "who measured (report)"},

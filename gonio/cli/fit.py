@@ -37,7 +37,9 @@ def print_fit(doc, truth=None, console=None):
     values = uncertainty_values(doc)
     truths = truth_for(truth, doc["model"]["name"], list(values))
     intervals, interval_caption = interval_column(doc)
-    caption = "; ".join(["value ± u_c; u_stat statistical, u_c combined (budget), U = k u_c", interval_caption]
+    ks = sorted({v["k"] for v in values.values()})
+    k_text = f" (k={ks[0]:g})" if len(ks) == 1 else ""
+    caption = "; ".join([f"value ± u_c; u_stat statistical, u_c combined (budget), U = k u_c{k_text}", interval_caption]
                         + (["z = (value - truth) / u_c"] if truths else []))
     # at 80 columns the table continues below instead of cutting values (gonio/cli/console.py)
     columns = [(h, "left" if h in ("parameter", "unit", "flags") else "right") for h in UNCERTAINTY_HEADER] \

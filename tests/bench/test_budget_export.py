@@ -195,7 +195,25 @@ def test_a_calibrated_session_carries_its_calibrations_lines():
     v = budget_variables(rs, CAL, f, s)
     for name in ("reference_factor", "linearity", "stray_light"):
         assert v[f"u_{name}"][2]["gum_type"] == "B" and v[f"u_{name}"][2]["correlation"] == "full"
-        assert np.all(np.isfinite(v[f"u_{name}"][1])) and np.all(v[f"u_{name}"][1] >= 0)
+        assert np.all(np.isfinite(v[f"u_{name}"][1]))
+    assert np.all(v["u_reference_factor"][1] >= 0)
+    # linearity and the stray floor's bound are signed (one gamma, one floor moves values darker
+    # than the reference up, brighter ones down); their magnitudes are calibrate's u_*_rel
+    import math
+
+    from gonio.bench.dataset.budget import _levels
+    from gonio.bench.calibrate import u_linearity_rel, u_stray_rel
+    from gonio.bench.measure.point import ReferenceModel
+
+    cos_i = np.cos(np.radians([r["theta_i"] for r in rs]))[:, None]
+    rho = ReferenceModel(CAL["reference"]).rho[None]
+    np.testing.assert_allclose(np.abs(v["u_stray_light"][1]),
+                               np.abs(f) * u_stray_rel(np.abs(f) * cos_i, rho / math.pi * cos_i, 1e-4), rtol=1e-9)
+
+    lev_s, lev_r = _levels(rs, CAL, "sample"), _levels(rs, CAL, "reference")
+    np.testing.assert_allclose(np.abs(v["u_linearity"][1]),
+                               f * u_linearity_rel(lev_s, lev_r, CAL["linearity"]["u_gamma"]), rtol=1e-12)
+    assert np.all(np.sign(v["u_linearity"][1]) == np.sign(f * (lev_r - lev_s)))
     # the factor's relative uncertainty at (10, 20) deg, bilinear over 0..80 deg (s = 1/8, t = 1/4):
     # u = 0.0028125 over the factor 0.9921875
     assert v["u_reference_factor"][1][0, 0] / f[0, 0] == pytest.approx(0.0028125 / 0.9921875, rel=1e-9)

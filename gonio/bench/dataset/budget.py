@@ -48,6 +48,7 @@ import numpy as np
 from gonio.bench import calibrate
 from gonio.bench.measure.hdr import NoiseModel, dark_sensitivity
 from gonio.bench.measure import systematics
+from gonio.bench.measure.calpoint import linearity_shift_rel
 from gonio.bench.measure.point import ReferenceModel
 from gonio.bench.plan.markers import roi_masks_fast
 
@@ -64,6 +65,9 @@ class Component:
 
     ``groups``: integer labels (N,) or (N, 3), only for ``correlation = "group"``: values with
     the same label share one error (written as the variable ``u_<name>_group``).
+    ``mean``: a ``full`` line's input's expected value in its own standard uncertainties
+    (written as ``input_mean``): a systematic effect of known sign left in the data, whose
+    expected effect ``mean x value`` the fit corrects for (0: none).
     """
 
     name: str
@@ -72,6 +76,7 @@ class Component:
     correlation: str
     source: str
     groups: np.ndarray | None = None
+    mean: float = 0.0
 
     def check(self, shape) -> None:
         if not _NAME.match(self.name) or self.name == "combined":
@@ -85,6 +90,8 @@ class Component:
             raise ValueError(f"budget component {self.name}: shape {np.shape(self.value)} is not {tuple(shape)}")
         if (self.correlation == "group") != (self.groups is not None):
             raise ValueError(f"budget component {self.name}: groups are given exactly when correlation is 'group'")
+        if not np.isfinite(self.mean) or (self.mean != 0.0 and self.correlation != "full"):
+            raise ValueError(f"budget component {self.name}: a mean is a finite number, for a 'full' line only")
         if self.groups is not None and np.shape(self.groups) not in ((shape[0],), tuple(shape)):
             raise ValueError(f"budget component {self.name}: groups must have shape ({shape[0]},) or {tuple(shape)}")
 
@@ -333,13 +340,19 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
         out.append(Component("reference_factor", brdf * rel[:, None], "B", "full",
                              "reference factor table's fit (gonio calibrate); sign taken as common to all points"))
     if float(lin.get("u_gamma", 0.0) or 0.0) > 0:
-        rel = calibrate.u_linearity_rel(_levels(rows, settings, "sample"), _levels(rows, settings, "reference"),
-                                        float(lin["u_gamma"]))
+        # signed: one gamma moves values darker than the reference up and brighter ones down
+        u_gamma = float(lin["u_gamma"])
+        rel = linearity_shift_rel(_levels(rows, settings, "sample"), _levels(rows, settings, "reference"), u_gamma)
+        # a non-linearity known to compress and not linearised: gamma in [0, bound], its mean a correction
+        mean = float(lin.get("gamma_mean", 0.0) or 0.0) / u_gamma
+        text = ("detector linearity gamma's 1-sigma (gonio calibrate)" if not uncal else
+                "detector non-linearity known to compress, gamma in [0, bound] ([systematics] linearity_gamma, "
+                "rectangular, nothing linearised): u = bound / sqrt(12) about its mean bound / 2 (input_mean "
+                "sqrt(3), which the fit corrects for)" + desc if mean else
+                "detector non-linearity bound / sqrt(3) ([systematics] linearity_gamma, rectangular, sign unknown, "
+                "nothing linearised)" + desc)
         out.append(Component("linearity", brdf * rel, "B", "full",
-                             ("detector non-linearity bound / sqrt(3) ([systematics] linearity_gamma, rectangular, "
-                              "nothing linearised)" + desc if uncal else
-                              "detector linearity gamma's 1-sigma (gonio calibrate)")
-                             + " x |level_sample - level_reference|"))
+                             text + " x (level_reference - level_sample), signed", mean=mean))
     stray = settings.get("stray", {})
     u_floor = float(stray.get("u_floor", 0.0) or 0.0)
     if floor > 0 and ("u_floor" not in stray or u_floor > 0):
@@ -354,8 +367,10 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
             out.append(Component("stray_light", brdf * rel, "B", "full",
                                  "stray-light floor's u ([stray] u_floor) after its level was removed from both squares"))
         else:
+            # the floor's root mean square in [0, floor] (floor / sqrt(3)), signed as a floor moves
+            # the ratio: values darker than the reference up, brighter ones down
             rho_ref = model.rho if model is not None else np.ones(3)
-            rel = calibrate.u_stray_rel(np.abs(brdf) * cos_i, rho_ref[None] / math.pi * cos_i, floor)
+            rel = calibrate.stray_shift_rel(np.abs(brdf) * cos_i, rho_ref[None] / math.pi * cos_i, floor / math.sqrt(3.0))
             out.append(Component("stray_light", brdf * rel, "B", "full",
                                  "stray-light floor in [0, floor] (rectangular; no level stated, nothing corrected)"
                                  + ("; floor from [systematics] stray_floor" + desc if uncal else "")))
@@ -470,7 +485,8 @@ def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, ext
         out[f"u_{c.name}"] = (("point", "channel"), v, {
             "units": "sr^-1", "gum_type": c.gum_type, "correlation": corr, "source": c.source,
             "long_name": f"standard uncertainty of brdf from {c.name.replace('_', ' ')}"
-                         + (" (signed: the change for +1 sigma of the shared input)" if corr != "none" else "")})
+                         + (" (signed: the change for +1 sigma of the shared input)" if corr != "none" else ""),
+            **({"input_mean": float(c.mean)} if c.mean else {})})
         total += v * v
     out["u_combined"] = (("point", "channel"), np.sqrt(total), {
         "units": "sr^-1", "budget_format": BUDGET_FORMAT, "components": " ".join(sorted(seen)),

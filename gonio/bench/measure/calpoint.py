@@ -16,7 +16,8 @@ import numpy as np
 from gonio.bench.measure import alignment as al
 from gonio.bench.plan import kinematics
 
-__all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "u_linearity_rel", "u_stray_rel",
+__all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "u_linearity_rel",
+           "linearity_shift_rel", "u_stray_rel",
            "stray_fraction", "stray_corrected", "stray_shift_rel",
            "dataset_angles", "instrument_response"]
 
@@ -210,6 +211,16 @@ def u_linearity_rel(level_sample, level_reference, u_gamma: float) -> np.ndarray
     square's merged DN / (white - black) at the exposure that dominated its merge).
     Correlated across points (one gamma)."""
     return float(u_gamma) * np.abs(np.asarray(level_sample, float) - np.asarray(level_reference, float))
+
+
+def linearity_shift_rel(level_sample, level_reference, u_gamma: float) -> np.ndarray:
+    """Relative change of the sample/reference ratio for ``u_gamma`` more compression at full
+    scale (signed): ``u_gamma (l_r - l_s)``, levels as fractions of full scale. A detector whose
+    DN go as s (1 - gamma l) gives the ratio (1 - gamma l_s) / (1 - gamma l_r) ~ 1 - gamma
+    (l_s - l_r): one gamma moves the diffuse values (sample darker than the reference) up and a
+    specular peak (brighter) down. Correlated across points (one gamma): the budget's
+    ``linearity`` line, whose magnitude is :func:`u_linearity_rel`."""
+    return float(u_gamma) * (np.asarray(level_reference, float) - np.asarray(level_sample, float))
 
 
 def stray_fraction(radiance_reference, floor: float) -> np.ndarray:

@@ -6,7 +6,8 @@ that gonio calibrate would measure, with its size and source. A session without 
 carries them in its budget (gonio/bench/dataset/budget.py): the stage zero offsets, the holder's
 tilt, the sample's wedge, per-move repeatability and lost motion as angle inputs
 (:func:`alignment_table`, read by calibrate.angle_uncertainty), the stray-light floor and the
-detector's non-linearity as bounds (rectangular: :func:`settings_for_budget`). The lamp's drift
+detector's non-linearity as bounds (rectangular: :func:`settings_for_budget`; a non-linearity
+known to compress lies in [0, bound]: its mean is a correction, GUM 4.3.7). The lamp's drift
 needs no term: sample and reference share every frame, so it cancels in their ratio.
 """
 
@@ -26,6 +27,8 @@ KEYS = {
     "backlash_deg": "full lost motion on a reversal (deg); the load lags by half of it",
     "stray_floor": "upper bound of the stray-light floor (white-Lambertian fraction), rectangular [0, bound]",
     "linearity_gamma": "bound of the detector's integral non-linearity at full scale, rectangular [-bound, bound]",
+    "linearity_compressive": "true: the non-linearity is known to compress (the response falls below linear toward "
+                             "full scale), so gamma lies in [0, bound]; false or absent: sign unknown, [-bound, bound]",
     "source": "where the sizes come from (text)",
 }
 
@@ -45,6 +48,8 @@ def from_error_model(model) -> dict:
     sysm = {"zero_deg": [float(v) for v in st.zero_deg], "holder_tilt_deg": float(al.tilt_deg),
             "wedge_deg": float(al.wedge_deg), "repeat_deg": float(st.repeat_deg),
             "backlash_deg": float(st.backlash_deg), "linearity_gamma": float(model.linearity.gamma)}
+    if sysm["linearity_gamma"]:
+        sysm["linearity_compressive"] = True        # the simulator's DN - black go as s (1 - gamma s)
     out = {}
     if any(v for k, v in sysm.items() if k != "zero_deg") or any(sysm["zero_deg"]):
         out["systematics"] = {**sysm, "source": f"gonio.sim error model, preset {model.preset!r} "
@@ -124,8 +129,10 @@ def alignment_table(settings: Mapping) -> dict | None:
 def settings_for_budget(settings: Mapping) -> dict:
     """``settings`` with ``[systematics]``'s stray floor and non-linearity as the budget's
     uncorrected lines where no calibration states them: ``[stray] floor`` without ``u_floor``
-    (a bound, nothing removed: calibrate.u_stray_rel) and ``[linearity] u_gamma`` = bound / sqrt(3)
-    without ``gamma`` (nothing linearised)."""
+    (a bound, nothing removed: calibrate.u_stray_rel) and ``[linearity] u_gamma`` without
+    ``gamma`` (nothing linearised): bound / sqrt(3) of unknown sign, or for a non-linearity
+    known to compress bound / sqrt(12) about ``gamma_mean`` = bound / 2 (GUM 4.3.7: the
+    midpoint of [0, bound])."""
     sysm = settings.get("systematics")
     if not isinstance(sysm, Mapping) or isinstance(settings.get("alignment"), Mapping):
         return dict(settings)
@@ -134,8 +141,14 @@ def settings_for_budget(settings: Mapping) -> dict:
     if floor > 0 and not isinstance(settings.get("stray"), Mapping):
         out["stray"] = {"floor": floor}
     g = _get(sysm, "linearity_gamma")
+    compressive = sysm.get("linearity_compressive", False)
+    if not isinstance(compressive, bool):
+        raise ValueError("[systematics] linearity_compressive must be true or false")
     if g > 0 and not isinstance(settings.get("linearity"), Mapping):
-        out["linearity"] = {"u_gamma": g / math.sqrt(3.0)}
+        # sign unknown: gamma in [-g, g], mean 0, u = g / sqrt(3); known to compress: gamma in [0, g],
+        # mean g / 2 (gamma_mean: the budget states it and the fit corrects for it) and u = g / sqrt(12)
+        out["linearity"] = ({"u_gamma": g / math.sqrt(12.0), "gamma_mean": g / 2.0} if compressive
+                            else {"u_gamma": g / math.sqrt(3.0)})
     return out
 
 

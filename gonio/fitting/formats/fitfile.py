@@ -118,7 +118,9 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         # mean (gonio/fitting/uncertainty/budget.propagate; the optimiser's own point is ``value_fitted``, and the
         # ``params``/``mitsuba`` tables stay the optimiser's)
         shift = float(uncertainty["parameters"][name].get("angle_second_order_mean", 0.0))
-        value = float(result.x[i]) - shift
+        # and for the lines of known mean (a systematic of known sign left in the data: budget.propagate)
+        known = float(uncertainty["parameters"][name].get("systematic_mean", 0.0))
+        value = float(result.x[i]) - shift - known
         # one uncertainty statement: u_c, U and k beside the value (the uncertainty section's), the
         # 90 % interval from u_c (the statistical std alone left the truth out where type B dominates)
         unc = uncertainty["parameters"].get(name, {})
@@ -128,9 +130,12 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                 "channel": space.channels[entry.channel] if entry.channel >= 0 else None,
                 "ci90": [max(value - z90 * u_c, p.lower), min(value + z90 * u_c, p.upper)],
                 "method": "laplace", "at_bound": name in result.at_bound, "undetermined": name in result.undetermined}
-        if shift != 0.0:
+        if shift != 0.0 or known != 0.0:
             item["value_fitted"] = result.x[i]
+        if shift != 0.0:
             item["angle_second_order_correction"] = -shift
+        if known != 0.0:
+            item["systematic_correction"] = -known
         if inflation != 1.0:
             item["std_statistical"] = result.std[i]
         if posterior is not None and posterior.converged:

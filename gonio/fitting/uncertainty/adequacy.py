@@ -85,8 +85,11 @@ def adequacy_test(result, meas, comps, J, r, drdy, alpha: float = ADEQUACY_ALPHA
     D[use] = drdy
     B = np.zeros((N, C, C))
     cols = []
+    centre = np.zeros(use.shape)          # a line of known mean: its prior centred there
     for c in comps:
         a = np.where(use, np.asarray(c.value, float), 0.0) * D
+        if getattr(c, "mean", 0.0):
+            centre += c.mean * (a if a.ndim == 2 else a.sum(axis=0))
         if c.correlation == "none":
             B[:, np.arange(C), np.arange(C)] += (a * a if a.ndim == 2 else (a * a).sum(axis=0))
         elif c.correlation == "point":
@@ -136,7 +139,9 @@ def adequacy_test(result, meas, comps, J, r, drdy, alpha: float = ADEQUACY_ALPHA
     Js = Jt / np.where(sc > 0, sc, 1.0)
     rank = int(np.linalg.matrix_rank(Js, tol=1e-10 * max(1.0, float(np.abs(Js).max(initial=0.0))) * max(Js.shape)))
     dof = int(use.sum()) - rank
-    T, dx = statistic(flat(r)[:, 0], Jt)
+    # e ~ N(mean, 1) for a line of known mean: e = mean + e', the residuals less its expected part
+    offset = whiten(centre[..., None]).reshape(N * C)
+    T, dx = statistic(flat(r)[:, 0] - offset, Jt)
     p = float(stats.chi2.sf(T, dof)) if dof > 0 else float("nan")
     refined = 0
     if p < alpha and refine is not None:
@@ -147,12 +152,12 @@ def adequacy_test(result, meas, comps, J, r, drdy, alpha: float = ADEQUACY_ALPHA
         x = np.asarray(result.x, float).copy()
         lo, hi = result.space.lower, result.space.upper
         J_x, r_x = refine(x, True)
-        best = profiled(flat(r_x)[:, 0])
+        best = profiled(flat(r_x)[:, 0] - offset)
         for _ in range(20):
-            _, dx = statistic(flat(r_x)[:, 0], flat(J_x))
+            _, dx = statistic(flat(r_x)[:, 0] - offset, flat(J_x))
             for step in (1.0, 0.5, 0.25, 0.125, 0.0625):
                 xn = np.clip(x + step * dx, lo, hi)
-                cand = profiled(flat(refine(xn, False))[:, 0])
+                cand = profiled(flat(refine(xn, False))[:, 0] - offset)
                 if cand < best:
                     break
             else:

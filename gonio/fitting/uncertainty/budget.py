@@ -55,7 +55,10 @@ class BudgetComponent:
     """One component: ``value`` (N, C) in sr^-1 (signed where correlated), or (K, N, C) for K
     independent inputs of the same kind; its GUM type; its correlation (``none``: every value
     its own error; ``point``: one error per point, shared by its channels; ``full``,
-    ``channel``, ``group``: shared across points) and, for ``group``, integer labels (N, C)."""
+    ``channel``, ``group``: shared across points) and, for ``group``, integer labels (N, C).
+    ``mean``: a ``full`` line's input's expected value in its standard uncertainties (the
+    dataset's ``input_mean``; a systematic of known sign left in the data): the parameters are
+    corrected by ``mean`` times the line's effect (:func:`propagate`), u is about that mean."""
 
     name: str
     value: np.ndarray
@@ -63,6 +66,7 @@ class BudgetComponent:
     correlation: str
     source: str = ""
     groups: np.ndarray | None = None
+    mean: float = 0.0
 
     @property
     def statistical(self) -> bool:
@@ -121,7 +125,8 @@ class Budget:
     sigma_elasticity: float = 0.0
 
     def describe(self) -> dict:
-        return {c.name: {"gum_type": c.gum_type, "correlation": c.correlation, "source": c.source}
+        return {c.name: {"gum_type": c.gum_type, "correlation": c.correlation, "source": c.source,
+                         **({"input_mean": float(c.mean)} if getattr(c, "mean", 0.0) else {})}
                 for c in self.components}
 
 
@@ -168,8 +173,16 @@ def load_budget(path, meas) -> Budget:
                                  "see docs/interfaces.md 5.1")
             if value.shape[-2:] != meas.brdf.shape or not np.all(np.isfinite(value[..., meas.use])):
                 raise ValueError(f"{path}: {v} must be finite at every used value, shape {meas.brdf.shape}")
+            mean = var.attrs.get("input_mean", 0.0)
+            try:
+                mean = float(mean)
+            except (TypeError, ValueError):
+                mean = float("nan")
+            if not np.isfinite(mean) or (mean != 0.0 and corr != "full"):
+                raise ValueError(f"{path}: {v} has input_mean {var.attrs.get('input_mean')!r:.30}: a finite number, "
+                                 "on a 'full' line only; see docs/interfaces.md 5.1")
             comps += _in_colour_space(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")),
-                                                      groups), colour_transform(meas), path)
+                                                      groups, mean), colour_transform(meas), path)
         angles = _angle_shifts(ds, path, meas.n_points)
         colour = _colour_matrix_components(ds, meas)
         measured = "u_shot_read" in ds.variables      # the bench's type A: from each point's own signal
@@ -526,6 +539,12 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
         # a budget of systematic lines alone: the fit's own sigma stands for the type A
         pointwise = comps if type_a else [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none")] + comps
         adequacy = adequacy_test(result, meas, pointwise, J, r, drdy, refine=chi2_refiner(result, meas))
+    # lines of known mean (a systematic of known sign left in the data): the parameters' expected
+    # shift, mean x G value, which the fit document's values are corrected by (GUM 3.2.4)
+    known = np.zeros(P)
+    for c in comps:
+        if getattr(c, "mean", 0.0):
+            known += c.mean * np.einsum("pnc,nc->p", np.where(use, G, 0.0), np.where(use, c.value, 0.0))
     for c in comps:
         cov = c.covariance(G, use)
         if split and c.gum_type == "A" and _point_independent(c):
@@ -583,6 +602,10 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
             # the estimate's expected shift from the shared angle errors' second-order term; the
             # fit document reports value = fitted - this (gonio/fitting/formats/fitfile.fit_document)
             out[name]["angle_second_order_mean"] = float(bias2[i])
+        if known[i] != 0.0:
+            # the estimate's expected shift from the lines of known mean; the fit document
+            # reports value = fitted - this as well
+            out[name]["systematic_mean"] = float(known[i])
     return {"parameters": out, "cov_systematic": cov_b, "cov_statistical": cov_stat, "birge": birge,
             "adequacy": adequacy}
 
