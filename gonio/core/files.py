@@ -13,7 +13,7 @@ from pathlib import Path
 from gonio.core import atomic
 
 __all__ = ["TMP_PREFIX", "sha256_file", "atomic_write_bytes", "atomic_write_text", "fsync_dir",
-           "commit_file", "make_durable", "create_exclusive", "write_new_text", "remove_orphans"]
+           "commit_file", "make_durable", "create_exclusive", "write_new_text", "remove_orphans", "is_tiff"]
 
 TMP_PREFIX = atomic.RESERVED_PREFIX     # reserved names start with this; a resume removes any left behind
 
@@ -94,3 +94,12 @@ def remove_orphans(folder: str | os.PathLike) -> list[Path]:
     :func:`gonio.core.atomic.is_temporary`; ``.tmp-*`` and ``*.part`` whoever wrote them, the
     atomic writer's own when their writer no longer runs). Call it holding the session lock."""
     return atomic.remove_orphans(folder)
+
+
+def is_tiff(path: Path) -> bool:
+    """Whether ``path`` starts as a TIFF (a DNG is one): b"II*\\0" or b"MM\\0*"."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4) in (b"II*\x00", b"MM\x00*")
+    except OSError:
+        return False

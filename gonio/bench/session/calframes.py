@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gonio.core.files import TMP_PREFIX, make_durable
+from gonio.core.files import TMP_PREFIX, is_tiff, make_durable
 from gonio.bench.measure.hdr import flat_gain
 from gonio.bench.session.journal import RAW_DIR
 from gonio.bench.drivers import BadDelivery, RawFrame, decode_raw, read_verified
@@ -120,11 +120,14 @@ class CalibrationFrames:
 
     def _drop_uncommitted(self, prefix: str, committed: set) -> None:
         """Delete the RAW files ``raw/PREFIX*`` a killed run reserved and wrote but never
-        committed (not in ``committed``): they are taken again under new names. Called before
-        any is taken, holding the session lock; a kill between two deletions leaves the rest
-        to the next run."""
+        committed (not in ``committed``): they are taken again under new names. Only DNGs (any
+        other file is someone else's) and never after a journal rebuild. Called before any is
+        taken, holding the session lock; a kill between two deletions leaves the rest to the
+        next run."""
+        if self.journal.first_event("rebuild") is not None:
+            return                 # a rebuild keeps every RAW file it could not place
         for file in sorted(self.reserved):
-            if file.startswith(f"{RAW_DIR}/{prefix}") and file not in committed:
+            if file.startswith(f"{RAW_DIR}/{prefix}") and file not in committed and is_tiff(self.folder / file):
                 (self.folder / file).unlink(missing_ok=True)
 
     def _take_chart(self, say=lambda text: None) -> None:

@@ -283,6 +283,17 @@ class Journal:
                 moved.append(i)
         return moved
 
+    def superseded_files(self) -> set[str]:
+        """The RAW files of every superseded point row (kept: they are the session's history)."""
+        out: set[str] = set()
+        for (text,) in self.db.execute("SELECT row FROM superseded"):
+            try:
+                detail = json.loads(json.loads(text).get("detail") or "{}")
+                out.update(str(e["file"]) for e in detail.get("exposures", []))
+            except (ValueError, TypeError, KeyError, AttributeError):
+                continue      # a damaged history row: its files are kept, none is named here
+        return out
+
     def forget_frame(self, name: str) -> None:
         with self.db:
             self.db.execute("BEGIN")
