@@ -30,7 +30,7 @@ def fitted(tmp_path_factory):
 
 def test_a_result_and_its_fit_file_share_one_layout(fitted):
     meas, result, doc, path = fitted
-    a, b = result.to_xarray(meas), load_fit(path).to_xarray()
+    a, b = result.to_xarray(doc), load_fit(path).to_xarray()
     assert set(a.data_vars) == set(b.data_vars) and set(a.coords) == set(b.coords) and set(a.attrs) == set(b.attrs)
     for v in ("value", "std", "u_stat", "u_combined", "U", "ci90_low", "ci90_high", "lower", "upper", "correlation"):
         np.testing.assert_allclose(a[v].values, b[v].values, rtol=1e-12, err_msg=v)
@@ -50,6 +50,6 @@ def test_a_result_and_its_fit_file_share_one_layout(fitted):
 def test_a_result_alone_says_its_u_c_is_statistical(fitted):
     meas, result, _, _ = fitted
     ds = result.to_xarray()
-    assert set(ds.data_vars) == set(result.to_xarray(meas).data_vars)
+    assert set(ds.data_vars) == set(result.to_xarray(fit_document(result, meas)).data_vars)
     np.testing.assert_array_equal(ds.u_combined.values, result.std)
     assert list(json.loads(ds.attrs["budget"])) == ["statistical"]

@@ -11,13 +11,13 @@ never returned as NaN.
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import numpy as np
 
 from gonio.fitting.likelihood import loss as _loss
 from gonio.fitting.display import fit_summary, table_html, text
 from gonio.fitting.optimise.space import ParameterSpace
+from gonio.fitting.statement import fit_to_xarray, result_document
 
 __all__ = ["FitResult", "jacobian_chi2", "laplace"]
 
@@ -129,18 +129,18 @@ class FitResult:
         caption, rows, notes = fit_summary(self)
         return table_html(caption, _HEADER, rows, notes)
 
-    def to_xarray(self, meas=None, budget=None):
+    def to_xarray(self, doc=None):
         """The fit as an :class:`xarray.Dataset` in the fit file's one layout
-        (:func:`gonio.fitting.formats.fitfile.fit_to_xarray`: value, u_c, U, k, the 90 %
-        interval, bounds, flags, correlation, colour space and budget).
+        (:func:`gonio.fitting.statement.fit_to_xarray`: value, u_c, U, k, the 90 % interval,
+        bounds, flags, correlation, colour space and budget).
 
-        With ``meas`` (the Measurements fitted; ``budget`` the dataset's, None: from
-        ``meas.attrs``) u_c is the budget's, as in the fit file; without them the fit alone
-        knows only its statistical uncertainty, and u_c = std (budget ``statistical``)."""
-        from gonio.fitting.formats.fitfile import fit_document, fit_to_xarray, result_document
-
-        doc = fit_document(self, meas, budget=budget) if meas is not None else result_document(self)
-        return fit_to_xarray(doc, self.model)
+        ``doc``: this fit's document (:func:`gonio.fitting.fit_document` of it and the data, which
+        carries the dataset's budget): its statement. Without it the fit alone knows only its
+        statistical uncertainty, and says so: u_c = std, budget ``statistical``."""
+        if doc is not None and not isinstance(doc, dict):
+            raise TypeError("to_xarray takes the fit document (gonio.fitting.fit_document(result, meas)), "
+                            f"not a {type(doc).__name__}")
+        return fit_to_xarray(doc if doc is not None else result_document(self), self.model)
 
 
 _HEADER = ("parameter", "value ± 1-sigma", "unit", "flags")

@@ -39,12 +39,11 @@ from gonio.fitting.likelihood import loss as _loss
 from gonio.fitting.measurements import _SRGB_TO_XYZ, colour_transform
 from gonio.fitting.likelihood.problem import Problem
 from gonio.fitting.optimise.result import loss_jacobian
+from gonio.fitting.statement import K_EXPANDED
 from gonio.fitting.uncertainty.adequacy import adequacy_test, chi2_refiner
 
 __all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "propagate", "gls_covariance", "K_EXPANDED"]
 
-#: coverage factor of the expanded uncertainty U = k u_c (about 95 % for a normal distribution, GUM 6.2.2)
-K_EXPANDED = 2.0
 STATISTICAL = "statistical"
 #: the budget line of the shared angle errors' second-order term (:func:`second_order`)
 ANGLE_SECOND_ORDER = "angle_shared_second_order"
