@@ -45,7 +45,7 @@ from gonio.core.errors import SessionError
 
 __all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "LOCK_FILE", "Journal", "SessionLock", "write_session",
            "read_session", "session_text", "verify_files", "damaged_files", "dumps_toml", "versions",
-           "POINT_COLUMNS", "point_checksum", "decode_point"]
+           "POINT_COLUMNS", "point_checksum", "decode_point", "event_checksum"]
 
 SESSION_FILE = "session.toml"
 JOURNAL_FILE = "journal.sqlite"
@@ -91,7 +91,8 @@ CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     time REAL NOT NULL,
     kind TEXT NOT NULL,
-    text TEXT NOT NULL
+    text TEXT NOT NULL,
+    checksum TEXT                -- event_checksum of time, kind and text (NULL: journalled before checksums)
 );
 """
 
@@ -121,6 +122,18 @@ def point_checksum(values) -> str:
         canon.append(v)
     text = json.dumps(canon, ensure_ascii=True, separators=(",", ":"), allow_nan=True)
     return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def event_checksum(when, kind, text) -> str:
+    """SHA-256 (hex) of an event's stored values (time as a float, kind and text as UTF-8):
+    what export and resume read from an event (the camera's colour matrix, the reference
+    monitor's reading) is as checked as a point."""
+    if isinstance(kind, (bytes, bytearray, memoryview)):
+        kind = bytes(kind).decode("utf-8")
+    if isinstance(text, (bytes, bytearray, memoryview)):
+        text = bytes(text).decode("utf-8")
+    canon = json.dumps([float(when) + 0.0, kind, text], ensure_ascii=True, separators=(",", ":"))
+    return hashlib.sha256(canon.encode("ascii")).hexdigest()
 
 
 def decode_point(values, checksum) -> tuple[dict[str, Any] | None, str]:
@@ -303,9 +316,13 @@ class Journal:
         """Insert rows salvaged from a damaged journal (``--rebuild-journal``) as they were."""
         if not rows:
             return
+        if table == "events":                      # salvaged events get their checksums again
+            rows = [{**r, "checksum": event_checksum(r["time"], r["kind"], r["text"])} for r in rows]
         names = list(rows[0])
         with self.db:
             self.db.execute("BEGIN")
+            if table == "events" and not self._events_checked():
+                self.db.execute("ALTER TABLE events ADD COLUMN checksum TEXT")
             self.db.executemany(f"INSERT INTO {table} ({', '.join(names)}) VALUES ({', '.join('?' * len(names))})",
                                 [tuple(r[n] for n in names) for r in rows])
 
@@ -367,18 +384,49 @@ class Journal:
         return rows
 
     def event(self, kind: str, text: str) -> None:
-        """Log an event (pause, resume, warning, fault) with the wall time."""
+        """Log an event (pause, resume, warning, fault) with the wall time and its checksum."""
+        now = time.time()
         with self.db:
             self.db.execute("BEGIN")
-            self.db.execute("INSERT INTO events (time, kind, text) VALUES (?, ?, ?)", (time.time(), kind, text))
+            if not self._events_checked():          # a journal from before checksums: given the column
+                self.db.execute("ALTER TABLE events ADD COLUMN checksum TEXT")
+            self.db.execute("INSERT INTO events (time, kind, text, checksum) VALUES (?, ?, ?, ?)",
+                            (now, kind, text, event_checksum(now, kind, text)))
 
-    def first_event(self, kind: str) -> str | None:
-        """Text of the first event of ``kind`` (e.g. the session's reference monitor reading), or None."""
-        row = self.db.execute("SELECT text FROM events WHERE kind = ? ORDER BY id LIMIT 1", (kind,)).fetchone()
-        return None if row is None else row[0]
+    def _events_checked(self) -> bool:
+        return any(r[1] == "checksum" for r in self.db.execute("PRAGMA table_info(events)"))
+
+    def checked_events(self) -> tuple[list[tuple[float, str, str]], list[int]]:
+        """``(events, damaged)``: every event whose row passes its checksum (or has none: journalled
+        before checksums) as ``(time, kind, text)``, and the ids of those that fail it or do not
+        decode."""
+        sql = ("SELECT id, time, CAST(kind AS BLOB), CAST(text AS BLOB), "
+               + ("checksum" if self._events_checked() else "NULL") + " FROM events ORDER BY id")
+        good, bad = [], []
+        for rid, when, kind, text, digest in self.db.execute(sql):
+            try:
+                if digest is not None and event_checksum(when, kind, text) != (
+                        bytes(digest).decode("ascii") if isinstance(digest, (bytes, bytearray)) else digest):
+                    raise ValueError("checksum")
+                good.append((float(when), bytes(kind).decode("utf-8"), bytes(text).decode("utf-8")))
+            except (UnicodeDecodeError, ValueError, TypeError):
+                bad.append(int(rid))
+        return good, bad
 
     def events(self) -> list[tuple[float, str, str]]:
-        return list(self.db.execute("SELECT time, kind, text FROM events ORDER BY id"))
+        """Every event ``(time, kind, text)`` in order; a one-line `SessionError` if one is damaged."""
+        good, bad = self.checked_events()
+        if bad:
+            folder = self.path.parent
+            raise SessionError(f"{self.path}: {len(bad)} event row(s) are damaged (id {bad[0]}: it fails its "
+                               f"checksum); see `gonio verify {folder}` and recover with `gonio capture --resume "
+                               f"{folder} --rebuild-journal`")
+        return good
+
+    def first_event(self, kind: str) -> str | None:
+        """Text of the first event of ``kind`` (e.g. the session's reference monitor reading), or None;
+        a one-line `SessionError` if any event is damaged (none is ever used)."""
+        return next((text for _, k, text in self.events() if k == kind), None)
 
 
 # -- session.toml ---------------------------------------------------------------------------

@@ -21,11 +21,21 @@ from pathlib import Path
 from typing import Any
 
 from gonio.bench.session import pages
-from gonio.bench.session.journal import POINT_COLUMNS, decode_point
+from gonio.bench.session.journal import POINT_COLUMNS, decode_point, event_checksum
 
 __all__ = ["salvage"]
 
 _EVENTS_KEPT = ("p_ref", "rgb_cam", "no_flat")
+
+
+def _event_ok(e) -> bool:
+    """An event row passes its checksum, or has none (journalled before checksums)."""
+    digest = e.get("checksum")
+    try:
+        return digest is None or event_checksum(e["time"], e["kind"], e["text"]) == (
+            bytes(digest).decode("ascii") if isinstance(digest, (bytes, bytearray)) else digest)
+    except (UnicodeDecodeError, TypeError, ValueError, KeyError):
+        return False
 _CAL_KINDS = (b"dark", b"flat", b"chart")
 _SELECT = ", ".join(f"CAST({c} AS BLOB)" if c in ("brdf", "brdf_std", "detail") else c for c in POINT_COLUMNS)
 
@@ -99,7 +109,7 @@ def _sqlite_pass(path: Path, n: int, pts: _Points, out: dict) -> set:
         cal, ok = rows("SELECT * FROM calibration")
         out["calibration"] = cal if ok else None
         events, ok = rows("SELECT * FROM events ORDER BY id")
-        out["events"] = [e for e in events if e.get("kind") in _EVENTS_KEPT] if ok else None
+        out["events"] = [e for e in events if e.get("kind") in _EVENTS_KEPT and _event_ok(e)] if ok else None
         for r in rows("SELECT idx, row FROM superseded")[0]:
             try:
                 superseded.add((int(r["idx"]), float(json.loads(r["row"])["finished"])))
@@ -159,11 +169,13 @@ def _page_pass(path: Path, n: int, pts: _Points, out: dict, superseded: set) -> 
                 continue
             if row["name"] not in cal or cal[row["name"]]["finished"] < row["finished"]:
                 cal[row["name"]] = row
-        elif len(v) == 4 and v[0] is None and _number(v[1]) and isinstance(v[2], bytes) and isinstance(v[3], bytes):
+        elif len(v) in (4, 5) and v[0] is None and _number(v[1]) and isinstance(v[2], bytes) \
+                and isinstance(v[3], bytes) and (len(v) == 4 or v[4] is None or isinstance(v[4], bytes)):
             try:
-                if _text(v[2]) in _EVENTS_KEPT:
-                    events.setdefault(c.rowid, {"id": c.rowid, "time": float(v[1]), "kind": _text(v[2]),
-                                                "text": _text(v[3])})
+                e = {"id": c.rowid, "time": float(v[1]), "kind": _text(v[2]), "text": _text(v[3]),
+                     "checksum": _text(v[4]) if len(v) == 5 and v[4] is not None else None}
+                if e["kind"] in _EVENTS_KEPT and _event_ok(e):
+                    events.setdefault(c.rowid, e)
             except UnicodeDecodeError:
                 pass
         elif len(v) == 2 and v[0] in (b"sha256", b"text", b"doc") and isinstance(v[1], bytes):

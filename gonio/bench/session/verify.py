@@ -117,9 +117,11 @@ def verify_session(folder: str | Path) -> Verdict:
     _not_in_use(folder)
     n = len(plan)
     verdict = Verdict(folder, n)
+    bad_events: list[int] = []
     try:
         with integrity.open_journal(folder, data, doc, why, plan=plan, write=False) as j:
             rows, damaged, verdict.unchecked = j.checked_points()
+            bad_events = j.checked_events()[1]
     except integrity.NothingMeasured:
         return verdict
     except SessionError as exc:
@@ -138,6 +140,8 @@ def verify_session(folder: str | Path) -> Verdict:
         else:
             verdict.intact.append(k)
     verdict.damaged = {k: damaged[k] for k in sorted(damaged)}
+    if bad_events and not verdict.journal:
+        verdict.journal = f"{len(bad_events)} event row(s) fail their checksum (what export and resume read from them)"
     if any("journal row" in w or "SQLite" in w for w in verdict.damaged.values()) and not verdict.journal:
         verdict.journal = "some point rows are damaged"
     return verdict

@@ -1,0 +1,57 @@
+"""Events carry checksums like points (issue 36): what export and resume read from an event
+(the camera's colour matrix, the reference monitor's reading) is never used damaged, `gonio
+verify` reports it, and `--rebuild-journal` keeps only the events that pass."""
+
+from __future__ import annotations
+
+import shutil
+import sqlite3
+
+import pytest
+
+from gonio.bench.session.journal import Journal, event_checksum
+from gonio.core.errors import SessionError
+
+
+def _journal(tmp_path):
+    j = Journal(tmp_path / "journal.sqlite")
+    j.event("p_ref", "0.00123")
+    j.event("rgb_cam", "[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]")
+    return j
+
+
+def test_an_event_is_checked_when_read(tmp_path):
+    j = _journal(tmp_path)
+    assert j.first_event("p_ref") == "0.00123" and [k for _, k, _ in j.events()] == ["p_ref", "rgb_cam"]
+    # a flipped digit in the stored text (0.00123 -> 0.00133), as a bad sector would leave it
+    j.db.execute("UPDATE events SET text = '0.00133' WHERE kind = 'p_ref'")
+    j.db.commit()
+    with pytest.raises(SessionError, match="1 event row\\(s\\) are damaged .*gonio verify .*--rebuild-journal"):
+        j.first_event("rgb_cam")
+    good, bad = j.checked_events()
+    assert [k for _, k, _ in good] == ["rgb_cam"] and len(bad) == 1
+    j.close()
+
+
+def test_a_journal_from_before_event_checksums_is_read_unchecked_then_upgraded(tmp_path):
+    db = sqlite3.connect(tmp_path / "journal.sqlite")
+    db.execute("CREATE TABLE events (id INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, kind TEXT NOT NULL, "
+               "text TEXT NOT NULL)")
+    db.execute("INSERT INTO events (time, kind, text) VALUES (1.5, 'p_ref', '0.002')")
+    db.commit()
+    db.close()
+    j = Journal(tmp_path / "journal.sqlite")
+    assert j.first_event("p_ref") == "0.002"
+    j.event("warning", "x")                       # the first new event adds the column
+    rows = list(j.db.execute("SELECT kind, checksum FROM events ORDER BY id"))
+    assert rows[0] == ("p_ref", None) and rows[1][1] == event_checksum(*next(
+        (t, k, x) for t, k, x in j.events() if k == "warning"))
+    j.close()
+
+
+def test_salvage_keeps_only_events_that_pass(tmp_path):
+    from gonio.bench.session.salvage import _event_ok
+
+    ok = {"time": 2.0, "kind": "p_ref", "text": "0.1", "checksum": event_checksum(2.0, "p_ref", "0.1")}
+    assert _event_ok(ok) and _event_ok({**ok, "checksum": None})
+    assert not _event_ok({**ok, "text": "0.2"}) and not _event_ok({**ok, "checksum": b"\xff"})
