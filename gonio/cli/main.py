@@ -418,16 +418,18 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, default=256, help="preview samples per pixel (default 256)")
     r.set_defaults(func=_cmd_render)
 
-    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict, MERL or PAB-Opto, "
+    cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict, MERL, PAB-Opto or Zemax, "
                                         "a dataset to CSV, MERL or PAB-Opto")
     cv.add_argument("source", help="fit file (JSON) or dataset.nc")
     cv.add_argument("--to", required=True,
-                    choices=["mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto"],
+                    choices=["mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto",
+                             "zemax"],
                     help="from a fit: mitsuba-xml (a file a plain Mitsuba 3 loads with mitsuba.load_file and "
                          "<include>: a model without a Mitsuba plugin is written as the closest native BSDF fitted "
                          "to it, its error printed), mitsuba-xml-gonio (gonio's own plugins, exact, for a process "
                          "that imports gonio), mitsuba-dict, "
-                         "merl (the model resampled), pabopto (the model on a grid); from a dataset: csv, "
+                         "merl (the model resampled), pabopto (the model on a grid), zemax (Zemax/LightTools "
+                         "tabular BSDF: OUT_brdf.bsdf, and OUT_btdf.bsdf for a model that transmits); from a dataset: csv, "
                          "merl-data (measured values binned, the rest no-data), pabopto (measured values); "
                          "pabopto writes one file per incident direction into the --out folder, for Radiance's "
                          "pabopto2bsdf")

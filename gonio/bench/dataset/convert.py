@@ -1,7 +1,7 @@
 """``gonio convert``'s use case: one file in an exchange format, from a fit or a dataset.
 
 A fit -> Mitsuba XML (a plain Mitsuba's, or with gonio's plugins) / dict JSON / MERL /
-PAB-Opto; a dataset -> CSV / MERL (binned) / PAB-Opto. Every output is checked before anything
+PAB-Opto / Zemax tabular BSDF; a dataset -> CSV / MERL (binned) / PAB-Opto. Every output is checked before anything
 is written (one line naming what to fix), written through the formats' checked writers, and
 what a failed call made (folders) is removed. :func:`convert` says its lines through ``say``.
 """
@@ -23,7 +23,7 @@ from gonio.fitting.pipeline import load_fit_file
 __all__ = ["convert", "TARGETS"]
 
 #: What ``--to`` accepts.
-TARGETS = ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "pabopto", "csv", "merl-data")
+TARGETS = ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "pabopto", "zemax", "csv", "merl-data")
 
 
 def convert(source: Path, out: Path, to: str, say: Callable[[str], None] = print) -> None:
@@ -80,9 +80,25 @@ def _convert_pabopto(source, out, say):
     say(f"{line} in {out}; Radiance: pabopto2bsdf {out}/*.dat > sample.sir")
 
 
+def _convert_zemax(source, out, say):
+    """``--to zemax``: a fit's model as Zemax/LightTools tabular BSDF files, ``OUT_brdf.bsdf`` and,
+    for a model that transmits, ``OUT_btdf.bsdf`` (each read back and checked)."""
+    from gonio.fitting.formats.zemax import export_zemax
+
+    if source.suffix.lower() != ".json":
+        raise GonioError(f"--to zemax converts a fit file (FIT.json); {source} is not one")
+    model, params = load_fit_file(source)
+    _make_parent(out)
+    stem = out.with_suffix("") if out.suffix.lower() == ".bsdf" else out
+    paths = export_zemax(stem, model, params)
+    say(f"{len(paths)} Zemax tabular BSDF file(s): " + ", ".join(str(p) for p in paths))
+
+
 def _convert(source, out, to, say):
     if to == "pabopto":
         return _convert_pabopto(source, out, say)
+    if to == "zemax":
+        return _convert_zemax(source, out, say)
     if to in ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl"):
         if source.suffix.lower() != ".json":
             raise GonioError(f"--to {to} converts a fit file (FIT.json); {source} is not one")

@@ -38,7 +38,8 @@ def _quiet_reader_cleanup():
 
 
 def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
-    """A gonio dataset.nc, a MERL .binary file or an RGL .bsdf file, as Measurements.
+    """A gonio dataset.nc, a MERL .binary file, an RGL .bsdf file or a Zemax/LightTools tabular
+    BSDF (told apart from an RGL file by its content), as Measurements.
 
     MERL and RGL files carry no uncertainty: each value gets a nominal relative 1-sigma (1 %
     MERL, 2 % RGL; ``attrs["nominal_sigma"]``) and a solid-angle weight. A MERL table is
@@ -64,6 +65,10 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
                 from gonio.fitting import merl_samples
 
                 return merl_samples(path, n=5000, rng=np.random.default_rng(seed))
+            from gonio.fitting.formats import zemax
+
+            if zemax.is_zemax_bsdf(path):   # by content: Zemax and RGL both write .bsdf
+                return zemax.zemax_measurements(path, as_rgb=True)
             if suffix == ".bsdf":
                 from gonio.fitting import direction, rgl_samples
                 from gonio.fitting.formats import rgl_measurements
@@ -86,7 +91,7 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
         except Exception as exc:            # a damaged file: HDF5 answers KeyError, RuntimeError, ...
             reason = " ".join(str(exc).split())[:300] or type(exc).__name__
             message = (f"cannot read {path} ({reason}); give a dataset.nc written by "
-                       "gonio export, a MERL .binary or an RGL .bsdf file")
+                       "gonio export, a MERL .binary, an RGL .bsdf or a Zemax tabular BSDF file")
     raise GonioError(message)
 
 
@@ -94,7 +99,7 @@ def open_budget(path: Path, meas):
     """The uncertainty budget of a dataset.nc (None for MERL/RGL files: from ``meas.attrs``)."""
     from gonio.fitting import load_budget
 
-    if path.suffix.lower() in (".binary", ".bsdf"):
+    if path.suffix.lower() in (".binary", ".bsdf") or _is_zemax(path):
         return None
     try:
         return load_budget(path, meas)
@@ -111,3 +116,9 @@ def open_fit_input(path: Path, seed: int = 0, colour_space: str = "srgb"):
     path = Path(path)
     meas = open_dataset(path, seed, colour_space)
     return FitInput(meas, open_budget(path, meas))
+
+
+def _is_zemax(path: Path) -> bool:
+    from gonio.fitting.formats.zemax import is_zemax_bsdf
+
+    return is_zemax_bsdf(path)
