@@ -78,9 +78,14 @@ def test_capture_recovers_known_brdf_and_exports(instrument, tmp_path):
     assert doc["session"]["seed"] == 1 and doc["plan"]["name"] == "quick" and "axes" in doc["settings"]
     assert json.loads(doc["sample_truth"]["json"]) == GLOSSY
     ds = xr.open_dataset(export(folder), engine="h5netcdf")
-    # dark_input: one shared input a correlated mode of the dark frames' noise (interfaces.md 5.1)
-    assert {k: v for k, v in ds.sizes.items() if k != "dark_input"} == {"point": 30, "channel": 3, "xyz": 3}
+    # the budget's inputs (interfaces.md 5.1): dark_input, a correlated mode of the dark frames' noise;
+    # an uncalibrated session's uncorrected stage systematics (instrument.toml [systematics]): angle_input,
+    # the shared signed modes, and axis_input, each axis's per-move error, over the four angles
+    budget_dims = {"dark_input", "angle_input", "axis_input", "angle"}
+    assert {k: v for k, v in ds.sizes.items() if k not in budget_dims} == {"point": 30, "channel": 3, "xyz": 3}
     assert 1 <= ds.sizes.get("dark_input", 0) <= 30 and list(ds.channel.values) == ["R", "G", "B"]
+    assert ds.sizes["angle"] == 4 and ds.sizes["axis_input"] == 4 and ds.sizes["angle_input"] >= 1
+    assert ds.angle_shift_independent.dims == ("axis_input", "point", "angle")
     for c in ("theta_i", "phi_i", "theta_o", "phi_o"):
         assert ds[c].attrs["units"] == "degree"
     assert ds.brdf.attrs["units"] == "sr^-1" and ds.brdf_std.dims == ("point", "channel")
