@@ -1,0 +1,192 @@
+"""The ``adaptive`` plan strategy (gonio.bench.plan.adaptive) on the simulated instrument: it
+recovers a glossy sample's roughness from a dozen points, chooses the same points for the same
+seed, and a resume after a stop replays its choices."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+
+import numpy as np
+import pytest
+
+sim = pytest.importorskip("gonio.sim")
+
+from benchfakes.cameras import InterruptingCamera
+
+import gonio.models as gm
+from gonio.bench.plan import plans
+from gonio.bench.plan import strategy as st
+from gonio.bench.plan.adaptive import AdaptivePlan, cli_strategy, spread_subset
+from gonio.bench.session.capture import capture, resume
+from gonio.bench.session.journal import Journal, read_session
+from gonio.bench.settings import default_settings
+from gonio.core.errors import GonioError
+from gonio.fitting import Measurements, fit
+
+S = default_settings()
+ALPHA = 0.15
+GLOSSY = {"model": "roughplastic", "options": {"distribution": "ggx"},
+          "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": ALPHA}}
+QUICK = plans.load_plan("quick")
+TABLE = {"name": "adaptive", "points": 12, "seed": 4}
+
+
+@pytest.fixture
+def made(monkeypatch):
+    """Every AdaptivePlan the captures make, in order."""
+    out = []
+    monkeypatch.setitem(st.STRATEGIES, "adaptive", lambda p, o, t: out.append(AdaptivePlan(p, o, t)) or out[-1])
+    return out
+
+
+def _capture(name, folder, camera=None, seed=4):
+    inst = sim.Instrument(S, sample=GLOSSY, seed=seed).register(name)
+    try:
+        res = capture(folder, QUICK, S, inst.url("zaber"), inst.url("meter"),
+                      camera if camera is not None else inst.url("camera"), seed=seed, progress=False,
+                      sleep=inst.clock.advance, sample_truth=inst.sample_spec, strategy=TABLE)
+    except BaseException:
+        inst.unregister()
+        raise
+    return inst, res
+
+
+def _fit(folder):
+    rows = Journal(folder / "journal.sqlite").points()
+    a = QUICK.angles[[r["idx"] for r in rows]]
+    from gonio.core.geometry import directions_deg
+    meas = Measurements(directions_deg(a[:, 0], a[:, 1]), directions_deg(a[:, 2], a[:, 3]),
+                        [r["brdf"] for r in rows], [r["brdf_std"] for r in rows], True)
+    return fit(meas, gm.get("roughplastic", distribution="ggx"), rng=np.random.default_rng(0))
+
+
+def test_an_adaptive_capture_recovers_alpha_and_repeats_its_choices(made, tmp_path):
+    runs = []
+    for k in range(2):                                   # two captures, same seed
+        inst, res = _capture(f"adaptive-{k}", tmp_path / f"s{k}")
+        inst.unregister()
+        assert res.complete and res.n_done == res.n_points == 12
+        strat = made[-1]
+        assert strat.stopped_by == "budget" and len(strat.log) == len(strat.batches) - 1 >= 2
+        done = Journal(tmp_path / f"s{k}" / "journal.sqlite").done()
+        assert done == {i for b in strat.batches for i in b}
+        runs.append(strat.batches)
+    assert runs[0] == runs[1]                            # the same points, batch by batch
+    assert read_session(tmp_path / "s0")["strategy"] == TABLE
+    res = _fit(tmp_path / "s0")
+    alpha = dict(zip(res.space.names, zip(res.x, res.std)))["alpha"]
+    assert abs(alpha[0] - ALPHA) < 3 * alpha[1] and alpha[1] < 0.02 * ALPHA      # within 3 sigma; sigma < 2 %
+
+
+def _stop_at_point(k):
+    """A camera hook that presses Ctrl-C once as the ``k``-th measured point starts (0-based)."""
+    seen: list[str] = []
+
+    def hook(n, path):
+        m = re.search(r"p(\d{5})_", os.fspath(path))
+        if m and m.group(1) not in seen:
+            seen.append(m.group(1))
+            if len(seen) == k + 1:
+                os.kill(os.getpid(), signal.SIGINT)
+    return hook
+
+
+def test_a_resume_after_a_stop_in_the_first_pass_finishes_the_plan(made, tmp_path):
+    folder = tmp_path / "s"
+    inst = sim.Instrument(S, sample=GLOSSY, seed=4).register("adaptive-stop")
+    try:
+        cam = InterruptingCamera(inst.url("camera"), hook=_stop_at_point(3))
+        res = _capture_with(inst, folder, cam)
+        assert not res.complete and "Ctrl-C" in res.stopped and res.n_done == 4
+        again = resume(folder, camera=inst.url("camera"), sleep=inst.clock.advance, progress=False)
+    finally:
+        inst.unregister()
+    assert again.complete and again.n_done == 12 and made[-1].name == "adaptive"
+    assert made[-1].stopped_by == "budget"
+    assert Journal(folder / "journal.sqlite").done() == {i for b in made[-1].batches for i in b}
+
+
+def _capture_with(inst, folder, camera):
+    return capture(folder, QUICK, S, inst.url("zaber"), inst.url("meter"), camera, seed=4, progress=False,
+                   sleep=inst.clock.advance, sample_truth=inst.sample_spec, strategy=TABLE)
+
+
+def _synthetic(plan, seed=0):
+    m = gm.get("roughplastic", distribution="ggx")
+    a = plan.angles
+    from gonio.core.geometry import directions_deg
+    f = m.eval(directions_deg(a[:, 0], a[:, 1]), directions_deg(a[:, 2], a[:, 3]),
+               {"diffuse_reflectance": np.array([0.5, 0.37, 0.25]), "alpha": ALPHA, "int_ior": 1.49})
+    sd = 0.01 * f + 1e-4
+    return f + sd * np.random.default_rng(seed).standard_normal(f.shape), sd
+
+
+def _as_a_run(strat, f, sd, stop_after=None):
+    """Drive ``strat`` as `_Session.run` does (each point journalled before the next is asked
+    for), stopping after ``stop_after`` points; the results."""
+    results, todo = {}, strat.first(set())
+    n = 0
+    while n < len(todo):
+        if stop_after is not None and len(results) == stop_after:
+            break
+        todo.extend(strat.more(results, tuple(todo)))
+        i = todo[n]
+        results[i] = (f[i], sd[i])
+        n += 1
+    return results
+
+
+def test_a_resume_replays_the_choices_from_the_journalled_results():
+    plan = plans.load_plan("standard")
+    f, sd = _synthetic(plan)
+    order = list(range(len(plan)))
+    table = {"points": 20, "seed": 1}
+    whole = AdaptivePlan(plan, order, table)
+    _as_a_run(whole, f, sd)
+    assert whole.stopped_by == "budget" and sum(map(len, whole.batches)) == 20
+    for stop in (3, 9, 13):                 # in the first pass, at a batch's end, inside a batch
+        first = AdaptivePlan(plan, order, table)
+        journalled = _as_a_run(first, f, sd, stop_after=stop)
+        again = AdaptivePlan(plan, order, table)             # a resume: a fresh strategy, every result at once
+        todo = again.first(set(journalled))
+        todo += again.more(journalled, tuple(todo))
+        assert again.batches[:len(first.batches)] == first.batches
+        rest = _as_a_run_from(again, journalled, todo, f, sd)
+        assert again.batches == whole.batches and set(rest) == {i for b in whole.batches for i in b}
+    # the fit found the truth, and a target stops the plan early and says so
+    assert abs(whole.log[-1]["params"]["alpha"] - ALPHA) < 0.01
+    early = AdaptivePlan(plan, order, {**table, "target_rel_u": 0.05})
+    _as_a_run(early, f, sd)
+    assert early.stopped_by == "target" and sum(map(len, early.batches)) < 20
+    assert early.state()["stopped_by"] == "target" and max(early.log[-1]["rel_u"].values()) < 0.05
+
+
+def _as_a_run_from(strat, results, todo, f, sd):
+    results = dict(results)
+    n = 0
+    while n < len(todo):
+        todo.extend(strat.more(results, tuple(todo)))
+        results[todo[n]] = (f[todo[n]], sd[todo[n]])
+        n += 1
+    return results
+
+
+def test_the_first_pass_is_spread_and_the_table_is_checked():
+    a = plans.load_plan("dense").angles
+    first = spread_subset(a, 8)
+    assert len(set(first)) == 8 and first == spread_subset(a, 8)
+    assert spread_subset(a, 3, first)[:1] == spread_subset(a, 9)[8:9]
+    assert len(set(np.round(a[first, 0]))) >= 3          # several incidences, not one scan
+    for bad, msg in (({"points": 0}, "points = 0"), ({"pointz": 3}, "unknown key 'pointz'"),
+                     ({"target_rel_u": -1}, "target_rel_u"), ({"model": "nope"}, "model 'nope'")):
+        with pytest.raises(ValueError, match=msg):
+            AdaptivePlan(QUICK, range(len(QUICK)), bad)
+    with pytest.raises(GonioError, match="points = 0"):
+        capture("/nonexistent/never", QUICK, S, "sim://x/zaber", "sim://x/meter", "sim://x/camera",
+                strategy={"name": "adaptive", "points": 0})
+    assert cli_strategy("adaptive", points=30, target_rel_u=None, candidates=None, seed=2) == (
+        "dense", {"name": "adaptive", "seed": 2, "points": 30})
+    with pytest.raises(ValueError, match="--points goes with --plan adaptive"):
+        cli_strategy("standard", points=30, target_rel_u=None, candidates=None, seed=0)
