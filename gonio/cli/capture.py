@@ -55,10 +55,16 @@ def _load_plan(spec):
 
 
 def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress,
-                errors=None, calibration=None):
+                errors=None, calibration=None, points=None, target_rel_u=None, candidates=None):
     from gonio.bench.samples import load_sample
+    from gonio.bench.plan.adaptive import cli_strategy
     from gonio.bench.plan.plans import dry_run as plan_dry_run
 
+    try:
+        plan, strategy = cli_strategy(plan, points=points, target_rel_u=target_rel_u, candidates=candidates, seed=seed)
+    except ValueError as exc:
+        raise GonioError(str(exc)) from None
+    given = {"strategy": strategy} if strategy else {}
     settings_d = settings if isinstance(settings, dict) else _load_settings(settings)
     settings_d = with_errors_and_calibration(settings_d, sim=sim, seed=seed, errors=errors, calibration=calibration)
     plan_obj = _load_plan(plan)
@@ -69,7 +75,7 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
         if port or meter_port:
             raise GonioError("--sim and --port/--meter-port exclude each other: pick the simulated or the real instrument")
         summary = capture_sim(out, sample=load_sample(sample), plan=plan_obj, seed=seed, settings=settings_d,
-                              progress=progress)
+                              progress=progress, **given)
     else:
         from gonio.bench.session.capture import capture
 
@@ -77,7 +83,8 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
             raise GonioError("--sample names the virtual sample of --sim; on hardware, mount the sample")
         if not meter_port or not camera:
             raise GonioError("a hardware capture needs --port, --meter-port and --camera")
-        summary = capture(out, plan_obj, settings_d, port, meter_port, _camera(camera), seed=seed, progress=progress)
+        summary = capture(out, plan_obj, settings_d, port, meter_port, _camera(camera), seed=seed, progress=progress,
+                          **given)
     return _print_summary(summary)
 
 

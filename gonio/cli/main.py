@@ -98,7 +98,8 @@ def _cmd_capture(args):
                                       sample=args.sample, plan=args.plan, seed=args.seed, settings=settings,
                                       port=args.port, meter_port=args.meter_port, camera=args.camera,
                                       dry_run=args.dry_run, progress=not args.quiet,
-                                      errors=args.errors, calibration=args.calibration)
+                                      errors=args.errors, calibration=args.calibration, points=args.points,
+                                      target_rel_u=args.target_rel_u, candidates=args.candidates)
 
 
 @_env
@@ -322,7 +323,12 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     c.add_argument("--sim", action="store_true", help="use the simulated instrument in this process")
     c.add_argument("--sample", help="sample TOML or measured .bsdf file (simulated instrument only)")
-    c.add_argument("--plan", default="standard", help="preset (quick, standard, dense) or plan TOML/CSV file")
+    c.add_argument("--plan", default="standard",
+                   help="preset (quick, standard, dense), plan TOML/CSV file, or adaptive (chosen from the data)")
+    c.add_argument("--points", type=int, metavar="N", help="with --plan adaptive: the most points to measure (default 24)")
+    c.add_argument("--target-rel-u", type=float, metavar="X",
+                   help="with --plan adaptive: stop once every fitted parameter's relative 1-sigma is below X")
+    c.add_argument("--candidates", metavar="PLAN", help="with --plan adaptive: the plan it chooses from (default dense)")
     c.add_argument("--out", help="new session folder")
     c.add_argument("--resume", metavar="DIR", help="finish an interrupted session")
     c.add_argument("--seed", type=_seed, default=0, help="seed (simulated noise and faults)")

@@ -190,3 +190,28 @@ def test_the_first_pass_is_spread_and_the_table_is_checked():
         "dense", {"name": "adaptive", "seed": 2, "points": 30})
     with pytest.raises(ValueError, match="--points goes with --plan adaptive"):
         cli_strategy("standard", points=30, target_rel_u=None, candidates=None, seed=0)
+
+
+def _gonio(*args):
+    import subprocess
+    import sys
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    return subprocess.run([sys.executable, "-m", "gonio.cli.main", *args], capture_output=True, text=True,
+                          timeout=120, env=env)
+
+
+def test_the_adaptive_options_go_with_the_adaptive_plan(tmp_path):
+    proc = _gonio("capture", "--sim", "--plan", "quick", "--points", "8", "--out", str(tmp_path / "s"))
+    assert proc.returncode == 2 and proc.stderr.strip() == "gonio: error: --points goes with --plan adaptive"
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.xfail(raises=TypeError, strict=True,
+                   reason="gonio.bench.session.simulated.capture_sim takes no strategy= yet")
+def test_gonio_capture_plan_adaptive_on_the_simulator(tmp_path):
+    from gonio.cli.main import main
+
+    code = main(["capture", "--sim", "--plan", "adaptive", "--candidates", "quick", "--points", "8", "--quiet",
+                 "--out", str(tmp_path / "s")])
+    assert code == 0 and len(Journal(tmp_path / "s" / "journal.sqlite").done()) == 8
+    assert read_session(tmp_path / "s")["strategy"] == {"name": "adaptive", "seed": 0, "points": 8}
