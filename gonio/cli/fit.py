@@ -10,6 +10,7 @@ from pathlib import Path
 from gonio.cli.console import print_table
 from gonio.bench.report.fitdoc import energy_text, truth_for
 from gonio.core.errors import GonioError
+from gonio.fitting.display import inadequate_text
 from gonio.bench.dataset.reader import open_budget, open_dataset as _open_dataset, open_fit_input  # noqa: F401  (the CLI's names)
 from gonio.fitting.pipeline import (fit_dataset, load_fit_file, model_error as _model_error, parse_options,  # noqa: F401
                                     resolve_candidates)
@@ -17,12 +18,6 @@ from gonio.fitting.render.closure import (check_measured as _check_measured, che
                                           render_closure, render_previews)
 
 __all__ = ["fit_dataset", "fit_cli", "render_cli", "parse_options", "print_fit"]
-
-
-def _inadequate_text(g) -> str:
-    return (f"chi2/dof = {g['chi2_dof']:.3g}: the model misses the data by more than its noise "
-            f"(Birge ratio {g['birge_ratio']:.3g}); the 1-sigma values are statistical only and "
-            "understate the model's error")
 
 
 def print_fit(doc, truth=None, console=None):
@@ -62,7 +57,7 @@ def print_fit(doc, truth=None, console=None):
     if g.get("warning"):
         console.print(f"[yellow]{g['warning']}[/yellow]")
     elif not g.get("model_adequate", True):
-        console.print(f"[yellow]{_inadequate_text(g)}[/yellow]")
+        console.print(f"[yellow]{inadequate_text(g)}[/yellow]")
     dominant = budget_line(doc)
     if dominant:
         console.print(dominant)
@@ -132,90 +127,13 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
 
 
 def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None):
-    """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``."""
-    import gonio.models as gm
-    from gonio.fitting import (LOSSES, check_dashboard_address, check_scheduler_address, check_workers, fit_batch,
-                               write_json_atomic)
-    from gonio.fitting.pipeline import fit_document_of
+    """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``
+    (`gonio.bench.dataset.fit_files.fit_files`; the warnings on stderr, so the lines on stdout
+    stay machine-readable)."""
+    from gonio.bench.dataset.fit_files import fit_files
 
-    from gonio.core.preflight import check_output_dir, writing
-
-    if model == "auto":
-        raise GonioError("--batch needs a named --model (e.g. roughplastic); auto is for single fits")
-    if loss is not None and loss not in LOSSES:
-        raise GonioError(f"unknown loss {loss!r}: choose one of {', '.join(LOSSES)}")
-    try:
-        if scheduler is None:
-            check_workers(workers)
-            if dashboard is not None:
-                check_dashboard_address(dashboard)
-        else:
-            check_scheduler_address(scheduler)
-            if dashboard is not None:
-                raise ValueError("--dashboard is for the local cluster; an existing scheduler serves its own")
-    except ValueError as exc:
-        raise GonioError(str(exc)) from None
-    check_output_dir(out, "batch output folder (--out)")
-    try:
-        gm.get(model, **parse_options(options))         # a model and options the registry knows
-    except (KeyError, ValueError, TypeError) as exc:
-        raise _model_error(exc, model, auto=False) from None
-    # each dataset as `gonio fit` opens it: Measurements and budget (one FitInput)
-    inputs = [open_fit_input(d, seed) for d in datasets]
-    if loss is None:
-        from gonio.fitting import default_loss
-
-        defaults = sorted({default_loss(i.meas) for i in inputs})
-        if len(defaults) > 1:
-            raise GonioError(f"these datasets have different default losses ({', '.join(defaults)}: measured sigma "
-                             "or none); give --loss, or fit them in separate batches")
-        loss = defaults[0]
-    stems = [d.parent.name if d.name == "dataset.nc" else d.stem for d in datasets]
-    if len(set(stems)) != len(stems):
-        stems = [f"{k:04d}_{s}" for k, s in enumerate(stems)]
-    # a local cluster reads the same files: each worker loads its own datasets (a loader per
-    # file, called where it is fitted) instead of receiving them over the cluster's TLS (16
-    # datasets of 1e5 points: 1.2 s of CPU to ship against 1.5 s to fit them); an existing
-    # scheduler's workers may not see these paths, so they get the data itself
-    if scheduler is None:
-        import functools
-
-        work = [functools.partial(open_fit_input, d, seed) for d in datasets]
-    else:
-        work = inputs
-    try:
-        # (name, the user's options): each worker fits as `gonio fit` does (gonio.fitting.pipeline)
-        results = fit_batch(work, (model, parse_options(options)), scheduler=scheduler, n_workers=min(workers, len(inputs)), rng_seed=seed,
-                            loss=loss, dashboard_address=dashboard)
-    except (OSError, TimeoutError) as exc:
-        if scheduler is None:
-            raise GonioError(f"the local Dask cluster failed ({' '.join(str(exc).split())[:200]})") from None
-        raise GonioError(f"cannot reach the Dask scheduler {scheduler} ({' '.join(str(exc).split())[:320]}); "
-                         "check the address and that it is running") from None
-    except ValueError as exc:           # a dataset the fit refuses (raised in a worker)
-        raise GonioError(" ".join(str(exc).split())) from None
-    except Exception as exc:
-        if type(exc).__module__.startswith("distributed"):      # KilledWorker, CommClosedError, ...
-            raise GonioError(f"the Dask cluster lost a worker or a connection ({type(exc).__name__}: "
-                             f"{' '.join(str(exc).split())[:200]}); run again, or with fewer --workers") from None
-        raise
-    out.mkdir(parents=True, exist_ok=True)
-    poor = []
-    for path, inp, result, stem in zip(datasets, inputs, results, stems):
-        doc = fit_document_of(result, inp, seed=seed, dataset_path=path)
-        with writing(out / f"{stem}.fit.json"):
-            write_json_atomic(out / f"{stem}.fit.json", doc)
-        print(f"{stem}: chi2/dof {result.chi2_dof:.3f}, " + ", ".join(
-            f"{n}={v:.4g}+-{e:.2g}" for n, v, e in zip(result.space.names, result.x, result.std)))
-        g = doc["goodness"]
-        if g.get("warning") or g.get("model_adequate") is False:
-            poor.append(stem)
-            # the same warning as `gonio fit` (on stderr: the table above stays machine-readable)
-            print(f"  warning: {g.get('warning') or _inadequate_text(g)}", file=sys.stderr)
-    if poor:
-        print(f"warning: {len(poor)} of {len(results)} fits miss their data by more than its noise: "
-              f"{', '.join(poor[:10])}{' ...' if len(poor) > 10 else ''}", file=sys.stderr)
-    print(f"wrote {len(results)} fit files to {out}")
+    fit_files(datasets, model=model, options=options, out=out, seed=seed, loss=loss, scheduler=scheduler,
+              workers=workers, dashboard=dashboard, say=print, warn=lambda line: print(line, file=sys.stderr))
 
 
 def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, preview=False, measured=None,

@@ -180,3 +180,11 @@ def text(caption, header, rows, notes) -> str:
     lines = [caption, "  " + "  ".join(str(h).ljust(w) for h, w in zip(header, widths)).rstrip()]
     lines += ["  " + "  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     return "\n".join(lines + [f"  {n}" for n in notes])
+
+
+def inadequate_text(g) -> str:
+    """The warning of a fit whose model misses its data by more than the data's noise (a fit
+    document's ``goodness``)."""
+    return (f"chi2/dof = {g['chi2_dof']:.3g}: the model misses the data by more than its noise "
+            f"(Birge ratio {g['birge_ratio']:.3g}); the 1-sigma values are statistical only and "
+            "understate the model's error")
