@@ -86,7 +86,7 @@ def test_the_fixed_plan_is_the_default_and_is_recorded(inst, tmp_path):
 
 
 def test_an_unknown_strategy_is_refused_before_anything_is_written(inst, tmp_path):
-    with pytest.raises(GonioError, match="unknown plan strategy 'nope'; known: fixed"):
+    with pytest.raises(GonioError, match="unknown plan strategy 'nope'; known: adaptive, fixed"):
         _capture(inst, tmp_path / "u", strategy={"name": "nope"})
     assert not (tmp_path / "u").exists()
 
