@@ -537,7 +537,8 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
     if adequacy is None and result.loss == "chi2":
         # a budget of systematic lines alone: the fit's own sigma stands for the type A
         pointwise = comps if type_a else [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none")] + comps
-        adequacy = adequacy_test(result, meas, pointwise, J, r, drdy, refine=chi2_refiner(result, meas))
+        adequacy = adequacy_test(result, meas, pointwise, J, r, drdy, refine=chi2_refiner(result, meas),
+                                 angles=budget.angles)
     # lines of known mean (a systematic of known sign left in the data): the parameters' expected
     # shift, mean x G value, which the fit document's values are corrected by (GUM 3.2.4)
     known = np.zeros(P)
