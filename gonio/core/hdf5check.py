@@ -52,5 +52,8 @@ def check_hdf5(path, what: str = "dataset") -> None:
                          "export it again from its session or restore a copy") from None
     if r.returncode != 0:
         last = (r.stderr.decode("utf-8", "replace").strip().splitlines() or ["no message"])[-1]
+        if "filter returned failure" in last:       # HDF5's Fletcher-32 check of a stored block
+            raise GonioError(f"{what} {path} is damaged: a stored block fails its checksum; export it again "
+                             "from its session (gonio verify SESSION checks the journal) or restore a copy") from None
         raise GonioError(f"cannot read {what} {path} ({' '.join(last.split())[:200]}); "
                          "give a dataset.nc written by gonio export") from None

@@ -82,3 +82,69 @@ def test_gonio_fit_on_a_file_that_loops_hdf5_exits_2(dataset, tmp_path, monkeypa
     err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
     assert out["rc"] == 2 and len(err) == 1 and "is damaged" in err[0], err
     assert not (tmp_path / "f.json").exists()
+
+
+def _read_or_refuse(dataset, tmp_path, step):
+    """For each ``step``-aligned zeroed 512-byte block: "refused" (one line) or "same" (read back
+    equal to the intact file); anything else is a damaged file read as if it were good."""
+    import numpy as np
+
+    from gonio.bench.dataset.reader import open_dataset
+
+    intact = open_dataset(dataset)
+    out = {"refused": 0, "same": 0, "different": []}
+    for offset in range(0, os.path.getsize(dataset), step):
+        path = _zeroed(dataset, tmp_path / f"r{offset}.nc", offset)
+        try:
+            meas = open_dataset(path)
+        except GonioError as exc:
+            assert "\n" not in str(exc)
+            out["refused"] += 1
+        else:
+            same = all(np.array_equal(getattr(meas, k), getattr(intact, k), equal_nan=True)
+                       for k in ("wi", "wo", "brdf", "brdf_std", "use"))
+            if same:
+                out["same"] += 1
+            else:
+                out["different"].append(offset)
+        path.unlink()
+    return out
+
+
+def _chunk_offset(path, name):
+    """File offset and size of the first stored chunk of variable ``name`` (contiguous: its data)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        dsid = f[name].id
+        if f[name].chunks is None:
+            return dsid.get_offset(), dsid.get_storage_size()
+        info = dsid.get_chunk_info(0)
+        return info.byte_offset, info.size
+
+
+@pytest.mark.parametrize("name", ["brdf", "brdf_std", "theta_o"])
+def test_a_flipped_bit_in_stored_values_is_refused(dataset, tmp_path, name):
+    """Every array of dataset.nc is stored with HDF5's Fletcher-32 checksum (export): one flipped
+    bit in a stored f_r, sigma or angle is refused when read. Before, it was read as a value
+    (issue 36, probe 3: 0.248 -> 0.348 exported and fitted without a word)."""
+    from gonio.bench.dataset.reader import open_dataset
+
+    offset, size = _chunk_offset(dataset, name)
+    path = tmp_path / "flipped.nc"
+    shutil.copy(dataset, path)
+    with open(path, "r+b") as fh:
+        fh.seek(offset + size // 2)
+        byte = fh.read(1)[0]
+        fh.seek(offset + size // 2)
+        fh.write(bytes([byte ^ 0x10]))
+    with pytest.raises(GonioError, match="fails its checksum") as info:
+        open_dataset(path)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.long
+def test_no_zeroed_block_anywhere_is_read_as_good_data(dataset, tmp_path, monkeypatch):
+    monkeypatch.setattr(hc, "DEADLINE_S", 3.0)
+    out = _read_or_refuse(dataset, tmp_path, 512)
+    assert out["different"] == [], f"read as good data with blocks zeroed at {out['different']}"

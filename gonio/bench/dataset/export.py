@@ -216,6 +216,11 @@ def export(session_dir, chart=None) -> Path:
 
 
 def _serialise(ds):
+    """The NetCDF-4 bytes of ``ds``, every array stored with HDF5's Fletcher-32 checksum filter,
+    so a damaged block of dataset.nc is an error when it is read, never a value."""
+    for v in ds.variables.values():
+        if v.ndim:
+            v.encoding["fletcher32"] = True
     return ds.to_netcdf(engine="h5netcdf")
 
 

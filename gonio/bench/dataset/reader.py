@@ -90,6 +90,8 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
             message = f"{path} is too large to read on this machine"
         except Exception as exc:            # a damaged file: HDF5 answers KeyError, RuntimeError, ...
             reason = " ".join(str(exc).split())[:300] or type(exc).__name__
+            if "filter returned failure" in reason:     # HDF5's Fletcher-32 check of a stored block
+                reason = "a stored block fails its checksum: the file is damaged"
             message = (f"cannot read {path} ({reason}); give a dataset.nc written by "
                        "gonio export, a MERL .binary, an RGL .bsdf or a Zemax tabular BSDF file")
     raise GonioError(message)
