@@ -42,6 +42,7 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,                    # the fits' starts draw from Generator([seed, batch])
     "travel": True,               # score = information gain / (overhead_s + travel time)
     "overhead_s": 5.0,            # per-point settle, bracket and reduction time, s
+    "model_rel_u": 0.0,           # relative 1-sigma of what the noise leaves out (model, systematics)
 }
 
 
@@ -109,6 +110,9 @@ class AdaptivePlan:
         self.seed = _int(t, "seed", 0)
         self.target_rel_u = float(t["target_rel_u"])
         self.overhead_s = float(t["overhead_s"])
+        self.model_rel_u = float(t["model_rel_u"])
+        if not (self.model_rel_u >= 0 and math.isfinite(self.model_rel_u)):
+            raise ValueError(f"[strategy] model_rel_u = {t['model_rel_u']!r}: give a number >= 0")
         if not (self.target_rel_u >= 0 and math.isfinite(self.target_rel_u)):
             raise ValueError(f"[strategy] target_rel_u = {t['target_rel_u']!r}: give a number >= 0")
         if not self.overhead_s > 0:
@@ -150,7 +154,8 @@ class AdaptivePlan:
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "points": self.points, "target_rel_u": self.target_rel_u, "first": self.first_n,
                 "batch": self.batch, "model": self.model_name, "options": self.options, "fixed": self.fixed,
-                "n_starts": self.n_starts, "seed": self.seed, "travel": self.travel, "overhead_s": self.overhead_s}
+                "n_starts": self.n_starts, "seed": self.seed, "travel": self.travel, "overhead_s": self.overhead_s,
+                "model_rel_u": self.model_rel_u}
 
     def state(self) -> dict[str, Any]:
         """What the strategy did: ``stopped_by``, the points per batch, the last fit, the
@@ -235,7 +240,7 @@ class AdaptivePlan:
         lo, hi = self.space.lower, self.space.upper
         scale = np.maximum(np.abs(x), 1e-3 * (hi - lo))
         f0 = self.model.eval(self.wi, self.wo, self.space.to_params(x))
-        sigma = np.sqrt((sigma_rel * f0) ** 2 + sigma_floor ** 2)
+        sigma = np.sqrt(((sigma_rel ** 2 + self.model_rel_u ** 2) * f0 ** 2) + sigma_floor ** 2)
         J = np.empty(f0.shape + (self.space.size,))
         for j in range(self.space.size):
             h = 1e-4 * scale[j]
@@ -254,6 +259,8 @@ class AdaptivePlan:
         rows, pred = self._rows(x, sigma_rel, sigma_floor)
         pending = [i for i in queue if i not in basis]
         s = np.array([results[i][1] for i in basis], float).reshape(len(basis), -1)
+        f = np.array([results[i][0] for i in basis], float).reshape(len(basis), -1)
+        s = np.sqrt(s ** 2 + (self.model_rel_u * f) ** 2)
         ok = np.isfinite(s) & (s > 0)
         A_b = rows[basis] * np.where(ok, pred[basis] / np.where(ok, s, 1.0), 0.0)[..., None]
         A_p = rows[pending]
