@@ -108,8 +108,6 @@ def test_a_resume_after_a_stop_in_the_first_pass_finishes_the_plan(made, tmp_pat
     assert Journal(folder / "journal.sqlite").done() == {i for b in made[-1].batches for i in b}
 
 
-@pytest.mark.xfail(strict=True, reason="_Session.run asks more() only before a point of first()'s: a resume "
-                   "whose first pass is all journalled measures nothing and reports complete")
 def test_a_resume_after_a_stop_past_the_first_pass_finishes_the_plan(made, tmp_path):
     folder = tmp_path / "s"
     inst = sim.Instrument(S, sample=GLOSSY, seed=4).register("adaptive-stop2")
@@ -220,8 +218,6 @@ def test_the_adaptive_options_go_with_the_adaptive_plan(tmp_path):
     assert not (tmp_path / "s").exists()
 
 
-@pytest.mark.xfail(raises=TypeError, strict=True,
-                   reason="gonio.bench.session.simulated.capture_sim takes no strategy= yet")
 def test_gonio_capture_plan_adaptive_on_the_simulator(tmp_path):
     from gonio.cli.main import main
 

@@ -45,6 +45,9 @@ class PlanStrategy(Protocol):
     def to_dict(self) -> dict[str, Any]:
         """session.toml's ``[strategy]`` table (:func:`strategy_from_doc` reads it back)."""
 
+    # Optional: ``state() -> dict``, why the strategy stopped and what it knows; the run journals
+    # it as a ``strategy`` event when the strategy asks for nothing more.
+
 
 class FixedPlan:
     """Every point of the plan once, in the move order chosen before the first move."""

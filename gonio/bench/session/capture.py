@@ -369,12 +369,12 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     order = order_moves(stage, settings)
     strategy = dict(strategy or {"name": "fixed"})
     try:
-        strategy_from_doc({"strategy": strategy, "order": {"order": order.order}}, plan)
+        budget = strategy_from_doc({"strategy": strategy, "order": {"order": order.order}}, plan).budget
     except ValueError as exc:
-        raise GonioError(f"{exc}; give one of them") from None
+        raise GonioError(str(exc) + ("; give one of them" if "unknown plan strategy" in str(exc) else "")) from None
     # before any port opens or anything is written: the folder writable, room for the RAW files
     check_output_dir(folder, "session folder (--out)")
-    _check_room(folder, settings, len(plan), camera, None, f"the RAW files of session {folder}",
+    _check_room(folder, settings, min(len(plan), budget), camera, None, f"the RAW files of session {folder}",
                 "free some space or give another --out")
     warnings: list = []
     bench_kw = dict(sleep=sleep, poll_interval_s=poll_interval_s, timeout=timeout,

@@ -511,6 +511,8 @@ class _Session(CalibrationFrames):
         done = self.journal.done()
         self._drop_unjournalled_point_files()
         todo = self._checked(self.strategy.first(set(done)), done, [])
+        # a resume past the strategy's first points: it may still want more before the loop starts
+        todo.extend(self._checked(self.strategy.more(self.results, tuple(todo)), done, todo))
         for i in sorted(done):
             r = self._reciprocity(i)
             if r is not None and r["i"] == i:
@@ -529,6 +531,9 @@ class _Session(CalibrationFrames):
                     pipe.step(n, idx)
                 else:
                     self.exhausted = True               # the strategy asked for nothing more
+                    if hasattr(self.strategy, "state"):   # why it stopped (budget, target, candidates)
+                        self.journal.event("strategy", json.dumps(self.strategy.state(), sort_keys=True,
+                                                                  default=str))
                 pipe.stop_move_ahead()
             except BaseException:
                 pipe.keep_finished()

@@ -43,8 +43,9 @@ def sim_instrument(settings, sample, seed, clock="instant", faults=None, name=No
 
 
 def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, progress=True, demo=False,
-                faults=None):
-    """Capture ``plan`` of a virtual ``sample`` on the simulated instrument (instant clock)."""
+                faults=None, strategy=None):
+    """Capture ``plan`` of a virtual ``sample`` on the simulated instrument (instant clock);
+    ``strategy``: session.toml's ``[strategy]`` table (`gonio.bench.plan.strategy`; default fixed)."""
     from gonio.bench.session.capture import capture
 
     from gonio.bench.measure.systematics import for_session
@@ -57,6 +58,6 @@ def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, 
         return capture(session, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
                        seed=seed, progress=progress, sample_truth=sample, sleep=inst.clock.advance,
                        meta={"sim": True, "demo": bool(demo), "sim_name": inst.name,
-                             "sample": json.dumps(sample, sort_keys=True)})
+                             "sample": json.dumps(sample, sort_keys=True)}, strategy=strategy)
     finally:
         inst.unregister()
