@@ -28,6 +28,8 @@ __all__ = [
     "half_vector",
     "reflect",
     "sincos_phi",
+    "angle_tangents",
+    "unit_vectors",
 ]
 
 
@@ -139,3 +141,23 @@ def sincos_phi(w, eps=4.0 * np.finfo(np.float32).eps):
     c = np.where(pole, 1.0, np.clip(w[..., 0] * inv, -1.0, 1.0))
     s = np.where(pole, 0.0, np.clip(w[..., 1] * inv, -1.0, 1.0))
     return s, c
+
+
+def angle_tangents(wi, wo, shifts, h: float = 1e-4):
+    """The directions' first-order displacement (K, N, 3) each for ``wi`` and ``wo`` (N, 3) per
+    unit of each of K angle shifts ``shifts`` (K, N, 4: theta_i, phi_i, theta_o, phi_o in
+    degrees): a central difference of the directions along the shift, so a direction near the
+    pole (where a small tilt is a large change of phi) moves by what the tilt moves it."""
+    ti, pi_ = angles(wi)
+    to, po = angles(wo)
+    base = np.stack([ti, pi_, to, po], axis=-1)                              # radians (N, 4)
+    d = np.radians(np.asarray(shifts, float))
+    plus, minus = base[None] + h * d, base[None] - h * d
+    t_i = (directions(plus[..., 0], plus[..., 1]) - directions(minus[..., 0], minus[..., 1])) / (2 * h)
+    t_o = (directions(plus[..., 2], plus[..., 3]) - directions(minus[..., 2], minus[..., 3])) / (2 * h)
+    return t_i, t_o
+
+
+def unit_vectors(v):
+    """``v`` (..., 3) scaled to unit length along its last axis."""
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)

@@ -192,15 +192,15 @@ def _displaced(result, meas, angles):
     """``model_e(x, e)``: the fitted model's f_r (N, C) at parameters x with the directions
     displaced by the K shared angle inputs e (their tangents, gonio.fitting.uncertainty.budget),
     times the sample's own irradiance change (1 + sum e_k irr_k) where the budget states one."""
-    from gonio.fitting.uncertainty.budget import _tangents, _unit
+    from gonio.core.geometry import angle_tangents, unit_vectors
 
-    t_i, t_o = _tangents(meas.wi, meas.wo, np.asarray(angles["shared"], float))
+    t_i, t_o = angle_tangents(meas.wi, meas.wo, np.asarray(angles["shared"], float))
     irr = angles.get("shared_irradiance")
     irr = None if irr is None else np.asarray(irr, float)
 
     def model_e(x, e):
-        wi = _unit(meas.wi + np.einsum("k,knj->nj", e, t_i))
-        wo = _unit(meas.wo + np.einsum("k,knj->nj", e, t_o))
+        wi = unit_vectors(meas.wi + np.einsum("k,knj->nj", e, t_i))
+        wo = unit_vectors(meas.wo + np.einsum("k,knj->nj", e, t_o))
         f = np.asarray(result.model.eval(wi, wo, result.space.to_params(x)), float)
         return f if irr is None else f * (1.0 + e @ irr)[:, None]
     return model_e, t_i.shape[0]

@@ -33,7 +33,7 @@ import dataclasses
 
 import numpy as np
 
-from gonio.core.geometry import angles as _angles_of, directions as _directions
+from gonio.core.geometry import angle_tangents, angles as _angles_of, directions as _directions, unit_vectors
 
 from gonio.fitting.likelihood import loss as _loss
 from gonio.fitting.measurements import _SRGB_TO_XYZ, colour_transform
@@ -346,25 +346,6 @@ def angle_components(result, meas, angles: dict) -> list:
     return out
 
 
-def _tangents(wi, wo, shifts, h: float = 1e-4):
-    """The directions' first-order displacement (K, N, 3) each for wi and wo (radians) for +1 sigma
-    of each input whose angle shifts (K, N, 4) degrees are given: a central difference of the
-    directions along the shift, so a point near a pole (theta ~ 0, where a small tilt is a large
-    change of phi) moves by what the tilt moves it, not along the phi circle."""
-    ti, pi_ = _angles_of(wi)
-    to, po = _angles_of(wo)
-    base = np.stack([ti, pi_, to, po], axis=-1)                              # radians (N, 4)
-    d = np.radians(np.asarray(shifts, float))
-    plus, minus = base[None] + h * d, base[None] - h * d
-    t_i = (_directions(plus[..., 0], plus[..., 1]) - _directions(minus[..., 0], minus[..., 1])) / (2 * h)
-    t_o = (_directions(plus[..., 2], plus[..., 3]) - _directions(minus[..., 2], minus[..., 3])) / (2 * h)
-    return t_i, t_o
-
-
-def _unit(v):
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def second_order(result, meas, shifts, G: np.ndarray, use: np.ndarray,
                  elasticity: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The shared angle errors' second-order effect on the parameters (GUM 5.1.2 note: the
@@ -374,8 +355,8 @@ def second_order(result, meas, shifts, G: np.ndarray, use: np.ndarray,
     sigma), the data change by f(angles(e)) - f(angles) and the fitted parameters by G times
     that: a e + (1/2) e^T H e with H_p (K x K) = G_p d^2 f / de_k de_l (central differences of
     the fitted model at steps of 1 sigma, the directions displaced along each input's tangent:
-    :func:`_tangents`). The first-order part a is the ``angle_shared`` line; the quadratic part
-    has mean b_p = tr(H_p) / 2 and covariance tr(H_p H_q) / 2. Its mean does not vanish: an
+    :func:`gonio.core.geometry.angle_tangents`). The first-order part a is the ``angle_shared``
+    line; the quadratic part has mean b_p = tr(H_p) / 2 and covariance tr(H_p H_q) / 2. Its mean does not vanish: an
     error of the sample normal (the wedge the alignment cannot see, 0.05 deg) moves a narrow
     lobe off the specular direction the fit assumes, and the fit broadens the lobe to follow it
     whichever way the normal tilted (GGX alpha 0.05: b = +0.2 of alpha's u_c on average, up to
@@ -397,12 +378,12 @@ def second_order(result, meas, shifts, G: np.ndarray, use: np.ndarray,
     K, P = shifts.shape[0], G.shape[0]
     if K == 0:
         return np.zeros(P), np.zeros((P, P)), np.zeros((P, 0, 0))
-    t_i, t_o = _tangents(meas.wi, meas.wo, shifts)
+    t_i, t_o = angle_tangents(meas.wi, meas.wo, shifts)
     model, params = result.model, result.params
 
     def f(ci, co):
-        return model.eval(_unit(meas.wi + np.einsum("k,knj->nj", ci, t_i)),
-                          _unit(meas.wo + np.einsum("k,knj->nj", co, t_o)), params)
+        return model.eval(unit_vectors(meas.wi + np.einsum("k,knj->nj", ci, t_i)),
+                          unit_vectors(meas.wo + np.einsum("k,knj->nj", co, t_o)), params)
 
     def proj(v):
         return np.einsum("pnc,nc->p", np.where(use, G, 0.0), np.where(use, v, 0.0))
