@@ -113,7 +113,8 @@ def interval_column(doc: dict) -> tuple[dict, str]:
         ci = p.get("ci90")
         ok = isinstance(ci, list) and len(ci) == 2 and all(isinstance(v, (int, float)) for v in ci)
         out[name] = f"{ci[0]:.6g} .. {ci[1]:.6g}" if ok else "-"
-    return out, ("90 % interval: the posterior's (emcee) where sampled, else value ± 1.645 u_c clipped at the bounds"
+    return out, ("90 % interval: the posterior's (emcee) widened by the budget beyond the data's noise where "
+                 "sampled, else value ± 1.645 u_c; clipped at the bounds"
                  if emcee else "90 % interval = value ± 1.645 u_c, clipped at the bounds")
 
 

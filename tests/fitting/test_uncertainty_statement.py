@@ -96,3 +96,33 @@ def test_the_report_appendix_states_z_against_u_c(fitted):
     p = doc["parameters"]["diffuse_reflectance[R]"]
     assert float(row["z"]) == pytest.approx((p["value"] - 0.6) / p["u_combined"], abs=0.01)
     assert float(row["u_c"]) == pytest.approx(p["u_combined"], rel=0.05)          # two digits
+
+
+def test_a_posterior_interval_carries_the_type_b_part_too(fitted):
+    """With an emcee posterior the 90 % interval was the posterior's quantiles alone (the data's
+    noise): the demo's excluded the truth on every parameter while u_c covered it. It is now the
+    posterior's interval widened, side by side in quadrature, by 1.645 u_B (u_B^2 = u_c^2 - u_stat^2);
+    the posterior's own interval stays as ``ci90_posterior``. A Gaussian posterior of the fit's
+    own std stands in for emcee (same quantiles)."""
+    from types import SimpleNamespace
+
+    from scipy.stats import norm
+
+    meas, result, doc, _ = fitted
+    q = {k: result.x + norm.ppf(k / 100) * result.std for k in (5, 16, 50, 84, 95)}
+    draws = np.random.default_rng(3).normal(result.x, result.std, (64, result.x.size))
+    post = SimpleNamespace(converged=True, quantiles=q, samples=draws, n_walkers=8, names=list(result.space.names),
+                           n_steps=8, tau=[1.0] * result.x.size, n_independent=64, acceptance=0.3, time_s=0.0,
+                           advice="", surrogate_error=None)
+    with_post = fit_document(result, meas, seed=0, posterior=post)
+    for name, p in with_post["parameters"].items():
+        if p["at_bound"] or p.get("value_fitted") is not None:
+            continue
+        lo, hi = p["ci90"]
+        plo, phi = p["ci90_posterior"]
+        assert phi - plo < hi - lo or p["u_combined"] == pytest.approx(p["std"])
+        # a Gaussian posterior of the fit's std, widened by u_B: exactly value +- 1.645 u_c
+        assert (lo, hi) == pytest.approx((p["value"] - Z90 * p["u_combined"], p["value"] + Z90 * p["u_combined"]),
+                                         rel=1e-9, abs=1e-12), name
+    r = with_post["parameters"]["diffuse_reflectance[R]"]
+    assert (r["ci90"][1] - r["ci90"][0]) > 3 * (r["ci90_posterior"][1] - r["ci90_posterior"][0])

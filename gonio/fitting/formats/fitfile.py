@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import platform
 import warnings
 from datetime import datetime, timezone
@@ -119,9 +120,16 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         if inflation != 1.0:
             item["std_statistical"] = result.std[i]
         if posterior is not None and posterior.converged:
+            # the posterior samples the data's noise only: its interval is widened by the budget's
+            # part beyond it (u_B^2 = u_c^2 - u_stat^2, each side in quadrature), then corrected as
+            # the value is, so the 90 % interval states the same u_c as the value (issue 34)
+            q5, q50, q95 = (float(posterior.quantiles[q][i]) - shift - known for q in (5, 50, 95))
+            wide = z90 * math.sqrt(max(u_c * u_c - std * std, 0.0))
             item.update(median=posterior.quantiles[50][i],
                         std_posterior=0.5 * (posterior.quantiles[84][i] - posterior.quantiles[16][i]),
-                        ci90=[posterior.quantiles[5][i], posterior.quantiles[95][i]], method="emcee")
+                        ci90_posterior=[posterior.quantiles[5][i], posterior.quantiles[95][i]],
+                        ci90=[max(q50 - math.hypot(q50 - q5, wide), p.lower), min(q50 + math.hypot(q95 - q50, wide), p.upper)],
+                        method="emcee")
         item["flags"] = parameter_flags(item, p.lower, p.upper)
         params[name] = item
     doc = {
