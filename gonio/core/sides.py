@@ -75,6 +75,8 @@ def side_of(cos_i, cos_o) -> np.ndarray:
 def parse_sides(value, where: str) -> tuple[Side, ...]:
     """Sides from a file's value (``"reflect"``, ``["reflect", "transmit"]``); ValueError naming
     ``where`` and the accepted spellings otherwise."""
+    if isinstance(value, np.ndarray):             # a NetCDF attribute's list comes back as an array
+        value = value.tolist()
     items = [value] if isinstance(value, str) else value
     if not isinstance(items, (list, tuple)) or not items:
         raise ValueError(f"{where}: sides must be 'reflect', 'transmit' or a list of them")

@@ -36,6 +36,7 @@ def test_masks_split_the_sphere_into_reflection_transmission_and_neither():
 def test_sides_parse_from_files_with_one_line_errors():
     assert parse_sides("reflect", "x") == REFLECTION_ONLY
     assert parse_sides(["transmit", "reflect", "transmit"], "x") == (Side.TRANSMIT, Side.REFLECT)
+    assert parse_sides(np.array(["reflect", "transmit"]), "x") == (Side.REFLECT, Side.TRANSMIT)
     for bad in ("refract", [], 3, ["reflect", None]):
         with pytest.raises(ValueError, match="x: "):
             parse_sides(bad, "x")
