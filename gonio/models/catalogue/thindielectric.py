@@ -12,20 +12,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from gonio.core.channels import CHANNELS
 from gonio.core.geometry import as_directions
-from gonio.models.base import Model, Parameter, register
-from gonio.models.catalogue.dielectric import SpecularLobes
-from gonio.models.catalogue.roughdielectric import BOTH_SIDES
+from gonio.models.base import Parameter, register
+from gonio.models.catalogue.dielectric import Dielectric, SpecularLobes
 from gonio.models.physics.fresnel import fresnel_dielectric
-from gonio.models.structure import Structure
 
 __all__ = ["ThinDielectric"]
 
 
 @register
-class ThinDielectric(Model):
-    """Thin smooth dielectric slab (Mitsuba 3 ``thindielectric``): two deltas.
+class ThinDielectric(Dielectric):
+    """Thin smooth dielectric slab (Mitsuba 3 ``thindielectric``): two deltas, a
+    :class:`~gonio.models.catalogue.dielectric.Dielectric` whose light leaves through the
+    slab's far face instead of refracting into it.
 
     Parameters (``params`` keys)
     ----------------------------
@@ -40,20 +39,9 @@ class ThinDielectric(Model):
     """
 
     name = "thindielectric"
-    auto_candidate = False   # a delta: no finite data fixes it
-    OPTIONS: dict = {}
-    energy_conserving = True
-    delta = True
-
-    @property
-    def structure(self):
-        return Structure(sides=BOTH_SIDES)
 
     def _parameters(self):
         return (Parameter("int_ior", 1.5, 0.25, 4.0, "1", "index of the slab relative to its surroundings"),)
-
-    def _eval_parts(self, wi, wo, p):
-        return np.zeros((wi.shape[0], CHANNELS)), None
 
     def specular(self, wi, params) -> SpecularLobes:
         """The two deltas for light from ``wi``: mirrored with R', straight through with T'."""
