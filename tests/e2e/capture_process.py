@@ -37,3 +37,16 @@ def start_capture(session, *, after_points: int = 3, timeout_s: float = 180.0):
         time.sleep(0.05)
     assert proc.poll() is None, "the capture finished before the test could stop it"
     return proc, done
+
+
+def committed_files(session) -> set[str]:
+    """Every RAW file the session's journal commits: calibration frames and points' exposures."""
+    from gonio.bench.session.journal import Journal
+
+    j = Journal(session / "journal.sqlite")
+    try:
+        files = {v[1] for kind in ("dark", "flat", "chart") for v in j.frames(kind).values()}
+        files |= {e["file"] for row in j.points() for e in row["detail"].get("exposures", [])}
+    finally:
+        j.close()
+    return files

@@ -8,19 +8,9 @@ import subprocess
 import time
 from pathlib import Path
 
-from gonio.bench.session.journal import RAW_DIR, Journal
+from gonio.bench.session.journal import RAW_DIR
 
-from capture_process import ENV, GONIO
-
-
-def _committed(session: Path) -> set[str]:
-    j = Journal(session / "journal.sqlite")
-    try:
-        files = {v[1] for kind in ("dark", "flat", "chart") for v in j.frames(kind).values()}
-        files |= {e["file"] for row in j.points() for e in row["detail"].get("exposures", [])}
-    finally:
-        j.close()
-    return files
+from capture_process import ENV, GONIO, committed_files
 
 
 def _raw(session: Path) -> set[str]:
@@ -41,12 +31,12 @@ def test_a_kill_during_the_flat_field_leaves_no_orphan_frames(tmp_path):
     assert proc.poll() is None, "the capture finished before the test could kill it"
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=60)
-    assert len(flats) >= 20 and not _committed(session) & flats      # frames of an uncommitted set
+    assert len(flats) >= 20 and not committed_files(session) & flats      # frames of an uncommitted set
 
     r = subprocess.run(GONIO + ["capture", "--resume", str(session), "--quiet"], capture_output=True, text=True,
                        env=ENV, timeout=600)
     assert r.returncode == 0, r.stderr
-    committed = _committed(session)
+    committed = committed_files(session)
     assert any("/flat_" in f for f in committed)
     orphans = sorted(_raw(session) - committed)
     assert orphans == [], f"{len(orphans)} orphan files after the resume: {orphans[:5]}"

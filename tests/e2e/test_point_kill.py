@@ -9,19 +9,9 @@ import subprocess
 import time
 from pathlib import Path
 
-from gonio.bench.session.journal import RAW_DIR, Journal
+from gonio.bench.session.journal import RAW_DIR
 
-from capture_process import ENV, GONIO
-
-
-def _committed(session: Path) -> set[str]:
-    j = Journal(session / "journal.sqlite")
-    try:
-        files = {v[1] for kind in ("dark", "flat", "chart") for v in j.frames(kind).values()}
-        files |= {e["file"] for row in j.points() for e in row["detail"].get("exposures", [])}
-    finally:
-        j.close()
-    return files
+from capture_process import ENV, GONIO, committed_files
 
 
 def _point_files(session: Path) -> set[str]:
@@ -60,12 +50,12 @@ def test_a_kill_between_a_points_frames_and_its_row_leaves_no_orphan(tmp_path):
     assert proc.poll() is None, "the capture finished before the test could kill it"
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=60)
-    left = _point_files(session) - _committed(session)
+    left = _point_files(session) - committed_files(session)
     assert left, "no point frame was waiting for its journal row when the capture was killed"
 
     r = subprocess.run(GONIO + ["capture", "--resume", str(session), "--quiet"], capture_output=True, text=True,
                        env=ENV, timeout=600)
     assert r.returncode == 0, r.stderr
     raw = {f"{RAW_DIR}/{p.name}" for p in (session / RAW_DIR).iterdir()}
-    orphans = sorted(raw - _committed(session))
+    orphans = sorted(raw - committed_files(session))
     assert orphans == [], f"{len(orphans)} orphan files after the resume: {orphans[:5]}"
