@@ -7,14 +7,12 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
   recorded kernel launch pays off) and ``derivatives`` (False: values only, the fit differences);
 * ``geometry(model, dr, wi, wo)``: the parameter-independent per-pair quantities its kernel
   reads, and ``body(model, ctx, g, P, grad)``: the rest of the kernel on them (see below);
-* ``compile_always``: its parameter-dependent precomputation is much cheaper compiled, so the
-  compiled path pays off at any number of points;
+* ``compile_always``: the compiled path pays off at any number of points;
 * ``affine``: f_r[c] = base(theta) + coef[c] * basis(theta) with base and basis the same in
   every channel (an :class:`Affine` declaration), or None;
-* ``sides``: the sides it scatters into (:mod:`gonio.core.sides`; reflection by default),
-  which every horizon mask of the reference, the kernels and the Mitsuba twin reads;
-* ``coupled``: per-channel parameters that reach the other channels through one weighted sum of
-  their channels (:class:`Coupling`); every other per-channel parameter acts on its own channel.
+* ``sides``: the sides it scatters into (:mod:`gonio.core.sides`; reflection by default);
+* ``coupled``: per-channel parameters reaching the other channels through one weighted sum of
+  their channels (:class:`Coupling`).
 """
 
 # Notes on the declarations:
@@ -27,7 +25,10 @@ A model's :attr:`~gonio.models.Model.structure` says, without anyone testing its
 #   a resident batch the chi^2, its gradient, the normal equations and the Jacobian read the
 #   geometry prepared once (gonio.models.engine.fast.Directions.geometry) instead of the
 #   directions.
-# * compile_always: roughplastic's quadrature tables.
+# * sides: every horizon mask (the numpy reference, the kernels, the Mitsuba twin) reads it.
+# * coupled: every other per-channel parameter acts on its own channel only.
+# * compile_always: its parameter-dependent precomputation is much cheaper compiled (roughplastic's
+#   quadrature tables).
 # * coupled: principled's base colour, through its luminance.
 #
 # The idea is astropy.modeling's linear / fit_deriv declarations and Mitsuba's traverse: the

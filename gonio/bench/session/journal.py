@@ -6,15 +6,13 @@
       .lock           flock'ed by the one process that writes into the folder (taken first)
       session.toml    plan, instrument settings, ports, versions, seed, sample truth: written
                       ONCE, before the first move (checked by `gonio.bench.session.integrity`)
-      journal.sqlite  WAL, synchronous=FULL: one committed row per finished point and per dark
-                      frame, with the RAW files' SHA-256; RAW names reserved before writing;
-                      each point row carries the SHA-256 of its own stored values
+      journal.sqlite  WAL, synchronous=FULL: a committed row per finished point, calibration
+                      frame and event; RAW files' SHA-256; RAW names reserved before writing
       raw/            RAW files (temporary name, fsync, rename; never overwritten)
       dataset.nc      after export
 
-A point's row is written in one transaction after everything about it succeeded; a crash at
-any moment leaves either the whole row or none of it. Its ``checksum`` (`point_checksum`) is
-checked whenever the row is read: a damaged row is never used as a measurement.
+A point's row is one transaction, written after everything about it succeeded; point and event
+rows carry checksums of their stored values, checked whenever they are read.
 """
 
 # The lock is taken before anything else is written. session.toml goes through a temporary

@@ -1,16 +1,9 @@
 """A fitted model as Mitsuba 3 XML: a snippet to paste into a scene, or a file of its own.
 
-Mitsuba 3's XML parser (``src/core/xml.cpp``, "Scene format" in its documentation) needs a
-``version`` attribute on the root element of every file it loads, ``mitsuba.load_file`` and
-``<include filename="..."/>`` alike, and refuses it on any other element ("unexpected
-attribute"). So the two forms differ only there:
-
-* :func:`mitsuba_snippet`: ``<bsdf type=... id=...>`` without ``version``, to paste inside a
-  ``<scene version="3.0.0">``;
-* :func:`mitsuba_document`: the same ``<bsdf>`` as the root of a file, with
-  ``version="3.0.0"`` (:data:`MITSUBA_XML_VERSION`, the scene-format version of Mitsuba 3,
-  which 3.x parsers read without upgrading it). ``mitsuba.load_file`` returns the BSDF;
-  a scene that includes the file can use it as ``<ref id="gonio_fit"/>``.
+The two forms differ only in the root's ``version`` attribute, which Mitsuba 3 needs on the
+root of every file it loads and refuses elsewhere: :func:`mitsuba_snippet` (no ``version``, to
+paste inside a ``<scene>``) and :func:`mitsuba_document` (the ``<bsdf>`` as a file's root,
+``version="3.0.0"``; ``<include>`` it and ``<ref id="gonio_fit"/>``).
 
 ``plugins="native"`` writes what a plain Mitsuba loads (:mod:`.native`: the model's native twin, or
 the closest native family fitted to it, its error in a comment); ``plugins="gonio"`` gonio's own
@@ -18,6 +11,11 @@ Python plugin where the model has one (exact; the loading process must import go
 :func:`write_mitsuba_document` and :func:`write_mitsuba_dict` read what they wrote back and compare
 it with the dict. Values are XML-escaped (``quoteattr``); comments never hold ``--``.
 """
+
+# Mitsuba 3's XML parser (src/core/xml.cpp, "Scene format" in its documentation) requires
+# `version` on the root element of every file it loads (mitsuba.load_file and <include> alike)
+# and refuses it on any other element ("unexpected attribute"). MITSUBA_XML_VERSION is the
+# scene-format version of Mitsuba 3, which 3.x parsers read without upgrading it.
 
 from __future__ import annotations
 
