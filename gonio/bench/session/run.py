@@ -84,8 +84,11 @@ class _Session(CalibrationFrames):
         self.suspend_poll = float(lamp.get("suspend_poll_s", 5.0))
         self.suspend_timeout = float(lamp.get("suspend_timeout_s", 120.0))
         self.p_ref = None
+        rows = journal.points()
         self.results: dict[int, tuple[np.ndarray, np.ndarray]] = {
-            r["idx"]: (np.asarray(r["brdf"]), np.asarray(r["brdf_std"])) for r in journal.points()}
+            r["idx"]: (np.asarray(r["brdf"]), np.asarray(r["brdf_std"])) for r in rows}
+        # the RAW files the journalled points name (what a killed run's leftovers are told from)
+        self._journalled_files = {e["file"] for r in rows for e in r["detail"].get("exposures", [])}
         self.reciprocity: list[dict] = []
         self.reserved = journal.reserved()
         self._masks_of: dict[tuple, tuple] = {}      # per holder pose (yaw, tilt, azimuth): the regions
@@ -475,8 +478,7 @@ class _Session(CalibrationFrames):
         session lock; a kill between two deletions leaves the rest to the next run."""
         if self.journal.first_event("rebuild") is not None:
             return
-        used = {e["file"] for r in self.journal.points() for e in r["detail"].get("exposures", [])}
-        used |= self.journal.superseded_files()
+        used = self._journalled_files | self.journal.superseded_files()
         for file in sorted(self.reserved):
             if file.startswith(f"{RAW_DIR}/p") and file not in used and is_tiff(self.folder / file):
                 (self.folder / file).unlink(missing_ok=True)
