@@ -24,7 +24,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from gonio.bench.session.calframes import CalibrationFrames
-from gonio.core.files import create_exclusive, is_tiff
+from gonio.core.files import create_exclusive
 from gonio.bench.measure.hdr import Exposure, NoiseModel, choose_bracket, ladder
 from gonio.bench.session.journal import RAW_DIR, Journal
 from gonio.bench.plan.markers import find_regions, layout_of, roi_masks_fast
@@ -471,17 +471,9 @@ class _Session(CalibrationFrames):
         bar.advance(res["brdf"], r)
 
     def _drop_unjournalled_point_files(self) -> None:
-        """Delete the point frames (``raw/p*``, DNG) an earlier, killed run reserved and wrote but
-        never journalled: the point is measured again under new names. Kept: a file that is not
-        a DNG (someone else's; gonio never deletes it), and every file after a journal rebuild
-        (it keeps each RAW file it could not place). Runs before the first point, holding the
-        session lock; a kill between two deletions leaves the rest to the next run."""
-        if self.journal.first_event("rebuild") is not None:
-            return
-        used = self._journalled_files | self.journal.superseded_files()
-        for file in sorted(self.reserved):
-            if file.startswith(f"{RAW_DIR}/p") and file not in used and is_tiff(self.folder / file):
-                (self.folder / file).unlink(missing_ok=True)
+        """Delete the point frames (``raw/p*``) an earlier, killed run wrote but never journalled
+        (`CalibrationFrames._drop_uncommitted`'s rules); runs before the first point."""
+        self._drop_uncommitted("p", self._journalled_files | self.journal.superseded_files())
 
     def _checked(self, points, done, queued) -> list[int]:
         """The strategy's new points, each a plan point neither done nor queued, within its budget."""
