@@ -4,8 +4,8 @@ session's raw/ holds exactly the files its journal commits."""
 
 import os
 import signal
-import sqlite3
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -20,34 +20,33 @@ def _point_files(session: Path) -> set[str]:
         if raw.is_dir() else set()
 
 
-def _journalled_files(session: Path) -> set[str]:
-    """The point files the journal names now, read-only (the capture is still writing it)."""
-    try:
-        db = sqlite3.connect(f"file:{session / 'journal.sqlite'}?mode=ro", uri=True, timeout=0.2)
-        try:
-            rows = db.execute("SELECT detail FROM points").fetchall()
-        finally:
-            db.close()
-    except sqlite3.Error:
-        return set()
-    import json
-    return {e["file"] for (d,) in rows for e in json.loads(d).get("exposures", [])}
+# A capture whose sixth point is held just before its journal row is written: its frames are
+# on disk and checked, its row is not. Deterministic where a race with the running capture was
+# not (the row of the point seen pending could be committed before the kill landed).
+_HELD = """
+import pathlib, sys, time
+from gonio.bench.session.journal import Journal
+real, seen = Journal.record_point, []
+def held(self, *args, **kwargs):
+    seen.append(1)
+    if len(seen) == 6:
+        pathlib.Path(sys.argv[1]).write_text("held")
+        time.sleep(3600)
+    return real(self, *args, **kwargs)
+Journal.record_point = held
+from gonio.cli.main import main
+sys.exit(main(["capture", "--sim", "--plan", "quick", "--seed", "6", "--out", sys.argv[2], "--quiet"]))
+"""
 
 
 def test_a_kill_between_a_points_frames_and_its_row_leaves_no_orphan(tmp_path):
-    session = tmp_path / "s"
-    proc = subprocess.Popen(GONIO + ["capture", "--sim", "--plan", "quick", "--seed", "6", "--out", str(session),
-                                     "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    session, marker = tmp_path / "s", tmp_path / "held"
+    proc = subprocess.Popen([sys.executable, "-c", _HELD, str(marker), str(session)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=ENV)
     deadline = time.monotonic() + 240
-    pending: set[str] = set()
-    while time.monotonic() < deadline and proc.poll() is None:
-        files = _point_files(session)
-        if len(files) >= 6:
-            pending = files - _journalled_files(session)
-            if pending:
-                break
+    while time.monotonic() < deadline and proc.poll() is None and not marker.exists():
         time.sleep(0.02)
-    assert proc.poll() is None, "the capture finished before the test could kill it"
+    assert marker.exists() and proc.poll() is None, "the capture did not reach its sixth point"
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=60)
     left = _point_files(session) - committed_files(session)
