@@ -20,7 +20,8 @@ __all__ = ["value_pm", "parameter_rows", "table_html", "fit_summary", "measureme
 #: a fit file's parameter flags (``parameters.<name>.flags``) and what each says
 FLAGS = {"at_bound": "at bound", "undetermined": "undetermined",
          "interval_wider_than_range": "U wider than the range",
-         "outside_bounds": "non-physical (outside its bounds)"}
+         "outside_bounds": "non-physical (outside its bounds)",
+         "not_normal": "not normal: use its coverage intervals, not value ± U"}
 #: the columns of :func:`uncertainty_rows`
 UNCERTAINTY_HEADER = ("parameter", "value", "u_stat", "u_c", "U", "k", "unit", "flags")
 
@@ -56,13 +57,16 @@ def parameter_flags(item: dict, lower: float, upper: float) -> list:
     """The flags (keys of :data:`FLAGS`) of one fitted parameter ``item`` (value, U, at_bound,
     undetermined) against its bounds: at a bound, undetermined, an expanded interval 2U wider
     than the physical range (upper - lower), a value outside the bounds (a corrected value can
-    leave them)."""
+    leave them), a distribution that ±k u_c does not describe (``gaussian`` false: JCGM 101 8.2,
+    the document's ``coverage_intervals`` are the statement)."""
     out = [k for k in ("at_bound", "undetermined") if item.get(k)]
     v, big_u = float(item.get("value", np.nan)), float(item.get("U", np.nan))
     if math.isfinite(lower) and math.isfinite(upper) and math.isfinite(big_u) and 2 * big_u > upper - lower:
         out.append("interval_wider_than_range")
     if math.isfinite(v) and not lower <= v <= upper:
         out.append("outside_bounds")
+    if item.get("gaussian") is False:
+        out.append("not_normal")
     return out
 
 

@@ -196,6 +196,9 @@ import test_budget as T  # noqa: E402
 
 #: the last capture session's fitted values before the second-order correction (capture_session)
 FITTED: list = []
+#: the last capture session's stated coverage intervals per parameter: {level: [low, high]} (the fit
+#: document's ``coverage_intervals``, JCGM 101; absent where the distribution is normal: +-z u_c)
+INTERVALS: list = []
 
 #: the captured samples: (sample, fit options, truth by parameter name, default plan)
 CAPTURE_SAMPLES = {
@@ -238,6 +241,7 @@ def capture_session(seed: int, errors: dict, plan: str | None, folder: Path, cal
     # the optimiser's own point beside the reported value (corrected for the shared angle
     # errors' second-order mean where the dataset has them): z_fitted in the record
     FITTED[:] = [doc["parameters"][n].get("value_fitted", doc["parameters"][n]["value"]) for n in names]
+    INTERVALS[:] = [doc["parameters"][n].get("coverage_intervals") for n in names]
     return (names, np.array([doc["parameters"][n]["value"] for n in names]),
             np.array([u[n]["u_combined"] for n in names]), np.array([u[n]["u_stat"] for n in names]),
             np.array([truth[n] for n in names]))
@@ -309,6 +313,24 @@ def record(names, x, uc, us, truth) -> dict:
             "stat": (d <= us).tolist()}
 
 
+def truth_of(sample: str) -> np.ndarray:
+    """The captured sample's true parameters in the fit's order (R, G, B, alpha, int_ior)."""
+    shape = CAPTURE_SAMPLES[sample][2]
+    return np.array([0.5, 0.35, 0.2, shape["alpha"], shape["int_ior"]])
+
+
+def interval_hits(row: dict, truth) -> dict:
+    """Whether the truth lies in the stated 68.27 % and 95.45 % coverage intervals of the last
+    session (:data:`INTERVALS`; +-u_c and +-2 u_c where the document states none)."""
+    x, uc = np.asarray(row["x"]), np.asarray(row["u_c"])
+    out = {"hit68": [], "hit95": []}
+    for i, iv in enumerate(INTERVALS or [None] * len(x)):
+        for key, lev, k in (("hit68", "0.6827", 1.0), ("hit95", "0.9545", 2.0)):
+            lo, hi = iv[lev] if iv else (x[i] - k * uc[i], x[i] + k * uc[i])
+            out[key].append(bool(lo <= truth[i] <= hi))
+    return out
+
+
 def pooled(paths) -> list:
     """The sessions of several runs of one study (same mode, sample, errors and calibration;
     distinct seeds), in seed order; ValueError for runs that are not one study."""
@@ -328,7 +350,10 @@ def summarise(rows):
     names = rows[0]["names"]
     n = len(rows)
     print(f"{n} sessions")
-    for key, nominal in (("hit1", 0.6827), ("hit2", 0.9545), ("narrow", None), ("stat", None)):
+    for key, nominal in (("hit1", 0.6827), ("hit2", 0.9545), ("hit68", 0.6827), ("hit95", 0.9545),
+                         ("narrow", None), ("stat", None)):
+        if key not in rows[0]:
+            continue
         cov = np.mean([r[key] for r in rows], axis=0)
         line = ", ".join(f"{nm} {c:.3f} ({np.sqrt(c * (1 - c) / n):.3f})" for nm, c in zip(names, cov))
         print(f"  {key:<6} (nominal {nominal}): {line}" if nominal else f"  {key:<6}: {line}")
@@ -384,6 +409,7 @@ def main(argv=None):
             rows.append(record_typical(*typical_session(s)))
         else:
             rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated, a.sample)))
+            rows[-1].update(interval_hits(rows[-1], truth_of(a.sample)))
             rows[-1]["z_fitted"] = ((np.array(FITTED) - np.array(rows[-1]["x"])) / np.array(rows[-1]["u_c"])
                                     + np.array(rows[-1]["z_c"])).tolist()
         rows[-1]["seed"] = s

@@ -111,6 +111,16 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
                 "channel": space.channels[entry.channel] if entry.channel >= 0 else None,
                 "ci90": [max(value - z90 * u_c, p.lower), min(value + z90 * u_c, p.upper)],
                 "method": "laplace", "at_bound": name in result.at_bound, "undetermined": name in result.undetermined}
+        q = unc.get("error_quantiles")
+        if q:
+            # a distribution that is not normal (the shared angle errors' quadratic term): its
+            # coverage intervals from the distribution (JCGM 101 7.7), truth in [value - upper,
+            # value - lower]; the 90 % interval is its own
+            item["coverage_intervals"] = {lev: [value - hi, value - lo] for lev, (lo, hi) in q.items()}
+            if "0.9" in q:
+                lo, hi = q["0.9"]
+                item["ci90"] = [max(value - hi, p.lower), min(value - lo, p.upper)]
+            item["gaussian"] = bool(unc.get("gaussian", True))
         if shift != 0.0 or known != 0.0:
             item["value_fitted"] = result.x[i]
         if shift != 0.0:

@@ -41,6 +41,7 @@ from gonio.fitting.likelihood.problem import Problem
 from gonio.fitting.optimise.result import loss_jacobian
 from gonio.fitting.statement import K_EXPANDED
 from gonio.fitting.uncertainty.adequacy import adequacy_test, chi2_refiner
+from gonio.fitting.uncertainty.intervals import error_quantiles, gaussian_adequate
 
 __all__ = ["BudgetComponent", "Budget", "load_budget", "budget_from_attrs", "propagate", "gls_covariance", "K_EXPANDED"]
 
@@ -546,7 +547,7 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
         # corrected by -b (GUM 3.2.4; 4.1.4 note: the estimate of a non-linear function is the mean
         # of its distribution) and the line carries what is left about it, tr(H_p H_q) / 2
         kappa = float(getattr(budget, "sigma_elasticity", 0.0) or 0.0) if result.loss == "chi2" else 0.0
-        bias2, cov2, _ = second_order(result, meas, shared, G, use, elasticity=kappa)
+        bias2, cov2, hess2 = second_order(result, meas, shared, G, use, elasticity=kappa)
         cov2 = cov2 - np.outer(bias2, bias2)
         var[ANGLE_SECOND_ORDER] = np.diag(cov2).copy()
         cov_b += cov2
@@ -564,6 +565,16 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
         cov_stat = cov_a * np.outer(scale, scale)
         u_stat = np.sqrt(np.clip(np.diag(cov_stat), 0.0, None))
     total = u_stat ** 2 + np.diag(cov_b)
+    quantiles = None
+    if bias2 is not None:
+        # the error's distribution is not normal where the quadratic term counts: its coverage
+        # intervals by Monte Carlo (gonio/fitting/uncertainty/intervals.py), the first-order
+        # shared line per input beside the quadratic term, the rest of the budget normal
+        lin = [c for c in comps if c.name == "angle_shared"]
+        if lin and np.asarray(lin[0].value).shape[0] == hess2.shape[1]:
+            L = np.einsum("pnc,knc->pk", np.where(use, G, 0.0), np.where(use, np.asarray(lin[0].value, float), 0.0))
+            rest = total - var.get("angle_shared", np.zeros(P)) - var[ANGLE_SECOND_ORDER]
+            quantiles = error_quantiles(L, hess2, bias2, rest)
     out = {}
     s_sum = sum(stat_share.values()) if stat_share else None
     for i, name in enumerate(result.space.names):
@@ -579,6 +590,10 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
         uc = float(np.sqrt(t))
         out[name] = {"u_stat": float(u_stat[i]), "u_combined": uc, "U": K_EXPANDED * uc, "k": K_EXPANDED,
                      "budget": {k: float(f) for k, f in sorted(frac.items(), key=lambda kv: -kv[1])}}
+        if quantiles is not None:
+            # the truth lies in [value - upper, value - lower] at each level (fit_document)
+            out[name]["error_quantiles"] = {f"{lev:.4g}": [float(q[i, 0]), float(q[i, 1])] for lev, q in quantiles.items()}
+            out[name]["gaussian"] = gaussian_adequate(quantiles[0.9545][i], uc)
         if bias2 is not None:
             # the estimate's expected shift from the shared angle errors' second-order term; the
             # fit document reports value = fitted - this (gonio/fitting/formats/fitfile.fit_document)
