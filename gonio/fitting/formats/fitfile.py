@@ -2,7 +2,7 @@
 
 Layout (docs/interfaces.md, architecture.md "A fit file"):
 ``model`` {name, options}; ``parameters`` {name: {value, std (statistical), u_combined, U, k,
-ci90 (from u_combined), unit, at_bound, undetermined, flags, method}}; ``covariance`` {names, matrix}; ``constraints``;
+ci90, coverage_intervals where not normal, unit, at_bound, undetermined, flags, method}}; ``covariance``; ``constraints``;
 ``goodness`` {chi2, dof, chi2_dof, rmse_fr, rmse_cos_fr, n_used, model_adequate and the
 ``adequacy`` test behind it: test, statistic, dof, p_value, alpha, verdict}; ``optimiser``;
 ``posterior`` (or null); ``selection`` (for ``--model auto``); ``mitsuba`` (the BSDF dict);
