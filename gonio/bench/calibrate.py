@@ -43,13 +43,13 @@ from gonio.core.atomic import atomic_open
 
 from gonio.bench.measure import alignment as al
 from gonio.bench.plan import kinematics
-from gonio.bench.measure.calpoint import (angle_uncertainty, calibrated_angles, dataset_angles, instrument_response, lost_motion, u_linearity_rel, u_reference_factor, u_stray_rel, stray_corrected, stray_fraction, stray_shift_rel)
+from gonio.bench.measure.calpoint import (angle_uncertainty, calibrated_angles, dataset_angles, instrument_response, lost_motion, reference_factor_modes, u_linearity_rel, u_reference_factor, u_stray_rel, stray_corrected, stray_fraction, stray_shift_rel)
 from gonio.bench.measure.hdr import linearise
 from gonio.core.errors import GonioError
 
 __all__ = ["SimBench", "calibrate", "align", "linearity", "reference_factor", "write_calibration",
            "read_calibration", "merge_calibration", "calibrated_angles", "lost_motion", "angle_uncertainty",
-           "u_reference_factor", "u_linearity_rel", "u_stray_rel", "stray_fraction", "stray_corrected",
+           "u_reference_factor", "reference_factor_modes", "u_linearity_rel", "u_stray_rel", "stray_fraction", "stray_corrected",
            "stray_shift_rel", "instrument_response", "dataset_angles",
            "GLOSSY_ARTEFACT", "run_calibration", "summary", "calibrate_cli"]
 
@@ -194,7 +194,7 @@ def _scan(bench, settings, base, axis, xs, exposure, repeat_deg=0.0):
     return al.fit_passes(xs, out[0], out[1][::-1], u_x=repeat_deg)
 
 
-def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: float = 0.0) -> dict:
+def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: float = 0.0, progress=None) -> dict:
     """Specular cross-scans at four azimuths; returns the ``[alignment]`` table.
 
     ``repeat_deg`` (the stages' data sheet): every scan point is a move of the scanned stage, so
@@ -202,8 +202,12 @@ def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: f
     flanks, where the centre's information is, are the noisiest points); each peak is fitted to
     the mean of an up and a down pass (:func:`_scan`). The lamp arm is
     positioned once per azimuth: its repeatability moves that azimuth's yaw peak by half of a
-    draw, so half of it adds in quadrature to each yaw peak's uncertainty.
+    draw, so half of it adds in quadrature to each yaw peak's uncertainty. ``progress``:
+    ``progress(done, total, label)`` before the exposure search and each scan (None: silent).
     """
+    say = progress if progress is not None else (lambda done, total, label: None)
+    steps = 1 + 2 * len(SCAN_AZIMUTHS)
+    say(0, steps, "exposure for the scans")
     xs0 = np.arange(-SCAN_HALF_DEG, SCAN_HALF_DEG + 1e-9, SCAN_STEP_DEG)
     L = SCAN_LAMP_DEG
     peaks, back = [], {"yaw": [], "tilt": []}
@@ -214,8 +218,10 @@ def align(bench, settings: Mapping, lamp_zero_u_deg: float = 0.02, repeat_deg: f
         # two: its backlash is then a parameter of the fit, not a bias of the yaw zero
         side = -1.0 if k % 2 == 0 else 1.0
         bench.move([0.5 * L, 0.0, az, L + side])
+        say(1 + 2 * k, steps, f"yaw scan, azimuth {az:g}")
         y, uy, by, uby = _scan(bench, settings, centre, 0, 0.5 * L + xs0, t, repeat_deg)
         y_at = round(y * 2000.0) / 2000.0                           # the microstep grid (720000/rev)
+        say(2 + 2 * k, steps, f"tilt scan, azimuth {az:g}")
         tc, utc, bt, ubt = _scan(bench, settings, [y_at, 0.0, az, L], 1, xs0, t, repeat_deg)
         peaks.append({"azimuth": az, "lamp": L, "yaw": y, "u_yaw": math.hypot(uy, 0.5 * repeat_deg), "tilt": tc,
                       "u_tilt": utc,
@@ -268,7 +274,7 @@ def reference_factor(bench, settings: Mapping, cal: Mapping) -> dict:
     probe = [FACTOR_ANGLES[0], 0.0, 0.0, 2 * FACTOR_ANGLES[0]]
     t0 = _exposure_for(bench, probe, settings, target=0.5, which=1) * math.cos(math.radians(FACTOR_ANGLES[0]))
     cap = settings["capture"]
-    ti, to, y, u = [], [], [], []
+    ti, to, y, d = [], [], [], []
     for a_i in FACTOR_ANGLES:
         for a_o in FACTOR_ANGLES:
             stage = [a_o, 0.0, 0.0, a_o + a_i]                  # in plane, lamp on the far side
@@ -279,10 +285,17 @@ def reference_factor(bench, settings: Mapping, cal: Mapping) -> dict:
             ang = calibrated_angles(cal, stage)[0]
             sig = np.mean(vals) / (t * m * math.cos(math.radians(ang[0])))
             ti.append(ang[0]), to.append(ang[2]), y.append(sig)
-            u.append(sig * max(abs(vals[0] - vals[1]) / (math.sqrt(2) * np.mean(vals)), 2e-4))
+            d.append((vals[0] - vals[1]) / np.mean(vals))
+    # one relative noise for the grid, pooled over its repeat pairs (JCGM 100 4.2.8; 25 degrees
+    # of freedom): each pair's own |difference| (one degree of freedom) as its weight made the
+    # fit's weights follow the noise and its covariance of (a, b) too small to cover the fit.
+    # Of the mean of two values: s / sqrt(2), s^2 = mean(d^2) / 2 the variance of one value
+    s_rel = max(math.sqrt(float(np.mean(np.square(d))) / 2.0), 2e-4)
+    u = np.asarray(y) * s_rel / math.sqrt(2.0)
     fit = al.fit_reference_factor(ti, to, y, u)
     return {"factor_theta_i": fit["grid_deg"], "factor_theta_o": fit["grid_deg"], "factor": fit["factor"],
-            "u_factor": fit["u_factor"], "factor_a": fit["a"], "factor_b": fit["b"], "factor_chi2": fit["chi2"],
+            "u_factor": fit["u_factor"], "factor_a": fit["a"], "factor_b": fit["b"], "factor_cov_ab": fit["cov_ab"],
+            "factor_chi2": fit["chi2"],
             "factor_dof": fit["dof"]}
 
 
@@ -310,7 +323,7 @@ def _sim_bench(settings: Mapping, seed: int):
 
 
 def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None = None,
-              lamp_zero_u_deg: float = 0.02, sim: bool | None = None) -> dict:
+              lamp_zero_u_deg: float = 0.02, sim: bool | None = None, progress=None) -> dict:
     """Run the three procedures; return the calibration document (tables of plain values).
 
     ``bench`` None: the simulated instrument built from ``settings`` (its ``[errors]``) and
@@ -318,7 +331,8 @@ def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None
     ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``, ``stray_floor``, ``stray_u_floor``: the
     floor's level, from a dark-sample or beam-dump reading, and its u); with the
     simulator they come from its error model, on hardware from ``[calibration]`` of the settings.
-    ``sim``: what the file records (default: ``bench`` is None).
+    ``sim``: what the file records (default: ``bench`` is None). ``progress``:
+    ``progress(done, total, label)`` before each scan and procedure (None: silent).
     """
     from gonio.bench.session.journal import versions
 
@@ -327,7 +341,8 @@ def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None
     if bench is None:
         bench, specs = _sim_bench(settings, seed)
         try:
-            return calibrate(settings, seed=seed, bench=bench, specs=specs, lamp_zero_u_deg=lamp_zero_u_deg, sim=sim)
+            return calibrate(settings, seed=seed, bench=bench, specs=specs, lamp_zero_u_deg=lamp_zero_u_deg, sim=sim,
+                             progress=progress)
         finally:
             bench.inst.release()       # its Mitsuba scene now, not when a cyclic collection finds it
     specs = dict(specs if specs is not None else settings.get("calibration", {}))
@@ -340,12 +355,18 @@ def calibrate(settings: Mapping, *, seed: int, bench=None, specs: Mapping | None
         "seed": int(seed), "sim": sim, "versions": versions()}}
     if "errors" in specs:
         cal["calibration"]["errors"] = specs.pop("errors")
-    a = align(bench, settings, lamp_zero_u_deg, float(specs.get("repeat_deg", 0.0)))
+    steps = 3 + 2 * len(SCAN_AZIMUTHS)          # the exposure, the scans, linearity, the reference grid
+    say = progress if progress is not None else (lambda done, total, label: None)
+    a = align(bench, settings, lamp_zero_u_deg, float(specs.get("repeat_deg", 0.0)),
+              progress=lambda done, total, label: say(done, steps, label))
     a["repeat_deg"] = float(specs.get("repeat_deg", 0.0))
     a["wedge_u_deg"] = float(specs.get("wedge_u_deg", 0.0))
     cal["alignment"] = a
+    say(steps - 2, steps, "exposure ladder (linearity)")
     cal["linearity"] = linearity(bench, settings)
+    say(steps - 1, steps, "reference over its grid")
     cal["reference"] = reference_factor(bench, settings, cal)
+    say(steps, steps, "done")
     cal["aperture"] = {"source_half_deg": float(specs.get("source_half_deg", 0.0)),
                        "detector_half_deg": float(specs.get("detector_half_deg", 0.0)),
                        "profile": "uniform disk"}
@@ -403,13 +424,15 @@ def merge_calibration(settings: Mapping, cal: Mapping) -> dict:
     return out
 
 
-def run_calibration(settings: Mapping, *, sim: bool, seed: int, port=None, meter_port=None, camera=None) -> dict:
+def run_calibration(settings: Mapping, *, sim: bool, seed: int, port=None, meter_port=None, camera=None,
+                    progress=None) -> dict:
     """The three procedures through the production drivers; returns the calibration document.
 
     ``sim``: against the simulated instrument of ``settings`` (its ``[errors]``) and ``seed`` over
     its ``sim://`` ports (the bytes a real bench gets); otherwise on hardware at ``port``,
     ``meter_port`` and ``camera`` (a URL or a camera object), with the glossy artefact mounted and
     the data-sheet values in ``[calibration]``. Nothing is written but scratch RAW files.
+    ``progress``: as :func:`calibrate`'s.
     """
     import tempfile
 
@@ -427,7 +450,7 @@ def run_calibration(settings: Mapping, *, sim: bool, seed: int, port=None, meter
         try:
             with tempfile.TemporaryDirectory(prefix="gonio-calibrate-") as scratch:
                 return calibrate(settings, seed=seed, bench=DriverBench(rig, settings, Path(scratch)), specs=specs,
-                                 sim=sim)
+                                 sim=sim, progress=progress)
         finally:
             try:
                 rig.led.off()
@@ -448,7 +471,7 @@ def summary(cal: Mapping) -> str:
 
 
 def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=None, meter_port=None,
-                  camera=None) -> int:
+                  camera=None, progress=None) -> int:
     """``gonio calibrate``: refuse bad input in one line before anything is written.
 
     ``--sim`` runs the procedures through the production drivers against the simulator's
@@ -456,7 +479,8 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
     them on hardware, with the glossy artefact mounted in the sample slot and the data-sheet
     values (``repeat_deg``, ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``,
     ``stray_floor``) in the settings' ``[calibration]`` table. ``camera``: a URL or a camera
-    object (``session_runner._camera`` builds one from the command line's spec).
+    object (``session_runner._camera`` builds one from the command line's spec). ``progress``:
+    as :func:`calibrate`'s.
     """
     from gonio.core.preflight import check_output_file
     from gonio.bench.settings import load_settings
@@ -472,9 +496,12 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
         old = s.get("errors")
         s["errors"] = {**({} if not isinstance(old, dict) else old), "preset": errors}
     check_output_file(out, "calibration file")
-    cal = run_calibration(s, sim=sim, seed=seed, port=port, meter_port=meter_port, camera=camera)
+    cal = run_calibration(s, sim=sim, seed=seed, port=port, meter_port=meter_port, camera=camera, progress=progress)
     write_calibration(out, cal)
-    print(f"wrote {out}: {summary(cal)}; {cal['calibration']['wall_s']:.1f} s")
+    import textwrap
+
+    print(textwrap.fill(f"wrote {out} in {cal['calibration']['wall_s']:.1f} s: {summary(cal)}", 80,
+                        subsequent_indent="  ", break_on_hyphens=False))
     return 0
 
 

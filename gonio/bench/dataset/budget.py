@@ -86,8 +86,11 @@ class Component:
         if self.correlation not in CORRELATIONS + ("group",):
             raise ValueError(f"budget component {self.name}: correlation must be one of "
                              f"{', '.join(CORRELATIONS)} or group, not {self.correlation!r}")
-        if np.shape(self.value) != tuple(shape):
-            raise ValueError(f"budget component {self.name}: shape {np.shape(self.value)} is not {tuple(shape)}")
+        vshape = np.shape(self.value)
+        if vshape != tuple(shape) and not (len(vshape) == 3 and vshape[1:] == tuple(shape) and vshape[0] >= 1
+                                           and self.correlation == "full"):
+            raise ValueError(f"budget component {self.name}: shape {vshape} is not {tuple(shape)} (or "
+                             f"(inputs, {', '.join(map(str, shape))}) for a 'full' line of several inputs)")
         if (self.correlation == "group") != (self.groups is not None):
             raise ValueError(f"budget component {self.name}: groups are given exactly when correlation is 'group'")
         if not np.isfinite(self.mean) or (self.mean != 0.0 and self.correlation != "full"):
@@ -336,9 +339,18 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
     if "u_factor" in ref:
         model = ReferenceModel(ref)
         factor = np.array([model.factor(a, b) for a, b in zip(ti, to)])
-        rel = np.asarray(calibrate.u_reference_factor(settings, ti, to), float) / factor
-        out.append(Component("reference_factor", brdf * rel[:, None], "B", "full",
-                             "reference factor table's fit (gonio calibrate); sign taken as common to all points"))
+        modes = calibrate.reference_factor_modes(settings, ti, to)
+        if modes is not None:
+            # f_r = (S / S_ref) rho F / pi: a factor too high by dF moves every value by f_r dF / F,
+            # one input per independent direction of the fit's (a, b)
+            out.append(Component("reference_factor", brdf[None] * (modes / factor)[:, :, None], "B", "full",
+                                 "reference factor's fit (gonio calibrate): its two inputs, the eigenvectors of "
+                                 "the covariance of (a, b)"))
+        else:
+            rel = np.asarray(calibrate.u_reference_factor(settings, ti, to), float) / factor
+            out.append(Component("reference_factor", brdf * rel[:, None], "B", "full",
+                                 "reference factor table (a certificate's, or a calibration without its "
+                                 "covariance); sign taken as common to all points"))
     if float(lin.get("u_gamma", 0.0) or 0.0) > 0:
         # signed: one gamma moves values darker than the reference up and brighter ones down
         u_gamma = float(lin["u_gamma"])
@@ -474,7 +486,7 @@ def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, ext
             raise ValueError(f"budget component {c.name} given twice")
         seen.add(c.name)
         v = np.asarray(c.value, float)
-        if not np.all(np.isfinite(v[finite])):
+        if not np.all(np.isfinite(v[..., finite])):
             raise ValueError(f"budget component {c.name} is NaN or infinite where brdf is finite")
         corr = c.correlation
         if c.groups is not None:
@@ -482,12 +494,15 @@ def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, ext
             out[f"u_{c.name}_group"] = (("point",) if g.ndim == 1 else ("point", "channel"), g,
                                         {"long_name": f"labels of the values sharing one {c.name} error"})
             corr = f"group:u_{c.name}_group"
-        out[f"u_{c.name}"] = (("point", "channel"), v, {
+        several = v.ndim == 3            # K independent inputs, each shared by every value
+        out[f"u_{c.name}"] = ((("point", "channel", f"{c.name}_input") if several else ("point", "channel")),
+                              np.moveaxis(v, 0, -1) if several else v, {
             "units": "sr^-1", "gum_type": c.gum_type, "correlation": corr, "source": c.source,
             "long_name": f"standard uncertainty of brdf from {c.name.replace('_', ' ')}"
-                         + (" (signed: the change for +1 sigma of the shared input)" if corr != "none" else ""),
+                         + (" (signed: the change for +1 sigma of each independent input)" if several else
+                            " (signed: the change for +1 sigma of the shared input)" if corr != "none" else ""),
             **({"input_mean": float(c.mean)} if c.mean else {})})
-        total += v * v
+        total += (v * v).sum(axis=0) if several else v * v
     out["u_combined"] = (("point", "channel"), np.sqrt(total), {
         "units": "sr^-1", "budget_format": BUDGET_FORMAT, "components": " ".join(sorted(seen)),
         "long_name": "combined standard uncertainty of brdf (root sum of squares of the u_ components)"})

@@ -16,7 +16,8 @@ import numpy as np
 from gonio.bench.measure import alignment as al
 from gonio.bench.plan import kinematics
 
-__all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "u_linearity_rel",
+__all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "reference_factor_modes",
+           "u_linearity_rel",
            "linearity_shift_rel", "u_stray_rel",
            "stray_fraction", "stray_corrected", "stray_shift_rel",
            "dataset_angles", "instrument_response"]
@@ -203,6 +204,31 @@ def u_reference_factor(cal: Mapping, theta_i, theta_o) -> np.ndarray:
     f = RegularGridInterpolator((gi, go), tab, bounds_error=False, fill_value=None)
     ti, to = np.broadcast_arrays(np.clip(theta_i, gi[0], gi[-1]), np.clip(theta_o, go[0], go[-1]))
     return f(np.stack([ti, to], -1))
+
+
+def reference_factor_modes(cal: Mapping, theta_i, theta_o) -> np.ndarray | None:
+    """The reference factor's change at (theta_i, theta_o) deg (..., in the factor's own units) for
+    +1 sigma of each of the two independent inputs of gonio calibrate's fit (K = 2, ...): the
+    fitted form 1 - a (sin^2 ti + sin^2 to) / 2 + b sin^2 ti sin^2 to
+    (alignment.reference_factor_model) moved along the eigenvectors of the covariance of (a, b),
+    ``[reference] factor_cov_ab``. Its two terms have different shapes and an error of a moves
+    grazing points one way where b's moves them the other: one line of magnitude u_factor
+    everywhere (:func:`u_reference_factor`, all of one sign) is not the error the fit left. None
+    without ``factor_cov_ab`` (a certificate's table, or a calibration file from before it)."""
+    ref = cal.get("reference", {})
+    cov = ref.get("factor_cov_ab")
+    if cov is None:
+        return None
+    cov = np.asarray(cov, float)
+    if cov.shape != (2, 2) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0):
+        raise ValueError("[reference] factor_cov_ab must be a finite symmetric 2 x 2 matrix (gonio calibrate's fit)")
+    w, V = np.linalg.eigh(cov)
+    if w.min() < -1e-12 * max(abs(w).max(), 1e-300):
+        raise ValueError("[reference] factor_cov_ab must be positive semi-definite (gonio calibrate's fit)")
+    si2 = np.sin(np.radians(np.asarray(theta_i, float))) ** 2
+    so2 = np.sin(np.radians(np.asarray(theta_o, float))) ** 2
+    D = np.stack([-0.5 * (si2 + so2), si2 * so2], -1)                           # d factor / d (a, b)
+    return np.moveaxis(D @ (V * np.sqrt(np.clip(w, 0.0, None))), -1, 0)
 
 
 def u_linearity_rel(level_sample, level_reference, u_gamma: float) -> np.ndarray:
