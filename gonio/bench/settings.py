@@ -45,7 +45,9 @@ SCHEMA: dict[str, dict[str, str]] = {
                   "factor": "non-Lambertian factor table", "u_factor": "its standard uncertainty (calibration)",
                   "factor_a": "calibration fit term", "factor_b": "calibration fit term",
                   "factor_chi2": "calibration fit chi2", "factor_dof": "calibration fit dof"},
-    "meter": {"wavelength_nm": "power meter wavelength (nm)", "averaging": "samples per reading"},
+    "meter": {"wavelength_nm": "power meter wavelength (nm)", "averaging": "samples per reading",
+              "sample_time_s": "seconds per averaged sample (a reading waits averaging x this)",
+              "visa_library": "PyVISA library of a VISA resource (\"@py\", \"@ivi\", a path; default PyVISA's choice)"},
     "lamp": {"device": "Zaber address of the LED source", "flux": "relative LED flux",
              "drift_tolerance": "relative monitor change that pauses the capture",
              "bracket_tolerance": "monitor change within a point that re-measures it",
@@ -70,7 +72,7 @@ SCHEMA: dict[str, dict[str, str]] = {
 OPEN_SECTIONS = {"errors": "gonio.sim error model", "calibration": "gonio calibrate", "alignment": "gonio calibrate",
                  "linearity": "gonio calibrate", "aperture": "gonio calibrate", "stray": "gonio calibrate"}
 _TEXT_KEYS = {("systematics", "source"), ("session", "sample_id"), ("session", "sample_description"), ("session", "operator"),
-              ("reference", "certificate")}
+              ("reference", "certificate"), ("meter", "visa_library")}
 
 
 def _suggest(name: str, known, fmt: str = "{}") -> str:
@@ -189,6 +191,8 @@ def validate_settings(s: dict[str, Any], where: str = "instrument settings") -> 
             raise bad("reference.reflectance")
         for key in ("width", "height", "pixel_size", "bits"):
             num(f"camera.{key}", s["camera"][key], True)
+        if "sample_time_s" in (s.get("meter") or {}):
+            num("meter.sample_time_s", s["meter"]["sample_time_s"], True)
     except KeyError as exc:
         raise bad(str(exc.args[0])) from None
     except (TypeError, ValueError):

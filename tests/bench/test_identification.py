@@ -33,7 +33,7 @@ def test_capture_journals_the_identification(tmp_path):
         == (1, "30342", "91001", "7.38", "18426", 4)
     assert stage["peripheral_ids"] == ["43211"] * 4
     assert (led["address"], led["device_id"], led["serial"], led["axes"]) == (2, "30311", "92001", 1)
-    assert ident["meter"] == "gonio,SimPowerMeter,SIM00001,0.1.0"
+    assert ident["meter"] == "Thorlabs,PM100D,P0000001,2.8.0"
     assert ident["camera"] == "gonio,SimCamera,SIM00001,0.1.0"
     assert ident["zaber_port"].startswith("sim://")
 
@@ -59,7 +59,7 @@ def test_every_driver_identifies_itself(tmp_path):
             (stage,) = stages.identify()
             assert (stage["address"], stage["device_id"], stage["serial"], stage["axes"]) == (1, "30342", "91001", 4)
             assert led.identify() == chain.identify(2) and led.identify()["device_id"] == "30311"
-            assert meter.identify() == "gonio,SimPowerMeter,SIM00001,0.1.0"
+            assert meter.identify() == "Thorlabs,PM100D,P0000001,2.8.0"
         cam = SimCamera(inst.url("camera"))
         try:
             assert cam.identify() == "gonio,SimCamera,SIM00001,0.1.0" == _identify.camera_text(cam)
@@ -116,7 +116,7 @@ def test_session_toml_records_every_devices_identification(sim_instrument, tmp_p
     folder = tmp_path / "s"
     assert _capture(inst, folder).complete
     dev = read_session(folder)["devices"]
-    assert dev["meter"] == "gonio,SimPowerMeter,SIM00001,0.1.0"
+    assert dev["meter"] == "Thorlabs,PM100D,P0000001,2.8.0"
     assert dev["camera"] == "gonio,SimCamera,SIM00001,0.1.0"
     assert dev["zaber_port"] == inst.url("zaber") and dev["meter_port"] == inst.url("meter")
     assert dev["zaber"]["1"] == {"address": 1, "device_id": "30342", "serial": "91001", "firmware": "7.38",

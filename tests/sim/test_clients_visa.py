@@ -37,7 +37,7 @@ def _resource(srv, write_termination="\n"):
 def test_common_commands_any_line_ending(meter, ending):
     r = _resource(meter, ending)
     try:
-        assert r.query("*IDN?") == "gonio,SimPowerMeter,SIM00001,0.1.0"
+        assert r.query("*IDN?") == "Thorlabs,PM100D,P0000001,2.8.0"
         assert r.query("*OPC?") == "1" and r.query("*STB?") == "0" and r.query("*TST?") == "0"
         r.write("BOGUS:HEADER")
         assert r.query("*STB?") == "4"                 # error queue not empty
@@ -98,7 +98,7 @@ def test_pymeasure_thorlabs_pm100usb(meter):
         assert pm.wavelength == 1100
         pm.wavelength = 550
         assert pm.power == pytest.approx(0.01 * 0.1, rel=0.01)    # p0 * splitter (gonio/sim/physics/lamp, gonio/sim/devices/scpi_meter)
-        assert pm.id == "gonio,SimPowerMeter,SIM00001,0.1.0"
+        assert pm.id == "Thorlabs,PM100D,P0000001,2.8.0"
         assert pm.ask("SYST:ERR?").strip() == '0,"No error"'
     finally:
         pm.adapter.close()

@@ -120,7 +120,7 @@ def test_port_vanishes_and_comes_back(make):
     inst = make(faults=[{"kind": "vanish", "port": "meter", "at_command": 2, "duration": 1.0}])
     m = inst.open("meter", timeout=0.2)
     m.write(b"*IDN?\n")
-    assert m.readline().startswith(b"gonio")
+    assert m.readline().startswith(b"Thorlabs")
     m.write(b"*IDN?\n")
     with pytest.raises(serial.SerialException):
         m.readline()
@@ -136,7 +136,7 @@ def test_port_vanishes_and_comes_back(make):
             pass
     assert reopened is not None and inst.clock.now() >= 1.0
     reopened.write(b"*IDN?\n")
-    assert reopened.readline().startswith(b"gonio")
+    assert reopened.readline().startswith(b"Thorlabs")
 
 
 @pytest.mark.parametrize("kind", ["camera_nothing", "camera_truncated"])

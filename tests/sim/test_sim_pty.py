@@ -36,7 +36,7 @@ def test_ports_answer_and_survive_reconnect(server):
     assert _ask(z, b"/1 0") == b"@01 0 OK IDLE -- 0\r\n"
     z.close()
     m = serial.Serial(server.paths["meter"], timeout=2)
-    assert _ask(m, b"*IDN?", b"\n") == b"gonio,SimPowerMeter,SIM00001,0.1.0\n"
+    assert _ask(m, b"*IDN?", b"\n") == b"Thorlabs,PM100D,P0000001,2.8.0\n"
     m.close()
 
 
@@ -46,7 +46,7 @@ def test_vanishing_port_comes_back_under_a_new_device(tmp_path):
     with PtyServer(inst, str(tmp_path / "p")).start() as srv:
         path = srv.paths["meter"]
         m = serial.Serial(path, timeout=0.5)
-        assert _ask(m, b"*IDN?", b"\n").startswith(b"gonio")
+        assert _ask(m, b"*IDN?", b"\n").startswith(b"Thorlabs")
         m.write(b"*IDN?\n")
         with pytest.raises(serial.SerialException):
             for _ in range(50):
@@ -58,7 +58,7 @@ def test_vanishing_port_comes_back_under_a_new_device(tmp_path):
             time.sleep(0.02)
         assert os.path.exists(path)
         m = serial.Serial(path, timeout=1)
-        assert _ask(m, b"*IDN?", b"\n").startswith(b"gonio")
+        assert _ask(m, b"*IDN?", b"\n").startswith(b"Thorlabs")
         m.close()
 
 
@@ -86,7 +86,7 @@ def test_a_client_that_never_reads_does_not_stop_the_other_ports(server):
     deadline = time.monotonic() + 10.0
     while getattr(server, "dropped", {}).get("zaber", 0) == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert _ask(m, b"*IDN?", b"\n").startswith(b"gonio,"), "the meter did not answer while the flood waited"
+    assert _ask(m, b"*IDN?", b"\n").startswith(b"Thorlabs,PM100D,"), "the meter did not answer while the flood waited"
     assert server.dropped.get("zaber", 0) > 0, "the flood never overran the client's buffer"
     assert len(server._pending.get("zaber", b"")) <= ps.MAX_PENDING
     z.reset_input_buffer()

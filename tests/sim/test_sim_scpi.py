@@ -10,7 +10,7 @@ def test_scpi_exchange(make):
     inst = make()
     m = inst.open("meter", timeout=0.2)
     exchange(m, [
-        (b"*IDN?", b"gonio,SimPowerMeter,SIM00001,0.1.0\n"),
+        (b"*IDN?", b"Thorlabs,PM100D,P0000001,2.8.0\n"),
         (b"SYST:ERR?", b'0,"No error"\n'),
         (b"SENS:CORR:WAV 633", b""),
         (b"SENS:CORR:WAV?", b"6.330000E+02\n"),

@@ -33,7 +33,7 @@ def _zaber(url: str, settings: Mapping, baud: int) -> list[str]:
 
 
 def _meter(url: str, settings: Mapping, baud: int) -> list[str]:
-    with PowerMeter(url, baud, 1.0) as meter:
+    with PowerMeter.from_settings(url, settings, baud, 1.0) as meter:
         return [f"meter {url}: {_identify.clean(meter.identify())}"]
 
 

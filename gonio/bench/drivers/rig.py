@@ -31,7 +31,7 @@ def _open_zaber(bench: "Bench", url, kw: Mapping):
 
 
 def _open_meter(bench: "Bench", url, kw: Mapping):
-    bench.meter = bench.opened(PowerMeter(url, kw["baudrate"], kw["timeout"]))
+    bench.meter = bench.opened(PowerMeter.from_settings(url, bench.settings, kw["baudrate"], kw["timeout"]))
 
 
 def _open_camera_port(bench: "Bench", camera, kw: Mapping):

@@ -10,9 +10,10 @@ standard deviation ``sqrt((rel_noise P)^2 + abs_noise^2) / sqrt(average count)``
 ``default_rng([seed, 0x3E7E, reading index])``. A reading takes ``average count *
 sample_time`` of simulated time.
 
-Grammar: IEEE 488.2 common commands and the SCPI subset of a Thorlabs PM100-class meter
-(``_scpi_grammar.py``); set commands reply nothing; errors go to the queue with the SCPI-1999
-codes and texts.
+Grammar: IEEE 488.2 common commands and the SCPI command set of a Thorlabs PM100D with a
+photodiode sensor (``scpi_grammar.py``: what the ThorlabsPM100 package, PyMeasure and PyVISA
+scripts send); set commands reply nothing; errors go to the queue with the SCPI-1999 codes and
+texts.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ class PowerMeter:
         self.abs_noise = float(abs_noise)
         self.sample_time = float(sample_time)
         self.readings = 0
+        self.sensor = True          # a sensor head is plugged in (False: every reading is SCPI's NaN)
         self.reset()
 
     def reset(self) -> None:
