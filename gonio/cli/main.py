@@ -13,7 +13,6 @@ import json
 import math
 import signal
 import sys
-from importlib import metadata
 from pathlib import Path
 
 from gonio.core.errors import GonioError
@@ -30,6 +29,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _version() -> str:
+    from importlib import metadata       # here, not at the top: `gonio estop` does not wait for it
+
     try:
         return metadata.version("gonio")
     except metadata.PackageNotFoundError:
@@ -251,10 +252,9 @@ def _cmd_sim_serve(args):
 
 
 def _cmd_estop(args):
-    from gonio.bench.drivers.zaber import emergency_stop
+    from gonio.cli import estop
 
-    emergency_stop(args.port, baudrate=args.baud)
-    print("emergency stop sent to every device")
+    return estop.run(args.port, args.baud)
 
 
 @_env
@@ -493,6 +493,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["estop"]:            # the emergency stop first: nothing else loads on its path
+        from gonio.cli import estop
+
+        return estop.main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     from gonio.fitting import DataError

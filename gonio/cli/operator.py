@@ -160,12 +160,23 @@ def cmd_jog(args) -> int:
         pos = gonio.positions()
         stage = np.array([pos[n] for n in AXES])
         stage[AXES.index(args.axis)] += args.by
-        _operate.check_stage(stage, settings, f"--axis {args.axis} --by {args.by:g}")
+        _operate.check_stage(stage, _jog_zone(settings, args.axis, pos["lamp"]), f"--axis {args.axis} --by {args.by:g}")
         _operate.move(gonio, stage, args.port)
         print(f"jogged {args.axis} by {args.by:+g} deg: {_operate.where(gonio)}")
     finally:
         chain.close()
     return 0
+
+
+def _jog_zone(settings, axis: str, lamp_deg: float):
+    """The settings a jog's target is checked against: the lamp-in-front-of-the-camera zone only
+    where the jog moves the lamp from outside it. A jog of another axis leaves the lamp where it
+    is (at home, lamp 0, inside the zone: jogging must still work there), and a lamp inside the
+    zone may be jogged (out of it, or along it)."""
+    block = float(settings["axes"].get("lamp_block_deg", 0.0))
+    if axis == "lamp" and abs((lamp_deg + 180.0) % 360.0 - 180.0) >= block:
+        return settings
+    return {**settings, "axes": {**settings["axes"], "lamp_block_deg": 0.0}}
 
 
 @_one_line

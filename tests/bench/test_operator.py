@@ -67,7 +67,7 @@ def test_devices_identifies_every_device(inst, capsys):
     assert ("device 1: device id 30342, serial 91001, firmware 7.38 build 18426, 4 axes "
             "(peripheral ids 43211 43211 43211 43211); stages: yaw on axis 1") in lines[1]
     assert lines[2].startswith("  device 2: device id 30311, serial 92001") and lines[2].endswith("LED source")
-    assert lines[3] == f"meter {url(inst, 'meter')}: gonio,SimPowerMeter,SIM00001,0.1.0"
+    assert lines[3] == f"meter {url(inst, 'meter')}: Thorlabs,PM100D,P0000001,2.8.0"
     assert lines[4] == f"camera {url(inst, 'camera')}: gonio,SimCamera,SIM00001,0.1.0 (64 x 48 pixels, 14 bits, RGGB)"
 
 
@@ -269,7 +269,7 @@ def test_commands_on_the_ptys_of_gonio_sim_serve(served, tmp_path):
     z, m, c = served["zaber"], served["meter"], served["camera"]
     p = _gonio("devices", "--port", z, "--meter-port", m, "--camera", c)
     assert p.returncode == 0, p.stderr
-    assert "device id 30342" in p.stdout and "gonio,SimPowerMeter" in p.stdout and "gonio,SimCamera" in p.stdout
+    assert "device id 30342" in p.stdout and "Thorlabs,PM100D" in p.stdout and "gonio,SimCamera" in p.stdout
     p = _gonio("move", "--port", z, "--stage", "0,0,0,60")
     assert p.returncode == 2 and "not homed" in p.stderr and len(p.stderr.strip().splitlines()) == 1
     assert _gonio("home", "--port", z).returncode == 0
@@ -356,3 +356,41 @@ def test_bench_capture_prints_the_table_against_its_bound(capsys):
     for argv, needle in ((["--points", "0"], "give 1 to 20 points"), (["--full-size", "6000by4000"], "WIDTHxHEIGHT"),
                          (["--full-size", "7x7"], "WIDTHxHEIGHT")):
         assert_refused(run(["bench", "capture", *argv], capsys), needle)
+
+
+def test_jogging_works_at_the_home_pose(inst, capsys):
+    """Issue 40: at home (every axis 0, the lamp arm in front of the camera) every jog was refused
+    as 'lamp in front of the camera'. A jog of another axis leaves the lamp where it is; a lamp
+    inside the zone may be jogged; only a lamp jogged into the zone from outside is refused."""
+    z = url(inst, "zaber")
+    assert run(["home", "--port", z], capsys)[0] == 0
+    rc, out, err = run(["jog", "--port", z, "--axis", "yaw", "--by", "5"], capsys)
+    assert rc == 0 and out.startswith("jogged yaw by +5 deg"), err
+    rc, out, err = run(["jog", "--port", z, "--axis", "lamp", "--by", "30"], capsys)
+    assert rc == 0, err
+    assert np.allclose(pose_deg(inst), [5, 0, 0, 30], atol=1e-3)
+    before = inst.pose_microsteps()
+    assert_refused(run(["jog", "--port", z, "--axis", "lamp", "--by", "-28"], capsys), "in front of the camera")
+    assert inst.pose_microsteps() == before
+
+
+def test_shot_takes_darks_for_the_exposures_it_merges(inst, capsys, tmp_path):
+    """Issue 40: a shot whose probe saturated took a dark for it too (one more frame than the
+    bracket asked for) and said nothing of it. The darks now match the merged exposures, and the
+    probe is named in the summary and marked unmerged in shot.json."""
+    z = url(inst, "zaber")
+    assert run(["home", "--port", z], capsys)[0] == 0
+    toml = tmp_path / "probe.toml"
+    toml.write_text("[capture]\nprobe_s = 0.064\n")        # saturates at this pose: the ladder steps down
+    out = tmp_path / "s"
+    rc, text, err = run(["shot", "--port", z, "--meter-port", url(inst, "meter"), "--camera", url(inst, "camera"),
+                         "--out", str(out), "--stage", "0,0,0,60", "--settings", str(toml)], capsys)
+    assert rc == 0, err
+    doc = json.loads((out / "shot.json").read_text())
+    merged = [e["seconds"] for e in doc["exposures"] if e["merged"]]
+    probes = [e["seconds"] for e in doc["exposures"] if not e["merged"]]
+    assert merged == doc["bracket"] and probes == [0.064], doc["exposures"]
+    assert [d["seconds"] for d in doc["darks"]] == merged
+    assert sorted(p.name for p in out.glob("dark_*.dng")) == [f"dark_{t * 1e6:010.0f}us.dng" for t in merged]
+    assert f"{len(merged)} exposures" in text and "1 saturated probe 0.064 s, not merged" in text
+    assert f"and {len(merged)} darks" in text

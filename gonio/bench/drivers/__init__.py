@@ -23,13 +23,29 @@ only through these classes; the simulator (`gonio.sim`) speaks the same bytes at
 # shortest-way moves, homing). led: the lamp on the chain. meter: the SCPI source monitor
 # (pyserial or VISA). identify: Zaber device ids and *IDN?, journalled once per run.
 
-from gonio.bench.drivers.camera import (BadDelivery, Delivery, Gphoto2Camera, RawFrame, SimCamera, WatchedFolderCamera, camera_from_spec, decode_raw, deliver, open_camera, read_verified)
-from gonio.bench.drivers.led import LedSource
-from gonio.bench.drivers.meter import PowerMeter, is_visa_resource
-from gonio.bench.drivers.serialport import SerialDevice
-from gonio.bench.drivers.stages import Goniometer, MoveError, shortest_equivalent
-from gonio.bench.drivers.zaber import ZaberChain, emergency_stop
-from gonio.bench.drivers.zaber_protocol import (FLAG_MEANINGS, REJECT_MEANINGS, Reply, format_command, lrc, parse_reply)
+# The names below load their modules on first use (PEP 562), so `gonio estop` reaches the stages
+# through zaber.py alone: the camera's RAW decoding (numpy, rawpy, tifffile) is not imported on
+# that path (issue 40: the emergency stop must not wait for imports).
+from importlib import import_module as _import_module
+
+_WHERE = {
+    **dict.fromkeys(("BadDelivery", "Delivery", "Gphoto2Camera", "RawFrame", "SimCamera", "WatchedFolderCamera",
+                     "camera_from_spec", "decode_raw", "deliver", "open_camera", "read_verified"), "camera"),
+    "LedSource": "led", "PowerMeter": "meter", "is_visa_resource": "meter", "SerialDevice": "serialport",
+    "Goniometer": "stages", "MoveError": "stages", "shortest_equivalent": "stages",
+    "ZaberChain": "zaber", "emergency_stop": "zaber",
+    **dict.fromkeys(("FLAG_MEANINGS", "REJECT_MEANINGS", "Reply", "format_command", "lrc", "parse_reply"),
+                    "zaber_protocol"),
+}
+
+
+def __getattr__(name):
+    if name in _WHERE:
+        value = getattr(_import_module(f"{__name__}.{_WHERE[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "BadDelivery", "Delivery", "FLAG_MEANINGS", "REJECT_MEANINGS", "Gphoto2Camera", "Goniometer", "LedSource", "MoveError",

@@ -97,6 +97,7 @@ class _Session(CalibrationFrames):
         self.ident = ident                           # a capture's identification, taken before session.toml
         self.note = note                             # says one line (console and summary notes)
         self.exhausted = False                       # the run measured every point its strategy asked for
+        self._todo: list[int] | None = None          # the strategy's first points (`_first_todo`)
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -126,9 +127,28 @@ class _Session(CalibrationFrames):
                 for f, name in zip(files, names)]
 
     # -- instrument preparation ----------------------------------------------------------
+    def _first_todo(self) -> list[int]:
+        """The points the strategy asks for before the loop starts (those the journal lacks);
+        worked out once (an adaptive strategy fits to choose them)."""
+        if self._todo is None:
+            done = self.journal.done()
+            todo = self._checked(self.strategy.first(set(done)), done, [])
+            # a resume past the strategy's first points: it may still want more before the loop starts
+            todo.extend(self._checked(self.strategy.more(self.results, tuple(todo)), done, todo))
+            self._todo = todo
+        return self._todo
+
+    def finished(self) -> bool:
+        """Whether the session has nothing left to measure: every point its strategy asks for is
+        journalled (a resume of it then moves nothing: issue 40)."""
+        return len(self.journal.done()) >= self.strategy.budget or not self._first_todo()
+
     def prepare(self) -> None:
         """Check flags and positions, home if the reference is lost, take missing darks and
-        flats, lamp on; saying what it does (it took ~5 s with a blank screen)."""
+        flats, lamp on; saying what it does (it took ~5 s with a blank screen). Nothing at all
+        where the session is `finished`: no device is asked to move, expose or light."""
+        if self.finished():
+            return
         with self._status() as say:
             b = self.bench
             say("checking the camera and the stages")
@@ -503,10 +523,17 @@ class _Session(CalibrationFrames):
         is stopped.
         """
         done = self.journal.done()
+        if self.finished():
+            self.exhausted = True
+            self.note(f"the session is finished: all {len(done)} point(s) its plan asks for are measured; "
+                      "nothing was moved or exposed (measure points again with --remeasure)")
+            for i in sorted(done):
+                r = self._reciprocity(i)
+                if r is not None and r["i"] == i:
+                    self.reciprocity.append(r)
+            return 0, ""
         self._drop_unjournalled_point_files()
-        todo = self._checked(self.strategy.first(set(done)), done, [])
-        # a resume past the strategy's first points: it may still want more before the loop starts
-        todo.extend(self._checked(self.strategy.more(self.results, tuple(todo)), done, todo))
+        todo = list(self._first_todo())
         for i in sorted(done):
             r = self._reciprocity(i)
             if r is not None and r["i"] == i:

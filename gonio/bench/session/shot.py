@@ -3,8 +3,9 @@
 The bracket is chosen as a capture chooses it for one point: a probe at ``[capture] probe_s``
 (down the ladder while the regions saturate), then `choose_bracket`. The regions come from
 the holder's markers where it has them (`_markers.find_regions`), else from the geometry.
-After the bracket the LED is switched off and a dark frame is taken per exposure time; the
-LED stays off at the end (and after any failure). Files, in a new folder: ``shot_<us>us.dng``,
+After the bracket the LED is switched off and a dark frame is taken per exposure time the merge
+uses (a saturated probe is kept, marked unmerged, and gets none); the LED stays off at the end
+(and after any failure). Files, in a new folder: ``shot_<us>us.dng``,
 ``dark_<us>us.dng``, ``preview.png`` (the HDR merge, tone-mapped, sample region outlined in
 green, reference in blue) and ``shot.json``.
 """
@@ -76,7 +77,7 @@ def take_shot(args, settings, stage, out: Path) -> str:
         gonio = Goniometer(chain, settings, poll_interval_s=0.05)
         gonio.connect()
         led = LedSource(chain, int(settings.get("lamp", {}).get("device", 2)))
-        meter = PowerMeter(args.meter_port, args.baud, 1.0)
+        meter = PowerMeter.from_settings(args.meter_port, settings, args.baud, 1.0)
         camera = open_camera(args.camera)
         check_sensor(camera, settings)
         if stage is not None:
@@ -93,7 +94,7 @@ def take_shot(args, settings, stage, out: Path) -> str:
         taken, used = _bracket(camera, meter, out, stage, settings)
         led.off()
         darks = {}
-        for tb in sorted(taken):
+        for tb in used:                            # a dark per exposure the merge uses, not per probe
             path, digest = _expose(camera, out, f"dark_{tb * 1e6:010.0f}us.dng", tb)
             darks[tb] = {"seconds": tb, "file": path.name, "sha256": digest, "frame": decode_raw(path)}
         hdr = merge([Exposure(tb, taken[tb]["power"], taken[tb]["frame"], darks[tb]["frame"]) for tb in used],
@@ -123,7 +124,11 @@ def take_shot(args, settings, stage, out: Path) -> str:
                 except Exception:        # noqa: BLE001
                     pass
     src = "markers" if regions.source == "markers" else f"geometry ({regions.why})"
-    return (f"shot: {len(used)} exposure{'s' if len(used) != 1 else ''} {', '.join(f'{x:g}' for x in used)} s and {len(darks)} dark{'s' if len(darks) != 1 else ''} in {out}; "
+    unused = sorted(set(taken) - set(used))
+    probes = (f" (and {len(unused)} saturated probe{'s' if len(unused) != 1 else ''} "
+              f"{', '.join(f'{x:g}' for x in unused)} s, not merged)" if unused else "")
+    return (f"shot: {len(used)} exposure{'s' if len(used) != 1 else ''} {', '.join(f'{x:g}' for x in used)} s"
+            f"{probes} and {len(darks)} dark{'s' if len(darks) != 1 else ''} in {out}; "
             f"regions from {src}; f_r ~ " + " ".join(f"{v:.4g}" for v in f_r) + f" sr^-1 at {where_}")
 
 
@@ -174,7 +179,8 @@ def _shot_doc(stage, angles, flux, taken, used, darks, regions, stats, f_r, iden
         "stage_deg": dict(zip(AXES, map(float, stage))),
         "angles_deg": dict(zip(("theta_i", "phi_i", "theta_o", "phi_o"), map(float, angles))),
         "flux": flux,
-        "exposures": [{k: v for k, v in taken[tb].items() if k != "frame"} for tb in sorted(taken)],
+        "exposures": [{**{k: v for k, v in taken[tb].items() if k != "frame"}, "merged": tb in used}
+                      for tb in sorted(taken)],
         "bracket": used,
         "darks": [{k: v for k, v in darks[tb].items() if k != "frame"} for tb in sorted(darks)],
         "regions": {"source": regions.source, "why": regions.why,
