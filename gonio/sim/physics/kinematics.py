@@ -2,14 +2,15 @@
 
 The simulator's physical truth: stage angles -> sample orientation -> (wi, wo) in the sample
 frame, and the camera's image axes expressed in the sample frame. bench/ keeps its own
-(inverse) model; tests compare the two.
+(inverse) model; tests compare the two. The rear detector arm (transmission) holds the camera
+on the far side, at -c looking along +c with the same image up: wo and image right flip sign.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["rot_z", "rot_y", "sample_rotation", "forward", "B"]
+__all__ = ["rot_z", "rot_y", "sample_rotation", "forward", "B", "DETECTORS"]
 
 #: Columns: local x -> lab Y, local y -> lab Z, local z -> lab X.
 B = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -17,6 +18,8 @@ B = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 CAMERA = np.array([1.0, 0.0, 0.0])     # lab direction from the sample centre to the camera
 IMAGE_RIGHT = np.array([0.0, 1.0, 0.0])
 IMAGE_UP = np.array([0.0, 0.0, 1.0])
+#: The detector arm's two stops: the camera's lab direction (from the sample centre) and its image right.
+DETECTORS = {"front": (CAMERA, IMAGE_RIGHT), "rear": (-CAMERA, -IMAGE_RIGHT)}
 
 
 def rot_z(a: float) -> np.ndarray:
@@ -36,8 +39,9 @@ def sample_rotation(yaw: float, tilt: float, azimuth: float) -> np.ndarray:
     return rot_z(yaw) @ rot_y(tilt) @ B @ rot_z(azimuth)
 
 
-def forward(yaw: float, tilt: float, azimuth: float, lamp: float) -> dict:
-    """Directions in the sample frame for stage angles in radians.
+def forward(yaw: float, tilt: float, azimuth: float, lamp: float, detector: str = "front") -> dict:
+    """Directions in the sample frame for stage angles in radians, the camera on the detector
+    arm's ``front`` (reflection) or ``rear`` (transmission) stop.
 
     Returns
     -------
@@ -45,7 +49,11 @@ def forward(yaw: float, tilt: float, azimuth: float, lamp: float) -> dict:
         ``wi`` (to the lamp), ``wo`` (to the camera), ``right`` and ``up`` (the image axes),
         each a unit 3-vector in the sample's local frame; ``R`` the 3x3 orientation.
     """
+    try:
+        cam, right = DETECTORS[detector]
+    except KeyError:
+        raise ValueError(f"detector must be 'front' or 'rear', not {str(detector)[:20]!r}") from None
     R = sample_rotation(yaw, tilt, azimuth)
     light = np.array([np.cos(lamp), np.sin(lamp), 0.0])
-    return {"wi": R.T @ light, "wo": R.T @ CAMERA, "right": R.T @ IMAGE_RIGHT,
+    return {"wi": R.T @ light, "wo": R.T @ cam, "right": R.T @ right,
             "up": R.T @ IMAGE_UP, "R": R}

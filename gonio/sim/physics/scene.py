@@ -8,6 +8,11 @@ updated through ``mi.traverse``, so kernels compile once.
 The emitter has unit irradiance on a surface facing it, so the rendered radiance on a flat
 square is ``f_r(wi, wo) * cos(theta_i)`` (sr^-1); the ``direct`` integrator with a delta
 light makes it exact, with no Monte Carlo noise, away from the squares' edges.
+A transmissive sample (``sample_truth``) sits in an open holder: seen from the rear detector
+(``wo`` below the surface) only the sample square shows, its coverage of each pixel rendered
+as a unit-radiance square facing the rear and scaled by f(wi, wo) cos(theta_i) of the truth
+(exact: the directions are the same at every pixel; this Mitsuba has no ``difftrans``).
+``open_beam`` images the lamp through the empty aperture the same way (ASTM E2387).
 """
 
 from __future__ import annotations
@@ -69,33 +74,22 @@ class HolderScene:
 
     def __init__(self, sample_bsdf: dict, reference_bsdf: dict, *, width: int, height: int,
                  pixel_size: float, sample_half: float, offset: float,
-                 holder_reflectance: float, spp: int = 4, markers=None, holder_pose=None):
+                 holder_reflectance: float, spp: int = 4, markers=None, holder_pose=None,
+                 sample_truth=None):
         import mitsuba as mi
 
         self.variant = mitsuba_variant()
         self.width, self.height = int(width), int(height)
         self.half_width = 0.5 * self.width * float(pixel_size)
         self.spp = int(spp)
+        self.sample_truth = sample_truth if getattr(sample_truth, "transmits", False) else None
+        self._layout = (float(sample_half), float(offset), holder_pose)
         with mi.scoped_set_variant(self.variant):
             T = mi.ScalarTransform4f
-
-            pose = holder_transform(T, holder_pose)
-
-            def square(cx):
-                return pose @ T().translate([cx, 0.0, _SQUARE_LIFT]) @ T().scale([sample_half, sample_half, 1.0])
-
             scene = {
-                "type": "scene",
-                "integrator": {"type": "direct"},
-                "sensor": {
-                    "type": "orthographic",
-                    "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
-                             "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-                    "sampler": {"type": "independent", "sample_count": self.spp},
-                },
-                "lamp": {"type": "directional", "irradiance": {"type": "rgb", "value": 1.0}},
-                "sample": {"type": "rectangle", "to_world": square(-offset), "bsdf": sample_bsdf},
-                "reference": {"type": "rectangle", "to_world": square(offset), "bsdf": reference_bsdf},
+                **self._base(mi),
+                "sample": {"type": "rectangle", "to_world": self._square(mi, -offset), "bsdf": sample_bsdf},
+                "reference": {"type": "rectangle", "to_world": self._square(mi, offset), "bsdf": reference_bsdf},
                 "holder": {
                     "type": "rectangle",
                     "to_world": T().translate([0.0, 0.0, -_HOLDER_DROP]) @ T().scale([_HOLDER_HALF, _HOLDER_HALF, 1.0]),
@@ -106,7 +100,26 @@ class HolderScene:
             }
             self._scene = mi.load_dict(scene)
             self._params = mi.traverse(self._scene)
+            self._beam = None
         self.renders = 0
+
+    def _base(self, mi) -> dict:
+        return {
+            "type": "scene",
+            "integrator": {"type": "direct"},
+            "sensor": {
+                "type": "orthographic",
+                "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
+                         "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                "sampler": {"type": "independent", "sample_count": self.spp},
+            },
+            "lamp": {"type": "directional", "irradiance": {"type": "rgb", "value": 1.0}},
+        }
+
+    def _square(self, mi, cx):
+        T = mi.ScalarTransform4f
+        half, _, holder_pose = self._layout
+        return holder_transform(T, holder_pose) @ T().translate([cx, 0.0, _SQUARE_LIFT]) @ T().scale([half, half, 1.0])
 
     def render(self, wi, wo, right, up) -> np.ndarray:
         """Radiance image for unit irradiance from ``wi``, seen from ``wo``.
@@ -126,13 +139,51 @@ class HolderScene:
         wi = np.asarray(wi, float)
         wo = np.asarray(wo, float)
         up = np.asarray(up, float)
+        if self.sample_truth is not None and wo[2] < 0.0:   # the open holder from behind
+            f = np.asarray(self.sample_truth.eval(wi[None, :], wo[None, :]), dtype=float)[0]
+            return self.aperture(wo, up) * (f * max(float(wi[2]), 0.0))[None, None, :]
         with mi.scoped_set_variant(self.variant):
-            p = self._params
+            scene, p = self._scene, self._params
             # directional: light travels along the emitter's local +z, i.e. along -wi
             p["lamp.to_world"] = mi.Transform4f(_frame([0.0, 0.0, 0.0], -wi, up))
             p["sensor.to_world"] = mi.Transform4f(_frame(_DISTANCE * wo, -wo, up, self.half_width))
             p.update()
-            img = mi.render(self._scene, spp=self.spp, seed=0)
+            img = mi.render(scene, spp=self.spp, seed=0)
+            out = np.array(img, dtype=np.float64)[..., :3]
+        self.renders += 1
+        return out
+
+    def open_beam(self, radiance: float, wo, up) -> np.ndarray:
+        """The open-beam frame (ASTM E2387): the sample out of the holder, the lamp straight
+        behind the aperture, seen from ``wo`` (the rear detector on the beam's axis).
+
+        The camera sees the lamp's exit through the sample's empty aperture at ``radiance``
+        (sr^-1 per unit irradiance at the sample: the beam's attenuation over its solid
+        angle) and nothing else (an orthographic camera, so the aperture's image does not
+        depend on the distance to the lamp). Returns (height, width, 3) radiance.
+        """
+        return self.aperture(wo, up) * float(radiance)
+
+    def aperture(self, wo, up) -> np.ndarray:
+        """How much of each pixel the sample's aperture fills, seen from ``wo`` below the
+        surface (a unit-radiance square facing the rear), (height, width, 3)."""
+        import mitsuba as mi
+
+        wo = np.asarray(wo, float)
+        up = np.asarray(up, float)
+        with mi.scoped_set_variant(self.variant):
+            if self._beam is None:
+                T = mi.ScalarTransform4f
+                flip = T().rotate([1.0, 0.0, 0.0], 180.0)        # the exit faces the rear (-z)
+                base = self._base(mi)
+                base.pop("lamp")
+                self._beam = mi.load_dict({**base, "aperture": {
+                    "type": "rectangle", "to_world": self._square(mi, -self._layout[1]) @ flip,
+                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}})
+            p = mi.traverse(self._beam)
+            p["sensor.to_world"] = mi.Transform4f(_frame(_DISTANCE * wo, -wo, up, self.half_width))
+            p.update()
+            img = mi.render(self._beam, spp=self.spp, seed=0)
             out = np.array(img, dtype=np.float64)[..., :3]
         self.renders += 1
         return out
