@@ -9,6 +9,8 @@ Stage angles are given as arrays whose last axis holds ``(yaw, tilt, azimuth, la
 degrees (the order of `AXES`). Direction angles (theta, phi) are in degrees at this module's
 public surface (plans and files use degrees); vectors are unit, float64. The inverse (stage
 angles from directions) is in closed form, with the lamp on the +Y side (L in (0, 180)).
+Transmission (theta_o in (90, 180]) puts the camera on the detector arm's rear stop, at -c
+(image right -Y): the pose is the one that shows the front camera -wo (`detector_of`).
 """
 
 # The inverse, in closed form. The sample normal in the lab is
@@ -30,6 +32,7 @@ from typing import Mapping
 import numpy as np
 
 from gonio.core import geometry
+from gonio.core.sides import REFLECTION_ONLY, Side
 
 from gonio.bench.settings import AXES
 
@@ -44,6 +47,7 @@ __all__ = [
     "angles_of",
     "reachable",
     "Reachability",
+    "detector_of",
 ]
 
 B = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -75,13 +79,21 @@ def rotation(stage_deg) -> np.ndarray:
     return _rz(s[..., 0]) @ _ry(s[..., 1]) @ B @ _rz(s[..., 2])
 
 
-def forward(stage_deg) -> tuple[np.ndarray, np.ndarray]:
+def detector_of(theta_o) -> np.ndarray:
+    """The detector arm's stop for each theta_o (deg): True (rear) where it lies on the
+    transmission side (theta_o > 90), False (front) otherwise."""
+    return np.asarray(theta_o, float) > 90.0
+
+
+def forward(stage_deg, rear=False) -> tuple[np.ndarray, np.ndarray]:
     """Stage angles -> local directions.
 
     Parameters
     ----------
     stage_deg : array_like (..., 4)
         ``(yaw, tilt, azimuth, lamp)``, degrees.
+    rear : bool or array of bool (...)
+        The camera on the rear stop (transmission): ``wo`` flips.
 
     Returns
     -------
@@ -95,6 +107,7 @@ def forward(stage_deg) -> tuple[np.ndarray, np.ndarray]:
     Rt = np.swapaxes(R, -1, -2)
     wi = (Rt @ lamp[..., None])[..., 0]
     wo = Rt @ _C
+    wo = np.where(np.asarray(rear, bool)[..., None], -wo, wo)
     return wi, wo
 
 
@@ -109,9 +122,9 @@ def directions(theta_deg, phi_deg) -> np.ndarray:
     return geometry.directions_deg(theta_deg, phi_deg)
 
 
-def forward_angles(stage_deg) -> np.ndarray:
+def forward_angles(stage_deg, rear=False) -> np.ndarray:
     """Stage angles (..., 4) -> ``(theta_i, phi_i, theta_o, phi_o)`` (..., 4) in degrees."""
-    wi, wo = forward(stage_deg)
+    wi, wo = forward(stage_deg, rear)
     ti, pi_ = angles_of(wi)
     to, po = angles_of(wo)
     return np.stack([ti, pi_, to, po], -1)
@@ -127,7 +140,11 @@ def inverse(theta_i, phi_i, theta_o, phi_o) -> np.ndarray:
 
     Closed form (module docstring); the lamp arm on the +Y side (L in (0, 180)). Geometries
     with ``wi = wo`` (L = 0: the lamp would sit on the camera) give NaN; `reachable` says why.
+    theta_o > 90 (transmission, the rear detector): the pose that shows the front stop -wo.
     """
+    rear = detector_of(theta_o)
+    theta_o = np.where(rear, 180.0 - np.asarray(theta_o, float), theta_o)
+    phi_o = np.where(rear, np.asarray(phi_o, float) + 180.0, phi_o)
     ti, pi_, to, po = np.broadcast_arrays(*(np.radians(np.asarray(a, float)) for a in (theta_i, phi_i, theta_o, phi_o)))
     wi = directions(np.degrees(ti), np.degrees(pi_))
     wo = directions(np.degrees(to), np.degrees(po))
@@ -154,6 +171,14 @@ def inverse(theta_i, phi_i, theta_o, phi_o) -> np.ndarray:
     out[..., 2] = _wrap(out[..., 2])
     bad = ~np.isfinite(out).all(-1) | (sinL < 1e-12)
     out[bad] = np.nan
+    through = rear & (sinL < 1e-12) & (cosL > 0.0)   # straight through: the lamp on the front axis, L = 0
+    if np.any(through):                               # one pose of the family: tilt 0, yaw theta_i
+        yaw0 = np.where(through, ti, 0.0)
+        P0 = _rz(yaw0) @ B
+        wi0 = np.swapaxes(P0, -1, -2) @ _C
+        az0 = np.degrees(np.arctan2(wi0[..., 1], wi0[..., 0]) - pi_)
+        alt = np.stack([np.degrees(yaw0), np.zeros_like(yaw0), _wrap(az0), np.zeros_like(yaw0)], -1)
+        out[through] = alt[through]
     return out
 
 
@@ -175,17 +200,21 @@ class Reachability:
     stage_deg: np.ndarray
 
 
-def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping, masks=None) -> Reachability:
+def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping, masks=None, sides=REFLECTION_ONLY) -> Reachability:
     """Check direction angles (degrees) against the instrument's geometry and limits.
 
-    Reasons, in the order checked: not finite; below the horizon or at grazing (theta outside
-    [0, 90)); lamp in front of the camera (L < ``lamp_block_deg``); an axis outside its limits
+    Reasons, in the order checked: not finite; below the horizon or at grazing (theta_i outside
+    [0, 90), theta_o outside ``sides``' ranges: [0, 90), and (90, 180] with transmission);
+    lamp in front of the camera (L <
+    ``lamp_block_deg``, or 180 - L on the rear stop); an axis outside its limits
     (after choosing the equivalent azimuth inside the limits); fewer than `MIN_ROI_PIXELS`
-    super-pixels of the sample or reference square in view. ``masks(stage, settings)`` gives
+    super-pixels of the sample or reference square in view (the sample's alone from the rear: the
+    open beam normalises transmission, not the reference). ``masks(stage, settings)`` gives
     the two regions (default :func:`roi_masks`; a plan's check uses the capture's own
     ``_markers.roi_masks_fast``, the same masks at a fraction of the cost on a large sensor).
     """
     masks = roi_masks if masks is None else masks
+    through = Side.TRANSMIT in tuple(sides)
     ti, pi_, to, po = (np.atleast_1d(np.asarray(a, float)) for a in (theta_i, phi_i, theta_o, phi_o))
     ti, pi_, to, po = np.broadcast_arrays(ti, pi_, to, po)
     stage = inverse(ti, pi_, to, po)
@@ -198,12 +227,15 @@ def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping, masks=None) -> 
         a = (ti[k], pi_[k], to[k], po[k])
         if not all(math.isfinite(x) for x in a):
             reasons[k] = "angle is not a finite number"
-        elif not (0.0 <= ti[k] < 90.0 and 0.0 <= to[k] < 90.0):
-            reasons[k] = "below the horizon or grazing (theta must be in [0, 90) deg)"
+        elif not (0.0 <= ti[k] < 90.0 and (0.0 <= to[k] < 90.0 or (through and 90.0 < to[k] <= 180.0))):
+            reasons[k] = ("below the horizon or grazing (theta must be in [0, 90) deg"
+                          + (", theta_o also (90, 180])" if through else ")"))
         else:
+            rear = bool(detector_of(to[k]))
             L = stage[k, 3]
-            if not math.isfinite(L) or L < block:
-                Ls = 0.0 if not math.isfinite(L) else L
+            Lc = 180.0 - L if rear else L           # the lamp's angle from the camera in use
+            if not math.isfinite(L) or Lc < block:
+                Ls = 0.0 if not math.isfinite(L) else Lc
                 reasons[k] = f"lamp in front of the camera (L = {Ls:.1f} deg < {block:g} deg)"
             else:
                 for j, name in enumerate(AXES):
@@ -215,14 +247,14 @@ def reachable(theta_i, phi_i, theta_o, phi_o, settings: Mapping, masks=None) -> 
                         reasons[k] = f"{name} = {v:.1f} deg outside its limits [{lo:g}, {hi:g}]"
                         break
                 if not reasons[k] and "camera" in settings and "holder" in settings:
-                    sm, rm = masks(stage[k], settings)
-                    if min(sm.sum(), rm.sum()) < MIN_ROI_PIXELS:
+                    sm, rm = masks(stage[k], settings)      # from the rear: the same regions mirrored
+                    if min(sm.sum(), MIN_ROI_PIXELS if rear else rm.sum()) < MIN_ROI_PIXELS:
                         reasons[k] = "the sample or reference square is out of the camera's view"
         ok[k] = reasons[k] == ""
     return Reachability(ok, reasons, stage)
 
 
-def image_to_local(stage_deg, rows, cols, settings: Mapping) -> np.ndarray:
+def image_to_local(stage_deg, rows, cols, settings: Mapping, rear: bool = False) -> np.ndarray:
     """Where camera pixels see the sample plane, in the sample's local frame.
 
     Parameters
@@ -238,20 +270,20 @@ def image_to_local(stage_deg, rows, cols, settings: Mapping) -> np.ndarray:
     -------
     ndarray (..., 2)
         Local (x, y) in holder units of the points the pixels see (orthographic camera along
-        -c, docs/interfaces.md section 3).
+        -c, docs/interfaces.md section 3; from the rear stop along +c, image right -Y).
     """
     cam = settings["camera"]
     W, H, s = cam["width"], cam["height"], cam["pixel_size"]
     rows, cols = np.broadcast_arrays(np.asarray(rows, float), np.asarray(cols, float))
     R = rotation(stage_deg)
     n = R[:, 2]
-    p = np.stack([np.zeros_like(rows), (cols - (W - 1) / 2) * s, -(rows - (H - 1) / 2) * s], -1)
+    p = np.stack([np.zeros_like(rows), (cols - (W - 1) / 2) * s * (-1.0 if rear else 1.0), -(rows - (H - 1) / 2) * s], -1)
     t = (p @ n) / n[0]
     q = p - t[..., None] * _C
     return (q @ R)[..., :2]
 
 
-def roi_masks(stage_deg, settings: Mapping, binning: int = 2, margin_px: float | None = None):
+def roi_masks(stage_deg, settings: Mapping, binning: int = 2, margin_px: float | None = None, rear: bool = False):
     """Pixels (on the ``binning`` x ``binning`` super-pixel grid) that lie wholly inside each square.
 
     A super-pixel belongs to a region when all four corners of its footprint on the sample
@@ -272,7 +304,7 @@ def roi_masks(stage_deg, settings: Mapping, binning: int = 2, margin_px: float |
     corners = []
     for dr in (-0.5, binning - 0.5):
         for dc in (-0.5, binning - 0.5):
-            corners.append(image_to_local(stage_deg, binning * i + dr, binning * j + dc, settings))
+            corners.append(image_to_local(stage_deg, binning * i + dr, binning * j + dc, settings, rear))
     xy = np.stack(corners, 0)                        # (4, h, w, 2)
     half = hold["sample_half"] - margin_px * s
     off = hold["offset"]

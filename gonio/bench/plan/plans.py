@@ -59,7 +59,7 @@ __all__ = [
 ]
 
 PRESET_DIR = Path(__file__).with_name("presets")
-PRESETS = ("quick", "standard", "dense", "glossy")
+PRESETS = ("quick", "standard", "dense", "glossy", "transmission", "both-sides")
 COLUMNS = ("theta_i", "phi_i", "theta_o", "phi_o")
 #: most points in one plan (the dense preset has about 1000): the ordering's N x N matrices
 #: stay under 128 MiB each, and a generator never runs without bound
@@ -416,7 +416,7 @@ def check_plan(plan: Plan, settings: Mapping) -> list[tuple[int, tuple[float, ..
     The regions in view are the capture's own (``_markers.roi_masks_fast``): with the exact
     corner test of ``kinematics.roi_masks`` a 6000 x 4000 camera's check took 2.1 s of CPU a
     point, 37 minutes for the ``standard`` plan before the first move."""
-    r = kinematics.reachable(*plan.angles.T, settings, masks=roi_masks_fast)
+    r = kinematics.reachable(*plan.angles.T, settings, masks=roi_masks_fast, sides=plan.sides)
     return [(k, tuple(float(v) for v in plan.angles[k]), r.reason[k]) for k in np.flatnonzero(~r.ok)]
 
 
