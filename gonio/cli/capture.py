@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 from gonio.bench.calibrate import with_errors_and_calibration  # noqa: F401  (the CLI's names)
@@ -18,8 +19,8 @@ from gonio.bench.session import simulated as _simulated
 from gonio.bench.session.simulated import capture_sim, reference_for, sim_instrument  # noqa: F401  (the CLI's names)
 from gonio.core.errors import GonioError
 
-__all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "sim_instrument", "with_errors_and_calibration",
-           "EXIT_STOPPED"]
+__all__ = ["capture_sim", "capture_cli", "resume_cli", "serve_cli", "serve_hints", "sim_instrument",
+           "with_errors_and_calibration", "EXIT_STOPPED"]
 
 EXIT_STOPPED = 3          # the capture stopped before the end; `gonio capture --resume DIR` finishes it
 
@@ -168,10 +169,29 @@ def serve_cli(*, sample, seed, settings, clock, faults):
             clock_spec = f"scaled:{float(clock)}"
         except ValueError:
             raise GonioError(f"--clock {clock!r}: use instant, realtime or a time scale factor such as 10") from None
-    print("gonio sim serve: Ctrl-C stops; connect with `gonio capture --port ZABER --meter-port METER --camera CAMERA`",
-          flush=True)
+    server = gonio.sim.serve(settings_d, sample=load_sample(sample), reference=reference_for(settings_d), seed=seed,
+                             clock=clock_spec, faults=schedule, block=False, echo=None)
     try:
-        gonio.sim.serve(settings_d, sample=load_sample(sample), reference=reference_for(settings_d), seed=seed,
-                        clock=clock_spec, faults=schedule, block=True)
+        for line in serve_hints(server.paths, server.devices):
+            print(line, flush=True)
+        while True:                          # serving in the server's thread until Ctrl-C or SIGTERM
+            time.sleep(0.5)
     except KeyboardInterrupt:
-        pass
+        print("gonio sim serve: stopped; the ports are closed", flush=True)
+    finally:
+        server.stop()
+
+
+def serve_hints(paths: dict, devices: dict) -> list[str]:
+    """What ``gonio sim serve`` prints: each port's stable path and device (``NAME PATH -> DEVICE``,
+    one line each), then the commands and client calls that reach them, with the real paths."""
+    z, m, c = (paths[k] for k in ("zaber", "meter", "camera"))
+    lines = [f"{name} {paths[name]} -> {devices[name]}" for name in paths]
+    return lines + [
+        "gonio sim serve: serving until Ctrl-C; the paths above stay valid while it runs. Connect with:",
+        f"  gonio devices --port {z} --meter-port {m} --camera {c}",
+        f"  gonio capture --port {z} --meter-port {m} --camera {c} --out my-session",
+        f"  PyVISA (pyvisa-py): pyvisa.ResourceManager('@py').open_resource('ASRL{devices['meter']}::INSTR', "
+        "read_termination='\\n', write_termination='\\n')",
+        f"  zaber-motion: Connection.open_serial_port('{devices['zaber']}')",
+    ]

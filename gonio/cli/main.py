@@ -498,6 +498,19 @@ def main(argv=None) -> int:
         from gonio.cli import estop
 
         return estop.main(argv[1:])
+    from gonio.bench.session.signals import SignalStop, startup_signals
+
+    with startup_signals():              # SIGTERM/SIGHUP while gonio starts: said, never silent (issue 40)
+        try:
+            return _main(argv)
+        except SignalStop as exc:
+            _say(f"gonio: {exc} before it finished; nothing is left half-written")
+            return 128 + exc.signum
+
+
+def _main(argv) -> int:
+    from gonio.bench.session.signals import SignalStop
+
     parser = build_parser()
     args = parser.parse_args(argv)
     from gonio.fitting import DataError
@@ -532,6 +545,8 @@ def main(argv=None) -> int:
     except FileNotFoundError as exc:
         sys.stderr.write(f"gonio: error: {exc.filename or exc}: no such file; check the path\n")
         return 2
+    except SignalStop:
+        raise
     except KeyboardInterrupt:
         _say("gonio: interrupted")
         return 130

@@ -1,4 +1,4 @@
-"""Ctrl-C, SIGTERM and SIGHUP during a capture.
+"""Ctrl-C, SIGTERM and SIGHUP during a capture, and SIGTERM or SIGHUP while gonio starts.
 
 Ctrl-C once asks the run to stop at the next point boundary; Ctrl-C twice, or one SIGTERM (a
 service manager stopping the bench) or SIGHUP (the terminal closing), stops it at the next safe
@@ -8,10 +8,11 @@ and exits resumably (status 3).
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 
-__all__ = ["StopNow", "Interrupts"]
+__all__ = ["StopNow", "Interrupts", "SignalStop", "startup_signals"]
 
 
 class StopNow(KeyboardInterrupt):
@@ -75,3 +76,40 @@ class Interrupts:
         for sig, old in self._old.items():
             signal.signal(sig, old)
         self._old = {}
+
+
+class SignalStop(KeyboardInterrupt):
+    """SIGTERM or SIGHUP before a command put in its own handlers (`startup_signals`): the
+    clean-up that a Ctrl-C gets runs (``except KeyboardInterrupt``, ``finally``), then gonio says
+    which signal stopped it and exits with 128 + its number."""
+
+    def __init__(self, signum: int):
+        self.signum = int(signum)
+        self.name = signal.Signals(signum).name
+        super().__init__(f"stopped by {self.name}")
+
+
+@contextlib.contextmanager
+def startup_signals():
+    """While gonio's main runs (put in first thing): SIGTERM and SIGHUP raise `SignalStop`.
+    Without this a signal during the start-up (seconds of imports, opening ports) ended the
+    process silently (issue 40). A command's own handlers (`Interrupts`, ``sim serve``) replace
+    these while it runs and put them back after; a signal in between raises at once, and what is
+    being written is written whole or not at all (every writer renames a finished temporary
+    file). The previous handlers are restored on exit (main() called in-process)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise SignalStop(signum)
+
+    old = {}
+    try:
+        for name in ("SIGTERM", "SIGHUP"):
+            if hasattr(signal, name):
+                old[name] = signal.signal(getattr(signal, name), stop)
+        yield
+    finally:
+        for name, handler in old.items():
+            signal.signal(getattr(signal, name), handler)

@@ -1,0 +1,32 @@
+"""SIGTERM while ``gonio`` starts (issue 40: the process ended silently): it says which signal
+stopped it, exits non-zero (128 + the signal's number, or 3 where the capture's own handlers
+had taken over) and leaves nothing half-written: no session, or (the capture had begun) a
+resumable one."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.mark.parametrize("delay", [0.8, 1.6])
+def test_sigterm_during_start_up_is_said_and_leaves_nothing(tmp_path, delay):
+    out = tmp_path / "session"
+    p = subprocess.Popen([sys.executable, "-m", "gonio.cli.main", "capture", "--sim", "--plan", "quick",
+                          "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)                              # in the imports, or opening the simulated ports
+    p.send_signal(signal.SIGTERM)
+    stdout, stderr = p.communicate(timeout=60)
+    assert p.returncode in (128 + signal.SIGTERM, 3), (p.returncode, stderr)
+    assert "SIGTERM" in stderr and "Traceback" not in stderr, stderr
+    assert len(stderr.strip().splitlines()) == 1, stderr
+    if (out / "session.toml").exists():            # the capture had started: a resumable stop, said so
+        assert p.returncode == 3 and f"--resume {out}" in stderr, stderr
+        return
+    left = [f for f in os.listdir(out) if f not in ("raw",)] if out.exists() else []
+    assert left == [], left                        # nothing half-written
