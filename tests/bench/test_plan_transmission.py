@@ -30,11 +30,12 @@ def test_rear_inverse_round_trip_against_the_simulator():
 
 def test_straight_through_has_a_pose():
     # wo = -wi: the lamp on the front axis (L = 0), a family of poses; the closed form picks tilt 0
-    stage = k.inverse([0.0, 30.0], [0.0, 40.0], [180.0, 150.0], [0.0, -140.0])
+    # (40, 0, 140, 180) leaves sin L = 1e-8 from rounding, not 0: the closed form is 0 / 0 there
+    stage = k.inverse([0.0, 30.0, 40.0], [0.0, 40.0, 0.0], [180.0, 150.0, 140.0], [0.0, -140.0, 180.0])
     assert np.isfinite(stage).all() and np.all(stage[:, 3] == 0.0)
     wi, wo = k.forward(stage, rear=True)
     np.testing.assert_allclose(wo, -wi, atol=1e-12)
-    np.testing.assert_allclose(wi[1], k.directions(30.0, 40.0), atol=1e-12)
+    np.testing.assert_allclose(wi[1:], k.directions([30.0, 40.0], [40.0, 0.0]), atol=1e-12)
 
 
 def test_rear_reachability():

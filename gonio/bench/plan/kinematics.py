@@ -171,7 +171,9 @@ def inverse(theta_i, phi_i, theta_o, phi_o) -> np.ndarray:
     out[..., 2] = _wrap(out[..., 2])
     bad = ~np.isfinite(out).all(-1) | (sinL < 1e-12)
     out[bad] = np.nan
-    through = rear & (sinL < 1e-12) & (cosL > 0.0)   # straight through: the lamp on the front axis, L = 0
+    # straight through: the lamp on the front axis, L = 0, where the closed form is 0 / 0 (at
+    # sin L = 1e-8 from rounding it put a 40 deg point at normal incidence)
+    through = rear & (sinL < 1e-6) & (cosL > 0.0)
     if np.any(through):                               # one pose of the family: tilt 0, yaw theta_i
         yaw0 = np.where(through, ti, 0.0)
         P0 = _rz(yaw0) @ B
