@@ -61,6 +61,10 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
     # inside the quiet hook, so that their failing close() prints nothing
     with _quiet_reader_cleanup():
         try:
+            from gonio.fitting.formats import astm
+
+            if astm.is_astm(path):          # by content: ASTM E1392 text, one channel per wavelength
+                return astm.astm_measurements(path)
             if suffix == ".binary":
                 from gonio.fitting import merl_samples
 
@@ -101,7 +105,7 @@ def open_budget(path: Path, meas):
     """The uncertainty budget of a dataset.nc (None for MERL/RGL files: from ``meas.attrs``)."""
     from gonio.fitting import load_budget
 
-    if path.suffix.lower() in (".binary", ".bsdf") or _is_zemax(path):
+    if path.suffix.lower() in (".binary", ".bsdf") or _is_zemax(path) or _is_astm(path):
         return None
     try:
         return load_budget(path, meas)
@@ -118,6 +122,12 @@ def open_fit_input(path: Path, seed: int = 0, colour_space: str = "srgb"):
     path = Path(path)
     meas = open_dataset(path, seed, colour_space)
     return FitInput(meas, open_budget(path, meas))
+
+
+def _is_astm(path: Path) -> bool:
+    from gonio.fitting.formats.astm import is_astm
+
+    return is_astm(path)
 
 
 def _is_zemax(path: Path) -> bool:
