@@ -1,0 +1,173 @@
+"""Transmission measurements normalised by the open beam (ASTM E2387), and the rear-stop capture.
+
+The camera on the detector arm's rear stop reads the radiance L_t the sample transmits; the
+open-beam frame (the sample out of the holder, the lamp straight behind its empty aperture,
+through an attenuator of transmittance a) reads the lamp itself, E a / Omega_beam: the beam's
+irradiance at the sample over its solid angle. As signal rates S = (DN - dark) / (t P), per
+unit of the lamp monitor's power P (lamp drift cancels),
+
+    f_t(wi, wo) = L_t / (E cos theta_i) = (S_t / S_open) a / (Omega_beam cos theta_i).
+
+`OpenBeam` is that calibration, recorded in the dataset's attributes as the reflectance
+reference's certificate is; a and Omega_beam come from ``[transmission]`` (the attenuator's
+and the beam's certificates, their relative standard uncertainties a scale common to every
+transmitted point). `capture_rear` captures a plan's transmitted points on a simulated
+instrument (darks, warm-up, open beam, points) until the bench session drives the rear stop.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from gonio.core.channels import CHANNELS
+from gonio.core.errors import GonioError
+from gonio.bench.plan import kinematics
+
+__all__ = ["OpenBeam", "transmission_settings", "open_beam_rate", "btdf", "capture_rear"]
+
+_DEFAULTS = {"open_beam_attenuation": 1e-3, "beam_solid_angle_sr": 1e-3, "rel_std": 0.01}
+
+
+def transmission_settings(settings: Mapping) -> dict:
+    """``[transmission]``: open_beam_attenuation (a), beam_solid_angle_sr (Omega_beam) and
+    rel_std (their combined relative standard uncertainty); GonioError naming the key otherwise."""
+    tr = {**_DEFAULTS, **dict(settings.get("transmission") or {})}
+    for key in _DEFAULTS:
+        v = tr[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0 \
+                or (key != "beam_solid_angle_sr" and key != "rel_std" and v > 1):
+            raise GonioError(f"[transmission] {key} must be a finite number > 0 (<= 1 for the attenuation); "
+                             "fix the settings")
+    if tr["beam_solid_angle_sr"] > 2 * math.pi:
+        raise GonioError("[transmission] beam_solid_angle_sr must be at most 2 pi sr; fix the settings")
+    return tr
+
+
+@dataclass(frozen=True)
+class OpenBeam:
+    """The open-beam calibration: the lamp's signal rate through the aperture and what scales it."""
+
+    rate: np.ndarray            # (C,) DN per second per W of monitor power
+    rate_u: np.ndarray          # (C,) its standard error
+    attenuation: float
+    beam_sr: float
+    rel_std: float              # a and Omega_beam's combined relative standard uncertainty (type B)
+
+    @property
+    def radiance_scale(self) -> float:
+        """a / Omega_beam: the open beam's radiance per unit irradiance at the sample, sr^-1."""
+        return self.attenuation / self.beam_sr
+
+    def to_attrs(self) -> dict:
+        """The dataset attributes (NetCDF-friendly: numbers and lists of numbers)."""
+        return {"open_beam_rate": [float(v) for v in self.rate], "open_beam_rate_u": [float(v) for v in self.rate_u],
+                "open_beam_attenuation": self.attenuation, "beam_solid_angle_sr": self.beam_sr,
+                "open_beam_rel_std": self.rel_std, "transmission_normalisation": "open beam (ASTM E2387)"}
+
+
+def open_beam_rate(signal_dn: np.ndarray, exposure_s: float, power_w: float, settings: Mapping,
+                   power_rel_u: float = 0.0) -> OpenBeam:
+    """`OpenBeam` from the aperture's dark-subtracted pixel values (n, C) at one exposure and the
+    monitor's power (W) with its relative standard error."""
+    x = np.asarray(signal_dn, dtype=float)
+    if x.ndim != 2 or x.shape[0] < 2 or not np.all(np.isfinite(x)):
+        raise GonioError("open beam: need at least 2 finite aperture pixels per channel")
+    if not (exposure_s > 0 and power_w > 0 and math.isfinite(exposure_s) and math.isfinite(power_w)):
+        raise GonioError("open beam: the exposure and the monitor power must be finite and > 0 (is the lamp on?)")
+    tr = transmission_settings(settings)
+    k = 1.0 / (exposure_s * power_w)
+    mean = x.mean(0)
+    if np.any(mean <= 0):
+        raise GonioError("open beam: no signal through the aperture; check the lamp and the beam's path")
+    u = np.hypot(x.std(0, ddof=1) / math.sqrt(x.shape[0]), float(power_rel_u) * mean)
+    return OpenBeam(mean * k, u * k, float(tr["open_beam_attenuation"]),
+                    float(tr["beam_solid_angle_sr"]), float(tr["rel_std"]))
+
+
+def btdf(rate, rate_u, ob: OpenBeam, theta_i_deg) -> tuple[np.ndarray, np.ndarray]:
+    """f_t and its standard uncertainty from the sample's signal rate (N, C) (module docstring);
+    the open beam's own standard error goes in, its certificate (``rel_std``) does not: a type-B
+    scale the budget carries."""
+    rate, rate_u = np.atleast_2d(rate), np.atleast_2d(rate_u)
+    c = np.cos(np.radians(np.asarray(theta_i_deg, float)))[:, None]
+    f = rate / ob.rate * ob.radiance_scale / c
+    u = np.abs(f) * np.hypot(rate_u / np.where(rate != 0, np.abs(rate), 1.0), ob.rate_u / ob.rate)
+    u = np.where(rate != 0, u, rate_u / ob.rate * ob.radiance_scale / c)
+    return f, u
+
+
+def _channels(raw: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Super-pixel values (n, 3) of an RGGB mosaic inside ``mask`` (the 2 x 2 binned grid)."""
+    h, w = mask.shape
+    q = raw[: 2 * h, : 2 * w].reshape(h, 2, w, 2)
+    rgb = np.stack([q[:, 0, :, 0], 0.5 * (q[:, 0, :, 1] + q[:, 1, :, 0]), q[:, 1, :, 1]], -1)
+    return rgb[mask]
+
+
+def capture_rear(inst, plan, settings: Mapping, *, exposure_max_s: float = 0.02, rungs: int = 8,
+                 warm_up_s: float = 1800.0) -> dict:
+    """Capture ``plan``'s transmitted points on a simulated instrument (``gonio.sim.Instrument``).
+
+    Darks at each rung of the exposure ladder (``exposure_max_s / 4**k``), the lamp on and
+    settled for ``warm_up_s``, the open-beam frame, then each point on the rear stop at the
+    longest rung whose brightest region pixel stays below 70 % of full scale; every frame's
+    monitor reading divides its signal. Returns wi, wo, brdf, brdf_std (N, C), use, the
+    `OpenBeam` and the exposures.
+    """
+    import tifffile
+
+    through = kinematics.detector_of(plan.angles[:, 2])
+    if not through.any():
+        raise GonioError(f"plan {plan.name!r} has no transmitted point (theta_o > 90); use a transmission plan")
+    a = plan.angles[through]
+    stages = kinematics.inverse(*a.T)
+    ladder = [exposure_max_s / 4.0 ** k for k in range(rungs)]
+    white = float(inst.sensor.white)
+
+    def frame(t, source="scene"):
+        raw = tifffile.imread(io.BytesIO(inst.capture(t, source))).astype(float)
+        return raw
+
+    def monitor():                                        # 8 readings: the mean and its relative standard error
+        r = np.array([inst.meter.read(inst.lamp.power(inst.clock.now())) for _ in range(8)]) / inst.meter.splitter
+        return float(r.mean()), float(r.std(ddof=1) / math.sqrt(len(r)) / r.mean())
+
+    inst.detector = "rear"
+    inst.set_pose(yaw=0.0, tilt=0.0, azimuth=0.0, lamp=0.0)
+    inst.lamp.switch(inst.clock.now(), False)
+    darks = {t: frame(t) for t in ladder}
+    inst.lamp.switch(inst.clock.now(), True)
+    inst.clock.advance(warm_up_s)
+    aperture = kinematics.roi_masks(np.zeros(4), settings, rear=True)[0]
+    for t in ladder:                                      # the open beam, at the longest safe rung
+        p, p_rel = monitor()
+        raw = frame(t, "open_beam") - darks[t]
+        x = _channels(raw, aperture)
+        if x.max() < 0.7 * (white - inst.sensor.black):
+            break
+    ob = open_beam_rate(x, t, p, settings, p_rel)
+    rate = np.zeros((len(a), CHANNELS))
+    rate_u = np.zeros_like(rate)
+    used = []
+    for k, st in enumerate(stages):
+        inst.set_pose(**dict(zip(kinematics.AXES, (float(v) for v in st))))
+        mask = kinematics.roi_masks(st, settings, rear=True)[0]
+        for t in ladder:
+            p, p_rel = monitor()
+            x = _channels(frame(t) - darks[t], mask)
+            if x.max() < 0.7 * (white - inst.sensor.black):
+                break
+        used.append(t)
+        rate[k] = x.mean(0) / (t * p)
+        rate_u[k] = np.hypot(x.std(0, ddof=1) / math.sqrt(x.shape[0]), p_rel * x.mean(0)) / (t * p)
+    inst.detector = "front"
+    f, u = btdf(rate, rate_u, ob, a[:, 0])
+    floor = 1e-6 * np.max(np.abs(f))
+    return {"wi": kinematics.directions(a[:, 0], a[:, 1]), "wo": kinematics.directions(a[:, 2], a[:, 3]),
+            "brdf": f, "brdf_std": np.maximum(u, floor), "use": np.ones_like(f, bool), "open_beam": ob,
+            "exposure_s": np.array(used), "angles": a}
