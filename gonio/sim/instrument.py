@@ -151,6 +151,7 @@ class Instrument:
             setattr(self, attr, cls(self))
             self.ports[name] = PortEndpoint(self, name, getattr(self, attr), eol, split_cr=split_cr)
         self._scene: HolderScene | None = None
+        self.detector = "front"           # the detector arm's stop: "front" (reflection) or "rear" (transmission)
         self._radiance = OrderedDict()
         self._frame_key = None
         self._frame_count = 0
@@ -228,11 +229,11 @@ class Instrument:
         pose = self.pose_microsteps() if pose is None else pose
         ang = {n: p * 2 * math.pi / a.cycle_dist for n, p, a in zip(self.axis_names, pose, self.axes)}
         if not self._errors_on:
-            return forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"])
+            return forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"], self.detector)
         st = self.error_state
         for n, a in zip(self.axis_names, self.axes):      # true = commanded + the stage's errors
             ang[n] += math.radians(st.axis_error_deg(_AXIS_NAMES.index(n), a.moves, a.last_dir))
-        g = forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"])
+        g = forward(ang["yaw"], ang["tilt"], ang["azimuth"], ang["lamp"], self.detector)
         H = st.holder
         if H is not None:                                  # the holder's true frame
             g = {k: (v @ H if k == "R" else H.T @ v) for k, v in g.items()}
@@ -277,7 +278,8 @@ class Instrument:
                 height=int(cam["height"]), pixel_size=float(cam["pixel_size"]),
                 sample_half=float(hold["sample_half"]), offset=float(hold["offset"]),
                 holder_reflectance=float(hold["holder_reflectance"]), spp=self.spp,
-                markers=hold.get("markers"), holder_pose=hold.get("sim_pose"))   # sim_pose: the truth
+                markers=hold.get("markers"), holder_pose=hold.get("sim_pose"),   # sim_pose: the truth
+                sample_truth=self.sample)
         return self._scene
 
     def radiance(self, pose: tuple | None = None) -> np.ndarray:
@@ -288,10 +290,12 @@ class Instrument:
         """
         pose = self.pose_microsteps() if pose is None else tuple(pose)
         key = pose if not self._errors_on else (pose, *((a.moves, a.last_dir) for a in self.axes))
+        key = key if self.detector == "front" else (key, self.detector)
         img = self._radiance.get(key)
         if img is None:
             g = self.geometry(pose)
             lamp_deg = abs((math.degrees(self.geometry_angle(pose, "lamp")) + 180.0) % 360.0 - 180.0)
+            lamp_deg = lamp_deg if self.detector == "front" else 180.0 - lamp_deg
             if lamp_deg < float(self.settings["axes"].get("lamp_block_deg", 0.0)):
                 # the lamp head stands between the sample and the camera: nothing to see
                 img = np.zeros((self.sensor.height, self.sensor.width, CHANNELS))
@@ -336,12 +340,14 @@ class Instrument:
         photo-response non-uniformity calibration. ``source="chart"`` images the ColorChecker
         in the holder's chart slot under the lamp at normal incidence (gonio/sim/physics/colour.chart_radiance:
         spectral, the camera's own response to the chart), for the colour calibration.
+        ``source="open_beam"`` images the lamp through the empty aperture from the rear stop
+        (``[transmission]`` open_beam_attenuation / beam_solid_angle_sr), ASTM E2387.
 
         The noise comes from ``default_rng([seed, 0xCA3E, *pose + 2**31, exposure ns, lamp on,
         flux ppm, lamp dead, flat, frame count at this pose])``: the same pose, exposure, lamp
         state and frame order give the same noise in a new process.
         """
-        if source not in ("scene", "flat", "chart"):
+        if source not in ("scene", "flat", "chart", "open_beam"):
             raise ValueError(f"unknown camera source {source!r}")
         flat = source == "flat"
         with self.lock:
@@ -355,13 +361,17 @@ class Instrument:
             self._frame_count += 1
             exposure_ns = int(round(seconds * 1e9))
             key = [self.seed & 0xFFFFFFFF, 0xCA3E, *[(p + 2**31) & 0xFFFFFFFF for p in pose],
-                   exposure_ns, *state, frame] + ([0xC4A7] if source == "chart" else [])
+                   exposure_ns, *state, frame] + ([0xC4A7] if source == "chart" else []) + ([0x0BE7] if source == "open_beam" else [])
             rng = np.random.default_rng(key)
             power = self.FLAT_POWER if flat else lamp.power(t0 + 0.5 * seconds)
             if flat:
                 rad = np.full((self.sensor.height, self.sensor.width, CHANNELS), self.FLAT_RADIANCE)
             elif source == "chart":
                 rad = chart_radiance(self.sensor.colour, self.sensor.height, self.sensor.width)
+            elif source == "open_beam":       # the sample out, the lamp behind the aperture (ASTM E2387)
+                tr, g = self.settings.get("transmission") or {}, self.geometry(pose)
+                L = float(tr.get("open_beam_attenuation", 1e-3)) / float(tr.get("beam_solid_angle_sr", 1e-3))
+                rad = self.scene.open_beam(L, g["wo"], g["up"]) if power > 0.0 else 0.0 * self.scene.aperture(g["wo"], g["up"])
             elif power > 0.0:
                 rad = self.radiance(pose)
             else:
