@@ -148,12 +148,21 @@ def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_jou
     return _print_summary(summary)
 
 
-def serve_cli(*, sample, seed, settings, clock, faults):
+def serve_cli(*, sample, seed, settings, clock, faults, camera_size=None):
     import gonio.sim
 
     from gonio.bench.samples import load_sample
+    from gonio.sim.physics.sensor import camera_table
 
     settings_d = _load_settings(settings)
+    spp = {}
+    if camera_size:                          # a real camera's sensor (e.g. 24mp), the same field of view
+        try:
+            settings_d = {**settings_d, "camera": camera_table(camera_size, settings_d["camera"])}
+        except ValueError as exc:
+            raise GonioError(f"--camera-size: {exc}") from None
+        if settings_d["camera"]["width"] * settings_d["camera"]["height"] > 1_000_000:
+            spp = {"spp": 1}                 # edge anti-aliasing is moot at millions of pixels
     schedule = None
     if faults:
         path = Path(faults)
@@ -170,7 +179,7 @@ def serve_cli(*, sample, seed, settings, clock, faults):
         except ValueError:
             raise GonioError(f"--clock {clock!r}: use instant, realtime or a time scale factor such as 10") from None
     server = gonio.sim.serve(settings_d, sample=load_sample(sample), reference=reference_for(settings_d), seed=seed,
-                             clock=clock_spec, faults=schedule, block=False, echo=None)
+                             clock=clock_spec, faults=schedule, block=False, echo=None, **spp)
     try:
         for line in serve_hints(server.paths, server.devices):
             print(line, flush=True)

@@ -245,7 +245,7 @@ def _cmd_sim_serve(args):
     previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         session_runner.serve_cli(sample=args.sample, seed=args.seed, settings=args.settings, clock=args.clock,
-                                 faults=args.faults)
+                                 faults=args.faults, camera_size=args.camera_size)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -465,6 +465,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--settings", help="instrument settings TOML")
     serve.add_argument("--clock", default="realtime", help="instant, realtime, or a time scale factor such as 10")
     serve.add_argument("--faults", help="fault schedule TOML")
+    serve.add_argument("--camera-size", metavar="SIZE",
+                       help="the simulated camera's sensor: 24mp (6000x4000, 14-bit RGGB, a real camera's) or "
+                            "WIDTHxHEIGHT; default the settings' [camera] (64x48 for tests)")
     serve.set_defaults(func=_cmd_sim_serve)
 
     es = sub.add_parser("estop", help="send the emergency stop to every Zaber device at once")

@@ -248,8 +248,8 @@ def register(sub, bench_sub=None) -> None:
         bc = bench_sub.add_parser("capture", help="capture pipeline: per-point wall time against the motion + "
                                                   "exposure lower bound, default and full-size camera")
         bc.add_argument("--points", type=int, default=3, help="plan points per camera (1..20, default 3)")
-        bc.add_argument("--full-size", default="6000x4000", metavar="WxH",
-                        help="the full-size sensor (default 6000x4000, 14-bit RGGB)")
+        bc.add_argument("--full-size", default="24mp", metavar="SIZE",
+                        help="the real camera's sensor: 24mp (6000x4000, 14-bit RGGB; the default) or WIDTHxHEIGHT")
         bc.add_argument("--skip-full", action="store_true", help="the default camera only")
         bc.set_defaults(func=_cmd_bench_capture)
 

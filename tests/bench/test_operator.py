@@ -353,6 +353,8 @@ def test_bench_capture_prints_the_table_against_its_bound(capsys):
     assert motion > 0 and expose > 0 and bound == pytest.approx(motion + expose, abs=2e-3)
     col = lines[head].split().index("proj/bound")
     assert float(row[col].rstrip("x")) >= 1.0        # bound + host time is never below the bound
+    verdict = next(line for line in lines if line.startswith("64x48: "))
+    assert "against the motion + exposure bound" in verdict and "target <= 1.1x" in verdict and "MiB" in verdict
     for argv, needle in ((["--points", "0"], "give 1 to 20 points"), (["--full-size", "6000by4000"], "WIDTHxHEIGHT"),
                          (["--full-size", "7x7"], "WIDTHxHEIGHT")):
         assert_refused(run(["bench", "capture", *argv], capsys), needle)

@@ -38,9 +38,37 @@ from gonio.core.atomic import atomic_open
 
 from gonio.sim.physics.colour import DEFAULT_CAMERA, CameraColour, camera_colour
 
-__all__ = ["SensorModel", "write_dng", "encode_dng"]
+__all__ = ["SensorModel", "write_dng", "encode_dng", "SENSOR_SIZES", "sensor_size", "camera_table"]
 
 CFA = "RGGB"
+#: The sizes the simulated camera offers, by name: ``(width, height, bits)``, all RGGB. ``ci`` is
+#: the small default the test suite runs fast on; ``24mp`` a real camera's sensor: 6000 x 4000
+#: 14-bit, the 24-megapixel APS-C format of current mirrorless and DSLR bodies (issue 40).
+SENSOR_SIZES = {"ci": (64, 48, 14), "24mp": (6000, 4000, 14)}
+
+
+def sensor_size(spec: str) -> tuple[int, int, int]:
+    """``(width, height, bits)`` of a name of `SENSOR_SIZES` or of ``WIDTHxHEIGHT`` (14-bit); even
+    sides from 16 to 12000 pixels (a whole number of 2 x 2 RGGB tiles). ValueError otherwise."""
+    text = str(spec).strip().lower()
+    if text in SENSOR_SIZES:
+        return SENSOR_SIZES[text]
+    try:
+        w, h = (int(v) for v in text.split("x"))
+    except ValueError:
+        w = h = 0
+    if not (16 <= w <= 12000 and 16 <= h <= 12000 and w % 2 == 0 and h % 2 == 0):
+        raise ValueError(f"camera size {str(spec)[:40]!r}: give {', '.join(SENSOR_SIZES)} or WIDTHxHEIGHT, even, "
+                         "16 to 12000 pixels (e.g. 6000x4000)")
+    return w, h, 14
+
+
+def camera_table(spec: str, camera: dict) -> dict:
+    """The settings' ``[camera]`` table for the size ``spec`` (`sensor_size`), keeping ``camera``'s
+    field of view: the pixel size (holder units per pixel) scales with the width."""
+    w, h, bits = sensor_size(spec)
+    px = float(camera["pixel_size"]) * float(camera["width"]) / w
+    return {**camera, "width": w, "height": h, "bits": bits, "pixel_size": px}
 _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 
 
@@ -94,7 +122,6 @@ class SensorModel:
     prnu_map: np.ndarray = field(init=False, repr=False)
     dsnu_map: np.ndarray = field(init=False, repr=False)
     colour: CameraColour = field(init=False, repr=False)
-    _weights: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
         if self.bits not in (12, 14, 16):
@@ -103,7 +130,6 @@ class SensorModel:
             # half the well for f_r = 1/pi, cos(theta_i) = 1, P = p_ref, t = 10 ms
             self.sensitivity = 0.5 * self.full_well / ((1 / math.pi) * self.p_ref * 0.01)
         self.colour = camera_colour(self.camera)
-        self._weights = self.colour.cam_from_srgb[self.channel_map]     # (H, W, 3): each pixel's row of N A
         rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, 0x5E45])
         shape = (self.height, self.width)
         self.prnu_map = 1.0 + self.prnu * rng.standard_normal(shape)
@@ -131,8 +157,15 @@ class SensorModel:
 
     def mosaic(self, radiance_rgb: np.ndarray) -> np.ndarray:
         """Sample an (H, W, 3) linear-sRGB radiance image through the camera's spectral response
-        and the RGGB mosaic -> (H, W) raw camera RGB."""
-        return np.einsum("hwj,hwj->hw", radiance_rgb, self._weights)
+        and the RGGB mosaic -> (H, W) raw camera RGB.
+
+        One position of the 2 x 2 tile at a time, with that channel's row of N A: no (H, W, 3)
+        weight map (576 MB at 6000 x 4000); the same values as the per-pixel weights' sum."""
+        out = np.empty(radiance_rgb.shape[:2])
+        rows = self.colour.cam_from_srgb
+        for dr, dc, k in ((0, 0, 0), (0, 1, 1), (1, 0, 1), (1, 1, 2)):
+            out[dr::2, dc::2] = np.einsum("hwj,j->hw", radiance_rgb[dr::2, dc::2], rows[k])
+        return out
 
     def mean_electrons(self, radiance_rgb: np.ndarray, power: float, exposure: float,
                        camera_rgb: bool = False) -> np.ndarray:
@@ -144,8 +177,10 @@ class SensorModel:
         else:
             mosaic = self.mosaic(radiance_rgb)
         signal = mosaic * (power * exposure * self.sensitivity)
-        signal = np.maximum(signal, 0.0) * self.prnu_map
-        return signal + self.dark_current * exposure
+        np.maximum(signal, 0.0, out=signal)          # in place: no frame-sized temporaries (same values)
+        signal *= self.prnu_map
+        signal += self.dark_current * exposure
+        return signal
 
     def expose(self, radiance_rgb: np.ndarray, power: float, exposure: float,
                rng: np.random.Generator, camera_rgb: bool = False) -> np.ndarray:
@@ -171,9 +206,19 @@ class SensorModel:
         """
         mu = self.mean_electrons(radiance_rgb, power, exposure, camera_rgb)
         e = rng.poisson(mu).astype(np.float64)
-        e += self.dsnu_map + rng.normal(0.0, self.read_noise, mu.shape)
-        dn = np.rint(self.black + e / self.gain)
-        return np.clip(dn, 0, self.white).astype(np.uint16)
+        del mu
+        # in place, the same draws and values as dsnu + normal(0, read_noise), black + e / gain:
+        # a 6000 x 4000 frame made seven 192 MB temporaries
+        read = rng.standard_normal(e.shape)
+        read *= self.read_noise
+        read += self.dsnu_map
+        e += read
+        del read
+        e /= self.gain
+        e += self.black
+        np.rint(e, out=e)
+        np.clip(e, 0, self.white, out=e)
+        return e.astype(np.uint16)
 
 
 def _rationals(values, signed: bool) -> tuple:
