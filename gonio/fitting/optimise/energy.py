@@ -1,13 +1,16 @@
 """The energy constraint: albedo(wo_k) <= 1 (each channel, fixed outgoing directions) as a
 nonlinear inequality for nlopt's SLSQP (Kraft 1988), which polishes the full parameter
 vector when the unconstrained optimum violates it; its objective is divided by its starting
-value (SLSQP throws on objectives of order 1e5 with nlopt 2.11)."""
+value (SLSQP throws on objectives of order 1e5 with nlopt 2.11). For a model that transmits
+(``Structure.sides`` holds transmission) the constraint is R + T <= 1: the light from each
+fixed direction, integrated over the outgoing directions on both faces."""
 
 from __future__ import annotations
 
 import nlopt
 import numpy as np
 
+from gonio.core.sides import Side
 from gonio.models import fast
 
 from gonio.fitting.likelihood import loss as _loss
@@ -131,18 +134,24 @@ class _AlbedoQuadrature:
     stay cheap. The final albedo check uses ``model.albedo``."""
 
     def __init__(self, problem, wo, n_mu=64, n_phi=96):
+        through = Side.TRANSMIT in tuple(problem.model.structure.sides)
         x, w = np.polynomial.legendre.leggauss(n_mu)
         mu, w_mu = 0.5 * (x + 1.0), 0.5 * w
+        if through:                      # both faces: mu in (-1, 1), each half with its own nodes
+            mu, w_mu = np.concatenate([mu, -mu]), np.concatenate([w_mu, w_mu])
         phi = (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
         M, PHI = np.meshgrid(mu, phi, indexing="ij")
         s = np.sqrt(1.0 - M ** 2)
-        wi = np.stack([s * np.cos(PHI), s * np.sin(PHI), M], axis=-1).reshape(-1, 3)
-        self.weight = (w_mu[:, None] * M * (2.0 * np.pi / n_phi)).reshape(-1)
+        free = np.stack([s * np.cos(PHI), s * np.sin(PHI), M], axis=-1).reshape(-1, 3)
+        self.weight = (w_mu[:, None] * np.abs(M) * (2.0 * np.pi / n_phi)).reshape(-1)
         self.k = wo.shape[0]
-        self.n = wi.shape[0]
+        self.n = free.shape[0]
         self.space = problem.space
-        self.eval = Evaluator(problem.model, np.tile(wi, (self.k, 1)), np.repeat(wo, self.n, axis=0),
-                              problem.meas.n_channels, use_fast=problem.eval.fast)
+        fixed = np.repeat(wo, self.n, axis=0)
+        # a reflector: albedo(wo_k) over wi (reciprocity makes it the reflectance); a transmitter
+        # (not reciprocal across the interface): R + T of light from wo_k, over wo on both faces
+        wi_, wo_ = (fixed, np.tile(free, (self.k, 1))) if through else (np.tile(free, (self.k, 1)), fixed)
+        self.eval = Evaluator(problem.model, wi_, wo_, problem.meas.n_channels, use_fast=problem.eval.fast)
 
     def __call__(self, x):
         f = self.eval(self.space.to_params(x)).reshape(self.k, self.n, -1)

@@ -13,11 +13,14 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 import gonio.models as gm
+from gonio.core.sides import Side, side_of
 
 from gonio.fitting.optimise.mle import fit
 
-__all__ = ["CANDIDATES", "Ranked", "option_candidates", "select"]
+__all__ = ["CANDIDATES", "Ranked", "option_candidates", "select", "candidates_for"]
 
 #: (name, options) tried by ``--model auto``, simplest first (fewest parameters): every
 #: registered model that does not declare ``auto_candidate = False`` (the model declares,
@@ -41,6 +44,30 @@ def _candidates(names=None):
 
 
 CANDIDATES = _candidates()
+
+
+def _transmission_candidates():
+    """Every registered model that scatters through the surface (``Structure.sides`` holds
+    transmission) with a finite f (``delta`` models, the smooth dielectrics, are left out),
+    one per declared distribution: roughdielectric beckmann and ggx, difftrans."""
+    names = []
+    for name in gm.names():
+        try:
+            model = gm.get(name)
+        except (KeyError, ValueError):
+            continue
+        if Side.TRANSMIT in tuple(model.structure.sides) and not getattr(type(model), "delta", False):
+            names.append(name)
+    return _candidates(names) if names else ()
+
+
+def candidates_for(meas):
+    """The ``--model auto`` candidates for ``meas``: `CANDIDATES` for a BRDF; the transmission
+    models when any used point lies on the transmitted side (a reflection model predicts 0
+    there, so it cannot explain those points and is not offered)."""
+    used = np.asarray(meas.use).any(axis=1)
+    side = side_of(np.asarray(meas.wi)[used, 2], np.asarray(meas.wo)[used, 2])
+    return _transmission_candidates() if np.any(side == 1) else CANDIDATES
 
 
 def option_candidates(name, options=None):
@@ -100,7 +127,7 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
         Sorted by BIC, the chosen one flagged.
     """
     rows = []
-    for name, options in candidates or CANDIDATES:
+    for name, options in candidates or candidates_for(meas):
         try:
             model = gm.get(name, **options)
         except (KeyError, ValueError):

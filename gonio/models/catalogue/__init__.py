@@ -6,3 +6,4 @@ kernel and its Mitsuba 3 twin.
 from gonio.models.catalogue import roughdielectric as _roughdielectric  # noqa: F401,E402
 from gonio.models.catalogue import dielectric as _dielectric  # noqa: F401,E402
 from gonio.models.catalogue import thindielectric as _thindielectric  # noqa: F401,E402
+from gonio.models.catalogue import difftrans as _difftrans  # noqa: F401,E402
