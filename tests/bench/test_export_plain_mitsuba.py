@@ -98,6 +98,8 @@ def test_every_registered_model_exports_xml_a_plain_mitsuba_loads_and_says_how_c
     np.save(tmp_path / "dirs.npy", np.stack([wi, wo]))
     cases = {}
     for name in gm.names():
+        if name == "difftrans":          # issue 37: Mitsuba 3.9 has no diffuse transmitter, native or near
+            continue
         model = gm.get(name)
         p = {}
         for par in model.parameters:     # inside the bounds, away from the defaults
