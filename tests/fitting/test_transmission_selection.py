@@ -87,3 +87,26 @@ def test_auto_considers_transmission_models():
     best, _ = select(diffuser, rng=np.random.default_rng(0))
     assert best.model.name == "difftrans"
     np.testing.assert_allclose(best.params["transmittance"], TAU["transmittance"], rtol=0.01)
+
+
+def test_budget_carries_each_sides_certificate():
+    from gonio.fitting.uncertainty.budget import budget_from_attrs
+
+    a = load_plan("both-sides").angles
+    wi, wo = directions_deg(a[:, 0], a[:, 1]), directions_deg(a[:, 2], a[:, 3])
+    f = gm.get("roughdielectric", distribution="ggx").eval(wi, wo, {"alpha": 0.3, "int_ior": 1.5})
+    through = a[:, 2] > 90
+    meas = Measurements(wi, wo, f, 0.01 * f + 1e-4, np.ones(f.shape, bool),
+                        attrs={"scale_rel_std": 0.005, "open_beam_rel_std": 0.02})
+    b = {c.name: c for c in budget_from_attrs(meas).components}
+    assert set(b) == {"statistical", "reference_certificate", "open_beam_certificate"}
+    ref, beam = b["reference_certificate"].value, b["open_beam_certificate"].value
+    np.testing.assert_allclose(ref[~through], 0.005 * f[~through])
+    np.testing.assert_allclose(beam[through], 0.02 * f[through])
+    assert np.all(ref[through] == 0.0) and np.all(beam[~through] == 0.0)
+    assert b["open_beam_certificate"].gum_type == "B" and b["open_beam_certificate"].correlation == "full"
+    # a BRDF keeps its one certificate line over every point
+    refl = Measurements(wi[~through], wo[~through], f[~through], 0.01 * f[~through] + 1e-4,
+                        np.ones(f[~through].shape, bool), attrs={"scale_rel_std": 0.005, "open_beam_rel_std": 0.02})
+    b = budget_from_attrs(refl)
+    assert [c.name for c in b.components][1:] == ["reference_certificate"] and b.source == "scale_rel_std attribute"

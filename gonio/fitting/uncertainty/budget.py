@@ -34,6 +34,7 @@ import dataclasses
 import numpy as np
 
 from gonio.core.geometry import angle_tangents, angles as _angles_of, directions as _directions, unit_vectors
+from gonio.core.sides import side_of
 
 from gonio.fitting.likelihood import loss as _loss
 from gonio.fitting.measurements import _SRGB_TO_XYZ, colour_transform
@@ -131,13 +132,26 @@ class Budget:
 
 
 def budget_from_attrs(meas) -> Budget:
-    """Type A = ``brdf_std``; type B = the certificate, brdf x ``scale_rel_std``, fully correlated."""
+    """Type A = ``brdf_std``; type B = the certificate, brdf x ``scale_rel_std``, fully correlated.
+
+    Both sides (:mod:`gonio.core.sides`): the reflectance reference's certificate scales the
+    reflected points, the open beam's (``open_beam_rel_std``: its attenuator and beam solid
+    angle, gonio.bench.measure.transmission) the transmitted ones; two independent lines, each
+    fully correlated over its own side."""
     comps = [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none", "brdf_std (the fit's weights)")]
+    through = (side_of(meas.wi[:, 2], meas.wo[:, 2]) == 1)[:, None]
     rel = float(meas.attrs.get("scale_rel_std", 0.0) or 0.0)
-    if rel > 0:
-        comps.append(BudgetComponent("reference_certificate", meas.brdf * rel, "B", "full",
+    if rel > 0 and not through.all():
+        comps.append(BudgetComponent("reference_certificate", np.where(through, 0.0, meas.brdf * rel), "B", "full",
                                      "scale_rel_std (reference certificate)"))
-    return Budget(comps, "scale_rel_std attribute" if rel > 0 else "brdf_std only")
+    rel_t = float(meas.attrs.get("open_beam_rel_std", 0.0) or 0.0)
+    if rel_t > 0 and through.any():
+        comps.append(BudgetComponent("open_beam_certificate", np.where(through, meas.brdf * rel_t, 0.0), "B", "full",
+                                     "open_beam_rel_std (attenuator and beam solid angle, ASTM E2387)"))
+    names = [n for n, used in (("scale_rel_std", rel > 0 and not through.all()),
+                               ("open_beam_rel_std", rel_t > 0 and through.any())) if used]
+    return Budget(comps, " and ".join(names) + (" attributes" if len(names) > 1 else " attribute") if names
+                  else "brdf_std only")
 
 
 def load_budget(path, meas) -> Budget:
