@@ -35,14 +35,15 @@ _DEFAULTS = {"open_beam_attenuation": 1e-3, "beam_solid_angle_sr": 1e-3, "rel_st
 
 def transmission_settings(settings: Mapping) -> dict:
     """``[transmission]``: open_beam_attenuation (a), beam_solid_angle_sr (Omega_beam) and
-    rel_std (their combined relative standard uncertainty); GonioError naming the key otherwise."""
+    rel_std (their combined relative standard uncertainty, >= 0: 0 where they are exactly
+    known, as in the simulator); GonioError naming the key otherwise."""
     tr = {**_DEFAULTS, **dict(settings.get("transmission") or {})}
     for key in _DEFAULTS:
         v = tr[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0 \
-                or (key != "beam_solid_angle_sr" and key != "rel_std" and v > 1):
-            raise GonioError(f"[transmission] {key} must be a finite number > 0 (<= 1 for the attenuation); "
-                             "fix the settings")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or (v < 0 if key == "rel_std" else v <= 0) or (key == "open_beam_attenuation" and v > 1):
+            raise GonioError(f"[transmission] {key} must be a finite number > 0 (rel_std >= 0; <= 1 for the "
+                             "attenuation); fix the settings")
     if tr["beam_solid_angle_sr"] > 2 * math.pi:
         raise GonioError("[transmission] beam_solid_angle_sr must be at most 2 pi sr; fix the settings")
     return tr
@@ -64,10 +65,15 @@ class OpenBeam:
         return self.attenuation / self.beam_sr
 
     def to_attrs(self) -> dict:
-        """The dataset attributes (NetCDF-friendly: numbers and lists of numbers)."""
+        """The dataset attributes (NetCDF-friendly: numbers and lists of numbers): the budget's
+        two type-B lines for transmission, ``open_beam_rel_std`` (the certificate, every channel
+        alike) and ``open_beam_frame_rel_u`` (the open-beam frame's own relative error per channel:
+        its pixels' scatter and its monitor reading, one error shared by every point)."""
         return {"open_beam_rate": [float(v) for v in self.rate], "open_beam_rate_u": [float(v) for v in self.rate_u],
                 "open_beam_attenuation": self.attenuation, "beam_solid_angle_sr": self.beam_sr,
-                "open_beam_rel_std": self.rel_std, "transmission_normalisation": "open beam (ASTM E2387)"}
+                "open_beam_rel_std": self.rel_std,
+                "open_beam_frame_rel_u": [float(v) for v in self.rate_u / self.rate],
+                "transmission_normalisation": "open beam (ASTM E2387)"}
 
 
 def open_beam_rate(signal_dn: np.ndarray, exposure_s: float, power_w: float, settings: Mapping,
@@ -90,15 +96,14 @@ def open_beam_rate(signal_dn: np.ndarray, exposure_s: float, power_w: float, set
 
 
 def btdf(rate, rate_u, ob: OpenBeam, theta_i_deg) -> tuple[np.ndarray, np.ndarray]:
-    """f_t and its standard uncertainty from the sample's signal rate (N, C) (module docstring);
-    the open beam's own standard error goes in, its certificate (``rel_std``) does not: a type-B
-    scale the budget carries."""
+    """f_t and its standard uncertainty from the sample's signal rate (N, C) (module docstring):
+    each point's own; the open beam's error is one scale shared by every point (a fit that
+    took it as independent errors would average it away), carried by the budget
+    (`OpenBeam.to_attrs`), as the certificate is."""
     rate, rate_u = np.atleast_2d(rate), np.atleast_2d(rate_u)
     c = np.cos(np.radians(np.asarray(theta_i_deg, float)))[:, None]
-    f = rate / ob.rate * ob.radiance_scale / c
-    u = np.abs(f) * np.hypot(rate_u / np.where(rate != 0, np.abs(rate), 1.0), ob.rate_u / ob.rate)
-    u = np.where(rate != 0, u, rate_u / ob.rate * ob.radiance_scale / c)
-    return f, u
+    k = ob.radiance_scale / (ob.rate * c)
+    return rate * k, rate_u * k
 
 
 def _channels(raw: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -113,8 +118,9 @@ def capture_rear(inst, plan, settings: Mapping, *, exposure_max_s: float = 0.02,
                  warm_up_s: float = 1800.0) -> dict:
     """Capture ``plan``'s transmitted points on a simulated instrument (``gonio.sim.Instrument``).
 
-    Darks at each rung of the exposure ladder (``exposure_max_s / 4**k``), the lamp on and
-    settled for ``warm_up_s``, the open-beam frame, then each point on the rear stop at the
+    Darks at each rung of the exposure ladder (``exposure_max_s / 4**k``), 16 flat-field frames
+    (the pixels' gains, divided out of every frame), the lamp on and settled for ``warm_up_s``,
+    the open-beam frame, then each point on the rear stop at the
     longest rung whose brightest region pixel stays below 70 % of full scale; every frame's
     monitor reading divides its signal. Returns wi, wo, brdf, brdf_std (N, C), use, the
     `OpenBeam` and the exposures.
@@ -141,12 +147,18 @@ def capture_rear(inst, plan, settings: Mapping, *, exposure_max_s: float = 0.02,
     inst.set_pose(yaw=0.0, tilt=0.0, azimuth=0.0, lamp=0.0)
     inst.lamp.switch(inst.clock.now(), False)
     darks = {t: frame(t) for t in ladder}
+    t_flat = 0.01
+    flat = np.mean([frame(t_flat, "flat") for _ in range(16)], axis=0) - frame(t_flat)
+    gain = np.empty_like(flat)                            # per CFA site: gain relative to its channel's mean
+    for r in (0, 1):
+        for c in (0, 1):
+            gain[r::2, c::2] = flat[r::2, c::2] / flat[r::2, c::2].mean()
     inst.lamp.switch(inst.clock.now(), True)
     inst.clock.advance(warm_up_s)
     aperture = kinematics.roi_masks(np.zeros(4), settings, rear=True)[0]
     for t in ladder:                                      # the open beam, at the longest safe rung
         p, p_rel = monitor()
-        raw = frame(t, "open_beam") - darks[t]
+        raw = (frame(t, "open_beam") - darks[t]) / gain
         x = _channels(raw, aperture)
         if x.max() < 0.7 * (white - inst.sensor.black):
             break
@@ -159,7 +171,7 @@ def capture_rear(inst, plan, settings: Mapping, *, exposure_max_s: float = 0.02,
         mask = kinematics.roi_masks(st, settings, rear=True)[0]
         for t in ladder:
             p, p_rel = monitor()
-            x = _channels(frame(t) - darks[t], mask)
+            x = _channels((frame(t) - darks[t]) / gain, mask)
             if x.max() < 0.7 * (white - inst.sensor.black):
                 break
         used.append(t)

@@ -137,7 +137,8 @@ def budget_from_attrs(meas) -> Budget:
     Both sides (:mod:`gonio.core.sides`): the reflectance reference's certificate scales the
     reflected points, the open beam's (``open_beam_rel_std``: its attenuator and beam solid
     angle, gonio.bench.measure.transmission) the transmitted ones; two independent lines, each
-    fully correlated over its own side."""
+    fully correlated over its own side, and the open-beam frame's own error
+    (``open_beam_frame_rel_u``, one per channel) shared by the transmitted points."""
     comps = [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none", "brdf_std (the fit's weights)")]
     through = (side_of(meas.wi[:, 2], meas.wo[:, 2]) == 1)[:, None]
     rel = float(meas.attrs.get("scale_rel_std", 0.0) or 0.0)
@@ -148,8 +149,14 @@ def budget_from_attrs(meas) -> Budget:
     if rel_t > 0 and through.any():
         comps.append(BudgetComponent("open_beam_certificate", np.where(through, meas.brdf * rel_t, 0.0), "B", "full",
                                      "open_beam_rel_std (attenuator and beam solid angle, ASTM E2387)"))
+    frame = np.asarray(meas.attrs.get("open_beam_frame_rel_u", 0.0), dtype=float).reshape(-1)
+    frame = np.broadcast_to(frame if frame.size == meas.brdf.shape[1] else frame[:1], (meas.brdf.shape[1],))
+    if np.any(frame > 0) and through.any():     # the open-beam frame's error: one per channel, every point's
+        comps.append(BudgetComponent("open_beam_frame", np.where(through, meas.brdf * frame[None, :], 0.0), "B",
+                                     "channel", "open_beam_frame_rel_u (the open-beam frame's scatter)"))
     names = [n for n, used in (("scale_rel_std", rel > 0 and not through.all()),
-                               ("open_beam_rel_std", rel_t > 0 and through.any())) if used]
+                               ("open_beam_rel_std", rel_t > 0 and through.any()),
+                               ("open_beam_frame_rel_u", np.any(frame > 0) and through.any())) if used]
     return Budget(comps, " and ".join(names) + (" attributes" if len(names) > 1 else " attribute") if names
                   else "brdf_std only")
 
