@@ -10,10 +10,13 @@ it (docs/architecture.md, "What each coming capability touches").
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from dataclasses import dataclass
 
-__all__ = ["Channels", "RGB", "CHANNELS", "COLOUR_SPACE_CHANNELS", "colour_space", "spectral"]
+__all__ = ["Channels", "RGB", "CHANNELS", "COLOUR_SPACE_CHANNELS", "colour_space", "spectral", "current",
+           "use", "of_values", "from_attrs"]
 
 
 @dataclass(frozen=True)
@@ -97,3 +100,40 @@ def spectral(wavelengths_nm) -> Channels:
     """Channels at ``wavelengths_nm`` (a monochromator's steps)."""
     w = tuple(float(x) for x in wavelengths_nm)
     return Channels(tuple(f"{x:g}nm" for x in w), "spectral", w)
+
+
+_CURRENT: contextvars.ContextVar = contextvars.ContextVar("gonio_channels", default=None)
+
+
+def current() -> Channels:
+    """The channels values are being exported in (:func:`use`); :data:`RGB` outside one."""
+    return _CURRENT.get() or RGB
+
+
+@contextlib.contextmanager
+def use(channels: Channels | None):
+    """Within this block, per-channel values go to Mitsuba as ``channels`` say (a spectral fit's
+    wavelengths: a ``spectrum``); None keeps the current ones."""
+    token = _CURRENT.set(channels if channels is not None else _CURRENT.get())
+    try:
+        yield current()
+    finally:
+        _CURRENT.reset(token)
+
+
+def of_values(value) -> Channels:
+    """The channels ``value`` (one number per channel) belongs to: :func:`current` where its
+    count matches, :data:`RGB` for three; ValueError for a count without wavelengths."""
+    n = len(value)
+    c = current()
+    if n == c.n:
+        return c
+    if n == RGB.n:
+        return RGB
+    raise ValueError(f"{n} per-channel values and no wavelengths for them: export a spectral fit within "
+                     "gonio.core.channels.use(spectral(wavelengths))")
+
+
+def from_attrs(wavelengths) -> Channels | None:
+    """``spectral(wavelengths)`` where a fit file or a dataset states them (nm), else None."""
+    return spectral(wavelengths) if wavelengths else None

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gonio.core.channels import CHANNELS, RGB
+from gonio.core.channels import CHANNELS, current, of_values
 from gonio.core.sides import sides_mask
 from gonio.models.engine import albedo as _compiled_albedo
 from gonio.models.engine import fast as _engine
@@ -49,6 +49,27 @@ class Parameter:
     unit: str
     description: str
     per_channel: bool = False
+
+
+#: A spectral per-channel value has at least this many wavelengths (fewer is no spectrum).
+MIN_SPECTRAL = 4
+
+
+def _channel_count(name, parameters, params) -> int:
+    """The channel count of ``params``: the common length of its per-channel arrays (three
+    colours, or one per wavelength of a spectrum: :data:`MIN_SPECTRAL` or more),
+    :data:`CHANNELS` where every value is a scalar; other lengths are refused by the caller."""
+    lengths = set()
+    for p in parameters:
+        if p.per_channel and p.name in params:
+            shape = np.shape(params[p.name])
+            if len(shape) == 1:
+                lengths.add(shape[0])
+    if len(lengths) > 1:
+        raise ValueError(f"{name}: per-channel parameters of different lengths {sorted(lengths)}; give one value "
+                         "per channel to each")
+    n = lengths.pop() if lengths else CHANNELS
+    return n if n >= MIN_SPECTRAL else CHANNELS
 
 
 class Model:
@@ -122,6 +143,7 @@ class Model:
                 f"expected {[p.name for p in self.parameters]}"
             )
         out = {}
+        n = _channel_count(self.name, self.parameters, params)
         for p in self.parameters:
             v = params.get(p.name, p.default)
             try:
@@ -130,10 +152,10 @@ class Model:
                 raise ValueError(f"{self.name}: parameter {p.name}={v!r} is not a number") from None
             if p.per_channel:
                 if a.ndim == 0:
-                    a = np.full(CHANNELS, float(a))
-                elif a.shape != (CHANNELS,):
+                    a = np.full(n, float(a))
+                elif a.shape != (n,):
                     raise ValueError(
-                        f"{self.name}: parameter {p.name} must be a float or shape ({CHANNELS},), got {a.shape}"
+                        f"{self.name}: parameter {p.name} must be a float or shape ({n},), got {a.shape}"
                     )
                 else:
                     a = a.copy()
@@ -209,6 +231,11 @@ class Model:
         if backend not in ("auto", "drjit"):
             raise ValueError(f"backend={backend!r}: give 'auto', 'numpy' or 'drjit'")
         wi, wo, p = eval_inputs(self, wi, wo, params, dtype)
+        if self.n_channels(p) != CHANNELS:       # the compiled kernels hold three channels
+            if backend == "drjit":
+                raise ValueError(f"{self.name}: the compiled kernel evaluates {CHANNELS} channels, not "
+                                 f"{self.n_channels(p)}")
+            return self.eval_reference(wi, wo, p).astype(dtype, copy=False)
         if backend == "drjit" or (wi.shape[0] >= self.compiled_min_pairs and _engine.compiled_for(self)):
             if backend == "drjit" and not _engine.compiled_for(self):
                 raise ValueError(f"{self.name}: no compiled kernel here (Dr.Jit's LLVM backend or the model's kernel missing)")
@@ -221,7 +248,7 @@ class Model:
         :meth:`eval`, which equals it to rounding (tests compare them)."""
         wi, wo, p = eval_inputs(self, wi, wo, params)
         n = wi.shape[0]
-        out = np.empty((n, CHANNELS))
+        out = np.empty((n, self.n_channels(p)))
         with np.errstate(all="ignore"):
             for s in range(0, n, _BLOCK):
                 e = min(s + _BLOCK, n)
@@ -233,6 +260,14 @@ class Model:
                 ok = finite & sides_mask(self.structure.sides, a[:, 2], b[:, 2])
                 out[s:e] = np.where(ok[:, None], f, 0.0)
         return out
+
+    def n_channels(self, p) -> int:
+        """The channels of validated parameters ``p``: their per-channel arrays' length (one per
+        wavelength in a spectral fit; :data:`CHANNELS` for a model without one)."""
+        for q in self.parameters:
+            if q.per_channel:
+                return int(np.shape(p[q.name])[0])
+        return CHANNELS
 
     def _eval(self, wi, wo, p):
         smooth, lobe = self._eval_parts(wi, wo, p)
@@ -288,7 +323,9 @@ class Model:
 def rgb(value):
     """Mitsuba texture dict of a per-channel value (:meth:`gonio.core.channels.Channels.mitsuba`:
     an ``rgb`` for the RGB channels)."""
-    return RGB.mitsuba(np.broadcast_to(value, (RGB.n,)))
+    v = np.atleast_1d(np.asarray(value, dtype=np.float64))
+    channels = of_values(v) if v.size > 1 else current()
+    return channels.mitsuba(np.broadcast_to(v, (channels.n,)))
 
 
 INV_PI = 1.0 / math.pi

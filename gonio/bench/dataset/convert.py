@@ -23,7 +23,7 @@ from gonio.fitting.pipeline import load_fit_file
 __all__ = ["convert", "TARGETS"]
 
 #: What ``--to`` accepts.
-TARGETS = ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "pabopto", "zemax", "csv", "merl-data")
+TARGETS = ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "pabopto", "zemax", "astm", "csv", "merl-data")
 
 
 def convert(source: Path, out: Path, to: str, say: Callable[[str], None] = print) -> None:
@@ -94,7 +94,33 @@ def _convert_zemax(source, out, say):
     say(f"{len(paths)} Zemax tabular BSDF file(s): " + ", ".join(str(p) for p in paths))
 
 
+def _convert_astm(source, out, say, geometry=None):
+    """``--to astm``: a spectral fit's f_r as an ASTM E1392 table, on the geometry of the ASTM
+    file it was fitted from where that file is still there (else a standard grid)."""
+    from gonio.fitting.formats import astm
+
+    if source.suffix.lower() != ".json":
+        raise GonioError(f"--to astm converts a spectral fit file (FIT.json); {source} is not one")
+    try:
+        loaded = load_fit(source)
+        wavelengths = loaded.wavelengths
+    except (ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+    if wavelengths is None:
+        raise GonioError(f"{source} is not a spectral fit (no wavelengths): --to astm writes one column per wavelength")
+    dataset = (loaded.document.get("provenance") or {}).get("dataset")
+    if geometry is None and dataset and Path(dataset).is_file() and astm.is_astm(dataset):
+        geometry = astm.read_astm(dataset)
+    table = astm.model_astm(loaded.model, loaded.params, wavelengths, geometry)
+    _make_parent(out)
+    astm.write_astm(out, table)
+    where = f"the geometry of {dataset}" if geometry is not None else "the standard grid"
+    say(f"{table.values.shape[0]} points x {len(wavelengths)} wavelengths on {where}")
+
+
 def _convert(source, out, to, say):
+    if to == "astm":
+        return _convert_astm(source, out, say)
     if to == "pabopto":
         return _convert_pabopto(source, out, say)
     if to == "zemax":

@@ -204,16 +204,16 @@ def write_astm(path, data: AstmBRDF) -> Path:
     return path
 
 
-def astm_measurements(source, *, rel_std: float = 0.02, floor: float = 1e-4) -> Measurements:
+def astm_measurements(source, *, rel_std: float = 0.02, floor: float = 1e-3) -> Measurements:
     """An ASTM file (path or :class:`AstmBRDF`) as Measurements: one channel per wavelength.
 
-    The file carries no uncertainty: each value gets ``rel_std * max(|f_r|, floor * peak)``
-    with ``attrs["nominal_sigma"] = True`` (the real-data loss fits the variance), like RGL's."""
+    The file carries no uncertainty: each value gets ``rel_std * max(|f_r|, floor)`` (``floor`` in
+    sr^-1: Cornell's tables hold exact zeros, below their noise) with ``attrs["nominal_sigma"] =
+    True`` (the real-data loss, not these sigmas, weights the fit), like RGL's."""
     data = source if isinstance(source, AstmBRDF) else read_astm(source)
     channels = spectral(data.wavelengths)
     f = data.values
-    scale = max(float(np.median(np.abs(f[f != 0]))) if np.any(f != 0) else 1.0, 1e-12)
-    std = rel_std * np.maximum(np.abs(f), floor * scale)
+    std = rel_std * np.maximum(np.abs(f), floor)
     wi, wo = data.wi, data.wo
     use = np.repeat(((wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9))[:, None], channels.n, axis=1)
     attrs = {"source": "ASTM E1392", "path": data.path or "", "rel_std": rel_std, "floor": floor,

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import gonio.models as gm
+from gonio.core.channels import from_attrs, spectral, use
 from gonio.core.errors import GonioError
 from gonio.core.atomic import atomic_open
 
@@ -63,6 +64,34 @@ def sha256_file(path) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def _with_channels(wavelengths, fn, *args):
+    """``fn(*args)`` with per-channel values exported as a spectral fit's ``wavelengths`` say."""
+    with use(from_attrs(wavelengths)):
+        return fn(*args)
+
+
+def _mitsuba_or_none(wavelengths, model, params):
+    """The fit's Mitsuba dict; None for a spectral fit of a model whose gonio plugin holds
+    three channels only (its fit file is still written; ``gonio convert`` says why)."""
+    try:
+        return _with_channels(wavelengths, model.to_mitsuba, params)
+    except ValueError:
+        if not wavelengths:
+            raise
+        return None
+
+
+def fit_wavelengths(doc, path="fit file"):
+    """A fit document's ``wavelengths`` (nm, checked: gonio.core.channels.spectral), or None."""
+    wl = doc.get("wavelengths")
+    if wl is None:
+        return None
+    try:
+        return spectral(wl).wavelengths_nm
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: wavelengths: {' '.join(str(exc).split())[:120]}") from None
 
 
 def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, dataset_path=None, budget=None) -> dict:
@@ -170,7 +199,9 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         "correlated": [list(pair) for pair in result.correlated],
         "posterior": None,
         "selection": [r.row() for r in ranking] if ranking else None,
-        "mitsuba": result.model.to_mitsuba(result.params),
+        "mitsuba": _mitsuba_or_none(meas.attrs.get("wavelengths_nm"), result.model, result.params),
+        # a spectral fit's channels: one wavelength (nm) per per-channel value, else null
+        "wavelengths": list(meas.attrs["wavelengths_nm"]) if meas.attrs.get("wavelengths_nm") else None,
         # the colour space of every per-channel value here (gonio/fitting/measurements.load_dataset), the matrix
         # and what the fit leaves out; Mitsuba reads rgb as linear sRGB: only an srgb fit renders true colour
         "colour": meas.attrs.get("colour"),
@@ -346,6 +377,10 @@ def parse_fit(doc, path="fit file"):
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"{path}: params.{k:.60} is not finite")
         params[k] = arr if isinstance(v, list) else float(v)
+    wavelengths = fit_wavelengths(doc, path)
+    counts = {np.size(v) for v in params.values() if isinstance(v, np.ndarray)}
+    if wavelengths is not None and counts - {len(wavelengths)}:
+        raise ValueError(f"{path}: {len(wavelengths)} wavelengths but per-channel values of {sorted(counts)}")
     try:                                # every value within its parameter's bounds (the model's own check)
         model.validate(params)
     except (ValueError, KeyError, TypeError) as exc:
@@ -397,12 +432,19 @@ class FitFile:
         return self.model.eval(wi, wo, self.params)
 
     def to_mitsuba(self) -> dict:
-        """The Mitsuba 3 BSDF dict (``mitsuba.load_dict`` accepts it)."""
-        return self.model.to_mitsuba(self.params)
+        """The Mitsuba 3 BSDF dict (``mitsuba.load_dict`` accepts it; a ``spectrum`` per
+        per-channel value for a spectral fit: render it in a ``*_spectral`` variant)."""
+        return _with_channels(self.wavelengths, self.model.to_mitsuba, self.params)
+
+    @property
+    def wavelengths(self):
+        """A spectral fit's wavelengths (nm), or None."""
+        return fit_wavelengths(self.document)
 
     def to_mitsuba_xml(self) -> str:
         """A Mitsuba 3 XML file's text (``mitsuba.load_file`` and ``<include>`` load it)."""
-        return mitsuba_document(self.model.name, dict(self.model.options), self.params)
+        return _with_channels(self.wavelengths, mitsuba_document, self.model.name, dict(self.model.options),
+                              self.params)
 
     def _summary(self):
         g = self.goodness

@@ -112,16 +112,16 @@ class CookTorrance(Model):
 
     def _eval_parts(self, wi, wo, p):
         n = wi.shape[0]
-        diffuse = np.broadcast_to(p["diffuse_reflectance"] / math.pi, (n, CHANNELS))
+        diffuse = np.broadcast_to(p["diffuse_reflectance"] / math.pi, (n, np.size(p["diffuse_reflectance"])))
         return diffuse, cook_torrance_lobe(wi, wo, p["roughness"], p["f0"]) * p["specular_reflectance"]
 
     def to_mitsuba(self, params):
-        from gonio.models.mitsuba.plugins import ensure_registered
+        from gonio.models.mitsuba.plugins import ensure_registered, rgb_channels
 
         p = self.validate(params)
         d = {"type": ensure_registered("cooktorrance"), "roughness": p["roughness"]}
         for key in ("diffuse_reflectance", "specular_reflectance", "f0"):
-            for c, v in zip("rgb", p[key]):
+            for c, v in rgb_channels(self.name, p[key]):
                 d[f"{key}_{c}"] = float(v)
         return d
 

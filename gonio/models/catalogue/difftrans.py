@@ -48,12 +48,12 @@ class DiffTrans(Model):
         return lambert(p["transmittance"], wi.shape[0]), None
 
     def to_mitsuba(self, params):
-        from gonio.models.mitsuba.plugins import add_plugin, ensure_registered
+        from gonio.models.mitsuba.plugins import add_plugin, ensure_registered, rgb_channels
 
         p = self.validate(params)
         add_plugin("difftrans", _make_bsdf)
         d = {"type": ensure_registered("difftrans")}
-        for c, v in zip("rgb", np.asarray(p["transmittance"], float)):
+        for c, v in rgb_channels(self.name, p["transmittance"]):
             d[f"transmittance_{c}"] = float(v)
         return d
 

@@ -54,11 +54,11 @@ class OrenNayar(Model):
         return oren_nayar(wi, wo, p["reflectance"], p["sigma"]), None
 
     def to_mitsuba(self, params):
-        from gonio.models.mitsuba.plugins import ensure_registered
+        from gonio.models.mitsuba.plugins import ensure_registered, rgb_channels
 
         p = self.validate(params)
         d = {"type": ensure_registered("orennayar"), "sigma": p["sigma"]}
-        for c, v in zip("rgb", p["reflectance"]):
+        for c, v in rgb_channels(self.name, p["reflectance"]):
             d[f"reflectance_{c}"] = float(v)
         return d
 

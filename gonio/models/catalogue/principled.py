@@ -28,10 +28,16 @@ from gonio.models.physics.microfacet import MicrofacetDistribution, smith_g1_xyz
 from gonio.models.structure import LOBE_ONLY, Coupling, Structure
 from gonio.core.geometry import half_vector
 
-__all__ = ["Principled", "LUMINANCE", "specular_to_eta"]
+__all__ = ["Principled", "LUMINANCE", "luminance_weights", "specular_to_eta"]
 
 #: Mitsuba's ``luminance`` of a linear sRGB colour (Rec. 709 Y row)
 LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
+
+
+def luminance_weights(n: int) -> np.ndarray:
+    """The tint's luminance weights: Rec. 709's Y for three channels; for ``n`` spectral samples
+    their mean (the luminance of a spectrum without its illuminant's weighting)."""
+    return LUMINANCE if n == LUMINANCE.size else np.full(n, 1.0 / n)
 
 
 def specular_to_eta(specular):
@@ -158,8 +164,8 @@ class Principled(Model):
         dh_o = np.einsum("ij,ij->i", wo, h)      # Mitsuba's dot(si.wi, wh)
         dh_i = np.einsum("ij,ij->i", wi, h)      # Mitsuba's dot(wh, wo): cos_theta_d
         ok = valid & (dh_o > 0.0) & (dh_i > 0.0) & (ci > 0.0) & (co > 0.0)
-        lum = float(LUMINANCE @ base)
-        c_tint = base / lum if lum > 0.0 else np.ones(CHANNELS)
+        lum = float(luminance_weights(base.size) @ base)
+        c_tint = base / lum if lum > 0.0 else np.ones(base.size)
         # main GGX lobe
         D = MicrofacetDistribution("ggx", alpha).D(h)
         G = smith_g1_xyz("ggx", alpha, alpha, wi[:, 0], wi[:, 1], ci, dh_i) * \

@@ -317,7 +317,7 @@ class Tabulated(Model):
     def _eval_parts(self, wi, wo, p):
         t = tables(p)
         n = wi.shape[0]
-        diffuse = np.broadcast_to(t.rho / math.pi, (n, CHANNELS))
+        diffuse = np.broadcast_to(t.rho / math.pi, (n, np.size(t.rho)))
         return diffuse, self._lobe(wi, wo, t)
 
     def _lobe(self, wi, wo, t):
@@ -352,7 +352,7 @@ class Tabulated(Model):
     def to_mitsuba(self, params):
         import sys
 
-        from gonio.models.mitsuba.plugins import add_plugin, ensure_registered
+        from gonio.models.mitsuba.plugins import add_plugin, ensure_registered, rgb_channels
         from gonio.models.mitsuba.tabulated_plugin import make_bsdf
 
         p = self.validate(params)
@@ -361,7 +361,7 @@ class Tabulated(Model):
         d = {"type": ensure_registered("tabulated")}
         for par in self.parameters:
             if par.per_channel:
-                for c, v in zip("rgb", p[par.name]):
+                for c, v in rgb_channels(self.name, p[par.name]):
                     d[f"{par.name}_{c}"] = float(v)
             else:
                 d[par.name] = float(p[par.name])

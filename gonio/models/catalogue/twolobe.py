@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from gonio.core.channels import CHANNELS
 from gonio.models.base import Model, eval_dtype, eval_inputs
 from gonio.models.structure import Structure
 
@@ -45,7 +44,7 @@ class TwoLobe(Model):
         p1, p2, w = self.layers(p)
         a = fn(wi, wo, p1) if w < 1.0 else 0.0
         b = fn(wi, wo, p2) if w > 0.0 else 0.0
-        return np.asarray((1.0 - w) * a + w * b, dtype=dtype) + np.zeros((wi.shape[0], CHANNELS), dtype)
+        return np.asarray((1.0 - w) * a + w * b, dtype=dtype) + np.zeros((wi.shape[0], self.n_channels(p)), dtype)
 
     def eval(self, wi, wo, params, backend="auto"):
         """The two layers' ``eval`` mixed; float32 directions give float32 (each layer's

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from gonio.models.mitsuba.variant import mitsuba_variant
 
-__all__ = ["bsdf_base", "ensure_registered", "add_plugin"]
+__all__ = ["bsdf_base", "ensure_registered", "add_plugin", "rgb_channels"]
 
 _registered: set = set()
 
@@ -135,6 +137,17 @@ def _make_classes(mi, dr):
 
 #: BSDF classes that models written elsewhere add (:func:`add_plugin`): name -> maker(mi, dr, base)
 _MAKERS: dict = {}
+
+
+def rgb_channels(model_name, value):
+    """``zip("rgb", value)`` for a gonio plugin's per-channel properties (``name_r``, ``_g``,
+    ``_b``): ValueError for another channel count (a spectral fit), which they cannot hold."""
+    v = [float(x) for x in np.atleast_1d(value)]
+    if len(v) != 3:
+        raise ValueError(f"{model_name}: gonio's Mitsuba plugin holds three colour channels, not {len(v)}; "
+                         "export a spectral fit of a model with a native Mitsuba BSDF (diffuse, roughplastic, "
+                         "roughconductor, principled)")
+    return zip("rgb", v)
 
 
 def add_plugin(model_name, maker):

@@ -135,7 +135,7 @@ def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
     if known is not None and dist is not None:      # the lobe's nodes alone
         lobe = (_lobe_integral(model, p, dist, W, n_theta, n_phi) if compiled is None
                 else compiled[0](model, p, dist, W, n_theta, n_phi, known))
-        return np.broadcast_to(known + lobe, (m, CHANNELS))
+        return np.broadcast_to(known + lobe, (m, model.n_channels(p)))
     if compiled is not None:
         if dist is None:                            # f_r at the smooth part's nodes
             return compiled[1](model, p, None, W, n_theta, n_phi)
@@ -151,7 +151,7 @@ def _integral(model, p, dist, W, n_theta, n_phi, compiled=None):
             acc = acc + _weighted(wgt, lobe.reshape(m, k, -1))
         else:
             acc = acc + _lobe_integral(model, p, dist, W, n_theta, n_phi)
-    return np.broadcast_to(acc, (m, CHANNELS))
+    return np.broadcast_to(acc, (m, model.n_channels(p)))
 
 
 def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, return_error=False, compiled=None):
@@ -188,8 +188,9 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     wo = as_directions(wo, "wo")
     p = model.validate(params)
     n = wo.shape[0]
-    out = np.zeros((n, CHANNELS))
-    err = np.zeros((n, CHANNELS))
+    nc = model.n_channels(p)             # one per wavelength in a spectral fit
+    out = np.zeros((n, nc))
+    err = np.zeros((n, nc))
     dist = model._lobe_distribution(p)
     n_theta = max(2, n_theta + n_theta % 2)
     n_phi = max(4, n_phi + (-n_phi) % 4)
@@ -197,7 +198,7 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
     if idx.size == 0:
         return (out, err) if return_error else out
 
-    compiled = _compiled_for(model, dist, compiled)
+    compiled = _compiled_for(model, dist, compiled) if nc == CHANNELS else None    # the kernels hold 3 channels
 
     def level_of(sel, level):
         nt, nph = n_theta << level, n_phi << level
@@ -209,7 +210,7 @@ def albedo(model, wo, params, n_theta=32, n_phi=32, tol=1e-4, max_level=3, retur
 
     with np.errstate(all="ignore"):
         prev = np.array(level_of(idx, 0))      # written into below (a level may be a broadcast view)
-        e = np.full((idx.size, CHANNELS), np.nan)  # no estimate without a second level
+        e = np.full((idx.size, nc), np.nan)  # no estimate without a second level
         active = np.arange(idx.size)
         for level in range(1, max_level + 1):
             if active.size == 0:

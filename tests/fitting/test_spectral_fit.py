@@ -1,0 +1,95 @@
+"""Spectral fits (issue 39): a model with one colour value per wavelength is fitted, given its
+uncertainty, written to a fit file that states its wavelengths and exported to Mitsuba as a
+``spectrum`` that loads and evaluates in ``scalar_spectral``; colour comes from colour-science."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import gonio.models as gm
+from gonio.core.channels import spectral
+from gonio.fitting import fit, fit_document, load_fit, write_json_atomic
+from gonio.fitting.colour import delta_e00, spectral_lab, spectral_xyz
+from gonio.fitting.measurements import Measurements
+
+WL = np.arange(400.0, 701.0, 50.0)          # 7 channels: neither RGB's 3 nor a multiple of it
+TRUTH = {"diffuse_reflectance": np.linspace(0.1, 0.6, WL.size), "alpha": 0.15, "int_ior": 1.5}
+
+
+def _capture(rng, n=240, rel=0.01):
+    model = gm.get("roughplastic", distribution="ggx")
+    u = rng.random((2, n))
+    ti, to = np.radians(5 + 70 * u[0]), np.radians(5 + 70 * u[1])
+    po = np.pi + rng.normal(0, 0.6, n)               # around the specular plane: the lobe is sampled
+    wi = np.stack([np.sin(ti), np.zeros(n), np.cos(ti)], 1)
+    wo = np.stack([np.sin(to) * np.cos(po), np.sin(to) * np.sin(po), np.cos(to)], 1)
+    f = model.eval(wi, wo, TRUTH)
+    std = rel * f + 1e-4
+    y = f + std * rng.standard_normal(f.shape)
+    attrs = {"source": "test", "wavelengths_nm": list(WL)}
+    return model, Measurements(wi, wo, y, std, True, attrs, spectral(WL).names)
+
+
+def test_spectral_fit_recovers_each_wavelength_and_states_them(tmp_path):
+    model, meas = _capture(np.random.default_rng(7))
+    assert meas.n_channels == 7
+    result = fit(meas, model, rng=np.random.default_rng(0))
+    got = np.asarray(result.params["diffuse_reflectance"])
+    assert got.shape == (7,)
+    k = [i for i, n in enumerate(result.space.names) if n.startswith("diffuse_reflectance")]
+    assert len(k) == 7 and all(np.isfinite(result.std[k])) and all(result.std[k] > 0)
+    z = (got - TRUTH["diffuse_reflectance"]) / result.std[k]
+    assert np.all(np.abs(z) < 4), z                 # each wavelength within its own 1-sigma x 4
+    a = result.space.names.index("alpha")
+    assert abs(result.params["alpha"] - 0.15) < 4 * result.std[a]
+    doc = fit_document(result, meas, seed=0)
+    assert doc["wavelengths"] == list(WL)
+    assert doc["mitsuba"]["diffuse_reflectance"]["type"] == "spectrum"
+    path = write_json_atomic(tmp_path / "fit.json", doc)
+    loaded = load_fit(path)
+    assert loaded.wavelengths == tuple(WL)
+    assert np.allclose(loaded.params["diffuse_reflectance"], got)
+    d = loaded.to_mitsuba()
+    assert [w for w, _ in d["diffuse_reflectance"]["value"]] == list(WL)
+    _renders_in_scalar_spectral(d, loaded, meas)
+
+
+def _renders_in_scalar_spectral(d, loaded, meas):
+    mi = pytest.importorskip("mitsuba")
+    if "scalar_spectral" not in mi.variants():
+        pytest.skip("this Mitsuba build has no scalar_spectral variant")
+    from gonio.models.mitsuba import select_variant
+
+    select_variant()            # a variant to return to (scoped_set_variant cannot restore none)
+    with mi.scoped_set_variant("scalar_spectral"):
+        bsdf = mi.load_dict(d)
+        wi, wo = np.array([0.0, 0.0, 1.0]), np.array([np.sin(1.0), 0.0, np.cos(1.0)])     # far off the lobe
+        si = mi.SurfaceInteraction3f()
+        si.wi = mi.Vector3f(*wo)
+        si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
+        si.wavelengths = mi.Spectrum([450.0, 500.0, 550.0, 600.0])
+        value = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wi)))
+    ours = loaded.eval(wi[None], wo[None])[0] * wi[2]
+    # Mitsuba's irregular spectrum is exact at its nodes: its value at 450-600 nm is the fit's
+    np.testing.assert_allclose(value, ours[1:5], rtol=2e-3)
+
+
+def test_colour_of_spectra_from_colour_science():
+    wl = np.arange(400.0, 701.0, 10.0)
+    # the perfect white under D65 over 400-700 nm: Y = 1 and x, y near D65's (0.3127, 0.3290)
+    xyz = spectral_xyz(np.full((1, wl.size), 1 / np.pi), wl)[0]
+    assert xyz[1] == pytest.approx(1.0) and xyz[0] / xyz.sum() == pytest.approx(0.3127, abs=2e-3)
+    # an 18 % grey: L* = 116 * 0.18^(1/3) - 16 = 49.50 (CIE 15), a* = b* = 0
+    lab = spectral_lab(np.full((1, wl.size), 0.18 / np.pi), wl)[0]
+    np.testing.assert_allclose(lab, [49.496, 0.0, 0.0], atol=1e-3)
+    # CIEDE2000: Sharma, Wu & Dalal (2005), Table 1, pair 1: 2.0425
+    assert delta_e00([50.0, 2.6772, -79.7751], [50.0, 0.0, -82.7485]) == pytest.approx(2.0425, abs=1e-4)
+    # an irregular sampling (a monochromator's steps) is interpolated onto 5 nm, not refused
+    irregular = np.array([400.0, 430.0, 470.0, 520.0, 580.0, 650.0, 700.0])
+    lab2 = spectral_lab(np.full((1, irregular.size), 0.18 / np.pi), irregular)[0]
+    np.testing.assert_allclose(lab2, [49.496, 0.0, 0.0], atol=1e-3)
+    with pytest.raises(ValueError, match="NaN"):
+        spectral_xyz(np.full((1, wl.size), np.nan), wl)
