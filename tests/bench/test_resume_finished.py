@@ -50,6 +50,7 @@ def test_resume_of_a_finished_session_moves_nothing(tmp_path):
         inst.unregister()
 
 
+@pytest.mark.long          # the CLI's wording; the in-process test above checks the note and the devices
 def test_gonio_capture_resume_says_finished(tmp_path, capsys):
     plan = tmp_path / "two.csv"
     plan.write_text("theta_i,phi_i,theta_o,phi_o\n30,0,40,180\n45,0,20,0\n")
