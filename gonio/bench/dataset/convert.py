@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from gonio.bench.dataset.reader import open_dataset
-from gonio.core.channels import RGB
+from gonio.core.channels import RGB, from_attrs, use
 from gonio.core.errors import GonioError
 from gonio.core.preflight import check_output_dir, check_output_file, writing
 from gonio.fitting import formats, load_fit
@@ -139,7 +139,11 @@ def _convert(source, out, to, say):
         plugins = "gonio" if to == "mitsuba-xml-gonio" else "native"
         writer = formats.write_mitsuba_dict if to == "mitsuba-dict" else formats.write_mitsuba_document
         _make_parent(out)
-        note = writer(out, model.name, dict(model.options), params, plugins=plugins)
+        try:        # a spectral fit's values as spectra (its wavelengths), for a *_spectral variant
+            with use(from_attrs(load_fit(source).wavelengths)):
+                note = writer(out, model.name, dict(model.options), params, plugins=plugins)
+        except ValueError as exc:
+            raise GonioError(f"{source}: {' '.join(str(exc).split())[:300]}") from None
         if note:
             say(note)
     elif to == "csv":

@@ -59,6 +59,9 @@ def _xml_lines(d: dict, indent: str) -> list[str]:
                 lines.append(_rgb(key, value["value"], indent))
             elif kind == "spectrum" and not isinstance(value.get("value"), (list, tuple)):
                 lines.append(f'{indent}<spectrum name={quoteattr(key)} value="{_fmt_float(value["value"])}"/>')
+            elif kind == "spectrum":        # a spectral fit's (wavelength nm, value) pairs: Mitsuba's "l:v, ..."
+                pairs = ", ".join(f"{float(w):g}:{_fmt_float(v)}" for w, v in value["value"])
+                lines.append(f'{indent}<spectrum name={quoteattr(key)} value="{pairs}"/>')
             else:  # a nested plugin: a BSDF (blendbsdf's lobes), a texture, ... as Mitsuba knows it
                 from gonio.models.mitsuba import plugin_kind
 
@@ -182,7 +185,9 @@ def _flat(d: dict, prefix: str = "") -> dict:
         if key in ("type", "id"):
             continue
         path = f"{prefix}{key}"
-        if isinstance(value, dict) and value.get("type") in ("rgb", "spectrum") and "value" in value:
+        if isinstance(value, dict) and value.get("type") == "spectrum" and isinstance(value.get("value"), (list, tuple)):
+            out[path] = tuple(float(x) for pair in value["value"] for x in pair)       # (nm, value) pairs
+        elif isinstance(value, dict) and value.get("type") in ("rgb", "spectrum") and "value" in value:
             out[path] = tuple(float(x) for x in np.broadcast_to(np.asarray(value["value"], float),
                                                                  (CHANNELS,) if value["type"] == "rgb" else ()).ravel())
         elif isinstance(value, dict):
@@ -203,7 +208,7 @@ def _flat_xml(elem, prefix: str = "") -> dict:
     for child in elem:
         path = f"{prefix}{child.get('name')}"
         if child.tag in ("rgb", "spectrum", "float", "integer"):
-            out[path] = tuple(float(x) for x in child.get("value").split(","))
+            out[path] = tuple(float(x) for item in child.get("value").split(",") for x in item.split(":"))
         elif child.tag in ("boolean", "string"):
             out[path] = (child.get("value"),)
         else:
@@ -251,7 +256,9 @@ def write_mitsuba_document(path, model_name: str, options: dict | None, params: 
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
+    if isinstance(value, (list, tuple)):        # a spectrum's (nm, value) pairs stay pairs
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
         return [_jsonable(v) for v in np.asarray(value, dtype=object).ravel()] if np.ndim(value) else _jsonable(value.item())
     if isinstance(value, (np.bool_, bool)):
         return bool(value)
