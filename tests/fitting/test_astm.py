@@ -4,6 +4,7 @@ refused in one line (exit status 2) before anything is written."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -92,3 +93,47 @@ def test_damaged_files_get_one_line_and_exit_2_before_anything_is_written(tmp_pa
     monkeypatch.setattr(astm, "MAX_BYTES", 1000)
     with pytest.raises(astm.AstmError, match="more than an ASTM"):
         astm.read_astm(BLUE)
+
+
+@needs_shared
+@pytest.mark.long
+def test_cornell_fit_colour_within_de00_2_under_d65():
+    """Issue 39's proof on acryl_blue.astm: the model `gonio fit --model auto` chooses there
+    (cooktorrance, BIC) reproduces the measured colour under D65 within CIEDE2000 2 on average
+    over the bright points (the brighter half by measured Y); a diffuse fit does not (10.7)."""
+    from gonio.fitting.colour import fit_colour_error
+    from gonio.fitting.pipeline import fit_measurements
+
+    meas = astm.astm_measurements(BLUE)
+    result = fit_measurements(meas, model="cooktorrance", seed=0)[0]
+    err = fit_colour_error(meas, result.model, result.params, illuminant="D65")
+    assert err["n_bright"] == 720
+    assert err["mean"] < 2.0, err["mean"]
+
+
+@needs_shared
+def test_convert_a_spectral_fit_to_astm_on_the_files_geometry(tmp_path, capsys):
+    """`gonio fit FILE.astm` then `gonio convert FIT --to astm`: the table holds the fit's f_r
+    at every measured geometry and wavelength; an RGB fit is refused in one line."""
+    import gonio.models as gm
+    from gonio.fitting import load_fit
+
+    fit_path = tmp_path / "blue.json"
+    assert main(["fit", str(BLUE), "--model", "diffuse", "--out", str(fit_path)]) == 0
+    loaded = load_fit(fit_path)
+    assert loaded.wavelengths == tuple(float(w) for w in range(400, 701, 10))
+    out = tmp_path / "out" / "blue_fit.astm"
+    assert main(["convert", str(fit_path), "--to", "astm", "--out", str(out)]) == 0
+    table = astm.read_astm(out)
+    data = astm.read_astm(BLUE)
+    np.testing.assert_array_equal(table.angles, data.angles)
+    want = gm.get("diffuse").eval(data.wi, data.wo, loaded.params)
+    np.testing.assert_array_equal(table.values, want)
+    assert table.header["FILE_NAME"] == "blue_fit.astm"
+    doc = json.loads(fit_path.read_text())
+    doc["wavelengths"] = None
+    rgbless = tmp_path / "nowl.json"
+    rgbless.write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert main(["convert", str(rgbless), "--to", "astm", "--out", str(tmp_path / "x.astm")]) == 2
+    assert not (tmp_path / "x.astm").exists()

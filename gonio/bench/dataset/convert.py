@@ -112,6 +112,7 @@ def _convert_astm(source, out, say, geometry=None):
     if geometry is None and dataset and Path(dataset).is_file() and astm.is_astm(dataset):
         geometry = astm.read_astm(dataset)
     table = astm.model_astm(loaded.model, loaded.params, wavelengths, geometry)
+    table.header["FILE_NAME"] = out.name
     _make_parent(out)
     astm.write_astm(out, table)
     where = f"the geometry of {dataset}" if geometry is not None else "the standard grid"
