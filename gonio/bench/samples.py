@@ -1,18 +1,13 @@
 """Virtual samples: what the simulated instrument has on its holder.
 
-A SAMPLE is either a TOML file::
-
-    model = "roughplastic"
-    [options]
-    distribution = "ggx"
-    [params]
-    diffuse_reflectance = [0.5, 0.3, 0.2]
-    alpha = 0.2
-    int_ior = 1.5
-
-or a measured RGL-EPFL ``.bsdf`` file (Mitsuba's ``measured`` plugin). Either becomes the plain
-dict the simulator takes (docs/interfaces.md section 4), ``{"model", "options", "params"}`` or
-``{"bsdf_file"}``; parameters are checked against the model's declarations before any stage moves.
+A SAMPLE is a TOML file (``model = "roughplastic"``, ``[options]`` distribution = "ggx",
+``[params]`` diffuse_reflectance = [0.5, 0.3, 0.2], alpha = 0.2, int_ior = 1.5) or a measured
+RGL-EPFL ``.bsdf`` file (Mitsuba's ``measured`` plugin). A per-channel parameter may be a
+spectrum, ``[params.diffuse_reflectance]`` with ``wavelengths = [...]`` (nm) and ``values =
+[...]``: kept under ``spectra``, rendered by the RGB simulator as its linear sRGB under D65
+(gonio.fitting.colour). Either becomes the plain dict the simulator takes (docs/interfaces.md
+section 4), ``{"model", "options", "params"}`` or ``{"bsdf_file"}``; parameters are checked
+against the model's declarations before any stage moves.
 """
 
 from __future__ import annotations
@@ -54,13 +49,47 @@ def check_sample(spec: dict) -> dict:
     if unknown:
         raise GonioError(f"sample: unknown parameter(s) {', '.join(unknown)} for {name}; "
                          f"it takes {', '.join(sorted(declared))}")
+    spectra = {}
+    for par in model.parameters:
+        if isinstance(params.get(par.name), dict):      # [params.NAME] wavelengths = [...] values = [...]
+            spectra[par.name], params[par.name] = _spectrum(par, params[par.name])
     full = {p.name: params.get(p.name, p.default) for p in model.parameters}
     try:
         model.validate(full)
     except ValueError as exc:
         raise GonioError(f"sample: {exc}") from None
     to_list = {k: (np.asarray(v, dtype=float).tolist()) for k, v in full.items()}
-    return {"model": name, "options": options, "params": to_list}
+    out = {"model": name, "options": options, "params": to_list}
+    if spectra:
+        out["spectra"] = spectra
+    return out
+
+
+def _spectrum(par, table: dict):
+    """A parameter given as a spectrum (``wavelengths`` in nm, ``values``): the checked table,
+    and the value the RGB simulator renders (its linear sRGB under D65, colour-science)."""
+    from gonio.core.channels import spectral
+    from gonio.fitting.colour import reflectance_to_linear_srgb
+
+    where = f"sample: [params.{par.name}]"
+    if not par.per_channel:
+        raise GonioError(f"{where}: {par.name} is one number, not a spectrum")
+    if set(table) != {"wavelengths", "values"}:
+        raise GonioError(f"{where} takes wavelengths = [...] (nm) and values = [...], not {', '.join(sorted(table))}")
+    try:
+        w = np.asarray(table["wavelengths"], dtype=float)
+        v = np.asarray(table["values"], dtype=float)
+        spectral(w)
+    except (TypeError, ValueError) as exc:
+        raise GonioError(f"{where}: {' '.join(str(exc).split())[:200]}") from None
+    if w.ndim != 1 or v.shape != w.shape or w.size < 3:
+        raise GonioError(f"{where}: {v.size} values for {w.size} wavelengths (one each, at least 3)")
+    if not np.all(np.isfinite(v)) or v.min() < par.lower or v.max() > par.upper:
+        raise GonioError(f"{where}: values must be finite and in [{par.lower:g}, {par.upper:g}]")
+    if w[0] > 450.0 or w[-1] < 650.0:
+        raise GonioError(f"{where}: wavelengths {w[0]:g}-{w[-1]:g} nm do not cover the visible (450-650 nm at least)")
+    rgb = np.clip(reflectance_to_linear_srgb(w, v), par.lower, par.upper)    # a saturated colour leaves sRGB
+    return {"wavelengths": w.tolist(), "values": v.tolist()}, rgb.tolist()
 
 
 def load_sample(source) -> dict:

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-__all__ = ["spectral_xyz", "spectral_lab", "delta_e00", "fit_colour_error", "OBSERVER"]
+__all__ = ["spectral_xyz", "spectral_lab", "delta_e00", "fit_colour_error", "reflectance_to_linear_srgb", "OBSERVER"]
 
 #: The colour-matching functions used throughout (colour-science's name).
 OBSERVER = "CIE 1931 2 Degree Standard Observer"
@@ -92,3 +92,14 @@ def fit_colour_error(meas, model, params, *, illuminant: str = "D65", bright: fl
     de = delta_e00(spectral_lab(meas.brdf[keep], wl, illuminant), spectral_lab(fitted, wl, illuminant))
     return {"de00": de, "mean": float(de.mean()), "max": float(de.max()), "n_bright": int(keep.sum()),
             "illuminant": illuminant}
+
+
+def reflectance_to_linear_srgb(wavelengths, values, illuminant: str = "D65") -> np.ndarray:
+    """The linear sRGB (3,) of a reflectance spectrum (``values`` at ``wavelengths`` nm, a
+    perfect white = 1) under ``illuminant`` (D65: sRGB's own white, no adaptation), through
+    colour-science's XYZ -> sRGB matrix (IEC 61966-2-1), without the transfer function."""
+    import colour
+
+    r = np.asarray(values, float).reshape(1, -1) / math.pi      # as f_r of a Lambertian surface
+    xyz = spectral_xyz(r, wavelengths, illuminant)[0]
+    return np.asarray(colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_encoding=False), float)
