@@ -99,7 +99,13 @@ def colour_space(name: str) -> Channels:
 def spectral(wavelengths_nm) -> Channels:
     """Channels at ``wavelengths_nm`` (a monochromator's steps)."""
     w = tuple(float(x) for x in wavelengths_nm)
-    return Channels(tuple(f"{x:g}nm" for x in w), "spectral", w)
+    channels = Channels(tuple(f"{x:g}nm" for x in w), "spectral", w)
+    _DECLARED.setdefault(channels.n, set()).add(channels)
+    return channels
+
+
+#: The spectral samplings declared so far, by channel count (:func:`of_values`).
+_DECLARED: dict = {}
 
 
 _CURRENT: contextvars.ContextVar = contextvars.ContextVar("gonio_channels", default=None)
@@ -123,13 +129,16 @@ def use(channels: Channels | None):
 
 def of_values(value) -> Channels:
     """The channels ``value`` (one number per channel) belongs to: :func:`current` where its
-    count matches, :data:`RGB` for three; ValueError for a count without wavelengths."""
+    count matches, :data:`RGB` for three, else the one spectral sampling of that count this
+    process has declared (:func:`spectral`); ValueError where there is none or several."""
     n = len(value)
     c = current()
     if n == c.n:
         return c
     if n == RGB.n:
         return RGB
+    if len(_DECLARED.get(n, ())) == 1:      # the one spectral sampling of that many wavelengths declared
+        return next(iter(_DECLARED[n]))
     raise ValueError(f"{n} per-channel values and no wavelengths for them: export a spectral fit within "
                      "gonio.core.channels.use(spectral(wavelengths))")
 

@@ -93,3 +93,17 @@ def test_colour_of_spectra_from_colour_science():
     np.testing.assert_allclose(lab2, [49.496, 0.0, 0.0], atol=1e-3)
     with pytest.raises(ValueError, match="NaN"):
         spectral_xyz(np.full((1, wl.size), np.nan), wl)
+
+
+def test_a_spectral_value_finds_its_one_declared_sampling():
+    """Outside core.channels.use (a renderer that knows nothing of spectra), a per-channel value
+    of 9 goes to Mitsuba at the one 9-wavelength sampling declared; two such: refused."""
+    from gonio.core.channels import of_values
+
+    wl = np.linspace(410.0, 690.0, 9)
+    spectral(wl)
+    d = gm.get("diffuse").to_mitsuba({"reflectance": np.full(9, 0.3)})
+    assert [w for w, _ in d["reflectance"]["value"]] == list(wl)
+    spectral(wl + 1.0)
+    with pytest.raises(ValueError, match="no wavelengths"):
+        of_values(np.full(9, 0.3))
