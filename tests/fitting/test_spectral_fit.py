@@ -107,3 +107,15 @@ def test_a_spectral_value_finds_its_one_declared_sampling():
     spectral(wl + 1.0)
     with pytest.raises(ValueError, match="no wavelengths"):
         of_values(np.full(9, 0.3))
+
+
+def test_gonio_plugins_take_a_spectrum_as_its_linear_srgb():
+    """gonio's own Mitsuba plugins hold r, g, b: a flat spectrum of 0.3 enters as 0.3 in each
+    (D65 is sRGB's white; to the 400-700 nm cut, 0.3 %), a red one as red."""
+    wl = np.arange(400.0, 701.0, 25.0)          # 13 channels
+    spectral(wl)
+    p = {"diffuse_reflectance": np.full(13, 0.3), "specular_reflectance": np.full(13, 0.1),
+         "f0": np.linspace(0.02, 0.9, 13), "roughness": 0.2}
+    d = gm.get("cooktorrance").to_mitsuba(p)
+    np.testing.assert_allclose([d[f"diffuse_reflectance_{c}"] for c in "rgb"], 0.3, rtol=3e-3)
+    assert d["f0_r"] > d["f0_g"] > d["f0_b"]

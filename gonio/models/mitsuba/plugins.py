@@ -141,13 +141,32 @@ _MAKERS: dict = {}
 
 def rgb_channels(model_name, value):
     """``zip("rgb", value)`` for a gonio plugin's per-channel properties (``name_r``, ``_g``,
-    ``_b``): ValueError for another channel count (a spectral fit), which they cannot hold."""
-    v = [float(x) for x in np.atleast_1d(value)]
-    if len(v) != 3:
-        raise ValueError(f"{model_name}: gonio's Mitsuba plugin holds three colour channels, not {len(v)}; "
-                         "export a spectral fit of a model with a native Mitsuba BSDF (diffuse, roughplastic, "
-                         "roughconductor, principled)")
-    return zip("rgb", v)
+    ``_b``; the plugins are RGB). A spectrum (a spectral fit's value, its wavelengths declared:
+    gonio.core.channels.of_values) enters as its linear sRGB under D65 (colour-science:
+    CIE 1931 2-degree observer, IEC 61966-2-1), a flat spectrum as its own value."""
+    from gonio.core.channels import of_values
+
+    v = np.atleast_1d(np.asarray(value, dtype=np.float64))
+    if v.size != 3:
+        try:
+            channels = of_values(v)
+        except ValueError as exc:
+            raise ValueError(f"{model_name}: {exc}") from None
+        v = _linear_srgb(channels.wavelengths_nm, v)
+    return zip("rgb", [float(x) for x in v])
+
+
+def _linear_srgb(wavelengths, values) -> np.ndarray:
+    """Linear sRGB of ``values`` at ``wavelengths`` (nm) taken as a reflectance under D65."""
+    import colour
+
+    shape = colour.SpectralShape(5.0 * math.ceil(wavelengths[0] / 5.0), 5.0 * math.floor(wavelengths[-1] / 5.0), 5.0)
+    grid = np.arange(shape.start, shape.end + 1e-9, 5.0)
+    rows = np.stack([np.interp(grid, wavelengths, values), np.ones(grid.size)])
+    xyz = np.asarray(colour.msds_to_XYZ(rows, colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"],
+                                        colour.SDS_ILLUMINANTS["D65"], method="Integration", shape=shape), float)
+    xyz = xyz[0] / xyz[1, 1]
+    return np.asarray(colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_encoding=False), float)
 
 
 def add_plugin(model_name, maker):
