@@ -50,8 +50,8 @@ def spectral_xyz(values, wavelengths, illuminant: str = "D65") -> np.ndarray:
         raise ValueError(f"unknown illuminant {str(illuminant)[:40]!r}; give one of D65, D50, A, F2, ...")
     w, r = _regular(wavelengths, math.pi * values)
     shape = colour.SpectralShape(float(w[0]), float(w[-1]), float(w[1] - w[0]))
-    cmfs = colour.MSDS_CMFS[OBSERVER]
-    sd = colour.SDS_ILLUMINANTS[illuminant]
+    cmfs = colour.MSDS_CMFS[OBSERVER].copy().align(shape)      # aligned here: colour-science warns otherwise
+    sd = colour.SDS_ILLUMINANTS[illuminant].copy().align(shape)
     xyz = colour.msds_to_XYZ(np.vstack([r, np.ones(w.size)]), cmfs, sd, method="Integration", shape=shape)
     xyz = np.asarray(xyz, float).reshape(-1, 3)
     return xyz[:-1] / xyz[-1, 1]     # the last row: the perfect white on the same wavelengths, Y = 1

@@ -163,8 +163,9 @@ def _linear_srgb(wavelengths, values) -> np.ndarray:
     shape = colour.SpectralShape(5.0 * math.ceil(wavelengths[0] / 5.0), 5.0 * math.floor(wavelengths[-1] / 5.0), 5.0)
     grid = np.arange(shape.start, shape.end + 1e-9, 5.0)
     rows = np.stack([np.interp(grid, wavelengths, values), np.ones(grid.size)])
-    xyz = np.asarray(colour.msds_to_XYZ(rows, colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"],
-                                        colour.SDS_ILLUMINANTS["D65"], method="Integration", shape=shape), float)
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
+    xyz = np.asarray(colour.msds_to_XYZ(rows, cmfs, colour.SDS_ILLUMINANTS["D65"].copy().align(shape),
+                                        method="Integration", shape=shape), float)
     xyz = xyz[0] / xyz[1, 1]
     return np.asarray(colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_encoding=False), float)
 
