@@ -292,10 +292,16 @@ def reference_factor(bench, settings: Mapping, cal: Mapping) -> dict:
     # Of the mean of two values: s / sqrt(2), s^2 = mean(d^2) / 2 the variance of one value
     s_rel = max(math.sqrt(float(np.mean(np.square(d))) / 2.0), 2e-4)
     u = np.asarray(y) * s_rel / math.sqrt(2.0)
-    fit = al.fit_reference_factor(ti, to, y, u)
+    # the alignment's shared angle errors move every grid point's incidence, and the signal is
+    # divided by its cosine: d ln(signal) = -tan(theta_i) d theta_i per input, the same inputs
+    # the capture's budget carries, so the factor's response to each goes with them
+    stages = np.array([[a_o, 0.0, 0.0, a_o + a_i] for a_i in FACTOR_ANGLES for a_o in FACTOR_ANGLES])
+    per_input = angle_uncertainty(cal, stages)["reference_theta_i_per_input"]      # (M, 7) deg / deg
+    shifts = -np.tan(np.radians(np.asarray(ti)))[:, None] * np.radians(per_input)
+    fit = al.fit_reference_factor(ti, to, y, u, shifts=shifts)
     return {"factor_theta_i": fit["grid_deg"], "factor_theta_o": fit["grid_deg"], "factor": fit["factor"],
             "u_factor": fit["u_factor"], "factor_a": fit["a"], "factor_b": fit["b"], "factor_cov_ab": fit["cov_ab"],
-            "factor_chi2": fit["chi2"],
+            "factor_ab_per_deg": fit["ab_shifts"], "factor_chi2": fit["chi2"],
             "factor_dof": fit["dof"]}
 
 

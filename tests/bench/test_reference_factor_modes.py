@@ -76,3 +76,47 @@ def test_a_damaged_covariance_is_refused(bad):
 
     with pytest.raises(ValueError, match="factor_cov_ab"):
         reference_factor_modes({"reference": {"factor_cov_ab": bad}}, POINTS[:, 0], POINTS[:, 1])
+
+
+def test_the_factor_fit_states_its_response_to_shared_inputs():
+    """ab_shifts is the weighted fit's change of (a, b) for each input's relative data change:
+    a refit of the shifted data moves (a, b) by it (linear in the data; to 1e-6 of the shift)."""
+    g = np.array([0.0, 20.0, 40.0, 60.0, 75.0])
+    ti, to = (v.ravel() for v in np.meshgrid(g, g, indexing="ij"))
+    y = 1.7 * reference_factor_model(ti, to, 0.05, 0.06)
+    u = 1e-3 * y
+    shifts = np.stack([-np.tan(np.radians(ti)) * np.radians(0.02), 1e-3 * np.sin(np.radians(to))], -1)
+    base = fit_reference_factor(ti, to, y, u, shifts=shifts)
+    for k in range(2):
+        moved = fit_reference_factor(ti, to, y * (1 + 1e-3 * shifts[:, k]), u * (1 + 1e-3 * shifts[:, k]))
+        want = (np.array([moved["a"], moved["b"]]) - [base["a"], base["b"]]) / 1e-3
+        np.testing.assert_allclose(base["ab_shifts"][k], want, rtol=2e-3, atol=1e-9)
+
+
+def test_the_budget_moves_values_by_the_factor_each_angle_input_left():
+    """angle_uncertainty's irradiance modes gain D(theta) (ab per degree)^T (the modes' degrees) / F
+    (the reference factor's dF / F for +1 sigma of each shared input)."""
+    from gonio.bench.measure.calpoint import SHARED_INPUTS, angle_uncertainty
+
+    stage = np.array([[20.0, 0.0, 0.0, 50.0], [40.0, 5.0, 30.0, 100.0], [60.0, -5.0, 90.0, 130.0]])
+    align = {"yaw_zero_deg": 0.0, "tilt_zero_deg": 0.0, "holder_tilt_x_deg": 0.0, "holder_tilt_y_deg": 0.0,
+             "cov_deg2": (np.diag([0.02, 0.03, 0.04, 0.05]) ** 2).tolist(), "lamp_zero_u_deg": 0.01,
+             "wedge_u_deg": 0.05}
+    ab = np.arange(14, dtype=float).reshape(7, 2) * 1e-3
+    ref = {"factor_a": 0.05, "factor_b": 0.06, "factor_ab_per_deg": ab.tolist()}
+    plain = angle_uncertainty({"alignment": align}, stage)
+    with_f = angle_uncertainty({"alignment": align, "reference": ref}, stage)
+    a = plain["angles"]
+    si2, so2 = np.sin(np.radians(a[:, 0])) ** 2, np.sin(np.radians(a[:, 2])) ** 2
+    D = np.stack([-0.5 * (si2 + so2), si2 * so2], -1)
+    F = reference_factor_model(a[:, 0], a[:, 2], 0.05, 0.06)
+    cs = np.zeros((7, 7))
+    cs[:4, :4] = align["cov_deg2"]
+    cs[4, 4], cs[5, 5], cs[6, 6] = 0.01 ** 2, 0.05 ** 2, 0.05 ** 2
+    # basis-free: the added modes' covariance is (D P / F) cs (D P / F)^T, P = ab^T
+    extra = with_f["irradiance_modes"] - plain["irradiance_modes"]
+    M = (D @ ab.T) / F[:, None]
+    np.testing.assert_allclose(extra @ extra.T, M @ cs @ M.T, rtol=1e-9, atol=1e-15)
+    assert len(SHARED_INPUTS) == 7
+    with pytest.raises(ValueError, match="factor_ab_per_deg"):
+        angle_uncertainty({"alignment": align, "reference": {**ref, "factor_ab_per_deg": [[0.0, 0.0]]}}, stage)

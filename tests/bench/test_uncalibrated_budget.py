@@ -15,7 +15,7 @@ from gonio.sim.physics.errors import spectralon_factor
 from gonio.bench import calibrate
 from gonio.bench.dataset.budget import budget_variables
 from gonio.bench.measure import systematics
-from gonio.bench.settings import default_settings
+from gonio.bench.settings import default_settings, merge_settings, validate_settings
 
 N = 6
 
@@ -87,9 +87,33 @@ def test_the_simulator_states_its_error_model():
     ti, to = 55.0, 20.0
     true = spectralon_factor(math.radians(ti), math.radians(to), 1.0)
     assert ref.factor(ti, to) == pytest.approx(true, rel=1e-12)
-    # the ideal instrument states nothing: the error-free simulator's sessions are as before
+    # the ideal instrument states zeros: leaving the table out let the capture's merge over the
+    # defaults put instrument.toml's [systematics] back (an ideal capture carried a 0.2 deg tilt)
     ideal = systematics.for_session({**default_settings(), "errors": {"preset": "ideal"}})
-    assert "systematics" not in ideal and "aperture" not in ideal and "factor_a" not in ideal["reference"]
+    assert "aperture" not in ideal and "factor_a" not in ideal["reference"]
+    sysm = validate_settings(merge_settings(default_settings(), ideal))["systematics"]
+    assert "no systematic errors" in sysm["source"]
+    assert not any(sysm["zero_deg"]) and not any(v for k, v in sysm.items()
+                                                 if isinstance(v, (int, float)) and not isinstance(v, bool))
     # a calibrated session is left as it is
     cal = {**default_settings(), "errors": "typical", "alignment": {"yaw_zero_deg": 0.0}}
     assert systematics.for_session(cal) == cal
+
+
+def test_an_ideal_capture_carries_no_systematics(tmp_path):
+    """The error-free simulator's dataset has the noise's lines only: no angle shifts, no stray
+    or non-linearity bound (before: instrument.toml's, through the capture's merge of defaults)."""
+    import xarray as xr
+
+    from gonio.bench.dataset.export import export
+    from gonio.bench.session.simulated import capture_sim
+
+    settings = {**default_settings(), "errors": {"preset": "ideal"}}
+    sample = {"model": "roughplastic", "options": {"distribution": "ggx"},
+              "params": {"diffuse_reflectance": [0.5, 0.35, 0.2], "alpha": 0.1, "int_ior": 1.5}}
+    capture_sim(tmp_path / "s", sample=sample, plan="quick", seed=3, settings=settings, progress=False)
+    with xr.open_dataset(export(tmp_path / "s")) as ds:
+        lines = {v for v in ds.data_vars if v.startswith("u_") and "gum_type" in ds[v].attrs}
+        assert not {"u_stray_light", "u_linearity"} & lines, lines
+        shifts = ds["angle_shift_shared"].values if "angle_shift_shared" in ds else None
+        assert shifts is None or not shifts.size or not shifts.any()

@@ -304,7 +304,8 @@ def reference_factor_model(theta_i_deg, theta_o_deg, a: float, b: float):
     return 1.0 - a * 0.5 * (si2 + so2) + b * si2 * so2
 
 
-def fit_reference_factor(theta_i, theta_o, signal, u_signal, grid=(0.0, 20.0, 40.0, 60.0, 75.0)) -> dict:
+def fit_reference_factor(theta_i, theta_o, signal, u_signal, grid=(0.0, 20.0, 40.0, 60.0, 75.0),
+                         shifts=None) -> dict:
     """The reference's non-Lambertian factor from its own signal across geometries.
 
     ``signal`` is the reference square's radiance per unit irradiance up to one unknown
@@ -313,6 +314,10 @@ def fit_reference_factor(theta_i, theta_o, signal, u_signal, grid=(0.0, 20.0, 40
     ``b``, their covariance, and the table ``factor`` over ``grid`` x ``grid`` (rows theta_i,
     columns theta_o) with its standard uncertainties ``u_factor`` (the
     ``[reference] factor`` form of gonio/bench/measure/point.ReferenceModel).
+
+    ``shifts`` (M, K), optional: the signal's relative change for +1 sigma of each of K inputs
+    shared by the points (the alignment's angle errors); ``ab_shifts`` (K, 2) is then the fitted
+    (a, b)'s change for each (the weighted fit's linear response).
     """
     ti, to, y, u = (np.asarray(v, float) for v in (theta_i, theta_o, signal, u_signal))
     si2, so2 = np.sin(np.radians(ti)) ** 2, np.sin(np.radians(to)) ** 2
@@ -333,5 +338,10 @@ def fit_reference_factor(theta_i, theta_o, signal, u_signal, grid=(0.0, 20.0, 40
     s2i, s2o = np.sin(np.radians(GI)) ** 2, np.sin(np.radians(GO)) ** 2
     D = np.stack([-0.5 * (s2i + s2o), s2i * s2o], -1)
     u_table = np.sqrt(np.einsum("...i,ij,...j->...", D, cov_ab, D))
-    return {"a": float(ab[0]), "b": float(ab[1]), "cov_ab": cov_ab.tolist(), "grid_deg": g.tolist(),
-            "factor": table.tolist(), "u_factor": u_table.tolist(), "chi2": chi2, "dof": dof}
+    out = {"a": float(ab[0]), "b": float(ab[1]), "cov_ab": cov_ab.tolist(), "grid_deg": g.tolist(),
+           "factor": table.tolist(), "u_factor": u_table.tolist(), "chi2": chi2, "dof": dof}
+    if shifts is not None:
+        dy = np.asarray(shifts, float) * y[:, None] / u[:, None]           # whitened data change (M, K)
+        dcoef = np.linalg.lstsq(A, dy, rcond=None)[0]                     # (3, K)
+        out["ab_shifts"] = (Jr @ dcoef).T.tolist()
+    return out

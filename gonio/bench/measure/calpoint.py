@@ -45,6 +45,10 @@ def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0)):
     return np.stack([ti, pi_, to, po], -1)
 
 
+#: the alignment's shared angle inputs, in the order of its covariance: yaw and tilt zero, holder
+#: tilt x and y (``cov_deg2``), the lamp arm's zero, the sample's wedge x and y
+SHARED_INPUTS = ("p0", "p1", "p2", "p3", "lamp", "wedge0", "wedge1")
+
 #: the axes whose lost motion gonio calibrate measures (scans both ways): alignment keys by axis
 _MEASURED_BACKLASH = {0: "backlash_yaw_deg", 1: "backlash_tilt_deg", 3: "backlash_lamp_deg"}
 
@@ -142,7 +146,7 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     a = cal.get("alignment", {})
     p = _p(cal)
     cov_p = np.asarray(a.get("cov_deg2", np.zeros((4, 4))), float)
-    shared = ["p0", "p1", "p2", "p3", "lamp", "wedge0", "wedge1"]
+    shared = list(SHARED_INPUTS)
     cs = np.zeros((7, 7))
     cs[:4, :4] = cov_p
     cs[4, 4] = float(a.get("lamp_zero_u_deg", 0.0)) ** 2
@@ -177,6 +181,25 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     for k in (shared.index("wedge0"), shared.index("wedge1")):
         Jr[:, k] = -np.tan(ti) * np.radians(Js[:, 0, k])
     irradiance = (Jr @ (V * np.sqrt(np.clip(w, 0.0, None))))[:, keep]                 # (N, K)
+    # the reference square sees the same errors but not the sample's wedge: its incidence
+    # angle's change per degree of each named shared input (gonio calibrate's factor fit divides
+    # by its cosine), and the reference factor that fit left per degree of each (``[reference]
+    # factor_ab_per_deg``, one row per name of SHARED_INPUTS) moves every value by dF / F in each
+    # mode: a relative change the budget multiplies by f_r
+    ref_theta_i = Js[:, 0, :].copy()
+    ref_theta_i[:, [shared.index("wedge0"), shared.index("wedge1")]] = 0.0
+    ab_deg = cal.get("reference", {}).get("factor_ab_per_deg")
+    if ab_deg is not None:
+        ab_deg = np.asarray(ab_deg, float)
+        if ab_deg.shape != (len(shared), 2) or not np.all(np.isfinite(ab_deg)):
+            raise ValueError(f"[reference] factor_ab_per_deg must be {len(shared)} x 2 finite numbers "
+                             f"(gonio calibrate's, one row per input {', '.join(shared)}); recalibrate")
+        si2, so2 = np.sin(np.radians(angles[:, 0])) ** 2, np.sin(np.radians(angles[:, 2])) ** 2
+        D = np.stack([-0.5 * (si2 + so2), si2 * so2], -1)
+        a_b = [float(cal["reference"].get(k, 0.0)) for k in ("factor_a", "factor_b")]
+        F = 1.0 - a_b[0] * 0.5 * (si2 + so2) + a_b[1] * si2 * so2
+        per_mode = (ab_deg.T @ (V * np.sqrt(np.clip(w, 0.0, None))))[:, keep]               # (2, K)
+        irradiance = irradiance + (D @ per_mode) / F[:, None]
     lost = [Ji[:, :, k] * (-left_b[k] * d[:, k])[:, None] for k in range(4)
             if left_b[k] > 0 and np.any(known[:, k])]                            # the sim: error -b/2 x dir
     if lost:
@@ -188,6 +211,7 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     tot = np.sqrt(np.diagonal(cov_s + cov_i, axis1=1, axis2=2))
     return {"angles": angles, "cov_shared": cov_s, "cov_independent": cov_i,
             "shared_modes": modes, "irradiance_modes": irradiance, "independent_modes": indep,
+            "reference_theta_i_per_input": ref_theta_i,
             "u_theta_i": tot[:, 0], "u_phi_i": tot[:, 1], "u_theta_o": tot[:, 2], "u_phi_o": tot[:, 3]}
 
 

@@ -42,18 +42,22 @@ def from_error_model(model) -> dict:
     level (``[stray]``, removed at capture; a rectangular bound left rho +0.5 u_c high on a
     glossy sample), the apertures (a design property, modelled by the fit) and the reference's
     non-Lambertian factor (its certificate's, ``factor_a``/``factor_b`` of gonio.sim's Spectralon
-    form) are stated, not carried. Empty tables for the ideal instrument.
+    form) are stated, not carried. The ideal instrument's table states zeros: a capture merges
+    its settings over the defaults (gonio/bench/settings.merge_settings), which put back
+    instrument.toml's [systematics] where the table was left out (an ideal capture carried a
+    0.2 deg holder tilt and a stray bound 260 times its noise; its adequacy statistic fell to
+    0.6 of its dof).
     """
     st, al, ap = model.stages, model.alignment, model.aperture
     sysm = {"zero_deg": [float(v) for v in st.zero_deg], "holder_tilt_deg": float(al.tilt_deg),
             "wedge_deg": float(al.wedge_deg), "repeat_deg": float(st.repeat_deg),
-            "backlash_deg": float(st.backlash_deg), "linearity_gamma": float(model.linearity.gamma)}
-    if sysm["linearity_gamma"]:
-        sysm["linearity_compressive"] = True        # the simulator's DN - black go as s (1 - gamma s)
-    out = {}
-    if any(v for k, v in sysm.items() if k != "zero_deg") or any(sysm["zero_deg"]):
-        out["systematics"] = {**sysm, "source": f"gonio.sim error model, preset {model.preset!r} "
-                                                "(gonio/sim/physics/errors.py: NIST STARR, PTB, Zaber, EMVA 1288)"}
+            "backlash_deg": float(st.backlash_deg), "linearity_gamma": float(model.linearity.gamma),
+            "linearity_compressive": bool(model.linearity.gamma),   # the simulator's DN - black go as s (1 - gamma s)
+            "stray_floor": 0.0}                        # stated as [stray] below, not carried as a bound
+    active = any(v for k, v in sysm.items() if k not in ("zero_deg", "linearity_compressive")) or any(sysm["zero_deg"])
+    out = {"systematics": {**sysm, "source": f"gonio.sim error model, preset {model.preset!r} "
+                                             + ("(gonio/sim/physics/errors.py: NIST STARR, PTB, Zaber, EMVA 1288)"
+                                                if active else "(no systematic errors)")}}
     if ap.source_half_deg or ap.detector_half_deg:
         out["aperture"] = {"source_half_deg": float(ap.source_half_deg),
                            "detector_half_deg": float(ap.detector_half_deg), "profile": "uniform disk"}
