@@ -26,6 +26,11 @@ What a driver must know (homing, native units, the clock, checksums, camera, met
 #   an exposure advances the clock by its duration; a read that waits for missing bytes advances
 #   it by the port timeout. Nothing sleeps. SimClock("scaled", scale=s) runs in (scaled) wall
 #   time.
+# * Several settings in one get (zaber-motion's get_many / get_synchronized): "/1 0 get 2 maxspeed
+#   pos" -> "@01 0 OK IDLE -- 65536 ; 0", the settings' values separated by ";" (get.settings.max
+#   12); moves take their own speed and acceleration: "move abs POS SPEED ACCEL".
+# * Each port is its own device: one device's slow answer (meter averaging, camera exposing)
+#   never delays another's; with a scaled clock an alert leaves when its motion ends.
 # * Replies carry :CC only after "set comm.checksum 1" (and in the bad_checksum fault); a command
 #   with a wrong :CC gets RJ ... BADDATA.
 # * Camera: SENSOR? -> "64 48 14 512 16383 RGGB"; gain 2 e-/DN, read noise 3 e-, dark current

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import math
 import threading
+import time
 from collections import OrderedDict
 
 import numpy as np
@@ -110,6 +111,8 @@ class Instrument:
         self.seed = int(seed)
         self.clock = SimClock.coerce(clock)
         self.lock = threading.RLock()
+        self._waiting = threading.Condition(self.lock)
+        self.clock.sleep = self.wait        # a device that waits lets the others go on
         self.name: str | None = None
 
         ax = self.settings["axes"]
@@ -155,6 +158,22 @@ class Instrument:
         self._radiance = OrderedDict()
         self._frame_key = None
         self._frame_count = 0
+
+    def wait(self, seconds: float) -> None:
+        """Wait ``seconds`` of wall time (a scaled clock's ``advance``: a meter averaging, a camera
+        exposing), letting go of the instrument's lock meanwhile when this thread holds it: the
+        other devices answer while one waits (each port serialises its own lines; see
+        :mod:`gonio.sim.devices.port`)."""
+        end = time.monotonic() + float(seconds)
+        while True:
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            try:
+                self._waiting.wait(left)        # releases the (re-entrant) lock, however deep
+            except RuntimeError:                # this thread does not hold it
+                time.sleep(left)
+                return
 
     # ------------------------------------------------------------------ registry
     def register(self, name: str) -> "Instrument":

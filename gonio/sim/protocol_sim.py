@@ -86,10 +86,9 @@ class Serial(SerialBase):
 
     @property
     def in_waiting(self):
-        with self._ep.inst.lock if self.is_open else _Null():
-            self._alive()
-            self._ep.poll()
-            return len(self._ep.out)
+        self._alive()
+        self._ep.poll()
+        return self._ep.pending()
 
     def read(self, size=1):
         def take(got, out):
@@ -125,20 +124,25 @@ class Serial(SerialBase):
         return self._read(take)
 
     def _read(self, take):
-        """The reads' loop: under the instrument's lock, with the alerts that came due
-        queued, ``take(got, waiting)`` says how many of the waiting bytes to take and whether
-        the read is then complete; if not, wait (:meth:`_wait`) and look again."""
+        """The reads' loop: with the alerts that came due queued, ``take(got, waiting)`` says
+        how many of the waiting bytes to take and whether the read is then complete (under the
+        port's reply-buffer lock only: a read never waits for another port's device); if not,
+        wait (:meth:`_wait`) and look again."""
         self._alive()
         ep = self._ep
         got = bytearray()
         deadline = None if self._timeout is None else time.monotonic() + self._timeout
         while True:
-            with ep.inst.lock:
-                self._alive()
-                ep.poll()
-                n, done = take(got, ep.out)
-                got += ep.take(n)
-            if done or not self._wait(deadline):
+            self._alive()
+            ep.poll()
+            state = {}
+
+            def count(out):
+                n, state["done"] = take(got, out)
+                return n
+
+            got += ep.take_with(count)
+            if state["done"] or not self._wait(deadline):
                 return bytes(got)
 
     def _wait(self, deadline) -> bool:
@@ -168,8 +172,7 @@ class Serial(SerialBase):
 
     def reset_input_buffer(self):
         self._alive()
-        with self._ep.inst.lock:
-            self._ep.out.clear()
+        self._ep.take_with(len)
 
     def reset_output_buffer(self):
         self._alive()
@@ -210,10 +213,3 @@ class Serial(SerialBase):
     def cd(self):
         return True
 
-
-class _Null:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False

@@ -8,8 +8,12 @@ EIO / a hang-up), removes the link and, ``duration`` seconds later (wall time di
 clock scale; real seconds for an instant clock), re-creates it under a new ``/dev/pts/N``
 with the link re-pointed, as udev does for a USB adapter that re-enumerates.
 
-One thread runs a ``select`` loop over the three masters; bytes go through the same
-``PortEndpoint`` as the ``sim://`` transport, so replies are byte-identical.
+Each port is served by its own thread (its own ``select`` loop over its master), as each
+device on a real rig answers on its own: a meter that averages for seconds delays only its own
+replies, never the stage chain's. Bytes go through the same ``PortEndpoint`` as the ``sim://``
+transport, so replies are byte-identical. A port's loop sleeps no longer than until the next
+spontaneous line comes due (``PortEndpoint.next_due``: a motion's end, for its alert), so an
+alert leaves within a few milliseconds of the motion's end.
 """
 
 from __future__ import annotations
@@ -53,7 +57,7 @@ class PtyServer:
         self.dropped: dict[str, int] = {}               # port -> bytes dropped for a client that does not read
         self._back_at: dict[str, float] = {}            # vanished port -> wall time it returns
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._threads: dict[str, threading.Thread] = {}     # port -> its serving thread
         try:
             for name, ep in instrument.ports.items():
                 self._open(name)
@@ -147,45 +151,65 @@ class PtyServer:
         if out:
             self._pending[name] = out
 
-    def run(self) -> None:
-        """Serve until ``stop()`` (blocking)."""
+    #: longest a port's loop sleeps between looks at its vanish schedule and its replies, s
+    IDLE_S = 0.05
+
+    def _serve_port(self, name: str) -> None:
+        """One port's loop, in its own thread: reopen or close its pty as the ``vanish`` fault
+        says, send what its device queued (alerts of motions that ended in real time), wait for
+        bytes from its client (no longer than until its next alert is due) and feed them."""
+        ep = self.instrument.ports[name]
         while not self._stop.is_set():
-            now = time.monotonic()
-            for name, t in list(self._back_at.items()):
-                if now >= t and name not in self._fds:
-                    del self._back_at[name]
-                    ep = self.instrument.ports[name]
+            back = self._back_at.get(name)
+            if back is not None:
+                now = time.monotonic()
+                if now < back:
+                    if name in self._fds:
+                        self._close(name)
+                    self._stop.wait(min(self.IDLE_S, back - now))
+                    continue
+                if name not in self._fds:
+                    self._back_at.pop(name, None)
                     with self.instrument.lock:
                         ep.vanished_until = None
                     self._open(name)
-                elif name in self._fds and self._back_at.get(name) is not None and now < t:
-                    self._close(name)
-            for name in list(self._fds):
-                self._flush(name)            # alerts of motions that ended in real time
-            masters = {fds[0]: name for name, fds in self._fds.items()}
-            if not masters:
-                time.sleep(0.01)
+            fds = self._fds.get(name)
+            if fds is None:
+                self._stop.wait(0.01)
                 continue
+            self._flush(name)
+            due = ep.next_due()
+            timeout = self.IDLE_S if due is None else min(self.IDLE_S, max(1e-3, due))
             try:
-                ready, _, _ = select.select(list(masters), [], [], 0.05)
+                ready, _, _ = select.select([fds[0]], [fds[0]] if name in self._pending else [], [], timeout)
             except (OSError, ValueError):
+                self._stop.wait(0.01)
                 continue
-            for fd in ready:
-                name = masters[fd]
-                if name in self._fds:
-                    self._pump(name)
+            if ready and name in self._fds:
+                self._pump(name)
 
     def start(self) -> "PtyServer":
-        """Serve in a daemon thread; returns self."""
-        self._thread = threading.Thread(target=self.run, name="gonio-sim-pty", daemon=True)
-        self._thread.start()
+        """Serve every port in its own daemon thread; returns self."""
+        for name in self.instrument.ports:
+            if name not in self._threads:
+                t = threading.Thread(target=self._serve_port, args=(name,), name=f"gonio-sim-pty-{name}",
+                                     daemon=True)
+                self._threads[name] = t
+                t.start()
         return self
+
+    def run(self) -> None:
+        """Serve until ``stop()`` (blocking; the ports are served by their own threads)."""
+        self.start()
+        while not self._stop.wait(0.2):
+            pass
 
     def stop(self) -> None:
         """Stop serving and close the ptys."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+        for t in list(self._threads.values()):
+            if t is not threading.current_thread():
+                t.join(timeout=2.0)
         for name in list(self._fds):
             self._close(name)
         for ep in self.instrument.ports.values():

@@ -158,18 +158,22 @@ def test_led_with_a_bad_flux_max_is_refused():
 
 # -- waiting for a move by its alerts (issue 17) ----------------------------------------------
 
+#: ``enable_alerts`` reads the device's ``comm.alert`` first, to give it back on close (issue 40)
+GET_ALERT = (cmd(1, 0, 0, "get comm.alert"), "@01 0 00 OK IDLE -- 0\r\n")
+
+
 def test_a_move_is_waited_for_by_its_alerts_read_between_other_replies():
     """``set comm.alert 1``, then ``wait_idle``: one poll (BUSY), the alert of axis 3 read after
     it (past a late reply, an info line and device 2's alert), a poll (BUSY: axis 1 still
     moves), axis 1's alert, a poll (IDLE). An alert read before the first poll (here between
     the packets of ``get pos``) is older than its BUSY and ends nothing. No poll sleeps."""
     ex = expect("w1", [
-        (cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n"),
-        (cmd(1, 0, 1, "get pos"), "!01 2 IDLE --\r\n@01 0 01 OK BUSY -- 1 2 3 4\r\n"),
-        (cmd(1, 0, 2), "@01 0 02 OK BUSY -- 0\r\n@01 0 17 OK IDLE -- 0\r\n#01 0 info\r\n!02 1 IDLE --\r\n"
+        GET_ALERT, (cmd(1, 0, 1, "set comm.alert 1"), "@01 0 01 OK IDLE -- 0\r\n"),
+        (cmd(1, 0, 2, "get pos"), "!01 2 IDLE --\r\n@01 0 02 OK BUSY -- 1 2 3 4\r\n"),
+        (cmd(1, 0, 3), "@01 0 03 OK BUSY -- 0\r\n@01 0 17 OK IDLE -- 0\r\n#01 0 info\r\n!02 1 IDLE --\r\n"
                        + sealed("!", "01 3 IDLE --")),
-        (cmd(1, 0, 3), "@01 0 03 OK BUSY -- 0\r\n!01 1 IDLE --\r\n"),
-        (cmd(1, 0, 4), "@01 0 04 OK IDLE -- 0\r\n"),
+        (cmd(1, 0, 4), "@01 0 04 OK BUSY -- 0\r\n!01 1 IDLE --\r\n"),
+        (cmd(1, 0, 5), "@01 0 05 OK IDLE -- 0\r\n"),
     ])
     z = ZaberChain("expect://w1")
     assert z.enable_alerts(1) and z.alerting == {1}
@@ -184,9 +188,9 @@ def test_a_lost_alert_falls_back_to_a_poll_and_a_cut_alert_is_completed():
     between them) and polled again once it was silent for its timeout. An alert cut by a
     window's end is completed by the next read, not taken for a garbled reply."""
     ex = expect("w2", [
-        (cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n"),
-        (cmd(1, 0, 1), "@01 0 01 OK BUSY -- 0\r\n!01 1 ID"),
-        (cmd(1, 0, 2), "LE --\r\n@01 0 02 OK IDLE -- 0\r\n"),
+        GET_ALERT, (cmd(1, 0, 1, "set comm.alert 1"), "@01 0 01 OK IDLE -- 0\r\n"),
+        (cmd(1, 0, 2), "@01 0 02 OK BUSY -- 0\r\n!01 1 ID"),
+        (cmd(1, 0, 3), "LE --\r\n@01 0 03 OK IDLE -- 0\r\n"),
     ])
     z = ZaberChain("expect://w2", timeout=0.5)
     z.enable_alerts(1)
@@ -198,15 +202,15 @@ def test_a_lost_alert_falls_back_to_a_poll_and_a_cut_alert_is_completed():
 def test_alerts_rejected_or_a_stage_that_never_stops():
     """A device that rejects ``comm.alert`` is polled as before; with alerts on, a stage BUSY
     past the budget (silent windows counted, not wall time) is a `CommunicationError`."""
-    expect("w3", [(cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 RJ IDLE -- BADCOMMAND\r\n"),
-                  (cmd(1, 0, 1), "@01 0 01 OK BUSY -- 0\r\n"), (cmd(1, 0, 2), "@01 0 02 OK IDLE -- 0\r\n")])
+    expect("w3", [GET_ALERT, (cmd(1, 0, 1, "set comm.alert 1"), "@01 0 01 RJ IDLE -- BADCOMMAND\r\n"),
+                  (cmd(1, 0, 2), "@01 0 02 OK BUSY -- 0\r\n"), (cmd(1, 0, 3), "@01 0 03 OK IDLE -- 0\r\n")])
     z = ZaberChain("expect://w3")
     slept = []
     assert not z.enable_alerts(1) and z.alerting == set()
     assert z.wait_idle(1, timeout_s=1.0, poll_interval_s=0.1, sleep=slept.append).status == "IDLE"
     assert slept == [0.1]
-    expect("w4", [(cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n")]
-           + [(cmd(1, 0, k), f"@01 0 {k:02d} OK BUSY -- 0\r\n!01 1 IDLE --\r\n") for k in range(1, 12)])
+    expect("w4", [GET_ALERT, (cmd(1, 0, 1, "set comm.alert 1"), "@01 0 01 OK IDLE -- 0\r\n")]
+           + [(cmd(1, 0, k), f"@01 0 {k:02d} OK BUSY -- 0\r\n!01 1 IDLE --\r\n") for k in range(2, 13)])
     z = ZaberChain("expect://w4", timeout=0.2)
     z.enable_alerts(1)
     with pytest.raises(CommunicationError, match="still moving after 0.5 s"):
@@ -217,9 +221,24 @@ def test_a_device_that_only_sends_other_lines_cannot_keep_the_wait_going():
     """BUSY, then only late replies (never this device's alert, never silence): each round of
     64 skipped lines ends in a poll, and the polls count against the budget."""
     junk = "@01 0 77 OK IDLE -- 0\r\n" * 70
-    expect("w5", [(cmd(1, 0, 0, "set comm.alert 1"), "@01 0 00 OK IDLE -- 0\r\n")]
-           + [(cmd(1, 0, k), f"@01 0 {k:02d} OK BUSY -- 0\r\n" + junk) for k in range(1, 12)])
+    expect("w5", [GET_ALERT, (cmd(1, 0, 1, "set comm.alert 1"), "@01 0 01 OK IDLE -- 0\r\n")]
+           + [(cmd(1, 0, k), f"@01 0 {k:02d} OK BUSY -- 0\r\n" + junk) for k in range(2, 13)])
     z = ZaberChain("expect://w5")
     z.enable_alerts(1)
     with pytest.raises(CommunicationError, match="still moving"):
         z.wait_idle(1, timeout_s=0.5, poll_interval_s=0.05, sleep=lambda s: None)
+
+
+def test_close_gives_comm_alert_back():
+    """Issue 40: ``close`` sets ``comm.alert`` back to what the device had before
+    ``enable_alerts`` (0 here); a device that alerted already, or that rejected it, is left as it
+    was; a reconnect gives nothing back (the devices keep their settings)."""
+    ex = expect("a1", [GET_ALERT, (cmd(1, 0, 1, "set comm.alert 1"), "@01 0 01 OK IDLE -- 0\r\n"),
+                       (cmd(2, 0, 2, "get comm.alert"), "@02 0 02 OK IDLE -- 1\r\n"),
+                       (cmd(2, 0, 3, "set comm.alert 1"), "@02 0 03 OK IDLE -- 0\r\n"),
+                       (cmd(1, 0, 4, "set comm.alert 0"), "!01 1 IDLE --\r\n@01 0 04 OK IDLE -- 0\r\n")])
+    z = ZaberChain("expect://a1")
+    assert z.enable_alerts(1) and z.enable_alerts(2)
+    z.reconnect()
+    z.close()
+    assert ex.done() and z.alerting == {2}

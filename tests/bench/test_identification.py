@@ -30,8 +30,8 @@ def test_capture_journals_the_identification(tmp_path):
     ident = found[0]
     stage, led = ident["zaber"]
     assert (stage["address"], stage["device_id"], stage["serial"], stage["firmware"], stage["build"], stage["axes"]) \
-        == (1, "30342", "91001", "7.38", "18426", 4)
-    assert stage["peripheral_ids"] == ["43211"] * 4
+        == (1, "30342", "91001", "7.38", "15708", 4)
+    assert stage["peripheral_ids"] == ["0"] * 4           # no rotary product has the settings' 720000/turn
     assert (led["address"], led["device_id"], led["serial"], led["axes"]) == (2, "30311", "92001", 1)
     assert ident["meter"] == "Thorlabs,PM100D,P0000001,2.8.0"
     assert ident["camera"] == "gonio,SimCamera,SIM00001,0.1.0"
@@ -120,7 +120,7 @@ def test_session_toml_records_every_devices_identification(sim_instrument, tmp_p
     assert dev["camera"] == "gonio,SimCamera,SIM00001,0.1.0"
     assert dev["zaber_port"] == inst.url("zaber") and dev["meter_port"] == inst.url("meter")
     assert dev["zaber"]["1"] == {"address": 1, "device_id": "30342", "serial": "91001", "firmware": "7.38",
-                                 "build": "18426", "axes": 4, "peripheral_ids": ["43211"] * 4}
+                                 "build": "15708", "axes": 4, "peripheral_ids": ["0"] * 4}
     assert (dev["zaber"]["2"]["device_id"], dev["zaber"]["2"]["serial"], dev["zaber"]["2"]["axes"]) == ("30311", "92001", 1)
     (journalled,) = _events(folder, "identification")          # asked once, before session.toml
     assert _identify.session_devices(json.loads(journalled)) == dev

@@ -64,8 +64,8 @@ def test_devices_identifies_every_device(inst, capsys):
     assert rc == 0, err
     lines = out.splitlines()
     assert lines[0].endswith(": 2 devices")
-    assert ("device 1: device id 30342, serial 91001, firmware 7.38 build 18426, 4 axes "
-            "(peripheral ids 43211 43211 43211 43211); stages: yaw on axis 1") in lines[1]
+    assert ("device 1: device id 30342, serial 91001, firmware 7.38 build 15708, 4 axes "
+            "(peripheral ids 0 0 0 0); stages: yaw on axis 1") in lines[1]
     assert lines[2].startswith("  device 2: device id 30311, serial 92001") and lines[2].endswith("LED source")
     assert lines[3] == f"meter {url(inst, 'meter')}: Thorlabs,PM100D,P0000001,2.8.0"
     assert lines[4] == f"camera {url(inst, 'camera')}: gonio,SimCamera,SIM00001,0.1.0 (64 x 48 pixels, 14 bits, RGGB)"

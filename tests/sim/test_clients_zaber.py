@@ -53,10 +53,10 @@ def test_detect_and_identification_settings(served):
         d1, d2 = devs
         ask = lambda d, text, axis=0: d.generic_command(text, axis=axis).data   # noqa: E731
         assert (ask(d1, "get deviceid"), ask(d1, "get system.serial"), ask(d1, "get version"),
-                ask(d1, "get version.build")) == ("30342", "91001", "7.38", "18426")
+                ask(d1, "get version.build")) == ("30342", "91001", "7.38", "15708")
         assert ask(d1, "get system.axiscount") == "4" and ask(d1, "get comm.packet.size.max") == "80"
-        assert ask(d1, "get resolution", 2) == "64" and ask(d1, "get peripheralid", 3) == "43211"
-        assert ask(d1, "get peripheral.id", 1) == "43211"
+        assert ask(d1, "get resolution", 2) == "64" and ask(d1, "get peripheralid", 3) == "0"
+        assert ask(d1, "get peripheral.id", 1) == "0"
         assert ask(d2, "get deviceid") == "30311" and ask(d2, "get peripheralid", 1) == "58001"
 
 
@@ -72,19 +72,9 @@ class _DbSpy(http.server.BaseHTTPRequestHandler):
         pass
 
 
-def test_identify_asks_the_device_database_with_the_sims_ids(served):
-    """identify() reads every identification setting, then looks the product up in Zaber's
-    device database; offline, a local spy stands in for the web service and records the lookup,
-    which carries the simulator's device id, firmware and peripheral ids.
-
-    identify() cannot pass offline without Zaber's own data: the web service is
-    ``GET https://api.zaber.io/device-db/v2/public/device/30342?fw=7.38.18426&peripheral-id=43211``
-    (the peripheral id once per axis); the offline source (``DeviceDbSourceType.FILE``) is
-    Zaber's published SQLite file ``devices-public.sqlite`` (zaber-motion first reads its table
-    ``SwWeb_SchemaVersion``), not on this machine nor in any package; the store
-    (``enable_device_db_store``) only keeps answers fetched online before. The simulator's ids
-    are invented, so even that file would have to list a product with them."""
-    srv = served()
+def _db_lookups(srv, device=1):
+    """The device-database lookups zaber-motion makes to identify ``device`` (a local spy
+    stands in for Zaber's web service, which answers nothing: identify() then fails)."""
     httpd = http.server.HTTPServer(("127.0.0.1", 0), _DbSpy)
     threading.Thread(target=httpd.serve_forever, daemon=True).start()
     _DbSpy.paths = []
@@ -92,12 +82,31 @@ def test_identify_asks_the_device_database_with_the_sims_ids(served):
     try:
         with _open(srv) as c:
             with pytest.raises(DeviceDbFailedException):
-                c.get_device(1).identify()
+                c.get_device(device).identify()
     finally:
         Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE)
         httpd.shutdown()
     assert _DbSpy.paths, "zaber-motion never reached the device database"
-    assert _DbSpy.paths[0] == "/db/device/30342?fw=7.38.18426" + "&peripheral-id=43211" * 4
+    return _DbSpy.paths
+
+
+def test_identify_asks_the_device_database_with_the_sims_ids(served):
+    """identify() reads every identification setting, then looks the product up in Zaber's
+    device database with the device id, firmware and each axis's peripheral id. The controller
+    is an X-MCC4 (30342, firmware 7.38 build 15708: Zaber's own test data); an axis reports the
+    rotary peripheral whose microstep grid its ``limit.cycle.dist`` is (46657: 2 304 000 per
+    turn), else 0, no peripheral: zaber-motion then converts nothing rather than convert the
+    wrong product's units (issue 40: the simulator reported 43211, Zaber's X-LHM linear stage).
+
+    identify() cannot pass offline without Zaber's own data: the web service is
+    ``GET https://api.zaber.io/device-db/v2/public/device/30342?fw=7.38.15708&peripheral-id=...``
+    (the peripheral id once per axis); the offline source (``DeviceDbSourceType.FILE``) is
+    Zaber's published SQLite file ``devices-public.sqlite`` (zaber-motion first reads its table
+    ``SwWeb_SchemaVersion``), not on this machine nor in any package; the store
+    (``enable_device_db_store``) only keeps answers fetched online before."""
+    assert _db_lookups(served())[0] == "/db/device/30342?fw=7.38.15708" + "&peripheral-id=0" * 4
+    rsw = served(settings={"axes": {"cycle_dist": 2_304_000}})
+    assert _db_lookups(rsw)[0] == "/db/device/30342?fw=7.38.15708" + "&peripheral-id=46657" * 4
 
 
 def test_identify_offline_sources_need_zabers_database(served, tmp_path):

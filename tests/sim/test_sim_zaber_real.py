@@ -27,15 +27,22 @@ def test_identification(make):
         (b"/1 0 get deviceid", b"@01 0 OK IDLE WR 30342\r\n"),
         (b"/1 0 get system.serial", b"@01 0 OK IDLE WR 91001\r\n"),
         (b"/1 0 get version", b"@01 0 OK IDLE WR 7.38\r\n"),
-        (b"/1 0 get version.build", b"@01 0 OK IDLE WR 18426\r\n"),
-        (b"/1 0 get get.settings.max", b"@01 0 OK IDLE WR 6\r\n"),
+        (b"/1 0 get version.build", b"@01 0 OK IDLE WR 15708\r\n"),
+        (b"/1 0 get get.settings.max", b"@01 0 OK IDLE WR 12\r\n"),
         (b"/1 2 get resolution", b"@01 2 OK IDLE WR 64\r\n"),
-        (b"/1 0 get peripheralid", b"@01 0 OK IDLE WR 43211 43211 43211 43211\r\n"),
-        (b"/1 1 get peripheral.id", b"@01 1 OK IDLE WR 43211\r\n"),
+        (b"/1 0 get peripheralid", b"@01 0 OK IDLE WR 0 0 0 0\r\n"),      # no product has 720000/turn
+        (b"/1 1 get peripheral.id", b"@01 1 OK IDLE WR 0\r\n"),
         (b"/1 1 get deviceid", b"@01 1 RJ IDLE WR DEVICEONLY\r\n"),
         (b"/1 0 set deviceid 5", b"@01 0 RJ IDLE WR BADCOMMAND\r\n"),
-        (b"/1 1 get pos limit.max maxspeed", b"@01 1 OK IDLE WR 0 190000 65536\r\n"),
-        (b"/1 1 get pos pos pos pos pos pos pos", b"@01 1 RJ IDLE WR BADDATA\r\n"),
+        (b"/1 1 get pos limit.max maxspeed", b"@01 1 OK IDLE WR 0 ; 190000 ; 65536\r\n"),
+        # issue 40: multi-get as zaber-motion sends it (axis runs on axis 0), settings split by ";"
+        (b"/1 0 get 2 maxspeed pos", b"@01 0 OK IDLE WR 65536 ; 0\r\n"),
+        (b"/1 0 get deviceid 1 2 limit.max 4 pos", b"@01 0 OK IDLE WR 30342 ; 190000 176000 ; 0\r\n"),
+        (b"/1 0 get 5 pos", b"@01 0 RJ IDLE WR BADAXIS\r\n"),
+        (b"/1 0 get pos 2", b"@01 0 RJ IDLE WR BADCOMMAND\r\n"),
+        (b"/1 1 get 2 pos", b"@01 1 RJ IDLE WR BADCOMMAND\r\n"),
+        (b"/1 0 get 2 deviceid", b"@01 0 RJ IDLE WR DEVICEONLY\r\n"),
+        (b"/1 1 get " + b"pos " * 12 + b"pos", b"@01 1 RJ IDLE WR BADDATA\r\n"),
         (b"/2 0 get deviceid", b"@02 0 OK IDLE -- 30311\r\n"),
         (b"/0 0 get system.serial", b"@01 0 OK IDLE WR 91001\r\n@02 0 OK IDLE -- 92001\r\n"),
     ])
@@ -121,3 +128,18 @@ def test_na_vel_driver_parking(make):
     exchange(z, [(b"/1 3 tools parking unpark", b"@01 3 OK IDLE -- 0\r\n"),   # axis 3 kept its reference
                  (b"/1 3 warnings", b"@01 3 OK IDLE -- 00\r\n"),
                  (b"/1 1 warnings", b"@01 1 OK IDLE WR 02 WR WH\r\n")])
+
+
+def test_move_with_speed_and_acceleration_bounds(make):
+    """Issue 40: ``move abs|rel POS [SPEED [ACCEL]]``, ``move min|max [SPEED [ACCEL]]``,
+    ``move vel SPEED [ACCEL]`` (native units; 0 keeps the axis's setting); a negative or
+    too-large value, or a word too many, is BADDATA and nothing moves."""
+    inst, z = _homed(make)
+    exchange(z, [(b"/1 2 move abs 1000 -5", b"@01 2 RJ IDLE -- BADDATA\r\n"),
+                 (b"/1 2 move abs 1000 5 1000001", b"@01 2 RJ IDLE -- BADDATA\r\n"),
+                 (b"/1 2 move abs 1000 5 5 5", b"@01 2 RJ IDLE -- BADDATA\r\n"),
+                 (b"/1 2 move max 5 5 5", b"@01 2 RJ IDLE -- BADDATA\r\n"),
+                 (b"/1 2 get pos", b"@01 2 OK IDLE -- 0\r\n"),
+                 (b"/1 2 move rel 1000 0 0", b"@01 2 OK BUSY -- 0\r\n")])
+    a = inst.axes[1]
+    assert (a.maxspeed, a.accel) == (40000, 80000)

@@ -28,6 +28,10 @@ send (they never send ``move rel``).
 # commands, is kept for it) and a poll to confirm; a silent port for the port's timeout also
 # polls (an alert lost on the line only delays the wait).
 #
+# Settings the driver changes on a device are given back when it closes the port: comm.alert
+# (enable_alerts) goes back to what the device had: a device keeps the setting when the host
+# closes its port, and the next program on the chain would read alerts among its replies.
+#
 # Resending is safe for absolute moves, homing, gets, sets and lamp on/off; it would not be
 # for move rel, which the drivers never send.
 
@@ -39,7 +43,7 @@ from typing import Callable
 
 import serial
 
-from gonio.core.errors import CommunicationError, FaultError, RejectedError
+from gonio.core.errors import CommunicationError, FaultError, GonioError, RejectedError
 from gonio.bench.drivers.identify import zaber_device
 from gonio.bench.drivers.serialport import SerialDevice
 from gonio.bench.drivers.zaber_protocol import (FLAG_MEANINGS, REJECT_MEANINGS, Reply, format_command, parse_continuation, parse_reply)
@@ -92,15 +96,38 @@ class ZaberChain(SerialDevice):
         self.on_warning = on_warning
         self.retries_used = 0                 # resends after a silent or garbled reply (all time)
         self.warnings_seen: list[tuple[int, str]] = []
-        self.alerting: set[int] = set()       # devices whose alerts are on (`enable_alerts`)
-        self._alerted: set[int] = set()       # devices an alert was read from since their last poll
+        # (sets of device numbers; not annotated set[int]: in this class `set` is the method below,
+        # and the API reference's pdoc reads the annotation in the class's namespace)
+        self.alerting = set()                 # devices whose alerts are on (`enable_alerts`)
+        self._alerted = set()                 # devices an alert was read from since their last poll
         self._partial = b""                   # a line cut by an alert window's end, completed next read
+        self._restore: dict[int, str] = {}    # device -> the comm.alert it had before enable_alerts
+        self._reconnecting = False
         self._msgid = -1
         self.open()
 
     def reconnect(self) -> None:
         self._partial = b""                   # a cut line of the old port is never completed
-        super().reconnect()
+        self._reconnecting = True             # the devices keep their settings over a reconnect
+        try:
+            super().reconnect()
+        finally:
+            self._reconnecting = False
+
+    def close(self) -> None:
+        """Give each device back the ``comm.alert`` it had before `enable_alerts` turned it on
+        (a device keeps the setting after the port closes: the next program on the chain would
+        get alerts among its replies), then close the port. One try per device, no retries: a
+        device that does not answer keeps alerting, and the port closes all the same."""
+        if not self._reconnecting:
+            for device, value in list(self._restore.items()):
+                try:
+                    self._exchange(device, 0, f"set comm.alert {value}")
+                except (_NoReply, _Garbled, GonioError):
+                    pass
+                self.alerting.discard(device)
+            self._restore.clear()
+        super().close()
 
     # -- one exchange --------------------------------------------------------------------
     def _next_msgid(self) -> int:
@@ -322,13 +349,18 @@ class ZaberChain(SerialDevice):
     def enable_alerts(self, device: int) -> bool:
         """``set comm.alert 1``: the device then sends ``!DD A IDLE WARN`` when a motion of an
         axis ends, which `wait_idle` waits for. False (the device is polled) where it rejects it
-        or does not answer."""
+        or does not answer. The value the device had (``get comm.alert``) is given back by
+        `close`."""
         try:
+            before = self.request(device, 0, "get comm.alert", check=False)
             reply = self.request(device, 0, "set comm.alert 1", check=False)
         except CommunicationError:
             reply = None
         if reply is not None and reply.ok:
             self.alerting.add(device)
+            was = before.data.strip() if before.ok else "0"
+            if was != "1" and device not in self._restore:
+                self._restore[device] = "0"
         else:
             self.alerting.discard(device)
         return device in self.alerting

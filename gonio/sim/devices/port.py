@@ -12,6 +12,14 @@ Both buffers are bounded, as a device's are. An input line longer than the serve
 the host in at most ``MAX_OUT`` bytes: a reply line that does not fit is dropped whole (a
 host that writes without reading loses answers, as with a full tty buffer, and the process's
 memory stays bounded); ``overrun`` counts the lines dropped.
+
+Each port is its own device (issue 40): ``lock`` serialises that port's lines (a device answers
+one command at a time), the instrument's lock guards only the physics the devices share while a
+line executes, and a device that takes time (a meter averaging, a camera exposing) lets go of
+the instrument's lock while it waits (``Instrument``'s clock sleeps through
+:meth:`Instrument.wait`): one device's slow answer never holds another's. The reply buffer has a
+lock of its own that guards nothing else (readers of one port never wait for another's line).
+Lock order: a port's ``lock``, then the instrument's, then a reply buffer's.
 """
 
 from __future__ import annotations
@@ -19,6 +27,7 @@ from __future__ import annotations
 import math
 import re
 import string
+import threading
 
 __all__ = ["PortEndpoint", "PortVanished"]
 
@@ -68,7 +77,10 @@ class PortEndpoint:
         self.overrun = 0                  # reply lines dropped: the host did not read them
         self._in = bytearray()            # the line being received (at most max_line bytes)
         self._long = False                # it is longer than max_line: the rest is dropped
+        self._in_generation = 0           # the generation ``_in`` was received in
         self.out = bytearray()
+        self.lock = threading.RLock()     # one line at a time on this port
+        self.out_lock = threading.Lock()  # ``out`` only (a leaf: nothing is taken while held)
 
     # ------------------------------------------------------------------ presence
     def present(self) -> bool:
@@ -81,12 +93,12 @@ class PortEndpoint:
         return False
 
     def vanish(self, duration: float) -> None:
-        """Make the port disappear for ``duration`` simulated seconds."""
+        """Make the port disappear for ``duration`` simulated seconds (the line being received
+        is dropped by the port's next ``feed``: another port's fault may vanish this one)."""
         self.generation += 1
         self.vanished_until = self.inst.clock.now() + float(duration)
-        self._in.clear()
-        self._long = False
-        self.out.clear()
+        with self.out_lock:
+            self.out.clear()
         for cb in list(self.on_vanish):
             cb(self, duration)
 
@@ -102,7 +114,11 @@ class PortEndpoint:
         data = bytes(data)
         end = _END_CR_LF if self.split_cr else _END_LF
         encoding = getattr(self.server, "encoding", "ascii")
-        with self.inst.lock:
+        with self.lock:
+            if self._in_generation != self.generation:      # vanished since: a fresh line
+                self._in.clear()
+                self._long = False
+                self._in_generation = self.generation
             start = 0
             while start < len(data):
                 m = end.search(data, start)
@@ -118,8 +134,10 @@ class PortEndpoint:
                 self._in.clear()
                 self._long = False
                 generation = self.generation
-                self._line(line.decode(encoding, "replace").strip(" \r\n"), long_)
+                with self.inst.lock:
+                    self._line(line.decode(encoding, "replace").strip(" \r\n"), long_)
                 if self.generation != generation:
+                    self._in_generation = self.generation
                     break                 # the port vanished: the rest of the write is lost
 
     def _line(self, text: str, overlong: bool = False) -> None:
@@ -191,10 +209,11 @@ class PortEndpoint:
 
     def _queue(self, line: bytes) -> None:
         """Queue one reply line for the host, or drop it whole where ``MAX_OUT`` would be passed."""
-        if len(self.out) + len(line) > MAX_OUT:
-            self.overrun += 1
-            return
-        self.out += line
+        with self.out_lock:
+            if len(self.out) + len(line) > MAX_OUT:
+                self.overrun += 1
+                return
+            self.out += line
 
     def poll(self) -> int:
         """Queue the spontaneous lines (Zaber alerts) that came due by now; return how many.
@@ -213,10 +232,37 @@ class PortEndpoint:
                 self._queue(line.encode("ascii", "replace") + self.reply_end)
             return len(lines)
 
+    def next_due(self) -> float | None:
+        """Wall seconds until the next spontaneous line (an alert of a motion that ends) may be
+        due; None when none is pending or the clock is instant (nothing comes due by itself).
+        The pty server sleeps no longer than this, so an alert leaves when the motion ends."""
+        due = getattr(self.server, "next_alert_at", None)
+        clock = self.inst.clock
+        if due is None or clock.instant:
+            return None
+        with self.inst.lock:
+            t = due()
+            now = clock.now()
+        return None if t is None else max(0.0, (t - now) / clock.scale)
+
     # ------------------------------------------------------------------ bytes out
+    def pending(self) -> int:
+        """Reply bytes waiting for the host."""
+        with self.out_lock:
+            return len(self.out)
+
     def take(self, size: int) -> bytes:
         """Remove and return up to ``size`` reply bytes."""
-        with self.inst.lock:
+        with self.out_lock:
             data = bytes(self.out[:size])
             del self.out[:size]
+            return data
+
+    def take_with(self, take) -> bytes:
+        """Remove and return the reply bytes ``take(waiting)`` counts (under the buffer's lock,
+        so the count and the removal see the same bytes)."""
+        with self.out_lock:
+            n = take(self.out)
+            data = bytes(self.out[:n])
+            del self.out[:n]
             return data

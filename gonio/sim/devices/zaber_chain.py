@@ -180,6 +180,13 @@ class ZaberChain:
         self._pending_alerts = []
         return out + self.stage.ended_alerts()
 
+    def next_alert_at(self) -> float | None:
+        """Simulated time the next alert comes due (a motion of an alerting device ends); None
+        when none will (the pty server sleeps until then, so the alert leaves on time)."""
+        if self._pending_alerts:
+            return self.inst.clock.now()
+        return self.stage.next_alert_at()
+
     def again(self, text: str) -> list[str]:
         """Reply ``RJ ... AGAIN`` to a command without executing it (fault injection)."""
         cmd = parse(text)

@@ -152,9 +152,9 @@ class Device:
         if key == "comm.packet.size.max":
             return str(self.chain.packet_size_max)
         if key == "get.settings.max":
-            # the manual documents several settings in one ``get``; how many a device takes
-            # is per firmware: the simulator takes 6 (invented)
-            return "6"
+            # how many settings one ``get`` reads is per firmware; 12 is what Zaber's own
+            # zaber-motion end-to-end tests give an X-MCC4 on firmware 7.38
+            return str(self.GET_SETTINGS_MAX)
         if key == "system.access":
             return "1"          # normal user access (value invented: the manual lists levels 1, 2)
         return str(self.number)     # comm.address
@@ -162,14 +162,15 @@ class Device:
     def axes_of(self, axis: int) -> list[int]:
         return list(range(1, self.axis_count() + 1)) if axis == 0 else [axis]
 
+    #: Most settings one ``get`` reads (``get.settings.max``; see :meth:`get_many`).
+    GET_SETTINGS_MAX = 12
+
     def handle(self, cmd: Command) -> str:
         w = cmd.words
         if not w:
             return "0"
         if w[0] == "get":
-            if len(w) < 2 or len(w) - 1 > 6:
-                raise Reject("BADCOMMAND" if len(w) < 2 else "BADDATA")
-            return " ".join(self._get_one(cmd, key) for key in w[1:])
+            return self.get_many(cmd, w[1:])
         if w[0] == "set":
             if len(w) != 3:
                 raise Reject("BADCOMMAND" if len(w) < 2 else "BADDATA")
@@ -187,9 +188,53 @@ class Device:
             return "0"
         return self.command(cmd)
 
-    def _get_one(self, cmd: Command, key: str) -> str:
+    def get_many(self, cmd: Command, words: list) -> str:
+        """``get`` of one or several settings (Zaber ASCII manual, ``get``; zaber-motion's
+        ``get_many``/``get_synchronized`` on the wire).
+
+        ``get S1 S2 ...`` reads each setting, on the addressed axis or, on axis 0, on every axis
+        (a device setting: one value). On axis 0 a run of axis numbers reads the settings after
+        it on those axes only, until the next run: zaber-motion 10.3 sends
+        ``/1 0 get 1 maxspeed pos`` for one axis's ``get_many`` and ``/1 0 get pos 1 2 maxspeed``
+        for ``pos`` of every axis and ``maxspeed`` of axes 1 and 2. The reply's data are the
+        values in the order asked, setting by setting, axis by axis within a setting, the
+        settings separated by ``;`` (zaber-motion 10.3 splits a multi-get reply at ``;`` and trims
+        the spaces: ``@01 0 06 OK IDLE -- 30342 ; 91001``; one word of its own is the simulator's
+        choice, so a continued reply never splits inside a separator). At most
+        :data:`GET_SETTINGS_MAX` settings (``get.settings.max``), else ``BADDATA``; an axis number
+        on an axis-scope ``get``, or one with no setting after it, ``BADCOMMAND``; axis 0 or one
+        beyond ``system.axiscount`` in a run, ``BADAXIS``; a device setting after a run,
+        ``DEVICEONLY``."""
+        if not words:
+            raise Reject("BADCOMMAND")
+        groups: list[tuple[list | None, list]] = []      # (axes of the run or None, settings)
+        axes, keys = None, []
+        for tok in words:
+            if tok.isdigit():
+                if cmd.axis != 0:
+                    raise Reject("BADCOMMAND")
+                if keys or axes is None:
+                    if keys:
+                        groups.append((axes, keys))
+                    axes, keys = [], []
+                n = int(tok)
+                if not 1 <= n <= self.axis_count():
+                    raise Reject("BADAXIS")
+                axes.append(n)
+            else:
+                keys.append(tok)
+        if axes is not None and not keys:
+            raise Reject("BADCOMMAND")
+        groups.append((axes, keys))
+        if sum(len(k) for _, k in groups) > self.GET_SETTINGS_MAX:
+            raise Reject("BADDATA")
+        return " ; ".join(" ".join(self._values(cmd, key, axes)) for axes, keys in groups for key in keys)
+
+    def _values(self, cmd: Command, key: str, axes: list | None) -> list[str]:
+        """The values of one setting: on ``axes`` (a run of axis numbers), else on the command's
+        scope (axis 0: every axis; a device setting: its one value)."""
         if key in self._DEVICE_GET:
-            if cmd.axis != 0:
+            if cmd.axis != 0 or axes is not None:
                 raise Reject("DEVICEONLY")
-            return self.device_get(key)
-        return " ".join(self.get_axis(key, a) for a in self.axes_of(cmd.axis))
+            return [self.device_get(key)]
+        return [self.get_axis(key, a) for a in (axes if axes is not None else self.axes_of(cmd.axis))]

@@ -11,8 +11,12 @@ documents are silent (invented):
   outside ``[0, lamp.flux.max]`` -> ``BADDATA``. ``lamp.temperature``: deg C, 1 decimal.
 - ``/2 0 lamp on`` switches every channel on; axis-0 ``get``/``set`` of a channel setting reads or
   sets every channel, as for the axis settings of a motion controller.
-- Identification: device id 30311, serial 92001, firmware 7.38 build 18426, peripheral id 58001
-  (a plausible LED peripheral id; invented).
+- Identification: device id 30311, serial 92001, firmware 7.38 build 18426, peripheral id 58001:
+  invented. The device is modelled on Zaber's X-LCA4 LED controller (zaber-motion's Illuminator
+  drives it), whose device id only Zaber's device database gives; that database is not on this
+  machine and no public source read offline names the id (issue 40), so zaber-motion's
+  ``identify()`` of this device fails with its ``DeviceDbFailedException`` (no silent guess), and
+  ``detect_devices(identify_devices=False)``, generic commands and the Illuminator API work.
 """
 
 from __future__ import annotations

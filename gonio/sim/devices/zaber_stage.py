@@ -1,6 +1,7 @@
 """Device 1 of the simulated chain: the 4-axis rotary controller's commands and settings.
 
-Commands (Zaber ASCII manual): ``home``, ``move abs|rel|min|max|vel``, ``stop``, ``estop``,
+Commands (Zaber ASCII manual): ``home``, ``move abs|rel POS [SPEED [ACCEL]]``,
+``move min|max [SPEED [ACCEL]]``, ``move vel SPEED [ACCEL]``, ``stop``, ``estop``,
 ``warnings [clear]``, ``driver disable|enable``, ``tools parking park|unpark``, ``get``/``set``
 of ``pos``, ``limit.min``, ``limit.max``, ``limit.cycle.dist``, ``maxspeed``, ``accel``,
 ``resolution``, ``peripheralid``/``peripheral.id``, ``parking.state``, ``driver.enabled``,
@@ -18,6 +19,10 @@ is silent: the comment below.
 # The same unit factors are in zaber.serial-era clients.
 #
 # Chosen where the manual is silent (invented):
+# - move abs/rel/min/max with SPEED [ACCEL] (the form zaber-motion 10.3 sends for
+#   move_absolute(..., velocity=, acceleration=): "move abs 1000 20000 3000", "move max 5000"):
+#   that move's speed limit and acceleration in native units, the axis's maxspeed/accel settings
+#   unchanged; 0 keeps the setting, 1..1 000 000, else BADDATA (the bound is invented).
 # - move vel N: |N| up to 1 000 000 native units (610 352 microsteps/s), else BADDATA; it needs a
 #   homed axis like every other move; the axis comes to rest at the travel limit.
 # - driver disable: the axis carries FD until driver enable; moves and homing are rejected with
@@ -25,20 +30,35 @@ is silent: the comment below.
 # - A parked axis rejects motion with PARKED; it keeps its reference over a power cycle.
 # - get encoder.pos: the simulated stages have no encoders; on axis 0 each axis reads NA (the
 #   manual's value for a setting an axis does not have), on one axis BADCOMMAND.
-# - Identification: device id 30342, serial 91001, firmware 7.38 build 18426, peripheral id
-#   43211 on every axis, resolution 64 (the manual's default microstep resolution). The numbers
-#   are plausible for an X-series multi-axis controller but invented: Zaber's device database,
-#   not the manual, maps ids to products.
+# - Identification: an X-MCC4 (STAGE_IDENT, real ids), resolution 64 (the manual's default
+#   microstep resolution), the peripheral id of ROTARY_PERIPHERALS whose microsteps per turn are
+#   the axis's limit.cycle.dist, else 0. Zaber's device database, not the manual, maps ids to
+#   products and their unit conversions; it is not on this machine (zaber-motion's offline source
+#   is Zaber's devices-public.sqlite, fetched online), so the simulator's ids come from Zaber's
+#   own test data, not from the database.
 
 from __future__ import annotations
+
+import contextlib
 
 from gonio.sim.devices.zaber_common import Device, Reject, int_arg, sort_flags
 
 __all__ = ["StageDevice", "NATIVE_PER_SPEED", "NATIVE_PER_ACCEL"]
 
+#: An X-MCC4 four-axis controller: device id 30342 on firmware 7.38 build 15708, as Zaber's own
+#: zaber-motion end-to-end tests describe one (public port: zabertech/motorZaberMotion's mock
+#: devices, "xmcc4.ts"); the serial number is the simulator's.
 STAGE_IDENT = {"deviceid": 30342, "system.serial": 91001, "version": "7.38",
-               "version.build": 18426, "peripheralid": 43211}
+               "version.build": 15708, "peripheralid": 0}
+#: Rotary peripherals the simulator can be, by id: microsteps per turn at resolution 64. 46657 is
+#: the rotary stage Zaber's zaber-motion tests put on an X-MCC4, converted at 6400 microsteps per
+#: degree. An axis reports the peripheral whose microstep grid its ``limit.cycle.dist`` is, else
+#: 0 ("no peripheral"): zaber-motion then offers native units only, never a conversion of
+#: another product's (43211, which the simulator reported before issue 40, is Zaber's X-LHM
+#: *linear* stage: millimetres from microsteps of a rotary axis).
+ROTARY_PERIPHERALS = {46657: 2_304_000}
 MAX_VEL = 1_000_000           # native units (invented bound)
+MAX_ACCEL = 1_000_000         # native units (invented bound) of a move's own acceleration
 #: native units per physical unit (Zaber ASCII manual): maxspeed/move vel per microstep/s,
 #: accel per microstep/s^2
 NATIVE_PER_SPEED = 1.6384
@@ -46,6 +66,29 @@ NATIVE_PER_ACCEL = 1.6384 / 10
 _NATIVE = {"maxspeed": NATIVE_PER_SPEED, "accel": NATIVE_PER_ACCEL}
 _ATTR = {"limit.min": "limit_min", "limit.max": "limit_max", "limit.cycle.dist": "cycle_dist",
          "maxspeed": "maxspeed", "accel": "accel"}
+
+
+def peripheral_of(axis) -> int:
+    """The peripheral id a simulated rotary axis reports (:data:`ROTARY_PERIPHERALS`; 0: none)."""
+    return next((pid for pid, turn in ROTARY_PERIPHERALS.items() if turn == axis.cycle_dist), 0)
+
+
+@contextlib.contextmanager
+def _profile(scope, speed, accel):
+    """The axes plan the moves started inside with this speed and acceleration (native units;
+    None: the axis's setting); their settings are as before afterwards (a later ``stop``
+    decelerates at ``accel``, as the settings say)."""
+    saved = [(a.maxspeed, a.accel) for a in scope]
+    try:
+        for a in scope:
+            if speed is not None:
+                a.maxspeed = speed / NATIVE_PER_SPEED
+            if accel is not None:
+                a.accel = accel / NATIVE_PER_ACCEL
+        yield
+    finally:
+        for a, (v, acc) in zip(scope, saved):
+            a.maxspeed, a.accel = v, acc
 
 
 class StageDevice(Device):
@@ -84,6 +127,14 @@ class StageDevice(Device):
         if not self.alert:
             return []
         return [self.chain.alert_line(self.number, i) for i in done]
+
+    def next_alert_at(self) -> float | None:
+        """When the first motion to be alerted ends (``comm.alert`` 1); None if none."""
+        if not (self._moving and self.alert):
+            return None
+        t = self.now()
+        ends = [self.axes[i - 1].end_time(t) for i in self._moving]
+        return min(t if e is None else e for e in ends)
 
     def _started(self, scope) -> None:
         t = self.now()
@@ -164,20 +215,27 @@ class StageDevice(Device):
     def _move(self, cmd, w, scope, t) -> str:
         if len(w) < 2 or w[1] not in ("abs", "rel", "min", "max", "vel"):
             raise Reject("BADCOMMAND")
-        if w[1] in ("abs", "rel", "vel"):
-            if len(w) != 3:
+        if w[1] == "vel":
+            if len(w) not in (3, 4):
                 raise Reject("BADDATA")
             n = int_arg(w, 2)
-        elif len(w) != 2:
-            raise Reject("BADDATA")
+            accel = self._profile_arg(w, 3, MAX_ACCEL) if len(w) == 4 else None
+        else:
+            first = 3 if w[1] in ("abs", "rel") else 2      # where the optional speed and accel are
+            if not first <= len(w) <= first + 2:
+                raise Reject("BADDATA")
+            n = int_arg(w, 2) if first == 3 else 0
+            speed = self._profile_arg(w, first, MAX_VEL) if len(w) > first else None
+            accel = self._profile_arg(w, first + 1, MAX_ACCEL) if len(w) > first + 1 else None
         self._can_move(scope)
         if any(not a.homed for a in scope):
             raise Reject("BADDATA")
         if w[1] == "vel":
             if abs(n) > MAX_VEL:
                 raise Reject("BADDATA")
-            for a in scope:
-                a.move_vel(t, n / NATIVE_PER_SPEED)
+            with _profile(scope, None, accel):
+                for a in scope:
+                    a.move_vel(t, n / NATIVE_PER_SPEED)
             self._started(scope)
             return "0"
         targets = []
@@ -187,10 +245,20 @@ class StageDevice(Device):
             if not a.in_limits(tgt):
                 raise Reject("BADDATA")
             targets.append(tgt)
-        for a, tgt in zip(scope, targets):
-            a.move_abs(t, tgt)
+        with _profile(scope, speed, accel):
+            for a, tgt in zip(scope, targets):
+                a.move_abs(t, tgt)
         self._started(scope)
         return "0"
+
+    @staticmethod
+    def _profile_arg(w, i, top) -> int | None:
+        """An optional speed or acceleration of a move (native units): 0 keeps the axis's own
+        ``maxspeed`` / ``accel`` (None), 1..``top`` is used for this move; else BADDATA."""
+        v = int_arg(w, i)
+        if not 0 <= v <= top:
+            raise Reject("BADDATA")
+        return v or None
 
     # ------------------------------------------------------------------ settings
     def get_axis(self, key: str, axis: int) -> str:
@@ -205,6 +273,8 @@ class StageDevice(Device):
             return str(int(getattr(a, _ATTR[key])))
         if key == "resolution":
             return "64"
+        if key in ("peripheralid", "peripheral.id"):
+            return str(peripheral_of(a))
         if key == "parking.state":
             return "1" if a.parked else "0"
         if key == "driver.enabled":
@@ -213,12 +283,12 @@ class StageDevice(Device):
             raise Reject("NA")          # turned into NA on axis 0, BADCOMMAND on one axis
         return super().get_axis(key, axis)
 
-    def _get_one(self, cmd, key: str) -> str:
+    def _values(self, cmd, key: str, axes) -> list[str]:
         if key == "encoder.pos":
             if cmd.axis != 0:
                 raise Reject("BADCOMMAND")
-            return " ".join(["NA"] * self.axis_count())
-        return super()._get_one(cmd, key)
+            return ["NA"] * len(axes if axes is not None else self.axes_of(0))
+        return super()._values(cmd, key, axes)
 
     def set_axis(self, key: str, value: str, axes: list) -> None:
         if key not in _ATTR:

@@ -53,6 +53,9 @@ class SimClock:
         self._t = float(start)
         self._wall0 = time.monotonic()
         self._lock = threading.Lock()
+        #: how ``advance`` waits in ``scaled`` mode (wall seconds); an instrument puts its own
+        #: here, one that lets go of its lock while a device waits (``Instrument.wait``)
+        self.sleep = time.sleep
 
     @property
     def instant(self) -> bool:
@@ -73,7 +76,7 @@ class SimClock:
             with self._lock:
                 self._t += float(dt)
         else:
-            time.sleep(dt / self.scale)
+            self.sleep(dt / self.scale)
 
     def advance_to(self, t: float) -> None:
         """Let simulated time reach ``t`` (no-op if it already has)."""
