@@ -65,14 +65,27 @@ SCHEMA: dict[str, dict[str, str]] = {
                     "linearity_compressive": "the non-linearity is known to compress (true) or of unknown sign",
                     "source": "where the sizes come from (text)"},
     "session": {"sample_id": "the sample's identifier (report, session.toml)",
-                "sample_description": "what the sample is (report)", "operator": "who measured (report)"},
+                "sample_description": "what the sample is (report)", "operator": "who measured (report)",
+                "institution": "the laboratory: name and address (report, the dataset's institution)",
+                "customer": "the customer: name and address (report)",
+                "approver": "who approves the report (its signature block; gonio report --approver)",
+                "approver_role": "the approver's role (gonio report --approver-role)"},
+    # the conditions of the measurement the certificate states (ISO/IEC 17025 7.8.4.1 b); the
+    # capture records them with the settings (session.toml, dataset.nc's settings attribute)
+    "conditions": {"polarisation": "the source's and detector's polarisation state (text, e.g. unpolarised)",
+                   "temperature_c": "ambient temperature during the capture (degC)",
+                   "humidity_pct": "ambient relative humidity during the capture (%)"},
 }
 #: tables whose keys their own module checks (one line each, naming the key): the simulator's
 #: error model (gonio/sim/physics/errors.error_model) and the calibration's tables (gonio/bench/calibrate.py)
 OPEN_SECTIONS = {"errors": "gonio.sim error model", "calibration": "gonio calibrate", "alignment": "gonio calibrate",
                  "linearity": "gonio calibrate", "aperture": "gonio calibrate", "stray": "gonio calibrate"}
 _TEXT_KEYS = {("systematics", "source"), ("session", "sample_id"), ("session", "sample_description"), ("session", "operator"),
-              ("reference", "certificate"), ("meter", "visa_library")}
+              ("reference", "certificate"), ("meter", "visa_library"), ("session", "institution"),
+              ("session", "customer"), ("session", "approver"), ("session", "approver_role"),
+              ("conditions", "polarisation")}
+#: recorded ambient conditions: (low, high) of a plausible value
+_CONDITIONS = {"temperature_c": (-50.0, 100.0), "humidity_pct": (0.0, 100.0)}
 
 
 def _suggest(name: str, known, fmt: str = "{}") -> str:
@@ -193,6 +206,9 @@ def validate_settings(s: dict[str, Any], where: str = "instrument settings") -> 
             num(f"camera.{key}", s["camera"][key], True)
         if "sample_time_s" in (s.get("meter") or {}):
             num("meter.sample_time_s", s["meter"]["sample_time_s"], True)
+        for key, (lo, hi) in _CONDITIONS.items():
+            if key in (s.get("conditions") or {}) and not lo <= num(f"conditions.{key}", s["conditions"][key]) <= hi:
+                raise bad(f"conditions.{key} (between {lo:g} and {hi:g})")
     except KeyError as exc:
         raise bad(str(exc.args[0])) from None
     except (TypeError, ValueError):

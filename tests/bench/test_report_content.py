@@ -142,7 +142,15 @@ def test_combined_uncertainty_from_the_fit_file_is_used(out, no_figures):
     p = next(iter(json.loads((out / "fit.json").read_text())["parameters"].values()))
     assert f'<td class="num">{gum(p["value"], 0.0031)[0]}</td><td class="num">0.0031</td><td class="num">0.0062' \
         in results
-    assert "combined standard uncertainty" in results and "reference_certificate 98 %, statistical 2 %" in results
+    assert "combined standard uncertainty" in results
+    # the budget as a table (issue 41): a row per component, its share of u_c^2 and contribution
+    budget = results[results.index('<table class="budget"'):]
+    name = next(iter(json.loads((out / "fit.json").read_text())["parameters"]))
+    cell = '<td class="num" data-parameter="' + re.escape(name) + '"><span class="u">{}</span> <span class="share">\\({}\\)'
+    assert re.search(r'data-component="reference_certificate"><td>reference_certificate</td><td>B</td><td>full</td>'
+                     r'<td>[^<]*</td>' + cell.format("0.0031", "98 %"), budget)
+    assert re.search(r'data-component="statistical"><td>statistical</td><td>A</td><td>none</td><td>[^<]*</td>'
+                     + cell.format("0.00044", "2 %"), budget)
 
 
 def test_the_status_box_says_what_is_incomplete_inadequate_or_violated(out, no_figures):
@@ -206,13 +214,13 @@ def test_no_figure_has_overlapping_labels_and_the_report_prints(out, monkeypatch
     figure of the report (the issue found them in polar, mitsuba_vs_measured and corner); and
     headless Chromium prints the report to an A4 PDF through its print stylesheet."""
     seen = {}
-    original = figs._png
+    original = figs._save
 
-    def check(fig):
+    def check(fig):                  # the figure as saved: its texts made legible in print first
         seen[len(seen)] = figs.text_overlaps(fig)
         return original(fig)
 
-    monkeypatch.setattr(figs, "_png", check)
+    monkeypatch.setattr(figs, "_save", check)
     path = write_report(out)
     assert len(seen) == 7, seen                              # every drawn figure (the preview PNG is not drawn)
     assert all(not v for v in seen.values()), seen

@@ -342,7 +342,7 @@ def test_report_and_figures_get_the_umask_mode(out):
         os.umask(old)
     assert path.stat().st_mode & 0o777 == 0o644
     modes = {p.name: p.stat().st_mode & 0o777 for p in (out / "report_files").iterdir()}
-    assert len(modes) == 8 and set(modes.values()) == {0o644}, modes
+    assert len(modes) == 9 and set(modes.values()) == {0o644}, modes       # 8 figures, certificate.json
 
 
 def test_interrupted_report_leaves_no_temporary(out, monkeypatch):

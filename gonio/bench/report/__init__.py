@@ -25,6 +25,7 @@ from gonio.core.hdf5check import check_hdf5
 from gonio.fitting import DataError, load_dataset, parse_fit
 from gonio.core.atomic import atomic_open
 
+from gonio.bench.report import certificate as cert
 from gonio.bench.report import fitdoc as _fitdoc
 from gonio.bench.report import figures as figs
 from gonio.bench.report import meta
@@ -232,10 +233,15 @@ def render_section(rd: Doc, meas) -> tuple[dict, np.ndarray]:
 
 
 def preview_section(pv: Doc, root: Folder, path: Path) -> tuple[dict, bytes | None]:
+    rows = [{"lighting": cut(k, 80), "mean": _fmt(v.num("mean"), 3), "p95": _fmt(v.num("p95"), 3),
+             "noise": _fmt(v.num("noise_mean"), 3)} for k, v in pv.items("delta_e")]
+    images = pv.raw("images") if isinstance(pv.raw("images"), dict) else {}
+    # `gonio render --preview --measured FILE` renders the measured BSDF beside the fit and the
+    # CIEDE2000 difference; without --measured the previews are the fit's alone
+    measured = bool(rows) or any(isinstance(v, dict) and v.get("measured_png") for v in images.values())
     section = {"size": _fmt(pv.count("size")), "spp": _fmt(pv.count("spp")), "variant": pv.text("variant") or "None",
-               "time_s": _fmt(pv.num("time_s"), 3), "note": None,
-               "rows": [{"lighting": cut(k, 80), "mean": _fmt(v.num("mean"), 3), "p95": _fmt(v.num("p95"), 3),
-                         "noise": _fmt(v.num("noise_mean"), 3)} for k, v in pv.items("delta_e")]}
+               "time_s": _fmt(pv.num("time_s"), 3), "note": None, "measured": measured, "rows": rows}
+    section["tiles"] = _preview_tiles(images, root, path, measured)
     side = pv.raw("side_by_side_png")
     if side is None:
         return section, None
@@ -248,6 +254,37 @@ def preview_section(pv: Doc, root: Folder, path: Path) -> tuple[dict, bytes | No
     if not data.startswith(PNG_MAGIC):
         raise GonioError(f"{root.label(path)}: side_by_side_png {show(side)} is not a PNG image; {FIX_PREVIEW}")
     return section, data
+
+
+#: the largest preview tile the report decodes (pixels a side; `gonio render` allows 2048)
+MAX_TILE = 2048
+
+
+def _preview_tiles(images: dict, root: Folder, path: Path, measured: bool) -> list | None:
+    """The preview's own images, by lighting ([(lighting, {"model_png": PNG bytes, ...})]), for
+    the report to compose them with print-sized titles (figures.preview); None, and the
+    side-by-side image stays, when any is missing, names a file outside the folder (nothing is
+    opened then), is not a PNG or is larger than :data:`MAX_TILE`."""
+    import struct
+
+    keys = ("model_png", "measured_png", "delta_e_png") if measured else ("model_png",)
+    tiles = []
+    for lighting, entry in list(images.items())[:4]:
+        if not isinstance(entry, dict):
+            return None
+        tile = {}
+        for key in keys:
+            try:
+                real = root.reference(entry.get(key), path, f"images.{key}", fix=FIX_PREVIEW)
+                data = root.read_bytes(real, f"images.{key}", MAX_IMAGE_BYTES) if real is not None else b""
+            except GonioError:
+                return None
+            if not data.startswith(PNG_MAGIC) or len(data) < 24 or data[12:16] != b"IHDR" or \
+                    not 0 < max(struct.unpack(">II", data[16:24])) <= MAX_TILE:
+                return None
+            tile[key] = data
+        tiles.append((cut(str(lighting), 40), tile))
+    return tiles or None
 
 
 def mitsuba_section(model, params, fit: Doc) -> dict:
@@ -315,17 +352,28 @@ CAPTIONS = {
                   "unit its axis names; dashed: the 5, 50 and 95 % quantiles.",
     "mitsuba_vs_measured.png": "Mitsuba 3's render of the fitted BSDF at each measured geometry against the measured "
                                "value (log-log, one colour per channel); dashed: equality.",
-    "preview_side_by_side.png": "Sphere previews: the fit (left) beside the measured or true simulated BSDF (right).",
+    "preview_side_by_side.png": "Sphere previews rendered by Mitsuba 3, one row per lighting: the fitted model "
+                                "(left), the measured BSDF given to `gonio render --measured` (the demo gives the "
+                                "simulated sample's true BSDF) and their CIEDE2000 difference.",
 }
+#: the preview's caption when `gonio render --preview` ran without --measured: the fit alone
+PREVIEW_FIT_ONLY = ("Sphere previews of the fitted model rendered by Mitsuba 3, one per lighting; no measured BSDF "
+                    "was given to `gonio render --preview --measured FILE`, so there is nothing beside them to compare.")
 ORDER = ["inplane.png", "polar.png", "residuals.png", "albedo.png", "measured.png", "coverage.png", "corner.png",
          "mitsuba_vs_measured.png", "preview_side_by_side.png"]
 
 
-def _figures(images: dict) -> dict:
-    """Each PNG with its number (in the page's order), caption and alt text."""
+def _figures(images: dict, captions: dict | None = None) -> dict:
+    """Each PNG with its number (in the page's order), caption, alt text and printed width.
+
+    The width (CSS px, 96 a printed inch) is the figure's own size (its pixels at the dpi it was
+    drawn at, figures.DPI), so a figure prints at the size its fonts were chosen for
+    (figures.legible), never enlarged, and is scaled down only to the page's width."""
+    captions = {**CAPTIONS, **(captions or {})}
     names = [n for n in ORDER if n in images] + [n for n in images if n not in ORDER]
     return {name: {"b64": base64.b64encode(images[name]).decode("ascii"), "number": k + 1,
-                   "caption": CAPTIONS.get(name, name), "alt": f"{name}: {CAPTIONS.get(name, name)[:100]}"}
+                   "caption": captions.get(name, name), "alt": f"{name}: {captions.get(name, name)[:100]}",
+                   "width": figs.css_width(images[name])}
             for k, name in enumerate(names)}
 
 
@@ -345,7 +393,7 @@ def _partners(dataset_path, n):
     return partner.astype(np.int64)
 
 
-def _draw_all(meas, model, params, samples, rendered, side, notes) -> dict:
+def _draw_all(meas, model, params, samples, rendered, side, notes, preview=None) -> dict:
     images: dict[str, bytes] = {}
     if model is not None:
         for name, fn in (("inplane.png", figs.inplane), ("polar.png", figs.polar), ("residuals.png", figs.residuals)):
@@ -358,13 +406,53 @@ def _draw_all(meas, model, params, samples, rendered, side, notes) -> dict:
         figs.draw(images, notes, "corner.png", figs.corner_plot, *samples)
     if rendered is not None:
         figs.draw(images, notes, "mitsuba_vs_measured.png", figs.mitsuba_vs_measured, meas, rendered)
-    if side is not None:
+    if preview is not None and preview.get("tiles"):
+        # the preview's images composed with titles that print at 8 pt or more (the side-by-side
+        # PNG `gonio render` writes is 9.6 in wide: its titles printed at 6.7 pt on A4)
+        figs.draw(images, notes, "preview_side_by_side.png", figs.preview, preview["tiles"], preview["rows"])
+    if side is not None and "preview_side_by_side.png" not in images:
         images["preview_side_by_side.png"] = side
     return images
 
 
-def build_page(folder, found: dict, root: Folder) -> tuple[str, dict]:
-    """Read and check every input, draw the figures and fill the template; write nothing."""
+def certificate_section(meas, root: Folder, found: dict, fit: Doc | None, *, approver=None, role=None,
+                        issued=None) -> dict:
+    """The certificate's own fields (gonio/bench/report/certificate.py): number, issue date,
+    laboratory, customer, method, conditions, data files with their SHA-256, budget table,
+    traceability, statements and approval."""
+    settings = meta._json_attr(meas.attrs, "settings")
+    date = cert.issue_date(issued)
+    files = []
+    for key, what in (("dataset", "data file"), ("fit", "fit file")):
+        if found.get(key) is not None:
+            real = root.check(found[key], what)
+            files.append({"what": what, "name": root.label(found[key]), "sha256": cert.sha256_of(real),
+                          "bytes": real.stat().st_size})
+    dataset_sha = files[0]["sha256"]
+    fit_sha = files[1]["sha256"] if len(files) > 1 else None
+    return {"number": cert.report_number(dataset_sha, fit_sha, date), "issued": date.isoformat(),
+            "laboratory": cert.laboratory(meas, settings), "customer": cert.customer(settings),
+            "method": cert.method_text(meas, settings, fit), "conditions": cert.conditions(meas, settings),
+            "files": files, "dataset_sha256": dataset_sha,
+            "budget": cert.budget_table(fit) if fit is not None else [],
+            "traceability": cert.traceability(meas, settings), "statements": cert.statements(meas, settings),
+            "approval": cert.approval(settings, approver, role), "simulated": cert.simulated(meas, settings)}
+
+
+def _provenance_status(fit: Doc, dataset_sha: str) -> dict | None:
+    """A fit made from another dataset than the one in the folder (its provenance's SHA-256)."""
+    prov = fit.sub("provenance")
+    stated = prov.text("dataset_sha256", limit=80) if prov is not None else None
+    if stated is None or stated == dataset_sha:
+        return None
+    return {"level": "bad", "text": f"The fit file states another dataset (SHA-256 {cut(stated, 16)}...) than the "
+                                    f"folder's dataset.nc ({dataset_sha[:16]}...): fit this dataset again "
+                                    "(`gonio fit DATASET --out FIT.json`) before the report is issued."}
+
+
+def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, issued=None) -> tuple[str, dict, dict]:
+    """Read and check every input, draw the figures and fill the template; write nothing.
+    Returns the page, its images and the certificate's record (report_files/certificate.json)."""
     import jinja2
 
     meas = _load_dataset(root, found["dataset"])
@@ -392,30 +480,46 @@ def build_page(folder, found: dict, root: Folder) -> tuple[str, dict]:
     if found["preview"] is not None:
         ctx["preview"], side = preview_section(root.read_json(found["preview"], "preview summary", fix=FIX_PREVIEW),
                                                root, found["preview"])
+    ctx["cert"] = certificate = certificate_section(meas, root, found, fit, approver=approver, role=role,
+                                                    issued=issued)
     ctx["status"] = meta.status(meas, ident["planned"], fit, _partners(found["dataset"], meas.n_points))
+    if fit is not None and (stale := _provenance_status(fit, certificate["dataset_sha256"])) is not None:
+        ctx["status"].append(stale)
     ctx["status_bad"] = any(s["level"] == "bad" for s in ctx["status"])
 
     # every input is read and checked: now the figures and the view's data
     notes = ctx["notes"]
-    images = _draw_all(meas, model, params, samples, rendered, side, notes)
+    images = _draw_all(meas, model, params, samples, rendered, side, notes, ctx["preview"])
     if ctx["preview"] is not None and ctx["preview"]["note"]:
         notes.append(ctx["preview"]["note"])
-    ctx["figures"] = _figures(images)
+    measured = ctx["preview"] is None or ctx["preview"]["measured"]
+    ctx["figures"] = _figures(images, None if measured else {"preview_side_by_side.png": PREVIEW_FIT_ONLY})
     ctx["view"] = view_data(meas, model, params)
 
     script = (TEMPLATES / "report.js").read_text(encoding="utf-8").removesuffix("\n")
     ctx["script_hash"] = base64.b64encode(hashlib.sha256(script.encode("utf-8")).digest()).decode("ascii")
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
-    return env.get_template("report.html.j2").render(**ctx), images
+    record = {"format": "gonio-certificate/1", "number": certificate["number"], "issued": certificate["issued"],
+              "files": certificate["files"], "approval": certificate["approval"],
+              "laboratory": certificate["laboratory"], "customer": certificate["customer"],
+              "sample_id": ident["sample_id"], "gonio_version": meas.attrs.get("gonio_version"),
+              "standard": "ISO/IEC 17025:2017 7.8.2, 7.8.4"}
+    return env.get_template("report.html.j2").render(**ctx), images, record
 
 
-def write_report(folder, out=None) -> Path:
+def write_report(folder, out=None, *, approver=None, approver_role=None, issue_date=None) -> Path:
     """Write the HTML report for ``folder``; returns its path.
 
     Every input is read and checked before anything is written; a bad one is refused with a
     one-line :class:`GonioError`. The report and its ``*_files`` PNGs are written atomically,
-    with the mode the user's umask gives.
+    with the mode the user's umask gives. The page embeds every image (it reads alone, moved
+    anywhere); ``*_files`` holds the same PNGs and ``certificate.json``, the record of the
+    certificate's number, issue date, approval and the SHA-256 of the files it states.
+
+    ``approver``, ``approver_role``: who approves the certificate (default: the settings'
+    ``[session] approver`` and ``approver_role``; blank lines to sign by hand when neither gives
+    one). ``issue_date``: a date or ``YYYY-MM-DD`` (default: today, UTC).
     """
     import matplotlib
 
@@ -425,12 +529,16 @@ def write_report(folder, out=None) -> Path:
     root = Folder(folder)
     out = Path(out) if out else Path(folder) / "report.html"
     image_dir = _check_out(out)
-    page, images = build_page(folder, found, root)
+    page, images, record = build_page(folder, found, root, approver=approver, role=approver_role, issued=issue_date)
+    record["report"] = {"name": out.name, "sha256": hashlib.sha256(page.encode("utf-8")).hexdigest()}
     try:
         image_dir.mkdir(parents=True, exist_ok=True)
         for name, data in images.items():
             with atomic_open(image_dir / name, "wb") as fh:
                 fh.write(data)
+        with atomic_open(image_dir / "certificate.json", "w", encoding="utf-8") as fh:
+            json.dump(record, fh, indent=1)
+            fh.write("\n")
         with atomic_open(out, "w", encoding="utf-8") as fh:
             fh.write(page)
     except OSError as exc:

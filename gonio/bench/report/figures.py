@@ -16,24 +16,98 @@ from gonio.fitting.plots import (in_plane_mask, log_ticks, plot_coverage, plot_i
                                  safe_label)
 from gonio.core.geometry import angles as _angles
 
-__all__ = ["draw", "label"]
+__all__ = ["draw", "label", "legible", "css_width", "printed_scale", "DPI", "MIN_PRINT_PT", "PRINT_WIDTH_IN"]
 
 COLOURS = ["tab:red", "tab:green", "tab:blue"]
+#: the figures' resolution (PNG pixels per figure inch)
+DPI = 110
+#: the printed page's text width (inches): A4, 210 mm, less the print stylesheet's 14 mm margins
+PRINT_WIDTH_IN = (210.0 - 2 * 14.0) / 25.4
+#: the smallest font (pt) a figure shows when the report is printed on A4
+MIN_PRINT_PT = 8.0
+#: the widest a figure is drawn (inches), so that it prints at its own size (scale 1)
+MAX_WIDTH_IN = 6.9
+_PAD_IN = 0.1             # savefig's pad_inches around the tight bounding box
 
 
 _log_ticks = log_ticks
 label = safe_label
 
 
-def _png(fig) -> bytes:
+def printed_scale(width_in: float) -> float:
+    """How much a figure ``width_in`` inches wide is shrunk when printed: the report prints a
+    figure at its own size (its ``width`` attribute, :func:`css_width`), scaled down only to
+    the page's text width."""
+    return min(1.0, PRINT_WIDTH_IN / max(width_in, 1e-6))
+
+
+def _texts(fig):
+    from matplotlib.text import Text
+
+    return [t for t in fig.findobj(Text) if t.get_visible() and t.get_text().strip()]
+
+
+def legible(fig) -> float:
+    """Enlarge every text of ``fig`` (titles, labels, tick labels, legends, colour bars) to at
+    least :data:`MIN_PRINT_PT` as printed: its size times the figure's printed scale (its saved,
+    tight width). Returns the smallest printed size (pt) after the change."""
+    renderer = fig.canvas.get_renderer()
+    for attempt in range(4):                        # larger labels can widen the tight box
+        fig.canvas.draw()
+        width = fig.get_tightbbox(renderer).width + 2 * _PAD_IN
+        need = MIN_PRINT_PT / printed_scale(width) + 1e-3
+        small = False
+        for ax in fig.axes:
+            for which, axis in (("x", ax.xaxis), ("y", ax.yaxis)):
+                labels = axis.get_ticklabels(which="both")
+                if labels and min(t.get_fontsize() for t in labels) < need:
+                    ax.tick_params(axis=which, which="both", labelsize=need)
+                    small = True
+        for t in _texts(fig):
+            if t.get_fontsize() < need:
+                t.set_fontsize(need)
+                small = True
+        if not small or attempt == 3:
+            break
+    return min((t.get_fontsize() for t in _texts(fig)), default=MIN_PRINT_PT) * printed_scale(width)
+
+
+def css_width(png: bytes) -> int | None:
+    """The width (CSS px, 96 an inch) at which a PNG is its physical size: its pixels over its
+    resolution (the pHYs chunk matplotlib writes; :data:`DPI` when absent); None when not a PNG."""
+    import struct
+
+    if len(png) < 33 or png[12:16] != b"IHDR":
+        return None
+    width = struct.unpack(">I", png[16:20])[0]
+    dpi, at = float(DPI), 8
+    while at + 8 <= min(len(png), 1 << 16):       # pHYs comes before the image data
+        size, kind = struct.unpack(">I", png[at:at + 4])[0], png[at + 4:at + 8]
+        if kind == b"pHYs" and size == 9 and png[at + 16] == 1:       # unit: metre
+            ppm = struct.unpack(">I", png[at + 8:at + 12])[0]
+            dpi = ppm * 0.0254 if ppm > 0 else dpi
+            break
+        if kind in (b"IDAT", b"IEND"):
+            break
+        at += 12 + size
+    return max(1, round(width * 96.0 / dpi))
+
+
+def _save(fig) -> bytes:
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
     try:
-        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+        fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight", pad_inches=_PAD_IN)
     finally:
         plt.close(fig)
     return buf.getvalue()
+
+
+def _png(fig) -> bytes:
+    """The figure as PNG bytes, its texts made legible in print first (:func:`legible`)."""
+    legible(fig)
+    return _save(fig)
 
 
 def draw(images: dict, notes: list, name: str, fn, *args) -> None:
@@ -69,7 +143,27 @@ def inplane(meas, model=None, params=None) -> dict:
     if not np.any(in_plane_mask(meas)[1]):
         return {}
     fig = plot_in_plane(meas, model, params)
+    _two_columns(fig)
     return {("inplane.png" if model is not None else "measured.png"): _png(fig)}
+
+
+def _two_columns(fig, panel_in: float = 3.15, row_in: float = 2.7) -> None:
+    """More than two panels in a row (the in-plane plot's incidences) laid out two to a row, so
+    the figure prints at its own size on A4 and its labels keep their size."""
+    from matplotlib.gridspec import GridSpec
+
+    axes = [ax for ax in fig.axes if ax.get_subplotspec() is not None]
+    if len(axes) <= 2:
+        return
+    rows = (len(axes) + 1) // 2
+    grid = GridSpec(rows, 2, figure=fig)
+    ylabel = axes[0].get_ylabel()
+    for k, ax in enumerate(axes):
+        ax.set_subplotspec(grid[k // 2, k % 2])
+        ax.yaxis.set_tick_params(labelleft=True)
+        if k % 2 == 0 and ylabel:
+            ax.set_ylabel(ylabel, fontsize=axes[0].yaxis.label.get_fontsize())
+    fig.set_size_inches(2 * panel_in + 0.5, row_in * rows + 0.5)
 
 
 def polar(meas, model, params) -> dict:
@@ -96,18 +190,19 @@ def polar(meas, model, params) -> dict:
     grid = model.eval(wi_g, wo_g, params)[:, c].reshape(t.shape)
     norm = matplotlib.colors.LogNorm(vmin=max(float(grid.min()), 1e-4), vmax=float(grid.max()))
     # colour bars below their plots: beside them their labels met the next plot's 180 deg label
-    fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(8.4, 4.6), layout="constrained")
-    for ax, title in zip(axes, (f"fit (background), measured (dots); theta_i = {ti:.0f} deg", "measured / fit")):
+    fig, axes = plt.subplots(1, 2, subplot_kw={"projection": "polar"}, figsize=(MAX_WIDTH_IN - 0.2, 4.3),
+                             layout="constrained")
+    for ax, title in zip(axes, (f"fit (background), measured (dots)\ntheta_i = {ti:.0f} deg", "measured / fit")):
         ax.set_ylim(0, 85)
         ax.set_rticks([30, 60])
         ax.set_rlabel_position(112.5)
-        ax.tick_params(labelsize=7)
+        ax.tick_params(labelsize=8)
         ax.set_title(title, fontsize=9)
     mesh = axes[0].pcolormesh(p, np.degrees(t), grid, norm=norm, cmap="viridis", shading="auto")
     axes[0].scatter(phi_o[sel], theta_o[sel], c=meas.brdf[sel, c], norm=norm, cmap="viridis", edgecolors="white", s=28)
     bar = fig.colorbar(mesh, ax=axes[0], shrink=0.6, orientation="horizontal", pad=0.08)
     bar.set_label(f"f_r {label(meas.channels[c])} (1/sr)", fontsize=8)
-    bar.ax.tick_params(labelsize=7)
+    bar.ax.tick_params(labelsize=8)
     bar.ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(numticks=4))
     bar.ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ratio = meas.brdf[sel, c] / np.maximum(fitted[sel, c], 1e-12)
@@ -115,7 +210,7 @@ def polar(meas, model, params) -> dict:
     sc = axes[1].scatter(phi_o[sel], theta_o[sel], c=ratio, cmap="coolwarm", s=28, vmin=1 - spread, vmax=1 + spread)
     bar = fig.colorbar(sc, ax=axes[1], shrink=0.6, orientation="horizontal", pad=0.08)
     bar.set_label("measured / fit", fontsize=8)
-    bar.ax.tick_params(labelsize=7)
+    bar.ax.tick_params(labelsize=8)
     bar.ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(3))
     bar.ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.4g"))
     return {"polar.png": _png(fig)}
@@ -123,7 +218,11 @@ def polar(meas, model, params) -> dict:
 
 def residuals(meas, model, params) -> dict:
     """Normalised residuals (`gonio.fitting.plots.plot_residuals`)."""
-    return {"residuals.png": _png(plot_residuals(meas, model, params))}
+    fig = plot_residuals(meas, model, params)
+    w, h = fig.get_size_inches()
+    if w > MAX_WIDTH_IN:                      # printed at its own size on A4
+        fig.set_size_inches(MAX_WIDTH_IN, h * MAX_WIDTH_IN / w)
+    return {"residuals.png": _png(fig)}
 
 
 def albedo(model, params) -> dict:
@@ -158,14 +257,14 @@ def corner_plot(samples: np.ndarray, names, converged: bool) -> dict:
     names = [label(n) for n in names] if names else [f"p{i}" for i in range(k)]
     labels = [f"{n}\n- {c:.6g}" + (f", in {s:.0e}" if s != 1 else "") for n, c, s in zip(names, centre, scale)]
     fig = corner.corner((samples - centre) / scale, labels=labels, quantiles=[0.05, 0.5, 0.95],
-                        label_kwargs={"fontsize": 7}, max_n_ticks=3, labelpad=0.08)
-    size = max(3.0, 1.9 * k)
+                        label_kwargs={"fontsize": 8}, max_n_ticks=3, labelpad=0.08)
+    size = min(max(3.0, 1.9 * k), MAX_WIDTH_IN)        # printed at its own size on A4
     fig.set_size_inches(size, size)
     for idx, ax in enumerate(fig.axes):
         i, j = divmod(idx, k)           # row, column of corner's k x k grid
         if j > i:                       # its hidden upper triangle
             continue
-        ax.tick_params(labelsize=6, labelrotation=0)
+        ax.tick_params(labelsize=8, labelrotation=0)
         # no tick at an axes' edge (there the labels of neighbouring axes met); labels, without
         # an offset text, only where corner shows them: the bottom row and the first column
         axes = [(ax.xaxis, i == k - 1)] + ([(ax.yaxis, j == 0)] if j < i else [])
@@ -191,6 +290,43 @@ def mitsuba_vs_measured(meas, rendered: np.ndarray) -> dict:
     ax.set_xlabel("measured f_r (1/sr)")
     ax.set_ylabel("Mitsuba render of the fit (1/sr)")
     return {"mitsuba_vs_measured.png": _png(fig)}
+
+
+def preview(tiles, rows) -> dict:
+    """The sphere previews of `gonio render --preview` (PNG bytes per lighting: the fit's, and
+    with --measured the measured BSDF's and the CIEDE2000 map's) in one figure that prints at its
+    own size: one row per lighting, titles and the colour bar's labels at 8 pt or more."""
+    import matplotlib
+    import matplotlib.image as mpimg
+    import matplotlib.pyplot as plt
+
+    stats = {r["lighting"]: r for r in rows}
+    ncols = 3 if "measured_png" in tiles[0][1] else 1
+    tile_in = 2.0
+    fig, axes = plt.subplots(len(tiles), ncols, squeeze=False, layout="constrained",
+                             figsize=(tile_in * ncols + (0.6 if ncols == 3 else 0.3), (tile_in + 0.45) * len(tiles)))
+    for r, (lighting, tile) in enumerate(tiles):
+        panels = [("model_png", f"fitted model ({lighting})")]
+        if ncols == 3:
+            s = stats.get(lighting, {})
+            panels += [("measured_png", f"measured ({lighting})"),
+                       ("delta_e_png", f"CIEDE2000: mean {s.get('mean', '?')}, p95 {s.get('p95', '?')}")]
+        for c, (key, title) in enumerate(panels):
+            ax = axes[r, c]
+            ax.imshow(mpimg.imread(io.BytesIO(tile[key]), format="png"))
+            ax.set_title(title, fontsize=8.5)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        if ncols == 3:
+            # the map's own scale (gonio/fitting/render/preview.py: magma, 0 to max(5, p95))
+            try:
+                vmax = max(5.0, float(stats.get(lighting, {}).get("p95", 5.0)))
+            except (TypeError, ValueError):
+                vmax = 5.0
+            bar = fig.colorbar(matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0.0, vmax), "magma"),
+                               ax=axes[r, 2], fraction=0.046, pad=0.04)
+            bar.ax.tick_params(labelsize=8)
+    return {"preview_side_by_side.png": _png(fig)}
 
 
 def text_overlaps(fig) -> list[tuple[str, str]]:

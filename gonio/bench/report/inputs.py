@@ -6,7 +6,9 @@ anything else is refused with a :class:`GonioError` (one line, exit status 2) be
 report writes anything. A reference with ``..`` is refused; an absolute one is accepted only
 when it resolves inside the folder (``gonio render`` writes absolute names today); a relative
 one is taken from the naming file's folder (or, for files written by an older ``gonio
-render`` with a relative ``--out``, from the working folder) and must resolve inside too.
+render`` with a relative ``--out``, from the working folder) and must resolve inside too. A
+reference that no longer leads into the folder (the folder was moved or copied after ``gonio
+render`` wrote it) is taken from the file of the same name beside the naming file, when there is one.
 
 JSON values are read through :class:`Doc`: a field where a number belongs must be a number
 (NaN and inf are numbers; strings, lists, booleans are refused, naming the field), text is
@@ -111,7 +113,14 @@ class Folder:
             candidates = [Path(ref)]
         else:
             candidates = [Path(named_in).parent / ref, Path.cwd() / ref]
-        chosen = next((c for c in candidates if os.path.lexists(c)), None)
+        # a folder moved or copied after the file was written: its reference (absolute, or relative
+        # to the folder `gonio render` ran in) names the old place; the file lies beside the naming one
+        beside = Path(named_in).parent / ref.name
+        chosen = next((c for c in candidates if os.path.lexists(c) and self._inside(os.path.realpath(c))), None)
+        if chosen is None and ref.name and os.path.lexists(beside):
+            chosen = beside
+        if chosen is None:
+            chosen = next((c for c in candidates if os.path.lexists(c)), None)
         if chosen is None:
             return None
         if not self._inside(os.path.realpath(chosen)):
