@@ -477,7 +477,7 @@ def summary(cal: Mapping) -> str:
 
 
 def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=None, meter_port=None,
-                  camera=None, progress=None) -> int:
+                  camera=None, progress=None, say=print) -> int:
     """``gonio calibrate``: refuse bad input in one line before anything is written.
 
     ``--sim`` runs the procedures through the production drivers against the simulator's
@@ -486,7 +486,8 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
     values (``repeat_deg``, ``wedge_u_deg``, ``source_half_deg``, ``detector_half_deg``,
     ``stray_floor``) in the settings' ``[calibration]`` table. ``camera``: a URL or a camera
     object (``session_runner._camera`` builds one from the command line's spec). ``progress``:
-    as :func:`calibrate`'s.
+    as :func:`calibrate`'s; ``say``: prints the result's line (the command line's wraps it on a
+    terminal).
     """
     from gonio.core.preflight import check_output_file
     from gonio.bench.settings import load_settings
@@ -504,10 +505,7 @@ def calibrate_cli(out: Path, *, sim: bool, settings, errors, seed: int, port=Non
     check_output_file(out, "calibration file")
     cal = run_calibration(s, sim=sim, seed=seed, port=port, meter_port=meter_port, camera=camera, progress=progress)
     write_calibration(out, cal)
-    import textwrap
-
-    print(textwrap.fill(f"wrote {out} in {cal['calibration']['wall_s']:.1f} s: {summary(cal)}", 80,
-                        subsequent_indent="  ", break_on_hyphens=False))
+    say(f"wrote {out}: {summary(cal)}; {cal['calibration']['wall_s']:.1f} s")
     return 0
 
 

@@ -39,7 +39,9 @@ def _print_summary(summary):
         lines.append(f"stopped early: {summary.stopped}; finish with `gonio capture --resume {summary.session_dir}`")
     elif not summary.complete:
         lines.append(f"incomplete: finish with `gonio capture --resume {summary.session_dir}`")
-    print("\n".join(lines), flush=True)
+    from gonio.cli.helptext import say
+
+    say("\n".join(lines))          # wrapped on a terminal only: a pipe gets a line a message
     return 0 if summary.complete else EXIT_STOPPED
 
 

@@ -56,9 +56,15 @@ def print_table(console, columns, rows, *, title=None, caption=None) -> None:
             cols_width = {i: widths[i] for i in cols}
         t = Table(title=(title if k == 0 else f"{title} (continued)") if title else None, box=box.SIMPLE_HEAD,
                   caption=caption if k == len(groups) - 1 else None, expand=False)
+        # a lone column still wider than the terminal (prose, such as the fit's flags) wraps
+        # at its spaces; the key column stays whole
+        too_wide = table_width([cols_width[i] for i in cols]) > console.width
         for i in cols:
             header, justify = columns[i]
-            t.add_column(header, justify=justify, width=cols_width[i], overflow="fold")
+            if too_wide and i != 0:
+                t.add_column(header, justify=justify, overflow="fold")
+            else:
+                t.add_column(header, justify=justify, width=cols_width[i], overflow="fold", no_wrap=too_wide)
         for r in rows:
             t.add_row(*[r[i] for i in cols])
         console.print(t)

@@ -32,6 +32,7 @@ from gonio.core.atomic import atomic_open
 from gonio.models.mitsuba import mitsuba_variant
 
 from gonio.cli.console import print_table
+from gonio.cli.progress import Steps, on_terminal
 from gonio.bench.report.fitdoc import truth_by_name
 from gonio.core.preflight import check_output_dir
 from gonio.bench.samples import load_sample
@@ -104,12 +105,13 @@ def _speed_vs_error(meas, result, sample, seed, doc=None) -> dict:
             "versions": versions()}
 
 
-def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool = True) -> dict:
+def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool = True, quiet: bool = False) -> dict:
     """Run the loop; returns a summary dict (the figures printed).
 
     ``out`` receives ``calibration.toml``, ``session/``, ``dataset.nc``, ``fit.json``,
     ``speed.json``, ``render/`` and ``report.html``; the seed is the virtual instrument's (its
-    drawn errors), the calibration's and the fit's.
+    drawn errors), the calibration's and the fit's. On a terminal each step shows its progress
+    (gonio/cli/progress.py) unless ``quiet``.
     """
     console = Console()
     out = Path(out)
@@ -120,7 +122,7 @@ def run_demo(out: Path, seed: int = 1, plan: str = "standard", posterior: bool =
     session = out / "session"
     _clear_previous_demo(session)
     sample = load_sample(None)
-    run = _run_stages(out, session, sample, plan_obj, seed, posterior, console)
+    run = _run_stages(out, session, sample, plan_obj, seed, posterior, console, quiet=quiet)
     return _print_summary(console, out, session, sample, plan, seed, run)
 
 
@@ -139,7 +141,7 @@ def _calibration_lines(cal) -> list[str]:
             "every point's angle budget"]
 
 
-def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None) -> dict:
+def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, quiet=False) -> dict:
     """Calibrate, capture, export, fit, benchmark, re-render, preview and report, timing each stage."""
     from gonio.bench.settings import load_settings
     from gonio.cli.capture import with_errors_and_calibration
@@ -154,7 +156,8 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None) -
                       "the reference over a 5 x 5 grid)")
     settings = load_settings(None)
     settings["errors"] = {"preset": DEMO_ERRORS}
-    cal = calibrate.run_calibration(settings, sim=True, seed=seed)
+    with Steps("calibrate", enabled=not quiet) as progress:
+        cal = calibrate.run_calibration(settings, sim=True, seed=seed, progress=progress)
     calibrate.write_calibration(cal_path, cal)
     timings["calibrate (simulated instrument)"] = time.perf_counter() - t
     for line in _calibration_lines(cal):
@@ -166,12 +169,14 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None) -
     t = time.perf_counter()
     settings = with_errors_and_calibration(load_settings(None), sim=True, seed=seed, errors=DEMO_ERRORS,
                                            calibration=cal_path)
-    capture_sim(session, sample=sample, plan=plan_obj, seed=seed, settings=settings, progress=True, demo=True)
+    capture_sim(session, sample=sample, plan=plan_obj, seed=seed, settings=settings,
+                progress=not quiet and on_terminal(), demo=True)
     timings["capture (simulated instrument)"] = time.perf_counter() - t
 
     _step(console, 3, "export: dataset.nc (calibrated angles and their u, each value's GUM budget by component)")
     t = time.perf_counter()
-    dataset = export(session)
+    with Steps("export", enabled=not quiet):
+        dataset = export(session)
     with open(dataset, "rb") as src, atomic_open(out / "dataset.nc", "wb") as dst:
         shutil.copyfileobj(src, dst)
     timings["export dataset.nc"] = time.perf_counter() - t
@@ -179,32 +184,37 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None) -
                       "U) and the instrument's angular response modelled" + ("; emcee posterior" if posterior else ""))
 
     meas = load_dataset(dataset)
-    result, doc, post = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=seed,
-                                    posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset,
-                                    budget=open_budget(dataset, meas))
+    with Steps("fit", enabled=not quiet) as progress:
+        result, doc, post = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=seed,
+                                        posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset,
+                                        budget=open_budget(dataset, meas), progress=progress)
     timings["fit (nlopt + Laplace)"] = doc["optimiser"]["time_s"]
     if post is not None:
         timings["posterior (emcee)"] = post.time_s
     write_json_atomic(out / "fit.json", doc)
 
-    speed = _speed_vs_error(meas, result, sample, seed, doc)
+    with Steps("fit speed against scipy", enabled=not quiet):
+        speed = _speed_vs_error(meas, result, sample, seed, doc)
     write_json_atomic(out / "speed.json", speed)
 
     _step(console, 5, "render: Mitsuba re-render at every measured pose, and sphere previews (fit vs truth)")
     t = time.perf_counter()
-    closure = render_closure(out / "fit.json", meas, out / "render")
+    with Steps("render at the measured poses", enabled=not quiet):
+        closure = render_closure(out / "fit.json", meas, out / "render")
     timings[f"Mitsuba re-render ({closure['variant']})"] = time.perf_counter() - t
 
     t = time.perf_counter()
     truth_model = gm.get(sample["model"], **sample["options"])
-    with_truth = render_previews(out / "fit.json", out / "render", measured=_truth_bsdf(truth_model, sample["params"]),
-                                 size=96, spp=128)
+    with Steps("render previews", enabled=not quiet):
+        with_truth = render_previews(out / "fit.json", out / "render",
+                                     measured=_truth_bsdf(truth_model, sample["params"]), size=96, spp=128)
     timings["preview renders (sphere, 2 lightings)"] = time.perf_counter() - t
 
     _step(console, 6, "report: report.html (identification with the calibration applied, status, results with "
                       "u_c and U, figures, appendix)")
     t = time.perf_counter()
-    report = write_report(out, out / "report.html")
+    with Steps("report", enabled=not quiet):
+        report = write_report(out, out / "report.html")
     timings["report"] = time.perf_counter() - t
     return {"timings": timings, "meas": meas, "doc": doc, "speed": speed, "closure": closure,
             "with_truth": with_truth, "report": report, "calibration": cal, "calibration_path": cal_path}

@@ -19,8 +19,12 @@ EXIT_SENT, EXIT_UNANSWERED, EXIT_REFUSED = 0, 1, 2
 
 
 def parser(prog: str = "gonio estop") -> argparse.ArgumentParser:
-    """The command's arguments (the same as in ``gonio --help``'s listing)."""
-    p = argparse.ArgumentParser(prog=prog, description="send the emergency stop to every Zaber device at once")
+    """The command's arguments (the same as in ``gonio --help``'s listing); its help as every
+    command's (gonio/cli/helptext.py: 80 columns, an example; argparse and textwrap only)."""
+    from gonio.cli.helptext import HelpFormatter, examples_epilog
+
+    p = argparse.ArgumentParser(prog=prog, description="Send the emergency stop to every Zaber device at once.",
+                                epilog=examples_epilog(prog), formatter_class=HelpFormatter)
     p.add_argument("--port", required=True, help="Zaber chain port or URL")
     p.add_argument("--baud", type=int, default=115200)
     return p

@@ -8,6 +8,7 @@ from pathlib import Path
 
 
 from gonio.cli.console import print_table
+from gonio.cli.progress import Steps
 from gonio.bench.report.fitdoc import energy_text, truth_for
 from gonio.core.errors import GonioError
 from gonio.fitting.display import inadequate_text
@@ -94,7 +95,7 @@ def print_selection(doc, console=None) -> None:
                 caption="* chosen")
 
 
-def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb"):
+def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb", quiet=False):
     from gonio.fitting import write_json_atomic
 
     from gonio.core.preflight import check_output_file, writing
@@ -106,8 +107,11 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     check_output_file(out, "fit file (--out)")
     inp = open_fit_input(dataset, seed, colour_space)
     meas = inp.meas
-    _, doc, _ = fit_dataset(inp, model=model, options=parse_options(options), seed=seed, loss=loss,
-                            posterior=posterior, dataset_path=dataset)
+    # a bar on a terminal: the candidates of --model auto (or of an open distribution) and their
+    # renders, with the time left; one model alone: the time it has taken
+    with Steps("fit" if model == "auto" else f"fit {model}", enabled=not quiet) as progress:
+        _, doc, _ = fit_dataset(inp, model=model, options=parse_options(options), seed=seed, loss=loss,
+                                posterior=posterior, dataset_path=dataset, progress=progress)
     with writing(out):
         write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None
@@ -117,27 +121,37 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     opts = doc["model"]["options"]
     if model != "auto" and doc.get("selection") and "distribution" in opts:
         others = ", ".join(sorted({r["options"].get("distribution") for r in doc["selection"]} - {opts["distribution"]}))
-        print(f"distribution: {opts['distribution']} (chosen by BIC over {others}; "
-              f"--option distribution=NAME fixes it)")
+        _wrapped(f"distribution: {opts['distribution']} (chosen by BIC over {others}; "
+                 f"--option distribution=NAME fixes it)")
     if doc.get("selection"):
         print_selection(doc)
     if doc.get("selection_rule"):
-        print(f"selection: {doc['selection_rule']}")
+        _wrapped(f"selection: {doc['selection_rule']}")
     print(f"wrote {out}")
 
 
-def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None):
+def _wrapped(text: str) -> None:
+    """A long line of prose: whole in a pipe, wrapped at 80 columns on a terminal (helptext.say)."""
+    from gonio.cli.helptext import say
+
+    say(text)
+
+
+def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None,
+                  quiet=False):
     """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``
     (`gonio.bench.dataset.fit_files.fit_files`; the warnings on stderr, so the lines on stdout
-    stay machine-readable)."""
+    stay machine-readable). On a terminal a bar says how long the batch has run (the cluster
+    returns every fit at once: there is no count to show)."""
     from gonio.bench.dataset.fit_files import fit_files
 
-    fit_files(datasets, model=model, options=options, out=out, seed=seed, loss=loss, scheduler=scheduler,
-              workers=workers, dashboard=dashboard, say=print, warn=lambda line: print(line, file=sys.stderr))
+    with Steps(f"fit {len(datasets)} datasets on Dask", enabled=not quiet):
+        fit_files(datasets, model=model, options=options, out=out, seed=seed, loss=loss, scheduler=scheduler,
+                  workers=workers, dashboard=dashboard, say=print, warn=lambda line: print(line, file=sys.stderr))
 
 
 def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, preview=False, measured=None,
-               size=128, spp=256):
+               size=128, spp=256, quiet=False):
     from gonio.core.preflight import check_output_dir
 
     # every option is checked before anything is rendered or written
@@ -150,13 +164,16 @@ def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, previ
     if not Path(fit_path).exists():
         raise GonioError(f"fit file {fit_path} does not exist; run `gonio fit DATASET --out FIT.json` first")
     meas = _open_dataset(dataset)
-    result = render_closure(fit_path, meas, out_dir, variant)
+    with Steps("render at the measured poses", enabled=not quiet):
+        result = render_closure(fit_path, meas, out_dir, variant)
     s = result["summary"]
-    print(f"Mitsuba {result['variant']}: {result['points']} poses rendered in {result['time_s']:.3f} s "
-          f"(scene re-render of {result['scene_check']['poses']} poses agrees to {result['scene_check']['max_rel']:.1e}); "
-          f"export check max rel {s['export_max_rel']:.2e}; render vs measurement rms {s['residual_rms_sigma']:.3f} sigma "
-          f"(max {s['residual_max_sigma']:.2f}); wrote {Path(out_dir) / 'render.json'}")
+    _wrapped(f"Mitsuba {result['variant']}: {result['points']} poses rendered in {result['time_s']:.3f} s "
+             f"(scene re-render of {result['scene_check']['poses']} poses agrees to "
+             f"{result['scene_check']['max_rel']:.1e}); export check max rel {s['export_max_rel']:.2e}; render vs "
+             f"measurement rms {s['residual_rms_sigma']:.3f} sigma (max {s['residual_max_sigma']:.2f}); wrote "
+             f"{Path(out_dir) / 'render.json'}")
     if preview or measured:
-        pv = render_previews(fit_path, out_dir, measured, size, spp)
+        with Steps("render previews", enabled=not quiet):
+            pv = render_previews(fit_path, out_dir, measured, size, spp)
         de = f"; mean CIEDE2000 vs measured {pv['delta_e_mean']:.2f}" if pv.get("delta_e_mean") is not None else ""
-        print(f"previews in {Path(out_dir) / 'preview'} ({pv['time_s']:.1f} s){de}")
+        _wrapped(f"previews in {Path(out_dir) / 'preview'} ({pv['time_s']:.1f} s){de}")

@@ -1,8 +1,11 @@
 """The ``gonio`` command line: a thin layer over library calls.
 
-Every command has ``--help``. Errors the user can fix print one line on stderr
-(``gonio: error: ...``) and exit with status 2, without a traceback; nothing half-written is
-left behind (every file is written to a temporary name and renamed).
+Every command has ``--help``, with examples, at most 80 columns wide (gonio/cli/helptext.py);
+``gonio models`` and ``gonio plans`` list what exists. Errors the user can fix print one line
+on stderr (``gonio: error: ...``; wrapped at the width of a terminal) and exit with status 2,
+without a traceback; nothing half-written is left behind (every file is written to a temporary
+name and renamed). A step that makes a person wait shows a progress bar on a terminal, and
+nothing in a pipe or with ``--quiet`` (gonio/cli/progress.py).
 """
 
 from __future__ import annotations
@@ -15,17 +18,28 @@ import signal
 import sys
 from pathlib import Path
 
+from gonio.cli.helptext import HelpFormatter, error_text, examples_epilog, say
+from gonio.cli.progress import Steps
 from gonio.core.errors import GonioError
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "walk_parsers"]
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (usage stays available through --help)."""
+    """argparse with one-line errors (usage stays available through --help) and help at most
+    80 columns wide, examples and tables kept as written."""
 
     def error(self, message):
-        sys.stderr.write(f"gonio: error: {message} (see `{self.prog} --help`)\n")
+        _say(f"gonio: error: {message} (see `{self.prog} --help`)")
         raise SystemExit(2)
+
+    def _get_formatter(self):
+        return HelpFormatter(prog=self.prog)
+
+
+def _steps(args, title: str) -> Steps:
+    """The progress display of a long step: a bar on a terminal, nothing in a pipe or with --quiet."""
+    return Steps(title, enabled=not getattr(args, "quiet", False))
 
 
 def _version() -> str:
@@ -57,8 +71,23 @@ def _env(func):
         if getattr(args, "out", None) is not None and not str(args.out).strip():
             raise GonioError("--out is empty; give a path")
         with environment_errors():
-            return func(args)
+            try:
+                return func(args)
+            except BrokenPipeError:         # `gonio plans | head`: the reader has what it wanted
+                return _broken_pipe()
     return run
+
+
+def _broken_pipe() -> int:
+    """stdout's reader went away: stop quietly (no second error when Python flushes at exit),
+    with the status of a process SIGPIPE ended."""
+    import os
+
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return 141
 
 
 # --------------------------------------------------------------------------- commands
@@ -66,7 +95,26 @@ def _env(func):
 def _cmd_demo(args):
     from gonio.cli.demo import run_demo
 
-    run_demo(out=Path(args.out), seed=args.seed, plan=args.plan, posterior=args.posterior)
+    run_demo(out=Path(args.out), seed=args.seed, plan=args.plan, posterior=args.posterior, quiet=args.quiet)
+
+
+def _capture_progress(args) -> bool:
+    """A capture's bar and status line: on a terminal only, unless --quiet."""
+    from gonio.cli.progress import on_terminal
+
+    return not args.quiet and on_terminal()
+
+
+def _cmd_models(args):
+    from gonio.cli.listing import models_lines
+
+    print("\n".join(models_lines()))
+
+
+def _cmd_plans(args):
+    from gonio.cli.listing import plans_lines
+
+    print("\n".join(plans_lines()))
 
 
 @_env
@@ -79,7 +127,7 @@ def _cmd_capture(args):
         if given:
             raise GonioError(f"{given[0]} is recorded when a session starts; a resume keeps the session's own")
         return session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
-                                         camera=args.camera, progress=not args.quiet,
+                                         camera=args.camera, progress=_capture_progress(args),
                                          rebuild_journal=args.rebuild_journal, remeasure=args.remeasure,
                                          restore_session=args.restore_session)
     for flag, given in (("--rebuild-journal", args.rebuild_journal), ("--remeasure", args.remeasure),
@@ -91,14 +139,15 @@ def _cmd_capture(args):
     if not args.sim and not args.port:
         raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
     from gonio.bench.settings import load_settings
+    from gonio.cli.listing import sample_path
 
     # the settings file and the [session] options (sample id, description, operator), checked
     # before anything is written; session.toml records them with the other settings
     settings = load_settings(args.settings, _session_options(args))
     return session_runner.capture_cli(Path(args.out) if args.out is not None else None, sim=args.sim,
-                                      sample=args.sample, plan=args.plan, seed=args.seed, settings=settings,
-                                      port=args.port, meter_port=args.meter_port, camera=args.camera,
-                                      dry_run=args.dry_run, progress=not args.quiet,
+                                      sample=sample_path(args.sample), plan=args.plan, seed=args.seed,
+                                      settings=settings, port=args.port, meter_port=args.meter_port, camera=args.camera,
+                                      dry_run=args.dry_run, progress=_capture_progress(args),
                                       errors=args.errors, calibration=args.calibration, points=args.points,
                                       target_rel_u=args.target_rel_u, candidates=args.candidates)
 
@@ -107,7 +156,8 @@ def _cmd_capture(args):
 def _cmd_verify(args):
     from gonio.cli.verify import verify_cli
 
-    return verify_cli(args.session)
+    with _steps(args, "verify"):
+        return verify_cli(args.session)
 
 
 @_env
@@ -115,20 +165,29 @@ def _cmd_calibrate(args):
     from gonio.bench.calibrate import calibrate_cli
     from gonio.cli.capture import _camera
 
-    return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed,
-                         port=args.port, meter_port=args.meter_port, camera=_camera(args.camera) if args.camera else None)
+    camera = _camera(args.camera) if args.camera else None
+    with _steps(args, "calibrate") as progress:
+        return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed,
+                             port=args.port, meter_port=args.meter_port, camera=camera, progress=progress, say=say)
 
 
 @_env
 def _cmd_export(args):
     from gonio.bench.dataset.export import export
 
-    path = export(Path(args.session), chart=Path(args.colour_chart) if args.colour_chart else None)
+    from gonio.bench.dataset.cf import parse_attributes
+
+    try:
+        attrs = parse_attributes(args.attr)
+    except ValueError as exc:
+        raise GonioError(str(exc)) from None
+    with _steps(args, "export"):
+        path = export(Path(args.session), chart=Path(args.colour_chart) if args.colour_chart else None, attrs=attrs)
     done, planned, complete = _export_counts(path)
     if complete is False or (planned is not None and done is not None and done < planned):
         of = f"{done} of {planned} planned points" if planned is not None else f"{done} points, the plan not finished"
-        print(f"wrote {path}: PARTIAL, {of} (the session stopped early; "
-              f"`gonio capture --resume {args.session}` measures the rest, then export again)")
+        say(f"wrote {path}: PARTIAL, {of} (the session stopped early; "
+            f"`gonio capture --resume {args.session}` measures the rest, then export again)")
     else:
         print(f"wrote {path}" + (f" ({done} points)" if done is not None else ""))
 
@@ -155,7 +214,7 @@ def _cmd_fit(args):
     if args.batch:
         fit_batch_cli([Path(d) for d in args.dataset], model=args.model, options=args.option, out=Path(args.out),
                       seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers,
-                      dashboard=args.dashboard)
+                      dashboard=args.dashboard, quiet=args.quiet)
         return
     if len(args.dataset) != 1:
         raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")
@@ -166,10 +225,11 @@ def _cmd_fit(args):
             raise GonioError("--scene fits a measured material in linear sRGB; leave out --posterior and --colour-space")
         fit_scene_cli(Path(args.dataset[0]), scene=args.scene, model=args.model, options=args.option,
                       out=Path(args.out), seed=args.seed, loss=args.loss, size=args.scene_size, spp=args.scene_spp,
-                      k=args.scene_light_samples, threshold=args.threshold, time_limit=args.scene_time_limit)
+                      k=args.scene_light_samples, threshold=args.threshold, time_limit=args.scene_time_limit,
+                      quiet=args.quiet)
         return
     fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
-            loss=args.loss, posterior=args.posterior, colour_space=args.colour_space)
+            loss=args.loss, posterior=args.posterior, colour_space=args.colour_space, quiet=args.quiet)
 
 
 @_env
@@ -177,14 +237,14 @@ def _cmd_render(args):
     from gonio.cli.fit import render_cli
 
     render_cli(Path(args.fit), Path(args.dataset), Path(args.out), variant=args.variant, preview=args.preview,
-               measured=args.measured, size=args.size, spp=args.spp)
+               measured=args.measured, size=args.size, spp=args.spp, quiet=args.quiet)
 
 
 @_env
 def _cmd_convert(args):
     from gonio.cli.convert import convert_cli
 
-    convert_cli(Path(args.source), Path(args.out), args.to)
+    convert_cli(Path(args.source), Path(args.out), args.to, attrs=args.attr)
 
 
 @_env
@@ -195,14 +255,17 @@ def _cmd_report(args):
     folder = Path(args.folder)
     if folder.is_dir():     # (a missing folder gets write_report's own one line)
         check_output_file(Path(args.out) if args.out else folder / "report.html", "report file")
-    path = write_report(folder, Path(args.out) if args.out else None)
+    with _steps(args, "report"):
+        path = write_report(folder, Path(args.out) if args.out else None, approver=args.approver,
+                            approver_role=args.approver_role)
     print(f"wrote {path}")
 
 
 def _cmd_settings_show(args):
     from gonio.bench.settings import show_settings
+    from gonio.cli.listing import settings_lines_with_units
 
-    print("\n".join(show_settings(args.settings, _session_options(args))))
+    print("\n".join(settings_lines_with_units(show_settings(args.settings, _session_options(args)))))
 
 
 def _session_options(args) -> dict:
@@ -244,7 +307,9 @@ def _cmd_sim_serve(args):
 
     previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
-        session_runner.serve_cli(sample=args.sample, seed=args.seed, settings=args.settings, clock=args.clock,
+        from gonio.cli.listing import sample_path
+
+        session_runner.serve_cli(sample=sample_path(args.sample), seed=args.seed, settings=args.settings, clock=args.clock,
                                  faults=args.faults, camera_size=args.camera_size)
     finally:
         for sig, handler in previous.items():
@@ -296,17 +361,58 @@ LOSS_HELP = ("chi2 (the data's Gaussian noise; default for dataset.nc), robust (
 EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_STOPPED = 0, 1, 2, 3
 
 EPILOG = """exit status:
-  0  done (a capture: every point of the plan measured)
-  1  failed: an unexpected error (a bug: please report the traceback)
-  2  refused: bad input or environment, said in one line; nothing was written or changed
-  3  stopped, resumable: a capture stopped before the end (Ctrl-C, SIGTERM, SIGHUP, a fault,
-     the lamp or a port lost); the session is consistent: `gonio capture --resume DIR`
-  130 interrupted (Ctrl-C) outside a capture"""
+  0    done (a capture: every point of the plan measured)
+  1    failed: an unexpected error (a bug: please report the traceback)
+  2    refused: bad input or environment, said in one line; nothing was written
+       or changed
+  3    stopped, resumable: a capture stopped before the end (Ctrl-C, SIGTERM,
+       SIGHUP, a fault, the lamp or a port lost); the session is consistent:
+       `gonio capture --resume DIR`
+  130  interrupted (Ctrl-C) outside a capture"""
+
+QUIET_HELP = "no progress bar (there is none when stderr is not a terminal)"
+ATTR_HELP = ("a global attribute of the NetCDF file (repeatable): CF's title, institution, source, history, "
+             "references, comment, or an ACDD-1.3 one such as summary, creator_name, license; e.g. "
+             "institution='NPL, Teddington'")
+
+
+def _presets_text() -> str:
+    """The plan presets' names, from gonio/bench/plan/presets (found without importing the
+    plan module: ``gonio --help`` stays quick)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("gonio.bench.plan")
+    folder = Path(next(iter(spec.submodule_search_locations))) / "presets"
+    return ", ".join(sorted(p.stem for p in folder.glob("*.toml")))
+
+
+def walk_parsers(parser, seen=None):
+    """Every parser under ``parser`` (itself first), each once (an alias is the same parser)."""
+    seen = set() if seen is None else seen
+    if id(parser) in seen:
+        return
+    seen.add(id(parser))
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for choice in action._choices_actions:
+                child = action.choices[choice.dest]
+                if child.description is None and choice.help:
+                    child.description = choice.help[:1].upper() + choice.help[1:] + "."
+                yield from walk_parsers(child, seen)
+
+
+def _with_examples(parser) -> None:
+    """Every parser's description (its one-line help) and examples (gonio/cli/helptext.py)."""
+    for p in walk_parsers(parser):
+        examples = examples_epilog(p.prog)
+        if examples:
+            p.epilog = f"{examples}\n\n{p.epilog}" if p.epilog else examples
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="gonio", description="Physically based BRDF measurement and validation bench.",
-                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+                epilog=EPILOG)
     p.add_argument("--version", action="version", version=f"gonio {_version()}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
@@ -314,17 +420,25 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="full loop on the simulated instrument: capture, export, fit, render, report")
     d.add_argument("--out", default="gonio-out", help="output folder (default ./gonio-out)")
     d.add_argument("--seed", type=_seed, default=1, help="seed of the simulated instrument and the fit (default 1)")
-    d.add_argument("--plan", default="standard", help="plan preset or TOML file (default standard)")
+    d.add_argument("--plan", default="standard",
+                   help=f"plan preset ({_presets_text()}; see `gonio plans`) or TOML/CSV file (default standard)")
     d.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=True,
                    help="also sample the posterior with emcee (default on)")
+    d.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     d.set_defaults(func=_cmd_demo)
 
-    c = sub.add_parser("capture", help="run a capture session (simulated or real instrument)",
-                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    mo = sub.add_parser("models", help="list the models a fit can use, and the example samples")
+    mo.set_defaults(func=_cmd_models)
+    pl = sub.add_parser("plans", help="list the measurement plan presets and the simulator's error presets")
+    pl.set_defaults(func=_cmd_plans)
+
+    c = sub.add_parser("capture", help="run a capture session (simulated or real instrument)", epilog=EPILOG)
     c.add_argument("--sim", action="store_true", help="use the simulated instrument in this process")
-    c.add_argument("--sample", help="sample TOML or measured .bsdf file (simulated instrument only)")
+    c.add_argument("--sample", help="simulated instrument only: an example sample's name (see `gonio models`), "
+                                    "a sample TOML or a measured RGL .bsdf file (default: the demo's)")
     c.add_argument("--plan", default="standard",
-                   help="preset (quick, standard, dense), plan TOML/CSV file, or adaptive (chosen from the data)")
+                   help=f"preset ({_presets_text()}; see `gonio plans`), plan TOML/CSV file, or adaptive "
+                        "(chosen from the data) (default standard)")
     c.add_argument("--points", type=int, metavar="N", help="with --plan adaptive: the most points to measure (default 24)")
     c.add_argument("--target-rel-u", type=float, metavar="X",
                    help="with --plan adaptive: stop once every fitted parameter's relative 1-sigma is below X")
@@ -334,14 +448,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=_seed, default=0, help="seed (simulated noise and faults)")
     c.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
     c.add_argument("--errors", choices=["ideal", "typical", "poor"],
-                   help="simulated instrument's systematic errors (preset of [errors]; default: the settings', else ideal)")
+                   help="simulated instrument's systematic errors (preset of [errors], see `gonio plans`; default: "
+                        "the settings', else ideal)")
     c.add_argument("--calibration", metavar="CAL.toml",
                    help="calibration file from `gonio calibrate`: angles, reference factor and linearity applied")
     c.add_argument("--port", help="Zaber chain: serial port or pyserial URL (e.g. /dev/ttyUSB0, sim://NAME/zaber)")
     c.add_argument("--meter-port", help="SCPI power meter: serial port or pyserial URL")
     c.add_argument("--camera", help="camera: a serial port/URL of a simulated camera, folder:PATH, or gphoto2")
     c.add_argument("--dry-run", action="store_true", help="print point count, duration estimate, unreachable points; move nothing")
-    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     _add_session_options(c)
     c.add_argument("--remeasure", metavar="POINTS",
                    help="with --resume: measure these plan points again, e.g. 3,7,10-12 (points whose RAW files "
@@ -361,10 +476,12 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--meter-port", help="hardware: SCPI power meter port or URL")
     cal.add_argument("--camera", help="hardware: camera (a serial port/URL, folder:PATH, or gphoto2)")
     cal.add_argument("--errors", choices=["ideal", "typical", "poor"],
-                     help="simulated instrument's error preset (default: the settings' [errors], else ideal)")
+                     help="simulated instrument's error preset (see `gonio plans`; default: the settings' [errors], "
+                          "else ideal)")
     cal.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
     cal.add_argument("--seed", type=_seed, default=0, help="seed of the simulated instrument (its hidden errors and noise)")
     cal.add_argument("--out", required=True, help="calibration file to write (TOML)")
+    cal.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     cal.set_defaults(func=_cmd_calibrate)
 
     e = sub.add_parser("export", help="write SESSION/dataset.nc from a session's journal")
@@ -372,16 +489,20 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--colour-chart", metavar="DNG", help="a RAW capture of the ColorChecker in the holder's chart "
                    "slot: its fit gives the camera -> sRGB matrix and its uncertainty (default: the RAW files' "
                    "ColorMatrix1)")
+    e.add_argument("--attr", action="append", default=[], metavar="KEY=VALUE", help=ATTR_HELP)
+    e.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     e.set_defaults(func=_cmd_export)
 
     v = sub.add_parser("verify", help="which measured points of a session are intact, which damaged, and how to recover "
                        "(exit 0 all intact, 1 damage found, 2 bad input)")
     v.add_argument("session", help="session folder")
+    v.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     v.set_defaults(func=_cmd_verify)
 
     f = sub.add_parser("fit", help="fit a model to a dataset")
     f.add_argument("dataset", nargs="+", help="dataset.nc, a MERL .binary or an RGL .bsdf file (several with --batch)")
-    f.add_argument("--model", default="auto", help="model name, or auto for BIC model selection (default)")
+    f.add_argument("--model", default="auto",
+                   help="model name (see `gonio models`), or auto for BIC model selection (default)")
     f.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="model option, e.g. distribution=beckmann (repeatable)")
     f.add_argument("--out", required=True, help="fit file to write (JSON)")
@@ -411,6 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local Dask workers (default 2); the local cluster talks TLS with a certificate made for the run")
     f.add_argument("--dashboard", metavar="HOST:PORT",
                    help="serve the local cluster's Dask dashboard there, e.g. 127.0.0.1:8787 (default: none)")
+    f.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     f.set_defaults(func=_cmd_fit)
 
     r = sub.add_parser("render", help="re-render a fit in Mitsuba at the dataset's geometry and compare")
@@ -422,35 +544,43 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--measured", help="measured data to preview beside the fit: MERL .binary or RGL .bsdf")
     r.add_argument("--size", type=int, default=128, help="preview size in pixels (default 128)")
     r.add_argument("--spp", type=int, default=256, help="preview samples per pixel (default 256)")
+    r.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     r.set_defaults(func=_cmd_render)
 
     cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict, MERL, PAB-Opto or Zemax, "
                                         "a dataset to CSV, MERL or PAB-Opto")
     cv.add_argument("source", help="fit file (JSON) or dataset.nc")
-    cv.add_argument("--to", required=True,
+    cv.add_argument("--to", required=True, metavar="FORMAT",
                     choices=["mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto",
-                             "zemax"],
+                             "zemax", "netcdf", "astm"],
                     help="from a fit: mitsuba-xml (a file a plain Mitsuba 3 loads with mitsuba.load_file and "
                          "<include>: a model without a Mitsuba plugin is written as the closest native BSDF fitted "
                          "to it, its error printed), mitsuba-xml-gonio (gonio's own plugins, exact, for a process "
                          "that imports gonio), mitsuba-dict, "
                          "merl (the model resampled), pabopto (the model on a grid), zemax (Zemax/LightTools "
-                         "tabular BSDF: OUT_brdf.bsdf, and OUT_btdf.bsdf for a model that transmits); from a dataset: csv, "
+                         "tabular BSDF: OUT_brdf.bsdf, and OUT_btdf.bsdf for a model that transmits), netcdf (its "
+                         "parameter table, value and uncertainties, as CF-1.8 NetCDF); from a dataset: csv, "
                          "merl-data (measured values binned, the rest no-data), pabopto (measured values); "
                          "pabopto writes one file per incident direction into the --out folder, for Radiance's "
                          "pabopto2bsdf")
     cv.add_argument("--out", required=True, help="file to write (a folder for --to pabopto); missing folders are made")
+    cv.add_argument("--attr", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --to netcdf: " + ATTR_HELP)
     cv.set_defaults(func=_cmd_convert)
 
     rep = sub.add_parser("report", help="write a self-contained HTML report of an output folder")
     rep.add_argument("folder", help="folder with dataset.nc (and fit.json, render/render.json)")
     rep.add_argument("--out", help="report file (default FOLDER/report.html)")
+    rep.add_argument("--approver", help="who approves the certificate (default: the settings' [session] approver; "
+                                        "else a blank line to sign)")
+    rep.add_argument("--approver-role", help="the approver's role (default: [session] approver_role)")
+    rep.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     rep.set_defaults(func=_cmd_report)
 
     st = sub.add_parser("settings", help="instrument settings: show the effective values and where each came from")
     stsub = st.add_subparsers(dest="settings_command", metavar="WHAT", parser_class=_Parser)
     stsub.required = True
-    show = stsub.add_parser("show", help="print the effective settings, each value with its source "
+    show = stsub.add_parser("show", help="print the effective settings, each value with its unit and its source "
                                          "(default: gonio/bench/instrument.toml, file, option)")
     show.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
     _add_session_options(show)
@@ -460,7 +590,8 @@ def build_parser() -> argparse.ArgumentParser:
     ssub = s.add_subparsers(dest="sim_command", metavar="SIMCOMMAND", parser_class=_Parser)
     ssub.required = True
     serve = ssub.add_parser("serve", help="serve the simulated instrument on pseudo-terminals and print their paths")
-    serve.add_argument("--sample", help="sample TOML or measured .bsdf file")
+    serve.add_argument("--sample", help="an example sample's name (see `gonio models`), a sample TOML or a measured "
+                                        ".bsdf file")
     serve.add_argument("--seed", type=_seed, default=0)
     serve.add_argument("--settings", help="instrument settings TOML")
     serve.add_argument("--clock", default="realtime", help="instant, realtime, or a time scale factor such as 10")
@@ -492,6 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
     from gonio.cli.operator import register as _operator_commands     # devices, home, move, jog, shot; bench capture
 
     _operator_commands(sub, bsub)
+    _with_examples(p)
     return p
 
 
@@ -543,11 +675,13 @@ def _main(argv) -> int:
         _say(f"gonio: error: {exc}")
         return EXIT_REFUSED
     except DataError as exc:
-        sys.stderr.write(f"gonio: error: {' '.join(str(exc).split())}\n")
+        _say(f"gonio: error: {' '.join(str(exc).split())}")
         return 2
     except FileNotFoundError as exc:
-        sys.stderr.write(f"gonio: error: {exc.filename or exc}: no such file; check the path\n")
+        _say(f"gonio: error: {exc.filename or exc}: no such file; check the path")
         return 2
+    except BrokenPipeError:
+        return _broken_pipe()
     except SignalStop:
         raise
     except KeyboardInterrupt:
@@ -557,9 +691,10 @@ def _main(argv) -> int:
 
 
 def _say(line: str) -> None:
-    """One line on stderr; a closed terminal (SIGHUP) must not turn it into a traceback."""
+    """One line on stderr (wrapped at a terminal's width, gonio/cli/helptext.error_text); a
+    closed terminal (SIGHUP) must not turn it into a traceback."""
     try:
-        sys.stderr.write(line + "\n")
+        sys.stderr.write(error_text(line) + "\n")
         sys.stderr.flush()
     except (OSError, ValueError):
         pass

@@ -11,25 +11,27 @@ __all__ = ["check_scene_options", "fit_scene_cli", "print_scene", "TIME_LIMIT_S"
 
 
 def fit_scene_cli(dataset: Path, *, scene, model, options, out: Path, seed, loss, size=32, spp=256, k=64,
-                  threshold=1.0, time_limit=TIME_LIMIT_S):
+                  threshold=1.0, time_limit=TIME_LIMIT_S, quiet=False):
     from gonio.fitting import write_json_atomic
 
     from gonio.core.preflight import check_output_file, writing
-    from gonio.cli.fit import _open_dataset, print_selection
+    from gonio.cli.fit import _open_dataset, _wrapped, print_selection
+    from gonio.cli.progress import Steps
 
     check_scene_options(scene, dataset, size, spp, k, threshold, time_limit)
     check_output_file(out, "fit file (--out)")
     meas = _open_dataset(dataset, seed)
-    doc, ranking = fit_for_scene(meas, dataset, scene=scene, model=model, options=options, seed=seed, loss=loss,
-                                 size=size, spp=spp, k=k, threshold=threshold, time_limit=time_limit)
+    with Steps(f"fit for the scene {scene}", enabled=not quiet):
+        doc, ranking = fit_for_scene(meas, dataset, scene=scene, model=model, options=options, seed=seed, loss=loss,
+                                     size=size, spp=spp, k=k, threshold=threshold, time_limit=time_limit)
     with writing(out):
         write_json_atomic(out, doc)
     print_scene(doc)
     print_selection(doc)
     chosen = next(r for r in doc["scene"]["rows"] if r["chosen"])
     by_bic = next(r for r in ranking if r.chosen)
-    print(f"chosen for scene {scene}: {chosen['model']}{option_text(chosen)} (k = {chosen['k']}); by the data alone "
-          f"(BIC): {by_bic.name}{option_text({'options': by_bic.options})} (k = {by_bic.k})")
+    _wrapped(f"chosen for scene {scene}: {chosen['model']}{option_text(chosen)} (k = {chosen['k']}); by the data "
+             f"alone (BIC): {by_bic.name}{option_text({'options': by_bic.options})} (k = {by_bic.k})")
     print(f"wrote {out}")
 
 

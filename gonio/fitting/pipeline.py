@@ -87,7 +87,7 @@ def resolve_candidates(model, options):
         raise model_error(exc, model, auto=True) from None
 
 
-def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None):
+def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress=None):
     """BIC's ranking with the default scene's rendered check (selection.by_scene.rendered_choice;
     where no candidate renders within its threshold of a measured file, the data-driven
     ``tabulated`` model fitted from ``meas`` is tried too: selection.by_scene.data_driven);
@@ -101,11 +101,11 @@ def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None):
     path = Path(dataset_path) if dataset_path is not None else None
     measured = str(path) if path is not None and path.suffix.lower() in (".bsdf", ".binary") else None
     fallback = data_driven(meas, seed=seed, loss=loss) if meas is not None and measured is not None else None
-    return rendered_choice(ranking, measured, seed=seed, fallback=fallback)
+    return rendered_choice(ranking, measured, seed=seed, fallback=fallback, progress=progress)
 
 
 def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, budget=None, dataset_path=None,
-                     rng=None):
+                     rng=None, progress=None):
     """Fit (or select) a model on ``meas``.
 
     Returns ``(result, meas, budget, ranking, note)``: the FitResult; the Measurements and
@@ -113,7 +113,8 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     were compared (else None); the selection rule where the rendered check decided (else None).
     ``loss`` None: chi2 for a dataset with measured sigma, the real-data default otherwise.
     ``rng``: the Generator of the starts (default ``numpy.random.default_rng(seed)``); the
-    refit with the angular response always starts from ``default_rng(seed)``.
+    refit with the angular response always starts from ``default_rng(seed)``. ``progress``:
+    ``progress(done, total, label)`` from the model selection's fits and renders (None: silent).
     """
     import gonio.models as gm
     from gonio.fitting.likelihood.aperture import with_instrument_response
@@ -134,12 +135,12 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     ranking, note = None, None
     candidates = resolve_candidates(model, options)
     if candidates is None:
-        result, ranking = select(meas, rng=rng, loss=loss)
-        result, ranking, note = _rendered_choice(ranking, dataset_path, seed, meas=meas, loss=loss)
+        result, ranking = select(meas, rng=rng, loss=loss, progress=progress)
+        result, ranking, note = _rendered_choice(ranking, dataset_path, seed, meas=meas, loss=loss, progress=progress)
     else:
         try:
             if len(candidates) > 1:     # no distribution given: each declared one, chosen by BIC (said)
-                result, ranking = select(meas, rng=rng, loss=loss, candidates=candidates, delta=0.0)
+                result, ranking = select(meas, rng=rng, loss=loss, candidates=candidates, delta=0.0, progress=progress)
             elif model == "tabulated":      # data-driven NDF: started from the data, not from defaults
                 from gonio.fitting.optimise.tabulated_start import fit_tabulated
 
@@ -159,14 +160,15 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
-                posterior_budget_s=None, dataset_path=None, budget=None):
+                posterior_budget_s=None, dataset_path=None, budget=None, progress=None):
     """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
 
     ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting.load_budget`; None:
     from ``meas.attrs``), carried into every parameter's combined uncertainty.
 
     ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
-    (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file."""
+    (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file. ``progress``: as
+    :func:`fit_measurements`'s."""
     from gonio.fitting.likelihood.loss import default_loss
     from gonio.fitting.uncertainty.posterior import sample_posterior
 
@@ -180,7 +182,8 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
         raise GonioError("--posterior needs the chi2 loss (the likelihood of the data's noise model)")
     rng = np.random.default_rng(seed)       # the starts, then the posterior's walkers: one stream
     result, meas, budget, ranking, note = fit_measurements(meas, model=model, options=options, seed=seed, loss=loss,
-                                                           budget=budget, dataset_path=dataset_path, rng=rng)
+                                                           budget=budget, dataset_path=dataset_path, rng=rng,
+                                                           progress=progress)
     post = None
     if posterior:
         # With a time budget: chunks of 250 steps, so the budget is checked every second or

@@ -83,7 +83,7 @@ def test_capture_recovers_known_brdf_and_exports(instrument, tmp_path):
     # the shared signed modes, and axis_input, each axis's per-move error, over the four angles
     budget_dims = {"dark_input", "angle_input", "axis_input", "angle"}
     assert {k: v for k, v in ds.sizes.items() if k not in budget_dims} == {"point": 30, "channel": 3, "xyz": 3}
-    assert 1 <= ds.sizes.get("dark_input", 0) <= 30 and list(ds.channel.values) == ["R", "G", "B"]
+    assert 1 <= ds.sizes.get("dark_input", 0) <= 30 and list(ds.channel_label.values) == ["R", "G", "B"]
     assert ds.sizes["angle"] == 4 and ds.sizes["axis_input"] == 4 and ds.sizes["angle_input"] >= 1
     assert ds.angle_shift_independent.dims == ("axis_input", "point", "angle")
     for c in ("theta_i", "phi_i", "theta_o", "phi_o"):
@@ -95,8 +95,9 @@ def test_capture_recovers_known_brdf_and_exports(instrument, tmp_path):
     assert (p >= 0).sum() == 8 and all(p[p[i]] == i for i in np.flatnonzero(p >= 0))
     assert json.loads(ds.attrs["sample_truth"]) == GLOSSY and ds.attrs["complete"] == 1
     # colour: a neutral stays neutral, and Y of a grey is its sRGB value (rows of the matrices)
-    assert ds.brdf_xyz.dims == ("point", "xyz") and list(ds.xyz.values) == ["X", "Y", "Z"]
-    np.testing.assert_allclose(ds.brdf_xyz.sel(xyz="Y"), ds.brdf_srgb.values @ [0.2126, 0.7152, 0.0722], rtol=1e-12)
+    assert ds.brdf_xyz.dims == ("point", "xyz") and list(ds.xyz_label.values) == ["X", "Y", "Z"]
+    Y = ds.brdf_xyz.set_xindex("xyz_label").sel(xyz_label="Y")          # the labels: CF-1.8 label variables
+    np.testing.assert_allclose(Y, ds.brdf_srgb.values @ [0.2126, 0.7152, 0.0722], rtol=1e-12)
     assert np.all(ds.brdf_srgb_std > 0)
     ds.close()
     assert not any(n.startswith(".tmp-") for n in os.listdir(folder))

@@ -81,8 +81,10 @@ def test_settings_show_cli(tmp_path, capsys):
     f.write_text("[reference]\nreflectance = 0.97\n")
     assert main(["settings", "show", "--settings", str(f), "--sample-id", "S-7"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert f"reflectance = 0.97  # file {f}" in out and "rel_std = 0.005  # default" in out
-    assert 'sample_id = "S-7"  # option' in out
+    # each value with its unit (gonio/cli/listing.py; "1": a dimensionless number) and its source
+    assert f"reflectance = 0.97  # 1; file {f}" in out and "rel_std = 0.005  # 1; default" in out
+    assert "settle_s = 0.2  # s; default" in out and "yaw = [1, 1, -95.0, 95.0]  # device, axis, deg, deg; default" in out
+    assert 'sample_id = "S-7"  # option' in out                         # text: no unit
     f.write_text("[refrence]\nreflectance = 0.5\n")
     assert main(["settings", "show", "--settings", str(f)]) == 2
     err = capsys.readouterr().err

@@ -166,9 +166,14 @@ def test_render_checks_the_measured_file_before_writing(tmp_path, capsys):
     assert not out.exists()
 
 
-def test_capture_says_what_it_does_before_the_first_point(tmp_path, capsys):
-    """Darks and flats took ~5 s with a blank screen: each preparation step is now a line on
-    stderr (an updating status line on a terminal)."""
+def test_capture_says_what_it_does_before_the_first_point(tmp_path, capsys, monkeypatch):
+    """Darks and flats took ~5 s with a blank screen: on a terminal each preparation step is
+    said (an updating status line; here, where the console is told it is on a terminal but
+    writes to a captured stream, a line per step). In a pipe the capture says nothing while it
+    works (issue 41: tests/bench/test_cli_progress.py)."""
+    import gonio.cli.progress
+
+    monkeypatch.setattr(gonio.cli.progress, "on_terminal", lambda stream=None: True)
     plan, settings = tmp_path / "two.toml", tmp_path / "s.toml"
     plan.write_text('name = "two"\npoints = [[30, 0, 20, 180], [30, 0, 40, 180]]\n')
     settings.write_text("[capture]\nflat_frames = 4\n")

@@ -40,7 +40,7 @@ import numpy as np
 
 from gonio.bench.session import integrity as _integrity
 from gonio.bench.dataset.budget import budget_variables, move_history
-from gonio.bench.dataset.cf import cf_encode
+from gonio.bench.dataset.cf import cf_encode, check_global_attributes
 from gonio.bench.calibrate import dataset_angles, instrument_response
 from gonio.core.files import commit_file, tmp_name
 from gonio.bench.session.journal import RAW_DIR
@@ -55,12 +55,15 @@ DATASET_FILE = "dataset.nc"
 
 
 
-def to_dataset(session_dir, chart=None):
+def to_dataset(session_dir, chart=None, attrs=None):
     """The session's journalled points as an `xarray.Dataset` (see the module docstring);
     ``chart``: a RAW capture of the ColorChecker whose fit gives the colour matrix instead of
-    the RAW files' own (gonio/bench/measure/colour_matrix.matrix_from_chart_dng)."""
+    the RAW files' own (gonio/bench/measure/colour_matrix.matrix_from_chart_dng); ``attrs``:
+    CF/ACDD global attributes (``institution``, ``title``, ...; `gonio.bench.dataset.cf`) over
+    gonio's defaults."""
     import xarray as xr
 
+    global_attrs = attrs
     folder = Path(session_dir)
     data, doc, why = _integrity.load_session(folder)
     if doc is None:
@@ -89,7 +92,8 @@ def to_dataset(session_dir, chart=None):
         "brdf": (("point", "channel"), np.array([r["brdf"] for r in rows], float),
                  {**sr, "long_name": "bidirectional reflectance distribution function f_r (no cosine factor)"}),
         "brdf_std": (("point", "channel"), np.array([r["brdf_std"] for r in rows], float),
-                     {**sr, "long_name": "1-sigma of brdf from shot and read noise (scale uncertainty: scale_rel_std)"}),
+                     {**sr, "long_name": "standard uncertainty (1-sigma) of brdf from shot and read noise (the scale's: "
+                           "scale_rel_std)"}),
         "saturated": ("point", np.array([bool(r["saturated"]) for r in rows]),
                       {"long_name": "some region pixel was saturated in every exposure (value less reliable)"}),
         "reciprocal_partner": ("point", partner, {"long_name": "index of the point with wi and wo swapped, -1 if none"}),
@@ -118,7 +122,7 @@ def to_dataset(session_dir, chart=None):
         cal_attrs = instrument_response(doc["settings"])
     attrs = _attributes(doc, rows, n_plan, monitor, matrix, chart)
     attrs.update(cal_attrs)
-    return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name)
+    return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name, attrs=global_attrs)
 
 
 def _attributes(doc, rows, n_plan, monitor, matrix, chart) -> dict:
@@ -169,8 +173,9 @@ def _colour(matrix: ColourMatrix, f: np.ndarray, sd: np.ndarray) -> dict:
         value, std, cov = convert(f, sd, matrix, name)
         space = {"colour_space": name, "colour_matrix_source": matrix.source}
         out[f"brdf_{name}"] = (("point", dim), value, {**sr, **space, "long_name": f"f_r in {what}"})
-        out[f"brdf_{name}_std"] = (("point", dim), std, {**sr, **space, "long_name": f"1-sigma of brdf_{name} "
-                                                         "(camera noise; colour matrix uncertainty not included)"})
+        out[f"brdf_{name}_std"] = (("point", dim), std, {**sr, **space, "long_name": f"standard uncertainty (1-sigma) of "
+                                                         f"brdf_{name} from the camera noise (colour matrix "
+                                                         "uncertainty not included)"})
         if name == "srgb":
             pairs = ((1, 2), (0, 2), (0, 1))
             corr = np.stack([cov[:, a, b] / np.maximum(std[:, a] * std[:, b], 1e-300) for a, b in pairs], 1)
@@ -182,20 +187,28 @@ def _colour(matrix: ColourMatrix, f: np.ndarray, sd: np.ndarray) -> dict:
         out["brdf_srgb_u_colour_matrix"] = (("point", "channel", "colour_input"), np.stack(parts, -1), {
             **sr, "gum_type": "B", "correlation": "full", "colour_space": "srgb",
             "source": f"colour matrix from a {matrix.source} fit: row covariance and prediction error",
-            "long_name": "change of brdf_srgb for +1 sigma of each independent input of the colour matrix"})
+            "long_name": "standard uncertainty of brdf_srgb from the colour matrix (signed: the change for +1 "
+                         "sigma of each of its independent inputs)"})
     return out
 
 
-def export(session_dir, chart=None) -> Path:
-    """Write ``session_dir/dataset.nc`` from the journal; return its path.
+def export(session_dir, chart=None, attrs=None) -> Path:
+    """Write ``session_dir/dataset.nc`` from the journal; return its path. ``attrs``: CF/ACDD
+    global attributes (``institution``, ``title``, ``comment``, ...) over gonio's defaults.
 
     Raises
     ------
     SessionError
         Not a session folder, or no point measured yet.
+    GonioError
+        An unknown global attribute or one that is not plain text (before anything is read).
     """
     folder = Path(session_dir)
-    ds = to_dataset(folder, chart)
+    try:
+        attrs = check_global_attributes(attrs)
+    except ValueError as exc:
+        raise GonioError(str(exc)) from None
+    ds = to_dataset(folder, chart, attrs)
     path = folder / DATASET_FILE
     check_output_file(path, "dataset")
     check_free_space(folder, estimated_bytes(ds), f"{path} (its estimated size)")

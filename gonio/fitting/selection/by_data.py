@@ -117,8 +117,11 @@ def _nested_start(model, rows):
     return None
 
 
-def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
+def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, **fit_kwargs):
     """Fit each candidate and pick the simplest one the data supports.
+
+    ``progress``: called as ``progress(done, total, label)`` before each candidate's fit and
+    once at the end (a terminal's bar: gonio/cli/progress.py); None says nothing.
 
     Returns
     -------
@@ -127,7 +130,10 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
         Sorted by BIC, the chosen one flagged.
     """
     rows = []
-    for name, options in candidates or candidates_for(meas):
+    todo = tuple(candidates or candidates_for(meas))
+    for k, (name, options) in enumerate(todo):
+        if progress is not None:
+            progress(k, len(todo), f"{name} {' '.join(map(str, options.values()))}".strip())
         try:
             model = gm.get(name, **options)
         except (KeyError, ValueError):
@@ -135,6 +141,8 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, **fit_kwargs):
         result = fit(meas, model, rng=rng, start=_nested_start(model, rows), **fit_kwargs)
         rows.append(Ranked(name, dict(options), result.space.size, result.chi2, result.bic, 0.0, False, result,
                            result.loss, result.neg2_loglik))
+    if progress is not None:
+        progress(len(todo), len(todo), "candidates fitted")
     if not rows:
         raise ValueError("no candidate model could be fitted")
     best_bic = min(r.bic for r in rows)

@@ -222,7 +222,7 @@ def eval_cost(bsdf, variant=None, n=1 << 16):
 
 
 def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, spp=128, seed=0, threshold=1.0,
-                    variant=None, fallback=None):
+                    variant=None, fallback=None, progress=None):
     """``--model auto`` without a scene: the data's evidence and a default scene together.
 
     BIC (:func:`gonio.fitting.select`) ranks the candidates by the data's evidence. The
@@ -244,7 +244,7 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
     than the two rows' noise floors together), else BIC's choice stands.
 
     Returns ``(result, ranking, note)``: the chosen FitResult, the ranking with ``chosen``
-    moved, and a line saying what decided.
+    moved, and a line saying what decided. ``progress``: as :func:`rank_in_scene`'s.
     """
     by_bic = next(r for r in ranking if r.chosen)
     best = min(ranking, key=lambda r: r.bic)
@@ -252,7 +252,7 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
     rows = [r for r in ranking if r.k <= by_bic.k]
     try:
         ranked = rank_in_scene([r.result for r in rows], reference, scene, size=size, spp=spp, seed=seed,
-                               threshold=threshold, variant=variant)
+                               threshold=threshold, variant=variant, progress=progress)
     except ValueError as exc:
         return by_bic.result, ranking, f"BIC's choice stands: {exc}"
     for r, rr in zip(rows, ranked["rows"]):
@@ -261,7 +261,7 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
     what = "the measured material" if measured is not None else f"the best-supported fit ({best.name})"
     if pick is None and measured is not None:
         return fallback_choice(ranking, rows, by_bic, measured, scene=scene, size=size, spp=spp, seed=seed,
-                               threshold=threshold, variant=variant, fallback=fallback)
+                               threshold=threshold, variant=variant, fallback=fallback, progress=progress)
     if pick is None:
         return by_bic.result, ranking, (f"BIC's choice stands: no candidate up to it renders within CIEDE2000 "
                                         f"{threshold:g} of {what} in the {scene} scene")
@@ -276,7 +276,7 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
 
 
 def fallback_choice(ranking, rendered, by_bic, measured, *, scene, size, spp, seed, threshold, variant=None,
-                    fallback=None):
+                    fallback=None, progress=None):
     """:func:`rendered_choice` where no candidate up to BIC's choice (``rendered``, rows of
     ``ranking`` with ``delta_e`` set) renders within ``threshold`` of the measured material:
     render the more complex candidates of ``ranking`` and ``fallback()``'s fits (added to
@@ -288,6 +288,8 @@ def fallback_choice(ranking, rendered, by_bic, measured, *, scene, size, spp, se
 
     t0 = time.perf_counter()
     more = [r for r in ranking if r.k > by_bic.k]
+    if progress is not None and fallback is not None:
+        progress(0, None, "fitting the fallback")
     extra = list(fallback()) if fallback is not None else []
     best_bic = min(r.bic for r in ranking)
     for res in extra:
@@ -296,7 +298,7 @@ def fallback_choice(ranking, rendered, by_bic, measured, *, scene, size, spp, se
     added = more + ranking[len(ranking) - len(extra):]
     if added:
         ranked = rank_in_scene([r.result for r in added], measured, scene, size=size, spp=spp, seed=seed,
-                               threshold=threshold, variant=variant)
+                               threshold=threshold, variant=variant, progress=progress)
         for r, rr in zip(added, ranked["rows"]):
             r.delta_e, r.noise = rr["delta_e"], rr["noise"]
     best_bic = min(best_bic, *(r.bic for r in ranking))
@@ -362,7 +364,7 @@ def front(rows):
                                        or (o["cost_s"] < r["cost_s"] and o["delta_e"] <= r["delta_e"]) for o in rows)]
 
 
-def rank_in_scene(fits, measured, scene, *, size=32, spp=16, seed=0, threshold=1.0, variant=None):
+def rank_in_scene(fits, measured, scene, *, size=32, spp=16, seed=0, threshold=1.0, variant=None, progress=None):
     """Rank fitted candidates by their rendered difference from the measured BSDF in a scene.
 
     Parameters
@@ -378,6 +380,8 @@ def rank_in_scene(fits, measured, scene, *, size=32, spp=16, seed=0, threshold=1
         noise floor's second pair).
     threshold : float
         Mean CIEDE2000 below which a candidate is good enough.
+    progress : callable, optional
+        ``progress(done, total, label)`` before each render and at the end.
 
     Returns
     -------
@@ -390,13 +394,17 @@ def rank_in_scene(fits, measured, scene, *, size=32, spp=16, seed=0, threshold=1
     if not fits:
         raise ValueError("rank_in_scene: no fitted candidates")
     variant = select_variant(variant)
+    if progress is not None:
+        progress(0, len(fits) + 1, f"rendering the reference in {scene}")
     meas_bsdf = measured_bsdf_dict(measured, variant)
     ref_a, ref_b = render_in_scene(meas_bsdf, scene, size, spp, (seed, seed + 1), variant)
     # the pixels that see the sample: a visible sky or lamp would add pixels every candidate
     # gets right and dilute the mean
     seen = sample_mask(scene, size, variant)
     rows = []
-    for res in fits:
+    for k, res in enumerate(fits):
+        if progress is not None:
+            progress(k + 1, len(fits) + 1, f"rendering {res.model.name}")
         bsdf = res.model.to_mitsuba(res.params)
         img_a, img_b = render_in_scene(bsdf, scene, size, spp, (seed, seed + 1), variant)
         de = delta_e_2000(img_a, ref_a)[seen]
@@ -404,6 +412,8 @@ def rank_in_scene(fits, measured, scene, *, size=32, spp=16, seed=0, threshold=1
         rows.append({"model": res.model.name, "options": dict(res.model.options), "k": int(res.space.size),
                      "delta_e": float(de.mean()), "noise": float(noise.mean()), "cost_s": eval_cost(bsdf, variant),
                      "chosen": False})
+    if progress is not None:
+        progress(len(fits) + 1, len(fits) + 1, "rendered")
     chosen = choose(rows, threshold, f"scene {scene}", spp)
     return {"rows": rows, "front": sorted(front(rows), key=lambda r: r["cost_s"]), "chosen": chosen,
             "scene": str(scene), "size": int(size), "spp": int(spp), "seed": int(seed), "threshold": float(threshold)}
