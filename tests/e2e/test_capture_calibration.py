@@ -104,7 +104,7 @@ def test_false_alarm_rate_and_power():
         assert power_mean(1.0) == pytest.approx(0.72, abs=0.01)
 
 
-@pytest.mark.slow
+@pytest.mark.long      # 63-240 s: the suite's 10 minutes on 2 cores (make test-long runs it)
 def test_combined_uncertainty_covers_the_truth_over_seeded_captures():
     sample = check_sample(DEMO_SAMPLE)
     settings = default_settings()

@@ -249,7 +249,7 @@ def test_laplace_one_sigma_covers_68_percent(case):
     _check("laplace", case, names, np.array([h for _, h in rows]))
 
 
-@pytest.mark.slow
+@pytest.mark.long      # 50-57 s each: the suite's 10 minutes on 2 cores (make test-long runs it)
 @pytest.mark.parametrize("case", ["roughplastic", "orennayar"])
 def test_emcee_90_percent_intervals_cover_90_percent(case):
     model, truth, settings = CASES[case]

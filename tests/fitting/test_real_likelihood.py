@@ -126,7 +126,7 @@ def test_fit_loss_help_lists_every_loss():
 
 
 @needs_rgl
-@pytest.mark.slow
+@pytest.mark.long      # 27 s: the suite's 10 minutes on 2 cores (make test-long runs it)
 def test_auto_on_the_golden_paint_falls_back_to_the_data_driven_ndf():
     """vch_golden_yellow (RGL-EPFL): no --model auto candidate renders within CIEDE2000 1 of the
     measured file in the product-shot scene (BIC's roughconductor2: preview CIEDE2000 3.66, its

@@ -46,7 +46,7 @@ K, N_SIDE, MIN_COVERED = 10, 10, 7
 
 
 @pytest.mark.skipif(not MATERIAL.exists(), reason="no RGL data here")
-@pytest.mark.slow
+@pytest.mark.long      # 33 s: the suite's 10 minutes on 2 cores (make test-long runs it)
 def test_refits_on_random_geometries_spread_within_the_reported_sigma():
     from gonio.fitting import fit, rgl_samples
 
