@@ -255,9 +255,9 @@ def _cmd_report(args):
     folder = Path(args.folder)
     if folder.is_dir():     # (a missing folder gets write_report's own one line)
         check_output_file(Path(args.out) if args.out else folder / "report.html", "report file")
-    with _steps(args, "report"):
+    with _steps(args, "report") as progress:
         path = write_report(folder, Path(args.out) if args.out else None, approver=args.approver,
-                            approver_role=args.approver_role)
+                            approver_role=args.approver_role, progress=progress)
     print(f"wrote {path}")
 
 

@@ -461,3 +461,15 @@ def test_the_certificates_settings_are_declared_and_checked(tmp_path):
         f.write_text(text)
         with pytest.raises(GonioError, match=re.escape(match)):
             load_settings(f)
+
+
+def test_the_report_says_its_progress_figure_by_figure(out, no_figures):
+    """write_report(progress=) is called before each figure and once at the end (gonio report
+    draws a bar with steps and time left on a terminal: issue 41, every step over ~2 s)."""
+    calls = []
+    write_report(out, issue_date=DAY, progress=lambda done, total, label: calls.append((done, total, label)))
+    assert len(calls) >= 3
+    totals = {t for _, t, _ in calls}
+    assert len(totals) == 1 and calls[-1][0] == calls[-1][1] == totals.pop()
+    assert [d for d, _, _ in calls] == list(range(len(calls)))
+    assert all(label.startswith("figure ") for _, _, label in calls[:-1])

@@ -393,23 +393,32 @@ def _partners(dataset_path, n):
     return partner.astype(np.int64)
 
 
-def _draw_all(meas, model, params, samples, rendered, side, notes, preview=None) -> dict:
+def _draw_all(meas, model, params, samples, rendered, side, notes, preview=None, progress=None) -> dict:
+    """Every figure the inputs allow, one ``figs.draw`` each; ``progress(done, total, label)``
+    before each (the report's slowest part: 7-15 s in all)."""
     images: dict[str, bytes] = {}
+    jobs = []
     if model is not None:
         for name, fn in (("inplane.png", figs.inplane), ("polar.png", figs.polar), ("residuals.png", figs.residuals)):
-            figs.draw(images, notes, name, fn, meas, model, params)
-        figs.draw(images, notes, "albedo.png", figs.albedo, model, params)
+            jobs.append((name, fn, (meas, model, params)))
+        jobs.append(("albedo.png", figs.albedo, (model, params)))
     else:
-        figs.draw(images, notes, "measured.png", figs.inplane, meas)
-    figs.draw(images, notes, "coverage.png", figs.coverage, meas)
+        jobs.append(("measured.png", figs.inplane, (meas,)))
+    jobs.append(("coverage.png", figs.coverage, (meas,)))
     if samples is not None:
-        figs.draw(images, notes, "corner.png", figs.corner_plot, *samples)
+        jobs.append(("corner.png", figs.corner_plot, tuple(samples)))
     if rendered is not None:
-        figs.draw(images, notes, "mitsuba_vs_measured.png", figs.mitsuba_vs_measured, meas, rendered)
+        jobs.append(("mitsuba_vs_measured.png", figs.mitsuba_vs_measured, (meas, rendered)))
     if preview is not None and preview.get("tiles"):
         # the preview's images composed with titles that print at 8 pt or more (the side-by-side
         # PNG `gonio render` writes is 9.6 in wide: its titles printed at 6.7 pt on A4)
-        figs.draw(images, notes, "preview_side_by_side.png", figs.preview, preview["tiles"], preview["rows"])
+        jobs.append(("preview_side_by_side.png", figs.preview, (preview["tiles"], preview["rows"])))
+    for k, (name, fn, args) in enumerate(jobs):
+        if progress is not None:
+            progress(k, len(jobs), f"figure {name[:-4]}")
+        figs.draw(images, notes, name, fn, *args)
+    if progress is not None:
+        progress(len(jobs), len(jobs), "the page")
     if side is not None and "preview_side_by_side.png" not in images:
         images["preview_side_by_side.png"] = side
     return images
@@ -450,9 +459,11 @@ def _provenance_status(fit: Doc, dataset_sha: str) -> dict | None:
                                     "(`gonio fit DATASET --out FIT.json`) before the report is issued."}
 
 
-def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, issued=None) -> tuple[str, dict, dict]:
+def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, issued=None,
+               progress=None) -> tuple[str, dict, dict]:
     """Read and check every input, draw the figures and fill the template; write nothing.
-    Returns the page, its images and the certificate's record (report_files/certificate.json)."""
+    Returns the page, its images and the certificate's record (report_files/certificate.json).
+    ``progress(done, total, label)``: before each figure (None: silent)."""
     import jinja2
 
     meas = _load_dataset(root, found["dataset"])
@@ -489,7 +500,7 @@ def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, i
 
     # every input is read and checked: now the figures and the view's data
     notes = ctx["notes"]
-    images = _draw_all(meas, model, params, samples, rendered, side, notes, ctx["preview"])
+    images = _draw_all(meas, model, params, samples, rendered, side, notes, ctx["preview"], progress)
     if ctx["preview"] is not None and ctx["preview"]["note"]:
         notes.append(ctx["preview"]["note"])
     measured = ctx["preview"] is None or ctx["preview"]["measured"]
@@ -508,7 +519,7 @@ def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, i
     return env.get_template("report.html.j2").render(**ctx), images, record
 
 
-def write_report(folder, out=None, *, approver=None, approver_role=None, issue_date=None) -> Path:
+def write_report(folder, out=None, *, approver=None, approver_role=None, issue_date=None, progress=None) -> Path:
     """Write the HTML report for ``folder``; returns its path.
 
     Every input is read and checked before anything is written; a bad one is refused with a
@@ -519,7 +530,8 @@ def write_report(folder, out=None, *, approver=None, approver_role=None, issue_d
 
     ``approver``, ``approver_role``: who approves the certificate (default: the settings'
     ``[session] approver`` and ``approver_role``; blank lines to sign by hand when neither gives
-    one). ``issue_date``: a date or ``YYYY-MM-DD`` (default: today, UTC).
+    one). ``issue_date``: a date or ``YYYY-MM-DD`` (default: today, UTC). ``progress(done, total,
+    label)``: called before each figure is drawn (None: silent).
     """
     import matplotlib
 
@@ -529,7 +541,8 @@ def write_report(folder, out=None, *, approver=None, approver_role=None, issue_d
     root = Folder(folder)
     out = Path(out) if out else Path(folder) / "report.html"
     image_dir = _check_out(out)
-    page, images, record = build_page(folder, found, root, approver=approver, role=approver_role, issued=issue_date)
+    page, images, record = build_page(folder, found, root, approver=approver, role=approver_role, issued=issue_date,
+                                     progress=progress)
     record["report"] = {"name": out.name, "sha256": hashlib.sha256(page.encode("utf-8")).hexdigest()}
     try:
         image_dir.mkdir(parents=True, exist_ok=True)
