@@ -169,6 +169,8 @@ def test_the_status_box_says_what_is_incomplete_inadequate_or_violated(out, no_f
     bad = re.findall(r'<li class="bad">([^<]*)</li>', box)
     assert any("Incomplete: 40 of 1053 planned points" in b for b in bad), bad
     assert any("Inadequate model: chi2/dof = 3.8e+05" in b for b in bad), bad
+    # the verdict names its test and level (issue 34)
+    assert any("budget chi-square test" in b and "alpha = 0.001" in b for b in bad), bad
     assert any("Energy violated" in b and "1.2 &gt; 1" in b for b in bad), bad
     assert any("Reciprocity violated" in b for b in bad), bad
     assert np.isfinite(brdf).all()

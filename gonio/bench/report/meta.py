@@ -280,22 +280,19 @@ def status(meas, planned, fit: Doc | None, partner) -> list[dict]:
     else:
         g = fit.need("goodness")
         chi, dof = g.num("chi2_dof"), g.count("dof")
+        test = _adequacy_named(g.sub("adequacy"))
         if g.raw("model_adequate") is False:
             tail = ("the statistical part of u_c below is Birge-inflated; chi2 weighs the points by their "
                     "noise alone, so terms of the budget that differ from point to point (angles, stray light) "
                     "also raise it" if fit.sub("uncertainty") is not None else
                     "the uncertainties below are Birge-inflated statistical ones and understate the error")
+            said = f"{test} rejects it" if test else "beyond its 99.9 % point"
             out.append({"level": "bad", "text": f"Inadequate model: chi2/dof = {chi:.3g} over {dof} degrees of "
-                        f"freedom, beyond its 99.9 % point: the model misses the data by more than their noise; "
-                        f"{tail}."})
+                        f"freedom; {said}: the model misses the data by more than their budget allows; {tail}."})
         elif chi is not None:
-            unc = fit.sub("uncertainty")
-            stat = unc.sub("statistical") if unc is not None else None
-            expected = stat.num("chi2_expected") if stat is not None else None
-            if expected is not None:
-                out.append({"level": "ok", "text": f"Model adequate: chi2 = {stat.num('chi2'):.4g}, within the "
-                            f"{expected:.4g} +- {stat.num('chi2_expected_sd'):.2g} the uncertainty budget predicts "
-                            f"(chi2/dof = {chi:.3g} over {dof} dof against the type-A noise alone)."})
+            if test:
+                out.append({"level": "ok", "text": f"Model adequate: {test} accepts it (chi2/dof = {chi:.3g} over "
+                            f"{dof} dof against the type-A noise alone)."})
             else:
                 out.append({"level": "ok", "text": f"Model adequate: chi2/dof = {chi:.3g} ({dof} dof)."})
         energy = fit.need("constraints").need("energy")
@@ -315,6 +312,22 @@ def status(meas, planned, fit: Doc | None, partner) -> list[dict]:
         out.append({"level": level, "text": f"{word}: median |f(wi, wo) - f(wo, wi)| = {z:.2g} sigma over {n} "
                     "reciprocal pairs (Helmholtz; beyond 3 sigma means the data or the geometry are wrong)."})
     return out
+
+
+def _adequacy_named(a) -> str | None:
+    """What the fit's adequacy verdict tested and at what level, as words (None without a
+    ``goodness.adequacy`` section: an older fit file)."""
+    if a is None:
+        return None
+    names = {"budget_chi2": "the budget chi-square test (the residuals against the budget's covariance, its "
+                            "shared inputs profiled)",
+             "chi2": "the chi-square test against the fit's sigma"}
+    what = names.get(str(a.raw("test")), f"the {cut(str(a.raw('test')), 30)} test")
+    alpha, stat, p, dof = a.num("alpha"), a.num("statistic"), a.num("p_value"), a.count("dof")
+    parts = [f"{what} at alpha = {alpha:.2g} (its false-alarm rate)" if alpha is not None else what]
+    if stat is not None and dof is not None:
+        parts.append(f"statistic {stat:.4g} over {dof} dof" + (f", p = {p:.2g}" if p is not None else ""))
+    return ", ".join(parts)
 
 
 def results(fit: Doc, truth_of: dict, rel_std) -> dict:
