@@ -106,7 +106,9 @@ def test_capture_and_calibrate_bars_on_a_terminal_nothing_in_a_pipe(tmp_path):
     assert rc == 0, screen[-2000:]
     shown = frames(screen)
     assert any("capture" in f and BAR in f and "2/2" in f for f in shown), screen[-3000:]
-    assert any("capture: dark frames, lamp off" in f for f in shown)      # the status line before the points
+    # the status line before the points: its last phase, which the status draws as it stops (the
+    # earlier ones, dark and flat frames, last less than a refresh on an idle machine)
+    assert any("capture: lamp on, reading the source monitor" in f for f in shown), screen[-3000:]
     fits, wide = _fits_80(screen)
     assert fits, wide
 
