@@ -41,7 +41,9 @@ def error_quantiles(L: np.ndarray, H: np.ndarray, b: np.ndarray, var_rest: np.nd
     rng = np.random.default_rng(MC_SEED) if rng is None else rng
     e = rng.standard_normal((draws, K))
     z = rng.standard_normal((draws, P))
-    err = e @ L.T + 0.5 * np.einsum("mk,pkl,ml->mp", e, H, e) - b[None, :] + z * np.sqrt(var_rest)[None, :]
+    err = e @ L.T - b[None, :] + z * np.sqrt(var_rest)[None, :]
+    for p in range(P):                 # one parameter at a time: (draws, K) at most in memory
+        err[:, p] += 0.5 * np.einsum("mk,mk->m", e @ H[p], e)
     if not np.all(np.isfinite(err)):
         raise ValueError("the error distribution has non-finite draws: the budget's terms are not finite")
     out = {}
