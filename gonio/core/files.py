@@ -13,7 +13,8 @@ from pathlib import Path
 from gonio.core import atomic
 
 __all__ = ["TMP_PREFIX", "sha256_file", "atomic_write_bytes", "atomic_write_text", "fsync_dir",
-           "commit_file", "make_durable", "create_exclusive", "write_new_text", "remove_orphans", "is_tiff"]
+           "commit_file", "make_durable", "create_exclusive", "write_new_text", "remove_orphans", "is_tiff",
+           "text_head"]
 
 TMP_PREFIX = atomic.RESERVED_PREFIX     # reserved names start with this; a resume removes any left behind
 
@@ -103,3 +104,14 @@ def is_tiff(path: Path) -> bool:
             return fh.read(4) in (b"II*\x00", b"MM\x00*")
     except OSError:
         return False
+
+
+def text_head(path, size: int = 1 << 14) -> bytes | None:
+    """The first ``size`` bytes of a file that may be a text format (for detection by content);
+    None when it cannot be read or holds a NUL byte (binary)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(size)
+    except OSError:
+        return None
+    return None if b"\x00" in head else head

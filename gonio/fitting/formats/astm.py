@@ -21,6 +21,7 @@ import numpy as np
 
 from gonio.core.channels import spectral
 from gonio.core.errors import GonioError
+from gonio.core.files import text_head
 from gonio.core.geometry import directions
 
 from gonio.fitting.measurements import Measurements
@@ -65,12 +66,8 @@ class AstmBRDF:
 
 def is_astm(path) -> bool:
     """True when the file's head holds an ASTM E1392 ``VARS`` line starting with the four angles."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(1 << 14)
-    except OSError:
-        return False
-    if b"\x00" in head:
+    head = text_head(path)
+    if head is None:
         return False
     for line in head.decode("latin-1").splitlines():
         key, _, rest = line.strip().partition(" ")

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from gonio.core.errors import GonioError
+from gonio.core.files import text_head
 from gonio.core.preflight import check_input_file
 from gonio.core.sides import Side
 from gonio.fitting.formats.readback import expect, written
@@ -130,12 +131,8 @@ class ZemaxBSDF:
 def is_zemax_bsdf(path) -> bool:
     """True when the file's first lines are a Zemax tabular BSDF header (by content: an RGL
     tensor ``.bsdf`` or any other file gives False)."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(1 << 14)
-    except OSError:
-        return False
-    if b"\x00" in head:
+    head = text_head(path)
+    if head is None:
         return False
     words = []
     for line in head.decode("latin-1").splitlines()[:-1 if len(head) == 1 << 14 else None]:
