@@ -1,30 +1,16 @@
-"""dataset.nc, and a fit as NetCDF, in CF-1.8 (NetCDF Climate and Forecast Metadata Conventions).
+"""dataset.nc, and a fit as NetCDF, in CF-1.8 (the NetCDF Climate and Forecast conventions,
+https://cfconventions.org/Data/cf-conventions/cf-conventions-1.8/cf-conventions.html).
 
-Specification: https://cfconventions.org/Data/cf-conventions/cf-conventions-1.8/cf-conventions.html.
-:func:`cf_encode` adds to the dataset :func:`gonio.bench.dataset.export.to_dataset` builds: the
-global attributes of CF section 2.6.2 (``Conventions = "CF-1.8"``, ``title``, ``institution``,
-``source``, ``history``, ``references``, ``comment``) and gonio's own ``angle_convention``,
-``angle_units``, ``phi_convention`` and ``colour_space``; ``long_name`` on every variable that
-lacks one (section 3.2) and ``units`` where they apply; the channel labels and any other
-string coordinate (e.g. ``xyz``) as label variables ``channel_label(channel, string1)`` (section
-6.1: fixed-length char arrays with ``_Encoding = "utf-8"``, section 2.2; named apart from their
-dimension, as chapter 5 recommends for a multidimensional coordinate, and listed in the
-``coordinates`` attribute of the variables on it); integer variables as 32-bit ``int``; ``saturated`` as a CF flag
-(section 3.5); every value linked to its uncertainties and quality flag by
-``ancillary_variables`` (section 3.4: ``brdf`` to ``brdf_std``, ``u_combined``, each ``u_``
-component and ``saturated``; ``brdf_srgb`` to ``brdf_srgb_std`` ...; a calibrated angle to its
-``<angle>_u``), each of which says in its ``long_name`` that it is a standard uncertainty.
-
-The caller's global attributes (:data:`GLOBAL_ATTRIBUTES`: CF's ``title``, ``institution``,
-``source``, ``history``, ``references``, ``comment`` and the discovery attributes of ACDD 1.3
-such as ``summary``, ``creator_name`` or ``license``) replace gonio's defaults; a ``history``
-given keeps gonio's export line first. :func:`fit_netcdf` writes a fit file's table
-(`gonio.fitting.formats.fitfile.fit_to_xarray`) the same way (``gonio convert FIT --to
-netcdf``).
-
-No CF standard name fits these variables (gonio's f_r is in sr^-1 of a laboratory sample), so
-no standard name modifier (``standard_error``) can mark the uncertainties either: the angles say
-what they are in ``long_name`` and ``comment``, the uncertainties in ``long_name``.
+:func:`cf_encode` adds the global attributes of CF 2.6.2 and gonio's angle and colour
+conventions; ``long_name`` and ``units`` on every variable (3.2); string coordinates as label
+variables such as ``channel_label(channel, string1)`` (6.1, 2.2; named apart from their
+dimension, chapter 5); 32-bit integers; ``saturated`` as a flag (3.5); and
+``ancillary_variables`` linking every value to its uncertainties and flag (3.4), each of which
+says in its ``long_name`` that it is a standard uncertainty (no CF standard name fits a
+laboratory f_r, so no ``standard_error`` modifier can). The caller's global attributes
+(:data:`GLOBAL_ATTRIBUTES`: CF's and ACDD 1.3's) replace gonio's defaults; a ``history`` given
+keeps gonio's export line first. :func:`fit_netcdf` writes a fit file's table the same way
+(``gonio convert FIT --to netcdf``).
 """
 
 # Encoding details:

@@ -1,34 +1,14 @@
-"""The report as a calibration certificate (ISO/IEC 17025:2017 clause 7.8).
+"""The report as a calibration certificate (ISO/IEC 17025:2017 clause 7.8; 7.8.6, conformity,
+is not stated).
 
-What 7.8.2 (every report) and 7.8.4 (calibration certificates) ask of it, and where it comes
-from (7.8.6, statements of conformity, is not made: no specification is judged):
-
-- a unique identification on every page and a clear end (7.8.2.1 d): :func:`report_number`,
-  deterministic from the data (the SHA-256 of dataset.nc and of fit.json) and the issue date,
-  printed in the page's margin with "Page x of y" (the print stylesheet's ``@page`` counters)
-  and recorded in ``report_files/certificate.json``;
-- the laboratory (b, c) and the customer (e): ``[session] institution`` and ``customer`` of the
-  settings the capture recorded (else the dataset's ``institution`` attribute), "not recorded"
-  otherwise;
-- the method (f): :func:`method_text`; the item (g) and the dates (i, j): the identification
-  table (meta.identification) and :func:`issue_date`;
-- the conditions (7.8.4.1 b): :func:`conditions`: the source's and detector's apertures and
-  solid angles, the polarisation, the ambient temperature and humidity, each as recorded
-  (``[aperture]`` from gonio calibrate, the dataset's ``aperture_*`` attributes, ``[conditions]``
-  of the settings) or "not recorded";
-- the results with U and k (7.8.4.1 a): meta.results; the budget as a table,
-  :func:`budget_table`: one row per component of the fit file's budget with its GUM type,
-  correlation, source, contribution c_i u(x_i) to the parameter and share of u_c^2;
-- traceability (7.8.4.1 c): :func:`traceability`: the reference standard and its
-  certificate, the calibration applied (from the calibration record the capture merged into
-  its settings), or plainly that none was;
-- the statement that the results relate only to the item calibrated (7.8.2.1 l) and, for a
-  simulated session, that it is not a measurement of a physical item (n: a deviation);
-- the approval (o): name, role, date and a line to sign, from ``gonio report --approver`` /
-  ``--approver-role`` or the settings' ``[session] approver`` / ``approver_role``; blank lines to
-  fill in by hand when none is given.
-
-Every text here is plain text from hostile files, cut (inputs.cut); the template escapes it.
+Each item of 7.8.2 and 7.8.4 and where it comes from: the unique number on every page and the
+end (7.8.2.1 d), :func:`report_number` from the SHA-256 of dataset.nc and fit.json and the issue
+date; laboratory and customer (b, c, e) from ``[session]`` or the dataset; method (f),
+:func:`method_text`; conditions (7.8.4.1 b), :func:`conditions`: apertures and solid angles,
+polarisation, temperature, humidity, or "not recorded"; the budget as a table (7.8.4.1 a),
+:func:`budget_table`; traceability (7.8.4.1 c), :func:`traceability`; the statements (7.8.2.1
+l, n); the approval (o) from ``--approver``/``--approver-role`` or ``[session]``, else blank to
+sign. Every text is plain text from hostile files, cut (inputs.cut); the template escapes it.
 """
 
 from __future__ import annotations
