@@ -14,6 +14,7 @@ import serial
 from gonio.core.channels import CHANNELS
 from gonio.core.devices import PORT_NAMES
 from gonio.sim.devices.camera_port import CameraPort
+from gonio.sim.devices.monochromator import CornerstoneTwin, MonochromatorEndpoint
 from gonio.sim.physics.clock import SimClock
 from gonio.sim.physics.colour import chart_radiance
 from gonio.sim.physics.errors import error_model, square_masks
@@ -153,6 +154,9 @@ class Instrument:
             attr, cls, eol, split_cr = SIM_DEVICES[name]
             setattr(self, attr, cls(self))
             self.ports[name] = PortEndpoint(self, name, getattr(self, attr), eol, split_cr=split_cr)
+        if self.settings.get("monochromator") is not None:     # optional: not a declared port yet (issue 39)
+            self.monochromator = CornerstoneTwin(self)
+            self.ports["monochromator"] = MonochromatorEndpoint(self, self.monochromator)
         self._scene: HolderScene | None = None
         self.detector = "front"           # the detector arm's stop: "front" (reflection) or "rear" (transmission)
         self._radiance = OrderedDict()
