@@ -65,6 +65,9 @@ def test_bytes_match_the_manuals(twin):
     said(b"FOO\r\n", b"FOO\r\n")                              # echo on again
     said(b"ERROR?\r\n", b"ERROR?\r\n1\r\n")                   # 1: command not understood
     said(b"GRAT?\r\n", b"GRAT?\r\n1,1200,350NM\r\n")
+    said(b"\r\n", b"\r\n")                                    # a blank line: echoed, nothing done
+    said(b"X" * 300 + b"\r\nWAVE?\r\n", b"X" * 128 + b"\nWAVE?\r\n510.00\r\n")   # 128-byte buffer
+    said(b"ERROR?\r\n", b"ERROR?\r\n1\r\n")
     port.timeout = 0.05
     assert port.read(64) == b""                               # nothing more was sent
     port.close()

@@ -201,10 +201,27 @@ class CornerstoneTwin:
 
     # ------------------------------------------------------------------ bytes
     def received(self, data: bytes) -> None:
-        """Raw bytes from the host, kept for the echo (at most 4 lines' worth: the rest is lost,
-        as an overrun input buffer loses it)."""
-        room = 4 * self.MAX_LINE - len(self._raw)
-        self._raw += data[:max(0, room)]
+        """Raw bytes from the host, kept for the echo: at most ``MAX_LINE`` bytes of a line (the
+        rest, up to its LF, is lost, as the endpoint drops it)."""
+        raw, start = self._raw, 0
+        while start < len(data):
+            end = data.find(b"\n", start)
+            stop = len(data) if end < 0 else end + 1
+            room = self.MAX_LINE - (len(raw) - (raw.rfind(b"\n") + 1))
+            raw += data[start:min(stop if end < 0 else end, start + max(0, room))]
+            if end >= 0:
+                raw += b"\n"
+            start = stop
+
+    def leftover(self) -> str:
+        """What is left of the complete lines once the endpoint has handled a write: lines of
+        white space only (returned to be echoed at once, echo on) or lines it did not hand on
+        (dropped); the partial line stays."""
+        raw = self._raw
+        cut = raw.rfind(b"\n") + 1
+        text = bytes(raw[:cut])
+        del raw[:cut]
+        return text.decode("latin-1") if self.echo and not text.strip() else ""
 
     def _take_echo(self) -> str:
         """The bytes of the statement just ended, as received (through the LF that ends it)."""
@@ -375,6 +392,9 @@ class MonochromatorEndpoint(PortEndpoint):
         with self.lock:
             self.server.received(bytes(data))
             super().feed(data)
+            blank = self.server.leftover()
+            if blank and self.present():
+                self._queue(blank.encode("ascii", "replace"))
 
 
 class MonochromatorHost:
