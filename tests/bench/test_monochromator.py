@@ -29,6 +29,10 @@ def twin(tmp_path, request):
         yield host, srv.paths["monochromator"]
 
 
+#: a lost answer after a move is waited for timeout + move_timeout_s: short here, 30 s by default
+QUICK = {"monochromator": {"move_timeout_s": 0.1}}
+
+
 def _open(path, **kw):
     return Monochromator(path, kw.pop("settings", None), timeout=kw.pop("timeout", 0.2), **kw)
 
@@ -152,7 +156,7 @@ def test_an_instrument_that_does_not_echo(twin):
 def test_a_dropped_reply_is_sent_again(twin):
     host, path = twin
     twin_ = host.monochromator
-    with _open(path) as mono:
+    with _open(path, settings=QUICK) as mono:
         mono.go_to(600.0)
         twin_.drop_at = frozenset({twin_.statements + 1})            # the next WAVE? answer is lost
         assert mono.wavelength() == 600.0
@@ -178,7 +182,7 @@ def test_a_stuck_filter_wheel_is_reported(twin):
 def test_garbled_or_missing_answers(twin, monkeypatch):
     host, path = twin
     twin_ = host.monochromator
-    with _open(path, retries=1) as mono:
+    with _open(path, settings=QUICK, retries=1) as mono:
         query = twin_._query
         garbage = iter(["5OO.O0", "\x7f\x01", "500.00"])
         monkeypatch.setattr(twin_, "_query", lambda head: next(garbage) if head == "WAVE?" else query(head))

@@ -227,10 +227,11 @@ class Monochromator(SerialDevice):
         return self._send(text, True, parse, wait)
 
     def command(self, text: str, wait: float | None = None) -> None:
-        """Send a command, then read the status byte (waiting ``wait`` s: the instrument answers
-        after a move ends); an error raises `DeviceError` with the manual's meaning."""
-        self._send(text, False, wait=None)
-        stb = self.query("STB?", _status, wait=wait)
+        """Send a command, then read the status byte, waiting up to ``wait`` s (default: the port's
+        timeout plus ``move_timeout_s``; the instrument answers once a move ends); an error raises
+        `DeviceError` with the manual's meaning."""
+        self._send(text, False)
+        stb = self.query("STB?", _status, wait=self._move_wait() if wait is None else wait)
         if stb:
             code = self.query("ERROR?", _code)
             why = ERRORS.get(code, f"unknown error code {code}")
@@ -278,9 +279,9 @@ class Monochromator(SerialDevice):
         """``FILTER?``: the filter wheel's position."""
         return self.query("FILTER?", _integer)
 
-    def wavelength(self, wait: float | None = None) -> float:
-        """``WAVE?``: the wavelength now, nm."""
-        return self.query("WAVE?", _wavelength, wait)
+    def wavelength(self) -> float:
+        """``WAVE?``: the wavelength, nm (once a move under way has ended)."""
+        return self.query("WAVE?", _wavelength, self._move_wait())
 
     def shutter(self, open_: bool) -> None:
         """Open (True) or close the shutter, and check that it did."""
@@ -303,20 +304,19 @@ class Monochromator(SerialDevice):
             raise GonioError(f"wavelength {nm:g} nm is outside the monochromator's ranges ({lo:g}-{hi:g} nm "
                              "for gratings and filters); choose one inside, or widen [monochromator] gratings "
                              "and filters")
-        wait = self._move_wait()
         if self.grating() != g:
-            self.command(f"GRAT {g}", wait)
+            self.command(f"GRAT {g}")
             now = self.grating()
             if now != g:
                 raise DeviceError(f"monochromator grating reads {now} after GRAT {g}; check the turret, then retry")
         if self.filter() != f:
-            self.command(f"FILTER {f}", wait)
+            self.command(f"FILTER {f}")
             now = self.filter()
             if now != f:
                 raise DeviceError(f"monochromator filter wheel stayed at {now} after FILTER {f}: the wheel may be "
                                   "stuck; check it, then retry")
-        self.command(f"GOWAVE {_number(nm)}", wait)
-        got = self.wavelength(wait)
+        self.command(f"GOWAVE {_number(nm)}")
+        got = self.wavelength()
         if abs(got - nm) > self.tolerance_nm:
             raise DeviceError(f"monochromator reads {got:g} nm after GOWAVE {_number(nm)}, more than "
                               f"{self.tolerance_nm:g} nm off; check its calibration or [monochromator] tolerance_nm")
