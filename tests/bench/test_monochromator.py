@@ -144,6 +144,23 @@ def test_out_of_range_is_one_line(twin, tmp_path):
     assert "cannot open the monochromator port" in _one_line(exc)
 
 
+@pytest.mark.parametrize("twin", [{"filters": 0}], indirect=True)
+def test_a_monochromator_without_filter_wheel(twin):
+    host, path = twin
+    with _open(path) as mono:                    # default filters: FILTER? answers error 6 (MCS260B 15.9)
+        with pytest.raises(DeviceError) as exc:
+            mono.filter()                        # echoed, unanswered: the status says why
+        assert "refused 'FILTER?': error 6" in _one_line(exc) and mono.retries_used == 0
+        with pytest.raises(DeviceError) as exc:
+            mono.command("FILTER 2")
+        assert "error 6" in _one_line(exc) and "filters = []" in str(exc.value)
+    with _open(path, settings={"monochromator": {"filters": []}}) as mono:
+        assert mono.go_to(900.0) == 900.0 and host.monochromator.drive.grating == 2
+        with pytest.raises(GonioError) as exc:
+            mono.go_to(1450.0)
+        assert "(200-1400 nm" in _one_line(exc)
+
+
 @pytest.mark.parametrize("twin", [{"echo": False}], indirect=True)
 def test_an_instrument_that_does_not_echo(twin):
     host, path = twin

@@ -57,11 +57,12 @@ DEFAULTS = {"gratings": [[1, 200.0, 650.0], [2, 650.0, 1400.0]],
 _PRINTABLE = re.compile(r"[ -~]{1,80}")
 
 
-def _ranges(value, key: str) -> list[tuple[int, float, float]]:
-    """``[[n, from_nm, to_nm], ...]`` checked: n >= 1, finite, from < to; else one line."""
+def _ranges(value, key: str, empty: bool = False) -> list[tuple[int, float, float]]:
+    """``[[n, from_nm, to_nm], ...]`` checked: n >= 1, finite, from < to (and not empty unless
+    ``empty``); else one line."""
     fix = (f"[monochromator] {key} = {str(value)[:60]}: give [[n, from_nm, to_nm], ...] with n >= 1 and "
-           "from_nm < to_nm, e.g. [[1, 200, 650], [2, 650, 1400]]")
-    if not isinstance(value, (list, tuple)) or not value:
+           "from_nm < to_nm, e.g. [[1, 200, 650], [2, 650, 1400]]" + (", or [] for none" if empty else ""))
+    if not isinstance(value, (list, tuple)) or not (value or empty):
         raise GonioError(fix)
     out = []
     for row in value:
@@ -117,7 +118,7 @@ class Monochromator(SerialDevice):
         if unknown:
             raise GonioError(f"[monochromator] has no key {unknown[0]!r}; known keys: {', '.join(DEFAULTS)}")
         self.gratings = _ranges(m.get("gratings", DEFAULTS["gratings"]), "gratings")
-        self.filters = _ranges(m.get("filters", DEFAULTS["filters"]), "filters")
+        self.filters = _ranges(m.get("filters", DEFAULTS["filters"]), "filters", empty=True)   # []: no wheel
         self.move_timeout_s = _positive(m, "move_timeout_s")
         self.tolerance_nm = _positive(m, "tolerance_nm")
         baud = m.get("baudrate", DEFAULTS["baudrate"])
@@ -141,8 +142,9 @@ class Monochromator(SerialDevice):
 
     @property
     def range_nm(self) -> tuple[float, float]:
-        """The lowest and highest wavelength the ``gratings`` ranges cover, nm."""
-        return min(r[1] for r in self.gratings), max(r[2] for r in self.gratings)
+        """The lowest and highest wavelength the ``gratings`` (and ``filters``) ranges cover, nm."""
+        rows = [self.gratings] + ([self.filters] if self.filters else [])
+        return max(min(r[1] for r in t) for t in rows), min(max(r[2] for r in t) for t in rows)
 
     # ------------------------------------------------------------------ lines
     def _readline(self, wait: float) -> str | None:
@@ -189,7 +191,10 @@ class Monochromator(SerialDevice):
             got = next(lines)
             if got is None or got.upper() != statement.upper():
                 return None
-        return next(lines) if answer else ""
+        if not answer:
+            return ""
+        got = next(lines)
+        return _UNANSWERED if got is None and self.echo else got
 
     def _send(self, statement: str, answer: bool, parse=str, wait: float | None = None):
         """An exchange with retries and one reopen of the port; ``parse`` raises ValueError for a
@@ -209,6 +214,10 @@ class Monochromator(SerialDevice):
                     continue
             for _ in range(self.retries + 1):
                 got = self._exchange(statement, answer, wait)
+                if got is _UNANSWERED:          # it arrived (echoed) but got no answer: refused?
+                    if statement not in ("STB?", "ERROR?"):
+                        self._check(statement)
+                    got = None
                 if got is None:
                     last = "no answer" if answer or not self.echo else "no echo"
                 else:
@@ -231,7 +240,12 @@ class Monochromator(SerialDevice):
         timeout plus ``move_timeout_s``; the instrument answers once a move ends); an error raises
         `DeviceError` with the manual's meaning."""
         self._send(text, False)
-        stb = self.query("STB?", _status, wait=self._move_wait() if wait is None else wait)
+        self._check(text, self._move_wait() if wait is None else wait)
+
+    def _check(self, text: str, wait: float | None = None) -> None:
+        """``STB?`` (within ``wait`` s), and where it says error ``ERROR?``: `DeviceError` naming
+        ``text``, the code and its meaning."""
+        stb = self.query("STB?", _status, wait=wait)
         if stb:
             code = self.query("ERROR?", _code)
             why = ERRORS.get(code, f"unknown error code {code}")
@@ -300,7 +314,7 @@ class Monochromator(SerialDevice):
             raise GonioError(f"wavelength {str(nm)[:40]!r} is not a number; give nm, e.g. 550") from None
         lo, hi = self.range_nm
         g, f = choose(self.gratings, nm), choose(self.filters, nm)
-        if not math.isfinite(nm) or g is None or f is None:
+        if not math.isfinite(nm) or g is None or (f is None and self.filters):
             raise GonioError(f"wavelength {nm:g} nm is outside the monochromator's ranges ({lo:g}-{hi:g} nm "
                              "for gratings and filters); choose one inside, or widen [monochromator] gratings "
                              "and filters")
@@ -309,7 +323,7 @@ class Monochromator(SerialDevice):
             now = self.grating()
             if now != g:
                 raise DeviceError(f"monochromator grating reads {now} after GRAT {g}; check the turret, then retry")
-        if self.filter() != f:
+        if f is not None and self.filter() != f:
             self.command(f"FILTER {f}")
             now = self.filter()
             if now != f:
@@ -323,8 +337,10 @@ class Monochromator(SerialDevice):
         return got
 
 
+_UNANSWERED = object()        # a query was echoed but not answered
+
 _ADVICE = {3: "the wavelength is outside this grating's range: check [monochromator] gratings",
-           6: "no filter wheel answers: check it is fitted and cabled, or remove [monochromator] filters",
+           6: "no filter wheel answers: check it is fitted and cabled, or set [monochromator] filters = []",
            2: "check the value sent and the [monochromator] settings"}
 
 
