@@ -21,6 +21,8 @@ References: Newport, Oriel Cornerstone 260 manual (MCS260), appendix I 16.2-16.7
 #   retried, so a late answer is never taken for the next one.
 # - The grating, the filter and the wavelength are read back after every change, not remembered:
 #   the manual warns that the RS-232, USB and hand-controller ports are all live at once.
+# - A query that is echoed but not answered was refused (errors live only in the status byte):
+#   STB? and ERROR? are read at once and the code raised, rather than the query retried.
 # - Every command here sets an absolute state (GOWAVE, GRAT, FILTER, SHUTTER, UNITS), so a command
 #   whose echo was lost is simply sent again.
 # - A statement's echo and answer may come only when the drive has finished a move (the
