@@ -1,18 +1,18 @@
 """Export a session's journal to ``dataset.nc`` (docs/interfaces.md section 5).
 
-Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i``,
-``theta_o``, ``phi_o`` (degrees); variables ``brdf`` and ``brdf_std`` (sr^-1, 1-sigma),
-``saturated``, ``reciprocal_partner`` (dataset index, -1 if none), ``plan_index`` and the
-stage angles; attributes ``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``,
-``sample_truth`` (simulated sessions), ``scale_rel_std`` (the reference certificate's relative
-1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``), ``complete``. A session
-captured with a calibration also has ``<angle>_nominal``, ``<angle>_u``, ``angle_calibration``
-and ``aperture_*``. Where the RAW files carry colour matrices, also ``brdf_srgb`` (linear sRGB,
-D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and ``brdf_srgb_corr``; every f_r variable
-says its space (``colour_space``). The file is written atomically: a full disk is one line and
-leaves no partial file (an older ``dataset.nc`` stays as it was). What was serialised is read
-back before it is written: every variable, its point count and its values as they were, or
-nothing is written. A journal with a damaged point row is refused (`gonio verify`).
+Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i``, ``theta_o``,
+``phi_o`` (degrees); variables ``brdf`` and ``brdf_std`` (sr^-1, 1-sigma), ``saturated``,
+``reciprocal_partner`` (dataset index, -1 if none), ``plan_index`` and the stage angles; attributes
+``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``, ``sample_truth`` (simulated
+sessions), ``scale_rel_std`` (the reference certificate's relative 1-sigma: a fully correlated scale
+uncertainty, not in ``brdf_std``), ``complete``, ``instrument_time_s`` (per point:
+``instrument_time``). A session captured with a calibration also has ``<angle>_nominal``,
+``<angle>_u``, ``angle_calibration`` and ``aperture_*``. Where the RAW files carry colour matrices,
+also ``brdf_srgb`` (linear sRGB, D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and
+``brdf_srgb_corr``; every f_r variable says its space (``colour_space``). Written atomically: a full
+disk is one line and leaves no partial file. What was serialised is read back before it is written:
+every variable, its point count and its values as they were, or nothing is written. A journal with a
+damaged point row is refused (`gonio verify`).
 """
 
 # Calibration: a session captured with a calibration ([alignment] in its settings,
@@ -43,7 +43,7 @@ from gonio.bench.dataset.budget import budget_variables, move_history
 from gonio.bench.dataset.cf import cf_encode, check_global_attributes
 from gonio.bench.calibrate import dataset_angles, instrument_response
 from gonio.core.files import commit_file, tmp_name
-from gonio.bench.session.journal import RAW_DIR
+from gonio.bench.session.journal import RAW_DIR, preparation_times
 from gonio.core.preflight import check_free_space, check_output_file, oserror_line
 from gonio.bench.measure.colour_matrix import (ColourMatrix, colour_matrix_components, convert, matrix_from_chart_dng, matrix_from_dng, matrix_from_libraw)
 from gonio.core.errors import GonioError, SessionError
@@ -73,6 +73,7 @@ def to_dataset(session_dir, chart=None, attrs=None):
         rows = j.points()
         rgb_cam = j.first_event("rgb_cam")
         charts = j.frames("chart")
+        preparations = preparation_times(j.events())
     if not rows:
         raise SessionError(f"{folder} has no measured point yet; resume the capture first")
     n_plan = len(doc["plan"]["points"])
@@ -104,6 +105,10 @@ def to_dataset(session_dir, chart=None, attrs=None):
     monitor = np.array([float(r["detail"].get("p_start", np.nan)) for r in rows])
     data["monitor_power"] = ("point", monitor, {"units": "W", "long_name": "power-meter reading of the lamp "
                                                 "monitor at the start of the point"})
+    point_s = np.array([_seconds(r["detail"].get("instrument_s")) for r in rows])
+    data["instrument_time"] = ("point", point_s, {
+        "units": "s", "long_name": "instrument time of the point: the move to it, settling, its exposures and "
+        "monitor readings, and any pause, from the end of the previous point's bracket (NaN: not recorded)"})
     # the per-point uncertainty budget, u_<component> and u_combined (gonio/bench/dataset/budget.py)
     data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1]))
     data["brdf"][2]["colour_space"] = data["brdf_std"][2]["colour_space"] = "camera"
@@ -121,6 +126,7 @@ def to_dataset(session_dir, chart=None, attrs=None):
     if not cal_attrs and isinstance(doc["settings"].get("aperture"), dict):
         cal_attrs = instrument_response(doc["settings"])
     attrs = _attributes(doc, rows, n_plan, monitor, matrix, chart)
+    attrs.update(_instrument_time(point_s, preparations))
     attrs.update(cal_attrs)
     return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name, attrs=global_attrs)
 
@@ -150,6 +156,26 @@ def _attributes(doc, rows, n_plan, monitor, matrix, chart) -> dict:
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
     return attrs
+
+
+def _seconds(v) -> float:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 else np.nan
+
+
+def _instrument_time(point_s: np.ndarray, preparations) -> dict:
+    """``instrument_time_s`` (the session's instrument time: every run's preparation and every
+    kept point's time, as the simulator's clock or the rig measured it), its preparation part
+    and a comment saying what it counts; NaN, said so, where a point's time is not recorded."""
+    prep = float(sum(s for _, s in preparations))
+    missing = int(np.sum(~np.isfinite(point_s)))
+    total = prep + float(np.sum(point_s)) if not missing else np.nan
+    what = ("instrument_time_s: seconds of instrument time (motion, settling, exposures, monitor readings and "
+            "pauses, by the simulator's clock or the rig's) of every run's preparation (homing, dark and flat "
+            f"frames, lamp on: instrument_time_preparation_s, {len(preparations)} run(s)) and of each point in the "
+            "dataset (variable instrument_time); a point cut short by a stop and superseded rows are not counted")
+    if missing:
+        what += f"; NaN: {missing} point(s) were journalled by a gonio that did not record their time"
+    return {"instrument_time_s": total, "instrument_time_preparation_s": prep, "instrument_time_comment": what}
 
 
 def _colour_matrix(folder: Path, rgb_cam):

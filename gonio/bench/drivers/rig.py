@@ -12,7 +12,14 @@ from gonio.bench.drivers import Goniometer, LedSource, PowerMeter, SimCamera, Za
 from gonio.core.devices import PORT_NAMES
 from gonio.core.errors import GonioError
 
-__all__ = ["Bench", "DRIVERS"]
+__all__ = ["Bench", "DRIVERS", "clock_of"]
+
+
+def clock_of(sleep: Callable[[float], None]) -> Callable[[], float]:
+    """The clock a bench's waits run on: the ``now`` of the object whose method ``sleep`` is
+    (a simulated clock's ``advance``), else ``time.monotonic`` (the rig's own time)."""
+    now = getattr(getattr(sleep, "__self__", None), "now", None)
+    return now if callable(now) and getattr(sleep, "__name__", "") == "advance" else time.monotonic
 
 
 def _open_camera(camera, timeout: float):
@@ -57,6 +64,10 @@ class Bench:
     sleep : callable
         Called with seconds to wait (settling, polling); ``time.sleep`` on hardware; a
         simulated clock's ``advance`` in tests.
+    clock : callable, optional
+        The instrument's clock, seconds (`clock_of`: ``time.monotonic`` on hardware, the
+        simulated clock's ``now`` where ``sleep`` is its ``advance``); what a session's
+        instrument time is read from.
     alerts : bool
         Wait for the stages' moves by their alerts (`Goniometer`'s ``alerts``), polling only
         where a device rejects them.
@@ -64,9 +75,11 @@ class Bench:
 
     def __init__(self, settings: Mapping, zaber_url: str, meter_url: str, camera, *,
                  sleep: Callable[[float], None] = time.sleep, poll_interval_s: float = 0.05,
-                 timeout: float = 1.0, baudrate: int = 115200, on_warning=None, alerts: bool = True):
+                 timeout: float = 1.0, baudrate: int = 115200, on_warning=None, alerts: bool = True,
+                 clock: Callable[[], float] | None = None):
         self.settings = settings
         self._sleep = sleep
+        self.clock: Callable[[], float] = clock if clock is not None else clock_of(sleep)
         self.checkpoint: Callable[[], None] = lambda: None    # a run's safe point: may raise StopNow
         self.chain = self.meter = self.camera = None
         self._opened: list = []

@@ -110,6 +110,11 @@ class CaptureSummary:
         Wall time of this call, s.
     notes : list of str
         One line per recovery a resume made (journal rebuilt, points measured again).
+    plan_stop : str
+        Why the plan strategy stopped, where it says (an adaptive plan's budget, time or target).
+    instrument_s : float
+        The session's instrument time so far, s (every finished preparation and every kept
+        point's: dataset.nc's ``instrument_time_s``).
     """
 
     session_dir: Path
@@ -124,6 +129,8 @@ class CaptureSummary:
     move_bound_s: float = 0.0
     wall_s: float = 0.0
     notes: list = field(default_factory=list)
+    plan_stop: str = ""
+    instrument_s: float = 0.0
 
     @property
     def per_point_s(self) -> float:
@@ -224,9 +231,11 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
         n_done = len(journal.done())
         o = doc["order"]
         complete = n_done >= budget or (sess.exhausted and not stopped)
+        stop_line = getattr(sess.strategy, "stop_line", None)
         return CaptureSummary(folder, budget, n_done, n_new, complete, stopped,
                               sess.reciprocity, o["naive_s"], o["ordered_s"], o["bound_s"],
-                              time.perf_counter() - t0, notes)
+                              time.perf_counter() - t0, notes, stop_line() if callable(stop_line) else "",
+                              sum(sess.times.values()) + sum(s for _, s in sess.preparations))
     finally:
         journal.close()
         bench.close()
@@ -322,7 +331,8 @@ def _check_new_folder(folder: Path) -> None:
 def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_url: str, camera,
             seed: int | None = None, progress: bool = True, *, sample_truth=None, meta: Mapping | None = None,
             sleep: Callable[[float], None] = time.sleep, poll_interval_s: float = 0.05,
-            timeout: float = 1.0, strategy: Mapping | None = None) -> CaptureSummary:
+            timeout: float = 1.0, strategy: Mapping | None = None,
+            clock: Callable[[], float] | None = None) -> CaptureSummary:
     """Create a session folder and measure ``plan``.
 
     Parameters
@@ -350,6 +360,10 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     strategy : dict, optional
         session.toml's ``[strategy]`` table: how the next point is chosen from the plan's
         (`gonio.bench.plan.strategy`); default ``{"name": "fixed"}``, every point in move order.
+    clock : callable, optional
+        The instrument's clock in seconds, what the journal's instrument time is read from
+        (`gonio.bench.drivers.rig.clock_of`: ``time.monotonic``, or the simulated clock whose
+        ``advance`` ``sleep`` is).
 
     Returns
     -------
@@ -377,7 +391,7 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     _check_room(folder, settings, min(len(plan), budget), camera, None, f"the RAW files of session {folder}",
                 "free some space or give another --out")
     warnings: list = []
-    bench_kw = dict(sleep=sleep, poll_interval_s=poll_interval_s, timeout=timeout,
+    bench_kw = dict(sleep=sleep, poll_interval_s=poll_interval_s, timeout=timeout, clock=clock,
                     on_warning=lambda d, f, m: warnings.append((d, f, m)))
     doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta, strategy)
     bench, journal, lock, doc, ident = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
@@ -455,7 +469,8 @@ def _start_session(folder: Path, doc: Mapping, ports: tuple,
 def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = None, camera=None,
            progress: bool = True, *, sleep: Callable[[float], None] = time.sleep,
            poll_interval_s: float = 0.05, timeout: float = 1.0, rebuild_journal: bool = False,
-           remeasure: str | None = None, notify: Callable[[str], None] | None = None) -> CaptureSummary:
+           remeasure: str | None = None, notify: Callable[[str], None] | None = None,
+           clock: Callable[[], float] | None = None) -> CaptureSummary:
     """Finish a session: check it is one consistent record (`gonio.bench.session.integrity`), re-check
     positions and flags (re-home if the reference was lost), verify the journalled RAW files,
     remove orphan temporary files, skip the journalled points and measure the rest in the
@@ -467,7 +482,8 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
     replaces a missing or damaged journal first. Each of these is said in one line to
     ``notify`` and in the summary's ``notes``.
 
-    Ports default to those recorded in ``session.toml``.
+    Ports default to those recorded in ``session.toml``; ``clock`` as `capture`'s (this run's
+    instrument time adds to the time the journal holds).
     """
     t0 = time.perf_counter()
     folder = Path(session_dir)
@@ -511,7 +527,7 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
                 raise SessionError(f"{folder}: give the ports to resume on (--port and --meter-port)")
             warnings: list = []
             bench = Bench(doc["settings"], zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
-                          timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)))
+                          timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)), clock=clock)
         if pre.requested:
             raise CaptureInterrupted(f"stopped by {pre.stop or 'Ctrl-C'} before measuring; the session is resumable "
                                      f"with `gonio capture --resume {folder}`")

@@ -43,7 +43,7 @@ from gonio.core.errors import SessionError
 
 __all__ = ["SESSION_FILE", "JOURNAL_FILE", "RAW_DIR", "LOCK_FILE", "Journal", "SessionLock", "write_session",
            "read_session", "session_text", "verify_files", "damaged_files", "dumps_toml", "versions",
-           "POINT_COLUMNS", "point_checksum", "decode_point", "event_checksum"]
+           "POINT_COLUMNS", "point_checksum", "decode_point", "event_checksum", "preparation_times"]
 
 SESSION_FILE = "session.toml"
 JOURNAL_FILE = "journal.sqlite"
@@ -425,6 +425,23 @@ class Journal:
         """Text of the first event of ``kind`` (e.g. the session's reference monitor reading), or None;
         a one-line `SessionError` if any event is damaged (none is ever used)."""
         return next((text for _, k, text in self.events() if k == kind), None)
+
+
+def preparation_times(events) -> list[tuple[int, float]]:
+    """``(points kept before it, seconds)`` of each finished preparation the journal's
+    ``instrument_time`` events record (a run's homing, calibration frames, lamp warm-up)."""
+    out = []
+    for _, kind, text in events:
+        if kind != "instrument_time":
+            continue
+        try:
+            d = json.loads(text)
+            s, n = float(d["s"]), int(d["points"])
+        except (ValueError, TypeError, KeyError):
+            continue
+        if math.isfinite(s) and s >= 0:
+            out.append((n, s))
+    return out
 
 
 # -- session.toml ---------------------------------------------------------------------------

@@ -4,6 +4,10 @@
 points of that walk: the point whose reduction runs in the worker thread (not yet
 journalled), the move sent ahead, and how often each point's files were taken again. A
 point is journalled only once its reduction is done and its RAW files checked and committed.
+A point's instrument time (the bench's clock, journalled as ``detail["instrument_s"]``) runs from
+the end of the previous bracket of the run (or the run's start) to the end of its own: the move
+sent ahead, settling, its exposures and monitor readings, any pause, and whatever the host kept
+the stages waiting for; a bracket taken again after a spoilt file adds to it.
 """
 
 from __future__ import annotations
@@ -30,11 +34,17 @@ class Pipeline:
         self.retakes: dict[int, int] = {}
         self.n_new = 0
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="gonio-reduce")
+        self.clock = session.clock
+        self.mark = self.clock()         # the end of the last bracket (the run's start at first)
+        self.spent: dict[int, float] = {}   # instrument time per point not yet journalled, s
 
     def step(self, n: int, idx: int) -> None:
         """Bracket point ``idx`` (the ``n``-th of ``todo``), send the stages on, reduce it."""
         s = self.session
         shot = self._bracket(idx)
+        now = self.clock()
+        self.spent[idx] = self.spent.get(idx, 0.0) + max(0.0, now - self.mark)
+        self.mark = now
         ahead = self.todo[n + 1] if n + 1 < len(self.todo) and not s.stop() else None
         if ahead is not None:
             self.goal = s._start_move(ahead)          # the stages move while the host works
@@ -71,6 +81,7 @@ class Pipeline:
             idx, fut = self.pending
             self.pending = None
             res = fut.result()
+            res["detail"]["instrument_s"] = self.spent.pop(idx, 0.0)
             self.session._commit(idx, res, self.bar)
             self.n_new += 1
 

@@ -18,6 +18,7 @@ import contextlib
 import json
 import math
 import sys
+import time
 from pathlib import Path
 from typing import Callable, Mapping
 
@@ -26,7 +27,7 @@ import numpy as np
 from gonio.bench.session.calframes import CalibrationFrames
 from gonio.core.files import create_exclusive
 from gonio.bench.measure.hdr import Exposure, NoiseModel, choose_bracket, ladder
-from gonio.bench.session.journal import RAW_DIR, Journal
+from gonio.bench.session.journal import RAW_DIR, Journal, preparation_times
 from gonio.bench.plan.markers import find_regions, layout_of, roi_masks_fast
 from gonio.bench.measure.calpoint import stray_corrected, stray_fraction
 from gonio.bench.measure.point import (ProgressBar, ReferenceModel, _runs, check_sensor, merged_region_stats, probe_levels)
@@ -98,6 +99,11 @@ class _Session(CalibrationFrames):
         self.note = note                             # says one line (console and summary notes)
         self.exhausted = False                       # the run measured every point its strategy asked for
         self._todo: list[int] | None = None          # the strategy's first points (`_first_todo`)
+        # instrument time (the bench's clock): each kept point's, each finished preparation's
+        self.clock: Callable[[], float] = getattr(bench, "clock", time.monotonic)
+        self.times = {r["idx"]: float(r["detail"]["instrument_s"]) for r in rows
+                      if isinstance(r["detail"].get("instrument_s"), (int, float))}
+        self.preparations = preparation_times(journal.checked_events()[0])
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -131,6 +137,7 @@ class _Session(CalibrationFrames):
         """The points the strategy asks for before the loop starts (those the journal lacks);
         worked out once (an adaptive strategy fits to choose them)."""
         if self._todo is None:
+            self._account()
             done = self.journal.done()
             todo = self._checked(self.strategy.first(set(done)), done, [])
             # a resume past the strategy's first points: it may still want more before the loop starts
@@ -149,6 +156,7 @@ class _Session(CalibrationFrames):
         where the session is `finished`: no device is asked to move, expose or light."""
         if self.finished():
             return
+        t0 = self.clock()
         with self._status() as say:
             b = self.bench
             say("checking the camera and the stages")
@@ -175,6 +183,10 @@ class _Session(CalibrationFrames):
             b.led.on()
             self.p_ref = self._p_ref()
             self._take_chart(say)
+        # the preparation's instrument time, kept once it finished (a resume's adds to it)
+        took, n = max(0.0, self.clock() - t0), len(self.journal.done())
+        self.journal.event("instrument_time", json.dumps({"phase": "prepare", "s": took, "points": n}))
+        self.preparations.append((n, took))
 
     def _check_hardware(self, ident: Mapping) -> None:
         """A resume: say (a console line, the summary's notes, a ``hardware`` journal event the
@@ -481,10 +493,13 @@ class _Session(CalibrationFrames):
 
     # -- the loop ------------------------------------------------------------------------
     def _commit(self, idx: int, res: dict, bar: ProgressBar) -> None:
-        """Journal point ``idx`` (its RAW files are complete and fsynced: the camera committed them)."""
+        """Journal point ``idx`` (its RAW files are complete and fsynced: the camera committed them)
+        with its instrument time (``detail["instrument_s"]``, `Pipeline`'s) where measured."""
         self.journal.record_point(idx, self.plan.angles[idx], res["stage"], res["brdf"],
                                   res["brdf_std"], res["saturated"], res["detail"])
         self.results[idx] = (np.asarray(res["brdf"]), np.asarray(res["brdf_std"]))
+        if "instrument_s" in res["detail"]:
+            self.times[idx] = float(res["detail"]["instrument_s"])
         r = self._reciprocity(idx)
         if r is not None:
             self.reciprocity.append(r)
@@ -494,6 +509,14 @@ class _Session(CalibrationFrames):
         """Delete the point frames (``raw/p*``) an earlier, killed run wrote but never journalled
         (`CalibrationFrames._drop_uncommitted`'s rules); runs before the first point."""
         self._drop_uncommitted("p", self._journalled_files | self.journal.superseded_files())
+
+    def _account(self) -> None:
+        """Tell a strategy that counts time (an optional ``account(times, preparations)``) the
+        instrument time so far: each kept point's, and each preparation's with the number of
+        points kept before it."""
+        account = getattr(self.strategy, "account", None)
+        if callable(account):
+            account(dict(self.times), list(self.preparations))
 
     def _checked(self, points, done, queued) -> list[int]:
         """The strategy's new points, each a plan point neither done nor queued, within its budget."""
@@ -548,6 +571,7 @@ class _Session(CalibrationFrames):
                     if self.stop():
                         stopped = "stopped by Ctrl-C; run the capture again with --resume to finish"
                         break
+                    self._account()
                     todo.extend(self._checked(self.strategy.more(self.results, tuple(todo)), done, todo))
                     pipe.step(n, idx)
                 else:

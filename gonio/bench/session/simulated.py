@@ -57,6 +57,7 @@ def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, 
     try:
         return capture(session, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
                        seed=seed, progress=progress, sample_truth=sample, sleep=inst.clock.advance,
+                       clock=inst.clock.now,
                        meta={"sim": True, "demo": bool(demo), "sim_name": inst.name,
                              "sample": json.dumps(sample, sort_keys=True)}, strategy=strategy)
     finally:
