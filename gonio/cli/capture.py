@@ -28,13 +28,16 @@ EXIT_STOPPED = 3          # the capture stopped before the end; `gonio capture -
 def _print_summary(summary):
     """Print what the run did; return the exit status (0 complete, 3 stopped and resumable)."""
     lines = [f"session {summary.session_dir}: {summary.n_done}/{summary.n_points} points "
-             f"({summary.n_new} new) in {summary.wall_s:.1f} s wall"]
+             f"({summary.n_new} new) in {summary.wall_s:.1f} s wall, {summary.instrument_s:.1f} s instrument time "
+             "(all runs)"]
     if summary.move_naive_s:
         lines.append(f"stage moves: plan order {summary.move_naive_s:.0f} s, ordered {summary.move_ordered_s:.0f} s, "
                      f"lower bound {summary.move_bound_s:.0f} s")
     if summary.reciprocity:
         lines.append(f"reciprocity: {len(summary.reciprocity)} pairs, median relative difference "
                      f"{summary.reciprocity_error:.2e}")
+    if summary.plan_stop:
+        lines.append(summary.plan_stop)
     if summary.stopped:
         lines.append(f"stopped early: {summary.stopped}; finish with `gonio capture --resume {summary.session_dir}`")
     elif not summary.complete:
@@ -58,13 +61,15 @@ def _load_plan(spec):
 
 
 def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress,
-                errors=None, calibration=None, points=None, target_rel_u=None, candidates=None):
+                errors=None, calibration=None, points=None, target_rel_u=None, candidates=None, budget_minutes=None,
+                target_de00=None):
     from gonio.bench.samples import load_sample
     from gonio.bench.plan.adaptive import cli_strategy
     from gonio.bench.plan.plans import dry_run as plan_dry_run
 
     try:
-        plan, strategy = cli_strategy(plan, points=points, target_rel_u=target_rel_u, candidates=candidates, seed=seed)
+        plan, strategy = cli_strategy(plan, points=points, target_rel_u=target_rel_u, candidates=candidates, seed=seed,
+                                      budget_minutes=budget_minutes, target_de00=target_de00)
     except ValueError as exc:
         raise GonioError(str(exc)) from None
     given = {"strategy": strategy} if strategy else {}
@@ -142,7 +147,7 @@ def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_jou
                               camera_root=session)
         try:
             summary = resume(session, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
-                             sleep=inst.clock.advance, **kw)
+                             sleep=inst.clock.advance, clock=inst.clock.now, **kw)
         finally:
             inst.unregister()
     else:

@@ -107,6 +107,7 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
         ("gonio capture --sim --sample black-gloss --plan glossy \\\n    --errors typical --calibration cal.toml --out s3",
          ""),
         ("gonio capture --sim --plan adaptive --out s4", "chosen from the data"),
+        ("gonio capture --sim --plan adaptive --budget-minutes 10 --out s6", "to a time budget"),
         ("gonio capture --sim --plan dense --dry-run", "count and duration only"),
         ("gonio capture --port /dev/ttyUSB0 --meter-port /dev/ttyUSB1 \\\n    --camera gphoto2 --sample-id S-1 "
          "--operator 'A. Tester' --out s5", ""),

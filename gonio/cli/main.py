@@ -149,7 +149,8 @@ def _cmd_capture(args):
                                       settings=settings, port=args.port, meter_port=args.meter_port, camera=args.camera,
                                       dry_run=args.dry_run, progress=_capture_progress(args),
                                       errors=args.errors, calibration=args.calibration, points=args.points,
-                                      target_rel_u=args.target_rel_u, candidates=args.candidates)
+                                      target_rel_u=args.target_rel_u, candidates=args.candidates,
+                                      budget_minutes=args.budget_minutes, target_de00=args.target_de00)
 
 
 @_env
@@ -440,8 +441,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"preset ({_presets_text()}; see `gonio plans`), plan TOML/CSV file, or adaptive "
                         "(chosen from the data) (default standard)")
     c.add_argument("--points", type=int, metavar="N", help="with --plan adaptive: the most points to measure (default 24)")
+    c.add_argument("--budget-minutes", type=float, metavar="M",
+                   help="with --plan adaptive, instead of --points: the most instrument time (motion, settling, "
+                        "exposures, the preparation), in minutes; a batch is added only if the plan's estimate of "
+                        "its time fits in what is left")
     c.add_argument("--target-rel-u", type=float, metavar="X",
                    help="with --plan adaptive: stop once every fitted parameter's relative 1-sigma is below X")
+    c.add_argument("--target-de00", type=float, metavar="D",
+                   help="with --plan adaptive: stop once a proxy of the colour's uncertainty is below D: the predicted "
+                        "CIEDE2000 1-sigma of the fitted model's albedo colour (normal view, its RGB as linear sRGB, "
+                        "D65) from the fit's parameter covariance; not a rendered colour difference")
     c.add_argument("--candidates", metavar="PLAN", help="with --plan adaptive: the plan it chooses from (default dense)")
     c.add_argument("--out", help="new session folder")
     c.add_argument("--resume", metavar="DIR", help="finish an interrupted session")

@@ -15,7 +15,8 @@ import math
 
 import numpy as np
 
-__all__ = ["spectral_xyz", "spectral_lab", "delta_e00", "fit_colour_error", "reflectance_to_linear_srgb", "OBSERVER"]
+__all__ = ["spectral_xyz", "spectral_lab", "delta_e00", "fit_colour_error", "reflectance_to_linear_srgb",
+           "linear_srgb_lab", "OBSERVER"]
 
 #: The colour-matching functions used throughout (colour-science's name).
 OBSERVER = "CIE 1931 2 Degree Standard Observer"
@@ -103,3 +104,13 @@ def reflectance_to_linear_srgb(wavelengths, values, illuminant: str = "D65") -> 
     r = np.asarray(values, float).reshape(1, -1) / math.pi      # as f_r of a Lambertian surface
     xyz = spectral_xyz(r, wavelengths, illuminant)[0]
     return np.asarray(colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_encoding=False), float)
+
+
+def linear_srgb_lab(rgb) -> np.ndarray:
+    """CIELAB (..., 3) of linear sRGB reflectances ``rgb`` (..., 3; a perfect white = 1) under D65,
+    sRGB's own white (IEC 61966-2-1's matrix, colour-science's; no transfer function)."""
+    import colour
+
+    space = colour.RGB_COLOURSPACES["sRGB"]
+    xyz = colour.RGB_to_XYZ(np.asarray(rgb, float), space, apply_cctf_decoding=False)
+    return np.asarray(colour.XYZ_to_Lab(xyz, space.whitepoint), float)

@@ -5,13 +5,13 @@ isotropic (wi, wo) feature space); then, batch by batch, the model is fitted to 
 so far (`gonio.fitting.fit`) and the unmeasured candidates that raise log det of the Fisher
 information J^T W J the most (D-optimality, greedy within a batch; Atkinson, Donev & Tobias
 2007, ch. 10-12) are queued, per second of stage travel and point overhead when ``travel``
-is on (`gonio.bench.plan.ordering` times the moves). It stops at ``points`` or once every
-fitted parameter's relative 1-sigma is below ``target_rel_u``; :attr:`AdaptivePlan.stopped_by`
-says which. Each batch is chosen from the results of the points queued before it, less the
-last one (the stages are moving to it meanwhile), so a resume replays the same choices.
-
-Public: `AdaptivePlan`, `DEFAULTS`, `cli_strategy`; registered in
-`gonio.bench.plan.strategy.STRATEGIES` on import.
+is on (`gonio.bench.plan.ordering` times the moves). It stops at ``points``, at ``budget_s`` of
+the session's journalled instrument time (a batch is cut to what the plan's estimate fits in
+what is left), or at its targets (``target_rel_u``: every parameter's relative 1-sigma;
+``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says which. Each batch is
+chosen from the results and times of the points queued before it, less the last one (the
+stages move to it meanwhile), so a resume replays the same choices. Public: `AdaptivePlan`,
+`DEFAULTS`, `cli_strategy`, `albedo_de00_u`; registered in `STRATEGIES` on import.
 """
 
 from __future__ import annotations
@@ -27,12 +27,14 @@ from gonio.bench.plan.ordering import cost_matrix, mirror
 from gonio.bench.plan.plans import Plan
 from gonio.bench.plan.strategy import Result, register_strategy
 
-__all__ = ["AdaptivePlan", "DEFAULTS", "cli_strategy", "spread_subset"]
+__all__ = ["AdaptivePlan", "DEFAULTS", "CLI_STOPS", "cli_strategy", "spread_subset", "albedo_de00_u"]
 
 #: session.toml's ``[strategy]`` keys and their defaults (``name = "adaptive"`` besides).
 DEFAULTS: dict[str, Any] = {
-    "points": 24,                 # the budget: the most points measured
+    "points": 24,                 # the budget: the most points measured (0 with budget_s: every candidate)
+    "budget_s": 0.0,              # the most instrument time, s (0: none): preparation and points, as journalled
     "target_rel_u": 0.0,          # stop once every parameter's 1-sigma / |value| is below this (0: never)
+    "target_de00": 0.0,           # stop once the albedo colour's predicted CIEDE2000 1-sigma is below this (0: never)
     "first": 0,                   # first-pass points (0: max(P + 1, min(points // 2, 8)))
     "batch": 3,                   # points chosen per fit
     "model": "roughplastic",
@@ -90,7 +92,8 @@ class AdaptivePlan:
         Per batch chosen after the first: the points it was chosen from (``n``), the fit
         (``params``, ``rel_u``), ``fit_s`` and ``choose_s`` (wall seconds), ``chosen``.
     stopped_by : str or None
-        ``"budget"``, ``"target"`` or ``"candidates"`` once the strategy adds nothing more.
+        ``"budget"`` (points), ``"time"`` (``budget_s``), ``"target"`` or ``"candidates"`` once
+        the strategy adds nothing more; :meth:`stop_line` says it in words.
     """
 
     name = "adaptive"
@@ -104,7 +107,9 @@ class AdaptivePlan:
             raise ValueError(f"[strategy] adaptive: unknown key {sorted(unknown)[0]!r}; known: {', '.join(DEFAULTS)}")
         t = {**DEFAULTS, **{k: v for k, v in table.items() if k != "name"}}
         self.plan = plan
-        self.points = _int(t, "points", 1)
+        self.budget_s = _positive(t, "budget_s")
+        self.target_de00 = _positive(t, "target_de00")
+        self.points = _int(t, "points", 0 if self.budget_s > 0 else 1)
         self.batch = _int(t, "batch", 1)
         self.n_starts = _int(t, "n_starts", 1)
         self.seed = _int(t, "seed", 0)
@@ -125,23 +130,43 @@ class AdaptivePlan:
             raise ValueError(f"[strategy] model {t['model']!r}: {exc}") from None
         self.model_name = str(t["model"])
         self.space = ParameterSpace(self.model, 3, self.fixed)
-        first = _int(t, "first", 0) or max(self.space.size + 1, min(self.points // 2, 8))
-        self.first_n = min(first, self.points, len(plan))
+        first = _int(t, "first", 0) or max(self.space.size + 1, min(self.budget // 2, 8))
+        self.first_n = min(first, self.budget)
         a = plan.angles
         self.wi = _dirs(a[:, 0], a[:, 1])
         self.wo = _dirs(a[:, 2], a[:, 3])
         self.stage = np.nan_to_num(kinematics.inverse(*a.T))
         rank = {int(i): k for k, i in enumerate(order)}
-        spread = spread_subset(a, self.first_n)
-        self.batches: list[list[int]] = [sorted(spread, key=lambda i: (rank.get(i, len(rank)), i))]
         self._motion = _motion()
+        spread = spread_subset(a, self.first_n)
+
+        def in_order(pts):                               # the session's move order
+            return sorted(pts, key=lambda i: (rank.get(i, len(rank)), i))
+        while self.budget_s > 0 and self._path_s(in_order(spread)) > self.budget_s:
+            if len(spread) <= self.space.size + 1:       # the fewest points a fit needs
+                raise ValueError(f"[strategy] budget_s = {self.budget_s:g} s: the first pass alone ({len(spread)} "
+                                 f"points) takes about {self._path_s(in_order(spread)):.0f} s by the plan's "
+                                 "estimate; give more time")
+            spread = spread[:-1]                        # the farthest-point order: a prefix stays spread
+        self.first_n = len(spread)
+        self.batches: list[list[int]] = [in_order(spread)]
         self.log: list[dict] = []
         self.stopped_by: str | None = None
+        self.times: dict[int, float] = {}                 # `account`: each journalled point's instrument time
+        self.preparations: list[tuple[int, float]] = []   # (points kept before it, s) per preparation
+        self.spent_s = 0.0                                # the instrument time counted at the last choice
+        self.next_s = 0.0                                 # the estimate that did not fit (``time``)
 
     # -- the protocol ---------------------------------------------------------------------
     @property
     def budget(self) -> int:
-        return min(self.points, len(self.plan))
+        return min(self.points or len(self.plan), len(self.plan))
+
+    def account(self, times: Mapping[int, float], preparations: Sequence[tuple[int, float]]) -> None:
+        """The instrument time so far (the run calls this before asking for points): each
+        journalled point's, s, and each preparation's as (points kept before it, s)."""
+        self.times = {int(i): float(v) for i, v in times.items()}
+        self.preparations = [(int(n), float(v)) for n, v in preparations]
 
     def first(self, done: set[int]) -> list[int]:
         return [i for i in self.batches[0] if i not in done]
@@ -152,8 +177,8 @@ class AdaptivePlan:
         return [i for b in self.batches for i in b if i not in results and i not in q]
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "points": self.points, "target_rel_u": self.target_rel_u, "first": self.first_n,
-                "batch": self.batch, "model": self.model_name, "options": self.options, "fixed": self.fixed,
+        return {"name": self.name, "points": self.points, "budget_s": self.budget_s, "target_rel_u": self.target_rel_u,
+                "target_de00": self.target_de00, "first": self.first_n, "batch": self.batch, "model": self.model_name, "options": self.options, "fixed": self.fixed,
                 "n_starts": self.n_starts, "seed": self.seed, "travel": self.travel, "overhead_s": self.overhead_s,
                 "model_rel_u": self.model_rel_u}
 
@@ -162,7 +187,29 @@ class AdaptivePlan:
         seconds per choice (for a journal event or a summary)."""
         last = self.log[-1] if self.log else {}
         return {"stopped_by": self.stopped_by, "batches": self.batches, "params": last.get("params"),
-                "rel_u": last.get("rel_u"), "choose_s": [e["fit_s"] + e["choose_s"] for e in self.log]}
+                "rel_u": last.get("rel_u"), "de00_u": last.get("de00_u"), "spent_s": self.spent_s,
+                "choose_s": [e["fit_s"] + e["choose_s"] for e in self.log]}
+
+    def stop_line(self) -> str:
+        """Why the strategy stopped, in one line ("" while it has not)."""
+        last = self.log[-1] if self.log else {}
+        if self.stopped_by == "budget":
+            return f"adaptive plan: stopped at its budget of {self.budget} points"
+        if self.stopped_by == "time":
+            return (f"adaptive plan: stopped at its time budget: {self.spent_s:.0f} s of {self.budget_s:.0f} s of "
+                    f"instrument time used, the next point (about {self.next_s:.0f} s) would not fit")
+        if self.stopped_by == "target":
+            met = []
+            if self.target_rel_u > 0:
+                met.append(f"every parameter's relative 1-sigma below {self.target_rel_u:g} "
+                           f"(largest {max(last['rel_u'].values()):.3g})")
+            if self.target_de00 > 0:
+                met.append(f"the albedo colour's predicted CIEDE2000 1-sigma {last['de00_u']:.3g} below "
+                           f"{self.target_de00:g}")
+            return "adaptive plan: reached its target: " + " and ".join(met)
+        if self.stopped_by == "candidates":
+            return "adaptive plan: stopped: no candidate point is worth adding"
+        return ""
 
     # -- the choices ----------------------------------------------------------------------
     def _replay(self, results: Mapping[int, Result]) -> None:
@@ -190,24 +237,76 @@ class AdaptivePlan:
             entry["params"] = entry["rel_u"] = None
             chosen = spread_subset(self.plan.angles, n_new, queue)
         else:
-            x, std, rel_u, sigma_rel, sigma_floor = fitted
+            x, std, rel_u, sigma_rel, sigma_floor, cov = fitted
             entry["params"] = dict(zip(self.space.names, x.tolist()))
             entry["rel_u"] = dict(zip(self.space.names, rel_u.tolist()))
-            if self.target_rel_u > 0 and np.all(rel_u < self.target_rel_u):
+            met = []
+            if self.target_rel_u > 0:
+                met.append(bool(np.all(rel_u < self.target_rel_u)))
+            if self.target_de00 > 0:
+                entry["de00_u"] = albedo_de00_u(self.model, self.space, x, cov)
+                met.append(entry["de00_u"] < self.target_de00)
+            if met and all(met):
                 self.stopped_by = "target"
                 entry.update(fit_s=t1 - t0, choose_s=0.0, chosen=[])
                 self.log.append(entry)
                 return
             chosen = self._d_optimal(x, basis, queue, free, n_new, results, sigma_rel, sigma_floor)
+        if self.budget_s > 0 and chosen:
+            chosen = self._within_time(chosen, basis, queue)
+            if not chosen:
+                self.stopped_by = "time"
         entry.update(fit_s=t1 - t0, choose_s=time.perf_counter() - t1, chosen=chosen)
         self.log.append(entry)
         if not chosen:
-            self.stopped_by = "candidates"
+            self.stopped_by = self.stopped_by or "candidates"
             return
         self.batches.append(chosen)
 
+    # -- instrument time ----------------------------------------------------------------
+    def _travel(self, a: int, b) -> np.ndarray:
+        """Stage travel time (s) from candidate ``a`` to each of ``b``, the faster solution of each."""
+        b = self.stage[np.atleast_1d(b)]
+        return np.minimum(cost_matrix(self.stage[a][None], b, self._motion)[0],
+                          cost_matrix(self.stage[a][None], mirror(b), self._motion)[0])
+
+    def _path_s(self, points: Sequence[int], after: int | None = None, per_point: float | None = None) -> float:
+        """The plan's estimate of the instrument time of ``points`` in order (from ``after``):
+        ``per_point`` (default ``overhead_s``) each, plus the moves between them."""
+        each = self.overhead_s if per_point is None else per_point
+        path = ([after] if after is not None else []) + [int(i) for i in points]
+        return len(points) * each + sum(float(self._travel(a, b)[0]) for a, b in zip(path, path[1:]))
+
+    def _within_time(self, chosen: list[int], basis: list[int], queue: list[int]) -> list[int]:
+        """The longest prefix of ``chosen`` whose estimated time fits in what ``budget_s`` leaves
+        after the time counted so far: every preparation journalled with at most ``len(basis)``
+        points kept, the basis points' journalled times, the other queued points' estimates."""
+        each = self._per_point(basis, queue)
+        spent = sum(s for n, s in self.preparations if n <= len(basis))
+        for k, i in enumerate(queue):
+            known = self.times.get(i) if i in basis else None
+            spent += known if known is not None else self._path_s([i], queue[k - 1] if k else None, each)
+        self.spent_s = spent
+        out: list[int] = []
+        for i in chosen:
+            need = self._path_s([i], (out or queue)[-1], each)
+            if spent + need > self.budget_s:
+                self.next_s = need
+                break
+            spent += need
+            out.append(i)
+        return out
+
+    def _per_point(self, basis: list[int], queue: list[int]) -> float:
+        """A point's time besides its move, s: the median over the basis points with a journalled
+        time (after the first) of that time less the estimated move; ``overhead_s`` without one."""
+        at = {i: k for k, i in enumerate(queue)}
+        rest = [self.times[i] - float(self._travel(queue[at[i] - 1], i)[0])
+                for i in basis if i in self.times and at.get(i, 0) > 0]
+        return max(0.0, float(np.median(rest))) if rest else self.overhead_s
+
     def _fit(self, basis, results, k):
-        """(x, std, rel_u, relative sigma, sigma floor) of the model fitted to ``basis``, or None
+        """(x, std, rel_u, relative sigma, sigma floor, covariance) of the model fitted to ``basis``, or None
         where it cannot be fitted (too few usable values, a failed fit)."""
         from gonio.fitting import Measurements, fit
 
@@ -225,13 +324,13 @@ class AdaptivePlan:
                       n_starts=self.n_starts, n_local=1)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError):
             return None
-        x, std = np.asarray(res.x, float), np.asarray(res.std, float)
+        x, std, cov = np.asarray(res.x, float), np.asarray(res.std, float), np.asarray(res.cov, float)
         with np.errstate(divide="ignore", invalid="ignore"):
             rel_u = np.where(np.abs(x) > 0, std / np.abs(x), np.inf)
             ratio = s[use] / np.abs(f[use])
         sigma_rel = float(np.median(ratio[np.isfinite(ratio)])) if np.isfinite(ratio).any() else 0.05
         sigma_floor = float(np.percentile(s[use], 10))
-        return x, std, rel_u, sigma_rel, sigma_floor
+        return x, std, rel_u, sigma_rel, sigma_floor, cov
 
     def _rows(self, x, sigma_rel, sigma_floor) -> tuple[np.ndarray, np.ndarray]:
         """Whitened Jacobian rows (N, 3, P) of f_r at every candidate (one array shape: the
@@ -295,6 +394,43 @@ def _dirs(theta_deg, phi_deg) -> np.ndarray:
     return directions_deg(theta_deg, phi_deg)
 
 
+def albedo_de00_u(model, space, x: np.ndarray, cov: np.ndarray) -> float:
+    """A cheap proxy for how far a fit's rendered colour is from settled: the predicted CIEDE2000
+    1-sigma of its albedo colour. The directional albedo at normal view (`Model.albedo`), its RGB
+    taken as linear sRGB (D65, white = 1), to CIELAB (`gonio.fitting.colour`); each principal axis
+    of the parameter covariance moves ``x`` by +-1 sigma (within the bounds), and the mean of the
+    two CIEDE2000 differences from the fit's colour is summed in quadrature over the axes. Not a
+    render: the rendered colour also depends on the lighting and view. inf where the covariance
+    is not finite."""
+    from gonio.fitting.colour import delta_e00, linear_srgb_lab
+
+    cov = 0.5 * (cov + cov.T)
+    if not np.all(np.isfinite(cov)) or not np.all(np.isfinite(x)):
+        return math.inf
+    wo = np.array([[0.0, 0.0, 1.0]])
+    lo, hi = space.lower, space.upper
+
+    def lab(v):
+        return linear_srgb_lab(np.asarray(model.albedo(wo, space.to_params(np.clip(v, lo, hi))), float)[0])
+
+    base = lab(x)
+    w, vecs = np.linalg.eigh(cov)
+    total = 0.0
+    for k in np.flatnonzero(w > 0):
+        step = math.sqrt(w[k]) * vecs[:, k]
+        total += (0.5 * float(delta_e00(base, lab(x + step)) + delta_e00(base, lab(x - step)))) ** 2
+    return math.sqrt(total)
+
+
+def _positive(t: Mapping, key: str) -> float:
+    """A table's value >= 0 (0: off), finite."""
+    v = t[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not (
+            math.isfinite(v) and v >= 0):
+        raise ValueError(f"[strategy] {key} = {v!r}: give a number >= 0 (0: none)")
+    return float(v)
+
+
 def _int(t: Mapping, key: str, least: int) -> int:
     v = t[key]
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
@@ -309,21 +445,49 @@ def _motion() -> dict:
     return {"motion": default_settings()["motion"]}
 
 
+#: The stops of ``gonio capture --plan adaptive``: (flag, [strategy] key, what a value is, its unit).
+CLI_STOPS = (("--points", "points", "the most points", ""),
+             ("--budget-minutes", "budget_s", "the most instrument time", " minutes"),
+             ("--target-rel-u", "target_rel_u", "a relative 1-sigma", ""),
+             ("--target-de00", "target_de00", "a CIEDE2000 colour difference", ""))
+
+
 def cli_strategy(plan: str, *, points: int | None, target_rel_u: float | None, candidates: str | None,
-                 seed: int) -> tuple[str, dict | None]:
+                 seed: int, budget_minutes: float | None = None, target_de00: float | None = None
+                 ) -> tuple[str, dict | None]:
     """``gonio capture``'s plan options as (the plan to load, the ``[strategy]`` table): ``--plan
-    adaptive`` draws from ``--candidates`` (default the ``dense`` preset); a fixed plan takes
-    none of the adaptive options (ValueError naming the first given)."""
+    adaptive`` draws from ``--candidates`` (default the ``dense`` preset) and stops at ``--points``
+    or ``--budget-minutes`` (not both) or its targets; a fixed plan takes none of the adaptive
+    options. ValueError, one line naming the option, for a value that is not > 0 and finite."""
+    given = dict(zip([k for _, k, _, _ in CLI_STOPS], (points, budget_minutes, target_rel_u, target_de00)))
     if plan != "adaptive":
-        for flag, v in (("--points", points), ("--target-rel-u", target_rel_u), ("--candidates", candidates)):
+        for flag, v in (("--points", points), ("--budget-minutes", budget_minutes), ("--target-rel-u", target_rel_u),
+                        ("--target-de00", target_de00), ("--candidates", candidates)):
             if v is not None:
                 raise ValueError(f"{flag} goes with --plan adaptive")
         return plan, None
+    for flag, key, what, unit in CLI_STOPS:
+        v = given[key]
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0) or (
+                key == "points" and v != int(v)):
+            raise ValueError(f"{flag} {v!r}: give {what} as a number > 0{unit and ' (' + unit.strip() + ')'}")
+        if unit and not v <= 1e6:
+            raise ValueError(f"{flag} {v!r}: more than a million minutes; give {what} in minutes")
+    if points is not None and budget_minutes is not None:
+        raise ValueError("--points and --budget-minutes exclude each other: give the most points or the most "
+                         "instrument time")
     table: dict[str, Any] = {"name": "adaptive", "seed": int(seed)}
     if points is not None:
         table["points"] = int(points)
+    if budget_minutes is not None:
+        table["budget_s"] = float(budget_minutes) * 60.0
+        table["points"] = 0                 # as many as the time allows
     if target_rel_u is not None:
         table["target_rel_u"] = float(target_rel_u)
+    if target_de00 is not None:
+        table["target_de00"] = float(target_de00)
     return candidates or "dense", table
 
 
