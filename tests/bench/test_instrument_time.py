@@ -125,3 +125,15 @@ def test_a_point_without_a_recorded_time_makes_the_total_nan_and_says_why():
     old = ex._instrument_time(np.array([1.5, ex._seconds(None)]), [(0, 4.0)])     # journalled before issue 38
     assert math.isnan(old["instrument_time_s"]) and old["instrument_time_preparation_s"] == 4.0
     assert "NaN: 1 point(s) were journalled by a gonio that did not record their time" in old["instrument_time_comment"]
+
+
+def test_the_report_shows_the_instrument_time(tmp_path):
+    from types import SimpleNamespace
+
+    from gonio.bench.report import capture_section
+
+    meas = SimpleNamespace(n_points=2, n_used=6, attrs={"instrument_time_s": 15.6135})
+    rows = dict(capture_section(meas, tmp_path / "absent.nc")["rows"])
+    assert rows["instrument time: motion, settling, exposures, preparation (s)"] == "15.61"
+    assert not any("instrument" in k for k in dict(capture_section(
+        SimpleNamespace(n_points=2, n_used=6, attrs={}), tmp_path / "absent.nc")["rows"]))   # an older dataset

@@ -125,6 +125,7 @@ def capture_section(meas, dataset_path) -> dict:
             ("plan", _plan_text(attrs.get("plan"))), ("sample (simulated truth)", _truth_text(attrs.get("sample_truth"))),
             ("reciprocity (median |f_a - f_b| / mean over pairs)", _reciprocity(dataset_path, meas)),
             ("capture wall time, first to last point (s)", attrs.get("capture_wall_s")),
+            ("instrument time: motion, settling, exposures, preparation (s)", attrs.get("instrument_time_s")),
             ("lamp drift over the session (monitor span / median)", attrs.get("lamp_drift")),
             ("reference scale uncertainty (relative 1-sigma)", attrs.get("scale_rel_std")),
             ("gonio version", attrs.get("gonio_version"))]
