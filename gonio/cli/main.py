@@ -353,6 +353,38 @@ def _cmd_bench_fit(args):
     run(quick=args.quick, out=Path(args.out) if args.out else None)
 
 
+def real_files(paths) -> list:
+    """The measured files of ``paths`` (files, or folders whose .bsdf/.binary files are taken in name
+    order); one line naming what to fix otherwise."""
+    files = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in (".bsdf", ".binary"))
+            if not found:
+                raise GonioError(f"{str(p)!r}: the folder has no RGL .bsdf or MERL .binary file")
+            files += found
+        elif p.is_file() and p.suffix.lower() in (".bsdf", ".binary"):
+            files.append(p)
+        else:
+            raise GonioError(f"{str(p)!r}: give measured RGL .bsdf or MERL .binary files, or folders of them")
+    return files
+
+
+@_env
+def _cmd_bench_real(args):
+    from gonio.perf.real import run_real
+
+    import gonio.models as gm
+
+    if args.peer != "same" and args.peer not in gm.names():
+        raise GonioError(f"--peer {args.peer!r}: give a model family ({', '.join(gm.names())}) or 'same'")
+    files = real_files(args.paths)
+    try:
+        run_real(files, out=Path(args.out) if args.out else None, seed=args.seed, peer=args.peer)
+    except ValueError as exc:
+        raise GonioError(" ".join(str(exc).split())[:300]) from None
+
+
 # --------------------------------------------------------------------------- parser
 LOSS_HELP = ("chi2 (the data's Gaussian noise; default for dataset.nc), robust (pseudo-Huber on chi2's residuals), "
              "cosine (Ngan 2005 cosine-weighted L2), log (Loew 2012 ln(1 + f cos) residuals, sandwich covariance; "
@@ -629,6 +661,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "peer, Ngan and log errors on one dense grid, times from the same run")
     bf.add_argument("--seed", type=_seed, default=0, help="seed of the fits' starts (with --real)")
     bf.set_defaults(func=_cmd_bench_fit)
+    br = bsub.add_parser("real", help="measured materials: gonio's --model auto against a plain scipy roughplastic "
+                                      "fit, Ngan and log errors, dE00 and wall time from the same run")
+    br.add_argument("paths", nargs="+", metavar="DIR_OR_FILE",
+                    help="RGL .bsdf or MERL .binary files, or folders holding them")
+    br.add_argument("--out", help="a .csv file or a folder for the table")
+    br.add_argument("--seed", type=_seed, default=0, help="seed of the fits' starts")
+    br.add_argument("--peer", default="roughplastic", metavar="FAMILY",
+                    help="the plain fit's model family (default roughplastic; 'same': the family gonio chose)")
+    br.set_defaults(func=_cmd_bench_real)
     from gonio.cli.operator import register as _operator_commands     # devices, home, move, jog, shot; bench capture
 
     _operator_commands(sub, bsub)

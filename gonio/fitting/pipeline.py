@@ -87,6 +87,15 @@ def resolve_candidates(model, options):
         raise model_error(exc, model, auto=True) from None
 
 
+def _renders_measured(dataset_path) -> bool:
+    """A measured file (RGL .bsdf, MERL .binary) and a vectorised Mitsuba variant to take its
+    scene's pixels with."""
+    from gonio.models.mitsuba import mitsuba_variant
+
+    return (dataset_path is not None and Path(dataset_path).suffix.lower() in (".bsdf", ".binary")
+            and mitsuba_variant().startswith("llvm"))
+
+
 def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress=None):
     """BIC's ranking with the default scene's rendered check (selection.by_scene.rendered_choice;
     where no candidate renders within its threshold of a measured file, the data-driven
@@ -134,7 +143,15 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     rng = np.random.default_rng(seed) if rng is None else rng
     ranking, note = None, None
     candidates = resolve_candidates(model, options)
-    if candidates is None:
+    if candidates is None and _renders_measured(dataset_path):
+        from gonio.fitting.selection.auto import auto_fit
+
+        try:     # a measured file: screened on a subsample, chosen by the default scene's pixels, refitted
+            result, ranking, note = auto_fit(meas, str(dataset_path), seed=seed, loss=loss, rng=rng,
+                                             progress=progress)
+        except ValueError as exc:
+            raise GonioError(str(exc)) from None
+    elif candidates is None:
         result, ranking = select(meas, rng=rng, loss=loss, progress=progress)
         result, ranking, note = _rendered_choice(ranking, dataset_path, seed, meas=meas, loss=loss, progress=progress)
     else:

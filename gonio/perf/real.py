@@ -1,12 +1,11 @@
-"""``gonio bench fit --real FILES``: gonio's fit of a measured material against a plain peer.
+"""``gonio perf real DIR...``: gonio's ``--model auto`` on measured materials against a plain peer.
 
 Per material (an RGL-EPFL ``.bsdf`` or a MERL ``.binary``), in the same run: **gonio**,
-``--model auto`` as the command line runs it (:data:`gonio.fitting.REAL_DEFAULT_LOSS`, BIC
-choice, then :func:`gonio.fitting.selection.by_scene.rendered_choice`; the chosen candidate's
-fit time and the whole selection's), and the **peer**, what a scipy user would write:
+``--model auto`` as the command line runs it (:func:`gonio.fitting.selection.auto.auto_fit`;
+the chosen fit's time and the whole choice's), and the **peer**, what a scipy user would write:
 ``scipy.optimize.least_squares`` on the unweighted log residuals ln(1 + f_model cos) - ln(1 +
-f_meas cos) with ``model.eval`` of the family gonio chose, from its declared defaults and 7
-uniform starts (8, seeded), the best kept. Metrics on one dense grid shared by both
+f_meas cos) with ``model.eval`` of Mitsuba's roughplastic (:data:`PEER_FAMILY`), from its
+declared defaults and 7 uniform starts (8, seeded), the best kept. Metrics on one dense grid shared by both
 (:func:`dense_grid`: theta_i, theta_o <= 80 deg, equal solid-angle cells, the file's f_r at
 each): ``ngan`` (Ngan, Durand & Matusik 2005, sec. 4), ``log`` (Loew et al. 2012, eq. 11),
 ``dE00`` (mean CIEDE2000 of the preview renders, :data:`RENDER_SIZE` pixels square at
@@ -14,9 +13,9 @@ each): ``ngan`` (Ngan, Durand & Matusik 2005, sec. 4), ``log`` (Loew et al. 2012
 and their ratios peer / gonio. Definitions and references: the comment below.
 """
 
-# gonio: every candidate fitted with the real-data default loss on the file's own
-# solid-angle-weighted samples, BIC choice, then the default scene's rendered check with its
-# data-driven fallback.
+# gonio: every candidate screened with the real-data default loss on a subsample of the file's
+# own solid-angle-weighted samples, chosen by the default scene's pixels and BIC, then the
+# chosen one refitted to every sample (gonio.fitting.selection.auto).
 # peer: scipy.optimize.least_squares (trust-region reflective, 2-point finite differences,
 # bounds), no weights, from the declared defaults and 7 more starts drawn uniformly in the
 # parameter box (8 starts, seeded Generator), the best kept, with gonio's model.eval (the
@@ -61,6 +60,8 @@ from gonio.fitting.formats import RGLBRDF, read_merl
 __all__ = ["dense_grid", "metrics", "peer_fit", "run_real", "PEER_STARTS"]
 
 PEER_STARTS = 8
+#: the plain peer's family (issue 35: Mitsuba's roughplastic); "same" fits the family gonio chose
+PEER_FAMILY = "roughplastic"
 #: the rendered comparison: preview sphere size (pixels) and samples per pixel (the issue's 256)
 RENDER_SIZE, RENDER_SPP = 64, 256
 #: dense grid: theta_i and theta_o rings equal in solid angle (cos theta uniform), phi cells
@@ -137,7 +138,7 @@ def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_S
     return float(out["delta_e_mean"]), floor
 
 
-def compare(path, *, seed=0, loss=None, open_data=None, render=True):
+def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_FAMILY):
     """One material: a dict of gonio's chosen fit and the peer's, metrics on the dense grid."""
     path = Path(path)
     loss = loss or REAL_DEFAULT_LOSS
@@ -150,18 +151,21 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True):
     wi, wo = dense_grid()
     f_meas = measured_on_grid(path, wi, wo)
     t0, c0 = time.perf_counter(), time.process_time()
-    best, ranking = select(meas, rng=np.random.default_rng(seed), loss=loss)
-    if render:      # as `gonio fit --model auto`: the data's evidence, then the default scene's renders
-        from gonio.fitting.selection.by_scene import data_driven, rendered_choice
+    if render:      # as `gonio fit --model auto` on a measured file: screened, chosen by pixels, refitted
+        from gonio.fitting.selection.auto import auto_fit
 
-        best, ranking, _ = rendered_choice(ranking, str(path), seed=seed, fallback=data_driven(meas, seed=seed, loss=loss))
+        best, ranking, _ = auto_fit(meas, str(path), seed=seed, loss=loss, rng=np.random.default_rng(seed))
+    else:
+        best, ranking = select(meas, rng=np.random.default_rng(seed), loss=loss)
     t_select, c_select = time.perf_counter() - t0, time.process_time() - c0
     chosen = next(r for r in ranking if r.chosen)
     model = best.model
     g = metrics(model.eval(wi, wo, best.params), f_meas, wi)
     import gonio.models as gm
 
-    peer_model = gm.get(model.name, **model.options)   # the family's declared defaults, not gonio's start
+    # the issue's peer: Mitsuba's roughplastic (its declared defaults, not gonio's start) unless a
+    # family is named ("same": the family gonio chose)
+    peer_model = gm.get(model.name, **model.options) if peer == "same" else gm.get(peer)
     space, x_peer, t_peer, c_peer = peer_fit(meas, peer_model, np.random.default_rng([seed, 1]))
     p = metrics(peer_model.eval(wi, wo, space.to_params(x_peer)), f_meas, wi)
     label = model.name + (f"-{model.options['distribution']}" if model.options.get("distribution") else "")
@@ -171,7 +175,7 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True):
         de_g, floor = rendered_delta_e(model, best.params, path, seed)
         de_p, _ = rendered_delta_e(peer_model, space.to_params(x_peer), path, seed)
     return {"gonio_de00": de_g, "peer_de00": de_p, "de00_noise": floor,
-            "material": path.stem, "model": label, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
+            "material": path.stem, "model": label, "peer_model": peer_model.name, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
             "gonio_ngan": g["ngan"], "gonio_log": g["log"], "gonio_time_s": best.time_s,
             "gonio_cpu_s": cpu, "gonio_select_s": t_select, "gonio_select_cpu_s": c_select,
             "gonio_chi2_dof": best.chi2_dof,
@@ -193,25 +197,32 @@ HEADS = {"gonio_ngan": "Ngan g", "peer_ngan": "Ngan p", "gonio_log": "log g", "p
          "gonio_de00": "dE g", "peer_de00": "dE p", "de00_noise": "floor"}
 
 
-def print_table(rows):
-    head = "".join(f"{HEADS.get(k, k):{fmt}}" for k, fmt, _ in COLUMNS)
-    print(head)
-    print("-" * len(head))
+def print_table(rows, legend=True, head=True):
+    line = "".join(f"{HEADS.get(k, k):{fmt}}" for k, fmt, _ in COLUMNS)
+    if head:
+        print(line)
+        print("-" * len(line))
     for r in rows:
-        print("".join(f"{r[k]:{fmt}{spec if spec != 's' else ''}}" for k, fmt, spec in COLUMNS))
-    print("g: gonio's chosen fit (--model auto: BIC, then the simplest candidate rendering within CIEDE2000 1 of "
-          "the measured file in the product-shot scene; where none does, the more complex ones and tabulated "
-          "fitted from the data are rendered too and the closest is chosen); p: scipy least_squares, unweighted "
+        print("".join(f"{r[k]:{fmt}{spec if spec != 's' else ''}}" for k, fmt, spec in COLUMNS), flush=True)
+    if not legend:
+        return
+    print("g: gonio's chosen fit (--model auto: every candidate screened on a subsample; among the proper ones "
+          "whose product-shot pixels are within CIEDE2000 0.5 of the closest, BIC chooses; tabulated is tried where "
+          "none is within 1; the chosen one refitted to all samples); p: scipy least_squares, unweighted "
           "log loss, "
-          f"{PEER_STARTS} starts, gonio's model.eval of the same family; t g: the chosen fit's wall time, "
+          f"{PEER_STARTS} starts, gonio's model.eval of Mitsuba's {PEER_FAMILY}; t g: the chosen fit's wall time, "
           "cpu: its CPU time (every thread of the process), auto: the whole selection (wall); metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
           f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
           "env and area lights, matched seeds), floor: its Monte Carlo noise")
 
 
-def run_real(files, out=None, seed=0, loss=None, open_data=None) -> list[dict]:
+def run_real(files, out=None, seed=0, loss=None, open_data=None, peer=PEER_FAMILY) -> list[dict]:
     """Every material of ``files``; print the table; with ``out`` write it as CSV there."""
-    rows = [compare(f, seed=seed, loss=loss, open_data=open_data) for f in files]
+    rows = []
+    for f in files:
+        rows.append(compare(f, seed=seed, loss=loss, open_data=open_data, peer=peer))
+        print_table(rows[-1:], legend=False, head=len(rows) == 1)
+    print()
     print_table(rows)
     if out is not None:
         out = Path(out)

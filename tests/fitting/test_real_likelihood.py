@@ -94,11 +94,30 @@ def test_bench_real_bad_input_is_one_line(tmp_path, capsys):
         assert len(err.splitlines()) == 1 and "--real" in err
 
 
+def test_perf_real_bad_input_is_one_line(tmp_path, capsys):
+    """``gonio perf real DIR...``: a missing path, a folder without a measured file, a file of
+    another kind, an unknown peer family: one line each, exit 2, nothing written."""
+    from gonio.cli.main import main
+
+    (tmp_path / "empty").mkdir()
+    bad = tmp_path / "x.txt"
+    bad.write_text("no")
+    out = tmp_path / "out.csv"
+    cases = ((["perf", "real", str(tmp_path / "missing")], "missing"), (["perf", "real", str(tmp_path / "empty")],
+             "no RGL"), (["perf", "real", str(bad)], "x.txt"),
+             (["perf", "real", str(RGL), "--peer", "nonsense", "--out", str(out)], "--peer"))
+    for args, what in cases:
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and what in err, err
+    assert not out.exists()
+
+
 @needs_rgl
 @pytest.mark.slow
 def test_bench_real_gonio_beats_the_peer(tmp_path):
-    """paper_white (RGL-EPFL): gonio's chosen fit beats the scipy log-loss peer of the same
-    family on both the Ngan and the log metric of the dense grid (issue 16's proof), and its
+    """paper_white (RGL-EPFL): gonio's chosen fit beats the scipy log-loss peer (Mitsuba's
+    roughplastic, issue 35) on both the Ngan and the log metric of the dense grid, and its
     render is within CIEDE2000 1 of the measured file's; the table is written as CSV. (The speed ratio is printed, never asserted.)"""
     import csv
 

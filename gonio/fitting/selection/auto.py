@@ -1,0 +1,93 @@
+"""``--model auto`` on a measured material: screen on a subsample, choose by pixels, refit once.
+
+Every candidate (and the data-driven ``tabulated`` model where none renders well enough) is
+fitted to a seeded random subsample of :data:`SCREEN_POINTS` samples, one local refinement
+each (:func:`screen`); the ranking by BIC is the subsample's. The choice is
+:func:`gonio.fitting.selection.by_pixels.pixel_choice`'s: the simplest proper candidate that
+renders, in the default scene's own pixels, within half a just-noticeable difference of the
+closest one. Only the chosen candidate is then fitted to every sample, started from its
+screened fit (:func:`refit`), so choosing costs the screen, one scene's pairs and one fit.
+"""
+
+# Why a subsample: the candidates' BIC gaps on measured files are thousands (acrylic_felt_white:
+# 535 to 74,000 at 7,700 samples), so 2,000 samples keep the order; a model's fit time is
+# mostly its evaluations, which scale with the samples. One local refinement: the global
+# stage's start scores and the default start find the basin; the other refinements changed
+# no choice on the materials screened (docs/performance.md, gonio.perf.real).
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+__all__ = ["SCREEN_POINTS", "auto_fit", "refit", "screen", "subsample"]
+
+#: samples each candidate is screened on
+SCREEN_POINTS = 2000
+
+
+def subsample(meas, n: int, rng):
+    """A seeded random subsample of ``n`` of ``meas``'s samples (all of them when there are
+    not twice as many), their solid-angle weights kept."""
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError("subsample(rng=...) takes a numpy.random.Generator")
+    if meas.n_points < 2 * int(n):
+        return meas
+    return meas.subset(np.sort(rng.choice(meas.n_points, size=int(n), replace=False)))
+
+
+def screen(sub, *, rng, loss, candidates=None, progress=None):
+    """Every candidate fitted to ``sub`` with one local refinement, no sandwich covariance and
+    no energy polish (the chosen one's refit has both): ``(best, ranking)`` as
+    :func:`gonio.fitting.selection.by_data.select`."""
+    from gonio.fitting.selection.by_data import select
+
+    return select(sub, rng=rng, loss=loss, candidates=candidates, progress=progress, n_local=1, covariance=False,
+                  enforce_energy=False)
+
+
+def refit(meas, result, *, rng, loss):
+    """``result``'s model fitted to every sample of ``meas``, started from ``result``'s
+    parameters (its held parameters held), one local refinement; the FitResult."""
+    from gonio.fitting.optimise.mle import fit
+
+    fixed = dict(result.space.fixed) or None
+    start = {k: v for k, v in result.params.items() if k not in (fixed or {})}
+    return fit(meas, result.model, rng=rng, loss=loss, fixed=fixed, start=start, n_starts=0, n_local=1)
+
+
+def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=SCREEN_POINTS, candidates=None,
+             size=32, k=32, progress=None):
+    """``--model auto`` on ``meas`` sampled from the measured file ``measured`` (a path
+    Mitsuba renders: RGL ``.bsdf``, MERL ``.binary``, or a Mitsuba BSDF dict); ``candidates``
+    (name, options) pairs, default every registered one; ``size``, ``k``: the scene's pixels
+    and light samples a pixel. Returns ``(result, ranking, note)``:
+    the chosen candidate refitted to every sample, the subsample's ranking (its chosen row's
+    result replaced by that refit, ``delta_e`` re-measured), and a line saying what decided."""
+    from gonio.fitting.optimise.tabulated_start import fit_tabulated
+    from gonio.fitting.selection.by_pixels import PixelCheck, pixel_choice
+
+    rng = np.random.default_rng(seed) if rng is None else rng
+    t0 = time.perf_counter()
+    sub = subsample(meas, n, np.random.default_rng([int(seed), 351]))
+    _, ranking = screen(sub, rng=rng, loss=loss, candidates=candidates, progress=progress)
+
+    def fallback():
+        return [fit_tabulated(sub, rng=np.random.default_rng([int(seed), 16]), loss=loss, n_starts=0, n_local=1,
+                              covariance=False, enforce_energy=False)]
+
+    check = PixelCheck(measured, scene=scene, size=size, k=k, seed=seed)
+    chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
+    if progress is not None:
+        progress(0, None, f"fitting {chosen.model.name} to all {meas.n_points} samples")
+    t1 = time.perf_counter()
+    final = refit(meas, chosen, rng=np.random.default_rng([int(seed), 352]), loss=loss)
+    row = next(r for r in ranking if r.chosen)
+    row.result = final
+    row.delta_e, row.noise = check.delta_e(final.model, final.params)
+    screened = "" if sub is meas else f"ranked on {sub.n_points} of {meas.n_points} samples; "
+    note = (f"{screened}{note}; refitted to all samples in {time.perf_counter() - t1:.1f} s "
+            f"(CIEDE2000 {row.delta_e:.2f}); choosing took {time.perf_counter() - t0:.1f} s")
+    return final, ranking, note
