@@ -157,13 +157,18 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
         ("gonio sim serve --sample gold --clock 10 --seed 3", "ten times faster"),
     ],
     "gonio estop": [("gonio estop --port /dev/ttyUSB0", "")],
-    "gonio perf": [("gonio perf fit --quick", ""), ("gonio perf models -n 100000", "")],
+    "gonio perf": [("gonio perf fit --quick", ""), ("gonio perf models -n 100000", ""),
+                   ("gonio perf real ../shared/data/rgl", "measured materials against a plain fit")],
     "gonio perf models": [("gonio perf models -n 100000", "")],
     "gonio perf fit": [
         ("gonio perf fit --quick --out perf", "about 10 s"),
         ("gonio perf fit --real paper.bsdf --out real.csv", ""),
     ],
     "gonio perf capture": [("gonio perf capture --points 3 --skip-full", "")],
+    "gonio perf real": [
+        ("gonio perf real ../shared/data/rgl --out real.csv", "every measured file of the folder"),
+        ("gonio perf real paper_white_rgb.bsdf --peer same", "the peer fits the family gonio chose"),
+    ],
     "gonio devices": [("gonio devices --port /dev/ttyUSB0 --meter-port /dev/ttyUSB1", "")],
     "gonio home": [("gonio home --port /dev/ttyUSB0", "")],
     "gonio move": [

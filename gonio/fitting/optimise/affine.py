@@ -179,6 +179,7 @@ class AffineFit:
         self.nl = kern.nl_idx
         self.T = self.nl.size
         self.atol = 1e-4 if loss == "chi2" else 0.0
+        self.ftol = 1e-10
         self._cache = {}
 
     @property
@@ -232,7 +233,8 @@ class AffineFit:
     def refine(self, start, budget, abandon):
         if self.T == 0:
             return (np.zeros(0), float(self.kern.solve(np.zeros((1, 0)))[1].sum()), True, "linear least squares (exact)")
-        lm = levenberg_marquardt(self._fun, start, atol=self.atol, budget=budget, abandon=abandon, jac=self._jac)
+        lm = levenberg_marquardt(self._fun, start, atol=self.atol, ftol=self.ftol, budget=budget, abandon=abandon,
+                                 jac=self._jac)
         return (lm.u.copy(), lm.cost, lm.converged, lm.message)
 
     def result(self, best, t0):

@@ -148,6 +148,7 @@ class GeneralFit:
         self.u_default = u_default
         self.scorer = problem
         self.atol = 1e-4 if loss in ("chi2", "robust") else 0.0
+        self.ftol = LM_FTOL
 
     @property
     def n_evals(self):
@@ -207,13 +208,14 @@ class GeneralFit:
                 return (x, _loss.objective(loss, r), True, "linear least squares (exact)")
             if problem.varpro:
                 lm = levenberg_marquardt(lambda v: problem.reduced_residuals(v, space.default()), start,
-                                         atol=atol, budget=budget, abandon=abandon,
+                                         atol=atol, ftol=self.ftol, budget=budget, abandon=abandon,
                                          jac=lambda v, r: problem.kaufman_jacobian(v, r, space.default()))
                 x = problem.x_of(lm.u, space.default())
             else:
                 u0 = self.u_default.copy()
                 u0[self.free] = start
-                lm = levenberg_marquardt(problem.lm_residuals_u, u0, atol=atol, budget=budget, abandon=abandon,
+                lm = levenberg_marquardt(problem.lm_residuals_u, u0, atol=atol, ftol=self.ftol, budget=budget,
+                                         abandon=abandon,
                                          jac=problem.lm_jacobian_u, normal=problem.lm_normal_u,
                                          cost=problem.lm_cost_u if problem.normal_available else None)
                 x = space.from_unit(lm.u)
@@ -273,7 +275,8 @@ class GeneralFit:
 
 def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         n_starts: int | None = None, n_local: int = 3, maxeval: int = 2000, enforce_energy: bool | None = None,
-        use_fast: bool | None = None, start: dict | None = None, covariance: bool = True) -> FitResult:
+        use_fast: bool | None = None, start: dict | None = None, covariance: bool = True,
+        ftol: float | None = None) -> FitResult:
     """Fit ``model`` to ``meas``.
 
     Parameters
@@ -311,6 +314,10 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         without a compiled kernel) and keep the Laplace one, for a fit that is refined again
         from its own result (:func:`gonio.fitting.fit_tabulated`'s rounds: 25 of its 90 s each
         on vch at 42 parameters). ``time_s`` never includes it.
+    ftol : float, optional
+        A local run stops where a step would lower the objective by less than ``ftol`` times
+        it (default :data:`LM_FTOL`); a looser one for a screening fit
+        (:mod:`gonio.fitting.selection.auto`).
 
     Returns
     -------
@@ -331,7 +338,9 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     loop = {"n_starts": n_starts, "n_local": n_local, "maxeval": maxeval}
     if start is None and applicable(meas, model, space, loss, enforce_energy, use_fast):
         with single_threaded_blas():
-            res = refine_starts(AffineFit(meas, model, space, loss, SCORE_ROWS), rng, t0=t0, **loop)
+            affine = AffineFit(meas, model, space, loss, SCORE_ROWS)
+            affine.ftol = LM_FTOL if ftol is None else float(ftol)
+            res = refine_starts(affine, rng, t0=t0, **loop)
         if res is not None:
             res = dataclasses.replace(res, cpu_s=time.process_time() - c0)
             if loss in ROBUST_COV and covariance:
@@ -339,10 +348,14 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
             return res
     with single_threaded_blas():  # as for the affine problem: BLAS's threads fight Dr.Jit's (measured 3-5x)
         general = GeneralFit(meas, model, space, loss, use_fast, enforce_energy, maxeval, start)
+        general.ftol = LM_FTOL if ftol is None else float(ftol)
         res = refine_starts(general, rng, t0=t0, **loop)
         res = dataclasses.replace(res, cpu_s=time.process_time() - c0)
         return robust_covariance(res, meas, general.problem) if loss in ROBUST_COV and covariance else res
 
+
+#: a local run's relative objective tolerance (gonio.fitting.optimise.lm.levenberg_marquardt)
+LM_FTOL = 1e-10
 
 #: losses without a noise model: their covariance is the sandwich of their own residuals
 #: (:func:`gonio.fitting.optimise.result.sandwich`), not the chi^2 Fisher matrix

@@ -57,7 +57,7 @@ def degenerate(result) -> list:
 class PixelCheck:
     """A scene's pixels of the measured material, found once; :meth:`delta_e` of any fit."""
 
-    def __init__(self, measured, *, scene="product-shot", size=32, k=32, seed=0, variant=None):
+    def __init__(self, measured, *, scene="product-shot", size=32, k=16, seed=0, variant=None):
         from gonio.fitting.selection.by_scene import scene_pairs
         from gonio.fitting.selection.scene_fit import measured_pixels
 
@@ -89,7 +89,7 @@ class PixelCheck:
         return 0.5 * (de[0] + de[1]), 0.5 * abs(de[0] - de[1])
 
 
-def pixel_choice(ranking, measured, *, scene="product-shot", size=32, k=32, seed=0, threshold=1.0,
+def pixel_choice(ranking, measured, *, scene="product-shot", size=32, k=16, seed=0, threshold=1.0,
                  tolerance=TOLERANCE, delta=2.0, variant=None, fallback=None, progress=None):
     """Choose among ``ranking`` (select's rows, every candidate fitted) by their pixels.
     ``measured``: the measured file (or its :class:`PixelCheck`, made once).
