@@ -3,15 +3,17 @@
 A port is one connection of the instrument: the Zaber chain (stages and LED source), the SCPI
 power meter and the camera. The bench opens one driver per port (`gonio.bench.drivers.rig`),
 the simulator serves one device per port (`gonio.sim.instrument`), the fault schedule, the
-session record and the CLI name ports by these names. A new device (a monochromator) is one
-more entry here plus its driver and its simulated twin.
+session record and the CLI name ports by these names. A new device is one more entry here
+plus its driver and its simulated twin. An ``optional`` port (the monochromator) is opened,
+identified and recorded only where it is given a URL (the simulator serves it where the
+settings hold its ``table``); a capture without it is unchanged.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["PortSpec", "PORTS", "PORT_NAMES", "port_spec"]
+__all__ = ["PortSpec", "PORTS", "PORT_NAMES", "REQUIRED_PORTS", "OPTIONAL_PORTS", "port_spec"]
 
 
 @dataclass(frozen=True)
@@ -29,12 +31,18 @@ class PortSpec:
         Its wire protocol (docs/interfaces.md; ../notes/protocols.md).
     option : str
         The CLI option that gives its URL.
+    optional : bool
+        Whether a capture may go without it (the bench opens it only when given a URL).
+    table : str
+        The settings table that declares the device on the rig ("" for the required ports).
     """
 
     name: str
     carries: str
     protocol: str
     option: str
+    optional: bool = False
+    table: str = ""
 
 
 #: Every port of the rig, in the order the bench opens them (and closes them in reverse).
@@ -42,9 +50,15 @@ PORTS: tuple[PortSpec, ...] = (
     PortSpec("zaber", "the Zaber chain of the four rotary stages and the LED source", "Zaber ASCII", "--port"),
     PortSpec("meter", "the SCPI power meter that monitors the source", "SCPI-1999 over serial", "--meter-port"),
     PortSpec("camera", "the RAW camera", "gonio camera text protocol", "--camera"),
+    PortSpec("monochromator", "the Cornerstone monochromator that sets the wavelength of a spectral capture",
+             "Cornerstone RS-232 text (9600 8N1)", "--monochromator-port", optional=True, table="monochromator"),
 )
 
 PORT_NAMES: tuple[str, ...] = tuple(p.name for p in PORTS)
+#: the ports every capture opens, in order (the Bench's positional URLs)
+REQUIRED_PORTS: tuple[str, ...] = tuple(p.name for p in PORTS if not p.optional)
+#: the ports a capture opens only when given a URL
+OPTIONAL_PORTS: tuple[str, ...] = tuple(p.name for p in PORTS if p.optional)
 
 
 def port_spec(name: str) -> PortSpec:

@@ -12,7 +12,7 @@ import numpy as np
 import serial
 
 from gonio.core.channels import CHANNELS
-from gonio.core.devices import PORT_NAMES
+from gonio.core.devices import PORTS
 from gonio.sim.devices.camera_port import CameraPort
 from gonio.sim.devices.monochromator import CornerstoneTwin, MonochromatorEndpoint
 from gonio.sim.physics.clock import SimClock
@@ -58,6 +58,8 @@ SIM_DEVICES = {
     "meter": ("scpi", ScpiMeter, b"\n", True),
     "camera": ("camera", CameraPort, b"\n", False),
 }
+#: The twin of each optional port: attribute, class, endpoint class (its own line handling).
+OPTIONAL_SIM_DEVICES = {"monochromator": ("monochromator", CornerstoneTwin, MonochromatorEndpoint)}
 
 
 def lookup(name: str) -> "Instrument":
@@ -150,13 +152,17 @@ class Instrument:
         self._errors_on = self.errors.active
 
         self.ports = {}
-        for name in PORT_NAMES:                     # one simulated device per declared port
-            attr, cls, eol, split_cr = SIM_DEVICES[name]
+        self.monochromator = None
+        for spec in PORTS:                          # one simulated device per declared port
+            if spec.optional:                       # served where the settings declare the device
+                if self.settings.get(spec.table) is not None:
+                    attr, cls, endpoint = OPTIONAL_SIM_DEVICES[spec.name]
+                    setattr(self, attr, cls(self))
+                    self.ports[spec.name] = endpoint(self, getattr(self, attr))
+                continue
+            attr, cls, eol, split_cr = SIM_DEVICES[spec.name]
             setattr(self, attr, cls(self))
-            self.ports[name] = PortEndpoint(self, name, getattr(self, attr), eol, split_cr=split_cr)
-        if self.settings.get("monochromator") is not None:     # optional: not a declared port yet (issue 39)
-            self.monochromator = CornerstoneTwin(self)
-            self.ports["monochromator"] = MonochromatorEndpoint(self, self.monochromator)
+            self.ports[spec.name] = PortEndpoint(self, spec.name, getattr(self, attr), eol, split_cr=split_cr)
         self._scene: HolderScene | None = None
         self.detector = "front"           # the detector arm's stop: "front" (reflection) or "rear" (transmission)
         self._radiance = OrderedDict()

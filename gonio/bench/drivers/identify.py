@@ -109,6 +109,10 @@ def identify_bench(bench) -> dict:
         out["meter"] = None
     out["meter_port"] = clean(bench.meter.port_url)
     out["camera"] = camera_text(bench.camera)
+    mono = getattr(bench, "monochromator", None)
+    if mono is not None:                          # an optional port: only where the bench opened it
+        out["monochromator"] = clean(mono.info or mono.identify())
+        out["monochromator_port"] = clean(mono.port_url)
     return out
 
 
@@ -127,7 +131,8 @@ _ZABER_FIELDS = (("device_id", "device id"), ("serial", "serial"), ("firmware", 
 def session_devices(ident: Mapping) -> dict:
     """The ``[devices]`` table of ``session.toml`` for an `identify_bench` result.
 
-    ``zaber_port``, ``meter_port``, ``meter`` (``*IDN?``), ``camera``, and per Zaber address A a
+    ``zaber_port``, ``meter_port``, ``meter`` (``*IDN?``), ``camera``, ``monochromator_port`` and
+    ``monochromator`` (``INFO?``, where the bench has one), and per Zaber address A a
     table ``[devices.zaber.A]``: ``address``, ``device_id``, ``serial``, ``firmware``, ``build``,
     ``axes``, ``peripheral_ids``. Every text is `clean`'d again (printable ASCII, at most 64
     characters: no newline or control character reaches the file, and the TOML writer escapes
@@ -135,7 +140,7 @@ def session_devices(ident: Mapping) -> dict:
     peripheral id it did not answer is ``""``.
     """
     out: dict = {}
-    for key in ("zaber_port", "meter_port", "meter", "camera"):
+    for key in ("zaber_port", "meter_port", "meter", "camera", "monochromator_port", "monochromator"):
         if ident.get(key) is not None:
             out[key] = clean(ident[key])
     zaber: dict = {}
@@ -180,7 +185,7 @@ def differences(recorded: Mapping, now: Mapping) -> list[str]:
         for key, label in _ZABER_FIELDS:
             if r.get(key) != n.get(key):
                 out.append(f"Zaber device {clean(a)} {label} {_shown(r.get(key))} -> {_shown(n.get(key))}")
-    for key, label in (("meter", "power meter *IDN?"), ("camera", "camera")):
+    for key, label in (("meter", "power meter *IDN?"), ("camera", "camera"), ("monochromator", "monochromator INFO?")):
         if recorded.get(key) != now.get(key):
             out.append(f"{label} {_shown(recorded.get(key))} -> {_shown(now.get(key))}")
     return out

@@ -48,8 +48,20 @@ def _camera(spec: str, settings: Mapping, baud: int) -> list[str]:
         cam.close()
 
 
+def _monochromator(url: str, settings: Mapping, baud: int) -> list[str]:
+    from gonio.bench.drivers.monochromator import Monochromator
+
+    mono = Monochromator(url, settings)
+    try:
+        return [f"monochromator {url}: {_identify.clean(mono.info)}, grating {mono.grating()}, "
+                f"{mono.wavelength():g} nm"]
+    finally:
+        mono.close()
+
+
 #: The probe of each declared port: ``probe(url, settings, baud) -> lines``.
-PROBES: dict[str, Callable[[str, Mapping, int], list[str]]] = {"zaber": _zaber, "meter": _meter, "camera": _camera}
+PROBES: dict[str, Callable[[str, Mapping, int], list[str]]] = {"zaber": _zaber, "meter": _meter, "camera": _camera,
+                                                               "monochromator": _monochromator}
 
 
 def probe_ports(urls: Mapping[str, str | None], settings: Mapping, baud: int) -> list[str]:

@@ -149,12 +149,13 @@ estop = emergency_stop        # ``gonio estop --port``: /0 0 estop to every devi
 
 
 def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_url, camera,
-                 sample_truth, meta, strategy: Mapping) -> dict[str, Any]:
+                 sample_truth, meta, strategy: Mapping, monochromator: str | None = None) -> dict[str, Any]:
     doc = {
         "session": {"created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "seed": -1 if seed is None else int(seed), **versions()},
         "ports": {"zaber": str(zaber_url), "meter": str(meter_url),
-                  "camera": camera if isinstance(camera, str) else type(camera).__name__},
+                  "camera": camera if isinstance(camera, str) else type(camera).__name__,
+                  **({"monochromator": str(monochromator)} if monochromator else {})},
         "plan": plan.to_dict(),
         "order": {"order": [int(i) for i in order.order], "stage_deg": order.stage_deg.tolist(),
                   "naive_s": order.naive_s, "ordered_s": order.ordered_s, "bound_s": order.bound_s},
@@ -332,7 +333,7 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
             seed: int | None = None, progress: bool = True, *, sample_truth=None, meta: Mapping | None = None,
             sleep: Callable[[float], None] = time.sleep, poll_interval_s: float = 0.05,
             timeout: float = 1.0, strategy: Mapping | None = None,
-            clock: Callable[[], float] | None = None) -> CaptureSummary:
+            clock: Callable[[], float] | None = None, monochromator: str | None = None) -> CaptureSummary:
     """Create a session folder and measure ``plan``.
 
     Parameters
@@ -364,6 +365,9 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
         The instrument's clock in seconds, what the journal's instrument time is read from
         (`gonio.bench.drivers.rig.clock_of`: ``time.monotonic``, or the simulated clock whose
         ``advance`` ``sleep`` is).
+    monochromator : str, optional
+        The monochromator's serial URL (``sim://NAME/monochromator``): opened, identified and
+        recorded in ``[ports]`` and ``[devices]``; a spectral plan needs it.
 
     Returns
     -------
@@ -392,8 +396,9 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
                 "free some space or give another --out")
     warnings: list = []
     bench_kw = dict(sleep=sleep, poll_interval_s=poll_interval_s, timeout=timeout, clock=clock,
-                    on_warning=lambda d, f, m: warnings.append((d, f, m)))
-    doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta, strategy)
+                    on_warning=lambda d, f, m: warnings.append((d, f, m)), monochromator=monochromator)
+    doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta, strategy,
+                       monochromator)
     bench, journal, lock, doc, ident = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
     return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [], ident=ident)
 
@@ -470,7 +475,7 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
            progress: bool = True, *, sleep: Callable[[float], None] = time.sleep,
            poll_interval_s: float = 0.05, timeout: float = 1.0, rebuild_journal: bool = False,
            remeasure: str | None = None, notify: Callable[[str], None] | None = None,
-           clock: Callable[[], float] | None = None) -> CaptureSummary:
+           clock: Callable[[], float] | None = None, monochromator: str | None = None) -> CaptureSummary:
     """Finish a session: check it is one consistent record (`gonio.bench.session.integrity`), re-check
     positions and flags (re-home if the reference was lost), verify the journalled RAW files,
     remove orphan temporary files, skip the journalled points and measure the rest in the
@@ -482,7 +487,7 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
     replaces a missing or damaged journal first. Each of these is said in one line to
     ``notify`` and in the summary's ``notes``.
 
-    Ports default to those recorded in ``session.toml``; ``clock`` as `capture`'s (this run's
+    Ports (the monochromator's too) default to those recorded in ``session.toml``; ``clock`` as `capture`'s (this run's
     instrument time adds to the time the journal holds).
     """
     t0 = time.perf_counter()
@@ -526,8 +531,10 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
             if not zaber_url or not meter_url:
                 raise SessionError(f"{folder}: give the ports to resume on (--port and --meter-port)")
             warnings: list = []
+            monochromator = monochromator or ports.get("monochromator")
             bench = Bench(doc["settings"], zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
-                          timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)), clock=clock)
+                          timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)), clock=clock,
+                          monochromator=monochromator)
         if pre.requested:
             raise CaptureInterrupted(f"stopped by {pre.stop or 'Ctrl-C'} before measuring; the session is resumable "
                                      f"with `gonio capture --resume {folder}`")

@@ -59,6 +59,7 @@ def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, 
                        seed=seed, progress=progress, sample_truth=sample, sleep=inst.clock.advance,
                        clock=inst.clock.now,
                        meta={"sim": True, "demo": bool(demo), "sim_name": inst.name,
-                             "sample": json.dumps(sample, sort_keys=True)}, strategy=strategy)
+                             "sample": json.dumps(sample, sort_keys=True)}, strategy=strategy,
+                       monochromator=inst.url("monochromator") if inst.monochromator is not None else None)
     finally:
         inst.unregister()
