@@ -27,9 +27,10 @@ __all__ = ["SCREEN_FTOL", "SCREEN_POINTS", "auto_fit", "refit", "screen", "subsa
 #: samples each candidate is screened on
 SCREEN_POINTS = 2000
 #: a screening fit stops where a step would lower its objective by less than this fraction:
-#: the profiled likelihood -2 ln L = n ln(S / n) then moves by n * 1e-5, 0.06 at the 6000
-#: values of 2000 RGB samples, against BIC gaps of hundreds to thousands
-SCREEN_FTOL = 1e-5
+#: the profiled likelihood -2 ln L = n ln(S / n) then moves by n * 1e-7, 6e-4 at the 6000
+#: values of 2000 RGB samples, against BIC gaps of hundreds to thousands (1e-5 let a slowly
+#: converging two-lobe fit stop far from its optimum on irid_flake_paint2)
+SCREEN_FTOL = 1e-7
 
 
 def subsample(meas, n: int, rng):
