@@ -148,3 +148,17 @@ def test_convert_prints_the_approximation_and_keeps_gonios_plugin_on_request(tmp
     assert cli.main(["convert", str(path), "--to", "mitsuba-xml-gonio", "--out", str(tmp_path / "g.xml")]) == 0
     assert 'type="gonio_orennayar"' in (tmp_path / "g.xml").read_text()
     assert "the loading process must import gonio" in capsys.readouterr().out
+
+
+def test_a_transmitter_without_a_native_twin_is_refused_not_fitted_by_a_reflector():
+    """difftrans (gonio's plugin; Mitsuba 3 has no diffuse transmitter): every native family
+    reflects only, so on the upper hemisphere a black reflector would "fit" it with a zero
+    stated error. The native export refuses, in one line naming the plugin export instead."""
+    import pytest
+
+    from gonio.fitting.formats.native import native_bsdf
+    from gonio.fitting.formats.readback import ExportError
+
+    with pytest.raises(ExportError, match="transmits.*mitsuba-xml-gonio") as info:
+        native_bsdf("difftrans", {}, {"transmittance": [0.5, 0.4, 0.3]})
+    assert "\n" not in str(info.value)

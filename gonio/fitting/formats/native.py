@@ -118,6 +118,13 @@ def native_bsdf(model_name: str, options: dict | None, params: dict, *, seed: in
     d = model.to_mitsuba(params)
     if not str(d["type"]).startswith("gonio_"):
         return NativeBSDF(model.name, model.name, dict(model.options), params, d, True, np.zeros(CHANNELS))
+    from gonio.core.sides import Side
+
+    if Side.TRANSMIT in tuple(model.structure.sides):
+        # the families below reflect only: fitted on the upper hemisphere they would stand for a
+        # transmitter by a black reflector with a zero stated error
+        raise ExportError(f"model {model.name} transmits and no native Mitsuba BSDF stands for it; "
+                          "export gonio's plugin instead (--to mitsuba-xml-gonio)")
     wi, wo = _grid()
     f = np.asarray(model.eval(wi, wo, params), dtype=np.float64).reshape(-1, CHANNELS)
     w = (wi[:, 2] * wo[:, 2])[:, None]
