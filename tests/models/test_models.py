@@ -70,7 +70,8 @@ def test_registry_and_interface():
     assert isinstance(m.parameters, tuple) and all(isinstance(p, gm.Parameter) for p in m.parameters)
     p = m.parameters[0]
     assert (p.name, p.per_channel, p.unit) == ("diffuse_reflectance", True, "1")
-    assert {q.name for q in gm.get("roughconductor", anisotropic=True).parameters} == {"eta", "k", "alpha_u", "alpha_v"}
+    assert {q.name for q in gm.get("roughconductor", anisotropic=True).parameters} == {"eta", "k", "alpha_u", "alpha_v",
+                                                                                      "tangent_deg"}
     assert gm.get("cooktorrance").energy_conserving is False
     with pytest.raises(ValueError, match="unknown model"):
         gm.get("phong")

@@ -1,4 +1,13 @@
-"""Model ``roughconductor``: Mitsuba 3's rough conductor (microfacet metal)."""
+"""Model ``roughconductor``: Mitsuba 3's rough conductor (microfacet metal).
+
+The anisotropic option adds ``tangent_deg``, the angle of the sample's tangent (the axis
+``alpha_u`` acts along) from the holder's x axis, counter-clockwise seen from above, in
+[0, 180] (0 and 180 are one frame: D and G are even in the local x and y, so the model has
+period 180 deg). f_r(wi, wo) is the tangent-frame model at wi, wo rotated about the normal by
+-tangent_deg. The Mitsuba BSDF dict is written in the tangent frame; the scene puts the frame
+in the shape: its ``to_world`` rotated by ``tangent_deg`` about the normal
+(:meth:`RoughConductor.tangent_deg`, :func:`gonio.models.mitsuba.tangent_rotation`).
+"""
 
 from __future__ import annotations
 
@@ -6,7 +15,8 @@ import numpy as np
 
 from gonio.core.channels import CHANNELS
 from gonio.models.base import Model, Parameter, register, rgb
-from gonio.models.engine.jit import (_fresnel_conductor, _lobe_iso_geometry, channels, microfacet_lobe, microfacet_lobe_iso)
+from gonio.models.engine.jit import (_fresnel_conductor, _lobe_iso_geometry, channels, microfacet_lobe, microfacet_lobe_iso,
+                                    rotate_about_normal)
 from gonio.models.structure import Structure
 from gonio.models.physics.fresnel import fresnel_conductor
 from gonio.core.geometry import half_vector
@@ -34,6 +44,10 @@ class RoughConductor(Model):
         Imaginary part (extinction coefficient) per channel, in [0, 10].
     alpha, or alpha_u and alpha_v : float
         Roughness (GGX alpha / Beckmann RMS slope), in [1e-4, 1].
+    tangent_deg : float (anisotropic only)
+        Angle of the tangent (``alpha_u``'s axis) from the holder's x axis, deg, in [0, 180];
+        (alpha_u, alpha_v, t) and (alpha_v, alpha_u, t + 90) are the same BRDF (a fit reports
+        the form with alpha_u <= alpha_v: :meth:`canonical`).
 
     Notes
     -----
@@ -63,6 +77,7 @@ class RoughConductor(Model):
             return common + (
                 Parameter("alpha_u", 0.1, 1e-4, 1.0, "1", "roughness along the local x (tangent) axis"),
                 Parameter("alpha_v", 0.1, 1e-4, 1.0, "1", "roughness along the local y (bitangent) axis"),
+                Parameter("tangent_deg", 0.0, 0.0, 180.0, "deg", "angle of the tangent from the holder's x axis"),
             )
         return common + (Parameter("alpha", 0.1, 1e-4, 1.0, "1", "roughness (GGX alpha or Beckmann RMS slope)"),)
 
@@ -74,7 +89,36 @@ class RoughConductor(Model):
     def _lobe_distribution(self, p):
         return MicrofacetDistribution(self.options["distribution"], *self._alphas(p))
 
+    def tangent_deg(self, params) -> float:
+        """The rotation about the normal, deg, of the frame :meth:`to_mitsuba` is written in:
+        a scene rotates the shape's ``to_world`` by it (0 for an isotropic roughness)."""
+        return float(self.validate(params)["tangent_deg"]) if self.options["anisotropic"] else 0.0
+
+    def canonical(self, params):
+        """The same BRDF with alpha_u <= alpha_v and the tangent wrapped into [0, 180)
+        (alpha_u and alpha_v swap when the tangent turns by 90 deg); validated params."""
+        p = self.validate(params)
+        if not self.options["anisotropic"]:
+            return p
+        t = p["tangent_deg"]
+        if p["alpha_u"] > p["alpha_v"]:
+            p["alpha_u"], p["alpha_v"], t = p["alpha_v"], p["alpha_u"], t + 90.0
+        p["tangent_deg"] = float(t % 180.0)
+        return p
+
+    def albedo(self, wo, params, **quadrature):
+        """Directional albedo (:meth:`Model.albedo`): for a turned tangent, that of the
+        tangent-frame model at ``wo`` turned by -tangent_deg (the quadrature's nodes follow
+        the unrotated distribution)."""
+        t = self.tangent_deg(params)
+        if t == 0.0:
+            return super().albedo(wo, params, **quadrature)
+        return super().albedo(to_tangent_frame(np.asarray(wo, dtype=np.float64), t),
+                              {**params, "tangent_deg": 0.0}, **quadrature)
+
     def _eval_parts(self, wi, wo, p):
+        if self.options["anisotropic"] and p["tangent_deg"] != 0.0:
+            wi, wo = to_tangent_frame(wi, p["tangent_deg"]), to_tangent_frame(wo, p["tangent_deg"])
         kind = self.options["distribution"]
         dist = self._lobe_distribution(p)
         au, av = dist.alpha_u, dist.alpha_v
@@ -94,6 +138,9 @@ class RoughConductor(Model):
         return self._eval_parts(wi, wo, p)[1]
 
     def to_mitsuba(self, params):
+        """Mitsuba's ``roughconductor`` in the tangent frame: with a nonzero
+        :meth:`tangent_deg` the scene turns the shape's ``to_world`` by it about the normal
+        (a dict cannot hold the frame: the BSDF reads it from the shape's dp/du)."""
         p = self.validate(params)
         d = {
             "type": "roughconductor",
@@ -107,6 +154,14 @@ class RoughConductor(Model):
         else:
             d["alpha"] = au
         return d
+
+
+def to_tangent_frame(w, tangent_deg):
+    """Directions (N, 3) in the holder frame -> the tangent frame: turned by -tangent_deg
+    about the normal (the tangent (cos t, sin t, 0) -> (1, 0, 0))."""
+    t = np.radians(tangent_deg)
+    c, s = np.cos(t), np.sin(t)
+    return np.stack([c * w[..., 0] + s * w[..., 1], c * w[..., 1] - s * w[..., 0], w[..., 2]], axis=-1)
 
 
 def _jit_geometry(model, dr, wi, wo):
@@ -127,6 +182,8 @@ def _jit_kernel(model, k, wi, wo, P, grad):
     dr = k.dr
     aniso = model.options["anisotropic"]
     alphas = (P["alpha_u"], P["alpha_v"]) if aniso else (P["alpha"], P["alpha"])
+    if aniso:   # the tangent frame; d f / d tangent_deg from the lobe's d ln / d turn
+        wi, wo = rotate_about_normal(dr, wi, P["tangent_deg"]), rotate_about_normal(dr, wo, P["tangent_deg"])
     s, c, ds = microfacet_lobe(dr, model.options["distribution"], alphas, wi, wo, grad, aniso)
     return _conductor(model, k, s, c, ds, P, grad)
 

@@ -15,7 +15,7 @@ import numpy as np
 from gonio.core.channels import CHANNELS
 from gonio.core.geometry import as_directions
 
-__all__ = ["Directions", "JitContext", "channels", "microfacet_lobe"]
+__all__ = ["Directions", "JitContext", "channels", "microfacet_lobe", "rotate_about_normal"]
 
 
 def _dr():
@@ -203,8 +203,11 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     G1(w) / (2 cos) = 1 / (cos + sqrt(cos^2 + (au x)^2 + (av y)^2)). D is 0 where
     D cos(theta_m) <= 1e-20, Mitsuba's cut.
 
-    With ``grad``, also ``(gu, gv)``: d ln(term) / d au and d / d av (for an isotropic
-    alpha, d / d alpha = gu + gv), 0 where the term is 0. GGX: ln den = ln(pi au av) +
+    With ``grad``, also ``(gu, gv, gt)``: d ln(term) / d au, d / d av (for an isotropic
+    alpha, d / d alpha = gu + gv) and d / d theta for directions turned by -theta about the
+    normal before the term (d x / d theta = y, d y / d theta = -x: t changes by
+    2 m_x m_y (1/au^2 - 1/av^2), S^2 = cos^2 + (au x)^2 + (av y)^2 by 2 (au^2 - av^2) x y),
+    0 where the term is 0. GGX: ln den = ln(pi au av) +
     2 ln t + ln(ci + Si) + ln(co + So) with t = (mx/au)^2 + (my/av)^2 + mz^2; Beckmann:
     ln(term) = -e + ln(n_i/d_i) + ln(n_o/d_o) - ln(4 pi au av mz^4) with e = ((mx/au)^2 +
     (my/av)^2) / mz^2 and d s / d au = (au x)^2 / (au s) for each direction."""
@@ -214,6 +217,8 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     px2 = qx + qy
     paa = math.pi * au * av
     ax_i, ay_i, ax_o, ay_o = (au * wi.x) ** 2, (av * wi.y) ** 2, (au * wo.x) ** 2, (av * wo.y) ** 2
+    if grad:    # for gt: m_x m_y and au^2 - av^2
+        mxy, d2 = h.x * h.y * inv * inv, au * au - av * av
     if kind == "ggx":
         t = px2 + mz * mz
         si = _safe_sqrt(dr, ci * ci + ax_i + ay_i)
@@ -228,6 +233,7 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
             w_o = 1.0 / (so * (co + so))
             gu = (qx * rt - 1.0 - ax_i * w_i - ax_o * w_o) * iau
             gv = (qy * rt - 1.0 - ay_i * w_i - ay_o * w_o) * iav
+            gt = -(rt * mxy * (iau * iau - iav * iav) + d2 * (wi.x * wi.y * w_i + wo.x * wo.y * w_o))
     else:
         mz2 = mz * mz
         mz2 = dr.select(ok, mz2, 1.0)
@@ -243,11 +249,20 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
             k_i, k_o = _beckmann_dlog_g1(dr, ni, di, s_i, ci, big_i), _beckmann_dlog_g1(dr, no, do, s_o, co, big_o)
             gu = (2.0 * qx * rmz2 - 1.0 + ax_i * k_i + ax_o * k_o) * iau
             gv = (2.0 * qy * rmz2 - 1.0 + ay_i * k_i + ay_o * k_o) * iav
+            gt = d2 * (wi.x * wi.y * k_i + wo.x * wo.y * k_o) - 2.0 * mxy * (iau * iau - iav * iav) * rmz2
     ok &= den > 0
     out = (dr.select(ok, num, 0.0), dr.select(ok, den, 1.0), c, ok)
     if grad:
-        out += (dr.select(ok, gu, 0.0), dr.select(ok, gv, 0.0))
+        out += (dr.select(ok, gu, 0.0), dr.select(ok, gv, 0.0), dr.select(ok, gt, 0.0))
     return out
+
+
+def rotate_about_normal(dr, w, tangent_deg):
+    """Directions ``w`` (a Dr.Jit 3-vector) turned by -tangent_deg about the normal: the
+    holder frame -> a tangent frame whose x axis lies at tangent_deg from the holder's."""
+    t = tangent_deg * (math.pi / 180.0)
+    c, s = dr.cos(t), dr.sin(t)
+    return type(w)(c * w.x + s * w.y, c * w.y - s * w.x, w.z)
 
 
 def _lobe_iso_geometry(dr, wi, wo):
@@ -488,7 +503,8 @@ _channels = channels
 
 def microfacet_lobe(dr, kind, alphas, wi, wo, grad, aniso):
     """The microfacet term D G / (4 cos_i cos_o) = s, the cosine c at the microfacet normal
-    and, with ``grad``, ds per roughness parameter (``alpha`` or ``alpha_u``/``alpha_v``);
+    and, with ``grad``, ds per roughness parameter (``alpha`` or ``alpha_u``/``alpha_v``, then
+    also ``tangent_deg`` for directions the caller turned by :func:`rotate_about_normal`);
     below the roughness floor alpha is clamped: derivative 0."""
     au, av = (dr.maximum(a, 1e-4) for a in alphas)
     lobe = _lobe(dr, kind, au, av, wi, wo, grad)
@@ -496,6 +512,8 @@ def microfacet_lobe(dr, kind, alphas, wi, wo, grad, aniso):
     s = num / den
     ds = None
     if grad:
-        gu, gv = (dr.select(a >= 1e-4, g, 0.0) * s for a, g in zip(alphas, lobe[4:]))
+        gu, gv = (dr.select(a >= 1e-4, g, 0.0) * s for a, g in zip(alphas, lobe[4:6]))
         ds = {"alpha_u": gu, "alpha_v": gv} if aniso else {"alpha": gu + gv}
+        if aniso:   # the directions were turned by -tangent_deg (rotate_about_normal): deg
+            ds["tangent_deg"] = lobe[6] * s * (math.pi / 180.0)
     return s, c, ds

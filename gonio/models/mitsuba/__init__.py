@@ -10,6 +10,8 @@ Everything in gonio that talks to Mitsuba goes through this module (Mitsuba is i
 * :func:`interaction` is the one place the direction convention is converted: Mitsuba's
   ``si.wi`` points to the sensor (gonio's ``wo``) and the direction ``bsdf.eval`` is asked
   about is gonio's ``wi`` (toward the light); ``bsdf.eval`` returns f_r * cos(theta_i).
+* :func:`tangent_to_world` puts a model's tangent frame in a scene: the shape's ``to_world``
+  turned about its normal by ``model.tangent_deg(params)`` (anisotropic roughconductor).
 * :func:`eval_cos` evaluates a BSDF dict or object on a batch in gonio's convention (chunked),
   :func:`divide_cos` turns it into f_r; :func:`bsdf_base`, :func:`ensure_registered`: gonio's
   Python BSDF plugins.
@@ -28,7 +30,7 @@ from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
 from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
 
-__all__ = ["mitsuba_variant", "select_variant", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
+__all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
            "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
 
 
@@ -59,6 +61,20 @@ def interaction(wi, wo):
     si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
     si.n = mi.Normal3f(0.0, 0.0, 1.0)
     return si, mi.Vector3f(np.ascontiguousarray(wi.T, dtype=np.float32))
+
+
+def tangent_to_world(model, params, to_world=None):
+    """The ``to_world`` of a flat shape (a ``rectangle``: normal +z, tangent dp/du along +x)
+    carrying ``model.to_mitsuba(params)`` so that its BSDF's tangent frame is the model's:
+    ``to_world @ rotate(z, tangent_deg)`` (the shape turned about its own normal; a Mitsuba
+    BSDF dict holds no frame, the shading frame's tangent is the shape's dp/du). ``to_world``:
+    a ``mitsuba.ScalarTransform4f`` (identity when None); the current variant's types."""
+    import mitsuba as mi
+
+    T = mi.ScalarTransform4f
+    base = T() if to_world is None else to_world
+    t = float(getattr(model, "tangent_deg", lambda p: 0.0)(params))
+    return base if t == 0.0 else base @ T().rotate([0.0, 0.0, 1.0], t)
 
 
 def eval_cos(bsdf, wi, wo, variant: str | None = None, chunk: int = 1 << 20) -> np.ndarray:
