@@ -323,68 +323,6 @@ def _cmd_estop(args):
     return estop.run(args.port, args.baud)
 
 
-@_env
-def _cmd_bench_models(args):
-    try:
-        from gonio.perf.models import run
-    except ImportError:
-        raise GonioError("this build of gonio.models has no benchmark") from None
-    if not 1_000 <= args.n <= 10_000_000:
-        raise GonioError(f"-n {args.n}: give a batch of direction pairs between 1000 and 10000000")
-    run(n=args.n)
-
-
-@_env
-def _cmd_bench_fit(args):
-    from gonio.perf.fit import run, run_real
-
-    if args.real:
-        files = [Path(f) for f in args.real]
-        for f in files:
-            if not f.is_file() or f.suffix.lower() not in (".bsdf", ".binary"):
-                raise GonioError(f"--real {f}: give measured RGL .bsdf or MERL .binary files that exist")
-        if args.quick:
-            raise GonioError("--quick is for the synthetic matrix; --real fits each file in full")
-        try:
-            run_real(files, out=Path(args.out) if args.out else None, seed=args.seed)
-        except ValueError as exc:
-            raise GonioError(" ".join(str(exc).split())[:300]) from None
-        return
-    run(quick=args.quick, out=Path(args.out) if args.out else None)
-
-
-def real_files(paths) -> list:
-    """The measured files of ``paths`` (files, or folders whose .bsdf/.binary files are taken in name
-    order); one line naming what to fix otherwise."""
-    files = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in (".bsdf", ".binary"))
-            if not found:
-                raise GonioError(f"{str(p)!r}: the folder has no RGL .bsdf or MERL .binary file")
-            files += found
-        elif p.is_file() and p.suffix.lower() in (".bsdf", ".binary"):
-            files.append(p)
-        else:
-            raise GonioError(f"{str(p)!r}: give measured RGL .bsdf or MERL .binary files, or folders of them")
-    return files
-
-
-@_env
-def _cmd_bench_real(args):
-    from gonio.perf.real import run_real
-
-    import gonio.models as gm
-
-    if args.peer != "same" and args.peer not in gm.names():
-        raise GonioError(f"--peer {args.peer!r}: give a model family ({', '.join(gm.names())}) or 'same'")
-    files = real_files(args.paths)
-    try:
-        run_real(files, out=Path(args.out) if args.out else None, seed=args.seed, peer=args.peer)
-    except ValueError as exc:
-        raise GonioError(" ".join(str(exc).split())[:300]) from None
-
-
 # --------------------------------------------------------------------------- parser
 LOSS_HELP = ("chi2 (the data's Gaussian noise; default for dataset.nc), robust (pseudo-Huber on chi2's residuals), "
              "cosine (Ngan 2005 cosine-weighted L2), log (Loew 2012 ln(1 + f cos) residuals, sandwich covariance; "
@@ -647,30 +585,10 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--baud", type=int, default=115200)
     es.set_defaults(func=_cmd_estop)
 
-    b = sub.add_parser("perf", aliases=["bench"], help="benchmarks: figures as ratios against a peer or a limit")
-    bsub = b.add_subparsers(dest="bench_command", metavar="WHAT", parser_class=_Parser)
-    bsub.required = True
-    bm = bsub.add_parser("models", help="model evaluations per second next to Mitsuba's bsdf.eval")
-    bm.add_argument("-n", type=int, default=1_000_000)
-    bm.set_defaults(func=_cmd_bench_models)
-    bf = bsub.add_parser("fit", help="fit speed against error: gonio vs scipy least_squares, CRLB efficiency")
-    bf.add_argument("--quick", action="store_true", help="a small matrix (about 10 s)")
-    bf.add_argument("--out", help="folder for the CSV table and the PNG plot (with --real: a .csv file or a folder)")
-    bf.add_argument("--real", nargs="+", metavar="FILE",
-                    help="measured materials (RGL .bsdf, MERL .binary): gonio's chosen fit beside a scipy log-loss "
-                         "peer, Ngan and log errors on one dense grid, times from the same run")
-    bf.add_argument("--seed", type=_seed, default=0, help="seed of the fits' starts (with --real)")
-    bf.set_defaults(func=_cmd_bench_fit)
-    br = bsub.add_parser("real", help="measured materials: gonio's --model auto against a plain scipy roughplastic "
-                                      "fit, Ngan and log errors, dE00 and wall time from the same run")
-    br.add_argument("paths", nargs="+", metavar="DIR_OR_FILE",
-                    help="RGL .bsdf or MERL .binary files, or folders holding them")
-    br.add_argument("--out", help="a .csv file or a folder for the table")
-    br.add_argument("--seed", type=_seed, default=0, help="seed of the fits' starts")
-    br.add_argument("--peer", default="roughplastic", metavar="FAMILY",
-                    help="the plain fit's model family (default roughplastic; 'same': the family gonio chose)")
-    br.set_defaults(func=_cmd_bench_real)
+    from gonio.cli.perf import register as _perf_commands      # perf models, fit, real
     from gonio.cli.operator import register as _operator_commands     # devices, home, move, jog, shot; bench capture
+
+    bsub = _perf_commands(sub, env=_env, seed=_seed, parser_class=_Parser)
 
     _operator_commands(sub, bsub)
     _with_examples(p)
