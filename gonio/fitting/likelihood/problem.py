@@ -53,10 +53,15 @@ class Evaluator:
         self.fast = False
         self._dirs = None
         self._yw = None
+        self.layer = None
         worth_it = len(wi) >= FAST_MIN_POINTS or model.structure.compile_always
         if use_fast is not False and n_channels == 3 and (use_fast or worth_it):
             self.fast = _fast_agrees(model)
-        self.backend = "drjit-llvm" if self.fast else "numpy"
+            layer = getattr(model, "_layer", None)
+            if not self.fast and hasattr(model, "layers") and layer is not None and layer.structure.derivatives:
+                # a two-lobe model (gonio.models.catalogue.twolobe): its layer's kernel, twice
+                self.layer = layer if _fast_agrees(layer) else None
+        self.backend = "drjit-llvm" if self.fast or self.layer is not None else "numpy"
 
     def _resident(self):
         if self._dirs is None:  # directions loaded into Dr.Jit once per fit
@@ -67,6 +72,10 @@ class Evaluator:
         self.n_evals += 1
         if self.fast:
             return fast.eval_resident(self.model, self._resident(), params)
+        if self.layer is not None:
+            p1, p2, w = self.model.layers(self.model.validate(params))
+            d = self._resident()
+            return (1.0 - w) * fast.eval_resident(self.layer, d, p1) + w * fast.eval_resident(self.layer, d, p2)
         return np.asarray(self.model.eval_reference(self.wi, self.wo, params), dtype=np.float64)
 
     def normal(self, params, y, w, log=False):
@@ -99,10 +108,25 @@ class Evaluator:
         derivatives (:func:`gonio.models.fast.jacobian`; one call, counted as one
         evaluation), or None on the numpy path and for a kernel of values only
         (``structure.derivatives``)."""
+        if self.layer is not None:
+            self.n_evals += 1
+            return self._layered_jacobian(params)
         if not self.fast or not self.model.structure.derivatives:
             return None
         self.n_evals += 1
         return fast.jacobian(self.model, self._resident(), params)
+
+    def _layered_jacobian(self, params):
+        """A two-lobe model's (f, J) from its layer's kernel at each lobe: f = (1 - w) f1 + w
+        f2, so d f / d(shared) = (1 - w) J1 + w J2, d f / d alpha = (1 - w) J1[alpha],
+        d f / d alpha2 = w J2[alpha], d f / d weight = f2 - f1."""
+        p1, p2, w = self.model.layers(self.model.validate(params))
+        d = self._resident()
+        f1, J1 = fast.jacobian(self.layer, d, p1)
+        f2, J2 = fast.jacobian(self.layer, d, p2)
+        J = {k: (1.0 - w) * J1[k] + w * J2[k] for k in J1 if k != "alpha"}
+        J["alpha"], J["alpha2"], J["weight"] = (1.0 - w) * J1["alpha"], w * J2["alpha"], f2 - f1
+        return (1.0 - w) * f1 + w * f2, J
 
 
 _FAST_OK: dict = {}
