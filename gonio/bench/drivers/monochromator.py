@@ -41,7 +41,7 @@ import serial
 from gonio.bench.drivers.serialport import SerialDevice
 from gonio.core.errors import CommunicationError, DeviceError, GonioError
 
-__all__ = ["Monochromator", "ERRORS", "DEFAULTS", "choose"]
+__all__ = ["Monochromator", "ERRORS", "DEFAULTS", "choose", "ranges"]
 
 #: MCS260B 15.9 (code 7 from MCS260 16.7): what ``ERROR?`` answers
 ERRORS = {1: "command not understood", 2: "bad parameter used in command",
@@ -78,6 +78,10 @@ def _ranges(value, key: str, empty: bool = False) -> list[tuple[int, float, floa
             raise GonioError(fix)
         out.append((n, lo, hi))
     return out
+
+
+#: ``[monochromator]`` ``gratings`` or ``filters`` checked (plans read them before any port opens)
+ranges = _ranges
 
 
 def choose(ranges, nm: float) -> int | None:

@@ -12,7 +12,9 @@ A plan is a preset (``quick``, ``standard``, ``dense``: ``bench/presets/*.toml``
     reciprocal = true                     # also measure each point's reciprocal partner
 
 Generators `in_plane`, `hemisphere_grid`, `isotropic_grid`, `with_reciprocal`. Plans are
-validated on load (`PlanError`: one line); `check_plan` lists what the bench cannot reach.
+validated on load (`PlanError`: one line); `check_plan` lists what the bench cannot reach. A
+spectral plan (``[spectral] from_nm, to_nm, step_nm``; the ``spectral`` preset, ``spectral:STEP``)
+measures every geometry at every wavelength (`gonio.bench.plan.spectral`).
 """
 
 # phi may be any finite value (wrapped); phi_i = 0, phi_o = 180 is the specular side of the
@@ -59,7 +61,7 @@ __all__ = [
 ]
 
 PRESET_DIR = Path(__file__).with_name("presets")
-PRESETS = ("quick", "standard", "dense", "glossy", "transmission", "both-sides")
+PRESETS = ("quick", "standard", "dense", "glossy", "transmission", "both-sides", "spectral")
 COLUMNS = ("theta_i", "phi_i", "theta_o", "phi_o")
 #: most points in one plan (the dense preset has about 1000): the ordering's N x N matrices
 #: stay under 128 MiB each, and a generator never runs without bound
@@ -91,6 +93,8 @@ class Plan:
     sides : tuple of Side
         The sides its points lie on (:mod:`gonio.core.sides`; reflection unless the plan
         file says ``sides``); every theta_o must lie on one of them.
+    wavelength_nm : ndarray (N,), optional
+        A spectral plan: the monochromator's wavelength at each point (nm); None otherwise.
     """
 
     name: str
@@ -100,14 +104,20 @@ class Plan:
     source: str = ""
     duplicates: int = 0
     sides: tuple = REFLECTION_ONLY
+    wavelength_nm: np.ndarray | None = None
 
     def __post_init__(self):
         a = _validated_angles(self.angles, self.name, self.sides)
-        a, dropped = dedupe(a)
-        self.angles = a
+        wl = None
+        if self.wavelength_nm is not None:
+            from gonio.bench.plan.spectral import checked_wavelengths
+
+            wl = checked_wavelengths(self.wavelength_nm, self.name, len(a))
+        a, dropped = dedupe(a if wl is None else np.column_stack([a, wl]))
+        self.angles, self.wavelength_nm = (a, None) if wl is None else (a[:, :4].copy(), a[:, 4].copy())
         self.duplicates += dropped
         if self.partner is None or dropped:
-            self.partner = find_partners(self.angles)
+            self.partner = find_partners(self.angles, wavelength_nm=self.wavelength_nm)
 
     def __len__(self) -> int:
         return int(self.angles.shape[0])
@@ -118,6 +128,8 @@ class Plan:
              "points": [[float(v) for v in row] for row in self.angles]}
         if self.sides != REFLECTION_ONLY:
             d["sides"] = [s.value for s in self.sides]
+        if self.wavelength_nm is not None:
+            d["wavelength_nm"] = [float(v) for v in self.wavelength_nm]
         return d
 
 
@@ -165,18 +177,20 @@ def dedupe(angles: np.ndarray) -> tuple[np.ndarray, int]:
     return angles[np.sort(first)], len(angles) - len(first)
 
 
-def find_partners(angles, tol_deg: float = 1e-6) -> np.ndarray:
-    """Index of each point's reciprocal partner (wi and wo swapped, same azimuths), -1 if none."""
+def find_partners(angles, tol_deg: float = 1e-6, wavelength_nm=None) -> np.ndarray:
+    """Index of each point's reciprocal partner (wi and wo swapped, same azimuths; at the same
+    wavelength in a spectral plan), -1 if none."""
     a = np.asarray(angles, float)
-    key = lambda row: tuple(np.round(np.asarray(row) / tol_deg).astype(np.int64))
+    wl = np.zeros(len(a)) if wavelength_nm is None else np.asarray(wavelength_nm, float)
+    key = lambda row, w: (*np.round(np.asarray(row) / tol_deg).astype(np.int64), round(float(w) * 1e6))
     index = {}
     for k, row in enumerate(a):
-        index.setdefault(key(row), k)
+        index.setdefault(key(row, wl[k]), k)
     out = np.full(len(a), -1, int)
     for k, (ti, pi_, to, po) in enumerate(a):
         if abs(ti - to) < tol_deg and abs(((pi_ - po + 180) % 360) - 180) < tol_deg:
             continue                      # its own partner: nothing to compare
-        j = index.get(key((to, po, ti, pi_)))
+        j = index.get(key((to, po, ti, pi_), wl[k]))
         if j is not None and j != k:
             out[k] = j
     return out
@@ -331,10 +345,10 @@ def _nums(v) -> list[float]:
 def plan_from_dict(d: Mapping[str, Any], default_name: str = "plan", source: str = "") -> Plan:
     """Build a `Plan` from a parsed TOML document (see the module docstring)."""
     name = str(d.get("name", default_name))
-    unknown = set(d) - {"name", "description", "points", "scan", "source", "sides"}
+    unknown = set(d) - {"name", "description", "points", "scan", "source", "sides", "spectral", "wavelength_nm"}
     if unknown:
         raise PlanError(f"plan {name!r} has unknown keys {sorted(unknown)}; allowed: name, description, "
-                        "sides, points, [[scan]]")
+                        "sides, points, [[scan]], [spectral]")
     try:
         sides = parse_sides(d.get("sides", "reflect"), f"plan {name!r}")
     except ValueError as exc:
@@ -352,8 +366,15 @@ def plan_from_dict(d: Mapping[str, Any], default_name: str = "plan", source: str
     if not parts:
         raise PlanError(f"plan {name!r} has no points; add 'points' or [[scan]] tables")
     angles = _validated_angles(np.vstack(parts), name, sides)     # Plan drops repeated points, keeping the first
+    wl = d.get("wavelength_nm")                                     # a spectral plan as to_dict wrote it
+    if "spectral" in d:                                             # every geometry at every wavelength
+        from gonio.bench.plan.spectral import expand, grid
+
+        if wl is not None:
+            raise PlanError(f"plan {name!r} has both [spectral] and wavelength_nm; give one of them")
+        angles, wl = expand(dedupe(angles)[0], grid(d["spectral"], name))
     return Plan(name, angles, description=str(d.get("description", "")), source=source or str(d.get("source", "")),
-                sides=sides)
+                sides=sides, wavelength_nm=wl)
 
 
 def load_plan(spec: str | Path) -> Plan:
@@ -365,6 +386,11 @@ def load_plan(spec: str | Path) -> Plan:
         Unknown preset, missing file, malformed TOML/CSV, invalid angles.
     """
     spec_s = str(spec)
+    if spec_s.startswith("spectral:") and "spectral" in preset_names():      # the preset at another step
+        from gonio.bench.plan.spectral import with_step
+
+        doc = tomllib.loads((PRESET_DIR / "spectral.toml").read_text())
+        return plan_from_dict(with_step(doc, spec_s.partition(":")[2]), "spectral", source=f"preset:{spec_s}")
     if spec_s in preset_names():
         path = PRESET_DIR / f"{spec_s}.toml"
         return plan_from_dict(tomllib.loads(path.read_text()), spec_s, source=f"preset:{spec_s}")
@@ -456,16 +482,20 @@ class DryRun:
     per_point_s: float
     order: np.ndarray
     duplicates: int = 0
+    monochromator_s: float = 0.0       # a spectral plan: the monochromator's moves in the chosen order
+    spectral: str = ""                 # a spectral plan: the wavelength axis chosen, both estimates
 
     @property
     def estimated_s(self) -> float:
         """Estimated duration of the capture, s."""
-        return self.ordered_move_s + self.n_points * self.per_point_s
+        return self.ordered_move_s + self.monochromator_s + self.n_points * self.per_point_s
 
     def summary(self) -> str:
         """Human-readable lines for the CLI."""
         lines = [f"{self.n_points} points; estimated duration {self.estimated_s / 60:.1f} min "
                  f"(moves {self.ordered_move_s:.0f} s + {self.per_point_s:g} s per point)"]
+        if self.spectral:
+            lines.append(self.spectral)
         if self.duplicates:
             lines.append(f"{self.duplicates} repeated point(s) in the plan dropped (each point is measured once)")
         if self.naive_move_s > 0:
@@ -484,5 +514,13 @@ def dry_run(plan: Plan, settings: Mapping, per_point_s: float = 2.0) -> DryRun:
     bad = check_plan(plan, settings)
     if bad:
         return DryRun(len(plan), bad, 0.0, 0.0, 0.0, per_point_s, np.zeros(0, int), plan.duplicates)
-    res = order_moves(kinematics.inverse(*plan.angles.T), settings)
+    stage = kinematics.inverse(*plan.angles.T)
+    if plan.wavelength_nm is not None:
+        from gonio.bench.plan.spectral import spectral_order
+
+        res, why = spectral_order(plan.angles, plan.wavelength_nm, stage, settings)
+        mono = why.fastest[1] if why.axis == "fastest" else why.slowest[1]
+        return DryRun(len(plan), [], res.naive_s, res.ordered_s, res.bound_s, per_point_s, res.order, plan.duplicates,
+                      mono, why.line())
+    res = order_moves(stage, settings)
     return DryRun(len(plan), [], res.naive_s, res.ordered_s, res.bound_s, per_point_s, res.order, plan.duplicates)

@@ -60,7 +60,7 @@ from gonio.bench.session import integrity as _integrity
 from gonio.core.files import remove_orphans
 from gonio.bench.session.journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock, read_session, session_text, versions, write_session)
 from gonio.bench.measure.point import ReferenceModel, check_sensor, raw_estimate
-from gonio.bench.plan.ordering import order_moves
+from gonio.bench.plan.spectral import order_plan
 from gonio.core.preflight import (MARGIN, MiB, check_free_space, check_output_dir, disk_full, mount_of, oserror_line)
 from gonio.bench.drivers.rig import Bench
 from gonio.bench.session.run import _Session
@@ -384,7 +384,9 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     settings = validate_settings(merge_settings(default_settings(), settings))   # tables left out keep their defaults
     _check_new_folder(folder)
     stage = require_reachable(plan, settings)
-    order = order_moves(stage, settings)
+    order, spectral = order_plan(plan, stage, settings)        # a spectral plan: its wavelengths checked too
+    if spectral and not monochromator:
+        raise GonioError("a spectral plan needs the monochromator's port; give it, or a plan without [spectral]")
     strategy = dict(strategy or {"name": "fixed"})
     try:
         budget = strategy_from_doc({"strategy": strategy, "order": {"order": order.order}}, plan).budget
@@ -399,6 +401,7 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
                     on_warning=lambda d, f, m: warnings.append((d, f, m)), monochromator=monochromator)
     doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta, strategy,
                        monochromator)
+    doc["order"].update(spectral)
     bench, journal, lock, doc, ident = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
     return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [], ident=ident)
 
