@@ -112,11 +112,27 @@ def _bsdf_lines(model_name, options, params, bsdf_id, version, plugins="gonio"):
         note += " (gonio's Python plugin: the loading process must import gonio)"
         lines.append(_comment(f"'{kind}' is a Python BSDF: call gonio.models.get({model.name!r}).to_mitsuba(params)"
                               " (which runs mitsuba.register_bsdf) before loading this scene."))
+    lines.extend(_tangent_lines(model, params, bsdf_id))
     root = f" version={quoteattr(version)}" if version else ""
     lines.append(f"<bsdf type={quoteattr(kind)} id={quoteattr(bsdf_id)}{root}>")
     lines.extend(_xml_lines(d, "    "))
     lines.append("</bsdf>")
     return lines, d, note
+
+
+def _tangent_lines(model, params, bsdf_id) -> list[str]:
+    """For a model whose BSDF is written in a turned tangent frame (``model.tangent_deg``:
+    anisotropic roughconductor), the frame as comments: a Mitsuba BSDF holds none (its tangent
+    is the shape's dp/du), so the shape's ``to_world`` turns about its normal, as the
+    ``<shape>`` given (gonio.models.mitsuba.tangent_to_world does the same in Python)."""
+    t = float(getattr(model, "tangent_deg", lambda p: 0.0)(params))
+    if t == 0.0:
+        return []
+    shape = (f'<shape type="rectangle"><transform name="to_world"><rotate z="1" angle="{t!r}"/></transform>'
+             f"<ref id={quoteattr(bsdf_id)}/></shape>")
+    return [_comment(f"tangent frame: alpha_u acts along the shape's dp/du; the sample's tangent lies {t!r} deg "
+                     "from the holder's x axis, so turn the shape about its normal by tangent_deg (before "
+                     "its own to_world) as in:"), _comment(shape)]
 
 
 def mitsuba_snippet(model_name: str, options: dict | None, params: dict, *, bsdf_id: str = "gonio_fit",

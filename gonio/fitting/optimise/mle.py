@@ -326,6 +326,34 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     if rng is None or not isinstance(rng, np.random.Generator):
         raise TypeError("fit() needs rng=numpy.random.Generator (seeded) so the fit is reproducible")
     _loss.validate_loss(loss)
+    kw = dict(loss=loss, fixed=fixed, n_local=n_local, maxeval=maxeval, enforce_energy=enforce_energy,
+              use_fast=use_fast, covariance=covariance, ftol=ftol)
+    res = _fit(meas, model, rng=rng, n_starts=n_starts, start=start, **kw)
+    return _canonical(res, meas, model, rng, kw)
+
+
+def _canonical(res, meas, model, rng, kw):
+    """A model with a periodic parameter (``model.canonical``: roughconductor's tangent,
+    period 180 deg, and alpha_u <-> alpha_v at a 90 deg turn) is refitted once, locally, from
+    its canonical form (alpha_u <= alpha_v, tangent in [0, 180)) where the fit ended elsewhere,
+    and from the other end of the tangent's box where it ended on a face of it (an optimum
+    just past 0 deg is reached from 180); the refit is kept where its BIC is no worse."""
+    canon = getattr(model, "canonical", None)
+    names = {e.param for e in res.space.entries}
+    if canon is None or "tangent_deg" not in names or {"alpha_u", "alpha_v"} - names:
+        return res
+    p = res.params
+    q = canon(p)
+    if "tangent_deg" in res.at_bound and q["tangent_deg"] in (0.0, 180.0):    # still on a face
+        q["tangent_deg"] = 180.0 if p["tangent_deg"] < 90.0 else 0.0
+    elif all(np.allclose(q[k], p[k], rtol=1e-12, atol=1e-12) for k in q):
+        return res
+    again = _fit(meas, model, rng=rng, n_starts=0, start=q, **kw)
+    return again if again.bic <= res.bic + 1e-9 * abs(res.bic) else res
+
+
+def _fit(meas, model, *, loss, fixed, rng, n_starts, n_local, maxeval, enforce_energy, use_fast, start, covariance,
+         ftol):
     if loss == "discrepancy":
         return fit_discrepancy(meas, model, fit, rng=rng, fixed=fixed, n_starts=n_starts, n_local=n_local,
                                maxeval=maxeval, enforce_energy=enforce_energy, use_fast=use_fast, start=start)

@@ -7,6 +7,11 @@ likelihood). Among the candidates whose BIC lies within
 ``delta`` of the best, the one with the fewest parameters wins: by Kass & Raftery (1995,
 sec. 3.2) a BIC difference below 2 is "not worth more than a bare mention", so the data gives
 no reason to prefer the more complex model.
+
+Anisotropic candidates (a model's ``anisotropic`` option) are offered only where the data
+shows azimuthal structure (:func:`azimuthal_structure`): points that an isotropic BRDF
+makes equal (the same theta_i, theta_o and |phi_o - phi_i|, at different azimuths phi_i)
+differ beyond their noise.
 """
 
 from __future__ import annotations
@@ -14,13 +19,16 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.stats import chi2 as _chi2
 
 import gonio.models as gm
+from gonio.core.geometry import angles_deg
 from gonio.core.sides import Side, side_of
 
 from gonio.fitting.optimise.mle import fit
 
-__all__ = ["CANDIDATES", "Ranked", "option_candidates", "select", "candidates_for"]
+__all__ = ["CANDIDATES", "ANISOTROPIC", "Azimuthal", "azimuthal_structure", "Ranked", "option_candidates", "select",
+           "candidates_for"]
 
 #: (name, options) tried by ``--model auto``, simplest first (fewest parameters): every
 #: registered model that does not declare ``auto_candidate = False`` (the model declares,
@@ -61,13 +69,92 @@ def _transmission_candidates():
     return _candidates(names) if names else ()
 
 
+def _anisotropic_candidates():
+    """Every auto candidate model that declares an ``anisotropic`` option, with it on, one per
+    declared distribution (roughconductor beckmann and ggx)."""
+    out = []
+    for name, opts in CANDIDATES:
+        cls = type(gm.get(name))
+        if True in cls.OPTIONS.get("anisotropic", ()):
+            out.append((name, {**opts, "anisotropic": True}))
+    return tuple(out)
+
+
+ANISOTROPIC = _anisotropic_candidates()
+
+#: :func:`azimuthal_structure`'s false-alarm probability on isotropic data whose sigma is
+#: right (the chi^2 test's size; the relative floor below only lowers it)
+FALSE_ALARM = 1e-3
+#: relative floor added in quadrature to each point's sigma: systematics an uncertainty
+#: budget may leave out (angle jitter on a lobe's flank), so that only a clear azimuthal
+#: change counts (a brushed metal's lobe changes by factors, not per cent)
+REL_FLOOR = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class Azimuthal:
+    """The outcome of :func:`azimuthal_structure`: chi^2 of the groups about their means, its
+    degrees of freedom, the p-value under isotropy, the groups compared, and the verdict."""
+
+    chi2: float
+    dof: int
+    p_value: float
+    groups: int
+    anisotropic: bool
+
+
+def azimuthal_structure(meas, tol_deg: float = 0.5, rel_floor: float = REL_FLOOR,
+                        false_alarm: float = FALSE_ALARM) -> Azimuthal:
+    """Does ``meas`` show azimuthal structure? An isotropic BRDF depends on theta_i, theta_o
+    and |phi_o - phi_i| only, so the used reflected points are grouped on those three (to
+    ``tol_deg``) and the groups holding more than one azimuth phi_i (mod 180, more than 1 deg
+    apart) compared with their weighted means: chi^2 = sum (f - mean)^2 / (sigma^2 +
+    (rel_floor f)^2) per channel, dof = sum (n - 1). Anisotropic where the chi^2 upper tail
+    p < ``false_alarm``; data without such groups (one plane of incidence, random directions)
+    shows none (an azimuthal plan has them: the ``azimuthal`` preset)."""
+    wi, wo = np.asarray(meas.wi, float), np.asarray(meas.wo, float)
+    use = np.asarray(meas.use, bool) & (wi[:, 2:3] > 0) & (wo[:, 2:3] > 0)
+    f, s = np.asarray(meas.brdf, float), np.asarray(meas.brdf_std, float)
+    ti, pi = angles_deg(wi)
+    to, po = angles_deg(wo)
+    pd = np.abs((po - pi + 180.0) % 360.0 - 180.0)
+    rows = np.flatnonzero(use.any(axis=1))
+    key = np.round(np.c_[ti, to, pd][rows] / tol_deg).astype(np.int64)
+    total, dof, groups = 0.0, 0, 0
+    if rows.size:
+        _, inv = np.unique(key, axis=0, return_inverse=True)
+        for g in np.flatnonzero(np.bincount(inv.ravel()) > 1):
+            k = rows[inv.ravel() == g]
+            az = pi[k] % 180.0
+            if min(np.ptp(az), np.ptp((az + 90.0) % 180.0)) <= 1.0:
+                continue                                  # one azimuth: nothing to compare
+            groups += 1
+            for c in range(f.shape[1]):
+                kk = k[use[k, c]]
+                if kk.size < 2:
+                    continue
+                var = s[kk, c] ** 2 + (rel_floor * np.abs(f[kk, c])) ** 2
+                if not np.all(var > 0):
+                    continue                              # exact zeros without an uncertainty
+                w = 1.0 / var
+                m = np.sum(w * f[kk, c]) / np.sum(w)
+                total += float(np.sum(w * (f[kk, c] - m) ** 2))
+                dof += kk.size - 1
+    p = float(_chi2.sf(total, dof)) if dof else 1.0
+    return Azimuthal(total, dof, p, groups, bool(dof and p < false_alarm))
+
+
 def candidates_for(meas):
-    """The ``--model auto`` candidates for ``meas``: `CANDIDATES` for a BRDF; the transmission
-    models when any used point lies on the transmitted side (a reflection model predicts 0
-    there, so it cannot explain those points and is not offered)."""
+    """The ``--model auto`` candidates for ``meas``: `CANDIDATES` for a BRDF, with the
+    anisotropic ones (`ANISOTROPIC`) where the data shows azimuthal structure
+    (:func:`azimuthal_structure`); the transmission models when any used point lies on the
+    transmitted side (a reflection model predicts 0 there, so it cannot explain those points
+    and is not offered)."""
     used = np.asarray(meas.use).any(axis=1)
     side = side_of(np.asarray(meas.wi)[used, 2], np.asarray(meas.wo)[used, 2])
-    return _transmission_candidates() if np.any(side == 1) else CANDIDATES
+    if np.any(side == 1):
+        return _transmission_candidates()
+    return CANDIDATES + ANISOTROPIC if azimuthal_structure(meas).anisotropic else CANDIDATES
 
 
 def option_candidates(name, options=None):

@@ -11,7 +11,8 @@ Everything in gonio that talks to Mitsuba goes through this module (Mitsuba is i
   ``si.wi`` points to the sensor (gonio's ``wo``) and the direction ``bsdf.eval`` is asked
   about is gonio's ``wi`` (toward the light); ``bsdf.eval`` returns f_r * cos(theta_i).
 * :func:`tangent_to_world` puts a model's tangent frame in a scene: the shape's ``to_world``
-  turned about its normal by ``model.tangent_deg(params)`` (anisotropic roughconductor).
+  turned about its normal by ``model.tangent_deg(params)`` (anisotropic roughconductor);
+  :func:`tangent_square` keeps a square's footprint and turns its texture coordinates instead.
 * :func:`eval_cos` evaluates a BSDF dict or object on a batch in gonio's convention (chunked),
   :func:`divide_cos` turns it into f_r; :func:`bsdf_base`, :func:`ensure_registered`: gonio's
   Python BSDF plugins.
@@ -30,7 +31,7 @@ from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
 from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
 
-__all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
+__all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "tangent_square", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
            "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
 
 
@@ -75,6 +76,32 @@ def tangent_to_world(model, params, to_world=None):
     base = T() if to_world is None else to_world
     t = float(getattr(model, "tangent_deg", lambda p: 0.0)(params))
     return base if t == 0.0 else base @ T().rotate([0.0, 0.0, 1.0], t)
+
+
+def tangent_square(bsdf: dict, to_world, tangent_deg: float):
+    """A ``rectangle``'s square ([-1, 1]^2 at z = 0 under ``to_world``) carrying ``bsdf``
+    with its tangent frame turned by ``tangent_deg`` about the normal: the rectangle's dict
+    itself at 0, else a two-triangle ``mitsuba.Mesh`` (a scene dict takes it as a value) whose
+    texture coordinates are the square's turned by -tangent_deg, so that dp/du, the shading
+    frame's tangent, lies at tangent_deg from to_world's x axis while the square covers what
+    the rectangle covers (Mitsuba's mesh takes dp/du from its uv). Current variant."""
+    import mitsuba as mi
+
+    t = float(tangent_deg)
+    if t == 0.0:
+        return {"type": "rectangle", "to_world": to_world, "bsdf": bsdf}
+    xy = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    c, s = np.cos(np.radians(t)), np.sin(np.radians(t))
+    uv = np.c_[c * xy[:, 0] + s * xy[:, 1], c * xy[:, 1] - s * xy[:, 0]]
+    mesh = mi.Mesh("sample", 4, 2, has_vertex_texcoords=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = np.array([list(to_world @ mi.ScalarPoint3f(x, y, 0.0)) for x, y in xy],
+                                          dtype=np.float32).ravel()
+    params["faces"] = np.array([0, 1, 2, 0, 2, 3], dtype=np.uint32)
+    params["vertex_texcoords"] = uv.astype(np.float32).ravel()
+    params.update()
+    mesh.set_bsdf(mi.load_dict(bsdf))
+    return mesh
 
 
 def eval_cos(bsdf, wi, wo, variant: str | None = None, chunk: int = 1 << 20) -> np.ndarray:

@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from gonio.models.mitsuba import mitsuba_variant
+import gonio.models as gm
+from gonio.models.mitsuba import mitsuba_variant, tangent_square
 
 from gonio.sim.physics.holder_markers import holder_transform, marker_shapes
 
-__all__ = ["HolderScene"]
+__all__ = ["HolderScene", "sample_tangent_deg"]
 
 _SQUARE_LIFT = 0.0        # sample and reference squares lie in z = 0
 _HOLDER_DROP = 2e-4       # the dark holder plate lies just below them (holder units)
@@ -50,13 +51,26 @@ def _frame(origin, forward, up, scale_xy=1.0) -> np.ndarray:
     return m
 
 
+def sample_tangent_deg(sample_truth) -> float:
+    """The tangent of a resolved sample (`gonio.sim.physics.sample.SampleTruth`) from the
+    holder's x axis, deg: the frame its Mitsuba dict is written in (an anisotropic model's
+    ``tangent_deg``); 0 for every other sample."""
+    spec = getattr(sample_truth, "spec", None) or {}
+    if "model" not in spec:
+        return 0.0
+    model = gm.get(spec["model"], **dict(spec.get("options", {})))
+    if not hasattr(model, "tangent_deg"):
+        return 0.0
+    return float(model.tangent_deg(dict(spec.get("params", {}))))
+
+
 class HolderScene:
     """The holder (sample square, reference square, dark plate) seen by the camera.
 
     Parameters
     ----------
     sample_bsdf, reference_bsdf : dict
-        Mitsuba BSDF dicts.
+        Mitsuba BSDF dicts (the sample's in its tangent frame: :func:`sample_tangent_deg`).
     width, height : int
         Image size, pixels.
     pixel_size : float
@@ -88,7 +102,8 @@ class HolderScene:
             T = mi.ScalarTransform4f
             scene = {
                 **self._base(mi),
-                "sample": {"type": "rectangle", "to_world": self._square(mi, -offset), "bsdf": sample_bsdf},
+                # an anisotropic sample's tangent: the square's texture frame turned (its footprint kept)
+                "sample": tangent_square(sample_bsdf, self._square(mi, -offset), sample_tangent_deg(sample_truth)),
                 "reference": {"type": "rectangle", "to_world": self._square(mi, offset), "bsdf": reference_bsdf},
                 "holder": {
                     "type": "rectangle",
