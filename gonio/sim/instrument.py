@@ -1,4 +1,12 @@
-"""The simulated gonioreflectometer: physics state plus one protocol port per declared port."""
+"""The simulated gonioreflectometer: physics state plus one protocol port per declared port.
+
+With a monochromator (settings' ``[monochromator]``) whose shutter is open, the light on the
+sample is monochromatic at its wavelength (the simulator's convention: shutter closed, the
+white LED lights the sample directly): the sample is rendered with its spectra at that
+wavelength (`gonio.sim.physics.sample.at_wavelength`), the source's power is the lamp's times
+its relative spectrum (`gonio.sim.physics.colour.source_spd`), the camera is a monochrome
+sensor (`gonio.sim.physics.sensor.monochrome_qe`) and the power meter reads the beam at it.
+"""
 
 from __future__ import annotations
 
@@ -16,16 +24,16 @@ from gonio.core.devices import PORTS
 from gonio.sim.devices.camera_port import CameraPort
 from gonio.sim.devices.monochromator import CornerstoneTwin, MonochromatorEndpoint
 from gonio.sim.physics.clock import SimClock
-from gonio.sim.physics.colour import chart_radiance
+from gonio.sim.physics.colour import chart_radiance, source_spd
 from gonio.sim.physics.errors import error_model, square_masks
 from gonio.sim.physics.faults import FaultSchedule
 from gonio.sim.physics.kinematics import forward
 from gonio.sim.physics.lamp import Lamp
 from gonio.sim.devices.port import PortEndpoint
-from gonio.sim.physics.sample import SampleTruth
+from gonio.sim.physics.sample import SampleTruth, at_wavelength
 from gonio.sim.physics.scene import HolderScene
 from gonio.sim.devices.scpi_meter import PowerMeter, ScpiMeter
-from gonio.sim.physics.sensor import SensorModel, encode_dng
+from gonio.sim.physics.sensor import SensorModel, encode_dng, monochrome_qe
 from gonio.sim.physics.stages import RotaryAxis
 from gonio.sim.devices.zaber_chain import ZaberChain
 
@@ -164,6 +172,7 @@ class Instrument:
             setattr(self, attr, cls(self))
             self.ports[spec.name] = PortEndpoint(self, spec.name, getattr(self, attr), eol, split_cr=split_cr)
         self._scene: HolderScene | None = None
+        self._spectral: dict = {}          # per wavelength (nm): (the sample's truth there, its scene or None)
         self.detector = "front"           # the detector arm's stop: "front" (reflection) or "rear" (transmission)
         self._radiance = OrderedDict()
         self._frame_key = None
@@ -213,6 +222,7 @@ class Instrument:
         process that ran one calibrated capture after another rendered 5 ms a frame at its
         first session and 17 ms at its ninth (tests/fitting/budget_coverage.py, 2026-12-02)."""
         self._scene = None
+        self._spectral.clear()
         self._radiance.clear()
         self._frame_key = None
         for truth in (self.sample, self.reference):
@@ -301,18 +311,54 @@ class Instrument:
     @property
     def scene(self) -> HolderScene:
         if self._scene is None:
-            cam, hold = self.settings["camera"], self.settings["holder"]
-            self._scene = HolderScene(
-                self.sample.mitsuba, self.reference.mitsuba, width=int(cam["width"]),
-                height=int(cam["height"]), pixel_size=float(cam["pixel_size"]),
-                sample_half=float(hold["sample_half"]), offset=float(hold["offset"]),
-                holder_reflectance=float(hold["holder_reflectance"]), spp=self.spp,
-                markers=hold.get("markers"), holder_pose=hold.get("sim_pose"),   # sim_pose: the truth
-                sample_truth=self.sample)
+            self._scene = self._make_scene(self.sample)
         return self._scene
 
-    def radiance(self, pose: tuple | None = None) -> np.ndarray:
+    def _make_scene(self, truth: SampleTruth) -> HolderScene:
+        cam, hold = self.settings["camera"], self.settings["holder"]
+        return HolderScene(
+            truth.mitsuba, self.reference.mitsuba, width=int(cam["width"]),
+            height=int(cam["height"]), pixel_size=float(cam["pixel_size"]),
+            sample_half=float(hold["sample_half"]), offset=float(hold["offset"]),
+            holder_reflectance=float(hold["holder_reflectance"]), spp=self.spp,
+            markers=hold.get("markers"), holder_pose=hold.get("sim_pose"),   # sim_pose: the truth
+            sample_truth=truth)
+
+    # ------------------------------------------------------------------ monochromatic light
+    @property
+    def wavelength_nm(self) -> float | None:
+        """The wavelength of the light on the sample, nm: the monochromator's where it has one
+        with its shutter open (module notes), else None (the white LED)."""
+        m = self.monochromator
+        if m is None or not m.drive.shutter_open or not m.drive.nm > 0:
+            return None
+        return float(m.drive.nm)
+
+    def light(self, t: float) -> tuple[float, float | None]:
+        """(the power of the light on the sample at time ``t``, W; its wavelength, nm or None):
+        the lamp's, times the source's relative spectrum there for monochromatic light."""
+        nm, p = self.wavelength_nm, self.lamp.power(t)
+        return (p if nm is None else p * source_spd(nm)), nm
+
+    def truth_at(self, nm: float | None) -> SampleTruth:
+        """The sample's truth at ``nm`` (its spectra there, `at_wavelength`); the RGB one for None."""
+        if nm is None:
+            return self.sample
+        if nm not in self._spectral:
+            self._spectral[nm] = [SampleTruth(at_wavelength(self.sample.spec, nm)), None]
+        return self._spectral[nm][0]
+
+    def _scene_at(self, nm: float | None) -> HolderScene:
+        if nm is None:
+            return self.scene
+        self.truth_at(nm)
+        if self._spectral[nm][1] is None:
+            self._spectral[nm][1] = self._make_scene(self._spectral[nm][0])
+        return self._spectral[nm][1]
+
+    def radiance(self, pose: tuple | None = None, nm: float | None = None) -> np.ndarray:
         """Radiance image for unit irradiance at a pose (default: now), (H, W, 3), sr^-1; cached.
+        ``nm``: of the sample at that wavelength (equal channels for a spectral sample).
 
         With the lamp arm within ``lamp_block_deg`` of the camera the lamp head hides the
         sample: the image is black (the controller should never go there).
@@ -320,6 +366,7 @@ class Instrument:
         pose = self.pose_microsteps() if pose is None else tuple(pose)
         key = pose if not self._errors_on else (pose, *((a.moves, a.last_dir) for a in self.axes))
         key = key if self.detector == "front" else (key, self.detector)
+        key = key if nm is None else (key, "nm", float(nm))
         img = self._radiance.get(key)
         if img is None:
             g = self.geometry(pose)
@@ -329,9 +376,9 @@ class Instrument:
                 # the lamp head stands between the sample and the camera: nothing to see
                 img = np.zeros((self.sensor.height, self.sensor.width, CHANNELS))
             else:
-                img = self.scene.render(g["wi"], g["wo"], g["right"], g["up"])
+                img = self._scene_at(nm).render(g["wi"], g["wo"], g["right"], g["up"])
                 if self._errors_on:
-                    img = self._with_errors(img, g)
+                    img = self._with_errors(img, g, self.truth_at(nm))
             self._radiance[key] = img
             if len(self._radiance) > 16:
                 self._radiance.popitem(last=False)
@@ -339,7 +386,7 @@ class Instrument:
             self._radiance.move_to_end(key)
         return img
 
-    def _with_errors(self, img: np.ndarray, g: dict) -> np.ndarray:
+    def _with_errors(self, img: np.ndarray, g: dict, sample: SampleTruth | None = None) -> np.ndarray:
         """The render plus what it cannot show: each square's interior set to its true radiance
         (wedge, apertures, true reference), then the stray-light floor (``_errors.py``)."""
         st = self.error_state
@@ -347,7 +394,7 @@ class Instrument:
         if st.squares_altered:
             wi, wo = np.asarray(g["wi"], float), np.asarray(g["wo"], float)
             ms, mr = square_masks(g, self.settings)
-            true, shown = st.sample_radiance(self.sample, wi, wo)
+            true, shown = st.sample_radiance(sample or self.sample, wi, wo)
             img[ms] += true - shown
             true, shown = st.reference_radiance(self.reference, wi, wo)
             img[mr] += true - shown
@@ -391,8 +438,12 @@ class Instrument:
             exposure_ns = int(round(seconds * 1e9))
             key = [self.seed & 0xFFFFFFFF, 0xCA3E, *[(p + 2**31) & 0xFFFFFFFF for p in pose],
                    exposure_ns, *state, frame] + ([0xC4A7] if source == "chart" else []) + ([0x0BE7] if source == "open_beam" else [])
+            nm = self.wavelength_nm if source == "scene" else None     # monochromatic light on the sample
+            if nm is not None:
+                key += [0x5EC7, int(round(nm * 1000))]
             rng = np.random.default_rng(key)
-            power = self.FLAT_POWER if flat else lamp.power(t0 + 0.5 * seconds)
+            power = self.FLAT_POWER if flat else self.light(t0 + 0.5 * seconds)[0] if nm is not None \
+                else lamp.power(t0 + 0.5 * seconds)
             if flat:
                 rad = np.full((self.sensor.height, self.sensor.width, CHANNELS), self.FLAT_RADIANCE)
             elif source == "chart":
@@ -402,10 +453,12 @@ class Instrument:
                 L = float(tr.get("open_beam_attenuation", 1e-3)) / float(tr.get("beam_solid_angle_sr", 1e-3))
                 rad = self.scene.open_beam(L, g["wo"], g["up"]) if power > 0.0 else 0.0 * self.scene.aperture(g["wo"], g["up"])
             elif power > 0.0:
-                rad = self.radiance(pose)
+                rad = self.radiance(pose, nm)
+                if nm is not None:           # a monochrome sensor: every site sees the light's radiance x QE
+                    rad = rad * monochrome_qe(nm)
             else:
                 rad = np.zeros((self.sensor.height, self.sensor.width, CHANNELS))
-            raw = self.sensor.expose(rad, power, seconds, rng, camera_rgb=source == "chart")
+            raw = self.sensor.expose(rad, power, seconds, rng, camera_rgb=source == "chart" or nm is not None)
             if self._errors_on:
                 raw = self.error_state.nonlinear(raw, self.sensor.black, self.sensor.white)
             self.clock.advance(seconds)

@@ -8,6 +8,7 @@ thread while the stages move to k+1. The suspenders pause the run while the lamp
 is not fit to measure. `gonio.bench.session.capture`'s module notes describe the measurement; the
 calibration frames (darks, flats, chart) are `_calframes.CalibrationFrames`'.
 
+A spectral plan's wavelength is set before each point's bracket (`gonio.bench.session.tuning`).
 The regions: `roi_masks_fast` (the masks of `kinematics.roi_masks`, mostly from
 `_markers.posed_masks`) or, on a holder with markers, `_markers.find_regions` in the probe.
 """
@@ -25,6 +26,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from gonio.bench.session.calframes import CalibrationFrames
+from gonio.bench.session.tuning import Tuning
 from gonio.core.files import create_exclusive
 from gonio.bench.measure.hdr import Exposure, NoiseModel, choose_bracket, ladder
 from gonio.bench.session.journal import RAW_DIR, Journal, preparation_times
@@ -44,7 +46,7 @@ from gonio.bench.plan.strategy import strategy_from_doc
 __all__ = ["roi_masks_fast"]  # re-exported from _markers (tests and the benchmark patch it here)
 
 
-class _Session(CalibrationFrames):
+class _Session(CalibrationFrames, Tuning):
     """One run over a session folder (shared by `capture` and `resume`)."""
 
     MAX_ATTEMPTS = 5        # measurements of one point interrupted by the lamp before the run stops
@@ -104,6 +106,7 @@ class _Session(CalibrationFrames):
         self.times = {r["idx"]: float(r["detail"]["instrument_s"]) for r in rows
                       if isinstance(r["detail"].get("instrument_s"), (int, float))}
         self.preparations = preparation_times(journal.checked_events()[0])
+        self._init_tuning(self.plan, journal)       # a spectral plan's wavelengths (`Tuning`)
 
     def _fresh(self, name: str) -> str:
         """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
@@ -181,7 +184,7 @@ class _Session(CalibrationFrames):
             say("lamp on, reading the source monitor")
             b.led.set_flux(float(self.settings.get("lamp", {}).get("flux", 1.0)))
             b.led.on()
-            self.p_ref = self._p_ref()
+            self._light_on()                     # the monitor's reference (a spectral plan's at its first point)
             self._take_chart(say)
         # the preparation's instrument time, kept once it finished (a resume's adds to it)
         took, n = max(0.0, self.clock() - t0), len(self.journal.done())
@@ -367,6 +370,7 @@ class _Session(CalibrationFrames):
             self.journal.event("warning", str(exc))
             b.chain.clear_flags(b.gonio.devices[0])
             b.gonio.move_to(target)
+        self._tune(idx)                          # a spectral plan: its wavelength, before its bracket
         b.sleep(float(self.settings.get("motion", {}).get("settle_s", 0.0)))
 
     def _bracket(self, idx: int, goal: dict | None = None) -> dict:
@@ -419,7 +423,7 @@ class _Session(CalibrationFrames):
             raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
                              f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
         return {"idx": idx, "stage": stage, "used": used, "p_start": p_start, "bracket": bracket,
-                "masks": (sm, rm, box), "regions": regions, "deliveries": deliveries}
+                "masks": (sm, rm, box), "regions": regions, "deliveries": deliveries, "tuned": self._tuned()}
 
     def _reduce(self, shot: dict) -> dict:
         """Check and commit the point's RAW files (SHA-256 against the camera's, fsync, rename;
@@ -473,6 +477,7 @@ class _Session(CalibrationFrames):
             detail["stray_q"] = [float(v) for v in q]
         if shot.get("regions") is not None:      # a holder with markers: how the regions were found
             detail["regions"] = shot["regions"]
+        detail.update(shot.get("tuned") or {})   # a spectral plan: the wavelength read back
         return {"brdf": brdf, "brdf_std": std, "saturated": saturated or not np.all(np.isfinite(brdf)),
                 "detail": detail, "stage": shot["stage"]}
 

@@ -567,9 +567,9 @@ class ScpiMeter:
         m, clock = self.meter, self.inst.clock
         t0 = clock.now()
         duration = m.average * m.sample_time
-        power = 0.0 if dark else self.inst.lamp.power(t0 + 0.5 * duration)
+        power, nm = (0.0, None) if dark else self.inst.light(t0 + 0.5 * duration)
         clock.advance(duration)
-        return m.read(power)
+        return m.read(power, nm)
 
     def _reading(self) -> float:
         """A reading of the configured function, with the range, unit, loss, offset and delta-mode

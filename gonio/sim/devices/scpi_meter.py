@@ -5,7 +5,9 @@ The meter watches the lamp through a beam splitter. Reading (W):
     reading = P_lamp(t) * splitter * (550 nm / wavelength setting) + noise
 
 (a silicon photodiode's responsivity grows roughly linearly with wavelength, so a meter set
-to the wrong wavelength scales its readings; the LED's centroid is 550 nm). Noise: Gaussian,
+to the wrong wavelength scales its readings; the LED's centroid is 550 nm). Monochromatic
+light at lambda (a monochromator's beam, power P_lamp x its relative spectrum) reads
+``P * splitter * (lambda / wavelength setting)``: the monitor at lambda. Noise: Gaussian,
 standard deviation ``sqrt((rel_noise P)^2 + abs_noise^2) / sqrt(average count)``, drawn from
 ``default_rng([seed, 0x3E7E, reading index])``. A reading takes ``average count *
 sample_time`` of simulated time.
@@ -55,11 +57,12 @@ class PowerMeter:
         self.wavelength = 550.0
         self.average = 1
 
-    def read(self, lamp_power: float) -> float:
-        """One reading for the given lamp power (W); consumes one noise draw."""
+    def read(self, lamp_power: float, nm: float | None = None) -> float:
+        """One reading for the given power (W) of the white LED, or of monochromatic light at
+        ``nm``; consumes one noise draw."""
         rng = np.random.default_rng([self.seed & 0xFFFFFFFF, 0x3E7E, self.readings])
         self.readings += 1
-        mean = lamp_power * self.splitter * 550.0 / self.wavelength
+        mean = lamp_power * self.splitter * (550.0 if nm is None else float(nm)) / self.wavelength
         sigma = math.hypot(self.rel_noise * mean, self.abs_noise) / math.sqrt(self.average)
         return mean + sigma * rng.standard_normal()
 

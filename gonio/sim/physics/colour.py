@@ -59,7 +59,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["CHART_BOX", "CHART_BORDER", "CHART_GRID", "CameraColour", "DEFAULT_CAMERA", "IDENTITY_CAMERA",
-           "camera_colour", "chart_radiance", "luther_error", "mallett_fidelity", "srgb_matrices"]
+           "camera_colour", "chart_radiance", "luther_error", "mallett_fidelity", "srgb_matrices", "source_spd",
+           "SOURCE_K"]
 
 #: The camera whose NPL-measured sensitivities the simulator uses by default.
 DEFAULT_CAMERA = "Nikon 5100 (NPL)"
@@ -265,6 +266,26 @@ def chart_radiance(camera: CameraColour, height: int, width: int) -> np.ndarray:
                   & (xx > left + CHART_BORDER * cw) & (xx < left + (1 - CHART_BORDER) * cw))
         img[inside] = patches[k] * camera.neutral / np.pi
     return img
+
+
+#: Colour temperature of the monochromator's source, K: a quartz-tungsten-halogen lamp
+#: (Newport's Cornerstone systems' usual source; a 3200 K filament, invented figure).
+SOURCE_K = 3200.0
+
+
+def _planck(nm):
+    x = 1.438776877e7 / (np.asarray(nm, float) * SOURCE_K)         # c2 / (lambda T), c2 in nm K
+    return np.asarray(nm, float) ** -5.0 / np.expm1(x)
+
+
+#: `source_spd` is 1 on average over 400-700 nm (1 nm steps)
+_SPD_NORM = float(np.mean(_planck(np.arange(400.0, 701.0))))
+
+
+def source_spd(nm: float) -> float:
+    """The monochromator's output at ``nm`` relative to the LED's power (its mean over 400-700 nm
+    is 1): Planck's law at :data:`SOURCE_K` (at 400 nm 0.23, at 550 nm 1.01, at 700 nm 1.75)."""
+    return float(_planck(nm) / _SPD_NORM)
 
 
 if __name__ == "__main__":  # python -m gonio.sim.physics.colour --tabulate: rewrite TABLES from colour-science

@@ -31,7 +31,26 @@ from gonio.core.sides import Side, parse_sides, sides_mask
 from gonio.models.mitsuba import eval_cos, mitsuba_variant
 from gonio.models.physics.fresnel import fresnel_dielectric
 
-__all__ = ["SampleTruth", "mitsuba_variant", "resolve_sample", "slab_exit"]
+__all__ = ["SampleTruth", "mitsuba_variant", "resolve_sample", "slab_exit", "at_wavelength"]
+
+
+def at_wavelength(spec: dict, nm: float) -> dict:
+    """The sample spec under monochromatic light at ``nm``: each parameter a ``spectra`` table
+    gives (`gonio.bench.samples`: wavelengths in nm, values) interpolated linearly there, a
+    per-channel parameter without a spectrum its channels' mean, both as three equal channels
+    (a grey sample that renders f_r at ``nm``); a spec that is not a gonio model, unchanged."""
+    if "model" not in spec:
+        return copy.deepcopy(spec)
+    out = copy.deepcopy(spec)
+    spectra = spec.get("spectra") or {}
+    params = out.setdefault("params", {})
+    for name, value in list(params.items()):
+        if name in spectra:
+            w, v = (np.asarray(spectra[name][k], float) for k in ("wavelengths", "values"))
+            params[name] = [float(np.interp(float(nm), w, v))] * CHANNELS
+        elif isinstance(value, (list, tuple)) and len(value) == CHANNELS:
+            params[name] = [float(np.mean(value))] * CHANNELS
+    return out
 
 _SLAB_KEYS = {"thickness_mm", "back", "absorption_per_mm"}
 
