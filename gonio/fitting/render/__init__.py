@@ -69,11 +69,16 @@ class VirtualGonio:
         A Mitsuba BSDF dict (``model.to_mitsuba(params)``).
     variant : str, optional
         Mitsuba variant (default :data:`DEFAULT_VARIANT`); set only for this object's calls.
+    tangent_deg : float
+        The frame ``bsdf`` is written in (``model.tangent_deg(params)``): the sample turned by
+        it about its normal.
     """
 
-    def __init__(self, bsdf: dict, variant: str | None = None):
+    def __init__(self, bsdf: dict, variant: str | None = None, tangent_deg: float = 0.0):
         import mitsuba as mi
 
+        t = np.radians(float(tangent_deg))
+        self._turn = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
         self.variant = variant or DEFAULT_VARIANT
         self._mi = mi
         if mi.variant() is None:  # scoped_set_variant cannot restore "no variant"
@@ -107,7 +112,7 @@ class VirtualGonio:
         # at it (Mitsuba does not traverse a radiancemeter's to_world).
         rot = _rotation_to_z(wo)  # local -> world: the sample's wo lands on the meter's axis
         to_world = np.eye(4)
-        to_world[:3, :3] = rot @ np.diag([10.0, 10.0, 1.0])
+        to_world[:3, :3] = rot @ self._turn @ np.diag([10.0, 10.0, 1.0])
         self.params[self._sample_key] = mi.Transform4f(to_world)
         # The directional emitter sends light along its frame's +z: toward the sample, i.e. -wi.
         wi_world = rot @ wi
@@ -139,7 +144,7 @@ def render_brdf(model, params, wi, wo, variant: str | None = None):
         mi.set_variant(variant)
     with mi.scoped_set_variant(variant):  # Python BSDFs register per variant
         bsdf = model.to_mitsuba(params)
-    gonio = VirtualGonio(bsdf, variant)
+    gonio = VirtualGonio(bsdf, variant, float(getattr(model, "tangent_deg", lambda p: 0.0)(params)))
     fr = gonio.brdf(wi, wo)
     return fr, time.perf_counter() - t0, gonio.variant
 

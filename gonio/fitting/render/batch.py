@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 
 from gonio.core.geometry import finite_directions
-from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
+from gonio.models.mitsuba import divide_cos, eval_cos, in_tangent_frame, select_variant
 
 __all__ = ["render_brdf_batch"]
 
@@ -57,8 +57,8 @@ def render_brdf_batch(model, params, wi, wo, variant: str | None = None):
 
     with mi.scoped_set_variant(variant):  # Python plugins register for the active variant
         bsdf = model.to_mitsuba(params)
-    try:
-        values = eval_cos(bsdf, wi, wo, variant)
+    try:    # the BSDF is written in the model's tangent frame (anisotropic roughconductor)
+        values = eval_cos(bsdf, in_tangent_frame(model, params, wi), in_tangent_frame(model, params, wo), variant)
     except Exception as exc:
         kind = bsdf.get("type", "?") if isinstance(bsdf, dict) else type(bsdf).__name__
         raise RuntimeError(f"Mitsuba could not load or evaluate BSDF {kind!r} in {variant}: {exc}") from exc

@@ -12,7 +12,8 @@ Everything in gonio that talks to Mitsuba goes through this module (Mitsuba is i
   about is gonio's ``wi`` (toward the light); ``bsdf.eval`` returns f_r * cos(theta_i).
 * :func:`tangent_to_world` puts a model's tangent frame in a scene: the shape's ``to_world``
   turned about its normal by ``model.tangent_deg(params)`` (anisotropic roughconductor);
-  :func:`tangent_square` keeps a square's footprint and turns its texture coordinates instead.
+  :func:`tangent_square` keeps a square's footprint and turns its texture coordinates instead;
+  :func:`in_tangent_frame` gives holder-frame directions in that frame (for ``bsdf.eval``).
 * :func:`eval_cos` evaluates a BSDF dict or object on a batch in gonio's convention (chunked),
   :func:`divide_cos` turns it into f_r; :func:`bsdf_base`, :func:`ensure_registered`: gonio's
   Python BSDF plugins.
@@ -31,7 +32,7 @@ from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
 from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
 
-__all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "tangent_square", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
+__all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "tangent_square", "in_tangent_frame", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
            "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
 
 
@@ -76,6 +77,17 @@ def tangent_to_world(model, params, to_world=None):
     base = T() if to_world is None else to_world
     t = float(getattr(model, "tangent_deg", lambda p: 0.0)(params))
     return base if t == 0.0 else base @ T().rotate([0.0, 0.0, 1.0], t)
+
+
+def in_tangent_frame(model, params, w):
+    """Directions ``w`` (N, 3) of the holder frame as ``model.to_mitsuba(params)`` sees them:
+    turned by -``model.tangent_deg(params)`` about the normal (``w`` itself where that is 0)."""
+    t = float(getattr(model, "tangent_deg", lambda p: 0.0)(params))
+    if t == 0.0:
+        return w
+    w = np.asarray(w, dtype=np.float64)
+    c, s = np.cos(np.radians(t)), np.sin(np.radians(t))
+    return np.stack([c * w[..., 0] + s * w[..., 1], c * w[..., 1] - s * w[..., 0], w[..., 2]], axis=-1)
 
 
 def tangent_square(bsdf: dict, to_world, tangent_deg: float):
