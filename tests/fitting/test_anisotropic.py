@@ -104,7 +104,8 @@ def test_mitsuba_xml_carries_the_tangent(tmp_path):
     model = gm.get("roughconductor", distribution="ggx", anisotropic=True)
     p = model.validate({**BRUSHED, "tangent_deg": 64.5})
     path = tmp_path / "fit.xml"
-    write_mitsuba_document(path, "roughconductor", {"distribution": "ggx", "anisotropic": True}, p)
+    note = write_mitsuba_document(path, "roughconductor", {"distribution": "ggx", "anisotropic": True}, p)
+    assert "turn the shape 64.50 deg" in note
     text = path.read_text()
     shape = [line[5:-4] for line in text.splitlines() if line.startswith("<!-- <shape")]
     assert len(shape) == 1 and 'angle="64.5"' in shape[0]
