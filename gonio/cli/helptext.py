@@ -165,6 +165,10 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
         ("gonio perf fit --real paper.bsdf --out real.csv", ""),
     ],
     "gonio perf capture": [("gonio perf capture --points 3 --skip-full", "")],
+    "gonio perf acquisition": [
+        ("gonio perf acquisition", "quick, standard and adaptive on the demo's plastic"),
+        ("gonio perf acquisition --plans standard,dense,adaptive \\\n    --points 40 --out acq.csv", ""),
+    ],
     "gonio perf real": [
         ("gonio perf real ../shared/data/rgl --out real.csv", "every measured file of the folder"),
         ("gonio perf real paper_white_rgb.bsdf --peer same", "the peer fits the family gonio chose"),

@@ -1,5 +1,6 @@
 """The ``gonio perf`` (alias ``bench``) commands: model evaluation speed, fit speed against error,
-and measured materials against a plain fit (``gonio perf real``). Each figure is a ratio
+measured materials against a plain fit (``gonio perf real``), plans' instrument time against
+fit error (``gonio perf acquisition``). Each figure is a ratio
 against a peer or a limit measured in the same run (gonio.perf)."""
 
 from __future__ import annotations
@@ -70,6 +71,21 @@ def _cmd_bench_real(args):
         raise GonioError(" ".join(str(exc).split())[:300]) from None
 
 
+def _cmd_bench_acquisition(args):
+    import gonio.models as gm
+    from gonio.bench.samples import load_sample
+    from gonio.perf.acquisition import check_plans, run
+
+    plans = check_plans(args.plans)
+    if not 1 <= args.points <= 1053:
+        raise GonioError(f"--points {args.points}: give the adaptive plan's budget between 1 and 1053 points")
+    if args.model is not None and args.model not in gm.names():
+        raise GonioError(f"--model {args.model!r}: give one of {', '.join(gm.names())}")
+    sample = load_sample(args.sample)
+    run(plans, sample, model=args.model, seed=args.seed, points=args.points, errors=args.errors,
+        out=Path(args.out) if args.out else None)
+
+
 def register(sub, *, env, seed, parser_class):
     """Add ``perf`` (alias ``bench``) and its commands to ``sub``; return its sub-parsers (the
     operator commands add ``bench capture`` there). ``env``: the command wrapper that turns
@@ -97,4 +113,17 @@ def register(sub, *, env, seed, parser_class):
     br.add_argument("--peer", default="roughplastic", metavar="FAMILY",
                     help="the plain fit's model family (default roughplastic; 'same': the family gonio chose)")
     br.set_defaults(func=env(_cmd_bench_real))
+    ba = bsub.add_parser("acquisition", help="per plan: the simulated capture's instrument time against the fit's "
+                                             "error against the truth (Ngan, log, dE00), and the front")
+    ba.add_argument("--plans", default="quick,standard,adaptive",
+                    help="plan presets and 'adaptive', separated by commas (default quick,standard,adaptive)")
+    ba.add_argument("--sample", help="the virtual sample: a sample TOML or a measured RGL .bsdf file (default the "
+                                     "demo's glossy plastic)")
+    ba.add_argument("--model", help="the family fitted (default the sample's own; roughplastic for a measured file)")
+    ba.add_argument("--points", type=int, default=24, help="the adaptive plan's budget (default 24)")
+    ba.add_argument("--errors", default="typical", help="the simulator's error preset, every plan the same "
+                                                         "(default typical; gonio plans lists them)")
+    ba.add_argument("--seed", type=seed, default=0, help="seed of the captures and the fits")
+    ba.add_argument("--out", help="a .csv file or a folder for the table")
+    ba.set_defaults(func=env(_cmd_bench_acquisition))
     return bsub

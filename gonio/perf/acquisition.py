@@ -1,0 +1,168 @@
+"""``gonio perf acquisition``: instrument time against fit error, plan by plan (issue 38's front).
+
+Every plan captures the same virtual sample on the simulated instrument (instant clock, the same
+seed and error model); its instrument time is the dataset's ``instrument_time_s`` (motion,
+settling, exposures and preparation on the simulator's clock, as journalled). The capture is
+exported, the sample's own family (or ``model``) fitted by chi2 with the dataset's budget, and
+the fit scored against the truth on :func:`gonio.perf.real.dense_grid` (Ngan and log errors,
+:func:`gonio.perf.real.metrics`) and by the preview's rendered CIEDE2000. The front: the plans
+no other plan beats on both instrument time and Ngan error.
+"""
+
+from __future__ import annotations
+
+import csv
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gonio.core.atomic import atomic_open
+from gonio.core.errors import GonioError
+
+__all__ = ["PLANS", "front", "run", "score"]
+
+#: plans compared by default (``adaptive``: the sequential design drawing from ``dense``)
+PLANS = ("quick", "standard", "adaptive")
+#: the adaptive plan's point budget by default
+ADAPTIVE_POINTS = 24
+
+
+def truth_on_grid(sample: dict, wi, wo) -> np.ndarray:
+    """The sample's true f_r at the grid: its model, or the measured file it was given as."""
+    import gonio.models as gm
+
+    from gonio.perf.real import measured_on_grid
+
+    if "bsdf_file" in sample:
+        return measured_on_grid(sample["bsdf_file"], wi, wo)
+    model = gm.get(sample["model"], **sample.get("options", {}))
+    return np.asarray(model.eval(wi, wo, model.validate(sample["params"])), dtype=np.float64)
+
+
+def _truth_bsdf(sample: dict):
+    import gonio.models as gm
+
+    if "bsdf_file" in sample:
+        return Path(sample["bsdf_file"])
+    model = gm.get(sample["model"], **sample.get("options", {}))
+    return model.to_mitsuba(model.validate(sample["params"]))
+
+
+def score(result, sample: dict, *, render=True, seed=0) -> dict:
+    """Ngan and log errors of a fit against the truth on the dense grid; the preview's mean
+    CIEDE2000 against the truth rendered with the same seeds (NaN without ``render``)."""
+    from gonio.perf.real import dense_grid, metrics
+
+    wi, wo = dense_grid()
+    m = metrics(result.model.eval(wi, wo, result.params), truth_on_grid(sample, wi, wo), wi)
+    m["de00"] = float("nan")
+    if render:
+        from gonio.fitting.render.preview import preview
+
+        with tempfile.TemporaryDirectory() as tmp:
+            out = preview(result.model, result.params, tmp, measured=_truth_bsdf(sample), size=48, spp=128,
+                          seed=seed)
+        m["de00"] = float(out["delta_e_mean"])
+    return m
+
+
+def front(rows) -> list:
+    """The rows no other row beats on both instrument time and Ngan error."""
+    return [r for r in rows if not any((o["time_s"] <= r["time_s"] and o["ngan"] < r["ngan"])
+                                       or (o["time_s"] < r["time_s"] and o["ngan"] <= r["ngan"]) for o in rows)]
+
+
+def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed: int, points: int,
+         settings: dict) -> dict:
+    import xarray as xr
+
+    from gonio.bench.dataset.export import export
+    from gonio.bench.dataset.reader import open_budget, open_dataset
+    from gonio.bench.session.simulated import capture_sim
+    from gonio.fitting.pipeline import fit_measurements
+
+    strategy = {"name": "adaptive", "seed": int(seed), "points": int(points)} if plan == "adaptive" else None
+    t0 = time.perf_counter()
+    session = folder / plan
+    capture_sim(session, sample=sample, plan="dense" if plan == "adaptive" else plan, seed=seed, progress=False,
+                strategy=strategy, settings=settings)
+    dataset = export(session)
+    with xr.open_dataset(dataset) as ds:
+        instrument_s = float(ds.attrs["instrument_time_s"])
+        n_points = int(ds.sizes.get("point", 0))
+    meas = open_dataset(Path(dataset), seed=seed)
+    result = fit_measurements(meas, model=model, options=options, seed=seed, budget=open_budget(Path(dataset), meas),
+                              dataset_path=dataset)[0]
+    row = {"plan": plan, "points": n_points, "time_s": instrument_s, "model": result.model.name}
+    row.update(score(result, sample, seed=seed))
+    row["wall_s"] = time.perf_counter() - t0
+    return row
+
+
+def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=ADAPTIVE_POINTS, errors="typical",
+        out=None, folder=None) -> list[dict]:
+    """Capture, fit and score ``sample`` (a :func:`gonio.bench.samples.load_sample` dict; the demo
+    sample by default) with each plan; print the table and the front; with ``out`` write the
+    CSV there. ``model``: the family fitted (default the sample's own; ``roughplastic`` for a
+    measured file); ``errors``: the simulator's error preset (every plan the same instrument)."""
+    from gonio.bench.calibrate import with_errors_and_calibration
+    from gonio.bench.samples import load_sample
+    from gonio.bench.settings import load_settings
+
+    settings = with_errors_and_calibration(load_settings(None), sim=True, seed=seed, errors=errors, calibration=None)
+
+    sample = load_sample(None) if sample is None else sample
+    if model is None:
+        model, options = (("roughplastic", {"distribution": "ggx"}) if "bsdf_file" in sample
+                          else (sample["model"], dict(sample.get("options", {}))))
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="gonio-acq-") as tmp:
+        base = Path(folder) if folder is not None else Path(tmp)
+        for plan in plans:
+            rows.append(_one(plan, sample, model, dict(options or {}), base, seed, points, settings))
+            _print(rows[-1:], head=len(rows) == 1)
+    on_front = {id(r) for r in front(rows)}
+    print(f"front (no plan both faster and closer): "
+          f"{', '.join(r['plan'] for r in sorted(rows, key=lambda r: r['time_s']) if id(r) in on_front)}")
+    print(f"fitted {model}; simulator errors {errors!r}, seed {seed}; time: instrument_time_s of the simulated capture (motion, settling, exposures, "
+          "preparation); Ngan, log: against the truth on the dense grid (theta <= 80 deg); dE00: preview, 48 px, "
+          "128 spp, matched seeds; wall: capture, export, fit and scoring on this machine")
+    if out is not None:
+        path = Path(out) if Path(out).suffix.lower() == ".csv" else Path(out) / "acquisition.csv"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_open(path, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]) + ["seed", "errors", "gonio"])
+            w.writeheader()
+            w.writerows([{**r, "seed": seed, "errors": errors, "gonio": _version()} for r in rows])
+        print(f"wrote {path}")
+    return rows
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("gonio")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _print(rows, head=True):
+    if head:
+        print(f"{'plan':<10}{'points':>7}{'time s':>9}{'Ngan':>8}{'log':>9}{'dE00':>7}{'wall s':>8}")
+    for r in rows:
+        print(f"{r['plan']:<10}{r['points']:>7d}{r['time_s']:>9.1f}{r['ngan']:>8.4f}{r['log']:>9.5f}"
+              f"{r['de00']:>7.2f}{r['wall_s']:>8.1f}", flush=True)
+
+
+def check_plans(text: str) -> tuple:
+    """``--plans quick,standard,adaptive``: known presets or ``adaptive``; one line otherwise."""
+    from gonio.bench.plan.plans import PRESETS
+
+    names = tuple(p.strip() for p in str(text).split(",") if p.strip())
+    bad = [p for p in names if p != "adaptive" and p not in PRESETS]
+    if not names or bad:
+        raise GonioError(f"--plans {text!r}: give plan presets separated by commas ({', '.join(PRESETS)}, adaptive)")
+    return names
