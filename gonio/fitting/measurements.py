@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gonio.core.channels import COLOUR_SPACE_CHANNELS
+from gonio.core.channels import COLOUR_SPACE_CHANNELS, spectral
 from gonio.core.sides import Side, parse_sides
 from gonio.core.geometry import angles_deg
 from gonio.core.geometry import directions as direction
@@ -218,6 +218,22 @@ def _radians(ds, path, name) -> np.ndarray:
     return values * ANGLE_UNITS[unit]
 
 
+def _wavelengths(ds, path) -> list[float] | None:
+    """The ``wavelength`` coordinate (nm) of a spectral dataset's ``brdf``, None for a colour one;
+    DataError for a wavelength in other units or out of `gonio.core.channels`' range."""
+    if "wavelength" not in ds.coords or "wavelength" not in ds["brdf"].dims:
+        return None
+    units = str(ds["wavelength"].attrs.get("units", "nm"))
+    w = [float(v) for v in np.asarray(ds["wavelength"].values, float)]
+    try:
+        if units != "nm":
+            raise ValueError(f"units {units!r}, not nm")
+        spectral(w)
+    except ValueError as exc:
+        raise DataError(f"{path}: its wavelength coordinate is not usable ({exc}); give wavelengths in nm") from None
+    return w
+
+
 def _colour_variables(ds, path, colour_space) -> tuple[str, dict]:
     """The variable holding f_r in ``colour_space`` and what the fit must record about it."""
     if colour_space not in COLOUR_SPACES:
@@ -337,7 +353,9 @@ def load_dataset(path, colour_space: str = "srgb") -> Measurements:
             raise DataError(f"{path}: {k} = {np.degrees(angles[k][i]):.6g} deg at point {i} is below the horizon "
                             "(theta must be in [0, 90] deg); fix the units or drop the point")
     wi, wo = direction(angles["theta_i"], angles["phi_i"]), direction(angles["theta_o"], angles["phi_o"])
-    name, colour = _colour_variables(ds, path, colour_space)
+    spectrum = _wavelengths(ds, path)           # a spectral session's dataset: brdf(point, wavelength)
+    name, colour = ("brdf", {"space": "spectral", "variable": "brdf", "matrix": None}) if spectrum \
+        else _colour_variables(ds, path, colour_space)
     brdf, std = _values(ds, path, name, wi.shape[0])
     use = np.ones(brdf.shape, dtype=bool)
     if "saturated" in ds.variables:
@@ -350,8 +368,10 @@ def load_dataset(path, colour_space: str = "srgb") -> Measurements:
         raise DataError(f"{path}: {name} or {name}_std is NaN at point {bad} and it is not flagged saturated;"
                         " re-export the session or drop the point")
     _check_sigmas(path, brdf, std, use)
-    attrs = {**_attrs(ds), "colour": colour}
-    if name == "brdf" and "channel" in ds.coords:
+    attrs = {**_attrs(ds), "colour": colour, **({"wavelengths_nm": spectrum} if spectrum else {})}
+    if spectrum:
+        channels = spectral(spectrum).names
+    elif name == "brdf" and "channel" in ds.coords:
         channels = tuple(str(c) for c in ds["channel"].values)
     else:
         channels = _CHANNELS[colour_space][: brdf.shape[1]]

@@ -212,3 +212,39 @@ def test_stated_conventions_are_the_readers(dataset):
         assert list(ds.channel_label.values) == ["R", "G", "B"] == list(meas.channels)
         assert list(ds.brdf.set_xindex("channel_label").sel(channel_label="G").values) == list(ds.brdf[:, 1].values)
         assert np.array_equal(~ds.saturated.values.astype(bool), meas.use.all(axis=1))
+
+
+@pytest.fixture(scope="module")
+def spectral_dataset(tmp_path_factory):
+    """dataset.nc of a simulated spectral capture (issue 39): two geometries x 450, 650 nm."""
+    from gonio.bench.dataset.export import export
+    from gonio.bench.plan.plans import plan_from_dict
+    from gonio.bench.samples import load_sample
+    from gonio.bench.settings import default_settings
+    from gonio.cli.capture import capture_sim
+
+    root = tmp_path_factory.mktemp("cf-spectral")
+    settings = {**default_settings(), "monochromator": {}}
+    settings["capture"] = {**settings["capture"], "flat_frames": 16}      # the PRNU's precision is not tested here
+    plan = plan_from_dict({"name": "cf-spectral", "points": [[30, 0, 30, 180], [30, 0, 50, 180]],
+                           "spectral": {"from_nm": 450, "to_nm": 650, "step_nm": 200}})
+    capture_sim(root / "session", sample=load_sample(Path(__file__).parents[2] / "gonio/cli/samples/red-lacquer.toml"),
+                plan=plan, seed=3, settings=settings, progress=False)
+    return export(root / "session")
+
+
+def test_a_spectral_dataset_is_cf_with_a_wavelength_coordinate(spectral_dataset, tmp_path):
+    with xr.open_dataset(spectral_dataset, engine="h5netcdf") as ds:
+        assert ds["brdf"].dims == ("point", "wavelength")
+        assert ds["wavelength"].values.tolist() == [450.0, 650.0]
+        assert ds["wavelength"].attrs["standard_name"] == "radiation_wavelength"     # CF standard name table v93
+        assert ds["wavelength"].attrs["units"] == "nm"
+    failed, errors = cf_failures(spectral_dataset)
+    assert errors == {} and failed == []
+    try:
+        cfchecker_or_skip()
+    except pytest.skip.Exception:
+        return
+    report = cfchecks(spectral_dataset, tmp_path)
+    assert "ERRORS detected: 0" in report and "WARNINGS given: 0" in report, report[-3000:]
+    assert "INFORMATION messages: 0" in report, report[-3000:]

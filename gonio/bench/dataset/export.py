@@ -9,7 +9,8 @@ uncertainty, not in ``brdf_std``), ``complete``, ``instrument_time_s`` (per poin
 ``instrument_time``). A session captured with a calibration also has ``<angle>_nominal``,
 ``<angle>_u``, ``angle_calibration`` and ``aperture_*``. Where the RAW files carry colour matrices,
 also ``brdf_srgb`` (linear sRGB, D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and
-``brdf_srgb_corr``; every f_r variable says its space (``colour_space``). Written atomically: a full
+``brdf_srgb_corr``; every f_r variable says its space (``colour_space``). A spectral session's
+has dimensions ``point`` and ``wavelength`` (nm) instead (`gonio.bench.dataset.spectral`). Written atomically: a full
 disk is one line and leaves no partial file. What was serialised is read back before it is written:
 every variable, its point count and its values as they were, or nothing is written. A journal with a
 damaged point row is refused (`gonio verify`).
@@ -41,6 +42,7 @@ import numpy as np
 from gonio.bench.session import integrity as _integrity
 from gonio.bench.dataset.budget import budget_variables, move_history
 from gonio.bench.dataset.cf import cf_encode, check_global_attributes
+from gonio.bench.dataset.spectral import COLOUR_SPACE as SPECTRAL_SPACE, spectral_variables
 from gonio.bench.calibrate import dataset_angles, instrument_response
 from gonio.core.files import commit_file, tmp_name
 from gonio.bench.session.journal import RAW_DIR, preparation_times
@@ -77,6 +79,13 @@ def to_dataset(session_dir, chart=None, attrs=None):
     if not rows:
         raise SessionError(f"{folder} has no measured point yet; resume the capture first")
     n_plan = len(doc["plan"]["points"])
+    if doc["plan"].get("wavelength_nm") is not None:     # a spectral plan: brdf(point, wavelength)
+        coords, data, monitor, point_s = spectral_variables(doc, rows)
+        attrs = {**_attributes(doc, rows, n_plan, monitor, None, None), **_instrument_time(point_s, preparations)}
+        ds = cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name, attrs=global_attrs)
+        ds.attrs["colour_space"] = SPECTRAL_SPACE
+        ds["wavelength"].encoding["_FillValue"] = None     # CF 2.5.1: a coordinate variable has none
+        return ds
     idx = np.array([r["idx"] for r in rows], int)
     where = np.full(n_plan, -1, int)
     where[idx] = np.arange(len(idx))
