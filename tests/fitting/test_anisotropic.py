@@ -151,3 +151,20 @@ def test_render_closure_at_a_turned_tangent():
     assert np.max(np.abs(scene - f[::9])[b] / f[::9][b]) < 2e-5
     flat, _, _ = render_brdf_batch(model, {**p, "tangent_deg": 0.0}, wi, wo)
     assert np.median(np.abs(flat - f)[big] / f[big]) > 0.05
+
+
+@pytest.mark.long
+def test_recovery_study():
+    """60 brushed metals drawn at random (alpha_u 0.03-0.1, alpha_v 0.2-0.4, tangent 0-180):
+    every one within 5 % and 1 deg (measured: worst alpha 1.6 %, worst tangent 0.086 deg;
+    6 s on 2 cores)."""
+    model = gm.get("roughconductor", distribution="ggx", anisotropic=True)
+    draw = np.random.default_rng(2026)
+    for i in range(60):
+        truth = {**BRUSHED, "alpha_u": float(draw.uniform(0.03, 0.1)), "alpha_v": float(draw.uniform(0.2, 0.4)),
+                 "tangent_deg": float(draw.uniform(0.0, 180.0))}
+        rng = np.random.default_rng(i)
+        p = fit(_simulate(model, truth, rng), model, rng=rng).params
+        assert abs(p["alpha_u"] / truth["alpha_u"] - 1.0) < 0.05, (truth, p)
+        assert abs(p["alpha_v"] / truth["alpha_v"] - 1.0) < 0.05, (truth, p)
+        assert abs(_turn(p["tangent_deg"], truth["tangent_deg"])) < 1.0, (truth, p)
