@@ -116,7 +116,7 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
     std = rel_std * np.maximum(np.abs(f), floor)
     use = np.repeat(((wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9))[:, None], 3, axis=1)
     attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": variant,
-             "nominal_sigma": True, "sampling": f"own layout: {theta.size} measured theta_i <= {theta_max_deg:g} deg, "
+             "nominal_sigma": True, "isotropic": True, "sampling": f"own layout: {theta.size} measured theta_i <= {theta_max_deg:g} deg, "
              f"{2 * m} outgoing each (half by the material's importance sampling, half cosine), MIS weights"}
     return Measurements(wi, wo, f, std, use, attrs, weight=weight, cluster=np.concatenate(clusters))
 
@@ -136,5 +136,5 @@ def merl_samples(path, *, n: int | None = None, rng=None, theta_max_deg: float =
     cmax = np.cos(np.radians(theta_max_deg))
     keep = (meas.wi[:, 2] > cmax) & (meas.wo[:, 2] > cmax) & meas.use.any(axis=1)
     meas = meas.subset(keep)
-    attrs = dict(meas.attrs, nominal_sigma=True, sampling="every MERL bin with data" if n is None else f"{n} MERL bins (seeded)")
+    attrs = dict(meas.attrs, nominal_sigma=True, isotropic=True, sampling="every MERL bin with data" if n is None else f"{n} MERL bins (seeded)")
     return dataclasses.replace(meas, attrs=attrs, weight=merl_weights(meas.wi, meas.wo))

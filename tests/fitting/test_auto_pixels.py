@@ -200,3 +200,27 @@ def test_auto_fit_on_simulated_materials_of_every_kind(label, family, options, p
     assert degenerate(result) == []
     assert de <= de_own + TOLERANCE + noise
     assert ngan <= 1.1 * ngan_own + 1e-3
+
+
+def test_a_format_that_holds_an_isotropic_brdf_gets_no_anisotropic_candidate():
+    """RGL and MERL files hold isotropic BRDFs (f at phi_i = 0): a mirror pair differing there is
+    the file's noise (a flake paint's sparkle), not azimuthal structure. Data built to show
+    azimuthal structure gets the anisotropic candidates, the same data marked isotropic (as
+    rgl_samples and merl_samples mark theirs) does not."""
+    from gonio.fitting import Measurements
+    from gonio.fitting.selection.by_data import ANISOTROPIC, CANDIDATES, candidates_for
+
+    t = np.radians([30.0, 45.0])
+    rows = []
+    for ti in t:
+        for phi_i in np.radians([0.0, 60.0, 120.0]):
+            for dphi in np.radians([150.0, 180.0]):
+                wi = [np.sin(ti) * np.cos(phi_i), np.sin(ti) * np.sin(phi_i), np.cos(ti)]
+                wo = [np.sin(ti) * np.cos(phi_i + dphi), np.sin(ti) * np.sin(phi_i + dphi), np.cos(ti)]
+                rows.append((wi, wo, 1.0 + np.cos(2 * phi_i)))     # a value that turns with the azimuth
+    wi, wo, v = (np.array(x) for x in zip(*rows))
+    f = np.repeat(v[:, None], 3, axis=1)
+    meas = Measurements(wi, wo, f, 0.01 * f, np.ones(f.shape, bool), {})
+    assert ANISOTROPIC and candidates_for(meas) == CANDIDATES + ANISOTROPIC
+    iso = Measurements(wi, wo, f, 0.01 * f, np.ones(f.shape, bool), {"isotropic": True})
+    assert candidates_for(iso) == CANDIDATES

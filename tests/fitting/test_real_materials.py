@@ -42,7 +42,7 @@ def test_rgl_own_layout_weights_and_peak():
     from gonio.fitting import rgl_samples
 
     meas = rgl_samples(RGL / "vch_golden_yellow_rgb.bsdf")
-    assert meas.n_points >= 6000 and meas.attrs["nominal_sigma"] is True
+    assert meas.n_points >= 6000 and meas.attrs["nominal_sigma"] is True and meas.attrs["isotropic"] is True
     full = (2 * np.pi * (1 - np.cos(np.radians(80.0)))) ** 2
     assert meas.weight.sum() == pytest.approx(full, rel=0.05)
     mirror = meas.wo * np.array([-1.0, -1.0, 1.0])

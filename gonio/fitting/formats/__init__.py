@@ -485,7 +485,8 @@ def rgl_measurements(path, wi, wo, *, rel_std: float = 0.02, floor: float = 1e-4
     up = (wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9)
     std = rel_std * np.maximum(np.abs(f), floor)
     use = np.repeat(up[:, None], 3, axis=1)
-    attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": rgl.variant}
+    attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": rgl.variant,
+             "isotropic": True}
     return Measurements(wi, wo, f, std, use, attrs)
 
 

@@ -147,13 +147,16 @@ def azimuthal_structure(meas, tol_deg: float = 0.5, rel_floor: float = REL_FLOOR
 def candidates_for(meas):
     """The ``--model auto`` candidates for ``meas``: `CANDIDATES` for a BRDF, with the
     anisotropic ones (`ANISOTROPIC`) where the data shows azimuthal structure
-    (:func:`azimuthal_structure`); the transmission models when any used point lies on the
+    (:func:`azimuthal_structure`; never for data from a format that holds an isotropic BRDF,
+    ``attrs["isotropic"]``: RGL, MERL); the transmission models when any used point lies on the
     transmitted side (a reflection model predicts 0 there, so it cannot explain those points
     and is not offered)."""
     used = np.asarray(meas.use).any(axis=1)
     side = side_of(np.asarray(meas.wi)[used, 2], np.asarray(meas.wo)[used, 2])
     if np.any(side == 1):
         return _transmission_candidates()
+    if meas.attrs.get("isotropic"):     # a format that holds an isotropic BRDF (RGL, MERL): only noise to see
+        return CANDIDATES
     return CANDIDATES + ANISOTROPIC if azimuthal_structure(meas).anisotropic else CANDIDATES
 
 
