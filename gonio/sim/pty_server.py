@@ -7,14 +7,14 @@ symlinks to the current ``/dev/pts/N``; the ``vanish`` fault closes a pty (the c
 EIO / a hang-up), removes the link and, ``duration`` seconds later (wall time divided by the
 clock scale; real seconds for an instant clock), re-creates it under a new ``/dev/pts/N``
 with the link re-pointed, as udev does for a USB adapter that re-enumerates.
-
-Each port is served by its own thread (its own ``select`` loop over its master), as each
-device on a real rig answers on its own: a meter that averages for seconds delays only its own
-replies, never the stage chain's. Bytes go through the same ``PortEndpoint`` as the ``sim://``
-transport, so replies are byte-identical. A port's loop sleeps no longer than until the next
-spontaneous line comes due (``PortEndpoint.next_due``: a motion's end, for its alert), so an
-alert leaves within a few milliseconds of the motion's end.
 """
+
+# Each port is served by its own thread (its own ``select`` loop over its master), as each
+# device on a real rig answers on its own: a meter that averages for seconds delays only its own
+# replies, never the stage chain's. Bytes go through the same ``PortEndpoint`` as the ``sim://``
+# transport, so replies are byte-identical. A port's loop sleeps no longer than until the next
+# spontaneous line comes due (``PortEndpoint.next_due``: a motion's end, for its alert), so an
+# alert leaves within a few milliseconds of the motion's end.
 
 from __future__ import annotations
 

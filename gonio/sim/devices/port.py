@@ -12,15 +12,15 @@ Both buffers are bounded, as a device's are. An input line longer than the serve
 the host in at most ``MAX_OUT`` bytes: a reply line that does not fit is dropped whole (a
 host that writes without reading loses answers, as with a full tty buffer, and the process's
 memory stays bounded); ``overrun`` counts the lines dropped.
-
-Each port is its own device (issue 40): ``lock`` serialises that port's lines (a device answers
-one command at a time), the instrument's lock guards only the physics the devices share while a
-line executes, and a device that takes time (a meter averaging, a camera exposing) lets go of
-the instrument's lock while it waits (``Instrument``'s clock sleeps through
-:meth:`Instrument.wait`): one device's slow answer never holds another's. The reply buffer has a
-lock of its own that guards nothing else (readers of one port never wait for another's line).
-Lock order: a port's ``lock``, then the instrument's, then a reply buffer's.
 """
+
+# Each port is its own device (issue 40): ``lock`` serialises that port's lines (a device answers
+# one command at a time), the instrument's lock guards only the physics the devices share while a
+# line executes, and a device that takes time (a meter averaging, a camera exposing) lets go of
+# the instrument's lock while it waits (``Instrument``'s clock sleeps through
+# :meth:`Instrument.wait`): one device's slow answer never holds another's. The reply buffer has a
+# lock of its own that guards nothing else (readers of one port never wait for another's line).
+# Lock order: a port's ``lock``, then the instrument's, then a reply buffer's.
 
 from __future__ import annotations
 

@@ -1,23 +1,26 @@
 """Device 2 of the simulated chain: the LED source, its channels addressed as axes.
 
-As zaber-motion 10.3's Illuminator API drives it (observed on the wire): a channel is an axis;
-``/2 1 lamp on``, ``/2 1 lamp off``, ``/2 1 get lamp.status``, ``/2 1 get lamp.flux.max``,
-``/2 1 set lamp.flux F`` with ``F = fraction * lamp.flux.max``; ``/2 0 lamp off`` switches every
-channel off. One channel (``system.axiscount`` 1): the instrument's ``Lamp``. Chosen where the
-documents are silent (invented):
-- ``lamp.status``: 2 on, 1 off. zaber-motion 10.3's ``IlluminatorChannel.is_on()`` is true for 2
-  only (observed: 0, 1, 3 and 4 all read as off); 1 for off is inferred, not published.
-- ``lamp.flux``: 3 decimals, units of ``lamp.flux.max`` (``Lamp.flux_max``, default 1.0); a value
-  outside ``[0, lamp.flux.max]`` -> ``BADDATA``. ``lamp.temperature``: deg C, 1 decimal.
-- ``/2 0 lamp on`` switches every channel on; axis-0 ``get``/``set`` of a channel setting reads or
-  sets every channel, as for the axis settings of a motion controller.
-- Identification: device id 30311, serial 92001, firmware 7.38 build 18426, peripheral id 58001:
-  invented. The device is modelled on Zaber's X-LCA4 LED controller (zaber-motion's Illuminator
-  drives it), whose device id only Zaber's device database gives; that database is not on this
-  machine and no public source read offline names the id (issue 40), so zaber-motion's
-  ``identify()`` of this device fails with its ``DeviceDbFailedException`` (no silent guess), and
-  ``detect_devices(identify_devices=False)``, generic commands and the Illuminator API work.
-"""
+It answers what zaber-motion 10.3's Illuminator API sends (lamp on/off, lamp.status, lamp.flux,
+lamp.flux.max, lamp.temperature); where the documents are silent its choices, and the
+invented identification, are in the comment below."""
+
+# As zaber-motion 10.3's Illuminator API drives it (observed on the wire): a channel is an axis;
+# ``/2 1 lamp on``, ``/2 1 lamp off``, ``/2 1 get lamp.status``, ``/2 1 get lamp.flux.max``,
+# ``/2 1 set lamp.flux F`` with ``F = fraction * lamp.flux.max``; ``/2 0 lamp off`` switches every
+# channel off. One channel (``system.axiscount`` 1): the instrument's ``Lamp``. Chosen where the
+# documents are silent (invented):
+# - ``lamp.status``: 2 on, 1 off. zaber-motion 10.3's ``IlluminatorChannel.is_on()`` is true for 2
+# only (observed: 0, 1, 3 and 4 all read as off); 1 for off is inferred, not published.
+# - ``lamp.flux``: 3 decimals, units of ``lamp.flux.max`` (``Lamp.flux_max``, default 1.0); a value
+# outside ``[0, lamp.flux.max]`` -> ``BADDATA``. ``lamp.temperature``: deg C, 1 decimal.
+# - ``/2 0 lamp on`` switches every channel on; axis-0 ``get``/``set`` of a channel setting reads or
+# sets every channel, as for the axis settings of a motion controller.
+# - Identification: device id 30311, serial 92001, firmware 7.38 build 18426, peripheral id 58001:
+# invented. The device is modelled on Zaber's X-LCA4 LED controller (zaber-motion's Illuminator
+# drives it), whose device id only Zaber's device database gives; that database is not on this
+# machine and no public source read offline names the id (issue 40), so zaber-motion's
+# ``identify()`` of this device fails with its ``DeviceDbFailedException`` (no silent guess), and
+# ``detect_devices(identify_devices=False)``, generic commands and the Illuminator API work.
 
 from __future__ import annotations
 

@@ -6,15 +6,15 @@ Commands (Zaber ASCII manual): ``home``, ``move abs|rel POS [SPEED [ACCEL]]``,
 of ``pos``, ``limit.min``, ``limit.max``, ``limit.cycle.dist``, ``maxspeed``, ``accel``,
 ``resolution``, ``peripheralid``/``peripheral.id``, ``parking.state``, ``driver.enabled``,
 ``encoder.pos``.
-
-Speeds and accelerations are in Zaber's native units on the wire (manual, settings ``maxspeed``
-and ``accel``): ``maxspeed`` and ``move vel`` data = microsteps/s * 1.6384 (microsteps per
-1.6384 s), ``accel`` data = microsteps/s^2 * 1.6384 / 10. The axes
-(:mod:`gonio.sim.physics.stages`) keep microsteps/s and microsteps/s^2; this module converts at
-the wire and rounds a reported value to the nearest integer (the simulator's defaults, 40000
-microsteps/s and 80000 microsteps/s^2, read 65536 and 13107). Behaviour chosen where the manual
-is silent: the comment below.
 """
+
+# Speeds and accelerations are in Zaber's native units on the wire (manual, settings ``maxspeed``
+# and ``accel``): ``maxspeed`` and ``move vel`` data = microsteps/s * 1.6384 (microsteps per
+# 1.6384 s), ``accel`` data = microsteps/s^2 * 1.6384 / 10. The axes
+# (:mod:`gonio.sim.physics.stages`) keep microsteps/s and microsteps/s^2; this module converts at
+# the wire and rounds a reported value to the nearest integer (the simulator's defaults, 40000
+# microsteps/s and 80000 microsteps/s^2, read 65536 and 13107). Behaviour chosen where the manual
+# is silent: the comment below.
 
 # The same unit factors are in zaber.serial-era clients.
 #
