@@ -115,9 +115,9 @@ def _bsdf_lines(model_name, options, params, bsdf_id, version, plugins="gonio"):
     turn = _tangent_lines(model, params, bsdf_id)
     if turn:    # said on the command line too: a scene that ignores it shows the brushing at 0 deg
         t = float(model.tangent_deg(params))
-        note = (note + "; " if note else "") + (f"the BSDF is in the sample's tangent frame: turn the shape {t:.2f} deg "
-                                                "about its normal (gonio.models.mitsuba.tangent_to_world; "
-                                                "--to mitsuba-xml writes the <shape>)")
+        frame = (f"the BSDF is in the sample's tangent frame: turn the shape {t:.2f} deg about its normal "
+                 "(gonio.models.mitsuba.tangent_to_world; --to mitsuba-xml writes the <shape>)")
+        note = f"{note}; {frame}" if note else frame
     lines.extend(turn)
     root = f" version={quoteattr(version)}" if version else ""
     lines.append(f"<bsdf type={quoteattr(kind)} id={quoteattr(bsdf_id)}{root}>")

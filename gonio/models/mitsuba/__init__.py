@@ -10,13 +10,9 @@ Everything in gonio that talks to Mitsuba goes through this module (Mitsuba is i
 * :func:`interaction` is the one place the direction convention is converted: Mitsuba's
   ``si.wi`` points to the sensor (gonio's ``wo``) and the direction ``bsdf.eval`` is asked
   about is gonio's ``wi`` (toward the light); ``bsdf.eval`` returns f_r * cos(theta_i).
-* :func:`tangent_to_world` puts a model's tangent frame in a scene: the shape's ``to_world``
-  turned about its normal by ``model.tangent_deg(params)`` (anisotropic roughconductor);
-  :func:`tangent_square` keeps a square's footprint and turns its texture coordinates instead;
-  :func:`in_tangent_frame` gives holder-frame directions in that frame (for ``bsdf.eval``).
-* :func:`eval_cos` evaluates a BSDF dict or object on a batch in gonio's convention (chunked),
-  :func:`divide_cos` turns it into f_r; :func:`bsdf_base`, :func:`ensure_registered`: gonio's
-  Python BSDF plugins.
+* :func:`eval_cos`: a BSDF dict or object on a batch in gonio's convention, :func:`divide_cos`
+  its f_r; :func:`bsdf_base`, :func:`ensure_registered`: gonio's Python BSDF plugins.
+* :func:`tangent_to_world`, :func:`tangent_square`, :func:`in_tangent_frame`: a model's tangent frame.
 """
 
 # SCENE_VARIANT is scalar: a single ray renders faster there than a kernel launch. eval_cos runs
@@ -32,7 +28,8 @@ from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba.plugins import bsdf_base, ensure_registered
 from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mitsuba_variant
 
-__all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "tangent_square", "in_tangent_frame", "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
+__all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "tangent_square", "in_tangent_frame",
+           "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
            "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
 
 
