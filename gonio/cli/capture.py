@@ -62,7 +62,7 @@ def _load_plan(spec):
 
 def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress,
                 errors=None, calibration=None, points=None, target_rel_u=None, candidates=None, budget_minutes=None,
-                target_de00=None):
+                target_de00=None, monochromator=None):
     from gonio.bench.samples import load_sample
     from gonio.bench.plan.adaptive import cli_strategy
     from gonio.bench.plan.plans import dry_run as plan_dry_run
@@ -92,7 +92,7 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
         if not meter_port or not camera:
             raise GonioError("a hardware capture needs --port, --meter-port and --camera")
         summary = capture(out, plan_obj, settings_d, port, meter_port, _camera(camera), seed=seed, progress=progress,
-                          **given)
+                          monochromator=monochromator, **given)
     return _print_summary(summary)
 
 
@@ -109,7 +109,7 @@ def _note(line: str) -> None:
 
 
 def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_journal=False, remeasure=None,
-               restore_session=False):
+               restore_session=False, monochromator=None):
     """``gonio capture --resume``; returns the exit status."""
     from gonio.bench.session import integrity as _integrity
     from gonio.bench.session.capture import resume
@@ -151,7 +151,8 @@ def resume_cli(session: Path, *, port, meter_port, camera, progress, rebuild_jou
         finally:
             inst.unregister()
     else:
-        summary = resume(session, port, meter_port, _camera(camera) if camera else None, **kw)
+        summary = resume(session, port, meter_port, _camera(camera) if camera else None, monochromator=monochromator,
+                         **kw)
     return _print_summary(summary)
 
 

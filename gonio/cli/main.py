@@ -128,6 +128,7 @@ def _cmd_capture(args):
             raise GonioError(f"{given[0]} is recorded when a session starts; a resume keeps the session's own")
         return session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
                                          camera=args.camera, progress=_capture_progress(args),
+                                         monochromator=args.monochromator_port,
                                          rebuild_journal=args.rebuild_journal, remeasure=args.remeasure,
                                          restore_session=args.restore_session)
     for flag, given in (("--rebuild-journal", args.rebuild_journal), ("--remeasure", args.remeasure),
@@ -150,7 +151,8 @@ def _cmd_capture(args):
                                       dry_run=args.dry_run, progress=_capture_progress(args),
                                       errors=args.errors, calibration=args.calibration, points=args.points,
                                       target_rel_u=args.target_rel_u, candidates=args.candidates,
-                                      budget_minutes=args.budget_minutes, target_de00=args.target_de00)
+                                      budget_minutes=args.budget_minutes, target_de00=args.target_de00,
+                                      monochromator=args.monochromator_port)
 
 
 @_env
@@ -433,6 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="calibration file from `gonio calibrate`: angles, reference factor and linearity applied")
     c.add_argument("--port", help="Zaber chain: serial port or pyserial URL (e.g. /dev/ttyUSB0, sim://NAME/zaber)")
     c.add_argument("--meter-port", help="SCPI power meter: serial port or pyserial URL")
+    c.add_argument("--monochromator-port", help="Cornerstone monochromator (a spectral plan): serial port or URL")
     c.add_argument("--camera", help="camera: a serial port/URL of a simulated camera, folder:PATH, or gphoto2")
     c.add_argument("--dry-run", action="store_true", help="print point count, duration estimate, unreachable points; move nothing")
     c.add_argument("--quiet", action="store_true", help=QUIET_HELP)

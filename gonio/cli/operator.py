@@ -217,6 +217,7 @@ def register(sub, bench_sub=None) -> None:
     d = sub.add_parser("devices", help="what is on each port, identified (Zaber ids, serials, firmware, axes; *IDN?)")
     _common(d, port_required=False)
     d.add_argument("--meter-port", type=_url, help="power meter: serial port, pyserial URL or VISA resource")
+    d.add_argument("--monochromator-port", type=_url, help="Cornerstone monochromator: serial port or pyserial URL")
     d.add_argument("--camera", type=_url, help="camera: serial URL of a camera port, folder:PATH or gphoto2")
     d.set_defaults(func=cmd_devices)
 

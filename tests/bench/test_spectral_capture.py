@@ -119,3 +119,17 @@ def test_the_dataset_has_a_wavelength_dimension_that_follows_the_spectrum(spectr
     # (off the specular peak) f_r follows it
     off = int(np.argmax(np.degrees(np.arccos(meas.wo[:, 2]))))
     assert f[off, 1] > 3 * f[off, 0]
+
+
+def test_gonio_devices_identifies_the_monochromator():
+    import gonio.sim as gs
+    from gonio.bench.drivers.probe import probe_ports
+
+    inst = gs.Instrument({"monochromator": {}}, seed=1).register("spectral-devices")
+    try:
+        lines = probe_ports({"monochromator": inst.url("monochromator")}, {}, 115200)
+    finally:
+        inst.unregister()
+    # the twin at power-on: INFO? "CORNERSTONE 260 VER 2.31 TWIN", grating 1, the drive at 0 nm (zero order)
+    assert lines == ["monochromator sim://spectral-devices/monochromator: CORNERSTONE 260 VER 2.31 TWIN, grating 1, "
+                     "0 nm"]
