@@ -133,3 +133,12 @@ def test_gonio_devices_identifies_the_monochromator():
     # the twin at power-on: INFO? "CORNERSTONE 260 VER 2.31 TWIN", grating 1, the drive at 0 nm (zero order)
     assert lines == ["monochromator sim://spectral-devices/monochromator: CORNERSTONE 260 VER 2.31 TWIN, grating 1, "
                      "0 nm"]
+
+
+def test_the_report_lists_the_monochromator(spectral_session):
+    from gonio.bench.report.inputs import Folder
+    from gonio.bench.report.meta import _devices
+
+    folder = spectral_session[0]
+    rows = {d["role"]: d["text"] for d in _devices(Folder(folder), folder / "journal.sqlite")}
+    assert rows["monochromator (INFO?)"] == "CORNERSTONE 260 VER 2.31 TWIN"

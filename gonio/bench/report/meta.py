@@ -134,7 +134,8 @@ def _devices(root: Folder, journal) -> list[dict]:
                  (("device_id", "device id"), ("serial", "serial"), ("firmware", "firmware"), ("build", "build"))
                  if _text(d.get(key), 64)]
         out.append({"role": f"Zaber device {_text(d.get('address'), 8) or '?'}", "text": ", ".join(parts) or "?"})
-    for key, role in (("meter", "power meter (*IDN?)"), ("camera", "camera")):
+    for key, role in (("meter", "power meter (*IDN?)"), ("camera", "camera"),
+                      ("monochromator", "monochromator (INFO?)")):
         if _text(ident.get(key)):
             out.append({"role": role, "text": _text(ident.get(key))})
     port = _text(ident.get("zaber_port")) or ""
