@@ -142,3 +142,24 @@ def test_the_report_lists_the_monochromator(spectral_session):
     folder = spectral_session[0]
     rows = {d["role"]: d["text"] for d in _devices(Folder(folder), folder / "journal.sqlite")}
     assert rows["monochromator (INFO?)"] == "CORNERSTONE 260 VER 2.31 TWIN"
+
+
+def test_a_spectral_run_closes_the_shutter_it_opened(tmp_path):
+    """The simulator lights the sample through the monochromator only while its shutter is open:
+    a white-light capture after a spectral one on the same instrument must see the LED again."""
+    import gonio.sim as gs
+    from gonio.bench.plan.plans import plan_from_dict
+    from gonio.bench.session.capture import capture
+
+    st = {**default_settings(), "monochromator": {}}
+    st["capture"] = {**st["capture"], "flat_frames": 16}
+    inst = gs.Instrument(st, sample=check_sample(DEMO_SAMPLE), seed=2).register("spectral-shutter")
+    try:
+        plan = plan_from_dict({"name": "one", "points": [[30, 0, 30, 180]],
+                               "spectral": {"from_nm": 500, "to_nm": 600, "step_nm": 100}})
+        s = capture(tmp_path / "s", plan, st, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
+                    progress=False, sleep=inst.clock.advance, monochromator=inst.url("monochromator"))
+        assert s.complete
+        assert inst.monochromator.drive.shutter_open is False and inst.wavelength_nm is None
+    finally:
+        inst.unregister()

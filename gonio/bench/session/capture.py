@@ -225,6 +225,11 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
                         _event(journal, "lamp", "LED off")
                     except (GonioError, OSError) as exc:
                         _event(journal, "warning", f"could not switch the LED off ({exc}); switch it off by hand")
+                    if bench.monochromator is not None:     # its shutter closed, as the run found it
+                        try:
+                            bench.monochromator.shutter(False)
+                        except (GonioError, OSError) as exc:
+                            _event(journal, "warning", f"could not close the monochromator's shutter ({exc})")
         budget = sess.strategy.budget
         if intr.requested and not stopped and len(journal.done()) < budget:
             stopped = "stopped by a signal; run the capture again with --resume to finish"
