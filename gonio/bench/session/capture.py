@@ -225,7 +225,7 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
                         _event(journal, "lamp", "LED off")
                     except (GonioError, OSError) as exc:
                         _event(journal, "warning", f"could not switch the LED off ({exc}); switch it off by hand")
-                    if bench.monochromator is not None:     # its shutter closed, as the run found it
+                    if getattr(bench, "monochromator", None) is not None:     # its shutter closed, as found
                         try:
                             bench.monochromator.shutter(False)
                         except (GonioError, OSError) as exc:
