@@ -163,3 +163,17 @@ def test_a_spectral_run_closes_the_shutter_it_opened(tmp_path):
         assert inst.monochromator.drive.shutter_open is False and inst.wavelength_nm is None
     finally:
         inst.unregister()
+
+
+def test_a_simulated_spectral_capture_gets_the_twin_by_default(tmp_path):
+    from gonio.bench.plan.plans import plan_from_dict
+
+    st = default_settings()
+    st["capture"] = {**st["capture"], "flat_frames": 16}
+    assert "monochromator" not in st
+    plan = plan_from_dict({"name": "one", "points": [[30, 0, 30, 180]],
+                           "spectral": {"from_nm": 500, "to_nm": 600, "step_nm": 100}})
+    s = capture_sim(tmp_path / "s", sample=check_sample(DEMO_SAMPLE), plan=plan, seed=1, settings=st, progress=False)
+    assert s.complete and s.n_done == 2
+    doc = tomllib.loads((tmp_path / "s" / "session.toml").read_text())
+    assert doc["settings"]["monochromator"] == {} and doc["devices"]["monochromator"].startswith("CORNERSTONE")

@@ -45,7 +45,9 @@ def sim_instrument(settings, sample, seed, clock="instant", faults=None, name=No
 def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, progress=True, demo=False,
                 faults=None, strategy=None):
     """Capture ``plan`` of a virtual ``sample`` on the simulated instrument (instant clock);
-    ``strategy``: session.toml's ``[strategy]`` table (`gonio.bench.plan.strategy`; default fixed)."""
+    ``strategy``: session.toml's ``[strategy]`` table (`gonio.bench.plan.strategy`; default fixed).
+    A spectral plan on settings without ``[monochromator]`` gets the default one (the simulated
+    bench then has the Cornerstone twin)."""
     from gonio.bench.session.capture import capture
 
     from gonio.bench.measure.systematics import for_session
@@ -53,6 +55,8 @@ def capture_sim(session: Path, *, sample: dict, plan, seed: int, settings=None, 
     settings = settings if isinstance(settings, dict) else _settings(settings)
     settings = for_session(settings)       # an uncalibrated capture states the error model's systematics
     plan = plan if hasattr(plan, "angles") else _plan(plan)
+    if getattr(plan, "wavelength_nm", None) is not None and not settings.get("monochromator"):
+        settings = {**settings, "monochromator": dict(settings.get("monochromator") or {})}   # the twin's defaults
     inst = sim_instrument(settings, sample, seed, faults=faults, camera_root=session)
     try:
         return capture(session, plan, settings, inst.url("zaber"), inst.url("meter"), inst.url("camera"),
