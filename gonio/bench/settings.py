@@ -75,7 +75,7 @@ SCHEMA: dict[str, dict[str, str]] = {
     "conditions": {"polarisation": "the source's and detector's polarisation state (text, e.g. unpolarised)",
                    "temperature_c": "ambient temperature during the capture (degC)",
                    "humidity_pct": "ambient relative humidity during the capture (%)"},
-    # the monochromator (gonio.bench.drivers.monochromator, which checks these keys; not yet used by a capture)
+    # the monochromator (gonio.bench.drivers.monochromator, which checks these keys): a spectral plan needs it
     "monochromator": {"gratings": "[[grating, from_nm, to_nm], ...]: the grating used in each range",
                       "filters": "[[position, from_nm, to_nm], ...]: the order-sorting filter in each range",
                       "move_timeout_s": "longest a grating, filter or wavelength move may take (s)",
