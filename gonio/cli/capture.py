@@ -33,6 +33,8 @@ def _print_summary(summary):
     if summary.move_naive_s:
         lines.append(f"stage moves: plan order {summary.move_naive_s:.0f} s, ordered {summary.move_ordered_s:.0f} s, "
                      f"lower bound {summary.move_bound_s:.0f} s")
+    if getattr(summary, "spectral", ""):
+        lines.append(summary.spectral)
     if summary.reciprocity:
         lines.append(f"reciprocity: {len(summary.reciprocity)} pairs, median relative difference "
                      f"{summary.reciprocity_error:.2e}")

@@ -9,7 +9,8 @@ import pytest
 
 from gonio.bench.plan import kinematics
 from gonio.bench.plan.plans import dry_run, load_plan, plan_from_dict
-from gonio.bench.plan.spectral import MonochromatorTimes, check_wavelengths, order_plan, spectral_order
+from gonio.bench.plan.spectral import (MonochromatorTimes, SpectralOrder, check_wavelengths, order_plan,
+                                       spectral_order)
 from gonio.bench.settings import default_settings
 from gonio.core.errors import GonioError, PlanError
 
@@ -54,9 +55,11 @@ def test_the_order_takes_the_cheaper_wavelength_axis():
         chosen = f if axis == "fastest" else s
         assert order.ordered_s == pytest.approx(chosen[0])
         assert min(f[0] + f[1], s[0] + s[1]) == pytest.approx(chosen[0] + chosen[1])
+        assert SpectralOrder.from_dict(why.to_dict()) == why     # as session.toml's [order] records it
     # the dry run says both and counts the monochromator's time in its estimate
     d = dry_run(load_plan("spectral"), st)
     assert "wavelength the fastest axis" in d.summary() and d.monochromator_s > 200
+    assert "1 grating change)" in d.summary() and SpectralOrder.from_dict({"wavelength_axis": "x"}) is None
 
 
 def test_monochromator_times_follow_the_twin():

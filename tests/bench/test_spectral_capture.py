@@ -69,6 +69,7 @@ def test_each_point_is_measured_at_its_wavelength(spectral_session):
 
     folder, summary, sample, st = spectral_session
     assert summary.complete and summary.n_done == 4
+    assert summary.spectral.startswith("wavelength the ")         # the capture's summary says the axis
     doc = tomllib.loads((folder / "session.toml").read_text())
     assert doc["order"]["wavelength_axis"] in ("fastest", "slowest")
     inst = gs.Instrument(st, sample=sample)

@@ -171,11 +171,24 @@ class SpectralOrder:
                 **{f"{k}_{q}": v for k, t in (("fastest", self.fastest), ("slowest", self.slowest))
                    for q, v in zip(("stage_s", "monochromator_s", "grating_changes"), t)}}
 
+    @classmethod
+    def from_dict(cls, d) -> "SpectralOrder | None":
+        """The choice as session.toml's ``[order]`` records it (`to_dict`); None without one."""
+        if not isinstance(d, Mapping) or d.get("wavelength_axis") not in ("fastest", "slowest"):
+            return None
+        try:
+            return cls(d["wavelength_axis"], *(tuple(t(d[f"{k}_{q}"]) for q, t in
+                                                     (("stage_s", float), ("monochromator_s", float),
+                                                      ("grating_changes", int))) for k in ("fastest", "slowest")))
+        except (KeyError, TypeError, ValueError):
+            return None
+
     def line(self) -> str:
         f, s = self.fastest, self.slowest
+        changes = lambda n: f"{n} grating change" + ("" if n == 1 else "s")
         return (f"wavelength the {self.axis} axis: as the fastest {f[0] + f[1]:.0f} s (stages {f[0]:.0f} s, "
-                f"monochromator {f[1]:.0f} s, {f[2]} grating changes), as the slowest {s[0] + s[1]:.0f} s "
-                f"(stages {s[0]:.0f} s, monochromator {s[1]:.0f} s, {s[2]} grating changes)")
+                f"monochromator {f[1]:.0f} s, {changes(f[2])}), as the slowest {s[0] + s[1]:.0f} s "
+                f"(stages {s[0]:.0f} s, monochromator {s[1]:.0f} s, {changes(s[2])})")
 
 
 def spectral_order(angles, wavelength_nm, stage_deg, settings: Mapping) -> tuple[OrderResult, SpectralOrder]:

@@ -60,7 +60,7 @@ from gonio.bench.session import integrity as _integrity
 from gonio.core.files import remove_orphans
 from gonio.bench.session.journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock, read_session, session_text, versions, write_session)
 from gonio.bench.measure.point import ReferenceModel, check_sensor, raw_estimate
-from gonio.bench.plan.spectral import order_plan
+from gonio.bench.plan.spectral import SpectralOrder, order_plan
 from gonio.core.preflight import (MARGIN, MiB, check_free_space, check_output_dir, disk_full, mount_of, oserror_line)
 from gonio.bench.drivers.rig import Bench
 from gonio.bench.session.run import _Session
@@ -115,6 +115,8 @@ class CaptureSummary:
     instrument_s : float
         The session's instrument time so far, s (every finished preparation and every kept
         point's: dataset.nc's ``instrument_time_s``).
+    spectral : str
+        A spectral plan's wavelength axis and both orders' estimates (`SpectralOrder.line`).
     """
 
     session_dir: Path
@@ -131,6 +133,7 @@ class CaptureSummary:
     notes: list = field(default_factory=list)
     plan_stop: str = ""
     instrument_s: float = 0.0
+    spectral: str = ""
 
     @property
     def per_point_s(self) -> float:
@@ -241,7 +244,8 @@ def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: Sessi
         return CaptureSummary(folder, budget, n_done, n_new, complete, stopped,
                               sess.reciprocity, o["naive_s"], o["ordered_s"], o["bound_s"],
                               time.perf_counter() - t0, notes, stop_line() if callable(stop_line) else "",
-                              sum(sess.times.values()) + sum(s for _, s in sess.preparations))
+                              sum(sess.times.values()) + sum(s for _, s in sess.preparations),
+                              getattr(SpectralOrder.from_dict(o), "line", str)())
     finally:
         journal.close()
         bench.close()
