@@ -135,6 +135,9 @@ def plans_lines(width: int | None = None) -> list[str]:
         lines += _entry(name, f"{len(plan)} pts", plan.description or "", name_w, 8, width)
     lines += _entry("adaptive", "", "chosen from the data as it is measured: the next point where the fit "
                     "learns the most (--points N, --target-rel-u X, --candidates PLAN)", name_w, 8, width)
+    lines += _entry("ndf", "", "NDF-seeded: a near-retro-reflection first pass, then points drawn where the fitted "
+                    "lobe sends light and is least sure (Dupuy & Jakob 2018); the same options as adaptive",
+                    name_w, 8, width)
     lines += [""] + textwrap.wrap("A plan file: TOML (name, description, and points = [[theta_i, phi_i, theta_o, "
                                   "phi_o], ...] or [[scan]] tables like the presets') or CSV with the header "
                                   "theta_i,phi_i,theta_o,phi_o; angles in degrees.", width, break_on_hyphens=False)

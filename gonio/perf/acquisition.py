@@ -23,7 +23,8 @@ from gonio.core.errors import GonioError
 
 __all__ = ["PLANS", "front", "run", "score"]
 
-#: plans compared by default (``adaptive``: the sequential design drawing from ``dense``)
+#: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``ndf``,
+#: the NDF-seeded one, on request)
 PLANS = ("quick", "standard", "adaptive")
 #: the adaptive plan's point budget by default
 ADAPTIVE_POINTS = 24
@@ -83,10 +84,11 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     from gonio.bench.session.simulated import capture_sim
     from gonio.fitting.pipeline import fit_measurements
 
-    strategy = {"name": "adaptive", "seed": int(seed), "points": int(points)} if plan == "adaptive" else None
+    sequential = plan in ("adaptive", "ndf")
+    strategy = {"name": plan, "seed": int(seed), "points": int(points)} if sequential else None
     t0 = time.perf_counter()
     session = folder / plan
-    capture_sim(session, sample=sample, plan="dense" if plan == "adaptive" else plan, seed=seed, progress=False,
+    capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
                 strategy=strategy, settings=settings)
     dataset = export(session)
     with xr.open_dataset(dataset) as ds:
@@ -162,7 +164,8 @@ def check_plans(text: str) -> tuple:
     from gonio.bench.plan.plans import PRESETS
 
     names = tuple(p.strip() for p in str(text).split(",") if p.strip())
-    bad = [p for p in names if p != "adaptive" and p not in PRESETS]
+    bad = [p for p in names if p not in ("adaptive", "ndf") and p not in PRESETS]
     if not names or bad:
-        raise GonioError(f"--plans {text!r}: give plan presets separated by commas ({', '.join(PRESETS)}, adaptive)")
+        raise GonioError(f"--plans {text!r}: give plan presets separated by commas ({', '.join(PRESETS)}, adaptive, "
+                         "ndf)")
     return names

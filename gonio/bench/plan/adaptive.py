@@ -251,7 +251,7 @@ class AdaptivePlan:
                 entry.update(fit_s=t1 - t0, choose_s=0.0, chosen=[])
                 self.log.append(entry)
                 return
-            chosen = self._d_optimal(x, basis, queue, free, n_new, results, sigma_rel, sigma_floor)
+            chosen = self._pick(x, basis, queue, free, n_new, results, sigma_rel, sigma_floor, cov)
         if self.budget_s > 0 and chosen:
             chosen = self._within_time(chosen, basis, queue)
             if not chosen:
@@ -349,6 +349,11 @@ class AdaptivePlan:
             fm = self.model.eval(self.wi, self.wo, self.space.to_params(xm))
             J[..., j] = (fp - fm) / (xp[j] - xm[j]) * scale[j]
         return np.nan_to_num(J / sigma[..., None]), sigma
+
+    def _pick(self, x, basis, queue, free, n_new, results, sigma_rel, sigma_floor, cov) -> list[int]:
+        """The next batch from ``free`` given the fit ``x`` (``cov`` its covariance): D-optimal
+        here; a strategy built on this one (gonio.bench.plan.ndf_seeded) places them otherwise."""
+        return self._d_optimal(x, basis, queue, free, n_new, results, sigma_rel, sigma_floor)
 
     def _d_optimal(self, x, basis, queue, free, n_new, results, sigma_rel, sigma_floor) -> list[int]:
         """Greedy D-optimal batch: each pick maximises log det(I + A F^-1 A^T) (A: its whitened
@@ -452,15 +457,20 @@ CLI_STOPS = (("--points", "points", "the most points", ""),
              ("--target-de00", "target_de00", "a CIEDE2000 colour difference", ""))
 
 
+#: ``--plan`` names that are strategies drawing from ``--candidates``: the D-optimal sequential
+#: design (this module) and the NDF-seeded plan (gonio.bench.plan.ndf_seeded)
+SEQUENTIAL = ("adaptive", "ndf")
+
+
 def cli_strategy(plan: str, *, points: int | None, target_rel_u: float | None, candidates: str | None,
                  seed: int, budget_minutes: float | None = None, target_de00: float | None = None
                  ) -> tuple[str, dict | None]:
     """``gonio capture``'s plan options as (the plan to load, the ``[strategy]`` table): ``--plan
-    adaptive`` draws from ``--candidates`` (default the ``dense`` preset) and stops at ``--points``
+    adaptive`` (or ``ndf``, :data:`SEQUENTIAL`) draws from ``--candidates`` (default the ``dense`` preset) and stops at ``--points``
     or ``--budget-minutes`` (not both) or its targets; a fixed plan takes none of the adaptive
     options. ValueError, one line naming the option, for a value that is not > 0 and finite."""
     given = dict(zip([k for _, k, _, _ in CLI_STOPS], (points, budget_minutes, target_rel_u, target_de00)))
-    if plan != "adaptive":
+    if plan not in SEQUENTIAL:
         for flag, v in (("--points", points), ("--budget-minutes", budget_minutes), ("--target-rel-u", target_rel_u),
                         ("--target-de00", target_de00), ("--candidates", candidates)):
             if v is not None:
@@ -478,7 +488,7 @@ def cli_strategy(plan: str, *, points: int | None, target_rel_u: float | None, c
     if points is not None and budget_minutes is not None:
         raise ValueError("--points and --budget-minutes exclude each other: give the most points or the most "
                          "instrument time")
-    table: dict[str, Any] = {"name": "adaptive", "seed": int(seed)}
+    table: dict[str, Any] = {"name": plan, "seed": int(seed)}
     if points is not None:
         table["points"] = int(points)
     if budget_minutes is not None:
