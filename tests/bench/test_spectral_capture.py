@@ -178,3 +178,14 @@ def test_a_simulated_spectral_capture_gets_the_twin_by_default(tmp_path):
     assert s.complete and s.n_done == 2
     doc = tomllib.loads((tmp_path / "s" / "session.toml").read_text())
     assert doc["settings"]["monochromator"] == {} and doc["devices"]["monochromator"].startswith("CORNERSTONE")
+
+
+def test_a_spectral_fits_truth_comes_from_the_samples_spectrum():
+    from gonio.bench.report.fitdoc import truth_by_name
+    from gonio.bench.samples import load_sample
+
+    sample = load_sample(LACQUER)
+    got = truth_by_name(sample, ["diffuse_reflectance[600nm]", "diffuse_reflectance[612.5nm]", "alpha"])
+    # red-lacquer.toml: 0.42 at 600 nm, 0.58 at 625 nm (linear between), alpha 0.12
+    assert got == {"diffuse_reflectance[600nm]": pytest.approx(0.42), "diffuse_reflectance[612.5nm]": pytest.approx(0.50),
+                   "alpha": pytest.approx(0.12)}

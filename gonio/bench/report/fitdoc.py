@@ -15,15 +15,22 @@ CHANNEL_NAMES = list(RGB.names)
 
 
 def truth_by_name(truth, names):
-    """Map fit-vector names (``diffuse_reflectance[R]``) to true values where the truth is known."""
+    """Map fit-vector names (``diffuse_reflectance[R]``; ``[550nm]`` from the sample's ``spectra``,
+    interpolated) to true values where the truth is known."""
     if not isinstance(truth, dict) or not isinstance(truth.get("params"), dict):
         return {}
     out = {}
+    spectra = truth.get("spectra") if isinstance(truth.get("spectra"), dict) else {}
     for name in names:
         base, _, chan = str(name).partition("[")
         if base not in truth["params"]:
             continue
         try:
+            if chan.endswith("nm]") and isinstance(spectra.get(base), dict):    # a spectrum at a fit's wavelength
+                sp = spectra[base]
+                out[name] = float(np.interp(float(chan[:-3]), np.asarray(sp["wavelengths"], float),
+                                            np.asarray(sp["values"], float)))
+                continue
             value = np.asarray(truth["params"][base], dtype=float).reshape(-1)
             if chan:
                 c = CHANNEL_NAMES.index(chan.rstrip("]"))
