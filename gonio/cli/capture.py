@@ -205,11 +205,12 @@ def serve_hints(paths: dict, devices: dict) -> list[str]:
     """What ``gonio sim serve`` prints: each port's stable path and device (``NAME PATH -> DEVICE``,
     one line each), then the commands and client calls that reach them, with the real paths."""
     z, m, c = (paths[k] for k in ("zaber", "meter", "camera"))
+    mono = f" --monochromator-port {paths['monochromator']}" if "monochromator" in paths else ""
     lines = [f"{name} {paths[name]} -> {devices[name]}" for name in paths]
     return lines + [
         "gonio sim serve: serving until Ctrl-C; the paths above stay valid while it runs. Connect with:",
-        f"  gonio devices --port {z} --meter-port {m} --camera {c}",
-        f"  gonio capture --port {z} --meter-port {m} --camera {c} --out my-session",
+        f"  gonio devices --port {z} --meter-port {m} --camera {c}{mono}",
+        f"  gonio capture --port {z} --meter-port {m} --camera {c}{mono} --out my-session",
         f"  PyVISA (pyvisa-py): pyvisa.ResourceManager('@py').open_resource('ASRL{devices['meter']}::INSTR', "
         "read_termination='\\n', write_termination='\\n')",
         f"  zaber-motion: Connection.open_serial_port('{devices['zaber']}')",

@@ -202,6 +202,8 @@ def _export_counts(path):
     try:
         with xr.open_dataset(path, engine="h5netcdf") as ds:
             done = int(ds.sizes.get("point", 0))
+            if "wavelength" in ds.sizes and "plan_index" in ds:     # spectral: a point per (geometry, wavelength)
+                done = int((ds["plan_index"].values >= 0).sum())
             plan = json.loads(ds.attrs.get("plan", "{}"))
             complete = ds.attrs.get("complete")
     except (OSError, ValueError, TypeError):

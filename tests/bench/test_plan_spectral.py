@@ -56,6 +56,7 @@ def test_the_order_takes_the_cheaper_wavelength_axis():
         assert order.ordered_s == pytest.approx(chosen[0])
         assert min(f[0] + f[1], s[0] + s[1]) == pytest.approx(chosen[0] + chosen[1])
         assert SpectralOrder.from_dict(why.to_dict()) == why     # as session.toml's [order] records it
+        assert all(type(v) in (str, float, int) for v in why.to_dict().values())   # no numpy scalar in the TOML
     # the dry run says both and counts the monochromator's time in its estimate
     d = dry_run(load_plan("spectral"), st)
     assert "wavelength the fastest axis" in d.summary() and d.monochromator_s > 200

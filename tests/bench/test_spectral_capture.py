@@ -189,3 +189,25 @@ def test_a_spectral_fits_truth_comes_from_the_samples_spectrum():
     # red-lacquer.toml: 0.42 at 600 nm, 0.58 at 625 nm (linear between), alpha 0.12
     assert got == {"diffuse_reflectance[600nm]": pytest.approx(0.42), "diffuse_reflectance[612.5nm]": pytest.approx(0.50),
                    "alpha": pytest.approx(0.12)}
+
+
+def test_sim_serve_hints_name_the_monochromator_port():
+    from gonio.cli.capture import serve_hints
+
+    paths = {"zaber": "/r/zaber", "meter": "/r/meter", "camera": "/r/camera", "monochromator": "/r/monochromator"}
+    devices = {k: f"/dev/pts/{i}" for i, k in enumerate(paths)}
+    lines = serve_hints(paths, devices)
+    assert "monochromator /r/monochromator -> /dev/pts/3" in lines
+    assert ("  gonio capture --port /r/zaber --meter-port /r/meter --camera /r/camera --monochromator-port "
+            "/r/monochromator --out my-session") in lines
+    assert not any("monochromator" in ln for ln in serve_hints({k: paths[k] for k in list(paths)[:3]}, devices))
+
+
+def test_gonio_export_counts_a_spectral_sessions_points(spectral_session, capsys):
+    from gonio.cli.main import main
+
+    folder = spectral_session[0]
+    assert main(["export", str(folder)]) in (0, None)
+    out = capsys.readouterr().out
+    # 2 geometries x 2 wavelengths, all measured: not PARTIAL (it said "2 of 4 planned points")
+    assert out.strip() == f"wrote {folder / 'dataset.nc'} (4 points)", out

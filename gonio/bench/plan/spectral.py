@@ -145,7 +145,7 @@ class MonochromatorTimes:
                 if w != pw:
                     total += self.settle_s + abs(w - pw) / (self.slew * 1200.0 / self.LINES.get(g or 1, 1200))
             prev = (w, g, f)
-        return total, changes
+        return float(total), changes
 
 
 def geometry_groups(angles) -> tuple[np.ndarray, np.ndarray]:
@@ -167,9 +167,9 @@ class SpectralOrder:
     slowest: tuple[float, float, int]
 
     def to_dict(self) -> dict:
-        return {"wavelength_axis": self.axis,
-                **{f"{k}_{q}": v for k, t in (("fastest", self.fastest), ("slowest", self.slowest))
-                   for q, v in zip(("stage_s", "monochromator_s", "grating_changes"), t)}}
+        return {"wavelength_axis": self.axis,          # plain floats and ints: session.toml's TOML writer
+                **{f"{k}_{q}": kind(v) for k, t in (("fastest", self.fastest), ("slowest", self.slowest))
+                   for q, v, kind in zip(("stage_s", "monochromator_s", "grating_changes"), t, (float, float, int))}}
 
     @classmethod
     def from_dict(cls, d) -> "SpectralOrder | None":
