@@ -211,3 +211,21 @@ def test_gonio_export_counts_a_spectral_sessions_points(spectral_session, capsys
     out = capsys.readouterr().out
     # 2 geometries x 2 wavelengths, all measured: not PARTIAL (it said "2 of 4 planned points")
     assert out.strip() == f"wrote {folder / 'dataset.nc'} (4 points)", out
+
+
+@pytest.mark.parametrize("spectral_table, says", [
+    ("from_nm = 1300\nto_nm = 1500\nstep_nm = 100\n", "1500 nm is outside the monochromator's ranges"),
+    ("from_nm = 400\nto_nm = 700\nstep_nm = 0\n", "step_nm = 0 must be positive"),
+    ("from_nm = nan\nto_nm = 700\nstep_nm = 100\n", "not a finite number"),
+])
+def test_bad_wavelengths_are_one_line_exit_2_before_anything_is_written(tmp_path, capsys, spectral_table, says):
+    from gonio.cli.main import main
+
+    (tmp_path / "settings.toml").write_text("[monochromator]\ngratings = [[1, 200, 650], [2, 650, 1400]]\n")
+    (tmp_path / "plan.toml").write_text('name = "bad"\n[spectral]\n' + spectral_table
+                                        + '[[scan]]\nkind = "points"\npoints = [[30, 0, 30, 180]]\n')
+    rc = main(["capture", "--sim", "--settings", str(tmp_path / "settings.toml"), "--plan", str(tmp_path / "plan.toml"),
+               "--out", str(tmp_path / "s"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and says in err and "\n" not in err, err
+    assert not (tmp_path / "s").exists()
