@@ -229,3 +229,22 @@ def test_bad_wavelengths_are_one_line_exit_2_before_anything_is_written(tmp_path
     err = capsys.readouterr().err.strip()
     assert rc == 2 and says in err and "\n" not in err, err
     assert not (tmp_path / "s").exists()
+
+
+def test_a_spectral_session_resumes_only_with_a_monochromator(spectral_session, tmp_path, monkeypatch):
+    import shutil
+
+    import gonio.bench.session.capture as cap
+    from gonio.core.errors import SessionError
+
+    copy = tmp_path / "s"
+    shutil.copytree(spectral_session[0], copy)
+    real = cap._integrity.load_session
+
+    def without_port(folder):              # session.toml as if it recorded no monochromator port
+        data, doc, why = real(folder)
+        return data, {**doc, "ports": {k: v for k, v in doc["ports"].items() if k != "monochromator"}}, why
+
+    monkeypatch.setattr(cap._integrity, "load_session", without_port)
+    with pytest.raises(SessionError, match="the plan is spectral; give the monochromator's port"):
+        cap.resume(copy, progress=False)   # refused before any port opens (its sim:// URLs name no instrument)

@@ -544,6 +544,9 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
                 raise SessionError(f"{folder}: give the ports to resume on (--port and --meter-port)")
             warnings: list = []
             monochromator = monochromator or ports.get("monochromator")
+            if doc["plan"].get("wavelength_nm") is not None and not monochromator:
+                raise SessionError(f"{folder}: the plan is spectral; give the monochromator's port "
+                                   "(--monochromator-port) to resume on")
             bench = Bench(doc["settings"], zaber_url, meter_url, camera, sleep=sleep, poll_interval_s=poll_interval_s,
                           timeout=timeout, on_warning=lambda d, f, m: warnings.append((d, f, m)), clock=clock,
                           monochromator=monochromator)
