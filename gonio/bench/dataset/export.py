@@ -9,12 +9,13 @@ uncertainty, not in ``brdf_std``), ``complete``, ``instrument_time_s`` (per poin
 ``instrument_time``). A session captured with a calibration also has ``<angle>_nominal``,
 ``<angle>_u``, ``angle_calibration`` and ``aperture_*``. Where the RAW files carry colour matrices,
 also ``brdf_srgb`` (linear sRGB, D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and
-``brdf_srgb_corr``; every f_r variable says its space (``colour_space``). A spectral session's
-has dimensions ``point`` and ``wavelength`` (nm) instead (`gonio.bench.dataset.spectral`). Written atomically: a full
-disk is one line and leaves no partial file. What was serialised is read back before it is written:
-every variable, its point count and its values as they were, or nothing is written. A journal with a
-damaged point row is refused (`gonio verify`).
+``brdf_srgb_corr``; every f_r variable says its space (``colour_space``); a spectral session's
+are on ``point`` and ``wavelength`` (nm; `gonio.bench.dataset.spectral`). Written atomically, read
+back before it is written (every variable, its point count and values, or nothing is written). A
+journal with a damaged point row is refused (`gonio verify`).
 """
+
+# A full disk is one line and leaves no partial file.
 
 # Calibration: a session captured with a calibration ([alignment] in its settings,
 # gonio.bench.measure.calpoint.dataset_angles) has the calibrated angles as coordinates and

@@ -11,11 +11,12 @@ A plan is a preset (``quick``, ``standard``, ``dense``: ``bench/presets/*.toml``
     theta_o = [-70, -50, 50, 70]          # signed: < 0 on the incidence side (phi_o = 0)
     reciprocal = true                     # also measure each point's reciprocal partner
 
-Generators `in_plane`, `hemisphere_grid`, `isotropic_grid`, `with_reciprocal`. Plans are
-validated on load (`PlanError`: one line); `check_plan` lists what the bench cannot reach. A
-spectral plan (``[spectral] from_nm, to_nm, step_nm``; the ``spectral`` preset, ``spectral:STEP``)
-measures every geometry at every wavelength (`gonio.bench.plan.spectral`).
+Plans are validated on load (`PlanError`: one line); `check_plan` lists what the bench cannot
+reach. ``[spectral]`` (`gonio.bench.plan.spectral`): every geometry at every wavelength.
 """
+
+# Generators `in_plane`, `hemisphere_grid`, `isotropic_grid`, `with_reciprocal`. A spectral plan:
+# ``[spectral] from_nm, to_nm, step_nm``, the ``spectral`` preset or ``spectral:STEP``.
 
 # phi may be any finite value (wrapped); phi_i = 0, phi_o = 180 is the specular side of the
 # plane of incidence. CSV plans hold one point per row. Generators:

@@ -6,17 +6,15 @@ The meter watches the lamp through a beam splitter. Reading (W):
 
 (a silicon photodiode's responsivity grows roughly linearly with wavelength, so a meter set
 to the wrong wavelength scales its readings; the LED's centroid is 550 nm). Monochromatic
-light at lambda (a monochromator's beam, power P_lamp x its relative spectrum) reads
-``P * splitter * (lambda / wavelength setting)``: the monitor at lambda. Noise: Gaussian,
-standard deviation ``sqrt((rel_noise P)^2 + abs_noise^2) / sqrt(average count)``, drawn from
-``default_rng([seed, 0x3E7E, reading index])``. A reading takes ``average count *
-sample_time`` of simulated time.
+light at lambda (power P) reads ``P * splitter * (lambda / wavelength setting)``. Noise:
+Gaussian, ``sqrt((rel_noise P)^2 + abs_noise^2) / sqrt(average count)``, drawn from
+``default_rng([seed, 0x3E7E, reading index])``; a reading takes ``average count * sample_time``.
 
-Grammar: IEEE 488.2 common commands and the SCPI command set of a Thorlabs PM100D with a
-photodiode sensor (``scpi_grammar.py``: what the ThorlabsPM100 package, PyMeasure and PyVISA
-scripts send); set commands reply nothing; errors go to the queue with the SCPI-1999 codes and
-texts.
+Grammar: IEEE 488.2 and the SCPI command set of a Thorlabs PM100D with a photodiode sensor
+(``scpi_grammar.py``); set commands reply nothing; errors queue with SCPI-1999 codes and texts.
 """
+
+# The grammar is what the ThorlabsPM100 package, PyMeasure and PyVISA scripts send.
 
 from __future__ import annotations
 
