@@ -412,9 +412,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--sample", help="simulated instrument only: an example sample's name (see `gonio models`), "
                                     "a sample TOML or a measured RGL .bsdf file (default: the demo's)")
     c.add_argument("--plan", default="standard",
-                   help=f"preset ({_presets_text()}; see `gonio plans`), plan TOML/CSV file, or adaptive "
-                        "(chosen from the data) (default standard)")
-    c.add_argument("--points", type=int, metavar="N", help="with --plan adaptive: the most points to measure (default 24)")
+                   help=f"preset ({_presets_text()}; see `gonio plans`), plan TOML/CSV file, adaptive "
+                        "(chosen from the data) or ndf (NDF-seeded: retro-reflection first) (default standard)")
+    c.add_argument("--points", type=int, metavar="N",
+                   help="with --plan adaptive or ndf: the most points to measure (default 24)")
     c.add_argument("--budget-minutes", type=float, metavar="M",
                    help="with --plan adaptive, instead of --points: the most instrument time (motion, settling, "
                         "exposures, the preparation), in minutes; a batch is added only if the plan's estimate of "

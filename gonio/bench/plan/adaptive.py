@@ -194,9 +194,9 @@ class AdaptivePlan:
         """Why the strategy stopped, in one line ("" while it has not)."""
         last = self.log[-1] if self.log else {}
         if self.stopped_by == "budget":
-            return f"adaptive plan: stopped at its budget of {self.budget} points"
+            return f"{self.name} plan: stopped at its budget of {self.budget} points"
         if self.stopped_by == "time":
-            return (f"adaptive plan: stopped at its time budget: {self.spent_s:.0f} s of {self.budget_s:.0f} s of "
+            return (f"{self.name} plan: stopped at its time budget: {self.spent_s:.0f} s of {self.budget_s:.0f} s of "
                     f"instrument time used, the next point (about {self.next_s:.0f} s) would not fit")
         if self.stopped_by == "target":
             met = []
@@ -206,9 +206,9 @@ class AdaptivePlan:
             if self.target_de00 > 0:
                 met.append(f"the albedo colour's predicted CIEDE2000 1-sigma {last['de00_u']:.3g} below "
                            f"{self.target_de00:g}")
-            return "adaptive plan: reached its target: " + " and ".join(met)
+            return f"{self.name} plan: reached its target: " + " and ".join(met)
         if self.stopped_by == "candidates":
-            return "adaptive plan: stopped: no candidate point is worth adding"
+            return f"{self.name} plan: stopped: no candidate point is worth adding"
         return ""
 
     # -- the choices ----------------------------------------------------------------------
