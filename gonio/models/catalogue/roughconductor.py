@@ -11,8 +11,6 @@ in the shape: its ``to_world`` rotated by ``tangent_deg`` about the normal
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from gonio.core.channels import CHANNELS
@@ -66,7 +64,7 @@ class RoughConductor(Model):
 
     @property
     def structure(self):
-        return Structure(kernel=_jit_kernel, geometry=_jit_geometry, body=_jit_body, kernel_inputs=_turn_inputs)
+        return Structure(kernel=_jit_kernel, geometry=_jit_geometry, body=_jit_body)
     OPTIONS = {"distribution": ("beckmann", "ggx"), "anisotropic": (False, True)}
     energy_conserving = True
 
@@ -96,8 +94,9 @@ class RoughConductor(Model):
         deg) are evaluated in float64 and rounded once. The turn rounded in float32 moves f_r
         by |d ln f / d phi| times float32's roundoff, which a narrow anisotropic lobe makes
         larger than the float32 contract's 2e-5 (measured 3.9e-5 at alpha_u 0.0057, alpha_v
-        0.0116, tangent 179.9 deg, even with the turn itself done in float64); an isotropic
-        lobe does not change under a turn."""
+        0.0116, tangent 179.9 deg, and still 3.9e-5 with the turn's cosine and sine, or the
+        whole turn, computed in float64 and rounded once); an isotropic lobe does not change
+        under a turn."""
         if (self.options["anisotropic"] and backend != "numpy" and eval_dtype(wi, wo) == np.float32
                 and self.tangent_deg(params) % 90.0 != 0.0):
             f = super().eval(np.asarray(wi, np.float64), np.asarray(wo, np.float64), params, backend)
@@ -192,23 +191,13 @@ def _jit_body(model, k, g, P, grad):
     return _conductor(model, k, s, c, ds, P, grad)
 
 
-def _turn_inputs(model, p, P, F, grad, dtables):
-    """The tangent's cosine and sine from the float64 angle, each rounded once to F."""
-    if model.options["anisotropic"]:
-        import drjit as dr
-
-        t = math.radians(float(p["tangent_deg"]))
-        P["tangent_cs"] = (dr.opaque(F, math.cos(t)), dr.opaque(F, math.sin(t)))
-
-
 def _jit_kernel(model, k, wi, wo, P, grad):
     """The compiled kernel: conductor Fresnel times the microfacet term, derivatives by hand."""
     dr = k.dr
     aniso = model.options["anisotropic"]
     alphas = (P["alpha_u"], P["alpha_v"]) if aniso else (P["alpha"], P["alpha"])
     if aniso:   # the tangent frame; d f / d tangent_deg from the lobe's d ln / d turn
-        cs = P.get("tangent_cs")
-        wi, wo = rotate_about_normal(dr, wi, P["tangent_deg"], cs), rotate_about_normal(dr, wo, P["tangent_deg"], cs)
+        wi, wo = rotate_about_normal(dr, wi, P["tangent_deg"]), rotate_about_normal(dr, wo, P["tangent_deg"])
     s, c, ds = microfacet_lobe(dr, model.options["distribution"], alphas, wi, wo, grad, aniso)
     return _conductor(model, k, s, c, ds, P, grad)
 

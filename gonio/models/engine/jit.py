@@ -257,16 +257,11 @@ def _lobe(dr, kind, au, av, wi, wo, grad=False):
     return out
 
 
-def rotate_about_normal(dr, w, tangent_deg, cs=None):
+def rotate_about_normal(dr, w, tangent_deg):
     """Directions ``w`` (a Dr.Jit 3-vector) turned by -tangent_deg about the normal: the
-    holder frame -> a tangent frame whose x axis lies at tangent_deg from the holder's.
-    ``cs``: the angle's (cos, sin) computed in float64 by the caller (else here, in the
-    kernel's precision)."""
-    if cs is not None:
-        c, s = cs
-    else:
-        t = tangent_deg * (math.pi / 180.0)
-        c, s = dr.cos(t), dr.sin(t)
+    holder frame -> a tangent frame whose x axis lies at tangent_deg from the holder's."""
+    t = tangent_deg * (math.pi / 180.0)
+    c, s = dr.cos(t), dr.sin(t)
     return type(w)(c * w.x + s * w.y, c * w.y - s * w.x, w.z)
 
 
