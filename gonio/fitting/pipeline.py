@@ -25,6 +25,7 @@ from gonio.core.errors import GonioError
 from gonio.fitting.formats.fitfile import load_fit_file  # noqa: F401  (re-exported: the use cases read fit files)
 
 __all__ = ["FitInput", "as_fit_input", "fit_dataset", "fit_document_of", "fit_measurements", "load_fit_file",
+           "renders_measured",
            "parse_options", "resolve_candidates", "model_error"]
 
 
@@ -87,13 +88,16 @@ def resolve_candidates(model, options):
         raise model_error(exc, model, auto=True) from None
 
 
-def _renders_measured(dataset_path) -> bool:
-    """A measured file (RGL .bsdf, MERL .binary) and a vectorised Mitsuba variant to take its
-    scene's pixels with."""
+def renders_measured(dataset_path) -> bool:
+    """A measured file Mitsuba renders (an RGL tensor .bsdf, a MERL .binary; not a Zemax
+    table, which shares the .bsdf suffix: told by content) and a vectorised Mitsuba variant
+    to take its scene's pixels with."""
+    from gonio.fitting.formats.zemax import is_zemax_bsdf
     from gonio.models.mitsuba import mitsuba_variant
 
-    return (dataset_path is not None and Path(dataset_path).suffix.lower() in (".bsdf", ".binary")
-            and mitsuba_variant().startswith("llvm"))
+    if dataset_path is None or Path(dataset_path).suffix.lower() not in (".bsdf", ".binary"):
+        return False
+    return not is_zemax_bsdf(dataset_path) and mitsuba_variant().startswith("llvm")
 
 
 def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress=None):
@@ -101,6 +105,7 @@ def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress
     where no candidate renders within its threshold of a measured file, the data-driven
     ``tabulated`` model fitted from ``meas`` is tried too: selection.by_scene.data_driven);
     skipped, and said, where Mitsuba has only its scalar variant (a render would take minutes)."""
+    from gonio.fitting.formats.zemax import is_zemax_bsdf
     from gonio.fitting.selection.by_scene import data_driven, rendered_choice
     from gonio.models.mitsuba import mitsuba_variant
 
@@ -109,6 +114,8 @@ def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress
         return by_bic.result, ranking, "BIC's choice: no vectorised Mitsuba variant for the default scene's renders"
     path = Path(dataset_path) if dataset_path is not None else None
     measured = str(path) if path is not None and path.suffix.lower() in (".bsdf", ".binary") else None
+    if measured is not None and is_zemax_bsdf(path):
+        measured = None         # a Zemax table: the best-supported fit is the reference, as for a dataset
     fallback = data_driven(meas, seed=seed, loss=loss) if meas is not None and measured is not None else None
     return rendered_choice(ranking, measured, seed=seed, fallback=fallback, progress=progress)
 
@@ -143,7 +150,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     rng = np.random.default_rng(seed) if rng is None else rng
     ranking, note = None, None
     candidates = resolve_candidates(model, options)
-    if candidates is None and _renders_measured(dataset_path):
+    if candidates is None and renders_measured(dataset_path):
         from gonio.fitting.selection.auto import auto_fit
 
         try:     # a measured file: screened on a subsample, chosen by the default scene's pixels, refitted

@@ -224,3 +224,20 @@ def test_a_format_that_holds_an_isotropic_brdf_gets_no_anisotropic_candidate():
     assert ANISOTROPIC and candidates_for(meas) == CANDIDATES + ANISOTROPIC
     iso = Measurements(wi, wo, f, 0.01 * f, np.ones(f.shape, bool), {"isotropic": True})
     assert candidates_for(iso) == CANDIDATES
+
+
+def test_a_zemax_table_is_not_taken_for_a_measured_file_mitsuba_renders(tmp_path):
+    """A Zemax/LightTools table shares the RGL files' .bsdf suffix: --model auto must not hand it
+    to Mitsuba's ``measured`` plugin (that failed the whole fit: 'not an RGL-EPFL tensor .bsdf
+    file'); told by content. An RGL-like name that is not a Zemax table still counts."""
+    from gonio.fitting.formats.zemax import export_zemax
+    from gonio.fitting.pipeline import renders_measured
+
+    model = gm.get("difftrans")
+    paths = export_zemax(tmp_path / "diffuser", model, {"transmittance": [0.5, 0.4, 0.3]}, aoi=[0.0, 30.0])
+    assert paths and all(str(p).endswith(".bsdf") for p in paths)
+    assert not any(renders_measured(p) for p in paths)
+    fake = tmp_path / "paint_rgb.bsdf"
+    fake.write_bytes(b"tensor_file\x00" + bytes(64))
+    assert renders_measured(fake)
+    assert not renders_measured(tmp_path / "x.nc") and not renders_measured(None)

@@ -145,7 +145,8 @@ def pixel_choice(ranking, measured, *, scene="product-shot", size=32, k=16, seed
     low = min(r.bic for r in alike)
     pick = min((r for r in alike if r.bic - low <= delta), key=lambda r: (r.k, r.bic))
     pick.chosen = True
-    skipped = [r.name for r in ranking if r not in proper]
+    kept = {id(r) for r in proper}          # by identity: rows compare their FitResults' arrays
+    skipped = [r.name for r in ranking if id(r) not in kept]
     note = (f"{pick.name} (k = {pick.k}): the data's choice (BIC) among the {len(alike)} proper candidates whose "
             f"{check.scene} pixels lie within CIEDE2000 {tolerance:g} (+ floor {best.noise:.2f}) of the closest "
             f"({best.name} {best.delta_e:.2f}; chosen {pick.delta_e:.2f}){extra_note}")
