@@ -187,7 +187,7 @@ def _cmd_export(args):
     with _steps(args, "export"):
         path = export(Path(args.session), chart=Path(args.colour_chart) if args.colour_chart else None, attrs=attrs)
     done, planned, complete = _export_counts(path)
-    if complete is False or (planned is not None and done is not None and done < planned):
+    if complete is False or (complete is None and planned is not None and done is not None and done < planned):
         of = f"{done} of {planned} planned points" if planned is not None else f"{done} points, the plan not finished"
         say(f"wrote {path}: PARTIAL, {of} (the session stopped early; "
             f"`gonio capture --resume {args.session}` measures the rest, then export again)")

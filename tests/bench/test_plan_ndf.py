@@ -98,3 +98,28 @@ def test_the_ndf_plan_is_a_strategy_and_a_cli_plan():
     assert doc["name"] == "ndf"
     with pytest.raises(ValueError, match="unknown key"):
         NDFSeededPlan(plans.load_plan("quick"), range(30), {"pointz": 12})
+
+
+def test_a_sequential_capture_that_stopped_at_its_budget_exports_complete(tmp_path, capsys):
+    """An ndf capture of 10 points drawn from the quick plan (30) stops at its budget: its
+    dataset is complete (``complete`` 1, ``strategy_stopped_by`` "budget") and ``gonio export``
+    says so instead of "PARTIAL, 10 of 30 planned points ... --resume" (a resume has nothing to
+    add: the strategy stopped)."""
+    import xarray as xr
+
+    from gonio.bench.dataset.export import strategy_stop
+    from gonio.bench.session.simulated import capture_sim
+    from gonio.cli.main import main
+
+    assert strategy_stop([(0.0, "strategy", '{"stopped_by": "budget"}'), (1.0, "other", "x")]) == "budget"
+    assert strategy_stop([(0.0, "strategy", "not json")]) is None and strategy_stop([]) is None
+    session = tmp_path / "s"
+    sample = {"model": "roughplastic", "options": {"distribution": "ggx"},
+              "params": {"diffuse_reflectance": [0.5, 0.37, 0.25], "alpha": ALPHA, "int_ior": 1.49}}
+    capture_sim(session, sample=sample, plan="quick", seed=2, progress=False,
+                strategy={"name": "ndf", "seed": 2, "points": 10})
+    assert main(["export", str(session)]) == 0
+    out = capsys.readouterr().out
+    assert "PARTIAL" not in out and "(10 points)" in out
+    with xr.open_dataset(session / "dataset.nc") as ds:
+        assert int(ds.attrs["complete"]) == 1 and ds.attrs["strategy_stopped_by"] == "budget"

@@ -76,13 +76,16 @@ def to_dataset(session_dir, chart=None, attrs=None):
         rows = j.points()
         rgb_cam = j.first_event("rgb_cam")
         charts = j.frames("chart")
-        preparations = preparation_times(j.events())
+        events = j.events()
+        preparations = preparation_times(events)
+    stopped = strategy_stop(events)
     if not rows:
         raise SessionError(f"{folder} has no measured point yet; resume the capture first")
     n_plan = len(doc["plan"]["points"])
     if doc["plan"].get("wavelength_nm") is not None:     # a spectral plan: brdf(point, wavelength)
         coords, data, monitor, point_s = spectral_variables(doc, rows)
-        attrs = {**_attributes(doc, rows, n_plan, monitor, None, None), **_instrument_time(point_s, preparations)}
+        attrs = {**_attributes(doc, rows, n_plan, monitor, None, None, stopped),
+                 **_instrument_time(point_s, preparations)}
         ds = cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name, attrs=global_attrs)
         ds.attrs["colour_space"] = SPECTRAL_SPACE
         ds["wavelength"].encoding["_FillValue"] = None     # CF 2.5.1: a coordinate variable has none
@@ -99,10 +102,15 @@ def to_dataset(session_dir, chart=None, attrs=None):
         **{k: ("point", np.array([r[k] for r in rows], float), deg) for k in ("theta_i", "phi_i", "theta_o", "phi_o")},
     }
     sr = {"units": "sr^-1"}
+    brdf = np.array([r["brdf"] for r in rows], float)
+    std = np.array([r["brdf_std"] for r in rows], float)
+    # a value journalled without a finite uncertainty (before the run dropped them: a region left
+    # with one unsaturated pixel) is no measurement: NaN, as the run now records it
+    brdf = np.where(np.isfinite(std), brdf, np.nan)
     data = {
-        "brdf": (("point", "channel"), np.array([r["brdf"] for r in rows], float),
+        "brdf": (("point", "channel"), brdf,
                  {**sr, "long_name": "bidirectional reflectance distribution function f_r (no cosine factor)"}),
-        "brdf_std": (("point", "channel"), np.array([r["brdf_std"] for r in rows], float),
+        "brdf_std": (("point", "channel"), std,
                      {**sr, "long_name": "standard uncertainty (1-sigma) of brdf from shot and read noise (the scale's: "
                            "scale_rel_std)"}),
         "saturated": ("point", np.array([bool(r["saturated"]) for r in rows]),
@@ -135,15 +143,29 @@ def to_dataset(session_dir, chart=None, attrs=None):
     data.update(cal_data)
     if not cal_attrs and isinstance(doc["settings"].get("aperture"), dict):
         cal_attrs = instrument_response(doc["settings"])
-    attrs = _attributes(doc, rows, n_plan, monitor, matrix, chart)
+    attrs = _attributes(doc, rows, n_plan, monitor, matrix, chart, stopped)
     attrs.update(_instrument_time(point_s, preparations))
     attrs.update(cal_attrs)
     return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name, attrs=global_attrs)
 
 
-def _attributes(doc, rows, n_plan, monitor, matrix, chart) -> dict:
+def strategy_stop(events) -> str | None:
+    """Why the session's plan strategy stopped asking for points (its last ``strategy`` event's
+    ``stopped_by``: budget, time, target, candidates), or None (a fixed plan, or not yet)."""
+    last = None
+    for _, kind, text in events:
+        if kind == "strategy":
+            try:
+                last = json.loads(text).get("stopped_by")
+            except (ValueError, AttributeError):
+                last = None
+    return None if last is None else str(last)
+
+
+def _attributes(doc, rows, n_plan, monitor, matrix, chart, stopped=None) -> dict:
     """The dataset's global attributes: versions, seed, plan and settings, the reference,
-    completeness, the lamp's drift, the colour matrix and the simulated truth."""
+    completeness (every planned point, or a plan strategy that stopped: ``stopped``), the
+    lamp's drift, the colour matrix and the simulated truth."""
     sess = doc.get("session", {})
     attrs = {
         "gonio_version": str(sess.get("gonio", "unknown")),
@@ -153,7 +175,7 @@ def _attributes(doc, rows, n_plan, monitor, matrix, chart) -> dict:
         "versions": json.dumps(sess, sort_keys=True),
         "scale_rel_std": float(doc["settings"]["reference"].get("rel_std", 0.0)),
         "reference_reflectance": json.dumps(doc["settings"]["reference"]["reflectance"]),
-        "complete": int(len(rows) == n_plan),
+        "complete": int(len(rows) == n_plan or stopped is not None),
         # relative span of the monitor over the session: what normalisation had to correct
         "lamp_drift": float((np.nanmax(monitor) - np.nanmin(monitor)) / np.nanmedian(monitor))
         if np.any(np.isfinite(monitor)) and np.nanmedian(monitor) > 0 else 0.0,
@@ -165,6 +187,8 @@ def _attributes(doc, rows, n_plan, monitor, matrix, chart) -> dict:
                                             sort_keys=True)
     if "sample_truth" in doc:
         attrs["sample_truth"] = str(doc["sample_truth"]["json"])
+    if stopped is not None:
+        attrs["strategy_stopped_by"] = stopped
     return attrs
 
 

@@ -466,6 +466,9 @@ class _Session(CalibrationFrames, Tuning):
                 rel = rel / np.where(ratio != 0, np.abs(ratio) * (1.0 - q) / np.abs(s["mean"] / r["mean"]), 1.0)
             brdf = ratio * f_ref
             std = np.abs(brdf) * rel
+            # a channel without a finite uncertainty (its region left with one unsaturated pixel:
+            # no scatter to measure) gives no value, as a region with none does
+            brdf = np.where(np.isfinite(std), brdf, np.nan)
         detail = {
             "exposures": [d for _, d in used],
             "p_start": shot["p_start"],
