@@ -210,7 +210,9 @@ def print_table(rows, legend=True, head=True):
           "whose product-shot pixels are within CIEDE2000 0.5 of the closest, BIC chooses; tabulated is tried where "
           "none is within 1; the chosen one refitted to all samples); p: scipy least_squares, unweighted "
           "log loss, "
-          f"{PEER_STARTS} starts, gonio's model.eval of Mitsuba's {PEER_FAMILY}; t g: the chosen fit's wall time, "
+          f"{PEER_STARTS} starts, gonio's model.eval of Mitsuba's "
+          f"{', '.join(sorted({str(r.get('peer_model', PEER_FAMILY)) for r in rows})) or PEER_FAMILY}; "
+          "t g: the chosen fit's wall time, "
           "cpu: its CPU time (every thread of the process), auto: the whole selection (wall); metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
           f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
           "env and area lights, matched seeds), floor: its Monte Carlo noise")

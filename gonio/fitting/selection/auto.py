@@ -17,7 +17,6 @@ screened fit (:func:`refit`), so choosing costs the screen, one scene's pairs an
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
