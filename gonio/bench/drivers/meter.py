@@ -233,23 +233,7 @@ class PowerMeter(SerialDevice):
 
     def _read(self, wait: float | None = None) -> str | None:
         """One reply line within ``wait`` seconds (default the port's timeout); None if none came."""
-        port = self._port
-        try:
-            if wait is not None and wait != self.timeout:
-                port.timeout = wait
-            try:
-                line = port.readline()
-            finally:
-                if wait is not None and wait != self.timeout and self._port is port:
-                    port.timeout = self.timeout
-        except (serial.SerialException, OSError, ValueError):
-            return None
-        if not line.endswith(b"\n"):
-            return None
-        try:
-            return line.decode("ascii").strip()
-        except UnicodeDecodeError:
-            return None
+        return self.read_line(wait)
 
     def _resync(self) -> bool:
         """After an answer that did not come in time (or came garbled): send the marker and drop

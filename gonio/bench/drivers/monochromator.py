@@ -154,23 +154,9 @@ class Monochromator(SerialDevice):
 
     # ------------------------------------------------------------------ lines
     def _readline(self, wait: float) -> str | None:
-        """One line within ``wait`` seconds, without its terminator; None if none came whole."""
-        port = self._port
-        try:
-            port.timeout = wait
-            try:
-                line = port.readline()
-            finally:
-                if self._port is port:
-                    port.timeout = self.timeout
-        except (serial.SerialException, OSError, ValueError):
-            return None
-        if not line.endswith(b"\n"):
-            return None
-        try:
-            return line.decode("ascii").strip()
-        except UnicodeDecodeError:
-            return "\ufffd"                    # garbled: not the echo, not a number
+        """One line within ``wait`` seconds, without its terminator; None if none came whole;
+        a garbled one is neither the echo nor a number."""
+        return self.read_line(wait, garbled="\ufffd")
 
     def _lines(self, wait: float):
         """Non-empty lines within one deadline of ``wait`` seconds (None once it passes)."""

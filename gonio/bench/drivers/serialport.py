@@ -52,6 +52,29 @@ class SerialDevice:
         self.reconnects += 1
         self.open()
 
+    def read_line(self, wait: float | None = None, garbled: str | None = None) -> str | None:
+        """One line within ``wait`` seconds (default the port's timeout), without its terminator
+        or surrounding space; None if none came whole or the port failed; ``garbled`` for a
+        line that is not ASCII. The port's timeout is restored after a ``wait`` of its own."""
+        port = self._port
+        own = wait is not None and wait != self.timeout
+        try:
+            if own:
+                port.timeout = wait
+            try:
+                line = port.readline()
+            finally:
+                if own and self._port is port:
+                    port.timeout = self.timeout
+        except (serial.SerialException, OSError, ValueError):
+            return None
+        if not line.endswith(b"\n"):
+            return None
+        try:
+            return line.decode("ascii").strip()
+        except UnicodeDecodeError:
+            return garbled
+
     def __enter__(self):
         return self
 
