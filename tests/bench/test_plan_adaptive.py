@@ -24,6 +24,7 @@ from gonio.bench.session.journal import Journal, read_session
 from gonio.bench.settings import default_settings
 from gonio.core.errors import GonioError
 from gonio.fitting import Measurements, fit
+from strategy_run import run, synthetic
 
 S = default_settings()
 ALPHA = 0.15
@@ -125,64 +126,29 @@ def _capture_with(inst, folder, camera):
                    sleep=inst.clock.advance, sample_truth=inst.sample_spec, strategy=TABLE)
 
 
-def _synthetic(plan, seed=0):
-    m = gm.get("roughplastic", distribution="ggx")
-    a = plan.angles
-    from gonio.core.geometry import directions_deg
-    f = m.eval(directions_deg(a[:, 0], a[:, 1]), directions_deg(a[:, 2], a[:, 3]),
-               {"diffuse_reflectance": np.array([0.5, 0.37, 0.25]), "alpha": ALPHA, "int_ior": 1.49})
-    sd = 0.01 * f + 1e-4
-    return f + sd * np.random.default_rng(seed).standard_normal(f.shape), sd
-
-
-def _as_a_run(strat, f, sd, stop_after=None):
-    """Drive ``strat`` as `_Session.run` does (each point journalled before the next is asked
-    for), stopping after ``stop_after`` points; the results."""
-    results, todo = {}, strat.first(set())
-    n = 0
-    while n < len(todo):
-        if stop_after is not None and len(results) == stop_after:
-            break
-        todo.extend(strat.more(results, tuple(todo)))
-        i = todo[n]
-        results[i] = (f[i], sd[i])
-        n += 1
-    return results
-
-
 def test_a_resume_replays_the_choices_from_the_journalled_results():
     plan = plans.load_plan("standard")
-    f, sd = _synthetic(plan)
+    f, sd = synthetic(plan)
     order = list(range(len(plan)))
     table = {"points": 20, "seed": 1}
     whole = AdaptivePlan(plan, order, table)
-    _as_a_run(whole, f, sd)
+    run(whole, f, sd)
     assert whole.stopped_by == "budget" and sum(map(len, whole.batches)) == 20
     for stop in (3, 9, 13):                 # in the first pass, at a batch's end, inside a batch
         first = AdaptivePlan(plan, order, table)
-        journalled = _as_a_run(first, f, sd, stop_after=stop)
+        journalled = run(first, f, sd, stop_after=stop)
         again = AdaptivePlan(plan, order, table)             # a resume: a fresh strategy, every result at once
         todo = again.first(set(journalled))
         todo += again.more(journalled, tuple(todo))
         assert again.batches[:len(first.batches)] == first.batches
-        rest = _as_a_run_from(again, journalled, todo, f, sd)
+        rest = run(again, f, sd, results=journalled, todo=todo)
         assert again.batches == whole.batches and set(rest) == {i for b in whole.batches for i in b}
     # the fit found the truth, and a target stops the plan early and says so
     assert abs(whole.log[-1]["params"]["alpha"] - ALPHA) < 0.01
     early = AdaptivePlan(plan, order, {**table, "target_rel_u": 0.05})
-    _as_a_run(early, f, sd)
+    run(early, f, sd)
     assert early.stopped_by == "target" and sum(map(len, early.batches)) < 20
     assert early.state()["stopped_by"] == "target" and max(early.log[-1]["rel_u"].values()) < 0.05
-
-
-def _as_a_run_from(strat, results, todo, f, sd):
-    results = dict(results)
-    n = 0
-    while n < len(todo):
-        todo.extend(strat.more(results, tuple(todo)))
-        results[todo[n]] = (f[todo[n]], sd[todo[n]])
-        n += 1
-    return results
 
 
 def test_the_first_pass_is_spread_and_the_table_is_checked():

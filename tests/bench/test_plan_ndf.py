@@ -7,40 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import gonio.models as gm
 from gonio.bench.plan import plans
 from gonio.bench.plan import strategy as st
 from gonio.bench.plan.adaptive import cli_strategy
 from gonio.bench.plan.ndf_seeded import RETRO_MAX_DEG, NDFSeededPlan, retro_points
 from gonio.core.geometry import directions_deg
-
-ALPHA = 0.15
-TRUTH = {"diffuse_reflectance": np.array([0.5, 0.37, 0.25]), "alpha": ALPHA, "int_ior": 1.49}
-
-
-def _synthetic(plan, seed=0):
-    m = gm.get("roughplastic", distribution="ggx")
-    a = plan.angles
-    f = m.eval(directions_deg(a[:, 0], a[:, 1]), directions_deg(a[:, 2], a[:, 3]), TRUTH)
-    sd = 0.01 * f + 1e-4
-    return f + sd * np.random.default_rng(seed).standard_normal(f.shape), sd
-
-
-def _run(strat, f, sd, results=None, todo=None, stop_after=None):
-    """Drive ``strat`` as the session's run does (each point journalled before the next is
-    asked for); the results."""
-    results = dict(results or {})
-    todo = list(todo if todo is not None else strat.first(set()))
-    n = 0
-    while n < len(todo):
-        if stop_after is not None and len(results) == stop_after:
-            break
-        todo.extend(strat.more(results, tuple(todo)))
-        if todo[n] not in results:
-            results[todo[n]] = (f[todo[n]], sd[todo[n]])
-        n += 1
-    return results
-
+from strategy_run import ALPHA, run, synthetic
 
 def test_the_first_pass_is_near_retro_reflection_at_every_incidence():
     """retro_points: at each incidence of the dense plan, the candidate whose wo is nearest wi
@@ -64,28 +36,28 @@ def test_later_points_go_where_the_lobe_sends_light_and_a_resume_replays_them():
     others; stopped after 9 points and resumed with the journalled results, it chooses what
     the whole run chose; the fit finds alpha."""
     plan = plans.load_plan("standard")
-    f, sd = _synthetic(plan)
+    f, sd = synthetic(plan)
     order = list(range(len(plan)))
     table = {"points": 24, "seed": 1}
     whole = NDFSeededPlan(plan, order, table)
-    _run(whole, f, sd)
+    run(whole, f, sd)
     assert whole.stopped_by == "budget" and sum(map(len, whole.batches)) == 24
     later = [i for b in whole.batches[1:] for i in b]
     lum = f @ np.array([0.2126, 0.7152, 0.0722]) * np.clip(directions_deg(plan.angles[:, 2], plan.angles[:, 3])[:, 2],
                                                             0, None)
     assert lum[later].mean() > 1.5 * lum.mean()
     again = NDFSeededPlan(plan, order, table)
-    _run(again, f, sd)
+    run(again, f, sd)
     assert again.batches == whole.batches
     other = NDFSeededPlan(plan, order, {**table, "seed": 2})
-    _run(other, f, sd)
+    run(other, f, sd)
     assert other.batches[1:] != whole.batches[1:]
     first = NDFSeededPlan(plan, order, table)
-    journalled = _run(first, f, sd, stop_after=9)
+    journalled = run(first, f, sd, stop_after=9)
     resumed = NDFSeededPlan(plan, order, table)
     todo = resumed.first(set(journalled))
     todo += resumed.more(journalled, tuple(todo))
-    _run(resumed, f, sd, results=journalled, todo=todo)
+    run(resumed, f, sd, results=journalled, todo=todo)
     assert resumed.batches == whole.batches
     assert abs(whole.log[-1]["params"]["alpha"] - ALPHA) < 0.02
 
