@@ -59,6 +59,20 @@ def _png(path: Path) -> None:
     plt.close(fig)
 
 
+def copy(pristine: Path, tmp_path: Path) -> Path:
+    """A fresh copy of a built folder at ``tmp_path / "out"``, its preview naming its own image
+    by absolute path, as `gonio render` writes it."""
+    import shutil
+
+    folder = Path(tmp_path) / "out"
+    shutil.copytree(pristine, folder, symlinks=True)
+    preview = folder / "render" / "preview" / "preview.json"
+    doc = json.loads(preview.read_text())
+    doc["side_by_side_png"] = str(folder / "render" / "preview" / "side_by_side.png")
+    preview.write_text(json.dumps(doc))
+    return folder
+
+
 def build(out: Path) -> Path:
     """Write the folder under ``out``; return ``out``."""
     from gonio.cli.fit import fit_dataset

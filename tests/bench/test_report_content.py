@@ -34,13 +34,7 @@ def pristine(tmp_path_factory):
 
 @pytest.fixture
 def out(pristine, tmp_path):
-    folder = tmp_path / "out"
-    shutil.copytree(pristine, folder)
-    preview = folder / "render" / "preview" / "preview.json"      # it names its image by absolute path
-    doc = json.loads(preview.read_text())
-    doc["side_by_side_png"] = str(folder / "render" / "preview" / "side_by_side.png")
-    preview.write_text(json.dumps(doc))
-    return folder
+    return report_folder.copy(pristine, tmp_path)
 
 
 @pytest.fixture

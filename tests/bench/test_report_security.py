@@ -42,11 +42,7 @@ def pristine(tmp_path_factory):
 
 @pytest.fixture
 def out(pristine, tmp_path):
-    """A fresh copy of the folder, its preview naming its own image as `gonio render` does."""
-    folder = tmp_path / "out"
-    shutil.copytree(pristine, folder, symlinks=True)
-    edit(folder, PREVIEW, lambda d: d.update(side_by_side_png=str(folder / "render/preview/side_by_side.png")))
-    return folder
+    return report_folder.copy(pristine, tmp_path)
 
 
 @pytest.fixture
