@@ -21,3 +21,20 @@ def make():
     yield _make
     for inst in made:
         inst.unregister()
+
+
+@pytest.fixture
+def served(tmp_path):
+    """Factory of simulated instruments served on pseudo-terminals (``gonio sim serve`` without
+    blocking), each in a link folder of its own; stopped afterwards. ``clock``: instant unless
+    given."""
+    servers = []
+
+    def _serve(clock="instant", **kw):
+        srv = gs.serve(seed=1, clock=clock, link_dir=str(tmp_path / f"p{len(servers)}"), block=False, echo=None, **kw)
+        servers.append(srv)
+        return srv
+
+    yield _serve
+    for srv in servers:
+        srv.stop()

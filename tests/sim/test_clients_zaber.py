@@ -12,37 +12,16 @@ import time
 
 import pytest
 
-import gonio.sim as gs
 
 zm = pytest.importorskip("zaber_motion", reason="zaber-motion is not installed")
 from zaber_motion import DeviceDbSourceType, Library, LogOutputMode  # noqa: E402
 from zaber_motion.ascii import Connection  # noqa: E402
 from zaber_motion.exceptions import DeviceDbFailedException  # noqa: E402
 from zaber_motion.microscopy import Illuminator  # noqa: E402
+from sim_helpers import open_zaber  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 Library.set_log_output(LogOutputMode.OFF)
-
-
-@pytest.fixture
-def served(tmp_path):
-    servers = []
-
-    def _serve(**kw):
-        srv = gs.serve(seed=1, clock=gs.SimClock("instant"), link_dir=str(tmp_path / f"p{len(servers)}"),
-                       block=False, echo=None, **kw)
-        servers.append(srv)
-        return srv
-
-    yield _serve
-    for srv in servers:
-        srv.stop()
-
-
-def _open(srv):
-    c = Connection.open_serial_port(srv.devices["zaber"])
-    c.detect_devices(identify_devices=False)
-    return c
 
 
 def test_detect_and_identification_settings(served):
@@ -80,7 +59,7 @@ def _db_lookups(srv, device=1):
     _DbSpy.paths = []
     Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE, f"http://127.0.0.1:{httpd.server_port}/db")
     try:
-        with _open(srv) as c:
+        with open_zaber(srv) as c:
             with pytest.raises(DeviceDbFailedException):
                 c.get_device(device).identify()
     finally:
@@ -121,7 +100,7 @@ def test_identify_offline_sources_need_zabers_database(served, tmp_path):
                 (lambda: (Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE, "http://127.0.0.1:9/db"),
                           Library.enable_device_db_store(str(tmp_path / "store"))), "online source")]
     try:
-        with _open(srv) as c:
+        with open_zaber(srv) as c:
             for setup, why in attempts:
                 setup()
                 with pytest.raises(DeviceDbFailedException, match=why):
@@ -133,7 +112,7 @@ def test_identify_offline_sources_need_zabers_database(served, tmp_path):
 
 def test_axis_moves_settings_park_and_driver(served):
     srv = served()
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         d = c.get_device(1)
         ax = d.get_axis(2)
         d.all_axes.home()
@@ -176,7 +155,7 @@ def test_native_speed_unit_sets_the_motion_time(served):
     from zaber_motion.exceptions import DeviceNotIdentifiedException
 
     srv = served()
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         d = c.get_device(1)
         ax = d.get_axis(1)
         d.all_axes.home()
@@ -203,14 +182,14 @@ def test_native_speed_unit_sets_the_motion_time(served):
 def test_continued_reply(served):
     srv = served()
     srv.instrument.zaber.packet_size_max = 40       # '@01 0 07 OK IDLE -- 190000 176000\' fits
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         assert c.get_device(1).generic_command("get limit.max").data == "190000 176000 360000 350000"
 
 
 def test_illuminator_channel_api(served):
     srv = served(lamp={"flux_max": 2.5})
     lamp = srv.instrument.lamp
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         il = Illuminator(c.get_device(2))
         ch = il.get_channel(1)
         assert not ch.is_on()
@@ -225,7 +204,7 @@ def test_illuminator_channel_api(served):
 
 def test_alerts(served):
     srv = served()
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         alerts = []
         c.alert.subscribe(alerts.append)
         ax = c.get_device(1).get_axis(2)

@@ -19,34 +19,13 @@ import time
 
 import pytest
 
-import gonio.sim as gs
 
 zm = pytest.importorskip("zaber_motion", reason="zaber-motion is not installed")
 from zaber_motion import Library, LogOutputMode  # noqa: E402
-from zaber_motion.ascii import Connection  # noqa: E402
+from sim_helpers import open_zaber  # noqa: E402
 
 pytestmark = pytest.mark.timeout(90)
 Library.set_log_output(LogOutputMode.OFF)
-
-
-@pytest.fixture
-def served(tmp_path):
-    servers = []
-
-    def _serve(clock="instant", **kw):
-        srv = gs.serve(seed=1, clock=clock, link_dir=str(tmp_path / f"p{len(servers)}"), block=False, echo=None, **kw)
-        servers.append(srv)
-        return srv
-
-    yield _serve
-    for srv in servers:
-        srv.stop()
-
-
-def _open(srv):
-    c = Connection.open_serial_port(srv.devices["zaber"])
-    c.detect_devices(identify_devices=False)
-    return c
 
 
 # -- item 1: get_many / get_synchronized ------------------------------------------------------
@@ -116,7 +95,7 @@ def test_move_with_its_own_speed_and_acceleration(served):
     srv = served()
     inst = srv.instrument
     clock = inst.clock
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         d = c.get_device(1)
         ax = d.get_axis(1)
         d.all_axes.home()
@@ -166,7 +145,7 @@ def test_a_slow_meter_never_delays_the_stage_chain_and_alerts_leave_when_motions
     inst = srv.instrument
     inst.home_all()
     alerts = []
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         c.alert.subscribe(lambda a: alerts.append((time.monotonic(), a.axis_number, a.status)))
         c.enable_alerts()
         ax = c.get_device(1).get_axis(2)
@@ -214,7 +193,7 @@ def test_gonio_gives_comm_alert_back_when_it_closes(served):
     chain.close()
     assert inst.zaber.stage.alert == 0
     lines = []
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         c.alert.subscribe(lines.append)
         d = c.get_device(1)
         assert d.settings.get("comm.alert") == 0
@@ -232,8 +211,8 @@ def test_comm_alert_is_a_device_setting_that_outlives_the_host(served):
     """The simulated device keeps ``comm.alert`` when its host closes the port and opens it
     again (what made issue 40's leftover alerts reach the next program)."""
     srv = served()
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         c.get_device(1).settings.set("comm.alert", 1)
-    with _open(srv) as c:
+    with open_zaber(srv) as c:
         assert c.get_device(1).settings.get("comm.alert") == 1
         assert c.get_device(2).settings.get("comm.alert") == 0
