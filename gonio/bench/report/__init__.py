@@ -24,6 +24,7 @@ import numpy as np
 from gonio.core.hdf5check import check_hdf5
 from gonio.fitting import DataError, load_dataset, parse_fit
 from gonio.core.atomic import atomic_open
+from gonio.core.files import sha256_file
 
 from gonio.bench.report import certificate as cert
 from gonio.bench.report import fitdoc as _fitdoc
@@ -436,7 +437,7 @@ def certificate_section(meas, root: Folder, found: dict, fit: Doc | None, *, app
     for key, what in (("dataset", "data file"), ("fit", "fit file")):
         if found.get(key) is not None:
             real = root.check(found[key], what)
-            files.append({"what": what, "name": root.label(found[key]), "sha256": cert.sha256_of(real),
+            files.append({"what": what, "name": root.label(found[key]), "sha256": sha256_file(real),
                           "bytes": real.stat().st_size})
     dataset_sha = files[0]["sha256"]
     fit_sha = files[1]["sha256"] if len(files) > 1 else None

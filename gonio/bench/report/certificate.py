@@ -21,21 +21,12 @@ import re
 
 from gonio.bench.report.inputs import Doc, cut
 
-__all__ = ["sha256_of", "issue_date", "report_number", "NUMBER_PATTERN", "conditions", "traceability",
+__all__ = ["issue_date", "report_number", "NUMBER_PATTERN", "conditions", "traceability",
            "approval", "budget_table", "method_text", "laboratory", "customer", "simulated", "statements"]
 
 NOT_RECORDED = "not recorded"
 #: a certificate number: the prefix, the issue date, 10 hex digits of the data's digest
 NUMBER_PATTERN = re.compile(r"^GONIO-\d{8}-[0-9A-F]{10}$")
-
-
-def sha256_of(real_path) -> str:
-    """The SHA-256 of a file (hex), read in blocks."""
-    h = hashlib.sha256()
-    with open(real_path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def issue_date(value=None) -> _dt.date:

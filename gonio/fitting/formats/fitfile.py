@@ -14,7 +14,6 @@ figure was NaN or infinite: the dotted paths written as null, since JSON has no 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import platform
@@ -29,6 +28,7 @@ import gonio.models as gm
 from gonio.core.channels import from_attrs, spectral, use
 from gonio.core.errors import GonioError
 from gonio.core.atomic import atomic_open
+from gonio.core.files import sha256_file
 
 from gonio.fitting.uncertainty.adequacy import TEST_BUDGET, nominal_test
 from gonio.fitting.uncertainty.budget import budget_from_attrs, propagate
@@ -56,14 +56,6 @@ def versions() -> dict:
         except metadata.PackageNotFoundError:
             pass
     return out
-
-
-def sha256_file(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _with_channels(wavelengths, fn, *args):
