@@ -9,12 +9,12 @@ send it: the ThorlabsPM100 package (1.2.2: long mixed-case headers such as
 ``Sense:Correction:WAVelength``, ``Measure:Scalar:POWer`` without ``?``, ``FETCh?``,
 ``Status:Operation:CONDition?``) and PyMeasure 0.16's ``ThorlabsPM100USB``
 (``SYST:SENSOR:IDN?``, ``SENS:CORR:WAV? MIN``, ``MEAS:POW?``).
-
-The header table (`COMMANDS`) is written in the manual's notation: upper-case letters are the
-short form, ``[...]`` an optional node, ``#`` a numeric suffix (``SENSe1``; only 1 exists on a
-one-channel meter), ``*`` any further nodes. Behaviour chosen where the documents are silent:
-below.
 """
+
+# The header table (`COMMANDS`) is written in the manual's notation: upper-case letters are the
+# short form, ``[...]`` an optional node, ``#`` a numeric suffix (``SENSe1``; only 1 exists on a
+# one-channel meter), ``*`` any further nodes. Behaviour chosen where the documents are silent:
+# below.
 
 # Chosen where the documents are silent (invented):
 # - *IDN? answers "Thorlabs,PM100D,P0000001,2.8.0" (the manual's THORLABS,MMM,SSS,X.X.X; the serial

@@ -9,13 +9,13 @@ A sample spec is one of
     measured data through Mitsuba's ``measured`` plugin (RGL-EPFL ``.bsdf``).
 ``{"mitsuba": DICT}``
     any Mitsuba BSDF dict (tests, quick experiments).
-
-For the Mitsuba-only specs the truth is ``bsdf.eval`` divided by cos(theta_i), evaluated in
-gonio's convention through :func:`gonio.models.mitsuba.eval_cos` (the one boundary).
-A transmissive model (``Structure.sides`` holds transmission) may give ``params.ext_ior``
-(the truth uses eta = int_ior / ext_ior) and a ``slab`` table (a frosted front face on a
-polished back: :func:`slab_exit`, the second surface to first order).
 """
+
+# For the Mitsuba-only specs the truth is ``bsdf.eval`` divided by cos(theta_i), evaluated in
+# gonio's convention through :func:`gonio.models.mitsuba.eval_cos` (the one boundary).
+# A transmissive model (``Structure.sides`` holds transmission) may give ``params.ext_ior``
+# (the truth uses eta = int_ior / ext_ior) and a ``slab`` table (a frosted front face on a
+# polished back: :func:`slab_exit`, the second surface to first order).
 
 from __future__ import annotations
 
