@@ -174,6 +174,7 @@ class Instrument:
         self._scene: HolderScene | None = None
         self._spectral: dict = {}          # per wavelength (nm): (the sample's truth there, its scene or None)
         self.detector = "front"           # the detector arm's stop: "front" (reflection) or "rear" (transmission)
+        self.holder_open = False          # the sample taken out of the holder: the camera sees the open beam
         self._radiance = OrderedDict()
         self._frame_key = None
         self._frame_count = 0
@@ -417,7 +418,9 @@ class Instrument:
         in the holder's chart slot under the lamp at normal incidence (gonio/sim/physics/colour.chart_radiance:
         spectral, the camera's own response to the chart), for the colour calibration.
         ``source="open_beam"`` images the lamp through the empty aperture from the rear stop
-        (``[transmission]`` open_beam_attenuation / beam_solid_angle_sr), ASTM E2387.
+        (``[transmission]`` open_beam_attenuation / beam_solid_angle_sr), ASTM E2387; a plain
+        exposure (``"scene"``) does too while ``holder_open`` (the operator took the sample out:
+        the session's twin does, gonio/bench/session/stops.py).
 
         The noise comes from ``default_rng([seed, 0xCA3E, *pose + 2**31, exposure ns, lamp on,
         flux ppm, lamp dead, flat, frame count at this pose])``: the same pose, exposure, lamp
@@ -425,6 +428,8 @@ class Instrument:
         """
         if source not in ("scene", "flat", "chart", "open_beam"):
             raise ValueError(f"unknown camera source {source!r}")
+        if source == "scene" and self.holder_open:
+            source = "open_beam"               # nothing in the holder: the lamp through its aperture
         flat = source == "flat"
         with self.lock:
             t0 = self.clock.now()

@@ -29,13 +29,13 @@ def _p(cal: Mapping) -> np.ndarray:
                                                      "holder_tilt_y_deg")])
 
 
-def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0)):
+def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0), rear=False):
     s = np.array(stage, dtype=float, copy=True)
     s[..., 0] += p[0]
     s[..., 1] += p[1]
     if axis_err is not None:
         s = s + axis_err
-    wi, wo = kinematics.forward(s)
+    wi, wo = kinematics.forward(s, rear)             # rear: the camera on the rear stop (theta_o > 90)
     H = al.holder_rotation(p[2], p[3])
     if any(wedge):
         H = H @ al.holder_rotation(*wedge)
@@ -67,7 +67,7 @@ def lost_motion(cal: Mapping, last_dir) -> np.ndarray:
     return out
 
 
-def calibrated_angles(cal: Mapping, stage_deg, last_dir=None) -> np.ndarray:
+def calibrated_angles(cal: Mapping, stage_deg, last_dir=None, rear=False) -> np.ndarray:
     """The angles points at commanded ``stage_deg`` (..., 4) really had: ``(theta_i, phi_i,
     theta_o, phi_o)`` (..., 4) in degrees, with the calibration's zero offsets and holder tilt,
     and with ``last_dir`` (..., 4; the sign of each axis's last move, gonio/bench/dataset/budget.move_history)
@@ -77,23 +77,24 @@ def calibrated_angles(cal: Mapping, stage_deg, last_dir=None) -> np.ndarray:
     With an empty calibration this is ``kinematics.forward_angles``.
     """
     stage = np.atleast_2d(np.asarray(stage_deg, float))
-    return _angles(stage, _p(cal), None if last_dir is None else lost_motion(cal, np.broadcast_to(last_dir, stage.shape)))
+    return _angles(stage, _p(cal), None if last_dir is None else lost_motion(cal, np.broadcast_to(last_dir, stage.shape)),
+                   rear=rear)
 
 
-def _jacobian(stage, p, which, h=1e-3):
+def _jacobian(stage, p, which, h=1e-3, rear=False):
     """d angles / d (error ``which``) by central differences, (N, 4) per error, degrees/degree."""
     out = []
     for k in range(len(which)):
         d = np.zeros(len(which))
         d[k] = h
-        plus, minus = _eval_errors(stage, p, which, d), _eval_errors(stage, p, which, -d)
+        plus, minus = _eval_errors(stage, p, which, d, rear), _eval_errors(stage, p, which, -d, rear)
         diff = plus - minus
         diff[..., 1::2] = (diff[..., 1::2] + 180.0) % 360.0 - 180.0    # phi differences wrap
         out.append(diff / (2 * h))
     return np.stack(out, -1)                                          # (N, 4, K)
 
 
-def _eval_errors(stage, p, which, d):
+def _eval_errors(stage, p, which, d, rear=False):
     pp, ax, wd = p.copy(), np.zeros(4), np.zeros(2)
     for name, v in zip(which, d):
         if name in ("p0", "p1", "p2", "p3"):
@@ -105,10 +106,10 @@ def _eval_errors(stage, p, which, d):
             ax[int(name[4])] += v
         else:
             wd[int(name[5])] += v
-    return _angles(stage, pp, ax, tuple(wd))
+    return _angles(stage, pp, ax, tuple(wd), rear)
 
 
-def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
+def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None, rear=False) -> dict:
     """Covariance of each point's calibrated angles ``(theta_i, phi_i, theta_o, phi_o)``, deg^2.
 
     Returns
@@ -140,7 +141,8 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     tilt, lamp) and what is left is one shared error per axis, the measurement's
     ``u_backlash_<axis>_deg`` / 2 (a mode, signed by the direction); the azimuth's, not
     measured, stays a mode of its assumed b/2. Without it (or where 0) half the backlash stays in
-    the per-point part and nothing is corrected.
+    the per-point part and nothing is corrected. ``rear`` (N,) or a bool: points taken with the
+    camera on the rear stop (transmission; `kinematics.forward`'s ``rear``).
     """
     stage = np.atleast_2d(np.asarray(stage_deg, float))
     a = cal.get("alignment", {})
@@ -164,8 +166,9 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
         if key in a:
             left_b[k] = 0.5 * abs(float(a.get("u_" + key, 0.0)))
     sd_i = np.sqrt(rep ** 2 + np.where(known, 0.0, np.asarray(half_b) ** 2))      # (N, 4) per axis
-    Js = _jacobian(stage, p, shared)
-    Ji = _jacobian(stage, p, ["axis0", "axis1", "axis2", "axis3"])
+    rear = np.broadcast_to(np.asarray(rear, bool), stage.shape[:1])     # per point: the rear stop's kinematics
+    Js = _jacobian(stage, p, shared, rear=rear)
+    Ji = _jacobian(stage, p, ["axis0", "axis1", "axis2", "axis3"], rear=rear)
     w, V = np.linalg.eigh(cs)
     modes = np.einsum("nak,km->nam", Js, V * np.sqrt(np.clip(w, 0.0, None)))      # (N, 4, 7)
     keep = np.sqrt(np.clip(w, 0.0, None)) > 0
@@ -175,7 +178,7 @@ def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None) -> dict:
     # own, so the ratio the bench measures changes by cos(theta_i') / cos(theta_i) as well as
     # by f_r's own angles: d ln E = -tan(theta_i) d theta_i (radians) for the wedge's inputs,
     # nothing for the errors both squares share (they cancel in the ratio)
-    angles = _angles(stage, p, lost_motion(cal, d))
+    angles = _angles(stage, p, lost_motion(cal, d), rear=rear)
     ti = np.radians(angles[:, 0])
     Jr = np.zeros((stage.shape[0], len(shared)))
     for k in (shared.index("wedge0"), shared.index("wedge1")):
@@ -310,7 +313,7 @@ def u_stray_rel(radiance_sample, radiance_reference, floor: float) -> np.ndarray
     return float(floor) / math.pi * np.abs(1.0 / ls - 1.0 / lr) / math.sqrt(3.0)
 
 
-def dataset_angles(settings: Mapping, stage_deg, last_dir=None) -> tuple[dict, dict, dict]:
+def dataset_angles(settings: Mapping, stage_deg, last_dir=None, rear=False) -> tuple[dict, dict, dict]:
     """What export writes for a calibrated session: ``(coords, variables, attrs)``.
 
     Without an ``[alignment]`` table in the session's settings all three are empty. With one,
@@ -325,8 +328,8 @@ def dataset_angles(settings: Mapping, stage_deg, last_dir=None) -> tuple[dict, d
     if not isinstance(settings.get("alignment"), Mapping):
         return {}, {}, {}
     stage = np.atleast_2d(np.asarray(stage_deg, float))
-    u = angle_uncertainty(settings, stage, last_dir=last_dir)
-    nominal = calibrated_angles({}, stage)
+    u = angle_uncertainty(settings, stage, last_dir=last_dir, rear=rear)
+    nominal = calibrated_angles({}, stage, rear=rear)
     names = ("theta_i", "phi_i", "theta_o", "phi_o")
     deg = {"units": "degree"}
     coords = {k: ("point", u["angles"][:, j], {**deg, "long_name": f"{k}, calibrated (gonio calibrate)"})
