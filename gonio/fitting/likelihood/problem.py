@@ -12,6 +12,7 @@ from gonio.models import fast
 from gonio.core.geometry import directions
 
 from gonio.fitting.likelihood import loss as _loss
+from gonio.fitting.likelihood.channel_groups import ChannelGroups, groupable
 
 __all__ = ["Evaluator", "Problem", "FAST_MIN_POINTS", "NORMAL_LOSSES", "TRIAL_NORMAL_MAX"]
 
@@ -61,7 +62,13 @@ class Evaluator:
             if not self.fast and hasattr(model, "layers") and layer is not None and layer.structure.derivatives:
                 # a two-lobe model (gonio.models.catalogue.twolobe): its layer's kernel, twice
                 self.layer = layer if _fast_agrees(layer) else None
-        self.backend = "drjit-llvm" if self.fast or self.layer is not None else "numpy"
+        self.grouped = None
+        if use_fast is not False and n_channels != 3 and (use_fast or worth_it) and groupable(model):
+            three = Evaluator(model, wi, wo, 3, use_fast=True)    # a spectral fit: channels in threes
+            if three.fast or three.layer is not None:
+                self.grouped = ChannelGroups(model, three, n_channels)
+        self.backend = ("drjit-llvm" if self.fast or self.layer is not None else
+                        "drjit-llvm, channels in groups of 3" if self.grouped is not None else "numpy")
 
     def _resident(self):
         if self._dirs is None:  # directions loaded into Dr.Jit once per fit
@@ -70,6 +77,8 @@ class Evaluator:
 
     def __call__(self, params) -> np.ndarray:
         self.n_evals += 1
+        if self.grouped is not None:
+            return self.grouped.eval(params)
         if self.fast:
             return fast.eval_resident(self.model, self._resident(), params)
         if self.layer is not None:
@@ -107,7 +116,10 @@ class Evaluator:
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
         derivatives (:func:`gonio.models.fast.jacobian`; one call, counted as one
         evaluation), or None on the numpy path and for a kernel of values only
-        (``structure.derivatives``)."""
+        (``structure.derivatives``). Channels beyond three: in groups of three."""
+        if self.grouped is not None:
+            self.n_evals += 1
+            return self.grouped.jacobian(params)
         if self.layer is not None:
             self.n_evals += 1
             return self._layered_jacobian(params)
