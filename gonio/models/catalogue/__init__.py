@@ -7,3 +7,4 @@ from gonio.models.catalogue import roughdielectric as _roughdielectric  # noqa: 
 from gonio.models.catalogue import dielectric as _dielectric  # noqa: F401,E402
 from gonio.models.catalogue import thindielectric as _thindielectric  # noqa: F401,E402
 from gonio.models.catalogue import difftrans as _difftrans  # noqa: F401,E402
+from gonio.models.catalogue import roughslab as _roughslab  # noqa: F401,E402
