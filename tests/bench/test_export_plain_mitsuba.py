@@ -98,7 +98,7 @@ def test_every_registered_model_exports_xml_a_plain_mitsuba_loads_and_says_how_c
     np.save(tmp_path / "dirs.npy", np.stack([wi, wo]))
     cases = {}
     for name in gm.names():
-        if name == "difftrans":          # issue 37: Mitsuba 3.9 has no diffuse transmitter, native or near
+        if name in ("difftrans", "roughslab"):   # issue 37: transmitters no native Mitsuba 3.9 BSDF stands for
             continue
         model = gm.get(name)
         p = {}
