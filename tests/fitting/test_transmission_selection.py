@@ -77,7 +77,7 @@ def test_auto_considers_transmission_models():
     frosted = _data("roughdielectric", {"distribution": "ggx"}, {"alpha": 0.3, "int_ior": 1.5}, rng)
     names = candidates_for(frosted)
     assert names == (("roughdielectric", {"distribution": "beckmann"}), ("roughdielectric", {"distribution": "ggx"}),
-                     ("difftrans", {}))
+                     ("difftrans", {}), ("roughslab", {"distribution": "beckmann"}), ("roughslab", {"distribution": "ggx"}))
     reflect = Measurements(frosted.wi, frosted.wo * [1, 1, -1], frosted.brdf, frosted.brdf_std, frosted.use)
     assert candidates_for(reflect) == CANDIDATES
     best, ranking = select(frosted, rng=np.random.default_rng(0))

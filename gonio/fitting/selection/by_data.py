@@ -57,7 +57,8 @@ CANDIDATES = _candidates()
 def _transmission_candidates():
     """Every registered model that scatters through the surface (``Structure.sides`` holds
     transmission) with a finite f (``delta`` models, the smooth dielectrics, are left out),
-    one per declared distribution: roughdielectric beckmann and ggx, difftrans."""
+    one per declared distribution: roughdielectric beckmann and ggx, difftrans, roughslab
+    beckmann and ggx (a plate: frosted front, polished back)."""
     names = []
     for name in gm.names():
         try:
