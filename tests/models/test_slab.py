@@ -271,3 +271,16 @@ def test_fit_recovers_the_slab_the_one_interface_model_is_biased(distribution, a
     one = fit(meas, gm.get("roughdielectric", distribution=distribution), rng=np.random.default_rng(0))
     assert one.params["int_ior"] < 1.3 and abs(one.params["int_ior"] - 1.5) > 100 * one.std[1]
     assert abs(one.params["alpha"] - alpha) > 0.4 * alpha and one.chi2_dof > 100
+
+
+@pytest.mark.parametrize("distribution, alpha", [("ggx", 0.3), ("beckmann", 0.06)])
+def test_model_auto_chooses_the_slab_for_slab_data(distribution, alpha):
+    """``--model auto``'s selection (gonio.fitting.selection.by_data) offers roughslab where the
+    data has transmitted points, and on slab data it wins, with the sample's distribution
+    (measured: 0.4-0.5 s, alpha and eta within 0.3 % of the truth)."""
+    from gonio.fitting.selection.by_data import candidates_for, select
+
+    meas = _slab_data(distribution, alpha, np.random.default_rng(3))
+    assert ("roughslab", {"distribution": distribution}) in candidates_for(meas)
+    best, _ = select(meas, rng=np.random.default_rng(0))
+    assert (best.model.name, best.model.options["distribution"]) == ("roughslab", distribution)
