@@ -11,7 +11,9 @@ signed, c_k u(x) (JCGM 100 5.1.3); a value's standard uncertainty from it is its
 Components assembled here: ``shot_read`` and ``fixed_pattern`` (A, none), ``dark_frame`` (A,
 full, one input per correlated mode: ``u_dark_frame`` (point, channel, dark_input)) and
 ``reference_certificate`` (B, full by default). Other modules supply further components as
-:class:`Component` values: ``budget_variables(..., extra=[...])``.
+:class:`Component` values: ``budget_variables(..., extra=[...])``. Transmitted points (theta_o
+> 90, the rear stop: gonio/bench/session/rear.py) have no reference square: the certificate is
+zero there and the open beam's lines (:func:`open_beam_components`) stand in for it.
 """
 
 # Attributes. gum_type "A": evaluated from the scatter of this session's own observations;
@@ -103,6 +105,11 @@ def _detail(rows, key, fallback):
     return np.array([r["detail"].get(key, fallback) for r in rows], float)
 
 
+def rear_rows(rows) -> np.ndarray:
+    """(N,) bool: the rows measured on the rear stop (theta_o > 90: transmitted light)."""
+    return np.array([float(r.get("theta_o", 0.0)) > 90.0 for r in rows], bool)
+
+
 def type_a(rows, brdf: np.ndarray, brdf_std: np.ndarray, dark_var: np.ndarray | None = None) -> list[Component]:
     """``shot_read`` and ``fixed_pattern`` from the journalled region statistics.
 
@@ -110,26 +117,36 @@ def type_a(rows, brdf: np.ndarray, brdf_std: np.ndarray, dark_var: np.ndarray | 
     capped at the empirical one (``se``), whose square is split exactly: shot/read the model's
     share, fixed pattern the excess. A journal without ``se_model`` puts it all in shot_read.
     ``dark_var`` (N, 3): the share of the model's variance that the dark frames' noise makes
-    and the ``dark_frame`` line carries (:func:`dark_frame`), taken out of shot_read.
+    and the ``dark_frame`` line carries (:func:`dark_frame`), taken out of shot_read. A
+    transmitted point has the sample region alone, and its monitor reading's scatter
+    (``monitor_rel_u``, which the reference square cancels on the front stop): a ``monitor``
+    line (A, none), where the session has such points.
     """
     nan3 = [np.nan] * 3
+    rear = rear_rows(rows)[:, None]
     rel2_model = np.zeros_like(brdf)
     for k in ("sample", "reference"):
         mean = _detail(rows, f"{k}_mean", nan3)
         se_model = _detail(rows, f"{k}_se_model", nan3)
         with np.errstate(invalid="ignore", divide="ignore"):
-            rel2_model += (se_model / mean) ** 2
+            rel2_model += np.where(rear, 0.0, (se_model / mean) ** 2) if k == "reference" else (se_model / mean) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
         model = np.abs(brdf) * np.sqrt(rel2_model)
-    shot = np.where(np.isfinite(model), np.minimum(model, brdf_std), brdf_std)
-    fixed = np.sqrt(np.clip(brdf_std ** 2 - shot ** 2, 0.0, None))
+        monitor = np.where(rear, np.abs(brdf) * _detail(rows, "monitor_rel_u", 0.0)[:, None], 0.0)
+    monitor = np.where(np.isfinite(monitor), np.minimum(monitor, brdf_std), 0.0)
+    left = np.sqrt(np.clip(brdf_std ** 2 - monitor ** 2, 0.0, None)) if rear.any() else brdf_std
+    shot = np.where(np.isfinite(model), np.minimum(model, left), left)
+    fixed = np.sqrt(np.clip(left ** 2 - shot ** 2, 0.0, None))
     if dark_var is not None:
         shot = np.sqrt(np.clip(shot ** 2 - dark_var, 0.0, None))
     return [Component("shot_read", shot, "A", "none",
                       "HDR merge noise model (shot + read noise) of the sample and reference regions"
                       + (", the dark frames' share apart (dark_frame)" if dark_var is not None else "")),
             Component("fixed_pattern", fixed, "A", "none",
-                      "pixel scatter in the regions beyond the noise model (fixed pattern, flat-field residual)")]
+                      "pixel scatter in the regions beyond the noise model (fixed pattern, flat-field residual)")] + (
+        [Component("monitor", monitor, "A", "none", "the lamp monitor's reading scatter at a transmitted point "
+                   "(the open beam normalises it, no reference square in its frame); 0 on the front stop")]
+        if rear.any() else [])
 
 
 #: the dark frames' correlated modes kept as shared inputs: those whose variance, in units of
@@ -284,10 +301,32 @@ def dark_frame(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray) -> tuple[
     return np.array(values), var
 
 
+def open_beam_components(rows, brdf: np.ndarray, open_beam: dict | None) -> list[Component]:
+    """The transmitted points' normalisation (`OpenBeam.to_attrs`, ASTM E2387), as
+    ``budget_from_attrs`` reads the attributes (gonio/fitting/uncertainty/budget.py):
+    ``open_beam_certificate`` (B, full: brdf x ``open_beam_rel_std``, the attenuator's and the
+    beam solid angle's certificates) and ``open_beam_frame`` (B, channel: brdf x
+    ``open_beam_frame_rel_u``, the one open-beam frame's scatter and monitor reading, shared by
+    every transmitted point); 0 at the reflected points. None without transmitted points."""
+    rear = rear_rows(rows)[:, None]
+    if not rear.any() or not open_beam:
+        return []
+    out = []
+    rel = float(open_beam.get("open_beam_rel_std", 0.0))
+    if rel > 0:
+        out.append(Component("open_beam_certificate", np.where(rear, brdf * rel, 0.0), "B", "full",
+                             "open_beam_rel_std ([transmission] rel_std: attenuator and beam solid angle)"))
+    frame = np.asarray(open_beam.get("open_beam_frame_rel_u", [0.0] * 3), float)
+    out.append(Component("open_beam_frame", np.where(rear, brdf * frame[None, :], 0.0), "B", "channel",
+                         "open_beam_frame_rel_u (the open-beam frame's scatter and monitor reading)"))
+    return out
+
+
 def certificate(settings, brdf: np.ndarray) -> list[Component]:
     """``reference_certificate``: brdf x the certificate's relative 1-sigma (one per channel
     or one for all); correlation ``full`` unless ``[reference] rel_std_correlation``
-    says ``channel``. No component when the certificate states none."""
+    says ``channel``. No component when the certificate states none. Pass 0 for the
+    transmitted points: the reference does not normalise them."""
     ref = settings.get("reference", {})
     rel = np.broadcast_to(np.asarray(ref.get("rel_std", 0.0), float), (brdf.shape[1],))
     if not np.any(rel > 0):
@@ -323,8 +362,16 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
     squares and the line is its u, signed, calibrate.stray_shift_rel, none where u_floor is 0;
     without it: calibrate.u_stray_rel, the floor known only to lie in [0, floor]). Only those the
     settings hold. Without a calibration, ``[systematics]``'s stray floor and non-linearity
-    bounds (gonio.bench.measure.systematics.settings_for_budget), their sources saying so."""
+    bounds (gonio.bench.measure.systematics.settings_for_budget), their sources saying so.
+
+    On the rear stop (transmitted points) no reference square is in the frame: the reference
+    factor is 0 there; linearity compares the point's level with the open beam's (journalled
+    ``open_beam_level``, the ratio f_t is made of); the stray floor, radiance floor / pi per unit
+    irradiance as on the front stop (the simulator's model), adds floor / (pi cos theta_i) to
+    f_t with nothing to cancel it: its u (the calibrated floor's, which the capture removed as
+    on the front stop) or its rectangular [0, floor] root mean square, signed up."""
     out = []
+    rear = rear_rows(rows)[:, None]
     uncal = systematics.alignment_table(settings) is not None and all("theta_i" in r for r in rows)
     if uncal:
         settings = systematics.settings_for_budget(settings)
@@ -343,18 +390,22 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
         if modes is not None:
             # f_r = (S / S_ref) rho F / pi: a factor too high by dF moves every value by f_r dF / F,
             # one input per independent direction of the fit's (a, b)
-            out.append(Component("reference_factor", brdf[None] * (modes / factor)[:, :, None], "B", "full",
+            out.append(Component("reference_factor", np.where(rear, 0.0, brdf)[None] * (modes / factor)[:, :, None],
+                                 "B", "full",
                                  "reference factor's fit (gonio calibrate): its two inputs, the eigenvectors of "
                                  "the covariance of (a, b)"))
         else:
             rel = np.asarray(calibrate.u_reference_factor(settings, ti, to), float) / factor
-            out.append(Component("reference_factor", brdf * rel[:, None], "B", "full",
+            out.append(Component("reference_factor", np.where(rear, 0.0, brdf * rel[:, None]), "B", "full",
                                  "reference factor table (a certificate's, or a calibration without its "
                                  "covariance); sign taken as common to all points"))
     if float(lin.get("u_gamma", 0.0) or 0.0) > 0:
         # signed: one gamma moves values darker than the reference up and brighter ones down
         u_gamma = float(lin["u_gamma"])
-        rel = linearity_shift_rel(_levels(rows, settings, "sample"), _levels(rows, settings, "reference"), u_gamma)
+        ref_level = _levels(rows, settings, "reference")
+        for k in np.flatnonzero(rear[:, 0]):     # the open beam is what a transmitted point is divided by
+            ref_level[k] = np.asarray(rows[k]["detail"].get("open_beam_level") or [0.0] * 3, float)
+        rel = linearity_shift_rel(_levels(rows, settings, "sample"), ref_level, u_gamma)
         # a non-linearity known to compress and not linearised: gamma in [0, bound], its mean a correction
         mean = float(lin.get("gamma_mean", 0.0) or 0.0) / u_gamma
         text = ("detector linearity gamma's 1-sigma (gonio calibrate)" if not uncal else
@@ -376,14 +427,15 @@ def calibration_components(rows, settings, brdf: np.ndarray) -> list[Component]:
             f_ref = (np.array([model.f_r(a, b) for a, b in zip(ti, to)]) if model is not None
                      else np.full((len(ti), 3), 1.0 / math.pi))
             rel = calibrate.stray_shift_rel(np.abs(brdf) * cos_i, f_ref * cos_i, u_floor)
-            out.append(Component("stray_light", brdf * rel, "B", "full",
+            out.append(Component("stray_light", np.where(rear, u_floor / (math.pi * cos_i), brdf * rel), "B", "full",
                                  "stray-light floor's u ([stray] u_floor) after its level was removed from both squares"))
         else:
             # the floor's root mean square in [0, floor] (floor / sqrt(3)), signed as a floor moves
             # the ratio: values darker than the reference up, brighter ones down
             rho_ref = model.rho if model is not None else np.ones(3)
             rel = calibrate.stray_shift_rel(np.abs(brdf) * cos_i, rho_ref[None] / math.pi * cos_i, floor / math.sqrt(3.0))
-            out.append(Component("stray_light", brdf * rel, "B", "full",
+            out.append(Component("stray_light", np.where(rear, floor / math.sqrt(3.0) / (math.pi * cos_i), brdf * rel),
+                                 "B", "full",
                                  "stray-light floor in [0, floor] (rectangular; no level stated, nothing corrected)"
                                  + ("; floor from [systematics] stray_floor" + desc if uncal else "")))
     return out
@@ -431,7 +483,7 @@ def angle_variables(rows, settings) -> dict:
         return {}
     stage = np.array([[r[k] for k in ("yaw", "tilt", "azimuth", "lamp")] for r in rows], float)
     labels, last = move_history(rows)
-    u = calibrate.angle_uncertainty(settings, stage, last_dir=last)
+    u = calibrate.angle_uncertainty(settings, stage, last_dir=last, rear=rear_rows(rows))   # each point's stop
     attrs = {"units": "degree", "angles": "theta_i phi_i theta_o phi_o", "source": source}
     return {"angle_shift_shared": (("angle_input", "point", "angle"), np.transpose(u["shared_modes"], (2, 0, 1)),
                                    {**attrs, "correlation": "full (each input)",
@@ -451,22 +503,37 @@ def angle_variables(rows, settings) -> dict:
                                                             "that axis's per-move error"})}
 
 
-def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, extra=()) -> dict:
+def budget_variables(rows, settings, brdf: np.ndarray, brdf_std: np.ndarray, extra=(), open_beam=None) -> dict:
     """The budget's dataset variables: ``u_<component>`` for type A, the certificate, the
     calibration's lines (:func:`calibration_components`) and ``extra`` (more :class:`Component`),
     their ``_group`` labels, ``u_combined``, and the angles' shifts (:func:`angle_variables`;
     the fit multiplies them by its model's slope).
 
+    Transmitted points: ``open_beam`` (`OpenBeam.to_attrs`) gives their normalisation's lines
+    (:func:`open_beam_components`), the certificate is 0 there and the dark frames' line is
+    the reflected points' alone (a transmitted point's dark share stays in shot_read).
+
     Raises ValueError when a component is malformed or holds NaN where ``brdf`` is finite.
     """
-    dark = dark_frame(rows, settings, brdf, brdf_std)
+    rear = rear_rows(rows)
+    if rear.any():
+        front = np.flatnonzero(~rear)
+        part = dark_frame([rows[k] for k in front], settings, brdf[front], brdf_std[front]) if len(front) else None
+        dark = None
+        if part is not None:
+            dark = (np.zeros((part[0].shape[0], *brdf.shape)), np.zeros(brdf.shape))
+            dark[0][:, front], dark[1][front] = part
+    else:
+        dark = dark_frame(rows, settings, brdf, brdf_std)
     if dark is not None:
         # the dark inputs carry at most the noise model's share (the type-A lines stay brdf_std)
         shot_model = type_a(rows, brdf, brdf_std)[0].value
         with np.errstate(invalid="ignore", divide="ignore"):
             shrink = np.where(dark[1] > shot_model ** 2, np.sqrt(shot_model ** 2 / dark[1]), 1.0)
         dark = (dark[0] * np.nan_to_num(shrink)[None], dark[1] * np.nan_to_num(shrink) ** 2)
-    comps = (type_a(rows, brdf, brdf_std, None if dark is None else dark[1]) + certificate(settings, brdf)
+    comps = (type_a(rows, brdf, brdf_std, None if dark is None else dark[1])
+             + (certificate(settings, np.where(rear[:, None], 0.0, brdf)) if not rear.all() else [])
+             + open_beam_components(rows, brdf, open_beam)
              + calibration_components(rows, settings, brdf) + list(extra))
     seen, out = set(), {}
     total = np.zeros_like(brdf)

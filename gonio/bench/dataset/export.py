@@ -6,7 +6,9 @@ Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i
 ``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``, ``sample_truth`` (simulated
 sessions), ``scale_rel_std`` (the reference certificate's relative 1-sigma: a fully correlated scale
 uncertainty, not in ``brdf_std``), ``complete``, ``instrument_time_s`` (per point:
-``instrument_time``). A session captured with a calibration also has ``<angle>_nominal``,
+``instrument_time``). A session with transmitted points (theta_o > 90, the rear stop) holds f_t
+there, normalised by the open beam: its record (`OpenBeam.to_attrs`) and ``sides`` are
+attributes and its budget lines replace the certificate's. A session captured with a calibration also has ``<angle>_nominal``,
 ``<angle>_u``, ``angle_calibration`` and ``aperture_*``. Where the RAW files carry colour matrices,
 also ``brdf_srgb`` (linear sRGB, D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and
 ``brdf_srgb_corr``; every f_r variable says its space (``colour_space``); a spectral session's
@@ -41,7 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from gonio.bench.session import integrity as _integrity
-from gonio.bench.dataset.budget import budget_variables, move_history
+from gonio.bench.dataset.budget import budget_variables, move_history, rear_rows
+from gonio.bench.measure.transmission import journalled_open_beam
 from gonio.bench.dataset.cf import cf_encode, check_global_attributes
 from gonio.bench.dataset.spectral import COLOUR_SPACE as SPECTRAL_SPACE, spectral_variables
 from gonio.bench.calibrate import dataset_angles, instrument_response
@@ -74,6 +77,7 @@ def to_dataset(session_dir, chart=None, attrs=None):
     # the same checks as a resume: session.toml as journalled, the journal whole, no unknown RAW file
     with _integrity.open_journal(folder, data, doc, why, write=False) as j:
         rows = j.points()
+        open_beam = journalled_open_beam(j.events(), j.frames("open_beam"), doc["settings"])[0]
         rgb_cam = j.first_event("rgb_cam")
         charts = j.frames("chart")
         events = j.events()
@@ -128,7 +132,15 @@ def to_dataset(session_dir, chart=None, attrs=None):
         "units": "s", "long_name": "instrument time of the point: the move to it, settling, its exposures and "
         "monitor readings, and any pause, from the end of the previous point's bracket (NaN: not recorded)"})
     # the per-point uncertainty budget, u_<component> and u_combined (gonio/bench/dataset/budget.py)
-    data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1]))
+    rear = rear_rows(rows)
+    if rear.any() and open_beam is None:
+        raise SessionError(f"{folder}: {int(rear.sum())} transmitted point(s) but no intact open-beam frame in the "
+                           f"journal; see `gonio verify {folder}`")
+    ob_attrs = open_beam.to_attrs() if rear.any() else {}
+    if rear.any():
+        data["brdf"][2]["long_name"] = ("bidirectional scattering distribution function: f_r (theta_o < 90) or f_t "
+                                        "(theta_o > 90, normalised by the open beam), no cosine factor")
+    data.update(budget_variables(rows, doc["settings"], data["brdf"][1], data["brdf_std"][1], open_beam=ob_attrs))
     data["brdf"][2]["colour_space"] = data["brdf_std"][2]["colour_space"] = "camera"
     if chart is None and charts:            # the session's own chart frame ([capture] colour_chart)
         chart = folder / next(iter(charts.values()))[1]
@@ -138,7 +150,7 @@ def to_dataset(session_dir, chart=None, attrs=None):
         coords["xyz"] = ["X", "Y", "Z"]
     # a calibrated session (gonio capture --calibration): the true angles, their u, the apertures
     stage = np.stack([data[k][1] for k in ("yaw", "tilt", "azimuth", "lamp")], -1)
-    cal_coords, cal_data, cal_attrs = dataset_angles(doc["settings"], stage, last_dir=move_history(rows)[1])
+    cal_coords, cal_data, cal_attrs = dataset_angles(doc["settings"], stage, last_dir=move_history(rows)[1], rear=rear)
     coords.update(cal_coords)
     data.update(cal_data)
     if not cal_attrs and isinstance(doc["settings"].get("aperture"), dict):
@@ -146,6 +158,8 @@ def to_dataset(session_dir, chart=None, attrs=None):
     attrs = _attributes(doc, rows, n_plan, monitor, matrix, chart, stopped)
     attrs.update(_instrument_time(point_s, preparations))
     attrs.update(cal_attrs)
+    if rear.any():                          # the transmitted points' normalisation (ASTM E2387)
+        attrs.update(ob_attrs, sides=[s for s, on in (("reflect", not rear.all()), ("transmit", True)) if on])
     return cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name, attrs=global_attrs)
 
 

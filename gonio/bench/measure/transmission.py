@@ -28,7 +28,7 @@ from gonio.core.channels import CHANNELS
 from gonio.core.errors import GonioError
 from gonio.bench.plan import kinematics
 
-__all__ = ["OpenBeam", "transmission_settings", "open_beam_rate", "btdf", "capture_rear"]
+__all__ = ["OpenBeam", "transmission_settings", "open_beam_rate", "journalled_open_beam", "btdf", "capture_rear"]
 
 _DEFAULTS = {"open_beam_attenuation": 1e-3, "beam_solid_angle_sr": 1e-3, "rel_std": 0.01}
 
@@ -93,6 +93,27 @@ def open_beam_rate(signal_dn: np.ndarray, exposure_s: float, power_w: float, set
     u = np.hypot(x.std(0, ddof=1) / math.sqrt(x.shape[0]), float(power_rel_u) * mean)
     return OpenBeam(mean * k, u * k, float(tr["open_beam_attenuation"]),
                     float(tr["beam_solid_angle_sr"]), float(tr["rel_std"]))
+
+
+def journalled_open_beam(events, frames: Mapping, settings: Mapping) -> tuple[OpenBeam | None, dict]:
+    """A session's open beam (gonio/bench/session/rear.py): the last ``open_beam`` journal event
+    (``events``: (time, kind, text)) whose frame ``frames`` (the journal's kind ``open_beam``
+    calibration frames, ``{name: (seconds, file, sha256)}``) still holds with its digest; (None,
+    {}) without one."""
+    import json
+
+    held = {f: d for _, f, d in frames.values()}
+    found = None
+    for _, kind, text in events:
+        if kind == "open_beam":
+            info = json.loads(text)
+            if held.get(info.get("file")) == info.get("sha256"):
+                found = info
+    if found is None:
+        return None, {}
+    tr = transmission_settings(settings)
+    return OpenBeam(np.asarray(found["rate"], float), np.asarray(found["rate_u"], float),
+                    float(tr["open_beam_attenuation"]), float(tr["beam_solid_angle_sr"]), float(tr["rel_std"])), found
 
 
 def btdf(rate, rate_u, ob: OpenBeam, theta_i_deg) -> tuple[np.ndarray, np.ndarray]:

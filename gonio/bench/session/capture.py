@@ -70,6 +70,8 @@ from gonio.bench.drivers import emergency_stop
 from gonio.bench.drivers.identify import identify_bench, session_devices
 from gonio.core.errors import GonioError, SessionError
 from gonio.bench.plan.plans import Plan, require_reachable
+from gonio.bench.plan import kinematics
+from gonio.bench.measure.transmission import transmission_settings
 from gonio.bench.plan.strategy import strategy_from_doc
 
 __all__ = ["capture", "resume", "CaptureSummary", "CaptureInterrupted", "StopNow", "Bench", "estop"]
@@ -174,17 +176,18 @@ def _session_doc(plan: Plan, settings: Mapping, seed, order, zaber_url, meter_ur
 
 def _run(folder: Path, doc: Mapping, bench: Bench, journal: Journal, lock: SessionLock, warnings: list,
          progress: bool, t0: float, notes: list, *, ident: Mapping | None = None,
-         note: Callable[[str], None] | None = None) -> CaptureSummary:
+         note: Callable[[str], None] | None = None, operator=None) -> CaptureSummary:
     """Measure what the journal lacks. Takes over ``bench``, ``journal`` and ``lock`` (closes them).
 
     ``ident``: the devices' identification a capture took before writing session.toml (a resume
-    identifies them again); ``note``: says a line (a resume on other hardware), else it joins ``notes``."""
+    identifies them again); ``note``: says a line (a resume on other hardware), else it joins ``notes``;
+    ``operator``: who performs the operator's steps (`gonio.bench.session.stops.operator_for`)."""
     try:
         with Interrupts() as intr:
             bench.checkpoint = intr.check
             try:
                 sess = _Session(folder, doc, bench, journal, progress, lambda: intr.requested, ident=ident,
-                                note=note or notes.append)
+                                note=note or notes.append, operator=operator)
                 sess.prepare()
                 n_new, stopped = sess.run()
             except StopNow as exc:
@@ -342,7 +345,8 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
             seed: int | None = None, progress: bool = True, *, sample_truth=None, meta: Mapping | None = None,
             sleep: Callable[[float], None] = time.sleep, poll_interval_s: float = 0.05,
             timeout: float = 1.0, strategy: Mapping | None = None,
-            clock: Callable[[], float] | None = None, monochromator: str | None = None) -> CaptureSummary:
+            clock: Callable[[], float] | None = None, monochromator: str | None = None,
+            operator=None) -> CaptureSummary:
     """Create a session folder and measure ``plan``.
 
     Parameters
@@ -377,6 +381,11 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     monochromator : str, optional
         The monochromator's serial URL (``sim://NAME/monochromator``): opened, identified and
         recorded in ``[ports]`` and ``[devices]``; a spectral plan needs it.
+    operator : optional
+        Performs the operator's steps of a plan with transmitted points (theta_o > 90: the
+        camera to the rear stop, the sample out for the open beam and back;
+        `gonio.bench.session.stops`); default: the simulator's twin on a ``sim://`` camera, a
+        prompt on a terminal, else a one-line stop saying what to do.
 
     Returns
     -------
@@ -411,8 +420,18 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
     doc = _session_doc(plan, settings, seed, order, zaber_url, meter_url, camera, sample_truth, meta, strategy,
                        monochromator)
     doc["order"].update(spectral)
+    rear = kinematics.detector_of(plan.angles[:, 2])
+    if np.any(rear):       # reflected points first, then transmitted: one camera move between the stops
+        transmission_settings(settings)
+        for name in ("yaw", "tilt", "azimuth", "lamp"):   # the open beam: every stage at its zero
+            lo, hi = (float(v) for v in settings["axes"][name][2:4])
+            if not lo <= 0.0 <= hi:
+                raise GonioError(f"the plan's transmitted points need the open-beam frame at stage zero, and "
+                                 f"[axes] {name} limits [{lo:g}, {hi:g}] exclude it; widen them or drop those points")
+        o = np.asarray(doc["order"]["order"], int)
+        doc["order"]["order"] = [int(i) for i in np.concatenate([o[~rear[o]], o[rear[o]]])]
     bench, journal, lock, doc, ident = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
-    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [], ident=ident)
+    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [], ident=ident, operator=operator)
 
 
 def _with_devices(doc: Mapping, devices: dict) -> dict:
@@ -487,7 +506,8 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
            progress: bool = True, *, sleep: Callable[[float], None] = time.sleep,
            poll_interval_s: float = 0.05, timeout: float = 1.0, rebuild_journal: bool = False,
            remeasure: str | None = None, notify: Callable[[str], None] | None = None,
-           clock: Callable[[], float] | None = None, monochromator: str | None = None) -> CaptureSummary:
+           clock: Callable[[], float] | None = None, monochromator: str | None = None,
+           operator=None) -> CaptureSummary:
     """Finish a session: check it is one consistent record (`gonio.bench.session.integrity`), re-check
     positions and flags (re-home if the reference was lost), verify the journalled RAW files,
     remove orphan temporary files, skip the journalled points and measure the rest in the
@@ -499,8 +519,9 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
     replaces a missing or damaged journal first. Each of these is said in one line to
     ``notify`` and in the summary's ``notes``.
 
-    Ports (the monochromator's too) default to those recorded in ``session.toml``; ``clock`` as `capture`'s (this run's
-    instrument time adds to the time the journal holds).
+    Ports (the monochromator's too) default to those recorded in ``session.toml``; ``clock`` and
+    ``operator`` as `capture`'s (this run's instrument time adds to the time the journal holds; the
+    operator is asked again where the camera is before a transmitted point).
     """
     t0 = time.perf_counter()
     folder = Path(session_dir)
@@ -560,4 +581,4 @@ def resume(session_dir, zaber_url: str | None = None, meter_url: str | None = No
             bench.close()
         lock.__exit__()
         raise
-    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, notes, note=note)
+    return _run(folder, doc, bench, journal, lock, warnings, progress, t0, notes, note=note, operator=operator)

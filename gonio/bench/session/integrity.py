@@ -517,7 +517,7 @@ def repair(folder: Path, journal: Journal, want: list[int] | None, note) -> None
 
 def drop_placeholders(folder: Path, journal: Journal) -> None:
     """Remove the empty placeholders of RAW files a stopped run reserved but never received."""
-    used = {f for kind in ("dark", "flat") for _, f, _ in journal.frames(kind).values()}
+    used = {f for kind in ("dark", "flat", "open_beam") for _, f, _ in journal.frames(kind).values()}
     used |= {e["file"] for r in journal.points() for e in r["detail"].get("exposures", [])}
     for file in raw_files(folder):
         p = folder / file

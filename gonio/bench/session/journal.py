@@ -541,7 +541,7 @@ def damaged_files(folder: str | Path, journal: Journal) -> tuple[dict[str, str],
     Returns ``({calibration name: file}, {point index: first bad file})``.
     """
     folder = Path(folder)
-    cal = {name: file for kind in ("dark", "flat") for name, (_, file, digest) in journal.frames(kind).items()
+    cal = {name: file for kind in ("dark", "flat", "open_beam") for name, (_, file, digest) in journal.frames(kind).items()
            if _bad(folder, file, digest)}
     points = {}
     for row in journal.points():
@@ -556,7 +556,7 @@ def verify_files(folder: str | Path, journal: Journal) -> list[str]:
     """RAW files the journal names whose checksum does not match (missing or corrupt)."""
     folder = Path(folder)
     bad = []
-    for _, file, digest in [v for kind in ("dark", "flat") for v in journal.frames(kind).values()]:
+    for _, file, digest in [v for kind in ("dark", "flat", "open_beam") for v in journal.frames(kind).values()]:
         if _bad(folder, file, digest):
             bad.append(file)
     for row in journal.points():

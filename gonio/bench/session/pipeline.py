@@ -51,7 +51,7 @@ class Pipeline:
         self.pending = (idx, self.pool.submit(s._reduce, shot))
         del shot
         if ahead is not None:
-            s._masks(s.stage[ahead])                   # the next regions, during the move
+            s._masks(s.stage[ahead], bool(s.rear[ahead]))   # the next regions, during the move
         try:
             self.commit_pending()                      # point k, still during the move
         except BadDelivery as exc:

@@ -26,10 +26,10 @@ from typing import Callable, Mapping
 import numpy as np
 
 from gonio.bench.session.calframes import CalibrationFrames
+from gonio.bench.session.rear import RearStop
 from gonio.bench.session.tuning import Tuning
-from gonio.core.files import create_exclusive
 from gonio.bench.measure.hdr import Exposure, NoiseModel, choose_bracket, ladder
-from gonio.bench.session.journal import RAW_DIR, Journal, preparation_times
+from gonio.bench.session.journal import Journal, preparation_times
 from gonio.bench.plan.markers import find_regions, layout_of, roi_masks_fast
 from gonio.bench.measure.calpoint import stray_corrected, stray_fraction
 from gonio.bench.measure.point import (ProgressBar, ReferenceModel, _runs, check_sensor, merged_region_stats, probe_levels)
@@ -46,14 +46,14 @@ from gonio.bench.plan.strategy import strategy_from_doc
 __all__ = ["roi_masks_fast"]  # re-exported from _markers (tests and the benchmark patch it here)
 
 
-class _Session(CalibrationFrames, Tuning):
+class _Session(CalibrationFrames, Tuning, RearStop):
     """One run over a session folder (shared by `capture` and `resume`)."""
 
     MAX_ATTEMPTS = 5        # measurements of one point interrupted by the lamp before the run stops
 
     def __init__(self, folder: Path, doc: Mapping, bench: Bench, journal: Journal, progress: bool,
                  stop: Callable[[], bool], *, ident: Mapping | None = None,
-                 note: Callable[[str], None] = lambda line: None):
+                 note: Callable[[str], None] = lambda line: None, operator=None):
         self.folder = folder
         self.doc = doc
         self.settings = doc["settings"]
@@ -107,33 +107,7 @@ class _Session(CalibrationFrames, Tuning):
                       if isinstance(r["detail"].get("instrument_s"), (int, float))}
         self.preparations = preparation_times(journal.checked_events()[0])
         self._init_tuning(self.plan, journal)       # a spectral plan's wavelengths (`Tuning`)
-
-    def _fresh(self, name: str) -> str:
-        """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
-        created empty with O_EXCL before the camera writes it (its rename replaces the placeholder):
-        an existing RAW file is never overwritten, and every file in raw/ is one the journal names."""
-        stem, dot, ext = name.rpartition(".")
-        k = 0
-        while True:
-            file = f"{RAW_DIR}/{name}" if k == 0 else f"{RAW_DIR}/{stem}_{k}{dot}{ext}"
-            k += 1
-            if file in self.reserved or (self.folder / file).exists():
-                continue
-            self.journal.reserve(file)
-            self.reserved.add(file)
-            if create_exclusive(self.folder / file):
-                return file
-
-    def _fresh_set(self, names: list[str]) -> list[str]:
-        """`_fresh` for a set of names, reserved in one journal transaction (a name already
-        taken gets `_fresh`'s suffix, one at a time)."""
-        files = [f"{RAW_DIR}/{name}" for name in names]
-        free = [f for f in files if f not in self.reserved and not (self.folder / f).exists()]
-        self.journal.reserve_all(free)
-        self.reserved.update(free)
-        free = set(free)
-        return [f if f in free and create_exclusive(self.folder / f) else self._fresh(name)
-                for f, name in zip(files, names)]
+        self._init_rear(operator)                   # transmitted points: the rear stop (`RearStop`)
 
     # -- instrument preparation ----------------------------------------------------------
     def _first_todo(self) -> list[int]:
@@ -267,15 +241,15 @@ class _Session(CalibrationFrames, Tuning):
                           "then resume the session")
 
     # -- one point -----------------------------------------------------------------------
-    def _masks(self, stage: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int], np.ndarray]:
+    def _masks(self, stage: np.ndarray, rear: bool = False) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int], np.ndarray]:
         """The sample and reference regions at ``stage`` (`roi_masks_fast`: the masks of
         `kinematics.roi_masks`, mostly from the map's affinity) cropped to their bounding box, the box
         (super-pixel rows and columns) that is all a point decodes, merges and reduces, and the
         `_runs` of both regions together. Cached per holder pose: the lamp's angle moves no region
         (`kinematics.rotation` ignores it), so the points that differ only in it share the masks."""
-        key = tuple(float(v) for v in stage[:3])
+        key = (*(float(v) for v in stage[:3]), rear)       # rear: the sample's region from the rear stop
         if key not in self._masks_of:
-            sm, rm = roi_masks_fast(stage, self.settings)
+            sm, rm = self._rear_regions(stage) if rear else roi_masks_fast(stage, self.settings)
             both = sm | rm
             rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
             if len(rows):
@@ -364,7 +338,7 @@ class _Session(CalibrationFrames, Tuning):
             if goal is None:                     # no move sent ahead (the first point, a retake)
                 goal = b.gonio.move_to(target, wait=False)
                 if self.layout is None:
-                    self._masks(self.stage[idx])  # its regions while the stages move
+                    self._masks(self.stage[idx], bool(self.rear[idx]))  # its regions while the stages move
             b.gonio.finish_move(goal)
         except MoveError as exc:                 # e.g. WL: clear the flags, try once more
             self.journal.event("warning", str(exc))
@@ -377,15 +351,16 @@ class _Session(CalibrationFrames, Tuning):
         """Move to point ``idx`` and take its bracket: what the instrument must do at the point.
         The probe (and a dim probe's confirmation) are decoded here, inside the regions' box, to
         choose the bracket; the other frames are left to `_reduce`."""
+        goal = self._to_stop(idx, goal)         # the camera's stop, the open beam (`RearStop`)
         self._arrive(idx, goal)
-        stage = self.stage[idx]
+        stage, rear = self.stage[idx], bool(self.rear[idx])
         regions = None
-        if self.layout is None:
-            sm, rm, box, runs = self._masks(stage)
+        if self.layout is None or rear:
+            sm, rm, box, runs = self._masks(stage, rear)
         p_start = self._power()
         taken: dict[float, tuple[Exposure | None, dict]] = {}
         t = self.probe
-        if self.layout is not None:             # the regions from the holder's markers, in the probe
+        if self.layout is not None and not rear:   # the regions from the holder's markers, in the probe
             (sm, rm, box), e, d, regions = self._regions_from_markers(idx, stage)
             runs = _runs(sm | rm)
             taken[t] = (e, d)
@@ -423,7 +398,7 @@ class _Session(CalibrationFrames, Tuning):
             raise _Suspended(f"the lamp changed by {100 * (max(powers) / min(powers) - 1):.1f} % within "
                              f"point {idx}'s bracket (tolerance {100 * self.bracket_tol:g} %)")
         return {"idx": idx, "stage": stage, "used": used, "p_start": p_start, "bracket": bracket,
-                "masks": (sm, rm, box), "regions": regions, "deliveries": deliveries, "tuned": self._tuned()}
+                "masks": (sm, rm, box), "regions": regions, "deliveries": deliveries, "tuned": self._tuned(), "rear": rear}
 
     def _reduce(self, shot: dict) -> dict:
         """Check and commit the point's RAW files (SHA-256 against the camera's, fsync, rename;
@@ -448,6 +423,8 @@ class _Session(CalibrationFrames, Tuning):
                 dl.discard()
             raise
         gain = None if self.gain is None else self.gain[:, box[0]:box[1], box[2]:box[3]]
+        if shot.get("rear"):                     # a transmitted point: over the open beam (`RearStop`)
+            return self._reduce_rear(shot, exposures, gain)
         # merged and reduced a block of rows at a time, each block's region sums taken while it is in cache
         stats = dict(zip(("sample", "reference"),
                          merged_region_stats(exposures, self.noise, (sm, rm), self.sat, self.gamma, gain)))
