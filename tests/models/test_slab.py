@@ -94,11 +94,9 @@ def test_mitsuba_twin_on_the_whole_sphere(distribution):
     twin's sensitivity has a heavy tail where a narrow lobe meets its float32 wg (a GGX 0.01,
     eta 2.4 pair: median 5e-6, largest of 200 one-ulp draws 4.8e-4, where 8 draws can miss it),
     so it is drawn 32 times. Measured (1e5 pairs, 5 sets a distribution): every pair within
-    the allowance, the largest excess -1.9e-5. The twin's ``sample`` gives the direction its ``pdf`` gives that density to, and
-    the weight eval / pdf."""
+    the allowance, the largest excess -1.9e-5."""
     mi = pytest.importorskip("mitsuba")
-    import drjit as dr
-    from gonio.models.mitsuba import eval_cos, interaction, mitsuba_variant
+    from gonio.models.mitsuba import eval_cos, mitsuba_variant
     from test_mitsuba_agreement import K_NOISE, THRESH
 
     model = gm.get("roughslab", distribution=distribution)
@@ -126,19 +124,55 @@ def test_mitsuba_twin_on_the_whole_sphere(distribution):
             if tiny.any():
                 s = _noise(ours_f, (p, wi[tiny], wo[tiny]), rng) * ours[tiny] + _noise(mi_f, (p, wi[tiny], wo[tiny]), rng, 32) * np.maximum(ref[tiny], 0)
                 assert (np.abs(ours[tiny] - ref[tiny]) - 2 * THRESH - K_NOISE * s).max() <= 0.0
-            # sampling: the density pdf() states at the sampled direction, the weight eval / pdf
-            cam = sphere(rng, 4096)
-            si, _ = interaction(cam, cam)
-            ctx = mi.BSDFContext()
-            bs, weight = bsdf.sample(ctx, si, dr.full(mi.Float, 0.5, len(cam)), mi.Point2f(rng.random((2, len(cam)))))
-            pdf = np.array(bsdf.pdf(ctx, si, bs.wo))
-            ev = np.array(bsdf.eval(ctx, si, bs.wo))[0]
-            w = np.array(weight)[0]
-            ok = np.array(bs.pdf) > 0
-            assert ok.mean() > 0.5
-            np.testing.assert_allclose(np.array(bs.pdf)[ok], pdf[ok], rtol=1e-5)
-            np.testing.assert_allclose(w[ok], ev[ok] / pdf[ok], rtol=1e-5, atol=1e-30)
     assert np.all(quadrants[:3] > 100) and quadrants[3] == 0, quadrants
+
+
+def _lit_from_everywhere(distribution, alpha, eta, tau, cam, n=160):
+    """The integral of slab_f(wl, cam) |cos theta_l| over every light direction wl: for a camera
+    in front, R + T of light from the camera's direction (reciprocity,
+    :func:`slab_reflectance_transmittance`); for one behind, the light's hemisphere in front on
+    n x n Gauss-Legendre and midpoint nodes (converged to 1e-6 at n 100 for GGX 0.3)."""
+    if cam[2] > 0:
+        R, T = slab_reflectance_transmittance(distribution, alpha, eta, tau, cam[None])
+        return float(R[0] + T[0])
+    x, w = np.polynomial.legendre.leggauss(n)
+    th = 0.25 * np.pi * (x + 1.0)
+    wt = 0.25 * np.pi * w * np.sin(th) * np.cos(th)
+    ph = (np.arange(n) + 0.5) * 2.0 * np.pi / n
+    T_, P_ = np.meshgrid(th, ph, indexing="ij")
+    wl = np.stack([np.sin(T_) * np.cos(P_), np.sin(T_) * np.sin(P_), np.cos(T_)], -1).reshape(-1, 3)
+    f = slab_f(distribution, alpha, eta, tau, wl, np.broadcast_to(cam, wl.shape)).reshape(T_.shape)
+    return float((f * wt[:, None]).sum() * 2.0 * np.pi / n)
+
+
+@pytest.mark.parametrize("distribution", DISTRIBUTIONS)
+def test_mitsuba_twin_samples_its_own_density(distribution):
+    """The twin's ``sample`` weights (eval / pdf at the sampled light direction) average to the
+    integral of f |cos| over all light directions, computed by quadrature of :func:`slab_f`:
+    a density that differs from ``pdf`` biases the render. 1e5 samples per camera direction
+    (0, 40, 75 deg, in front and behind), |mean - integral| < 4 sigma + 5e-4 (float32 and the
+    quadrature): false alarm 6e-5 a comparison for a Gaussian mean (0.1 % over the 18 here).
+    Power: Mitsuba's roughdielectric returns steep facets' reflections that cross the surface
+    with the other lobe's pdf; accepted, they made the backlit GGX 0.3 panel 0.8337 +- 0.0002
+    against 0.8167 (70 sigma at this n); measured now |z| <= 2.1 over these 18."""
+    mi = pytest.importorskip("mitsuba")
+    from gonio.models.mitsuba import interaction, mitsuba_variant
+
+    rng = np.random.default_rng(373)
+    n = 100_000
+    with mi.scoped_set_variant(mitsuba_variant()):
+        for alpha, eta, tau in ((0.3, 1.5, 1.0), (0.06, 1.5, 0.9), (0.8, 2.4, 0.7)):
+            bsdf = mi.load_dict(gm.get("roughslab", distribution=distribution).to_mitsuba(
+                {"alpha": alpha, "int_ior": eta, "tau": tau}))
+            for theta in (0.0, 40.0, 75.0):
+                for side in (1.0, -1.0):
+                    cam = incidence(theta)[0] * [1.0, 1.0, side]
+                    si, _ = interaction(np.tile(cam, (n, 1)), np.tile(cam, (n, 1)))
+                    _, weight = bsdf.sample(mi.BSDFContext(), si, mi.Float(rng.random(n)), mi.Point2f(rng.random((2, n))))
+                    w = np.array(weight)[0]
+                    want = _lit_from_everywhere(distribution, alpha, eta, tau, cam)
+                    sigma = w.std() / math.sqrt(n)
+                    assert abs(w.mean() - want) < 4.0 * sigma + 5e-4, (alpha, eta, theta, side, w.mean(), want, sigma)
 
 
 @pytest.mark.parametrize("distribution", DISTRIBUTIONS)

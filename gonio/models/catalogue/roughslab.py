@@ -278,12 +278,18 @@ def _make_bsdf(mi, dr, base):
             s = self._with_wi(si, dr.select(cc > 0, si.wi, wg_c))
             bs, _ = self.inner.sample(ctx, s, sample1, sample2, active)
             g = bs.wo
+            # a sample on the other side than its lobe's (a steep facet's reflection that crosses
+            # the surface) is one pdf() and eval() read as the other lobe's: refused, so that
+            # the accepted directions have the density pdf() gives
+            refracted = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Transmission)
+            crossed = mi.Frame3f.cos_theta(g) * mi.Frame3f.cos_theta(s.wi) < 0
             # a camera in front whose sampled ray went into the glass: out through the back
             s_o2 = self.eta * self.eta * (g.x * g.x + g.y * g.y)
             out = mi.Vector3f(self.eta * g.x, self.eta * g.y, -dr.safe_sqrt(1.0 - s_o2))
-            through = (cc > 0) & (mi.Frame3f.cos_theta(g) < 0)
+            through = (cc > 0) & crossed
             light = dr.select(through, out, g)
-            ok = active & dr.select(cc > 0, ~through | (s_o2 < 1.0), mi.Frame3f.cos_theta(g) > 0) & (bs.pdf > 0)
+            ok = active & (refracted == crossed) & (bs.pdf > 0)
+            ok = ok & dr.select(cc > 0, ~through | (s_o2 < 1.0), crossed)
             bs.wo = light
             bs.pdf = self.pdf(ctx, si, light, ok)
             bs.eta = 1.0
