@@ -35,11 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
+import gonio.models as gm
 from gonio.core.atomic import atomic_path
 from gonio.models.mitsuba import bsdf_base, select_variant
 from gonio.fitting.formats import MERL_SHAPE, RGLBRDF, MerlBRDF, check_rgl_file, read_merl
 
-__all__ = ["LIGHTINGS", "backlit_png", "delta_e_2000", "render_backlit", "matched_noise_floor", "measured_bsdf_dict", "preview", "read_exr", "register_merl_bsdf", "render_sphere",
+__all__ = ["BACKLIGHTS", "LIGHTINGS", "backlit_png", "delta_e_2000", "render_backlit", "matched_noise_floor", "measured_bsdf_dict", "panel_bsdf", "preview", "read_exr", "register_merl_bsdf", "render_sphere",
            "sphere_mask"]
 
 LIGHTINGS = ("env", "area")
@@ -217,22 +218,34 @@ def _scene_dict(mi, lighting, bsdf, size, spp):
     return scene
 
 
-def _backlit_dict(mi, bsdf, size, spp):
+#: The backlights of :func:`render_backlit`: a checkered 6 x 6 one, or a uniform one of
+#: radiance 1 that fills the panel's back hemisphere to 89 deg (200 x 200 at 1.5 units).
+BACKLIGHTS = ("checks", "uniform")
+
+
+def _backlit_dict(mi, bsdf, size, spp, backlight="checks"):
     """A transmitting panel (1.2 x 1.2, its lit face toward -z) 4 units in front of a 30-degree
     camera, lit from behind by a checkered backlight (6 x 6 at z = -1.5, radiance 1 and 0.1,
     facing the panel) that also shows around the panel; the ``path`` integrator (depth 4)
     follows light through smooth and rough interfaces alike."""
     T = mi.ScalarTransform4f
+    if backlight == "uniform":
+        lamp = {"type": "rectangle", "to_world": T().translate([0, 0, -1.5]) @ T().scale([100.0, 100.0, 1.0]),
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}
+    elif backlight == "checks":
+        lamp = {"type": "rectangle", "to_world": T().translate([0, 0, -1.5]) @ T().scale([3.0, 3.0, 1.0]),
+                "emitter": {"type": "area", "radiance": {
+                    "type": "checkerboard", "color0": {"type": "rgb", "value": 0.1},
+                    "color1": {"type": "rgb", "value": 1.0},
+                    "to_uv": T().scale([6.0, 6.0, 1.0])}}}
+    else:
+        raise ValueError(f"backlight must be one of {BACKLIGHTS}, got {str(backlight)[:20]!r}")
     return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 4},
         "panel": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], 180.0) @ T().scale([0.6, 0.6, 1.0]),
                   "bsdf": bsdf},
-        "backlight": {"type": "rectangle", "to_world": T().translate([0, 0, -1.5]) @ T().scale([3.0, 3.0, 1.0]),
-                      "emitter": {"type": "area", "radiance": {
-                          "type": "checkerboard", "color0": {"type": "rgb", "value": 0.1},
-                          "color1": {"type": "rgb", "value": 1.0},
-                          "to_uv": T().scale([6.0, 6.0, 1.0])}}},
+        "backlight": lamp,
         "camera": {"type": "perspective", "fov": _FOV_DEG, "fov_axis": "x",
                    "to_world": T().look_at(origin=[0, 0, 4.0], target=[0, 0, 0], up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": size, "height": size, "pixel_format": "rgb",
@@ -241,26 +254,80 @@ def _backlit_dict(mi, bsdf, size, spp):
     }
 
 
-def render_backlit(bsdf: dict, size: int = 128, spp: int = 64, seed: int = 0, variant: str | None = None) -> np.ndarray:
+def panel_bsdf(bsdf: dict) -> dict:
+    """The backlit panel a BSDF dict stands for: a real panel is a plate in air, light entering
+    its lit face and leaving its back into air on the camera's side. A single rough interface
+    (``roughdielectric``) is rendered as that plate with its back polished (gonio's
+    ``roughslab``, no absorption: the exit's Fresnel transmittance and the 1 / eta^2 of
+    radiance leaving glass, Nicodemus 1963), a smooth one (``dielectric``) as Mitsuba's
+    ``thindielectric`` (both faces polished); anything else as given (``thindielectric``,
+    ``difftrans`` and ``roughslab`` are plates already). A single interface seen from the glass
+    side shows radiance eta^2 too high (Veach 1997 eq. 5.9): 1.91 times the lamp for a GGX
+    0.3, eta 1.5 panel, brighter than the lamp behind it."""
+    if not isinstance(bsdf, dict):
+        raise TypeError("the backlit panel is a Mitsuba BSDF dict")
+    kind = bsdf.get("type")
+    if kind not in ("roughdielectric", "dielectric"):
+        return bsdf
+    try:
+        eta = float(bsdf.get("int_ior", 1.5)) / float(bsdf.get("ext_ior", 1.0))
+    except (TypeError, ValueError, ZeroDivisionError):
+        raise ValueError(f"backlit panel: a {kind}'s int_ior and ext_ior must be numbers (not a material's name)") from None
+    if not (math.isfinite(eta) and eta > 1.0):
+        raise ValueError(f"backlit panel: a {kind} with int_ior / ext_ior = {eta:.4g} is no plate in air; "
+                         "give an index above the air's")
+    if kind == "dielectric":
+        return {"type": "thindielectric", "int_ior": eta, "ext_ior": 1.0}
+    alpha = bsdf.get("alpha", 0.1)
+    if not isinstance(alpha, (int, float)):
+        raise ValueError("backlit panel: a roughdielectric with a textured alpha has no slab here; give a number")
+    slab = gm.get("roughslab", distribution=bsdf.get("distribution", "beckmann"))
+    return slab.to_mitsuba({"alpha": float(alpha), "int_ior": eta, "tau": 1.0})
+
+
+def render_backlit(bsdf: dict, size: int = 128, spp: int = 64, seed: int = 0, variant: str | None = None,
+                   backlight: str = "checks") -> np.ndarray:
     """The backlit scene (a lamp behind the sample, the camera in front: a diffuser, frosted
     glass or film as one sees it against a lit pattern); linear sRGB (size, size, 3). Seen
     through a clear panel the checks stay sharp; a rough one blurs and dims them by its
-    transmittance. The panel's lit face (gonio's +z) faces the lamp, so the camera looks from
-    the interior side: a single interface shows radiance eta^2 higher (Mitsuba's radiance mode,
-    gonio.models.catalogue.roughdielectric), a slab would give it back at its exit face."""
+    transmittance. The panel's lit face (gonio's +z, a slab's frosted face) faces the lamp and
+    the camera sees its back in air: :func:`panel_bsdf` renders a single interface as the plate
+    it stands for. With ``backlight="uniform"`` the panel's radiance is its
+    hemispherical-directional transmittance, the integral of f(wi, wo) cos theta_i over the
+    lamp's side (tests/fitting/test_backlit_preview.py measures it)."""
     import mitsuba as mi
 
     variant = select_variant(variant)
     with mi.scoped_set_variant(variant):
-        scene = mi.load_dict(_backlit_dict(mi, bsdf, int(size), int(spp)))
+        scene = mi.load_dict(_backlit_dict(mi, panel_bsdf(bsdf), int(size), int(spp), backlight))
         image = mi.render(scene, spp=int(spp), seed=int(seed))
         return np.array(image, dtype=np.float64).reshape(size, size, -1)[..., :3]
 
 
-def backlit_png(models, path, size: int = 256, spp: int = 64, seed: int = 0, variant: str | None = None) -> str:
-    """A PNG of the backlit scene for each ``(model, params)`` in ``models``, side by side."""
+def backlit_png(models, path, size: int = 256, spp: int = 64, seed: int = 0, variant: str | None = None,
+                titles=None) -> str:
+    """A PNG of the backlit scene for each ``(model, params)`` in ``models``, side by side
+    (:func:`render_backlit`, checkered backlight); with ``titles`` (one a model), a figure with
+    each title above its panel."""
     images = [render_backlit(m.to_mitsuba(p), size, spp, seed, variant) for m, p in models]
-    return _write_png(path, np.concatenate(images, axis=1))
+    if titles is None:
+        return _write_png(path, np.concatenate(images, axis=1))
+    titles = [str(t) for t in titles]
+    if len(titles) != len(images):
+        raise ValueError(f"backlit_png: {len(titles)} titles for {len(images)} models; give one a model")
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(2.4 * len(images), 2.7), dpi=100)
+    for k, (img, title) in enumerate(zip(images, titles)):
+        ax = fig.add_subplot(1, len(images), k + 1)
+        ax.imshow(_to_srgb8(img))
+        ax.set_title(title, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    with _atomic_image(path) as tmp:
+        fig.savefig(tmp)
+    return str(path)
 
 
 def render_sphere(bsdf: dict, lighting: str = "env", size: int = 128, spp: int = 256, seed: int = 0,
