@@ -122,7 +122,8 @@ def test_mitsuba_twin_on_the_whole_sphere(distribution):
                 assert over.max() <= 0.0, (p, wi[bad][np.argmax(over)], wo[bad][np.argmax(over)])
             tiny = ~mask & (ours > 2 * THRESH)
             if tiny.any():
-                s = _noise(ours_f, (p, wi[tiny], wo[tiny]), rng) * ours[tiny] + _noise(mi_f, (p, wi[tiny], wo[tiny]), rng, 32) * np.maximum(ref[tiny], 0)
+                args = (p, wi[tiny], wo[tiny])
+                s = _noise(ours_f, args, rng) * ours[tiny] + _noise(mi_f, args, rng, 32) * np.maximum(ref[tiny], 0)
                 assert (np.abs(ours[tiny] - ref[tiny]) - 2 * THRESH - K_NOISE * s).max() <= 0.0
     assert np.all(quadrants[:3] > 100) and quadrants[3] == 0, quadrants
 
