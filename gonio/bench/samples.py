@@ -5,7 +5,8 @@ A SAMPLE is a TOML file (``model = "roughplastic"``, ``[options]`` distribution 
 RGL-EPFL ``.bsdf`` file (Mitsuba's ``measured`` plugin). A per-channel parameter may be a
 spectrum, ``[params.diffuse_reflectance]`` with ``wavelengths = [...]`` (nm) and ``values =
 [...]``: kept under ``spectra``, rendered by the RGB simulator as its linear sRGB under D65
-(gonio.fitting.colour). Either becomes the plain dict the simulator takes (docs/interfaces.md
+(gonio.fitting.colour). A transmitting one may have a ``[slab]`` (thickness_mm,
+absorption_per_mm, back = "smooth"): a polished back face. Either becomes the plain dict the simulator takes (docs/interfaces.md
 section 4), ``{"model", "options", "params"}`` or ``{"bsdf_file"}``; parameters are checked
 against the model's declarations before any stage moves.
 """
@@ -18,6 +19,7 @@ import numpy as np
 
 import gonio.models as gm
 from gonio.core.preflight import check_input_file
+from gonio.core.sides import Side
 from gonio.core.tomlfile import read_toml
 from gonio.fitting.formats import check_rgl_file
 
@@ -62,6 +64,30 @@ def check_sample(spec: dict) -> dict:
     out = {"model": name, "options": options, "params": to_list}
     if spectra:
         out["spectra"] = spectra
+    if "slab" in spec:
+        out["slab"] = _check_slab(spec["slab"], model)
+    return out
+
+
+_SLAB_KEYS = ("thickness_mm", "absorption_per_mm", "back")
+
+
+def _check_slab(table, model) -> dict:
+    """A ``[slab]`` table (the polished back face of a transmitting sample, to first order:
+    gonio.sim.physics.sample.slab_exit), checked; it used to be dropped without a word."""
+    if Side.TRANSMIT not in tuple(model.structure.sides) or "int_ior" not in {p.name for p in model.parameters}:
+        raise GonioError(f"sample: [slab] needs a model that transmits through an interface (roughdielectric), "
+                         f"not {model.name}")
+    if not isinstance(table, dict) or set(table) - set(_SLAB_KEYS):
+        raise GonioError(f"sample: [slab] takes {', '.join(_SLAB_KEYS)} only")
+    if table.get("back", "smooth") != "smooth":
+        raise GonioError("sample: [slab] back must be \"smooth\" (a polished back face)")
+    out = {"back": "smooth"}
+    for key in _SLAB_KEYS[:2]:
+        v = table.get(key, 1.0 if key == "thickness_mm" else 0.0)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
+            raise GonioError(f"sample: [slab] {key} must be a finite number >= 0, not {str(v)[:20]!r}")
+        out[key] = float(v)
     return out
 
 
