@@ -1,4 +1,4 @@
-"""Transmission measurements normalised by the open beam (ASTM E2387), and the rear-stop capture.
+"""Transmission measurements normalised by the open beam (ASTM E2387).
 
 The camera on the detector arm's rear stop reads the radiance L_t the sample transmits; the
 open-beam frame (the sample out of the holder, the lamp straight behind its empty aperture,
@@ -11,24 +11,22 @@ unit of the lamp monitor's power P (lamp drift cancels),
 `OpenBeam` is that calibration, recorded in the dataset's attributes as the reflectance
 reference's certificate is; a and Omega_beam come from ``[transmission]`` (the attenuator's
 and the beam's certificates, their relative standard uncertainties a scale common to every
-transmitted point). `capture_rear` captures a plan's transmitted points on a simulated
-instrument (darks, warm-up, open beam, points) until the bench session drives the rear stop.
+transmitted point). The capture session takes the open-beam frame and the transmitted points
+on the rear stop (gonio/bench/session/rear.py) and journals the open beam, which
+`journalled_open_beam` reads back.
 """
 
 from __future__ import annotations
 
-import io
 import math
 from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
 
-from gonio.core.channels import CHANNELS
 from gonio.core.errors import GonioError
-from gonio.bench.plan import kinematics
 
-__all__ = ["OpenBeam", "transmission_settings", "open_beam_rate", "journalled_open_beam", "btdf", "capture_rear"]
+__all__ = ["OpenBeam", "transmission_settings", "open_beam_rate", "journalled_open_beam", "btdf"]
 
 _DEFAULTS = {"open_beam_attenuation": 1e-3, "beam_solid_angle_sr": 1e-3, "rel_std": 0.01}
 
@@ -125,82 +123,3 @@ def btdf(rate, rate_u, ob: OpenBeam, theta_i_deg) -> tuple[np.ndarray, np.ndarra
     c = np.cos(np.radians(np.asarray(theta_i_deg, float)))[:, None]
     k = ob.radiance_scale / (ob.rate * c)
     return rate * k, rate_u * k
-
-
-def _channels(raw: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Super-pixel values (n, 3) of an RGGB mosaic inside ``mask`` (the 2 x 2 binned grid)."""
-    h, w = mask.shape
-    q = raw[: 2 * h, : 2 * w].reshape(h, 2, w, 2)
-    rgb = np.stack([q[:, 0, :, 0], 0.5 * (q[:, 0, :, 1] + q[:, 1, :, 0]), q[:, 1, :, 1]], -1)
-    return rgb[mask]
-
-
-def capture_rear(inst, plan, settings: Mapping, *, exposure_max_s: float = 0.02, rungs: int = 8,
-                 warm_up_s: float = 1800.0) -> dict:
-    """Capture ``plan``'s transmitted points on a simulated instrument (``gonio.sim.Instrument``).
-
-    Darks at each rung of the exposure ladder (``exposure_max_s / 4**k``), 16 flat-field frames
-    (the pixels' gains, divided out of every frame), the lamp on and settled for ``warm_up_s``,
-    the open-beam frame, then each point on the rear stop at the
-    longest rung whose brightest region pixel stays below 70 % of full scale; every frame's
-    monitor reading divides its signal. Returns wi, wo, brdf, brdf_std (N, C), use, the
-    `OpenBeam` and the exposures.
-    """
-    import tifffile
-
-    through = kinematics.detector_of(plan.angles[:, 2])
-    if not through.any():
-        raise GonioError(f"plan {plan.name!r} has no transmitted point (theta_o > 90); use a transmission plan")
-    a = plan.angles[through]
-    stages = kinematics.inverse(*a.T)
-    ladder = [exposure_max_s / 4.0 ** k for k in range(rungs)]
-    white = float(inst.sensor.white)
-
-    def frame(t, source="scene"):
-        raw = tifffile.imread(io.BytesIO(inst.capture(t, source))).astype(float)
-        return raw
-
-    def monitor():                                        # 8 readings: the mean and its relative standard error
-        r = np.array([inst.meter.read(inst.lamp.power(inst.clock.now())) for _ in range(8)]) / inst.meter.splitter
-        return float(r.mean()), float(r.std(ddof=1) / math.sqrt(len(r)) / r.mean())
-
-    inst.detector = "rear"
-    inst.set_pose(yaw=0.0, tilt=0.0, azimuth=0.0, lamp=0.0)
-    inst.lamp.switch(inst.clock.now(), False)
-    darks = {t: frame(t) for t in ladder}
-    t_flat = 0.01
-    flat = np.mean([frame(t_flat, "flat") for _ in range(16)], axis=0) - frame(t_flat)
-    gain = np.empty_like(flat)                            # per CFA site: gain relative to its channel's mean
-    for r in (0, 1):
-        for c in (0, 1):
-            gain[r::2, c::2] = flat[r::2, c::2] / flat[r::2, c::2].mean()
-    inst.lamp.switch(inst.clock.now(), True)
-    inst.clock.advance(warm_up_s)
-    aperture = kinematics.roi_masks(np.zeros(4), settings, rear=True)[0]
-    for t in ladder:                                      # the open beam, at the longest safe rung
-        p, p_rel = monitor()
-        raw = (frame(t, "open_beam") - darks[t]) / gain
-        x = _channels(raw, aperture)
-        if x.max() < 0.7 * (white - inst.sensor.black):
-            break
-    ob = open_beam_rate(x, t, p, settings, p_rel)
-    rate = np.zeros((len(a), CHANNELS))
-    rate_u = np.zeros_like(rate)
-    used = []
-    for k, st in enumerate(stages):
-        inst.set_pose(**dict(zip(kinematics.AXES, (float(v) for v in st))))
-        mask = kinematics.roi_masks(st, settings, rear=True)[0]
-        for t in ladder:
-            p, p_rel = monitor()
-            x = _channels((frame(t) - darks[t]) / gain, mask)
-            if x.max() < 0.7 * (white - inst.sensor.black):
-                break
-        used.append(t)
-        rate[k] = x.mean(0) / (t * p)
-        rate_u[k] = np.hypot(x.std(0, ddof=1) / math.sqrt(x.shape[0]), p_rel * x.mean(0)) / (t * p)
-    inst.detector = "front"
-    f, u = btdf(rate, rate_u, ob, a[:, 0])
-    floor = 1e-6 * np.max(np.abs(f))
-    return {"wi": kinematics.directions(a[:, 0], a[:, 1]), "wo": kinematics.directions(a[:, 2], a[:, 3]),
-            "brdf": f, "brdf_std": np.maximum(u, floor), "use": np.ones_like(f, bool), "open_beam": ob,
-            "exposure_s": np.array(used), "angles": a}
