@@ -115,8 +115,9 @@ class Evaluator:
     def jacobian(self, params):
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
         derivatives (:func:`gonio.models.fast.jacobian`; one call, counted as one
-        evaluation), or None on the numpy path and for a kernel of values only
-        (``structure.derivatives``). Channels beyond three: in groups of three."""
+        evaluation), or the model's own exact numpy derivatives where its kernel gives values
+        only (``jacobian_reference``: tabulated, whose parameters act through host tables);
+        None otherwise (the callers then difference). Channels beyond three: in groups of three."""
         if self.grouped is not None:
             self.n_evals += 1
             return self.grouped.jacobian(params)
@@ -124,7 +125,11 @@ class Evaluator:
             self.n_evals += 1
             return self._layered_jacobian(params)
         if not self.fast or not self.model.structure.derivatives:
-            return None
+            host = getattr(self.model, "jacobian_reference", None)
+            if host is None:
+                return None
+            self.n_evals += 1
+            return host(self.wi, self.wo, params)
         self.n_evals += 1
         return fast.jacobian(self.model, self._resident(), params)
 

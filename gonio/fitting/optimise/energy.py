@@ -42,12 +42,16 @@ def slsqp_energy(problem, x0, energy_wo, maxeval):
     u0 = np.clip(space.to_unit(x0), 1e-9, 1 - 1e-9)
     norm = max(float(np.sum(r_of(u0) ** 2)), 1e-300)
 
+    seen = {}                # objective at each point SLSQP evaluated, and the best point its own constraints allow
+    best = {"u": None, "value": np.inf}
+
     def f(u, grad):
         r = r_of(u)
         if grad.size:
             J = problem.lm_jacobian_u(u)
             grad[:] = 2.0 * ((J if J is not None else forward_jacobian(r_of, u, r)).T @ r) / norm
-        return float(r @ r) / norm
+        seen[u.tobytes()] = value = float(r @ r) / norm
+        return value
 
     quad = _AlbedoQuadrature(problem, energy_wo)
     margin = [0.0]  # grows by the gap between this quadrature and model.albedo, if any
@@ -56,6 +60,9 @@ def slsqp_energy(problem, x0, energy_wo, maxeval):
         exact = quad.value_and_grad(u) if grad.size else None  # one compiled Jacobian, not P + 1 quadratures
         c = (exact[0] if exact is not None else quad(space.from_unit(u))) + margin[0]
         result[:] = c
+        value = seen.get(u.tobytes(), np.inf)
+        if np.max(c) <= 0.0 and value < best["value"]:
+            best.update(u=u.copy(), value=value)
         if exact is not None:
             grad[:] = exact[1]
         elif grad.size:
@@ -93,7 +100,19 @@ def slsqp_energy(problem, x0, energy_wo, maxeval):
     x = space.from_unit(u)
     ok = status in (1, 2, 3, 4) or status == nlopt.ROUNDOFF_LIMITED
     note = ""
-    if np.max(problem.albedo_excess(x, energy_wo)) > 1e-4:
+    # SLSQP's iterates need not be feasible, nor its last one its best (cut short by maxeval or
+    # maxtime it can end far above where it passed): the lowest objective among its last point,
+    # the best point its constraints allowed and the scaled start, of those albedo <= 1 allows
+    scaled, scaled_note = scale_to_feasible(problem, space.from_unit(u0), energy_wo)
+    tries = [(x, ""), (scaled, scaled_note + " (SLSQP's points were worse)")]
+    if best["u"] is not None:
+        tries.insert(1, (space.from_unit(best["u"]), "; its best feasible point kept"))
+    ranked = [(float(np.sum(problem.lm_residuals_u(space.to_unit(xt)) ** 2)), k) for k, (xt, _) in enumerate(tries)
+              if np.max(problem.albedo_excess(xt, energy_wo)) <= 1e-4]
+    if ranked:
+        x, extra = tries[min(ranked)[1]]
+        note += extra if min(ranked)[1] else ""
+    else:
         ok = False
         x, note = scale_to_feasible(problem, x, energy_wo)
     return x, _loss.objective(loss, problem.residuals_x(x)), ok, _status_text(status) + note

@@ -212,6 +212,37 @@ def g1_table(ln_d, theta_knots=THETA_KNOTS, n=N_G, n_gauss=N_GAUSS):
     return np.log(z) + top[:, 0], g1
 
 
+def table_derivatives(ln_d):
+    """The derivatives of :func:`g1_table`'s outputs with respect to the knot table ``ln_d``
+    (C, K): ``(dlnz (C, K), dg1 (C, N_G, K))``. ln Z and A are integrals of D = exp(ln D)
+    over the polar nodes, so d/d ln D_k weighs each node by its interpolation weight of knot
+    k; G1 = cos / A where 0 < G1 < 1 (0 where clipped)."""
+    theta_m, w, s = _NODES
+    basis = _interp(np.eye(N_KNOTS), s)                         # (nodes, K): d ln D(node) / d ln D_k
+    lnd_m = _interp(ln_d, s).T
+    d_m = np.exp(lnd_m - lnd_m.max(axis=1, keepdims=True))     # (C, nodes), the common scale cancels
+    zw = d_m * (2.0 * math.pi * np.cos(theta_m) * np.sin(theta_m) * w)
+    z = zw.sum(axis=1)
+    dlnz = (zw @ basis) / z[:, None]                            # (C, K)
+    aw = d_m * (np.sin(theta_m) * w)
+    area = aw @ _KERNEL.T / z[:, None]                          # (C, N_G)
+    darea = np.einsum("cm,nm,mk->cnk", aw, _KERNEL, basis) / z[:, None, None] - area[:, :, None] * dlnz[:, None, :]
+    cos_t = np.cos(_theta_g())
+    cos_t[-1] = 0.0
+    g1 = cos_t[None, :] / area
+    inside = (g1 > 0.0) & (g1 < 1.0)
+    dg1 = np.where(inside[:, :, None], -(g1 / area)[:, :, None] * darea, 0.0)
+    return dlnz, dg1
+
+
+def _lerp_parts(n, s):
+    """The lower index, its weight split (1 - t, t) and whether s lies inside a segment
+    (its derivative with respect to s is the segment's slope) of :func:`_interp`."""
+    i = np.clip(np.floor(s), 0, n - 2).astype(np.int64)
+    t = np.clip(s - i, 0.0, 1.0)
+    return i, t
+
+
 def tables(p):
     """The tables of a validated parameter dict: ``ln_d`` (C, K) (ln D(theta_k) / D(0)),
     ``ln_z`` (C,), ``g1`` (C, N_G), ``fresnel`` (C, N_FRESNEL), ``rho`` (C,)."""
@@ -332,6 +363,65 @@ class Tabulated(Model):
         F = _interp(t.fresnel, s_f)
         den = np.where(ok, 4.0 * ci * co, 1.0)
         return np.where(ok[:, None], F * D * G / den[:, None], 0.0)
+
+    def jacobian_reference(self, wi, wo, params):
+        """(f_r, {parameter: d f_r / d parameter (N, 3)}) in numpy, exact for the piecewise
+        linear tables (:func:`gonio.models.engine.fast.jacobian`'s layout: a per-channel
+        parameter's column c is d f_c / d p_c; the tilts reach their own channel). The fit
+        uses it where the compiled kernel gives values only (the parameters act through
+        tables built here), instead of P + 1 differenced evaluations."""
+        from gonio.core.sides import sides_mask
+        from gonio.models.inputs import eval_inputs
+
+        wi, wo, p = eval_inputs(self, wi, wo, params)
+        t = tables(p)
+        n = wi.shape[0]
+        ci, co = wi[:, 2], wo[:, 2]
+        with np.errstate(all="ignore"):
+            wh, valid = half_vector(wi, wo)
+            cd = 0.5 * (np.einsum("ij,ij->i", wi, wh) + np.einsum("ij,ij->i", wo, wh))
+            pair = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1) & sides_mask(self.structure.sides, ci, co)
+            ok = pair & valid & (ci > 0.0) & (co > 0.0) & (wh[:, 2] > 0.0) & (cd > 0.0)
+            s_f = (N_FRESNEL - 1) * np.clip(1.0 - cd, 0.0, 1.0)
+            w = _interp(t.width, s_f)[:, 0]
+            th = _polar(wh)
+            u = np.clip(th / w, 0.0, 0.5 * math.pi)
+            s_h = knot_index(th / w)
+            ih, th_t = _lerp_parts(N_KNOTS, s_h)
+            L = _interp(t.ln_d - t.ln_z[:, None], s_h)                          # (N, C)
+            slope = (t.ln_d[:, ih + 1] - t.ln_d[:, ih]).T                       # d L / d s_h
+            ds_dw = np.where((u > 0.0) & (th / w < 0.5 * math.pi), -0.5 * s_h / w, 0.0)
+            gi, go = g_index(_polar(wi)), g_index(_polar(wo))
+            Gi, Go = _interp(t.g1, gi), _interp(t.g1, go)
+            F = _interp(t.fresnel, s_f)
+            den = np.where(ok, 4.0 * ci * co * w * w, 1.0)[:, None]
+            D_over = np.where(ok[:, None], np.exp(L) / den, 0.0)               # D / (4 ci co), w^-2 in den
+            lobe = F * D_over * Gi * Go
+            body = np.where(pair, 1.0 / math.pi, 0.0)                            # eval_reference's mask
+            f = t.rho[None, :] * body[:, None] + lobe
+            J = {"diffuse_reflectance": np.repeat(body[:, None], CHANNELS, axis=1)}
+            i_f, t_f = _lerp_parts(N_FRESNEL, s_f)
+            for j in range(N_FRESNEL):
+                hat = np.where(i_f == j, 1.0 - t_f, 0.0) + np.where(i_f + 1 == j, t_f, 0.0)
+                J[f"fresnel_{j}"] = (D_over * Gi * Go) * hat[:, None]
+                if j >= 1:                                                       # w moves theta_h / w and the w^-2
+                    J[f"width_{j}"] = lobe * (slope * ds_dw[:, None] - 2.0 / w[:, None]) * hat[:, None]
+            dlnz, dg1 = table_derivatives(t.ln_d)
+            dGi = np.stack([_interp(dg1[c].T, gi) for c in range(CHANNELS)], axis=1)   # (N, C, K)
+            dGo = np.stack([_interp(dg1[c].T, go) for c in range(CHANNELS)], axis=1)
+            hat_h = np.zeros((n, N_KNOTS))
+            np.add.at(hat_h, (np.arange(n), ih), 1.0 - th_t)
+            np.add.at(hat_h, (np.arange(n), ih + 1), th_t)
+            dq = lobe[:, :, None] * (hat_h[:, None, :] - dlnz[None, :, :]) \
+                + (F * D_over)[:, :, None] * (dGi * Go[:, :, None] + Gi[:, :, None] * dGo)      # d f_c / d ln D_{c,k}
+            for k in range(FIRST_FREE, N_KNOTS):
+                J[f"ndf_{k}"] = dq[:, :, k] / p[f"ndf_{k}"]
+            for c, name in ((0, "r"), (2, "b")):
+                for kk, basis in zip(TILT_KNOTS, TILT_BASIS):
+                    col = np.zeros((n, CHANNELS))
+                    col[:, c] = dq[:, c, :] @ basis / p[f"ndf_tilt_{name}_{kk}"]
+                    J[f"ndf_tilt_{name}_{kk}"] = col
+        return f, J
 
     def _lobe_distribution(self, p):
         """Node placement for :func:`gonio.models.physics.albedo.albedo`'s lobe quadrature: the GGX
