@@ -27,8 +27,8 @@ from gonio.core.sides import Side, side_of
 
 from gonio.fitting.optimise.mle import fit
 
-__all__ = ["CANDIDATES", "ANISOTROPIC", "Azimuthal", "azimuthal_structure", "Ranked", "option_candidates", "select",
-           "candidates_for"]
+__all__ = ["CANDIDATES", "ANISOTROPIC", "SPECTRAL", "Azimuthal", "azimuthal_structure", "Ranked", "option_candidates",
+           "select", "candidates_for"]
 
 #: (name, options) tried by ``--model auto``, simplest first (fewest parameters): every
 #: registered model that does not declare ``auto_candidate = False`` (the model declares,
@@ -82,6 +82,28 @@ def _anisotropic_candidates():
 
 
 ANISOTROPIC = _anisotropic_candidates()
+
+
+def _spectral_candidates():
+    """Every registered model that declares ``spectral_candidate`` (a colour that changes with
+    angle needs a spectrum to be told from a fixed colour: flakepaint), one per declared
+    option combination, simplest first."""
+    out = []
+    for name in gm.names():
+        cls = type(gm.get(name))
+        if not getattr(cls, "spectral_candidate", False):
+            continue
+        combos = [{}]
+        for key, values in cls.OPTIONS.items():
+            combos = [{**c, key: v} for c in combos for v in values]
+        for opts in combos:
+            model = gm.get(name, **opts)
+            out.append((sum(3 if p.per_channel else 1 for p in model.parameters), name, opts))
+    return tuple((name, opts) for _, name, opts in sorted(out, key=lambda t: t[0]))
+
+
+#: the candidates ``--model auto`` adds on spectral data (``attrs["wavelengths_nm"]``)
+SPECTRAL = _spectral_candidates()
 
 #: :func:`azimuthal_structure`'s false-alarm probability on isotropic data whose sigma is
 #: right (the chi^2 test's size; the relative floor below only lowers it)
@@ -149,16 +171,18 @@ def candidates_for(meas):
     """The ``--model auto`` candidates for ``meas``: `CANDIDATES` for a BRDF, with the
     anisotropic ones (`ANISOTROPIC`) where the data shows azimuthal structure
     (:func:`azimuthal_structure`; never for data from a format that holds an isotropic BRDF,
-    ``attrs["isotropic"]``: RGL, MERL); the transmission models when any used point lies on the
+    ``attrs["isotropic"]``: RGL, MERL); on spectral data (``attrs["wavelengths_nm"]``) the
+    ``spectral_candidate`` models too (`SPECTRAL`); the transmission models when any used point lies on the
     transmitted side (a reflection model predicts 0 there, so it cannot explain those points
     and is not offered)."""
     used = np.asarray(meas.use).any(axis=1)
     side = side_of(np.asarray(meas.wi)[used, 2], np.asarray(meas.wo)[used, 2])
     if np.any(side == 1):
         return _transmission_candidates()
+    base = CANDIDATES + SPECTRAL if meas.attrs.get("wavelengths_nm") else CANDIDATES
     if meas.attrs.get("isotropic"):     # a format that holds an isotropic BRDF (RGL, MERL): only noise to see
-        return CANDIDATES
-    return CANDIDATES + ANISOTROPIC if azimuthal_structure(meas).anisotropic else CANDIDATES
+        return base
+    return base + ANISOTROPIC if azimuthal_structure(meas).anisotropic else base
 
 
 def option_candidates(name, options=None):
