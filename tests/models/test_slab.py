@@ -101,7 +101,7 @@ def test_mitsuba_twin_on_the_whole_sphere(distribution):
 
     model = gm.get("roughslab", distribution=distribution)
     rng = np.random.default_rng(37 + len(distribution))
-    n = 20_000
+    n = 20_000 if mitsuba_variant().startswith(("llvm", "cuda")) else 1_000   # scalar_rgb loops in Python
     quadrants = np.zeros(4)
     with mi.scoped_set_variant(mitsuba_variant()):
         for alpha, eta, tau in ((0.3, 1.5, 0.9), (0.06, 1.5, 1.0), (0.01, 2.4, 0.5), (1.0, 1.05, 0.3)):
@@ -125,7 +125,7 @@ def test_mitsuba_twin_on_the_whole_sphere(distribution):
                 args = (p, wi[tiny], wo[tiny])
                 s = _noise(ours_f, args, rng) * ours[tiny] + _noise(mi_f, args, rng, 32) * np.maximum(ref[tiny], 0)
                 assert (np.abs(ours[tiny] - ref[tiny]) - 2 * THRESH - K_NOISE * s).max() <= 0.0
-    assert np.all(quadrants[:3] > 100) and quadrants[3] == 0, quadrants
+    assert np.all(quadrants[:3] > n // 200) and quadrants[3] == 0, quadrants
 
 
 def _lit_from_everywhere(distribution, alpha, eta, tau, cam, n=160):
@@ -159,6 +159,8 @@ def test_mitsuba_twin_samples_its_own_density(distribution):
     mi = pytest.importorskip("mitsuba")
     from gonio.models.mitsuba import interaction, mitsuba_variant
 
+    if not mitsuba_variant().startswith(("llvm", "cuda")):
+        pytest.skip("1e5 samples a camera direction in one wavefront: a vectorised Mitsuba variant")
     rng = np.random.default_rng(373)
     n = 100_000
     with mi.scoped_set_variant(mitsuba_variant()):

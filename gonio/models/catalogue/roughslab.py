@@ -283,18 +283,19 @@ def _make_bsdf(mi, dr, base):
             # the surface) is one pdf() and eval() read as the other lobe's: refused, so that
             # the accepted directions have the density pdf() gives
             refracted = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Transmission)
-            crossed = mi.Frame3f.cos_theta(g) * mi.Frame3f.cos_theta(s.wi) < 0
+            side = mi.Frame3f.cos_theta(g) * mi.Frame3f.cos_theta(s.wi)
+            crossed, kept = side < 0, side >= 0        # comparisons, not ~: scalar variants hold bools
             # a camera in front whose sampled ray went into the glass: out through the back
             s_o2 = self.eta * self.eta * (g.x * g.x + g.y * g.y)
             out = mi.Vector3f(self.eta * g.x, self.eta * g.y, -dr.safe_sqrt(1.0 - s_o2))
             through = (cc > 0) & crossed
             light = dr.select(through, out, g)
             ok = active & (refracted == crossed) & (bs.pdf > 0)
-            ok = ok & dr.select(cc > 0, ~through | (s_o2 < 1.0), crossed)
+            ok = ok & dr.select(cc > 0, kept | (s_o2 < 1.0), crossed)
             bs.wo = light
             bs.pdf = self.pdf(ctx, si, light, ok)
             bs.eta = 1.0
-            refl = (cc > 0) & ~through
+            refl = (cc > 0) & kept
             bs.sampled_type = dr.select(refl, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
                                         mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
             bs.sampled_component = dr.select(refl, mi.UInt32(0), mi.UInt32(1))
