@@ -4,7 +4,7 @@ glass, an anti-glare film on its substrate), both faces in air, to first order.
 Convention: ``wi`` points to the light, ``wo`` to the detector, both outside the slab in air
 (index 1); the frosted face is +z, the polished back -z. Light on the front: reflection is the
 front face's (Walter et al. 2007), transmission enters through the front into the glass along
-wg and leaves the back along ``wo`` (Snell), with the exit's Fresnel transmittance, the eta^2
+wg and leaves the back along ``wo`` (Snell), with the exit's Fresnel transmittance, the 1/eta^2
 of radiance leaving glass into air, and the internal transmittance along the path. Both ends in
 air, so reciprocity is plain: f(wi, wo) = f(wo, wi) (Veach 1997 eq. 5.15 with n_i = n_o = 1),
 tested against light entering the polished back (:func:`slab_f`). The slab is not symmetric:
@@ -22,7 +22,9 @@ reference only (no compiled kernel).
 #   reciprocity f / eta_o^2).
 # The same first-order formula as the simulator's sample truth (gonio.sim.physics.sample.slab_exit).
 # Left out (first order): the back face's reflection (F ~ 4 % at eta 1.5) sent back through
-# the front, multiple bounces between the faces, the exit spot's lateral shift d tan theta_g.
+# the front, multiple bounces between the faces, the exit spot's lateral shift d tan theta_g;
+# light the rough face sends past the back face's critical angle counts as lost (in a real
+# plate it bounces and leaves later: most of T at grazing incidence, docs/performance.md).
 
 from __future__ import annotations
 
