@@ -4,16 +4,16 @@
 (``prepare``) and reads them back on a resume: dark frames for every rung of the exposure
 ladder, the flat field as one unit (its names reserved together, each frame checked as it
 comes, one file-system sync and one journal transaction for the set), and one frame of the
-ColorChecker; and the RAW name reservation every frame of the session goes through
-(``_fresh``, ``_fresh_set``). It uses the session's ``folder``, ``bench``, ``journal``,
-``settings``, ``rungs``, ``probe``, ``sat``, ``darks`` and ``reserved``.
+ColorChecker. It uses the session's ``folder``, ``bench``, ``journal``, ``settings``,
+``rungs``, ``probe``, ``sat``, ``darks`` and its RAW name reservation (``_fresh``,
+``_fresh_set``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from gonio.core.files import TMP_PREFIX, create_exclusive, is_tiff, make_durable
+from gonio.core.files import TMP_PREFIX, is_tiff, make_durable
 from gonio.bench.measure.hdr import flat_gain
 from gonio.bench.session.journal import RAW_DIR
 from gonio.bench.drivers import BadDelivery, RawFrame, decode_raw, read_verified
@@ -22,33 +22,6 @@ from gonio.core.errors import GonioError, SessionError
 
 class CalibrationFrames:
     """Darks, flats and the chart of one session (a mixin of `_session._Session`)."""
-
-    def _fresh(self, name: str) -> str:
-        """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
-        created empty with O_EXCL before the camera writes it (its rename replaces the placeholder):
-        an existing RAW file is never overwritten, and every file in raw/ is one the journal names."""
-        stem, dot, ext = name.rpartition(".")
-        k = 0
-        while True:
-            file = f"{RAW_DIR}/{name}" if k == 0 else f"{RAW_DIR}/{stem}_{k}{dot}{ext}"
-            k += 1
-            if file in self.reserved or (self.folder / file).exists():
-                continue
-            self.journal.reserve(file)
-            self.reserved.add(file)
-            if create_exclusive(self.folder / file):
-                return file
-
-    def _fresh_set(self, names: list[str]) -> list[str]:
-        """`_fresh` for a set of names, reserved in one journal transaction (a name already
-        taken gets `_fresh`'s suffix, one at a time)."""
-        files = [f"{RAW_DIR}/{name}" for name in names]
-        free = [f for f in files if f not in self.reserved and not (self.folder / f).exists()]
-        self.journal.reserve_all(free)
-        self.reserved.update(free)
-        free = set(free)
-        return [f if f in free and create_exclusive(self.folder / f) else self._fresh(name)
-                for f, name in zip(files, names)]
 
     def _load(self, file: str, digest: str, peak: bool = True) -> RawFrame:
         """A calibration frame, its checksum checked and decoded from one read."""

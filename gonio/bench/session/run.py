@@ -26,10 +26,11 @@ from typing import Callable, Mapping
 import numpy as np
 
 from gonio.bench.session.calframes import CalibrationFrames
+from gonio.core.files import create_exclusive
 from gonio.bench.session.rear import RearStop
 from gonio.bench.session.tuning import Tuning
 from gonio.bench.measure.hdr import Exposure, NoiseModel, choose_bracket, ladder
-from gonio.bench.session.journal import Journal, preparation_times
+from gonio.bench.session.journal import RAW_DIR, Journal, preparation_times
 from gonio.bench.plan.markers import find_regions, layout_of, roi_masks_fast
 from gonio.bench.measure.calpoint import stray_corrected, stray_fraction
 from gonio.bench.measure.point import (ProgressBar, ReferenceModel, _runs, check_sensor, merged_region_stats, probe_levels)
@@ -108,6 +109,33 @@ class _Session(CalibrationFrames, Tuning, RearStop):
         self.preparations = preparation_times(journal.checked_events()[0])
         self._init_tuning(self.plan, journal)       # a spectral plan's wavelengths (`Tuning`)
         self._init_rear(operator)                   # transmitted points: the rear stop (`RearStop`)
+
+    def _fresh(self, name: str) -> str:
+        """A RAW file name (``raw/NAME``) never used in this session, reserved in the journal and
+        created empty with O_EXCL before the camera writes it (its rename replaces the placeholder):
+        an existing RAW file is never overwritten, and every file in raw/ is one the journal names."""
+        stem, dot, ext = name.rpartition(".")
+        k = 0
+        while True:
+            file = f"{RAW_DIR}/{name}" if k == 0 else f"{RAW_DIR}/{stem}_{k}{dot}{ext}"
+            k += 1
+            if file in self.reserved or (self.folder / file).exists():
+                continue
+            self.journal.reserve(file)
+            self.reserved.add(file)
+            if create_exclusive(self.folder / file):
+                return file
+
+    def _fresh_set(self, names: list[str]) -> list[str]:
+        """`_fresh` for a set of names, reserved in one journal transaction (a name already
+        taken gets `_fresh`'s suffix, one at a time)."""
+        files = [f"{RAW_DIR}/{name}" for name in names]
+        free = [f for f in files if f not in self.reserved and not (self.folder / f).exists()]
+        self.journal.reserve_all(free)
+        self.reserved.update(free)
+        free = set(free)
+        return [f if f in free and create_exclusive(self.folder / f) else self._fresh(name)
+                for f, name in zip(files, names)]
 
     # -- instrument preparation ----------------------------------------------------------
     def _first_todo(self) -> list[int]:
@@ -200,17 +228,6 @@ class _Session(CalibrationFrames, Tuning, RearStop):
             return
         with console.status("preparing the instrument") as status:
             yield lambda text: status.update(f"capture: {text}")
-
-    def _p_ref(self) -> float:
-        known = self.journal.first_event("p_ref")       # a resumed session keeps its reference
-        if known is not None:
-            return float(known)
-        p = self.bench.meter.power()
-        if not p > 0:
-            raise DeviceError(f"the monitor reads {p:g} W with the lamp on; check the LED and the meter, "
-                              "then resume the session")
-        self.journal.event("p_ref", repr(p))
-        return p
 
     # -- suspenders -----------------------------------------------------------------------
     def _power(self) -> float:

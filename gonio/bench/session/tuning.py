@@ -7,7 +7,8 @@ wavelength (grating and order-sorting filter chosen by its driver) and the power
 to it, so the monitor reads the beam at that wavelength. The monitor's session reference is
 kept per wavelength, journalled the first time (``p_ref_nm`` events, JSON ``{"nm", "p"}``) so a
 resumed session compares its readings with the same references; each point's row records the
-wavelength the monochromator read back (``detail["wavelength_nm"]``).
+wavelength the monochromator read back (``detail["wavelength_nm"]``). Without a monochromator the
+reference is one reading with the lamp on (`_p_ref`, the ``p_ref`` event).
 """
 
 from __future__ import annotations
@@ -42,6 +43,18 @@ class Tuning:
             raise SessionError(f"{self.folder}: the plan is spectral; give the monochromator's port")
         self.bench.monochromator.shutter(True)
         self._tune(self._first_todo()[0])
+
+    def _p_ref(self) -> float:
+        """The monitor's session reference with the lamp on (white light), journalled once."""
+        known = self.journal.first_event("p_ref")       # a resumed session keeps its reference
+        if known is not None:
+            return float(known)
+        p = self.bench.meter.power()
+        if not p > 0:
+            raise DeviceError(f"the monitor reads {p:g} W with the lamp on; check the LED and the meter, "
+                              "then resume the session")
+        self.journal.event("p_ref", repr(p))
+        return p
 
     def _tuned(self) -> dict:
         """What a point's journal row adds: ``wavelength_nm`` read back (spectral plans), else nothing."""
