@@ -21,7 +21,8 @@ import numpy as np
 
 from gonio.core.geometry import angles_deg
 
-__all__ = ["plot_coverage", "plot_in_plane", "plot_residuals", "safe_label", "in_plane_mask", "log_ticks"]
+__all__ = ["plot_coverage", "plot_in_plane", "plot_residuals", "safe_label", "in_plane_mask", "log_ticks", "transmits",
+           "shade_transmitted"]
 
 COLOURS = ("tab:red", "tab:green", "tab:blue")
 
@@ -56,7 +57,23 @@ def in_plane_mask(meas):
     theta_i, phi_i = angles_deg(meas.wi)
     theta_o, phi_o = angles_deg(meas.wo)
     phi_d = np.degrees(np.abs(np.angle(np.exp(1j * np.radians(phi_i - phi_o)))))
-    return phi_d, (phi_d > 175) | (phi_d < 5) | (theta_i < 1) | (theta_o < 1)
+    return phi_d, (phi_d > 175) | (phi_d < 5) | (theta_i < 1) | (theta_o < 1) | (theta_o > 179)
+
+
+def transmits(meas, model=None) -> bool:
+    """Whether a figure shows the transmitted side too: a measured point below the surface
+    (theta_o > 90) or a model that transmits (:mod:`gonio.core.sides`)."""
+    from gonio.core.sides import Side
+
+    if np.any(np.asarray(meas.wo)[:, 2] < 0.0):
+        return True
+    return model is not None and Side.TRANSMIT in tuple(model.structure.sides)
+
+
+def shade_transmitted(ax) -> None:
+    """A light band over theta_o beyond 90 deg (the transmitted side) of an in-plane axis."""
+    for lo, hi in ((-180.0, -90.0), (90.0, 180.0)):
+        ax.axvspan(lo, hi, color="0.5", alpha=0.08, lw=0)
 
 
 def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels: int = 4, log: bool = True):
@@ -89,7 +106,8 @@ def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels:
         fig.suptitle("no measured point in the plane of incidence", fontsize=9)
         return fig
     fig, axes = _figure(None, len(incidences), figsize=(2.9 * len(incidences) + 0.6, 3.0), sharey=True)
-    t = np.radians(np.linspace(-89, 89, 241))
+    both = transmits(meas, model)       # the whole plane: |theta_o| > 90 is the transmitted side
+    t = np.radians(np.linspace(-179, 179, 481) if both else np.linspace(-89, 89, 241))
     for ax, ti in zip(axes, incidences):
         sel = plane & (np.abs(theta_i - ti) < 0.6)
         signed = np.where(phi_d[sel] < 90, -theta_o[sel], theta_o[sel])
@@ -107,8 +125,13 @@ def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels:
         if log:
             ax.set_yscale("log")
             log_ticks(ax.yaxis)
-        ax.set_xlim(-90, 90)
-        ax.set_xticks([-60, -30, 0, 30, 60])
+        if both:
+            shade_transmitted(ax)
+            ax.set_xlim(-180, 180)
+            ax.set_xticks([-150, -90, -30, 30, 90, 150])
+        else:
+            ax.set_xlim(-90, 90)
+            ax.set_xticks([-60, -30, 0, 30, 60])
         ax.set_title(f"theta_i = {ti:g} deg", fontsize=9)
         ax.set_xlabel("theta_o (deg)", fontsize=8)      # < 0 on the light's side
         ax.tick_params(labelsize=7)
@@ -127,8 +150,13 @@ def plot_coverage(meas, ax=None):
         fig, ax = plt.subplots(subplot_kw={"projection": "polar"}, figsize=(4.6, 4.4), layout="constrained")
     fig = ax.figure
     sc = ax.scatter(np.radians(phi_o), theta_o, c=theta_i, cmap="viridis", s=14)
-    ax.set_ylim(0, 90)
-    ax.set_rticks([30, 60, 90])
+    if transmits(meas):                 # out to 180: beyond the 90 deg circle, the transmitted side
+        ax.set_ylim(0, 180)
+        ax.set_rticks([45, 90, 135, 180])
+        ax.plot(np.linspace(0, 2 * np.pi, 181), np.full(181, 90.0), color="0.3", lw=1)
+    else:
+        ax.set_ylim(0, 90)
+        ax.set_rticks([30, 60, 90])
     ax.set_rlabel_position(112.5)
     ax.tick_params(labelsize=8)
     ax.set_title("detector directions (r = theta_o, colour = theta_i)", fontsize=9)

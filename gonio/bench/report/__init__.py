@@ -339,14 +339,20 @@ def _load_fit(root: Folder, path: Path):
 CAPTIONS = {
     "inplane.png": "Measured f_r (dots, 1-sigma bars) and the fit (lines) in the plane of incidence at up to four "
                    "incidence angles; theta_o negative on the lamp's side, positive on the mirror side; one colour "
-                   "per camera channel.",
+                   "per camera channel. Where the sample transmits, the whole plane: |theta_o| > 90 (shaded) is "
+                   "the transmitted side, 180 - theta_i straight through.",
     "polar.png": "At the incidence with the most out-of-plane points. Left: the fitted lobe over the hemisphere "
                  "(background) and the measured values (dots) on the same logarithmic colour scale. Right: measured "
                  "/ fit per point. Radius theta_o (deg), angle phi_o.",
+    "polar_transmitted.png": "The transmitted side, at the incidence with the most out-of-plane transmitted points: "
+                             "the fitted BTDF (background) and the measured values (dots) on the same logarithmic "
+                             "colour scale, and measured / fit per point. Radius 180 - theta_o (deg: 0 is straight "
+                             "through a normal beam), angle phi_o.",
     "residuals.png": "Left: histogram of (measured - fit) / sigma over every value used in the fit. Right: the rms "
                      "normalised residual of each point, by incidence and outgoing angle.",
     "albedo.png": "Directional albedo of the fit against theta_o, one curve per channel; above 1 would violate "
-                  "energy conservation.",
+                  "energy conservation. For a model that transmits: its reflectance R (dashed), transmittance T "
+                  "(dotted) and R + T (solid) against theta_i.",
     "measured.png": "Measured f_r (dots, 1-sigma bars) in the plane of incidence at up to four incidence angles; "
                     "theta_o negative on the lamp's side; one colour per camera channel. No fit in the folder.",
     "coverage.png": "The measured directions: radius theta_o (deg), angle phi_o, colour theta_i.",
@@ -361,7 +367,7 @@ CAPTIONS = {
 #: the preview's caption when `gonio render --preview` ran without --measured: the fit alone
 PREVIEW_FIT_ONLY = ("Sphere previews of the fitted model rendered by Mitsuba 3, one per lighting; no measured BSDF "
                     "was given to `gonio render --preview --measured FILE`, so there is nothing beside them to compare.")
-ORDER = ["inplane.png", "polar.png", "residuals.png", "albedo.png", "measured.png", "coverage.png", "corner.png",
+ORDER = ["inplane.png", "polar.png", "polar_transmitted.png", "residuals.png", "albedo.png", "measured.png", "coverage.png", "corner.png",
          "mitsuba_vs_measured.png", "preview_side_by_side.png"]
 
 
