@@ -488,11 +488,12 @@ def test_eval_at_many_sizes_keeps_bounded_recordings_and_says_nothing(capfd):
     assert "frozen function" not in (out + err).lower(), err[-2000:]
 
 
-def test_values_only_kernel_refuses_derivatives_and_the_fit_differences_it():
+def test_values_only_kernel_refuses_derivatives_and_the_fit_takes_the_models_own():
     """tabulated's kernel gives values only (``structure.derivatives = False``): its
     derivatives are refused, not returned as zeros (AD cannot see through its numpy tables),
-    and the fit's evaluator runs the kernel for values and hands the Jacobian back to
-    differences (None)."""
+    and the fit's evaluator runs the kernel for values and takes the Jacobian from the model's
+    own exact numpy derivatives (``jacobian_reference``); a model with neither gets None (the
+    fit differences)."""
     from gonio.fitting.likelihood.problem import Evaluator
 
     m = gm.get("tabulated")
@@ -505,6 +506,10 @@ def test_values_only_kernel_refuses_derivatives_and_the_fit_differences_it():
     with pytest.raises(NotImplementedError, match="values only"):
         _fast.value_and_grad(m, wi, wo, p, np.ones((600, 3)))
     ev = Evaluator(m, wi, wo, 3)
-    assert ev.fast and ev.jacobian(p) is None
+    f, J = ev.jacobian(p)
+    f_ref, J_ref = m.jacobian_reference(wi, wo, p)
+    assert ev.fast and np.array_equal(f, f_ref) and all(np.array_equal(J[k], J_ref[k]) for k in J_ref)
     np.testing.assert_allclose(ev(p), m.eval_reference(wi, wo, p), rtol=1e-10, atol=1e-300)
+    slab = gm.get("roughslab")                  # numpy path, no derivatives of its own: differenced
+    assert Evaluator(slab, wi, wo, 3).jacobian(slab.defaults()) is None
     assert np.array_equal(m.eval(wi, wo, p), m.eval_reference(wi, wo, p))  # model.eval: numpy at any size

@@ -246,12 +246,20 @@ def _make_bsdf(mi, dr, base):
             path = dr.exp(self.log_tau / dr.maximum(c_g, 1e-12)) if np.isfinite(self.log_tau) else 0.0
             return wg, (1.0 - F) / (e * e) * path, c_g
 
+        def _radiance(self, ctx):
+            """The inner face in radiance mode whatever the caller's: both ends of the slab are
+            in air, so f is reciprocal and the adjoint (importance mode: a light tracer's) is
+            the same function; the inner roughdielectric's importance mode would drop its
+            1 / eta^2 at the entry and count the slab eta^2 too dim."""
+            return mi.BSDFContext(mi.TransportMode.Radiance, ctx.type_mask, ctx.component)
+
         def _with_wi(self, si, w):
             s = mi.SurfaceInteraction3f(si)
             s.wi = w
             return s
 
         def eval(self, ctx, si, wo, active=True):
+            ctx = self._radiance(ctx)
             cl, cc = mi.Frame3f.cos_theta(wo), mi.Frame3f.cos_theta(si.wi)
             refl = active & (cl > 0) & (cc > 0)
             trans = active & (cl * cc < 0)
@@ -264,6 +272,7 @@ def _make_bsdf(mi, dr, base):
             return dr.select(refl, v_r, dr.select(trans, v_t * scale, 0.0))
 
         def pdf(self, ctx, si, wo, active=True):
+            ctx = self._radiance(ctx)
             cl, cc = mi.Frame3f.cos_theta(wo), mi.Frame3f.cos_theta(si.wi)
             wg_l, _, c_gl = self._inside(wo)
             wg_c, _, _ = self._inside(si.wi)
@@ -276,6 +285,7 @@ def _make_bsdf(mi, dr, base):
                                        dr.select(active & (cc < 0) & (cl > 0), p_dn, 0.0)))
 
         def sample(self, ctx, si, sample1, sample2, active=True):
+            ctx = self._radiance(ctx)
             cc = mi.Frame3f.cos_theta(si.wi)
             wg_c, _, _ = self._inside(si.wi)
             s = self._with_wi(si, dr.select(cc > 0, si.wi, wg_c))
