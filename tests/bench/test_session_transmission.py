@@ -26,7 +26,7 @@ from gonio.bench.dataset.export import export
 from gonio.bench.plan import kinematics
 from gonio.bench.plan.plans import Plan, load_plan
 from gonio.bench.session.capture import CaptureInterrupted, capture, resume
-from gonio.bench.session.journal import Journal
+from gonio.bench.session.journal import Journal, verify_files
 from gonio.bench.session.signals import StopNow
 from gonio.bench.session.simulated import capture_sim
 from gonio.bench.session.stops import PromptOperator, RefusingOperator, TwinOperator
@@ -281,3 +281,25 @@ def test_both_sides_end_to_end_fit_recovers(tmp_path, capsys):
     par = _fit(tmp_path, "ideal", 1)
     for name, truth in FROSTED["params"].items():
         assert abs(par[name]["value"] - truth) <= par[name]["U"], (name, par[name])
+
+
+@pytest.mark.long
+def test_damaged_open_beam_frame_is_taken_again_with_its_points(tmp_path):
+    """A corrupt open-beam RAW file: `gonio verify` names it, and a resume takes the open beam again
+    and measures the transmitted points again over it (their normalisation's evidence is gone)."""
+    plan = _small(12)
+    folder = tmp_path / "s"
+    capture_sim(folder, sample=FROSTED, plan=plan, seed=4, settings={**S, **IDEAL}, progress=False)
+    j = Journal(folder / "journal.sqlite")
+    n_rear = sum(r["theta_o"] > 90 for r in j.points())
+    file = next(iter(j.frames("open_beam").values()))[1]
+    (folder / file).write_bytes(b"spoilt")
+    assert verify_files(folder, j) == [file]              # what `gonio verify` reports
+    j.close()
+    assert main(["capture", "--resume", str(folder), "--quiet"]) == 0
+    assert len(_events(folder, "open_beam")) == 2
+    rows = Journal(folder / "journal.sqlite").points()
+    assert len(rows) == len(plan) and len({r["detail"].get("open_beam_sha256") for r in rows if r["theta_o"] > 90}) == 1
+    assert n_rear > 0
+    ds = xr.open_dataset(export(folder), engine="h5netcdf")
+    assert int((ds["theta_o"].values > 90).sum()) == n_rear

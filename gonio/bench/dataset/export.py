@@ -77,7 +77,7 @@ def to_dataset(session_dir, chart=None, attrs=None):
     # the same checks as a resume: session.toml as journalled, the journal whole, no unknown RAW file
     with _integrity.open_journal(folder, data, doc, why, write=False) as j:
         rows = j.points()
-        open_beam = journalled_open_beam(j.events(), j.frames("open_beam"), doc["settings"])[0]
+        open_beam, ob_info = journalled_open_beam(j.events(), j.frames("open_beam"), doc["settings"])
         rgb_cam = j.first_event("rgb_cam")
         charts = j.frames("chart")
         events = j.events()
@@ -133,9 +133,10 @@ def to_dataset(session_dir, chart=None, attrs=None):
         "monitor readings, and any pause, from the end of the previous point's bracket (NaN: not recorded)"})
     # the per-point uncertainty budget, u_<component> and u_combined (gonio/bench/dataset/budget.py)
     rear = rear_rows(rows)
-    if rear.any() and open_beam is None:
-        raise SessionError(f"{folder}: {int(rear.sum())} transmitted point(s) but no intact open-beam frame in the "
-                           f"journal; see `gonio verify {folder}`")
+    used = {r["detail"].get("open_beam_sha256") for r, t in zip(rows, rear) if t} - {None}
+    if rear.any() and (open_beam is None or used - {ob_info.get("sha256")}):
+        raise SessionError(f"{folder}: {int(rear.sum())} transmitted point(s) but not the intact open-beam frame they "
+                           f"were normalised by; see `gonio verify {folder}` and resume it, which measures them again")
     ob_attrs = open_beam.to_attrs() if rear.any() else {}
     if rear.any():
         data["brdf"][2]["long_name"] = ("bidirectional scattering distribution function: f_r (theta_o < 90) or f_t "

@@ -497,6 +497,10 @@ def repair(folder: Path, journal: Journal, want: list[int] | None, note) -> None
     or corrupt, measure again the points whose RAW files are (and the points ``want``, from
     `parse_points`); each said in one line to ``note``. The old rows are kept in ``superseded``."""
     cal, bad = damaged_files(folder, journal)
+    if any(name.startswith("open_beam") for name in cal):     # the transmitted points' normalisation is lost:
+        for row in journal.points():                           # they are measured again over a new open beam
+            if float(row["theta_o"]) > 90.0:
+                bad.setdefault(int(row["idx"]), cal[min(n for n in cal if n.startswith("open_beam"))])
     if cal:
         names = sorted(cal)
         for name in names:

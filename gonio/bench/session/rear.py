@@ -191,7 +191,7 @@ class RearStop:
         detail = {"exposures": [d for _, d in shot["used"]], "p_start": shot["p_start"], "bracket": shot["bracket"],
                   **{f"sample_{m}": [float(v) for v in s[m]] for m in ("mean", "se", "se_model", "n")},
                   "n_saturated": {"sample": int(s["n_saturated"])}, "stop": "rear", "monitor_rel_u": p_rel,
-                  "open_beam_level": self.open_beam_info.get("level")}
+                  "open_beam_level": self.open_beam_info.get("level"), "open_beam_sha256": self.open_beam_info.get("sha256")}
         detail.update(shot.get("tuned") or {})
         return {"brdf": f, "brdf_std": fu, "saturated": bool(s["n_saturated"]) or not np.all(np.isfinite(f)),
                 "detail": detail, "stage": shot["stage"]}
