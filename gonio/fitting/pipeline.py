@@ -159,8 +159,14 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
         except ValueError as exc:
             raise GonioError(str(exc)) from None
     elif candidates is None:
-        result, ranking = select(meas, rng=rng, loss=loss, progress=progress)
+        from gonio.fitting.selection.spectral import SCREEN, with_covariance
+
+        spectral = bool(meas.attrs.get("wavelengths_nm"))      # screened without covariance, the kept one finished
+        result, ranking = select(meas, rng=rng, loss=loss, progress=progress, **(SCREEN if spectral else {}))
         result, ranking, note = _rendered_choice(ranking, dataset_path, seed, meas=meas, loss=loss, progress=progress)
+        if spectral:
+            result = with_covariance(meas, result)
+            next(r for r in ranking if r.chosen).result = result
     else:
         try:
             if len(candidates) > 1:     # no distribution given: each declared one, chosen by BIC (said)
