@@ -71,6 +71,7 @@ from gonio.bench.drivers.identify import identify_bench, session_devices
 from gonio.core.errors import GonioError, SessionError
 from gonio.bench.plan.plans import Plan, require_reachable
 from gonio.bench.plan import kinematics
+from gonio.bench.plan.ordering import path_time
 from gonio.bench.measure.transmission import transmission_settings
 from gonio.bench.plan.strategy import strategy_from_doc
 
@@ -429,7 +430,12 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
                 raise GonioError(f"the plan's transmitted points need the open-beam frame at stage zero, and "
                                  f"[axes] {name} limits [{lo:g}, {hi:g}] exclude it; widen them or drop those points")
         o = np.asarray(doc["order"]["order"], int)
-        doc["order"]["order"] = [int(i) for i in np.concatenate([o[~rear[o]], o[rear[o]]])]
+        o = np.concatenate([o[~rear[o]], o[rear[o]]])
+        doc["order"]["order"] = [int(i) for i in o]
+        # the travel of that order, through the open beam's pose (stage zero) before the first transmitted point
+        poses = np.asarray(doc["order"]["stage_deg"], float)[o]
+        k = int(np.argmax(rear[o]))
+        doc["order"]["ordered_s"] = path_time(np.insert(poses, k, 0.0, axis=0), settings)
     bench, journal, lock, doc, ident = _start_session(folder, doc, (zaber_url, meter_url, camera), bench_kw)
     return _run(folder, doc, bench, journal, lock, warnings, progress, t0, [], ident=ident, operator=operator)
 
