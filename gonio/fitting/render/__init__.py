@@ -20,6 +20,7 @@ import numpy as np
 
 from gonio.core.channels import CHANNELS
 from gonio.core.geometry import angles_deg, finite_directions
+from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba import SCENE_VARIANT
 
 from gonio.fitting.render.batch import render_brdf_batch
@@ -121,16 +122,17 @@ class VirtualGonio:
         image = mi.render(self.scene, spp=1)
         return np.asarray(image, dtype=np.float64).reshape(-1)[:3]
 
-    def brdf(self, wi, wo) -> np.ndarray:
-        """f_r as rendered, shape (N, 3); 0 where either direction is at or below the horizon."""
+    def brdf(self, wi, wo, sides=REFLECTION_ONLY) -> np.ndarray:
+        """f_r as rendered, shape (N, 3); 0 for pairs on none of ``sides`` (reflection: either
+        direction at or below the horizon). A transmitted pose turns the sample so that the
+        meter looks at its far face, lit from the front: the ``direct`` integrator's shadow ray
+        to the lamp leaves from the surface, which does not occlude itself."""
         wi, wo = np.atleast_2d(wi), np.atleast_2d(wo)
         out = np.zeros((wi.shape[0], CHANNELS))
+        ok = sides_mask(sides, wi[:, 2], wo[:, 2], 1e-9)
         with self._mi.scoped_set_variant(self.variant):
-            for n in range(wi.shape[0]):
-                cos_i = wi[n, 2]
-                if cos_i <= 1e-9 or wo[n, 2] <= 1e-9:
-                    continue
-                out[n] = self._radiance(wi[n], wo[n]) / cos_i
+            for n in np.flatnonzero(ok):
+                out[n] = self._radiance(wi[n], wo[n]) / wi[n, 2]
         return out
 
 
@@ -145,7 +147,7 @@ def render_brdf(model, params, wi, wo, variant: str | None = None):
     with mi.scoped_set_variant(variant):  # Python BSDFs register per variant
         bsdf = model.to_mitsuba(params)
     gonio = VirtualGonio(bsdf, variant, float(getattr(model, "tangent_deg", lambda p: 0.0)(params)))
-    fr = gonio.brdf(wi, wo)
+    fr = gonio.brdf(wi, wo, model.structure.sides)
     return fr, time.perf_counter() - t0, gonio.variant
 
 

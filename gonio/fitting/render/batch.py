@@ -41,8 +41,8 @@ def render_brdf_batch(model, params, wi, wo, variant: str | None = None):
     Returns
     -------
     fr : ndarray, shape (N, 3)
-        Rendered f_r in sr^-1 (the virtual gonioreflectometer's L / (E cos(theta_i))); 0 where
-        either direction is at or below the horizon.
+        Rendered f_r in sr^-1 (the virtual gonioreflectometer's L / (E cos(theta_i))); 0 for
+        pairs on none of the model's sides (a reflector: either direction at or below the horizon).
     seconds : float
         Wall time including loading the BSDF (and the JIT compilation, first call).
     variant : str
@@ -62,4 +62,4 @@ def render_brdf_batch(model, params, wi, wo, variant: str | None = None):
     except Exception as exc:
         kind = bsdf.get("type", "?") if isinstance(bsdf, dict) else type(bsdf).__name__
         raise RuntimeError(f"Mitsuba could not load or evaluate BSDF {kind!r} in {variant}: {exc}") from exc
-    return divide_cos(values, wi, wo), time.perf_counter() - t0, variant
+    return divide_cos(values, wi, wo, model.structure.sides), time.perf_counter() - t0, variant
