@@ -71,7 +71,7 @@ from gonio.bench.drivers.identify import identify_bench, session_devices
 from gonio.core.errors import GonioError, SessionError
 from gonio.bench.plan.plans import Plan, require_reachable
 from gonio.bench.plan import kinematics
-from gonio.bench.plan.ordering import path_time
+from gonio.bench.plan.ordering import order_moves, path_time
 from gonio.bench.measure.transmission import transmission_settings
 from gonio.bench.plan.strategy import strategy_from_doc
 
@@ -431,6 +431,14 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
                                  f"[axes] {name} limits [{lo:g}, {hi:g}] exclude it; widen them or drop those points")
         o = np.asarray(doc["order"]["order"], int)
         o = np.concatenate([o[~rear[o]], o[rear[o]]])
+        if not spectral and not np.all(rear):    # each stop's points ordered on their own, the rear's from zero
+            poses, parts = np.asarray(doc["order"]["stage_deg"], float), []
+            for ids, start in ((np.flatnonzero(~rear), None), (np.flatnonzero(rear), np.zeros(4))):
+                part = order_moves(poses[ids], settings, start=start)
+                poses[ids] = part.stage_deg
+                parts.append(ids[part.order])
+            doc["order"]["order"], doc["order"]["stage_deg"] = [int(i) for i in np.concatenate(parts)], poses.tolist()
+            o = np.concatenate(parts)
         doc["order"]["order"] = [int(i) for i in o]
         # the travel of that order, through the open beam's pose (stage zero) before the first transmitted point
         poses = np.asarray(doc["order"]["stage_deg"], float)[o]
