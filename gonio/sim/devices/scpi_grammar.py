@@ -13,35 +13,9 @@ send it: the ThorlabsPM100 package (1.2.2: long mixed-case headers such as
 
 # The header table (`COMMANDS`) is written in the manual's notation: upper-case letters are the
 # short form, ``[...]`` an optional node, ``#`` a numeric suffix (``SENSe1``; only 1 exists on a
-# one-channel meter), ``*`` any further nodes. Behaviour chosen where the documents are silent:
-# below.
-
-# Chosen where the documents are silent (invented):
-# - *IDN? answers "Thorlabs,PM100D,P0000001,2.8.0" (the manual's THORLABS,MMM,SSS,X.X.X; the serial
-#   and firmware are invented); SYST:SENS:IDN? "S120C,SIM00002,01-Jan-2024,1,18,49": name, serial,
-#   calibration date, type 1 (photodiode), subtype 18, flags 49 = power sensor (1) + response
-#   settable (16) + wavelength settable (32), as PyMeasure reads them; with the sensor unplugged
-#   (`PowerMeter.sensor` False) "no sensor,,,0,0,0" and every reading 9.91E37 (not-a-number).
-# - The sensor is a silicon photodiode: wavelength 400..1100 nm (DEF 550), responsivity
-#   0.3 A/W * wavelength / 550 nm (settable: [SENS:]CORR:POW[:PDIO][:RESP], A/W), aperture 9.5 mm
-#   (CORR:BEAM, 0.1..50 mm), averaging 1..10000 (DEF 1). Thermopile, pyroelectric, voltage and
-#   energy headers answer error -241 (hardware missing), as do the functions the photodiode lacks
-#   (TEMPerature, VOLTage, ENERgy, EDENsity, RESistance). FREQuency measures 0 Hz (the LED is CW).
-# - Power ranges: decades 50 nW .. 50 mW (5e-8 * 10^k W); a set value takes the smallest range
-#   holding it. RANG:AUTO ON (the default) follows the reading; with it OFF a reading above the
-#   range answers 9.9E37 (SCPI's +infinity, over range), as does any reading above 50 mW. In
-#   dBm (POW:UNIT DBM) a reading <= 0 W answers -9.9E37. REF:STAT ON subtracts REF (delta mode).
-#   LOSS (CORR[:LOSS[:INP]][:MAGN], dB, -60..60) scales readings by 10^(dB/10).
-# - FETC? before any INIT or MEAS (or after *RST): error -230, no reply. MEAS:<function> without
-#   "?" (as ThorlabsPM100 sends it) configures and measures, the value kept for FETC?. CONF? answers
-#   the function's short name (POW, CURR, PDEN, FREQ).
-# - CORR:COLL:ZERO[:INIT] measures the dark offset at once (STAT? 0: done; MAGN? the offset).
-# - *TST? answers 0; SYST:VERS? 1999.0; CAL:STR? the sensor's calibration date, quoted; the
-#   status registers (STAT:OPER|QUES|MEAS|AUX) hold what is written to them, events read 0.
-# - A line longer than MAX_LINE characters (the port endpoint keeps no more of it) is discarded
-#   unexecuted with error -363 (input buffer overrun); one holding a control character (C0, DEL,
-#   C1; IEEE 488.2 would read most as white space) is discarded with error -101 (invalid
-#   character). Neither gets a response. Every response is printable ASCII ending in LF.
+# one-channel meter), ``*`` any further nodes. Behaviour chosen where the documents are silent
+# (invented: the identity, the sensor, the ranges, FETC? and zeroing, the status registers, the
+# line limits) is listed in docs/interfaces.md, section 4 (the simulated PM100D).
 
 from __future__ import annotations
 
