@@ -45,7 +45,12 @@ DEFAULTS: dict[str, Any] = {
     "travel": True,               # score = information gain / (overhead_s + travel time)
     "overhead_s": 5.0,            # per-point settle, bracket and reduction time, s
     "model_rel_u": 0.0,           # relative 1-sigma of what the noise leaves out (model, systematics)
+    "criterion": "d-optimal",     # "d-optimal" (the parameters) or "alc" (the predicted f_r cos, with discrepancy)
+    "discrepancy_length": 0.4,    # "alc": correlation length of the model's discrepancy in (wi, wo), unit vectors
 }
+
+#: the batch criteria ``criterion`` names
+CRITERIA = ("d-optimal", "alc")
 
 
 def _features(angles: np.ndarray) -> np.ndarray:
@@ -123,6 +128,14 @@ class AdaptivePlan:
         if not self.overhead_s > 0:
             raise ValueError(f"[strategy] overhead_s = {t['overhead_s']!r}: give a time > 0 s")
         self.travel = bool(t["travel"])
+        self.criterion = t["criterion"]
+        if self.criterion not in CRITERIA:
+            raise ValueError(f"[strategy] criterion = {str(self.criterion)[:40]!r}: give one of {', '.join(CRITERIA)}")
+        v = t["discrepancy_length"]
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not (
+                math.isfinite(v) and v > 0):
+            raise ValueError(f"[strategy] discrepancy_length = {v!r}: give a length > 0 (unit vectors)")
+        self.discrepancy_length = float(v)
         self.options, self.fixed = dict(t["options"]), dict(t["fixed"])
         try:
             self.model = gm.get(str(t["model"]), **self.options)
@@ -180,7 +193,8 @@ class AdaptivePlan:
         return {"name": self.name, "points": self.points, "budget_s": self.budget_s, "target_rel_u": self.target_rel_u,
                 "target_de00": self.target_de00, "first": self.first_n, "batch": self.batch, "model": self.model_name, "options": self.options, "fixed": self.fixed,
                 "n_starts": self.n_starts, "seed": self.seed, "travel": self.travel, "overhead_s": self.overhead_s,
-                "model_rel_u": self.model_rel_u}
+                "model_rel_u": self.model_rel_u, "criterion": self.criterion,
+                "discrepancy_length": self.discrepancy_length}
 
     def state(self) -> dict[str, Any]:
         """What the strategy did: ``stopped_by``, the points per batch, the last fit, the
@@ -352,7 +366,12 @@ class AdaptivePlan:
 
     def _pick(self, x, basis, queue, free, n_new, results, sigma_rel, sigma_floor, cov) -> list[int]:
         """The next batch from ``free`` given the fit ``x`` (``cov`` its covariance): D-optimal
-        here; a strategy built on this one (gonio.bench.plan.ndf_seeded) places them otherwise."""
+        here (or by `alc` with ``criterion = "alc"``); a strategy built on this one
+        (gonio.bench.plan.ndf_seeded) places them otherwise."""
+        if self.criterion == "alc":
+            from gonio.bench.plan.alc import alc_batch
+
+            return alc_batch(self, x, basis, queue, free, n_new, results, sigma_rel, sigma_floor)
         return self._d_optimal(x, basis, queue, free, n_new, results, sigma_rel, sigma_floor)
 
     def _d_optimal(self, x, basis, queue, free, n_new, results, sigma_rel, sigma_floor) -> list[int]:
