@@ -11,15 +11,11 @@ nothing in a pipe or with ``--quiet`` (gonio/cli/progress.py).
 from __future__ import annotations
 
 import argparse
-import functools
-import json
-import math
-import signal
 import sys
 from pathlib import Path
 
-from gonio.cli.helptext import HelpFormatter, error_text, examples_epilog, say
-from gonio.cli.progress import Steps
+from gonio.cli.helptext import HelpFormatter, error_text, examples_epilog
+from gonio.cli import commands
 from gonio.core.errors import GonioError
 
 __all__ = ["main", "build_parser", "walk_parsers"]
@@ -35,11 +31,6 @@ class _Parser(argparse.ArgumentParser):
 
     def _get_formatter(self):
         return HelpFormatter(prog=self.prog)
-
-
-def _steps(args, title: str) -> Steps:
-    """The progress display of a long step: a bar on a terminal, nothing in a pipe or with --quiet."""
-    return Steps(title, enabled=not getattr(args, "quiet", False))
 
 
 def _version() -> str:
@@ -62,269 +53,11 @@ def _seed(text: str) -> int:
     return value
 
 
-def _env(func):
-    """Environment errors (disk full, read-only, binary garbage) inside a command: one line, exit 2."""
-    @functools.wraps(func)
-    def run(args):
-        from gonio.core.preflight import environment_errors
-
-        if getattr(args, "out", None) is not None and not str(args.out).strip():
-            raise GonioError("--out is empty; give a path")
-        with environment_errors():
-            try:
-                return func(args)
-            except BrokenPipeError:         # `gonio plans | head`: the reader has what it wanted
-                return _broken_pipe()
-    return run
-
-
-def _broken_pipe() -> int:
-    """stdout's reader went away: stop quietly (no second error when Python flushes at exit),
-    with the status of a process SIGPIPE ended."""
-    import os
-
-    try:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    except (OSError, ValueError):
-        pass
-    return 141
-
-
-# --------------------------------------------------------------------------- commands
-@_env
-def _cmd_demo(args):
-    from gonio.cli.demo import run_demo
-
-    run_demo(out=Path(args.out), seed=args.seed, plan=args.plan, posterior=args.posterior, quiet=args.quiet)
-
-
-def _capture_progress(args) -> bool:
-    """A capture's bar and status line: on a terminal only, unless --quiet."""
-    from gonio.cli.progress import on_terminal
-
-    return not args.quiet and on_terminal()
-
-
-def _cmd_models(args):
-    from gonio.cli.listing import models_lines
-
-    print("\n".join(models_lines()))
-
-
-def _cmd_plans(args):
-    from gonio.cli.listing import plans_lines
-
-    print("\n".join(plans_lines()))
-
-
-@_env
-def _cmd_capture(args):
-    from gonio.cli import capture as session_runner
-
-    if args.resume:
-        given = [f for f, v in (("--sample-id", args.sample_id), ("--sample-description", args.sample_description),
-                                ("--operator", args.operator)) if v is not None]
-        if given:
-            raise GonioError(f"{given[0]} is recorded when a session starts; a resume keeps the session's own")
-        return session_runner.resume_cli(Path(args.resume), port=args.port, meter_port=args.meter_port,
-                                         camera=args.camera, progress=_capture_progress(args),
-                                         monochromator=args.monochromator_port,
-                                         rebuild_journal=args.rebuild_journal, remeasure=args.remeasure,
-                                         restore_session=args.restore_session)
-    for flag, given in (("--rebuild-journal", args.rebuild_journal), ("--remeasure", args.remeasure),
-                        ("--restore-session", args.restore_session)):
-        if given:
-            raise GonioError(f"{flag} repairs an existing session: use it with --resume DIR")
-    if args.out is None and not args.dry_run:       # a dry run writes nothing: no folder needed
-        raise GonioError("capture needs --out DIR (a new session folder) or --resume DIR")
-    if not args.sim and not args.port:
-        raise GonioError("capture needs --sim (the simulated instrument) or --port URL --meter-port URL for hardware")
-    from gonio.bench.settings import load_settings
-    from gonio.cli.listing import sample_path
-
-    # the settings file and the [session] options (sample id, description, operator), checked
-    # before anything is written; session.toml records them with the other settings
-    settings = load_settings(args.settings, _session_options(args))
-    return session_runner.capture_cli(Path(args.out) if args.out is not None else None, sim=args.sim,
-                                      sample=sample_path(args.sample), plan=args.plan, seed=args.seed,
-                                      settings=settings, port=args.port, meter_port=args.meter_port, camera=args.camera,
-                                      dry_run=args.dry_run, progress=_capture_progress(args),
-                                      errors=args.errors, calibration=args.calibration, points=args.points,
-                                      target_rel_u=args.target_rel_u, candidates=args.candidates,
-                                      budget_minutes=args.budget_minutes, target_de00=args.target_de00,
-                                      monochromator=args.monochromator_port)
-
-
-@_env
-def _cmd_verify(args):
-    from gonio.cli.verify import verify_cli
-
-    with _steps(args, "verify"):
-        return verify_cli(args.session)
-
-
-@_env
-def _cmd_calibrate(args):
-    from gonio.bench.calibrate import calibrate_cli
-    from gonio.cli.capture import _camera
-
-    camera = _camera(args.camera) if args.camera else None
-    with _steps(args, "calibrate") as progress:
-        return calibrate_cli(Path(args.out), sim=args.sim, settings=args.settings, errors=args.errors, seed=args.seed,
-                             port=args.port, meter_port=args.meter_port, camera=camera, progress=progress, say=say)
-
-
-@_env
-def _cmd_export(args):
-    from gonio.bench.dataset.export import export
-
-    from gonio.bench.dataset.cf import parse_attributes
-
-    try:
-        attrs = parse_attributes(args.attr)
-    except ValueError as exc:
-        raise GonioError(str(exc)) from None
-    with _steps(args, "export"):
-        path = export(Path(args.session), chart=Path(args.colour_chart) if args.colour_chart else None, attrs=attrs)
-    done, planned, complete = _export_counts(path)
-    if complete is False or (complete is None and planned is not None and done is not None and done < planned):
-        of = f"{done} of {planned} planned points" if planned is not None else f"{done} points, the plan not finished"
-        say(f"wrote {path}: PARTIAL, {of} (the session stopped early; "
-            f"`gonio capture --resume {args.session}` measures the rest, then export again)")
-    else:
-        print(f"wrote {path}" + (f" ({done} points)" if done is not None else ""))
-
-
-def _export_counts(path):
-    """(points in the dataset, points planned, complete) from its attributes; None where not recorded."""
-    import xarray as xr
-
-    try:
-        with xr.open_dataset(path, engine="h5netcdf") as ds:
-            done = int(ds.sizes.get("point", 0))
-            if "wavelength" in ds.sizes and "plan_index" in ds:     # spectral: a point per (geometry, wavelength)
-                done = int((ds["plan_index"].values >= 0).sum())
-            plan = json.loads(ds.attrs.get("plan", "{}"))
-            complete = ds.attrs.get("complete")
-    except (OSError, ValueError, TypeError):
-        return None, None, None
-    planned = len(plan["points"]) if isinstance(plan, dict) and isinstance(plan.get("points"), list) else None
-    return done, planned, (None if complete is None else bool(int(complete)))
-
-
-@_env
-def _cmd_fit(args):
-    from gonio.cli.fit import fit_batch_cli, fit_cli
-
-    if args.batch:
-        fit_batch_cli([Path(d) for d in args.dataset], model=args.model, options=args.option, out=Path(args.out),
-                      seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers,
-                      dashboard=args.dashboard, quiet=args.quiet)
-        return
-    if len(args.dataset) != 1:
-        raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")
-    if args.scene is not None:
-        from gonio.cli.scene import fit_scene_cli
-
-        if args.posterior or args.colour_space != "srgb":
-            raise GonioError("--scene fits a measured material in linear sRGB; leave out --posterior and --colour-space")
-        fit_scene_cli(Path(args.dataset[0]), scene=args.scene, model=args.model, options=args.option,
-                      out=Path(args.out), seed=args.seed, loss=args.loss, size=args.scene_size, spp=args.scene_spp,
-                      k=args.scene_light_samples, threshold=args.threshold, time_limit=args.scene_time_limit,
-                      quiet=args.quiet)
-        return
-    fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
-            loss=args.loss, posterior=args.posterior, colour_space=args.colour_space, quiet=args.quiet)
-
-
-@_env
-def _cmd_render(args):
-    from gonio.cli.fit import render_cli
-
-    render_cli(Path(args.fit), Path(args.dataset), Path(args.out), variant=args.variant, preview=args.preview,
-               measured=args.measured, size=args.size, spp=args.spp, quiet=args.quiet)
-
-
-@_env
-def _cmd_convert(args):
-    from gonio.cli.convert import convert_cli
-
-    convert_cli(Path(args.source), Path(args.out), args.to, attrs=args.attr)
-
-
-@_env
-def _cmd_report(args):
-    from gonio.core.preflight import check_output_file
-    from gonio.bench.report import write_report
-
-    folder = Path(args.folder)
-    if folder.is_dir():     # (a missing folder gets write_report's own one line)
-        check_output_file(Path(args.out) if args.out else folder / "report.html", "report file")
-    with _steps(args, "report") as progress:
-        path = write_report(folder, Path(args.out) if args.out else None, approver=args.approver,
-                            approver_role=args.approver_role, progress=progress)
-    print(f"wrote {path}")
-
-
-def _cmd_settings_show(args):
-    from gonio.bench.settings import show_settings
-    from gonio.cli.listing import settings_lines_with_units
-
-    print("\n".join(settings_lines_with_units(show_settings(args.settings, _session_options(args)))))
-
-
-def _session_options(args) -> dict:
-    """``--sample-id``, ``--sample-description``, ``--operator`` as a ``[session]`` settings table."""
-    return {"session": {"sample_id": getattr(args, "sample_id", None),
-                        "sample_description": getattr(args, "sample_description", None),
-                        "operator": getattr(args, "operator", None)}}
-
-
 def _add_session_options(parser) -> None:
     parser.add_argument("--sample-id", help="the sample's identifier, recorded in session.toml and the report "
                                             "(or [session] sample_id in the settings)")
     parser.add_argument("--sample-description", help="what the sample is (recorded; shown in the report)")
     parser.add_argument("--operator", help="who measures (recorded; shown in the report)")
-
-
-def _check_clock(spec: str) -> None:
-    """``--clock``: instant, realtime/real, or a finite time scale factor > 0."""
-    if str(spec).strip().lower() in ("instant", "realtime", "real"):
-        return
-    try:
-        scale = float(spec)
-    except ValueError:
-        scale = math.nan
-    if not (math.isfinite(scale) and 1e-6 <= scale <= 1e6):
-        raise GonioError(f"--clock {spec!r}: use instant, realtime or a time scale factor between 1e-6 and 1e6 "
-                         "such as 10")
-
-
-@_env
-def _cmd_sim_serve(args):
-    from gonio.cli import capture as session_runner
-
-    _check_clock(args.clock)
-    # SIGTERM and SIGHUP end the server like Ctrl-C: ptys closed, its /tmp/gonio-sim-* folder removed
-
-    def _stop(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
-    try:
-        from gonio.cli.listing import sample_path
-
-        session_runner.serve_cli(sample=sample_path(args.sample), seed=args.seed, settings=args.settings, clock=args.clock,
-                                 faults=args.faults, camera_size=args.camera_size)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
-def _cmd_estop(args):
-    from gonio.cli import estop
-
-    return estop.run(args.port, args.baud)
 
 
 # --------------------------------------------------------------------------- parser
@@ -400,12 +133,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=True,
                    help="also sample the posterior with emcee (default on)")
     d.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    d.set_defaults(func=_cmd_demo)
+    d.set_defaults(func=commands.cmd_demo)
 
     mo = sub.add_parser("models", help="list the models a fit can use, and the example samples")
-    mo.set_defaults(func=_cmd_models)
+    mo.set_defaults(func=commands.cmd_models)
     pl = sub.add_parser("plans", help="list the measurement plan presets and the simulator's error presets")
-    pl.set_defaults(func=_cmd_plans)
+    pl.set_defaults(func=commands.cmd_plans)
 
     c = sub.add_parser("capture", help="run a capture session (simulated or real instrument)", epilog=EPILOG)
     c.add_argument("--sim", action="store_true", help="use the simulated instrument in this process")
@@ -451,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "files match their recorded checksums (the old journal is kept beside it)")
     c.add_argument("--restore-session", action="store_true",
                    help="with --resume: put back session.toml as the journal recorded it when the session started")
-    c.set_defaults(func=_cmd_capture)
+    c.set_defaults(func=commands.cmd_capture)
 
     cal = sub.add_parser("calibrate", help="estimate the bench's systematic errors (alignment: zero offsets and "
                          "holder tilt; detector linearity; the reference's non-Lambertian factor) into a file")
@@ -467,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--seed", type=_seed, default=0, help="seed of the simulated instrument (its hidden errors and noise)")
     cal.add_argument("--out", required=True, help="calibration file to write (TOML)")
     cal.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    cal.set_defaults(func=_cmd_calibrate)
+    cal.set_defaults(func=commands.cmd_calibrate)
 
     e = sub.add_parser("export", help="write SESSION/dataset.nc from a session's journal")
     e.add_argument("session", help="session folder")
@@ -476,13 +209,13 @@ def build_parser() -> argparse.ArgumentParser:
                    "ColorMatrix1)")
     e.add_argument("--attr", action="append", default=[], metavar="KEY=VALUE", help=ATTR_HELP)
     e.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    e.set_defaults(func=_cmd_export)
+    e.set_defaults(func=commands.cmd_export)
 
     v = sub.add_parser("verify", help="which measured points of a session are intact, which damaged, and how to recover "
                        "(exit 0 all intact, 1 damage found, 2 bad input)")
     v.add_argument("session", help="session folder")
     v.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    v.set_defaults(func=_cmd_verify)
+    v.set_defaults(func=commands.cmd_verify)
 
     f = sub.add_parser("fit", help="fit a model to a dataset")
     f.add_argument("dataset", nargs="+", help="dataset.nc, a MERL .binary or an RGL .bsdf file (several with --batch)")
@@ -518,7 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--dashboard", metavar="HOST:PORT",
                    help="serve the local cluster's Dask dashboard there, e.g. 127.0.0.1:8787 (default: none)")
     f.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    f.set_defaults(func=_cmd_fit)
+    f.set_defaults(func=commands.cmd_fit)
 
     r = sub.add_parser("render", help="re-render a fit in Mitsuba at the dataset's geometry and compare")
     r.add_argument("fit", help="fit file (JSON)")
@@ -530,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--size", type=int, default=128, help="preview size in pixels (default 128)")
     r.add_argument("--spp", type=int, default=256, help="preview samples per pixel (default 256)")
     r.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    r.set_defaults(func=_cmd_render)
+    r.set_defaults(func=commands.cmd_render)
 
     cv = sub.add_parser("convert", help="exchange formats: a fit to Mitsuba XML/dict, MERL, PAB-Opto or Zemax, "
                                         "a dataset to CSV, MERL or PAB-Opto")
@@ -551,7 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     cv.add_argument("--out", required=True, help="file to write (a folder for --to pabopto); missing folders are made")
     cv.add_argument("--attr", action="append", default=[], metavar="KEY=VALUE",
                     help="with --to netcdf: " + ATTR_HELP)
-    cv.set_defaults(func=_cmd_convert)
+    cv.set_defaults(func=commands.cmd_convert)
 
     rep = sub.add_parser("report", help="write a self-contained HTML report of an output folder")
     rep.add_argument("folder", help="folder with dataset.nc (and fit.json, render/render.json)")
@@ -560,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
                                         "else a blank line to sign)")
     rep.add_argument("--approver-role", help="the approver's role (default: [session] approver_role)")
     rep.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    rep.set_defaults(func=_cmd_report)
+    rep.set_defaults(func=commands.cmd_report)
 
     st = sub.add_parser("settings", help="instrument settings: show the effective values and where each came from")
     stsub = st.add_subparsers(dest="settings_command", metavar="WHAT", parser_class=_Parser)
@@ -569,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "(default: gonio/bench/instrument.toml, file, option)")
     show.add_argument("--settings", help="instrument settings TOML overriding gonio/bench/instrument.toml")
     _add_session_options(show)
-    show.set_defaults(func=_env(_cmd_settings_show))
+    show.set_defaults(func=commands.env(commands.cmd_settings_show))
 
     s = sub.add_parser("sim", help="the simulated instrument")
     ssub = s.add_subparsers(dest="sim_command", metavar="SIMCOMMAND", parser_class=_Parser)
@@ -584,17 +317,17 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--camera-size", metavar="SIZE",
                        help="the simulated camera's sensor: 24mp (6000x4000, 14-bit RGGB, a real camera's) or "
                             "WIDTHxHEIGHT; default the settings' [camera] (64x48 for tests)")
-    serve.set_defaults(func=_cmd_sim_serve)
+    serve.set_defaults(func=commands.cmd_sim_serve)
 
     es = sub.add_parser("estop", help="send the emergency stop to every Zaber device at once")
     es.add_argument("--port", required=True, help="Zaber chain port or URL")
     es.add_argument("--baud", type=int, default=115200)
-    es.set_defaults(func=_cmd_estop)
+    es.set_defaults(func=commands.cmd_estop)
 
     from gonio.cli.perf import register as _perf_commands      # perf models, fit, real
     from gonio.cli.operator import register as _operator_commands     # devices, home, move, jog, shot; bench capture
 
-    bsub = _perf_commands(sub, env=_env, seed=_seed, parser_class=_Parser)
+    bsub = _perf_commands(sub, env=commands.env, seed=_seed, parser_class=_Parser)
 
     _operator_commands(sub, bsub)
     _with_examples(p)
@@ -655,7 +388,7 @@ def _main(argv) -> int:
         _say(f"gonio: error: {exc.filename or exc}: no such file; check the path")
         return 2
     except BrokenPipeError:
-        return _broken_pipe()
+        return commands.broken_pipe()
     except SignalStop:
         raise
     except KeyboardInterrupt:
