@@ -112,6 +112,8 @@ class FlakePaint(Model):
     #: not an RGB candidate (the RGB choices stay as they were): offered on spectral data
     auto_candidate = False
     spectral_candidate = True
+    #: no Mitsuba twin (:meth:`to_mitsuba` says so): the generic Mitsuba tests leave it out
+    mitsuba_twin = False
 
     def __init__(self, **options):
         super().__init__(**options)
