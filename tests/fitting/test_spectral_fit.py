@@ -163,7 +163,7 @@ def test_channels_in_groups_of_three_equal_the_reference(name, options):
 # -- flakepaint: a colour that changes with angle, and --model auto's choice of it ------------------
 
 FLAKE = {"diffuse_reflectance": np.linspace(0.02, 0.08, WL.size), "specular_reflectance": 0.9, "alpha": 0.02,
-         "eta": 1.5, "haze_reflectance": 0.01, "haze_alpha": 0.05,
+         "eta": 1.5, "flake_widen": 0.3, "haze_reflectance": 0.01, "haze_alpha": 0.05,
          "flake_reflectance": np.array([0.05, 0.15, 0.3, 0.2, 0.08, 0.05, 0.05]),
          "flake_alpha": np.linspace(0.12, 0.45, WL.size), "flake_exponent": 0.3}
 

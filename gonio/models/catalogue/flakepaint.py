@@ -1,19 +1,17 @@
 """Model ``flakepaint``: a metallic-flake lacquer whose colour changes with angle.
 
     f_r = rho_d[c] / pi + rho_s[c] F(eta; wi . wm) D G / (4 cos_i cos_o)        (base, clear coat)
-          + rho_h[c] L(alpha_h) + rho_f[c] L(alpha_f[c]),   L(a) = D(wm; a) / (4 (cos_i cos_o)^p)
+          + rho_h[c] L(alpha_h) + rho_f[c] L(alpha_f[c] (1 + w (1 - cos theta_d))),
+    L(a) = D(wm; a) / (4 (cos_i cos_o)^p)
 
-A metallic paint's colour sits in its flakes: mirror platelets under the clear coat, tilted
-about the normal, spread the light about the specular direction in a broad lobe of their own
-colour, while the coat's reflection is sharp and nearly white, with a faint haze about it
-(Ershov, Kolchin & Myszkowski 2001; Guenther, Chen, Goesele & Seidel 2005 fit car paints with
-such lobes). Cornell's Cayman lacquer shows the flakes' lobe as a function of the half-vector
-angle with little of the microfacet 1 / (cos_i cos_o) growth (its reflectance factor at a fixed
-theta_h rises 1.5-2.4x from theta_d 10 to 70 deg, not 4x), hence the exponent p. With the
-option ``spread="wavelength"`` the flakes' spread is one per wavelength: the lobe is wider in
-some colours than in others, so the chromaticity shifts with angle (flop, goniochromism).
-Every colour but that spread enters f_r linearly. Offered by ``--model auto`` on spectral data
-only (``spectral_candidate``); no Mitsuba twin (:meth:`to_mitsuba` says so).
+A metallic paint's colour sits in its flakes: mirror platelets under a clear coat spread the
+light about the specular direction in a broad lobe of their own colour, over the coat's sharp,
+nearly white reflection and its haze (Ershov, Kolchin & Myszkowski 2001; Guenther et al. 2005).
+Cornell's Cayman lacquer shows the flake lobe as a function of theta_h with little of the
+microfacet 1 / (cos_i cos_o) growth (hence p), widening toward grazing theta_d (w). Option
+``spread="wavelength"``: one flake spread per wavelength, so the chromaticity shifts with angle.
+Every colour enters f_r linearly. Offered by ``--model auto`` on spectral data only
+(``spectral_candidate``); no Mitsuba twin (:meth:`to_mitsuba` says so).
 """
 
 from __future__ import annotations
@@ -50,16 +48,20 @@ def _coat(kind, alpha, eta, wi, wo):
     return np.where(ok, F * D * G / np.where(ok, den, 1.0), 0.0)
 
 
-def half_vector_lobe(kind, alpha, p, wi, wo, grad=False):
-    """L = D(wm; alpha) / (4 (cos_i cos_o)^p), (N, K) for ``alpha`` (K,), with (grad) dL/dalpha
-    and dL/dp. GGX: D = alpha^2 / (pi cos^4 (alpha^2 + tan^2)^2); Beckmann: D = exp(-tan^2 /
-    alpha^2) / (pi alpha^2 cos^4) (Walter et al. 2007 eqs. 33, 25); 0 below the horizon."""
+def half_vector_lobe(kind, alpha, p, wi, wo, grad=False, widen=0.0):
+    """L = D(wm; a) / (4 (cos_i cos_o)^p), (N, K) for ``alpha`` (K,), a = alpha (1 + widen (1 -
+    cos theta_d)) (the lobe widens toward grazing theta_d), with (grad) dL/dalpha, dL/dp and
+    dL/dwiden. GGX: D = a^2 / (pi cos^4 (a^2 + tan^2)^2); Beckmann: D = exp(-tan^2 / a^2) /
+    (pi a^2 cos^4) (Walter et al. 2007 eqs. 33, 25); 0 below the horizon."""
     wm, valid = half_vector(wi, wo)
     cc = wi[:, 2] * wo[:, 2]
     ok = (valid & (cc > 0.0) & (wm[:, 2] > 0.0))[:, None]
     c2 = np.where(ok[:, 0], wm[:, 2] ** 2, 1.0)[:, None]
     t2 = (wm[:, 0] ** 2 + wm[:, 1] ** 2)[:, None] / c2
-    a = np.atleast_1d(np.asarray(alpha, float))[None, :]
+    cos_d = 0.5 * (np.einsum("ij,ij->i", wi, wm) + np.einsum("ij,ij->i", wo, wm))     # symmetric: reciprocal
+    grazing = (1.0 - np.clip(cos_d, 0.0, 1.0))[:, None]
+    a0 = np.atleast_1d(np.asarray(alpha, float))[None, :]
+    a = a0 * (1.0 + widen * grazing)
     a2 = a * a
     if kind == "ggx":
         D = a2 / (math.pi * c2 * c2 * (a2 + t2) ** 2)
@@ -71,7 +73,8 @@ def half_vector_lobe(kind, alpha, p, wi, wo, grad=False):
     L = np.where(ok, D * np.exp(-p * logcc) / 4.0, 0.0)
     if not grad:
         return L
-    return L, L * dlog, -logcc * L
+    da = L * dlog            # dL / d(the widened a)
+    return L, da * (1.0 + widen * grazing), -logcc * L, da * a0 * grazing
 
 
 @register
@@ -136,6 +139,7 @@ class FlakePaint(Model):
             Parameter("flake_reflectance", 0.1, 0.0, 1.0, "1", "weight of the flake lobe", per_channel=True),
             Parameter("flake_alpha", 0.3, 1e-2, 1.0, "1", "spread of the flakes' normals", per_channel=per),
             Parameter("flake_exponent", 0.2, 0.0, 1.0, "1", "p of the half-vector lobes"),
+            Parameter("flake_widen", 0.0, 0.0, 3.0, "1", "widening of the flake lobe toward grazing theta_d"),
         )
 
     def _terms(self, wi, wo, p, grad=False):
@@ -143,7 +147,7 @@ class FlakePaint(Model):
         up = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)).astype(float)[:, None]
         coat = _coat(kind, p["alpha"], p["eta"], wi, wo)[:, None]
         haze = half_vector_lobe(kind, p["haze_alpha"], p["flake_exponent"], wi, wo, grad)
-        flake = half_vector_lobe(kind, p["flake_alpha"], p["flake_exponent"], wi, wo, grad)
+        flake = half_vector_lobe(kind, p["flake_alpha"], p["flake_exponent"], wi, wo, grad, p["flake_widen"])
         return up / math.pi, coat, haze, flake
 
     def _eval_parts(self, wi, wo, p):
@@ -158,20 +162,22 @@ class FlakePaint(Model):
         d f_r[c] / d alpha_f[c]."""
         wi, wo = np.asarray(wi, float), np.asarray(wo, float)
         p = self.validate(params)
-        base, coat, (haze, dh, ph), (flake, df, pf) = self._terms(wi, wo, p, grad=True)
+        base, coat, (haze, dh, ph, _), (flake, df, pf, wf) = self._terms(wi, wo, p, grad=True)
         rs, rh, rf = p["specular_reflectance"], p["haze_reflectance"], p["flake_reflectance"]
         f = base * p["diffuse_reflectance"] + coat * rs + haze * rh + flake * rf
         n = f.shape
-        J = {"diffuse_reflectance": np.broadcast_to(base, n).copy(), "specular_reflectance": np.broadcast_to(coat, n).copy(),
+        J = {"diffuse_reflectance": np.broadcast_to(base, n).copy(),
+             "specular_reflectance": np.broadcast_to(coat, n).copy(),
              "haze_reflectance": np.broadcast_to(haze, n).copy(), "flake_reflectance": np.broadcast_to(flake, n).copy(),
-             "haze_alpha": dh * rh, "flake_alpha": np.broadcast_to(df * rf, n).copy(), "flake_exponent": np.broadcast_to(ph * rh + pf * rf, n).copy()}
+             "haze_alpha": dh * rh, "flake_alpha": np.broadcast_to(df * rf, n).copy(),
+             "flake_exponent": np.broadcast_to(ph * rh + pf * rf, n).copy(), "flake_widen": wf * rf}
         kind = self.options["distribution"]
         for name, lo, hi in (("alpha", 1e-4, 1.0), ("eta", 1.0001, 4.0)):
             h = _STEP * max(abs(p[name]), 1e-3)
             a, b = min(p[name] + h, hi), max(p[name] - h, lo)
             up, dn = ({**p, name: v} for v in (a, b))
-            J[name] = (_coat(kind, up["alpha"], up["eta"], wi, wo) - _coat(kind, dn["alpha"], dn["eta"], wi, wo))[:, None] \
-                / (a - b) * rs
+            diff = _coat(kind, up["alpha"], up["eta"], wi, wo) - _coat(kind, dn["alpha"], dn["eta"], wi, wo)
+            J[name] = diff[:, None] / (a - b) * rs
         return f, J
 
     def start_from(self, layer_params):
