@@ -270,3 +270,23 @@ def test_auto_chooses_flakepaint_where_the_colour_shifts_only(truth):
     else:
         assert chosen == ("flakepaint", {"distribution": "ggx", "spread": "wavelength"}), \
             [(r.name, r.options, r.bic) for r in ranking]
+
+
+def test_a_flakepaint_fit_is_written_and_refused_as_mitsuba_in_one_line(tmp_path, capsys):
+    """A flakepaint fit's file is written with ``mitsuba: null``; `gonio convert FIT --to
+    mitsuba-xml` says in one line that it has no twin (exit 2) and writes nothing."""
+    from gonio.cli.main import main
+
+    model = gm.get("flakepaint", distribution="ggx", spread="shared")
+    truth = {**FLAKE, "flake_alpha": 0.3}
+    meas = _simulated(model, truth, np.random.default_rng(4), n=120)
+    shape = {k: truth[k] for k in ("alpha", "eta", "haze_alpha", "flake_alpha", "flake_exponent", "flake_widen")}
+    result = fit(meas, model, rng=np.random.default_rng(0), fixed=shape)       # the colours only
+    doc = fit_document(result, meas, seed=0)
+    assert doc["mitsuba"] is None and doc["wavelengths"] == list(WL)
+    path = write_json_atomic(tmp_path / "fit.json", doc)
+    capsys.readouterr()
+    assert main(["convert", str(path), "--to", "mitsuba-xml", "--out", str(tmp_path / "f.xml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no Mitsuba twin" in err and "Traceback" not in err
+    assert not (tmp_path / "f.xml").exists()
