@@ -29,6 +29,8 @@ __all__ = [
     "reflect",
     "sincos_phi",
     "angle_tangents",
+    "tangent_basis",
+    "POLE_SIN",
     "unit_vectors",
 ]
 
@@ -143,11 +145,33 @@ def sincos_phi(w, eps=4.0 * np.finfo(np.float32).eps):
     return s, c
 
 
+#: |sin theta| below this: a direction at a pole (theta 0 or 180 deg), where phi is undefined and
+#: an angle shift's phi part is an arc along a fixed tangent instead (:func:`tangent_basis`)
+POLE_SIN = 1e-6
+
+
+def tangent_basis(w):
+    """``(e_theta, e_phi, pole)`` of unit vectors ``w`` (N, 3): the unit tangents along increasing
+    theta and phi (N, 3) and where ``w`` lies at a pole (N,). At a pole phi is undefined, so the
+    pair is fixed: the tangents of phi = 0, e_theta = (cos theta, 0, 0), e_phi = (0, 1, 0). An
+    angle shift (d theta, d phi) in degrees moves ``w`` by d theta e_theta + d phi sin(theta)
+    e_phi (radians) away from a pole and by d theta e_theta + d phi e_phi at one: there the
+    stored d phi is the arc along e_phi (the dataset's angle shifts, the budget's slopes)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta, phi = angles(w)
+    pole = np.abs(np.sin(theta)) < POLE_SIN
+    phi = np.where(pole, 0.0, phi)
+    c, s = np.cos(theta), np.sin(theta)
+    e_theta = np.stack([c * np.cos(phi), c * np.sin(phi), np.where(pole, 0.0, -s)], axis=-1)
+    e_phi = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], axis=-1)
+    return e_theta, e_phi, pole
+
+
 def angle_tangents(wi, wo, shifts, h: float = 1e-4):
     """The directions' first-order displacement (K, N, 3) each for ``wi`` and ``wo`` (N, 3) per
     unit of each of K angle shifts ``shifts`` (K, N, 4: theta_i, phi_i, theta_o, phi_o in
-    degrees): a central difference of the directions along the shift, so a direction near the
-    pole (where a small tilt is a large change of phi) moves by what the tilt moves it."""
+    degrees): a central difference of the directions along the shift; at a pole, where a
+    shift's phi part is an arc (:func:`tangent_basis`), that arc along the fixed tangent."""
     ti, pi_ = angles(wi)
     to, po = angles(wo)
     base = np.stack([ti, pi_, to, po], axis=-1)                              # radians (N, 4)
@@ -155,6 +179,10 @@ def angle_tangents(wi, wo, shifts, h: float = 1e-4):
     plus, minus = base[None] + h * d, base[None] - h * d
     t_i = (directions(plus[..., 0], plus[..., 1]) - directions(minus[..., 0], minus[..., 1])) / (2 * h)
     t_o = (directions(plus[..., 2], plus[..., 3]) - directions(minus[..., 2], minus[..., 3])) / (2 * h)
+    for t, w, k in ((t_i, wi, 0), (t_o, wo, 2)):
+        e_t, e_p, pole = tangent_basis(w)
+        if np.any(pole):
+            t[:, pole] = d[:, pole, k, None] * e_t[pole] + d[:, pole, k + 1, None] * e_p[pole]
     return t_i, t_o
 
 

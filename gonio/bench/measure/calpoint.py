@@ -15,6 +15,7 @@ import numpy as np
 
 from gonio.bench.measure import alignment as al
 from gonio.bench.plan import kinematics
+from gonio.core.geometry import tangent_basis
 
 __all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "reference_factor_modes",
            "u_linearity_rel",
@@ -29,7 +30,8 @@ def _p(cal: Mapping) -> np.ndarray:
                                                      "holder_tilt_y_deg")])
 
 
-def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0), rear=False):
+def _directions(stage, p, axis_err=None, wedge=(0.0, 0.0), rear=False):
+    """wi, wo (N, 3) in the sample's frame for stage angles with errors (:func:`_angles`)."""
     s = np.array(stage, dtype=float, copy=True)
     s[..., 0] += p[0]
     s[..., 1] += p[1]
@@ -39,7 +41,11 @@ def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0), rear=False):
     H = al.holder_rotation(p[2], p[3])
     if any(wedge):
         H = H @ al.holder_rotation(*wedge)
-    wi, wo = wi @ H, wo @ H                       # H.T @ w, row-wise: into the holder's (sample's) frame
+    return wi @ H, wo @ H                         # H.T @ w, row-wise: into the holder's (sample's) frame
+
+
+def _angles(stage, p, axis_err=None, wedge=(0.0, 0.0), rear=False):
+    wi, wo = _directions(stage, p, axis_err, wedge, rear)
     ti, pi_ = kinematics.angles_of(wi)
     to, po = kinematics.angles_of(wo)
     return np.stack([ti, pi_, to, po], -1)
@@ -82,7 +88,12 @@ def calibrated_angles(cal: Mapping, stage_deg, last_dir=None, rear=False) -> np.
 
 
 def _jacobian(stage, p, which, h=1e-3, rear=False):
-    """d angles / d (error ``which``) by central differences, (N, 4) per error, degrees/degree."""
+    """d angles / d (error ``which``) by central differences, (N, 4) per error, degrees/degree.
+    At a pole (theta 0 or 180 deg: normal incidence, straight through), where phi is undefined,
+    the pair is the direction's displacement along the fixed tangents of
+    :func:`gonio.core.geometry.tangent_basis` (degrees of arc), as the budget's slopes read it."""
+    base = _directions(stage, p, rear=rear)
+    bases = [tangent_basis(b) for b in base]
     out = []
     for k in range(len(which)):
         d = np.zeros(len(which))
@@ -90,11 +101,19 @@ def _jacobian(stage, p, which, h=1e-3, rear=False):
         plus, minus = _eval_errors(stage, p, which, d, rear), _eval_errors(stage, p, which, -d, rear)
         diff = plus - minus
         diff[..., 1::2] = (diff[..., 1::2] + 180.0) % 360.0 - 180.0    # phi differences wrap
-        out.append(diff / (2 * h))
+        diff = diff / (2 * h)
+        if any(np.any(b[2]) for b in bases):
+            vp, vm = _eval_errors(stage, p, which, d, rear, vectors=True), _eval_errors(stage, p, which, -d, rear,
+                                                                                       vectors=True)
+            for j, (e_t, e_p, pole) in enumerate(bases):
+                move = np.degrees((vp[j] - vm[j]) / (2 * h))               # arc, degrees per degree
+                diff[pole, 2 * j] = np.einsum("nk,nk->n", move, e_t)[pole]
+                diff[pole, 2 * j + 1] = np.einsum("nk,nk->n", move, e_p)[pole]
+        out.append(diff)
     return np.stack(out, -1)                                          # (N, 4, K)
 
 
-def _eval_errors(stage, p, which, d, rear=False):
+def _eval_errors(stage, p, which, d, rear=False, vectors=False):
     pp, ax, wd = p.copy(), np.zeros(4), np.zeros(2)
     for name, v in zip(which, d):
         if name in ("p0", "p1", "p2", "p3"):
@@ -106,7 +125,7 @@ def _eval_errors(stage, p, which, d, rear=False):
             ax[int(name[4])] += v
         else:
             wd[int(name[5])] += v
-    return _angles(stage, pp, ax, tuple(wd), rear)
+    return (_directions if vectors else _angles)(stage, pp, ax, tuple(wd), rear)
 
 
 def angle_uncertainty(cal: Mapping, stage_deg, last_dir=None, rear=False) -> dict:

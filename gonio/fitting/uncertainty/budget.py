@@ -33,7 +33,7 @@ import dataclasses
 
 import numpy as np
 
-from gonio.core.geometry import angles as _angles_of, directions as _directions
+from gonio.core.geometry import angles as _angles_of, directions as _directions, tangent_basis, unit_vectors
 from gonio.core.sides import side_of
 
 from gonio.fitting.likelihood import loss as _loss
@@ -322,7 +322,11 @@ def _sensitivity(result, meas):
 
 def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
     """d f_r / d (theta_i, phi_i, theta_o, phi_o) (N, C, 4), sr^-1 per degree, by central
-    differences of the model at ``params``."""
+    differences of the model at ``params``. At a pole (theta 0 or 180 deg, where phi is
+    undefined) the pair is the derivative along the fixed tangents of
+    :func:`gonio.core.geometry.tangent_basis`, per degree of arc, as the dataset's angle shifts
+    are there: a tilt then moves a normal-incidence or straight-through point's value by what it
+    moves its direction (its phi slope was 0, and a lobe's change across the pole was lost)."""
     ti, pi_ = _angles_of(wi)
     to, po = _angles_of(wo)
     base = np.stack([ti, pi_, to, po], axis=-1)
@@ -335,6 +339,15 @@ def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
         fp = model.eval(_directions(plus[:, 0], plus[:, 1]), _directions(plus[:, 2], plus[:, 3]), params)
         fm = model.eval(_directions(minus[:, 0], minus[:, 1]), _directions(minus[:, 2], minus[:, 3]), params)
         out.append((fp - fm) / (2 * h_deg))
+    for k, w in ((0, wi), (2, wo)):
+        e_t, e_p, pole = tangent_basis(w)
+        if not np.any(pole):
+            continue
+        a, b = np.asarray(wi, float)[pole], np.asarray(wo, float)[pole]
+        for j, e in ((k, e_t[pole]), (k + 1, e_p[pole])):
+            moved = [unit_vectors(np.asarray(w, float)[pole] * np.cos(h) + sign * np.sin(h) * e) for sign in (1, -1)]
+            pair = [(m, b) if k == 0 else (a, m) for m in moved]
+            out[j][pole] = (model.eval(*pair[0], params) - model.eval(*pair[1], params)) / (2 * h_deg)
     return np.stack(out, axis=-1)
 
 
