@@ -258,7 +258,8 @@ def test_a_screened_fit_finished_has_the_covariance_of_a_full_fit():
     finishes the kept one: the same optimum and the same covariance as fit()'s default."""
     from gonio.fitting.selection.spectral import SCREEN, with_covariance
 
-    model, meas = _capture(np.random.default_rng(2), n=120)
+    _, meas = _capture(np.random.default_rng(2), n=120)
+    model = gm.get("cooktorrance")
     full = fit(meas, model, loss="log", rng=np.random.default_rng(0))
     done = with_covariance(meas, fit(meas, model, loss="log", rng=np.random.default_rng(0), **SCREEN))
     assert done.method == full.method and done.neg2_loglik == full.neg2_loglik
