@@ -46,7 +46,7 @@ DEFAULTS: dict[str, Any] = {
     "overhead_s": 5.0,            # per-point settle, bracket and reduction time, s
     "model_rel_u": 0.0,           # relative 1-sigma of what the noise leaves out (model, systematics)
     "criterion": "d-optimal",     # "d-optimal" (the parameters) or "alc" (the predicted f_r cos, with discrepancy)
-    "discrepancy_length": 0.4,    # "alc": correlation length of the model's discrepancy in (wi, wo), unit vectors
+    "discrepancy_length": 0.7,    # "alc": correlation length of the model's discrepancy in (wi, wo), unit vectors
 }
 
 #: the batch criteria ``criterion`` names
