@@ -23,9 +23,12 @@ from gonio.core.errors import GonioError
 
 __all__ = ["PLANS", "front", "run", "score"]
 
-#: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``ndf``,
-#: the NDF-seeded one, on request)
+#: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``alc``
+#: and ``ndf`` on request)
 PLANS = ("quick", "standard", "adaptive")
+#: the plans drawn from ``dense`` by a strategy: ``adaptive`` (D-optimal), ``alc`` (the adaptive
+#: plan with ``criterion = "alc"``), ``ndf``
+SEQUENTIAL = ("adaptive", "alc", "ndf")
 #: the adaptive plan's point budget by default
 ADAPTIVE_POINTS = 24
 
@@ -84,8 +87,12 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     from gonio.bench.session.simulated import capture_sim
     from gonio.fitting.pipeline import fit_measurements
 
-    sequential = plan in ("adaptive", "ndf")
-    strategy = {"name": plan, "seed": int(seed), "points": int(points)} if sequential else None
+    sequential = plan in SEQUENTIAL
+    strategy = None
+    if sequential:
+        strategy = {"name": "ndf" if plan == "ndf" else "adaptive", "seed": int(seed), "points": int(points)}
+        if plan == "alc":
+            strategy["criterion"] = "alc"
     t0 = time.perf_counter()
     session = folder / plan
     capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
@@ -164,8 +171,7 @@ def check_plans(text: str) -> tuple:
     from gonio.bench.plan.plans import PRESETS
 
     names = tuple(p.strip() for p in str(text).split(",") if p.strip())
-    bad = [p for p in names if p not in ("adaptive", "ndf") and p not in PRESETS]
+    bad = [p for p in names if p not in SEQUENTIAL and p not in PRESETS]
     if not names or bad:
-        raise GonioError(f"--plans {text!r}: give plan presets separated by commas ({', '.join(PRESETS)}, adaptive, "
-                         "ndf)")
+        raise GonioError(f"--plans {text!r}: give plan presets separated by commas ({', '.join(PRESETS + SEQUENTIAL)})")
     return names
