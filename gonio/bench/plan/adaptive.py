@@ -4,14 +4,14 @@ A first pass takes a spread subset of the candidate plan (farthest-point samplin
 isotropic (wi, wo) feature space); then, batch by batch, the model is fitted to the results
 so far (`gonio.fitting.fit`) and the unmeasured candidates that raise log det of the Fisher
 information J^T W J the most (D-optimality, greedy within a batch; Atkinson, Donev & Tobias
-2007, ch. 10-12) are queued, per second of stage travel and point overhead when ``travel``
-is on (`gonio.bench.plan.ordering` times the moves). It stops at ``points``, at ``budget_s`` of
-the session's journalled instrument time (a batch is cut to what the plan's estimate fits in
-what is left), or at its targets (``target_rel_u``: every parameter's relative 1-sigma;
-``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says which. Each batch is
-chosen from the results and times of the points queued before it, less the last one (the
-stages move to it meanwhile), so a resume replays the same choices. Public: `AdaptivePlan`,
-`DEFAULTS`, `cli_strategy`, `albedo_de00_u`; registered in `STRATEGIES` on import.
+2007, ch. 10-12; ``criterion = "alc"``: the predicted variance of f_r cos, gonio.bench.plan.alc)
+are queued, per second of travel and overhead when ``travel`` is on. It stops at ``points``,
+at ``budget_s`` of the session's journalled instrument time (a batch is cut to what the plan's
+estimate fits in what is left), or at its targets (``target_rel_u``: every parameter's
+relative 1-sigma; ``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says
+which. Each batch is chosen from the results and times of the points queued before it, less
+the last one (the stages move to it meanwhile), so a resume replays the same choices. Public:
+`AdaptivePlan`, `DEFAULTS`, `CRITERIA`, `cli_strategy`, `albedo_de00_u`; registered on import.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from gonio.bench.plan.ordering import cost_matrix, mirror
 from gonio.bench.plan.plans import Plan
 from gonio.bench.plan.strategy import Result, register_strategy
 
-__all__ = ["AdaptivePlan", "DEFAULTS", "CLI_STOPS", "cli_strategy", "spread_subset", "albedo_de00_u"]
+__all__ = ["AdaptivePlan", "DEFAULTS", "CRITERIA", "CLI_STOPS", "cli_strategy", "spread_subset", "albedo_de00_u"]
 
 #: session.toml's ``[strategy]`` keys and their defaults (``name = "adaptive"`` besides).
 DEFAULTS: dict[str, Any] = {
