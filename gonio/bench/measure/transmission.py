@@ -8,12 +8,10 @@ unit of the lamp monitor's power P (lamp drift cancels),
 
     f_t(wi, wo) = L_t / (E cos theta_i) = (S_t / S_open) a / (Omega_beam cos theta_i).
 
-`OpenBeam` is that calibration, recorded in the dataset's attributes as the reflectance
-reference's certificate is; a and Omega_beam come from ``[transmission]`` (the attenuator's
-and the beam's certificates, their relative standard uncertainties a scale common to every
-transmitted point). The capture session takes the open-beam frame and the transmitted points
-on the rear stop (gonio/bench/session/rear.py) and journals the open beam, which
-`journalled_open_beam` reads back.
+`OpenBeam` is that calibration, recorded in the dataset's attributes as the reference's
+certificate is; a and Omega_beam come from ``[transmission]`` (their certificates' relative
+uncertainties: a scale common to every transmitted point). The session takes the open beam and
+the points on the rear stop (gonio/bench/session/rear.py); `journalled_open_beam` reads it back.
 """
 
 from __future__ import annotations
