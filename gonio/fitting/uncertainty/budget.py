@@ -175,11 +175,13 @@ def load_budget(path, meas) -> Budget:
             var = ds[v]
             corr = str(var.attrs.get("correlation", ""))
             gtype = str(var.attrs.get("gum_type", ""))
-            extra = [d for d in var.dims if d not in ("point", "channel")]
-            if len(extra) > 1 or (extra and not corr == "full"):
+            column = "wavelength" if "wavelength" in var.dims else "channel"     # a spectral dataset's lines
+            extra = [d for d in var.dims if d not in ("point", column)]
+            if len(extra) > 1 or (extra and not corr == "full") or column not in var.dims:
                 raise ValueError(f"{path}: {v} has dimensions {var.dims!r:.60}: (point, channel), or (point, channel, "
-                                 "input) for a fully shared line with several inputs; see docs/interfaces.md 5.1")
-            value = np.asarray(var.transpose("point", "channel", *extra).values, float)
+                                 "input) for a fully shared line with several inputs (wavelength for channel in a "
+                                 "spectral dataset); see docs/interfaces.md 5.1")
+            value = np.asarray(var.transpose("point", column, *extra).values, float)
             if extra:                       # K independent inputs, each shared by every value: (K, N, C)
                 value = np.moveaxis(value, -1, 0)
             groups = None
