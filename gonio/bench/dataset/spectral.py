@@ -59,8 +59,10 @@ def spectral_variables(doc: Mapping, rows: list) -> tuple[dict, dict, np.ndarray
     plan_index = np.full((n, m), -1, int)
     monitor, time_s, read = np.full((n, m), np.nan), np.full((n, m), np.nan), np.full((n, m), np.nan)
     first: dict[int, Mapping] = {}
-    for r in rows:
+    cell = np.zeros((len(rows), 2), int)
+    for k, r in enumerate(rows):
         i, j = where[int(geo[r["idx"]])], int(np.searchsorted(wl, plan_wl[r["idx"]]))
+        cell[k] = i, j
         first.setdefault(i, r)
         brdf[i, j], std[i, j] = combine(r["brdf"], r["brdf_std"])
         sat[i, j] = bool(r["saturated"]) or not np.isfinite(brdf[i, j])
@@ -93,5 +95,139 @@ def spectral_variables(doc: Mapping, rows: list) -> tuple[dict, dict, np.ndarray
                                          "measured or not recorded)"}),
         "wavelength_read": (pw, read, {"units": "nm", "long_name": "wavelength the monochromator read back (WAVE?)"}),
     }
+    data.update(spectral_budget(rows, doc["settings"], cell, brdf))
     point_s = np.array([np.nansum(time_s[i]) if np.any(np.isfinite(time_s[i])) else np.nan for i in range(n)])
     return coords, data, monitor[np.isfinite(monitor)], point_s
+
+
+# The budget on (point, wavelength). Each row (a geometry at one wavelength) is first given the
+# RGB export's budget over its three Bayer channels (`gonio.bench.dataset.budget.budget_variables`,
+# the rows in the journal's order: the dark frames' overlaps, linearity levels and move history
+# are the rows'); the inverse-variance combination f = sum_c a_c f_c (a_c = w_c / sum w, `combine`)
+# is linear, so a shared (signed) line maps as sum_c a_c u_c and an independent one as
+# sqrt(sum_c a_c^2 u_c^2) (JCGM 100 5.1.2, 5.2.2): the type-A lines still add up to brdf_std.
+
+#: the angle variables of `budget.angle_variables`: per geometry, not per wavelength
+_ANGLE_VARS = ("angle_shift_shared", "irradiance_shift_shared", "angle_shift_independent",
+               "angle_shift_independent_group")
+
+
+def _weights(brdf, std) -> np.ndarray:
+    """(R, 3) the channels' weights a_c of `combine` (0 where a channel is not used)."""
+    f, s = np.asarray(brdf, float), np.asarray(std, float)
+    ok = np.isfinite(f) & np.isfinite(s) & (s > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(ok, 1.0 / np.where(ok, s, 1.0) ** 2, 0.0)
+    total = w.sum(axis=1, keepdims=True)
+    return np.where(total > 0, w / np.where(total > 0, total, 1.0), 0.0)
+
+
+def _certificate(settings: Mapping, brdf: np.ndarray) -> tuple | None:
+    """``u_reference_certificate`` (point, wavelength): brdf x [reference] rel_std (one number, the
+    same at every wavelength, or one per wavelength); correlation ``full`` (one certificate error
+    shared by every wavelength: the simulator draws one) or ``channel`` ([reference]
+    rel_std_correlation = "channel": one independent error per wavelength)."""
+    ref = settings.get("reference", {})
+    try:
+        rel = np.broadcast_to(np.asarray(ref.get("rel_std", 0.0), float), (brdf.shape[1],))
+    except ValueError:
+        raise ValueError(f"[reference] rel_std must be one number or one per wavelength ({brdf.shape[1]})") from None
+    if not np.any(rel > 0):
+        return None
+    corr = str(ref.get("rel_std_correlation", "full"))
+    what = ("one independent error per wavelength" if corr == "channel" else
+            "one error shared by every wavelength and point")
+    return (("point", "wavelength"), brdf * rel[None, :], {
+        "units": "sr^-1", "gum_type": "B", "correlation": corr,
+        "source": f"reference certificate: relative 1-sigma [reference] rel_std of its reflectance at each "
+                  f"wavelength ({what})",
+        "long_name": "standard uncertainty of brdf from reference certificate (signed: the change for +1 sigma "
+                     "of the shared input)"})
+
+
+def spectral_budget(rows: list, settings: Mapping, cell: np.ndarray, brdf: np.ndarray) -> dict:
+    """The budget variables of a spectral dataset (docs/interfaces.md 5.1) on (point, wavelength):
+    ``u_<component>`` and ``u_combined`` from the rows' Bayer-channel budget (module comment),
+    the certificate per wavelength (:func:`_certificate`) and the angle shifts per geometry (its
+    first-measured row's: the stage does not move between a geometry's wavelengths when
+    wavelength is the fastest axis). ``cell`` (R, 2): each row's (point, wavelength) index;
+    ``brdf`` (n, m) the combined values. ValueError for a line this layout cannot carry."""
+    from gonio.bench.dataset.budget import BUDGET_FORMAT, budget_variables
+
+    f3 = np.array([r["brdf"] for r in rows], float).reshape(len(rows), -1)
+    s3 = np.array([r["brdf_std"] for r in rows], float).reshape(len(rows), -1)
+    f3 = np.where(np.isfinite(s3), f3, np.nan)
+    a = _weights(f3, s3)
+    rgb = budget_variables(rows, settings, f3, s3)
+    n, m = brdf.shape
+    i, j = cell[:, 0], cell[:, 1]
+    out, total, names = {}, np.zeros((n, m)), []
+
+    def place(values):                              # (R, ...) per row -> (n, m, ...) per cell
+        grid = np.full((n, m) + values.shape[1:], np.nan)
+        grid[i, j] = values
+        return grid
+
+    for name, (dims, value, attrs) in rgb.items():
+        if not name.startswith("u_") or name in ("u_combined", "u_reference_certificate"):
+            continue
+        corr, attrs = str(attrs.get("correlation", "")), dict(attrs)
+        aa = a if np.ndim(value) == 2 else a[..., None]
+        u = np.where(aa > 0, value, 0.0)            # a channel left out of the row's f_r: none of its u
+        if corr == "none" and u.ndim == 2:
+            v, dims2 = np.sqrt(((aa * u) ** 2).sum(axis=1)), ("point", "wavelength")
+        elif corr in ("full", "point"):
+            v = (aa * u).sum(axis=1)
+            dims2 = ("point", "wavelength") + tuple(dims[2:])
+            if corr == "point":                     # one error per row: each (point, wavelength) its own
+                v, attrs["correlation"] = np.abs(v), "none"
+        elif corr == "channel" and u.ndim == 2:     # one error per Bayer site, shared by every row
+            v, dims2 = aa * u, ("point", "wavelength", f"{name[2:]}_input")
+            attrs["correlation"] = "full"
+        else:
+            raise ValueError(f"budget line {name} ({corr}) has no (point, wavelength) form")
+        grid = place(v)
+        out[name] = (dims2, grid, attrs)
+        total += (grid ** 2).sum(axis=2) if grid.ndim == 3 else grid ** 2
+        names.append(name[2:])
+    cert = _certificate(settings, brdf)
+    if cert is not None:
+        out["u_reference_certificate"] = cert
+        total += cert[1] ** 2
+        names.append("reference_certificate")
+    out["u_combined"] = (("point", "wavelength"), np.where(np.isfinite(brdf), np.sqrt(total), np.nan), {
+        "units": "sr^-1", "budget_format": BUDGET_FORMAT, "components": " ".join(sorted(names)),
+        "long_name": "combined standard uncertainty of brdf (root sum of squares of the u_ components)"})
+    out.update(_angles_per_geometry(rows, rgb, i, n))
+    return out
+
+
+def _angles_per_geometry(rows, rgb: dict, point: np.ndarray, n: int) -> dict:
+    """The angle variables on the n geometries: each geometry's first-measured row's, its
+    ``source`` saying where a geometry's rows differ (the stage revisited it: wavelength the
+    slowest axis), whose per-move errors are then taken as the first visit's, shared by all its
+    wavelengths (no averaging over the visits: the larger u of what is fitted across them)."""
+    if "angle_shift_shared" not in rgb:
+        return {}
+    t = np.array([float(r.get("finished", k)) for k, r in enumerate(rows)], float)
+    order = np.argsort(t, kind="stable")
+    pick = np.full(n, -1, int)
+    for k in order[::-1]:
+        pick[point[k]] = k
+    same = True
+    for name in _ANGLE_VARS:
+        if name in rgb:
+            v = np.asarray(rgb[name][1])
+            same &= bool(np.allclose(v, v[:, pick[point]], rtol=0.0, atol=1e-12))
+    out = {}
+    for name in _ANGLE_VARS:
+        if name not in rgb:
+            continue
+        dims, v, attrs = rgb[name]
+        attrs = dict(attrs)
+        if "source" in attrs:
+            attrs["source"] += ("; per geometry (the angles do not depend on the wavelength)" if same else
+                                "; per geometry, its first visit's: the stage revisited geometries between "
+                                "wavelengths, whose per-move errors are taken as shared by all its wavelengths")
+        out[name] = (dims, np.asarray(v)[:, pick], attrs)
+    return out
