@@ -158,7 +158,8 @@ def spectral_budget(rows: list, settings: Mapping, cell: np.ndarray, brdf: np.nd
     s3 = np.array([r["brdf_std"] for r in rows], float).reshape(len(rows), -1)
     f3 = np.where(np.isfinite(s3), f3, np.nan)
     a = _weights(f3, s3)
-    rgb = budget_variables(rows, settings, f3, s3)
+    # the certificate apart (per wavelength, :func:`_certificate`), not per Bayer site
+    rgb = budget_variables(rows, {**settings, "reference": {**settings.get("reference", {}), "rel_std": 0.0}}, f3, s3)
     n, m = brdf.shape
     i, j = cell[:, 0], cell[:, 1]
     out, total, names = {}, np.zeros((n, m)), []
