@@ -229,15 +229,15 @@ def test_a_spectral_fit_of_the_lacquer_under_typical_errors_states_the_angles():
     95 %; before, chi2/dof 1490 against brdf_std alone and the Birge ratio 39 made the interval)."""
     import tempfile
 
+    from gonio.bench.dataset.reader import open_fit_input
     from gonio.bench.plan.plans import load_plan
     from gonio.bench.samples import load_sample
     from gonio.cli.fit import fit_dataset
-    from gonio.fitting import load_dataset
 
     sample = load_sample(LACQUER)
-    with tempfile.TemporaryDirectory() as tmp:
-        meas = load_dataset(_capture(Path(tmp) / "s", load_plan("spectral"), seed=0))
-        _, doc, _ = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=0)
+    with tempfile.TemporaryDirectory() as tmp:       # as `gonio fit dataset.nc`: the file's budget
+        given = open_fit_input(_capture(Path(tmp) / "s", load_plan("spectral"), seed=0), seed=0)
+        _, doc, _ = fit_dataset(given, model=sample["model"], options=sample["options"], seed=0)
     lines = doc["uncertainty"]["components"]
     assert "reference_certificate" in lines and any(n.startswith("angle") for n in doc["uncertainty"]["parameters"]
                                                     ["alpha"]["budget"])
