@@ -8,7 +8,9 @@ f_r per row (its 1-sigma from the channels' own), then lays the rows out as ``br
 wavelength)``; a (geometry, wavelength) never measured is NaN and flagged in ``saturated``
 (the reader leaves it out). Per point: the angles, the stage pose and the reciprocal partner
 of its geometry; per (point, wavelength): the plan index, the monitor's reading, the
-instrument time and the wavelength the monochromator read back.
+instrument time and the wavelength the monochromator read back; and the uncertainty budget
+(`spectral_budget`: docs/interfaces.md 5.1's lines on (point, wavelength), the angle shifts per
+geometry).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 from gonio.bench.plan.plans import find_partners
 from gonio.bench.plan.spectral import geometry_groups
 
-__all__ = ["spectral_variables", "combine", "WAVELENGTH_ATTRS", "COLOUR_SPACE"]
+__all__ = ["spectral_variables", "spectral_budget", "combine", "WAVELENGTH_ATTRS", "COLOUR_SPACE"]
 
 #: the wavelength coordinate's attributes (CF standard name table: radiation_wavelength)
 WAVELENGTH_ATTRS = {"standard_name": "radiation_wavelength", "units": "nm",
