@@ -22,7 +22,7 @@ import dataclasses
 import numpy as np
 
 import gonio.models as gm
-from gonio.core.channels import CHANNELS
+from gonio.core.channels import CHANNELS, of_values
 from gonio.core.geometry import directions_deg
 from gonio.fitting.formats.readback import ExportError
 
@@ -50,7 +50,7 @@ class NativeBSDF:
         ``mitsuba.load_dict`` dict of a native plugin.
     exact : bool
         True when the source model is a native plugin itself.
-    error : ndarray, shape (CHANNELS,)
+    error : ndarray, shape (channels,)
         Relative RMS difference of f_r cos_i cos_o per channel (:func:`relative_error`); 0 when exact.
     """
 
@@ -117,7 +117,7 @@ def native_bsdf(model_name: str, options: dict | None, params: dict, *, seed: in
     params = model.validate(params)
     d = model.to_mitsuba(params)
     if not str(d["type"]).startswith("gonio_"):
-        return NativeBSDF(model.name, model.name, dict(model.options), params, d, True, np.zeros(CHANNELS))
+        return NativeBSDF(model.name, model.name, dict(model.options), params, d, True, np.zeros(model.n_channels(params)))
     from gonio.core.sides import Side
 
     if Side.TRANSMIT in tuple(model.structure.sides):
@@ -126,13 +126,15 @@ def native_bsdf(model_name: str, options: dict | None, params: dict, *, seed: in
         raise ExportError(f"model {model.name} transmits and no native Mitsuba BSDF stands for it; "
                           "export gonio's plugin instead (--to mitsuba-xml-gonio)")
     wi, wo = _grid()
-    f = np.asarray(model.eval(wi, wo, params), dtype=np.float64).reshape(-1, CHANNELS)
+    f = np.asarray(model.eval(wi, wo, params), dtype=np.float64).reshape(len(wi), -1)   # a spectral fit: N channels
     w = (wi[:, 2] * wo[:, 2])[:, None]
     scale = np.sqrt(np.mean((f * w) ** 2, axis=0))
     sigma = 0.01 * np.where(scale > 0, scale, 1e-6) / w
-    meas = Measurements(wi, wo, f, sigma, np.ones(f.shape, bool))
+    channels = of_values(f[0]) if f.shape[1] != CHANNELS else None
+    meas = Measurements(wi, wo, f, sigma, np.ones(f.shape, bool), *(
+        ({"wavelengths_nm": list(channels.wavelengths_nm)}, channels.names) if channels else ()))
     cwi, cwo = check_directions()
-    f_check = np.asarray(model.eval(cwi, cwo, params), dtype=np.float64).reshape(-1, CHANNELS)
+    f_check = np.asarray(model.eval(cwi, cwo, params), dtype=np.float64).reshape(len(cwi), -1)
     best = None
     for name, opts in FAMILIES:
         family = gm.get(name, **opts)
@@ -140,7 +142,7 @@ def native_bsdf(model_name: str, options: dict | None, params: dict, *, seed: in
             result = fit(meas, family, rng=np.random.default_rng(seed), covariance=False)
         except (ValueError, ArithmeticError, RuntimeError):
             continue
-        got = np.asarray(family.eval(cwi, cwo, result.params), dtype=np.float64).reshape(-1, CHANNELS)
+        got = np.asarray(family.eval(cwi, cwo, result.params), dtype=np.float64).reshape(len(cwi), -1)
         err = relative_error(f_check, got, cwi, cwo)
         if np.all(np.isfinite(err)) and (best is None or err.max() < best[0].max()):
             best = (err, family, result.params)
