@@ -83,7 +83,7 @@ def _cmd_bench_acquisition(args):
         raise GonioError(f"--model {args.model!r}: give one of {', '.join(gm.names())}")
     sample = load_sample(args.sample)
     run(plans, sample, model=args.model, seed=args.seed, points=args.points, errors=args.errors,
-        out=Path(args.out) if args.out else None)
+        out=Path(args.out) if args.out else None, budget_fraction=args.budget_fraction)
 
 
 def register(sub, *, env, seed, parser_class):
@@ -116,11 +116,14 @@ def register(sub, *, env, seed, parser_class):
     ba = bsub.add_parser("acquisition", help="per plan: the simulated capture's instrument time against the fit's "
                                              "error against the truth (Ngan, log, dE00), and the front")
     ba.add_argument("--plans", default="quick,standard,adaptive",
-                    help="plan presets and 'adaptive', separated by commas (default quick,standard,adaptive)")
+                    help="plan presets, 'adaptive', 'alc' or 'ndf', separated by commas (default "
+                         "quick,standard,adaptive)")
     ba.add_argument("--sample", help="the virtual sample: a sample TOML or a measured RGL .bsdf file (default the "
                                      "demo's glossy plastic)")
     ba.add_argument("--model", help="the family fitted (default the sample's own; roughplastic for a measured file)")
     ba.add_argument("--points", type=int, default=24, help="the adaptive plan's budget (default 24)")
+    ba.add_argument("--budget-fraction", type=float, help="the sequential plans stop at this fraction of the "
+                                                           "dense plan's instrument time (dense must be in --plans)")
     ba.add_argument("--errors", default="typical", help="the simulator's error preset, every plan the same "
                                                          "(default typical; gonio plans lists them)")
     ba.add_argument("--seed", type=seed, default=0, help="seed of the captures and the fits")

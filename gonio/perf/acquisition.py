@@ -79,7 +79,7 @@ def front(rows) -> list:
 
 
 def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed: int, points: int,
-         settings: dict) -> dict:
+         settings: dict, budget_s: float = 0.0) -> dict:
     import xarray as xr
 
     from gonio.bench.dataset.export import export
@@ -93,6 +93,8 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
         strategy = {"name": "ndf" if plan == "ndf" else "adaptive", "seed": int(seed), "points": int(points)}
         if plan == "alc":
             strategy["criterion"] = "alc"
+        if budget_s > 0:
+            strategy.update(budget_s=float(budget_s), points=0)
     t0 = time.perf_counter()
     session = folder / plan
     capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
@@ -111,11 +113,21 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
 
 
 def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=ADAPTIVE_POINTS, errors="typical",
-        out=None, folder=None) -> list[dict]:
+        out=None, folder=None, budget_fraction=None) -> list[dict]:
     """Capture, fit and score ``sample`` (a :func:`gonio.bench.samples.load_sample` dict; the demo
     sample by default) with each plan; print the table and the front; with ``out`` write the
     CSV there. ``model``: the family fitted (default the sample's own; ``roughplastic`` for a
-    measured file); ``errors``: the simulator's error preset (every plan the same instrument)."""
+    measured file); ``errors``: the simulator's error preset (every plan the same instrument);
+    ``budget_fraction``: the sequential plans stop at that fraction of the ``dense`` plan's
+    instrument time (``dense`` must be among ``plans``; it runs first) instead of ``points``."""
+    plans = tuple(plans)
+    if budget_fraction is not None:
+        f = budget_fraction
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f <= 1:
+            raise GonioError(f"--budget-fraction {f!r}: give a fraction of the dense plan's time in (0, 1]")
+        if "dense" not in plans:
+            raise GonioError("--budget-fraction needs dense among --plans: the budget is a fraction of its time")
+        plans = ("dense",) + tuple(p for p in plans if p != "dense")
     from gonio.bench.calibrate import with_errors_and_calibration
     from gonio.bench.samples import load_sample
     from gonio.bench.settings import load_settings
@@ -130,7 +142,8 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
     with tempfile.TemporaryDirectory(prefix="gonio-acq-") as tmp:
         base = Path(folder) if folder is not None else Path(tmp)
         for plan in plans:
-            rows.append(_one(plan, sample, model, dict(options or {}), base, seed, points, settings))
+            budget_s = budget_fraction * rows[0]["time_s"] if budget_fraction and plan in SEQUENTIAL else 0.0
+            rows.append(_one(plan, sample, model, dict(options or {}), base, seed, points, settings, budget_s))
             _print(rows[-1:], head=len(rows) == 1)
     on_front = {id(r) for r in front(rows)}
     print(f"front (no plan both faster and closer): "

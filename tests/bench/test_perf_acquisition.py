@@ -20,7 +20,10 @@ def test_bad_options_are_one_line_before_anything_runs(tmp_path, capsys):
     for args, what in ((["--plans", "quick,nonsense"], "--plans"), (["--plans", ","], "--plans"),
                        (["--points", "0"], "--points"), (["--model", "nonsense"], "--model"),
                        (["--sample", str(tmp_path / "missing.toml")], "missing.toml"),
-                       (["--errors", "nonsense"], "nonsense")):
+                       (["--errors", "nonsense"], "nonsense"), (["--budget-fraction", "0"], "--budget-fraction"),
+                       (["--plans", "dense,alc", "--budget-fraction", "nan"], "--budget-fraction"),
+                       (["--plans", "dense,alc", "--budget-fraction", "1.5"], "--budget-fraction"),
+                       (["--plans", "quick,alc", "--budget-fraction", "0.1"], "dense")):
         assert main(["perf", "acquisition", *args, "--out", str(out)]) == 2, args
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and what in err, err
