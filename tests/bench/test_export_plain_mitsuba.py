@@ -60,7 +60,11 @@ def test_every_native_models_xml_loads_in_plain_mitsuba(tmp_path):
 #: model's defaults are a glossy paint's peak)
 PAINT = {"cooktorrance": {"diffuse_reflectance": [0.5, 0.3, 0.1], "specular_reflectance": 0.2, "roughness": 0.2,
                           "f0": 0.04},
-         "orennayar": {"reflectance": [0.6, 0.5, 0.4], "sigma": 0.4}, "tabulated": {}}
+         "orennayar": {"reflectance": [0.6, 0.5, 0.4], "sigma": 0.4}, "tabulated": {},
+         # tests/fitting/test_spectral_fit.py's flake paint in three channels (issue 39)
+         "flakepaint": {"diffuse_reflectance": [0.08, 0.05, 0.02], "specular_reflectance": 0.9, "alpha": 0.02,
+                        "eta": 1.5, "haze_reflectance": 0.01, "haze_alpha": 0.05, "flake_reflectance": [0.3, 0.15, 0.05],
+                        "flake_alpha": 0.3, "flake_exponent": 0.3, "flake_widen": 0.3}}
 
 EVAL = """
 import sys
@@ -100,8 +104,6 @@ def test_every_registered_model_exports_xml_a_plain_mitsuba_loads_and_says_how_c
     for name in gm.names():
         if name in ("difftrans", "roughslab"):   # issue 37: transmitters no native Mitsuba 3.9 BSDF stands for
             continue
-        if not getattr(type(gm.get(name)), "mitsuba_twin", True):    # flakepaint (issue 39): no twin at all
-            continue
         model = gm.get(name)
         p = {}
         for par in model.parameters:     # inside the bounds, away from the defaults
@@ -113,7 +115,7 @@ def test_every_registered_model_exports_xml_a_plain_mitsuba_loads_and_says_how_c
         path = tmp_path / f"{name}.xml"
         note = write_mitsuba_document(path, name, dict(model.options), p)
         cases[name] = (model, p, path, note)
-    assert {n for n, c in cases.items() if c[3]} == {"cooktorrance", "orennayar", "tabulated"}
+    assert {n for n, c in cases.items() if c[3]} == {"cooktorrance", "orennayar", "tabulated", "flakepaint"}
     r = subprocess.run([sys.executable, "-c", EVAL, str(tmp_path / "dirs.npy"), "--", *(str(c[2]) for c in cases.values())],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -129,7 +131,9 @@ def test_every_registered_model_exports_xml_a_plain_mitsuba_loads_and_says_how_c
         assert note in text.replace("\n", " ")
         assert np.all(err <= stated + 5e-4 + 1e-4), (name, err, stated)     # stated to 0.1 %: half of it, + float32
         assert np.all(err >= stated - 5e-4 - 1e-4), (name, err, stated)
-        assert stated.max() < 0.15, (name, note)
+        # flakepaint's flake lobe (D / (cos_i cos_o)^p) is no microfacet lobe: its closest native family,
+        # roughplastic, is 17.3 % off in red (measured 2026-12-04); the others are paints' single lobes
+        assert stated.max() < (0.25 if name == "flakepaint" else 0.15), (name, note)
 
 
 def test_convert_prints_the_approximation_and_keeps_gonios_plugin_on_request(tmp_path, capsys):

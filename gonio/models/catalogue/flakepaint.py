@@ -11,7 +11,8 @@ Cornell's Cayman lacquer shows the flake lobe as a function of theta_h with litt
 microfacet 1 / (cos_i cos_o) growth (hence p), widening toward grazing theta_d (w). Option
 ``spread="wavelength"``: one flake spread per wavelength, so the chromaticity shifts with angle.
 Every colour enters f_r linearly. Offered by ``--model auto`` on spectral data only
-(``spectral_candidate``); no Mitsuba twin (:meth:`to_mitsuba` says so).
+(``spectral_candidate``). Mitsuba twin: the Python BSDF ``gonio_flakepaint`` (:func:`_make_bsdf`),
+each colour and a per-wavelength spread a Mitsuba spectrum (any variant, ``*_spectral`` included).
 """
 
 from __future__ import annotations
@@ -115,8 +116,8 @@ class FlakePaint(Model):
     #: not an RGB candidate (the RGB choices stay as they were): offered on spectral data
     auto_candidate = False
     spectral_candidate = True
-    #: no Mitsuba twin (:meth:`to_mitsuba` says so): the generic Mitsuba tests leave it out
-    mitsuba_twin = False
+    #: its twin is gonio's Python BSDF ``gonio_flakepaint``
+    mitsuba_twin = True
 
     def __init__(self, **options):
         super().__init__(**options)
@@ -187,5 +188,133 @@ class FlakePaint(Model):
         return p
 
     def to_mitsuba(self, params):
-        raise ValueError("flakepaint has no Mitsuba twin: its half-vector lobes (and a spread per wavelength) "
-                         "are no Mitsuba plugin")
+        """The Python BSDF ``gonio_flakepaint``: each colour (and a spread per wavelength) as
+        :func:`gonio.models.base.rgb` writes it (an ``rgb``, or a spectral fit's ``spectrum``)."""
+        from gonio.models.base import rgb
+        from gonio.models.mitsuba.plugins import add_plugin, ensure_registered
+
+        p = self.validate(params)
+        add_plugin(self.name, _make_bsdf)
+        d = {"type": ensure_registered(self.name), "distribution": self.options["distribution"]}
+        for name in ("diffuse_reflectance", "specular_reflectance", "haze_reflectance", "flake_reflectance"):
+            d[name] = rgb(p[name])
+        for name in ("alpha", "eta", "haze_alpha", "flake_exponent", "flake_widen"):
+            d[name] = float(p[name])
+        d["flake_alpha"] = rgb(p["flake_alpha"]) if self.options["spread"] == "wavelength" else float(p["flake_alpha"])
+        return d
+
+
+#: lower bound of the flakes' spread: the plugin's floor where a spectrum ends (Mitsuba's
+#: irregular spectrum is 0 outside its wavelengths; the flake colour is 0 there too)
+_FLAKE_ALPHA_MIN = 1e-2
+
+
+def _scalar(x) -> float:
+    """One number from a Dr.Jit value (a Python float in scalar variants, an array of one in llvm)."""
+    return float(np.asarray(x, dtype=np.float64).ravel()[0])
+
+
+def _make_bsdf(mi, dr, base):
+    """The Mitsuba twin: :meth:`FlakePaint._eval_parts` in Dr.Jit, a Mitsuba spectrum per colour
+    evaluated at ``si``'s wavelengths (the flakes' spread too with ``spread="wavelength"``); the
+    coat's D and Smith G are Mitsuba's ``MicrofacetDistribution`` (the numpy model's convention),
+    its Fresnel ``mitsuba.fresnel``. Mitsuba's ``si.wi`` is gonio's wo, its ``wo`` gonio's wi.
+    Sampling: a mixture of the cosine hemisphere and the three lobes' D (Walter et al. 2007
+    eq. 38: pdf = D cos(theta_m) / (4 |wo . wm|)), weighted by their mean colours."""
+    kinds = {"ggx": mi.MicrofacetType.GGX, "beckmann": mi.MicrofacetType.Beckmann}
+
+    class FlakePaintBSDF(base):
+        def __init__(self, props):
+            base.__init__(self, props)
+            self.kind = str(props["distribution"])
+            mtype = kinds[self.kind]
+            self.rho = [props.get_texture(k) for k in
+                        ("diffuse_reflectance", "specular_reflectance", "haze_reflectance", "flake_reflectance")]
+            self.alpha_f = props.get_unbounded_texture("flake_alpha")
+            self.eta = float(props["eta"])
+            self.haze_alpha = float(props["haze_alpha"])
+            self.p = float(props["flake_exponent"])
+            self.widen = float(props["flake_widen"])
+            self.coat = mi.MicrofacetDistribution(mtype, float(props["alpha"]), False)
+            flake_mean = max(_scalar(self.alpha_f.mean()), _FLAKE_ALPHA_MIN)
+            self.lobes = [self.coat, mi.MicrofacetDistribution(mtype, self.haze_alpha, False),
+                          mi.MicrofacetDistribution(mtype, flake_mean, False)]
+            f0 = ((self.eta - 1.0) / (self.eta + 1.0)) ** 2
+            rd, rs, rh, rf = (max(_scalar(t.mean()), 0.0) for t in self.rho)
+            w = [rs * max(f0, 0.04), rh, rf]           # the coat's weight: its reflectance near normal
+            total = rd + sum(w)
+            # at least a tenth cosine-weighted: the diffuse base and the lobes' far tails stay sampled
+            lobe = 0.0 if total <= 0.0 else 0.9 * sum(w) / total
+            self.weights = [1.0 - lobe] + [lobe * x / sum(w) if lobe > 0.0 else 0.0 for x in w]
+            flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+            self.m_components = [flags]
+            self.m_flags = flags
+
+        def _lobe_d(self, a, t2, c2):
+            """D(wm; a) (Walter et al. 2007 eqs. 33, 25) from tan^2 and cos^2 of theta_m."""
+            a2 = a * a
+            if self.kind == "ggx":
+                return a2 / (math.pi * c2 * c2 * dr.square(a2 + t2))
+            return dr.exp(-t2 / a2) / (math.pi * a2 * c2 * c2)
+
+        def _f(self, si, wo):
+            wi_g, wo_g = wo, si.wi                 # gonio: wi toward the light, wo toward the detector
+            ci, co = mi.Frame3f.cos_theta(wi_g), mi.Frame3f.cos_theta(wo_g)
+            h = wi_g + wo_g
+            n2 = dr.squared_norm(h)
+            valid = n2 > 0.0
+            wm = h * dr.rsqrt(dr.select(valid, n2, 1.0))
+            cc = ci * co
+            ok = valid & (cc > 0.0) & (wm.z > 0.0)
+            di, do = dr.dot(wi_g, wm), dr.dot(wo_g, wm)
+            cos_d = 0.5 * (di + do)
+            F = mi.fresnel(dr.clip(cos_d, 0.0, 1.0), self.eta)[0]
+            den = dr.select(ok, 4.0 * cc, 1.0)
+            coat = dr.select(ok, F * self.coat.eval(wm) * self.coat.G(wi_g, wo_g, wm) / den, 0.0)
+            c2 = dr.select(ok, wm.z * wm.z, 1.0)
+            t2 = (wm.x * wm.x + wm.y * wm.y) / c2
+            shape = dr.exp(-self.p * dr.log(dr.select(ok, cc, 1.0))) / 4.0     # 1 / (4 (cos_i cos_o)^p)
+            haze = dr.select(ok, self._lobe_d(self.haze_alpha, t2, c2) * shape, 0.0)
+            a = dr.maximum(self.alpha_f.eval(si), _FLAKE_ALPHA_MIN)
+            a = a * (1.0 + self.widen * (1.0 - dr.clip(cos_d, 0.0, 1.0)))
+            flake = self._lobe_d(a, t2, c2) * dr.select(ok, shape, 0.0)
+            rd, rs, rh, rf = (t.eval(si) for t in self.rho)
+            return rd / math.pi + rs * coat + rh * haze + rf * flake
+
+        def _pdf(self, si, wo):
+            m = dr.normalize(si.wi + wo)
+            dot = dr.dot(wo, m)
+            pdf = self.weights[0] * mi.warp.square_to_cosine_hemisphere_pdf(wo)
+            for weight, distr in zip(self.weights[1:], self.lobes):
+                if weight > 0.0:
+                    pdf += weight * distr.pdf(si.wi, m) / (4.0 * dr.select(dot > 0.0, dot, 1.0))
+            ok = (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0) & (dot > 0.0)
+            return dr.select(ok, pdf, 0.0)
+
+        def pdf(self, ctx, si, wo, active=True):
+            return dr.select(active, self._pdf(si, wo), 0.0)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            bs = mi.BSDFSample3f()
+            w = mi.warp.square_to_cosine_hemisphere(sample2)
+            edge = self.weights[0]
+            for weight, distr in zip(self.weights[1:], self.lobes):
+                if weight > 0.0:
+                    m, _ = distr.sample(si.wi, sample2)
+                    w = dr.select(sample1 >= edge, mi.reflect(si.wi, m), w)
+                edge += weight
+            bs.wo = w
+            bs.pdf = self._pdf(si, w)
+            bs.eta = 1.0
+            cosine = sample1 < self.weights[0]
+            bs.sampled_type = dr.select(cosine, mi.UInt32(+mi.BSDFFlags.DiffuseReflection),
+                                        mi.UInt32(+mi.BSDFFlags.GlossyReflection))
+            bs.sampled_component = mi.UInt32(0)
+            ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (bs.pdf > 0)
+            value = self.eval(ctx, si, bs.wo, ok) / dr.select(ok, bs.pdf, 1.0)
+            return bs, dr.select(ok, value, 0.0)
+
+        def to_string(self):
+            return f"GonioFlakePaint[{self.kind}]"
+
+    return FlakePaintBSDF
