@@ -231,21 +231,24 @@ def _make_bsdf(mi, dr, base):
             self.rho = [props.get_texture(k) for k in
                         ("diffuse_reflectance", "specular_reflectance", "haze_reflectance", "flake_reflectance")]
             self.alpha_f = props.get_unbounded_texture("flake_alpha")
-            self.eta = float(props["eta"])
-            self.haze_alpha = float(props["haze_alpha"])
-            self.p = float(props["flake_exponent"])
-            self.widen = float(props["flake_widen"])
-            self.coat = mi.MicrofacetDistribution(mtype, float(props["alpha"]), False)
+            eta, alpha_h = float(props["eta"]), float(props["haze_alpha"])
             flake_mean = max(_scalar(self.alpha_f.mean()), _FLAKE_ALPHA_MIN)
-            self.lobes = [self.coat, mi.MicrofacetDistribution(mtype, self.haze_alpha, False),
-                          mi.MicrofacetDistribution(mtype, flake_mean, False)]
-            f0 = ((self.eta - 1.0) / (self.eta + 1.0)) ** 2
+            f0 = ((eta - 1.0) / (eta + 1.0)) ** 2
             rd, rs, rh, rf = (max(_scalar(t.mean()), 0.0) for t in self.rho)
             w = [rs * max(f0, 0.04), rh, rf]           # the coat's weight: its reflectance near normal
             total = rd + sum(w)
             # at least a tenth cosine-weighted: the diffuse base and the lobes' far tails stay sampled
             lobe = 0.0 if total <= 0.0 else 0.9 * sum(w) / total
             self.weights = [1.0 - lobe] + [lobe * x / sum(w) if lobe > 0.0 else 0.0 for x in w]
+            # opaque, as Mitsuba's own plugins keep their parameters: a new fit reuses the compiled
+            # kernel instead of folding its values into a new one
+            self.eta, self.haze_alpha, self.p, self.widen, alpha, alpha_f, *self.w = (
+                mi.Float(x) for x in (eta, alpha_h, float(props["flake_exponent"]), float(props["flake_widen"]),
+                                      float(props["alpha"]), flake_mean, *self.weights))
+            dr.make_opaque(self.eta, self.haze_alpha, self.p, self.widen, alpha, alpha_f, *self.w)
+            self.coat = mi.MicrofacetDistribution(mtype, alpha, False)
+            self.lobes = [self.coat, mi.MicrofacetDistribution(mtype, self.haze_alpha, False),
+                          mi.MicrofacetDistribution(mtype, alpha_f, False)]
             flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [flags]
             self.m_flags = flags
@@ -284,10 +287,10 @@ def _make_bsdf(mi, dr, base):
         def _pdf(self, si, wo):
             m = dr.normalize(si.wi + wo)
             dot = dr.dot(wo, m)
-            pdf = self.weights[0] * mi.warp.square_to_cosine_hemisphere_pdf(wo)
-            for weight, distr in zip(self.weights[1:], self.lobes):
+            pdf = self.w[0] * mi.warp.square_to_cosine_hemisphere_pdf(wo)
+            for weight, w, distr in zip(self.weights[1:], self.w[1:], self.lobes):
                 if weight > 0.0:
-                    pdf += weight * distr.pdf(si.wi, m) / (4.0 * dr.select(dot > 0.0, dot, 1.0))
+                    pdf += w * distr.pdf(si.wi, m) / (4.0 * dr.select(dot > 0.0, dot, 1.0))
             ok = (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0) & (dot > 0.0)
             return dr.select(ok, pdf, 0.0)
 
@@ -297,16 +300,16 @@ def _make_bsdf(mi, dr, base):
         def sample(self, ctx, si, sample1, sample2, active=True):
             bs = mi.BSDFSample3f()
             w = mi.warp.square_to_cosine_hemisphere(sample2)
-            edge = self.weights[0]
-            for weight, distr in zip(self.weights[1:], self.lobes):
+            edge = self.w[0]
+            for weight, wk, distr in zip(self.weights[1:], self.w[1:], self.lobes):
                 if weight > 0.0:
                     m, _ = distr.sample(si.wi, sample2)
                     w = dr.select(sample1 >= edge, mi.reflect(si.wi, m), w)
-                edge += weight
+                edge = edge + wk
             bs.wo = w
             bs.pdf = self._pdf(si, w)
             bs.eta = 1.0
-            cosine = sample1 < self.weights[0]
+            cosine = sample1 < self.w[0]
             bs.sampled_type = dr.select(cosine, mi.UInt32(+mi.BSDFFlags.DiffuseReflection),
                                         mi.UInt32(+mi.BSDFFlags.GlossyReflection))
             bs.sampled_component = mi.UInt32(0)
