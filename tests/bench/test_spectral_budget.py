@@ -159,6 +159,16 @@ def test_a_cell_never_measured_has_no_uncertainty_but_its_geometry_keeps_its_ang
     assert np.all(np.isfinite(v["angle_shift_shared"][1]))
 
 
+def test_a_row_without_a_usable_site_has_no_value_and_no_uncertainty():
+    rs = rows()
+    rs[1]["brdf_std"] = [float("nan")] * 3          # geometry 0 at 650 nm: every site's sigma lost
+    cell, brdf, _ = cells_and_brdf(rs)
+    v = spectral_budget(rs, default_settings(), cell, brdf)
+    assert np.isnan(brdf[0, 1])
+    for name in ("u_shot_read", "u_linearity", "u_reference_certificate", "u_combined"):
+        assert np.isnan(v[name][1][0, 1]) and np.all(np.isfinite(np.delete(v[name][1].ravel(), 1))), name
+
+
 def test_load_budget_refuses_a_line_on_neither_channel_nor_wavelength(tmp_path):
     from types import SimpleNamespace
 

@@ -169,6 +169,7 @@ def spectral_budget(rows: list, settings: Mapping, cell: np.ndarray, brdf: np.nd
     def place(values):                              # (R, ...) per row -> (n, m, ...) per cell
         grid = np.full((n, m) + values.shape[1:], np.nan)
         grid[i, j] = values
+        grid[~np.isfinite(brdf)] = np.nan           # no value (no usable site, or not measured): no u
         return grid
 
     for name, (dims, value, attrs) in rgb.items():
