@@ -10,10 +10,9 @@ signed, c_k u(x) (JCGM 100 5.1.3); a value's standard uncertainty from it is its
 
 Components assembled here: ``shot_read`` and ``fixed_pattern`` (A, none), ``dark_frame`` (A,
 full, one input per correlated mode: ``u_dark_frame`` (point, channel, dark_input)) and
-``reference_certificate`` (B, full by default). Other modules supply further components as
-:class:`Component` values: ``budget_variables(..., extra=[...])``. Transmitted points (theta_o
-> 90, the rear stop: gonio/bench/session/rear.py) have no reference square: the certificate is
-zero there and the open beam's lines (:func:`open_beam_components`) stand in for it.
+``reference_certificate`` (B, full by default); others come as :class:`Component` values
+(``budget_variables(..., extra=[...])``). Transmitted points (the rear stop) have no reference
+square: the open beam's lines (:func:`open_beam_components`) stand in for the certificate.
 """
 
 # Attributes. gum_type "A": evaluated from the scatter of this session's own observations;

@@ -6,15 +6,13 @@ Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i
 ``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``, ``sample_truth`` (simulated
 sessions), ``scale_rel_std`` (the reference certificate's relative 1-sigma: a fully correlated scale
 uncertainty, not in ``brdf_std``), ``complete``, ``instrument_time_s`` (per point:
-``instrument_time``). A session with transmitted points (theta_o > 90, the rear stop) holds f_t
-there, normalised by the open beam: its record (`OpenBeam.to_attrs`) and ``sides`` are
-attributes and its budget lines replace the certificate's. A session captured with a calibration also has ``<angle>_nominal``,
-``<angle>_u``, ``angle_calibration`` and ``aperture_*``. Where the RAW files carry colour matrices,
+``instrument_time``). Transmitted points (theta_o > 90) hold f_t by the open beam, whose record
+and ``sides`` are attributes. A calibrated session also has ``<angle>_nominal``, ``<angle>_u``,
+``angle_calibration`` and ``aperture_*``. Where the RAW files carry colour matrices,
 also ``brdf_srgb`` (linear sRGB, D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and
-``brdf_srgb_corr``; every f_r variable says its space (``colour_space``); a spectral session's
-are on ``point`` and ``wavelength`` (nm; `gonio.bench.dataset.spectral`). Written atomically, read
-back before it is written (every variable, its point count and values, or nothing is written). A
-journal with a damaged point row is refused (`gonio verify`).
+``brdf_srgb_corr``, each saying its space (``colour_space``); a spectral session's are on ``point``
+and ``wavelength`` (nm; `gonio.bench.dataset.spectral`). Written atomically and read back first
+(every variable, its point count and values, or nothing); a damaged point row is refused.
 """
 
 # A full disk is one line and leaves no partial file.
