@@ -64,14 +64,14 @@ def _load_plan(spec):
 
 def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_port, camera, dry_run, progress,
                 errors=None, calibration=None, points=None, target_rel_u=None, candidates=None, budget_minutes=None,
-                target_de00=None, monochromator=None):
+                target_de00=None, monochromator=None, criterion=None):
     from gonio.bench.samples import load_sample
     from gonio.bench.plan.adaptive import cli_strategy
     from gonio.bench.plan.plans import dry_run as plan_dry_run
 
     try:
         plan, strategy = cli_strategy(plan, points=points, target_rel_u=target_rel_u, candidates=candidates, seed=seed,
-                                      budget_minutes=budget_minutes, target_de00=target_de00)
+                                      budget_minutes=budget_minutes, target_de00=target_de00, criterion=criterion)
     except ValueError as exc:
         raise GonioError(str(exc)) from None
     given = {"strategy": strategy} if strategy else {}

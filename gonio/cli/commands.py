@@ -112,7 +112,7 @@ def cmd_capture(args):
                                       errors=args.errors, calibration=args.calibration, points=args.points,
                                       target_rel_u=args.target_rel_u, candidates=args.candidates,
                                       budget_minutes=args.budget_minutes, target_de00=args.target_de00,
-                                      monochromator=args.monochromator_port)
+                                      monochromator=args.monochromator_port, criterion=args.criterion)
 
 
 @env

@@ -108,6 +108,7 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
          ""),
         ("gonio capture --sim --plan adaptive --out s4", "chosen from the data"),
         ("gonio capture --sim --plan adaptive --budget-minutes 10 --out s6", "to a time budget"),
+        ("gonio capture --sim --plan adaptive --criterion alc --out s7", "batches by predicted f_r"),
         ("gonio capture --sim --plan dense --dry-run", "count and duration only"),
         ("gonio capture --port /dev/ttyUSB0 --meter-port /dev/ttyUSB1 \\\n    --camera gphoto2 --sample-id S-1 "
          "--operator 'A. Tester' --out s5", ""),
@@ -168,6 +169,7 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     "gonio perf acquisition": [
         ("gonio perf acquisition", "quick, standard and adaptive on the demo's plastic"),
         ("gonio perf acquisition --plans standard,dense,adaptive \\\n    --points 40 --out acq.csv", ""),
+        ("gonio perf acquisition --plans dense,adaptive,alc \\\n    --budget-fraction 0.095 --sample paper_white_rgb.bsdf", ""),
     ],
     "gonio perf real": [
         ("gonio perf real ../shared/data/rgl --out real.csv", "every measured file of the folder"),

@@ -160,6 +160,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "CIEDE2000 1-sigma of the fitted model's albedo colour (normal view, its RGB as linear sRGB, "
                         "D65) from the fit's parameter covariance; not a rendered colour difference")
     c.add_argument("--candidates", metavar="PLAN", help="with --plan adaptive: the plan it chooses from (default dense)")
+    c.add_argument("--criterion", choices=["d-optimal", "alc"],
+                   help="with --plan adaptive: how each batch is chosen: d-optimal (default: the fitted parameters' "
+                        "uncertainty) or alc (the predicted variance of f_r cos over the hemisphere, with a "
+                        "model-discrepancy term; docs/performance.md compares them)")
     c.add_argument("--out", help="new session folder")
     c.add_argument("--resume", metavar="DIR", help="finish an interrupted session")
     c.add_argument("--seed", type=_seed, default=0, help="seed (simulated noise and faults)")

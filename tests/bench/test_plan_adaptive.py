@@ -191,3 +191,19 @@ def test_gonio_capture_plan_adaptive_on_the_simulator(tmp_path):
                  "--out", str(tmp_path / "s")])
     assert code == 0 and len(Journal(tmp_path / "s" / "journal.sqlite").done()) == 8
     assert read_session(tmp_path / "s")["strategy"] == {"name": "adaptive", "seed": 0, "points": 8}
+
+
+def test_the_criterion_option():
+    """``--criterion`` reaches the strategy table (session.toml records it) with --plan adaptive
+    only: a fixed plan or ndf (which places its points by its own rule) refuse it in one line."""
+    from gonio.bench.plan.adaptive import cli_strategy
+
+    plan, table = cli_strategy("adaptive", points=8, target_rel_u=None, candidates="quick", seed=3, criterion="alc")
+    assert plan == "quick" and table == {"name": "adaptive", "seed": 3, "points": 8, "criterion": "alc"}
+    assert "criterion" not in cli_strategy("adaptive", points=8, target_rel_u=None, candidates=None, seed=0)[1]
+    with pytest.raises(ValueError, match="--criterion goes with --plan adaptive"):
+        cli_strategy("quick", points=None, target_rel_u=None, candidates=None, seed=0, criterion="alc")
+    with pytest.raises(ValueError, match="ndf places its points"):
+        cli_strategy("ndf", points=8, target_rel_u=None, candidates=None, seed=0, criterion="alc")
+    with pytest.raises(ValueError, match="give one of d-optimal, alc"):
+        cli_strategy("adaptive", points=8, target_rel_u=None, candidates=None, seed=0, criterion="bogus")

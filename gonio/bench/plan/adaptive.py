@@ -482,16 +482,17 @@ SEQUENTIAL = ("adaptive", "ndf")
 
 
 def cli_strategy(plan: str, *, points: int | None, target_rel_u: float | None, candidates: str | None,
-                 seed: int, budget_minutes: float | None = None, target_de00: float | None = None
-                 ) -> tuple[str, dict | None]:
+                 seed: int, budget_minutes: float | None = None, target_de00: float | None = None,
+                 criterion: str | None = None) -> tuple[str, dict | None]:
     """``gonio capture``'s plan options as (the plan to load, the ``[strategy]`` table): ``--plan
     adaptive`` (or ``ndf``, :data:`SEQUENTIAL`) draws from ``--candidates`` (default the ``dense`` preset) and stops at ``--points``
-    or ``--budget-minutes`` (not both) or its targets; a fixed plan takes none of the adaptive
+    or ``--budget-minutes`` (not both) or its targets; ``--criterion`` (:data:`CRITERIA`) chooses
+    the adaptive plan's batches (ndf places its own); a fixed plan takes none of the adaptive
     options. ValueError, one line naming the option, for a value that is not > 0 and finite."""
     given = dict(zip([k for _, k, _, _ in CLI_STOPS], (points, budget_minutes, target_rel_u, target_de00)))
     if plan not in SEQUENTIAL:
         for flag, v in (("--points", points), ("--budget-minutes", budget_minutes), ("--target-rel-u", target_rel_u),
-                        ("--target-de00", target_de00), ("--candidates", candidates)):
+                        ("--target-de00", target_de00), ("--candidates", candidates), ("--criterion", criterion)):
             if v is not None:
                 raise ValueError(f"{flag} goes with --plan adaptive")
         return plan, None
@@ -507,7 +508,12 @@ def cli_strategy(plan: str, *, points: int | None, target_rel_u: float | None, c
     if points is not None and budget_minutes is not None:
         raise ValueError("--points and --budget-minutes exclude each other: give the most points or the most "
                          "instrument time")
+    if criterion is not None and (plan != "adaptive" or criterion not in CRITERIA):
+        raise ValueError(f"--criterion {str(criterion)[:40]!r}: give one of {', '.join(CRITERIA)}, with --plan adaptive"
+                         " (ndf places its points by its own rule)")
     table: dict[str, Any] = {"name": plan, "seed": int(seed)}
+    if criterion is not None:
+        table["criterion"] = criterion
     if points is not None:
         table["points"] = int(points)
     if budget_minutes is not None:
