@@ -29,7 +29,8 @@ from gonio.models.physics.fresnel import fresnel_dielectric
 from gonio.models.physics.microfacet import MicrofacetDistribution, smith_g1_xyz
 from gonio.models.structure import Structure
 
-__all__ = ["RoughDielectric", "BOTH_SIDES", "rough_dielectric_f", "reflectance_transmittance"]
+__all__ = ["RoughDielectric", "BOTH_SIDES", "rough_dielectric_f", "reflectance_transmittance", "facet_nodes",
+           "facet_refract"]
 
 #: Reflection and transmission: what the dielectric models scatter into.
 BOTH_SIDES = (Side.REFLECT, Side.TRANSMIT)
@@ -151,6 +152,31 @@ class RoughDielectric(Model):
         }
 
 
+def facet_nodes(alpha, n_theta=128, n_phi=128):
+    """``(a, m, dm)``: alpha floored at 1e-4 and the microfacet normals (n_theta n_phi, 3) with
+    their solid-angle weights of :func:`reflectance_transmittance`'s quadrature: tan(theta_m) =
+    a tan(pi v / 2), v on Gauss-Legendre nodes, phi_m on midpoints."""
+    a = max(float(alpha), 1e-4)
+    x, w = np.polynomial.legendre.leggauss(n_theta)
+    v = 0.5 * (x + 1.0)
+    s = np.tan(0.5 * np.pi * v)
+    theta = np.arctan(a * s)
+    dtheta = 0.5 * w * a * 0.5 * np.pi / np.cos(0.5 * np.pi * v) ** 2 / (1.0 + (a * s) ** 2)
+    phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
+    T_, P_ = np.meshgrid(theta, phi, indexing="ij")
+    m = np.stack([np.sin(T_) * np.cos(P_), np.sin(T_) * np.sin(P_), np.cos(T_)], axis=-1).reshape(-1, 3)
+    dm = (np.sin(theta) * dtheta)[:, None].repeat(n_phi, axis=1).reshape(-1) * (2.0 * np.pi / n_phi)
+    return a, m, dm
+
+
+def facet_refract(w_i, m, c, eta):
+    """``(wt, ok)``: ``w_i`` refracted into the medium (relative index ``eta``) through each facet
+    normal ``m`` with c = m . w_i, and where it is (visible, no total internal reflection)."""
+    k2 = 1.0 - (1.0 - c * c) / (eta * eta)
+    ok = (c > 0.0) & (k2 > 0.0)
+    return -w_i / eta + m * (c / eta - np.sqrt(np.where(ok, k2, 0.0)))[:, None], ok
+
+
 def reflectance_transmittance(kind, alpha, eta, wi, n_theta=128, n_phi=128):
     """Directional reflectance and transmittance of :func:`rough_dielectric_f` for light from
     ``wi`` (upper hemisphere): R, T = integral of f |cos theta_o| over each side, (N,) each.
@@ -164,16 +190,7 @@ def reflectance_transmittance(kind, alpha, eta, wi, n_theta=128, n_phi=128):
     scattering loses), -> 1 as alpha -> 0.
     """
     wi = np.atleast_2d(np.asarray(wi, dtype=np.float64))
-    a = max(float(alpha), 1e-4)
-    x, w = np.polynomial.legendre.leggauss(n_theta)
-    v = 0.5 * (x + 1.0)
-    s = np.tan(0.5 * np.pi * v)
-    theta = np.arctan(a * s)
-    dtheta = 0.5 * w * a * 0.5 * np.pi / np.cos(0.5 * np.pi * v) ** 2 / (1.0 + (a * s) ** 2)
-    phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
-    T_, P_ = np.meshgrid(theta, phi, indexing="ij")
-    m = np.stack([np.sin(T_) * np.cos(P_), np.sin(T_) * np.sin(P_), np.cos(T_)], axis=-1).reshape(-1, 3)
-    dm = (np.sin(theta) * dtheta)[:, None].repeat(n_phi, axis=1).reshape(-1) * (2.0 * np.pi / n_phi)
+    a, m, dm = facet_nodes(alpha, n_theta, n_phi)
     R, T = np.zeros(len(wi)), np.zeros(len(wi))
     with np.errstate(all="ignore"):
         for k, w_i in enumerate(wi):
@@ -183,9 +200,7 @@ def reflectance_transmittance(kind, alpha, eta, wi, n_theta=128, n_phi=128):
             do = np.einsum("ij,ij->i", wr, m)
             fr = rough_dielectric_f(kind, a, eta, np.broadcast_to(w_i, m.shape), wr)
             R[k] = np.sum(np.where(vis & (wr[:, 2] > 0.0), fr * np.abs(wr[:, 2]) * 4.0 * np.abs(do) * dm, 0.0))
-            k2 = 1.0 - (1.0 - c * c) / (eta * eta)
-            ok = vis & (k2 > 0.0)
-            wt = -w_i / eta + m * (c / eta - np.sqrt(np.where(ok, k2, 0.0)))[:, None]
+            wt, ok = facet_refract(w_i, m, c, eta)
             dt = np.einsum("ij,ij->i", wt, m)
             ft = rough_dielectric_f(kind, a, eta, np.broadcast_to(w_i, m.shape), wt)
             jac = (c + eta * dt) ** 2 / (eta * eta * np.abs(dt))

@@ -32,7 +32,7 @@ import numpy as np
 
 from gonio.core.channels import CHANNELS
 from gonio.models.base import Model, Parameter, register
-from gonio.models.catalogue.roughdielectric import BOTH_SIDES, rough_dielectric_f
+from gonio.models.catalogue.roughdielectric import BOTH_SIDES, facet_nodes, facet_refract, rough_dielectric_f
 from gonio.models.physics.fresnel import fresnel_dielectric
 from gonio.models.structure import Structure
 
@@ -183,16 +183,7 @@ def slab_reflectance_transmittance(kind, alpha, eta, tau, wi, n_theta=128, n_phi
     Nicodemus 1963); f is evaluated at every (wi, wo), so the sums test the model.
     """
     wi = np.atleast_2d(np.asarray(wi, dtype=np.float64))
-    a = max(float(alpha), 1e-4)
-    x, w = np.polynomial.legendre.leggauss(n_theta)
-    v = 0.5 * (x + 1.0)
-    s = np.tan(0.5 * np.pi * v)
-    theta = np.arctan(a * s)
-    dtheta = 0.5 * w * a * 0.5 * np.pi / np.cos(0.5 * np.pi * v) ** 2 / (1.0 + (a * s) ** 2)
-    phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
-    T_, P_ = np.meshgrid(theta, phi, indexing="ij")
-    m = np.stack([np.sin(T_) * np.cos(P_), np.sin(T_) * np.sin(P_), np.cos(T_)], axis=-1).reshape(-1, 3)
-    dm = (np.sin(theta) * dtheta)[:, None].repeat(n_phi, axis=1).reshape(-1) * (2.0 * np.pi / n_phi)
+    a, m, dm = facet_nodes(alpha, n_theta, n_phi)
     R, T = np.zeros(len(wi)), np.zeros(len(wi))
     with np.errstate(all="ignore"):
         for k, w_i in enumerate(wi):
@@ -203,9 +194,7 @@ def slab_reflectance_transmittance(kind, alpha, eta, tau, wi, n_theta=128, n_phi
             fr = slab_f(kind, a, eta, tau, w_b, wr)
             jac_r = 4.0 * np.abs(np.einsum("ij,ij->i", wr, m))
             R[k] = np.sum(np.where(vis & (wr[:, 2] > 0.0), fr * np.abs(wr[:, 2]) * jac_r * dm, 0.0))
-            k2 = 1.0 - (1.0 - c * c) / (eta * eta)
-            ok = vis & (k2 > 0.0)
-            wg = -w_i / eta + m * (c / eta - np.sqrt(np.where(ok, k2, 0.0)))[:, None]
+            wg, ok = facet_refract(w_i, m, c, eta)
             dt = np.einsum("ij,ij->i", wg, m)
             s_o2 = eta * eta * (wg[:, 0] ** 2 + wg[:, 1] ** 2)
             out = ok & (wg[:, 2] < 0.0) & (dt != 0.0) & (s_o2 < 1.0)
