@@ -13,6 +13,19 @@ def random_hemisphere(rng, n, dtype=np.float64):
     return v.astype(dtype)
 
 
+def sphere(rng, n):
+    """n directions uniform on the whole sphere, rounded to float32 (as Mitsuba sees them)."""
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    return v.astype(np.float32).astype(np.float64)
+
+
+def incidence(theta_deg):
+    """Directions (N, 3) at polar angles ``theta_deg`` in the x-z plane (phi 0)."""
+    t = np.radians(np.atleast_1d(np.asarray(theta_deg, dtype=float)))
+    return np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=1)
+
+
 def random_params(model, rng, alpha_range=(1e-3, 1.0)):
     """A random parameter set inside the model's box (roughness log-uniform)."""
     p = {}

@@ -23,22 +23,10 @@ from gonio.models.catalogue.dielectric import smooth_lobes
 from gonio.models.catalogue.roughdielectric import reflectance_transmittance
 from gonio.models.catalogue.roughslab import exit_direction, slab_f, slab_reflectance_transmittance
 
-from models_testutil import random_hemisphere
+from models_testutil import incidence, random_hemisphere, sphere
 
 DISTRIBUTIONS = ("beckmann", "ggx")
 EPS32 = 2.0**-23
-
-
-def sphere(rng, n):
-    """n directions uniform on the whole sphere, rounded to float32 (as Mitsuba sees them)."""
-    v = rng.normal(size=(n, 3))
-    v /= np.linalg.norm(v, axis=1)[:, None]
-    return v.astype(np.float32).astype(np.float64)
-
-
-def incidence(theta_deg):
-    t = np.radians(np.atleast_1d(np.asarray(theta_deg, dtype=float)))
-    return np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=1)
 
 
 @pytest.mark.parametrize("distribution", DISTRIBUTIONS)

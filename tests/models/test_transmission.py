@@ -22,23 +22,11 @@ import gonio.models as gm
 from gonio.models.catalogue.dielectric import smooth_lobes
 from gonio.models.catalogue.roughdielectric import reflectance_transmittance, rough_dielectric_f
 
-from models_testutil import random_hemisphere
+from models_testutil import incidence, random_hemisphere, sphere
 
 DISTRIBUTIONS = ("beckmann", "ggx")
 #: relative indices: glass, light from inside glass (eta < 1), water, diamond, nearly matched
 ETAS = (1.5, 1.0 / 1.5, 1.33, 2.4, 1.05)
-
-
-def sphere(rng, n):
-    """n directions uniform on the whole sphere, rounded to float32 (as Mitsuba sees them)."""
-    v = rng.normal(size=(n, 3))
-    v /= np.linalg.norm(v, axis=1)[:, None]
-    return v.astype(np.float32).astype(np.float64)
-
-
-def incidence(theta_deg):
-    t = np.radians(np.atleast_1d(np.asarray(theta_deg, dtype=float)))
-    return np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=1)
 
 
 # -- against Mitsuba ---------------------------------------------------------------------------
