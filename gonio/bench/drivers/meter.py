@@ -8,17 +8,16 @@ with ``\\n``. The port is a pyserial URL (``serial.serial_for_url``: ``/dev/ttyU
 meters such as the Thorlabs PM100D/USB are reached: with the VISA library ``[meter]
 visa_library`` names (``"@py"`` for pyvisa-py, ``"@ivi"`` or a path for NI-VISA or another
 vendor's), by default PyVISA's own choice (an installed IVI/NI-VISA library, else pyvisa-py).
-
-Timing: a reading averages ``SENS:AVER:COUN`` samples of ``[meter] sample_time_s`` each, so
-``MEAS:POW?`` waits that long on top of the port's timeout. A reply that misses its wait may
-still arrive: the driver then resynchronises before the next exchange (a ``*OPC?;*OPC?``
-marker, whose joined answer ``1;1`` no single query gives; what comes before it is a late reply,
-dropped), so a late reading is never taken for the answer to the next query.
-
-Readings: SCPI-99 (vol. 1, 7.2.1.5) codes 9.9E37 (+infinity: over range), -9.9E37 (-infinity:
-under range, e.g. no light in dBm) and 9.91E37 (not a number) are refused with a
-`MeterRangeError` that says which, never returned as a power.
+SCPI-99's 9.9E37 / -9.9E37 / 9.91E37 readings are refused (`MeterRangeError`), never a power.
 """
+
+# Timing: a reading averages SENS:AVER:COUN samples of [meter] sample_time_s each, so MEAS:POW?
+# waits that long on top of the port's timeout. A reply that misses its wait may still arrive:
+# the driver then resynchronises before the next exchange (a *OPC?;*OPC? marker, whose joined
+# answer 1;1 no single query gives; what comes before it is a late reply, dropped), so a late
+# reading is never taken for the answer to the next query.
+# Readings: SCPI-99 (vol. 1, 7.2.1.5) codes 9.9E37 (+infinity: over range), -9.9E37 (-infinity:
+# under range, e.g. no light in dBm) and 9.91E37 (not a number), each named in the error.
 
 from __future__ import annotations
 
