@@ -324,10 +324,7 @@ def backlit_png(models, path, size: int = 256, spp: int = 64, seed: int = 0, var
         ax.set_title(title, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.tight_layout()
-    with _atomic_image(path) as tmp:
-        fig.savefig(tmp)
-    return str(path)
+    return _save_figure(fig, path)
 
 
 def render_sphere(bsdf: dict, lighting: str = "env", size: int = 128, spp: int = 256, seed: int = 0,
@@ -390,6 +387,14 @@ def _to_srgb8(rgb):
     x = np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0)
     x = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.round(x * 255).astype(np.uint8)
+
+
+def _save_figure(fig, path) -> str:
+    """Lay ``fig`` out and write it to ``path`` atomically; the path as a string."""
+    fig.tight_layout()
+    with _atomic_image(path) as tmp:
+        fig.savefig(tmp)
+    return str(path)
 
 
 @contextlib.contextmanager
@@ -467,10 +472,7 @@ def _side_by_side(path, rows, with_measured):
         for ax in axes[r]:
             ax.set_xticks([])
             ax.set_yticks([])
-    fig.tight_layout()
-    with _atomic_image(path) as tmp:
-        fig.savefig(tmp)
-    return str(path)
+    return _save_figure(fig, path)
 
 
 def _delta_e_png(path, de, vmax):
