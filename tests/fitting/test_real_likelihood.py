@@ -127,7 +127,12 @@ def test_bench_real_gonio_beats_the_peer(tmp_path):
     r = rows[0]
     assert r["gonio_ngan"] < r["peer_ngan"] and r["gonio_log"] < r["peer_log"]
     assert all(np.isfinite(r[k]) for k in ("gonio_ngan", "gonio_log", "peer_ngan", "peer_log", "speedup",
-                                           "speedup_cpu", "gonio_cpu_s", "peer_cpu_s"))
+                                           "speedup_cpu", "gonio_cpu_s", "peer_cpu_s", "alone_s",
+                                           "choice_per_fit"))
+    # the speed columns compare the whole choice: the peer's time over it, and it over the chosen
+    # family's own fit (issue 35's two ratios)
+    assert r["speedup"] == pytest.approx(r["peer_time_s"] / r["gonio_select_s"])
+    assert r["choice_per_fit"] == pytest.approx(r["gonio_select_s"] / r["alone_s"])
     # rendered against the measured file with matched seeds: at most 1 CIEDE2000 (issue 16;
     # measured 0.88, noise floor 0.33 at 64 px, 256 spp)
     assert r["de00_noise"] < 0.5 and r["gonio_de00"] <= 1.0
