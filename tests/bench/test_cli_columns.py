@@ -199,3 +199,16 @@ def test_model_selection_table_fits_80_columns():
     assert "…" not in table and "(continued)" not in table and max(map(len, table.splitlines())) <= 80, table
     assert 'roughconductor {"distribution": "beckmann"}' in table and "6.977e+06" in table
     assert re.search(r'roughplastic \{"distribution": "ggx"\}.*\*\s*$', table, re.M), table
+
+
+def test_progress_bar_names_a_transmitted_value_f_t():
+    """A point behind the sample (the rear stop) is a BTDF value: the bar says f_t, not f_r."""
+    from gonio.bench.measure.point import ProgressBar
+
+    console = _screen()
+    bar = ProgressBar(85, 40, True, console=console)
+    bar.advance(np.array([30.6, 30.1, 29.8]), None, quantity="f_t")
+    bar.p.refresh()
+    bar.close()
+    text = console.export_text()
+    assert "f_t 30.6" in text and "f_r" not in text, text

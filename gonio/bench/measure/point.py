@@ -270,7 +270,8 @@ def probe_levels(frame, dark, runs: np.ndarray) -> tuple[float, float, float]:
 
 
 class ProgressBar:
-    """rich progress: points done, ETA, the latest f_r (and reciprocity when a pair closes)."""
+    """rich progress: points done, ETA, the latest value (f_r, or f_t for a transmitted point)
+    and reciprocity when a pair closes."""
 
     def __init__(self, total: int, done: int, enabled: bool, console=None):
         self.p = None
@@ -287,10 +288,10 @@ class ProgressBar:
         self.task = self.p.add_task("capture", total=total, completed=done, latest="")
         self.p.start()
 
-    def advance(self, brdf, recip) -> None:
+    def advance(self, brdf, recip, quantity: str = "f_r") -> None:
         if self.p is None:
             return
-        text = "f_r " + " ".join(f"{v:.4g}" for v in brdf) + " sr^-1"
+        text = f"{quantity} " + " ".join(f"{v:.4g}" for v in brdf) + " sr^-1"
         if recip is not None:
             text += f"  reciprocity {100 * np.nanmax(np.abs(recip['rel'])):.1f} %"
         self.p.update(self.task, advance=1, latest=text)

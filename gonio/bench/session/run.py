@@ -505,7 +505,7 @@ class _Session(CalibrationFrames, Tuning, RearStop):
         r = self._reciprocity(idx)
         if r is not None:
             self.reciprocity.append(r)
-        bar.advance(res["brdf"], r)
+        bar.advance(res["brdf"], r, quantity="f_t" if bool(self.rear[idx]) else "f_r")
 
     def _drop_unjournalled_point_files(self) -> None:
         """Delete the point frames (``raw/p*``) an earlier, killed run wrote but never journalled
