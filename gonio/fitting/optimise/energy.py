@@ -1,33 +1,24 @@
 """The energy constraint: albedo(wo_k) <= 1 (each channel, fixed outgoing directions) as a
-nonlinear inequality for nlopt's SLSQP (Kraft 1988), which polishes the full parameter
-vector when the unconstrained optimum violates it; its objective is divided by its starting
-value (SLSQP throws on objectives of order 1e5 with nlopt 2.11). For a model that transmits
+nonlinear inequality, and the polish that meets it where the unconstrained optimum violates
+it: the Gauss-Newton SQP of :mod:`gonio.fitting.optimise.gn_sqp` on the fit's own residuals,
+with the constraint's exact derivatives from the compiled kernel. For a model that transmits
 (``Structure.sides`` holds transmission) the constraint is R + T <= 1: the light from each
 fixed direction, integrated over the outgoing directions on both faces."""
 
 from __future__ import annotations
 
-import nlopt
 import numpy as np
 
 from gonio.core.sides import Side
 from gonio.models import fast
 
 from gonio.fitting.likelihood import loss as _loss
+from gonio.fitting.optimise.gn_sqp import GN_SQP_MAXEVAL, QPError, gn_sqp
 from gonio.fitting.optimise.lm import forward_jacobian
 from gonio.fitting.likelihood.problem import Evaluator
 
-__all__ = ["NLOPT_ERRORS", "SLSQP_MAXTIME_S", "energy_directions", "scale_to_feasible", "slsqp_energy"]
-
-#: What nlopt's optimize() raises on failure: its own classes (``nlopt.runtime_error`` and
-#: friends are not Python's RuntimeError) and the standard ones.
-NLOPT_ERRORS = tuple({RuntimeError, ValueError, nlopt.ForcedStop} | {
-    getattr(nlopt, n) for n in ("runtime_error", "logic_error", "domain_error", "range_error", "overflow_error",
-                                "underflow_error", "length_error") if isinstance(getattr(nlopt, n, None), type)})
-
-#: Wall-time cap of the constrained SLSQP polish (each constraint gradient integrates the
-#: albedo P + 1 times); a polish cut short is reported as not converged.
-SLSQP_MAXTIME_S = 20.0
+__all__ = ["albedo_constraints", "energy_directions", "least_squares_functions", "polish_energy",
+           "scale_to_feasible"]
 
 
 def energy_directions(n=6):
@@ -35,91 +26,99 @@ def energy_directions(n=6):
     return np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], axis=-1)
 
 
-def slsqp_energy(problem, x0, energy_wo, maxeval):
-    """SLSQP on the full unit box with albedo(wo_k) <= 1 (each channel) as constraints."""
+def polish_energy(problem, x0, energy_wo, maxeval):
+    """The fit's least-squares objective minimised from ``x0`` under albedo(wo_k) <= 1 (each
+    channel) by the Gauss-Newton SQP (:func:`gonio.fitting.optimise.gn_sqp.gn_sqp`):
+    ``(x, objective, converged, message)``. The point returned meets albedo <= 1 within 1e-4
+    (``model.albedo``) and is never worse than the scaled start (:func:`scale_to_feasible`),
+    which is also what a failed polish returns."""
     space, loss = problem.space, problem.loss
     r_of = problem.lm_residuals_u
-    u0 = np.clip(space.to_unit(x0), 1e-9, 1 - 1e-9)
-    norm = max(float(np.sum(r_of(u0) ** 2)), 1e-300)
-
-    seen = {}                # objective at each point SLSQP evaluated, and the best point its own constraints allow
-    best = {"u": None, "value": np.inf}
-
-    def f(u, grad):
-        r = r_of(u)
-        if grad.size:
-            J = problem.lm_jacobian_u(u)
-            grad[:] = 2.0 * ((J if J is not None else forward_jacobian(r_of, u, r)).T @ r) / norm
-        seen[u.tobytes()] = value = float(r @ r) / norm
-        return value
-
+    u0 = np.clip(space.to_unit(x0), 0.0, 1.0)
     quad = _AlbedoQuadrature(problem, energy_wo)
     margin = [0.0]  # grows by the gap between this quadrature and model.albedo, if any
 
-    def cons(result, u, grad):
-        exact = quad.value_and_grad(u) if grad.size else None  # one compiled Jacobian, not P + 1 quadratures
-        c = (exact[0] if exact is not None else quad(space.from_unit(u))) + margin[0]
-        result[:] = c
-        value = seen.get(u.tobytes(), np.inf)
-        if np.max(c) <= 0.0 and value < best["value"]:
-            best.update(u=u.copy(), value=value)
-        if exact is not None:
-            grad[:] = exact[1]
-        elif grad.size:
-            for j in range(u.size):
-                step = 1e-6 if u[j] + 1e-6 <= 1.0 else -1e-6
-                up = u.copy()
-                up[j] += step
-                grad[:, j] = (quad(space.from_unit(up)) + margin[0] - c) / step
+    normal, cost = least_squares_functions(problem)
+    constraints = albedo_constraints(quad, margin)
 
-    u = u0
+    u, res, n_eval = u0, None, 0
     for _ in range(3):
-        opt = nlopt.opt(nlopt.LD_SLSQP, space.size)
-        opt.set_lower_bounds(np.zeros(space.size))
-        opt.set_upper_bounds(np.ones(space.size))
-        opt.set_min_objective(f)
-        m = energy_wo.shape[0] * problem.meas.n_channels
-        opt.add_inequality_mconstraint(cons, np.full(m, 1e-6))
-        opt.set_ftol_rel(1e-12)
-        opt.set_xtol_rel(1e-9)
-        opt.set_maxeval(min(maxeval, 200))
-        opt.set_maxtime(SLSQP_MAXTIME_S)
         try:
-            u = opt.optimize(np.clip(u, 1e-9, 1 - 1e-9))
-            status = opt.last_optimize_result()
-        except nlopt.RoundoffLimited:
-            status = nlopt.ROUNDOFF_LIMITED
-        except NLOPT_ERRORS as exc:
+            res = gn_sqp(u, normal, cost, constraints, maxeval=min(int(maxeval), GN_SQP_MAXEVAL))
+        except (QPError, FloatingPointError, np.linalg.LinAlgError) as exc:
             x, note = scale_to_feasible(problem, space.from_unit(u0), energy_wo)
             reason = " ".join(str(exc).split())[:120] or type(exc).__name__
-            return x, _loss.objective(loss, problem.residuals_x(x)), False, f"nlopt SLSQP failed ({reason}){note}"
+            return x, _loss.objective(loss, problem.residuals_x(x)), False, f"GN-SQP polish failed ({reason}){note}"
+        u, n_eval = res.u, n_eval + res.n_eval
         excess = float(np.max(problem.albedo_excess(space.from_unit(u), energy_wo)))
         if excess <= 1e-4:
             break
         margin[0] += excess + 1e-4
-    x = space.from_unit(u)
-    ok = status in (1, 2, 3, 4) or status == nlopt.ROUNDOFF_LIMITED
-    note = ""
-    # SLSQP's iterates need not be feasible, nor its last one its best (cut short by maxeval or
-    # maxtime it can end far above where it passed): the lowest objective among its last point,
-    # the best point its constraints allowed and the scaled start, of those albedo <= 1 allows
+    x, ok, note = space.from_unit(u), res.converged, ""
+    # never worse than the scaled start, and albedo <= 1 (model.albedo) whatever the polish did
     scaled, scaled_note = scale_to_feasible(problem, space.from_unit(u0), energy_wo)
-    tries = [(x, ""), (scaled, scaled_note + " (SLSQP's points were worse)")]
-    if best["u"] is not None:
-        tries.insert(1, (space.from_unit(best["u"]), "; its best feasible point kept"))
-    ranked = [(float(np.sum(problem.lm_residuals_u(space.to_unit(xt)) ** 2)), k) for k, (xt, _) in enumerate(tries)
+    tries = [(x, ""), (scaled, scaled_note + " (the polish's point was worse)")]
+    ranked = [(float(np.sum(r_of(space.to_unit(xt)) ** 2)), k) for k, (xt, _) in enumerate(tries)
               if np.max(problem.albedo_excess(xt, energy_wo)) <= 1e-4]
     if ranked:
-        x, extra = tries[min(ranked)[1]]
-        note += extra if min(ranked)[1] else ""
+        x, note = tries[min(ranked)[1]]
     else:
         ok = False
         x, note = scale_to_feasible(problem, x, energy_wo)
-    return x, _loss.objective(loss, problem.residuals_x(x)), ok, _status_text(status) + note
+    message = f"{res.message} ({n_eval} evaluations){note}"
+    return x, _loss.objective(loss, problem.residuals_x(x)), ok, message
+
+
+def least_squares_functions(problem):
+    """``(normal, cost)`` of the fit's sum of squares in the unit box for
+    :func:`~gonio.fitting.optimise.gn_sqp.gn_sqp`: the compiled kernel's normal equations
+    where it has them (a trial's kernel brings them), else the exact or differenced Jacobian."""
+    r_of = problem.lm_residuals_u
+
+    def cost(u):
+        if problem.normal_available:
+            return problem.lm_cost_u(u)
+        r = r_of(u)
+        return float(r @ r)
+
+    def normal(u):
+        if problem.normal_available:
+            f = problem.lm_cost_u(u)
+            gA = problem.lm_normal_u(u)
+            if gA is not None:
+                return f, gA[0], gA[1]
+        r = r_of(u)
+        J = problem.lm_jacobian_u(u)
+        J = forward_jacobian(r_of, u, r) if J is None else J
+        return float(r @ r), J.T @ r, J.T @ J
+
+    return normal, cost
+
+
+def albedo_constraints(quad, margin):
+    """``constraints(u) -> (c, G)``: albedo - 1 + margin[0] by ``quad`` (an
+    :class:`_AlbedoQuadrature`) and its derivatives, exact from the compiled kernel where it
+    has them (one Jacobian, not P + 1 quadratures), else forward differences."""
+    space = quad.space
+
+    def constraints(u):
+        exact = quad.value_and_grad(u)
+        if exact is not None:
+            return exact[0] + margin[0], exact[1]
+        c = quad(space.from_unit(u)) + margin[0]
+        G = np.empty((c.size, u.size))
+        for j in range(u.size):
+            step = 1e-6 if u[j] + 1e-6 <= 1.0 else -1e-6
+            up = u.copy()
+            up[j] += step
+            G[:, j] = (quad(space.from_unit(up)) + margin[0] - c) / step
+        return c, G
+
+    return constraints
 
 
 def scale_to_feasible(problem, x, energy_wo):
-    """The fallback when SLSQP fails or ends infeasible: shrink each channel's affine
+    """The fallback when the polish fails or ends infeasible: shrink each channel's affine
     parameters toward their lower bounds, ``a = lo + s_c (a - lo)``, by the largest s_c in
     [0, 1] with albedo_c(wo_k) <= 1. The albedo is affine in those parameters, so two
     albedo evaluations give s_c exactly. Returns (x, a note for the message); x unchanged
@@ -149,7 +148,7 @@ def scale_to_feasible(problem, x, energy_wo):
 class _AlbedoQuadrature:
     """albedo(wo_k) - 1 by a fixed product rule over wi (Gauss-Legendre in cos(theta_i),
     uniform in phi_i), evaluated with the fit's (compiled) evaluator: one batched evaluation
-    instead of ``model.albedo``'s quadrature per call, so that SLSQP's constraint gradients
+    instead of ``model.albedo``'s quadrature per call, so that the polish's constraint gradients
     stay cheap. The final albedo check uses ``model.albedo``."""
 
     def __init__(self, problem, wo, n_mu=64, n_phi=96):
@@ -199,8 +198,3 @@ class _AlbedoQuadrature:
         if not (np.all(np.isfinite(value)) and np.all(np.isfinite(G))):
             return None
         return value, G
-
-
-def _status_text(status) -> str:
-    return {1: "success", 2: "stopval reached", 3: "ftol reached", 4: "xtol reached",
-            5: "maxeval reached", 6: "maxtime reached", -1: "failure", -4: "roundoff limited"}.get(int(status), str(status))

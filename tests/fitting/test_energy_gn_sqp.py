@@ -1,0 +1,126 @@
+"""The Gauss-Newton SQP energy polish (gonio.fitting.optimise.gn_sqp, .energy) on a white
+Lambertian + Cook-Torrance lobe whose unconstrained optimum breaks albedo <= 1: feasible, a
+KKT point, and the optimum scipy's trust-constr finds on the same objective and constraints."""
+
+import numpy as np
+import pytest
+import scipy.optimize
+
+import gonio.models as gm
+from gonio.fitting import fit
+from gonio.fitting.likelihood.problem import Problem
+from gonio.fitting.optimise.energy import (_AlbedoQuadrature, albedo_constraints, energy_directions,
+                                           least_squares_functions, polish_energy, scale_to_feasible)
+from gonio.fitting.optimise.gn_sqp import QPError, gn_sqp, solve_qp
+from gonio.fitting.optimise.space import ParameterSpace
+
+from _simdata import simulate
+
+#: rho_d = 0.9 (white) plus a lobe: albedo(wo) = 0.9 + the lobe's, above 1 (checked below)
+WHITE = {"diffuse_reflectance": [0.9, 0.9, 0.9], "specular_reflectance": [0.3, 0.3, 0.3],
+         "roughness": 0.3, "f0": [0.3, 0.3, 0.3]}
+
+
+@pytest.fixture(scope="module")
+def white():
+    model = gm.get("cooktorrance")
+    wo = energy_directions()
+    assert float(np.max(model.albedo(wo, model.validate(WHITE)))) > 1.05
+    meas = simulate(model, WHITE, np.random.default_rng(35), n=500)   # 500 points: the compiled path
+    free = fit(meas, model, rng=np.random.default_rng(0), enforce_energy=False)
+    space = ParameterSpace(model, meas.n_channels)
+    problem = Problem(meas, model, space, "chi2")
+    assert problem.normal_available
+    assert float(np.max(problem.albedo_excess(free.x, wo))) > 0.02      # the unconstrained optimum breaks it
+    return problem, free, wo
+
+
+def test_solve_qp_against_scipy_slsqp():
+    """The least-distance QP solver against scipy's SLSQP on random strictly convex QPs with
+    inequality rows and a box (the same minimiser, multipliers to 1e-6 relative)."""
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        M = rng.normal(size=(20, 8))
+        H, b = M.T @ M + 1e-3 * np.eye(8), 5.0 * rng.normal(size=8)
+        G, h = rng.normal(size=(4, 8)), 0.1 * rng.normal(size=4)
+        lo, hi = np.full(8, -0.3), np.full(8, 0.3)
+        d, lam = solve_qp(H, b, G, h, lo, hi)
+        ref = scipy.optimize.minimize(lambda x: (0.5 * x @ H @ x + b @ x, H @ x + b), np.zeros(8), jac=True,
+                                      method="SLSQP", bounds=list(zip(lo, hi)),
+                                      constraints=[{"type": "ineq", "fun": lambda x: h - G @ x, "jac": lambda x: -G}],
+                                      options={"ftol": 1e-12, "maxiter": 500})
+        assert ref.success
+        np.testing.assert_allclose(d, ref.x, atol=1e-6)
+        np.testing.assert_allclose(lam, ref.multipliers[:4], rtol=1e-5, atol=1e-8)
+
+
+def test_solve_qp_relaxes_rows_the_box_forbids():
+    """Rows no d in the box meets: the least-violation (elastic) step, d = lo on the row."""
+    d, _ = solve_qp(np.eye(2), np.zeros(2), np.array([[-1.0, 0.0]]), np.array([-1.0]), np.full(2, -0.5),
+                    np.full(2, 0.5))
+    np.testing.assert_allclose(d, [0.5, 0.0], atol=1e-9)
+    with pytest.raises(QPError):
+        solve_qp(np.array([[1.0, 0.0], [0.0, -1.0]]), np.zeros(2), np.zeros((1, 2)), np.zeros(1), -np.ones(2),
+                 np.ones(2))
+
+
+def test_gn_sqp_is_the_constrained_optimum(white):
+    """From the unconstrained optimum, with a coarse albedo quadrature (the solver's test, not
+    the quadrature's): feasible; KKT (the projected gradient of the Lagrangian below 1e-3 of
+    the objective's gradient, with the polish's own multipliers >= 0); and the point and
+    objective of scipy's trust-constr (Byrd-Omojokun SQP, gtol 1e-10) on the same functions.
+    Tolerances: the polish stops at a relative objective change of 1e-7 (GN_SQP_FTOL), so
+    the objective agrees to ~1e-6 relative and the point to ~sqrt(1e-7) in the unit box."""
+    problem, free, wo = white
+    space = problem.space
+    quad = _AlbedoQuadrature(problem, wo, n_mu=16, n_phi=24)
+    normal, cost = least_squares_functions(problem)
+    constraints = albedo_constraints(quad, [0.0])
+    u0 = space.to_unit(free.x)
+    res = gn_sqp(u0, normal, cost, constraints)
+    assert res.converged, res.message
+    c, G = constraints(res.u)
+    assert float(np.max(c)) <= 1e-6
+    f, g, _ = normal(res.u)
+    f0 = normal(u0)[0]
+    grad = 2.0 * g / f0 + G.T @ res.multipliers               # the Lagrangian's, in res's scaling
+    assert np.all(res.multipliers >= 0.0) and np.max(res.multipliers) > 0.0   # the constraint binds
+    assert np.all(res.multipliers[c < -1e-4] <= 1e-9)                          # complementarity
+    proj = np.where((res.u <= 0.0) & (grad > 0) | (res.u >= 1.0) & (grad < 0), 0.0, grad)
+    assert np.linalg.norm(proj) <= 1e-3 * np.linalg.norm(2.0 * g / f0), (proj, grad)
+
+    ref = scipy.optimize.minimize(
+        lambda u: (cost(u) / f0, 2.0 * normal(u)[1] / f0), u0, jac=True, method="trust-constr",
+        bounds=scipy.optimize.Bounds(0.0, 1.0),
+        constraints=[scipy.optimize.NonlinearConstraint(lambda u: constraints(u)[0], -np.inf, 0.0,
+                                                        jac=lambda u: constraints(u)[1])],
+        options={"gtol": 1e-10, "xtol": 1e-12, "maxiter": 2000})
+    assert float(np.max(constraints(ref.x)[0])) <= 1e-6
+    assert f <= cost(ref.x) * (1.0 + 1e-6)
+    np.testing.assert_allclose(res.u, ref.x, atol=1e-3)
+
+
+def test_polish_energy_meets_albedo_and_beats_the_scaled_start(white):
+    """The whole polish (model.albedo's check, the margin rounds): albedo <= 1 within 1e-4 and
+    an objective no worse than the scaled start's."""
+    problem, free, wo = white
+    x, objective, converged, message = polish_energy(problem, free.x, wo, 2000)
+    assert converged, message
+    assert float(np.max(problem.albedo_excess(x, wo))) <= 1e-4
+    scaled, _ = scale_to_feasible(problem, free.x, wo)
+    assert objective <= float(np.sum(problem.residuals_x(scaled) ** 2))
+    assert objective >= free.objective                      # a constraint cannot lower the optimum
+
+
+def test_polish_energy_falls_back_when_the_qp_fails(white, monkeypatch):
+    """A QP the solver cannot solve: the scaled start, said so, albedo <= 1."""
+    import gonio.fitting.optimise.gn_sqp as gs
+
+    def broken(*a, **k):
+        raise QPError("no solution")
+
+    monkeypatch.setattr(gs, "solve_qp", broken)
+    problem, free, wo = white
+    x, _, converged, message = polish_energy(problem, free.x, wo, 2000)
+    assert not converged and "polish failed" in message and "scaled" in message
+    assert float(np.max(problem.albedo_excess(x, wo))) <= 1e-4
