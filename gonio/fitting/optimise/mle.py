@@ -6,7 +6,7 @@ Parameters in which f_r is affine are solved exactly for every value of the nonl
 (variable projection, Golub & Pereyra 1973; ``chi2`` and ``cosine`` losses). A global stage
 (the defaults plus ``n_starts`` stratified starts) picks the best starts in distinct basins,
 Levenberg-Marquardt (:mod:`gonio.fitting.optimise.lm`) refines them, and for models that can
-create energy nlopt's SLSQP (Kraft 1988) polishes the optimum under ``albedo(wo_k) <= 1``.
+create energy a Gauss-Newton SQP polishes the optimum under ``albedo(wo_k) <= 1``.
 :func:`refine_starts` drives :class:`GeneralFit` or :class:`~gonio.fitting.optimise.affine.AffineFit`.
 
 At the optimum the Laplace approximation gives the covariance (J^T J)^-1 of the chi^2 loss;
@@ -42,9 +42,8 @@ pairs (|rho| >= 0.9) are listed in ``FitResult.correlated``.
 #   same kernel, so that an accepted step brings the next step's equations: one kernel call
 #   per iteration. BLAS is held to one thread during a fit (its pool fights Dr.Jit's).
 # - Energy: albedo(wo_k) <= 1 (each channel, fixed outgoing directions) is a nonlinear
-#   inequality constraint, applied when the unconstrained optimum violates it; SLSQP polishes
-#   the full parameter vector, its objective divided by its starting value (SLSQP throws on
-#   objectives of order 1e5 with nlopt 2.11).
+#   inequality constraint, applied when the unconstrained optimum violates it; a Gauss-Newton
+#   SQP (gonio.fitting.optimise.gn_sqp) polishes the full parameter vector.
 # - Reciprocity needs no constraint: every gonio model is reciprocal by construction (tested
 #   in tests/models); the data's reciprocal pairs are a measurement diagnostic, not a fit
 #   constraint.
@@ -75,7 +74,7 @@ import numpy as np
 from gonio.fitting.likelihood import loss as _loss
 from gonio.fitting.optimise.affine import AffineFit, applicable, single_threaded_blas
 from gonio.fitting.likelihood.discrepancy import fit_discrepancy
-from gonio.fitting.optimise.energy import energy_directions, slsqp_energy
+from gonio.fitting.optimise.energy import energy_directions, polish_energy
 from gonio.fitting.optimise.lm import levenberg_marquardt
 from gonio.fitting.likelihood.problem import NORMAL_LOSSES, Evaluator, Problem
 from gonio.fitting.optimise.result import FitResult, jacobian_chi2, laplace, robust_covariance
@@ -232,11 +231,11 @@ class GeneralFit:
             raise FloatingPointError(f"no start gave finite residuals: {message}")
         method = ("variable projection + Levenberg-Marquardt" if problem.varpro else "Levenberg-Marquardt")
 
-        # ---- energy: constrained polish with SLSQP where the optimum breaks albedo <= 1
+        # ---- energy: constrained polish (Gauss-Newton SQP) where the optimum breaks albedo <= 1
         energy = {"enforced": bool(self.enforce_energy)}
         if self.enforce_energy and np.max(problem.albedo_excess(x, self.energy_wo)) > 1e-6:
-            x, best_val, converged, message = slsqp_energy(problem, x, self.energy_wo, self.maxeval)
-            method += " + nlopt LD_SLSQP (albedo <= 1)"
+            x, best_val, converged, message = polish_energy(problem, x, self.energy_wo, self.maxeval)
+            method += " + Gauss-Newton SQP (albedo <= 1)"
         if self.enforce_energy:
             max_albedo = float(np.max(problem.albedo_excess(x, self.energy_wo)) + 1.0)
             energy.update(max_albedo=max_albedo, holds=bool(max_albedo <= 1.0 + 1e-4))
