@@ -3,7 +3,7 @@
 - :func:`load_dataset` reads ``dataset.nc`` into :class:`Measurements` (unit directions in
   the local frame, f_r and its 1-sigma, a usable-value mask); NaN in used values raises.
 - :func:`fit` is the constrained maximum-likelihood fit (stratified multi-start, parameters in
-  which f_r is affine solved exactly, bounded Levenberg-Marquardt on the rest, nlopt SLSQP
+  which f_r is affine solved exactly, bounded Levenberg-Marquardt on the rest, a Gauss-Newton SQP
   polish under albedo <= 1 for models that can break it) with a Laplace covariance; :func:`sample_posterior` the emcee posterior with an autocorrelation check;
   :func:`select` model selection by BIC ("model only what the data needs").
 - :func:`fit_document` / :func:`write_json_atomic` / :func:`load_fit`: the fit file (read back as a
