@@ -11,7 +11,8 @@ no reason to prefer the more complex model.
 Anisotropic candidates (a model's ``anisotropic`` option) are offered only where the data
 shows azimuthal structure (:func:`azimuthal_structure`): points that an isotropic BRDF
 makes equal (the same theta_i, theta_o and |phi_o - phi_i|, at different azimuths phi_i)
-differ beyond their noise.
+differ beyond their noise. The ``spectral_candidate`` models (flakepaint) join on spectral
+data, and on RGB data whose colours are not a mixture of two (:func:`goniochromism`).
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ from gonio.core.sides import Side, side_of
 
 from gonio.fitting.optimise.mle import fit
 
-__all__ = ["CANDIDATES", "ANISOTROPIC", "SPECTRAL", "Azimuthal", "azimuthal_structure", "Ranked", "option_candidates",
-           "select", "candidates_for"]
+__all__ = ["CANDIDATES", "ANISOTROPIC", "SPECTRAL", "Azimuthal", "Goniochromism", "azimuthal_structure",
+           "goniochromism", "Ranked", "option_candidates", "select", "candidates_for"]
 
 #: (name, options) tried by ``--model auto``, simplest first (fewest parameters): every
 #: registered model that does not declare ``auto_candidate = False`` (the model declares,
@@ -167,19 +168,70 @@ def azimuthal_structure(meas, tol_deg: float = 0.5, rel_floor: float = REL_FLOOR
     return Azimuthal(total, dof, p, groups, bool(dof and p < false_alarm))
 
 
+@dataclasses.dataclass(frozen=True)
+class Goniochromism:
+    """The outcome of :func:`goniochromism`: chi^2 of the colours about the best plane through
+    black, its degrees of freedom, the p-value under a two-colour mixture, the points used, and
+    the verdict."""
+
+    chi2: float
+    dof: int
+    p_value: float
+    points: int
+    goniochromic: bool
+
+
+def goniochromism(meas, rel_floor: float = REL_FLOOR, false_alarm: float = FALSE_ALARM,
+                  snr: float = 3.0) -> Goniochromism:
+    """Does ``meas`` (RGB) show a colour that changes with angle beyond a mixture of two fixed
+    colours? A dielectric paint or plastic is its body colour plus the coat's colour, a metal
+    its Fresnel colour moving toward white (Schlick's F0 + (1 - F0)(1 - cos)^5): every f_r then
+    lies in the plane through black that those two colours span, its chromaticity on one line
+    (Grassmann's law of additive mixture). An interference or flake paint's hue wanders off it.
+    The used points with every channel above ``snr`` sigma, as unit colour vectors x = f / |f|,
+    are fitted with that plane (normal n: the weighted smallest principal axis, reweighted
+    twice); chi^2 = sum (n . x)^2 / var, var = sum_c n_c^2 (sigma_c^2 + (rel_floor f_c)^2) /
+    |f|^2 (first order), dof = points - 2. Goniochromic where p < ``false_alarm``. Only RGB
+    data: a spectrum's candidates already hold the flake paint."""
+    f, s = np.asarray(meas.brdf, float), np.asarray(meas.brdf_std, float)
+    if f.ndim != 2 or f.shape[1] != 3:
+        return Goniochromism(0.0, 0, 1.0, 0, False)
+    ok = np.asarray(meas.use, bool).all(axis=1) & np.all(np.isfinite(f) & np.isfinite(s), axis=1)
+    ok &= np.all(f > snr * s, axis=1) & np.all(f > 0.0, axis=1)
+    f, s = f[ok], s[ok]
+    keep = np.all(s * s + (rel_floor * f) ** 2 > 0.0, axis=1)      # exact values without an uncertainty
+    f, s = f[keep], s[keep]
+    if f.shape[0] < 3:
+        return Goniochromism(0.0, 0, 1.0, int(f.shape[0]), False)
+    norm2 = np.sum(f * f, axis=1)
+    x = f / np.sqrt(norm2)[:, None]
+    var_c = (s * s + (rel_floor * f) ** 2) / norm2[:, None]
+    w = np.ones(x.shape[0])
+    for _ in range(3):      # the plane's normal, then the points weighted by 1 / var along it
+        n = np.linalg.eigh((x * w[:, None]).T @ x)[1][:, 0]
+        var = var_c @ (n * n)
+        w = 1.0 / var
+    chi2 = float(np.sum((x @ n) ** 2 / var))
+    dof = int(x.shape[0] - 2)
+    p = float(_chi2.sf(chi2, dof))
+    return Goniochromism(chi2, dof, p, int(x.shape[0]), bool(p < false_alarm))
+
+
 def candidates_for(meas):
     """The ``--model auto`` candidates for ``meas``: `CANDIDATES` for a BRDF, with the
     anisotropic ones (`ANISOTROPIC`) where the data shows azimuthal structure
     (:func:`azimuthal_structure`; never for data from a format that holds an isotropic BRDF,
     ``attrs["isotropic"]``: RGL, MERL); on spectral data (``attrs["wavelengths_nm"]``) the
-    ``spectral_candidate`` models too (`SPECTRAL`); the transmission models when any used point lies on the
+    ``spectral_candidate`` models too (`SPECTRAL`), and on RGB data that shows a colour changing
+    with angle (:func:`goniochromism`); the transmission models when any used point lies on the
     transmitted side (a reflection model predicts 0 there, so it cannot explain those points
     and is not offered)."""
     used = np.asarray(meas.use).any(axis=1)
     side = side_of(np.asarray(meas.wi)[used, 2], np.asarray(meas.wo)[used, 2])
     if np.any(side == 1):
         return _transmission_candidates()
-    base = CANDIDATES + SPECTRAL if meas.attrs.get("wavelengths_nm") else CANDIDATES
+    spectral = meas.attrs.get("wavelengths_nm") or goniochromism(meas).goniochromic
+    base = CANDIDATES + SPECTRAL if spectral else CANDIDATES
     if meas.attrs.get("isotropic"):     # a format that holds an isotropic BRDF (RGL, MERL): only noise to see
         return base
     return base + ANISOTROPIC if azimuthal_structure(meas).anisotropic else base
