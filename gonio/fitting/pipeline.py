@@ -143,6 +143,11 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     from gonio.fitting.optimise.mle import fit
     from gonio.fitting.selection.by_data import select
 
+    from gonio.models.base import MIN_SPECTRAL
+
+    if meas.n_channels != 3 and meas.n_channels < MIN_SPECTRAL:
+        raise GonioError(f"the data hold {meas.n_channels} wavelength(s): a fit takes three colour channels or at "
+                         f"least {MIN_SPECTRAL} wavelengths; capture with a smaller [spectral] step_nm")
     if loss is None:
         loss = default_loss(meas)
     if loss not in LOSSES:

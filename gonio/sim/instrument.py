@@ -21,6 +21,7 @@ import serial
 
 from gonio.core.channels import CHANNELS
 from gonio.core.devices import PORTS
+from gonio.core.errors import GonioError
 from gonio.sim.devices.camera_port import CameraPort
 from gonio.sim.devices.monochromator import CornerstoneTwin, MonochromatorEndpoint
 from gonio.sim.physics.clock import SimClock
@@ -155,8 +156,11 @@ class Instrument:
         self.spp = int(spp)
         self.faults = FaultSchedule.coerce(faults)
         self.errors = error_model(self.settings.get("errors"))
-        rel_std = float((self.settings.get("reference") or {}).get("rel_std", 0.0))
-        self.error_state = self.errors.draw(self.seed, rel_std)
+        rel_std = np.asarray((self.settings.get("reference") or {}).get("rel_std", 0.0), dtype=np.float64)
+        if rel_std.ndim and self.errors.reference.draw_certificate:
+            raise GonioError("the simulator draws one reference certificate error: give [reference] rel_std as one "
+                             "number, or an error preset that does not draw it (ideal)")
+        self.error_state = self.errors.draw(self.seed, float(rel_std) if rel_std.ndim == 0 else 0.0)
         self._errors_on = self.errors.active
 
         self.ports = {}

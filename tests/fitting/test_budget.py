@@ -520,3 +520,32 @@ def test_sigma_elasticity_is_the_log_log_slope_of_the_measured_sigma():
     assert sigma_elasticity(Measurements(wi, wo, f, 1e-3 * f ** 0.7, use)) == pytest.approx(0.7, abs=1e-9)
     assert sigma_elasticity(Measurements(wi, wo, f, np.full(f.shape, 1e-3), use)) == pytest.approx(0.0, abs=1e-9)
     assert sigma_elasticity(Measurements(wi, wo, f, 1e-3 * f ** 1.5, use)) == 1.0
+
+
+def test_a_certificate_per_channel_scales_each_channel_by_its_own(glossy):
+    """A spectral or per-channel certificate (``[reference] rel_std`` a list) reaches the file as a
+    1-D ``scale_rel_std``; the budget's certificate line is brdf x the channel's own value, one
+    number still serves every channel, and a wrong length or a negative value is refused in one
+    line (it would scale a channel by nothing or by a sign)."""
+    from gonio.bench.dataset.export import scale_rel_std
+    from gonio.bench.report.certificate import _rel_text
+    from gonio.fitting.uncertainty.budget import budget_from_attrs
+
+    meas = glossy[0]
+    rel = scale_rel_std([0.004, 0.005, 0.007])
+    assert isinstance(rel, np.ndarray) and rel.shape == (3,) and scale_rel_std(0.005) == 0.005
+    per = Measurements(meas.wi, meas.wo, meas.brdf, meas.brdf_std, meas.use, {"scale_rel_std": rel})
+    line = {c.name: c for c in budget_from_attrs(per).components}["reference_certificate"]
+    np.testing.assert_allclose(line.value, meas.brdf * rel[None, :], rtol=0, atol=0)
+    one = {c.name: c for c in budget_from_attrs(meas).components}["reference_certificate"]
+    np.testing.assert_allclose(one.value, meas.brdf * SCALE_REL_STD, rtol=0, atol=0)
+    assert _rel_text(rel) == "0.4-0.7 % (one per channel)" and _rel_text(0.004) == "0.4 %"
+    assert _rel_text(["x"]) is None and _rel_text(None) is None
+    for bad in ([0.004, 0.005], [0.004, -0.001, 0.005]):
+        wrong = Measurements(meas.wi, meas.wo, meas.brdf, meas.brdf_std, meas.use, {"scale_rel_std": np.array(bad)})
+        with pytest.raises(ValueError, match="scale_rel_std must be one number") as err:
+            budget_from_attrs(wrong)
+        assert "\n" not in str(err.value)
+    for bad in ([[0.1]], [], [float("nan")], -0.1):
+        with pytest.raises(ValueError, match=r"\[reference\] rel_std"):
+            scale_rel_std(bad)

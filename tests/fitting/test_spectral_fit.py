@@ -370,3 +370,21 @@ def test_a_flakepaint_fit_converts_to_the_closest_native_bsdf_with_its_error(tmp
     select_variant()
     with mi.scoped_set_variant("scalar_spectral"):
         assert isinstance(mi.load_file(str(tmp_path / "n.xml")), mi.BSDF)
+
+
+@pytest.mark.parametrize("n_wl", [1, 2])
+def test_fewer_wavelengths_than_a_spectral_fit_takes_are_refused_in_one_line(n_wl):
+    """A capture of one or two wavelengths (a valid measurement) is not a fit's input: models take
+    three colours or at least MIN_SPECTRAL wavelengths, and the budget's angle slopes evaluate the
+    model directly. ``gonio fit`` said so only as a traceback from the uncertainty propagation."""
+    from gonio.core.errors import GonioError
+    from gonio.fitting.pipeline import fit_measurements
+    from gonio.models.base import MIN_SPECTRAL
+
+    _, meas = _capture(np.random.default_rng(5), n=40)
+    wl = WL[:n_wl]
+    few = Measurements(meas.wi, meas.wo, meas.brdf[:, :n_wl], meas.brdf_std[:, :n_wl], True,
+                       {"source": "test", "wavelengths_nm": list(wl)}, spectral(wl).names)
+    with pytest.raises(GonioError, match=f"holds? {n_wl} wavelength.*at least {MIN_SPECTRAL} wavelengths") as err:
+        fit_measurements(few, model="roughplastic", options={"distribution": "ggx"})
+    assert "\n" not in str(err.value)

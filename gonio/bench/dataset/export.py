@@ -175,6 +175,15 @@ def strategy_stop(events) -> str | None:
     return None if last is None else str(last)
 
 
+def scale_rel_std(value):
+    """The ``scale_rel_std`` attribute: ``[reference] rel_std``, one number, or one per channel
+    or wavelength (a 1-D float attribute) where the certificate gives several."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim > 1 or arr.size == 0 or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError("[reference] rel_std must be one number >= 0 or a list of them (one per channel)")
+    return float(arr) if arr.ndim == 0 else arr
+
+
 def _attributes(doc, rows, n_plan, monitor, matrix, chart, stopped=None) -> dict:
     """The dataset's global attributes: versions, seed, plan and settings, the reference,
     completeness (every planned point, or a plan strategy that stopped: ``stopped``), the
@@ -186,7 +195,7 @@ def _attributes(doc, rows, n_plan, monitor, matrix, chart, stopped=None) -> dict
         "plan": json.dumps(doc["plan"], sort_keys=True),
         "settings": json.dumps(doc["settings"], sort_keys=True),
         "versions": json.dumps(sess, sort_keys=True),
-        "scale_rel_std": float(doc["settings"]["reference"].get("rel_std", 0.0)),
+        "scale_rel_std": scale_rel_std(doc["settings"]["reference"].get("rel_std", 0.0)),
         "reference_reflectance": json.dumps(doc["settings"]["reference"]["reflectance"]),
         "complete": int(len(rows) == n_plan or stopped is not None),
         # relative span of the monitor over the session: what normalisation had to correct

@@ -73,6 +73,8 @@ def _fmt(v, digits=4) -> str:
     """A value as plain text for the template (which escapes it); never HTML."""
     if v is None:
         return "–"
+    if isinstance(v, np.ndarray):
+        v = v.tolist()
     if isinstance(v, (list, tuple)):
         return cut("[" + ", ".join(_fmt(x, digits) for x in v[:50]) + (", ..." if len(v) > 50 else "") + "]")
     if isinstance(v, (bool, np.bool_)):

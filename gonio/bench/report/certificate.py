@@ -19,6 +19,8 @@ import json
 import math
 import re
 
+import numpy as np
+
 from gonio.bench.report.inputs import Doc, cut
 
 __all__ = ["issue_date", "report_number", "NUMBER_PATTERN", "conditions", "traceability",
@@ -70,6 +72,17 @@ def _num(v) -> float | None:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         return None
     return float(v)
+
+
+def _rel_text(v) -> str | None:
+    """The certificate's relative 1-sigma as text: one number (``1.5 %``) or, one per channel or
+    wavelength, their range (``0.4-0.7 % (one per channel)``); None when absent or not numbers."""
+    arr = np.asarray(v if isinstance(v, (list, tuple, np.ndarray)) else [v], dtype=object).reshape(-1)
+    nums = [_num(x.item() if isinstance(x, np.generic) else x) for x in arr]
+    if not nums or any(x is None for x in nums):
+        return None
+    lo, hi = 100 * min(nums), 100 * max(nums)
+    return f"{lo:.2g} %" if len(nums) == 1 or lo == hi else f"{lo:.2g}-{hi:.2g} % (one per channel)"
 
 
 def simulated(meas, settings: dict) -> bool:
@@ -168,12 +181,12 @@ def traceability(meas, settings: dict) -> list[str]:
     """Paragraphs: how the results are traceable (7.8.4.1 c): the reference standard and its
     certificate; the calibration applied, or plainly that none was."""
     ref = _table(settings, "reference")
-    rel = _num(ref.get("rel_std", meas.attrs.get("scale_rel_std")))
+    rel = _rel_text(ref.get("rel_std", meas.attrs.get("scale_rel_std")))
     cert = _text(ref.get("certificate"), 200)
     sim = simulated(meas, settings)
     out = [cut(f"The scale of f_r is traceable through the reference standard measured beside the sample in every "
                f"frame: certified diffuse reflectance {_rho_text(ref, meas.attrs)}"
-               + (f", relative standard uncertainty {100 * rel:.2g} %" if rel is not None else "")
+               + (f", relative standard uncertainty {rel}" if rel is not None else "")
                + f", certificate {cert or NOT_RECORDED}"
                + (" (the simulated reference of gonio.sim: no physical standard)" if sim else "")
                + ". Its uncertainty is a component of the uncertainty budget (reference_certificate).", 800)]

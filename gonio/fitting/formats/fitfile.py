@@ -197,7 +197,7 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         # the colour space of every per-channel value here (gonio/fitting/measurements.load_dataset), the matrix
         # and what the fit leaves out; Mitsuba reads rgb as linear sRGB: only an srgb fit renders true colour
         "colour": meas.attrs.get("colour"),
-        "scale_rel_std": meas.attrs.get("scale_rel_std"),
+        "scale_rel_std": _jsonable(meas.attrs.get("scale_rel_std")),
         "uncertainty": uncertainty,
         # the instrument's angular response in the forward model (gonio/fitting/likelihood/aperture.py), or null
         "instrument_response": getattr(result, "response", None),

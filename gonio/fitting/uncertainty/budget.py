@@ -132,6 +132,16 @@ class Budget:
                 for c in self.components}
 
 
+def _per_channel(value, n: int) -> np.ndarray:
+    """``scale_rel_std`` as one relative 1-sigma per channel: absent 0, one number for all, or one
+    per channel (a spectral certificate); ValueError (one line) for any other length or a value
+    that is not finite and >= 0."""
+    arr = np.zeros(1) if value is None else np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.size not in (1, n) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"scale_rel_std must be one number >= 0 or one per channel ({n}), not {value!r}"[:200])
+    return np.broadcast_to(arr, (n,)).copy()
+
+
 def budget_from_attrs(meas) -> Budget:
     """Type A = ``brdf_std``; type B = the certificate, brdf x ``scale_rel_std``, fully correlated.
 
@@ -142,8 +152,8 @@ def budget_from_attrs(meas) -> Budget:
     (``open_beam_frame_rel_u``, one per channel) shared by the transmitted points."""
     comps = [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none", "brdf_std (the fit's weights)")]
     through = (side_of(meas.wi[:, 2], meas.wo[:, 2]) == 1)[:, None]
-    rel = float(meas.attrs.get("scale_rel_std", 0.0) or 0.0)
-    if rel > 0 and not through.all():
+    rel = _per_channel(meas.attrs.get("scale_rel_std"), meas.brdf.shape[1])
+    if np.any(rel > 0) and not through.all():
         comps.append(BudgetComponent("reference_certificate", np.where(through, 0.0, meas.brdf * rel), "B", "full",
                                      "scale_rel_std (reference certificate)"))
     rel_t = float(meas.attrs.get("open_beam_rel_std", 0.0) or 0.0)
@@ -155,7 +165,7 @@ def budget_from_attrs(meas) -> Budget:
     if np.any(frame > 0) and through.any():     # the open-beam frame's error: one per channel, every point's
         comps.append(BudgetComponent("open_beam_frame", np.where(through, meas.brdf * frame[None, :], 0.0), "B",
                                      "channel", "open_beam_frame_rel_u (the open-beam frame's scatter)"))
-    names = [n for n, used in (("scale_rel_std", rel > 0 and not through.all()),
+    names = [n for n, used in (("scale_rel_std", np.any(rel > 0) and not through.all()),
                                ("open_beam_rel_std", rel_t > 0 and through.any()),
                                ("open_beam_frame_rel_u", np.any(frame > 0) and through.any())) if used]
     return Budget(comps, " and ".join(names) + (" attributes" if len(names) > 1 else " attribute") if names
