@@ -174,6 +174,7 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     "gonio perf real": [
         ("gonio perf real ../shared/data/rgl --out real.csv", "every measured file of the folder"),
         ("gonio perf real paper_white_rgb.bsdf --peer same", "the peer fits the family gonio chose"),
+        ("gonio perf real ../shared/data/rgl --peer-eval mitsuba", "the peer evaluates Mitsuba's own BSDF (issue 35's plain fit)"),
     ],
     "gonio devices": [("gonio devices --port /dev/ttyUSB0 --meter-port /dev/ttyUSB1", "")],
     "gonio home": [("gonio home --port /dev/ttyUSB0", "")],

@@ -66,7 +66,8 @@ def _cmd_bench_real(args):
         raise GonioError(f"--peer {args.peer!r}: give a model family ({', '.join(gm.names())}) or 'same'")
     files = real_files(args.paths)
     try:
-        run_real(files, out=Path(args.out) if args.out else None, seed=args.seed, peer=args.peer)
+        run_real(files, out=Path(args.out) if args.out else None, seed=args.seed, peer=args.peer,
+                 peer_eval=args.peer_eval)
     except ValueError as exc:
         raise GonioError(" ".join(str(exc).split())[:300]) from None
 
@@ -112,6 +113,9 @@ def register(sub, *, env, seed, parser_class):
     br.add_argument("--seed", type=seed, default=0, help="seed of the fits' starts")
     br.add_argument("--peer", default="roughplastic", metavar="FAMILY",
                     help="the plain fit's model family (default roughplastic; 'same': the family gonio chose)")
+    br.add_argument("--peer-eval", choices=("gonio", "mitsuba"), default="gonio",
+                    help="how the peer evaluates its model: gonio (gonio's compiled model.eval, the stronger peer; "
+                         "default) or mitsuba (Mitsuba's own BSDF, as issue 35's plain fit does)")
     br.set_defaults(func=env(_cmd_bench_real))
     ba = bsub.add_parser("acquisition", help="per plan: the simulated capture's instrument time against the fit's "
                                              "error against the truth (Ngan, log, dE00), and the front")

@@ -109,17 +109,41 @@ def _log_residuals(model, space, meas, x):
     return np.where(np.isfinite(r), r, 1e3)[meas.use]
 
 
-def peer_fit(meas, model, rng, n_starts=PEER_STARTS):
-    """The plain peer: scipy least_squares on the unweighted log residuals with the numpy
-    model, from the defaults and ``n_starts - 1`` uniform draws of the box. (space, x, wall
-    seconds, CPU seconds)."""
+def _mitsuba_log_residuals(model, space, meas, x):
+    """As :func:`_log_residuals`, f_r cos from Mitsuba's own BSDF (``model.to_mitsuba``, loaded
+    and evaluated by Mitsuba at every call, as a script without gonio would)."""
+    from gonio.models.mitsuba import eval_cos
+
+    fc = eval_cos(model.to_mitsuba(space.to_params(x)), meas.wi, meas.wo)
+    cos_i = np.clip(meas.wi[:, 2:3], 0.0, 1.0)
+    r = np.log1p(np.maximum(fc, -0.999)) - np.log1p(np.maximum(meas.brdf * cos_i, -0.999))
+    return np.where(np.isfinite(r), r, 1e3)[meas.use]
+
+
+#: how the peer evaluates its model: ``mitsuba``, Mitsuba's own BSDF (issue 35's plain fit as
+#: written); ``gonio``, gonio's model.eval (the compiled kernel: a stronger peer, ~10x faster)
+PEER_EVALS = ("mitsuba", "gonio")
+#: the relative finite-difference step of the peer on Mitsuba's float32 evaluation
+MITSUBA_DIFF_STEP = 1e-3
+
+
+def peer_fit(meas, model, rng, n_starts=PEER_STARTS, evaluate="gonio"):
+    """The plain peer: scipy least_squares on the unweighted log residuals, the model evaluated
+    by ``evaluate`` (:data:`PEER_EVALS`), from the defaults and ``n_starts - 1`` uniform draws
+    of the box. (space, x, wall seconds, CPU seconds)."""
+    if evaluate not in PEER_EVALS:
+        raise ValueError(f"peer evaluation {evaluate!r}: choose one of {', '.join(PEER_EVALS)}")
+    residuals = _mitsuba_log_residuals if evaluate == "mitsuba" else _log_residuals
+    # Mitsuba evaluates in float32 (its pip variants): scipy's default relative step (1.5e-8)
+    # moves nothing there, so the differences need a step above its rounding (sqrt(6e-8) ~ 2.4e-4)
+    diff_step = MITSUBA_DIFF_STEP if evaluate == "mitsuba" else None
     space = ParameterSpace(model, meas.n_channels)
     starts = [space.default()] + [space.from_unit(rng.uniform(0.02, 0.98, space.size)) for _ in range(n_starts - 1)]
     t0, c0 = time.perf_counter(), time.process_time()
     best = None
     for x0 in starts:
-        res = scipy.optimize.least_squares(lambda x: _log_residuals(model, space, meas, x), x0,
-                                           bounds=(space.lower, space.upper))
+        res = scipy.optimize.least_squares(lambda x: residuals(model, space, meas, x), x0,
+                                           bounds=(space.lower, space.upper), diff_step=diff_step)
         if best is None or res.cost < best.cost:
             best = res
     return space, best.x, time.perf_counter() - t0, time.process_time() - c0
@@ -149,7 +173,7 @@ def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_S
     return float(out["delta_e_mean"]), floor
 
 
-def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_FAMILY):
+def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_FAMILY, peer_eval="gonio"):
     """One material: a dict of gonio's chosen fit and the peer's, metrics on the dense grid."""
     path = Path(path)
     loss = loss or REAL_DEFAULT_LOSS
@@ -177,7 +201,7 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_F
     # the issue's peer: Mitsuba's roughplastic (its declared defaults, not gonio's start) unless a
     # family is named ("same": the family gonio chose)
     peer_model = gm.get(model.name, **model.options) if peer == "same" else gm.get(peer)
-    space, x_peer, t_peer, c_peer = peer_fit(meas, peer_model, np.random.default_rng([seed, 1]))
+    space, x_peer, t_peer, c_peer = peer_fit(meas, peer_model, np.random.default_rng([seed, 1]), evaluate=peer_eval)
     p = metrics(peer_model.eval(wi, wo, space.to_params(x_peer)), f_meas, wi)
     t_alone = _alone_time(meas, model, seed=seed, loss=loss)
     label = model.name + (f"-{model.options['distribution']}" if model.options.get("distribution") else "")
@@ -187,7 +211,7 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_F
         de_g, floor = rendered_delta_e(model, best.params, path, seed)
         de_p, _ = rendered_delta_e(peer_model, space.to_params(x_peer), path, seed)
     return {"gonio_de00": de_g, "peer_de00": de_p, "de00_noise": floor,
-            "material": path.stem, "model": label, "peer_model": peer_model.name, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
+            "material": path.stem, "model": label, "peer_model": peer_model.name, "peer_eval": peer_eval, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
             "gonio_ngan": g["ngan"], "gonio_log": g["log"], "gonio_time_s": best.time_s,
             "gonio_cpu_s": cpu, "gonio_select_s": t_select, "gonio_select_cpu_s": c_select,
             "gonio_chi2_dof": best.chi2_dof,
@@ -225,8 +249,9 @@ def print_table(rows, legend=True, head=True):
           "whose product-shot pixels are within CIEDE2000 0.5 of the closest, BIC chooses; tabulated is tried where "
           "none is within 1; the chosen one refitted to all samples); p: scipy least_squares, unweighted "
           "log loss, "
-          f"{PEER_STARTS} starts, gonio's model.eval of Mitsuba's "
-          f"{', '.join(sorted({str(r.get('peer_model', PEER_FAMILY)) for r in rows})) or PEER_FAMILY}; "
+          f"{PEER_STARTS} starts, Mitsuba's "
+          f"{', '.join(sorted({str(r.get('peer_model', PEER_FAMILY)) for r in rows})) or PEER_FAMILY} evaluated by "
+          f"{' and '.join(sorted({_EVAL_TEXT[r.get('peer_eval', 'gonio')] for r in rows}))}; "
           "t g: the chosen fit's refit (wall), auto: the whole selection (wall), alone: the chosen family fitted "
           "on its own as `gonio fit --model NAME` fits it, auto/al: their ratio, p/auto: the peer's time over the "
           "whole selection's (above 1: gonio chose faster than the peer fitted), cpu: CPU time (every thread of "
@@ -235,11 +260,15 @@ def print_table(rows, legend=True, head=True):
           "env and area lights, matched seeds), floor: its Monte Carlo noise")
 
 
-def run_real(files, out=None, seed=0, loss=None, open_data=None, peer=PEER_FAMILY) -> list[dict]:
-    """Every material of ``files``; print the table; with ``out`` write it as CSV there."""
+_EVAL_TEXT = {"gonio": "gonio's model.eval (its compiled kernel)", "mitsuba": "Mitsuba itself (load_dict and eval)"}
+
+
+def run_real(files, out=None, seed=0, loss=None, open_data=None, peer=PEER_FAMILY, peer_eval="gonio") -> list[dict]:
+    """Every material of ``files``; print the table; with ``out`` write it as CSV there.
+    ``peer_eval``: how the peer evaluates its model (:data:`PEER_EVALS`)."""
     rows = []
     for f in files:
-        rows.append(compare(f, seed=seed, loss=loss, open_data=open_data, peer=peer))
+        rows.append(compare(f, seed=seed, loss=loss, open_data=open_data, peer=peer, peer_eval=peer_eval))
         print_table(rows[-1:], legend=False, head=len(rows) == 1)
     print()
     print_table(rows)
