@@ -36,7 +36,11 @@ def polish_energy(problem, x0, energy_wo, maxeval):
     r_of = problem.lm_residuals_u
     u0 = np.clip(space.to_unit(x0), 0.0, 1.0)
     quad = _AlbedoQuadrature(problem, energy_wo)
-    margin = [0.0]  # grows by the gap between this quadrature and model.albedo, if any
+    # margin: the gap between this quadrature and model.albedo, row by row, taken at the start
+    # and again where each round ends, until it no longer moves on the rows near their bound
+    # (at most 3 rounds): the polish then constrains model.albedo itself, neither looser nor
+    # tighter
+    margin = [_albedo_gap(problem, quad, space.from_unit(u0), energy_wo)]
 
     normal, cost = least_squares_functions(problem)
     constraints = albedo_constraints(quad, margin)
@@ -50,10 +54,12 @@ def polish_energy(problem, x0, energy_wo, maxeval):
             reason = " ".join(str(exc).split())[:120] or type(exc).__name__
             return x, _loss.objective(loss, problem.residuals_x(x)), False, f"GN-SQP polish failed ({reason}){note}"
         u, n_eval = res.u, n_eval + res.n_eval
-        excess = float(np.max(problem.albedo_excess(space.from_unit(u), energy_wo)))
-        if excess <= 1e-4:
+        excess = problem.albedo_excess(space.from_unit(u), energy_wo)
+        gap = _albedo_gap(problem, quad, space.from_unit(u), energy_wo)
+        near = excess > -1e-3
+        if float(np.max(excess)) <= 1e-4 and float(np.max(np.abs(gap - margin[0])[near], initial=0.0)) <= 1e-4:
             break
-        margin[0] += excess + 1e-4
+        margin[0] = gap
     x, ok, note = space.from_unit(u), res.converged, ""
     # never worse than the scaled start, and albedo <= 1 (model.albedo) whatever the polish did
     scaled, scaled_note = scale_to_feasible(problem, space.from_unit(u0), energy_wo)
@@ -67,6 +73,12 @@ def polish_energy(problem, x0, energy_wo, maxeval):
         x, note = scale_to_feasible(problem, x, energy_wo)
     message = f"{res.message} ({n_eval} evaluations){note}"
     return x, _loss.objective(loss, problem.residuals_x(x)), ok, message
+
+
+def _albedo_gap(problem, quad, x, energy_wo):
+    """model.albedo - the quadrature's albedo at x, one per constraint row (0 where not finite)."""
+    gap = problem.albedo_excess(x, energy_wo) - quad(x)
+    return np.where(np.isfinite(gap), gap, 0.0)
 
 
 def least_squares_functions(problem):
@@ -96,12 +108,15 @@ def least_squares_functions(problem):
 
 
 def albedo_constraints(quad, margin):
-    """``constraints(u) -> (c, G)``: albedo - 1 + margin[0] by ``quad`` (an
-    :class:`_AlbedoQuadrature`) and its derivatives, exact from the compiled kernel where it
-    has them (one Jacobian, not P + 1 quadratures), else forward differences."""
+    """``constraints(u, grad) -> (c, G)``: albedo - 1 + margin[0] by ``quad`` (an
+    :class:`_AlbedoQuadrature`; margin[0] a number or one per row) and, where ``grad``, its
+    derivatives: exact from the compiled kernel where it has them (one Jacobian, not P + 1
+    quadratures), else forward differences."""
     space = quad.space
 
-    def constraints(u):
+    def constraints(u, grad=True):
+        if not grad:
+            return quad(space.from_unit(u)) + margin[0], None
         exact = quad.value_and_grad(u)
         if exact is not None:
             return exact[0] + margin[0], exact[1]

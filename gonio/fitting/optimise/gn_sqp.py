@@ -128,7 +128,8 @@ def gn_sqp(u0, normal, cost, constraints, *, ftol=GN_SQP_FTOL, maxeval=GN_SQP_MA
     cost : callable
         ``cost(u) -> |r|^2`` (a trial point); may raise FloatingPointError (rejected).
     constraints : callable
-        ``constraints(u) -> (c, G)``: the constraint values (m,) and their derivatives (m, P).
+        ``constraints(u, grad) -> (c, G)``: the constraint values (m,) and, where ``grad``,
+        their derivatives (m, P) (else None: a trial point needs its values only).
     ftol : float
         Converged where, at a feasible point, an accepted step or the model's prediction for a
         (nearly) undamped one lowers the objective by less than ``ftol`` times it.
@@ -144,8 +145,9 @@ def gn_sqp(u0, normal, cost, constraints, *, ftol=GN_SQP_FTOL, maxeval=GN_SQP_MA
     u = np.clip(np.asarray(u0, dtype=np.float64), 0.0, 1.0)
     f, g, A = normal(u)
     f0 = max(float(f), 1e-300)
-    c, G = constraints(u)
-    P = u.size
+    c, G = constraints(u, True)
+    if not all(np.all(np.isfinite(v)) for v in (u, f, g, A, c, G)):
+        raise FloatingPointError("GN-SQP: the start's objective, constraints or derivatives are not finite")
     rho, mu, nu = 1.0, 1e-4, 2.0
     lam = np.zeros(c.size)
     n_eval = it = 0
@@ -179,15 +181,19 @@ def gn_sqp(u0, normal, cost, constraints, *, ftol=GN_SQP_FTOL, maxeval=GN_SQP_MA
         u_t = u + d
         try:
             f_t = float(cost(u_t))
-            c_t, G_t = constraints(u_t)
+            c_t, _ = constraints(u_t, False)
             phi_t = merit(f_t, c_t)
+            phi_t = phi_t if np.isfinite(phi_t) else np.inf     # a trial that is not finite is rejected
         except FloatingPointError:
             phi_t = np.inf
         ratio = (phi - phi_t) / pred if pred > 0 else -np.inf
         if np.isfinite(phi_t) and ratio > 1e-4:
             decrease = f - f_t
-            u, c, G = u_t, c_t, G_t
+            u, c = u_t, c_t
             f, g, A = normal(u)
+            G = constraints(u, True)[1]
+            if not (np.all(np.isfinite(g)) and np.all(np.isfinite(A)) and np.all(np.isfinite(G))):
+                raise FloatingPointError("GN-SQP: the derivatives are not finite at an accepted point")
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
             nu = 2.0
             if float(np.max(c)) <= CTOL and abs(decrease) <= ftol * f and np.max(np.abs(d)) < MAX_STEP:
