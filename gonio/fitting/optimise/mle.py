@@ -370,7 +370,7 @@ def _fit(meas, model, *, loss, fixed, rng, n_starts, n_local, maxeval, enforce_e
             res = refine_starts(affine, rng, t0=t0, **loop)
         if res is not None:
             res = dataclasses.replace(res, cpu_s=time.process_time() - c0)
-            if loss in ROBUST_COV and covariance:
+            if _robust(loss, meas) and covariance:
                 res = robust_covariance(res, meas, Problem(meas, model, space, loss, use_fast=use_fast, linear=[]))
             return res
     with single_threaded_blas():  # as for the affine problem: BLAS's threads fight Dr.Jit's (measured 3-5x)
@@ -378,7 +378,7 @@ def _fit(meas, model, *, loss, fixed, rng, n_starts, n_local, maxeval, enforce_e
         general.ftol = LM_FTOL if ftol is None else float(ftol)
         res = refine_starts(general, rng, t0=t0, **loop)
         res = dataclasses.replace(res, cpu_s=time.process_time() - c0)
-        return robust_covariance(res, meas, general.problem) if loss in ROBUST_COV and covariance else res
+        return robust_covariance(res, meas, general.problem) if _robust(loss, meas) and covariance else res
 
 
 #: a local run's relative objective tolerance (gonio.fitting.optimise.lm.levenberg_marquardt)
@@ -387,3 +387,9 @@ LM_FTOL = 1e-10
 #: losses without a noise model: their covariance is the sandwich of their own residuals
 #: (:func:`gonio.fitting.optimise.result.sandwich`), not the chi^2 Fisher matrix
 ROBUST_COV = ("log", "cosine")
+
+
+def _robust(loss: str, meas) -> bool:
+    """The sandwich covariance: a loss without a noise model, or chi2 with per-point weights (a
+    weighted likelihood's Fisher matrix J^T W J understates its covariance; White 1982)."""
+    return loss in ROBUST_COV or (loss == "chi2" and meas.weight is not None)
