@@ -2,15 +2,15 @@
 
 Dimensions ``point`` and ``channel`` (R, G, B); coordinates ``theta_i``, ``phi_i``, ``theta_o``,
 ``phi_o`` (degrees); variables ``brdf`` and ``brdf_std`` (sr^-1, 1-sigma), ``saturated``,
-``reciprocal_partner`` (dataset index, -1 if none), ``plan_index`` and the stage angles; attributes
-``gonio_version``, ``seed``, ``plan``, ``settings``, ``versions``, ``sample_truth`` (simulated
-sessions), ``scale_rel_std`` (the reference certificate's relative 1-sigma: a fully correlated scale
-uncertainty, not in ``brdf_std``), ``complete``, ``instrument_time_s`` (per point:
-``instrument_time``). Transmitted points (theta_o > 90) hold f_t by the open beam, whose record
-and ``sides`` are attributes. A calibrated session also has ``<angle>_nominal``, ``<angle>_u``,
-``angle_calibration`` and ``aperture_*``. Where the RAW files carry colour matrices,
-also ``brdf_srgb`` (linear sRGB, D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma and
-``brdf_srgb_corr``, each saying its space (``colour_space``); a spectral session's are on ``point``
+``reciprocal_partner`` (dataset index, -1 if none), ``plan_index``, the stage angles and a sequential
+plan's ``design_weight`` (sr^2, gonio.bench.plan.design_weights); attributes ``gonio_version``,
+``seed``, ``plan``, ``settings``, ``versions``, ``sample_truth`` (simulated sessions), ``scale_rel_std``
+(the certificate's relative 1-sigma: a fully correlated scale uncertainty, not in ``brdf_std``),
+``complete``, ``instrument_time_s`` (per point: ``instrument_time``). Transmitted points (theta_o > 90)
+hold f_t by the open beam, whose record and ``sides`` are attributes. A calibrated session also has
+``<angle>_nominal``, ``<angle>_u``, ``angle_calibration`` and ``aperture_*``. Where the RAW files carry
+colour matrices, also ``brdf_srgb`` (linear sRGB, D65) and ``brdf_xyz`` (CIE XYZ) with their 1-sigma
+and ``brdf_srgb_corr``, each saying its space (``colour_space``); a spectral session's are on ``point``
 and ``wavelength`` (nm; `gonio.bench.dataset.spectral`). Written atomically and read back first
 (every variable, its point count and values, or nothing); a damaged point row is refused.
 """
@@ -52,6 +52,7 @@ from gonio.core.preflight import check_free_space, check_output_file, oserror_li
 from gonio.bench.measure.colour_matrix import (ColourMatrix, colour_matrix_components, convert, matrix_from_chart_dng, matrix_from_dng, matrix_from_libraw)
 from gonio.core.errors import GonioError, SessionError
 from gonio.bench.plan.plans import find_partners
+from gonio.bench.plan.design_weights import VARIABLE, dataset_variable, wanted
 
 __all__ = ["export", "to_dataset", "DATASET_FILE"]
 
@@ -122,6 +123,8 @@ def to_dataset(session_dir, chart=None, attrs=None):
         **{k: ("point", np.array([r[k] for r in rows], float), {**deg, "long_name": f"stage angle {k}"})
            for k in ("yaw", "tilt", "azimuth", "lamp")},
     }
+    if wanted(doc.get("strategy")):         # a sequential plan's points: their share of the measure
+        data[VARIABLE] = dataset_variable(*(coords[k][1] for k in ("theta_i", "phi_i", "theta_o", "phi_o")))
     monitor = np.array([float(r["detail"].get("p_start", np.nan)) for r in rows])
     data["monitor_power"] = ("point", monitor, {"units": "W", "long_name": "power-meter reading of the lamp "
                                                 "monitor at the start of the point"})

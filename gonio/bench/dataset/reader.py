@@ -1,6 +1,6 @@
 """Any dataset a user gives, opened as the fitter sees it: a gonio ``dataset.nc``, a MERL
 ``.binary`` or an RGL ``.bsdf`` file as Measurements, and a dataset.nc's uncertainty budget;
-:func:`open_fit_input` both, as every fit path takes them (`gonio fit`, each batch worker); one line (GonioError) for what is missing, a folder, damaged or too large."""
+:func:`open_fit_input` both, as every fit path takes them (`gonio fit`, each batch worker); one line (GonioError) for what is missing, a folder, damaged or too large. A sequential plan's ``design_weight`` becomes the Measurements' weight."""
 
 from __future__ import annotations
 
@@ -87,7 +87,7 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
                 a = np.radians(load_plan("standard").angles)     # scalar_rgb only: the standard plan
                 return rgl_measurements(path, direction(a[:, 0], a[:, 1]), direction(a[:, 2], a[:, 3]))
             check_hdf5(path)            # a damaged file can loop in HDF5 for ever: walked first, in a child
-            return load_dataset(path, colour_space=colour_space)
+            return _with_design_weight(path, load_dataset(path, colour_space=colour_space))
         except GonioError:
             raise
         except MemoryError:
@@ -99,6 +99,24 @@ def open_dataset(path: Path, seed: int = 0, colour_space: str = "srgb"):
             message = (f"cannot read {path} ({reason}); give a dataset.nc written by "
                        "gonio export, a MERL .binary, an RGL .bsdf or a Zemax tabular BSDF file")
     raise GonioError(message)
+
+
+def _with_design_weight(path: Path, meas):
+    """``meas`` with a sequential plan's ``design_weight`` (sr^2, gonio.bench.plan.design_weights) as
+    its per-point weight, which the likelihood applies; ValueError where it is not one finite value
+    > 0 per point."""
+    import xarray as xr
+
+    from gonio.bench.plan.design_weights import VARIABLE
+
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        if VARIABLE not in ds.variables:
+            return meas
+        w = np.asarray(ds[VARIABLE].values, float)
+    if w.shape != (meas.n_points,) or not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise ValueError(f"{VARIABLE} must hold one finite weight > 0 per point; re-export the session")
+    meas.weight = w
+    return meas
 
 
 def open_budget(path: Path, meas):
