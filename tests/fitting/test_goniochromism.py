@@ -90,3 +90,42 @@ def test_hostile_and_degenerate_data_show_nothing():
         n = f.shape[0]
         g = goniochromism(Measurements(wi[:n], wi[:n], f, s, np.isfinite(f)), rel_floor=0.0)
         assert not g.goniochromic and g.dof == 0 and np.isfinite(g.chi2) and g.p_value == 1.0, (f[-1], g)
+
+
+IRIDESCENT_TOML = """description = "an iridescent flake paint: one flake spread per channel"
+model = "flakepaint"
+[options]
+distribution = "ggx"
+spread = "wavelength"
+[params]
+diffuse_reflectance = [0.05, 0.05, 0.05]
+flake_reflectance = [0.2, 0.2, 0.2]
+flake_alpha = [0.15, 0.3, 0.45]
+flake_exponent = 0.3
+"""
+
+
+@pytest.mark.long
+def test_auto_recovers_the_flake_paint_from_a_simulated_sample(tmp_path):
+    """Held out from the RGL tuning: a sample TOML of the iridescent paint, read as the simulator
+    reads it (load_sample, resolve_sample: the simulator's truth), 600 noisy pairs; ``--model
+    auto``'s candidates hold the flake paint and BIC chooses it with its spread per channel
+    (select's rule: the fewest parameters within 2 of the lowest BIC, Kass & Raftery 1995)."""
+    from gonio.bench.samples import load_sample
+    from gonio.fitting.selection.by_data import select
+    from gonio.sim.physics.sample import resolve_sample
+    from _simdata import directions
+
+    path = tmp_path / "irid.toml"
+    path.write_text(IRIDESCENT_TOML)
+    truth = resolve_sample(load_sample(path))
+    rng = np.random.default_rng(351)
+    wi, wo = directions(rng, 600)
+    f = np.asarray(truth.eval(wi, wo), float)
+    sigma = 0.02 * f + 1e-3
+    meas = Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool))
+    todo = candidates_for(meas)
+    assert todo == CANDIDATES + SPECTRAL
+    best, ranking = select(meas, rng=np.random.default_rng(0), candidates=todo)
+    assert best.model.name == "flakepaint", [(r.name, r.options, round(r.delta_bic)) for r in ranking[:4]]
+    assert best.model.options["spread"] == "wavelength", [(r.name, r.options, round(r.delta_bic)) for r in ranking[:4]]
