@@ -87,7 +87,8 @@ def test_the_reference_grid_is_equal_solid_angle_below_80_degrees():
 @pytest.mark.parametrize("key, value", [("criterion", "i-optimal"), ("criterion", 3), ("criterion", None),
                                         ("discrepancy_length", 0.0), ("discrepancy_length", -1.0),
                                         ("discrepancy_length", math.nan), ("discrepancy_length", math.inf),
-                                        ("discrepancy_length", "0.4"), ("discrepancy_length", True)])
+                                        ("discrepancy_length", "0.4"), ("discrepancy_length", True),
+                                        ("design_weights", "yes"), ("design_weights", 1), ("design_weights", None)])
 def test_a_wrong_criterion_or_length_is_refused_in_one_line(key, value):
     with pytest.raises(ValueError, match=rf"^\[strategy\] .*{key}.*give") as err:
         AdaptivePlan(DENSE, range(len(DENSE)), {"points": 20, key: value})

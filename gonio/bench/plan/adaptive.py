@@ -9,7 +9,7 @@ are queued, per second of travel and overhead when ``travel`` is on. It stops at
 at ``budget_s`` of the session's journalled instrument time (a batch is cut to what the plan's
 estimate fits in what is left), or at its targets (``target_rel_u``: every parameter's
 relative 1-sigma; ``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says
-which. Each batch is chosen from the results and times of the points queued before it, less
+which. Its dataset weights each point by its design weight (gonio.bench.plan.design_weights). Each batch is chosen from the results and times of the points queued before it, less
 the last one (the stages move to it meanwhile), so a resume replays the same choices. Public:
 `AdaptivePlan`, `DEFAULTS`, `CRITERIA`, `cli_strategy`, `albedo_de00_u`; registered on import.
 """
@@ -23,6 +23,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from gonio.bench.plan import kinematics
+from gonio.bench.plan.design_weights import ON_BY_DEFAULT
 from gonio.bench.plan.ordering import cost_matrix, mirror
 from gonio.bench.plan.plans import Plan
 from gonio.bench.plan.strategy import Result, register_strategy
@@ -47,6 +48,7 @@ DEFAULTS: dict[str, Any] = {
     "model_rel_u": 0.0,           # relative 1-sigma of what the noise leaves out (model, systematics)
     "criterion": "d-optimal",     # "d-optimal" (the parameters) or "alc" (the predicted f_r cos, with discrepancy)
     "discrepancy_length": 0.7,    # "alc": correlation length of the model's discrepancy in (wi, wo), unit vectors
+    "design_weights": ON_BY_DEFAULT,  # dataset.nc weights each point by its share of the evaluation measure
 }
 
 #: the batch criteria ``criterion`` names
@@ -136,6 +138,9 @@ class AdaptivePlan:
                 math.isfinite(v) and v > 0):
             raise ValueError(f"[strategy] discrepancy_length = {v!r}: give a length > 0 (unit vectors)")
         self.discrepancy_length = float(v)
+        if not isinstance(t["design_weights"], (bool, np.bool_)):
+            raise ValueError(f"[strategy] design_weights = {str(t['design_weights'])[:40]!r}: give true or false")
+        self.design_weights = bool(t["design_weights"])
         self.options, self.fixed = dict(t["options"]), dict(t["fixed"])
         try:
             self.model = gm.get(str(t["model"]), **self.options)
@@ -194,7 +199,7 @@ class AdaptivePlan:
                 "target_de00": self.target_de00, "first": self.first_n, "batch": self.batch, "model": self.model_name, "options": self.options, "fixed": self.fixed,
                 "n_starts": self.n_starts, "seed": self.seed, "travel": self.travel, "overhead_s": self.overhead_s,
                 "model_rel_u": self.model_rel_u, "criterion": self.criterion,
-                "discrepancy_length": self.discrepancy_length}
+                "discrepancy_length": self.discrepancy_length, "design_weights": self.design_weights}
 
     def state(self) -> dict[str, Any]:
         """What the strategy did: ``stopped_by``, the points per batch, the last fit, the
