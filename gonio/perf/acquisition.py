@@ -3,7 +3,8 @@
 Every plan captures the same virtual sample on the simulated instrument (instant clock, the same
 seed and error model); its instrument time is the dataset's ``instrument_time_s`` (motion,
 settling, exposures and preparation on the simulator's clock, as journalled). The capture is
-exported, the sample's own family (or ``model``) fitted by chi2 with the dataset's budget, and
+exported, the sample's own family (or ``model``) fitted by chi2 with the dataset's budget (a
+sequential plan's points weighted by their design weights unless ``-unweighted``), and
 the fit scored against the truth on :func:`gonio.perf.real.dense_grid` (Ngan and log errors,
 :func:`gonio.perf.real.metrics`) and by the preview's rendered CIEDE2000. The front: the plans
 no other plan beats on both instrument time and Ngan error.
@@ -21,14 +22,17 @@ import numpy as np
 from gonio.core.atomic import atomic_open
 from gonio.core.errors import GonioError
 
-__all__ = ["PLANS", "front", "run", "score"]
+__all__ = ["PLANS", "SEQUENTIAL", "front", "run", "score", "strategy_table"]
 
 #: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``alc``
 #: and ``ndf`` on request)
 PLANS = ("quick", "standard", "adaptive")
 #: the plans drawn from ``dense`` by a strategy: ``adaptive`` (D-optimal), ``alc`` (the adaptive
-#: plan with ``criterion = "alc"``), ``ndf``
-SEQUENTIAL = ("adaptive", "alc", "ndf")
+#: plan with ``criterion = "alc"``), ``ndf``; each fitted with its design weights
+#: (gonio.bench.plan.design_weights), or without them as ``adaptive-unweighted``, ``alc-unweighted``
+SEQUENTIAL = ("adaptive", "alc", "ndf", "adaptive-unweighted", "alc-unweighted")
+#: the suffix of a sequential plan fitted without its design weights
+UNWEIGHTED = "-unweighted"
 #: the adaptive plan's point budget by default
 ADAPTIVE_POINTS = 24
 
@@ -78,6 +82,20 @@ def front(rows) -> list:
                                        or (o["time_s"] < r["time_s"] and o["ngan"] <= r["ngan"]) for o in rows)]
 
 
+def strategy_table(plan: str, seed: int, points: int, budget_s: float = 0.0) -> dict:
+    """session.toml's ``[strategy]`` of a :data:`SEQUENTIAL` plan: at most ``points``, or as many
+    as ``budget_s`` of instrument time allows where it is > 0."""
+    base = plan.removesuffix(UNWEIGHTED)
+    table = {"name": "ndf" if base == "ndf" else "adaptive", "seed": int(seed), "points": int(points)}
+    if base == "alc":
+        table["criterion"] = "alc"
+    if plan.endswith(UNWEIGHTED):
+        table["design_weights"] = False
+    if budget_s > 0:
+        table.update(budget_s=float(budget_s), points=0)
+    return table
+
+
 def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed: int, points: int,
          settings: dict, budget_s: float = 0.0) -> dict:
     import xarray as xr
@@ -88,13 +106,7 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     from gonio.fitting.pipeline import fit_measurements
 
     sequential = plan in SEQUENTIAL
-    strategy = None
-    if sequential:
-        strategy = {"name": "ndf" if plan == "ndf" else "adaptive", "seed": int(seed), "points": int(points)}
-        if plan == "alc":
-            strategy["criterion"] = "alc"
-        if budget_s > 0:
-            strategy.update(budget_s=float(budget_s), points=0)
+    strategy = strategy_table(plan, seed, points, budget_s) if sequential else None
     t0 = time.perf_counter()
     session = folder / plan
     capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
@@ -173,9 +185,9 @@ def _version() -> str:
 
 def _print(rows, head=True):
     if head:
-        print(f"{'plan':<10}{'points':>7}{'time s':>9}{'Ngan':>8}{'log':>9}{'dE00':>7}{'wall s':>8}")
+        print(f"{'plan':<20}{'points':>7}{'time s':>9}{'Ngan':>8}{'log':>9}{'dE00':>7}{'wall s':>8}")
     for r in rows:
-        print(f"{r['plan']:<10}{r['points']:>7d}{r['time_s']:>9.1f}{r['ngan']:>8.4f}{r['log']:>9.5f}"
+        print(f"{r['plan']:<20}{r['points']:>7d}{r['time_s']:>9.1f}{r['ngan']:>8.4f}{r['log']:>9.5f}"
               f"{r['de00']:>7.2f}{r['wall_s']:>8.1f}", flush=True)
 
 

@@ -13,6 +13,19 @@ def test_the_front_keeps_the_plans_no_other_beats_on_both():
     assert [r["plan"] for r in front(rows)] == ["a", "b"]       # c: b faster and closer; d: a as fast and closer
 
 
+def test_each_sequential_plan_is_the_strategy_it_names():
+    """alc is the adaptive plan with the alc criterion; -unweighted leaves the design weights
+    out of its dataset (gonio.bench.plan.design_weights); a time budget lifts the point count."""
+    from gonio.bench.plan.design_weights import wanted
+    from gonio.perf.acquisition import SEQUENTIAL, check_plans, strategy_table
+
+    assert check_plans(",".join(SEQUENTIAL)) == SEQUENTIAL
+    assert strategy_table("alc", 3, 24) == {"name": "adaptive", "seed": 3, "points": 24, "criterion": "alc"}
+    assert strategy_table("adaptive-unweighted", 0, 24, 120.0) == {
+        "name": "adaptive", "seed": 0, "points": 0, "design_weights": False, "budget_s": 120.0}
+    assert [wanted(strategy_table(p, 0, 24)) for p in SEQUENTIAL] == [True, True, True, False, False]
+
+
 def test_bad_options_are_one_line_before_anything_runs(tmp_path, capsys):
     from gonio.cli.main import main
 
