@@ -120,7 +120,8 @@ def register(sub, *, env, seed, parser_class):
     ba = bsub.add_parser("acquisition", help="per plan: the simulated capture's instrument time against the fit's "
                                              "error against the truth (Ngan, log, dE00), and the front")
     ba.add_argument("--plans", default="quick,standard,adaptive",
-                    help="plan presets, 'adaptive', 'alc' or 'ndf', separated by commas (default "
+                    help="plan presets, 'adaptive', 'alc' or 'ndf' (fitted with their design weights; "
+                         "'adaptive-unweighted', 'alc-unweighted' without), separated by commas (default "
                          "quick,standard,adaptive)")
     ba.add_argument("--sample", help="the virtual sample: a sample TOML or a measured RGL .bsdf file (default the "
                                      "demo's glossy plastic)")
