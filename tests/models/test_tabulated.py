@@ -41,6 +41,8 @@ def realistic_params(model, rng):
         p[f"ndf_{k}"] = math.exp(np.clip(lnd[k] - lnd[1] + rng.uniform(-1, 1), *tab.LN_D_BOUNDS))
     for j in range(tab.N_FRESNEL):
         p[f"fresnel_{j}"] = rng.uniform(0, 1, 3)
+    if model.options["body"] == "table":    # drawn last: the draws above stay those of body="lambert"
+        p.update({f"body_{j}": math.exp(rng.uniform(-1.0, 0.5)) for j in range(1, tab.N_BODY)})
     return model.validate(p)
 
 
@@ -99,8 +101,12 @@ def test_g1_bounds_for_any_table():
 # -- the BRDF -------------------------------------------------------------------------------
 
 
-def test_reciprocity_and_positivity():
-    m = gm.get("tabulated")
+BODIES = ("lambert", "table")
+
+
+@pytest.mark.parametrize("body", BODIES)
+def test_reciprocity_and_positivity(body):
+    m = gm.get("tabulated", body=body)
     rng = np.random.default_rng(11)
     wi, wo = random_hemisphere(rng, 5000), random_hemisphere(rng, 5000)
     for _ in range(6):
@@ -156,6 +162,34 @@ def test_energy_lobe_bounded_by_fresnel_and_honest_flag():
     assert m.energy_conserving is False
 
 
+def test_body_table_nests_lambert_and_its_albedo():
+    """body="table" with g = 1 is the Lambertian model exactly (the fallback starts it there);
+    with the lobe off (F = 0) its albedo at normal view is rho g(0) int_0^{pi/2} g(theta)
+    2 cos sin d(theta), g piecewise linear in theta to 80 deg and held beyond (scipy's adaptive
+    quad, split at the knots, against the model's compiled quadrature: its stated 1e-3 bound);
+    an unknown option value is refused."""
+    from scipy.integrate import quad
+
+    rng = np.random.default_rng(5)
+    lam, table = gm.get("tabulated"), gm.get("tabulated", body="table")
+    p = realistic_params(lam, rng)
+    wi, wo = random_hemisphere(rng, 3000), random_hemisphere(rng, 3000)
+    ones = table.validate({**p, **{f"body_{j}": 1.0 for j in range(1, tab.N_BODY)}})
+    np.testing.assert_array_equal(table.eval_reference(wi, wo, ones), lam.eval_reference(wi, wo, p))
+    g = np.array([1.0, 0.7, 1.3, 0.5, 0.2])
+    q = table.validate({**p, **{f"body_{j}": g[j] for j in range(1, tab.N_BODY)},
+                        **{f"fresnel_{j}": 0.0 for j in range(tab.N_FRESNEL)}})
+    knots = np.radians(np.linspace(0.0, 80.0, tab.N_BODY))
+    ref = quad(lambda t: np.interp(t, knots, g) * 2.0 * math.cos(t) * math.sin(t), 0.0, 0.5 * math.pi,
+               points=knots[1:])[0]
+    np.testing.assert_allclose(table.albedo(np.array([[0.0, 0.0, 1.0]]), q)[0], q["diffuse_reflectance"] * ref,
+                               atol=QUADRATURE_ERROR)
+    with pytest.raises(ValueError, match="body"):
+        gm.get("tabulated", body="oren-nayar")
+    with pytest.raises(Exception, match="body_2"):
+        table.validate({**p, "body_2": -0.5})
+
+
 def test_start_replaces_defaults_and_is_validated():
     m0 = gm.get("tabulated")
     p = realistic_params(m0, np.random.default_rng(0))
@@ -172,7 +206,8 @@ def test_start_replaces_defaults_and_is_validated():
 mi = pytest.importorskip("mitsuba")
 
 
-def test_mitsuba_eval_matches_at_float32():
+@pytest.mark.parametrize("body", BODIES)
+def test_mitsuba_eval_matches_at_float32(body):
     """gonio_tabulated's bsdf.eval equals the model at 1e-5 relative plus the float32
     allowance of tests/models/test_mitsuba_agreement.py (same comparison, 4 realistic
     parameter sets x 2e4 pairs). On box-uniform tables (knot-to-knot jumps of e^20) Mitsuba's
@@ -181,7 +216,7 @@ def test_mitsuba_eval_matches_at_float32():
     sys.path.insert(0, str(Path(__file__).parent))
     import test_mitsuba_agreement as agreement
 
-    m = gm.get("tabulated")
+    m = gm.get("tabulated", body=body)
     rng = np.random.default_rng(16)
     from gonio.models.mitsuba import eval_cos, mitsuba_variant
 
@@ -204,14 +239,15 @@ def test_mitsuba_eval_matches_at_float32():
     assert worst <= 0.0, worst
 
 
-def test_mitsuba_sampling_is_unbiased():
+@pytest.mark.parametrize("body", BODIES)
+def test_mitsuba_sampling_is_unbiased(body):
     """E[bsdf.sample's weight] = the directional albedo (the sampling's pdf is the density it
     draws from): 2e5 samples per view, |z| < 4.5 per channel and view (false alarm 7e-6 each,
     9 checks: 6e-5 in all)."""
     from gonio.models.mitsuba import interaction, mitsuba_variant
 
     mitsuba_variant()
-    m = gm.get("tabulated")
+    m = gm.get("tabulated", body=body)
     rng = np.random.default_rng(21)
     p = realistic_params(m, rng)
     p["diffuse_reflectance"] = np.array([0.05, 0.1, 0.02])
@@ -227,15 +263,16 @@ def test_mitsuba_sampling_is_unbiased():
         assert np.all(np.abs(z) < 4.5), (th, z)
 
 
+@pytest.mark.parametrize("body", BODIES)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_host_jacobian_matches_central_differences(seed):
+def test_host_jacobian_matches_central_differences(seed, body):
     """``jacobian_reference``, the exact derivatives the fit uses instead of differencing 42
     columns, against central differences of the numpy reference (step 1e-6 relative: truncation
     error ~1e-12, rounding ~1e-10 of the column's scale) at realistic parameters, with a third
     of the pairs near the specular peak. A column may differ only at pairs whose table segment
     the step crosses (a kink of the piecewise-linear tables): at most 1 in 1000 pairs."""
     rng = np.random.default_rng(seed)
-    model = gm.get("tabulated")
+    model = gm.get("tabulated", body=body)
     p = realistic_params(model, rng)
     n = 1200
     wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)

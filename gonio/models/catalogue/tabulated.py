@@ -7,12 +7,12 @@ per colour channel c (Dupuy et al. 2015), wh the half vector. D_c: piecewise lin
 k >= 1, plus a colour tilt for red and blue), normalised per channel (Walter et al. 2007,
 eq. 4); G1_c: Smith's, derived from D_c (Heitz 2014, eq. 43); F_c: piecewise linear on
 :data:`N_FRESNEL` knots in 1 - cos theta_d (``fresnel_j`` in [0, 1]); ``width_j``: a lobe width
-factor w(theta_d); rho_c: ``diffuse_reflectance``. Reciprocal and non-negative, not energy
+factor w(theta_d); rho_c: ``diffuse_reflectance`` (option ``body="table"``: rho_c g(theta_i)
+g(theta_o) / pi, g a data-driven table, see the notes). Reciprocal and non-negative, not energy
 conserving (``energy_conserving = False``: the fit enforces albedo <= 1). Not a ``--model auto``
 candidate from its defaults (``auto_candidate = False``):
 :func:`gonio.fitting.optimise.tabulated_start.fit_tabulated` starts it from the data. Rendered
-by the ``gonio_tabulated`` plugin (:mod:`gonio.models.mitsuba.tabulated_plugin`), built from
-:func:`tables`. Design notes and full references: the comment below.
+by ``gonio_tabulated`` (:mod:`gonio.models.mitsuba.tabulated_plugin`); notes: the comment below.
 """
 
 # Design notes (measured figures: docs/performance.md, gonio.models.catalogue.tabulated).
@@ -46,6 +46,15 @@ by the ``gonio_tabulated`` plugin (:mod:`gonio.models.mitsuba.tabulated_plugin`)
 #   lobes), because measured lobes broaden toward grazing. With w != 1 the lobe is no longer one
 #   microsurface: G1 stays the Smith G1 of the base D (w = 1), an approximation the data-driven
 #   term accepts.
+# * Body (option body="table", issue 35): rho_c g(theta_i) g(theta_o) / pi, g piecewise linear in
+#   theta on N_BODY = 5 knots (0, 20, 40, 60, 80 deg; g(0) = 1, so rho_c stays the reflectance at
+#   normal incidence and view; held beyond 80 deg, where the RGL files have no data), shared by
+#   the channels. A product of one factor per direction is reciprocal and non-negative; it is
+#   the form of Burley's (2012) diffuse, (1 + (F_D90 - 1)(1 - cos)^5) per direction, and of
+#   Wolff's (1994) Fresnel-transmission diffuse, here read from the data. Why: felt's body is
+#   not Lambertian (pi f at normal incidence falls 0.78 -> 0.55 from theta_o = 0 to 75 deg)
+#   and tabulated's broad lobe stood in for it. Knots to 80 deg, not to 90: a free g(90 deg)
+#   is unseen, and its fitted value raised the albedo past 1 (docs/performance.md).
 # * Energy: every factor is symmetric in wi, wo. With w = 1 the lobe's albedo is at most max F_c
 #   (Smith's G1 and a normalised D), the body adds rho_c, so the sum can exceed 1 (and w != 1
 #   moves the lobe's albedo too); gonio's fit applies its albedo <= 1 constraint
@@ -67,6 +76,8 @@ by the ``gonio_tabulated`` plugin (:mod:`gonio.models.mitsuba.tabulated_plugin`)
 # JCGT 3(2), 48-107.
 # Walter, B., Marschner, S. R., Li, H., Torrance, K. E. (2007). Microfacet models for
 # refraction through rough surfaces. EGSR.
+# Burley, B. (2012). Physically-based shading at Disney. SIGGRAPH course notes, sec. 5.3.
+# Wolff, L. B. (1994). Diffuse-reflectance model for smooth dielectric surfaces. JOSA A 11(11).
 
 from __future__ import annotations
 
@@ -108,6 +119,11 @@ TILT_BOUNDS = (math.exp(-TILT), math.exp(TILT))
 #: the knots where the colour tilts are parameters (0 at knot 0, linear in the knot index
 #: in between): 6.4, 40 and 90 deg
 TILT_KNOTS = (4, 10, 15)
+#: option body="table": the body's angular factor g(theta) on N_BODY knots uniform in theta up to
+#: BODY_MAX (0, 20, 40, 60, 80 deg: the measured range), held beyond; g(0) = 1; its bounds
+N_BODY = 5
+BODY_MAX = math.radians(80.0)
+BODY = (0.01, 4.0)
 
 
 def _tilt_basis():
@@ -254,8 +270,16 @@ def tables(p):
     ln_z, g1 = g1_table(ln_d)
     fresnel = np.stack([p[f"fresnel_{j}"] for j in range(N_FRESNEL)], axis=1)
     width = np.array([[1.0] + [p[f"width_{j}"] for j in range(1, N_FRESNEL)]])
-    return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, width=width,
-                           rho=np.asarray(p["diffuse_reflectance"]))
+    rho = np.asarray(p["diffuse_reflectance"])
+    body = np.ones((1, N_BODY))      # g = 1: the Lambertian body
+    if "body_1" in p:
+        body[0, 1:] = [p[f"body_{j}"] for j in range(1, N_BODY)]
+    return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, width=width, rho=rho, body=body)
+
+
+def body_index(cos_theta):
+    """Fractional index of the body factor's knots: (N_BODY - 1) theta / BODY_MAX, at most N_BODY - 1."""
+    return (N_BODY - 1) * np.minimum(np.arccos(np.clip(cos_theta, -1.0, 1.0)) / BODY_MAX, 1.0)
 
 
 def _polar(v):
@@ -287,11 +311,20 @@ class Tabulated(Model):
         in [0.25, 4]: D is evaluated at theta_h / w and divided by w^2.
     fresnel_0 ... fresnel_4 : (3,)
         F at 1 - cos(theta_d) = j / 4, in [0, 1].
+    body_1 ... body_4 : float
+        Option ``body="table"`` only: the body's angular factor g at theta = 20 j deg
+        (g(0) = 1, shared by the channels), in [0.01, 1]; the body is rho_c g(theta_i) g(theta_o) / pi.
+
+    Options
+    -------
+    body : "lambert" (default) or "table"
+        The body rho_c / pi, or the reciprocal data-driven diffuse rho_c g(theta_i)
+        g(theta_o) / pi (the module's notes).
     """
 
     name = "tabulated"
     lambert_smooth = "diffuse_reflectance"   # albedo: the body rho, the lobe on the compiled kernel
-    OPTIONS = {}
+    OPTIONS = {"body": ("lambert", "table")}
     energy_conserving = False
     #: not a ``--model auto`` candidate: it fits well only from a data-driven start
     #: (``fit_tabulated``), not from declared defaults (module notes)
@@ -312,6 +345,8 @@ class Tabulated(Model):
         starting point, :func:`gonio.fitting.optimise.tabulated_start.data_start`)."""
         self._start = None if start is None else {k: np.array(v, dtype=np.float64) for k, v in start.items()}
         super().__init__(**options)
+        if self.options["body"] == "table":     # albedo: body and lobe both on the compiled kernel
+            self.lambert_smooth, self.smooth_off = None, {"diffuse_reflectance": 0.0}
         if start is not None:
             self.validate(start)
 
@@ -342,6 +377,10 @@ class Tabulated(Model):
             x = j / (N_FRESNEL - 1)
             pars.append(Parameter(f"width_{j}", self._default(f"width_{j}", 1.0), WIDTH[0], WIDTH[1], "1",
                                   f"lobe width factor at theta_d = {math.degrees(math.acos(1.0 - x)):.1f} deg"))
+        for j in range(1, N_BODY if self.options["body"] == "table" else 1):
+            deg = math.degrees(BODY_MAX) * j / (N_BODY - 1)
+            pars.append(Parameter(f"body_{j}", self._default(f"body_{j}", 1.0), *BODY, "1",
+                                  f"body factor g at theta = {deg:.1f} deg (1 at the normal)"))
         return tuple(pars)
 
     # -- evaluation -----------------------------------------------------------------------
@@ -349,6 +388,10 @@ class Tabulated(Model):
         t = tables(p)
         n = wi.shape[0]
         diffuse = np.broadcast_to(t.rho / math.pi, (n, np.size(t.rho)))
+        if "body_1" in p:
+            up = (wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)
+            g = _interp(t.body, body_index(wi[:, 2])) * _interp(t.body, body_index(wo[:, 2]))
+            diffuse = np.where(up[:, None], diffuse * g, 0.0)
         return diffuse, self._lobe(wi, wo, t)
 
     def _lobe(self, wi, wo, t):
@@ -397,9 +440,17 @@ class Tabulated(Model):
             den = np.where(ok, 4.0 * ci * co * w * w, 1.0)[:, None]
             D_over = np.where(ok[:, None], np.exp(L) / den, 0.0)               # D / (4 ci co), w^-2 in den
             lobe = F * D_over * Gi * Go
-            body = np.where(pair, 1.0 / math.pi, 0.0)                            # eval_reference's mask
-            f = t.rho[None, :] * body[:, None] + lobe
-            J = {"diffuse_reflectance": np.repeat(body[:, None], CHANNELS, axis=1)}
+            body = np.where(pair, 1.0 / math.pi, 0.0)[:, None]                   # eval_reference's mask
+            table = "body_1" in p
+            if table:                                                            # g_c(theta_i) g_c(theta_o)
+                body = body * (ci > 0.0)[:, None] * (co > 0.0)[:, None]
+                s_bi, s_bo = body_index(ci), body_index(co)
+                gi_b, go_b = _interp(t.body, s_bi), _interp(t.body, s_bo)
+            f = t.rho[None, :] * body * (gi_b * go_b if table else 1.0) + lobe
+            J = {"diffuse_reflectance": np.broadcast_to(body * (gi_b * go_b if table else 1.0), f.shape).copy()}
+            for j in range(1, N_BODY if table else 1):
+                hi, ho = (_interp(np.eye(N_BODY)[j:j + 1], s)[:, 0:1] for s in (s_bi, s_bo))
+                J[f"body_{j}"] = t.rho[None, :] * body * (hi * go_b + gi_b * ho)
             i_f, t_f = _lerp_parts(N_FRESNEL, s_f)
             for j in range(N_FRESNEL):
                 hat = np.where(i_f == j, 1.0 - t_f, 0.0) + np.where(i_f + 1 == j, t_f, 0.0)
@@ -463,10 +514,11 @@ class Tabulated(Model):
 
 def _jit_inputs(model, p, P, F, grad, dtables):
     """The kernel's tables, built by :func:`tables` in numpy (float64) and cast to F:
-    ``P["_tab"]`` = (ln D - ln Z (C K), G1 (C N_G), Fresnel (C N_FRESNEL), width (N_FRESNEL))."""
+    ``P["_tab"]`` = (ln D - ln Z (C K), G1 (C N_G), Fresnel (C N_FRESNEL), width (N_FRESNEL),
+    body factor (N_BODY))."""
     t = tables(p)
-    P["_tab"] = (F(np.ascontiguousarray(t.ln_d - t.ln_z[:, None]).ravel()), F(np.ascontiguousarray(t.g1).ravel()),
-                 F(np.ascontiguousarray(t.fresnel).ravel()), F(np.ascontiguousarray(t.width).ravel()))
+    P["_tab"] = tuple(F(np.ascontiguousarray(a).ravel()) for a in (t.ln_d - t.ln_z[:, None], t.g1, t.fresnel, t.width,
+                                                                    t.body))
 
 
 def _jit_kernel(model, k, wi, wo, P, grad):
@@ -478,7 +530,7 @@ def _jit_kernel(model, k, wi, wo, P, grad):
         raise NotImplementedError("tabulated's kernel gives values only")
     dr, U, active = k.dr, k.U, k.active
     F = k.F
-    ln_d, g1, fresnel, width = P["_tab"]
+    ln_d, g1, fresnel, width, body_table = P["_tab"]
 
     def lerp(table, n, s, c):  # s: float64 fractional indices (a float32 one loses 128 * 6e-8 near the end)
         i = dr.clip(U(dr.floor(s)), 0, n - 2)
@@ -509,10 +561,18 @@ def _jit_kernel(model, k, wi, wo, P, grad):
     den = 4.0 * dr.select(ok, ci * co, 1.0) * w * w
     body = dr.select(active, 1.0 / math.pi + k.zero, 0.0)
     rho = P["diffuse_reflectance"]
+    table = model.options["body"] == "table"
+    if table:       # g_c(theta_i) g_c(theta_o), :func:`body_index`
+        b_i, b_o = ((N_BODY - 1) * dr.minimum(dr.acos(dr.clip(v[2], -1.0, 1.0)) / BODY_MAX, 1.0) for v in (vi, vo))
     f = []
     for c in range(CHANNELS):
+        if table:
+            body_c = dr.select(active & (ci > 0) & (co > 0), body * lerp(body_table, N_BODY, b_i, 0)
+                               * lerp(body_table, N_BODY, b_o, 0), 0.0)
+        else:
+            body_c = body
         D = dr.exp(lerp(ln_d, N_KNOTS, s_h, c))
         G = lerp(g1, N_G, s_i, c) * lerp(g1, N_G, s_o, c)
         Fc = lerp(fresnel, N_FRESNEL, s_f, c)
-        f.append(rho[c] * body + dr.select(ok, Fc * D * G / den, 0.0))
+        f.append(rho[c] * body_c + dr.select(ok, Fc * D * G / den, 0.0))
     return f, {}

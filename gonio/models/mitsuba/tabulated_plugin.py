@@ -6,6 +6,7 @@ the model's tables from the plugin's properties with the numpy code of
 table derived from D, the Fresnel knots); ``eval`` interpolates them exactly as the numpy model
 does (the same fractional indices, linear interpolation by ``dr.gather``), in float32. Polar
 angles come from ``atan2(|xy|, z)``, well conditioned near the normal where ``acos`` is not.
+With the ``body_j`` properties (option ``body="table"``) the body is rho g(theta_i) g(theta_o) / pi.
 
 Sampling: a mixture of cosine-weighted directions and reflections about microfacet normals m
 drawn from the channels' mean D (normalised, so ``D cos(theta_m)`` is a density of m), piecewise
@@ -32,7 +33,7 @@ Q_MIN, Q_MAX = 0.2, 0.9
 def make_bsdf(mi, dr, base, tab):
     """The BSDF class for the active variant, derived from gonio's Python BSDF ``base``;
     ``tab`` is the model's module (:mod:`gonio.models.catalogue.tabulated`, passed in: no import cycle)."""
-    model = tab.Tabulated()
+    models = {"lambert": tab.Tabulated(), "table": tab.Tabulated(body="table")}
 
     def lerp(table, n, s, c):
         """Channel ``c`` of a flattened (C, n) table at fractional indices ``s``."""
@@ -56,6 +57,7 @@ def make_bsdf(mi, dr, base, tab):
         def __init__(self, props):
             base.__init__(self, props)
             params = {}
+            model = models["table" if "body_1" in props else "lambert"]
             for par in model.parameters:
                 params[par.name] = ([float(props[f"{par.name}_{c}"]) for c in "rgb"] if par.per_channel
                                     else float(props[par.name]))
@@ -65,7 +67,9 @@ def make_bsdf(mi, dr, base, tab):
             self.g1 = mi.Float(np.ascontiguousarray(t.g1, dtype=np.float32).ravel())
             self.fresnel = mi.Float(np.ascontiguousarray(t.fresnel, dtype=np.float32).ravel())
             self.width = mi.Float(np.ascontiguousarray(t.width, dtype=np.float32).ravel())
-            dr.make_opaque(self.rho, self.ln_d, self.g1, self.fresnel, self.width)
+            self.body = mi.Float(np.ascontiguousarray(t.body, dtype=np.float32).ravel())
+            self.table = model.options["body"] == "table"
+            dr.make_opaque(self.rho, self.ln_d, self.g1, self.fresnel, self.width, self.body)
             # importance sampling (module notes): the channels' mean D on SAMPLING_BINS rings
             edges = 0.5 * math.pi * (np.linspace(0.0, 1.0, SAMPLING_BINS + 1)) ** 2
             cos_e = np.cos(edges)
@@ -137,13 +141,17 @@ def make_bsdf(mi, dr, base, tab):
             s_i = mi.Float((tab.N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar64(ix, iy, iz) / half_pi, 0.0, 1.0))))
             s_o = mi.Float((tab.N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar64(ox, oy, oz) / half_pi, 0.0, 1.0))))
             den = 4.0 * dr.select(up, ci * co, 1.0) * w * w
-            lobe = []
+            lobe, body = [], []
+            b_i, b_o = (mi.Float((tab.N_BODY - 1) * dr.minimum(dr.acos(dr.clip(z, -1.0, 1.0)) / tab.BODY_MAX, 1.0))
+                        for z in (iz, oz))
             for c in range(CHANNELS):
+                body.append(lerp(self.body, tab.N_BODY, b_i, 0) * lerp(self.body, tab.N_BODY, b_o, 0) if self.table
+                            else mi.Float(1.0))
                 D = dr.exp(lerp(self.ln_d, tab.N_KNOTS, s_h, c))
                 G = lerp(self.g1, tab.N_G, s_i, c) * lerp(self.g1, tab.N_G, s_o, c)
                 F = lerp(self.fresnel, tab.N_FRESNEL, s_f, c)
                 lobe.append(dr.select(up, F * D * G / den, 0.0))
-            return self.rho + mi.Color3f(*lobe)
+            return self.rho * mi.Color3f(*body) + mi.Color3f(*lobe)
 
         def to_string(self):
             return "GonioTabulated[]"
