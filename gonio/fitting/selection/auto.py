@@ -1,6 +1,7 @@
 """``--model auto`` on a measured material: screen on a subsample, choose by pixels, refit once.
 
-Every candidate (and the data-driven ``tabulated`` model where none renders well enough) is
+Every candidate (and the data-driven ``tabulated`` model, with and without its tabulated body
+factor, where none renders well enough) is
 fitted to a seeded random subsample of :data:`SCREEN_POINTS` samples, one local refinement
 each (:func:`screen`); the ranking by BIC is the subsample's. The choice is
 :func:`gonio.fitting.selection.by_pixels.pixel_choice`'s: the simplest proper candidate that
@@ -78,9 +79,11 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
     sub = subsample(meas, n, np.random.default_rng([int(seed), 351]))
     _, ranking = screen(sub, rng=rng, loss=loss, candidates=candidates, progress=progress)
 
-    def fallback():
-        return [fit_tabulated(sub, rng=np.random.default_rng([int(seed), 16]), loss=loss, n_starts=0, n_local=1,
-                              covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)]
+    def fallback():     # tabulated, and its body="table" variant started from it (nested: no worse a fit)
+        kw = dict(loss=loss, n_starts=0, n_local=1, covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)
+        plain = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 16]), **kw)
+        return [plain, fit_tabulated(sub, rng=np.random.default_rng([int(seed), 17]), body="table",
+                                     start=plain.params, **kw)]
 
     check = PixelCheck(measured, scene=scene, size=size, k=k, seed=seed)
     chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
