@@ -8,19 +8,18 @@ the ratio of the merit's actual to predicted decrease (Madsen, Nielsen & Tinglef
 3.14); rho follows the multipliers and N&W eq. 18.36. It stops on a relative tolerance of the
 objective (:data:`GN_SQP_FTOL`), never on wall time: its iterates are the same on any machine.
 
-References
-----------
-Madsen, K., Nielsen, H. B., Tingleff, O. (2004). Methods for non-linear least squares problems, 2nd ed.
-Nocedal, J., Wright, S. J. (2006). Numerical Optimization, 2nd ed., ch. 18.
-Lawson, C. L., Hanson, R. J. (1974). Solving Least Squares Problems, ch. 23 (LDP).
+References: Madsen, Nielsen, Tingleff (2004), Methods for non-linear least squares problems,
+2nd ed.; Nocedal, Wright (2006), Numerical Optimization, 2nd ed., ch. 18; Lawson, Hanson (1974),
+Solving Least Squares Problems, ch. 23 (least-distance programming).
 """
 
-# Why the QP in Cholesky coordinates: scipy's SLSQP (Kraft 1988) builds its Hessian by BFGS
-# from the identity; with y = L^T d, L L^T the model's Hessian, the model is 1/2 |y|^2 + b.y,
-# so its first quasi-Newton matrix is exact and its least-distance subproblem (Lawson & Hanson
-# ch. 23) solves the QP in one or two iterations, no model evaluation. The box then becomes
-# 2P general linear rows. Where the linearised constraints and the box admit no step, the
-# least violation reachable (scipy's linprog, HiGHS) relaxes them (an elastic step).
+# Why a least-distance programme: with H = L L^T (after Jacobi scaling) and z = L^T d + L^-1 b,
+# the QP is min |z| subject to linear rows (the constraints and the box's 2P faces), which one
+# non-negative least-squares problem solves exactly, multipliers included (Lawson & Hanson ch.
+# 23; scipy's nnls): no model evaluation, no iteration of its own to tune. scipy's SLSQP on the
+# quadratic model, tried first, stopped with "Positive directional derivative for linesearch"
+# on a synthetic Cook-Torrance problem. Where the linearised constraints and the box admit no
+# step, the least violation reachable (scipy's linprog, HiGHS) relaxes them (an elastic step).
 
 from __future__ import annotations
 
