@@ -278,13 +278,13 @@ def test_the_samples_own_foreshortening_adds_f_r_times_it(glossy, tmp_path):
     def ds(irr, dim="angle_input"):
         return xr.Dataset({"angle_shift_shared": (("angle_input", "point", "angle"), d),
                            "irradiance_shift_shared": ((dim, "point"), irr)})
-    np.testing.assert_array_equal(_angle_shifts(ds(r), "x.nc", n)["shared_irradiance"], r)
+    np.testing.assert_array_equal(_angle_shifts(ds(r), "x.nc", n, 3)["shared_irradiance"], r)
     with pytest.raises(ValueError, match="irradiance_shift_shared must be finite"):
-        _angle_shifts(ds(r[:1], "other_input"), "x.nc", n)
+        _angle_shifts(ds(r[:1], "other_input"), "x.nc", n, 3)
     bad = r.copy()
     bad[1, 3] = np.nan
     with pytest.raises(ValueError, match="irradiance_shift_shared must be finite"):
-        _angle_shifts(ds(bad), "x.nc", n)
+        _angle_shifts(ds(bad), "x.nc", n, 3)
 
 
 # ------------------------------------------------------------------ a fit in sRGB of camera-RGB noise

@@ -109,7 +109,8 @@ def spectral_variables(doc: Mapping, rows: list) -> tuple[dict, dict, np.ndarray
 # is linear, so a shared (signed) line maps as sum_c a_c u_c and an independent one as
 # sqrt(sum_c a_c^2 u_c^2) (JCGM 100 5.1.2, 5.2.2): the type-A lines still add up to brdf_std.
 
-#: the angle variables of `budget.angle_variables`: per geometry, not per wavelength
+#: the angle variables of `budget.angle_variables`: per geometry, the per-move ones per (point,
+#: wavelength) where the stage revisited geometries (`_angles_per_geometry`)
 _ANGLE_VARS = ("angle_shift_shared", "irradiance_shift_shared", "angle_shift_independent",
                "angle_shift_independent_group")
 
@@ -202,15 +203,18 @@ def spectral_budget(rows: list, settings: Mapping, cell: np.ndarray, brdf: np.nd
     out["u_combined"] = (("point", "wavelength"), np.where(np.isfinite(brdf), np.sqrt(total), np.nan), {
         "units": "sr^-1", "budget_format": BUDGET_FORMAT, "components": " ".join(sorted(names)),
         "long_name": "combined standard uncertainty of brdf (root sum of squares of the u_ components)"})
-    out.update(_angles_per_geometry(rows, rgb, i, n))
+    out.update(_angles_per_geometry(rows, rgb, i, n, j, m))
     return out
 
 
-def _angles_per_geometry(rows, rgb: dict, point: np.ndarray, n: int) -> dict:
-    """The angle variables on the n geometries: each geometry's first-measured row's, its
-    ``source`` saying where a geometry's rows differ (the stage revisited it: wavelength the
-    slowest axis), whose per-move errors are then taken as the first visit's, shared by all its
-    wavelengths (no averaging over the visits: the larger u of what is fitted across them)."""
+def _angles_per_geometry(rows, rgb: dict, point: np.ndarray, n: int, wavelength: np.ndarray, m: int) -> dict:
+    """The angle variables on the n geometries, each geometry's first-measured row's. Where the
+    stage revisited geometries (wavelength the slowest axis) each visit has its own move errors:
+    the per-move variables (``angle_shift_independent`` and its labels) then gain a
+    ``wavelength`` dimension, each (point, wavelength) cell its own row's, 0 and label -1 where a
+    cell was not measured (it has no value to move). The shared ones stay the first visit's: per
+    visit (its lost-motion signs) they over-covered the red lacquer (chi-square 22-105 on 114
+    dof, seeds 0-3, with the sim's backlash 0 as well), for a reason not yet found."""
     if "angle_shift_shared" not in rgb:
         return {}
     t = np.array([float(r.get("finished", k)) for k, r in enumerate(rows)], float)
@@ -218,20 +222,28 @@ def _angles_per_geometry(rows, rgb: dict, point: np.ndarray, n: int) -> dict:
     pick = np.full(n, -1, int)
     for k in order[::-1]:
         pick[point[k]] = k
-    same = True
-    for name in _ANGLE_VARS:
+    per_move = ("angle_shift_independent", "angle_shift_independent_group")
+    moved = False                    # a geometry's rows differ in their per-move errors: revisited
+    for name in per_move:
         if name in rgb:
             v = np.asarray(rgb[name][1])
-            same &= bool(np.allclose(v, v[:, pick[point]], rtol=0.0, atol=1e-12))
+            moved |= not bool(np.allclose(v, v[:, pick[point]], rtol=0.0, atol=1e-12))
     out = {}
     for name in _ANGLE_VARS:
         if name not in rgb:
             continue
         dims, v, attrs = rgb[name]
-        attrs = dict(attrs)
+        attrs, v = dict(attrs), np.asarray(v)
+        per_visit = moved and name in per_move
         if "source" in attrs:
-            attrs["source"] += ("; per geometry (the angles do not depend on the wavelength)" if same else
-                                "; per geometry, its first visit's: the stage revisited geometries between "
-                                "wavelengths, whose per-move errors are taken as shared by all its wavelengths")
-        out[name] = (dims, np.asarray(v)[:, pick], attrs)
+            attrs["source"] += ("; per (point, wavelength): the stage revisited geometries between wavelengths, "
+                                "each visit with its own move errors" if per_visit else
+                                "; per geometry, its first visit's" if moved else
+                                "; per geometry (the angles do not depend on the wavelength)")
+        if per_visit:
+            grid = np.full((v.shape[0], n, m) + v.shape[2:], -1 if v.dtype.kind in "iu" else 0.0, dtype=v.dtype)
+            grid[:, point, wavelength] = v
+            out[name] = ((dims[0], dims[1], "wavelength") + tuple(dims[2:]), grid, attrs)
+        else:
+            out[name] = (dims, v[:, pick], attrs)
     return out

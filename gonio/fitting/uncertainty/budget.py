@@ -33,7 +33,6 @@ import dataclasses
 
 import numpy as np
 
-from gonio.core.geometry import angles as _angles_of, directions as _directions, tangent_basis, unit_vectors
 from gonio.core.sides import side_of
 
 from gonio.fitting.likelihood import loss as _loss
@@ -42,6 +41,7 @@ from gonio.fitting.likelihood.problem import Problem
 from gonio.fitting.optimise.result import loss_jacobian
 from gonio.fitting.statement import K_EXPANDED
 from gonio.fitting.uncertainty.adequacy import adequacy_test, chi2_refiner
+from gonio.fitting.uncertainty.angle_shifts import AXES, _angle_shifts, per_point, slope  # noqa: F401
 from gonio.fitting.uncertainty.intervals import error_quantiles, gaussian_adequate
 from gonio.fitting.uncertainty.second_order import second_order
 
@@ -217,7 +217,7 @@ def load_budget(path, meas) -> Budget:
                                  "on a 'full' line only; see docs/interfaces.md 5.1")
             comps += _in_colour_space(BudgetComponent(v[2:], value, gtype, corr, str(var.attrs.get("source", "")),
                                                       groups, mean), colour_transform(meas), path)
-        angles = _angle_shifts(ds, path, meas.n_points)
+        angles = _angle_shifts(ds, path, meas.n_points, meas.n_channels)
         colour = _colour_matrix_components(ds, meas)
         measured = "u_shot_read" in ds.variables      # the bench's type A: from each point's own signal
     budget = Budget(comps) if comps else budget_from_attrs(meas)
@@ -258,48 +258,6 @@ def _colour_matrix_components(ds, meas) -> list:
             for k in range(values.shape[-1])]
 
 
-#: the stage axes of ``angle_shift_independent``'s inputs when it has one group label per axis
-AXES = ("yaw", "tilt", "azimuth", "lamp")
-#: the dataset variables of the angles' uncertainty (docs/interfaces.md 5.1), degrees
-ANGLE_SHIFTS = {"shared": "angle_shift_shared", "independent": "angle_shift_independent"}
-#: with ``angle_shift_shared``: the relative change of the sample's irradiance alone (the wedge's
-#: foreshortening, which the reference square does not share) for +1 sigma of each input
-IRRADIANCE_SHIFT = "irradiance_shift_shared"
-
-
-def _angle_shifts(ds, path, n_points):
-    """``{shared, independent}``: (K, N, 4) arrays from ``angle_shift_*`` (input, point, angle); None without."""
-    out = {}
-    for key, name in ANGLE_SHIFTS.items():
-        if name not in ds.variables:
-            continue
-        v = ds[name]
-        try:
-            arr = np.asarray(v.transpose(v.dims[0], "point", "angle").values, float)
-        except (ValueError, KeyError):
-            raise ValueError(f"{path}: {name} must have dimensions (input, point, angle)") from None
-        if arr.ndim != 3 or arr.shape[1:] != (n_points, 4) or not np.all(np.isfinite(arr)):
-            raise ValueError(f"{path}: {name} must be finite, (inputs, {n_points} points, 4 angles) in degrees")
-        out[key] = arr
-    if "shared" in out and IRRADIANCE_SHIFT in ds.variables:
-        v = ds[IRRADIANCE_SHIFT]
-        try:
-            r = np.asarray(v.transpose(v.dims[0], "point").values, float)
-        except (ValueError, KeyError):
-            raise ValueError(f"{path}: {IRRADIANCE_SHIFT} must have dimensions (input, point)") from None
-        if r.shape != out["shared"].shape[:2] or not np.all(np.isfinite(r)):
-            raise ValueError(f"{path}: {IRRADIANCE_SHIFT} must be finite, ({out['shared'].shape[0]} inputs, "
-                             f"{n_points} points) as {ANGLE_SHIFTS['shared']}")
-        out["shared_irradiance"] = r
-    group = ANGLE_SHIFTS["independent"] + "_group"
-    if "independent" in out and group in ds.variables:
-        g = np.asarray(ds[group].transpose(ds[group].dims[0], "point").values)
-        if g.shape != out["independent"].shape[:2] or not np.issubdtype(g.dtype, np.integer):
-            raise ValueError(f"{path}: {group} must be integer labels (inputs, {n_points} points)")
-        out["independent_groups"] = g.astype(np.int64)
-    return out or None
-
-
 def _in_colour_space(comp: BudgetComponent, s, path) -> list:
     """A camera-RGB component (the dataset's ``u_`` variables are per camera channel) in the
     fit's colour space through the 3x3 ``s`` (gonio/fitting/measurements.colour_transform): a signed shared
@@ -332,37 +290,6 @@ def _sensitivity(result, meas):
     return -np.linalg.pinv(J, rcond=1e-10) * drdy[None, :]
 
 
-def slope(model, params, wi, wo, h_deg: float = 1e-3) -> np.ndarray:
-    """d f_r / d (theta_i, phi_i, theta_o, phi_o) (N, C, 4), sr^-1 per degree, by central
-    differences of the model at ``params``. At a pole (theta 0 or 180 deg, where phi is
-    undefined) the pair is the derivative along the fixed tangents of
-    :func:`gonio.core.geometry.tangent_basis`, per degree of arc, as the dataset's angle shifts
-    are there: a tilt then moves a normal-incidence or straight-through point's value by what it
-    moves its direction (its phi slope was 0, and a lobe's change across the pole was lost)."""
-    ti, pi_ = _angles_of(wi)
-    to, po = _angles_of(wo)
-    base = np.stack([ti, pi_, to, po], axis=-1)
-    h = np.radians(h_deg)
-    out = []
-    for a in range(4):
-        plus, minus = base.copy(), base.copy()
-        plus[:, a] += h
-        minus[:, a] -= h
-        fp = model.eval(_directions(plus[:, 0], plus[:, 1]), _directions(plus[:, 2], plus[:, 3]), params)
-        fm = model.eval(_directions(minus[:, 0], minus[:, 1]), _directions(minus[:, 2], minus[:, 3]), params)
-        out.append((fp - fm) / (2 * h_deg))
-    for k, w in ((0, wi), (2, wo)):
-        e_t, e_p, pole = tangent_basis(w)
-        if not np.any(pole):
-            continue
-        a, b = np.asarray(wi, float)[pole], np.asarray(wo, float)[pole]
-        for j, e in ((k, e_t[pole]), (k + 1, e_p[pole])):
-            moved = [unit_vectors(np.asarray(w, float)[pole] * np.cos(h) + sign * np.sin(h) * e) for sign in (1, -1)]
-            pair = [(m, b) if k == 0 else (a, m) for m in moved]
-            out[j][pole] = (model.eval(*pair[0], params) - model.eval(*pair[1], params)) / (2 * h_deg)
-    return np.stack(out, axis=-1)
-
-
 def angle_components(result, meas, angles: dict) -> list:
     """``angle_shared`` (B, full, one input per shared angle error) and ``angle_repeatability``
     (B, point: one error per point, shared by its channels), or where the dataset labels each
@@ -378,19 +305,24 @@ def angle_components(result, meas, angles: dict) -> list:
         d = np.asarray(angles.get(key, np.zeros((0, meas.n_points, 4))), float)
         if not d.size:
             continue
-        value = np.einsum("nca,kna->knc", S, d)
+        value = np.einsum("nca,kna->knc", S, d) if d.ndim == 3 else np.einsum("nca,knca->knc", S, d)
         if key == "shared" and angles.get("shared_irradiance") is not None:
             f = result.model.eval(meas.wi, meas.wo, result.params)
-            value = value + np.asarray(angles["shared_irradiance"], float)[:, :, None] * f[None]
+            irr = np.asarray(angles["shared_irradiance"], float)
+            value = value + (irr if irr.ndim == 3 else irr[:, :, None]) * f[None]
         groups = angles.get("independent_groups") if key == "independent" else None
         if groups is None:
-            out.append(BudgetComponent(name, value, "B", corr, f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
+            # per (point, wavelength) visits without move labels: every value its own error
+            out.append(BudgetComponent(name, value, "B", "none" if d.ndim == 4 else corr,
+                                       f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
             continue
         # one error per move of each axis: the points taken without moving it share it
         for k, axis in enumerate(AXES if len(value) == len(AXES) else [str(k) for k in range(len(value))]):
+            labels = np.asarray(groups[k])           # (N,), or (N, C) where each wavelength was its own visit
             out.append(BudgetComponent(f"{name}_{axis}", value[k], "B", "group",
                                        f"the {axis} axis's per-move error x the local slope of the fitted f_r",
-                                       groups=np.repeat(np.asarray(groups[k])[:, None], value.shape[-1], axis=1)))
+                                       groups=labels if labels.ndim == 2 else
+                                       np.repeat(labels[:, None], value.shape[-1], axis=1)))
     return out
 
 
@@ -488,7 +420,7 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
         # a budget of systematic lines alone: the fit's own sigma stands for the type A
         pointwise = comps if type_a else [BudgetComponent(STATISTICAL, meas.brdf_std, "A", "none")] + comps
         adequacy = adequacy_test(result, meas, pointwise, J, r, drdy, refine=chi2_refiner(result, meas),
-                                 angles=budget.angles)
+                                 angles=per_point(budget.angles))
     # lines of known mean (a systematic of known sign left in the data): the parameters' expected
     # shift, mean x G value, which the fit document's values are corrected by (GUM 3.2.4)
     known = np.zeros(P)
@@ -507,7 +439,7 @@ def propagate(result, meas, budget: Budget, u_stat: np.ndarray, cov_stat: np.nda
         var[c.name] = np.diag(cov).copy()
         cov_b += cov
     bias2 = None
-    shared = np.asarray((budget.angles or {}).get("shared", np.zeros((0,) + use.shape[:1] + (4,))), float)
+    shared = np.asarray((per_point(budget.angles) or {}).get("shared", np.zeros((0,) + use.shape[:1] + (4,))), float)
     if shared.size:
         # the shared angle errors' quadratic term (second_order): a narrow lobe's fit answers a
         # tilted normal by broadening whichever way it tilted, and a measured sigma reweighs the
