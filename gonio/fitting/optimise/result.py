@@ -232,11 +232,14 @@ def loss_jacobian(problem, x, loss, rel_step=1e-5):
     return J, r0
 
 
-def objective_hessian(problem, x, loss, rel_step=1e-4, at=None):
+def objective_hessian(problem, x, loss, rel_step=1e-4, at=None, definite_only=False):
     """Hessian of (1/2) sum r^2 of ``loss`` at x in natural units, J^T J + sum_k r_k d^2 r_k,
     by forward differences of its exact gradient J^T r (:func:`loss_jacobian`; the step
     points into the box, so a parameter at a bound is differenced from inside), symmetrised:
-    P more Jacobians. ``at``: (J, r) at x where the caller has them already."""
+    P more Jacobians. ``at``: (J, r) at x where the caller has them already.
+    ``definite_only``: None as soon as a leading block is not positive definite by
+    :func:`_positive_definite` (then neither is the whole: Cauchy interlacing), without the
+    remaining columns."""
     space = problem.space
     J0, r0 = loss_jacobian(problem, x, loss) if at is None else at
     g0 = J0.T @ r0
@@ -251,6 +254,10 @@ def objective_hessian(problem, x, loss, rel_step=1e-4, at=None):
         xv[j] = x[j] + h
         Jv, rv = loss_jacobian(problem, xv, loss)
         H[:, j] = (Jv.T @ rv - g0) / (xv[j] - x[j])
+        if definite_only and np.all(np.isfinite(H[:j + 1, :j + 1])):
+            lead = H[:j + 1, :j + 1]
+            if not _positive_definite(0.5 * (lead + lead.T)):
+                return None
     if not np.all(np.isfinite(H)):
         raise FloatingPointError("non-finite Hessian at the optimum")
     return 0.5 * (H + H.T)
@@ -314,7 +321,7 @@ def robust_covariance(result, meas, problem):
     rows = np.nonzero(meas.use)[0]
     clusters = rows if meas.cluster is None else np.unique(meas.cluster[rows], return_inverse=True)[1]
     try:
-        H = objective_hessian(problem, result.x, result.loss, at=(J, r))
+        H = objective_hessian(problem, result.x, result.loss, at=(J, r), definite_only=True)
     except FloatingPointError:
         H = None
     bread = "Hessian" if H is not None and _positive_definite(H) else "Gauss-Newton J^T J"
