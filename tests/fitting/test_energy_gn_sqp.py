@@ -200,3 +200,26 @@ def test_gn_sqp_rejects_trial_points_that_are_not_finite():
     res = gn_sqp(np.array([0.3, 0.3]), normal, lambda u: np.nan if u[0] > 0.6 else cost(u), constraints)
     assert np.all(np.isfinite(res.u)) and np.isfinite(res.cost)
     assert res.u[0] + res.u[1] <= 1.0 + 1e-6
+
+
+def test_gn_sqp_evaluation_cap_is_not_converged():
+    """The safety net: stopped by its evaluation cap, it says so and does not claim convergence."""
+    normal, cost, constraints = _plane(np.array([0.8, 0.9]))
+    res = gn_sqp(np.array([0.05, 0.05]), normal, cost, constraints, maxeval=1)
+    assert not res.converged and "evaluation cap" in res.message and res.n_eval == 1
+
+
+def test_gn_sqp_refuses_a_start_that_is_not_a_number():
+    normal, cost, constraints = _plane(np.array([0.8, 0.9]))
+    with pytest.raises(FloatingPointError, match="not finite"):
+        gn_sqp(np.array([np.nan, 0.5]), normal, cost, constraints)
+
+
+@pytest.mark.parametrize("maxeval", [0, -5, np.inf, np.nan])
+def test_polish_energy_takes_any_budget(white, maxeval):
+    """A budget of 0 or below: no trial point, not converged, the scaled start or better,
+    albedo <= 1; an infinite or NaN one: GN_SQP_MAXEVAL."""
+    problem, free, wo = white
+    x, _, converged, message = polish_energy(problem, free.x, wo, maxeval)
+    assert float(np.max(problem.albedo_excess(x, wo))) <= 1e-4
+    assert converged == (np.isinf(maxeval) or np.isnan(maxeval)), message

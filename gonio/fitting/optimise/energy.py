@@ -45,10 +45,12 @@ def polish_energy(problem, x0, energy_wo, maxeval):
     normal, cost = least_squares_functions(problem)
     constraints = albedo_constraints(quad, margin)
 
+    # the caller's evaluation budget, at most GN_SQP_MAXEVAL trial points a round
+    cap = int(min(max(float(maxeval), 0.0), GN_SQP_MAXEVAL)) if np.isfinite(float(maxeval)) else GN_SQP_MAXEVAL
     u, res, n_eval = u0, None, 0
     for _ in range(3):
         try:
-            res = gn_sqp(u, normal, cost, constraints, maxeval=min(int(maxeval), GN_SQP_MAXEVAL))
+            res = gn_sqp(u, normal, cost, constraints, maxeval=cap)
         except (QPError, FloatingPointError, np.linalg.LinAlgError) as exc:
             x, note = scale_to_feasible(problem, space.from_unit(u0), energy_wo)
             reason = " ".join(str(exc).split())[:120] or type(exc).__name__
