@@ -1,7 +1,7 @@
 """``--model auto`` on a measured material: screen on a subsample, choose by pixels, refit once.
 
-Every candidate (and the data-driven ``tabulated`` model, with and without its tabulated body
-factor, where none renders well enough) is
+Every candidate (and the data-driven ``tabulated`` model where none renders well enough, and
+its tabulated body where that renders closer by more than the noise) is
 fitted to a seeded random subsample of :data:`SCREEN_POINTS` samples, one local refinement
 each (:func:`screen`); the ranking by BIC is the subsample's. The choice is
 :func:`gonio.fitting.selection.by_pixels.pixel_choice`'s: the simplest proper candidate that
@@ -79,11 +79,15 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
     sub = subsample(meas, n, np.random.default_rng([int(seed), 351]))
     _, ranking = screen(sub, rng=rng, loss=loss, candidates=candidates, progress=progress)
 
-    def fallback():     # tabulated, and its body="table" variant started from it (nested: no worse a fit)
+    def fallback():     # tabulated; its body="table" variant, started from it (nested), where it renders closer
         kw = dict(loss=loss, n_starts=0, n_local=1, covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)
         plain = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 16]), **kw)
-        return [plain, fit_tabulated(sub, rng=np.random.default_rng([int(seed), 17]), body="table",
-                                     start=plain.params, **kw)]
+        body = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 17]), body="table", start=plain.params, **kw)
+        try:
+            (de_p, noise_p), (de_b, noise_b) = (check.delta_e(r.model, r.params) for r in (plain, body))
+        except FloatingPointError:      # not finite at the scene's pairs: pixel_choice scores it so
+            return [plain]
+        return [plain] + ([body] if de_p - de_b > noise_p + noise_b else [])
 
     check = PixelCheck(measured, scene=scene, size=size, k=k, seed=seed)
     chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
