@@ -24,6 +24,7 @@ from gonio.core import atomic, geometry  # noqa: F401  (public as gonio.models.g
 # the catalogue registers its models on import
 from gonio.models.catalogue import cooktorrance as _cooktorrance  # noqa: F401
 from gonio.models.catalogue import flakepaint as _flakepaint  # noqa: F401
+from gonio.models.catalogue import gratingpaint as _gratingpaint  # noqa: F401
 from gonio.models.catalogue import lambertian as _lambertian
 from gonio.models.catalogue import orennayar as _orennayar
 from gonio.models.catalogue import principled as _principled
