@@ -16,7 +16,7 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting import Measurements
-from gonio.fitting.selection.by_data import CANDIDATES, SPECTRAL, candidates_for, goniochromism
+from gonio.fitting.selection.by_data import CANDIDATES, GONIOCHROMIC, SPECTRAL, candidates_for, goniochromism
 
 from _simdata import simulate
 
@@ -67,16 +67,18 @@ def test_the_chi2_is_calibrated_without_the_floor():
 
 def test_power_on_an_iridescent_paint_and_its_candidates():
     """Flagged in every one of 60 seeds (measured 2026-12-04: 200 of 200, chi^2 / dof about 3);
-    its candidates then hold the flake paint (``SPECTRAL``), all four option sets. Power
+    its candidates then hold the flake paint (``SPECTRAL``), all four option sets, and the
+    grating paint (both distributions). Power
     falls off with the contrast: spreads (0.2, 0.3, 0.4) were flagged in 0 of 200 seeds at
     this noise and point count (the floor allows 5 % of each value)."""
     for seed in range(60):
         g = goniochromism(_data(IRIDESCENT, [37, seed]))
         assert g.goniochromic, (seed, g)
     meas = _data(IRIDESCENT, [37, 0])
-    assert len(SPECTRAL) == 4 and candidates_for(meas) == CANDIDATES + SPECTRAL
-    meas.attrs["isotropic"] = True          # an RGL or MERL file: no anisotropic candidates, the paint kept
-    assert candidates_for(meas) == CANDIDATES + SPECTRAL
+    assert len(SPECTRAL) == 4 and len(GONIOCHROMIC) == 6 and candidates_for(meas) == CANDIDATES + GONIOCHROMIC
+    assert {n for n, _ in GONIOCHROMIC} == {"flakepaint", "gratingpaint"}
+    meas.attrs["isotropic"] = True          # an RGL or MERL file: no anisotropic candidates, the paints kept
+    assert candidates_for(meas) == CANDIDATES + GONIOCHROMIC
 
 
 def test_hostile_and_degenerate_data_show_nothing():
@@ -128,7 +130,7 @@ def test_auto_recovers_the_flake_paint_from_a_simulated_sample(tmp_path):
     sigma = 0.02 * f + 1e-3
     meas = Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool))
     todo = candidates_for(meas)
-    assert todo == CANDIDATES + SPECTRAL
+    assert todo == CANDIDATES + GONIOCHROMIC
     best, ranking = select(meas, rng=np.random.default_rng(0), candidates=todo)
     assert best.model.name == "flakepaint", [(r.name, r.options, round(r.delta_bic)) for r in ranking[:4]]
     assert best.model.options["spread"] == "wavelength", [(r.name, r.options, round(r.delta_bic)) for r in ranking[:4]]

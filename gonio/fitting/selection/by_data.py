@@ -12,7 +12,8 @@ Anisotropic candidates (a model's ``anisotropic`` option) are offered only where
 shows azimuthal structure (:func:`azimuthal_structure`): points that an isotropic BRDF
 makes equal (the same theta_i, theta_o and |phi_o - phi_i|, at different azimuths phi_i)
 differ beyond their noise. The ``spectral_candidate`` models (flakepaint) join on spectral
-data, and on RGB data whose colours are not a mixture of two (:func:`goniochromism`).
+data, and with the ``goniochromic_candidate`` ones (gratingpaint) on RGB data whose colours
+are not a mixture of two (:func:`goniochromism`).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from gonio.core.sides import Side, side_of
 
 from gonio.fitting.optimise.mle import fit
 
-__all__ = ["CANDIDATES", "ANISOTROPIC", "SPECTRAL", "Azimuthal", "Goniochromism", "azimuthal_structure",
+__all__ = ["CANDIDATES", "ANISOTROPIC", "SPECTRAL", "GONIOCHROMIC", "Azimuthal", "Goniochromism", "azimuthal_structure",
            "goniochromism", "Ranked", "option_candidates", "select", "candidates_for"]
 
 #: (name, options) tried by ``--model auto``, simplest first (fewest parameters): every
@@ -85,14 +86,14 @@ def _anisotropic_candidates():
 ANISOTROPIC = _anisotropic_candidates()
 
 
-def _spectral_candidates():
-    """Every registered model that declares ``spectral_candidate`` (a colour that changes with
-    angle needs a spectrum to be told from a fixed colour: flakepaint), one per declared
-    option combination, simplest first."""
+def _spectral_candidates(flag="spectral_candidate"):
+    """Every registered model that declares ``flag`` (``spectral_candidate``: a colour that
+    changes with angle needs a spectrum to be told from a fixed colour: flakepaint), one per
+    declared option combination, simplest first."""
     out = []
     for name in gm.names():
         cls = type(gm.get(name))
-        if not getattr(cls, "spectral_candidate", False):
+        if not getattr(cls, flag, False):
             continue
         combos = [{}]
         for key, values in cls.OPTIONS.items():
@@ -105,6 +106,9 @@ def _spectral_candidates():
 
 #: the candidates ``--model auto`` adds on spectral data (``attrs["wavelengths_nm"]``)
 SPECTRAL = _spectral_candidates()
+#: ... and on goniochromic RGB data: SPECTRAL and the RGB-only ``goniochromic_candidate`` models
+#: (gratingpaint: diffraction rings)
+GONIOCHROMIC = SPECTRAL + _spectral_candidates("goniochromic_candidate")
 
 #: :func:`azimuthal_structure`'s false-alarm probability on isotropic data whose sigma is
 #: right (the chi^2 test's size; the relative floor below only lowers it)
@@ -223,15 +227,18 @@ def candidates_for(meas):
     (:func:`azimuthal_structure`; never for data from a format that holds an isotropic BRDF,
     ``attrs["isotropic"]``: RGL, MERL); on spectral data (``attrs["wavelengths_nm"]``) the
     ``spectral_candidate`` models too (`SPECTRAL`), and on RGB data that shows a colour changing
-    with angle (:func:`goniochromism`); the transmission models when any used point lies on the
+    with angle (:func:`goniochromism`) those and the RGB-only ``goniochromic_candidate`` ones
+    (`GONIOCHROMIC`); the transmission models when any used point lies on the
     transmitted side (a reflection model predicts 0 there, so it cannot explain those points
     and is not offered)."""
     used = np.asarray(meas.use).any(axis=1)
     side = side_of(np.asarray(meas.wi)[used, 2], np.asarray(meas.wo)[used, 2])
     if np.any(side == 1):
         return _transmission_candidates()
-    spectral = meas.attrs.get("wavelengths_nm") or goniochromism(meas).goniochromic
-    base = CANDIDATES + SPECTRAL if spectral else CANDIDATES
+    if meas.attrs.get("wavelengths_nm"):
+        base = CANDIDATES + SPECTRAL
+    else:
+        base = CANDIDATES + GONIOCHROMIC if goniochromism(meas).goniochromic else CANDIDATES
     if meas.attrs.get("isotropic"):     # a format that holds an isotropic BRDF (RGL, MERL): only noise to see
         return base
     return base + ANISOTROPIC if azimuthal_structure(meas).anisotropic else base

@@ -188,6 +188,10 @@ class FlakePaint(Model):
         p["flake_alpha"] = np.full(self.n_channels(p), float(p["flake_alpha"]))
         return p
 
+    def _bsdf_maker(self):
+        """The factory of this model's Python BSDF (a derived model derives its twin)."""
+        return _make_bsdf
+
     def to_mitsuba(self, params):
         """The Python BSDF ``gonio_flakepaint``: each colour (and a spread per wavelength) as
         :func:`gonio.models.base.rgb` writes it (an ``rgb``, or a spectral fit's ``spectrum``)."""
@@ -195,7 +199,7 @@ class FlakePaint(Model):
         from gonio.models.mitsuba.plugins import add_plugin, ensure_registered
 
         p = self.validate(params)
-        add_plugin(self.name, _make_bsdf)
+        add_plugin(self.name, self._bsdf_maker())
         d = {"type": ensure_registered(self.name), "distribution": self.options["distribution"]}
         for name in ("diffuse_reflectance", "specular_reflectance", "haze_reflectance", "flake_reflectance"):
             d[name] = rgb(p[name])

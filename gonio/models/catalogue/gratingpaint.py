@@ -1,0 +1,183 @@
+"""Model ``gratingpaint``: a flake paint whose flakes carry a diffraction grating (rings of colour).
+
+    f_r = flakepaint's f_r + rho_g[c] R_c(q) / (4 (cos_i cos_o)^p),   q = |wi_perp + wo_perp|,
+    R_c(q) = sum_lambda M_c(lambda) sum_{m=1..3} exp(-(q - m lambda / period)^2 / (2 w^2))
+
+Holographic (diffractive) flakes are mirror platelets embossed with a grating. Order m leaves a
+grating of period Lambda where the in-plane momentum transfer q (in units of 2 pi / lambda)
+equals m lambda / Lambda (the grating equation; Stam 1999, diffraction shaders, sec. 3); flakes
+turned every way about the normal make each order a ring about the mirror direction, the
+flakes' tilt and the gratings' finite size blur it (width w in q, Stam's Gaussian window).
+Each wavelength's rings enter RGB through the CIE 1931 2-degree colour matching functions and
+the sRGB primaries (CIE 015:2018; IEC 61966-2-1), their negative lobes clipped (f_r >= 0),
+an equal-energy spectrum white: the colour cycles blue -> red with q, as RGL's
+irid_flake_paint2 does (docs/performance.md). RGB only (three channels). Offered by
+``--model auto`` on goniochromic RGB data (``goniochromic_candidate``). Mitsuba twin: the Python
+BSDF ``gonio_gratingpaint``, flakepaint's with the rings added (``*_rgb`` variants).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from gonio.models.base import Parameter, register
+from gonio.models.catalogue.flakepaint import FlakePaint, _make_bsdf
+
+__all__ = ["GratingPaint", "rgb_weights", "rings"]
+
+#: wavelengths (nm) of the spectral sum and the diffraction orders summed
+WAVELENGTHS = np.arange(400.0, 701.0, 10.0)
+ORDERS = (1, 2, 3)
+
+
+@functools.lru_cache(maxsize=1)
+def rgb_weights() -> np.ndarray:
+    """(len(WAVELENGTHS), 3): linear sRGB of each wavelength (CIE 1931 2-degree CMFs, the sRGB
+    XYZ -> RGB matrix; colour-science), negatives clipped, each column summing to 1."""
+    import colour
+
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    xyz = np.array([cmfs[w] for w in WAVELENGTHS])
+    m = np.clip(xyz @ np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB).T, 0.0, None)
+    return m / m.sum(axis=0, keepdims=True)
+
+
+def rings(q, period_um, width, grad=False):
+    """R(q) (N, 3) for q (N,), with (grad) dR/dperiod and dR/dwidth."""
+    q = np.asarray(q, float)[:, None]
+    lam = WAVELENGTHS[None, :] * 1e-3 / period_um          # q of the first order, per wavelength
+    R = dP = dW = 0.0
+    for m in ORDERS:
+        d = q - m * lam
+        g = np.exp(-0.5 * (d / width) ** 2)
+        R = R + g
+        if grad:
+            dP = dP + g * (-d / width ** 2) * (m * lam / period_um)
+            dW = dW + g * d * d / width ** 3
+    M = rgb_weights()
+    return (R @ M, dP @ M, dW @ M) if grad else R @ M
+
+
+@register
+class GratingPaint(FlakePaint):
+    """flakepaint plus diffraction rings (see the module).
+
+    Parameters (``params`` keys, beyond flakepaint's with one shared flake spread)
+    -------------------------------------------------------------------------------
+    grating_reflectance : (3,)
+        rho_g, weight of the diffraction orders, in [0, 1].
+    grating_period : float
+        Lambda, in micrometres, in [0.3, 5].
+    grating_width : float
+        w, width of an order in q, in [0.01, 0.5].
+    """
+
+    name = "gratingpaint"
+    OPTIONS = {"distribution": ("ggx", "beckmann"), "spread": ("shared",)}
+    auto_candidate = False
+    spectral_candidate = False
+    #: offered on RGB data that shows goniochromism (fitting.selection.by_data)
+    goniochromic_candidate = True
+    mitsuba_twin = True
+
+    def _parameters(self):
+        return super()._parameters() + (
+            Parameter("grating_reflectance", 0.01, 0.0, 1.0, "1", "weight of the diffraction orders", per_channel=True),
+            Parameter("grating_period", 0.7, 0.3, 5.0, "um", "period of the flakes' grating"),
+            Parameter("grating_width", 0.1, 0.01, 0.5, "1", "width of a diffraction order in q"),
+        )
+
+    def validate(self, params):
+        p = super().validate(params)
+        if self.n_channels(p) != 3:
+            raise ValueError(f"gratingpaint takes RGB (3 channels), not {self.n_channels(p)}: its rings are "
+                             "summed over wavelengths into sRGB")
+        return p
+
+    def _grating(self, wi, wo, p, grad=False):
+        q = np.hypot(wi[:, 0] + wo[:, 0], wi[:, 1] + wo[:, 1])
+        cc = wi[:, 2] * wo[:, 2]
+        ok = (cc > 0.0)[:, None]
+        logcc = np.log(np.where(ok[:, 0], cc, 1.0))[:, None]
+        shape = np.where(ok, np.exp(-p["flake_exponent"] * logcc) / 4.0, 0.0)
+        out = rings(q, p["grating_period"], p["grating_width"], grad)
+        if not grad:
+            return out * shape
+        return tuple(x * shape for x in out) + (logcc,)
+
+    def _eval_parts(self, wi, wo, p):
+        base, lobe = super()._eval_parts(wi, wo, p)
+        return base, lobe + self._grating(wi, wo, p) * p["grating_reflectance"]
+
+    def jacobian_reference(self, wi, wo, params):
+        """flakepaint's (f, J) with the rings added: their colour's column exactly, the period's
+        and width's analytically, and their share of d f / d p."""
+        wi, wo = np.asarray(wi, float), np.asarray(wo, float)
+        p = self.validate(params)
+        f, J = super().jacobian_reference(wi, wo, p)
+        g, dP, dW, logcc = self._grating(wi, wo, p, grad=True)
+        rho = p["grating_reflectance"]
+        J["grating_reflectance"] = g
+        J["grating_period"], J["grating_width"] = dP * rho, dW * rho
+        J["flake_exponent"] = J["flake_exponent"] - logcc * g * rho
+        return f + g * rho, J
+
+    def _bsdf_maker(self):
+        return _make_grating_bsdf
+
+    def to_mitsuba(self, params):
+        """flakepaint's dict for ``gonio_gratingpaint``, with the rings' colour, period and width."""
+        import mitsuba as mi
+
+        from gonio.models.base import rgb
+        from gonio.models.mitsuba import mitsuba_variant
+
+        if "spectral" in (mi.variant() or mitsuba_variant()):
+            raise ValueError(f"gratingpaint renders in an RGB variant, not {mi.variant() or mitsuba_variant()} "
+                             "(its rings are summed into sRGB)")
+        p = self.validate(params)
+        d = super().to_mitsuba(p)
+        d["grating_reflectance"] = rgb(p["grating_reflectance"])
+        d["grating_period"], d["grating_width"] = float(p["grating_period"]), float(p["grating_width"])
+        return d
+
+
+def _make_grating_bsdf(mi, dr, base):
+    """The Mitsuba twin: flakepaint's Python BSDF (its lobes, sampling and pdf) with
+    :meth:`GratingPaint._grating` added in Dr.Jit, in an RGB variant (the rings' sRGB weights
+    are fixed; a spectral variant is refused)."""
+    flake = _make_bsdf(mi, dr, base)
+    weights = rgb_weights()
+
+    class GratingPaintBSDF(flake):
+        def __init__(self, props):
+            if mi.is_spectral:
+                raise ValueError("gonio_gratingpaint renders in an RGB variant (its rings are summed into sRGB)")
+            flake.__init__(self, props)
+            self.rho_g = props.get_texture("grating_reflectance")
+            self.period, self.width = mi.Float(float(props["grating_period"])), mi.Float(float(props["grating_width"]))
+            dr.make_opaque(self.period, self.width)
+
+        def _f(self, si, wo):
+            value = flake._f(self, si, wo)
+            wi_g, wo_g = wo, si.wi                 # gonio: wi toward the light, wo toward the detector
+            cc = mi.Frame3f.cos_theta(wi_g) * mi.Frame3f.cos_theta(wo_g)
+            q = dr.sqrt(dr.square(wi_g.x + wo_g.x) + dr.square(wi_g.y + wo_g.y))
+            r, g, b = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
+            for k, w in enumerate(WAVELENGTHS):
+                ring = mi.Float(0.0)
+                for m in ORDERS:
+                    d = (q - m * float(w) * 1e-3 / self.period) / self.width
+                    ring += dr.exp(-0.5 * d * d)
+                r += float(weights[k, 0]) * ring
+                g += float(weights[k, 1]) * ring
+                b += float(weights[k, 2]) * ring
+            shape = dr.select(cc > 0.0, dr.exp(-self.p * dr.log(dr.select(cc > 0.0, cc, 1.0))) / 4.0, 0.0)
+            return value + self.rho_g.eval(si) * mi.Color3f(r, g, b) * shape
+
+        def to_string(self):
+            return f"GonioGratingPaint[{self.kind}]"
+
+    return GratingPaintBSDF

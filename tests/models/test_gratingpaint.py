@@ -1,0 +1,111 @@
+"""gratingpaint (issue 35): diffraction rings of flakes that carry a grating, and their twin.
+
+References: the grating equation (order m at in-plane momentum transfer q = m lambda / period;
+Stam 1999, diffraction shaders, sec. 3) and the CIE 1931 2-degree colour matching functions
+with the sRGB primaries (colour-science). The twin's eval against the numpy model is also in
+test_mitsuba_agreement's table (every model with ``mitsuba_twin``); here: a wrong ring fails it,
+and a spectral variant is refused.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import gonio.models as gm
+from gonio.models.catalogue.gratingpaint import WAVELENGTHS, rgb_weights, rings
+
+from models_testutil import random_hemisphere
+
+PAINT = {"grating_reflectance": [0.05, 0.03, 0.02], "grating_period": 0.65, "grating_width": 0.1,
+         "flake_exponent": 0.4, "alpha": 0.05, "flake_widen": 0.3, "flake_reflectance": [0.05, 0.07, 0.08]}
+
+
+def test_weights_make_an_equal_energy_spectrum_white_and_are_not_negative():
+    m = rgb_weights()
+    assert m.shape == (WAVELENGTHS.size, 3) and np.all(m >= 0.0)
+    np.testing.assert_allclose(m.sum(axis=0), 1.0, rtol=1e-12)
+    # each channel's centroid where sRGB puts it: R beyond 580 nm, G 520-570, B below 480
+    c = WAVELENGTHS @ m
+    assert c[0] > 580.0 and 520.0 < c[1] < 570.0 and c[2] < 480.0, c
+
+
+@pytest.mark.parametrize("period", [0.65, 1.5])
+def test_first_order_lies_where_the_grating_equation_puts_it(period):
+    """With narrow orders (w 0.005) each channel's first ring peaks at q = lambda_c / period,
+    lambda_c its weights' centroid (an order is a sum of Gaussians in q, one per 10 nm, so the
+    peak sits on one of them): within a quarter of the channel's spread of lambda / period
+    (measured 2026-12-04: at most 0.19); blue inside green inside red."""
+    q = np.linspace(0.2, 1.2 * 700e-3 / period, 20001)
+    R = rings(q, period, 0.005)
+    m = rgb_weights()
+    lam_c = WAVELENGTHS @ m
+    spread = np.sqrt(((WAVELENGTHS[:, None] - lam_c) ** 2 * m).sum(axis=0))
+    first = q < 1.05 * 700e-3 / period       # the second order starts at 2 * 400 nm / period
+    peak = q[first][np.argmax(R[first], axis=0)]
+    assert peak[2] < peak[1] < peak[0], peak
+    assert np.all(np.abs(peak - lam_c * 1e-3 / period) < 0.25e-3 * spread / period), (peak, lam_c)
+
+
+def test_jacobian_is_the_derivative():
+    """jacobian_reference against central differences (step 1e-6): 1e-6 relative to the column's
+    largest value (measured 2e-9)."""
+    model = gm.get("gratingpaint", distribution="beckmann")
+    rng = np.random.default_rng(35)
+    wi, wo = random_hemisphere(rng, 300), random_hemisphere(rng, 300)
+    p = model.validate(PAINT)
+    f, J = model.jacobian_reference(wi, wo, p)
+    np.testing.assert_allclose(f, model.eval_reference(wi, wo, p), rtol=1e-12)
+    for name in ("grating_period", "grating_width", "flake_exponent", "flake_alpha", "haze_alpha"):
+        h = 1e-6
+        num = (model.eval_reference(wi, wo, {**p, name: p[name] + h})
+               - model.eval_reference(wi, wo, {**p, name: p[name] - h})) / (2 * h)
+        assert np.abs(num - J[name]).max() <= 1e-6 * np.abs(num).max(), name
+    step = np.array([1e-3, 0.0, 0.0])
+    num = (model.eval_reference(wi, wo, {**p, "grating_reflectance": p["grating_reflectance"] + step}) - f) / 1e-3
+    np.testing.assert_allclose(num[:, 0], J["grating_reflectance"][:, 0], rtol=1e-9, atol=1e-12)
+
+
+def test_reciprocal_and_zero_below_the_horizon():
+    model = gm.get("gratingpaint", distribution="ggx")
+    rng = np.random.default_rng(36)
+    wi, wo = random_hemisphere(rng, 500), random_hemisphere(rng, 500)
+    p = model.validate(PAINT)
+    np.testing.assert_allclose(model.eval(wi, wo, p), model.eval(wo, wi, p), rtol=1e-12)
+    below = wo * np.array([1.0, 1.0, -1.0])
+    assert np.all(model.eval(wi, below, p) == 0.0)
+
+
+def test_hostile_values_are_refused_in_one_line():
+    """A spectrum (7 channels: the rings are summed into sRGB), a NaN or out-of-box period, a
+    negative width: ValueError in one line."""
+    model = gm.get("gratingpaint")
+    seven = {k: [0.1] * 7 for k in ("diffuse_reflectance", "specular_reflectance", "haze_reflectance",
+                                     "flake_reflectance", "grating_reflectance")}
+    for bad in (seven, {"grating_period": float("nan")}, {"grating_period": 10.0}, {"grating_width": -0.1}):
+        with pytest.raises(ValueError) as info:
+            model.validate(bad)
+        assert "\n" not in str(info.value), bad
+
+
+def test_the_twin_fails_on_a_wrong_ring_and_refuses_a_spectral_variant(monkeypatch):
+    """The twin comparison of test_mitsuba_agreement (1e-5 relative plus the float32 allowance)
+    fails when the numpy rings are 1e-3 off; a spectral variant is refused in one line."""
+    mi = pytest.importorskip("mitsuba")
+    from gonio.models.mitsuba import mitsuba_variant, select_variant
+    from test_mitsuba_agreement import compare
+    import gonio.models.catalogue.gratingpaint as gp
+
+    model = gm.get("gratingpaint", distribution="ggx")
+    n = 20_000 if mitsuba_variant().startswith("llvm") else 500
+    assert compare(model, np.random.default_rng(2), n, 1e-5, n_sets=2)[2] <= 0.0
+    fn = gp.rings
+    monkeypatch.setattr(gp, "rings", lambda *a, **k: fn(*a, **k) * 1.001)
+    assert compare(model, np.random.default_rng(2), n, 1e-5, n_sets=2)[2] > 0.0
+    monkeypatch.undo()
+    if "scalar_spectral" in mi.variants():
+        select_variant()
+        with mi.scoped_set_variant("scalar_spectral"):
+            with pytest.raises(ValueError) as info:
+                model.to_mitsuba(model.validate(PAINT))
+        assert "RGB variant" in str(info.value) and "\n" not in str(info.value)
