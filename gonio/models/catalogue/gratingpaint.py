@@ -1,19 +1,16 @@
 """Model ``gratingpaint``: a flake paint whose flakes carry a diffraction grating (rings of colour).
 
     f_r = flakepaint's f_r + rho_g[c] R_c(q) / (4 (cos_i cos_o)^p),   q = |wi_perp + wo_perp|,
-    R_c(q) = sum_lambda M_c(lambda) sum_{m=1..3} exp(-(q - m lambda / period)^2 / (2 w^2))
+    R_c(q) = sum_lambda M_c(lambda) exp(-(q - lambda / period)^2 / (2 w^2))
 
-Holographic (diffractive) flakes are mirror platelets embossed with a grating. Order m leaves a
-grating of period Lambda where the in-plane momentum transfer q (in units of 2 pi / lambda)
-equals m lambda / Lambda (the grating equation; Stam 1999, diffraction shaders, sec. 3); flakes
-turned every way about the normal make each order a ring about the mirror direction, the
-flakes' tilt and the gratings' finite size blur it (width w in q, Stam's Gaussian window).
-Each wavelength's rings enter RGB through the CIE 1931 2-degree colour matching functions and
-the sRGB primaries (CIE 015:2018; IEC 61966-2-1), their negative lobes clipped (f_r >= 0),
-an equal-energy spectrum white: the colour cycles blue -> red with q, as RGL's
-irid_flake_paint2 does (docs/performance.md). RGB only (three channels). Offered by
-``--model auto`` on goniochromic RGB data (``goniochromic_candidate``). Mitsuba twin: the Python
-BSDF ``gonio_gratingpaint``, flakepaint's with the rings added (``*_rgb`` variants).
+Holographic flakes are mirrors embossed with a grating: order m leaves where the in-plane
+momentum transfer q equals m lambda / period (the grating equation; Stam 1999, sec. 3); flakes
+turned every way make it a ring about the mirror direction, blurred by their tilt and finite
+size (width w). The first order only: a shallow sinusoidal phase grating puts J_m(phi)^2 into
+order m (Goodman, Introduction to Fourier Optics, sec. 4.4). M_c: CIE 1931 2-degree CMFs to
+linear sRGB (colour-science), negative lobes clipped (f_r >= 0), an equal-energy spectrum white.
+RGB only. Offered by ``--model auto`` on goniochromic RGB data (``goniochromic_candidate``).
+Mitsuba twin: ``gonio_gratingpaint``, flakepaint's Python BSDF with the rings (``*_rgb`` only).
 """
 
 from __future__ import annotations
@@ -27,9 +24,9 @@ from gonio.models.catalogue.flakepaint import FlakePaint, _make_bsdf
 
 __all__ = ["GratingPaint", "rgb_weights", "rings"]
 
-#: wavelengths (nm) of the spectral sum and the diffraction orders summed
+#: wavelengths (nm) of the spectral sum and the diffraction orders summed (the first: see the module)
 WAVELENGTHS = np.arange(400.0, 701.0, 10.0)
-ORDERS = (1, 2, 3)
+ORDERS = (1,)
 
 
 @functools.lru_cache(maxsize=1)
