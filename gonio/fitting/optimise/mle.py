@@ -62,7 +62,7 @@ pairs (|rho| >= 0.9) are listed in ``FitResult.correlated``.
 # References:
 # Golub, G. H., Pereyra, V. (1973). The differentiation of pseudo-inverses and nonlinear least
 # squares problems whose variables separate. SIAM J. Numer. Anal. 10(2), 413-432.
-# Kraft, D. (1988). A software package for sequential quadratic programming. DFVLR-FB 88-28.
+# Nocedal, J., Wright, S. J. (2006). Numerical Optimization, 2nd ed., ch. 18 (the energy polish's SQP).
 
 from __future__ import annotations
 
