@@ -65,6 +65,8 @@ PAINT = {"cooktorrance": {"diffuse_reflectance": [0.5, 0.3, 0.1], "specular_refl
          "flakepaint": {"diffuse_reflectance": [0.08, 0.05, 0.02], "specular_reflectance": 0.9, "alpha": 0.02,
                         "eta": 1.5, "haze_reflectance": 0.01, "haze_alpha": 0.05, "flake_reflectance": [0.3, 0.15, 0.05],
                         "flake_alpha": 0.3, "flake_exponent": 0.3, "flake_widen": 0.3}}
+# the same paint with irid_flake_paint2's diffraction rings (issue 35)
+PAINT["gratingpaint"] = {**PAINT["flakepaint"], "grating_reflectance": 0.1, "grating_period": 0.66, "grating_width": 0.1}
 
 EVAL = """
 import sys
@@ -106,16 +108,18 @@ def test_every_registered_model_exports_xml_a_plain_mitsuba_loads_and_says_how_c
             continue
         model = gm.get(name)
         p = {}
-        for par in model.parameters:     # inside the bounds, away from the defaults
-            lo, hi = max(par.lower, -10.0), min(par.upper, 10.0)
-            p[par.name] = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), 3 if par.per_channel else None)
+        if name != "gratingpaint":       # added later: drawing nothing keeps every other model's draws
+            for par in model.parameters:     # inside the bounds, away from the defaults
+                lo, hi = max(par.lower, -10.0), min(par.upper, 10.0)
+                p[par.name] = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), 3 if par.per_channel else None)
         if name in PAINT:                # the models --model auto picks for paints: a paint's values
             p = dict(PAINT[name])
         p = model.validate(p)
         path = tmp_path / f"{name}.xml"
         note = write_mitsuba_document(path, name, dict(model.options), p)
         cases[name] = (model, p, path, note)
-    assert {n for n, c in cases.items() if c[3]} == {"cooktorrance", "orennayar", "tabulated", "flakepaint"}
+    assert {n for n, c in cases.items() if c[3]} == {"cooktorrance", "orennayar", "tabulated", "flakepaint",
+                                                    "gratingpaint"}
     r = subprocess.run([sys.executable, "-c", EVAL, str(tmp_path / "dirs.npy"), "--", *(str(c[2]) for c in cases.values())],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -132,8 +136,9 @@ def test_every_registered_model_exports_xml_a_plain_mitsuba_loads_and_says_how_c
         assert np.all(err <= stated + 5e-4 + 1e-4), (name, err, stated)     # stated to 0.1 %: half of it, + float32
         assert np.all(err >= stated - 5e-4 - 1e-4), (name, err, stated)
         # flakepaint's flake lobe (D / (cos_i cos_o)^p) is no microfacet lobe: its closest native family,
-        # roughplastic, is 17.3 % off in red (measured 2026-12-04); the others are paints' single lobes
-        assert stated.max() < (0.25 if name == "flakepaint" else 0.15), (name, note)
+        # roughplastic, is 17.3 % off in red (measured 2026-12-04), gratingpaint (its rings on top) 16.4 %;
+        # the others are paints' single lobes
+        assert stated.max() < (0.25 if name in ("flakepaint", "gratingpaint") else 0.15), (name, note)
 
 
 def test_convert_prints_the_approximation_and_keeps_gonios_plugin_on_request(tmp_path, capsys):
