@@ -23,9 +23,10 @@ from gonio.core.geometry import angles_deg, finite_directions
 from gonio.core.sides import REFLECTION_ONLY, sides_mask
 from gonio.models.mitsuba import SCENE_VARIANT
 
-from gonio.fitting.render.batch import render_brdf_batch
+from gonio.fitting.render.batch import check_renders_in, render_brdf_batch, renders_in
 
-__all__ = ["DEFAULT_VARIANT", "VirtualGonio", "loop_closure", "render_brdf", "scene_check"]
+__all__ = ["DEFAULT_VARIANT", "VirtualGonio", "check_renders_in", "loop_closure", "render_brdf", "renders_in",
+           "scene_check"]
 
 #: The per-pose scene's variant (:data:`gonio.models.mitsuba.SCENE_VARIANT`: scalar).
 DEFAULT_VARIANT = SCENE_VARIANT
@@ -142,6 +143,7 @@ def render_brdf(model, params, wi, wo, variant: str | None = None):
 
     t0 = time.perf_counter()
     variant = variant or DEFAULT_VARIANT
+    check_renders_in(model, variant)
     if mi.variant() is None:  # scoped_set_variant cannot restore "no variant"
         mi.set_variant(variant)
     with mi.scoped_set_variant(variant):  # Python BSDFs register per variant
@@ -164,7 +166,7 @@ def loop_closure(model, params, meas, variant: str | None = None, n_worst: int =
     """
     rendered, seconds, used_variant = render_brdf_batch(model, params, meas.wi, meas.wo, variant)
     check = scene_check(model, params, meas.wi, meas.wo, n=50, rng=0, variant=used_variant,
-                        scene_variant=DEFAULT_VARIANT)
+                        scene_variant=DEFAULT_VARIANT if renders_in(model, DEFAULT_VARIANT) else used_variant)
     evaluated = model.eval(meas.wi, meas.wo, params)
     floor = 1e-6
     mask = np.abs(evaluated) > floor

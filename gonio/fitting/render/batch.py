@@ -21,7 +21,20 @@ import time
 from gonio.core.geometry import finite_directions
 from gonio.models.mitsuba import divide_cos, eval_cos, in_tangent_frame, select_variant
 
-__all__ = ["render_brdf_batch"]
+__all__ = ["check_renders_in", "render_brdf_batch", "renders_in"]
+
+
+def renders_in(model, variant: str) -> bool:
+    """Whether ``model``'s Mitsuba BSDF runs in ``variant``: every one in the vectorised variants,
+    not those whose plugin gathers tables (``mitsuba_scalar = False``: tabulated) in a scalar one."""
+    return getattr(type(model), "mitsuba_scalar", True) or not str(variant).startswith("scalar")
+
+
+def check_renders_in(model, variant: str) -> None:
+    """ValueError (one line) where ``model`` cannot render in ``variant`` (:func:`renders_in`)."""
+    if not renders_in(model, variant):
+        raise ValueError(f"{model.name} renders in a vectorised Mitsuba variant (llvm_ad_rgb), not {variant}: its "
+                         "plugin gathers tables; give --variant llvm_ad_rgb or leave it out")
 
 
 def render_brdf_batch(model, params, wi, wo, variant: str | None = None):
@@ -52,6 +65,7 @@ def render_brdf_batch(model, params, wi, wo, variant: str | None = None):
     import mitsuba as mi
 
     variant = select_variant(variant)
+    check_renders_in(model, variant)
     wi = finite_directions(wi, "wi")
     wo = finite_directions(wo, "wo")
 

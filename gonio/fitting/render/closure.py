@@ -32,6 +32,13 @@ def render_closure(fit_path: Path, meas, out_dir: Path, variant=None) -> dict:
     if not fit_path.exists():
         raise GonioError(f"fit file {fit_path} does not exist; run `gonio fit DATASET --out FIT.json` first")
     model, params = load_fit_file(fit_path)
+    from gonio.fitting.render.batch import check_renders_in
+    from gonio.models.mitsuba import select_variant
+
+    try:
+        check_renders_in(model, select_variant(variant))
+    except ValueError as exc:
+        raise GonioError(str(exc)) from None
     result = loop_closure(model, params, meas, variant=variant)
     result["provenance"] = provenance(fit_path, meas)
     from gonio.core.preflight import writing

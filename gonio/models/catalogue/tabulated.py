@@ -329,6 +329,9 @@ class Tabulated(Model):
     #: not a ``--model auto`` candidate: it fits well only from a data-driven start
     #: (``fit_tabulated``), not from declared defaults (module notes)
     auto_candidate = False
+    #: its Mitsuba plugin gathers tables, which Dr.Jit's scalar variants cannot: it renders in
+    #: the vectorised ones (llvm_ad_rgb) only (gonio.fitting.render reads this)
+    mitsuba_scalar = False
     #: ``model.eval`` stays on the numpy reference at every size: the compiled kernel
     #: (values only, :func:`_jit_kernel`) serves the fit's resident evaluations
     compiled_min_pairs = 1 << 62
