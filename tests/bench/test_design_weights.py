@@ -125,3 +125,37 @@ def test_open_dataset_says_the_bad_design_weight_in_one_line(tmp_path):
     with pytest.raises(GonioError, match=VARIABLE) as err:
         open_dataset(_dataset(tmp_path / "bad.nc", [1.0, np.nan, 3.0]))
     assert len(str(err.value).splitlines()) == 1
+
+
+@pytest.mark.long       # a 12-point adaptive capture on the simulator and its export: about 10 s
+def test_an_adaptive_capture_exports_its_design_weights(tmp_path):
+    """The adaptive plan's dataset.nc carries design_weight (sr^2, summing to the measure, the
+    same for the same seed, equal to the weights of its points); design_weights = false leaves
+    it out."""
+    sim = pytest.importorskip("gonio.sim")
+    from gonio.bench.dataset.export import export
+    from gonio.bench.session.capture import capture
+    from gonio.bench.settings import default_settings
+
+    settings = default_settings()
+    sample = {"model": "roughplastic", "options": {"distribution": "ggx"},
+              "params": {"diffuse_reflectance": [0.6, 0.4, 0.2], "alpha": 0.15}}
+    got = []
+    for k, table in enumerate(({"name": "adaptive", "points": 12, "seed": 4},
+                               {"name": "adaptive", "points": 12, "seed": 4},
+                               {"name": "adaptive", "points": 12, "seed": 4, "design_weights": False})):
+        inst = sim.Instrument(settings, sample=sample, seed=4).register(f"weights-{k}")
+        try:
+            capture(tmp_path / f"s{k}", load_plan("quick"), settings, inst.url("zaber"), inst.url("meter"),
+                    inst.url("camera"), seed=4, progress=False, sleep=inst.clock.advance,
+                    sample_truth=inst.sample_spec, strategy=table)
+        finally:
+            inst.unregister()
+        with xr.open_dataset(export(tmp_path / f"s{k}")) as ds:
+            got.append(None if VARIABLE not in ds else (ds[VARIABLE].values.copy(), ds[VARIABLE].attrs["units"],
+                                                        np.stack([ds[a].values for a in ("theta_i", "phi_i",
+                                                                  "theta_o", "phi_o")], 1)))
+    w, units, angles = got[0]
+    assert units == "sr^2" and len(w) == 12 and w.sum() == pytest.approx(REFERENCE_SR2, rel=1e-12)
+    assert np.array_equal(w, got[1][0]) and np.array_equal(w, design_weights(*_dirs(angles)))
+    assert got[2] is None
