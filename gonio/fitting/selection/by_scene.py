@@ -249,7 +249,7 @@ def rendered_choice(ranking, measured=None, *, scene="product-shot", size=32, sp
     by_bic = next(r for r in ranking if r.chosen)
     best = min(ranking, key=lambda r: r.bic)
     rows = [r for r in ranking if r.k <= by_bic.k]
-    try:    # a reference without a Mitsuba twin (flakepaint) cannot be rendered: BIC's choice stands
+    try:    # a reference Mitsuba cannot render (no twin, or not in this variant): BIC's choice stands
         reference = measured if measured is not None else best.result.model.to_mitsuba(best.result.params)
         ranked = rank_in_scene([r.result for r in rows], reference, scene, size=size, spp=spp, seed=seed,
                                threshold=threshold, variant=variant, progress=progress)
