@@ -151,9 +151,9 @@ def _certificate(settings: Mapping, brdf: np.ndarray) -> tuple | None:
 def spectral_budget(rows: list, settings: Mapping, cell: np.ndarray, brdf: np.ndarray) -> dict:
     """The budget variables of a spectral dataset (docs/interfaces.md 5.1) on (point, wavelength):
     ``u_<component>`` and ``u_combined`` from the rows' Bayer-channel budget (module comment),
-    the certificate per wavelength (:func:`_certificate`) and the angle shifts per geometry (its
-    first-measured row's: the stage does not move between a geometry's wavelengths when
-    wavelength is the fastest axis). ``cell`` (R, 2): each row's (point, wavelength) index;
+    the certificate per wavelength (:func:`_certificate`) and the angle shifts per geometry (the
+    stage does not move between a geometry's wavelengths when wavelength is the fastest axis) or
+    per visit (:func:`_angles_per_geometry`). ``cell`` (R, 2): each row's (point, wavelength) index;
     ``brdf`` (n, m) the combined values. ValueError for a line this layout cannot carry."""
     from gonio.bench.dataset.budget import BUDGET_FORMAT, budget_variables
 
@@ -209,12 +209,11 @@ def spectral_budget(rows: list, settings: Mapping, cell: np.ndarray, brdf: np.nd
 
 def _angles_per_geometry(rows, rgb: dict, point: np.ndarray, n: int, wavelength: np.ndarray, m: int) -> dict:
     """The angle variables on the n geometries, each geometry's first-measured row's. Where the
-    stage revisited geometries (wavelength the slowest axis) each visit has its own move errors:
-    the per-move variables (``angle_shift_independent`` and its labels) then gain a
-    ``wavelength`` dimension, each (point, wavelength) cell its own row's, 0 and label -1 where a
-    cell was not measured (it has no value to move). The shared ones stay the first visit's: per
-    visit (its lost-motion signs) they over-covered the red lacquer (chi-square 22-105 on 114
-    dof, seeds 0-3, with the sim's backlash 0 as well), for a reason not yet found."""
+    stage revisited geometries (wavelength the slowest axis) each visit has its own move errors
+    and lost-motion signs: every angle variable then gains a ``wavelength`` dimension, each
+    (point, wavelength) cell its own row's, 0 and label -1 where a cell was not measured (it has
+    no value to move). The shared inputs stay one error each across all cells
+    (gonio.fitting.uncertainty.budget.angle_components keeps them ``full``)."""
     if "angle_shift_shared" not in rgb:
         return {}
     t = np.array([float(r.get("finished", k)) for k, r in enumerate(rows)], float)
@@ -234,13 +233,11 @@ def _angles_per_geometry(rows, rgb: dict, point: np.ndarray, n: int, wavelength:
             continue
         dims, v, attrs = rgb[name]
         attrs, v = dict(attrs), np.asarray(v)
-        per_visit = moved and name in per_move
         if "source" in attrs:
             attrs["source"] += ("; per (point, wavelength): the stage revisited geometries between wavelengths, "
-                                "each visit with its own move errors" if per_visit else
-                                "; per geometry, its first visit's" if moved else
+                                "each visit with its own move errors" if moved else
                                 "; per geometry (the angles do not depend on the wavelength)")
-        if per_visit:
+        if moved:
             grid = np.full((v.shape[0], n, m) + v.shape[2:], -1 if v.dtype.kind in "iu" else 0.0, dtype=v.dtype)
             grid[:, point, wavelength] = v
             out[name] = ((dims[0], dims[1], "wavelength") + tuple(dims[2:]), grid, attrs)

@@ -312,8 +312,9 @@ def angle_components(result, meas, angles: dict) -> list:
             value = value + (irr if irr.ndim == 3 else irr[:, :, None]) * f[None]
         groups = angles.get("independent_groups") if key == "independent" else None
         if groups is None:
-            # per (point, wavelength) visits without move labels: every value its own error
-            out.append(BudgetComponent(name, value, "B", "none" if d.ndim == 4 else corr,
+            # per (point, wavelength) visits without move labels: every value its own error; the
+            # shared inputs stay one error each, whatever cells they move ('full')
+            out.append(BudgetComponent(name, value, "B", "none" if d.ndim == 4 and key == "independent" else corr,
                                        f"angle uncertainty ({key}) x the local slope of the fitted f_r"))
             continue
         # one error per move of each axis: the points taken without moving it share it
