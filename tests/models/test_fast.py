@@ -492,8 +492,9 @@ def test_values_only_kernel_refuses_derivatives_and_the_fit_takes_the_models_own
     """tabulated's kernel gives values only (``structure.derivatives = False``): its
     derivatives are refused, not returned as zeros (AD cannot see through its numpy tables),
     and the fit's evaluator runs the kernel for values and takes the Jacobian from the model's
-    own exact numpy derivatives (``jacobian_reference``); a model with neither gets None (the
-    fit differences)."""
+    own exact numpy derivatives (``jacobian_host``: the chain rule through the tables, which
+    test_tabulated holds to ``jacobian_reference``); a model with neither gets None (the fit
+    differences)."""
     from gonio.fitting.likelihood.problem import Evaluator
 
     m = gm.get("tabulated")
@@ -507,7 +508,7 @@ def test_values_only_kernel_refuses_derivatives_and_the_fit_takes_the_models_own
         _fast.value_and_grad(m, wi, wo, p, np.ones((600, 3)))
     ev = Evaluator(m, wi, wo, 3)
     f, J = ev.jacobian(p)
-    f_ref, J_ref = m.jacobian_reference(wi, wo, p)
+    f_ref, J_ref = m.jacobian_host(wi, wo, p)
     assert ev.fast and np.array_equal(f, f_ref) and all(np.array_equal(J[k], J_ref[k]) for k in J_ref)
     np.testing.assert_allclose(ev(p), m.eval_reference(wi, wo, p), rtol=1e-10, atol=1e-300)
     slab = gm.get("roughslab")                  # numpy path, no derivatives of its own: differenced

@@ -125,7 +125,7 @@ class Evaluator:
             self.n_evals += 1
             return self._layered_jacobian(params)
         if not self.fast or not self.model.structure.derivatives:
-            host = getattr(self.model, "jacobian_reference", None)
+            host = getattr(self.model, "jacobian_host", None) or getattr(self.model, "jacobian_reference", None)
             if host is None:
                 return None
             self.n_evals += 1

@@ -477,6 +477,13 @@ class Tabulated(Model):
                     J[f"ndf_tilt_{name}_{kk}"] = col
         return f, J
 
+    def jacobian_host(self, wi, wo, params):
+        """:meth:`jacobian_reference`'s (f_r, J) by the chain rule through the tables, what the
+        fit calls (:func:`gonio.models.engine.tabulated_jacobian.jacobian`)."""
+        from gonio.models.engine.tabulated_jacobian import jacobian
+
+        return jacobian(self, wi, wo, params)
+
     def _lobe_distribution(self, p):
         """Node placement for :func:`gonio.models.physics.albedo.albedo`'s lobe quadrature: the GGX
         width with the same median microfacet inclination under D cos(theta) dm (for GGX
