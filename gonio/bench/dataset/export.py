@@ -89,6 +89,8 @@ def to_dataset(session_dir, chart=None, attrs=None):
         coords, data, monitor, point_s = spectral_variables(doc, rows)
         attrs = {**_attributes(doc, rows, n_plan, monitor, None, None, stopped),
                  **_instrument_time(point_s, preparations)}
+        if isinstance(doc["settings"].get("aperture"), dict):      # the apertures a fit averages over
+            attrs.update(instrument_response(doc["settings"]))
         ds = cf_encode(xr.Dataset(data, coords=coords, attrs=attrs), doc, folder.name, attrs=global_attrs)
         ds.attrs["colour_space"] = SPECTRAL_SPACE
         ds["wavelength"].encoding["_FillValue"] = None     # CF 2.5.1: a coordinate variable has none
