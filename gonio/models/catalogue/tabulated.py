@@ -242,7 +242,7 @@ def table_derivatives(ln_d):
     dlnz = (zw @ basis) / z[:, None]                            # (C, K)
     aw = d_m * (np.sin(theta_m) * w)
     area = aw @ _KERNEL.T / z[:, None]                          # (C, N_G)
-    darea = np.einsum("cm,nm,mk->cnk", aw, _KERNEL, basis) / z[:, None, None] - area[:, :, None] * dlnz[:, None, :]
+    darea = ((aw[:, None, :] * _KERNEL[None]) @ basis) / z[:, None, None] - area[:, :, None] * dlnz[:, None, :]
     cos_t = np.cos(_theta_g())
     cos_t[-1] = 0.0
     g1 = cos_t[None, :] / area
