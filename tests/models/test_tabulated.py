@@ -304,7 +304,8 @@ def test_chain_rule_jacobian_matches_reference(seed, body):
     """``jacobian_host`` (the chain rule through the tables, what the fit calls) against the
     dense ``jacobian_reference``: the same derivatives summed in another order, so they agree
     to rounding (4e-16 of each column's largest value measured; bound 1e-10), on random pairs,
-    pairs near the peak and degenerate ones (wo = -wi, below the horizon, grazing, normal)."""
+    pairs near the peak and degenerate ones (wo = -wi, below the horizon, grazing, normal, not
+    finite: f = 0 and J = 0 there, as ``eval``)."""
     rng = np.random.default_rng(seed)
     model = gm.get("tabulated", body=body)
     p = realistic_params(model, rng)
@@ -317,6 +318,7 @@ def test_chain_rule_jacobian_matches_reference(seed, body):
     wi[301, 2] = -wi[301, 2]                             # below the horizon
     wi[302], wo[302] = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)  # grazing
     wi[303] = wo[303] = (0.0, 0.0, 1.0)                  # normal, exact specular
+    wi[304, 0], wo[305, 2] = np.nan, np.inf              # not finite: 0, as eval
     f0, J0 = model.jacobian_reference(wi, wo, p)
     f1, J1 = model.jacobian_host(wi, wo, p)
     assert np.array_equal(f1, f0)
@@ -326,3 +328,6 @@ def test_chain_rule_jacobian_matches_reference(seed, body):
         assert np.all(np.isfinite(J1[name])), name
         scale = np.max(np.abs(J0[name])) + 1e-300
         assert np.max(np.abs(J1[name] - J0[name])) <= 1e-10 * scale, name
+        assert not np.any(J1[name][304:306]), name
+    assert not np.any(f1[304:306])
+    np.testing.assert_allclose(f1, model.eval_reference(wi, wo, p), rtol=1e-13, atol=0.0)

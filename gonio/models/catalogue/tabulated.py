@@ -420,13 +420,16 @@ class Tabulated(Model):
         from gonio.models.inputs import eval_inputs
 
         wi, wo, p = eval_inputs(self, wi, wo, params)
+        fin = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
+        if not fin.all():    # 0 at a non-finite pair, as eval; (0, 0, 1) keeps its lookups in range
+            wi, wo = (np.where(fin[:, None], v, (0.0, 0.0, 1.0)) for v in (wi, wo))
         t = tables(p)
         n = wi.shape[0]
         ci, co = wi[:, 2], wo[:, 2]
         with np.errstate(all="ignore"):
             wh, valid = half_vector(wi, wo)
             cd = 0.5 * (np.einsum("ij,ij->i", wi, wh) + np.einsum("ij,ij->i", wo, wh))
-            pair = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1) & sides_mask(self.structure.sides, ci, co)
+            pair = fin & sides_mask(self.structure.sides, ci, co)
             ok = pair & valid & (ci > 0.0) & (co > 0.0) & (wh[:, 2] > 0.0) & (cd > 0.0)
             s_f = (N_FRESNEL - 1) * np.clip(1.0 - cd, 0.0, 1.0)
             w = _interp(t.width, s_f)[:, 0]
