@@ -116,7 +116,8 @@ class Evaluator:
         """(f_r, {parameter: d f_r / d parameter (N, C)}) from the compiled kernel's exact
         derivatives (:func:`gonio.models.fast.jacobian`; one call, counted as one
         evaluation), or the model's own exact numpy derivatives where its kernel gives values
-        only (``jacobian_reference``: tabulated, whose parameters act through host tables);
+        only (``jacobian_host``, else ``jacobian_reference``: tabulated, whose parameters act
+        through host tables);
         None otherwise (the callers then difference). Channels beyond three: in groups of three."""
         if self.grouped is not None:
             self.n_evals += 1
