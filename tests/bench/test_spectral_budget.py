@@ -301,9 +301,9 @@ def test_a_spectral_fit_of_the_lacquer_under_typical_errors_states_the_angles():
     the fit's budget has the angle and certificate lines, alpha's u_c is at least its
     statistical u, and the truth lies within U = 2 u_c (a ~5 % false alarm for a coverage of
     95 %; before, chi2/dof 1490 against brdf_std alone and the Birge ratio 39 made the interval).
-    Measured, seeds 0-3: z = (alpha - 0.12) / u_c = -0.07, 0.66, 0.60, -0.76, the budget's
-    chi-square p 0.23, 0.46, 0.08, 0.40; before (brdf_std and scale_rel_std, Birge-inflated)
-    z = 0.35, 2.18, 6.23, -0.49."""
+    Measured, seeds 0-3 (the apertures declared, 0dbfc20): z = (alpha - 0.12) / u_c = -0.42,
+    0.30, 0.22, -1.06, the budget's chi-square p 0.25, 0.50, 0.09, 0.50 (201 dof); before the
+    file's budget (brdf_std and scale_rel_std, Birge-inflated) z = 0.35, 2.18, 6.23, -0.49."""
     import tempfile
 
     from gonio.bench.dataset.reader import open_fit_input
