@@ -482,8 +482,8 @@ class Tabulated(Model):
 
     def jacobian_host(self, wi, wo, params):
         """:meth:`jacobian_reference`'s (f_r, J) by the chain rule through the tables, what the
-        fit calls (:func:`gonio.models.engine.tabulated_jacobian.jacobian`)."""
-        from gonio.models.engine.tabulated_jacobian import jacobian
+        fit calls (:func:`gonio.models.catalogue.tabulated_jacobian.jacobian`)."""
+        from gonio.models.catalogue.tabulated_jacobian import jacobian
 
         return jacobian(self, wi, wo, params)
 

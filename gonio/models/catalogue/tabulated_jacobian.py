@@ -19,12 +19,11 @@ import scipy.sparse
 
 from gonio.core.geometry import half_vector
 from gonio.models.base import CHANNELS
-from gonio.models.catalogue import tabulated as tab
 
 __all__ = ["jacobian"]
 
 
-def _ndf_map(p, c):
+def _ndf_map(tab, p, c):
     """d ln D_{c,k} / d parameter (K, P_c) and the parameter names of channel c: the green
     knots ``ndf_k`` (ln of the parameter) and, for red and blue, their tilts (hat functions
     of the knot index, :data:`gonio.models.catalogue.tabulated.TILT_BASIS`)."""
@@ -51,9 +50,12 @@ def jacobian(model, wi, wo, params):
     d f_c / d ln Z_c = -f_lobe; G1 and ln Z depend on the knots through the table derivatives
     (Heitz 2014, eq. 43; Walter et al. 2007, eq. 4).
     """
+    import sys
+
     from gonio.core.sides import sides_mask
     from gonio.models.inputs import eval_inputs
 
+    tab = sys.modules[type(model).__module__]     # the model's own module: no import back into it
     wi, wo, p = eval_inputs(model, wi, wo, params)
     fin = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
     if not fin.all():    # 0 at a non-finite pair, as eval; (0, 0, 1) keeps its lookups in range
@@ -108,11 +110,11 @@ def jacobian(model, wi, wo, params):
             np.multiply(DG, hat, out=J[f"fresnel_{j}"])
             if j >= 1:
                 np.multiply(lw, hat, out=J[f"width_{j}"])
-        _ndf_columns(t, p, out, names, (gi, go, ih, th_t), Fr * D_over, Gi, Go, lobe)
+        _ndf_columns(tab, t, p, out, names, (gi, go, ih, th_t), Fr * D_over, Gi, Go, lobe)
     return f, J
 
 
-def _ndf_columns(t, p, out, names, where, FD, Gi, Go, lobe):
+def _ndf_columns(tab, t, p, out, names, where, FD, Gi, Go, lobe):
     """Fill the NDF knots' and tilts' columns of ``out`` (P, N, C): per channel, the sparse
     d f / d entry (N, N_G + K + 1) times the dense d entry / d parameter."""
     gi, go, ih, th_t = where
@@ -128,7 +130,7 @@ def _ndf_columns(t, p, out, names, where, FD, Gi, Go, lobe):
         a, b, lc = FD[:, c] * Go[:, c], FD[:, c] * Gi[:, c], lobe[:, c]
         data = np.stack([a * (1.0 - t_i), a * t_i, b * (1.0 - t_o), b * t_o, lc * (1.0 - th_t), lc * th_t, -lc], axis=1)
         S = scipy.sparse.csr_matrix((data.ravel(), idx.ravel(), indptr), shape=(n, k0 + tab.N_KNOTS + 1))
-        M, cols = _ndf_map(p, c)
+        M, cols = _ndf_map(tab, p, c)
         T = np.vstack([dg1[c], np.eye(tab.N_KNOTS), dlnz[c][None, :]])      # d entry / d ln D_k
         X = S @ (T @ M)                                                     # (N, P_c)
         out[[row[name] for name in cols], :, c] = X.T
