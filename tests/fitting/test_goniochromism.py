@@ -123,28 +123,33 @@ flake_exponent = 0.3
 """
 
 
-@pytest.mark.long
-def test_auto_recovers_the_flake_paint_from_a_simulated_sample(tmp_path):
-    """Held out from the RGL tuning: a sample TOML of the iridescent paint, read as the simulator
-    reads it (load_sample, resolve_sample: the simulator's truth), 600 noisy pairs; ``--model
-    auto``'s candidates hold the flake paint and BIC chooses it with its spread per channel
-    (select's rule: the fewest parameters within 2 of the lowest BIC, Kass & Raftery 1995)."""
+def _auto_on_sample(path, toml, seed):
+    """``--model auto``'s ranking on 600 noisy pairs (2 % + 1e-3) of the sample TOML ``toml``,
+    read as the simulator reads it; the data must be flagged goniochromic."""
     from gonio.bench.samples import load_sample
     from gonio.fitting.selection.by_data import select
     from gonio.sim.physics.sample import resolve_sample
     from _simdata import directions
 
-    path = tmp_path / "irid.toml"
-    path.write_text(IRIDESCENT_TOML)
+    path.write_text(toml)
     truth = resolve_sample(load_sample(path))
-    rng = np.random.default_rng(351)
+    rng = np.random.default_rng(seed)
     wi, wo = directions(rng, 600)
     f = np.asarray(truth.eval(wi, wo), float)
     sigma = 0.02 * f + 1e-3
     meas = Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool))
     todo = candidates_for(meas)
     assert todo == CANDIDATES + GONIOCHROMIC
-    best, ranking = select(meas, rng=np.random.default_rng(0), candidates=todo)
+    return select(meas, rng=np.random.default_rng(0), candidates=todo)
+
+
+@pytest.mark.long
+def test_auto_recovers_the_flake_paint_from_a_simulated_sample(tmp_path):
+    """Held out from the RGL tuning: a sample TOML of the iridescent paint, read as the simulator
+    reads it (load_sample, resolve_sample: the simulator's truth), 600 noisy pairs; ``--model
+    auto``'s candidates hold the flake paint and BIC chooses it with its spread per channel
+    (select's rule: the fewest parameters within 2 of the lowest BIC, Kass & Raftery 1995)."""
+    best, ranking = _auto_on_sample(tmp_path / "irid.toml", IRIDESCENT_TOML, seed=351)
     assert best.model.name == "flakepaint", [(r.name, r.options, round(r.delta_bic)) for r in ranking[:4]]
     assert best.model.options["spread"] == "wavelength", [(r.name, r.options, round(r.delta_bic)) for r in ranking[:4]]
 
@@ -167,21 +172,6 @@ def test_auto_recovers_the_grating_paint_from_a_simulated_sample(tmp_path):
     """Held out from the RGL tuning: a sample TOML of the grating paint (irid_flake_paint2's
     fitted period and width, rounded), read as the simulator reads it, 600 noisy pairs:
     goniochromic, and BIC chooses gratingpaint with the period within 2 %."""
-    from gonio.bench.samples import load_sample
-    from gonio.fitting.selection.by_data import select
-    from gonio.sim.physics.sample import resolve_sample
-    from _simdata import directions
-
-    path = tmp_path / "grating.toml"
-    path.write_text(GRATING_TOML)
-    truth = resolve_sample(load_sample(path))
-    rng = np.random.default_rng(352)
-    wi, wo = directions(rng, 600)
-    f = np.asarray(truth.eval(wi, wo), float)
-    sigma = 0.02 * f + 1e-3
-    meas = Measurements(wi, wo, f + sigma * rng.standard_normal(f.shape), sigma, np.ones(f.shape, bool))
-    todo = candidates_for(meas)
-    assert todo == CANDIDATES + GONIOCHROMIC
-    best, ranking = select(meas, rng=np.random.default_rng(0), candidates=todo)
+    best, ranking = _auto_on_sample(tmp_path / "grating.toml", GRATING_TOML, seed=352)
     assert best.model.name == "gratingpaint", [(r.name, r.options, round(r.delta_bic)) for r in ranking[:4]]
     assert abs(best.params["grating_period"] / 0.66 - 1.0) < 0.02, best.params
