@@ -3,10 +3,9 @@
 Every candidate is fitted with one loss and ranked by the Bayesian information criterion
 BIC = -2 ln L + k ln n (Schwarz 1978) of that same loss (:attr:`FitResult.bic`: chi^2 for the
 chi2 loss, the profiled Gaussian likelihood of the log or cosine residuals, the discrepancy
-likelihood). Among the candidates whose BIC lies within
-``delta`` of the best, the one with the fewest parameters wins: by Kass & Raftery (1995,
-sec. 3.2) a BIC difference below 2 is "not worth more than a bare mention", so the data gives
-no reason to prefer the more complex model.
+likelihood). Among the candidates whose BIC lies within ``delta`` of the best, the one with
+the fewest parameters wins: by Kass & Raftery (1995, sec. 3.2) a BIC difference below 2 is
+"not worth more than a bare mention".
 
 Anisotropic candidates (a model's ``anisotropic`` option) are offered only where the data
 shows azimuthal structure (:func:`azimuthal_structure`): points that an isotropic BRDF

@@ -10,10 +10,9 @@ nearly white reflection and its haze (Ershov, Kolchin & Myszkowski 2001; Guenthe
 Cornell's Cayman lacquer shows the flake lobe as a function of theta_h with little of the
 microfacet 1 / (cos_i cos_o) growth (hence p), widening toward grazing theta_d (w). Option
 ``spread="wavelength"``: one flake spread per wavelength, so the chromaticity shifts with angle.
-Every colour enters f_r linearly. Offered by ``--model auto`` on spectral data and on RGB data
-whose colours are not a mixture of two (``spectral_candidate``; ``selection.by_data.goniochromism``).
-Mitsuba twin: the Python BSDF ``gonio_flakepaint`` (:func:`_make_bsdf`), each colour and a
-per-wavelength spread a Mitsuba spectrum (any variant, ``*_spectral`` included).
+Every colour enters f_r linearly. Offered by ``--model auto`` on spectral and goniochromic RGB
+data (``spectral_candidate``). Mitsuba twin: the Python BSDF ``gonio_flakepaint``
+(:func:`_make_bsdf`), each colour a Mitsuba spectrum (any variant, ``*_spectral`` included).
 """
 
 from __future__ import annotations

@@ -4,8 +4,7 @@ Registered by :func:`gonio.models.mitsuba.plugins.ensure_registered`. The constr
 the model's tables from the plugin's properties with the numpy code of
 :func:`gonio.models.catalogue.tabulated.tables` (ln D knots, the normalisation, the Smith G1
 table derived from D, the Fresnel knots); ``eval`` interpolates them exactly as the numpy model
-does (the same fractional indices, linear interpolation by ``dr.gather``), in float32. Polar
-angles come from ``atan2(|xy|, z)``, well conditioned near the normal where ``acos`` is not.
+does (the same fractional indices, ``dr.gather``), in float32, polar angles by ``atan2(|xy|, z)``.
 With the ``body_j`` properties (option ``body="table"``) the body is rho g(theta_i) g(theta_o) / pi.
 
 Sampling: a mixture of cosine-weighted directions and reflections about microfacet normals m
