@@ -114,3 +114,26 @@ def pytest_collection_modifyitems(session, config, items):
     for chunk, size in zip(chunks, sizes):
         chunk.extend(itertools.islice(fill, max(0, size - len(chunk))))
     items[:] = [it for chunk in chunks for it in chunk] + list(fill)
+
+
+@pytest.fixture
+def flat_sample_luminance():
+    """``render(bsdf, wi, wo, spp=256)``: the luminance a radiance meter toward ``wo`` reads off a
+    flat sample (``bsdf``: a dict or a loaded BSDF) lit by a directional lamp of irradiance 1
+    from ``wi``, direct integrator, in the active Mitsuba variant: f_r cos(theta_i) where every
+    spectrum is flat (the spectral twins' render checks; gonio's VirtualGonio is RGB only)."""
+    def render(bsdf, wi, wo, spp=256):
+        import mitsuba as mi
+        import numpy as np
+
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "direct"},
+            "sample": {"type": "rectangle", "bsdf": bsdf},
+            "lamp": {"type": "directional", "direction": (-wi).tolist(),
+                     "irradiance": {"type": "spectrum", "value": 1.0}},
+            "meter": {"type": "radiancemeter", "origin": (5.0 * wo).tolist(), "direction": (-wo).tolist(),
+                      "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"},
+                               "pixel_format": "luminance"},
+                      "sampler": {"type": "independent", "sample_count": spp}}})
+        return float(np.array(mi.render(scene)).ravel()[0])
+    return render

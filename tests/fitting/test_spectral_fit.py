@@ -57,7 +57,7 @@ def test_spectral_fit_recovers_each_wavelength_and_states_them(tmp_path):
     _renders_in_scalar_spectral(d, loaded, meas)
 
 
-def test_a_spectral_fits_mitsuba_xml_renders_in_scalar_spectral(tmp_path):
+def test_a_spectral_fits_mitsuba_xml_renders_in_scalar_spectral(tmp_path, flat_sample_luminance):
     """`gonio convert FIT --to mitsuba-xml` of a spectral (roughplastic) fit: the file loads in
     scalar_spectral, and a radiance meter over a sample lit by a directional lamp reads
     L = f_r E cos(theta_i) at the fit's own f_r (its wavelengths drawn per sample: 1 % at 256 spp)."""
@@ -80,16 +80,7 @@ def test_a_spectral_fits_mitsuba_xml_renders_in_scalar_spectral(tmp_path):
     ti, to = np.radians(30.0), np.radians(50.0)
     wi, wo = np.array([np.sin(ti), 0.0, np.cos(ti)]), np.array([0.0, np.sin(to), np.cos(to)])    # off the lobe
     with mi.scoped_set_variant("scalar_spectral"):
-        bsdf = mi.load_file(str(tmp_path / "grey.xml"))
-        scene = mi.load_dict({
-            "type": "scene", "integrator": {"type": "direct"},
-            "sample": {"type": "rectangle", "bsdf": bsdf},
-            "lamp": {"type": "directional", "direction": (-wi).tolist(),
-                     "irradiance": {"type": "spectrum", "value": 1.0}},
-            "meter": {"type": "radiancemeter", "origin": (5.0 * wo).tolist(), "direction": (-wo).tolist(),
-                      "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"},
-                               "pixel_format": "luminance"}, "sampler": {"type": "independent", "sample_count": 256}}})
-        value = float(np.array(mi.render(scene)).ravel()[0])
+        value = flat_sample_luminance(mi.load_file(str(tmp_path / "grey.xml")), wi, wo)
         assert isinstance(mi.load_file(str(tmp_path / "fit.xml")), mi.BSDF)
     want = float(model.eval(wi[None], wo[None], grey)[0, 0]) * wi[2]
     assert value == pytest.approx(want, rel=0.01), (value, want)      # measured: 0.21 % (256 wavelength draws)
