@@ -18,6 +18,7 @@ are not a mixture of two (:func:`goniochromism`).
 from __future__ import annotations
 
 import dataclasses
+import zlib
 
 import numpy as np
 from scipy.stats import chi2 as _chi2
@@ -29,7 +30,7 @@ from gonio.core.sides import Side, side_of
 from gonio.fitting.optimise.mle import fit
 
 __all__ = ["CANDIDATES", "ANISOTROPIC", "SPECTRAL", "GONIOCHROMIC", "Azimuthal", "Goniochromism", "azimuthal_structure",
-           "goniochromism", "Ranked", "option_candidates", "select", "candidates_for"]
+           "goniochromism", "Ranked", "candidate_rng", "option_candidates", "select", "candidates_for"]
 
 #: (name, options) tried by ``--model auto``, simplest first (fewest parameters): every
 #: registered model that does not declare ``auto_candidate = False`` (the model declares,
@@ -95,7 +96,8 @@ def _spectral_candidates(flag="spectral_candidate"):
         if not getattr(cls, flag, False):
             continue
         combos = [{}]
-        for key, values in cls.OPTIONS.items():
+        for key, values in cls.OPTIONS.items():     # a ``REFINEMENTS`` value: auto's refinement only
+            values = [v for v in values if (key, v) not in getattr(cls, "REFINEMENTS", ())]
             combos = [{**c, key: v} for c in combos for v in values]
         for opts in combos:
             model = gm.get(name, **opts)
@@ -290,11 +292,22 @@ def _nested_start(model, rows):
     return None
 
 
-def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, **fit_kwargs):
+def candidate_rng(base: int, name: str, options: dict) -> np.random.Generator:
+    """The Generator of one candidate's fit: seeded by ``base`` (one draw of the caller's
+    Generator) and the candidate's name and options (CRC-32), so that a candidate's starts do
+    not depend on which candidates were fitted before it, nor on how many draws they took."""
+    key = zlib.crc32(repr((name, sorted((str(k), str(v)) for k, v in dict(options).items()))).encode())
+    return np.random.default_rng([int(base), int(key)])
+
+
+def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, nested_starts=None, **fit_kwargs):
     """Fit each candidate and pick the simplest one the data supports.
 
     ``progress``: called as ``progress(done, total, label)`` before each candidate's fit and
     once at the end (a terminal's bar: gonio/cli/progress.py); None says nothing.
+    ``nested_starts``: the global stage's starts (``fit``'s ``n_starts``) of a nested candidate
+    started from its contained model's fit (:func:`_nested_start`); None: as every other.
+    Each candidate's fit draws from its own Generator (:func:`candidate_rng`; one draw of ``rng``).
 
     Returns
     -------
@@ -304,6 +317,7 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, **f
     """
     rows = []
     todo = tuple(candidates or candidates_for(meas))
+    base = int(rng.integers(2 ** 63))
     for k, (name, options) in enumerate(todo):
         if progress is not None:
             progress(k, len(todo), f"{name} {' '.join(map(str, options.values()))}".strip())
@@ -311,7 +325,9 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, **f
             model = gm.get(name, **options)
         except (KeyError, ValueError):
             continue  # a candidate this build of gonio.models does not provide
-        result = fit(meas, model, rng=rng, start=_nested_start(model, rows), **fit_kwargs)
+        start = _nested_start(model, rows)
+        kw = fit_kwargs if start is None or nested_starts is None else {**fit_kwargs, "n_starts": int(nested_starts)}
+        result = fit(meas, model, rng=candidate_rng(base, name, options), start=start, **kw)
         rows.append(Ranked(name, dict(options), result.space.size, result.chi2, result.bic, 0.0, False, result,
                            result.loss, result.neg2_loglik))
     if progress is not None:
