@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import gonio.models as gm
-from gonio.models.catalogue.gratingpaint import WAVELENGTHS, rgb_weights, rings
+from gonio.models.catalogue.gratingpaint import RING_KNOTS, WAVELENGTHS, hats, rgb_weights, rings
 
 from models_testutil import random_hemisphere
 
@@ -123,3 +123,80 @@ def test_sample_weights_average_to_the_integral_of_f_cos():
     model = gm.get("gratingpaint", distribution="ggx")
     p = model.validate({**PAINT, "diffuse_reflectance": 0.0, "grating_reflectance": [0.12, 0.1, 0.1]})
     assert_sampling_unbiased(model, p, np.random.default_rng(4))
+
+
+def _table_paint(rng):
+    """PAINT with ``ring="table"``: a random non-negative colour at each knot."""
+    p = {k: v for k, v in PAINT.items() if not k.startswith("grating_")}
+    p.update({f"ring_{k}": rng.uniform(0.0, 0.3, 3) for k in range(RING_KNOTS.size)})
+    return p
+
+
+def test_ring_table_is_linear_between_its_knots():
+    """ring="table": at a knot f_r gains exactly T_k / (4 (cos_i cos_o)^p) over flakepaint's,
+    halfway between two knots their mean (linear interpolation); the hats sum to 1 on [0, 2]."""
+    model = gm.get("gratingpaint", ring="table")
+    flake = gm.get("flakepaint")
+    p = model.validate(_table_paint(np.random.default_rng(40)))
+    q = np.linspace(0.0, 2.0, 401)
+    np.testing.assert_allclose(hats(q).sum(axis=1), 1.0, rtol=1e-12)
+    k = np.arange(RING_KNOTS.size - 1)
+    for at, want in ((RING_KNOTS[k], [p[f"ring_{j}"] for j in k]),
+                     (0.5 * (RING_KNOTS[k] + RING_KNOTS[k + 1]),
+                      [0.5 * (p[f"ring_{j}"] + p[f"ring_{j + 1}"]) for j in k])):
+        # back-scattering, wi = wo at sin(theta) = q / 2: wi_perp + wo_perp = q
+        wi = wo = np.stack([0.5 * at, np.zeros(at.size), np.sqrt(1.0 - 0.25 * at * at)], axis=1)
+        fp = {n: p[n] for n in flake.validate({}) if n in p}
+        ring = model.eval(wi, wo, p) - flake.eval(wi, wo, fp)
+        shape = (wi[:, 2] * wo[:, 2]) ** -p["flake_exponent"] / 4.0
+        np.testing.assert_allclose(ring, np.array(want) * shape[:, None], rtol=1e-9, atol=1e-14)
+
+
+def test_ring_table_jacobian_reciprocity_and_sign():
+    """The table's columns and the exponent's against central differences (step 1e-6, 1e-6
+    relative to the column's largest value); reciprocal; f_r >= 0 at any non-negative table."""
+    model = gm.get("gratingpaint", distribution="ggx", ring="table")
+    rng = np.random.default_rng(41)
+    wi, wo = random_hemisphere(rng, 400), random_hemisphere(rng, 400)
+    p = model.validate(_table_paint(rng))
+    f, J = model.jacobian_reference(wi, wo, p)
+    np.testing.assert_allclose(f, model.eval_reference(wi, wo, p), rtol=1e-12)
+    for name in ("flake_exponent", "flake_alpha", "ring_5"):
+        h = np.full(np.shape(p[name]), 1e-6)
+        num = (model.eval_reference(wi, wo, {**p, name: p[name] + h})
+               - model.eval_reference(wi, wo, {**p, name: p[name] - h})) / 2e-6
+        want = J[name] if np.ndim(p[name]) == 0 else J[name]           # a colour: all channels at once
+        assert np.abs(num - want).max() <= 1e-6 * np.abs(num).max(), name
+    np.testing.assert_allclose(model.eval(wi, wo, p), model.eval(wo, wi, p), rtol=1e-12)
+    zero = model.validate({**p, **{f"ring_{k}": 0.0 for k in range(RING_KNOTS.size)}})
+    assert np.all(model.eval(wi, wo, zero) >= 0.0) and np.all(f >= 0.0)
+    for bad in ({"ring_3": [-0.1, 0.0, 0.0]}, {"ring_0": float("nan")}):
+        with pytest.raises(ValueError) as info:
+            model.validate({**p, **bad})
+        assert "\n" not in str(info.value), bad
+
+
+def test_ring_table_starts_from_the_spectral_rings():
+    """start_from puts the ring="cie" fit's rings at the knots: equal there (the definition)."""
+    model = gm.get("gratingpaint", ring="table")
+    cie = model._layer.validate(PAINT)
+    p = model.validate(model.start_from(cie))
+    want = rings(RING_KNOTS, PAINT["grating_period"], PAINT["grating_width"]) * np.asarray(PAINT["grating_reflectance"])
+    np.testing.assert_allclose(np.stack([p[f"ring_{k}"] for k in range(RING_KNOTS.size)]), want, rtol=1e-12)
+    assert p["flake_alpha"] == cie["flake_alpha"] and "grating_period" not in p
+
+
+def test_the_ring_table_twin_matches_and_fails_on_a_wrong_table(monkeypatch):
+    """ring="table"'s twin against the numpy model (test_mitsuba_agreement's comparison, 1e-5
+    relative plus the float32 allowance); the numpy hats 1e-3 off fail it."""
+    pytest.importorskip("mitsuba")
+    from gonio.models.mitsuba import mitsuba_variant
+    from test_mitsuba_agreement import compare
+    import gonio.models.catalogue.gratingpaint as gp
+
+    model = gm.get("gratingpaint", distribution="beckmann", ring="table")
+    n = 20_000 if mitsuba_variant().startswith("llvm") else 500
+    assert compare(model, np.random.default_rng(3), n, 1e-5, n_sets=2)[2] <= 0.0
+    fn = gp.hats
+    monkeypatch.setattr(gp, "hats", lambda *a, **k: fn(*a, **k) * 1.001)
+    assert compare(model, np.random.default_rng(3), n, 1e-5, n_sets=2)[2] > 0.0

@@ -9,9 +9,9 @@ turned every way make it a ring about the mirror direction, blurred by their til
 size (width w). The first order only: a shallow sinusoidal phase grating puts J_m(phi)^2 into
 order m (Goodman, Introduction to Fourier Optics, sec. 4.4). M_c: CIE 1931 2-degree CMFs to
 linear sRGB (colour-science), negative lobes clipped (f_r >= 0), an equal-energy spectrum white.
-RGB only. Offered by ``--model auto`` on goniochromic RGB data (``goniochromic_candidate``).
-Mitsuba twin: ``gonio_gratingpaint``, flakepaint's Python BSDF with the rings (``*_rgb`` only).
-"""
+``ring="table"``: rho_g R_c(q) read from the data, linear in q between knots. RGB only. Offered
+by ``--model auto`` on goniochromic RGB data, the table as the chosen rings' refinement. Mitsuba
+twin: ``gonio_gratingpaint``, flakepaint's Python BSDF with the rings (``*_rgb`` only)."""
 
 from __future__ import annotations
 
@@ -22,11 +22,21 @@ import numpy as np
 from gonio.models.base import Parameter, register
 from gonio.models.catalogue.flakepaint import FlakePaint, _make_bsdf
 
-__all__ = ["GratingPaint", "rgb_weights", "rings"]
+__all__ = ["GratingPaint", "RING_KNOTS", "hats", "rgb_weights", "rings"]
 
 #: wavelengths (nm) of the spectral sum and the diffraction orders summed (the first: see the module)
 WAVELENGTHS = np.arange(400.0, 701.0, 10.0)
 ORDERS = (1,)
+#: option ``ring="table"``: the knots in q (0 to 2, the largest |wi_perp + wo_perp|) of the
+#: rings' colour, linear between them (see :class:`GratingPaint`)
+RING_KNOTS = np.linspace(0.0, 2.0, 17)
+
+
+def hats(q) -> np.ndarray:
+    """(N, len(RING_KNOTS)): the piecewise-linear interpolation weights of q (hat functions on
+    the knots, each row summing to 1 for q in [0, 2], 0 beyond)."""
+    h = RING_KNOTS[1] - RING_KNOTS[0]
+    return np.clip(1.0 - np.abs(np.asarray(q, float)[:, None] - RING_KNOTS[None, :]) / h, 0.0, None)
 
 
 @functools.lru_cache(maxsize=1)
@@ -69,17 +79,42 @@ class GratingPaint(FlakePaint):
         Lambda, in micrometres, in [0.3, 5].
     grating_width : float
         w, width of an order in q, in [0.01, 0.5].
+
+    Option ``ring="table"``: R_c(q) read from the data instead, rho_g R_c(q) replaced by
+    T_c(q), linear between its values ``ring_k`` (C,) in [0, 5] at q = :data:`RING_KNOTS`
+    (non-negative; q symmetric in wi, wo: reciprocal), where the spectrum, the orders' weights
+    and the flakes' period spread are not known; nested: started from the ``ring="cie"`` fit.
     """
 
     name = "gratingpaint"
-    OPTIONS = {"distribution": ("ggx", "beckmann"), "spread": ("shared",)}
+    OPTIONS = {"distribution": ("ggx", "beckmann"), "spread": ("shared",), "ring": ("cie", "table")}
+    #: not screened by ``--model auto``: tried as the chosen ``ring="cie"`` fit's refinement
+    REFINEMENTS = (("ring", "table"),)
     auto_candidate = False
     spectral_candidate = False
     #: offered on RGB data that shows goniochromism (fitting.selection.by_data)
     goniochromic_candidate = True
     mitsuba_twin = True
 
+    def __init__(self, **options):
+        super().__init__(**options)
+        if self.options["ring"] == "table":      # nested: started from the spectral rings' fit
+            self._layer = GratingPaint(distribution=self.options["distribution"], ring="cie")
+
+    @property
+    def table(self) -> bool:
+        return self.options["ring"] == "table"
+
+    def refinement(self):
+        """The ring table of the same distribution (``--model auto`` tries it where these
+        spectral rings were chosen: gonio.fitting.selection.auto), None for the table itself."""
+        return None if self.table else GratingPaint(distribution=self.options["distribution"], ring="table")
+
     def _parameters(self):
+        if self.table:
+            return super()._parameters() + tuple(
+                Parameter(f"ring_{k}", 0.0, 0.0, 5.0, "1", f"the rings' colour at q = {q:.3g}", per_channel=True)
+                for k, q in enumerate(RING_KNOTS))
         return super()._parameters() + (
             Parameter("grating_reflectance", 0.01, 0.0, 1.0, "1", "weight of the diffraction orders", per_channel=True),
             Parameter("grating_period", 0.7, 0.3, 5.0, "um", "period of the flakes' grating"),
@@ -93,20 +128,36 @@ class GratingPaint(FlakePaint):
                              "summed over wavelengths into sRGB")
         return p
 
-    def _grating(self, wi, wo, p, grad=False):
+    @staticmethod
+    def _q_shape(wi, wo, p):
+        """q, 1 / (4 (cos_i cos_o)^p) (N, 1; 0 below the horizon) and ln(cos_i cos_o) (N, 1)."""
         q = np.hypot(wi[:, 0] + wo[:, 0], wi[:, 1] + wo[:, 1])
         cc = wi[:, 2] * wo[:, 2]
         ok = (cc > 0.0)[:, None]
         logcc = np.log(np.where(ok[:, 0], cc, 1.0))[:, None]
-        shape = np.where(ok, np.exp(-p["flake_exponent"] * logcc) / 4.0, 0.0)
+        return q, np.where(ok, np.exp(-p["flake_exponent"] * logcc) / 4.0, 0.0), logcc
+
+    def _grating(self, wi, wo, p, grad=False):
+        q, shape, logcc = self._q_shape(wi, wo, p)
         out = rings(q, p["grating_period"], p["grating_width"], grad)
         if not grad:
             return out * shape
         return tuple(x * shape for x in out) + (logcc,)
 
+    def _table(self, p) -> np.ndarray:
+        """(len(RING_KNOTS), C): the rings' colour at the knots."""
+        return np.stack([np.broadcast_to(p[f"ring_{k}"], (self.n_channels(p),)) for k in range(RING_KNOTS.size)])
+
+    def _ring(self, wi, wo, p):
+        """The rings' f_r (N, C)."""
+        if not self.table:
+            return self._grating(wi, wo, p) * p["grating_reflectance"]
+        q, shape, _ = self._q_shape(wi, wo, p)
+        return (hats(q) @ self._table(p)) * shape
+
     def _eval_parts(self, wi, wo, p):
         base, lobe = super()._eval_parts(wi, wo, p)
-        return base, lobe + self._grating(wi, wo, p) * p["grating_reflectance"]
+        return base, lobe + self._ring(wi, wo, p)
 
     def jacobian_reference(self, wi, wo, params):
         """flakepaint's (f, J) with the rings added: their colour's column exactly, the period's
@@ -114,12 +165,28 @@ class GratingPaint(FlakePaint):
         wi, wo = np.asarray(wi, float), np.asarray(wo, float)
         p = self.validate(params)
         f, J = super().jacobian_reference(wi, wo, p)
+        if self.table:      # linear in the table: column k is the knot's hat times the shape
+            q, shape, logcc = self._q_shape(wi, wo, p)
+            B = hats(q) * shape
+            ring = B @ self._table(p)
+            for k in range(RING_KNOTS.size):
+                J[f"ring_{k}"] = np.broadcast_to(B[:, k:k + 1], f.shape).copy()
+            J["flake_exponent"] = J["flake_exponent"] - logcc * ring
+            return f + ring, J
         g, dP, dW, logcc = self._grating(wi, wo, p, grad=True)
         rho = p["grating_reflectance"]
         J["grating_reflectance"] = g
         J["grating_period"], J["grating_width"] = dP * rho, dW * rho
         J["flake_exponent"] = J["flake_exponent"] - logcc * g * rho
         return f + g * rho, J
+
+    def start_from(self, layer_params):
+        """The ``ring="cie"`` fit (``layer_params``) as the table's start: its rings at the knots."""
+        lp = dict(self._layer.validate(layer_params))
+        ring = rings(RING_KNOTS, lp["grating_period"], lp["grating_width"]) * lp["grating_reflectance"]
+        out = {k: v for k, v in lp.items() if not k.startswith("grating_")}
+        out.update({f"ring_{k}": np.clip(ring[k], 0.0, 5.0) for k in range(RING_KNOTS.size)})
+        return out
 
     def _bsdf_maker(self):
         return _make_grating_bsdf
@@ -136,6 +203,9 @@ class GratingPaint(FlakePaint):
                              "(its rings are summed into sRGB)")
         p = self.validate(params)
         d = super().to_mitsuba(p)
+        if self.table:
+            d.update({f"ring_{k}": rgb(p[f"ring_{k}"]) for k in range(RING_KNOTS.size)})
+            return d
         d["grating_reflectance"] = rgb(p["grating_reflectance"])
         d["grating_period"], d["grating_width"] = float(p["grating_period"]), float(p["grating_width"])
         return d
@@ -153,6 +223,10 @@ def _make_grating_bsdf(mi, dr, base):
             if mi.is_spectral:
                 raise ValueError("gonio_gratingpaint renders in an RGB variant (its rings are summed into sRGB)")
             flake.__init__(self, props)
+            self.table = "ring_0" in props
+            if self.table:
+                self.knots = [props.get_unbounded_texture(f"ring_{k}") for k in range(RING_KNOTS.size)]
+                return
             self.rho_g = props.get_texture("grating_reflectance")
             self.period, self.width = mi.Float(float(props["grating_period"])), mi.Float(float(props["grating_width"]))
             dr.make_opaque(self.period, self.width)
@@ -162,6 +236,14 @@ def _make_grating_bsdf(mi, dr, base):
             wi_g, wo_g = wo, si.wi                 # gonio: wi toward the light, wo toward the detector
             cc = mi.Frame3f.cos_theta(wi_g) * mi.Frame3f.cos_theta(wo_g)
             q = dr.sqrt(dr.square(wi_g.x + wo_g.x) + dr.square(wi_g.y + wo_g.y))
+            shape = dr.select(cc > 0.0, dr.exp(-self.p * dr.log(dr.select(cc > 0.0, cc, 1.0))) / 4.0, 0.0)
+            if self.table:                         # :func:`hats`: linear between the knots
+                step = float(RING_KNOTS[1] - RING_KNOTS[0])
+                ring = mi.Color3f(0.0)
+                for k, texture in enumerate(self.knots):
+                    w = dr.maximum(1.0 - dr.abs(q - float(RING_KNOTS[k])) / step, 0.0)
+                    ring += texture.eval(si) * w
+                return value + ring * shape
             r, g, b = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
             for k, w in enumerate(WAVELENGTHS):
                 ring = mi.Float(0.0)
@@ -171,7 +253,6 @@ def _make_grating_bsdf(mi, dr, base):
                 r += float(weights[k, 0]) * ring
                 g += float(weights[k, 1]) * ring
                 b += float(weights[k, 2]) * ring
-            shape = dr.select(cc > 0.0, dr.exp(-self.p * dr.log(dr.select(cc > 0.0, cc, 1.0))) / 4.0, 0.0)
             return value + self.rho_g.eval(si) * mi.Color3f(r, g, b) * shape
 
         def to_string(self):
