@@ -63,6 +63,27 @@ def refit(meas, result, *, rng, loss):
     return fit(meas, result.model, rng=rng, loss=loss, fixed=fixed, start=start, n_starts=0, n_local=1)
 
 
+def _refined(chosen, sub, check, note, *, seed, loss):
+    """The chosen family's nested refinement (``model.refinement()``: gratingpaint's ring
+    table), fitted to ``sub`` from the chosen fit; (it, note) where its pixels are closer by
+    more than both rows' noise (the tabulated body's rule), else (``chosen``, ``note``)."""
+    make = getattr(chosen.model, "refinement", None)
+    model = make() if make is not None else None
+    if model is None:
+        return chosen, note
+    from gonio.fitting.optimise.mle import fit
+
+    r = fit(sub, model, rng=np.random.default_rng([int(seed), 353]), loss=loss, start=model.start_from(chosen.params),
+            n_starts=0, n_local=1, covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)
+    try:
+        (de_c, noise_c), (de_r, noise_r) = (check.delta_e(x.model, x.params) for x in (chosen, r))
+    except FloatingPointError:      # not finite at the scene's pairs
+        return chosen, note
+    if de_c - de_r <= noise_c + noise_r:
+        return chosen, note
+    return r, f"{note}; refined to {model.name} {model.options} (pixels {de_c:.2f} -> {de_r:.2f})"
+
+
 def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=SCREEN_POINTS, candidates=None,
              size=32, k=16, progress=None):
     """``--model auto`` on ``meas`` sampled from the measured file ``measured`` (a path
@@ -91,12 +112,13 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
 
     check = PixelCheck(measured, scene=scene, size=size, k=k, seed=seed)
     chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
+    chosen, note = _refined(chosen, sub, check, note, seed=seed, loss=loss)
     if progress is not None:
         progress(0, None, f"fitting {chosen.model.name} to all {meas.n_points} samples")
     t1 = time.perf_counter()
     final = refit(meas, chosen, rng=np.random.default_rng([int(seed), 352]), loss=loss)
     row = next(r for r in ranking if r.chosen)
-    row.result = final
+    row.result, row.options, row.k = final, dict(final.model.options), final.space.size
     row.delta_e, row.noise = check.delta_e(final.model, final.params)
     screened = "" if sub is meas else f"ranked on {sub.n_points} of {meas.n_points} samples; "
     note = (f"{screened}{note}; refitted to all samples in {time.perf_counter() - t1:.1f} s "
