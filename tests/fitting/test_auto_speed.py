@@ -65,3 +65,31 @@ def test_a_nested_candidate_started_from_its_layer_needs_no_global_stage():
     full, skipped = rows[None].result, rows[0].result
     assert skipped.n_evals < full.n_evals
     assert skipped.objective <= full.objective * (1 + 1e-4), (skipped.objective, full.objective)
+
+
+def test_the_choice_runs_on_one_jit_thread_and_gives_the_pool_back(monkeypatch):
+    """choice_threads: Dr.Jit's pool has CHOICE_THREADS threads inside the block and its former
+    size after it, also when the block raises; where GONIO_THREADS sets the pool it is left
+    alone (the user's count)."""
+    import drjit as dr
+
+    from gonio.fitting.selection.auto import CHOICE_THREADS, choice_threads
+
+    monkeypatch.delenv("GONIO_THREADS", raising=False)
+    before = dr.thread_count()
+    dr.set_thread_count(2)
+    try:
+        with choice_threads():
+            assert dr.thread_count() == CHOICE_THREADS
+        assert dr.thread_count() == 2
+        try:
+            with choice_threads():
+                raise KeyError("inside")
+        except KeyError:
+            pass
+        assert dr.thread_count() == 2
+        monkeypatch.setenv("GONIO_THREADS", "2")
+        with choice_threads():
+            assert dr.thread_count() == 2
+    finally:
+        dr.set_thread_count(before)

@@ -16,13 +16,23 @@ screened fit (:func:`refit`), so choosing costs the screen, one scene's pairs an
 # stage's start scores and the default start find the basin; the other refinements changed
 # no choice on the materials screened (docs/performance.md, gonio.perf.real).
 
+# One Dr.Jit thread while the choice fits (CHOICE_THREADS): its kernels run on 2,000 to 8,000
+# pairs, a work item or two of the LLVM backend, so a second thread in the pool adds hand-offs,
+# not parallel work. auto_fit on cardboard, three runs each in one process at load 4-5 on the
+# 2-core machine: pool of 2, 9.9-12.6 s wall and 5.4-7.1 s CPU; pool of 1, 7.5-9.4 s wall and
+# 3.8-5.2 s CPU. The scene's pairs are found with the pool as it was (Mitsuba's OpenEXR reader
+# waits forever on a pool without a worker: gonio.fitting.render.preview._exr_threads).
+
 from __future__ import annotations
 
+import contextlib
+import os
 import time
 
 import numpy as np
 
-__all__ = ["SCREEN_FTOL", "SCREEN_POINTS", "auto_fit", "refit", "screen", "subsample"]
+__all__ = ["CHOICE_THREADS", "SCREEN_FTOL", "SCREEN_POINTS", "auto_fit", "choice_threads", "refit", "screen",
+           "subsample"]
 
 #: samples each candidate is screened on
 SCREEN_POINTS = 2000
@@ -31,6 +41,30 @@ SCREEN_POINTS = 2000
 #: values of 2000 RGB samples, against BIC gaps of hundreds to thousands (1e-5 let a slowly
 #: converging two-lobe fit stop far from its optimum on irid_flake_paint2)
 SCREEN_FTOL = 1e-7
+#: fit rounds of the tabulated body's screening fit (it starts from the plain fit's optimum)
+BODY_ROUNDS = 1
+#: threads of Dr.Jit's pool while the choice fits (module notes); ``GONIO_THREADS`` overrides
+CHOICE_THREADS = 1
+#: the refit to every sample runs on CHOICE_THREADS up to this many samples (RGL files: 6,000 to
+#: 8,000, measured); above it on the pool as it is (the crossover is not measured)
+ONE_THREAD_POINTS = 20_000
+
+
+@contextlib.contextmanager
+def choice_threads(n=CHOICE_THREADS):
+    """Dr.Jit's pool at ``n`` threads inside the block, as it was after it; left alone where
+    ``GONIO_THREADS`` sets it or the pool is that size already."""
+    import drjit as dr
+
+    before = dr.thread_count()
+    if os.environ.get("GONIO_THREADS", "").strip() or before == int(n):
+        yield
+        return
+    dr.set_thread_count(int(n))
+    try:
+        yield
+    finally:
+        dr.set_thread_count(before)
 
 
 def subsample(meas, n: int, rng):
@@ -50,7 +84,7 @@ def screen(sub, *, rng, loss, candidates=None, progress=None):
     from gonio.fitting.selection.by_data import select
 
     return select(sub, rng=rng, loss=loss, candidates=candidates, progress=progress, n_local=1, covariance=False,
-                  enforce_energy=False, ftol=SCREEN_FTOL)
+                  enforce_energy=False, ftol=SCREEN_FTOL, nested_starts=0)
 
 
 def refit(meas, result, *, rng, loss):
@@ -98,12 +132,15 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
     rng = np.random.default_rng(seed) if rng is None else rng
     t0 = time.perf_counter()
     sub = subsample(meas, n, np.random.default_rng([int(seed), 351]))
-    _, ranking = screen(sub, rng=rng, loss=loss, candidates=candidates, progress=progress)
+    with choice_threads():
+        _, ranking = screen(sub, rng=rng, loss=loss, candidates=candidates, progress=progress)
 
     def fallback():     # tabulated; its body="table" variant, started from it (nested), where it renders closer
         kw = dict(loss=loss, n_starts=0, n_local=1, covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)
-        plain = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 16]), **kw)
-        body = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 17]), body="table", start=plain.params, **kw)
+        with choice_threads():
+            plain = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 16]), **kw)
+            body = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 17]), body="table", start=plain.params,
+                                 rounds=BODY_ROUNDS, **kw)
         try:
             (de_p, noise_p), (de_b, noise_b) = (check.delta_e(r.model, r.params) for r in (plain, body))
         except FloatingPointError:      # not finite at the scene's pairs: pixel_choice scores it so
@@ -112,11 +149,13 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
 
     check = PixelCheck(measured, scene=scene, size=size, k=k, seed=seed)
     chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
-    chosen, note = _refined(chosen, sub, check, note, seed=seed, loss=loss)
+    with choice_threads():
+        chosen, note = _refined(chosen, sub, check, note, seed=seed, loss=loss)
     if progress is not None:
         progress(0, None, f"fitting {chosen.model.name} to all {meas.n_points} samples")
     t1 = time.perf_counter()
-    final = refit(meas, chosen, rng=np.random.default_rng([int(seed), 352]), loss=loss)
+    with choice_threads() if meas.n_points <= ONE_THREAD_POINTS else contextlib.nullcontext():
+        final = refit(meas, chosen, rng=np.random.default_rng([int(seed), 352]), loss=loss)
     row = next(r for r in ranking if r.chosen)
     row.result, row.options, row.k = final, dict(final.model.options), final.space.size
     row.delta_e, row.noise = check.delta_e(final.model, final.params)
