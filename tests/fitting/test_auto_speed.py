@@ -3,14 +3,17 @@
 Each candidate draws its starts from a Generator of its own (by_data.candidate_rng), so a
 candidate's fit does not depend on which candidates came before it; a nested candidate started
 from its contained model's fit skips the global stage in the screen (``nested_starts=0``) and
-reaches the optimum the global stage reaches. Simulated data (tests/fitting/_simdata.py), the
-numpy path (``use_fast=False``: bit-for-bit repeatable; Dr.Jit's threaded sums are not).
+reaches the optimum the global stage reaches; the choice's fits run on one Dr.Jit thread and
+give the pool back; a fit scored twice in the scene is rendered once. Simulated data
+(tests/fitting/_simdata.py).
 """
 
 import numpy as np
-
+import pytest
 
 import gonio.models as gm
+
+pytest.importorskip("colour")      # at collection: its 1.7 s import is not a test's time
 
 GLOSSY = {"diffuse_reflectance": [0.5, 0.3, 0.2], "alpha": 0.1, "int_ior": 1.5}
 TWO = {"eta": [0.2, 0.4, 1.4], "k": [3.9, 2.4, 1.6], "alpha": 0.08, "alpha2": 0.4, "weight": 0.3}
@@ -93,3 +96,29 @@ def test_the_choice_runs_on_one_jit_thread_and_gives_the_pool_back(monkeypatch):
             assert dr.thread_count() == 2
     finally:
         dr.set_thread_count(before)
+
+
+def test_a_fit_scored_twice_in_the_scene_is_rendered_once(monkeypatch):
+    """PixelCheck.delta_e of the same model and parameters (auto's fallback scores its fits,
+    then pixel_choice scores them again): the pixels are computed once, the figures the same;
+    other parameters are scored anew, and a fit that renders the target exactly scores 0. The
+    scene is stood in by fixed target pixels (the pairs are not needed: ``pixels`` is counted)."""
+    from gonio.fitting.selection.by_pixels import PixelCheck
+
+    model = gm.get("roughplastic", distribution="ggx")
+    p = model.validate(GLOSSY)
+    target = np.random.default_rng(3).uniform(0.05, 0.9, (50, 3))
+    check = PixelCheck.__new__(PixelCheck)
+    check.sets, check._white, check._scored = [(None, target), (None, target)], 1.0, {}
+    calls = []
+
+    def pixels(self, m, params, which=0):
+        calls.append(which)
+        return target * (1.0 + float(params["alpha"]) - GLOSSY["alpha"])
+
+    monkeypatch.setattr(PixelCheck, "pixels", pixels)
+    q = model.validate({**GLOSSY, "alpha": 0.2})
+    first = check.delta_e(model, q)
+    again = check.delta_e(model, dict(q))
+    assert first == again and first[0] > 0 and len(calls) == 2
+    assert check.delta_e(model, p) == (0.0, 0.0) and len(calls) == 4

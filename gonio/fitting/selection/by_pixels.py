@@ -69,6 +69,7 @@ class PixelCheck:
             pairs = scene_pairs(scene, size, rng=rng, k=k, variant=self.variant)
             self.sets.append((pairs, measured_pixels(measured, pairs, self.variant)))
         self._white = max(float(np.percentile(self.sets[0][1], 99.5)), 1e-12)
+        self._scored = {}       # delta_e of a (model, parameters) scored already (auto's fallback, then the ranking)
 
     def pixels(self, model, params, which=0) -> np.ndarray:
         """The model's pixels from the pairs of set ``which`` (0 or 1)."""
@@ -83,10 +84,15 @@ class PixelCheck:
     def delta_e(self, model, params) -> tuple:
         """(mean CIEDE2000 of the model's pixels against the measured ones, its noise): the
         mean over the two sets of pairs and half their difference (both images scaled so the
-        measured image's 99.5th percentile is white, as an exposure would)."""
-        de = [float(delta_e_2000(self.pixels(model, params, i) / self._white, target / self._white).mean())
-              for i, (_, target) in enumerate(self.sets)]
-        return 0.5 * (de[0] + de[1]), 0.5 * abs(de[0] - de[1])
+        measured image's 99.5th percentile is white, as an exposure would). The same model and
+        parameters again: the figures already found."""
+        key = (model.name, repr(sorted(model.options.items())),
+               tuple((k, np.asarray(v).tobytes(), np.asarray(v).dtype.str) for k, v in sorted(params.items())))
+        if key not in self._scored:
+            de = [float(delta_e_2000(self.pixels(model, params, i) / self._white, target / self._white).mean())
+                  for i, (_, target) in enumerate(self.sets)]
+            self._scored[key] = (0.5 * (de[0] + de[1]), 0.5 * abs(de[0] - de[1]))
+        return self._scored[key]
 
 
 def pixel_choice(ranking, measured, *, scene="product-shot", size=32, k=16, seed=0, threshold=1.0,
