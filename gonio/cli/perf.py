@@ -75,13 +75,13 @@ def _cmd_bench_real(args):
 def _cmd_bench_acquisition(args):
     import gonio.models as gm
     from gonio.bench.samples import load_sample
-    from gonio.perf.acquisition import check_plans, run
+    from gonio.perf.acquisition import CHOOSE, check_plans, run
 
     plans = check_plans(args.plans)
     if not 1 <= args.points <= 1053:
         raise GonioError(f"--points {args.points}: give the adaptive plan's budget between 1 and 1053 points")
-    if args.model is not None and args.model not in gm.names():
-        raise GonioError(f"--model {args.model!r}: give one of {', '.join(gm.names())}")
+    if args.model is not None and args.model not in (*gm.names(), CHOOSE):
+        raise GonioError(f"--model {args.model!r}: give one of {', '.join((*gm.names(), CHOOSE))}")
     sample = load_sample(args.sample)
     run(plans, sample, model=args.model, seed=args.seed, points=args.points, errors=args.errors,
         out=Path(args.out) if args.out else None, budget_fraction=args.budget_fraction)
@@ -125,7 +125,8 @@ def register(sub, *, env, seed, parser_class):
                          "quick,standard,adaptive)")
     ba.add_argument("--sample", help="the virtual sample: a sample TOML or a measured RGL .bsdf file (default the "
                                      "demo's glossy plastic)")
-    ba.add_argument("--model", help="the family fitted (default the sample's own; roughplastic for a measured file)")
+    ba.add_argument("--model", help="the family fitted (default the sample's own; for a measured file 'choose': "
+                                    "each plan's data choose among the adaptive plan's candidates by BIC)")
     ba.add_argument("--points", type=int, default=24, help="the adaptive plan's budget (default 24)")
     ba.add_argument("--budget-fraction", type=float, help="the sequential plans stop at this fraction of the "
                                                            "dense plan's instrument time (dense must be in --plans)")

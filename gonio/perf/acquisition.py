@@ -3,8 +3,9 @@
 Every plan captures the same virtual sample on the simulated instrument (instant clock, the same
 seed and error model); its instrument time is the dataset's ``instrument_time_s`` (motion,
 settling, exposures and preparation on the simulator's clock, as journalled). The capture is
-exported, the sample's own family (or ``model``) fitted by chi2 with the dataset's budget (a
-sequential plan's points weighted by their design weights unless ``-unweighted``), and
+exported, fitted by chi2 with the dataset's budget (a sequential plan's points weighted by their
+design weights unless ``-unweighted``): the sample's own family, ``model``, or for a measured
+file the family the capture's data choose (:data:`CHOOSE`: gonio.bench.plan.family), and
 the fit scored against the truth on :func:`gonio.perf.real.dense_grid` (Ngan and log errors,
 :func:`gonio.perf.real.metrics`) and by the preview's rendered CIEDE2000. The front: the plans
 no other plan beats on both instrument time and Ngan error.
@@ -22,7 +23,7 @@ import numpy as np
 from gonio.core.atomic import atomic_open
 from gonio.core.errors import GonioError
 
-__all__ = ["PLANS", "SEQUENTIAL", "front", "run", "score", "strategy_table"]
+__all__ = ["PLANS", "SEQUENTIAL", "CHOOSE", "front", "run", "score", "strategy_table"]
 
 #: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``alc``
 #: and ``ndf`` on request)
@@ -35,6 +36,10 @@ SEQUENTIAL = ("adaptive", "alc", "ndf", "adaptive-unweighted", "alc-unweighted")
 UNWEIGHTED = "-unweighted"
 #: the adaptive plan's point budget by default
 ADAPTIVE_POINTS = 24
+#: ``model``: every plan's data (the dense grid's too) choose their family among the sequential
+#: plans' candidates by weighted cross-validation (gonio.bench.plan.family.choose_cv), the
+#: default for a measured file
+CHOOSE = "choose"
 
 
 def truth_on_grid(sample: dict, wi, wo) -> np.ndarray:
@@ -116,19 +121,35 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
         instrument_s = float(ds.attrs["instrument_time_s"])
         n_points = int(ds.sizes.get("point", 0))
     meas = open_dataset(Path(dataset), seed=seed)
+    if model == CHOOSE:                 # the same rule on every plan's data: the family that predicts best
+        from gonio.bench.plan.family import choose_cv
+
+        model, options, _ = choose_cv(meas, _candidates(), seed=seed, n_local=1)
     result = fit_measurements(meas, model=model, options=options, seed=seed, budget=open_budget(Path(dataset), meas),
                               dataset_path=dataset)[0]
-    row = {"plan": plan, "points": n_points, "time_s": instrument_s, "model": result.model.name}
+    from gonio.bench.plan.family import label
+
+    row = {"plan": plan, "points": n_points, "time_s": instrument_s,
+           "model": label(result.model.name, result.model.options)}
     row.update(score(result, sample, seed=seed))
     row["wall_s"] = time.perf_counter() - t0
     return row
+
+
+def _candidates():
+    """The sequential plans' default candidate families (or gonio.bench.plan.family's where
+    their default is the plan's model alone)."""
+    from gonio.bench.plan import family
+    from gonio.bench.plan.adaptive import DEFAULTS
+
+    return family.parse(DEFAULTS["candidates"]) or family.FAMILIES
 
 
 def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=ADAPTIVE_POINTS, errors="typical",
         out=None, folder=None, budget_fraction=None) -> list[dict]:
     """Capture, fit and score ``sample`` (a :func:`gonio.bench.samples.load_sample` dict; the demo
     sample by default) with each plan; print the table and the front; with ``out`` write the
-    CSV there. ``model``: the family fitted (default the sample's own; ``roughplastic`` for a
+    CSV there. ``model``: the family fitted (default the sample's own; :data:`CHOOSE` for a
     measured file); ``errors``: the simulator's error preset (every plan the same instrument);
     ``budget_fraction``: the sequential plans stop at that fraction of the ``dense`` plan's
     instrument time (``dense`` must be among ``plans``; it runs first) instead of ``points``."""
@@ -148,7 +169,7 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
 
     sample = load_sample(None) if sample is None else sample
     if model is None:
-        model, options = (("roughplastic", {"distribution": "ggx"}) if "bsdf_file" in sample
+        model, options = ((CHOOSE, {}) if "bsdf_file" in sample
                           else (sample["model"], dict(sample.get("options", {}))))
     rows = []
     with tempfile.TemporaryDirectory(prefix="gonio-acq-") as tmp:
@@ -160,7 +181,7 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
     on_front = {id(r) for r in front(rows)}
     print(f"front (no plan both faster and closer): "
           f"{', '.join(r['plan'] for r in sorted(rows, key=lambda r: r['time_s']) if id(r) in on_front)}")
-    print(f"fitted {model}; simulator errors {errors!r}, seed {seed}; time: instrument_time_s of the simulated capture (motion, settling, exposures, "
+    print(f"fitted {'the family each plan chose (cross-validated)' if model == CHOOSE else model}; simulator errors {errors!r}, seed {seed}; time: instrument_time_s of the simulated capture (motion, settling, exposures, "
           "preparation); Ngan, log: against the truth on the dense grid (theta <= 80 deg); dE00: preview, 48 px, "
           "128 spp, matched seeds; wall: capture, export, fit and scoring on this machine")
     if out is not None:
@@ -185,10 +206,10 @@ def _version() -> str:
 
 def _print(rows, head=True):
     if head:
-        print(f"{'plan':<20}{'points':>7}{'time s':>9}{'Ngan':>8}{'log':>9}{'dE00':>7}{'wall s':>8}")
+        print(f"{'plan':<20}{'points':>7}{'time s':>9}{'Ngan':>8}{'log':>9}{'dE00':>7}{'wall s':>8}  model")
     for r in rows:
         print(f"{r['plan']:<20}{r['points']:>7d}{r['time_s']:>9.1f}{r['ngan']:>8.4f}{r['log']:>9.5f}"
-              f"{r['de00']:>7.2f}{r['wall_s']:>8.1f}", flush=True)
+              f"{r['de00']:>7.2f}{r['wall_s']:>8.1f}  {r['model']}", flush=True)
 
 
 def check_plans(text: str) -> tuple:

@@ -2,10 +2,11 @@
 
 A first pass takes a spread subset of the candidate plan (farthest-point sampling in an
 isotropic (wi, wo) feature space); then, batch by batch, the model is fitted to the results
-so far (`gonio.fitting.fit`) and the unmeasured candidates that raise log det of the Fisher
-information J^T W J the most (D-optimality, greedy within a batch; Atkinson, Donev & Tobias
-2007, ch. 10-12; ``criterion = "alc"``: the predicted variance of f_r cos, gonio.bench.plan.alc)
-are queued, per second of travel and overhead when ``travel`` is on. It stops at ``points``,
+so far (`gonio.fitting.fit`; with ``candidates``, the family they need, gonio.bench.plan.family)
+and the unmeasured candidates that raise log det of the Fisher information J^T W J the most
+(D-optimality, greedy within a batch; Atkinson, Donev & Tobias 2007, ch. 10-12; ``criterion =
+"alc"``: the predicted variance of f_r cos, gonio.bench.plan.alc) are queued, per second of
+travel and overhead when ``travel`` is on. It stops at ``points``,
 at ``budget_s`` of the session's journalled instrument time (a batch is cut to what the plan's
 estimate fits in what is left), or at its targets (``target_rel_u``: every parameter's
 relative 1-sigma; ``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says
@@ -22,7 +23,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from gonio.bench.plan import kinematics
+from gonio.bench.plan import family, kinematics
 from gonio.bench.plan.design_weights import ON_BY_DEFAULT
 from gonio.bench.plan.ordering import cost_matrix, mirror
 from gonio.bench.plan.plans import Plan
@@ -49,6 +50,7 @@ DEFAULTS: dict[str, Any] = {
     "criterion": "d-optimal",     # "d-optimal" (the parameters) or "alc" (the predicted f_r cos, with discrepancy)
     "discrepancy_length": 0.7,    # "alc": correlation length of the model's discrepancy in (wi, wo), unit vectors
     "design_weights": ON_BY_DEFAULT,  # dataset.nc weights each point by its share of the evaluation measure
+    "candidates": [],             # families chosen among by BIC before each batch (gonio.bench.plan.family; []: model)
 }
 
 #: the batch criteria ``criterion`` names
@@ -142,11 +144,16 @@ class AdaptivePlan:
             raise ValueError(f"[strategy] design_weights = {str(t['design_weights'])[:40]!r}: give true or false")
         self.design_weights = bool(t["design_weights"])
         self.options, self.fixed = dict(t["options"]), dict(t["fixed"])
+        self.candidates = family.parse(t["candidates"])
+        if self.candidates and self.fixed:
+            raise ValueError("[strategy] fixed holds parameters of one model: give candidates = [] with it")
         try:
             self.model = gm.get(str(t["model"]), **self.options)
         except Exception as exc:
             raise ValueError(f"[strategy] model {t['model']!r}: {exc}") from None
         self.model_name = str(t["model"])
+        if self.candidates:                             # the simplest candidate until the data chooses
+            self.model = gm.get(self.candidates[0][0], **self.candidates[0][1])
         self.space = ParameterSpace(self.model, 3, self.fixed)
         first = _int(t, "first", 0) or max(self.space.size + 1, min(self.budget // 2, 8))
         self.first_n = min(first, self.budget)
@@ -199,13 +206,15 @@ class AdaptivePlan:
                 "target_de00": self.target_de00, "first": self.first_n, "batch": self.batch, "model": self.model_name, "options": self.options, "fixed": self.fixed,
                 "n_starts": self.n_starts, "seed": self.seed, "travel": self.travel, "overhead_s": self.overhead_s,
                 "model_rel_u": self.model_rel_u, "criterion": self.criterion,
-                "discrepancy_length": self.discrepancy_length, "design_weights": self.design_weights}
+                "discrepancy_length": self.discrepancy_length, "design_weights": self.design_weights,
+                "candidates": family.as_doc(self.candidates)}
 
     def state(self) -> dict[str, Any]:
         """What the strategy did: ``stopped_by``, the points per batch, the last fit, the
         seconds per choice (for a journal event or a summary)."""
         last = self.log[-1] if self.log else {}
-        return {"stopped_by": self.stopped_by, "batches": self.batches, "params": last.get("params"),
+        return {"stopped_by": self.stopped_by, "batches": self.batches, "model": last.get("model"),
+                "params": last.get("params"),
                 "rel_u": last.get("rel_u"), "de00_u": last.get("de00_u"), "spent_s": self.spent_s,
                 "choose_s": [e["fit_s"] + e["choose_s"] for e in self.log]}
 
@@ -257,6 +266,7 @@ class AdaptivePlan:
             chosen = spread_subset(self.plan.angles, n_new, queue)
         else:
             x, std, rel_u, sigma_rel, sigma_floor, cov = fitted
+            entry["model"] = family.label(self.model.name, self.model.options)
             entry["params"] = dict(zip(self.space.names, x.tolist()))
             entry["rel_u"] = dict(zip(self.space.names, rel_u.tolist()))
             met = []
@@ -339,8 +349,12 @@ class AdaptivePlan:
         f, s = np.where(use, f, 0.0), np.where(use, s, 1.0)
         try:
             meas = Measurements(self.wi[basis], self.wo[basis], f, s, use)
-            res = fit(meas, self.model, rng=np.random.default_rng([self.seed, k]), fixed=self.fixed or None,
-                      n_starts=self.n_starts, n_local=1)
+            rng = np.random.default_rng([self.seed, k])
+            if self.candidates:                         # the family the points so far need (module notes)
+                res = family.choose(meas, self.candidates, rng=rng, n_starts=self.n_starts, n_local=1)[0]
+                self.model, self.space = res.model, res.space
+            else:
+                res = fit(meas, self.model, rng=rng, fixed=self.fixed or None, n_starts=self.n_starts, n_local=1)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError):
             return None
         x, std, cov = np.asarray(res.x, float), np.asarray(res.std, float), np.asarray(res.cov, float)
