@@ -148,7 +148,8 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
         return [plain] + ([body] if de_p - de_b > noise_p + noise_b else [])
 
     check = PixelCheck(measured, scene=scene, size=size, k=k, seed=seed)
-    chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
+    with choice_threads():      # the pairs are found: the scoring reads no image
+        chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
     with choice_threads():
         chosen, note = _refined(chosen, sub, check, note, seed=seed, loss=loss)
     if progress is not None:
@@ -158,7 +159,8 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
         final = refit(meas, chosen, rng=np.random.default_rng([int(seed), 352]), loss=loss)
     row = next(r for r in ranking if r.chosen)
     row.result, row.options, row.k = final, dict(final.model.options), final.space.size
-    row.delta_e, row.noise = check.delta_e(final.model, final.params)
+    with choice_threads():
+        row.delta_e, row.noise = check.delta_e(final.model, final.params)
     screened = "" if sub is meas else f"ranked on {sub.n_points} of {meas.n_points} samples; "
     note = (f"{screened}{note}; refitted to all samples in {time.perf_counter() - t1:.1f} s "
             f"(CIEDE2000 {row.delta_e:.2f}); choosing took {time.perf_counter() - t0:.1f} s")
