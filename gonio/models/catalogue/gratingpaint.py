@@ -20,7 +20,7 @@ import functools
 import numpy as np
 
 from gonio.models.base import Parameter, register
-from gonio.models.catalogue.flakepaint import FlakePaint, _make_bsdf
+from gonio.models.catalogue.flakepaint import FlakePaint, _make_bsdf, half_vector_lobe
 
 __all__ = ["GratingPaint", "RING_KNOTS", "hats", "rgb_weights", "rings"]
 
@@ -30,6 +30,11 @@ ORDERS = (1,)
 #: option ``ring="table"``: the knots in q (0 to 2, the largest |wi_perp + wo_perp|) of the
 #: rings' colour, linear between them (see :class:`GratingPaint`)
 RING_KNOTS = np.linspace(0.0, 2.0, 17)
+#: :meth:`GratingPaint.data_start`'s grid: periods (um, 4 % apart; the first order's green
+#: beyond q 0.23, outside the highlight's core), widths, and the lobes' spreads beside them
+PERIODS = np.geomspace(0.32, 2.4, 52)
+WIDTHS = (0.05, 0.1, 0.2)
+LOBES = (0.02, 0.05, 0.1, 0.2, 0.4, 0.8)
 
 
 def hats(q) -> np.ndarray:
@@ -179,6 +184,46 @@ class GratingPaint(FlakePaint):
         J["grating_period"], J["grating_width"] = dP * rho, dW * rho
         J["flake_exponent"] = J["flake_exponent"] - logcc * g * rho
         return f + g * rho, J
+
+    def data_start(self, meas):
+        """A start read from the data (``gonio.fitting.optimise.mle`` asks): the period and width
+        of :data:`PERIODS` x :data:`WIDTHS` whose rings, beside the declared defaults' lobes (and
+        half-vector lobes of spreads :data:`LOBES`), fit the colours best by non-negative least
+        squares, each value weighted by 1 / sigma (at most 3000 samples, evenly picked; through
+        the Gram matrix); None for the table (nested) or other than RGB."""
+        from scipy.optimize import nnls
+
+        if self.table or meas.brdf.shape[1] != 3:
+            return None
+        p = self.validate({})
+        pick = np.unique(np.linspace(0, meas.n_points - 1, min(meas.n_points, 3000)).astype(int))
+        wi, wo = np.asarray(meas.wi, float)[pick], np.asarray(meas.wo, float)[pick]
+        f, sd, use = (np.asarray(x)[pick] for x in (meas.brdf, meas.brdf_std, meas.use))
+        use = use & np.isfinite(f) & (sd > 0.0)
+        w = np.where(use, 1.0 / np.where(use, sd, 1.0), 0.0)                 # (N, 3); unused: weight 0
+        y = np.where(use, f, 0.0) * w
+        base, coat, haze, _ = self._terms(wi, wo, p)
+        lobes = [half_vector_lobe(self.options["distribution"], a, p["flake_exponent"], wi, wo)[:, 0] for a in LOBES]
+        L = np.column_stack([base[:, 0], coat[:, 0], haze[:, 0]] + lobes)
+        Lw = L[:, None, :] * w[:, :, None]                                     # (N, 3, K)
+        q, shape, _ = self._q_shape(wi, wo, p)
+        best = (np.inf, None)
+        for period in PERIODS:
+            for width in WIDTHS:
+                r = rings(q, period, width) * shape * w                        # (N, 3)
+                cost, colour = 0.0, []
+                for c in range(3):
+                    A = np.column_stack([Lw[:, c], r[:, c]])
+                    G = A.T @ A
+                    G[np.diag_indices_from(G)] += 1e-12 * np.trace(G) + 1e-300
+                    R = np.linalg.cholesky(G).T                                # G = R^T R
+                    d = np.linalg.solve(R.T, A.T @ y[:, c])
+                    x, res = nnls(R, d)
+                    cost, colour = cost + res * res + y[:, c] @ y[:, c] - d @ d, colour + [x[-1]]
+                if cost < best[0]:
+                    best = (cost, {"grating_period": float(period), "grating_width": float(width),
+                                   "grating_reflectance": np.clip(colour, 1e-3, 1.0)})
+        return {**p, **best[1]}
 
     def start_from(self, layer_params):
         """The ``ring="cie"`` fit (``layer_params``) as the table's start: its rings at the knots."""
