@@ -122,3 +122,26 @@ def test_a_fit_scored_twice_in_the_scene_is_rendered_once(monkeypatch):
     again = check.delta_e(model, dict(q))
     assert first == again and first[0] > 0 and len(calls) == 2
     assert check.delta_e(model, p) == (0.0, 0.0) and len(calls) == 4
+
+
+def test_the_screen_takes_roughplastic_tables_from_the_grid_and_the_refit_exact():
+    """select(exact_tables=False): roughplastic is screened on its precomputed table grid (the
+    model says so, ``exact_tables`` False) and its BIC agrees with the exact screen's to 1e-5
+    relative (the grid's diffuse term is typically 6e-5 off, roughplastic.py); auto's refit of
+    that row fits the model with exact tables; a model without the keyword is untouched."""
+    from gonio.fitting.selection.auto import refit
+    from gonio.fitting.selection.by_data import select
+
+    meas = _meas("roughplastic", {"distribution": "ggx"}, GLOSSY, 13, n=300)
+    cands = [("diffuse", {}), ("roughplastic", {"distribution": "ggx"})]
+    rows = {}
+    for exact in (True, False):
+        _, ranking = select(meas, rng=np.random.default_rng(8), candidates=cands, loss="log", n_local=1,
+                            exact_tables=exact)
+        rows[exact] = {r.name: r for r in ranking}
+    grid = rows[False]["roughplastic"]
+    assert grid.result.model.exact_tables is False and rows[True]["roughplastic"].result.model.exact_tables is True
+    assert abs(grid.bic - rows[True]["roughplastic"].bic) <= 1e-5 * abs(grid.bic)
+    assert not hasattr(rows[False]["diffuse"].result.model, "exact_tables")
+    final = refit(meas, grid.result, rng=np.random.default_rng(9), loss="log")
+    assert final.model.exact_tables is True and final.model.options == grid.result.model.options

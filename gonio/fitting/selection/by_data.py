@@ -300,7 +300,8 @@ def candidate_rng(base: int, name: str, options: dict) -> np.random.Generator:
     return np.random.default_rng([int(base), int(key)])
 
 
-def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, nested_starts=None, **fit_kwargs):
+def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, nested_starts=None, exact_tables=True,
+           **fit_kwargs):
     """Fit each candidate and pick the simplest one the data supports.
 
     ``progress``: called as ``progress(done, total, label)`` before each candidate's fit and
@@ -308,6 +309,8 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, nes
     ``nested_starts``: the global stage's starts (``fit``'s ``n_starts``) of a nested candidate
     started from its contained model's fit (:func:`_nested_start`); None: as every other.
     Each candidate's fit draws from its own Generator (:func:`candidate_rng`; one draw of ``rng``).
+    ``exact_tables=False``: a model that takes the constructor keyword ``exact_tables``
+    (roughplastic) is fitted on its precomputed table grid (a screen; its refit takes them exact).
 
     Returns
     -------
@@ -325,6 +328,8 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, nes
             model = gm.get(name, **options)
         except (KeyError, ValueError):
             continue  # a candidate this build of gonio.models does not provide
+        if not exact_tables and getattr(model, "exact_tables", False):
+            model = type(model)(exact_tables=False, **model.options)
         start = _nested_start(model, rows)
         kw = fit_kwargs if start is None or nested_starts is None else {**fit_kwargs, "n_starts": int(nested_starts)}
         result = fit(meas, model, rng=candidate_rng(base, name, options), start=start, **kw)
