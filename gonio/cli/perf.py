@@ -125,8 +125,8 @@ def register(sub, *, env, seed, parser_class):
                          "quick,standard,adaptive)")
     ba.add_argument("--sample", help="the virtual sample: a sample TOML or a measured RGL .bsdf file (default the "
                                      "demo's glossy plastic)")
-    ba.add_argument("--model", help="the family fitted (default the sample's own; for a measured file 'choose': "
-                                    "each plan's data choose among the adaptive plan's candidates by BIC)")
+    ba.add_argument("--model", help="the family fitted (default the sample's own; roughplastic for a measured file; "
+                                    "'choose': each plan's data choose among four by cross-validation)")
     ba.add_argument("--points", type=int, default=24, help="the adaptive plan's budget (default 24)")
     ba.add_argument("--budget-fraction", type=float, help="the sequential plans stop at this fraction of the "
                                                            "dense plan's instrument time (dense must be in --plans)")

@@ -4,8 +4,8 @@ Every plan captures the same virtual sample on the simulated instrument (instant
 seed and error model); its instrument time is the dataset's ``instrument_time_s`` (motion,
 settling, exposures and preparation on the simulator's clock, as journalled). The capture is
 exported, fitted by chi2 with the dataset's budget (a sequential plan's points weighted by their
-design weights unless ``-unweighted``): the sample's own family, ``model``, or for a measured
-file the family the capture's data choose (:data:`CHOOSE`: gonio.bench.plan.family), and
+design weights unless ``-unweighted``): the sample's own family (roughplastic GGX for a measured
+file), ``model``, or the family each capture's data choose (:data:`CHOOSE`), and
 the fit scored against the truth on :func:`gonio.perf.real.dense_grid` (Ngan and log errors,
 :func:`gonio.perf.real.metrics`) and by the preview's rendered CIEDE2000. The front: the plans
 no other plan beats on both instrument time and Ngan error.
@@ -37,8 +37,9 @@ UNWEIGHTED = "-unweighted"
 #: the adaptive plan's point budget by default
 ADAPTIVE_POINTS = 24
 #: ``model``: every plan's data (the dense grid's too) choose their family among the sequential
-#: plans' candidates by weighted cross-validation (gonio.bench.plan.family.choose_cv), the
-#: default for a measured file
+#: plans' candidates by weighted cross-validation (gonio.bench.plan.family.choose_cv); not the
+#: default: on held-out materials it raised the dense grid's bar more than the plans followed
+#: (docs/performance.md, "The family chosen from the data")
 CHOOSE = "choose"
 
 
@@ -149,8 +150,8 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
         out=None, folder=None, budget_fraction=None) -> list[dict]:
     """Capture, fit and score ``sample`` (a :func:`gonio.bench.samples.load_sample` dict; the demo
     sample by default) with each plan; print the table and the front; with ``out`` write the
-    CSV there. ``model``: the family fitted (default the sample's own; :data:`CHOOSE` for a
-    measured file); ``errors``: the simulator's error preset (every plan the same instrument);
+    CSV there. ``model``: the family fitted (default the sample's own; roughplastic GGX for a
+    measured file; :data:`CHOOSE`: each plan's data choose); ``errors``: the simulator's error preset (every plan the same instrument);
     ``budget_fraction``: the sequential plans stop at that fraction of the ``dense`` plan's
     instrument time (``dense`` must be among ``plans``; it runs first) instead of ``points``."""
     plans = tuple(plans)
@@ -169,7 +170,7 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
 
     sample = load_sample(None) if sample is None else sample
     if model is None:
-        model, options = ((CHOOSE, {}) if "bsdf_file" in sample
+        model, options = (("roughplastic", {"distribution": "ggx"}) if "bsdf_file" in sample
                           else (sample["model"], dict(sample.get("options", {}))))
     rows = []
     with tempfile.TemporaryDirectory(prefix="gonio-acq-") as tmp:

@@ -2,9 +2,9 @@
 
 A lab does not know the sample's family before it measures. :func:`choose_cv` picks, among
 candidate families (:data:`FAMILIES`), the one that predicts held-out points best over the
-evaluation measure (importance-weighted cross-validation); `gonio perf acquisition` applies it
-to every plan's final data, the dense grid's included, so each plan is scored on the family its
-own data chose. ``[strategy] candidates`` (default ``[]``: the plan's ``model`` alone) lets a
+evaluation measure (importance-weighted cross-validation); `gonio perf acquisition --model
+choose` applies it to every plan's final data, the dense grid's included, so each plan is scored
+on the family its own data chose. ``[strategy] candidates`` (default ``[]``: the plan's ``model`` alone) lets a
 sequential plan choose before each batch too, by BIC (:func:`choose`: the simplest within 2 of
 the best, `gonio.fitting.selection.by_data.select`; Schwarz 1978, Kass & Raftery 1995), and
 place the batch for that family. Public: `FAMILIES`, `FOLDS`, `parse`, `as_doc`, `choose`,
