@@ -190,11 +190,14 @@ class GratingPaint(FlakePaint):
         of :data:`PERIODS` x :data:`WIDTHS` whose rings, beside the declared defaults' lobes (and
         half-vector lobes of spreads :data:`LOBES`), fit the colours best by non-negative least
         squares, each value weighted by 1 / sigma (at most 3000 samples, evenly picked; through
-        the Gram matrix); None for the table (nested) or other than RGB."""
+        the Gram matrix); the table's: those rings at its knots (:meth:`start_from`); None for
+        other than RGB."""
         from scipy.optimize import nnls
 
-        if self.table or meas.brdf.shape[1] != 3:
+        if meas.brdf.shape[1] != 3:
             return None
+        if self.table:
+            return self.start_from(self._layer.data_start(meas))
         p = self.validate({})
         pick = np.unique(np.linspace(0, meas.n_points - 1, min(meas.n_points, 3000)).astype(int))
         wi, wo = np.asarray(meas.wi, float)[pick], np.asarray(meas.wo, float)[pick]
