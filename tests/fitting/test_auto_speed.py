@@ -145,3 +145,22 @@ def test_the_screen_takes_roughplastic_tables_from_the_grid_and_the_refit_exact(
     assert not hasattr(rows[False]["diffuse"].result.model, "exact_tables")
     final = refit(meas, grid.result, rng=np.random.default_rng(9), loss="log")
     assert final.model.exact_tables is True and final.model.options == grid.result.model.options
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, "2"])
+def test_bad_counts_are_refused_in_one_line(bad):
+    """A negative, fractional or text count of nested starts or of threads: ValueError naming
+    the value, before any fit or any change to Dr.Jit's pool."""
+    import drjit as dr
+
+    from gonio.fitting.selection.auto import choice_threads
+    from gonio.fitting.selection.by_data import select
+
+    meas = _meas("diffuse", {}, {"reflectance": [0.5, 0.4, 0.3]}, 14, n=50)
+    with pytest.raises(ValueError, match="nested_starts"):
+        select(meas, rng=np.random.default_rng(0), candidates=[("diffuse", {})], nested_starts=bad)
+    before = dr.thread_count()
+    with pytest.raises(ValueError, match="choice_threads"):
+        with choice_threads(bad):
+            pass
+    assert dr.thread_count() == before

@@ -61,6 +61,8 @@ def choice_threads(n=CHOICE_THREADS):
     ``GONIO_THREADS`` sets it or the pool is that size already."""
     import drjit as dr
 
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise ValueError(f"choice_threads({n!r}): give a whole number of threads >= 1")
     before = dr.thread_count()
     if os.environ.get("GONIO_THREADS", "").strip() or before == int(n):
         yield

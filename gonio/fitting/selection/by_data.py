@@ -318,6 +318,8 @@ def select(meas, *, rng, candidates=None, delta: float = 2.0, progress=None, nes
     ranking : list of Ranked
         Sorted by BIC, the chosen one flagged.
     """
+    if nested_starts is not None and not (isinstance(nested_starts, (int, np.integer)) and nested_starts >= 0):
+        raise ValueError(f"nested_starts = {nested_starts!r}: give a whole number of starts >= 0, or None")
     rows = []
     todo = tuple(candidates or candidates_for(meas))
     base = int(rng.integers(2 ** 63))
