@@ -72,8 +72,10 @@ def test_a_nested_candidate_started_from_its_layer_needs_no_global_stage():
 
 def test_the_choice_runs_on_one_jit_thread_and_gives_the_pool_back(monkeypatch):
     """choice_threads: Dr.Jit's pool has CHOICE_THREADS threads inside the block and its former
-    size after it, also when the block raises; where GONIO_THREADS sets the pool it is left
-    alone (the user's count)."""
+    size after it, also when the block raises; from another thread than the main one, and where
+    GONIO_THREADS sets the pool, it is left alone."""
+    import threading
+
     import drjit as dr
 
     from gonio.fitting.selection.auto import CHOICE_THREADS, choice_threads
@@ -91,6 +93,16 @@ def test_the_choice_runs_on_one_jit_thread_and_gives_the_pool_back(monkeypatch):
         except KeyError:
             pass
         assert dr.thread_count() == 2
+        seen = []
+
+        def worker():       # a batch's in-process Dask worker: the process's pool is left alone
+            with choice_threads():
+                seen.append(dr.thread_count())
+
+        t = threading.Thread(target=worker)
+        t.start()
+        t.join()
+        assert seen == [2]
         monkeypatch.setenv("GONIO_THREADS", "2")
         with choice_threads():
             assert dr.thread_count() == 2

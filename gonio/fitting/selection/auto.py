@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
 
 import numpy as np
@@ -58,13 +59,16 @@ ONE_THREAD_POINTS = 20_000
 @contextlib.contextmanager
 def choice_threads(n=CHOICE_THREADS):
     """Dr.Jit's pool at ``n`` threads inside the block, as it was after it; left alone where
-    ``GONIO_THREADS`` sets it or the pool is that size already."""
+    ``GONIO_THREADS`` sets it, the pool is that size already, or the caller is not the main
+    thread (the pool is the process's: a batch's in-process Dask workers fit side by side,
+    and a pool resized under another thread's replayed kernel is what freeze.py warns of)."""
     import drjit as dr
 
     if not (isinstance(n, (int, np.integer)) and n >= 1):
         raise ValueError(f"choice_threads({n!r}): give a whole number of threads >= 1")
     before = dr.thread_count()
-    if os.environ.get("GONIO_THREADS", "").strip() or before == int(n):
+    if (os.environ.get("GONIO_THREADS", "").strip() or before == int(n)
+            or threading.current_thread() is not threading.main_thread()):
         yield
         return
     dr.set_thread_count(int(n))
