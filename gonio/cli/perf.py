@@ -67,7 +67,7 @@ def _cmd_bench_real(args):
     files = real_files(args.paths)
     try:
         run_real(files, out=Path(args.out) if args.out else None, seed=args.seed, peer=args.peer,
-                 peer_eval=args.peer_eval)
+                 peer_eval=args.peer_eval, warm=not args.no_warm_up)
     except ValueError as exc:
         raise GonioError(" ".join(str(exc).split())[:300]) from None
 
@@ -116,6 +116,9 @@ def register(sub, *, env, seed, parser_class):
     br.add_argument("--peer-eval", choices=("gonio", "mitsuba"), default="gonio",
                     help="how the peer evaluates its model: gonio (gonio's compiled model.eval, the stronger peer; "
                          "default) or mitsuba (Mitsuba's own BSDF, as issue 35's plain fit does)")
+    br.add_argument("--no-warm-up", action="store_true",
+                    help="time the first material cold: without the untimed run of both sides on 400 of its samples "
+                         "that pays the process's one-time costs (Dr.Jit's tracing) before the rows")
     br.set_defaults(func=env(_cmd_bench_real))
     ba = bsub.add_parser("acquisition", help="per plan: the simulated capture's instrument time against the fit's "
                                              "error against the truth (Ngan, log, dE00), and the front")

@@ -57,11 +57,13 @@ from gonio.fitting.selection.by_data import select
 from gonio.fitting.optimise.space import ParameterSpace
 from gonio.fitting.formats import RGLBRDF, read_merl
 
-__all__ = ["dense_grid", "metrics", "peer_fit", "run_real", "PEER_STARTS"]
+__all__ = ["dense_grid", "metrics", "peer_fit", "run_real", "warm_up", "PEER_STARTS", "WARM_UP_POINTS"]
 
 PEER_STARTS = 8
 #: the plain peer's family (issue 35: Mitsuba's roughplastic); "same" fits the family gonio chose
 PEER_FAMILY = "roughplastic"
+#: samples of the first file both sides run on once before the timed rows (:func:`warm_up`)
+WARM_UP_POINTS = 400
 #: the rendered comparison: preview sphere size (pixels) and samples per pixel (the issue's 256)
 RENDER_SIZE, RENDER_SPP = 64, 256
 #: dense grid: theta_i and theta_o rings equal in solid angle (cos theta uniform), phi cells
@@ -269,10 +271,40 @@ def print_table(rows, legend=True, head=True):
 _EVAL_TEXT = {"gonio": "gonio's model.eval (its compiled kernel)", "mitsuba": "Mitsuba itself (load_dict and eval)"}
 
 
-def run_real(files, out=None, seed=0, loss=None, open_data=None, peer=PEER_FAMILY, peer_eval="gonio") -> list[dict]:
+def warm_up(path, *, seed=0, loss=None, open_data=None, peer=PEER_FAMILY, peer_eval="gonio", n=WARM_UP_POINTS):
+    """Both sides once, untimed in the rows, on ``n`` samples of ``path``: the process's
+    one-time costs (imports, Dr.Jit's tracing and compiling of every kernel either side uses)
+    paid before the first material, as in a batch they are paid once for all. Returns the wall
+    seconds (gonio, peer), which :func:`run_real` prints."""
+    from gonio.fitting.selection.auto import auto_fit, subsample
+
+    import gonio.models as gm
+
+    path = Path(path)
+    loss = loss or REAL_DEFAULT_LOSS
+    meas = open_data(path) if open_data is not None else (
+        merl_samples(path, n=5000, rng=np.random.default_rng(seed)) if path.suffix.lower() == ".binary"
+        else rgl_samples(path))
+    meas = subsample(meas, n, np.random.default_rng([int(seed), 354]))
+    t0 = time.perf_counter()
+    auto_fit(meas, str(path), seed=seed, loss=loss, rng=np.random.default_rng(seed))
+    t1 = time.perf_counter()
+    peer_fit(meas, gm.get(PEER_FAMILY if peer == "same" else peer), np.random.default_rng([seed, 1]), n_starts=1,
+             evaluate=peer_eval)
+    return t1 - t0, time.perf_counter() - t1
+
+
+def run_real(files, out=None, seed=0, loss=None, open_data=None, peer=PEER_FAMILY, peer_eval="gonio",
+             warm=True) -> list[dict]:
     """Every material of ``files``; print the table; with ``out`` write it as CSV there.
-    ``peer_eval``: how the peer evaluates its model (:data:`PEER_EVALS`)."""
+    ``peer_eval``: how the peer evaluates its model (:data:`PEER_EVALS`); ``warm``: both sides
+    first run once on the first file (:func:`warm_up`), so that every row is a batch's
+    steady state; its seconds are printed, not hidden."""
     rows = []
+    if warm and files:
+        wg, wp = warm_up(files[0], seed=seed, loss=loss, open_data=open_data, peer=peer, peer_eval=peer_eval)
+        print(f"warm-up on {WARM_UP_POINTS} samples of {Path(files[0]).stem} (one-time costs, not in the rows): "
+              f"gonio {wg:.1f} s, peer {wp:.1f} s", flush=True)
     for f in files:
         rows.append(compare(f, seed=seed, loss=loss, open_data=open_data, peer=peer, peer_eval=peer_eval))
         print_table(rows[-1:], legend=False, head=len(rows) == 1)
