@@ -21,8 +21,8 @@ import math
 
 import numpy as np
 
-from gonio.core.geometry import half_vector
 from gonio.models.base import Model, Parameter, register
+from gonio.models.catalogue.flake_memo import geometry, memo, values
 from gonio.models.physics.fresnel import fresnel_conductor
 from gonio.models.physics.microfacet import MicrofacetDistribution, smith_g1_xyz
 from gonio.models.structure import Structure
@@ -31,22 +31,20 @@ __all__ = ["FlakePaint", "half_vector_lobe"]
 
 #: relative step of the central differences of the coat's roughness and index
 _STEP = 1e-6
+#: the parameters the lobes' shapes depend on (every other one is a colour, entering f_r linearly)
+_SHAPE_PARAMETERS = ("alpha", "eta", "haze_alpha", "flake_alpha", "flake_exponent", "flake_widen")
 
 
 def _coat(kind, alpha, eta, wi, wo):
     """F D G / (4 cos_i cos_o) of the clear coat (Walter et al. 2007 eq. 20, Mitsuba's separable
     Smith G, the dielectric Fresnel as the conductor one with k = 0), (N,)."""
-    ci, co = wi[:, 2], wo[:, 2]
-    wm, valid = half_vector(wi, wo)
-    di = np.einsum("ij,ij->i", wi, wm)
-    do = np.einsum("ij,ij->i", wo, wm)
-    D = MicrofacetDistribution(kind, alpha).D(wm)
-    G = smith_g1_xyz(kind, alpha, alpha, wi[:, 0], wi[:, 1], ci, di) \
-        * smith_g1_xyz(kind, alpha, alpha, wo[:, 0], wo[:, 1], co, do)
-    den = 4.0 * ci * co
-    ok = valid & (den > 0.0)
-    F = fresnel_conductor(0.5 * (di + do)[:, None], np.full(1, eta), np.zeros(1))[:, 0]
-    return np.where(ok, F * D * G / np.where(ok, den, 1.0), 0.0)
+    g = geometry(wi, wo)
+    D = MicrofacetDistribution(kind, alpha).D(g.wm)
+    G = smith_g1_xyz(kind, alpha, alpha, g.wi[:, 0], g.wi[:, 1], g.ci, g.di) \
+        * smith_g1_xyz(kind, alpha, alpha, g.wo[:, 0], g.wo[:, 1], g.co, g.do)
+    ok = g.coat_ok
+    F = fresnel_conductor(g.cos_d[:, None], np.full(1, eta), np.zeros(1))[:, 0]
+    return np.where(ok, F * D * G / np.where(ok, g.den, 1.0), 0.0)
 
 
 def half_vector_lobe(kind, alpha, p, wi, wo, grad=False, widen=0.0):
@@ -54,13 +52,8 @@ def half_vector_lobe(kind, alpha, p, wi, wo, grad=False, widen=0.0):
     cos theta_d)) (the lobe widens toward grazing theta_d), with (grad) dL/dalpha, dL/dp and
     dL/dwiden. GGX: D = a^2 / (pi cos^4 (a^2 + tan^2)^2); Beckmann: D = exp(-tan^2 / a^2) /
     (pi a^2 cos^4) (Walter et al. 2007 eqs. 33, 25); 0 below the horizon."""
-    wm, valid = half_vector(wi, wo)
-    cc = wi[:, 2] * wo[:, 2]
-    ok = (valid & (cc > 0.0) & (wm[:, 2] > 0.0))[:, None]
-    c2 = np.where(ok[:, 0], wm[:, 2] ** 2, 1.0)[:, None]
-    t2 = (wm[:, 0] ** 2 + wm[:, 1] ** 2)[:, None] / c2
-    cos_d = 0.5 * (np.einsum("ij,ij->i", wi, wm) + np.einsum("ij,ij->i", wo, wm))     # symmetric: reciprocal
-    grazing = (1.0 - np.clip(cos_d, 0.0, 1.0))[:, None]
+    g = geometry(wi, wo)      # cos theta_d symmetric in wi, wo: reciprocal
+    ok, c2, t2, grazing, logcc = g.lobe_ok, g.c2, g.t2, g.grazing, g.logcc
     a0 = np.atleast_1d(np.asarray(alpha, float))[None, :]
     a = a0 * (1.0 + widen * grazing)
     a2 = a * a
@@ -70,7 +63,6 @@ def half_vector_lobe(kind, alpha, p, wi, wo, grad=False, widen=0.0):
     else:
         D = np.exp(-t2 / a2) / (math.pi * a2 * c2 * c2)
         dlog = 2.0 * t2 / (a2 * a) - 2.0 / a
-    logcc = np.log(np.where(ok[:, 0], cc, 1.0))[:, None]
     L = np.where(ok, D * np.exp(-p * logcc) / 4.0, 0.0)
     if not grad:
         return L
@@ -144,12 +136,19 @@ class FlakePaint(Model):
         )
 
     def _terms(self, wi, wo, p, grad=False):
+        """(base, coat, haze, flake): the four lobes' shapes (with ``grad`` the half-vector
+        lobes' derivatives), remembered for these directions and spreads (flake_memo: a fit's
+        calls that change only the colours reuse them)."""
         kind = self.options["distribution"]
-        up = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)).astype(float)[:, None]
-        coat = _coat(kind, p["alpha"], p["eta"], wi, wo)[:, None]
-        haze = half_vector_lobe(kind, p["haze_alpha"], p["flake_exponent"], wi, wo, grad)
-        flake = half_vector_lobe(kind, p["flake_alpha"], p["flake_exponent"], wi, wo, grad, p["flake_widen"])
-        return up / math.pi, coat, haze, flake
+        g = geometry(wi, wo)
+        key = ("flakepaint", kind, bool(grad), _coat, half_vector_lobe, fresnel_conductor) + values(p, _SHAPE_PARAMETERS)
+
+        def make():
+            coat = _coat(kind, p["alpha"], p["eta"], g.wi, g.wo)[:, None]
+            haze = half_vector_lobe(kind, p["haze_alpha"], p["flake_exponent"], g.wi, g.wo, grad)
+            flake = half_vector_lobe(kind, p["flake_alpha"], p["flake_exponent"], g.wi, g.wo, grad, p["flake_widen"])
+            return g.up / math.pi, coat, haze, flake
+        return memo(g, key, make)
 
     def _eval_parts(self, wi, wo, p):
         base, coat, haze, flake = self._terms(wi, wo, p)

@@ -20,6 +20,7 @@ import functools
 import numpy as np
 
 from gonio.models.base import Parameter, register
+from gonio.models.catalogue.flake_memo import geometry, memo, values
 from gonio.models.catalogue.flakepaint import FlakePaint, _make_bsdf, half_vector_lobe
 
 __all__ = ["GratingPaint", "RING_KNOTS", "hats", "rgb_weights", "rings"]
@@ -136,18 +137,33 @@ class GratingPaint(FlakePaint):
     @staticmethod
     def _q_shape(wi, wo, p):
         """q, 1 / (4 (cos_i cos_o)^p) (N, 1; 0 below the horizon) and ln(cos_i cos_o) (N, 1)."""
-        q = np.hypot(wi[:, 0] + wo[:, 0], wi[:, 1] + wo[:, 1])
-        cc = wi[:, 2] * wo[:, 2]
-        ok = (cc > 0.0)[:, None]
-        logcc = np.log(np.where(ok[:, 0], cc, 1.0))[:, None]
-        return q, np.where(ok, np.exp(-p["flake_exponent"] * logcc) / 4.0, 0.0), logcc
+        g = geometry(wi, wo)
+        shape = memo(g, ("q_shape",) + values(p, ("flake_exponent",)),
+                     lambda: np.where(g.q_ok, np.exp(-p["flake_exponent"] * g.q_logcc) / 4.0, 0.0))
+        return g.q, shape, g.q_logcc
 
     def _grating(self, wi, wo, p, grad=False):
-        q, shape, logcc = self._q_shape(wi, wo, p)
-        out = rings(q, p["grating_period"], p["grating_width"], grad)
-        if not grad:
-            return out * shape
-        return tuple(x * shape for x in out) + (logcc,)
+        """The rings' shape R(q) / (4 (cos_i cos_o)^p) (N, 3), with (grad) its derivatives in the
+        period and width and ln(cos_i cos_o); remembered for these directions (flake_memo)."""
+        g = geometry(wi, wo)
+
+        def make():
+            q, shape, logcc = self._q_shape(g.wi, g.wo, p)
+            out = rings(q, p["grating_period"], p["grating_width"], grad)
+            if not grad:
+                return out * shape
+            return tuple(x * shape for x in out) + (logcc,)
+        key = ("grating", bool(grad), rings) + values(p, ("grating_period", "grating_width", "flake_exponent"))
+        return memo(g, key, make)
+
+    def _hat_shape(self, wi, wo, p):
+        """hats(q) times the shape (N, len(RING_KNOTS)): the table's basis, remembered."""
+        g = geometry(wi, wo)
+
+        def make():
+            q, shape, _ = self._q_shape(g.wi, g.wo, p)
+            return hats(q) * shape
+        return memo(g, ("hats", hats) + values(p, ("flake_exponent",)), make)
 
     def _table(self, p) -> np.ndarray:
         """(len(RING_KNOTS), C): the rings' colour at the knots."""
@@ -158,7 +174,8 @@ class GratingPaint(FlakePaint):
         if not self.table:
             return self._grating(wi, wo, p) * p["grating_reflectance"]
         q, shape, _ = self._q_shape(wi, wo, p)
-        return (hats(q) @ self._table(p)) * shape
+        g = geometry(wi, wo)
+        return (memo(g, ("hats", hats), lambda: hats(q)) @ self._table(p)) * shape
 
     def _eval_parts(self, wi, wo, p):
         base, lobe = super()._eval_parts(wi, wo, p)
@@ -171,8 +188,8 @@ class GratingPaint(FlakePaint):
         p = self.validate(params)
         f, J = super().jacobian_reference(wi, wo, p)
         if self.table:      # linear in the table: column k is the knot's hat times the shape
-            q, shape, logcc = self._q_shape(wi, wo, p)
-            B = hats(q) * shape
+            _, _, logcc = self._q_shape(wi, wo, p)
+            B = self._hat_shape(wi, wo, p)
             ring = B @ self._table(p)
             for k in range(RING_KNOTS.size):
                 J[f"ring_{k}"] = np.broadcast_to(B[:, k:k + 1], f.shape).copy()
