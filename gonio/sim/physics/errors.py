@@ -28,7 +28,10 @@ and the sources: the comment below.
 #             against its back; the sample square only).
 # aperture    source and detector half-angles (uniform disks: a collimated LED with a field stop,
 #             a camera lens pupil); the simulator integrates f_r cos(theta_i) over both (7-point
-#             degree-5 disk rule each, Stroud 1971 S2 5-1, so 49 directions a pose).
+#             degree-5 disk rule each, Stroud 1971 S2 5-1, so 49 directions a pose); where f_r
+#             jumps to 0 inside the cones (the rule's and six rim points of each disk, paired,
+#             give both zero and non-zero values: a lobe's cutoff, a side's horizon) a 256-point
+#             equal-weight sunflower rule on each disk instead (65 536 pairs).
 # stray       a stray-light floor: radiance floor / pi per unit irradiance over the frame (light
 #             scattered by the room and the lamp housing; the lamp-off darks miss it).
 # reference   the reference's true reflectance drawn from its certificate
@@ -283,16 +286,31 @@ def _small_rotation(xy_deg) -> np.ndarray:
     return rx @ ry
 
 
-def _cone(w: np.ndarray, half_rad: float) -> np.ndarray:
-    """Directions of the disk rule within ``half_rad`` of the unit vector ``w``: (7, 3)."""
+def _cone(w: np.ndarray, half_rad: float, pts=None) -> np.ndarray:
+    """Directions of the disk rule (or the unit-disk points ``pts``, (K, 2)) within ``half_rad``
+    of the unit vector ``w``: (7, 3) or (K, 3)."""
     if half_rad <= 0.0:
         return w[None, :]
     t1 = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 1.0, 0.0])
     t1 /= np.linalg.norm(t1)
     t2 = np.cross(w, t1)
-    pts, _ = disk_rule()
+    pts = disk_rule()[0] if pts is None else pts
     d = w[None, :] + math.tan(half_rad) * (pts[:, :1] * t1 + pts[:, 1:] * t2)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+#: Six points on the rim of the unit disk: with the rule's seven they probe each cone for a cutoff.
+_RIM = np.stack([np.cos(np.arange(6) * np.pi / 3 + np.pi / 6), np.sin(np.arange(6) * np.pi / 3 + np.pi / 6)], -1)
+#: Points of the dense rule used where f_r jumps inside the cones (per disk; pairs = its square).
+_DENSE_POINTS = 256
+
+
+def _sunflower(n: int) -> np.ndarray:
+    """``n`` equal-weight points on the unit disk, one per equal-area ring, turned by the golden
+    angle (Vogel 1979, Math. Biosci. 44 179): a quasi-uniform rule for non-smooth integrands."""
+    k = np.arange(n) + 0.5
+    r, a = np.sqrt(k / n), k * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(a), r * np.sin(a)], -1)
 
 
 @dataclass(frozen=True)
@@ -332,18 +350,39 @@ class ErrorState:
         ``frame`` its rotation in the holder), and the value the render shows (the point pair in
         the holder frame), from one evaluation of ``truth``."""
         ap = self.model.aperture
-        di = _cone(wi, math.radians(ap.source_half_deg))
-        do = _cone(wo, math.radians(ap.detector_half_deg))
+        hs, hd = math.radians(ap.source_half_deg), math.radians(ap.detector_half_deg)
+        di, do = _cone(wi, hs), _cone(wo, hd)
         _, w = disk_rule()
         wa = w if len(di) > 1 else np.ones(1)
         wb = w if len(do) > 1 else np.ones(1)
-        a = np.repeat(di, len(do), axis=0)
-        b = np.tile(do, (len(di), 1))
+        # the rule's pairs, then the rim probes (rule and rim points of both cones), then the point
+        ri = np.vstack([di, _cone(wi, hs, _RIM)]) if len(di) > 1 else di
+        ro = np.vstack([do, _cone(wo, hd, _RIM)]) if len(do) > 1 else do
+        a = np.vstack([np.repeat(di, len(do), axis=0), np.repeat(ri, len(ro), axis=0), wi[None]])
+        b = np.vstack([np.tile(do, (len(di), 1)), np.tile(ro, (len(ri), 1)), wo[None]])
+        f = self._truth_cos(truth, a, b, frame)
+        n = len(di) * len(do)
+        probe = f[n:-1]
+        if len(probe) > 1 and ((probe == 0.0).any(axis=0) & (probe != 0.0).any(axis=0)).any():
+            # f_r jumps to 0 inside the cones (a lobe's cutoff, a side's horizon): the degree-5
+            # rule weights a whole 1/64 of the pair space on each corner pair, so it is replaced
+            # by the dense equal-weight rule (the mean over the two uniform disks)
+            u = _sunflower(_DENSE_POINTS)
+            si = _cone(wi, hs, u) if len(di) > 1 else di
+            so = _cone(wo, hd, u) if len(do) > 1 else do
+            fd = self._truth_cos(truth, np.vstack([np.repeat(si, len(so), axis=0), wi[None]]),
+                                 np.vstack([np.tile(so, (len(si), 1)), wo[None]]), frame)
+            return fd[:-1].mean(axis=0), f[-1]
+        return np.einsum("k,kc->c", np.outer(wa, wb).ravel(), f[:n]), f[-1]
+
+    @staticmethod
+    def _truth_cos(truth, a, b, frame):
+        """f_r cos(theta_i) of ``truth`` at the pairs (rows); all rows but the last (the point
+        pair, in the holder frame) turned into the square's face frame (R.T @ v per row)."""
         if frame is not None:
-            a, b = a @ frame, b @ frame       # into the square's own face frame (R.T @ v per row)
-        a, b = np.vstack([a, wi]), np.vstack([b, wo])
-        f = np.asarray(truth(a, b), float) * np.maximum(a[:, 2], 0.0)[:, None]
-        return np.einsum("k,kc->c", np.outer(wa, wb).ravel(), f[:-1]), f[-1]
+            a = np.vstack([a[:-1] @ frame, a[-1:]])
+            b = np.vstack([b[:-1] @ frame, b[-1:]])
+        return np.asarray(truth(a, b), float) * np.maximum(a[:, 2], 0.0)[:, None]
 
     def sample_radiance(self, sample, wi, wo):
         """The sample square's true radiance per unit irradiance (3,) (wedge and apertures) and
