@@ -29,8 +29,6 @@ from gonio.models.structure import Structure
 
 __all__ = ["FlakePaint", "half_vector_lobe"]
 
-#: relative step of the central differences of the coat's roughness and index
-_STEP = 1e-6
 #: the parameters the lobes' shapes depend on (every other one is a colour, entering f_r linearly)
 _SHAPE_PARAMETERS = ("alpha", "eta", "haze_alpha", "flake_alpha", "flake_exponent", "flake_widen")
 
@@ -45,6 +43,65 @@ def _coat(kind, alpha, eta, wi, wo):
     ok = g.coat_ok
     F = fresnel_conductor(g.cos_d[:, None], np.full(1, eta), np.zeros(1))[:, 0]
     return np.where(ok, F * D * G / np.where(ok, g.den, 1.0), 0.0)
+
+
+def _coat_grad(kind, alpha, eta, wi, wo):
+    """(d coat / d alpha, d coat / d eta), (N,) each: :func:`_coat`'s exact derivatives. D:
+    Walter et al. 2007 eqs. 33, 25 differentiated; G1: GGX's 2 / (1 + sqrt(1 + T)), T = alpha^2
+    tan^2, and Beckmann's rational fit (eq. 27) in b = 1 / sqrt(T); F: the dielectric's (k = 0,
+    eta > 1, so a = sqrt(eta^2 - sin^2)) R_s and R_p of :func:`fresnel_conductor` in eta."""
+    g = geometry(wi, wo)
+    a = float(alpha)
+    D = MicrofacetDistribution(kind, a).D(g.wm)
+    s = g.wm[:, 0] ** 2 + g.wm[:, 1] ** 2
+    z2 = g.wm[:, 2] ** 2
+    if kind == "ggx":
+        dD = D * (-2.0 / a + 4.0 * s / (a ** 3 * (s / (a * a) + z2)))
+    else:
+        dD = D * (2.0 * s / (a ** 3 * np.where(z2 > 0.0, z2, 1.0)) - 2.0 / a)
+    Gi, dGi = _g1_grad(kind, a, g.wi[:, 0], g.wi[:, 1], g.ci, g.di)
+    Go, dGo = _g1_grad(kind, a, g.wo[:, 0], g.wo[:, 1], g.co, g.do)
+    F, dF = _dielectric_grad(g.cos_d, float(eta))
+    den = np.where(g.coat_ok, g.den, 1.0)
+    dalpha = np.where(g.coat_ok, F * (dD * Gi * Go + D * (dGi * Go + Gi * dGo)) / den, 0.0)
+    return dalpha, np.where(g.coat_ok, dF * D * Gi * Go / den, 0.0)
+
+
+def _g1_grad(kind, alpha, x, y, z, dot):
+    """(G1, d G1 / d alpha) of :func:`smith_g1_xyz` for an isotropic alpha."""
+    G = smith_g1_xyz(kind, alpha, alpha, x, y, z, dot)
+    xy = (alpha * x) ** 2 + (alpha * y) ** 2
+    z2 = z * z
+    t2 = xy / np.where(z2 > 0.0, z2, 1.0)
+    if kind == "ggx":
+        r = np.sqrt(1.0 + t2)
+        dG = -2.0 * t2 / (alpha * r * (1.0 + r) ** 2)
+    else:
+        b = 1.0 / np.sqrt(np.where(t2 > 0.0, t2, 1.0))
+        num, den = 3.535 * b + 2.181 * b * b, 1.0 + 2.276 * b + 2.577 * b * b
+        dgdb = ((3.535 + 4.362 * b) * den - num * (2.276 + 5.154 * b)) / (den * den)
+        dG = np.where(b >= 1.6, 0.0, dgdb * (-b / alpha))
+    dG = np.where((z2 > 0.0) & (xy != 0.0) & (dot * z > 0.0), dG, 0.0)
+    return G, dG
+
+
+def _dielectric_grad(cos_d, eta):
+    """(F, d F / d eta) of :func:`fresnel_conductor` at k = 0 and eta > 1 (its t1 = eta^2 -
+    sin^2 > 0, a^2 + b^2 = t1, a = sqrt(t1)), (N,)."""
+    c = np.clip(cos_d, 0.0, 1.0)
+    c2 = c * c
+    s2 = 1.0 - c2
+    t1 = eta * eta - s2
+    a = np.sqrt(t1)
+    term1, term2 = t1 + c2, 2.0 * c * a
+    d1, d2 = 2.0 * eta, 2.0 * c * eta / a
+    rs = (term1 - term2) / (term1 + term2)
+    drs = ((d1 - d2) * (term1 + term2) - (term1 - term2) * (d1 + d2)) / (term1 + term2) ** 2
+    term3, term4 = t1 * c2 + s2 * s2, term2 * s2
+    d3, d4 = d1 * c2, d2 * s2
+    q = (term3 - term4) / (term3 + term4)
+    dq = ((d3 - d4) * (term3 + term4) - (term3 - term4) * (d3 + d4)) / (term3 + term4) ** 2
+    return 0.5 * (rs + rs * q), 0.5 * (drs + drs * q + rs * dq)
 
 
 def half_vector_lobe(kind, alpha, p, wi, wo, grad=False, widen=0.0):
@@ -157,8 +214,8 @@ class FlakePaint(Model):
 
     def jacobian_reference(self, wi, wo, params):
         """(f_r, {parameter: d f_r / d parameter (N, C)}): the colours' columns exactly (their
-        lobes), the lobes' spreads and exponent analytically, the coat's roughness and index by
-        central differences (relative step 1e-6); a per-channel spread's column c is
+        lobes), the lobes' spreads and exponent and the coat's roughness and index analytically
+        (:func:`_coat_grad`); a per-channel spread's column c is
         d f_r[c] / d alpha_f[c]."""
         wi, wo = np.asarray(wi, float), np.asarray(wo, float)
         p = self.validate(params)
@@ -171,13 +228,8 @@ class FlakePaint(Model):
              "haze_reflectance": np.broadcast_to(haze, n).copy(), "flake_reflectance": np.broadcast_to(flake, n).copy(),
              "haze_alpha": dh * rh, "flake_alpha": np.broadcast_to(df * rf, n).copy(),
              "flake_exponent": np.broadcast_to(ph * rh + pf * rf, n).copy(), "flake_widen": wf * rf}
-        kind = self.options["distribution"]
-        for name, lo, hi in (("alpha", 1e-4, 1.0), ("eta", 1.0001, 4.0)):
-            h = _STEP * max(abs(p[name]), 1e-3)
-            a, b = min(p[name] + h, hi), max(p[name] - h, lo)
-            up, dn = ({**p, name: v} for v in (a, b))
-            diff = _coat(kind, up["alpha"], up["eta"], wi, wo) - _coat(kind, dn["alpha"], dn["eta"], wi, wo)
-            J[name] = diff[:, None] / (a - b) * rs
+        da, de = _coat_grad(self.options["distribution"], p["alpha"], p["eta"], wi, wo)
+        J["alpha"], J["eta"] = da[:, None] * rs, de[:, None] * rs
         return f, J
 
     def start_from(self, layer_params):
