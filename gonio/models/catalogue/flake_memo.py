@@ -12,6 +12,7 @@ results are the same numbers, bit for bit, as computed afresh.
 from __future__ import annotations
 
 import collections
+import functools
 import threading
 
 import numpy as np
@@ -31,36 +32,93 @@ _geometries: list = []
 
 
 class Geometry:
-    """The per-pair quantities of the lobes (names as in flakepaint and gratingpaint)."""
+    """The per-pair quantities of the lobes (names as in flakepaint and gratingpaint), each
+    computed on first use (a direction set seen once, an albedo's nodes, pays only for its own)."""
 
     def __init__(self, wi, wo):
         self.wi, self.wo = wi, wo
-        wm, valid = half_vector(wi, wo)
-        self.wm, self.valid = wm, valid
         self.ci, self.co = wi[:, 2], wo[:, 2]
-        self.di = np.einsum("ij,ij->i", wi, wm)
-        self.do = np.einsum("ij,ij->i", wo, wm)
-        cc = wi[:, 2] * wo[:, 2]
-        self.up = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)).astype(float)[:, None]
-        # the half-vector lobes (flakepaint.half_vector_lobe)
-        ok = (valid & (cc > 0.0) & (wm[:, 2] > 0.0))[:, None]
-        self.lobe_ok = ok
-        self.c2 = np.where(ok[:, 0], wm[:, 2] ** 2, 1.0)[:, None]
-        self.t2 = (wm[:, 0] ** 2 + wm[:, 1] ** 2)[:, None] / self.c2
-        self.cos_d = 0.5 * (self.di + self.do)
-        self.grazing = (1.0 - np.clip(self.cos_d, 0.0, 1.0))[:, None]
-        self.logcc = np.log(np.where(ok[:, 0], cc, 1.0))[:, None]
-        # the clear coat (flakepaint._coat)
-        self.den = 4.0 * self.ci * self.co
-        self.coat_ok = valid & (self.den > 0.0)
-        # the rings (gratingpaint.GratingPaint._q_shape)
-        self.q = np.hypot(wi[:, 0] + wo[:, 0], wi[:, 1] + wo[:, 1])
-        self.q_ok = (cc > 0.0)[:, None]
-        self.q_logcc = np.log(np.where(self.q_ok[:, 0], cc, 1.0))[:, None]
-        for v in vars(self).values():
-            if isinstance(v, np.ndarray):
-                v.setflags(write=False)
         self.shapes = collections.OrderedDict()
+
+    def _ro(self, *arrays):
+        for v in arrays:
+            v.setflags(write=False)
+        return arrays if len(arrays) > 1 else arrays[0]
+
+    @functools.cached_property
+    def _half(self):
+        return self._ro(*half_vector(self.wi, self.wo))
+
+    @property
+    def wm(self):
+        return self._half[0]
+
+    @property
+    def valid(self):
+        return self._half[1]
+
+    @functools.cached_property
+    def di(self):
+        return self._ro(np.einsum("ij,ij->i", self.wi, self.wm))
+
+    @functools.cached_property
+    def do(self):
+        return self._ro(np.einsum("ij,ij->i", self.wo, self.wm))
+
+    @functools.cached_property
+    def cc(self):
+        return self._ro(self.wi[:, 2] * self.wo[:, 2])
+
+    @functools.cached_property
+    def up(self):
+        return self._ro(((self.wi[:, 2] > 0.0) & (self.wo[:, 2] > 0.0)).astype(float)[:, None])
+
+    # the half-vector lobes (flakepaint.half_vector_lobe)
+    @functools.cached_property
+    def lobe_ok(self):
+        return self._ro((self.valid & (self.cc > 0.0) & (self.wm[:, 2] > 0.0))[:, None])
+
+    @functools.cached_property
+    def c2(self):
+        return self._ro(np.where(self.lobe_ok[:, 0], self.wm[:, 2] ** 2, 1.0)[:, None])
+
+    @functools.cached_property
+    def t2(self):
+        return self._ro((self.wm[:, 0] ** 2 + self.wm[:, 1] ** 2)[:, None] / self.c2)
+
+    @functools.cached_property
+    def cos_d(self):
+        return self._ro(0.5 * (self.di + self.do))
+
+    @functools.cached_property
+    def grazing(self):
+        return self._ro((1.0 - np.clip(self.cos_d, 0.0, 1.0))[:, None])
+
+    @functools.cached_property
+    def logcc(self):
+        return self._ro(np.log(np.where(self.lobe_ok[:, 0], self.cc, 1.0))[:, None])
+
+    # the clear coat (flakepaint._coat)
+    @functools.cached_property
+    def den(self):
+        return self._ro(4.0 * self.ci * self.co)
+
+    @functools.cached_property
+    def coat_ok(self):
+        return self._ro(self.valid & (self.den > 0.0))
+
+    # the rings (gratingpaint.GratingPaint._q_shape)
+    @functools.cached_property
+    def q(self):
+        return self._ro(np.hypot(self.wi[:, 0] + self.wo[:, 0], self.wi[:, 1] + self.wo[:, 1]))
+
+    @functools.cached_property
+    def q_ok(self):
+        return self._ro((self.cc > 0.0)[:, None])
+
+    @functools.cached_property
+    def q_logcc(self):
+        return self._ro(np.log(np.where(self.q_ok[:, 0], self.cc, 1.0))[:, None])
 
 
 def geometry(wi, wo) -> Geometry:
@@ -76,7 +134,10 @@ def geometry(wi, wo) -> Geometry:
                 if k:
                     _geometries.insert(0, _geometries.pop(k))
                 return g
-    g = Geometry(np.array(wi), np.array(wo))
+    wi, wo = np.array(wi), np.array(wo)
+    wi.setflags(write=False)
+    wo.setflags(write=False)
+    g = Geometry(wi, wo)
     with _lock:
         _geometries.insert(0, g)
         del _geometries[GEOMETRIES:]
