@@ -6,7 +6,8 @@ For each seed: a roughdielectric GGX alpha 0.3, eta 1.5 plate through the ``tran
 on the simulator under ``--errors typical`` (``--errors`` merges a JSON table into it), the
 settings of tests/bench/test_transmission_capture.py (1 us shutter, 16 flat frames, no
 open-beam certificate), exported and fitted with ``--fit`` as distribution (``beckmann``: the
-test's power on a wrong family). Prints per seed T, dof, p and alpha; with ``--worst`` the
+test's power on a wrong family). Prints per seed T, dof, p, alpha and the points the test left
+out (their angle law reaches a cutoff of f_r); with ``--worst`` the
 points of largest |data - model| / brdf_std with the model at the point and averaged over
 0.5 deg apertures (the typical simulator's, which the session declares). At the end the
 false alarms at 1e-3 and 0.05. Figures in docs/performance.md ("The transmission adequacy test
@@ -41,6 +42,16 @@ def run(seed: int, fit: str, errors: dict, worst: int) -> dict:
     from gonio.core.geometry import angles
     from gonio.fitting.likelihood.aperture import aperture_mean
 
+    import gonio.fitting.uncertainty.budget as _budget
+
+    seen = []
+    test = getattr(_budget.adequacy_test, "__wrapped__", _budget.adequacy_test)
+
+    def recorded(*args, **kw):                      # the test's own dict (its left_out points)
+        seen.append(test(*args, **kw))
+        return seen[-1]
+    recorded.__wrapped__ = test
+    _budget.adequacy_test = recorded
     sample = {"model": "roughdielectric", "options": {"distribution": "ggx"}, "params": {"alpha": 0.3, "int_ior": 1.5}}
     d = default_settings()
     with tempfile.TemporaryDirectory() as tmp:
@@ -51,7 +62,12 @@ def run(seed: int, fit: str, errors: dict, worst: int) -> dict:
         res, doc, _ = fit_dataset(given, model="roughdielectric", options={"distribution": fit}, seed=seed)
     a = doc["goodness"]["adequacy"]
     out = {"seed": seed, "T": a["statistic"], "dof": a["dof"], "p": a["p_value"],
-           "alpha": doc["parameters"]["alpha"]["value"], "worst": []}
+           "alpha": doc["parameters"]["alpha"]["value"], "worst": [], "left_out": []}
+    if seen:
+        ti, pi = angles(given.meas.wi)
+        to, po = angles(given.meas.wo)
+        out["left_out"] = [f"{np.degrees(ti[n]):.0f}/{np.degrees(pi[n]):.0f}/{np.degrees(to[n]):.0f}/"
+                           f"{np.degrees(po[n]):.0f}" for n in seen[-1].get("left_out", [])]
     if worst:
         meas = given.meas
         f = np.asarray(res.model.eval(meas.wi, meas.wo, res.params), float)
@@ -78,7 +94,8 @@ def main(argv=None) -> None:
     for seed in _seeds(args.seeds):
         r = run(seed, args.fit, json.loads(args.errors), args.worst)
         rows.append(r)
-        print(f"seed {seed:3d}  T {r['T']:10.1f}  dof {r['dof']}  p {r['p']:.2e}  alpha {r['alpha']:.4f}", flush=True)
+        print(f"seed {seed:3d}  T {r['T']:10.1f}  dof {r['dof']}  p {r['p']:.2e}  alpha {r['alpha']:.4f}  "
+              f"left out (ti/pi/to/po) {' '.join(r['left_out']) or '-'}", flush=True)
         for line in r["worst"]:
             print("    " + line)
     p = np.array([r["p"] for r in rows])

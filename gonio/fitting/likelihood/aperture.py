@@ -25,7 +25,8 @@ import numpy as np
 
 from gonio.fitting.measurements import Measurements
 
-__all__ = ["disk_rule", "cone", "aperture_mean", "aperture_ratio", "corrected", "with_instrument_response"]
+__all__ = ["disk_rule", "cone", "aperture_mean", "aperture_ratio", "corrected", "with_instrument_response",
+           "reaches_cutoff"]
 
 
 def disk_rule():
@@ -63,6 +64,38 @@ def aperture_mean(model, wi, wo, params, source_half_deg: float, detector_half_d
             num = num + a * b * model.eval(da, db, params) * cos_i
             den = den + a * b * cos_i
     return np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
+
+
+def reaches_cutoff(model, wi, wo, params, half_i_deg, half_o_deg) -> np.ndarray:
+    """(N,) bool: f_r is 0 at some and non-zero at other direction pairs within cones of
+    half-angle ``half_i_deg`` around wi and ``half_o_deg`` around wo ((N,) or scalars, deg;
+    probed at the rule's seven and six rim points of each disk, paired: 169 pairs a point).
+    There f_r has a cutoff (GGX's transmission lobe jumps to 0 where its half-vector crosses
+    the surface, a side's horizon): a jump, not a slope, so no first-order line describes it."""
+    n = len(wi)
+    pts, _ = disk_rule()
+    rim = np.column_stack([np.cos(np.arange(6) * math.pi / 3 + math.pi / 6),
+                           np.sin(np.arange(6) * math.pi / 3 + math.pi / 6)])
+    pts = np.vstack([pts, rim])
+
+    def dirs(w, half_deg):
+        helper = np.where(np.abs(w[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+        t1 = np.cross(w, helper)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(w, t1)
+        t = np.tan(np.radians(np.broadcast_to(np.asarray(half_deg, float), (n,))))[None, :, None]
+        d = w[None] + t * (pts[:, 0, None, None] * t1[None] + pts[:, 1, None, None] * t2[None])
+        return d / np.linalg.norm(d, axis=2, keepdims=True)           # (13, N, 3)
+
+    di, do = dirs(np.asarray(wi, float), half_i_deg), dirs(np.asarray(wo, float), half_o_deg)
+    zero = np.zeros(n, bool)
+    nonzero = np.zeros(n, bool)
+    for da in di:
+        for db in do:
+            f = np.asarray(model.eval(da, db, params), float)
+            zero |= (f == 0.0).any(axis=1)
+            nonzero |= (f != 0.0).any(axis=1)
+    return zero & nonzero
 
 
 def aperture_ratio(model, wi, wo, params, source_half_deg: float, detector_half_deg: float) -> np.ndarray:

@@ -84,7 +84,11 @@ def adequacy_test(result, meas, comps, J, r, drdy, alpha: float = ADEQUACY_ALPHA
     the model itself, f at the displaced directions (:func:`_displaced`), not through their
     first-order columns: an uncalibrated capture's 0.2 deg holder tilt moves a lobe's values by
     more than their slope says (uncalibrated standard-plan captures under the typical simulator:
-    3 of 8 at p < 1e-3 to first order)."""
+    3 of 8 at p < 1e-3 to first order).
+
+    Points whose cones (the declared apertures widened by 3 sigma of their angle law) reach a
+    cutoff of f_r leave the test, listed in ``left_out`` (:func:`_cutoff_points`): there the
+    budget's first-order line is 0 while the measured value may hold part of the lobe."""
     from scipy import stats
 
     use = meas.use
@@ -114,6 +118,18 @@ def adequacy_test(result, meas, comps, J, r, drdy, alpha: float = ADEQUACY_ALPHA
         B[unused[:, ch], ch, :] = 0.0
         B[unused[:, ch], :, ch] = 0.0
         B[unused[:, ch], ch, ch] = 1.0
+    # values whose angle law reaches a cutoff of f_r leave the test: an effectively infinite
+    # variance (their whitened rows vanish), their dof removed
+    cut = _cutoff_points(result, meas, angles)
+    left = cut[:, None] & use
+    if left.any():
+        full_r = np.zeros(use.shape)
+        full_r[use] = np.asarray(r, float).reshape(-1)
+        full_j = np.zeros(use.shape)
+        full_j[use] = np.abs(np.asarray(J, float).reshape(len(full_r[use]), -1)).max(axis=1, initial=0.0)
+        big = 1e16 * max(1.0, float(np.max(full_r[left] ** 2)), float(np.max(full_j[left] ** 2)),
+                         float(np.max(np.abs(B))))
+        B[cut] = np.eye(C)[None] * np.where(use[cut], big, 1.0)[:, :, None]
     L = np.linalg.cholesky(B)
 
     def whiten(x):                                    # L^-1 x per point, x (N, C, K)
@@ -148,7 +164,7 @@ def adequacy_test(result, meas, comps, J, r, drdy, alpha: float = ADEQUACY_ALPHA
     sc = np.linalg.norm(Jt, axis=0)
     Js = Jt / np.where(sc > 0, sc, 1.0)
     rank = int(np.linalg.matrix_rank(Js, tol=1e-10 * max(1.0, float(np.abs(Js).max(initial=0.0))) * max(Js.shape)))
-    dof = int(use.sum()) - rank
+    dof = int(use.sum()) - int(left.sum()) - rank
     # e ~ N(mean, 1) for a line of known mean: e = mean + e', the residuals less its expected part
     offset = whiten(centre[..., None]).reshape(N * C)
     T, dx = statistic(flat(r)[:, 0] - offset, Jt)
@@ -185,7 +201,46 @@ def adequacy_test(result, meas, comps, J, r, drdy, alpha: float = ADEQUACY_ALPHA
         p = float(stats.chi2.sf(T, dof)) if dof > 0 else float("nan")
     return {"test": TEST_BUDGET if nU or len(comps) > 1 else TEST_NOMINAL,
             "statistic": T, "dof": dof, "p_value": p, "alpha": float(alpha),
-            "adequate": bool(not (p < alpha)), "nuisance_inputs": nU, "refined_steps": refined}
+            "adequate": bool(not (p < alpha)), "nuisance_inputs": nU, "refined_steps": refined,
+            "left_out": np.flatnonzero(cut & use.any(axis=1)).tolist()}
+
+
+#: how far (in the angle law's standard deviations) a point's directions are probed for a cutoff
+CUTOFF_REACH_SIGMA = 3.0
+
+
+def _cutoff_points(result, meas, angles) -> np.ndarray:
+    """(N,) bool: points whose declared aperture cones, widened by CUTOFF_REACH_SIGMA times
+    their angle law's standard deviation (the budget's shared and independent angle inputs in
+    quadrature), hold both zero and non-zero f_r at the fitted parameters (issue 37: a lobe's
+    cutoff, where f_r jumps, so its first-order line, value x slope, is 0 while the values
+    drawn from the law reach the lobe: JCGM 101 5.11's warning on the law of propagation)."""
+    from gonio.core.geometry import angles as _angles
+    from gonio.fitting.likelihood.aperture import reaches_cutoff
+
+    N = meas.use.shape[0]
+    attrs = getattr(meas, "attrs", {}) or {}
+    src = float(attrs.get("aperture_source_half_deg", 0.0) or 0.0)
+    det = float(attrs.get("aperture_detector_half_deg", 0.0) or 0.0)
+    ti, _ = _angles(meas.wi)
+    to, _ = _angles(meas.wo)
+    var_i, var_o = np.zeros(N), np.zeros(N)
+    for key in ("shared", "independent"):
+        a = None if not angles else angles.get(key)
+        if a is None or not np.size(a):
+            continue
+        a = np.asarray(a, float)
+        if a.ndim == 4:                                    # per (point, wavelength): the largest
+            a = np.abs(a).max(axis=2)
+        if a.shape[1] != N:
+            continue
+        var_i += (a[..., 0] ** 2 + (np.sin(ti) * a[..., 1]) ** 2).sum(axis=0)
+        var_o += (a[..., 2] ** 2 + (np.sin(to) * a[..., 3]) ** 2).sum(axis=0)
+    if not (src > 0 or det > 0 or var_i.any() or var_o.any()) or not np.isfinite(src + det):
+        return np.zeros(N, bool)
+    k = CUTOFF_REACH_SIGMA
+    return reaches_cutoff(result.model, meas.wi, meas.wo, result.params,
+                          src + k * np.sqrt(var_i), det + k * np.sqrt(var_o))
 
 
 def _displaced(result, meas, angles):
