@@ -208,7 +208,8 @@ class FlakePaint(Model):
         return memo(g, key, make)
 
     def _eval_parts(self, wi, wo, p):
-        base, coat, haze, flake = self._terms(wi, wo, p)
+        g = geometry(wi, wo)        # its arrays: the calls below find it by identity
+        base, coat, haze, flake = self._terms(g.wi, g.wo, p)
         lobe = coat * p["specular_reflectance"] + haze * p["haze_reflectance"] + flake * p["flake_reflectance"]
         return np.broadcast_to(base * p["diffuse_reflectance"], lobe.shape), lobe
 
@@ -217,7 +218,8 @@ class FlakePaint(Model):
         lobes), the lobes' spreads and exponent and the coat's roughness and index analytically
         (:func:`_coat_grad`); a per-channel spread's column c is
         d f_r[c] / d alpha_f[c]."""
-        wi, wo = np.asarray(wi, float), np.asarray(wo, float)
+        g = geometry(wi, wo)
+        wi, wo = g.wi, g.wo
         p = self.validate(params)
         base, coat, (haze, dh, ph, _), (flake, df, pf, wf) = self._terms(wi, wo, p, grad=True)
         rs, rh, rf = p["specular_reflectance"], p["haze_reflectance"], p["flake_reflectance"]

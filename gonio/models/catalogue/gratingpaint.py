@@ -178,13 +178,16 @@ class GratingPaint(FlakePaint):
         return (memo(g, ("hats", hats), lambda: hats(q)) @ self._table(p)) * shape
 
     def _eval_parts(self, wi, wo, p):
+        g = geometry(wi, wo)        # its arrays: the calls below find it by identity
+        wi, wo = g.wi, g.wo
         base, lobe = super()._eval_parts(wi, wo, p)
         return base, lobe + self._ring(wi, wo, p)
 
     def jacobian_reference(self, wi, wo, params):
         """flakepaint's (f, J) with the rings added: their colour's column exactly, the period's
         and width's analytically, and their share of d f / d p."""
-        wi, wo = np.asarray(wi, float), np.asarray(wo, float)
+        g = geometry(wi, wo)
+        wi, wo = g.wi, g.wo
         p = self.validate(params)
         f, J = super().jacobian_reference(wi, wo, p)
         if self.table:      # linear in the table: column k is the knot's hat times the shape
