@@ -1,18 +1,17 @@
 """Sequential-design plan strategy ``"adaptive"``: measure where the fit learns the most.
 
-A first pass takes a spread subset of the candidate plan (farthest-point sampling in an
-isotropic (wi, wo) feature space); then, batch by batch, the model is fitted to the results
-so far (`gonio.fitting.fit`; with ``candidates``, the family they need, gonio.bench.plan.family)
-and the unmeasured candidates that raise log det of the Fisher information J^T W J the most
-(D-optimality, greedy within a batch; Atkinson, Donev & Tobias 2007, ch. 10-12; ``criterion =
-"alc"``: the predicted variance of f_r cos, gonio.bench.plan.alc) are queued, per second of
-travel and overhead when ``travel`` is on. It stops at ``points``,
-at ``budget_s`` of the session's journalled instrument time (a batch is cut to what the plan's
-estimate fits in what is left), or at its targets (``target_rel_u``: every parameter's
-relative 1-sigma; ``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says
-which. Its dataset weights each point by its design weight (gonio.bench.plan.design_weights). Each batch is chosen from the results and times of the points queued before it, less
-the last one (the stages move to it meanwhile), so a resume replays the same choices. Public:
-`AdaptivePlan`, `DEFAULTS`, `CRITERIA`, `cli_strategy`, `albedo_de00_u`; registered on import.
+A first pass takes a spread subset of the candidate plan (farthest-point sampling in (wi, wo));
+then, batch by batch, the model is fitted to the results so far (`gonio.fitting.fit`; with
+``candidates``, the family they need, gonio.bench.plan.family) and the unmeasured candidates that
+raise log det of the Fisher information J^T W J the most (D-optimality, greedy within a batch;
+Atkinson, Donev & Tobias 2007, ch. 10-12; ``criterion = "alc"``: the predicted variance of f_r
+cos, gonio.bench.plan.alc) are queued, per second of travel and overhead when ``travel`` is on.
+It stops at ``points``, at ``budget_s`` of the journalled instrument time (a batch is cut to
+what the plan's estimate fits in what is left), or at its targets (``target_rel_u``,
+``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says which. Its dataset
+weights each point by its design weight (gonio.bench.plan.design_weights). Each batch is chosen
+from the results and times of the points queued before it, less the last one (the stages move
+to it meanwhile), so a resume replays the same choices; registered on import.
 """
 
 from __future__ import annotations
