@@ -80,3 +80,33 @@ def test_impossible_apertures_are_refused(convolved, bad):
                           {"aperture_source_half_deg": bad, "aperture_detector_half_deg": 0.5})
     with pytest.raises(ValueError, match="aperture half-angles"):
         with_instrument_response(broken, None, None, None)
+
+
+def test_the_mean_across_a_transmission_cutoff_is_the_uniform_disks_mean():
+    """Where f_r jumps to 0 inside the cones the mean is still over the uniform disks (Nicodemus
+    et al. 1977). The frosted glass (GGX 0.3, eta 1.5) at theta_i 39.613 / theta_o 120.396 /
+    phi_o 180 (seed 5's true pair in tests/bench/transmission_adequacy.py): f_r is 0 at the pair
+    (the half-vector below the surface) and about 0.19 just across; the degree-5 rule put 4 of
+    its 49 pairs past the jump (2.1x the mean). It must equal a 400 000-sample Monte Carlo of
+    <f cos theta_i> / <cos theta_i> within 5 of its standard errors."""
+    model, p = gm.get("roughdielectric", distribution="ggx"), {"alpha": 0.3, "int_ior": 1.5}
+    ti, to = np.radians(39.613), np.radians(120.396)
+    wi = np.array([[np.sin(ti), 0.0, np.cos(ti)]])
+    wo = np.array([[-np.sin(to), 0.0, np.cos(to)]])
+    assert model.eval(wi, wo, p)[0, 0] == 0.0
+    got = aperture_mean(model, wi, wo, p, 0.5, 0.5)[0, 0]
+    rng, n, d = np.random.default_rng(15), 400_000, np.radians(0.5)
+
+    def draw(w):
+        t1 = np.cross(w, [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(w, t1)
+        r, ph = d * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
+        v = w + np.tan(r)[:, None] * (np.cos(ph)[:, None] * t1 + np.sin(ph)[:, None] * t2)
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+    a, b = draw(wi[0]), draw(wo[0])
+    x, c = model.eval(a, b, p)[:, 0] * a[:, 2], a[:, 2]
+    ratio = x.mean() / c.mean()
+    se = x.std() / np.sqrt(n) / c.mean()                 # the cosine's own spread is 1e-4 of it
+    assert ratio > 20 * se
+    assert abs(got - ratio) < 5 * se

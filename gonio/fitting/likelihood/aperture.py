@@ -5,7 +5,8 @@ the detector subtend: with half-angles a_s, a_d a gonioreflectometer measures
 ``<f_r cos theta_i> / <cos theta_i>`` over a disk of directions around wi (radius a_s) and one
 around wo (radius a_d) (Nicodemus et al. 1977, NBS Monograph 160, the "instrument function";
 Barnes, Early & Parr 1998 for STARR's 0.5-1 deg apertures). Each disk is integrated with the
-7-point degree-5 rule for the disk (Stroud 1971, S2 5-1), so 49 direction pairs a value.
+7-point degree-5 rule for the disk (Stroud 1971, S2 5-1), so 49 direction pairs a value;
+where f_r is 0 at some of them and not at others (a cutoff) with 256 sunflower points a disk.
 
 The fit uses it by correction (:func:`aperture_corrected`): at the fitted parameters the
 ratio c = <f>/f of each value is computed, the data (values, sigma and the budget's
@@ -37,10 +38,11 @@ def disk_rule():
     return pts, np.r_[0.25, np.full(6, 0.125)]
 
 
-def cone(w: np.ndarray, half_rad: float) -> np.ndarray:
-    """The rule's directions in a cone of half-angle ``half_rad`` around each unit ``w`` (N, 3):
-    (7, N, 3), via the tangent plane (exact to O(half^2) in solid angle)."""
-    pts, _ = disk_rule()
+def cone(w: np.ndarray, half_rad: float, pts=None) -> np.ndarray:
+    """The rule's directions (or the unit-disk points ``pts``, (K, 2)) in a cone of half-angle
+    ``half_rad`` around each unit ``w`` (N, 3): (7 or K, N, 3), via the tangent plane (exact to
+    O(half^2) in solid angle)."""
+    pts = disk_rule()[0] if pts is None else pts
     helper = np.where(np.abs(w[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
     t1 = np.cross(w, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
@@ -58,12 +60,40 @@ def aperture_mean(model, wi, wo, params, source_half_deg: float, detector_half_d
     wa = w if len(ci) > 1 else np.ones(1)
     wb = w if len(co) > 1 else np.ones(1)
     num, den = 0.0, 0.0
+    zero = nonzero = False
     for a, da in zip(wa, ci):
         cos_i = np.clip(da[:, 2], 0.0, None)[:, None]
         for b, db in zip(wb, co):
-            num = num + a * b * model.eval(da, db, params) * cos_i
+            f = np.asarray(model.eval(da, db, params), float)
+            zero, nonzero = zero | (f == 0.0).any(axis=1), nonzero | (f != 0.0).any(axis=1)
+            num = num + a * b * f * cos_i
             den = den + a * b * cos_i
-    return np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
+    out = np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
+    jump = np.flatnonzero(np.asarray(zero & nonzero)) if len(ci) * len(co) > 1 else []
+    for n in jump:
+        # f_r jumps to 0 between the rule's pairs (a lobe's cutoff): the rule weights a whole
+        # 1/64 on a corner pair, so the mean is taken over equal-weight sunflower points instead
+        # (the simulator's rule there, gonio/sim/physics/errors.py)
+        u = _sunflower(DENSE_POINTS)
+        di = cone(wi[n:n + 1], math.radians(source_half_deg), u)[:, 0] if len(ci) > 1 else wi[n:n + 1]
+        do = cone(wo[n:n + 1], math.radians(detector_half_deg), u)[:, 0] if len(co) > 1 else wo[n:n + 1]
+        a, b = np.repeat(di, len(do), axis=0), np.tile(do, (len(di), 1))
+        cos_i = np.clip(a[:, 2], 0.0, None)
+        den_n = cos_i.sum()
+        out[n] = (np.asarray(model.eval(a, b, params), float) * cos_i[:, None]).sum(axis=0) / den_n if den_n > 0 else 0.0
+    return out
+
+
+#: Points a disk of the dense rule used where f_r jumps inside the cones (pairs: its square).
+DENSE_POINTS = 256
+
+
+def _sunflower(n: int) -> np.ndarray:
+    """``n`` equal-weight points on the unit disk, one per equal-area ring, turned by the golden
+    angle (Vogel 1979, Math. Biosci. 44 179)."""
+    k = np.arange(n) + 0.5
+    r, a = np.sqrt(k / n), k * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(a), r * np.sin(a)], -1)
 
 
 def reaches_cutoff(model, wi, wo, params, half_i_deg, half_o_deg) -> np.ndarray:
