@@ -81,3 +81,17 @@ def test_a_point_at_the_cutoff_leaves_the_test_and_the_right_family_passes():
         rejected.append(a["verdict"] == "inadequate")
         print(f"seed {seed}: T {a['statistic']:.1f} dof {a['dof']} p {a['p_value']:.3g}")
     assert sum(rejected) <= 1
+
+
+def test_impossible_declared_apertures_are_refused():
+    """The test reads the apertures the data declare: NaN, negative or not a number is refused
+    with the attribute to fix (as the aperture correction does), not read as no aperture."""
+    import pytest
+
+    model = gm.get("roughdielectric", distribution="ggx")
+    meas, budget = _draw(0, model)
+    result = fit(meas, model, rng=np.random.default_rng(0))
+    for bad in (float("nan"), -1.0, "wide"):
+        m = Measurements(meas.wi, meas.wo, meas.brdf, meas.brdf_std, meas.use, {"aperture_source_half_deg": bad})
+        with pytest.raises(ValueError, match="aperture_source_half_deg"):
+            fit_document(result, m, seed=0, budget=budget)

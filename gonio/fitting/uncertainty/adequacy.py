@@ -220,8 +220,11 @@ def _cutoff_points(result, meas, angles) -> np.ndarray:
 
     N = meas.use.shape[0]
     attrs = getattr(meas, "attrs", {}) or {}
-    src = float(attrs.get("aperture_source_half_deg", 0.0) or 0.0)
-    det = float(attrs.get("aperture_detector_half_deg", 0.0) or 0.0)
+    try:
+        src = float(attrs.get("aperture_source_half_deg", 0.0) or 0.0)
+        det = float(attrs.get("aperture_detector_half_deg", 0.0) or 0.0)
+    except (TypeError, ValueError):
+        src = det = float("nan")
     ti, _ = _angles(meas.wi)
     to, _ = _angles(meas.wo)
     var_i, var_o = np.zeros(N), np.zeros(N)
@@ -236,7 +239,10 @@ def _cutoff_points(result, meas, angles) -> np.ndarray:
             continue
         var_i += (a[..., 0] ** 2 + (np.sin(ti) * a[..., 1]) ** 2).sum(axis=0)
         var_o += (a[..., 2] ** 2 + (np.sin(to) * a[..., 3]) ** 2).sum(axis=0)
-    if not (src > 0 or det > 0 or var_i.any() or var_o.any()) or not np.isfinite(src + det):
+    if not (np.isfinite(src) and np.isfinite(det)) or src < 0 or det < 0 or src > 20 or det > 20:
+        raise ValueError(f"aperture half-angles {src:g}, {det:g} deg are not in [0, 20]; fix the dataset's "
+                         "aperture_source_half_deg / aperture_detector_half_deg")
+    if not (src > 0 or det > 0 or var_i.any() or var_o.any()):
         return np.zeros(N, bool)
     k = CUTOFF_REACH_SIGMA
     return reaches_cutoff(result.model, meas.wi, meas.wo, result.params,
