@@ -7,9 +7,9 @@ on the simulator under ``--errors typical`` (``--errors`` merges a JSON table in
 settings of tests/bench/test_transmission_capture.py (1 us shutter, 16 flat frames, no
 open-beam certificate), exported and fitted with ``--fit`` as distribution (``beckmann``: the
 test's power on a wrong family). Prints per seed T, dof, p, alpha and the points the test left
-out (their angle law reaches a cutoff of f_r); with ``--worst`` the
-points of largest |data - model| / brdf_std with the model at the point and averaged over
-0.5 deg apertures (the typical simulator's, which the session declares). At the end the
+out (their angle law reaches a cutoff of f_r); with ``--worst`` the points of largest
+|data - model| / brdf_std with the model at the point and averaged over 0.5 deg apertures (the
+typical simulator's, which the session declares). At the end the
 false alarms at 1e-3 and 0.05. Figures in docs/performance.md ("The transmission adequacy test
 at a lobe's edge").
 """
