@@ -23,9 +23,11 @@ __all__ = ["MAX_POINTS", "Geometry", "geometry", "memo", "values"]
 
 #: direction sets of up to this many pairs are remembered (a screen's 2000, a file's ~8000)
 MAX_POINTS = 20_000
-#: direction sets remembered, most recent first; and shapes remembered per direction set
+#: direction sets remembered, most recent first; and shapes remembered per direction set (vch's
+#: screen and ring refinements: 4619 of 6477 lookups found with 6, 4626 with 24, 667 with 2). At
+#: most about GEOMETRIES * SHAPES * 8 arrays of (N, 3): 120 MB at 20,000 pairs, 12 MB at 2,000
 GEOMETRIES = 4
-SHAPES = 24
+SHAPES = 8
 
 _lock = threading.Lock()
 _geometries: list = []
