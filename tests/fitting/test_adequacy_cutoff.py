@@ -78,6 +78,7 @@ def test_a_point_at_the_cutoff_leaves_the_test_and_the_right_family_passes():
         reach = 3 * U_DEG
         cut = reaches_cutoff(model, meas.wi, meas.wo, result.params, reach, reach)
         assert cut[0] and a["dof"] == 3 * (len(meas.wi) - cut.sum()) - result.space.size
+        assert a["left_out"] == np.flatnonzero(cut).tolist()          # the fit file says which
         rejected.append(a["verdict"] == "inadequate")
         print(f"seed {seed}: T {a['statistic']:.1f} dof {a['dof']} p {a['p_value']:.3g}")
     assert sum(rejected) <= 1

@@ -253,11 +253,13 @@ _TESTS = {
 
 def _adequacy_entry(test: dict) -> dict:
     """``goodness.adequacy``: which test, its statistic, dof, p-value and level alpha (its
-    false-alarm rate), and the verdict."""
+    false-alarm rate), the points it left out (their rows: a cutoff of f_r within their angle
+    law, where a linear budget says nothing), and the verdict."""
     desc = _TESTS.get(test["test"], test["test"])
     return {"test": test["test"], "description": desc, "statistic": test["statistic"], "dof": test["dof"],
             "p_value": test["p_value"], "alpha": test["alpha"], "false_alarm_rate": test["alpha"],
             "nuisance_inputs": test.get("nuisance_inputs", 0), "refined_steps": test.get("refined_steps", 0),
+            "left_out": [int(i) for i in test.get("left_out", [])],
             "verdict": "adequate" if test["adequate"] else "inadequate"}
 
 
