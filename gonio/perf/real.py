@@ -230,7 +230,7 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_F
             "chosen_k": chosen.k}
 
 
-COLUMNS = (("material", "<26", "s"), ("model", "<26", "s"), ("loss", "<8", "s"), ("gonio_ngan", ">9", ".3f"),
+COLUMNS = (("material", "<26", "s"), ("model", "<28", "s"), ("loss", "<8", "s"), ("gonio_ngan", ">9", ".3f"),
            ("peer_ngan", ">9", ".3f"), ("gonio_log", ">9", ".4f"), ("peer_log", ">9", ".4f"),
            ("gonio_time_s", ">9", ".2f"), ("gonio_select_s", ">9", ".1f"), ("alone_s", ">9", ".1f"),
            ("choice_per_fit", ">8", ".1f"), ("peer_time_s", ">9", ".1f"), ("speedup", ">8", ".2f"),
