@@ -24,6 +24,17 @@ def _frames(settings, seed=5):
     return out
 
 
+def _cone(w, d, n, rng):
+    """``n`` directions uniform over the disk of angular radius ``d`` (rad) about ``w`` in its
+    tangent plane, as the simulator's apertures are defined (gonio.sim.physics.errors)."""
+    t1 = np.cross(w, [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(w, t1)
+    r, ph = d * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
+    v = w + np.tan(r)[:, None] * (np.cos(ph)[:, None] * t1 + np.sin(ph)[:, None] * t2)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
 def test_ideal_is_the_error_free_instrument_bit_for_bit():
     """``[errors] preset = "ideal"`` (and per-term zeros) change no byte of a frame."""
     plain = _frames({})
@@ -71,14 +82,7 @@ def test_disk_rule_integrates_the_aperture():
     rng = np.random.default_rng(11)
     n, d = 400_000, math.radians(0.5)
 
-    def cone(w):
-        t1 = np.cross(w, [0.0, 1.0, 0.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(w, t1)
-        r, ph = d * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
-        v = w + np.tan(r)[:, None] * (np.cos(ph)[:, None] * t1 + np.sin(ph)[:, None] * t2)
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
-    a, b = cone(wi), cone(wo)
+    a, b = _cone(wi, d, n, rng), _cone(wo, d, n, rng)
     f = inst.sample.eval(a, b)[:, 1] * a[:, 2]
     assert abs(rule[1] - f.mean()) < 5 * f.std() / math.sqrt(n)
     assert abs(rule[1] / shown[1] - 1) > 10 * f.std() / math.sqrt(n) / shown[1]   # the aperture is visible
@@ -151,14 +155,7 @@ def test_aperture_mean_across_a_transmission_cutoff():
     rng = np.random.default_rng(12)
     n, d = 400_000, math.radians(0.5)
 
-    def cone(w):
-        t1 = np.cross(w, [0.0, 1.0, 0.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(w, t1)
-        r, ph = d * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
-        v = w + np.tan(r)[:, None] * (np.cos(ph)[:, None] * t1 + np.sin(ph)[:, None] * t2)
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
-    a, b = cone(wi), cone(wo)
+    a, b = _cone(wi, d, n, rng), _cone(wo, d, n, rng)
     f = inst.sample.eval(a, b)[:, 0] * a[:, 2]
     se = f.std() / math.sqrt(n)
     assert f.mean() > 20 * se                                   # the cones do reach the lobe
