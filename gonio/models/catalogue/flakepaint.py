@@ -177,6 +177,13 @@ class FlakePaint(Model):
     def structure(self):
         return Structure()     # numpy: four lobe shapes per evaluation, the colours outer products
 
+    def affine_colours(self) -> tuple:
+        """The per-channel parameters in which f_r is affine, jointly, whatever the others: the
+        four lobes' colours (the module's formula). gonio.fitting.likelihood.problem takes them
+        as declared instead of probing (tests/fitting/test_affine_declared.py checks the probe
+        agrees)."""
+        return ("diffuse_reflectance", "specular_reflectance", "haze_reflectance", "flake_reflectance")
+
     def _parameters(self):
         per = self.options["spread"] == "wavelength"
         return (

@@ -116,6 +116,11 @@ class GratingPaint(FlakePaint):
         spectral rings were chosen: gonio.fitting.selection.auto), None for the table itself."""
         return None if self.table else GratingPaint(distribution=self.options["distribution"], ring="table")
 
+    def affine_colours(self) -> tuple:
+        """flakepaint's colours and the rings' (their weight, or every knot of the ring table)."""
+        rings = tuple(f"ring_{k}" for k in range(RING_KNOTS.size)) if self.table else ("grating_reflectance",)
+        return super().affine_colours() + rings
+
     def _parameters(self):
         if self.table:
             return super()._parameters() + tuple(
