@@ -38,11 +38,8 @@ import numpy as np
 from gonio.bench.measure import alignment as al
 from gonio.bench import calibrate as C
 from gonio.bench.settings import default_settings
+from _seeds import seed_list
 
-
-def _seeds(text: str) -> list[int]:
-    lo, _, hi = text.partition("-")
-    return list(range(int(lo), int(hi or lo) + 1))
 
 
 def one(preset: str, seed: int, drivers: bool) -> dict:
@@ -82,7 +79,7 @@ def main(argv=None) -> None:
     p.add_argument("--drivers", action="store_true")
     args = p.parse_args(argv)
     rows = []
-    for seed in _seeds(args.seeds):
+    for seed in seed_list(args.seeds):
         z = one(args.preset, seed, args.drivers)
         rows.append(z)
         print(seed, " ".join(f"{k}={v:+.2f}" for k, v in z.items()), flush=True)

@@ -25,13 +25,8 @@ import xarray as xr
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+from _seeds import seed_list  # noqa: E402
 
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    return out
 
 
 def run(step: str, seed: int, errors: dict, extra: dict) -> dict:
@@ -69,7 +64,7 @@ def main(argv=None) -> None:
     ap.add_argument("--settings", default="{}")
     args = ap.parse_args(argv)
     rows = []
-    for seed in _seeds(args.seeds):
+    for seed in seed_list(args.seeds):
         r = run(args.step, seed, json.loads(args.errors), json.loads(args.settings))
         rows.append(r)
         print(f"seed {seed:3d}  per_visit {r['per_visit']}  T {r['T']:7.1f}  dof {r['dof']}  p {r['p']:.4f}  "

@@ -22,14 +22,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from _seeds import seed_list
 
-
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    return out
 
 
 def run(seed: int, fit: str, errors: dict, worst: int) -> dict:
@@ -91,7 +85,7 @@ def main(argv=None) -> None:
     ap.add_argument("--worst", type=int, default=0)
     args = ap.parse_args(argv)
     rows = []
-    for seed in _seeds(args.seeds):
+    for seed in seed_list(args.seeds):
         r = run(seed, args.fit, json.loads(args.errors), args.worst)
         rows.append(r)
         print(f"seed {seed:3d}  T {r['T']:10.1f}  dof {r['dof']}  p {r['p']:.2e}  alpha {r['alpha']:.4f}  "

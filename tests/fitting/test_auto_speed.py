@@ -87,11 +87,9 @@ def test_the_choice_runs_on_one_jit_thread_and_gives_the_pool_back(monkeypatch):
         with choice_threads():
             assert dr.thread_count() == CHOICE_THREADS
         assert dr.thread_count() == 2
-        try:
+        with pytest.raises(KeyError):
             with choice_threads():
                 raise KeyError("inside")
-        except KeyError:
-            pass
         assert dr.thread_count() == 2
         seen = []
 
