@@ -175,16 +175,21 @@ def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_S
     return float(out["delta_e_mean"]), floor
 
 
+def _samples(path: Path, seed, open_data):
+    """The material's samples as gonio fits them: ``open_data(path)`` where given, else the
+    RGL file's, or 5000 seeded samples of a MERL ``.binary``."""
+    if open_data is not None:
+        return open_data(path)
+    if path.suffix.lower() == ".binary":
+        return merl_samples(path, n=5000, rng=np.random.default_rng(seed))
+    return rgl_samples(path)
+
+
 def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_FAMILY, peer_eval="gonio"):
     """One material: a dict of gonio's chosen fit and the peer's, metrics on the dense grid."""
     path = Path(path)
     loss = loss or REAL_DEFAULT_LOSS
-    if open_data is not None:
-        meas = open_data(path)
-    elif path.suffix.lower() == ".binary":
-        meas = merl_samples(path, n=5000, rng=np.random.default_rng(seed))
-    else:
-        meas = rgl_samples(path)
+    meas = _samples(path, seed, open_data)
     wi, wo = dense_grid()
     f_meas = measured_on_grid(path, wi, wo)
     if render:      # the one-time imports outside the timing, as the peer's scipy and Mitsuba are
@@ -282,10 +287,7 @@ def warm_up(path, *, seed=0, loss=None, open_data=None, peer=PEER_FAMILY, peer_e
 
     path = Path(path)
     loss = loss or REAL_DEFAULT_LOSS
-    meas = open_data(path) if open_data is not None else (
-        merl_samples(path, n=5000, rng=np.random.default_rng(seed)) if path.suffix.lower() == ".binary"
-        else rgl_samples(path))
-    meas = subsample(meas, n, np.random.default_rng([int(seed), 354]))
+    meas = subsample(_samples(path, seed, open_data), n, np.random.default_rng([int(seed), 354]))
     t0 = time.perf_counter()
     auto_fit(meas, str(path), seed=seed, loss=loss, rng=np.random.default_rng(seed))
     t1 = time.perf_counter()
