@@ -114,12 +114,15 @@ def refit(meas, result, *, rng, loss):
 
 def _refined(chosen, sub, check, note, *, seed, loss):
     """The chosen family's nested refinement (``model.refinement()``: gratingpaint's ring
-    table), fitted to ``sub`` from the chosen fit; (it, note) where its pixels are closer by
-    more than both rows' noise (the tabulated body's rule), else (``chosen``, ``note``)."""
+    table), fitted to ``sub`` from the chosen fit; (it, note, its ranking row) where its
+    pixels are closer by more than both rows' noise (the tabulated body's rule), else
+    (``chosen``, ``note``, None)."""
+    from gonio.fitting.selection.by_data import Ranked
+
     make = getattr(chosen.model, "refinement", None)
     model = make() if make is not None else None
     if model is None:
-        return chosen, note
+        return chosen, note, None
     from gonio.fitting.optimise.mle import fit
 
     r = fit(sub, model, rng=np.random.default_rng([int(seed), 353]), loss=loss, start=model.start_from(chosen.params),
@@ -127,10 +130,12 @@ def _refined(chosen, sub, check, note, *, seed, loss):
     try:
         (de_c, noise_c), (de_r, noise_r) = (check.delta_e(x.model, x.params) for x in (chosen, r))
     except FloatingPointError:      # not finite at the scene's pairs
-        return chosen, note
+        return chosen, note, None
     if de_c - de_r <= noise_c + noise_r:
-        return chosen, note
-    return r, f"{note}; refined to {model.name} {model.options} (pixels {de_c:.2f} -> {de_r:.2f})"
+        return chosen, note, None
+    row = Ranked(model.name, dict(model.options), r.space.size, r.chi2, r.bic, 0.0, False, r, r.loss,
+                 r.neg2_loglik, de_r, noise_r)
+    return r, f"{note}; refined to {model.name} {model.options} (pixels {de_c:.2f} -> {de_r:.2f})", row
 
 
 def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=SCREEN_POINTS, candidates=None,
@@ -166,7 +171,16 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
     with choice_threads():      # the pairs are found: the scoring reads no image
         chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
     with choice_threads():
-        chosen, note = _refined(chosen, sub, check, note, seed=seed, loss=loss)
+        chosen, note, added = _refined(chosen, sub, check, note, seed=seed, loss=loss)
+    if added is not None:           # the refinement is a row of its own, with its own BIC
+        for r in ranking:
+            r.chosen = False
+        added.chosen = True
+        ranking.append(added)
+        best_bic = min(r.bic for r in ranking)
+        for r in ranking:
+            r.delta_bic = r.bic - best_bic
+        ranking.sort(key=lambda r: r.bic)
     if progress is not None:
         progress(0, None, f"fitting {chosen.model.name} to all {meas.n_points} samples")
     t1 = time.perf_counter()
