@@ -7,11 +7,11 @@ raise log det of the Fisher information J^T W J the most (D-optimality, greedy w
 Atkinson, Donev & Tobias 2007, ch. 10-12; ``criterion = "alc"``: the predicted variance of f_r
 cos, gonio.bench.plan.alc) are queued, per second of travel and overhead when ``travel`` is on.
 It stops at ``points``, at ``budget_s`` of the journalled instrument time (a batch is cut to
-what the plan's estimate fits in what is left), or at its targets (``target_rel_u``,
-``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says which. Its dataset
-weights each point by its design weight (gonio.bench.plan.design_weights). Each batch is chosen
-from the results and times of the points queued before it, less the last one (the stages move
-to it meanwhile), so a resume replays the same choices; registered on import.
+what fits in what is left by gonio.bench.plan.point_time's estimate), or at its targets
+(``target_rel_u``, ``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says which.
+Its dataset weights each point by its design weight (gonio.bench.plan.design_weights). Each batch
+is chosen from the results and times of the points queued before it, less the last one (the
+stages move to it meanwhile), so a resume replays the same choices; registered on import.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from gonio.bench.plan import family, kinematics
+from gonio.bench.plan.point_time import RestModel, darkest
 from gonio.bench.plan.design_weights import ON_BY_DEFAULT
 from gonio.bench.plan.ordering import cost_matrix, mirror
 from gonio.bench.plan.plans import Plan
@@ -162,6 +163,8 @@ class AdaptivePlan:
         self.stage = np.nan_to_num(kinematics.inverse(*a.T))
         rank = {int(i): k for k, i in enumerate(order)}
         self._motion = _motion()
+        self._poses, self._run_motion = None, self._motion     # `use_session`: the moves the run makes
+        self._exposure_max_s = float(_motion(key="capture")["capture"]["exposure_max_s"])
         spread = spread_subset(a, self.first_n)
 
         def in_order(pts):                               # the session's move order
@@ -180,6 +183,7 @@ class AdaptivePlan:
         self.preparations: list[tuple[int, float]] = []   # (points kept before it, s) per preparation
         self.spent_s = 0.0                                # the instrument time counted at the last choice
         self.next_s = 0.0                                 # the estimate that did not fit (``time``)
+        self.estimates: dict[int, float] = {}             # each chosen point's estimated time, s (``budget_s``)
 
     # -- the protocol ---------------------------------------------------------------------
     @property
@@ -191,6 +195,21 @@ class AdaptivePlan:
         journalled point's, s, and each preparation's as (points kept before it, s)."""
         self.times = {int(i): float(v) for i, v in times.items()}
         self.preparations = [(int(n), float(v)) for n, v in preparations]
+
+    def use_session(self, stage_deg, settings: Mapping | None = None) -> None:
+        """The pose the run moves to at each point (session.toml's ``[order] stage_deg``: the
+        solution the move order chose, not always the nearer one) and the session's settings
+        (axis speeds, the longest exposure), so the time budget counts the run's own moves."""
+        poses = np.asarray(stage_deg, float)
+        if poses.shape != self.stage.shape or not np.all(np.isfinite(poses)):
+            raise ValueError(f"[order] stage_deg: give {self.stage.shape[0]} finite stage poses of 4 angles, one per "
+                             f"point of the plan (got shape {poses.shape})")
+        self._poses = poses
+        if settings and isinstance(settings.get("motion"), Mapping):
+            self._run_motion = {"motion": settings["motion"]}
+        v = (settings or {}).get("capture", {}).get("exposure_max_s")
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
+            self._exposure_max_s = float(v)
 
     def first(self, done: set[int]) -> list[int]:
         return [i for i in self.batches[0] if i not in done]
@@ -281,7 +300,8 @@ class AdaptivePlan:
                 return
             chosen = self._pick(x, basis, queue, free, n_new, results, sigma_rel, sigma_floor, cov)
         if self.budget_s > 0 and chosen:
-            chosen = self._within_time(chosen, basis, queue)
+            f_all = None if fitted is None else self.model.eval(self.wi, self.wo, self.space.to_params(fitted[0]))
+            chosen = self._within_time(chosen, basis, queue, results, f_all)
             if not chosen:
                 self.stopped_by = "time"
         entry.update(fit_s=t1 - t0, choose_s=time.perf_counter() - t1, chosen=chosen)
@@ -298,26 +318,36 @@ class AdaptivePlan:
         return np.minimum(cost_matrix(self.stage[a][None], b, self._motion)[0],
                           cost_matrix(self.stage[a][None], mirror(b), self._motion)[0])
 
-    def _path_s(self, points: Sequence[int], after: int | None = None, per_point: float | None = None) -> float:
-        """The plan's estimate of the instrument time of ``points`` in order (from ``after``):
-        ``per_point`` (default ``overhead_s``) each, plus the moves between them."""
-        each = self.overhead_s if per_point is None else per_point
-        path = ([after] if after is not None else []) + [int(i) for i in points]
-        return len(points) * each + sum(float(self._travel(a, b)[0]) for a, b in zip(path, path[1:]))
+    def _move_s(self, a: int, b: int) -> float:
+        """The move from candidate ``a`` to ``b`` as the run makes it: between the session's poses
+        (`use_session`) at its speeds; before those are known, the faster solution (`_travel`)."""
+        if self._poses is None:
+            return float(self._travel(a, b)[0])
+        return float(cost_matrix(self._poses[a][None], self._poses[b][None], self._run_motion)[0, 0])
 
-    def _within_time(self, chosen: list[int], basis: list[int], queue: list[int]) -> list[int]:
+    def _path_s(self, points: Sequence[int], after: int | None = None, per_point=None) -> float:
+        """The plan's estimate of the instrument time of ``points`` in order (from ``after``):
+        ``per_point(i)`` (default ``overhead_s``) each, plus the moves between them."""
+        path = ([after] if after is not None else []) + [int(i) for i in points]
+        each = sum(self.overhead_s if per_point is None else per_point(int(i)) for i in points)
+        return each + sum(self._move_s(a, b) for a, b in zip(path, path[1:]))
+
+    def _within_time(self, chosen: list[int], basis: list[int], queue: list[int], results=None,
+                     f_all=None) -> list[int]:
         """The longest prefix of ``chosen`` whose estimated time fits in what ``budget_s`` leaves
         after the time counted so far: every preparation journalled with at most ``len(basis)``
-        points kept, the basis points' journalled times, the other queued points' estimates."""
-        each = self._per_point(basis, queue)
+        points kept, the basis points' journalled times, the other queued points' estimates
+        (each its move plus `_rest`'s envelope at the fitted model's ``f_all``)."""
+        rest = self._rest(basis, queue, results or {}, f_all)
         spent = sum(s for n, s in self.preparations if n <= len(basis))
         for k, i in enumerate(queue):
             known = self.times.get(i) if i in basis else None
-            spent += known if known is not None else self._path_s([i], queue[k - 1] if k else None, each)
+            spent += known if known is not None else self._path_s([i], queue[k - 1] if k else None, rest)
         self.spent_s = spent
         out: list[int] = []
         for i in chosen:
-            need = self._path_s([i], (out or queue)[-1], each)
+            need = self._path_s([i], (out or queue)[-1], rest)
+            self.estimates[i] = need
             if spent + need > self.budget_s:
                 self.next_s = need
                 break
@@ -325,13 +355,21 @@ class AdaptivePlan:
             out.append(i)
         return out
 
-    def _per_point(self, basis: list[int], queue: list[int]) -> float:
-        """A point's time besides its move, s: the median over the basis points with a journalled
-        time (after the first) of that time less the estimated move; ``overhead_s`` without one."""
+    def _rest(self, basis: list[int], queue: list[int], results: Mapping[int, Result], f_all=None):
+        """A point's time besides its move, s, by candidate (gonio.bench.plan.point_time): the
+        envelope fitted to the basis points with a journalled time (not the first of the queue or
+        of a run: their move is not from the point before), at the fitted model's darkest channel
+        (``f_all``: its f_r at every candidate; None: the darkest point measured)."""
         at = {i: k for k, i in enumerate(queue)}
-        rest = [self.times[i] - float(self._travel(queue[at[i] - 1], i)[0])
-                for i in basis if i in self.times and at.get(i, 0) > 0]
-        return max(0.0, float(np.median(rest))) if rest else self.overhead_s
+        after_prep = {n for n, _ in self.preparations}
+        pts = [i for i in basis if i in self.times and at.get(i, 0) > 0 and at[i] not in after_prep and i in results]
+        rest = [self.times[i] - self._move_s(queue[at[i] - 1], i) for i in pts]
+        s_meas = darkest([np.asarray(results[i][0], float) for i in pts], self.plan.angles[pts, 0]) if pts else []
+        s_all = None if f_all is None else darkest(np.asarray(f_all, float), self.plan.angles[:, 0])
+        model = RestModel.fit(rest, s_meas, None if s_all is None else s_all[pts], overhead_s=self.overhead_s,
+                              exposure_max_s=self._exposure_max_s)
+        dark = float(np.min(s_meas)) if len(s_meas) else 0.0
+        return lambda i: float(model(dark if s_all is None else s_all[i]))
 
     def _fit(self, basis, results, k):
         """(x, std, rel_u, relative sigma, sigma floor, covariance) of the model fitted to ``basis``, or None
@@ -480,11 +518,12 @@ def _int(t: Mapping, key: str, least: int) -> int:
     return int(v)
 
 
-def _motion() -> dict:
-    """The default rig's axis speeds and accelerations (the strategy sees no session settings)."""
+def _motion(key: str = "motion") -> dict:
+    """The default rig's axis speeds and accelerations (``key``: another table of its settings),
+    until `AdaptivePlan.use_session` gives the session's."""
     from gonio.bench.settings import default_settings
 
-    return {"motion": default_settings()["motion"]}
+    return {key: default_settings()[key]}
 
 
 #: The stops of ``gonio capture --plan adaptive``: (flag, [strategy] key, what a value is, its unit).

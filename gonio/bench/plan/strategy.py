@@ -46,7 +46,9 @@ class PlanStrategy(Protocol):
         """session.toml's ``[strategy]`` table (:func:`strategy_from_doc` reads it back)."""
 
     # Optional: ``state() -> dict``, why the strategy stopped and what it knows; the run journals
-    # it as a ``strategy`` event when the strategy asks for nothing more.
+    # it as a ``strategy`` event when the strategy asks for nothing more. ``use_session(stage_deg,
+    # settings)``: the poses the run moves to (session.toml's order) and its settings, given by
+    # `strategy_from_doc` where the doc has them (a strategy that counts time estimates the moves).
 
 
 class FixedPlan:
@@ -91,4 +93,8 @@ def strategy_from_doc(doc: Mapping, plan: Plan) -> PlanStrategy:
     if name not in STRATEGIES:
         raise ValueError(f"unknown plan strategy {str(name)[:40]!r}; known: {', '.join(sorted(STRATEGIES))}")
     order = doc["order"]["order"]
-    return STRATEGIES[name](plan, order, table)
+    strategy = STRATEGIES[name](plan, order, table)
+    use = getattr(strategy, "use_session", None)
+    if callable(use) and doc["order"].get("stage_deg") is not None:
+        use(doc["order"]["stage_deg"], doc.get("settings"))
+    return strategy
