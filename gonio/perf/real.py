@@ -42,6 +42,7 @@ and their ratios peer / gonio. Definitions and references: the comment below.
 from __future__ import annotations
 
 import csv
+import math
 import time
 from pathlib import Path
 
@@ -57,7 +58,7 @@ from gonio.fitting.selection.by_data import select
 from gonio.fitting.optimise.space import ParameterSpace
 from gonio.fitting.formats import RGLBRDF, read_merl
 
-__all__ = ["dense_grid", "metrics", "peer_fit", "run_real", "warm_up", "PEER_STARTS", "WARM_UP_POINTS"]
+__all__ = ["dense_grid", "metrics", "peer_fit", "run_real", "specular_gloss", "warm_up", "PEER_STARTS", "WARM_UP_POINTS"]
 
 PEER_STARTS = 8
 #: the plain peer's family (issue 35: Mitsuba's roughplastic); "same" fits the family gonio chose
@@ -90,6 +91,35 @@ def measured_on_grid(path, wi, wo):
         f = read_merl(path).eval(wi, wo)
         return np.where(np.isfinite(f), f, 0.0)
     return RGLBRDF(path).eval(wi, wo)
+
+
+#: ASTM D523-14 / ISO 2813: the 60 deg geometry's receptor aperture (deg, in the plane of
+#: incidence x across it), the black glass standard's index (100 GU), and below what 60 deg
+#: gloss a surface counts as matte (D523 sends surfaces below 10 GU at 60 deg to its 85 deg
+#: low-gloss geometry); the issue's dE00 limit is 1 there, else 2
+GLOSS_APERTURE_DEG, GLOSS_STANDARD_N, MATTE_BELOW_GU = (4.4, 11.7), 1.567, 10.0
+
+
+def specular_gloss(f_r, theta_deg=60.0, aperture_deg=GLOSS_APERTURE_DEG, n=25) -> float:
+    """Specular gloss (GU) of a BRDF ``f_r(wi, wo) -> (N, 3)`` as ASTM D523 defines it: the
+    luminance-weighted (Rec. 709 Y) reflectance into the receptor's rectangular aperture
+    about the mirror direction, collimated light at ``theta_deg``, over the black glass
+    standard's Fresnel reflectance (n = 1.567, 100 GU); ``n`` x ``n`` midpoints. The source
+    aperture's 0.75 x 2.5 deg is left out (a collimated beam)."""
+    d_in, d_out = (math.radians(a) for a in aperture_deg)
+    u = (np.arange(n) + 0.5) / n - 0.5
+    a, b = np.meshgrid(d_in * u, d_out * u, indexing="ij")
+    tho = math.radians(theta_deg) + a.ravel()
+    pho = math.pi + b.ravel() / np.sin(tho)
+    wo = directions(tho, pho)
+    wi = directions(np.full(tho.size, math.radians(theta_deg)), np.zeros(tho.size))
+    f = np.asarray(f_r(wi, wo), float)
+    refl = float(np.sum(f * (np.cos(tho) * (d_in * d_out / n ** 2))[:, None], axis=0) @ (0.2126, 0.7152, 0.0722))
+    c = math.cos(math.radians(theta_deg))
+    ct = math.sqrt(1.0 - (1.0 - c * c) / GLOSS_STANDARD_N ** 2)
+    rs = (c - GLOSS_STANDARD_N * ct) / (c + GLOSS_STANDARD_N * ct)
+    rp = (GLOSS_STANDARD_N * c - ct) / (GLOSS_STANDARD_N * c + ct)
+    return 100.0 * refl / (0.5 * (rs * rs + rp * rp))
 
 
 def metrics(f_model, f_meas, wi) -> dict:
@@ -223,7 +253,9 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_F
     if render:
         de_g, floor = rendered_delta_e(model, best.params, path, seed)
         de_p, _ = rendered_delta_e(peer_model, space.to_params(x_peer), path, seed)
-    return {"gonio_de00": de_g, "peer_de00": de_p, "de00_noise": floor,
+    gloss = specular_gloss(lambda a, b: measured_on_grid(path, a, b))
+    return {"gonio_de00": de_g, "peer_de00": de_p, "de00_noise": floor, "gloss_60": gloss,
+            "de00_limit": 1.0 if gloss < MATTE_BELOW_GU else 2.0,
             "material": path.stem, "model": label, "peer_model": peer_model.name, "peer_eval": peer_eval, "loss": loss, "samples": meas.n_points, "grid_pairs": len(wi),
             "gonio_ngan": g["ngan"], "gonio_log": g["log"], "gonio_time_s": best.time_s,
             "gonio_cpu_s": cpu, "gonio_select_s": t_select, "gonio_select_cpu_s": c_select,
@@ -241,12 +273,12 @@ COLUMNS = (("material", "<26", "s"), ("model", "<28", "s"), ("loss", "<8", "s"),
            ("choice_per_fit", ">8", ".1f"), ("peer_time_s", ">9", ".1f"), ("speedup", ">8", ".2f"),
            ("gonio_select_cpu_s", ">9", ".1f"), ("peer_cpu_s", ">9", ".1f"), ("speedup_cpu", ">8", ".2f"),
            ("gonio_de00", ">8", ".2f"), ("peer_de00", ">8", ".2f"),
-           ("de00_noise", ">7", ".2f"))
+           ("de00_noise", ">7", ".2f"), ("gloss_60", ">7", ".1f"), ("de00_limit", ">6", ".0f"))
 HEADS = {"gonio_ngan": "Ngan g", "peer_ngan": "Ngan p", "gonio_log": "log g", "peer_log": "log p",
          "gonio_time_s": "t g s", "peer_time_s": "t p s", "speedup": "p/auto", "gonio_select_cpu_s": "cpu auto",
          "peer_cpu_s": "cpu p s", "speedup_cpu": "cpu p/a", "gonio_select_s": "auto s", "alone_s": "alone s",
          "choice_per_fit": "auto/al",
-         "gonio_de00": "dE g", "peer_de00": "dE p", "de00_noise": "floor"}
+         "gonio_de00": "dE g", "peer_de00": "dE p", "de00_noise": "floor", "gloss_60": "G60", "de00_limit": "lim"}
 
 
 def print_table(rows, legend=True, head=True):
@@ -270,7 +302,8 @@ def print_table(rows, legend=True, head=True):
           "whole selection's (above 1: gonio chose faster than the peer fitted), cpu: CPU time (every thread of "
           "the process); metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
           f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
-          "env and area lights, matched seeds), floor: its Monte Carlo noise")
+          "env and area lights, matched seeds), floor: its Monte Carlo noise; G60: the file's ASTM D523 60 deg "
+          f"specular gloss (GU), lim: the issue's dE limit (1 where G60 < {MATTE_BELOW_GU:g}: matte, else 2)")
 
 
 _EVAL_TEXT = {"gonio": "gonio's model.eval (its compiled kernel)", "mitsuba": "Mitsuba itself (load_dict and eval)"}
