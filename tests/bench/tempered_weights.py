@@ -5,7 +5,8 @@ Per material and seed: ``gonio perf acquisition``'s dense, D-optimal and alc cap
 9.5 % of dense, typical errors, roughplastic GGX by chi2 with the budget), then each sequential
 capture refitted with its ``design_weight`` raised to lambda and rescaled to the same sum
 (lambda 0: unweighted, 1: the full covariate-shift weight). Prints one CSV row per (plan,
-lambda): Ngan and log against the truth on the dense grid, and the dense grid's.
+lambda): the weights' effective sample size over the points ((sum w)^2 / sum w^2 / N), Ngan
+and log against the truth on the dense grid, and the dense grid's.
 Run: ``python tests/bench/tempered_weights.py FILE.bsdf --seeds 0-1 [--lambdas 0,0.5,1]``.
 """
 
@@ -44,7 +45,9 @@ def refits(path: Path, sample: dict, seed: int, lambdas) -> list[dict]:
         res = fit_measurements(meas, model="roughplastic", options={"distribution": "ggx"}, seed=seed,
                                budget=open_budget(path, meas), dataset_path=path)[0]
         m = score(res, sample, render=False)
-        out.append({"lambda": lam, "ngan": m["ngan"], "log": m["log"], "points": meas.n_points})
+        w = meas.weight
+        out.append({"lambda": lam, "ngan": m["ngan"], "log": m["log"], "points": meas.n_points,
+                    "ess": float(w.sum() ** 2 / np.sum(w * w)) / meas.n_points})
     return out
 
 
@@ -60,7 +63,7 @@ def main(argv=None):
 
     lambdas = [float(v) for v in args.lambdas.split(",")]
     sample = load_sample(args.file)
-    print("material,seed,plan,lambda,points,time_pct,ngan,log,dense_ngan,dense_log", flush=True)
+    print("material,seed,plan,lambda,points,ess_fraction,time_pct,ngan,log,dense_ngan,dense_log", flush=True)
     for seed in args.seeds:
         with tempfile.TemporaryDirectory() as tmp:
             rows = run(["dense", "adaptive", "alc"], sample, model="roughplastic", options={"distribution": "ggx"},
@@ -72,7 +75,7 @@ def main(argv=None):
                 path = Path(tmp) / r["plan"] / "dataset.nc"
                 pct = 100.0 * r["time_s"] / dense["time_s"]
                 for f in refits(path, sample, seed, lambdas):
-                    print(f"{Path(args.file).stem},{seed},{r['plan']},{f['lambda']:g},{f['points']},{pct:.2f},"
+                    print(f"{Path(args.file).stem},{seed},{r['plan']},{f['lambda']:g},{f['points']},{f['ess']:.3f},{pct:.2f},"
                           f"{f['ngan']:.5f},{f['log']:.6f},{dense['ngan']:.5f},{dense['log']:.6f}", flush=True)
 
 
