@@ -229,3 +229,27 @@ def test_fast_path_follows_interpolated_tables():
             fd = (np.sum(cot * m.eval_reference(wi, wo, {**p, name: p[name] + h}))
                   - np.sum(cot * m.eval_reference(wi, wo, {**p, name: p[name] - h}))) / (2 * h)
             assert grad[name] == pytest.approx(fd, rel=1e-4, abs=1e-6 * max(1.0, abs(fd))), (kind, name)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_derivative_tables_hand_over_their_tables(kind, monkeypatch):
+    """The compiled fit's exact tables: the derivatives' evaluation (forward-mode AD through the
+    quadrature) hands the tables it computed on its way to the value cache, so a new (alpha,
+    eta) costs one quadrature, not two; the handed tables equal a fresh quadrature's bit for bit."""
+    import numpy as np
+
+    from gonio.models.engine import jit_tables as jt
+
+    pytest.importorskip("drjit")
+    alpha, eta = 1.3e-4, 1.016                     # outside the interpolated grid's checked cells
+    jt.clear_cache()
+    fresh = [np.array(v) for v in jt._cached_tables(kind, alpha, eta)]
+    jt.clear_cache()
+    calls = []
+    real = jt._tables
+    monkeypatch.setattr(jt, "_tables", lambda *a: calls.append(a) or real(*a))
+    jt._cached_table_derivs(kind, alpha, eta)
+    handed = [np.array(v) for v in jt._cached_tables(kind, alpha, eta)]
+    assert len(calls) == 1
+    assert all(np.array_equal(a, b) for a, b in zip(fresh, handed))
+    jt.clear_cache()

@@ -200,6 +200,8 @@ def _jit_inputs(model, p, P, F, grad, dtables):
     elif grad:
         tables = _tables(kind, dr.maximum(F64(P["alpha"]), 1e-4), F64(P["int_ior"]))
     else:
+        if dtables and grid is None:    # first: its evaluation hands _cached_tables the tables too
+            P["_dtables"] = _cached_table_derivs(kind, p["alpha"], p["int_ior"], F)
         tables = _cached_tables(kind, p["alpha"], p["int_ior"], F, paired=True)
         t_paired = True
     t, r = (x if type(x) is F else F(x) for x in tables)
@@ -208,7 +210,7 @@ def _jit_inputs(model, p, P, F, grad, dtables):
         if grid is not None:
             dx, dy = _interp(kind, p["alpha"], p["int_ior"], grad=True)[2:]
             P["_dtables"] = (_pairs(F(dx[:-1])), F([dx[-1]]), _pairs(F(dy[:-1])), F([dy[-1]]))
-        else:
+        elif "_dtables" not in P:
             P["_dtables"] = _cached_table_derivs(kind, p["alpha"], p["int_ior"], F)
 
 

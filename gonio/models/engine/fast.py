@@ -162,8 +162,7 @@ def clear_parameter_caches():
     with _EVAL_PARAMS_LOCK:
         _EVAL_PARAMS.clear()
     _rough_tables.clear_cache()
-    _jit_tables._cached_tables.cache_clear()
-    _jit_tables._cached_table_derivs.cache_clear()
+    _jit_tables.clear_cache()
 
 
 def eval(model, wi, wo, params):

@@ -8,6 +8,7 @@ parts (:func:`_t_ext_batch`)."""
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from functools import lru_cache
 
 import numpy as np
@@ -157,10 +158,24 @@ def _cached_tables(kind, alpha, eta, F=None, paired=False):
     elif F is not None and F is not F64:
         t, r = _cached_tables(kind, alpha, eta)
         t, r = F(t), F(r)
+    elif (kind, alpha, eta) in _SEEDED:
+        t, r = _SEEDED[(kind, alpha, eta)]
     else:
         t, r = _tables(kind, dr.opaque(F64, max(alpha, 1e-4)), dr.opaque(F64, eta))
     dr.eval(t, r)
     return t, r
+
+
+#: (kind, alpha, eta) -> the float64 tables :func:`_cached_table_derivs` evaluated on its way
+#: (the most recent 256), read by :func:`_cached_tables` in place of a second quadrature
+_SEEDED: OrderedDict = OrderedDict()
+
+
+def clear_cache():
+    """Forget every table and derivative computed (the tests' fresh start)."""
+    _SEEDED.clear()
+    _cached_tables.cache_clear()
+    _cached_table_derivs.cache_clear()
 
 
 @lru_cache(maxsize=256)
@@ -175,6 +190,13 @@ def _cached_table_derivs(kind, alpha, eta, F=None):
     a, e = dr.opaque(F64, max(alpha, 1e-4)), dr.opaque(F64, eta)
     dr.enable_grad(a, e)
     t, r = _tables(kind, a, e)
+    # the tables themselves come out of the same evaluation: hand them to _cached_tables
+    # (float64, and in F paired as the kernel reads them) instead of a second quadrature
+    t0, r0 = dr.detach(t) + dr.zeros(F64, 64), dr.detach(r) + dr.zeros(F64, 1)
+    dr.eval(t0, r0)
+    _SEEDED[(kind, alpha, eta)] = (t0, r0)
+    while len(_SEEDED) > 256:
+        _SEEDED.popitem(last=False)
     out = []
     for x in (a, e):
         dr.set_grad(x, 1.0)
