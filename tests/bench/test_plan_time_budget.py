@@ -132,3 +132,12 @@ def test_a_time_budgeted_capture_stopped_and_resumed_replays_its_choices(tmp_pat
     assert resumed.batches[:len(before)] == before               # ... and the resume replays them
     assert again.instrument_s <= 60.0                            # its own preparation counted in the budget
     assert again.plan_stop.startswith("adaptive plan: stopped at its time budget")
+
+
+def test_session_poses_that_do_not_fit_the_plan_are_refused_in_one_line():
+    strat = AdaptivePlan(plans.load_plan("quick"), list(range(30)), {"points": 0, "budget_s": 100.0})
+    for bad in (np.zeros((3, 4)), np.full((30, 4), np.nan), np.zeros((30, 3))):
+        with pytest.raises(ValueError, match=r"^\[order\] stage_deg: give 30 finite stage poses") as e:
+            strat.use_session(bad, {})
+        assert "\n" not in str(e.value)
+    assert RestModel.fit([], [], None, overhead_s=5.0, exposure_max_s=4.0)(np.array([0.0, 0.1])).tolist() == [5.0, 5.0]
