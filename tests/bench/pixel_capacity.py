@@ -32,6 +32,17 @@ from gonio.fitting.selection.scene_fit import pixel_values  # noqa: E402
 from gonio.models.mitsuba import select_variant  # noqa: E402
 
 
+def pixel_sets(file, rgl, k, variant):
+    """(train, test, train pixels, test pixels, scale): both lightings' preview pairs with ``k``
+    light samples (seed 0) and 64 (seed 1), the file's pixels at each, and the train pixels'
+    rms per channel (the residuals' scale)."""
+    train = {lt: preview_pairs(file, lt, 64, k, 0, variant) for lt in LIGHTINGS}
+    test = {lt: preview_pairs(file, lt, 64, 64, 1, variant) for lt in LIGHTINGS}
+    tgt = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in train.items()}
+    test_pix = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in test.items()}
+    return train, test, tgt, test_pix, {lt: np.sqrt(np.mean(t * t, axis=0)) for lt, t in tgt.items()}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("file")
@@ -59,11 +70,7 @@ def main(argv=None):
         tab.TILT_BASIS = tab._tilt_basis()
         params.update({f"ndf_tilt_{c}_{k}": float(np.exp(old[c][k])) for c in "rb" for k in tab.TILT_KNOTS})
         model = gm.get("tabulated", **model.options)
-    train = {lt: preview_pairs(args.file, lt, 64, args.k, 0, variant) for lt in LIGHTINGS}
-    test = {lt: preview_pairs(args.file, lt, 64, 64, 1, variant) for lt in LIGHTINGS}
-    tgt = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in train.items()}
-    test_pix = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in test.items()}
-    scale = {lt: np.sqrt(np.mean(t * t, axis=0)) for lt, t in tgt.items()}
+    train, test, tgt, test_pix, scale = pixel_sets(args.file, rgl, args.k, variant)
     space = ParameterSpace(model, n_channels=3)
 
     def residual(u):

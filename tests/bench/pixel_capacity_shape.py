@@ -24,13 +24,12 @@ from scipy.optimize import least_squares
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fit_data_variants import score  # noqa: E402
-from scene_pairs_excess import preview_pairs  # noqa: E402
+from pixel_capacity import pixel_sets  # noqa: E402
 
 import gonio.models.catalogue.tabulated as tab  # noqa: E402
 from gonio.core.geometry import half_vector  # noqa: E402
 from gonio.fitting.formats import RGLBRDF  # noqa: E402
 from gonio.fitting.optimise.space import ParameterSpace  # noqa: E402
-from gonio.fitting.render.preview import LIGHTINGS  # noqa: E402
 from gonio.fitting.selection.scene_fit import pixel_values  # noqa: E402
 from gonio.models.base import Parameter  # noqa: E402
 from gonio.models.mitsuba import select_variant  # noqa: E402
@@ -133,11 +132,7 @@ def main(argv=None):
         start.setdefault(pdef.name, pdef.default)
         if pdef.per_channel:
             start[pdef.name] = np.broadcast_to(start[pdef.name], (3,)).astype(float)
-    train = {lt: preview_pairs(args.file, lt, 64, args.k, 0, variant) for lt in LIGHTINGS}
-    test = {lt: preview_pairs(args.file, lt, 64, 64, 1, variant) for lt in LIGHTINGS}
-    tgt = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in train.items()}
-    test_pix = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in test.items()}
-    scale = {lt: np.sqrt(np.mean(t * t, axis=0)) for lt, t in tgt.items()}
+    train, test, tgt, test_pix, scale = pixel_sets(args.file, rgl, args.k, variant)
     space = ParameterSpace(model, n_channels=3)
 
     def residual(u):
