@@ -158,8 +158,8 @@ def _cached_tables(kind, alpha, eta, F=None, paired=False):
     elif F is not None and F is not F64:
         t, r = _cached_tables(kind, alpha, eta)
         t, r = F(t), F(r)
-    elif (kind, alpha, eta) in _SEEDED:
-        t, r = _SEEDED[(kind, alpha, eta)]
+    elif (seeded := _SEEDED.get((kind, alpha, eta))) is not None:      # one read: threads evict
+        t, r = seeded
     else:
         t, r = _tables(kind, dr.opaque(F64, max(alpha, 1e-4)), dr.opaque(F64, eta))
     dr.eval(t, r)
@@ -196,7 +196,10 @@ def _cached_table_derivs(kind, alpha, eta, F=None):
     dr.eval(t0, r0)
     _SEEDED[(kind, alpha, eta)] = (t0, r0)
     while len(_SEEDED) > 256:
-        _SEEDED.popitem(last=False)
+        try:
+            _SEEDED.popitem(last=False)
+        except KeyError:            # another thread emptied it first
+            break
     out = []
     for x in (a, e):
         dr.set_grad(x, 1.0)
