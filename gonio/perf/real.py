@@ -113,13 +113,13 @@ def specular_gloss(f_r, theta_deg=60.0, aperture_deg=GLOSS_APERTURE_DEG, n=25) -
     pho = math.pi + b.ravel() / np.sin(tho)
     wo = directions(tho, pho)
     wi = directions(np.full(tho.size, math.radians(theta_deg)), np.zeros(tho.size))
+    from gonio.models.physics.fresnel import fresnel_dielectric
+
     f = np.asarray(f_r(wi, wo), float)
+    if not np.all(np.isfinite(f)):
+        raise ValueError("specular gloss: the BRDF is not finite inside the gloss receptor")
     refl = float(np.sum(f * (np.cos(tho) * (d_in * d_out / n ** 2))[:, None], axis=0) @ (0.2126, 0.7152, 0.0722))
-    c = math.cos(math.radians(theta_deg))
-    ct = math.sqrt(1.0 - (1.0 - c * c) / GLOSS_STANDARD_N ** 2)
-    rs = (c - GLOSS_STANDARD_N * ct) / (c + GLOSS_STANDARD_N * ct)
-    rp = (GLOSS_STANDARD_N * c - ct) / (GLOSS_STANDARD_N * c + ct)
-    return 100.0 * refl / (0.5 * (rs * rs + rp * rp))
+    return 100.0 * refl / float(fresnel_dielectric(math.cos(math.radians(theta_deg)), GLOSS_STANDARD_N)[0])
 
 
 def metrics(f_model, f_meas, wi) -> dict:
