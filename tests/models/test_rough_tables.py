@@ -252,4 +252,15 @@ def test_derivative_tables_hand_over_their_tables(kind, monkeypatch):
     handed = [np.array(v) for v in jt._cached_tables(kind, alpha, eta)]
     assert len(calls) == 1
     assert all(np.array_equal(a, b) for a, b in zip(fresh, handed))
+    # and roughplastic's kernel inputs for the normal equations ask in that order: one quadrature
+    import gonio.models as gm
+    from gonio.models.engine import fast
+    from gonio.models.engine.jit import _dr
+
+    jt.clear_cache()
+    calls.clear()
+    m = gm.get("roughplastic", distribution=kind)
+    p = m.validate({"alpha": alpha, "int_ior": eta, "diffuse_reflectance": [0.3, 0.3, 0.3]})
+    P, _ = fast._param_vars(m, p, _dr()[1], grad=False, dtables=True)
+    assert "_tables" in P and "_dtables" in P and len(calls) == 1
     jt.clear_cache()
