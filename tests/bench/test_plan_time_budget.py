@@ -82,6 +82,22 @@ def test_the_rest_envelope_covers_darker_points_than_it_was_fitted_to():
     assert np.all(q_model(3.0 * s_new) >= actual)
 
 
+def test_points_measured_below_the_noise_floor_still_lengthen_the_estimate():
+    """A point whose darkest channel came out at or below 0 (noise on a dark channel) took the
+    longest bracket; it counts as dark as the darkest lit point, so a candidate predicted that
+    dark or darker is costed at least its time (before: dropped, the 4-point case gave 0.5 s
+    against measured 5 s). With no lit point at all every candidate costs the longest seen."""
+    rest, s = [1.0, 3.0, 5.0, 0.5], [0.0, -1e-4, 0.0, 0.2]
+    model = RestModel.fit(rest, s, None, overhead_s=0.5, exposure_max_s=2.0)
+    assert np.all(model([0.01, 0.2]) >= 5.0) and model(0.2) <= model.cap
+    unlit = RestModel.fit(rest, [0.0, -1e-4, 0.0, -2e-4], None, overhead_s=0.5, exposure_max_s=2.0)
+    assert np.all(unlit([1e-3, 0.5, 1.0]) == 5.0)
+    # every point lit: the envelope is the one fitted before (the points' own s)
+    lit = RestModel.fit(rest, [0.01, 0.02, 0.005, 0.2], None, overhead_s=0.5, exposure_max_s=2.0)
+    c = [(1.0 - 0.5) * 0.01, (5.0 - 0.5) * 0.005]          # the darker half: s 0.01 and 0.005
+    assert lit.b == pytest.approx(max(max(c), 2 * np.median(c))) and lit.floor == 3.0
+
+
 
 def _dark_capture(folder, name, made, hook=None):
     """The dark sample's 60 s capture of the first test, stopped (Ctrl-C once) by ``hook`` and

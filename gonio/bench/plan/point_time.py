@@ -61,12 +61,15 @@ class RestModel:
             return cls(float(overhead_s), 0.0, 1.0, float(overhead_s), 0)
         a = max(0.0, float(np.min(rest)))
         lit = s_meas > 0
-        b, floor = 0.0, a
+        b, floor = 0.0, float(np.max(rest))         # nothing lit: every point as the longest seen
         if lit.any():
-            dark = lit & (s_meas <= np.median(s_meas[lit]))
-            c = (rest[dark] - a) * s_meas[dark]
+            # a point measured at or below 0 (its darkest channel in the noise) counts as dark as
+            # the darkest lit one: its time then raises b, not ignored (the same points otherwise)
+            s_eff = np.where(lit, s_meas, np.min(s_meas[lit]))
+            dark = s_eff <= np.median(s_eff)
+            c = (rest[dark] - a) * s_eff[dark]
             b = max(0.0, float(np.max(c)), 2.0 * float(np.median(c)))
-            floor = max(a, float(np.max(rest[lit & ~dark]))) if (lit & ~dark).any() else a
+            floor = max(a, float(np.max(rest[~dark]))) if (~dark).any() else a
         q = 1.0
         if s_pred is not None:
             s_pred = np.asarray(s_pred, float)[ok]
