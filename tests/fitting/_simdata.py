@@ -1,9 +1,22 @@
 """Simulated captures for the fitting tests: directions from the caller's rng, f_r from the
-model itself, Gaussian noise sigma = rel * f_r + floor."""
+model itself, Gaussian noise sigma = rel * f_r + floor; Monte Carlo directions over an aperture."""
 
 import numpy as np
 
 from gonio.fitting import Measurements, direction
+
+
+def cone_directions(w, d, n, rng):
+    """``n`` directions uniform over the disk of angular radius ``d`` (rad) about the unit ``w``
+    in its tangent plane, as the simulator's and the fit's apertures are defined
+    (gonio.sim.physics.errors, gonio.fitting.likelihood.aperture): the tests' Monte Carlo
+    reference for their quadrature rules."""
+    t1 = np.cross(w, [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(w, t1)
+    r, ph = d * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
+    v = w + np.tan(r)[:, None] * (np.cos(ph)[:, None] * t1 + np.sin(ph)[:, None] * t2)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def directions(rng, n, theta_max_deg=80.0, specular_fraction=0.5, spread=0.15, theta_min_deg=0.0):

@@ -7,7 +7,7 @@ import gonio.models as gm
 from gonio.fitting import Measurements, fit, with_instrument_response
 from gonio.fitting.likelihood.aperture import aperture_mean, aperture_ratio, cone, disk_rule
 
-from _simdata import directions
+from _simdata import cone_directions, directions
 
 
 def test_disk_rule_is_exact_to_degree_five():
@@ -96,15 +96,7 @@ def test_the_mean_across_a_transmission_cutoff_is_the_uniform_disks_mean():
     assert model.eval(wi, wo, p)[0, 0] == 0.0
     got = aperture_mean(model, wi, wo, p, 0.5, 0.5)[0, 0]
     rng, n, d = np.random.default_rng(15), 400_000, np.radians(0.5)
-
-    def draw(w):
-        t1 = np.cross(w, [0.0, 1.0, 0.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(w, t1)
-        r, ph = d * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
-        v = w + np.tan(r)[:, None] * (np.cos(ph)[:, None] * t1 + np.sin(ph)[:, None] * t2)
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
-    a, b = draw(wi[0]), draw(wo[0])
+    a, b = cone_directions(wi[0], d, n, rng), cone_directions(wo[0], d, n, rng)
     x, c = model.eval(a, b, p)[:, 0] * a[:, 2], a[:, 2]
     ratio = x.mean() / c.mean()
     se = x.std() / np.sqrt(n) / c.mean()                 # the cosine's own spread is 1e-4 of it

@@ -1,11 +1,16 @@
 """The virtual instrument's error model (gonio/sim/physics/errors.py): presets, overrides, physics of each term."""
 
 import math
+import sys
+from pathlib import Path
 
 import gonio.sim as gs
 import numpy as np
 import pytest
 from gonio.sim.physics.errors import PRESETS, disk_rule, error_model, spectralon_factor
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fitting"))
+from _simdata import cone_directions  # noqa: E402  (the tests' Monte Carlo aperture reference)
 
 GLOSSY = {"model": "roughconductor", "params": {"alpha": 0.1}}
 
@@ -22,17 +27,6 @@ def _frames(settings, seed=5):
         inst.lamp.switch(inst.clock.now(), True)
         out.append(inst.capture(0.004))
     return out
-
-
-def _cone(w, d, n, rng):
-    """``n`` directions uniform over the disk of angular radius ``d`` (rad) about ``w`` in its
-    tangent plane, as the simulator's apertures are defined (gonio.sim.physics.errors)."""
-    t1 = np.cross(w, [0.0, 1.0, 0.0])
-    t1 /= np.linalg.norm(t1)
-    t2 = np.cross(w, t1)
-    r, ph = d * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
-    v = w + np.tan(r)[:, None] * (np.cos(ph)[:, None] * t1 + np.sin(ph)[:, None] * t2)
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def test_ideal_is_the_error_free_instrument_bit_for_bit():
@@ -82,7 +76,7 @@ def test_disk_rule_integrates_the_aperture():
     rng = np.random.default_rng(11)
     n, d = 400_000, math.radians(0.5)
 
-    a, b = _cone(wi, d, n, rng), _cone(wo, d, n, rng)
+    a, b = cone_directions(wi, d, n, rng), cone_directions(wo, d, n, rng)
     f = inst.sample.eval(a, b)[:, 1] * a[:, 2]
     assert abs(rule[1] - f.mean()) < 5 * f.std() / math.sqrt(n)
     assert abs(rule[1] / shown[1] - 1) > 10 * f.std() / math.sqrt(n) / shown[1]   # the aperture is visible
@@ -155,7 +149,7 @@ def test_aperture_mean_across_a_transmission_cutoff():
     rng = np.random.default_rng(12)
     n, d = 400_000, math.radians(0.5)
 
-    a, b = _cone(wi, d, n, rng), _cone(wo, d, n, rng)
+    a, b = cone_directions(wi, d, n, rng), cone_directions(wo, d, n, rng)
     f = inst.sample.eval(a, b)[:, 0] * a[:, 2]
     se = f.std() / math.sqrt(n)
     assert f.mean() > 20 * se                                   # the cones do reach the lobe
