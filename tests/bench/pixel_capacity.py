@@ -32,6 +32,17 @@ from gonio.fitting.selection.scene_fit import pixel_values  # noqa: E402
 from gonio.models.mitsuba import select_variant  # noqa: E402
 
 
+def load_fit(path):
+    """(options, params) of a pickled tabulated fit: a dict with ``params`` (and ``options``),
+    or a tuple whose first two items are the model (or its options) and the params."""
+    with open(path, "rb") as fh:
+        d = pickle.load(fh)
+    if isinstance(d, dict):
+        return d.get("options", {}), d["params"]
+    model, params = d[:2]
+    return (model if isinstance(model, dict) else dict(model.options)), params
+
+
 def pixel_sets(file, rgl, k, variant):
     """(train, test, train pixels, test pixels, scale): both lightings' preview pairs with ``k``
     light samples (seed 0) and 64 (seed 1), the file's pixels at each, and the train pixels'
@@ -41,6 +52,22 @@ def pixel_sets(file, rgl, k, variant):
     tgt = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in train.items()}
     test_pix = {lt: pixel_values(rgl.eval(sp.wi, sp.wo) * sp.wi[:, 2:3], sp) for lt, sp in test.items()}
     return train, test, tgt, test_pix, {lt: np.sqrt(np.mean(t * t, axis=0)) for lt, t in tgt.items()}
+
+
+def pixel_fit(model, space, residual, start, test, test_pix, nfev):
+    """scipy's ``least_squares`` of ``residual`` (over the unit box of ``space``) from ``start``;
+    prints the test pixels' dE00 before and after and the run's cost; returns the fitted params."""
+    before = score(model, start, test, test_pix)
+    t0 = time.perf_counter()
+    u0 = np.clip(space.to_unit(space.from_params(model.validate(start))), 1e-6, 1 - 1e-6)
+    r = least_squares(residual, u0, bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=nfev)
+    fitted = space.to_params(space.from_unit(r.x))
+    after = score(model, fitted, test, test_pix)
+    for name, s in (("start", before), ("pixel fit", after)):
+        print(f"{name:10s} " + "  ".join(f"{lt} dE {v[0]:.3f} rgb/file {' '.join(f'{x:.3f}' for x in v[1])}"
+                                        for lt, v in s.items()) + f"  mean {np.mean([v[0] for v in s.values()]):.3f}")
+    print(f"least_squares: {r.nfev} evaluations, {time.perf_counter() - t0:.0f} s, status {r.status}")
+    return fitted
 
 
 def main(argv=None):
@@ -57,10 +84,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     variant = select_variant(None)
     rgl = RGLBRDF(args.file, variant)
-    with open(args.fit, "rb") as fh:
-        model, params = pickle.load(fh)
-    if isinstance(model, dict):
-        model = gm.get("tabulated", **model)
+    options, params = load_fit(args.fit)
+    model = gm.get("tabulated", **options)
     if args.tilt_knots:
         import gonio.models.catalogue.tabulated as tab
 
@@ -85,16 +110,7 @@ def main(argv=None):
                 out.append(((pred - tgt[lt]) / scale[lt]).ravel())
         return np.concatenate(out)
 
-    before = score(model, params, test, test_pix)
-    t0 = time.perf_counter()
-    u0 = np.clip(space.to_unit(space.from_params(model.validate(params))), 1e-6, 1 - 1e-6)
-    r = least_squares(residual, u0, bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=args.nfev)
-    fitted = space.to_params(space.from_unit(r.x))
-    after = score(model, fitted, test, test_pix)
-    for name, s in (("start", before), ("pixel fit", after)):
-        print(f"{name:10s} " + "  ".join(f"{lt} dE {v[0]:.3f} rgb/file {' '.join(f'{x:.3f}' for x in v[1])}"
-                                        for lt, v in s.items()) + f"  mean {np.mean([v[0] for v in s.values()]):.3f}")
-    print(f"least_squares: {r.nfev} evaluations, {time.perf_counter() - t0:.0f} s, status {r.status}")
+    fitted = pixel_fit(model, space, residual, params, test, test_pix, args.nfev)
     if args.save:
         with open(args.save, "wb") as fh:
             pickle.dump((dict(model.options), fitted), fh)

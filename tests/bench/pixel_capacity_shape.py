@@ -15,16 +15,13 @@ import argparse
 import math
 import pickle
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fit_data_variants import score  # noqa: E402
-from pixel_capacity import pixel_sets  # noqa: E402
+from pixel_capacity import load_fit, pixel_fit, pixel_sets  # noqa: E402
 
 import gonio.models.catalogue.tabulated as tab  # noqa: E402
 from gonio.core.geometry import half_vector  # noqa: E402
@@ -104,15 +101,6 @@ class Shape(tab.Tabulated):
         return diffuse, np.where(ok[:, None], lobe, 0.0)
 
 
-def load_fit(path):
-    with open(path, "rb") as fh:
-        d = pickle.load(fh)
-    if isinstance(d, dict):
-        return d.get("options", {}), d["params"]
-    model, params = d[:2]       # this study's own pickles: (options, params, extra)
-    return (model if isinstance(model, dict) else dict(model.options)), params
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("file")
@@ -140,17 +128,8 @@ def main(argv=None):
         return np.concatenate([((pixel_values(model.eval(sp.wi, sp.wo, p) * sp.wi[:, 2:3], sp) - tgt[lt])
                                 / scale[lt]).ravel() for lt, sp in train.items()])
 
-    before = score(model, start, test, test_pix)
-    t0 = time.perf_counter()
-    u0 = np.clip(space.to_unit(space.from_params(model.validate(start))), 1e-6, 1 - 1e-6)
-    r = least_squares(residual, u0, bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=args.nfev)
-    fitted = space.to_params(space.from_unit(r.x))
-    after = score(model, fitted, test, test_pix)
     print(f"extra {sorted(args.extra)}, {len(space.entries)} numbers")
-    for name, s in (("start", before), ("pixel fit", after)):
-        print(f"{name:10s} " + "  ".join(f"{lt} dE {v[0]:.3f} rgb/file {' '.join(f'{x:.3f}' for x in v[1])}"
-                                        for lt, v in s.items()) + f"  mean {np.mean([v[0] for v in s.values()]):.3f}")
-    print(f"least_squares: {r.nfev} evaluations, {time.perf_counter() - t0:.0f} s, status {r.status}")
+    fitted = pixel_fit(model, space, residual, start, test, test_pix, args.nfev)
     print({k: np.round(v, 4).tolist() for k, v in fitted.items() if k.startswith(("width", "sheen"))})
     if args.save:
         with open(args.save, "wb") as fh:
