@@ -162,9 +162,10 @@ class AdaptivePlan:
         self.wo = _dirs(a[:, 2], a[:, 3])
         self.stage = np.nan_to_num(kinematics.inverse(*a.T))
         rank = {int(i): k for k, i in enumerate(order)}
-        self._motion = _motion()
+        rig = _rig()
+        self._motion = {"motion": rig["motion"]}
         self._poses, self._run_motion = None, self._motion     # `use_session`: the moves the run makes
-        self._exposure_max_s = float(_motion(key="capture")["capture"]["exposure_max_s"])
+        self._exposure_max_s = float(rig["capture"]["exposure_max_s"])
         spread = spread_subset(a, self.first_n)
 
         def in_order(pts):                               # the session's move order
@@ -518,12 +519,12 @@ def _int(t: Mapping, key: str, least: int) -> int:
     return int(v)
 
 
-def _motion(key: str = "motion") -> dict:
-    """The default rig's axis speeds and accelerations (``key``: another table of its settings),
-    until `AdaptivePlan.use_session` gives the session's."""
+def _rig() -> dict:
+    """The default rig's settings (axis speeds and accelerations, the longest exposure), until
+    `AdaptivePlan.use_session` gives the session's."""
     from gonio.bench.settings import default_settings
 
-    return {key: default_settings()[key]}
+    return default_settings()
 
 
 #: The stops of ``gonio capture --plan adaptive``: (flag, [strategy] key, what a value is, its unit).
