@@ -40,7 +40,7 @@ def _timed_run(strat, preparations):
         strat.account(times, preparations)
         todo.extend(strat.more(results, tuple(todo)))
         i = todo[n]
-        times[i] = EXTRA + (float(strat._travel(todo[n - 1], i)[0]) if n else 0.0)
+        times[i] = EXTRA + (strat._move_s(todo[n - 1], i) if n else 0.0)
         results[i] = (F[i], SD[i])
         n += 1
     return results, times

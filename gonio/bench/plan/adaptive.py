@@ -5,7 +5,7 @@ then, batch by batch, the model is fitted to the results so far (`gonio.fitting.
 ``candidates``, the family they need, gonio.bench.plan.family) and the unmeasured candidates that
 raise log det of the Fisher information J^T W J the most (D-optimality, greedy within a batch;
 Atkinson, Donev & Tobias 2007, ch. 10-12; ``criterion = "alc"``: the predicted variance of f_r
-cos, gonio.bench.plan.alc) are queued, per second of travel and overhead when ``travel`` is on.
+cos, gonio.bench.plan.alc) are queued, per second of overhead and the run's move (``travel``).
 It stops at ``points``, at ``budget_s`` of the journalled instrument time (a batch is cut to
 what fits in what is left by gonio.bench.plan.point_time's estimate), or at its targets
 (``target_rel_u``, ``target_de00``: `albedo_de00_u`); :attr:`AdaptivePlan.stopped_by` says which.
@@ -313,18 +313,28 @@ class AdaptivePlan:
         self.batches.append(chosen)
 
     # -- instrument time ----------------------------------------------------------------
-    def _travel(self, a: int, b) -> np.ndarray:
-        """Stage travel time (s) from candidate ``a`` to each of ``b``, the faster solution of each."""
-        b = self.stage[np.atleast_1d(b)]
-        return np.minimum(cost_matrix(self.stage[a][None], b, self._motion)[0],
-                          cost_matrix(self.stage[a][None], mirror(b), self._motion)[0])
+    def _moves(self, a: int, b) -> np.ndarray:
+        """The moves (s) from candidate ``a`` to each of ``b`` as the run makes them: between the
+        session's poses (`use_session`) at its speeds; before those are known, the faster of each
+        point's two stage solutions."""
+        b = np.atleast_1d(np.asarray(b, int))
+        if self._poses is None:
+            to = self.stage[b]
+            return np.minimum(cost_matrix(self.stage[a][None], to, self._motion)[0],
+                              cost_matrix(self.stage[a][None], mirror(to), self._motion)[0])
+        return cost_matrix(self._poses[a][None], self._poses[b], self._run_motion)[0]
 
     def _move_s(self, a: int, b: int) -> float:
-        """The move from candidate ``a`` to ``b`` as the run makes it: between the session's poses
-        (`use_session`) at its speeds; before those are known, the faster solution (`_travel`)."""
-        if self._poses is None:
-            return float(self._travel(a, b)[0])
-        return float(cost_matrix(self._poses[a][None], self._poses[b][None], self._run_motion)[0, 0])
+        return float(self._moves(a, [b])[0])
+
+    def _cost(self, last: int | None, free) -> np.ndarray:
+        """The charge the batch criteria divide a pick's gain by, s: ``overhead_s`` plus the move
+        from ``last`` (an index; None: none) when ``travel`` is on. Not the point's estimated time
+        (`_rest`): with it the picks crowd where moves are short and fit worse
+        (docs/performance.md, "The adaptive plan's score per second ...")."""
+        free = np.atleast_1d(np.asarray(free, int))
+        move = self._moves(last, free) if self.travel and last is not None else np.zeros(len(free))
+        return self.overhead_s + move
 
     def _path_s(self, points: Sequence[int], after: int | None = None, per_point=None) -> float:
         """The plan's estimate of the instrument time of ``points`` in order (from ``after``):
@@ -434,8 +444,8 @@ class AdaptivePlan:
     def _d_optimal(self, x, basis, queue, free, n_new, results, sigma_rel, sigma_floor) -> list[int]:
         """Greedy D-optimal batch: each pick maximises log det(I + A F^-1 A^T) (A: its whitened
         rows; F: the information of the basis at its measured sigma, of the pending queued
-        points and of the picks so far at the predicted one), divided by overhead plus travel
-        from the previous pose when ``travel`` is on."""
+        points and of the picks so far at the predicted one), divided by `_cost` from the
+        previous pick."""
         rows, pred = self._rows(x, sigma_rel, sigma_floor)
         pending = [i for i in queue if i not in basis]
         s = np.array([results[i][1] for i in basis], float).reshape(len(basis), -1)
@@ -447,9 +457,8 @@ class AdaptivePlan:
         F = np.einsum("ncp,ncq->pq", A_b, A_b) + np.einsum("ncp,ncq->pq", A_p, A_p)
         F += 1e-9 * max(np.trace(F), 1.0) * np.eye(F.shape[0])
         cand = rows[free]
-        travel = np.zeros(len(free))
         left = np.ones(len(free), bool)
-        last = self.stage[queue[-1]] if queue else None
+        last = queue[-1] if queue else None
         chosen: list[int] = []
         for _ in range(n_new):
             if not left.any():
@@ -457,15 +466,12 @@ class AdaptivePlan:
             M = np.einsum("ncp,pq,ndq->ncd", cand, np.linalg.inv(F), cand) + np.eye(cand.shape[1])
             sign, gain = np.linalg.slogdet(M)
             gain = np.where(sign > 0, gain, 0.0)
-            if self.travel and last is not None:
-                travel = np.minimum(cost_matrix(last[None], self.stage[free], self._motion)[0],
-                                    cost_matrix(last[None], mirror(self.stage[free]), self._motion)[0])
-            score = np.where(left, gain / (self.overhead_s + travel), -np.inf)
+            score = np.where(left, gain / self._cost(last, free), -np.inf)
             k = int(np.argmax(score))
             chosen.append(int(free[k]))
             left[k] = False
             F = F + cand[k].T @ cand[k]
-            last = self.stage[free[k]]
+            last = int(free[k])
         return chosen
 
 

@@ -7,7 +7,7 @@ correlated over ``discrepancy_length`` in (wi, wo) (Kennedy & O'Hagan 2001), tau
 the fit's residuals beyond the noise. A batch is chosen greedily by active learning Cohn (Cohn
 1996; Gramacy 2020, sec. 6.2): each pick maximises the drop of the posterior variance of
 f_r cos(theta_i) summed over an equal-solid-angle reference grid, which is what the Ngan error
-integrates (I-optimality), per second of overhead and travel when ``travel`` is on. Where the
+integrates (I-optimality), per second of overhead and the run's move (``travel``). Where the
 model fits (tau small) the picks pin its parameters where f_r cos is large; where it cannot,
 the discrepancy keeps a floor of uncertainty away from the measured points, so the picks spread
 over the body of the BRDF. Public: `alc_batch`, `reference_grid`, `discrepancy_rel`.
@@ -18,7 +18,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from gonio.bench.plan.ordering import cost_matrix, mirror
 
 __all__ = ["alc_batch", "reference_grid", "discrepancy_rel", "TAU_MIN"]
 
@@ -115,7 +114,7 @@ def alc_batch(plan, x, basis, queue, free, n_new, results, sigma_rel, sigma_floo
     w = np.clip(wr[:, 2], 0.0, 1.0) ** 2                        # f_r cos(theta_i): its variance
     free = np.asarray(free, int)
     left = np.ones(len(free), bool)
-    last = plan.stage[queue[-1]] if len(queue) else None
+    last = int(queue[-1]) if len(queue) else None
     chosen: list[int] = []
     rows: list[tuple[np.ndarray, float]] = []                   # per pick: its posterior row, variance
     for _ in range(n_new):
@@ -123,16 +122,12 @@ def alc_batch(plan, x, basis, queue, free, n_new, results, sigma_rel, sigma_floo
             break
         gain = (w @ post_rc[:, free] ** 2) / (post_cc[free] + noise_c[free])
         gain = np.where(np.isfinite(gain) & (gain > 0), gain, 0.0)
-        travel = np.zeros(len(free))
-        if plan.travel and last is not None:
-            travel = np.minimum(cost_matrix(last[None], plan.stage[free], plan._motion)[0],
-                                cost_matrix(last[None], mirror(plan.stage[free]), plan._motion)[0])
-        score = np.where(left, gain / (plan.overhead_s + travel), -np.inf)
+        score = np.where(left, gain / plan._cost(last, free), -np.inf)
         k = int(np.argmax(score))
         c = int(free[k])
         chosen.append(c)
         left[k] = False
-        last = plan.stage[c]
+        last = c
         # c's posterior covariance with every candidate (given the basis and this batch's
         # picks before it), then the rank-one update of c measured with its noise
         k_c = kern(J_c[[c]], f_c[[c]], x_c[[c]], J_c, f_c, x_c)[0]

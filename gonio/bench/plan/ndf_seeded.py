@@ -97,14 +97,14 @@ class NDFSeededPlan(AdaptivePlan):
         return np.where(base > 0, np.sqrt(np.clip(var, 0.0, None)) / np.where(base > 0, base, 1.0), 0.0)
 
     def _by_travel(self, picks: list[int], queue: Sequence[int]) -> list[int]:
-        """``picks`` in nearest-neighbour order of stage travel from the last queued pose."""
+        """``picks`` in nearest-neighbour order of the run's moves from the last queued pose."""
         out, left = [], list(picks)
         last = queue[-1] if queue else None
         while left:
             if last is None:
                 nxt = left[0]
             else:
-                nxt = left[int(np.argmin(self._travel(last, left)))]
+                nxt = left[int(np.argmin(self._moves(last, left)))]
             out.append(nxt)
             left.remove(nxt)
             last = nxt
