@@ -246,36 +246,50 @@ class _Problem:
         return r
 
     # -- exact derivatives (compiled path)
-    def residual_jacobian_x(self, x, cols, loss=None):
-        """Residuals at x and their exact derivatives with respect to x[cols] (natural units),
-        shape (M, len(cols)), from the compiled kernel's Jacobian; None on the numpy path
-        or where the derivatives are not finite (the callers then difference)."""
+    def residual_jacobian_x(self, x, cols, loss=None, scale=None):
+        """Residuals at x and their exact derivatives with respect to x[cols] (natural units;
+        column k times ``scale[k]`` where given: the unit box's dx/du), shape (M, len(cols)),
+        from the compiled kernel's Jacobian; None on the numpy path or where the derivatives
+        are not finite (the callers then difference). A per-channel entry's column is
+        nonzero on its channel's rows only: those alone are computed, and each column is
+        built in a row of its own (contiguous), the products the same as a full column's."""
         loss = loss or self.loss
         out = self.eval.jacobian(self.space.to_params(x))
         if out is None:
             return None
         f, J = out
         self._f_last = (np.array(x, dtype=np.float64), f)
-        meas = self.meas
+        meas, use = self.meas, self.meas.use
         r = _loss.residuals(loss, f, meas)
         drdf = np.broadcast_to(_loss.residual_derivative(loss, f, meas), f.shape)
-        D = np.empty((r.size, len(cols)))
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(drdf[use]))):
+            return None     # a full column times a non-finite d r / d f_r is not finite either
+        rows, chans = np.nonzero(use)           # the order of r's values
+        own = {}
+        DT = np.zeros((len(cols), r.size))
         for k, j in enumerate(cols):
             e = self.space.entries[j]
-            D[:, k] = (fast.jacobian_column(self.model, J, e.param, e.channel) * drdf)[meas.use]
-        if not (np.all(np.isfinite(D)) and np.all(np.isfinite(r))):
-            return None
-        return r, D
+            if e.channel < 0 or self.model.structure.coupling(e.param) is not None:
+                at, v = slice(None), (fast.jacobian_column(self.model, J, e.param, e.channel) * drdf)[use]
+            else:
+                if e.channel not in own:
+                    at = np.flatnonzero(chans == e.channel)
+                    own[e.channel] = (at, rows[at], drdf[rows[at], e.channel])
+                at, n, d = own[e.channel]
+                v = np.asarray(J[e.param])[n, e.channel] * d
+            if not np.all(np.isfinite(v)):
+                return None
+            DT[k, at] = v if scale is None else v * scale[k]
+        return r, np.ascontiguousarray(DT.T)
 
     def lm_jacobian_u(self, u, _r=None):
         """Exact Jacobian of :meth:`lm_residuals_u` at u (None: difference instead); the
         residuals argument of ``levenberg_marquardt``'s ``jac(u, r)`` is not needed."""
         x = self.space.from_unit(u)
-        out = self.residual_jacobian_x(x, range(self.space.size))
+        out = self.residual_jacobian_x(x, range(self.space.size), scale=self.space.dx_du(x))
         if out is None:
             return None
         r, D = out
-        D = D * self.space.dx_du(x)[None, :]
         if self.loss == "robust":  # rho(r) = r sqrt(2 / (s + 1)), s = sqrt(1 + r^2)
             s = np.sqrt(1.0 + r * r)
             D = D * (np.sqrt(0.5 * (s + 1.0)) / s)[:, None]  # d rho / dr
@@ -429,9 +443,9 @@ class _Problem:
         affine columns (those not held at a bound)."""
         x = self.x_of(v, x_template)
         cols = self._cols
-        exact = self.residual_jacobian_x(x, self.nl_idx)
+        exact = self.residual_jacobian_x(x, self.nl_idx, scale=self.space.dx_du(x)[self.nl_idx])
         if exact is not None:
-            J = exact[1] * self.space.dx_du(x)[self.nl_idx][None, :]
+            J = exact[1]
         else:
             u = self.space.to_unit(x)
             J = np.empty((r.size, v.size))
