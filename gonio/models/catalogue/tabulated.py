@@ -480,6 +480,11 @@ class Tabulated(Model):
                     J[f"ndf_tilt_{name}_{kk}"] = col
         return f, J
 
+    def affine_colours(self) -> tuple:
+        """f_r = rho g(i) g(o) / pi + F(theta_d) D G1 G1 / (4 cos cos), F interpolated between
+        its knots: affine in rho and the Fresnel knots jointly (tests/fitting/test_affine_declared.py)."""
+        return ("diffuse_reflectance",) + tuple(f"fresnel_{j}" for j in range(N_FRESNEL))
+
     def jacobian_host(self, wi, wo, params):
         """:meth:`jacobian_reference`'s (f_r, J) by the chain rule through the tables, what the
         fit calls (:func:`gonio.models.catalogue.tabulated_jacobian.jacobian`)."""
