@@ -75,16 +75,25 @@ def _cmd_bench_real(args):
 def _cmd_bench_acquisition(args):
     import gonio.models as gm
     from gonio.bench.samples import load_sample
-    from gonio.perf.acquisition import CHOOSE, check_plans, run
+    from gonio.perf.acquisition import CHOOSE, check_plans, parse_seeds, run, run_seeds
 
     plans = check_plans(args.plans)
+    seeds = parse_seeds(args.seeds) if args.seeds is not None else None
+    if seeds is not None and args.seed is not None:
+        raise GonioError("--seed and --seeds exclude each other: give one seed or several")
     if not 1 <= args.points <= 1053:
         raise GonioError(f"--points {args.points}: give the adaptive plan's budget between 1 and 1053 points")
     if args.model is not None and args.model not in (*gm.names(), CHOOSE):
         raise GonioError(f"--model {args.model!r}: give one of {', '.join((*gm.names(), CHOOSE))}")
     sample = load_sample(args.sample)
-    run(plans, sample, model=args.model, seed=args.seed, points=args.points, errors=args.errors,
-        out=Path(args.out) if args.out else None, budget_fraction=args.budget_fraction)
+    kw = dict(model=args.model, points=args.points, errors=args.errors, out=Path(args.out) if args.out else None,
+              budget_fraction=args.budget_fraction)
+    if seeds is None:
+        run(plans, sample, seed=args.seed or 0, **kw)
+    else:
+        if "dense" not in plans:
+            raise GonioError("--seeds compares each plan with the dense grid of the same seed: give dense among --plans")
+        run_seeds(plans, sample, seeds, **kw)
 
 
 def register(sub, *, env, seed, parser_class):
@@ -135,7 +144,10 @@ def register(sub, *, env, seed, parser_class):
                                                            "dense plan's instrument time (dense must be in --plans)")
     ba.add_argument("--errors", default="typical", help="the simulator's error preset, every plan the same "
                                                          "(default typical; gonio plans lists them)")
-    ba.add_argument("--seed", type=seed, default=0, help="seed of the captures and the fits")
+    ba.add_argument("--seed", type=seed, default=None, help="seed of the captures and the fits (default 0)")
+    ba.add_argument("--seeds", metavar="LIST", help="several seeds (10-13 or 10,12,15): every plan captured with each, "
+                                                    "then each plan's errors against the dense grid of the same "
+                                                    "seed, summarised with their intervals (dense must be in --plans)")
     ba.add_argument("--out", help="a .csv file or a folder for the table")
     ba.set_defaults(func=env(_cmd_bench_acquisition))
     return bsub

@@ -8,7 +8,8 @@ design weights unless ``-unweighted``): the sample's own family (roughplastic GG
 file), ``model``, or the family each capture's data choose (:data:`CHOOSE`), and
 the fit scored against the truth on :func:`gonio.perf.real.dense_grid` (Ngan and log errors,
 :func:`gonio.perf.real.metrics`) and by the preview's rendered CIEDE2000. The front: the plans
-no other plan beats on both instrument time and Ngan error.
+no other plan beats on both instrument time and Ngan error. Over several seeds
+(:func:`run_seeds`), each plan is set against the dense grid of the same seed (:func:`paired`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ import numpy as np
 from gonio.core.atomic import atomic_open
 from gonio.core.errors import GonioError
 
-__all__ = ["PLANS", "SEQUENTIAL", "CHOOSE", "front", "run", "score", "strategy_table"]
+__all__ = ["PLANS", "SEQUENTIAL", "CHOOSE", "front", "paired", "parse_seeds", "run", "run_seeds", "score",
+           "strategy_table"]
 
 #: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``alc``
 #: and ``ndf`` on request)
@@ -186,14 +188,88 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
           "preparation); Ngan, log: against the truth on the dense grid (theta <= 80 deg); dE00: preview, 48 px, "
           "128 spp, matched seeds; wall: capture, export, fit and scoring on this machine")
     if out is not None:
-        path = Path(out) if Path(out).suffix.lower() == ".csv" else Path(out) / "acquisition.csv"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_open(path, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]) + ["seed", "errors", "gonio"])
-            w.writeheader()
-            w.writerows([{**r, "seed": seed, "errors": errors, "gonio": _version()} for r in rows])
-        print(f"wrote {path}")
+        _write(out, [{**r, "seed": seed} for r in rows], errors)
     return rows
+
+
+def _write(out, rows, errors) -> None:
+    """The rows (each with its ``seed``) as CSV at ``out`` (a .csv file or a folder), with the
+    error preset and gonio's version."""
+    path = Path(out) if Path(out).suffix.lower() == ".csv" else Path(out) / "acquisition.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]) + ["errors", "gonio"])
+        w.writeheader()
+        w.writerows([{**r, "errors": errors, "gonio": _version()} for r in rows])
+    print(f"wrote {path}")
+
+
+def parse_seeds(text: str) -> tuple:
+    """``--seeds 10-13`` or ``10,12,15`` (or both, ``0-3,8``): the seeds in the order given, at
+    least two, each once, from 0 to 2**63 - 1; one line otherwise."""
+    seeds = []
+    for part in str(text).split(","):
+        a, dash, b = part.strip().partition("-")
+        try:
+            lo, hi = int(a), int(b) if dash else int(a)
+        except ValueError:
+            raise GonioError(f"--seeds {str(text)[:40]!r}: give seeds as 10-13 or 10,12,15") from None
+        if not 0 <= lo <= hi < 2 ** 63 or hi - lo >= 1000:
+            raise GonioError(f"--seeds {str(text)[:40]!r}: give ranges low-high from 0 to 2**63 - 1, at most 1000 seeds")
+        seeds += range(lo, hi + 1)
+    if len(seeds) < 2 or len(set(seeds)) != len(seeds) or len(seeds) > 1000:
+        raise GonioError(f"--seeds {str(text)[:40]!r}: give at least two different seeds, each once (one: --seed)")
+    return tuple(seeds)
+
+
+def paired(rows, *, time_fraction=0.1, level=0.95) -> list[dict]:
+    """Each plan against the dense grid captured with the same seed, over the seeds: how often
+    both its errors are at most the dense grid's and its time at most ``time_fraction`` of it
+    (``passes`` of ``n``), and each error's ratio to the dense grid's (``ngan``, ``log``: the
+    mean and its Student-t ``level`` interval, NaN with one seed). ``dense_cv``: the dense
+    grid's own seed-to-seed spread (sd over mean) of each error. [] without dense rows."""
+    from scipy import stats
+
+    dense = {r["seed"]: r for r in rows if r["plan"] == "dense"}
+    out = []
+    for plan in dict.fromkeys(r["plan"] for r in rows if r["plan"] != "dense" and r["seed"] in dense):
+        mine = [r for r in rows if r["plan"] == plan and r["seed"] in dense]
+        entry = {"plan": plan, "n": len(mine), "passes": sum(
+            r["ngan"] <= dense[r["seed"]]["ngan"] and r["log"] <= dense[r["seed"]]["log"]
+            and r["time_s"] <= time_fraction * dense[r["seed"]]["time_s"] for r in mine)}
+        for m in ("ngan", "log"):
+            q = np.array([r[m] / dense[r["seed"]][m] for r in mine], float)
+            half = (stats.t.ppf(0.5 + level / 2, len(q) - 1) * q.std(ddof=1) / np.sqrt(len(q))
+                    if len(q) > 1 else float("nan"))
+            entry[m] = (float(q.mean()), float(q.mean() - half), float(q.mean() + half))
+            d = np.array([r[m] for r in dense.values()], float)
+            entry.setdefault("dense_cv", {})[m] = float(d.std(ddof=1) / d.mean()) if len(d) > 1 else float("nan")
+        entry["time"] = float(np.mean([r["time_s"] / dense[r["seed"]]["time_s"] for r in mine]))
+        out.append(entry)
+    return out
+
+
+def run_seeds(plans, sample, seeds, *, out=None, errors="typical", **kw) -> tuple[list, list]:
+    """:func:`run` once per seed, then :func:`paired`'s summary printed; with ``out`` one CSV of
+    every seed's rows. Returns (rows, summary)."""
+    rows = []
+    for s in seeds:
+        print(f"-- seed {s}", flush=True)
+        rows += [{**r, "seed": s} for r in run(plans, sample, seed=s, errors=errors, **kw)]
+    summary = paired(rows)
+    if summary:
+        print(f"over {len(seeds)} seeds, each plan against the dense grid of the same seed (ratio: mean "
+              f"[95 % interval]; passes: both errors at most the dense grid's, time at most 10 % of it):")
+        print(f"{'plan':<20}{'passes':>8}{'Ngan ratio':>26}{'log ratio':>26}{'time':>8}")
+        for e in summary:
+            cells = "".join(f"{e[m][0]:>10.3f} [{e[m][1]:.3f}, {e[m][2]:.3f}]" for m in ("ngan", "log"))
+            print(f"{e['plan']:<20}{e['passes']:>5d}/{e['n']:<2d}{cells}{100 * e['time']:>7.2f}%")
+        cv = summary[0]["dense_cv"]
+        print(f"the dense grid's own spread over the seeds (sd / mean): Ngan {100 * cv['ngan']:.2f} %, "
+              f"log {100 * cv['log']:.2f} %")
+    if out is not None:
+        _write(out, rows, errors)
+    return rows, summary
 
 
 def _version() -> str:

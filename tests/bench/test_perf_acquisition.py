@@ -61,3 +61,85 @@ def test_every_plan_reports_its_instrument_time_and_error(tmp_path, capsys):
         got = list(csv.DictReader(fh))
     assert got[0]["seed"] == "3" and got[0]["errors"] == "typical" and got[0]["gonio"]
     assert "front" in capsys.readouterr().out
+
+
+def test_seeds_parse_as_ranges_and_lists_and_bad_ones_are_one_line():
+    from gonio.core.errors import GonioError
+    from gonio.perf.acquisition import parse_seeds
+
+    assert parse_seeds("10-13") == (10, 11, 12, 13)
+    assert parse_seeds("0-2, 8") == (0, 1, 2, 8)
+    for bad in ("5", "3-1", "a", "5,5", "0-3,2", "-1,2", "1,,2", "0-5000", "1.5,2"):
+        with pytest.raises(GonioError) as e:
+            parse_seeds(bad)
+        assert "--seeds" in str(e.value) and "\n" not in str(e.value), bad
+
+
+def _rows(dense, plan, plan_name="alc"):
+    """Rows of two plans at seeds 0..n-1: (ngan, log, time) per seed each."""
+    rows = []
+    for s, (d, p) in enumerate(zip(dense, plan)):
+        rows.append({"plan": "dense", "seed": s, "ngan": d[0], "log": d[1], "time_s": d[2]})
+        rows.append({"plan": plan_name, "seed": s, "ngan": p[0], "log": p[1], "time_s": p[2]})
+    return rows
+
+
+def test_each_plan_is_paired_with_the_dense_grid_of_its_own_seed():
+    from scipy import stats
+
+    from gonio.perf.acquisition import paired
+
+    dense = [(0.20, 0.010, 1000.0), (0.10, 0.020, 1000.0), (0.40, 0.010, 2000.0)]
+    # seed 0 passes; seed 1 fails on log; seed 2 is closer on both but takes 11 % of the time
+    plan = [(0.18, 0.009, 90.0), (0.09, 0.022, 95.0), (0.36, 0.008, 220.0)]
+    (e,) = paired(_rows(dense, plan))
+    assert e["plan"] == "alc" and e["n"] == 3 and e["passes"] == 1
+    # Ngan: 0.9 of its own seed's dense grid each time (against seed 0's it would be 0.9, 0.45, 1.8):
+    # the mean 0.9 and no width
+    assert e["ngan"] == pytest.approx((0.9, 0.9, 0.9))
+    r = np.array([0.9, 1.1, 0.8])           # log ratios: mean 0.9333, sd 0.1528, t(0.975, 2) = 4.303
+    half = stats.t.ppf(0.975, 2) * r.std(ddof=1) / np.sqrt(3)
+    assert e["log"] == pytest.approx((r.mean(), r.mean() - half, r.mean() + half))
+    assert half == pytest.approx(0.3795, abs=1e-4)
+    assert e["time"] == pytest.approx((0.09 + 0.095 + 0.11) / 3)
+    d = np.array([0.20, 0.10, 0.40])
+    assert e["dense_cv"]["ngan"] == pytest.approx(d.std(ddof=1) / d.mean())
+    assert paired([r for r in _rows(dense, plan) if r["plan"] != "dense"]) == []
+
+
+def test_several_seeds_print_the_paired_summary_and_one_csv(tmp_path, capsys, monkeypatch):
+    import csv
+
+    import gonio.perf.acquisition as acq
+
+    dense = [(0.20, 0.010, 1000.0), (0.22, 0.011, 1010.0)]
+    plan = [(0.19, 0.009, 95.0), (0.23, 0.010, 96.0)]
+    by_seed = {s: [r for r in _rows(dense, plan) if r["seed"] == s] for s in (0, 1)}
+    calls = []
+
+    def fake_run(plans, sample, *, seed, errors, **kw):
+        calls.append((seed, kw.get("out")))
+        return [{k: v for k, v in r.items() if k != "seed"} for r in by_seed[seed - 7]]
+
+    monkeypatch.setattr(acq, "run", fake_run)
+    rows, summary = acq.run_seeds(("dense", "alc"), None, (7, 8), out=tmp_path / "all.csv")
+    assert calls == [(7, None), (8, None)]          # one CSV for every seed, not one a run
+    assert [r["seed"] for r in rows] == [7, 7, 8, 8] and summary[0]["passes"] == 1
+    out = capsys.readouterr().out
+    assert "over 2 seeds" in out and "alc" in out and "1/2" in out
+    with open(tmp_path / "all.csv") as fh:
+        got = list(csv.DictReader(fh))
+    assert [g["seed"] for g in got] == ["7", "7", "8", "8"] and got[0]["gonio"]
+
+
+def test_seeds_options_are_one_line_before_anything_runs(tmp_path, capsys):
+    from gonio.cli.main import main
+
+    out = tmp_path / "acq.csv"
+    for args, what in ((["--seeds", "3"], "--seeds"), (["--seeds", "1,x"], "--seeds"),
+                       (["--seed", "1", "--seeds", "1,2"], "--seeds"),
+                       (["--plans", "quick,adaptive", "--seeds", "1,2"], "dense")):
+        assert main(["perf", "acquisition", *args, "--out", str(out)]) == 2, args
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and what in err, err
+    assert not out.exists()
