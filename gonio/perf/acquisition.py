@@ -226,8 +226,9 @@ def paired(rows, *, time_fraction=0.1, level=0.95) -> list[dict]:
     """Each plan against the dense grid captured with the same seed, over the seeds: how often
     both its errors are at most the dense grid's and its time at most ``time_fraction`` of it
     (``passes`` of ``n``), and each error's ratio to the dense grid's (``ngan``, ``log``: the
-    mean and its Student-t ``level`` interval, NaN with one seed). ``dense_cv``: the dense
-    grid's own seed-to-seed spread (sd over mean) of each error. [] without dense rows."""
+    geometric mean and its ``level`` interval, Student's t on the log ratios, as a ratio's
+    spread is multiplicative; NaN with one seed). ``dense_cv``: the dense grid's own
+    seed-to-seed spread (sd over mean) of each error. [] without dense rows."""
     from scipy import stats
 
     dense = {r["seed"]: r for r in rows if r["plan"] == "dense"}
@@ -238,10 +239,10 @@ def paired(rows, *, time_fraction=0.1, level=0.95) -> list[dict]:
             r["ngan"] <= dense[r["seed"]]["ngan"] and r["log"] <= dense[r["seed"]]["log"]
             and r["time_s"] <= time_fraction * dense[r["seed"]]["time_s"] for r in mine)}
         for m in ("ngan", "log"):
-            q = np.array([r[m] / dense[r["seed"]][m] for r in mine], float)
+            q = np.log([r[m] / dense[r["seed"]][m] for r in mine])
             half = (stats.t.ppf(0.5 + level / 2, len(q) - 1) * q.std(ddof=1) / np.sqrt(len(q))
                     if len(q) > 1 else float("nan"))
-            entry[m] = (float(q.mean()), float(q.mean() - half), float(q.mean() + half))
+            entry[m] = tuple(float(v) for v in np.exp([q.mean(), q.mean() - half, q.mean() + half]))
             d = np.array([r[m] for r in dense.values()], float)
             entry.setdefault("dense_cv", {})[m] = float(d.std(ddof=1) / d.mean()) if len(d) > 1 else float("nan")
         entry["time"] = float(np.mean([r["time_s"] / dense[r["seed"]]["time_s"] for r in mine]))
@@ -258,7 +259,7 @@ def run_seeds(plans, sample, seeds, *, out=None, errors="typical", **kw) -> tupl
         rows += [{**r, "seed": s} for r in run(plans, sample, seed=s, errors=errors, **kw)]
     summary = paired(rows)
     if summary:
-        print(f"over {len(seeds)} seeds, each plan against the dense grid of the same seed (ratio: mean "
+        print(f"over {len(seeds)} seeds, each plan against the dense grid of the same seed (ratio: geometric mean "
               f"[95 % interval]; passes: both errors at most the dense grid's, time at most 10 % of it):")
         print(f"{'plan':<20}{'passes':>8}{'Ngan ratio':>26}{'log ratio':>26}{'time':>8}")
         for e in summary:

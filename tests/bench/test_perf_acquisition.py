@@ -97,10 +97,11 @@ def test_each_plan_is_paired_with_the_dense_grid_of_its_own_seed():
     # Ngan: 0.9 of its own seed's dense grid each time (against seed 0's it would be 0.9, 0.45, 1.8):
     # the mean 0.9 and no width
     assert e["ngan"] == pytest.approx((0.9, 0.9, 0.9))
-    r = np.array([0.9, 1.1, 0.8])           # log ratios: mean 0.9333, sd 0.1528, t(0.975, 2) = 4.303
+    r = np.log([0.9, 1.1, 0.8])             # log ratios; t(0.975, 2) = 4.303 (a t table)
     half = stats.t.ppf(0.975, 2) * r.std(ddof=1) / np.sqrt(3)
-    assert e["log"] == pytest.approx((r.mean(), r.mean() - half, r.mean() + half))
-    assert half == pytest.approx(0.3795, abs=1e-4)
+    assert e["log"] == pytest.approx(tuple(np.exp([r.mean(), r.mean() - half, r.mean() + half])))
+    assert stats.t.ppf(0.975, 2) == pytest.approx(4.303, abs=1e-3)
+    assert e["log"][1] < 0.9 < 1.1 < e["log"][2] and e["log"][0] == pytest.approx(0.792 ** (1 / 3), rel=1e-3)
     assert e["time"] == pytest.approx((0.09 + 0.095 + 0.11) / 3)
     d = np.array([0.20, 0.10, 0.40])
     assert e["dense_cv"]["ngan"] == pytest.approx(d.std(ddof=1) / d.mean())
