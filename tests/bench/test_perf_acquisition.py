@@ -36,7 +36,10 @@ def test_bad_options_are_one_line_before_anything_runs(tmp_path, capsys):
                        (["--errors", "nonsense"], "nonsense"), (["--budget-fraction", "0"], "--budget-fraction"),
                        (["--plans", "dense,alc", "--budget-fraction", "nan"], "--budget-fraction"),
                        (["--plans", "dense,alc", "--budget-fraction", "1.5"], "--budget-fraction"),
-                       (["--plans", "quick,alc", "--budget-fraction", "0.1"], "dense")):
+                       (["--plans", "quick,alc", "--budget-fraction", "0.1"], "dense"),
+                       (["--seeds", "3"], "--seeds"), (["--seeds", "1,x"], "--seeds"),
+                       (["--seed", "1", "--seeds", "1,2"], "--seeds"),
+                       (["--plans", "quick,adaptive", "--seeds", "1,2"], "dense")):
         assert main(["perf", "acquisition", *args, "--out", str(out)]) == 2, args
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and what in err, err
@@ -132,15 +135,3 @@ def test_several_seeds_print_the_paired_summary_and_one_csv(tmp_path, capsys, mo
         got = list(csv.DictReader(fh))
     assert [g["seed"] for g in got] == ["7", "7", "8", "8"] and got[0]["gonio"]
 
-
-def test_seeds_options_are_one_line_before_anything_runs(tmp_path, capsys):
-    from gonio.cli.main import main
-
-    out = tmp_path / "acq.csv"
-    for args, what in ((["--seeds", "3"], "--seeds"), (["--seeds", "1,x"], "--seeds"),
-                       (["--seed", "1", "--seeds", "1,2"], "--seeds"),
-                       (["--plans", "quick,adaptive", "--seeds", "1,2"], "dense")):
-        assert main(["perf", "acquisition", *args, "--out", str(out)]) == 2, args
-        err = capsys.readouterr().err.strip()
-        assert len(err.splitlines()) == 1 and what in err, err
-    assert not out.exists()
