@@ -331,3 +331,32 @@ def test_chain_rule_jacobian_matches_reference(seed, body):
         assert not np.any(J1[name][304:306]), name
     assert not np.any(f1[304:306])
     np.testing.assert_allclose(f1, model.eval_reference(wi, wo, p), rtol=1e-13, atol=0.0)
+
+
+@pytest.mark.parametrize("body", BODIES)
+def test_chain_rule_jacobian_reuses_its_direction_parts(body, monkeypatch):
+    """A fit asks for ``jacobian_host`` at the same directions every iteration: what depends on
+    the directions alone is computed once (counted), and the results are the same, bit for bit,
+    as with it computed afresh; directions changed in place (the same array, other values) are
+    computed again."""
+    import gonio.models.catalogue.flake_memo as flake_memo
+    import gonio.models.catalogue.tabulated_jacobian as tj
+
+    rng = np.random.default_rng(4)
+    model = gm.get("tabulated", body=body)
+    wi, wo = random_hemisphere(rng, 700), random_hemisphere(rng, 700)
+    p, q = realistic_params(model, rng), realistic_params(model, rng)
+    calls, real = [], tj._pair_parts
+    monkeypatch.setattr(tj, "_pair_parts", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(flake_memo, "_geometries", [])
+    first = [model.jacobian_host(wi, wo, x) for x in (p, q, p)]
+    assert len(calls) == 1
+    monkeypatch.setattr(flake_memo, "_geometries", [])      # forgotten: computed afresh
+    for x, (f0, J0) in zip((p, q, p), first):
+        f1, J1 = model.jacobian_host(wi, wo, x)
+        assert np.array_equal(f1, f0) and all(np.array_equal(J1[k], J0[k]) for k in J0)
+    assert len(calls) == 2
+    wo[:, :2] *= 0.5
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    f2, _ = model.jacobian_host(wi, wo, p)
+    assert len(calls) == 3 and np.array_equal(f2, model.jacobian_reference(wi, wo, p)[0])

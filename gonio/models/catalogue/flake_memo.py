@@ -1,4 +1,5 @@
-"""What flakepaint's and gratingpaint's numpy evaluation reuses between the calls of one fit.
+"""What flakepaint's and gratingpaint's numpy evaluation (and tabulated's Jacobian) reuses
+between the calls of one fit.
 
 A fit evaluates f_r hundreds of times at the same directions: their half vector, its angles,
 cos_i cos_o and q are computed once (:func:`geometry`). Most calls that change no spread

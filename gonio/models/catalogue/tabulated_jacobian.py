@@ -13,6 +13,7 @@ formulation, kept as the oracle), to rounding, without its (pairs, channels, kno
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse
@@ -52,47 +53,35 @@ def jacobian(model, wi, wo, params):
     """
     import sys
 
-    from gonio.core.sides import sides_mask
     from gonio.models.inputs import eval_inputs
 
     tab = sys.modules[type(model).__module__]     # the model's own module: no import back into it
     wi, wo, p = eval_inputs(model, wi, wo, params)
-    fin = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
-    if not fin.all():    # 0 at a non-finite pair, as eval; (0, 0, 1) keeps its lookups in range
-        wi, wo = (np.where(fin[:, None], v, (0.0, 0.0, 1.0)) for v in (wi, wo))
+    table = "body_1" in p
+    g = _pairs(tab, wi, wo, tuple(model.structure.sides), table)
     t = tab.tables(p)
-    n = wi.shape[0]
-    ci, co = wi[:, 2], wo[:, 2]
+    n = g.ci.size
+    ci, co, ok, s_f, th = g.ci, g.co, g.ok, g.s_f, g.th
     names = [q.name for q in model.parameters]
     out = np.zeros((len(names), n, CHANNELS))
     J = {name: out[j] for j, name in enumerate(names)}
     with np.errstate(all="ignore"):
-        wh, valid = half_vector(wi, wo)
-        cd = 0.5 * (np.einsum("ij,ij->i", wi, wh) + np.einsum("ij,ij->i", wo, wh))
-        pair = fin & sides_mask(model.structure.sides, ci, co)
-        ok = pair & valid & (ci > 0.0) & (co > 0.0) & (wh[:, 2] > 0.0) & (cd > 0.0)
-        s_f = (tab.N_FRESNEL - 1) * np.clip(1.0 - cd, 0.0, 1.0)
         w = tab._interp(t.width, s_f)[:, 0]
-        th = tab._polar(wh)
         u = np.clip(th / w, 0.0, 0.5 * math.pi)
         s_h = tab.knot_index(th / w)
         ih, th_t = tab._lerp_parts(tab.N_KNOTS, s_h)
         L = tab._interp(t.ln_d - t.ln_z[:, None], s_h)
         slope = (t.ln_d[:, ih + 1] - t.ln_d[:, ih]).T
         ds_dw = np.where((u > 0.0) & (th / w < 0.5 * math.pi), -0.5 * s_h / w, 0.0)
-        gi, go = tab.g_index(tab._polar(wi)), tab.g_index(tab._polar(wo))
-        Gi, Go = tab._interp(t.g1, gi), tab._interp(t.g1, go)
+        Gi, Go = tab._interp(t.g1, g.gi), tab._interp(t.g1, g.go)
         Fr = tab._interp(t.fresnel, s_f)
         den = np.where(ok, 4.0 * ci * co * w * w, 1.0)[:, None]
         D_over = np.where(ok[:, None], np.exp(L) / den, 0.0)
         DG = D_over * Gi * Go
         lobe = Fr * D_over * Gi * Go                     # jacobian_reference's order: f bit for bit
-        body = np.where(pair, 1.0 / math.pi, 0.0)[:, None]
-        table = "body_1" in p
+        body = g.body
         if table:
-            body = body * (ci > 0.0)[:, None] * (co > 0.0)[:, None]
-            s_bi, s_bo = tab.body_index(ci), tab.body_index(co)
-            gi_b, go_b = tab._interp(t.body, s_bi), tab._interp(t.body, s_bo)
+            gi_b, go_b = tab._interp(t.body, g.s_bi), tab._interp(t.body, g.s_bo)
             shape = body * (gi_b * go_b)
         else:
             shape = body
@@ -100,28 +89,80 @@ def jacobian(model, wi, wo, params):
         J["diffuse_reflectance"][:] = shape
         if table:
             rb = t.rho[None, :] * body
-            for j in range(1, tab.N_BODY):
-                hi, ho = (tab._interp(np.eye(tab.N_BODY)[j:j + 1], s)[:, 0:1] for s in (s_bi, s_bo))
+            for j, (hi, ho) in enumerate(g.body_hats, start=1):
                 J[f"body_{j}"][:] = rb * (hi * go_b + gi_b * ho)
-        i_f, t_f = tab._lerp_parts(tab.N_FRESNEL, s_f)
         lw = lobe * (slope * ds_dw[:, None] - 2.0 / w[:, None])
-        for j in range(tab.N_FRESNEL):
-            hat = np.where(i_f == j, 1.0 - t_f, np.where(i_f + 1 == j, t_f, 0.0))[:, None]
+        for j, hat in enumerate(g.fresnel_hats):
             np.multiply(DG, hat, out=J[f"fresnel_{j}"])
             if j >= 1:
                 np.multiply(lw, hat, out=J[f"width_{j}"])
-        _ndf_columns(tab, t, p, out, names, (gi, go, ih, th_t), Fr * D_over, Gi, Go, lobe)
+        _ndf_columns(tab, t, p, out, names, (g.g_parts, ih, th_t), Fr * D_over, Gi, Go, lobe)
     return f, J
+
+
+class _Pairs(NamedTuple):
+    ci: np.ndarray
+    co: np.ndarray
+    ok: np.ndarray
+    s_f: np.ndarray
+    th: np.ndarray
+    gi: np.ndarray
+    go: np.ndarray
+    body: np.ndarray
+    s_bi: np.ndarray
+    s_bo: np.ndarray
+    body_hats: tuple
+    fresnel_hats: tuple
+    g_parts: tuple
+
+
+def _pairs(tab, wi, wo, sides, table) -> _Pairs:
+    """What the Jacobian needs of the directions alone (the half vector's angles, the lookups'
+    indices and hat weights, the body's shape), remembered per direction set as flakepaint's
+    geometry is (:mod:`gonio.models.catalogue.flake_memo`: compared value for value, read-only
+    arrays): a fit asks for the Jacobian at the same directions every iteration."""
+    from gonio.models.catalogue.flake_memo import geometry, memo
+
+    geom = geometry(wi, wo)
+    return memo(geom, ("tabulated_jacobian", sides, table), lambda: _pair_parts(tab, geom.wi, geom.wo, sides, table))
+
+
+def _pair_parts(tab, wi, wo, sides, table) -> _Pairs:
+    from gonio.core.sides import sides_mask
+
+    fin = np.isfinite(wi).all(axis=1) & np.isfinite(wo).all(axis=1)
+    if not fin.all():    # 0 at a non-finite pair, as eval; (0, 0, 1) keeps its lookups in range
+        wi, wo = (np.where(fin[:, None], v, (0.0, 0.0, 1.0)) for v in (wi, wo))
+    ci, co = wi[:, 2], wo[:, 2]
+    with np.errstate(all="ignore"):
+        wh, valid = half_vector(wi, wo)
+        cd = 0.5 * (np.einsum("ij,ij->i", wi, wh) + np.einsum("ij,ij->i", wo, wh))
+        pair = fin & sides_mask(sides, ci, co)
+        ok = pair & valid & (ci > 0.0) & (co > 0.0) & (wh[:, 2] > 0.0) & (cd > 0.0)
+        s_f = (tab.N_FRESNEL - 1) * np.clip(1.0 - cd, 0.0, 1.0)
+        th = tab._polar(wh)
+        gi, go = tab.g_index(tab._polar(wi)), tab.g_index(tab._polar(wo))
+        body = np.where(pair, 1.0 / math.pi, 0.0)[:, None]
+        s_bi = s_bo = np.zeros(0)
+        body_hats = ()
+        if table:
+            body = body * (ci > 0.0)[:, None] * (co > 0.0)[:, None]
+            s_bi, s_bo = tab.body_index(ci), tab.body_index(co)
+            body_hats = tuple(tuple(tab._interp(np.eye(tab.N_BODY)[j:j + 1], s)[:, 0:1] for s in (s_bi, s_bo))
+                              for j in range(1, tab.N_BODY))
+        i_f, t_f = tab._lerp_parts(tab.N_FRESNEL, s_f)
+        hats = tuple(np.where(i_f == j, 1.0 - t_f, np.where(i_f + 1 == j, t_f, 0.0))[:, None]
+                     for j in range(tab.N_FRESNEL))
+        g_parts = tab._lerp_parts(tab.N_G, gi) + tab._lerp_parts(tab.N_G, go)
+    return _Pairs(np.array(ci), np.array(co), ok, s_f, th, gi, go, body, s_bi, s_bo, body_hats, hats, g_parts)
 
 
 def _ndf_columns(tab, t, p, out, names, where, FD, Gi, Go, lobe):
     """Fill the NDF knots' and tilts' columns of ``out`` (P, N, C): per channel, the sparse
     d f / d entry (N, N_G + K + 1) times the dense d entry / d parameter."""
-    gi, go, ih, th_t = where
-    n = gi.size
+    (i_i, t_i, i_o, t_o), ih, th_t = where
+    n = i_i.size
     dlnz, dg1 = tab.table_derivatives(t.ln_d)
-    i_i, t_i = tab._lerp_parts(tab.N_G, gi)
-    i_o, t_o = tab._lerp_parts(tab.N_G, go)
     k0 = tab.N_G
     idx = np.stack([i_i, i_i + 1, i_o, i_o + 1, k0 + ih, k0 + ih + 1, np.full(n, k0 + tab.N_KNOTS)], axis=1)
     indptr = np.arange(0, 7 * n + 1, 7)
