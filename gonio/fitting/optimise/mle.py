@@ -233,11 +233,13 @@ class GeneralFit:
 
         # ---- energy: constrained polish (Gauss-Newton SQP) where the optimum breaks albedo <= 1
         energy = {"enforced": bool(self.enforce_energy)}
-        if self.enforce_energy and np.max(problem.albedo_excess(x, self.energy_wo)) > 1e-6:
+        excess = np.max(problem.albedo_excess(x, self.energy_wo)) if self.enforce_energy else None
+        if self.enforce_energy and excess > 1e-6:
             x, best_val, converged, message = polish_energy(problem, x, self.energy_wo, self.maxeval)
             method += " + Gauss-Newton SQP (albedo <= 1)"
+            excess = np.max(problem.albedo_excess(x, self.energy_wo))     # else x's, found above
         if self.enforce_energy:
-            max_albedo = float(np.max(problem.albedo_excess(x, self.energy_wo)) + 1.0)
+            max_albedo = float(excess + 1.0)
             energy.update(max_albedo=max_albedo, holds=bool(max_albedo <= 1.0 + 1e-4))
         else:  # the model conserves energy for every parameter in its bounds (tests/models)
             energy.update(max_albedo=None, holds=True, by_construction=True)
