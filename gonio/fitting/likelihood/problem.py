@@ -251,8 +251,8 @@ class _Problem:
         column k times ``scale[k]`` where given: the unit box's dx/du), shape (M, len(cols)),
         from the compiled kernel's Jacobian; None on the numpy path or where the derivatives
         are not finite (the callers then difference). A per-channel entry's column is
-        nonzero on its channel's rows only: those alone are computed (the products the same
-        as a full column's) and written."""
+        nonzero on its channel's rows only: those alone are computed, and each column is
+        built in a row of its own (contiguous), the products the same as a full column's."""
         loss = loss or self.loss
         out = self.eval.jacobian(self.space.to_params(x))
         if out is None:
@@ -266,7 +266,7 @@ class _Problem:
             return None     # a full column times a non-finite d r / d f_r is not finite either
         rows, chans = np.nonzero(use)           # the order of r's values
         own = {}
-        D = np.zeros((r.size, len(cols)))
+        DT = np.zeros((len(cols), r.size))
         for k, j in enumerate(cols):
             e = self.space.entries[j]
             if e.channel < 0 or self.model.structure.coupling(e.param) is not None:
@@ -279,8 +279,8 @@ class _Problem:
                 v = np.asarray(J[e.param])[n, e.channel] * d
             if not np.all(np.isfinite(v)):
                 return None
-            D[at, k] = v if scale is None else v * scale[k]
-        return r, D
+            DT[k, at] = v if scale is None else v * scale[k]
+        return r, np.ascontiguousarray(DT.T)
 
     def lm_jacobian_u(self, u, _r=None):
         """Exact Jacobian of :meth:`lm_residuals_u` at u (None: difference instead); the
