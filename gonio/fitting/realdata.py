@@ -38,7 +38,7 @@ import dataclasses
 import numpy as np
 
 from gonio.core.geometry import directions
-from gonio.models.mitsuba import divide_cos, eval_cos, interaction, select_variant
+from gonio.models.mitsuba import interaction, quarter_turns, select_variant, turn
 
 from gonio.fitting.measurements import Measurements
 from gonio.fitting.formats import RGLBRDF, half_diff_angles, merl_to_measurements, rgl_field
@@ -95,13 +95,14 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
         ctx = mi.BSDFContext()
         for t, wband in zip(theta, band):
             d = directions(np.full(2 * m, t), np.zeros(2 * m))     # the file's incident direction (phi 0: isotropic)
-            si, _ = interaction(d[:m], d[:m])
+            k = quarter_turns(d) if rgl.isotropic else np.zeros(2 * m, int)   # as RGLBRDF.eval_cos
+            si, _ = interaction(turn(d[:m], k[:m]), turn(d[:m], k[:m]))
             bs, _ = rgl._bsdf.sample(ctx, si, mi.Float(np.full(m, 0.5, np.float32)),
                                      mi.Point2f(U.astype(np.float32), V.astype(np.float32)))
-            sampled = np.array(bs.wo, dtype=np.float64).reshape(3, m).T
+            sampled = turn(np.array(bs.wo, dtype=np.float64).reshape(3, m).T, -k[:m])
             out = np.concatenate([sampled, cos_set])
             out /= np.linalg.norm(out, axis=1, keepdims=True)
-            si2, w2 = interaction(out, d)
+            si2, w2 = interaction(turn(out, k), turn(d, k))
             p_bsdf = np.array(rgl._bsdf.pdf(ctx, si2, w2), dtype=np.float64).reshape(-1)
             p_cos = np.clip(out[:, 2], 0.0, None) / np.pi
             ok = (out[:, 2] > np.cos(theta_max)) & np.isfinite(p_bsdf) & ((p_bsdf + p_cos) > 0)
@@ -112,7 +113,7 @@ def rgl_samples(path, *, n_side: int = N_SIDE, theta_max_deg: float = 80.0, rel_
             weights.append(w_out[ok] * wband)
             clusters.append(point[ok])
     wi, wo, weight = np.concatenate(wis), np.concatenate(wos), np.concatenate(weights)
-    f = divide_cos(eval_cos(rgl._bsdf, wi, wo, variant), wi, wo)
+    f = rgl.eval(wi, wo)
     std = rel_std * np.maximum(np.abs(f), floor)
     use = np.repeat(((wi[:, 2] > 1e-9) & (wo[:, 2] > 1e-9))[:, None], 3, axis=1)
     attrs = {"source": "RGL", "path": rgl.path, "rel_std": rel_std, "floor": floor, "variant": variant,

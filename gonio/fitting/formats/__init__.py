@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from gonio.core.geometry import angles_deg as _angles_deg
-from gonio.models.mitsuba import divide_cos, eval_cos, select_variant
+from gonio.models.mitsuba import divide_cos, eval_cos, quarter_turns, select_variant, turn
 
 from gonio.fitting.measurements import Measurements, load_dataset
 from gonio.fitting.formats.mitsuba_xml import (MITSUBA_XML_VERSION, mitsuba_document, mitsuba_snippet,
@@ -441,7 +441,10 @@ class RGLBRDF:
     ``eval(wi, wo)`` returns f_r (N, 3) in gonio's convention: Mitsuba's ``si.wi`` is set to
     gonio's ``wo`` (sensor side) and the evaluated direction to gonio's ``wi`` (light side);
     ``bsdf.eval`` returns f_r * cos(theta_i), divided out here. Values can be slightly
-    negative (the data's colour conversion), as in the file.
+    negative (the data's colour conversion), as in the file. In an isotropic file (one or two
+    phi_i, as Mitsuba decides) each pair is evaluated turned about the normal by
+    :func:`~gonio.models.mitsuba.quarter_turns`: the same pair, on which the plugin's
+    uninitialised mirroring never applies.
     """
 
     def __init__(self, path, variant: str | None = None):
@@ -449,6 +452,7 @@ class RGLBRDF:
         if not Path(self.path).is_file():
             raise FileNotFoundError(f"RGL BSDF file not found: {self.path}")
         check_rgl_file(self.path)
+        self.isotropic = rgl_field(self.path, "phi_i").size <= 2
         self.variant = select_variant(variant)
         import mitsuba as mi
 
@@ -462,10 +466,17 @@ class RGLBRDF:
     def mitsuba_dict(self) -> dict:
         return {"type": "measured", "filename": self.path}
 
+    def eval_cos(self, wi, wo) -> np.ndarray:
+        """f_r * cos(theta_i) (N, 3) as Mitsuba returns it, each pair turned (see the class)."""
+        wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+        k = quarter_turns(wo) if self.isotropic else np.zeros(len(wo), int)
+        return eval_cos(self._bsdf, turn(wi, k), turn(wo, k), self.variant)
+
     def eval(self, wi, wo) -> np.ndarray:
         wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
         wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
-        return divide_cos(eval_cos(self._bsdf, wi, wo, self.variant), wi, wo)
+        return divide_cos(self.eval_cos(wi, wo), wi, wo)
 
     def __repr__(self):
         return f"RGLBRDF({self.path!r})"

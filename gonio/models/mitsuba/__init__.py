@@ -1,7 +1,6 @@
 """gonio's one boundary to Mitsuba 3: the variant, the direction convention, batched eval.
 
-Everything in gonio that talks to Mitsuba goes through this module (Mitsuba is imported lazily:
-``import gonio.models`` does not import it):
+Everything in gonio that talks to Mitsuba goes through here (Mitsuba is imported lazily):
 
 * :func:`mitsuba_variant` chooses the process-global variant once (``llvm_ad_rgb`` when LLVM
   works, else ``scalar_rgb`` with one line on stderr saying so; ``GONIO_MITSUBA_VARIANT``
@@ -12,7 +11,8 @@ Everything in gonio that talks to Mitsuba goes through this module (Mitsuba is i
   about is gonio's ``wi`` (toward the light); ``bsdf.eval`` returns f_r * cos(theta_i).
 * :func:`eval_cos`: a BSDF dict or object on a batch in gonio's convention, :func:`divide_cos`
   its f_r; :func:`bsdf_base`, :func:`ensure_registered`: gonio's Python BSDF plugins.
-* :func:`tangent_to_world`, :func:`tangent_square`, :func:`in_tangent_frame`: a model's tangent frame.
+* :func:`tangent_to_world`, :func:`tangent_square`, :func:`in_tangent_frame`: a model's tangent
+  frame; :func:`quarter_turns`, :func:`turn`: an isotropic ``measured`` BSDF's pairs turned.
 """
 
 # SCENE_VARIANT is scalar: a single ray renders faster there than a kernel launch. eval_cos runs
@@ -30,7 +30,7 @@ from gonio.models.mitsuba.variant import FALLBACK, PREFERRED, SCENE_VARIANT, mit
 
 __all__ = ["mitsuba_variant", "select_variant", "tangent_to_world", "tangent_square", "in_tangent_frame",
            "plugin_kind", "interaction", "eval_cos", "divide_cos", "bsdf_base",
-           "ensure_registered", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
+           "ensure_registered", "quarter_turns", "turn", "PREFERRED", "FALLBACK", "SCENE_VARIANT"]
 
 
 def select_variant(variant=None):
@@ -60,6 +60,29 @@ def interaction(wi, wo):
     si.sh_frame = mi.Frame3f(mi.Normal3f(0.0, 0.0, 1.0))
     si.n = mi.Normal3f(0.0, 0.0, 1.0)
     return si, mi.Vector3f(np.ascontiguousarray(wi.T, dtype=np.float32))
+
+
+def quarter_turns(wo) -> np.ndarray:
+    """Quarter turns (0-3, counter-clockwise about the normal) that give gonio's ``wo``
+    (Mitsuba's ``si.wi``) the sign bit of both x and y. Mitsuba's ``measured`` BSDF (3.9.1)
+    mirrors its inputs by those signs or not depending on a member it leaves uninitialised
+    for isotropic files (``m_reduction``): one loaded copy of a file would sample and evaluate
+    differently from another. With both sign bits set its mirroring is the identity. Turning
+    both directions of a pair by the same quarter turns is exact (swaps and negations) and,
+    for an isotropic BSDF, the same pair."""
+    neg = np.signbit(np.asarray(wo)[:, :2])
+    return np.select([neg[:, 0] & neg[:, 1], ~neg[:, 0] & ~neg[:, 1], ~neg[:, 0]], [0, 2, 3], 1)
+
+
+def turn(w, k) -> np.ndarray:
+    """``w`` (N, 3) turned by ``k`` (N,) quarter turns counter-clockwise about the normal."""
+    w = np.asarray(w, dtype=np.float64)
+    x, y = w[:, 0], w[:, 1]
+    k = np.asarray(k) % 4
+    out = w.copy()
+    out[:, 0] = np.select([k == 1, k == 2, k == 3], [-y, -x, y], x)
+    out[:, 1] = np.select([k == 1, k == 2, k == 3], [x, -y, -x], y)
+    return out
 
 
 def tangent_to_world(model, params, to_world=None):
