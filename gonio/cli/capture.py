@@ -66,7 +66,7 @@ def capture_cli(out: Path, *, sim, sample, plan, seed, settings, port, meter_por
                 errors=None, calibration=None, points=None, target_rel_u=None, candidates=None, budget_minutes=None,
                 target_de00=None, monochromator=None, criterion=None):
     from gonio.bench.samples import load_sample
-    from gonio.bench.plan.adaptive import cli_strategy
+    from gonio.bench.plan.cli_options import cli_strategy
     from gonio.bench.plan.plans import dry_run as plan_dry_run
 
     try:

@@ -18,7 +18,8 @@ from benchfakes.cameras import InterruptingCamera
 import gonio.models as gm
 from gonio.bench.plan import plans
 from gonio.bench.plan import strategy as st
-from gonio.bench.plan.adaptive import AdaptivePlan, cli_strategy, spread_subset
+from gonio.bench.plan.adaptive import AdaptivePlan, spread_subset
+from gonio.bench.plan.cli_options import cli_strategy
 from gonio.bench.session.capture import capture, resume
 from gonio.bench.session.journal import Journal, read_session
 from gonio.bench.settings import default_settings
@@ -196,7 +197,7 @@ def test_gonio_capture_plan_adaptive_on_the_simulator(tmp_path):
 def test_the_criterion_option():
     """``--criterion`` reaches the strategy table (session.toml records it) with --plan adaptive
     only: a fixed plan or ndf (which places its points by its own rule) refuse it in one line."""
-    from gonio.bench.plan.adaptive import cli_strategy
+    from gonio.bench.plan.cli_options import cli_strategy
 
     plan, table = cli_strategy("adaptive", points=8, target_rel_u=None, candidates="quick", seed=3, criterion="alc")
     assert plan == "quick" and table == {"name": "adaptive", "seed": 3, "points": 8, "criterion": "alc"}

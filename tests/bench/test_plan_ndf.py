@@ -9,7 +9,7 @@ import pytest
 
 from gonio.bench.plan import plans
 from gonio.bench.plan import strategy as st
-from gonio.bench.plan.adaptive import cli_strategy
+from gonio.bench.plan.cli_options import cli_strategy
 from gonio.bench.plan.ndf_seeded import RETRO_MAX_DEG, NDFSeededPlan, retro_points
 from gonio.core.geometry import directions_deg
 from strategy_run import ALPHA, run, synthetic

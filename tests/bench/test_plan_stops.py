@@ -12,7 +12,8 @@ import pytest
 
 import gonio.models as gm
 from gonio.bench.plan import plans
-from gonio.bench.plan.adaptive import AdaptivePlan, albedo_de00_u, cli_strategy
+from gonio.bench.plan.adaptive import AdaptivePlan, albedo_de00_u
+from gonio.bench.plan.cli_options import cli_strategy
 from gonio.core.geometry import directions_deg
 
 QUICK = plans.load_plan("quick")

@@ -373,3 +373,19 @@ def instrument_response(cal: Mapping) -> dict:
     return {"aperture_source_half_deg": float(ap.get("source_half_deg", 0.0)),
             "aperture_detector_half_deg": float(ap.get("detector_half_deg", 0.0)),
             "aperture_profile": str(ap.get("profile", "uniform disk"))}
+
+
+def angle_modes(settings: Mapping, stage_deg):
+    """(N, 4, K): the change of each stage pose's (theta_i, phi_i, theta_o, phi_o), deg, for +1
+    sigma of each shared and per-move input of the dataset's angle lines
+    (gonio.bench.dataset.budget.angle_variables: the calibration's ``[alignment]``, else
+    ``[systematics]`` uncorrected; lost motion per point, the move order unknown); None without
+    either."""
+    from gonio.bench.measure import systematics
+
+    uncal = systematics.alignment_table(settings)
+    cal = {"alignment": uncal} if uncal is not None else settings
+    if not isinstance(cal.get("alignment"), Mapping):
+        return None
+    u = angle_uncertainty(cal, stage_deg)
+    return np.concatenate([u["shared_modes"], u["independent_modes"]], axis=2)

@@ -29,7 +29,7 @@ from gonio.bench.plan.ordering import cost_matrix, mirror
 from gonio.bench.plan.plans import Plan
 from gonio.bench.plan.strategy import Result, register_strategy
 
-__all__ = ["AdaptivePlan", "DEFAULTS", "CRITERIA", "CLI_STOPS", "cli_strategy", "spread_subset", "albedo_de00_u"]
+__all__ = ["AdaptivePlan", "DEFAULTS", "CRITERIA", "spread_subset", "albedo_de00_u"]
 
 #: session.toml's ``[strategy]`` keys and their defaults (``name = "adaptive"`` besides).
 DEFAULTS: dict[str, Any] = {
@@ -47,6 +47,7 @@ DEFAULTS: dict[str, Any] = {
     "travel": True,               # score = information gain / (overhead_s + travel time)
     "overhead_s": 5.0,            # per-point settle, bracket and reduction time, s
     "model_rel_u": 0.0,           # relative 1-sigma of what the noise leaves out (model, systematics)
+    "angle_noise": False,         # the design's sigma adds the stage angles' errors times f_r's slope
     "criterion": "d-optimal",     # "d-optimal" (the parameters) or "alc" (the predicted f_r cos, with discrepancy)
     "discrepancy_length": 0.7,    # "alc": correlation length of the model's discrepancy in (wi, wo), unit vectors
     "design_weights": ON_BY_DEFAULT,  # dataset.nc weights each point by its share of the evaluation measure
@@ -143,6 +144,10 @@ class AdaptivePlan:
         if not isinstance(t["design_weights"], (bool, np.bool_)):
             raise ValueError(f"[strategy] design_weights = {str(t['design_weights'])[:40]!r}: give true or false")
         self.design_weights = bool(t["design_weights"])
+        if not isinstance(t["angle_noise"], (bool, np.bool_)):
+            raise ValueError(f"[strategy] angle_noise = {str(t['angle_noise'])[:40]!r}: give true or false")
+        self.angle_noise = bool(t["angle_noise"])
+        self._angle_modes = None                        # `use_angle_modes`: (N, 4, K) shifts per +1 sigma
         self.options, self.fixed = dict(t["options"]), dict(t["fixed"])
         self.candidates = family.parse(t["candidates"])
         if self.candidates and self.fixed:
@@ -212,6 +217,29 @@ class AdaptivePlan:
         if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
             self._exposure_max_s = float(v)
 
+    def use_angle_modes(self, modes) -> None:
+        """(N, 4, K): the change of each point's (theta_i, phi_i, theta_o, phi_o), deg, for +1
+        sigma of each input of the dataset's angle lines (the run gives it from the session's
+        settings: gonio.bench.measure.calpoint.angle_modes); kept with ``angle_noise``."""
+        m = np.asarray(modes, float)
+        if m.ndim != 3 or m.shape[:2] != (len(self.plan), 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"angle modes: give {len(self.plan)} points x 4 angles x inputs of finite shifts "
+                             f"(got shape {m.shape})")
+        self._angle_modes = m if self.angle_noise else None
+
+    def _angle_var(self, x, at=slice(None), weights=None) -> np.ndarray | float:
+        """The variance of f_r (N, C) at candidates ``at`` from the stage angles' errors (every
+        shared and per-move input of the budget's angle lines, each as if drawn per point) times
+        the fitted model's slope; with ``weights`` (C,), of the channels' weighted sum (N,); 0
+        without ``angle_noise`` or `use_angle_modes`."""
+        if self._angle_modes is None:
+            return 0.0
+        from gonio.fitting.uncertainty.angle_shifts import slope
+
+        S = slope(self.model, self.space.to_params(x), self.wi[at], self.wo[at])
+        d = np.nan_to_num(np.einsum("nca,nak->nck", S, self._angle_modes[at]))
+        return (d ** 2).sum(-1) if weights is None else (np.einsum("nck,c->nk", d, weights) ** 2).sum(-1)
+
     def first(self, done: set[int]) -> list[int]:
         return [i for i in self.batches[0] if i not in done]
 
@@ -224,7 +252,7 @@ class AdaptivePlan:
         return {"name": self.name, "points": self.points, "budget_s": self.budget_s, "target_rel_u": self.target_rel_u,
                 "target_de00": self.target_de00, "first": self.first_n, "batch": self.batch, "model": self.model_name, "options": self.options, "fixed": self.fixed,
                 "n_starts": self.n_starts, "seed": self.seed, "travel": self.travel, "overhead_s": self.overhead_s,
-                "model_rel_u": self.model_rel_u, "criterion": self.criterion,
+                "model_rel_u": self.model_rel_u, "angle_noise": self.angle_noise, "criterion": self.criterion,
                 "discrepancy_length": self.discrepancy_length, "design_weights": self.design_weights,
                 "candidates": family.as_doc(self.candidates)}
 
@@ -420,7 +448,7 @@ class AdaptivePlan:
         lo, hi = self.space.lower, self.space.upper
         scale = np.maximum(np.abs(x), 1e-3 * (hi - lo))
         f0 = self.model.eval(self.wi, self.wo, self.space.to_params(x))
-        sigma = np.sqrt(((sigma_rel ** 2 + self.model_rel_u ** 2) * f0 ** 2) + sigma_floor ** 2)
+        sigma = np.sqrt(((sigma_rel ** 2 + self.model_rel_u ** 2) * f0 ** 2) + sigma_floor ** 2 + self._angle_var(x))
         J = np.empty(f0.shape + (self.space.size,))
         for j in range(self.space.size):
             h = 1e-4 * scale[j]
@@ -450,7 +478,7 @@ class AdaptivePlan:
         pending = [i for i in queue if i not in basis]
         s = np.array([results[i][1] for i in basis], float).reshape(len(basis), -1)
         f = np.array([results[i][0] for i in basis], float).reshape(len(basis), -1)
-        s = np.sqrt(s ** 2 + (self.model_rel_u * f) ** 2)
+        s = np.sqrt(s ** 2 + (self.model_rel_u * f) ** 2 + self._angle_var(x, basis))
         ok = np.isfinite(s) & (s > 0)
         A_b = rows[basis] * np.where(ok, pred[basis] / np.where(ok, s, 1.0), 0.0)[..., None]
         A_p = rows[pending]
@@ -531,63 +559,6 @@ def _rig() -> dict:
     from gonio.bench.settings import default_settings
 
     return default_settings()
-
-
-#: The stops of ``gonio capture --plan adaptive``: (flag, [strategy] key, what a value is, its unit).
-CLI_STOPS = (("--points", "points", "the most points", ""),
-             ("--budget-minutes", "budget_s", "the most instrument time", " minutes"),
-             ("--target-rel-u", "target_rel_u", "a relative 1-sigma", ""),
-             ("--target-de00", "target_de00", "a CIEDE2000 colour difference", ""))
-
-
-#: ``--plan`` names that are strategies drawing from ``--candidates``: the D-optimal sequential
-#: design (this module) and the NDF-seeded plan (gonio.bench.plan.ndf_seeded)
-SEQUENTIAL = ("adaptive", "ndf")
-
-
-def cli_strategy(plan: str, *, points: int | None, target_rel_u: float | None, candidates: str | None,
-                 seed: int, budget_minutes: float | None = None, target_de00: float | None = None,
-                 criterion: str | None = None) -> tuple[str, dict | None]:
-    """``gonio capture``'s plan options as (the plan to load, the ``[strategy]`` table): ``--plan
-    adaptive`` (or ``ndf``, :data:`SEQUENTIAL`) draws from ``--candidates`` (default the ``dense`` preset) and stops at ``--points``
-    or ``--budget-minutes`` (not both) or its targets; ``--criterion`` (:data:`CRITERIA`) chooses
-    the adaptive plan's batches (ndf places its own); a fixed plan takes none of the adaptive
-    options. ValueError, one line naming the option, for a value that is not > 0 and finite."""
-    given = dict(zip([k for _, k, _, _ in CLI_STOPS], (points, budget_minutes, target_rel_u, target_de00)))
-    if plan not in SEQUENTIAL:
-        for flag, v in (("--points", points), ("--budget-minutes", budget_minutes), ("--target-rel-u", target_rel_u),
-                        ("--target-de00", target_de00), ("--candidates", candidates), ("--criterion", criterion)):
-            if v is not None:
-                raise ValueError(f"{flag} goes with --plan adaptive")
-        return plan, None
-    for flag, key, what, unit in CLI_STOPS:
-        v = given[key]
-        if v is None:
-            continue
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0) or (
-                key == "points" and v != int(v)):
-            raise ValueError(f"{flag} {v!r}: give {what} as a number > 0{unit and ' (' + unit.strip() + ')'}")
-        if unit and not v <= 1e6:
-            raise ValueError(f"{flag} {v!r}: more than a million minutes; give {what} in minutes")
-    if points is not None and budget_minutes is not None:
-        raise ValueError("--points and --budget-minutes exclude each other: give the most points or the most "
-                         "instrument time")
-    if criterion is not None and (plan != "adaptive" or criterion not in CRITERIA):
-        raise ValueError(f"--criterion {str(criterion)[:40]!r}: give one of {', '.join(CRITERIA)}, with --plan adaptive"
-                         " (ndf places its points by its own rule)")
-    table: dict[str, Any] = {"name": plan, "seed": int(seed)}
-    if criterion is not None:
-        table["criterion"] = criterion
-    if points is not None:
-        table["points"] = int(points)
-    if budget_minutes is not None:
-        table["budget_s"] = float(budget_minutes) * 60.0
-        table["points"] = 0                 # as many as the time allows
-    if target_rel_u is not None:
-        table["target_rel_u"] = float(target_rel_u)
-    if target_de00 is not None:
-        table["target_de00"] = float(target_de00)
-    return candidates or "dense", table
 
 
 register_strategy("adaptive", AdaptivePlan)

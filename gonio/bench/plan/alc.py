@@ -86,6 +86,8 @@ def alc_batch(plan, x, basis, queue, free, n_new, results, sigma_rel, sigma_floo
     basis = [int(i) for i in basis]
     fm = np.array([np.asarray(results[i][0], float) @ LUM for i in basis])
     sm = np.array([np.sqrt(np.asarray(results[i][1], float) ** 2 @ LUM ** 2) for i in basis])
+    angle_var = plan._angle_var(x, weights=LUM)                 # (N,) or 0: the stage angles' errors
+    sm = np.sqrt(sm ** 2 + (angle_var[basis] if np.ndim(angle_var) else 0.0))
     tau = discrepancy_rel(fm, sm, f_c[basis])
     ell2 = plan.discrepancy_length ** 2
     x_c, x_r = _features(plan.wi, plan.wo), _features(wr, wor)
@@ -94,7 +96,7 @@ def alc_batch(plan, x, basis, queue, free, n_new, results, sigma_rel, sigma_floo
         d2 = np.sum(xa ** 2, 1)[:, None] + np.sum(xb ** 2, 1)[None] - 2.0 * xa @ xb.T
         return Ja @ Jb.T + tau ** 2 * np.outer(fa, fb) * np.exp(-0.5 * np.maximum(d2, 0.0) / ell2)
 
-    noise_c = (sigma_rel * f_c) ** 2 + sigma_floor ** 2          # predicted variance of a new point
+    noise_c = (sigma_rel * f_c) ** 2 + sigma_floor ** 2 + angle_var   # predicted variance of a new point
     pending = [int(i) for i in queue if i not in set(basis)]
     S = basis + pending
     noise_s = np.concatenate([np.where(np.isfinite(sm) & (sm > 0), sm, np.sqrt(noise_c[basis])) ** 2,
