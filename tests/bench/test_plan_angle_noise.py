@@ -87,3 +87,27 @@ def test_a_capture_hands_the_plan_the_sessions_angle_modes(tmp_path, monkeypatch
         inst.unregister()
     run_strategy = made[-1]                 # the run's own (the first: the capture's check)
     assert run_strategy._angle_modes is not None and run_strategy._angle_modes.shape[:2] == (len(plan), 4)
+
+
+def test_a_bad_systematics_table_is_refused_before_anything_is_written(tmp_path):
+    """With ``angle_noise`` the run reads ``[systematics]`` for the design's sigma: a bad value
+    there is one line before the session folder is made (it was refused only by the run, after
+    session.toml, the journal and raw/ were written)."""
+    sim = pytest.importorskip("gonio.sim")
+    from gonio.bench.session.capture import capture
+    from gonio.core.errors import GonioError
+
+    s = _settings()
+    s["systematics"] = {**s["systematics"], "repeat_deg": -1.0}
+    truth = {k: np.asarray(v).tolist() for k, v in TRUTH.items()}
+    inst = sim.Instrument(s, sample={"model": "roughplastic", "options": {"distribution": "ggx"}, "params": truth},
+                          seed=0).register("plan-angle-noise-bad")
+    try:
+        with pytest.raises(GonioError, match="repeat_deg") as e:
+            capture(tmp_path / "s", plans.load_plan("quick"), s, inst.url("zaber"), inst.url("meter"),
+                    inst.url("camera"), seed=0, progress=False, sleep=inst.clock.advance,
+                    strategy={"name": "adaptive", "points": 8, "seed": 0, "angle_noise": True})
+    finally:
+        inst.unregister()
+    assert "\n" not in str(e.value)
+    assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())

@@ -389,3 +389,15 @@ def angle_modes(settings: Mapping, stage_deg):
         return None
     u = angle_uncertainty(cal, stage_deg)
     return np.concatenate([u["shared_modes"], u["independent_modes"]], axis=2)
+
+
+def hand_angle_modes(strategy, settings: Mapping, stage_deg):
+    """``strategy``, handed :func:`angle_modes` (its ``use_angle_modes``) where it has
+    ``angle_noise`` on (gonio.bench.plan.adaptive) and the settings state the angles' errors:
+    by the run, and by the capture before it writes anything, so that a bad ``[systematics]``
+    is refused first. ValueError, one line, for bad settings."""
+    if getattr(strategy, "angle_noise", False):
+        modes = angle_modes(settings, stage_deg)
+        if modes is not None:
+            strategy.use_angle_modes(modes)
+    return strategy

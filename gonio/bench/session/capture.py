@@ -60,6 +60,7 @@ from gonio.bench.session import integrity as _integrity
 from gonio.core.files import remove_orphans
 from gonio.bench.session.journal import (JOURNAL_FILE, LOCK_FILE, RAW_DIR, SESSION_FILE, Journal, SessionLock, read_session, session_text, versions, write_session)
 from gonio.bench.measure.point import ReferenceModel, check_sensor, raw_estimate
+from gonio.bench.measure.calpoint import hand_angle_modes
 from gonio.bench.plan.spectral import SpectralOrder, order_plan
 from gonio.core.preflight import (MARGIN, MiB, check_free_space, check_output_dir, disk_full, mount_of, oserror_line)
 from gonio.bench.drivers.rig import Bench
@@ -408,7 +409,7 @@ def capture(session_dir, plan: Plan, settings: Mapping, zaber_url: str, meter_ur
         raise GonioError("a spectral plan needs the monochromator's port; give it, or a plan without [spectral]")
     strategy = dict(strategy or {"name": "fixed"})
     try:
-        budget = strategy_from_doc({"strategy": strategy, "order": {"order": order.order}}, plan).budget
+        budget = hand_angle_modes(strategy_from_doc({"strategy": strategy, "order": {"order": order.order}}, plan), settings, order.stage_deg).budget
     except ValueError as exc:
         raise GonioError(str(exc) + ("; give one of them" if "unknown plan strategy" in str(exc) else "")) from None
     # before any port opens or anything is written: the folder writable, room for the RAW files

@@ -32,7 +32,7 @@ from gonio.bench.session.tuning import Tuning
 from gonio.bench.measure.hdr import Exposure, NoiseModel, choose_bracket, ladder
 from gonio.bench.session.journal import RAW_DIR, Journal, preparation_times
 from gonio.bench.plan.markers import find_regions, layout_of, roi_masks_fast
-from gonio.bench.measure.calpoint import angle_modes, stray_corrected, stray_fraction
+from gonio.bench.measure.calpoint import hand_angle_modes, stray_corrected, stray_fraction
 from gonio.bench.measure.point import (ProgressBar, ReferenceModel, _runs, check_sensor, merged_region_stats, probe_levels)
 from gonio.bench.session.pipeline import Pipeline, _Suspended
 from gonio.bench.drivers.rig import Bench
@@ -61,11 +61,7 @@ class _Session(CalibrationFrames, Tuning, RearStop):
         self.plan = plan_from_dict(doc["plan"], source=doc["plan"].get("source", ""))
         self.order = np.asarray(doc["order"]["order"], int)
         try:
-            self.strategy = strategy_from_doc(doc, self.plan)
-            modes = angle_modes(self.settings, doc["order"]["stage_deg"]) if getattr(
-                self.strategy, "angle_noise", False) else None      # its design's sigma: the angles' errors too
-            if modes is not None:
-                self.strategy.use_angle_modes(modes)
+            self.strategy = hand_angle_modes(strategy_from_doc(doc, self.plan), self.settings, doc["order"]["stage_deg"])
         except ValueError as exc:
             raise SessionError(f"{folder / 'session.toml'}: {exc}") from None
         self.stage = np.asarray(doc["order"]["stage_deg"], float)
