@@ -227,8 +227,10 @@ def paired(rows, *, time_fraction=0.1, level=0.95) -> list[dict]:
     both its errors are at most the dense grid's and its time at most ``time_fraction`` of it
     (``passes`` of ``n``), and each error's ratio to the dense grid's (``ngan``, ``log``: the
     geometric mean and its ``level`` interval, Student's t on the log ratios, as a ratio's
-    spread is multiplicative; NaN with one seed). ``dense_cv``: the dense grid's own
-    seed-to-seed spread (sd over mean) of each error. [] without dense rows."""
+    spread is multiplicative; the interval NaN with one seed; all three NaN where a ratio is not
+    finite and positive, counted in ``not_finite``); ``time``: the mean of the plan's time over
+    the dense grid's. ``dense_cv``: the dense grid's own seed-to-seed spread (sd over mean) of
+    each error. [] without dense rows."""
     from scipy import stats
 
     dense = {r["seed"]: r for r in rows if r["plan"] == "dense"}
@@ -239,7 +241,14 @@ def paired(rows, *, time_fraction=0.1, level=0.95) -> list[dict]:
             r["ngan"] <= dense[r["seed"]]["ngan"] and r["log"] <= dense[r["seed"]]["log"]
             and r["time_s"] <= time_fraction * dense[r["seed"]]["time_s"] for r in mine)}
         for m in ("ngan", "log"):
-            q = np.log([r[m] / dense[r["seed"]][m] for r in mine])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = (np.array([r[m] for r in mine], float)
+                         / np.array([dense[r["seed"]][m] for r in mine], float))
+            entry.setdefault("not_finite", {})[m] = int(np.sum(~(np.isfinite(ratio) & (ratio > 0))))
+            if entry["not_finite"][m]:          # a dense error of 0, an error NaN: no ratio to average
+                entry[m] = (float("nan"),) * 3
+                continue
+            q = np.log(ratio)
             half = (stats.t.ppf(0.5 + level / 2, len(q) - 1) * q.std(ddof=1) / np.sqrt(len(q))
                     if len(q) > 1 else float("nan"))
             entry[m] = tuple(float(v) for v in np.exp([q.mean(), q.mean() - half, q.mean() + half]))
@@ -263,7 +272,8 @@ def run_seeds(plans, sample, seeds, *, out=None, errors="typical", **kw) -> tupl
               f"[95 % interval]; passes: both errors at most the dense grid's, time at most 10 % of it):")
         print(f"{'plan':<20}{'passes':>8}{'Ngan ratio':>26}{'log ratio':>26}{'time':>8}")
         for e in summary:
-            cells = "".join(f"{e[m][0]:>10.3f} [{e[m][1]:.3f}, {e[m][2]:.3f}]" for m in ("ngan", "log"))
+            cells = "".join(f"{e[m][0]:>10.3f} [{e[m][1]:.3f}, {e[m][2]:.3f}]" if not e["not_finite"][m] else
+                            f"{'n/a: ' + str(e['not_finite'][m]) + ' not finite':>26}" for m in ("ngan", "log"))
             print(f"{e['plan']:<20}{e['passes']:>5d}/{e['n']:<2d}{cells}{100 * e['time']:>7.2f}%")
         cv = summary[0]["dense_cv"]
         print(f"the dense grid's own spread over the seeds (sd / mean): Ngan {100 * cv['ngan']:.2f} %, "

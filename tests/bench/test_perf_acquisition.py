@@ -135,3 +135,13 @@ def test_several_seeds_print_the_paired_summary_and_one_csv(tmp_path, capsys, mo
         got = list(csv.DictReader(fh))
     assert [g["seed"] for g in got] == ["7", "7", "8", "8"] and got[0]["gonio"]
 
+
+
+def test_a_ratio_that_is_not_finite_is_said_not_averaged():
+    from gonio.perf.acquisition import paired
+
+    dense = [(0.20, 0.010, 1000.0), (0.0, 0.020, 1000.0)]        # seed 1: a dense Ngan of exactly 0
+    plan = [(0.18, 0.009, 90.0), (0.09, float("nan"), 95.0)]     # and a NaN log error
+    (e,) = paired(_rows(dense, plan))
+    assert e["not_finite"] == {"ngan": 1, "log": 1}
+    assert all(np.isnan(v) for v in e["ngan"] + e["log"])

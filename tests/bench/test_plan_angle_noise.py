@@ -111,3 +111,39 @@ def test_a_bad_systematics_table_is_refused_before_anything_is_written(tmp_path)
         inst.unregister()
     assert "\n" not in str(e.value)
     assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())
+
+
+def test_a_point_without_a_finite_slope_is_one_the_design_does_not_trust(monkeypatch):
+    import gonio.fitting.uncertainty.angle_shifts as shifts
+    from gonio.bench.plan.alc import alc_batch
+    from gonio.bench.plan.ndf_seeded import NDFSeededPlan
+    from gonio.bench.measure.calpoint import hand_angle_modes
+    from strategy_run import synthetic
+
+    strat = _plan()
+    x = strat.space.from_params(strat.model.validate(TRUTH))
+    real = shifts.slope
+
+    def nan_at_7(model, params, wi, wo, **kw):
+        s = real(model, params, wi, wo, **kw)
+        if len(wi) == len(STANDARD):
+            s[7] = np.nan
+        return s
+
+    monkeypatch.setattr(shifts, "slope", nan_at_7)
+    assert np.all(np.isinf(strat._angle_var(x)[7])) and np.all(np.isfinite(strat._angle_var(x)[8]))
+    rows, sigma = strat._rows(x, 0.01, 1e-4)
+    assert np.all(rows[7] == 0.0) and np.all(np.isinf(sigma[7]))      # no information, not a precise point
+    # alc: a measured point with infinite noise leaves the posterior, which stays finite
+    f, sd = synthetic(STANDARD)
+    alc = _plan()
+    alc.criterion = "alc"
+    basis = list(range(0, 40, 3)) + [7]
+    results = {i: (f[i], sd[i]) for i in basis}
+    picks = alc_batch(alc, x, basis, basis, [i for i in range(len(STANDARD)) if i not in basis], 3, results, 0.01, 1e-4)
+    assert len(picks) == 3 and 7 not in picks
+    # the option where it cannot act is refused, in one line
+    with pytest.raises(ValueError, match="angle_noise"):
+        NDFSeededPlan(STANDARD, range(len(STANDARD)), {"points": 20, "angle_noise": True})
+    with pytest.raises(ValueError, match="angle_noise needs"):
+        hand_angle_modes(_plan(), {"capture": {}}, np.zeros((len(STANDARD), 4)))

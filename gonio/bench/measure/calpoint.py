@@ -17,7 +17,7 @@ from gonio.bench.measure import alignment as al
 from gonio.bench.plan import kinematics
 from gonio.core.geometry import tangent_basis
 
-__all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "u_reference_factor", "reference_factor_modes",
+__all__ = ["calibrated_angles", "lost_motion", "angle_uncertainty", "angle_modes", "hand_angle_modes", "u_reference_factor", "reference_factor_modes",
            "u_linearity_rel",
            "linearity_shift_rel", "u_stray_rel",
            "stray_fraction", "stray_corrected", "stray_shift_rel",
@@ -398,6 +398,8 @@ def hand_angle_modes(strategy, settings: Mapping, stage_deg):
     is refused first. ValueError, one line, for bad settings."""
     if getattr(strategy, "angle_noise", False):
         modes = angle_modes(settings, stage_deg)
-        if modes is not None:
-            strategy.use_angle_modes(modes)
+        if modes is None:
+            raise ValueError("[strategy] angle_noise needs the angles' errors: give the settings an [alignment] "
+                             "(gonio calibrate) or [systematics], or angle_noise = false")
+        strategy.use_angle_modes(modes)
     return strategy

@@ -230,15 +230,16 @@ class AdaptivePlan:
     def _angle_var(self, x, at=slice(None), weights=None) -> np.ndarray | float:
         """The variance of f_r (N, C) at candidates ``at`` from the stage angles' errors (every
         shared and per-move input of the budget's angle lines, each as if drawn per point) times
-        the fitted model's slope; with ``weights`` (C,), of the channels' weighted sum (N,); 0
-        without ``angle_noise`` or `use_angle_modes`."""
+        the fitted model's slope; with ``weights`` (C,), of the channels' weighted sum (N,);
+        inf where the slope is not finite; 0 without ``angle_noise`` or `use_angle_modes`."""
         if self._angle_modes is None:
             return 0.0
         from gonio.fitting.uncertainty.angle_shifts import slope
 
         S = slope(self.model, self.space.to_params(x), self.wi[at], self.wo[at])
-        d = np.nan_to_num(np.einsum("nca,nak->nck", S, self._angle_modes[at]))
-        return (d ** 2).sum(-1) if weights is None else (np.einsum("nck,c->nk", d, weights) ** 2).sum(-1)
+        d = np.einsum("nca,nak->nck", S, self._angle_modes[at])
+        var = (d ** 2).sum(-1) if weights is None else (np.einsum("nck,c->nk", d, weights) ** 2).sum(-1)
+        return np.where(np.isfinite(var), var, np.inf)      # no slope: a point the design does not trust
 
     def first(self, done: set[int]) -> list[int]:
         return [i for i in self.batches[0] if i not in done]

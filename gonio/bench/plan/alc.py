@@ -101,6 +101,8 @@ def alc_batch(plan, x, basis, queue, free, n_new, results, sigma_rel, sigma_floo
     S = basis + pending
     noise_s = np.concatenate([np.where(np.isfinite(sm) & (sm > 0), sm, np.sqrt(noise_c[basis])) ** 2,
                               noise_c[pending]])
+    known = np.isfinite(noise_s)                                # infinite noise (no slope): it tells nothing
+    S, noise_s = [i for i, k in zip(S, known) if k], noise_s[known]
     K_rc = kern(J_r, f_r, x_r, J_c, f_c, x_c)
     K_cc_diag = np.sum(J_c ** 2, 1) + tau ** 2 * f_c ** 2
     if S:
@@ -122,7 +124,7 @@ def alc_batch(plan, x, basis, queue, free, n_new, results, sigma_rel, sigma_floo
     for _ in range(n_new):
         if not left.any():
             break
-        gain = (w @ post_rc[:, free] ** 2) / (post_cc[free] + noise_c[free])
+        gain = (w @ post_rc[:, free] ** 2) / (post_cc[free] + noise_c[free])         # 0 where noise_c is inf
         gain = np.where(np.isfinite(gain) & (gain > 0), gain, 0.0)
         score = np.where(left, gain / plan._cost(last, free), -np.inf)
         k = int(np.argmax(score))

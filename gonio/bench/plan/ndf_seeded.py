@@ -55,6 +55,9 @@ class NDFSeededPlan(AdaptivePlan):
 
     def __init__(self, plan: Plan, order: Sequence[int], table: Mapping):
         super().__init__(plan, order, table)
+        if self.angle_noise:
+            raise ValueError("[strategy] angle_noise: the ndf plan draws its points from the lobe, not by a "
+                             "design's sigma; give angle_noise = false (or name = \"adaptive\")")
         rank = {int(i): k for k, i in enumerate(order)}
         n = len(self.batches[0])                 # the adaptive first pass's size, trimmed to budget_s
         retro = retro_points(self.wi, self.wo, plan.angles[:, 0], max(n - 2, 0) if n > 2 else n)
