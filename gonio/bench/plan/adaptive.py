@@ -45,7 +45,7 @@ DEFAULTS: dict[str, Any] = {
     "n_starts": 4,                # the fit's stratified starts (few: it runs while the stages move)
     "seed": 0,                    # the fits' starts draw from Generator([seed, batch])
     "travel": True,               # score = information gain / (overhead_s + travel time)
-    "overhead_s": 5.0,            # per-point settle, bracket and reduction time, s
+    "overhead_s": 5.0,            # a point's time before the journal has any; the scores' charge besides the move
     "model_rel_u": 0.0,           # relative 1-sigma of what the noise leaves out (model, systematics)
     "angle_noise": False,         # the design's sigma adds the stage angles' errors times f_r's slope
     "criterion": "d-optimal",     # "d-optimal" (the parameters) or "alc" (the predicted f_r cos, with discrepancy)
