@@ -50,8 +50,8 @@ def test_a_time_budgeted_plan_on_a_dark_sample_stays_within_its_budget(tmp_path,
     assert res.complete and res.plan_stop.startswith("adaptive plan: stopped at its time budget")
     assert res.instrument_s <= 60.0
     # by the plan's own count (journalled points, the queued ones at their estimates, which are
-    # not short) the next point would not have fitted, and it left less than 5 % of the budget:
-    # 13.6 % (8.2 s) while its choices counted the nearer stage solution's moves
+    # not short) the next point would not have fitted, and it left less than 5 % of the budget
+    # (docs/performance.md, "The adaptive plan's score per second")
     assert strat.spent_s + strat.next_s > 60.0 and strat.spent_s >= res.instrument_s
     assert 60.0 - res.instrument_s < 3.0
     rows = Journal(tmp_path / "s" / "journal.sqlite").points()
