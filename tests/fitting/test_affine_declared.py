@@ -46,8 +46,8 @@ def test_the_painted_models_declare():
 @pytest.mark.parametrize("body", ["lambert", "table"])
 def test_a_tabulated_problem_is_built_without_probes(body):
     """tabulated's six colour groups (rho and the Fresnel knots) are taken as declared: the
-    problem is set up without evaluating f_r (the probes were 12-18 evaluations, 30-90 ms on
-    the RGL files' 2,000 to 7,700 samples, once per fit of the choice's tabulated fallback)."""
+    problem is set up without evaluating f_r (before b623d8b: probes, once per fit of the
+    choice's tabulated fallback)."""
     pr = _problem("tabulated", {"body": body})
     assert pr.n_evals == 0
     assert [g["param"] for g in pr.linear] == ["diffuse_reflectance"] + [f"fresnel_{j}" for j in range(5)]

@@ -228,9 +228,8 @@ def test_polish_energy_takes_any_budget(white, maxeval):
 @pytest.mark.parametrize("rho,polished", [(0.3, False), (0.9, True)])
 def test_a_fits_albedo_check_runs_once_where_nothing_is_polished(rho, polished, monkeypatch):
     """The fit's result checks albedo <= 1 at its optimum and reports the largest albedo: where
-    the optimum holds, from one albedo quadrature at it (before: a second at the same x, 0.15 s
-    for gratingpaint's ring table on irid_flake_paint2's 7696 samples); after a polish, from
-    the polished x's."""
+    the optimum holds, from one albedo quadrature at it (before eb9f60c: a second at the same
+    x); after a polish, from the polished x's."""
     model = gm.get("cooktorrance")
     truth = {**WHITE, "diffuse_reflectance": [rho] * 3}
     meas = simulate(model, truth, np.random.default_rng(36), n=500)
