@@ -132,7 +132,7 @@ def test_a_point_without_a_finite_slope_is_one_the_design_does_not_trust(monkeyp
 
     monkeypatch.setattr(shifts, "slope", nan_at_7_and_8)
     assert np.all(np.isinf(strat._angle_var(x)[7])) and np.all(np.isfinite(strat._angle_var(x)[9]))
-    rows, sigma = strat._rows(x, 0.01, 1e-4)
+    rows, sigma = strat._rows(x, 0.01, 1e-4, strat._angle_var(x))
     assert np.all(rows[7] == 0.0) and np.all(np.isinf(sigma[7]))      # no information, not a precise point
     # alc: a measured point with infinite noise (7) leaves the posterior, which stays finite, and a
     # candidate with infinite noise (8, the first pick with its slope finite) tells nothing: not picked

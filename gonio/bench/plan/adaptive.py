@@ -442,14 +442,15 @@ class AdaptivePlan:
         sigma_floor = float(np.percentile(s[use], 10))
         return x, std, rel_u, sigma_rel, sigma_floor, cov
 
-    def _rows(self, x, sigma_rel, sigma_floor) -> tuple[np.ndarray, np.ndarray]:
+    def _rows(self, x, sigma_rel, sigma_floor, angle_var=0.0) -> tuple[np.ndarray, np.ndarray]:
         """Whitened Jacobian rows (N, 3, P) of f_r at every candidate (one array shape: the
-        compiled kernel is built once) and the predicted sigma (N, 3): central differences in
-        parameters scaled to their own size (the D-optimal choice does not depend on it)."""
+        compiled kernel is built once) and the predicted sigma (N, 3), ``angle_var`` (`_angle_var`)
+        in it: central differences in parameters scaled to their own size (the D-optimal choice
+        does not depend on it)."""
         lo, hi = self.space.lower, self.space.upper
         scale = np.maximum(np.abs(x), 1e-3 * (hi - lo))
         f0 = self.model.eval(self.wi, self.wo, self.space.to_params(x))
-        sigma = np.sqrt(((sigma_rel ** 2 + self.model_rel_u ** 2) * f0 ** 2) + sigma_floor ** 2 + self._angle_var(x))
+        sigma = np.sqrt(((sigma_rel ** 2 + self.model_rel_u ** 2) * f0 ** 2) + sigma_floor ** 2 + angle_var)
         J = np.empty(f0.shape + (self.space.size,))
         for j in range(self.space.size):
             h = 1e-4 * scale[j]
@@ -475,11 +476,12 @@ class AdaptivePlan:
         rows; F: the information of the basis at its measured sigma, of the pending queued
         points and of the picks so far at the predicted one), divided by `_cost` from the
         previous pick."""
-        rows, pred = self._rows(x, sigma_rel, sigma_floor)
+        angle_var = self._angle_var(x)                  # (N, C) or 0: every candidate's, the basis's too
+        rows, pred = self._rows(x, sigma_rel, sigma_floor, angle_var)
         pending = [i for i in queue if i not in basis]
         s = np.array([results[i][1] for i in basis], float).reshape(len(basis), -1)
         f = np.array([results[i][0] for i in basis], float).reshape(len(basis), -1)
-        s = np.sqrt(s ** 2 + (self.model_rel_u * f) ** 2 + self._angle_var(x, basis))
+        s = np.sqrt(s ** 2 + (self.model_rel_u * f) ** 2 + (angle_var[basis] if np.ndim(angle_var) else 0.0))
         ok = np.isfinite(s) & (s > 0)
         A_b = rows[basis] * np.where(ok, pred[basis] / np.where(ok, s, 1.0), 0.0)[..., None]
         A_p = rows[pending]
