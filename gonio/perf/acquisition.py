@@ -234,12 +234,16 @@ def paired(rows, *, time_fraction=0.1, level=0.95) -> list[dict]:
     from scipy import stats
 
     dense = {r["seed"]: r for r in rows if r["plan"] == "dense"}
+    dense_cv = {}
+    for m in ("ngan", "log"):
+        d = np.array([r[m] for r in dense.values()], float)
+        dense_cv[m] = float(d.std(ddof=1) / d.mean()) if len(d) > 1 else float("nan")
     out = []
     for plan in dict.fromkeys(r["plan"] for r in rows if r["plan"] != "dense" and r["seed"] in dense):
         mine = [r for r in rows if r["plan"] == plan and r["seed"] in dense]
         entry = {"plan": plan, "n": len(mine), "passes": sum(
             r["ngan"] <= dense[r["seed"]]["ngan"] and r["log"] <= dense[r["seed"]]["log"]
-            and r["time_s"] <= time_fraction * dense[r["seed"]]["time_s"] for r in mine)}
+            and r["time_s"] <= time_fraction * dense[r["seed"]]["time_s"] for r in mine), "dense_cv": dense_cv}
         for m in ("ngan", "log"):
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = (np.array([r[m] for r in mine], float)
@@ -252,8 +256,6 @@ def paired(rows, *, time_fraction=0.1, level=0.95) -> list[dict]:
             half = (stats.t.ppf(0.5 + level / 2, len(q) - 1) * q.std(ddof=1) / np.sqrt(len(q))
                     if len(q) > 1 else float("nan"))
             entry[m] = tuple(float(v) for v in np.exp([q.mean(), q.mean() - half, q.mean() + half]))
-            d = np.array([r[m] for r in dense.values()], float)
-            entry.setdefault("dense_cv", {})[m] = float(d.std(ddof=1) / d.mean()) if len(d) > 1 else float("nan")
         entry["time"] = float(np.mean([r["time_s"] / dense[r["seed"]]["time_s"] for r in mine]))
         out.append(entry)
     return out

@@ -145,3 +145,4 @@ def test_a_ratio_that_is_not_finite_is_said_not_averaged():
     (e,) = paired(_rows(dense, plan))
     assert e["not_finite"] == {"ngan": 1, "log": 1}
     assert all(np.isnan(v) for v in e["ngan"] + e["log"])
+    assert set(e["dense_cv"]) == {"ngan", "log"}        # the summary's last line reads both
