@@ -171,6 +171,28 @@ def test_the_first_pass_is_spread_and_the_table_is_checked():
         cli_strategy("standard", points=30, target_rel_u=None, candidates=None, seed=0)
 
 
+def test_the_first_pass_is_measured_in_its_least_move_order():
+    """The first pass is a spread subset, far apart by design: visited in the session's order over
+    the whole plan, demo seed 0's took 60.5 s of moves, its least order 31.3 s (docs/performance.md).
+    Its order is the least move time from home between the poses the run moves to (session.toml's
+    stage_deg, here a mirror solution for every second point), not the plan's order."""
+    from itertools import permutations
+
+    from gonio.bench.plan.ordering import mirror, path_time
+
+    plan = plans.load_plan("dense")
+    p = AdaptivePlan(plan, range(len(plan)), {"points": 0, "budget_s": 300.0, "seed": 0})
+    first = sorted(p.batches[0])
+    assert len(first) == 8 and set(first) == set(spread_subset(plan.angles, 8))
+    poses = p.stage.copy()
+    poses[1::2] = mirror(poses[1::2])
+    p.use_session(poses, S)
+    got = path_time(poses[p.first(set())], S, np.zeros(4))
+    best = min(path_time(poses[list(o)], S, np.zeros(4)) for o in permutations(first))
+    assert got == pytest.approx(best, abs=1e-9) and sorted(p.batches[0]) == first
+    assert got < 0.75 * path_time(poses[first], S, np.zeros(4))       # the plan's own order
+
+
 def _gonio(*args):
     import subprocess
     import sys

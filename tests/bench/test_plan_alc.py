@@ -32,14 +32,16 @@ def _nearest(points):
 
 
 def test_alc_picks_spread_where_d_optimal_picks_cluster():
-    # D-optimality puts every pick where roughplastic's parameters move f_r most: the specular
-    # plane (phi_o = 180 deg) beside the points already there. The alc criterion integrates the
-    # predicted variance of f_r cos over the hemisphere with a discrepancy floor, so a point
-    # next to a measured one gains little: its picks keep apart and leave the plane.
+    # D-optimality puts its picks where roughplastic's parameters move f_r most, mostly the
+    # specular plane (phi_o = 180 deg) beside the points already there: 7 of 12 here, 12 of 12
+    # when the first pass was measured in the plan's order (the first fit then lacked another
+    # point). The alc criterion integrates the predicted variance of f_r cos over the hemisphere
+    # with a discrepancy floor, so a point next to a measured one gains little: its picks keep
+    # apart and leave the plane (2 of 12 in it, either order).
     d_pts, a_pts = _later("d-optimal"), _later("alc")
     assert len(d_pts) == len(a_pts) == 12
     in_plane = lambda pts: np.mean(np.isclose(np.abs(DENSE.angles[pts, 3]), 180.0))
-    assert in_plane(d_pts) == 1.0 and in_plane(a_pts) <= 0.5
+    assert in_plane(d_pts) >= 0.5 and in_plane(a_pts) <= 0.25
     assert np.median(_nearest(a_pts)) > 2.0 * np.median(_nearest(d_pts))
 
 

@@ -25,7 +25,7 @@ import numpy as np
 from gonio.bench.plan import family, kinematics
 from gonio.bench.plan.point_time import RestModel, darkest
 from gonio.bench.plan.design_weights import ON_BY_DEFAULT
-from gonio.bench.plan.ordering import cost_matrix, mirror
+from gonio.bench.plan.ordering import cost_matrix, mirror, tour
 from gonio.bench.plan.plans import Plan
 from gonio.bench.plan.strategy import Result, register_strategy
 
@@ -166,23 +166,19 @@ class AdaptivePlan:
         self.wi = _dirs(a[:, 0], a[:, 1])
         self.wo = _dirs(a[:, 2], a[:, 3])
         self.stage = np.nan_to_num(kinematics.inverse(*a.T))
-        rank = {int(i): k for k, i in enumerate(order)}
         rig = _rig()
         self._motion = {"motion": rig["motion"]}
         self._poses, self._run_motion = None, self._motion     # `use_session`: the moves the run makes
         self._exposure_max_s = float(rig["capture"]["exposure_max_s"])
         spread = spread_subset(a, self.first_n)
-
-        def in_order(pts):                               # the session's move order
-            return sorted(pts, key=lambda i: (rank.get(i, len(rank)), i))
-        while self.budget_s > 0 and self._path_s(in_order(spread)) > self.budget_s:
+        while self.budget_s > 0 and self._path_s(self._toured(spread)) > self.budget_s:
             if len(spread) <= self.space.size + 1:       # the fewest points a fit needs
                 raise ValueError(f"[strategy] budget_s = {self.budget_s:g} s: the first pass alone ({len(spread)} "
-                                 f"points) takes about {self._path_s(in_order(spread)):.0f} s by the plan's "
+                                 f"points) takes about {self._path_s(self._toured(spread)):.0f} s by the plan's "
                                  "estimate; give more time")
             spread = spread[:-1]                        # the farthest-point order: a prefix stays spread
         self.first_n = len(spread)
-        self.batches: list[list[int]] = [in_order(spread)]
+        self.batches: list[list[int]] = [self._toured(spread)]
         self.log: list[dict] = []
         self.stopped_by: str | None = None
         self.times: dict[int, float] = {}                 # `account`: each journalled point's instrument time
@@ -213,6 +209,7 @@ class AdaptivePlan:
         self._poses = poses
         if settings and isinstance(settings.get("motion"), Mapping):
             self._run_motion = {"motion": settings["motion"]}
+        self.batches[0] = self._toured(self.batches[0])
         v = (settings or {}).get("capture", {}).get("exposure_max_s")
         if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
             self._exposure_max_s = float(v)
@@ -352,6 +349,13 @@ class AdaptivePlan:
             return np.minimum(cost_matrix(self.stage[a][None], to, self._motion)[0],
                               cost_matrix(self.stage[a][None], mirror(to), self._motion)[0])
         return cost_matrix(self._poses[a][None], self._poses[b], self._run_motion)[0]
+
+    def _toured(self, points: Sequence[int]) -> list[int]:
+        """``points`` in the order of least move time from home (gonio.bench.plan.ordering.tour)
+        between the poses the run moves to (before `use_session`: each point's first solution)."""
+        pts = [int(i) for i in points]
+        poses = self.stage if self._poses is None else self._poses
+        return [pts[k] for k in tour(poses[pts], self._run_motion)] if pts else []
 
     def _move_s(self, a: int, b: int) -> float:
         return float(self._moves(a, [b])[0])

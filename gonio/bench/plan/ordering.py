@@ -27,7 +27,7 @@ import numpy as np
 
 from gonio.bench.settings import AXES
 
-__all__ = ["move_time", "cost_matrix", "mirror", "OrderResult", "order_moves", "path_time", "lower_bound"]
+__all__ = ["move_time", "cost_matrix", "mirror", "OrderResult", "order_moves", "path_time", "lower_bound", "tour"]
 
 
 def move_time(d_deg, vmax, accel):
@@ -201,6 +201,27 @@ def _nearest_neighbour(D, start_cost):
         seq.append(k)
         left[k] = False
     return np.array(seq, int)
+
+
+def tour(stage_deg, settings: Mapping, start=None) -> np.ndarray:
+    """The order (indices into ``stage_deg``, (N, 4) degrees) that visits these poses, each as
+    given (no mirror solution), from ``start`` (default home, all zero) in the least move time
+    the local search finds: nearest neighbour, then 2-opt and or-opt; exact (every order) for
+    N <= 8. For a subset of a plan whose poses the session has already fixed."""
+    stage = np.asarray(stage_deg, float).reshape(-1, 4)
+    n = len(stage)
+    start = np.zeros(4) if start is None else np.asarray(start, float)
+    if n < 2:
+        return np.arange(n)
+    D = cost_matrix(stage, stage, settings)
+    s0 = cost_matrix(start[None], stage, settings)[0]
+    if n <= 8:
+        from itertools import permutations
+
+        orders = np.array(list(permutations(range(n))))
+        cost = s0[orders[:, 0]] + D[orders[:, :-1], orders[:, 1:]].sum(1)
+        return orders[int(np.argmin(cost))]
+    return _local_search(_nearest_neighbour(D, s0), D, s0)
 
 
 def _prim(W: np.ndarray) -> tuple[float, np.ndarray]:
