@@ -176,6 +176,8 @@ def _export_counts(path):
 def cmd_fit(args):
     from gonio.cli.fit import fit_batch_cli, fit_cli
 
+    if args.estimate_angles and (args.batch or args.scene is not None):
+        raise GonioError("--estimate-angles goes with a single fit of a dataset.nc: leave out --batch and --scene")
     if args.batch:
         fit_batch_cli([Path(d) for d in args.dataset], model=args.model, options=args.option, out=Path(args.out),
                       seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers,
@@ -194,7 +196,8 @@ def cmd_fit(args):
                       quiet=args.quiet)
         return
     fit_cli(Path(args.dataset[0]), model=args.model, options=args.option, out=Path(args.out), seed=args.seed,
-            loss=args.loss, posterior=args.posterior, colour_space=args.colour_space, quiet=args.quiet)
+            loss=args.loss, posterior=args.posterior, colour_space=args.colour_space, quiet=args.quiet,
+            estimate_angles=args.estimate_angles)
 
 
 @env

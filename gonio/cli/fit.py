@@ -95,7 +95,8 @@ def print_selection(doc, console=None) -> None:
                 caption="* chosen")
 
 
-def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb", quiet=False):
+def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb", quiet=False,
+            estimate_angles=False):
     from gonio.fitting import write_json_atomic
 
     from gonio.core.preflight import check_output_file, writing
@@ -107,11 +108,19 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     check_output_file(out, "fit file (--out)")
     inp = open_fit_input(dataset, seed, colour_space)
     meas = inp.meas
+    if estimate_angles:
+        if loss not in (None, "chi2"):
+            raise GonioError(f"--estimate-angles needs the chi2 loss (the data's own sigma); leave out --loss {loss}")
+        shared = (getattr(inp.budget, "angles", None) or {}).get("shared")
+        if shared is None or not len(shared):
+            raise GonioError(f"--estimate-angles: {dataset.name} states no shared angle errors (a dataset.nc whose "
+                             "budget carries the stages' zero offsets, the holder's tilt or the wedge); leave it out")
     # a bar on a terminal: the candidates of --model auto (or of an open distribution) and their
     # renders, with the time left; one model alone: the time it has taken
     with Steps("fit" if model == "auto" else f"fit {model}", enabled=not quiet) as progress:
         _, doc, _ = fit_dataset(inp, model=model, options=parse_options(options), seed=seed, loss=loss,
-                                posterior=posterior, dataset_path=dataset, progress=progress)
+                                posterior=posterior, dataset_path=dataset, progress=progress,
+                                estimate_angles=estimate_angles)
     with writing(out):
         write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None

@@ -87,7 +87,7 @@ def _cmd_bench_acquisition(args):
         raise GonioError(f"--model {args.model!r}: give one of {', '.join((*gm.names(), CHOOSE))}")
     sample = load_sample(args.sample)
     kw = dict(model=args.model, points=args.points, errors=args.errors, out=Path(args.out) if args.out else None,
-              budget_fraction=args.budget_fraction)
+              budget_fraction=args.budget_fraction, estimate_angles=args.estimate_angles)
     if seeds is None:
         run(plans, sample, seed=args.seed or 0, **kw)
     else:
@@ -148,6 +148,9 @@ def register(sub, *, env, seed, parser_class):
     ba.add_argument("--seeds", metavar="LIST", help="several seeds (10-13 or 10,12,15): every plan captured with each, "
                                                     "then each plan's errors against the dense grid of the same "
                                                     "seed, summarised with their intervals (dense must be in --plans)")
+    ba.add_argument("--estimate-angles", action="store_true",
+                    help="every plan's fit estimates the instrument's shared angle errors (zero offsets, holder "
+                         "tilt, wedge) from its data, as gonio fit --estimate-angles")
     ba.add_argument("--out", help="a .csv file or a folder for the table")
     ba.set_defaults(func=env(_cmd_bench_acquisition))
     return bsub

@@ -121,7 +121,7 @@ def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress
 
 
 def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, budget=None, dataset_path=None,
-                     rng=None, progress=None):
+                     rng=None, progress=None, estimate_angles=False):
     """Fit (or select) a model on ``meas``.
 
     Returns ``(result, meas, budget, ranking, note)``: the FitResult; the Measurements and
@@ -131,6 +131,8 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     ``rng``: the Generator of the starts (default ``numpy.random.default_rng(seed)``); the
     refit with the angular response always starts from ``default_rng(seed)``. ``progress``:
     ``progress(done, total, label)`` from the model selection's fits and renders (None: silent).
+    ``estimate_angles``: the budget's shared angle inputs estimated with the fit and the data
+    corrected (gonio/fitting/likelihood/shared_angles.py; chi2 only).
     """
     import gonio.models as gm
     from gonio.fitting.likelihood.aperture import with_instrument_response
@@ -189,13 +191,21 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     try:
         result, meas, budget = with_instrument_response(
             meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
+        if estimate_angles:
+            from gonio.fitting.likelihood.shared_angles import with_shared_angles
+
+            if loss != "chi2":
+                raise ValueError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), "
+                                 f"not {loss}")
+            result, meas, budget = with_shared_angles(
+                meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
     except ValueError as exc:
         raise GonioError(str(exc)) from None
     return result, meas, budget, ranking, note
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
-                posterior_budget_s=None, dataset_path=None, budget=None, progress=None):
+                posterior_budget_s=None, dataset_path=None, budget=None, progress=None, estimate_angles=False):
     """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
 
     ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting.load_budget`; None:
@@ -203,7 +213,7 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
 
     ``loss`` None: chi2 for a dataset with measured sigma, the real-data default
     (:data:`gonio.fitting.REAL_DEFAULT_LOSS`) for an RGL or MERL file. ``progress``: as
-    :func:`fit_measurements`'s."""
+    :func:`fit_measurements`'s, and so is ``estimate_angles``."""
     from gonio.fitting.likelihood.loss import default_loss
     from gonio.fitting.uncertainty.posterior import sample_posterior
 
@@ -218,7 +228,7 @@ def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterio
     rng = np.random.default_rng(seed)       # the starts, then the posterior's walkers: one stream
     result, meas, budget, ranking, note = fit_measurements(meas, model=model, options=options, seed=seed, loss=loss,
                                                            budget=budget, dataset_path=dataset_path, rng=rng,
-                                                           progress=progress)
+                                                           progress=progress, estimate_angles=estimate_angles)
     post = None
     if posterior:
         # With a time budget: chunks of 250 steps, so the budget is checked every second or
@@ -248,5 +258,9 @@ def fit_document_of(result, data, *, seed=None, posterior=None, ranking=None, da
     factor = getattr(result, "response_factor", None)
     if factor is not None and not fitted:
         meas, budget = corrected(meas, budget, factor)
+    if not fitted:
+        from gonio.fitting.likelihood.shared_angles import applied
+
+        meas, budget = applied(meas, budget, result)
     return fit_document(result, meas, seed=seed, posterior=posterior, ranking=ranking, dataset_path=dataset_path,
                         budget=budget)

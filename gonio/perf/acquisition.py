@@ -105,7 +105,7 @@ def strategy_table(plan: str, seed: int, points: int, budget_s: float = 0.0) -> 
 
 
 def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed: int, points: int,
-         settings: dict, budget_s: float = 0.0) -> dict:
+         settings: dict, budget_s: float = 0.0, estimate_angles: bool = False) -> dict:
     import xarray as xr
 
     from gonio.bench.dataset.export import export
@@ -129,11 +129,11 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
 
         model, options, _ = choose_cv(meas, _candidates(), seed=seed, n_local=1)
     result = fit_measurements(meas, model=model, options=options, seed=seed, budget=open_budget(Path(dataset), meas),
-                              dataset_path=dataset)[0]
+                              dataset_path=dataset, estimate_angles=estimate_angles)[0]
     from gonio.bench.plan.family import label
 
     row = {"plan": plan, "points": n_points, "time_s": instrument_s,
-           "model": label(result.model.name, result.model.options)}
+           "model": label(result.model.name, result.model.options), "estimate_angles": bool(estimate_angles)}
     row.update(score(result, sample, seed=seed))
     row["wall_s"] = time.perf_counter() - t0
     return row
@@ -149,13 +149,15 @@ def _candidates():
 
 
 def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=ADAPTIVE_POINTS, errors="typical",
-        out=None, folder=None, budget_fraction=None) -> list[dict]:
+        out=None, folder=None, budget_fraction=None, estimate_angles=False) -> list[dict]:
     """Capture, fit and score ``sample`` (a :func:`gonio.bench.samples.load_sample` dict; the demo
     sample by default) with each plan; print the table and the front; with ``out`` write the
     CSV there. ``model``: the family fitted (default the sample's own; roughplastic GGX for a
     measured file; :data:`CHOOSE`: each plan's data choose); ``errors``: the simulator's error preset (every plan the same instrument);
     ``budget_fraction``: the sequential plans stop at that fraction of the ``dense`` plan's
-    instrument time (``dense`` must be among ``plans``; it runs first) instead of ``points``."""
+    instrument time (``dense`` must be among ``plans``; it runs first) instead of ``points``;
+    ``estimate_angles``: every plan's fit estimates the shared angle errors (gonio.fitting's
+    ``estimate_angles``)."""
     plans = tuple(plans)
     if budget_fraction is not None:
         f = budget_fraction
@@ -179,12 +181,14 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
         base = Path(folder) if folder is not None else Path(tmp)
         for plan in plans:
             budget_s = budget_fraction * rows[0]["time_s"] if budget_fraction and plan in SEQUENTIAL else 0.0
-            rows.append(_one(plan, sample, model, dict(options or {}), base, seed, points, settings, budget_s))
+            rows.append(_one(plan, sample, model, dict(options or {}), base, seed, points, settings, budget_s,
+                             estimate_angles))
             _print(rows[-1:], head=len(rows) == 1)
     on_front = {id(r) for r in front(rows)}
     print(f"front (no plan both faster and closer): "
           f"{', '.join(r['plan'] for r in sorted(rows, key=lambda r: r['time_s']) if id(r) in on_front)}")
-    print(f"fitted {'the family each plan chose (cross-validated)' if model == CHOOSE else model}; simulator errors {errors!r}, seed {seed}; time: instrument_time_s of the simulated capture (motion, settling, exposures, "
+    print(f"fitted {'the family each plan chose (cross-validated)' if model == CHOOSE else model}"
+          f"{', the shared angle errors estimated' if estimate_angles else ''}; simulator errors {errors!r}, seed {seed}; time: instrument_time_s of the simulated capture (motion, settling, exposures, "
           "preparation); Ngan, log: against the truth on the dense grid (theta <= 80 deg); dE00: preview, 48 px, "
           "128 spp, matched seeds; wall: capture, export, fit and scoring on this machine")
     if out is not None:

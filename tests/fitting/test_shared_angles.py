@@ -1,0 +1,125 @@
+"""The shared angle errors estimated with the fit (gonio/fitting/likelihood/shared_angles.py):
+the profiled estimate is the joint problem's exact solution where it is linear, its posterior
+covers the truth, and a capture's fit records, corrects and carries it."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from gonio.fitting.likelihood.shared_angles import applied, profile_inputs
+
+
+def _linear(rng, n=60, c=3, p=4, k=5):
+    J = rng.standard_normal((p, n, c))
+    U = 0.3 * rng.standard_normal((k, n, c))
+    sigma = rng.uniform(0.5, 2.0, (n, c))
+    return J, U, sigma
+
+
+def test_the_profiled_inputs_are_the_joint_least_squares_solution():
+    """y = J x + U b + e, b ~ N(0, I) as its prior: minimising |(y - Jx - Ub) / sigma|^2 + |b|^2
+    over (x, b) at once (an augmented least-squares problem) gives the same b, and the inverse
+    of its normal matrix's b block is the posterior C (to rounding)."""
+    rng = np.random.default_rng(7)
+    J, U, sigma = _linear(rng)
+    use = np.ones(sigma.shape, bool)
+    use[3, 1] = False                                   # an unused value stays out of both
+    y = np.einsum("p,pnc->nc", rng.standard_normal(4), J) + np.einsum("k,knc->nc", rng.standard_normal(5), U)
+    y = y + sigma * rng.standard_normal(sigma.shape)
+    b, C = profile_inputs(U, J, y, 1.0 / sigma, use)
+    A = np.vstack([np.hstack([(J / sigma)[:, use].T, (U / sigma)[:, use].T]),
+                   np.hstack([np.zeros((5, 4)), np.eye(5)])])
+    rhs = np.concatenate([(y / sigma)[use], np.zeros(5)])
+    sol = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    np.testing.assert_allclose(b, sol[4:], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(C, np.linalg.inv(A.T @ A)[4:, 4:], rtol=1e-9, atol=1e-12)
+
+
+def test_the_posterior_covers_the_drawn_inputs():
+    """Over 400 draws of b and the noise, sum (b_hat - b)' C^-1 (b_hat - b) is chi2 with 400 K
+    dof: accepted within its 1e-6 two-sided quantiles (false-alarm rate 1e-6 at any seed). A C
+    left at the prior I is rejected (the statistic falls to about a third)."""
+    rng = np.random.default_rng(2026)
+    J, U, sigma = _linear(rng)
+    use = np.ones(sigma.shape, bool)
+    t = t_prior = 0.0
+    for _ in range(400):
+        b_true = rng.standard_normal(5)
+        y = np.einsum("p,pnc->nc", rng.standard_normal(4), J) + np.einsum("k,knc->nc", b_true, U)
+        y = y + sigma * rng.standard_normal(sigma.shape)
+        b, C = profile_inputs(U, J, y, 1.0 / sigma, use)
+        d = b - b_true
+        t += d @ np.linalg.solve(C, d)
+        t_prior += d @ d
+    lo, hi = stats.chi2.ppf([5e-7, 1 - 5e-7], 400 * 5)
+    assert lo < t < hi
+    assert not lo < t_prior < hi
+
+
+@pytest.mark.slow
+def test_a_capture_fit_estimates_records_and_carries_the_inputs(uncalibrated):
+    from gonio.bench.dataset.reader import open_fit_input
+    from gonio.core.errors import GonioError
+    from gonio.fitting.pipeline import fit_dataset, fit_document_of, fit_measurements
+
+    inp = open_fit_input(uncalibrated, seed=11)
+    k = len(inp.budget.angles["shared"])
+    kw = dict(model="roughplastic", options={"distribution": "ggx"}, seed=11, dataset_path=uncalibrated)
+    result, meas, budget, _, _ = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, **kw)
+    info = result.shared_angles
+    assert info["inputs"] == k >= 4 and len(info["estimate_sigma"]) == k
+    post = np.asarray(info["posterior_sigma"])
+    assert np.all(post <= 1.0 + 1e-9) and np.min(post) < 0.5       # the data pin some inputs, none loosen
+    assert 0 < info["max_correction"] < 0.2
+    # the budget's shared lines now carry the posterior: their total variance fell
+    assert np.sum(budget.angles["shared"] ** 2) < np.sum(inp.budget.angles["shared"] ** 2)
+    # the data as the fit saw them are the dataset's less the shift, rebuilt from the result alone
+    from gonio.fitting.likelihood.aperture import corrected
+
+    m2, b2 = applied(*corrected(inp.meas, inp.budget, result.response_factor), result)
+    np.testing.assert_array_equal(m2.brdf, meas.brdf)
+    np.testing.assert_array_equal(b2.angles["shared"], budget.angles["shared"])
+    doc = fit_document_of(result, inp, seed=11, dataset_path=uncalibrated)
+    assert doc["shared_angles"] == info
+    plain = fit_dataset(inp, **kw)[1]
+    assert plain["shared_angles"] is None
+    with pytest.raises(GonioError, match="needs the chi2 loss"):
+        fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, loss="log", **kw)
+    # a dataset without angle inputs: nothing to estimate, the fit unchanged
+    bare = dataclasses.replace(inp.budget, angles=None)
+    r0 = fit_measurements(inp.meas, budget=bare, **kw)[0]
+    r1 = fit_measurements(inp.meas, budget=bare, estimate_angles=True, **kw)[0]
+    assert r1.shared_angles is None and np.array_equal(r0.x, r1.x)
+
+
+@pytest.mark.slow
+def test_gonio_fit_estimate_angles_and_its_refusals(uncalibrated, tmp_path):
+    """``gonio fit --estimate-angles`` writes the record; a non-chi2 loss, a file that states no
+    shared angle errors, --batch and --scene are refused in one line, exit 2, nothing written."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    def gonio(*args):
+        return subprocess.run([sys.executable, "-m", "gonio.cli.main", *map(str, args)], capture_output=True,
+                              text=True, timeout=240)
+
+    out = tmp_path / "fit.json"
+    r = gonio("fit", uncalibrated, "--model", "roughplastic", "--option", "distribution=ggx", "--estimate-angles",
+              "--out", out, "--quiet")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    assert doc["shared_angles"]["inputs"] >= 4
+    rgl = Path(__file__).parents[2].parent / "shared" / "data" / "rgl" / "paper_white_rgb.bsdf"
+    cases = [(("--loss", "log"), "needs the chi2 loss"), (("--batch",), "leave out --batch and --scene")]
+    if rgl.exists():
+        cases.append(((), "states no shared angle errors"))
+    for extra, msg in cases:
+        target = rgl if not extra else uncalibrated
+        bad = tmp_path / f"bad{len(extra)}.json"
+        r = gonio("fit", target, "--model", "roughplastic", "--estimate-angles", *extra, "--out", bad, "--quiet")
+        assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not bad.exists()
