@@ -132,7 +132,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     refit with the angular response always starts from ``default_rng(seed)``. ``progress``:
     ``progress(done, total, label)`` from the model selection's fits and renders (None: silent).
     ``estimate_angles``: the budget's shared angle inputs estimated with the fit and the data
-    corrected (gonio/fitting/likelihood/shared_angles.py; chi2 only).
+    corrected (gonio/fitting/uncertainty/shared_angles.py; chi2 only).
     """
     import gonio.models as gm
     from gonio.fitting.likelihood.aperture import with_instrument_response
@@ -192,7 +192,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
         result, meas, budget = with_instrument_response(
             meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
         if estimate_angles:
-            from gonio.fitting.likelihood.shared_angles import with_shared_angles
+            from gonio.fitting.uncertainty.shared_angles import with_shared_angles
 
             if loss != "chi2":
                 raise ValueError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), "
@@ -259,7 +259,7 @@ def fit_document_of(result, data, *, seed=None, posterior=None, ranking=None, da
     if factor is not None and not fitted:
         meas, budget = corrected(meas, budget, factor)
     if not fitted:
-        from gonio.fitting.likelihood.shared_angles import applied
+        from gonio.fitting.uncertainty.shared_angles import applied
 
         meas, budget = applied(meas, budget, result)
     return fit_document(result, meas, seed=seed, posterior=posterior, ranking=ranking, dataset_path=dataset_path,

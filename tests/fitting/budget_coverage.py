@@ -211,7 +211,7 @@ CAPTURE_SAMPLES = {
 
 
 def capture_session(seed: int, errors: dict, plan: str | None, folder: Path, calibrated: bool = False,
-                    sample: str = "roughplastic"):
+                    sample: str = "roughplastic", estimate_angles: bool = False):
     """One simulated capture -> dataset.nc -> fit with its budget: (names, fit, u_c, u_stat, truth).
 
     ``calibrated``: gonio calibrate first (same instrument seed), its tables merged into the
@@ -234,7 +234,8 @@ def capture_session(seed: int, errors: dict, plan: str | None, folder: Path, cal
     capture_sim(folder, sample=spec, plan=plan or default_plan, seed=seed, settings=settings, progress=False)
     path = export(folder)
     meas = load_dataset(path)
-    _, doc, _ = fit_dataset(meas, model="roughplastic", options=options, seed=seed, budget=open_budget(path, meas))
+    _, doc, _ = fit_dataset(meas, model="roughplastic", options=options, seed=seed, budget=open_budget(path, meas),
+                            estimate_angles=estimate_angles)
     truth = {"diffuse_reflectance[R]": 0.5, "diffuse_reflectance[G]": 0.35, "diffuse_reflectance[B]": 0.2, **shape}
     names = list(doc["parameters"])
     u = doc["uncertainty"]["parameters"]
@@ -391,6 +392,8 @@ def main(argv=None):
     ap.add_argument("--sample", default="roughplastic", choices=tuple(CAPTURE_SAMPLES),
                     help="capture: roughplastic-Beckmann alpha 0.15 or glossy roughplastic-GGX alpha 0.05")
     ap.add_argument("--calibrated", action="store_true", help="capture: gonio calibrate first and use it")
+    ap.add_argument("--estimate-angles", action="store_true",
+                    help="capture: the fit estimates the shared angle errors (gonio fit --estimate-angles)")
     ap.add_argument("--summarise", type=Path, nargs="+", metavar="FILE.json",
                     help="summarise one run, or pool several of the same study (mode, sample, errors, "
                          "calibration) whose seeds do not overlap")
@@ -401,14 +404,16 @@ def main(argv=None):
     if a.mode is None:
         ap.error("give a mode (synthetic or capture) or --summarise FILE")
     rows, t0 = [], time.perf_counter()
-    folder = Path("/tmp") / f"gonio-budget-coverage-{a.mode}-{a.sample}-{a.first}"     # two samples can run at once
+    folder = (Path("/tmp") / f"gonio-budget-coverage-{a.mode}-{a.sample}-{a.first}"     # two samples can run at once
+              f"{'-est' if a.estimate_angles else ''}")
     for s in range(a.first, a.first + a.n):
         if a.mode == "synthetic":
             rows.append(record(*T.fit_session(s)))
         elif a.mode == "typical":
             rows.append(record_typical(*typical_session(s)))
         else:
-            rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated, a.sample)))
+            rows.append(record(*capture_session(s, json.loads(a.errors), a.plan, folder, a.calibrated, a.sample,
+                                                        a.estimate_angles)))
             rows[-1].update(interval_hits(rows[-1], truth_of(a.sample)))
             rows[-1]["z_fitted"] = ((np.array(FITTED) - np.array(rows[-1]["x"])) / np.array(rows[-1]["u_c"])
                                     + np.array(rows[-1]["z_c"])).tolist()
@@ -419,6 +424,7 @@ def main(argv=None):
             tmp = a.out.with_name(a.out.name + ".part")          # replaced whole: a stop mid-write loses nothing
             tmp.write_text(json.dumps({"mode": a.mode, "first_seed": a.first, "errors": a.errors, "plan": a.plan,
                                          "sample": a.sample, "calibrated": a.calibrated,
+                                         "estimate_angles": a.estimate_angles,
                                          "made_by": "tests/fitting/budget_coverage.py",
                                          "versions": T.versions(), "sessions": rows}) + "\n")
             os.replace(tmp, a.out)

@@ -1,4 +1,4 @@
-"""The shared angle errors estimated with the fit (gonio/fitting/likelihood/shared_angles.py):
+"""The shared angle errors estimated with the fit (gonio/fitting/uncertainty/shared_angles.py):
 the profiled estimate is the joint problem's exact solution where it is linear, its posterior
 covers the truth, and a capture's fit records, corrects and carries it."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from gonio.fitting.likelihood.shared_angles import applied, profile_inputs
+from gonio.fitting.uncertainty.shared_angles import applied, profile_inputs
 
 
 def _linear(rng, n=60, c=3, p=4, k=5):

@@ -201,7 +201,7 @@ def fit_document(result, meas, *, seed=None, posterior=None, ranking=None, datas
         "uncertainty": uncertainty,
         # the instrument's angular response in the forward model (gonio/fitting/likelihood/aperture.py), or null
         "instrument_response": getattr(result, "response", None),
-        # the shared angle errors estimated with the fit (gonio/fitting/likelihood/shared_angles.py), or null
+        # the shared angle errors estimated with the fit (gonio/fitting/uncertainty/shared_angles.py), or null
         "shared_angles": getattr(result, "shared_angles", None),
         "provenance": {"versions": versions(), "seed": seed, "dataset": str(dataset_path) if dataset_path else None,
                        "dataset_sha256": sha256_file(dataset_path) if dataset_path and Path(dataset_path).exists() else None,

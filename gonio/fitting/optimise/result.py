@@ -58,7 +58,7 @@ class FitResult:
     #: the factor c the data and budget were divided by for that response (N, C; the last
     #: refit's), so the fit document can be built from the dataset as opened; None: none applied
     response_factor: np.ndarray | None = dataclasses.field(default=None, repr=False)
-    #: the shared angle inputs estimated with the fit (gonio/fitting/likelihood/shared_angles.py):
+    #: the shared angle inputs estimated with the fit (gonio/fitting/uncertainty/shared_angles.py):
     #: estimates and posteriors in units of their stated sigma; None where not estimated
     shared_angles: dict | None = None
     #: (shift (N, C) taken from the data, L (K, K) the posterior's Cholesky factor), so the fit
