@@ -23,17 +23,19 @@ __all__ = ["with_shared_angles", "profile_inputs", "posterior_budget", "applied"
 
 
 def _jacobian(result, meas) -> np.ndarray:
-    """d f_r / d x (P, N, C) at the fit, by central differences of its free parameters."""
+    """d f_r / d x (P, N, C) at the fit, by differences of its free parameters: central inside
+    their bounds, one-sided at a bound (a step past it is not a parameter the model takes)."""
     x = np.asarray(result.x, float)
+    lo, hi = result.space.lower, result.space.upper
     cols = []
     for j in range(len(x)):
         h = 1e-6 * max(1.0, abs(x[j]))
         xp, xm = x.copy(), x.copy()
-        xp[j] += h
-        xm[j] -= h
+        xp[j] = min(x[j] + h, hi[j])
+        xm[j] = max(x[j] - h, lo[j])
         fp = result.model.eval(meas.wi, meas.wo, result.space.to_params(xp))
         fm = result.model.eval(meas.wi, meas.wo, result.space.to_params(xm))
-        cols.append((np.asarray(fp, float) - np.asarray(fm, float)) / (2 * h))
+        cols.append((np.asarray(fp, float) - np.asarray(fm, float)) / (xp[j] - xm[j]))
     return np.stack(cols) if cols else np.zeros((0,) + meas.brdf.shape)
 
 
