@@ -85,6 +85,13 @@ def test_a_capture_fit_estimates_records_and_carries_the_inputs(uncalibrated):
     assert doc["shared_angles"] == info
     plain = fit_dataset(inp, **kw)[1]
     assert plain["shared_angles"] is None
+    # a parameter at its bound (a real felt's blue reflectance at 1): the slope stays inside it
+    from gonio.fitting.uncertainty.shared_angles import _jacobian
+
+    x = np.array(result.x, float)
+    x[0] = result.space.upper[0]
+    J = _jacobian(dataclasses.replace(result, x=x), meas)
+    assert J.shape == (len(x),) + meas.brdf.shape and np.all(np.isfinite(J)) and np.any(J[0] != 0)
     with pytest.raises(GonioError, match="needs the chi2 loss"):
         fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, loss="log", **kw)
     # a dataset without angle inputs: nothing to estimate, the fit unchanged
