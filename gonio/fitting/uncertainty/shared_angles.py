@@ -61,7 +61,8 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 2):
 
     Returns (result, meas, budget): the corrected data, the budget with the inputs' posterior,
     and the result's ``shared_angles`` (the fit file's record: each input's estimate and
-    posterior 1-sigma in units of its stated 1-sigma, the largest correction of f_r)."""
+    posterior 1-sigma in units of its stated 1-sigma, the largest correction relative to the value
+    or, where that is within its 1-sigma, to the 1-sigma)."""
     from gonio.fitting.uncertainty.budget import angle_components
 
     angles = getattr(budget, "angles", None) or {}
@@ -88,7 +89,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 2):
             break
     L = np.linalg.cholesky(C + 1e-12 * np.eye(len(C)))
     info = {"inputs": int(len(b)), "estimate_sigma": b.tolist(), "posterior_sigma": np.sqrt(np.diag(C)).tolist(),
-            "max_correction": float(np.max(np.abs(shift[use]) / np.maximum(np.abs(y0[use]), 1e-300))),
+            "max_correction": float(np.max(np.abs(shift[use]) / np.maximum(np.abs(y0[use]), meas.brdf_std[use]))),
             "method": "variable-projection Gauss-Newton on the fit linearised in the inputs (prior N(0, 1) each)"}
     result = dataclasses.replace(result, shared_angles=info, shared_angles_fix=(shift, L), response=first.response,
                                  response_factor=first.response_factor)
