@@ -39,10 +39,11 @@ def _jacobian(result, meas) -> np.ndarray:
     return np.stack(cols) if cols else np.zeros((0,) + meas.brdf.shape)
 
 
-def profile_inputs(U, J, resid, whiten, use) -> tuple[np.ndarray, np.ndarray]:
+def profile_inputs(U, J, resid, whiten, use, b0=None) -> tuple[np.ndarray, np.ndarray]:
     """(b, C): the shared inputs (sigma units) and their posterior covariance from the lines
-    ``U`` (K, N, C), the model's Jacobian ``J`` (P, N, C), the residual y - f (N, C), the
-    whitening sqrt(weight) / sigma (N, C) and the values used (N, C)."""
+    ``U`` (K, N, C), the model's Jacobian ``J`` (P, N, C), the residual (N, C) of the model at
+    ``b0`` (default 0), the whitening sqrt(weight) / sigma (N, C) and the values used (N, C):
+    one Gauss-Newton step b = b0 + C (U'P r - b0) of |r - U db - J dx|^2 + |b0 + db|^2."""
     Uw = (U * whiten[None])[:, use]                   # (K, M)
     Jw = (J * whiten[None])[:, use].T                 # (M, P)
     r = (resid * whiten)[use]
@@ -52,12 +53,32 @@ def profile_inputs(U, J, resid, whiten, use) -> tuple[np.ndarray, np.ndarray]:
         r = r - Q @ (Q.T @ r)
     C = np.linalg.inv(np.eye(len(Uw)) + Uw @ Uw.T)
     C = 0.5 * (C + C.T)
-    return C @ (Uw @ r), C
+    b0 = np.zeros(len(Uw)) if b0 is None else np.asarray(b0, float)
+    return b0 + C @ (Uw @ r - b0), C
 
 
-def with_shared_angles(meas, budget, result, refit, rounds: int = 2):
+def _displaced(result, meas, angles, b) -> np.ndarray:
+    """f_r of the fitted model where the inputs ``b`` (sigma units) put each point: its
+    directions moved along the shared shifts (:func:`gonio.core.geometry.angle_tangents`,
+    exact in the direction, not linearised in f_r), times the wedge's irradiance change."""
+    from gonio.core.geometry import angle_tangents, unit_vectors
+    from gonio.fitting.uncertainty.angle_shifts import per_point
+
+    one = per_point(angles)
+    t_i, t_o = angle_tangents(meas.wi, meas.wo, one["shared"])
+    f = np.asarray(result.model.eval(unit_vectors(meas.wi + np.einsum("k,knj->nj", b, t_i)),
+                                     unit_vectors(meas.wo + np.einsum("k,knj->nj", b, t_o)), result.params), float)
+    irr = one.get("shared_irradiance")
+    return f if irr is None else f * (1.0 + np.einsum("k,kn->n", b, np.asarray(irr, float)))[:, None]
+
+
+def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     """``result`` refitted with the dataset's shared angle inputs estimated (module docstring),
     where the budget states them; otherwise everything unchanged. ``refit(meas)`` -> FitResult.
+
+    Each round: the residual of the data against the fitted model at the inputs so far, one
+    Gauss-Newton step for the inputs, the data corrected by the model's change between the
+    displaced and the nominal directions, a refit; until the inputs move by less than 0.05 sigma.
 
     Returns (result, meas, budget): the corrected data, the budget with the inputs' posterior,
     and the result's ``shared_angles`` (the fit file's record: each input's estimate and
@@ -77,12 +98,13 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 2):
     m = meas
     for _ in range(rounds):
         lines = next(c for c in angle_components(result, meas, angles) if c.name == "angle_shared").value
-        f = np.asarray(result.model.eval(meas.wi, meas.wo, result.params), float)
-        b_new, C = profile_inputs(lines, _jacobian(result, meas), y0 - f, whiten, use)
+        b_new, C = profile_inputs(lines, _jacobian(result, meas), y0 - _displaced(result, meas, angles, b),
+                                  whiten, use, b)
         if not np.all(np.isfinite(b_new)) or not np.all(np.isfinite(C)):
             raise ValueError("the shared angle inputs could not be estimated (non-finite lines or slope at the fit)")
         step, b = float(np.max(np.abs(b_new - b))), b_new
-        shift = np.einsum("k,knc->nc", b, lines)
+        f0 = np.asarray(result.model.eval(meas.wi, meas.wo, result.params), float)
+        shift = _displaced(result, meas, angles, b) - f0
         m = dataclasses.replace(meas, brdf=y0 - shift)
         result = refit(m)
         if step < 0.05:
@@ -90,7 +112,8 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 2):
     L = np.linalg.cholesky(C + 1e-12 * np.eye(len(C)))
     info = {"inputs": int(len(b)), "estimate_sigma": b.tolist(), "posterior_sigma": np.sqrt(np.diag(C)).tolist(),
             "max_correction": float(np.max(np.abs(shift[use]) / np.maximum(np.abs(y0[use]), meas.brdf_std[use]))),
-            "method": "variable-projection Gauss-Newton on the fit linearised in the inputs (prior N(0, 1) each)"}
+            "method": "Gauss-Newton on the inputs (prior N(0, 1) each) with the fit's own directions projected out; "
+                      "the data corrected by the model at the displaced directions"}
     result = dataclasses.replace(result, shared_angles=info, shared_angles_fix=(shift, L), response=first.response,
                                  response_factor=first.response_factor)
     return result, m, posterior_budget(budget, L)
