@@ -28,7 +28,7 @@ def test_the_profiled_inputs_are_the_joint_least_squares_solution():
     use[3, 1] = False                                   # an unused value stays out of both
     y = np.einsum("p,pnc->nc", rng.standard_normal(4), J) + np.einsum("k,knc->nc", rng.standard_normal(5), U)
     y = y + sigma * rng.standard_normal(sigma.shape)
-    b, C = profile_inputs(U, J, y, 1.0 / sigma, use)
+    b, C, s = profile_inputs(U, J, y, 1.0 / sigma, use)
     A = np.vstack([np.hstack([(J / sigma)[:, use].T, (U / sigma)[:, use].T]),
                    np.hstack([np.zeros((5, 4)), np.eye(5)])])
     rhs = np.concatenate([(y / sigma)[use], np.zeros(5)])
@@ -49,7 +49,7 @@ def test_the_posterior_covers_the_drawn_inputs():
         b_true = rng.standard_normal(5)
         y = np.einsum("p,pnc->nc", rng.standard_normal(4), J) + np.einsum("k,knc->nc", b_true, U)
         y = y + sigma * rng.standard_normal(sigma.shape)
-        b, C = profile_inputs(U, J, y, 1.0 / sigma, use)
+        b, C, s = profile_inputs(U, J, y, 1.0 / sigma, use)
         d = b - b_true
         t += d @ np.linalg.solve(C, d)
         t_prior += d @ d
@@ -94,6 +94,14 @@ def test_a_capture_fit_estimates_records_and_carries_the_inputs(uncalibrated):
     assert J.shape == (len(x),) + meas.brdf.shape and np.all(np.isfinite(J)) and np.any(J[0] != 0)
     with pytest.raises(GonioError, match="needs the chi2 loss"):
         fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, loss="log", **kw)
+    assert info["applied"] is True
+    # a model that cannot follow the data (a conductor on a plastic): its misfit would pass for
+    # angle errors 8-14 sigma off; the estimate is refused, the fit and budget left as they were
+    kw_d = {**kw, "model": "roughconductor"}
+    r_plain, _, b_plain, _, _ = fit_measurements(inp.meas, budget=inp.budget, **kw_d)
+    r_est, _, b_est, _, _ = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, **kw_d)
+    assert r_est.shared_angles["applied"] is False and "misfit" in r_est.shared_angles["reason"]
+    assert np.array_equal(r_est.x, r_plain.x) and b_est.angles is b_plain.angles
     # a dataset without angle inputs: nothing to estimate, the fit unchanged
     bare = dataclasses.replace(inp.budget, angles=None)
     r0 = fit_measurements(inp.meas, budget=bare, **kw)[0]

@@ -7,19 +7,29 @@ into a line U_k of f_r (:func:`gonio.fitting.uncertainty.budget.angle_components
 inputs b ~ N(0, I), the data are y = f(x) + U b + e. One variable-projection Gauss-Newton step
 on the joint problem, linearised at the fit (Golub & Pereyra 2003, Inverse Problems 19 R1),
 gives b = (I + U'PU)^-1 U'P r: r the whitened residual, P the projection off the model's own
-directions (its Jacobian at the fit), so the inputs take only what the parameters cannot. The
-data are corrected by U b and refitted; the budget then carries the inputs' posterior
-C = (I + U'PU)^-1 in place of their prior (lines U L, C = L L'), which to first order gives
-the joint estimate's covariance exactly (the noise and b's error are uncorrelated after P).
+directions (its Jacobian at the fit), so the inputs take only what the parameters cannot; the
+budget's other shared lines are marginalised the same way. The data are corrected by the model
+at the displaced directions and refitted; the budget then carries the inputs' posterior C (lines
+U L, C = L L') in place of their prior. An estimate the stated errors make implausible (a model
+whose misfit passes for angle errors) is not applied.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
-__all__ = ["with_shared_angles", "profile_inputs", "posterior_budget", "applied"]
+__all__ = ["with_shared_angles", "profile_inputs", "posterior_budget", "applied", "plausible_bound"]
+
+
+def plausible_bound(k: int) -> float:
+    """The largest |b|^2 of K inputs stated N(0, I) that the estimate may reach: chi2's 99.9 %
+    quantile (a correct model and budget exceed it one time in a thousand)."""
+    from scipy import stats
+
+    return float(stats.chi2.ppf(0.999, k))
 
 
 def _jacobian(result, meas) -> np.ndarray:
@@ -39,22 +49,66 @@ def _jacobian(result, meas) -> np.ndarray:
     return np.stack(cols) if cols else np.zeros((0,) + meas.brdf.shape)
 
 
-def profile_inputs(U, J, resid, whiten, use, b0=None) -> tuple[np.ndarray, np.ndarray]:
-    """(b, C): the shared inputs (sigma units) and their posterior covariance from the lines
+def profile_inputs(U, J, resid, whiten, use, b0=None, V=None) -> tuple[np.ndarray, np.ndarray, float]:
+    """(b, C, s): the shared inputs (sigma units), their posterior covariance and the residual's
+    scale s from the lines
     ``U`` (K, N, C), the model's Jacobian ``J`` (P, N, C), the residual (N, C) of the model at
-    ``b0`` (default 0), the whitening sqrt(weight) / sigma (N, C) and the values used (N, C):
-    one Gauss-Newton step b = b0 + C (U'P r - b0) of |r - U db - J dx|^2 + |b0 + db|^2."""
-    Uw = (U * whiten[None])[:, use]                   # (K, M)
+    ``b0`` (default 0), the whitening (N, C) and the values used (N, C): one Gauss-Newton step
+    of |r - U db - J dx - V c|^2 + |b0 + db|^2 + |c|^2, the budget's other shared lines ``V``
+    (L, N, C; prior N(0, 1) each) marginalised with the parameters. Where the whitened residual
+    left after the step is larger than noise (s, its mean square per degree of freedom, > 1: a
+    model that cannot follow the data, a term the budget lacks) the data weigh 1 / s, once:
+    the inputs then take no more than the residual the model leaves supports, and C says so."""
+    K = len(U)
+    W = np.concatenate([U, V], axis=0) if V is not None and len(V) else np.asarray(U, float)
+    Ww = (W * whiten[None])[:, use]                   # (K + L, M)
     Jw = (J * whiten[None])[:, use].T                 # (M, P)
     r = (resid * whiten)[use]
     if Jw.shape[1]:
         Q, _ = np.linalg.qr(Jw)
-        Uw = Uw - (Uw @ Q) @ Q.T
+        Ww = Ww - (Ww @ Q) @ Q.T
         r = r - Q @ (Q.T @ r)
-    C = np.linalg.inv(np.eye(len(Uw)) + Uw @ Uw.T)
-    C = 0.5 * (C + C.T)
-    b0 = np.zeros(len(Uw)) if b0 is None else np.asarray(b0, float)
-    return b0 + C @ (Uw @ r - b0), C
+    b0 = np.zeros(K) if b0 is None else np.asarray(b0, float)
+    prior = np.concatenate([b0, np.zeros(len(W) - K)])
+    scale = 1.0
+    for _ in range(2):                  # again with the weights scaled where the residual is not noise
+        A = np.linalg.inv(np.eye(len(W)) + Ww @ Ww.T / scale)
+        step = A @ (Ww @ r / scale - prior)
+        dof = max(len(r) - Jw.shape[1] - len(W), 1)
+        left = float(np.sum((r - Ww.T @ step) ** 2)) / dof
+        if left <= 1.0 or scale > 1.0:
+            break
+        scale = left
+    C = 0.5 * (A[:K, :K] + A[:K, :K].T)
+    return b0 + step[:K], C, scale
+
+
+def _other_terms(budget, result, meas):
+    """The budget's terms besides the shared angle inputs and the statistical 1-sigma: (V (L, N,
+    C): each shared input's line (``full``; ``channel``: one per channel), their means (L,),
+    the variance (N, C) of the terms that differ from value to value (``none``, ``point``,
+    ``group``; their correlations left out of the weights))."""
+    from gonio.fitting.uncertainty.budget import angle_components
+
+    comps = list(budget.components) + angle_components(result, meas, budget.angles)
+    V, means, var = [], [], np.zeros(meas.brdf.shape)
+    for c in comps:
+        if c.name == "angle_shared" or c.statistical:
+            continue
+        val = np.nan_to_num(np.asarray(c.value, float))
+        vals = val if val.ndim == 3 else val[None]
+        if c.correlation == "full":
+            V += list(vals)
+            means += [float(c.mean)] * len(vals)
+        elif c.correlation == "channel":
+            for ch in range(val.shape[-1]):
+                v = np.zeros(meas.brdf.shape)
+                v[:, ch] = val[..., ch].reshape(-1, meas.n_points).sum(0) if val.ndim == 3 else val[:, ch]
+                V.append(v)
+                means.append(float(c.mean))
+        else:
+            var += (vals ** 2).sum(0)
+    return (np.stack(V) if V else np.zeros((0,) + meas.brdf.shape)), np.asarray(means, float), var
 
 
 def _displaced(result, meas, angles, b) -> np.ndarray:
@@ -90,18 +144,28 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     shared = angles.get("shared")
     if shared is None or not np.size(shared):
         return result, meas, budget
-    whiten = np.sqrt(meas.relative_weight())[:, None] / np.where(meas.brdf_std > 0, meas.brdf_std, np.inf)
+    V, v_mean, v_var = _other_terms(budget, result, meas)
+    sd = np.sqrt(meas.brdf_std ** 2 + v_var)
+    whiten = np.sqrt(meas.relative_weight())[:, None] / np.where(sd > 0, sd, np.inf)
     use = meas.use & np.isfinite(meas.brdf) & (meas.brdf_std > 0)
+    known = np.einsum("l,lnc->nc", v_mean, V)            # the other inputs' known means, in the data
     y0 = meas.brdf
     first = result                                     # its instrument-response record stays with the refits
     b = np.zeros(len(shared))
     m = meas
     for _ in range(rounds):
         lines = next(c for c in angle_components(result, meas, angles) if c.name == "angle_shared").value
-        b_new, C = profile_inputs(lines, _jacobian(result, meas), y0 - _displaced(result, meas, angles, b),
-                                  whiten, use, b)
+        b_new, C, scale = profile_inputs(lines, _jacobian(result, meas),
+                                         y0 - known - _displaced(result, meas, angles, b), whiten, use, b, V)
         if not np.all(np.isfinite(b_new)) or not np.all(np.isfinite(C)):
             raise ValueError("the shared angle inputs could not be estimated (non-finite lines or slope at the fit)")
+        if float(b_new @ b_new) > plausible_bound(len(b_new)):
+            return dataclasses.replace(first, shared_angles={
+                "inputs": int(len(b_new)), "applied": False, "estimate_sigma": b_new.tolist(), "residual_scale": scale,
+                "reason": f"the inputs' estimate lies {math.sqrt(float(b_new @ b_new)):.1f} sigma from their stated "
+                          f"errors (beyond the 99.9 % chi2 bound {math.sqrt(plausible_bound(len(b_new))):.1f}): the model "
+                          "does not follow the data closely enough to tell an angle error from its own misfit; "
+                          "the fit and its budget are as without the estimate"}), meas, budget
         step, b = float(np.max(np.abs(b_new - b))), b_new
         f0 = np.asarray(result.model.eval(meas.wi, meas.wo, result.params), float)
         shift = _displaced(result, meas, angles, b) - f0
@@ -110,7 +174,8 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
         if step < 0.05:
             break
     L = np.linalg.cholesky(C + 1e-12 * np.eye(len(C)))
-    info = {"inputs": int(len(b)), "estimate_sigma": b.tolist(), "posterior_sigma": np.sqrt(np.diag(C)).tolist(),
+    info = {"inputs": int(len(b)), "applied": True, "estimate_sigma": b.tolist(), "posterior_sigma": np.sqrt(np.diag(C)).tolist(),
+            "residual_scale": scale,
             "max_correction": float(np.max(np.abs(shift[use]) / np.maximum(np.abs(y0[use]), meas.brdf_std[use]))),
             "method": "Gauss-Newton on the inputs (prior N(0, 1) each) with the fit's own directions projected out; "
                       "the data corrected by the model at the displaced directions"}
