@@ -230,3 +230,21 @@ def test_the_criterion_option():
         cli_strategy("ndf", points=8, target_rel_u=None, candidates=None, seed=0, criterion="alc")
     with pytest.raises(ValueError, match="give one of d-optimal, alc"):
         cli_strategy("adaptive", points=8, target_rel_u=None, candidates=None, seed=0, criterion="bogus")
+
+
+def test_the_toured_first_pass_keeps_the_front_stop_before_the_rear():
+    """A plan with transmitted points: the session measures the reflected points, then moves the
+    camera to the rear stop once (an operator's step each way). The first pass in least-move order
+    keeps that: each stop's points toured on their own, front first."""
+    from gonio.bench.plan import kinematics
+    from gonio.bench.plan.ndf_seeded import NDFSeededPlan
+
+    plan = plans.load_plan("both-sides")
+    rear = np.asarray(kinematics.detector_of(plan.angles[:, 2]), bool)
+    order = np.concatenate([np.flatnonzero(~rear), np.flatnonzero(rear)])      # as the session orders them
+    for cls in (AdaptivePlan, NDFSeededPlan):
+        p = cls(plan, order, {"points": 30, "seed": 0})
+        assert rear[p.batches[0]].any() and not rear[p.batches[0]].all()
+        p.use_session(p.stage, S)
+        side = rear[p.first(set())].astype(int)
+        assert np.count_nonzero(np.diff(side)) == 1 and side[0] == 0, side

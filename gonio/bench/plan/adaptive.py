@@ -352,10 +352,17 @@ class AdaptivePlan:
 
     def _toured(self, points: Sequence[int]) -> list[int]:
         """``points`` in the order of least move time from home (gonio.bench.plan.ordering.tour)
-        between the poses the run moves to (before `use_session`: each point's first solution)."""
+        between the poses the run moves to (before `use_session`: each point's first solution);
+        as the session does, the reflected points first, then the transmitted ones from stage
+        zero (the open beam's pose): the camera moves to the rear stop once."""
         pts = [int(i) for i in points]
         poses = self.stage if self._poses is None else self._poses
-        return [pts[k] for k in tour(poses[pts], self._run_motion)] if pts else []
+        rear = kinematics.detector_of(self.plan.angles[pts, 2]) if pts else np.zeros(0, bool)
+        out = []
+        for side, start in ((False, None), (True, np.zeros(4))):
+            part = [i for i, r in zip(pts, rear) if bool(r) == side]
+            out += [part[k] for k in tour(poses[part], self._run_motion, start)] if part else []
+        return out
 
     def _move_s(self, a: int, b: int) -> float:
         return float(self._moves(a, [b])[0])
