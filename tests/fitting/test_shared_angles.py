@@ -138,3 +138,22 @@ def test_gonio_fit_estimate_angles_and_its_refusals(uncalibrated, tmp_path):
         r = gonio("fit", target, "--model", "roughplastic", "--estimate-angles", *extra, "--out", bad, "--quiet")
         assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not bad.exists()
+
+
+@pytest.mark.slow
+def test_the_weights_count_the_statistical_sigma_once(uncalibrated):
+    """brdf_std is the type A noise; a bench dataset also states it split into type A lines
+    (shot_read, fixed_pattern: ``point`` once in the fit's sRGB). Those are not other terms:
+    counted again, every value's variance doubled (sd / brdf_std 1.42 at the median)."""
+    import gonio.models as gm
+    from gonio.bench.dataset.reader import open_fit_input
+    from gonio.fitting import fit
+    from gonio.fitting.uncertainty.shared_angles import _other_terms
+
+    inp = open_fit_input(uncalibrated, seed=11)
+    m = inp.meas
+    assert any(c.gum_type == "A" and c.correlation == "point" for c in inp.budget.components)
+    result = fit(m, gm.get("roughplastic", distribution="ggx"), rng=np.random.default_rng(11), loss="chi2")
+    _, _, var = _other_terms(inp.budget, result, m)
+    ratio = np.sqrt(1.0 + var[m.use] / m.brdf_std[m.use] ** 2)
+    assert np.median(ratio) < 1.1

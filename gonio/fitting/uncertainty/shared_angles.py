@@ -93,8 +93,8 @@ def _other_terms(budget, result, meas):
     comps = list(budget.components) + angle_components(result, meas, budget.angles)
     V, means, var = [], [], np.zeros(meas.brdf.shape)
     for c in comps:
-        if c.name == "angle_shared" or c.statistical:
-            continue
+        if c.name == "angle_shared" or c.statistical or (c.gum_type == "A" and c.correlation in ("none", "point")):
+            continue                # brdf_std: the statistical 1-sigma, whole or split into type A lines
         val = np.nan_to_num(np.asarray(c.value, float))
         vals = val if val.ndim == 3 else val[None]
         if c.correlation == "full":
