@@ -58,6 +58,23 @@ def test_the_posterior_covers_the_drawn_inputs():
     assert not lo < t_prior < hi
 
 
+def test_a_correct_model_on_few_values_is_not_taken_for_a_misfit():
+    """The residual's scale s: its mean square per degree of freedom, the prior keeping tr(A) of
+    the K + L inputs' (ridge). An 8-point pass (24 values, 5 parameters, 10 inputs, 7 other lines)
+    drawn from the model itself: s > 1 about half the time (bound 0.7 at 300 draws: binomial
+    sigma 0.03). Counting K + L whole, s > 1 every time (mean 5.3) and the data lost their weight."""
+    rng = np.random.default_rng(5)
+    J, U, _ = _linear(rng, n=8, p=5, k=10)
+    V = 0.3 * rng.standard_normal((7, 8, 3))
+    use, w = np.ones((8, 3), bool), np.ones((8, 3))
+    over = 0
+    for _ in range(300):
+        y = (np.einsum("p,pnc->nc", rng.standard_normal(5), J) + np.einsum("k,knc->nc", rng.standard_normal(10), U)
+             + np.einsum("l,lnc->nc", rng.standard_normal(7), V) + rng.standard_normal((8, 3)))
+        over += profile_inputs(U, J, y, w, use, None, V)[2] > 1.0
+    assert 0.2 < over / 300 < 0.7
+
+
 @pytest.mark.slow
 def test_a_capture_fit_estimates_records_and_carries_the_inputs(uncalibrated):
     from gonio.bench.dataset.reader import open_fit_input

@@ -74,7 +74,7 @@ def profile_inputs(U, J, resid, whiten, use, b0=None, V=None) -> tuple[np.ndarra
     for _ in range(2):                  # again with the weights scaled where the residual is not noise
         A = np.linalg.inv(np.eye(len(W)) + Ww @ Ww.T / scale)
         step = A @ (Ww @ r / scale - prior)
-        dof = max(len(r) - Jw.shape[1] - len(W), 1)
+        dof = max(len(r) - Jw.shape[1] - len(W) + float(np.trace(A)), 1.0)     # the prior keeps tr(A) of them
         left = float(np.sum((r - Ww.T @ step) ** 2)) / dof
         if left <= 1.0 or scale > 1.0:
             break
