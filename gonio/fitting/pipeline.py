@@ -154,6 +154,9 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
         loss = default_loss(meas)
     if loss not in LOSSES:
         raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
+    shared = (getattr(budget, "angles", None) or {}).get("shared")
+    if estimate_angles and loss != "chi2" and shared is not None and np.size(shared):     # before the fit
+        raise GonioError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), not {loss}")
     rng = np.random.default_rng(seed) if rng is None else rng
     ranking, note = None, None
     candidates = resolve_candidates(model, options)
@@ -191,12 +194,9 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     try:
         result, meas, budget = with_instrument_response(
             meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
-        if estimate_angles:
+        if estimate_angles:             # a no-op where the budget states no shared angle inputs
             from gonio.fitting.uncertainty.shared_angles import with_shared_angles
 
-            if loss != "chi2":
-                raise ValueError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), "
-                                 f"not {loss}")
             result, meas, budget = with_shared_angles(
                 meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
     except ValueError as exc:

@@ -174,3 +174,26 @@ def test_the_weights_count_the_statistical_sigma_once(uncalibrated):
     _, _, var = _other_terms(inp.budget, result, m)
     ratio = np.sqrt(1.0 + var[m.use] / m.brdf_std[m.use] ** 2)
     assert np.median(ratio) < 1.1
+
+
+@pytest.mark.slow
+def test_nothing_to_estimate_is_a_no_op_at_any_loss_and_a_refusal_comes_first(uncalibrated, monkeypatch):
+    """An RGL file (loss log by default) or a budget without angle inputs: estimate_angles does
+    nothing. Where the budget states them, a loss other than chi2 is refused before the fit."""
+    from gonio.bench.dataset.reader import open_fit_input
+    from gonio.core.errors import GonioError
+    from gonio.fitting.optimise import mle
+    from gonio.fitting.pipeline import fit_measurements
+
+    inp = open_fit_input(uncalibrated, seed=11)
+    kw = dict(model="diffuse", seed=11, loss="log")
+    bare = dataclasses.replace(inp.budget, angles=None)
+    r = fit_measurements(inp.meas, budget=bare, estimate_angles=True, **kw)[0]
+    assert r.shared_angles is None
+
+    def no_fit(*a, **k):
+        raise AssertionError("fitted before the refusal")
+
+    monkeypatch.setattr(mle, "fit", no_fit)
+    with pytest.raises(GonioError, match="needs the chi2 loss"):
+        fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, **kw)
