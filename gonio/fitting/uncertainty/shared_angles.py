@@ -113,8 +113,9 @@ def _other_terms(budget, result, meas):
 
 def _displaced(result, meas, angles, b) -> np.ndarray:
     """f_r of the fitted model where the inputs ``b`` (sigma units) put each point: its
-    directions moved along the shared shifts (:func:`gonio.core.geometry.angle_tangents`,
-    exact in the direction, not linearised in f_r), times the wedge's irradiance change."""
+    directions stepped along the shared shifts' tangents and renormalised
+    (:func:`gonio.core.geometry.angle_tangents`; f_r itself not linearised), times the wedge's
+    irradiance change."""
     from gonio.core.geometry import angle_tangents, unit_vectors
     from gonio.fitting.uncertainty.angle_shifts import per_point
 
