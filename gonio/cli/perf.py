@@ -5,6 +5,7 @@ against a peer or a limit measured in the same run (gonio.perf)."""
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from gonio.core.errors import GonioError
@@ -148,9 +149,10 @@ def register(sub, *, env, seed, parser_class):
     ba.add_argument("--seeds", metavar="LIST", help="several seeds (10-13 or 10,12,15): every plan captured with each, "
                                                     "then each plan's errors against the dense grid of the same "
                                                     "seed, summarised with their intervals (dense must be in --plans)")
-    ba.add_argument("--estimate-angles", action="store_true",
+    ba.add_argument("--estimate-angles", action=argparse.BooleanOptionalAction, default=True,
                     help="every plan's fit estimates the instrument's shared angle errors (zero offsets, holder "
-                         "tilt, wedge) from its data, as gonio fit --estimate-angles")
+                         "tilt, wedge) from its data, as gonio fit --estimate-angles (default; "
+                         "--no-estimate-angles for the studies before 2026-12-05)")
     ba.add_argument("--out", help="a .csv file or a folder for the table")
     ba.set_defaults(func=env(_cmd_bench_acquisition))
     return bsub

@@ -149,15 +149,15 @@ def _candidates():
 
 
 def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=ADAPTIVE_POINTS, errors="typical",
-        out=None, folder=None, budget_fraction=None, estimate_angles=False) -> list[dict]:
+        out=None, folder=None, budget_fraction=None, estimate_angles=True) -> list[dict]:
     """Capture, fit and score ``sample`` (a :func:`gonio.bench.samples.load_sample` dict; the demo
     sample by default) with each plan; print the table and the front; with ``out`` write the
     CSV there. ``model``: the family fitted (default the sample's own; roughplastic GGX for a
     measured file; :data:`CHOOSE`: each plan's data choose); ``errors``: the simulator's error preset (every plan the same instrument);
     ``budget_fraction``: the sequential plans stop at that fraction of the ``dense`` plan's
     instrument time (``dense`` must be among ``plans``; it runs first) instead of ``points``;
-    ``estimate_angles``: every plan's fit estimates the shared angle errors (gonio.fitting's
-    ``estimate_angles``)."""
+    ``estimate_angles`` (default on; off to reproduce the studies before 2026-12-05): every
+    plan's fit estimates the shared angle errors (gonio.fitting's ``estimate_angles``)."""
     plans = tuple(plans)
     if budget_fraction is not None:
         f = budget_fraction
@@ -188,7 +188,7 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
     print(f"front (no plan both faster and closer): "
           f"{', '.join(r['plan'] for r in sorted(rows, key=lambda r: r['time_s']) if id(r) in on_front)}")
     print(f"fitted {'the family each plan chose (cross-validated)' if model == CHOOSE else model}"
-          f"{', the shared angle errors estimated' if estimate_angles else ''}; simulator errors {errors!r}, seed {seed}; time: instrument_time_s of the simulated capture (motion, settling, exposures, "
+          f"{', the shared angle errors estimated' if estimate_angles else ', the shared angle errors not estimated'}; simulator errors {errors!r}, seed {seed}; time: instrument_time_s of the simulated capture (motion, settling, exposures, "
           "preparation); Ngan, log: against the truth on the dense grid (theta <= 80 deg); dE00: preview, 48 px, "
           "128 spp, matched seeds; wall: capture, export, fit and scoring on this machine")
     if out is not None:

@@ -63,7 +63,9 @@ def test_every_plan_reports_its_instrument_time_and_error(tmp_path, capsys):
     with open(tmp_path / "acq.csv") as fh:
         got = list(csv.DictReader(fh))
     assert got[0]["seed"] == "3" and got[0]["errors"] == "typical" and got[0]["gonio"]
-    assert "front" in capsys.readouterr().out
+    assert all(r["estimate_angles"] == "True" for r in got)          # the protocol's default since 2026-12-05
+    out = capsys.readouterr().out
+    assert "front" in out and "the shared angle errors estimated" in out
 
 
 def test_seeds_parse_as_ranges_and_lists_and_bad_ones_are_one_line():
