@@ -171,14 +171,15 @@ class AdaptivePlan:
         self._poses, self._run_motion = None, self._motion     # `use_session`: the moves the run makes
         self._exposure_max_s = float(rig["capture"]["exposure_max_s"])
         spread = spread_subset(a, self.first_n)
-        while self.budget_s > 0 and self._path_s(self._toured(spread)) > self.budget_s:
+        toured = self._toured(spread)
+        while self.budget_s > 0 and (need := self._path_s(toured)) > self.budget_s:
             if len(spread) <= self.space.size + 1:       # the fewest points a fit needs
                 raise ValueError(f"[strategy] budget_s = {self.budget_s:g} s: the first pass alone ({len(spread)} "
-                                 f"points) takes about {self._path_s(self._toured(spread)):.0f} s by the plan's "
-                                 "estimate; give more time")
+                                 f"points) takes about {need:.0f} s by the plan's estimate; give more time")
             spread = spread[:-1]                        # the farthest-point order: a prefix stays spread
+            toured = self._toured(spread)
         self.first_n = len(spread)
-        self.batches: list[list[int]] = [self._toured(spread)]
+        self.batches: list[list[int]] = [toured]
         self.log: list[dict] = []
         self.stopped_by: str | None = None
         self.times: dict[int, float] = {}                 # `account`: each journalled point's instrument time
