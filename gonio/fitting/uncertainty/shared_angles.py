@@ -33,20 +33,21 @@ def plausible_bound(k: int) -> float:
 
 
 def _jacobian(result, meas) -> np.ndarray:
-    """d f_r / d x (P, N, C) at the fit, by differences of its free parameters: central inside
-    their bounds, one-sided at a bound (a step past it is not a parameter the model takes)."""
-    x = np.asarray(result.x, float)
-    lo, hi = result.space.lower, result.space.upper
-    cols = []
-    for j in range(len(x)):
-        h = 1e-6 * max(1.0, abs(x[j]))
-        xp, xm = x.copy(), x.copy()
-        xp[j] = min(x[j] + h, hi[j])
-        xm[j] = max(x[j] - h, lo[j])
-        fp = result.model.eval(meas.wi, meas.wo, result.space.to_params(xp))
-        fm = result.model.eval(meas.wi, meas.wo, result.space.to_params(xm))
-        cols.append((np.asarray(fp, float) - np.asarray(fm, float)) / (xp[j] - xm[j]))
-    return np.stack(cols) if cols else np.zeros((0,) + meas.brdf.shape)
+    """d f_r / d x (P, N, C) at the fit: the fit's own chi2 Jacobian
+    (:func:`gonio.fitting.optimise.result.jacobian_chi2`: exact where the model gives derivatives,
+    else differences, one-sided at a bound) without its weights; 0 at values not used."""
+    from gonio.fitting.likelihood.loss import value_weight
+    from gonio.fitting.likelihood.problem import Problem
+    from gonio.fitting.optimise.result import jacobian_chi2
+
+    try:
+        Jw, _ = jacobian_chi2(Problem(meas, result.model, result.space, "chi2"), np.asarray(result.x, float))
+    except FloatingPointError:
+        raise ValueError("the shared angle inputs could not be estimated (a non-finite Jacobian at the fit)") from None
+    w = np.broadcast_to(value_weight(meas) / meas.brdf_std, meas.brdf.shape)
+    J = np.zeros((Jw.shape[1],) + meas.brdf.shape)
+    J[:, meas.use] = Jw.T / w[meas.use]
+    return J
 
 
 def profile_inputs(U, J, resid, whiten, use, b0=None, V=None) -> tuple[np.ndarray, np.ndarray, float]:
