@@ -108,9 +108,7 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     check_output_file(out, "fit file (--out)")
     inp = open_fit_input(dataset, seed, colour_space)
     meas = inp.meas
-    if estimate_angles:
-        if loss not in (None, "chi2"):
-            raise GonioError(f"--estimate-angles needs the chi2 loss (the data's own sigma); leave out --loss {loss}")
+    if estimate_angles:             # the loss is checked by fit_measurements, before the fit
         shared = (getattr(inp.budget, "angles", None) or {}).get("shared")
         if shared is None or not len(shared):
             raise GonioError(f"--estimate-angles: {dataset.name} states no shared angle errors (a dataset.nc whose "
