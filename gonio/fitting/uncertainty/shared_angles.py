@@ -8,9 +8,10 @@ inputs b ~ N(0, I), the data are y = f(x) + U b + e. One variable-projection Gau
 on the joint problem, linearised at the fit (Golub & Pereyra 2003, Inverse Problems 19 R1),
 gives b = (I + U'PU)^-1 U'P r: r the whitened residual, P the projection off the model's own
 directions (its Jacobian at the fit), so the inputs take only what the parameters cannot; the
-budget's other shared lines are marginalised the same way. The data are corrected by the model
-at the displaced directions and refitted; the budget then carries the inputs' posterior C (lines
-U L, C = L L') in place of their prior. An estimate the stated errors make implausible (a model
+budget's other shared lines are marginalised the same way. The data are then refitted at the
+directions (and the wedge's irradiance) the inputs give them, and the next step's slopes are taken
+there; the budget carries the inputs' posterior C (lines U L, C = L L') at those directions in
+place of their prior. An estimate the stated errors make implausible (a model
 whose misfit passes for angle errors) is not applied.
 """
 
@@ -112,34 +113,38 @@ def _other_terms(budget, result, meas):
     return (np.stack(V) if V else np.zeros((0,) + meas.brdf.shape)), np.asarray(means, float), var
 
 
-def _displaced(result, meas, angles, b) -> np.ndarray:
-    """f_r of the fitted model where the inputs ``b`` (sigma units) put each point: its
-    directions stepped along the shared shifts' tangents and renormalised
-    (:func:`gonio.core.geometry.angle_tangents`; f_r itself not linearised), times the wedge's
-    irradiance change."""
+def _moved(meas, angles, b):
+    """``meas`` where the inputs ``b`` (sigma units) put each point: its directions stepped along
+    the shared shifts' tangents and renormalised (:func:`gonio.core.geometry.angle_tangents`),
+    its values and 1-sigma divided by the wedge's irradiance change (1 + its lines . b): the
+    data as measured, at the geometry they were measured at. Returns (meas, that change (N,))."""
     from gonio.core.geometry import angle_tangents, unit_vectors
     from gonio.fitting.uncertainty.angle_shifts import per_point
 
     one = per_point(angles)
     t_i, t_o = angle_tangents(meas.wi, meas.wo, one["shared"])
-    f = np.asarray(result.model.eval(unit_vectors(meas.wi + np.einsum("k,knj->nj", b, t_i)),
-                                     unit_vectors(meas.wo + np.einsum("k,knj->nj", b, t_o)), result.params), float)
     irr = one.get("shared_irradiance")
-    return f if irr is None else f * (1.0 + np.einsum("k,kn->n", b, np.asarray(irr, float)))[:, None]
+    g = np.ones(meas.n_points) if irr is None else 1.0 + np.einsum("k,kn->n", b, np.asarray(irr, float))
+    return dataclasses.replace(meas, wi=unit_vectors(meas.wi + np.einsum("k,knj->nj", b, t_i)),
+                               wo=unit_vectors(meas.wo + np.einsum("k,knj->nj", b, t_o)),
+                               brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None]), g
 
 
 def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     """``result`` refitted with the dataset's shared angle inputs estimated (module docstring),
     where the budget states them; otherwise everything unchanged. ``refit(meas)`` -> FitResult.
 
-    Each round: the residual of the data against the fitted model at the inputs so far, one
-    Gauss-Newton step for the inputs, the data corrected by the model's change between the
-    displaced and the nominal directions, a refit; until the inputs move by less than 0.05 sigma.
+    Each round: the data at the geometry the inputs so far put them (:func:`_moved`), the
+    model's slope there (the lines and the fit's Jacobian: an input whose slope vanishes at the
+    nominal directions, as a tilt across a lobe measured in its plane, has one once moved), one
+    Gauss-Newton step for the inputs, a refit at the moved geometry; until the inputs move by
+    less than 0.05 sigma.
 
-    Returns (result, meas, budget): the corrected data, the budget with the inputs' posterior,
-    and the result's ``shared_angles`` (the fit file's record: each input's estimate and
-    posterior 1-sigma in units of its stated 1-sigma, the largest correction relative to the value
-    or, where that is within its 1-sigma, to the 1-sigma)."""
+    Returns (result, meas, budget): the data at the estimated geometry, the budget with the
+    inputs' posterior, and the result's ``shared_angles`` (the fit file's record: each input's
+    estimate and posterior 1-sigma in units of its stated 1-sigma, the largest direction change,
+    the largest change of the model's value it makes relative to the value or, where that is
+    within its 1-sigma, to the 1-sigma)."""
     from gonio.fitting.uncertainty.budget import angle_components
 
     angles = getattr(budget, "angles", None) or {}
@@ -151,14 +156,13 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     whiten = np.sqrt(meas.relative_weight())[:, None] / np.where(sd > 0, sd, np.inf)
     use = meas.use & np.isfinite(meas.brdf) & (meas.brdf_std > 0)
     known = np.einsum("l,lnc->nc", v_mean, V)            # the other inputs' known means, in the data
-    y0 = meas.brdf
     first = result                                     # its instrument-response record stays with the refits
     b = np.zeros(len(shared))
-    m = meas
+    m, g = meas, np.ones(meas.n_points)
     for _ in range(rounds):
-        lines = next(c for c in angle_components(result, meas, angles) if c.name == "angle_shared").value
-        b_new, C, scale = profile_inputs(lines, _jacobian(result, meas),
-                                         y0 - known - _displaced(result, meas, angles, b), whiten, use, b, V)
+        lines = next(c for c in angle_components(result, m, angles) if c.name == "angle_shared").value
+        resid = m.brdf - known / g[:, None] - np.asarray(result.model.eval(m.wi, m.wo, result.params), float)
+        b_new, C, scale = profile_inputs(lines, _jacobian(result, m), resid, whiten, use, b, V)
         if not np.all(np.isfinite(b_new)) or not np.all(np.isfinite(C)):
             raise ValueError("the shared angle inputs could not be estimated (non-finite lines or slope at the fit)")
         if float(b_new @ b_new) > plausible_bound(len(b_new)):
@@ -169,19 +173,21 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
                           "does not follow the data closely enough to tell an angle error from its own misfit; "
                           "the fit and its budget are as without the estimate"}), meas, budget
         step, b = float(np.max(np.abs(b_new - b))), b_new
-        f0 = np.asarray(result.model.eval(meas.wi, meas.wo, result.params), float)
-        shift = _displaced(result, meas, angles, b) - f0
-        m = dataclasses.replace(meas, brdf=y0 - shift)
+        m, g = _moved(meas, angles, b)
         result = refit(m)
         if step < 0.05:
             break
     L = np.linalg.cholesky(C + 1e-12 * np.eye(len(C)))
+    f0 = np.asarray(result.model.eval(meas.wi, meas.wo, result.params), float)
+    change = np.asarray(result.model.eval(m.wi, m.wo, result.params), float) * g[:, None] - f0
+    turn = np.degrees(np.arccos(np.clip(np.minimum(np.sum(m.wi * meas.wi, 1), np.sum(m.wo * meas.wo, 1)), -1.0, 1.0)))
     info = {"inputs": int(len(b)), "applied": True, "estimate_sigma": b.tolist(), "posterior_sigma": np.sqrt(np.diag(C)).tolist(),
-            "residual_scale": scale,
-            "max_correction": float(np.max(np.abs(shift[use]) / np.maximum(np.abs(y0[use]), meas.brdf_std[use]))),
-            "method": "Gauss-Newton on the inputs (prior N(0, 1) each) with the fit's own directions projected out; "
-                      "the data corrected by the model at the displaced directions"}
-    result = dataclasses.replace(result, shared_angles=info, shared_angles_fix=(shift, L), response=first.response,
+            "residual_scale": scale, "max_direction_change_deg": float(np.max(turn)),
+            "max_correction": float(np.max(np.abs(change[use]) / np.maximum(np.abs(meas.brdf[use]), meas.brdf_std[use]))),
+            "method": "Gauss-Newton on the inputs (prior N(0, 1) each) with the fit's own directions projected out, "
+                      "the slopes at the moved directions; the data refitted at the directions and irradiance the "
+                      "estimate gives them"}
+    result = dataclasses.replace(result, shared_angles=info, shared_angles_fix=(m.wi, m.wo, g, L), response=first.response,
                                  response_factor=first.response_factor)
     return result, m, posterior_budget(budget, L)
 
@@ -197,10 +203,14 @@ def posterior_budget(budget, L):
 
 
 def applied(meas, budget, result):
-    """The dataset as opened, with ``result``'s shared-angle correction applied again (none: as
-    given): for a fit file built from the dataset rather than from the fit's own data."""
+    """The dataset as opened, at the geometry and irradiance ``result``'s shared-angle estimate
+    gave it (none: as given), with the budget's posterior: for a fit file built from the dataset
+    rather than from the fit's own data."""
     fix = getattr(result, "shared_angles_fix", None)
     if fix is None:
         return meas, budget
-    shift, L = fix
-    return dataclasses.replace(meas, brdf=meas.brdf - shift), posterior_budget(budget, L)
+    wi, wo, g, L = fix
+    if np.shape(wi) != meas.wi.shape:
+        raise ValueError(f"the shared-angle estimate was made on {len(wi)} points, this dataset has {meas.n_points}")
+    return (dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None]),
+            posterior_budget(budget, L))
