@@ -62,8 +62,29 @@ def print_fit(doc, truth=None, console=None):
     dominant = budget_line(doc)
     if dominant:
         console.print(dominant)
+    angles = shared_angles_line(doc)
+    if angles:
+        from rich.markup import escape
+
+        console.print(angles if doc["shared_angles"].get("applied") else f"[yellow]{escape(angles)}[/yellow]")
     if doc.get("posterior") and doc["posterior"].get("advice"):
         console.print(f"[yellow]{doc['posterior']['advice']}[/yellow]")
+
+
+def shared_angles_line(doc) -> str:
+    """One line on ``--estimate-angles`` (the fit file's ``shared_angles``): what was estimated
+    and how far it moved the geometry, or why it was not applied; "" without it."""
+    import numpy as np
+
+    sa = doc.get("shared_angles")
+    if not sa:
+        return ""
+    if not sa.get("applied"):
+        return f"shared angle errors not estimated: {sa.get('reason', 'no reason recorded')}"
+    est, post = np.abs(sa["estimate_sigma"]), np.asarray(sa["posterior_sigma"])
+    return (f"shared angle errors estimated: {sa['inputs']} inputs, the largest {est.max():.2f} sigma of its stated "
+            f"error, posterior {post.min():.2f}-{post.max():.2f} sigma; directions moved up to "
+            f"{sa['max_direction_change_deg']:.3f} deg")
 
 
 def budget_line(doc) -> str:

@@ -238,3 +238,39 @@ def test_a_tilt_across_a_lobe_measured_in_its_plane_is_in_the_budget(tmp_path):
     for name, truth in (("alpha", 0.05), ("int_ior", 1.5)):
         z = (doc["parameters"][name]["value"] - truth) / doc["uncertainty"]["parameters"][name]["u_combined"]
         assert abs(z) < 2.0, (name, z)
+
+
+@pytest.mark.slow
+def test_an_estimate_that_cannot_be_made_leaves_the_fit_and_says_why(uncalibrated, monkeypatch):
+    """A non-finite step (lines or slope at the fit) or a failing Jacobian does not throw away a
+    finished fit (a multi-seed ``perf acquisition`` lost every seed to one): the fit and budget
+    stay as without the estimate, the record says why, and ``gonio fit`` prints it in one line."""
+    import gonio.fitting.uncertainty.shared_angles as sa
+    from gonio.bench.dataset.reader import open_fit_input
+    from gonio.cli.fit import shared_angles_line
+    from gonio.fitting.pipeline import fit_measurements
+
+    inp = open_fit_input(uncalibrated, seed=11)
+    kw = dict(model="roughplastic", options={"distribution": "ggx"}, seed=11)
+    plain = fit_measurements(inp.meas, budget=inp.budget, **kw)
+    good = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, **kw)[0]
+    line = shared_angles_line({"shared_angles": good.shared_angles})
+    assert line.startswith(f"shared angle errors estimated: {good.shared_angles['inputs']} inputs") and "deg" in line
+
+    def nan_step(U, J, resid, whiten, use, b0=None, V=None):
+        return np.full(len(U), np.nan), np.eye(len(U)), 1.0
+
+    def bad_jacobian(result, meas):
+        raise ValueError("the shared angle inputs could not be estimated (a non-finite Jacobian at the fit)")
+
+    for name, fake in (("profile_inputs", nan_step), ("_jacobian", bad_jacobian)):
+        with monkeypatch.context() as mp:
+            mp.setattr(sa, name, fake)
+            result, meas, budget, _, _ = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, **kw)
+        info = result.shared_angles
+        assert info["applied"] is False and "non-finite" in info["reason"] and "as without" in info["reason"]
+        assert np.array_equal(result.x, plain[0].x) and budget.angles is plain[2].angles
+        assert np.array_equal(meas.wo, inp.meas.wo)
+        line = shared_angles_line({"shared_angles": info})
+        assert line.startswith("shared angle errors not estimated: ") and "\n" not in line
+    assert shared_angles_line({"shared_angles": None}) == ""

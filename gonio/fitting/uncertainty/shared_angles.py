@@ -159,19 +159,27 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     first = result                                     # its instrument-response record stays with the refits
     b = np.zeros(len(shared))
     m, g = meas, np.ones(meas.n_points)
+    as_without = "; the fit and its budget are as without the estimate"
     for _ in range(rounds):
         lines = next(c for c in angle_components(result, m, angles) if c.name == "angle_shared").value
         resid = m.brdf - known / g[:, None] - np.asarray(result.model.eval(m.wi, m.wo, result.params), float)
-        b_new, C, scale = profile_inputs(lines, _jacobian(result, m), resid, whiten, use, b, V)
-        if not np.all(np.isfinite(b_new)) or not np.all(np.isfinite(C)):
-            raise ValueError("the shared angle inputs could not be estimated (non-finite lines or slope at the fit)")
+        try:
+            b_new, C, scale = profile_inputs(lines, _jacobian(result, m), resid, whiten, use, b, V)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            b_new, C, scale, why = None, None, float("nan"), str(exc)
+        else:
+            why = None if np.all(np.isfinite(b_new)) and np.all(np.isfinite(C)) else \
+                "the shared angle inputs could not be estimated (non-finite lines or slope at the fit)"
+        if why is not None:             # the fit itself stands: the estimate is an addition to it
+            return dataclasses.replace(first, shared_angles={"inputs": int(len(b)), "applied": False,
+                                                             "reason": why + as_without}), meas, budget
         if float(b_new @ b_new) > plausible_bound(len(b_new)):
             return dataclasses.replace(first, shared_angles={
                 "inputs": int(len(b_new)), "applied": False, "estimate_sigma": b_new.tolist(), "residual_scale": scale,
                 "reason": f"the inputs' estimate lies {math.sqrt(float(b_new @ b_new)):.1f} sigma from their stated "
                           f"errors (beyond the 99.9 % chi2 bound {math.sqrt(plausible_bound(len(b_new))):.1f}): the model "
-                          "does not follow the data closely enough to tell an angle error from its own misfit; "
-                          "the fit and its budget are as without the estimate"}), meas, budget
+                          "does not follow the data closely enough to tell an angle error from its own misfit"
+                          + as_without}), meas, budget
         step, b = float(np.max(np.abs(b_new - b))), b_new
         m, g = _moved(meas, angles, b)
         result = refit(m)
