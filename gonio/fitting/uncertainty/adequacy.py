@@ -251,20 +251,16 @@ def _cutoff_points(result, meas, angles) -> np.ndarray:
 
 def _displaced(result, meas, angles):
     """``model_e(x, e)``: the fitted model's f_r (N, C) at parameters x with the directions
-    displaced by the K shared angle inputs e (their tangents, gonio.fitting.uncertainty.budget),
+    displaced by the K shared angle inputs e (gonio.fitting.uncertainty.angle_shifts.moved),
     times the sample's own irradiance change (1 + sum e_k irr_k) where the budget states one."""
-    from gonio.core.geometry import angle_tangents, unit_vectors
+    from gonio.fitting.uncertainty.angle_shifts import moved, shared_moves
 
-    t_i, t_o = angle_tangents(meas.wi, meas.wo, np.asarray(angles["shared"], float))
-    irr = angles.get("shared_irradiance")
-    irr = None if irr is None else np.asarray(irr, float)
+    moves = shared_moves(meas.wi, meas.wo, angles)
 
     def model_e(x, e):
-        wi = unit_vectors(meas.wi + np.einsum("k,knj->nj", e, t_i))
-        wo = unit_vectors(meas.wo + np.einsum("k,knj->nj", e, t_o))
-        f = np.asarray(result.model.eval(wi, wo, result.space.to_params(x)), float)
-        return f if irr is None else f * (1.0 + e @ irr)[:, None]
-    return model_e, t_i.shape[0]
+        wi, wo, g = moved(meas.wi, meas.wo, moves, e)
+        return np.asarray(result.model.eval(wi, wo, result.space.to_params(x)), float) * g[:, None]
+    return model_e, moves[0].shape[0]
 
 
 def _angles_refitted(result, meas, angles, whiten, flat, U_other, offset, x0) -> float:

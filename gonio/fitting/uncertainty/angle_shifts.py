@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from gonio.core.geometry import angles as _angles_of, directions as _directions, tangent_basis, unit_vectors
+from gonio.core.geometry import (angle_tangents, angles as _angles_of, directions as _directions, tangent_basis,
+                                 unit_vectors)
 
-__all__ = ["AXES", "ANGLE_SHIFTS", "IRRADIANCE_SHIFT", "per_point", "slope"]
+__all__ = ["AXES", "ANGLE_SHIFTS", "IRRADIANCE_SHIFT", "per_point", "slope", "shared_moves", "moved"]
 
 #: the stage axes of ``angle_shift_independent``'s inputs when it has one group label per axis
 AXES = ("yaw", "tilt", "azimuth", "lamp")
@@ -105,3 +106,22 @@ def per_point(angles):
     if angles.get("shared_irradiance") is not None:
         out["shared_irradiance"] = np.einsum("knc,nc->kn", np.asarray(angles["shared_irradiance"], float), w)
     return out
+
+
+def shared_moves(wi, wo, angles):
+    """(t_i, t_o, irr): each point's direction change (K, N, 3) per +1 sigma of each of the K
+    shared inputs of ``angles`` (:func:`per_point` applied), and the sample's relative irradiance
+    change (K, N), or None where the dataset states none."""
+    one = per_point(angles)
+    t_i, t_o = angle_tangents(wi, wo, np.asarray(one["shared"], float))
+    irr = one.get("shared_irradiance")
+    return t_i, t_o, None if irr is None else np.asarray(irr, float)
+
+
+def moved(wi, wo, moves, e):
+    """(wi, wo, g): the directions where the shared inputs ``e`` (K, sigma units) put each point,
+    stepped along :func:`shared_moves`' ``moves`` and renormalised (f_r itself is evaluated
+    there, not linearised), and the irradiance factor g = 1 + e . irr (N,; ones without)."""
+    t_i, t_o, irr = moves
+    g = np.ones(len(wi)) if irr is None else 1.0 + np.einsum("k,kn->n", e, irr)
+    return (unit_vectors(wi + np.einsum("k,knj->nj", e, t_i)), unit_vectors(wo + np.einsum("k,knj->nj", e, t_o)), g)

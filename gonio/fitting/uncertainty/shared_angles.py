@@ -113,21 +113,15 @@ def _other_terms(budget, result, meas):
     return (np.stack(V) if V else np.zeros((0,) + meas.brdf.shape)), np.asarray(means, float), var
 
 
-def _moved(meas, angles, b):
-    """``meas`` where the inputs ``b`` (sigma units) put each point: its directions stepped along
-    the shared shifts' tangents and renormalised (:func:`gonio.core.geometry.angle_tangents`),
-    its values and 1-sigma divided by the wedge's irradiance change (1 + its lines . b): the
-    data as measured, at the geometry they were measured at. Returns (meas, that change (N,))."""
-    from gonio.core.geometry import angle_tangents, unit_vectors
-    from gonio.fitting.uncertainty.angle_shifts import per_point
+def _moved(meas, moves, b):
+    """``meas`` where the inputs ``b`` (sigma units) put each point
+    (:func:`gonio.fitting.uncertainty.angle_shifts.moved`), its values and 1-sigma divided by the
+    wedge's irradiance change: the data as measured, at the geometry they were measured at.
+    Returns (meas, that change (N,))."""
+    from gonio.fitting.uncertainty.angle_shifts import moved
 
-    one = per_point(angles)
-    t_i, t_o = angle_tangents(meas.wi, meas.wo, one["shared"])
-    irr = one.get("shared_irradiance")
-    g = np.ones(meas.n_points) if irr is None else 1.0 + np.einsum("k,kn->n", b, np.asarray(irr, float))
-    return dataclasses.replace(meas, wi=unit_vectors(meas.wi + np.einsum("k,knj->nj", b, t_i)),
-                               wo=unit_vectors(meas.wo + np.einsum("k,knj->nj", b, t_o)),
-                               brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None]), g
+    wi, wo, g = moved(meas.wi, meas.wo, moves, b)
+    return dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None]), g
 
 
 def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
@@ -145,6 +139,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     estimate and posterior 1-sigma in units of its stated 1-sigma, the largest direction change,
     the largest change of the model's value it makes relative to the value or, where that is
     within its 1-sigma, to the 1-sigma)."""
+    from gonio.fitting.uncertainty.angle_shifts import shared_moves
     from gonio.fitting.uncertainty.budget import angle_components
 
     angles = getattr(budget, "angles", None) or {}
@@ -159,6 +154,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     first = result                                     # its instrument-response record stays with the refits
     b = np.zeros(len(shared))
     m, g = meas, np.ones(meas.n_points)
+    moves = shared_moves(meas.wi, meas.wo, angles)
     as_without = "; the fit and its budget are as without the estimate"
     for _ in range(rounds):
         lines = next(c for c in angle_components(result, m, angles) if c.name == "angle_shared").value
@@ -181,7 +177,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
                           "does not follow the data closely enough to tell an angle error from its own misfit"
                           + as_without}), meas, budget
         step, b = float(np.max(np.abs(b_new - b))), b_new
-        m, g = _moved(meas, angles, b)
+        m, g = _moved(meas, moves, b)
         result = refit(m)
         if step < 0.05:
             break
