@@ -117,7 +117,7 @@ def print_selection(doc, console=None) -> None:
 
 
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb", quiet=False,
-            estimate_angles=False):
+            estimate_angles=None):
     from gonio.fitting import write_json_atomic
 
     from gonio.core.preflight import check_output_file, writing

@@ -121,7 +121,7 @@ def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress
 
 
 def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, budget=None, dataset_path=None,
-                     rng=None, progress=None, estimate_angles=False):
+                     rng=None, progress=None, estimate_angles=None):
     """Fit (or select) a model on ``meas``.
 
     Returns ``(result, meas, budget, ranking, note)``: the FitResult; the Measurements and
@@ -131,8 +131,10 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     ``rng``: the Generator of the starts (default ``numpy.random.default_rng(seed)``); the
     refit with the angular response always starts from ``default_rng(seed)``. ``progress``:
     ``progress(done, total, label)`` from the model selection's fits and renders (None: silent).
-    ``estimate_angles``: the budget's shared angle inputs estimated with the fit and the data
-    corrected (gonio/fitting/uncertainty/shared_angles.py; chi2 only).
+    ``estimate_angles``: the budget's shared angle inputs (stage zero offsets, holder tilt,
+    wedge) estimated with the fit and the data refitted at the geometry they give
+    (gonio/fitting/uncertainty/shared_angles.py). None (default): wherever the budget states
+    them and the loss is chi2; True: the same, and another loss refused; False: never.
     """
     import gonio.models as gm
     from gonio.fitting.likelihood.aperture import with_instrument_response
@@ -155,8 +157,11 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     if loss not in LOSSES:
         raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
     shared = (getattr(budget, "angles", None) or {}).get("shared")
-    if estimate_angles and loss != "chi2" and shared is not None and np.size(shared):     # before the fit
+    stated = shared is not None and bool(np.size(shared))
+    if estimate_angles and loss != "chi2" and stated:     # before the fit
         raise GonioError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), not {loss}")
+    if estimate_angles is None:
+        estimate_angles = stated and loss == "chi2"
     rng = np.random.default_rng(seed) if rng is None else rng
     ranking, note = None, None
     candidates = resolve_candidates(model, options)
@@ -205,7 +210,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
-                posterior_budget_s=None, dataset_path=None, budget=None, progress=None, estimate_angles=False):
+                posterior_budget_s=None, dataset_path=None, budget=None, progress=None, estimate_angles=None):
     """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
 
     ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting.load_budget`; None:

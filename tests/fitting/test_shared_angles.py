@@ -110,7 +110,7 @@ def test_a_capture_fit_estimates_records_and_carries_the_inputs(uncalibrated):
     np.testing.assert_array_equal(b2.angles["shared"], budget.angles["shared"])
     doc = fit_document_of(result, inp, seed=11, dataset_path=uncalibrated)
     assert doc["shared_angles"] == info
-    plain = fit_dataset(inp, **kw)[1]
+    plain = fit_dataset(inp, estimate_angles=False, **kw)[1]
     assert plain["shared_angles"] is None
     # a parameter at its bound (a real felt's blue reflectance at 1): the slope stays inside it
     from gonio.fitting.uncertainty.shared_angles import _jacobian
@@ -125,7 +125,7 @@ def test_a_capture_fit_estimates_records_and_carries_the_inputs(uncalibrated):
     # a model that cannot follow the data (a conductor on a plastic): its misfit would pass for
     # angle errors 8-14 sigma off; the estimate is refused, the fit and budget left as they were
     kw_d = {**kw, "model": "roughconductor"}
-    r_plain, _, b_plain, _, _ = fit_measurements(inp.meas, budget=inp.budget, **kw_d)
+    r_plain, _, b_plain, _, _ = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=False, **kw_d)
     r_est, _, b_est, _, _ = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, **kw_d)
     assert r_est.shared_angles["applied"] is False and "misfit" in r_est.shared_angles["reason"]
     assert np.array_equal(r_est.x, r_plain.x) and b_est.angles is b_plain.angles
@@ -252,7 +252,7 @@ def test_an_estimate_that_cannot_be_made_leaves_the_fit_and_says_why(uncalibrate
 
     inp = open_fit_input(uncalibrated, seed=11)
     kw = dict(model="roughplastic", options={"distribution": "ggx"}, seed=11)
-    plain = fit_measurements(inp.meas, budget=inp.budget, **kw)
+    plain = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=False, **kw)
     good = fit_measurements(inp.meas, budget=inp.budget, estimate_angles=True, **kw)[0]
     line = shared_angles_line({"shared_angles": good.shared_angles})
     assert line.startswith(f"shared angle errors estimated: {good.shared_angles['inputs']} inputs") and "deg" in line
@@ -274,3 +274,22 @@ def test_an_estimate_that_cannot_be_made_leaves_the_fit_and_says_why(uncalibrate
         line = shared_angles_line({"shared_angles": info})
         assert line.startswith("shared angle errors not estimated: ") and "\n" not in line
     assert shared_angles_line({"shared_angles": None}) == ""
+
+
+@pytest.mark.slow
+def test_the_default_estimates_where_it_can_and_nowhere_else(uncalibrated):
+    """Default (None): estimated wherever the budget states shared inputs and the loss is chi2;
+    another loss goes without it, not refused (only an explicit request is); False: never.
+    ``gonio fit`` takes --estimate-angles / --no-estimate-angles, neither meaning the default."""
+    from gonio.bench.dataset.reader import open_fit_input
+    from gonio.cli.main import build_parser
+    from gonio.fitting.pipeline import fit_measurements
+
+    inp = open_fit_input(uncalibrated, seed=11)
+    kw = dict(model="roughplastic", options={"distribution": "ggx"}, seed=11, budget=inp.budget)
+    assert fit_measurements(inp.meas, **kw)[0].shared_angles["applied"] is True
+    assert fit_measurements(inp.meas, loss="log", **kw)[0].shared_angles is None
+    assert fit_measurements(inp.meas, estimate_angles=False, **kw)[0].shared_angles is None
+    parse = build_parser().parse_args
+    assert [parse(["fit", "d.nc", "--out", "f.json", *a]).estimate_angles for a in ([], ["--estimate-angles"], ["--no-estimate-angles"])] \
+        == [None, True, False]
