@@ -292,3 +292,27 @@ def test_the_calibration_row_says_what_was_applied_or_that_nothing_was():
     assert SCRIPT not in text
     hostile = _calibration({"calibration": {"sim": False, "seed": SCRIPT * 100}, "alignment": {}})
     assert "on this instrument" in hostile and len(hostile) <= 900
+
+
+def test_the_shared_angle_estimate_is_one_sentence_or_nothing():
+    """The fit file's ``shared_angles`` in the report: applied (inputs, the largest estimate,
+    the posterior range, the largest direction change), not applied (its reason, cut), absent
+    (nothing); a wrong type is refused in one line like every other fit-file value."""
+    from gonio.bench.report import _shared_angles_text
+    from gonio.bench.report.inputs import Doc
+    from gonio.core.errors import GonioError
+
+    def text(sa):
+        return _shared_angles_text(Doc({"shared_angles": sa}, "fit.json", fix="re-run gonio fit").sub("shared_angles"))
+
+    applied = text({"inputs": 11, "applied": True, "estimate_sigma": [0.05, -1.18, 0.4],
+                    "posterior_sigma": [0.99, 0.053, 0.7], "max_direction_change_deg": 0.0604})
+    assert "11 inputs" in applied and "1.18 times" in applied and "0.053-0.99" in applied and "0.06 deg" in applied
+    older = text({"inputs": 3, "applied": True, "estimate_sigma": [0.1], "posterior_sigma": [0.5]})
+    assert older.endswith("carries.")                       # a fit file from before the direction change was recorded
+    refused = text({"inputs": 10, "applied": False, "reason": "the inputs' estimate lies 15.6 sigma " + "x" * 900})
+    assert refused.startswith("The instrument's shared angle errors") and "not estimated: the inputs'" in refused
+    assert len(refused) < 700 and "\n" not in refused
+    assert text(None) == ""
+    with pytest.raises(GonioError, match="estimate_sigma must be a list"):
+        text({"inputs": 3, "applied": True, "estimate_sigma": "1.2", "posterior_sigma": [0.5]})
