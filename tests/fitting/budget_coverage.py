@@ -393,7 +393,8 @@ def main(argv=None):
                     help="capture: roughplastic-Beckmann alpha 0.15 or glossy roughplastic-GGX alpha 0.05")
     ap.add_argument("--calibrated", action="store_true", help="capture: gonio calibrate first and use it")
     ap.add_argument("--estimate-angles", action="store_true",
-                    help="capture: the fit estimates the shared angle errors (gonio fit --estimate-angles)")
+                    help="capture: the fit estimates the shared angle errors (gonio fit's default since "
+                         "2026-12-05); without it the fit is gonio fit --no-estimate-angles, as in the earlier studies")
     ap.add_argument("--summarise", type=Path, nargs="+", metavar="FILE.json",
                     help="summarise one run, or pool several of the same study (mode, sample, errors, "
                          "calibration) whose seeds do not overlap")
