@@ -293,3 +293,21 @@ def test_the_default_estimates_where_it_can_and_nowhere_else(uncalibrated):
     parse = build_parser().parse_args
     assert [parse(["fit", "d.nc", "--out", "f.json", *a]).estimate_angles for a in ([], ["--estimate-angles"], ["--no-estimate-angles"])] \
         == [None, True, False]
+
+
+def test_a_batch_refuses_either_angle_flag_rather_than_ignore_it():
+    """``--batch`` fits as the default (estimated where the budget states the inputs): an
+    explicit --no-estimate-angles was taken and silently estimated anyway; either flag with
+    --batch is refused in one line before any work. --scene never estimates, so only
+    --estimate-angles is refused there."""
+    from gonio.cli.commands import cmd_fit
+    from gonio.cli.main import build_parser
+    from gonio.core.errors import GonioError
+
+    parse = build_parser().parse_args
+    for flag in ("--estimate-angles", "--no-estimate-angles"):
+        args = parse(["fit", "a.nc", "b.nc", "--batch", "--model", "roughplastic", flag, "--out", "never"])
+        with pytest.raises(GonioError, match="leave out --batch"):
+            cmd_fit(args)
+    with pytest.raises(GonioError, match="leave out --batch and --scene"):
+        cmd_fit(parse(["fit", "a.nc", "--scene", "overcast", "--estimate-angles", "--out", "never.json"]))
