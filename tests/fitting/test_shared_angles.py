@@ -311,3 +311,45 @@ def test_a_batch_refuses_either_angle_flag_rather_than_ignore_it():
             cmd_fit(args)
     with pytest.raises(GonioError, match="leave out --batch and --scene"):
         cmd_fit(parse(["fit", "a.nc", "--scene", "overcast", "--estimate-angles", "--out", "never.json"]))
+
+
+@pytest.mark.slow
+def test_the_report_draws_the_fit_against_the_data_it_fitted(uncalibrated, tmp_path, monkeypatch):
+    """With the estimate on by default, the fit is of the data at the directions (and over the
+    wedge's irradiance change) the estimate gave them: chi2/dof ~1 on this capture. The report
+    re-opened the dataset at its nominal directions and drew the in-plane, polar and residual
+    figures (and the 3-D view) of the fit against those: rms (measured - fit) / sigma 13 where
+    the fit file said the model follows its data."""
+    import shutil
+
+    import gonio.bench.report as report
+    from gonio.bench.dataset.reader import open_fit_input
+    from gonio.bench.report.inputs import Folder
+    from gonio.fitting import write_json_atomic
+    from gonio.fitting.pipeline import fit_dataset
+
+    inp = open_fit_input(uncalibrated, seed=11)
+    result, doc, _ = fit_dataset(inp, model="roughplastic", options={"distribution": "ggx"}, seed=11)
+    assert doc["shared_angles"]["applied"] is True
+    shutil.copy(uncalibrated, tmp_path / "dataset.nc")
+    write_json_atomic(tmp_path / "fit.json", doc)
+    seen = {}
+
+    def no_figures(meas, model, params, *args, fitted=None, **kw):
+        seen.update(meas=meas, fitted=fitted, model=model, params=params)
+        return {}
+
+    monkeypatch.setattr(report, "_draw_all", no_figures)
+    monkeypatch.setattr(report, "view_data", lambda meas, *a: seen.setdefault("view", meas) and {})
+    report.build_page(tmp_path, report.find_outputs(tmp_path), Folder(tmp_path))
+    drawn = seen["fitted"] if seen["fitted"] is not None else seen["meas"]
+    for m in (drawn, seen["view"]):
+        z = ((m.brdf - seen["model"].eval(m.wi, m.wo, seen["params"])) / m.brdf_std)[m.use]
+        assert np.sqrt(np.mean(z ** 2)) < 1.5 * np.sqrt(doc["goodness"]["chi2_dof"]), np.sqrt(np.mean(z ** 2))
+    assert np.array_equal(seen["meas"].wo, inp.meas.wo)        # the coverage figure: the plan's directions
+    # a record that does not fit the dataset (another file's): the nominal data, and a note
+    from gonio.bench.report.fitdoc import as_fitted
+
+    assert as_fitted(inp.meas, uncalibrated, {"applied": False})[0] is inp.meas
+    same, note = as_fitted(inp.meas, uncalibrated, {"applied": True, "estimate_sigma": [0.5, 0.1]})
+    assert same is inp.meas and "nominal directions" in note and "2 inputs" in note

@@ -30,7 +30,7 @@ from gonio.bench.report import certificate as cert
 from gonio.bench.report import fitdoc as _fitdoc
 from gonio.bench.report import figures as figs
 from gonio.bench.report import meta
-from gonio.bench.report.fitdoc import truth_for
+from gonio.bench.report.fitdoc import as_fitted, truth_for
 from gonio.bench.report.inputs import MAX_IMAGE_BYTES, PNG_MAGIC, Doc, Folder, cut, show
 from gonio.bench.report.view import view_data
 from gonio.core.errors import GonioError
@@ -421,14 +421,15 @@ def _partners(dataset_path, n):
     return partner.astype(np.int64)
 
 
-def _draw_all(meas, model, params, samples, rendered, side, notes, preview=None, progress=None) -> dict:
-    """Every figure the inputs allow, one ``figs.draw`` each; ``progress(done, total, label)``
-    before each (the report's slowest part: 7-15 s in all)."""
+def _draw_all(meas, model, params, samples, rendered, side, notes, preview=None, progress=None, fitted=None) -> dict:
+    """Every figure the inputs allow, one ``figs.draw`` each; the fit against ``fitted`` (the data
+    as it was fitted, default ``meas``); ``progress(done, total, label)`` before each (the
+    report's slowest part: 7-15 s in all)."""
     images: dict[str, bytes] = {}
     jobs = []
     if model is not None:
         for name, fn in (("inplane.png", figs.inplane), ("polar.png", figs.polar), ("residuals.png", figs.residuals)):
-            jobs.append((name, fn, (meas, model, params)))
+            jobs.append((name, fn, (meas if fitted is None else fitted, model, params)))
         jobs.append(("albedo.png", figs.albedo, (model, params)))
     else:
         jobs.append(("measured.png", figs.inplane, (meas,)))
@@ -503,8 +504,13 @@ def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, i
     ctx["title"] = cut(f"sample {ident['sample_id']}, " if ident["sample_id"] else "", 200) + \
         cut(f"session folder {Path(folder).resolve().name}", 200)
     fit = model = params = samples = rendered = side = None
+    fitted = meas           # the data as the fit saw them: at its shared-angle estimate's directions
     if found["fit"] is not None:
         fit, model, params = _load_fit(root, found["fit"])
+        sa = fit.sub("shared_angles")
+        fitted, note = as_fitted(meas, root.check(found["dataset"], "dataset"), None if sa is None else
+                                 {"applied": sa.flag("applied"), "estimate_sigma": sa.numbers("estimate_sigma")})
+        ctx["notes"] += [note] if note else []
         truth = meas.attrs.get("sample_truth")
         truth = truth if isinstance(truth, dict) else None
         ctx["fit"] = fit_section(fit, truth)
@@ -528,12 +534,12 @@ def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, i
 
     # every input is read and checked: now the figures and the view's data
     notes = ctx["notes"]
-    images = _draw_all(meas, model, params, samples, rendered, side, notes, ctx["preview"], progress)
+    images = _draw_all(meas, model, params, samples, rendered, side, notes, ctx["preview"], progress, fitted=fitted)
     if ctx["preview"] is not None and ctx["preview"]["note"]:
         notes.append(ctx["preview"]["note"])
     measured = ctx["preview"] is None or ctx["preview"]["measured"]
     ctx["figures"] = _figures(images, None if measured else {"preview_side_by_side.png": PREVIEW_FIT_ONLY})
-    ctx["view"] = view_data(meas, model, params)
+    ctx["view"] = view_data(fitted, model, params)
 
     script = (TEMPLATES / "report.js").read_text(encoding="utf-8").removesuffix("\n")
     ctx["script_hash"] = base64.b64encode(hashlib.sha256(script.encode("utf-8")).digest()).decode("ascii")

@@ -1,6 +1,6 @@
 """Helpers on fit documents (``fit.json``) shared by the fit runner, the report and the demo:
-the truth of a simulated sample matched to a fit's parameter names, and the energy
-constraint in words. One place, so the three say the same thing."""
+the truth of a simulated sample matched to a fit's parameter names, the energy
+constraint in words, and the dataset at the geometry the fit's shared-angle estimate gave it. One place, so the three say the same thing."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 
 from gonio.core.channels import RGB
 
-__all__ = ["CHANNEL_NAMES", "energy_text", "truth_by_name", "truth_for"]
+__all__ = ["CHANNEL_NAMES", "as_fitted", "energy_text", "truth_by_name", "truth_for"]
 
 #: The names of the colour channels in a fit vector's names (``diffuse_reflectance[R]``).
 CHANNEL_NAMES = list(RGB.names)
@@ -55,3 +55,19 @@ def energy_text(energy: dict) -> str:
         return "conserved by construction"
     state = "holds" if energy.get("holds") else "VIOLATED"
     return f"{state} (max albedo {energy['max_albedo']:.4f})" if energy.get("max_albedo") is not None else state
+
+
+def as_fitted(meas, dataset_path, record):
+    """``meas`` (the dataset at ``dataset_path`` as opened) at the directions and irradiance the
+    fit file's ``shared_angles`` ``record`` gave it (gonio.fitting.uncertainty.shared_angles
+    .as_estimated): the data the fit's parameters were fitted to. Returns (Measurements, None),
+    or (``meas`` as it is, a note) where the record does not fit the dataset."""
+    from gonio.fitting import load_budget
+    from gonio.fitting.uncertainty.shared_angles import as_estimated
+
+    if not isinstance(record, dict) or not record.get("applied"):
+        return meas, None
+    try:
+        return as_estimated(meas, getattr(load_budget(dataset_path, meas), "angles", None), record), None
+    except ValueError as exc:
+        return meas, f"The data are drawn at their nominal directions: {' '.join(str(exc).split())[:200]}."

@@ -22,7 +22,8 @@ import math
 
 import numpy as np
 
-__all__ = ["with_shared_angles", "profile_inputs", "posterior_budget", "applied", "plausible_bound"]
+__all__ = ["with_shared_angles", "profile_inputs", "posterior_budget", "applied", "as_estimated",
+           "plausible_bound"]
 
 
 def plausible_bound(k: int) -> float:
@@ -218,3 +219,20 @@ def applied(meas, budget, result):
         raise ValueError(f"the shared-angle estimate was made on {len(wi)} points, this dataset has {meas.n_points}")
     return (dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None]),
             posterior_budget(budget, L))
+
+
+def as_estimated(meas, angles, record):
+    """``meas`` (a dataset as opened, its stated shared inputs ``angles``) at the directions and
+    irradiance a fit file's ``shared_angles`` ``record`` gave it: the data the fit's parameters
+    were fitted to, for a figure or a residual read from the fit file; ``meas`` itself where no
+    estimate was applied. ValueError where the record does not fit the dataset."""
+    from gonio.fitting.uncertainty.angle_shifts import shared_moves
+
+    if not record or not record.get("applied"):
+        return meas
+    shared = (angles or {}).get("shared")
+    b = np.asarray(record.get("estimate_sigma") or [], float)
+    if shared is None or b.shape != (len(shared),) or not np.all(np.isfinite(b)):
+        raise ValueError(f"the fit file's shared-angle estimate ({b.size} inputs) does not fit this dataset "
+                         f"({0 if shared is None else len(shared)} shared angle inputs)")
+    return _moved(meas, shared_moves(meas.wi, meas.wo, angles), b)[0]
