@@ -38,7 +38,7 @@ from gonio.core.preflight import check_output_dir
 from gonio.bench.samples import load_sample
 from gonio.core.errors import GonioError
 from gonio.bench.dataset.export import export
-from gonio.cli.fit import fit_dataset, open_budget, print_fit, render_closure, render_previews
+from gonio.cli.fit import fit_dataset, fitted_data, open_budget, print_fit, render_closure, render_previews
 from gonio.bench import calibrate
 from gonio.bench.plan.plans import load_plan
 from gonio.bench.report import write_report
@@ -194,14 +194,15 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, q
         timings["posterior (emcee)"] = post.time_s
     write_json_atomic(out / "fit.json", doc)
 
+    fitted = fitted_data(meas, dataset, out / "fit.json")     # at the directions the estimate gave the data
     with Steps("fit speed against scipy", enabled=not quiet):
-        speed = _speed_vs_error(meas, result, sample, seed, doc)
+        speed = _speed_vs_error(fitted, result, sample, seed, doc)
     write_json_atomic(out / "speed.json", speed)
 
     _step(console, 5, "render: Mitsuba re-render at every measured pose, and sphere previews (fit vs truth)")
     t = time.perf_counter()
     with Steps("render at the measured poses", enabled=not quiet):
-        closure = render_closure(out / "fit.json", meas, out / "render")
+        closure = render_closure(out / "fit.json", fitted, out / "render")
     timings[f"Mitsuba re-render ({closure['variant']})"] = time.perf_counter() - t
 
     t = time.perf_counter()

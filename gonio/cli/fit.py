@@ -191,7 +191,7 @@ def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, previ
     check_variant(variant)
     if not Path(fit_path).exists():
         raise GonioError(f"fit file {fit_path} does not exist; run `gonio fit DATASET --out FIT.json` first")
-    meas = _open_dataset(dataset)
+    meas = fitted_data(_open_dataset(dataset), dataset, fit_path)
     with Steps("render at the measured poses", enabled=not quiet):
         result = render_closure(fit_path, meas, out_dir, variant)
     s = result["summary"]
@@ -205,3 +205,19 @@ def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, previ
             pv = render_previews(fit_path, out_dir, measured, size, spp)
         de = f"; mean CIEDE2000 vs measured {pv['delta_e_mean']:.2f}" if pv.get("delta_e_mean") is not None else ""
         _wrapped(f"previews in {Path(out_dir) / 'preview'} ({pv['time_s']:.1f} s){de}")
+
+
+def fitted_data(meas, dataset, fit_path):
+    """``meas`` (``dataset`` as opened) at the directions the fit file's shared-angle estimate
+    gave the data (gonio.bench.report.fitdoc.as_fitted; a fit file that cannot be read is left to
+    its reader's refusal); a note on the terminal where the estimate does not fit the dataset."""
+    from gonio.bench.report.fitdoc import as_fitted
+
+    try:
+        record = json.loads(Path(fit_path).read_text(encoding="utf-8")).get("shared_angles")
+    except (OSError, ValueError, AttributeError):
+        return meas
+    meas, note = as_fitted(meas, dataset, record)
+    if note:
+        _wrapped(note)
+    return meas

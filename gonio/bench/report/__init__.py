@@ -437,7 +437,7 @@ def _draw_all(meas, model, params, samples, rendered, side, notes, preview=None,
     if samples is not None:
         jobs.append(("corner.png", figs.corner_plot, tuple(samples)))
     if rendered is not None:
-        jobs.append(("mitsuba_vs_measured.png", figs.mitsuba_vs_measured, (meas, rendered)))
+        jobs.append(("mitsuba_vs_measured.png", figs.mitsuba_vs_measured, (meas if fitted is None else fitted, rendered)))
     if preview is not None and preview.get("tiles"):
         # the preview's images composed with titles that print at 8 pt or more (the side-by-side
         # PNG `gonio render` writes is 9.6 in wide: its titles printed at 6.7 pt on A4)

@@ -1,8 +1,11 @@
 """Helpers on fit documents (``fit.json``) shared by the fit runner, the report and the demo:
-the truth of a simulated sample matched to a fit's parameter names, the energy
-constraint in words, and the dataset at the geometry the fit's shared-angle estimate gave it. One place, so the three say the same thing."""
+the truth of a simulated sample matched to a fit's parameter names, the energy constraint in
+words, and the dataset at the geometry the fit's shared-angle estimate gave it. One place, so
+the three say the same thing."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -62,12 +65,13 @@ def as_fitted(meas, dataset_path, record):
     fit file's ``shared_angles`` ``record`` gave it (gonio.fitting.uncertainty.shared_angles
     .as_estimated): the data the fit's parameters were fitted to. Returns (Measurements, None),
     or (``meas`` as it is, a note) where the record does not fit the dataset."""
-    from gonio.fitting import load_budget
+    from gonio.bench.dataset.reader import open_budget
+    from gonio.core.errors import GonioError
     from gonio.fitting.uncertainty.shared_angles import as_estimated
 
     if not isinstance(record, dict) or not record.get("applied"):
         return meas, None
     try:
-        return as_estimated(meas, getattr(load_budget(dataset_path, meas), "angles", None), record), None
-    except ValueError as exc:
+        return as_estimated(meas, getattr(open_budget(Path(dataset_path), meas), "angles", None), record), None
+    except (ValueError, GonioError) as exc:
         return meas, f"The data are drawn at their nominal directions: {' '.join(str(exc).split())[:200]}."
