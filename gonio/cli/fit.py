@@ -11,7 +11,7 @@ from gonio.cli.console import print_table
 from gonio.cli.progress import Steps
 from gonio.bench.report.fitdoc import energy_text, truth_for
 from gonio.core.errors import GonioError
-from gonio.fitting.display import inadequate_text
+from gonio.fitting.display import inadequate_text, shared_angles_line
 from gonio.bench.dataset.reader import open_budget, open_dataset as _open_dataset, open_fit_input  # noqa: F401  (the CLI's names)
 from gonio.fitting.pipeline import (fit_dataset, load_fit_file, model_error as _model_error, parse_options,  # noqa: F401
                                     resolve_candidates)
@@ -69,22 +69,6 @@ def print_fit(doc, truth=None, console=None):
         console.print(angles if doc["shared_angles"].get("applied") else f"[yellow]{escape(angles)}[/yellow]")
     if doc.get("posterior") and doc["posterior"].get("advice"):
         console.print(f"[yellow]{doc['posterior']['advice']}[/yellow]")
-
-
-def shared_angles_line(doc) -> str:
-    """One line on ``--estimate-angles`` (the fit file's ``shared_angles``): what was estimated
-    and how far it moved the geometry, or why it was not applied; "" without it."""
-    import numpy as np
-
-    sa = doc.get("shared_angles")
-    if not sa:
-        return ""
-    if not sa.get("applied"):
-        return f"shared angle errors not estimated: {sa.get('reason', 'no reason recorded')}"
-    est, post = np.abs(sa["estimate_sigma"]), np.asarray(sa["posterior_sigma"])
-    return (f"shared angle errors estimated: {sa['inputs']} inputs, the largest {est.max():.2f} sigma of its stated "
-            f"error, posterior {post.min():.2f}-{post.max():.2f} sigma; directions moved up to "
-            f"{sa['max_direction_change_deg']:.3f} deg")
 
 
 def budget_line(doc) -> str:

@@ -15,7 +15,8 @@ import math
 import numpy as np
 
 __all__ = ["value_pm", "parameter_rows", "table_html", "fit_summary", "measurements_summary", "parameter_flags",
-           "uncertainty_rows", "uncertainty_values", "interval_column", "FLAGS", "UNCERTAINTY_HEADER"]
+           "uncertainty_rows", "uncertainty_values", "interval_column", "FLAGS", "UNCERTAINTY_HEADER",
+           "shared_angles_line"]
 
 #: a fit file's parameter flags (``parameters.<name>.flags``) and what each says
 FLAGS = {"at_bound": "at bound", "undetermined": "undetermined",
@@ -193,3 +194,17 @@ def inadequate_text(g) -> str:
     return (f"chi2/dof = {g['chi2_dof']:.3g}: the model misses the data by more than its noise "
             f"(Birge ratio {g['birge_ratio']:.3g}); the 1-sigma values are statistical only and "
             "understate the model's error")
+
+
+def shared_angles_line(doc) -> str:
+    """One line on ``--estimate-angles`` (the fit file's ``shared_angles``): what was estimated
+    and how far it moved the geometry, or why it was not applied; "" without it."""
+    sa = doc.get("shared_angles")
+    if not sa:
+        return ""
+    if not sa.get("applied"):
+        return f"shared angle errors not estimated: {sa.get('reason', 'no reason recorded')}"
+    est, post = np.abs(sa["estimate_sigma"]), np.asarray(sa["posterior_sigma"])
+    return (f"shared angle errors estimated: {sa['inputs']} inputs, the largest {est.max():.2f} sigma of its stated "
+            f"error, posterior {post.min():.2f}-{post.max():.2f} sigma; directions moved up to "
+            f"{sa['max_direction_change_deg']:.3f} deg")

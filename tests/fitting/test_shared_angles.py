@@ -373,3 +373,28 @@ def test_gonio_render_compares_the_render_with_the_data_it_fitted(uncalibrated, 
     render_cli(tmp_path / "fit.json", uncalibrated, tmp_path / "render", quiet=True)
     s = json.loads((tmp_path / "render" / "render.json").read_text())["summary"]
     assert s["residual_rms_sigma"] < 1.5 * np.sqrt(doc["goodness"]["chi2_dof"]), s["residual_rms_sigma"]
+
+
+@pytest.mark.slow
+def test_a_batch_says_which_estimates_were_not_applied(uncalibrated, tmp_path, monkeypatch):
+    """``gonio fit`` prints why an estimate was not applied; ``--batch`` (which estimates by the
+    same default) said nothing, the record only in the fit file. Now one warning line per fit."""
+    import gonio.bench.dataset.fit_files as ff
+    import gonio.fitting.uncertainty.shared_angles as sa
+    from gonio.fitting.pipeline import fit_measurements
+
+    def in_process(work, spec, *, rng_seed, loss, **kw):
+        return [fit_measurements(w() if callable(w) else w, model=spec[0], options=spec[1], seed=rng_seed,
+                                 rng=np.random.default_rng(rng_seed), loss=loss)[0] for w in work]
+
+    def nan_step(U, J, resid, whiten, use, b0=None, V=None):
+        return np.full(len(U), np.nan), np.eye(len(U)), 1.0
+
+    monkeypatch.setattr(ff, "fit_batch", in_process)
+    monkeypatch.setattr(sa, "profile_inputs", nan_step)
+    said, warned = [], []
+    docs = ff.fit_files([uncalibrated], model="roughplastic", options=["distribution=ggx"], out=tmp_path / "b",
+                        seed=3, loss=None, scheduler=None, workers=1, say=said.append, warn=warned.append)
+    assert docs[0][1]["shared_angles"]["applied"] is False
+    lines = [w for w in warned if "shared angle errors not estimated" in w]
+    assert len(lines) == 1 and "non-finite" in lines[0] and "\n" not in lines[0], warned

@@ -20,7 +20,7 @@ from gonio.core.errors import GonioError
 from gonio.core.preflight import check_output_dir, writing
 from gonio.fitting import (LOSSES, check_dashboard_address, check_scheduler_address, check_workers, default_loss,
                            fit_batch, write_json_atomic)
-from gonio.fitting.display import inadequate_text
+from gonio.fitting.display import inadequate_text, shared_angles_line
 from gonio.fitting.pipeline import fit_document_of, model_error, parse_options
 
 __all__ = ["fit_files", "check_batch_options", "stems_of"]
@@ -110,6 +110,8 @@ def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, wor
         if g.get("warning") or g.get("model_adequate") is False:
             poor.append(stem)
             warn(f"  warning: {g.get('warning') or inadequate_text(g)}")
+        if (doc.get("shared_angles") or {}).get("applied") is False:     # as `gonio fit` says it
+            warn(f"  {stem}: {shared_angles_line(doc)}")
     if poor:
         warn(f"warning: {len(poor)} of {len(results)} fits miss their data by more than its noise: "
              f"{', '.join(poor[:10])}{' ...' if len(poor) > 10 else ''}")
