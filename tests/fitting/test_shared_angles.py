@@ -398,3 +398,20 @@ def test_a_batch_says_which_estimates_were_not_applied(uncalibrated, tmp_path, m
     assert docs[0][1]["shared_angles"]["applied"] is False
     lines = [w for w in warned if "shared angle errors not estimated" in w]
     assert len(lines) == 1 and "non-finite" in lines[0] and "\n" not in lines[0], warned
+
+
+def test_a_fit_files_estimate_that_does_not_fit_the_dataset_is_one_value_error():
+    """as_estimated reads a fit file's record (gonio render, the report): a record of another
+    dataset, a non-finite or malformed ``estimate_sigma`` is a ValueError with one line (the
+    callers then draw the nominal data with a note), never a TypeError from numpy."""
+    from types import SimpleNamespace
+
+    from gonio.fitting.uncertainty.shared_angles import as_estimated
+
+    meas = SimpleNamespace(wi=np.tile([0.0, 0.0, 1.0], (2, 1)), wo=np.tile([0.0, 0.0, 1.0], (2, 1)))
+    angles = {"shared": np.zeros((1, 2, 4))}
+    assert as_estimated(meas, angles, {"applied": False}) is meas and as_estimated(meas, angles, None) is meas
+    for bad in ({"a": 1}, ["a"], [np.nan], [0.1, 0.2], "1.2"):
+        with pytest.raises(ValueError) as err:
+            as_estimated(meas, angles, {"applied": True, "estimate_sigma": bad})
+        assert "\n" not in str(err.value) and "fit file" in str(err.value), bad

@@ -231,8 +231,12 @@ def as_estimated(meas, angles, record):
     if not record or not record.get("applied"):
         return meas
     shared = (angles or {}).get("shared")
-    b = np.asarray(record.get("estimate_sigma") or [], float)
+    try:
+        b = np.asarray(record.get("estimate_sigma") or [], float)
+    except (TypeError, ValueError):
+        raise ValueError("the fit file's shared-angle estimate_sigma is not a list of numbers") from None
     if shared is None or b.shape != (len(shared),) or not np.all(np.isfinite(b)):
-        raise ValueError(f"the fit file's shared-angle estimate ({b.size} inputs) does not fit this dataset "
+        bad = "" if np.all(np.isfinite(b)) else ", not all finite"
+        raise ValueError(f"the fit file's shared-angle estimate ({b.size} inputs{bad}) does not fit this dataset "
                          f"({0 if shared is None else len(shared)} shared angle inputs)")
     return _moved(meas, shared_moves(meas.wi, meas.wo, angles), b)[0]
