@@ -176,14 +176,13 @@ def _export_counts(path):
 def cmd_fit(args):
     from gonio.cli.fit import fit_batch_cli, fit_cli
 
-    # a batch estimates as a single fit's default, a scene never: a flag either would not honour is refused
-    if (args.batch and args.estimate_angles is not None) or (args.estimate_angles and args.scene is not None):
-        flag = "--estimate-angles" if args.estimate_angles else "--no-estimate-angles"
-        raise GonioError(f"{flag} goes with a single fit of a dataset.nc: leave out --batch and --scene")
+    # a scene fit never estimates: the flag that asks for it is refused there
+    if args.estimate_angles and args.scene is not None:
+        raise GonioError("--estimate-angles goes with a fit of dataset.nc files: leave out --scene")
     if args.batch:
         fit_batch_cli([Path(d) for d in args.dataset], model=args.model, options=args.option, out=Path(args.out),
                       seed=args.seed, loss=args.loss, scheduler=args.scheduler, workers=args.workers,
-                      dashboard=args.dashboard, quiet=args.quiet)
+                      dashboard=args.dashboard, quiet=args.quiet, estimate_angles=args.estimate_angles)
         return
     if len(args.dataset) != 1:
         raise GonioError("give one dataset, or --batch to fit several (the fit files then go into --out DIR)")

@@ -14,6 +14,8 @@ import functools
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+
 import gonio.models as gm
 from gonio.bench.dataset.reader import open_fit_input
 from gonio.core.errors import GonioError
@@ -59,10 +61,13 @@ def stems_of(datasets) -> list[str]:
 
 
 def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None,
-              say: Callable[[str], None] = print, warn: Callable[[str], None] = print) -> list[tuple[str, dict]]:
+              say: Callable[[str], None] = print, warn: Callable[[str], None] = print,
+              estimate_angles: bool = False) -> list[tuple[str, dict]]:
     """Fit ``datasets`` (paths) with ``model`` on Dask and write ``out/STEM.fit.json`` for each;
-    ``say`` gets a line per fit and the summary, ``warn`` the fits that miss their data.
-    Returns ``[(stem, fit document)]`` in the order of ``datasets``."""
+    ``say`` gets a line per fit and the summary, ``warn`` the fits that miss their data and
+    the shared-angle estimates not applied. ``estimate_angles``: as ``gonio fit``'s (every
+    dataset must state the shared angle inputs, the loss must be chi2; both checked before
+    any fit). Returns ``[(stem, fit document)]`` in the order of ``datasets``."""
     datasets = [Path(d) for d in datasets]
     check_batch_options(model=model, options=options, loss=loss, scheduler=scheduler, workers=workers,
                         dashboard=dashboard)
@@ -75,6 +80,14 @@ def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, wor
             raise GonioError(f"these datasets have different default losses ({', '.join(defaults)}: measured sigma "
                              "or none); give --loss, or fit them in separate batches")
         loss = defaults[0]
+    if estimate_angles:
+        if loss != "chi2":
+            raise GonioError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), not {loss}")
+        for d, i in zip(datasets, inputs):
+            if not np.size((getattr(i.budget, "angles", None) or {}).get("shared", [])):
+                raise GonioError(f"--estimate-angles: {d} states no shared angle errors (a dataset.nc whose budget "
+                                 "carries the stages' zero offsets, the holder's tilt or the wedge); leave it out")
+    extra = {"estimate_angles": True} if estimate_angles else {}
     stems = stems_of(datasets)
     # a local cluster reads the same files: each worker loads its own datasets (a loader per
     # file, called where it is fitted) instead of receiving them over the cluster's TLS (16
@@ -84,7 +97,8 @@ def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, wor
     try:
         # (name, the user's options): each worker fits as `gonio fit` does (gonio.fitting.pipeline)
         results = fit_batch(work, (model, parse_options(options)), scheduler=scheduler,
-                            n_workers=min(workers, len(inputs)), rng_seed=seed, loss=loss, dashboard_address=dashboard)
+                            n_workers=min(workers, len(inputs)), rng_seed=seed, loss=loss, dashboard_address=dashboard,
+                            **extra)
     except (OSError, TimeoutError) as exc:
         if scheduler is None:
             raise GonioError(f"the local Dask cluster failed ({' '.join(str(exc).split())[:200]})") from None

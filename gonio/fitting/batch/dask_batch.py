@@ -92,9 +92,10 @@ def _fit_one(meas, model_spec, i, rng_seed, fit_kwargs):
     inp = as_fit_input(_load(meas))
     name, options = model_spec
     rng = np.random.default_rng(rng_seed)
-    if set(fit_kwargs) <= {"loss"}:
+    if set(fit_kwargs) <= {"loss", "estimate_angles"}:
         return fit_measurements(inp, model=name, options=options, seed=rng_seed, rng=rng,
-                                loss=fit_kwargs.get("loss", "chi2"))[0]
+                                loss=fit_kwargs.get("loss", "chi2"),
+                                estimate_angles=fit_kwargs.get("estimate_angles", False))[0]
     from gonio.fitting.optimise.mle import fit
 
     return fit(inp.meas, gm.get(name, **options), rng=rng, **fit_kwargs)
