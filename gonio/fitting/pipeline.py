@@ -204,8 +204,9 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
         if estimate_angles:             # a no-op where the budget states no shared angle inputs
             from gonio.fitting.uncertainty.shared_angles import with_shared_angles
 
-            result, meas, budget = with_shared_angles(
-                meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
+            result, meas, budget = with_shared_angles(     # each refit local, from the fit so far
+                meas, budget, result, lambda m, near: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss,
+                                                          start=near.params, n_starts=0))
     except ValueError as exc:
         raise GonioError(str(exc)) from None
     return result, meas, budget, ranking, note

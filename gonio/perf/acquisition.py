@@ -133,7 +133,10 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     from gonio.bench.plan.family import label
 
     row = {"plan": plan, "points": n_points, "time_s": instrument_s,
-           "model": label(result.model.name, result.model.options), "estimate_angles": bool(estimate_angles)}
+           "model": label(result.model.name, result.model.options), "estimate_angles": bool(estimate_angles),
+           # whether the estimate was applied (it refuses itself where the model's misfit passes for
+           # angle errors): "" where it was not asked for or the dataset states no inputs
+           "angles_applied": (result.shared_angles or {}).get("applied", "")}
     row.update(score(result, sample, seed=seed))
     row["wall_s"] = time.perf_counter() - t0
     return row

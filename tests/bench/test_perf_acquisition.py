@@ -64,6 +64,8 @@ def test_every_plan_reports_its_instrument_time_and_error(tmp_path, capsys):
         got = list(csv.DictReader(fh))
     assert got[0]["seed"] == "3" and got[0]["errors"] == "typical" and got[0]["gonio"]
     assert all(r["estimate_angles"] == "True" for r in got)          # the protocol's default since 2026-12-05
+    # the sample's own family on typical errors: the estimate applied on both plans, and said so
+    assert [r["angles_applied"] for r in got] == ["True", "True"]
     out = capsys.readouterr().out
     assert "front" in out and "the shared angle errors estimated" in out
 

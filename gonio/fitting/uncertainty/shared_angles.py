@@ -127,7 +127,10 @@ def _moved(meas, moves, b):
 
 def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     """``result`` refitted with the dataset's shared angle inputs estimated (module docstring),
-    where the budget states them; otherwise everything unchanged. ``refit(meas)`` -> FitResult.
+    where the budget states them; otherwise everything unchanged. ``refit(meas, near)`` ->
+    FitResult: ``meas`` fitted from ``near`` (the fit so far) by a local search: the geometry
+    moves by a fraction of a degree and the optimum as little, where a fresh global search can
+    land in another basin (on 12 points, a lobe narrowed to a spike through one moved value).
 
     Each round: the data at the geometry the inputs so far put them (:func:`_moved`), the
     model's slope there (the lines and the fit's Jacobian: an input whose slope vanishes at the
@@ -179,7 +182,13 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
                           + as_without}), meas, budget
         step, b = float(np.max(np.abs(b_new - b))), b_new
         m, g = _moved(meas, moves, b)
-        result = refit(m)
+        try:
+            result = refit(m, result)
+        except ValueError as exc:       # the fit at the moved geometry refused: the one before it stands
+            return dataclasses.replace(first, shared_angles={
+                "inputs": int(len(b)), "applied": False, "estimate_sigma": b.tolist(), "residual_scale": scale,
+                "reason": f"the refit at the estimated geometry failed ({' '.join(str(exc).split())[:200]})"
+                          + as_without}), meas, budget
         if step < 0.05:
             break
     L = np.linalg.cholesky(C + 1e-12 * np.eye(len(C)))
