@@ -205,6 +205,7 @@ def shared_angles_line(doc) -> str:
     if not sa.get("applied"):
         return f"shared angle errors not estimated: {sa.get('reason', 'no reason recorded')}"
     est, post = np.abs(sa["estimate_sigma"]), np.asarray(sa["posterior_sigma"])
+    moved = sa.get("max_direction_change_deg")         # absent in fit files before 2026-12-05
     return (f"shared angle errors estimated: {sa['inputs']} inputs, the largest {est.max():.2f} sigma of its stated "
-            f"error, posterior {post.min():.2f}-{post.max():.2f} sigma; directions moved up to "
-            f"{sa['max_direction_change_deg']:.3f} deg")
+            f"error, posterior {post.min():.2f}-{post.max():.2f} sigma"
+            + (f"; directions moved up to {moved:.3f} deg" if moved is not None else ""))

@@ -307,12 +307,17 @@ def test_the_shared_angle_estimate_is_one_sentence_or_nothing():
 
     applied = text({"inputs": 11, "applied": True, "estimate_sigma": [0.05, -1.18, 0.4],
                     "posterior_sigma": [0.99, 0.053, 0.7], "max_direction_change_deg": 0.0604})
-    assert "11 inputs" in applied and "1.18 times" in applied and "0.053-0.99" in applied and "0.06 deg" in applied
+    assert applied == ("Shared angle errors estimated: 11 inputs, the largest 1.18 sigma of its stated error, "
+                       "posterior 0.05-0.99 sigma; directions moved up to 0.060 deg.")
     older = text({"inputs": 3, "applied": True, "estimate_sigma": [0.1], "posterior_sigma": [0.5]})
-    assert older.endswith("carries.")                       # a fit file from before the direction change was recorded
+    assert older.endswith("posterior 0.50-0.50 sigma.")    # a fit file from before the direction change was recorded
     refused = text({"inputs": 10, "applied": False, "reason": "the inputs' estimate lies 15.6 sigma " + "x" * 900})
-    assert refused.startswith("The instrument's shared angle errors") and "not estimated: the inputs'" in refused
+    assert refused.startswith("Shared angle errors not estimated: the inputs' estimate lies 15.6 sigma")
     assert len(refused) < 700 and "\n" not in refused
     assert text(None) == ""
     with pytest.raises(GonioError, match="estimate_sigma must be a list"):
         text({"inputs": 3, "applied": True, "estimate_sigma": "1.2", "posterior_sigma": [0.5]})
+    with pytest.raises(GonioError, match="posterior_sigma must be a non-empty list"):
+        text({"inputs": 3, "applied": True, "estimate_sigma": [0.1], "posterior_sigma": []})
+    with pytest.raises(GonioError, match="inputs must be a whole number"):
+        text({"inputs": -1, "applied": True, "estimate_sigma": [0.1], "posterior_sigma": [0.5]})

@@ -190,20 +190,24 @@ def fit_section(fit: Doc, truth) -> dict:
 
 
 def _shared_angles_text(sa: "Doc | None") -> str:
-    """The fit file's ``shared_angles`` as one sentence ("" without it): what the estimate found
-    and how sure it is, or why it was not applied."""
+    """The fit file's ``shared_angles`` as ``gonio fit`` prints it
+    (:func:`gonio.fitting.display.shared_angles_line`), its values read through the typed
+    :class:`Doc` ("" without it): what the estimate found and how sure it is, or why it was not
+    applied."""
+    from gonio.fitting.display import shared_angles_line
+
     if sa is None:
         return ""
     if not sa.flag("applied"):
-        return cut("The instrument's shared angle errors (stage zero offsets, holder tilt, wedge) were not "
-                   f"estimated: {sa.text('reason', limit=400) or 'no reason recorded'}.", 600)
-    est, post = sa.numbers("estimate_sigma") or [], sa.numbers("posterior_sigma") or []
-    moved = sa.num("max_direction_change_deg")
-    return cut(f"The instrument's shared angle errors (stage zero offsets, holder tilt, wedge: {_fmt(sa.count('inputs'))} "
-               f"inputs) were estimated with the fit: the largest at {_fmt(max(map(abs, est), default=None), 3)} times "
-               f"its stated 1-sigma; each is now known to {_fmt(min(post, default=None), 2)}-"
-               f"{_fmt(max(post, default=None), 2)} of its stated 1-sigma, which the budget's angle_shared line carries"
-               + (f"; the directions moved by up to {_fmt(moved, 2)} deg" if moved is not None else "") + ".", 600)
+        record = {"applied": False, "reason": sa.text("reason", limit=400) or "no reason recorded"}
+    else:
+        est, post = sa.numbers("estimate_sigma"), sa.numbers("posterior_sigma")
+        if not est or not post:
+            sa.refuse("estimate_sigma" if not est else "posterior_sigma", "a non-empty list of numbers")
+        record = {"applied": True, "inputs": sa.count("inputs", required=True), "estimate_sigma": est,
+                  "posterior_sigma": post, "max_direction_change_deg": sa.num("max_direction_change_deg")}
+    line = shared_angles_line({"shared_angles": record})
+    return cut(line[:1].upper() + line[1:] + ".", 600)
 
 
 def posterior_samples(fit: Doc):
