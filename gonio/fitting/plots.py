@@ -21,7 +21,7 @@ import numpy as np
 
 from gonio.core.geometry import angles_deg
 
-__all__ = ["plot_coverage", "plot_in_plane", "plot_residuals", "safe_label", "in_plane_mask", "log_ticks", "transmits",
+__all__ = ["plot_coverage", "plot_in_plane", "incidence_groups", "plot_residuals", "safe_label", "in_plane_mask", "log_ticks", "transmits",
            "shade_transmitted"]
 
 COLOURS = ("tab:red", "tab:green", "tab:blue")
@@ -76,6 +76,16 @@ def shade_transmitted(ax) -> None:
         ax.axvspan(lo, hi, color="0.5", alpha=0.08, lw=0)
 
 
+def incidence_groups(theta_i, gap: float = 0.5) -> list:
+    """The incidence angles ``theta_i`` (degrees) sorted and split where consecutive values
+    differ by more than ``gap``: one array per measured incidence, however its points were moved
+    by a fraction of a degree (the shared-angle estimate moves them together)."""
+    t = np.sort(np.asarray(theta_i, float))
+    if not t.size:
+        return []
+    return np.split(t, np.flatnonzero(np.diff(t) > gap) + 1)
+
+
 def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels: int = 4, log: bool = True):
     """Measured f_r (with 1-sigma bars) in the plane of incidence, and the model's curve.
 
@@ -86,7 +96,10 @@ def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels:
     model, params : optional
         A gonio model and its parameter values (a fit's ``result.model``, ``result.params``).
     incidences : sequence of float, optional
-        The incidence angles (degrees) to show; by default up to ``max_panels`` of the measured ones.
+        The incidence angles (degrees) to show; by default up to ``max_panels`` of the measured
+        ones: the in-plane points' theta_i split where consecutive values differ by more than
+        0.5 deg, each group at its median (so a group the shared-angle estimate moved by a
+        fraction of a degree, 29.6 or 30.5, stays one panel at its own angle).
     log : bool
         Logarithmic f_r axis.
 
@@ -98,9 +111,13 @@ def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels:
     theta_i, _ = angles_deg(meas.wi)
     theta_o, _ = angles_deg(meas.wo)
     phi_d, plane = in_plane_mask(meas)
-    found = sorted({round(float(t)) for t in theta_i[plane]})
+    groups = incidence_groups(theta_i[plane])
     if incidences is None:
-        incidences = found if len(found) <= max_panels else [found[int(k)] for k in np.linspace(0, len(found) - 1, max_panels)]
+        chosen = groups if len(groups) <= max_panels else [groups[int(k)] for k in np.linspace(0, len(groups) - 1, max_panels)]
+        incidences = [float(np.median(g)) for g in chosen]
+        members = [(g[0], g[-1]) for g in chosen]
+    else:
+        members = [(ti - 0.6, ti + 0.6) for ti in incidences]
     if not len(incidences):
         fig, _ = _figure(None, 1, figsize=(4, 1))
         fig.suptitle("no measured point in the plane of incidence", fontsize=9)
@@ -108,8 +125,8 @@ def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels:
     fig, axes = _figure(None, len(incidences), figsize=(2.9 * len(incidences) + 0.6, 3.0), sharey=True)
     both = transmits(meas, model)       # the whole plane: |theta_o| > 90 is the transmitted side
     t = np.radians(np.linspace(-179, 179, 481) if both else np.linspace(-89, 89, 241))
-    for ax, ti in zip(axes, incidences):
-        sel = plane & (np.abs(theta_i - ti) < 0.6)
+    for ax, ti, (lo, hi) in zip(axes, incidences, members):
+        sel = plane & (theta_i >= lo) & (theta_i <= hi)
         signed = np.where(phi_d[sel] < 90, -theta_o[sel], theta_o[sel])
         curve = None
         if model is not None:
@@ -132,7 +149,7 @@ def plot_in_plane(meas, model=None, params=None, *, incidences=None, max_panels:
         else:
             ax.set_xlim(-90, 90)
             ax.set_xticks([-60, -30, 0, 30, 60])
-        ax.set_title(f"theta_i = {ti:g} deg", fontsize=9)
+        ax.set_title(f"theta_i = {round(ti, 1):g} deg", fontsize=9)
         ax.set_xlabel("theta_o (deg)", fontsize=8)      # < 0 on the light's side
         ax.tick_params(labelsize=7)
     axes[0].set_ylabel("f_r (1/sr)", fontsize=8)

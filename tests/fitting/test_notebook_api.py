@@ -100,3 +100,30 @@ def test_plot_in_plane_draws_the_data_and_the_model():
     np.testing.assert_allclose(sorted(points[0].get_xdata()), sorted(theta_o))
     fig_r = plots.plot_residuals(meas, model, params)
     assert sum(p.get_height() for p in fig_r.axes[0].patches) == meas.n_used
+
+
+def test_in_plane_panels_follow_the_measured_incidences_however_they_were_moved():
+    """The in-plane panels group the points' theta_i where they lie: a set of points moved
+    together by a shared-angle estimate (30 -> 30.52, the uncalibrated quick capture seed 13)
+    stays one panel titled at its own angle, its curve drawn there, not rounded to 31; one
+    incidence whose points straddle 29.5 (29.46, 29.54) is one panel, not two."""
+    import numpy as np
+
+    from gonio.fitting import Measurements
+    from gonio.fitting import plots
+    from gonio.core.geometry import directions
+
+    assert [g.tolist() for g in plots.incidence_groups([45.52, 30.52, 30.53, 45.5, 30.54])] == \
+        [[30.52, 30.53, 30.54], [45.5, 45.52]]
+    assert plots.incidence_groups([]) == []
+    ti = np.radians(np.r_[np.full(5, 29.46), np.full(5, 29.54), np.full(5, 45.0)])
+    to = np.radians(np.tile(np.linspace(-60, 60, 5), 3))
+    wi = directions(ti, np.zeros_like(ti))
+    wo = directions(np.abs(to), np.where(to < 0, 0.0, np.pi))
+    meas = Measurements(wi, wo, np.ones((15, 3)), np.full((15, 3), 0.1), np.ones((15, 3), bool))
+    fig = plots.plot_in_plane(meas)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+    assert titles == ["theta_i = 29.5 deg", "theta_i = 45 deg"]
+    # every point of each incidence in its panel: 10 and 5 points, 3 channels each
+    markers = [sum(len(line.get_xdata()) for line in ax.lines if line.get_marker() == "o") for ax in fig.axes[:2]]
+    assert markers == [30, 15]
