@@ -122,7 +122,13 @@ def _moved(meas, moves, b):
     from gonio.fitting.uncertainty.angle_shifts import moved
 
     wi, wo, g = moved(meas.wi, meas.wo, moves, b)
-    return dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None]), g
+    return _at(meas, wi, wo, g), g
+
+
+def _at(meas, wi, wo, g):
+    """``meas`` at the directions ``wi``, ``wo``, its values and 1-sigma over the irradiance
+    change ``g`` (N,)."""
+    return dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None])
 
 
 def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
@@ -226,8 +232,7 @@ def applied(meas, budget, result):
     wi, wo, g, L = fix
     if np.shape(wi) != meas.wi.shape:
         raise ValueError(f"the shared-angle estimate was made on {len(wi)} points, this dataset has {meas.n_points}")
-    return (dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None]),
-            posterior_budget(budget, L))
+    return _at(meas, wi, wo, g), posterior_budget(budget, L)
 
 
 def as_estimated(meas, angles, record):
