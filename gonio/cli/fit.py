@@ -13,8 +13,8 @@ from gonio.bench.report.fitdoc import energy_text, truth_for
 from gonio.core.errors import GonioError
 from gonio.fitting.display import inadequate_text, shared_angles_line
 from gonio.bench.dataset.reader import open_budget, open_dataset as _open_dataset, open_fit_input  # noqa: F401  (the CLI's names)
-from gonio.fitting.pipeline import (fit_dataset, load_fit_file, model_error as _model_error, parse_options,  # noqa: F401
-                                    resolve_candidates)
+from gonio.fitting.pipeline import (check_estimate_angles, fit_dataset, load_fit_file,  # noqa: F401
+                                    model_error as _model_error, parse_options, resolve_candidates)
 from gonio.fitting.render.closure import (check_measured as _check_measured, check_preview_options, check_variant,  # noqa: F401
                                           render_closure, render_previews)
 
@@ -113,11 +113,8 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     check_output_file(out, "fit file (--out)")
     inp = open_fit_input(dataset, seed, colour_space)
     meas = inp.meas
-    if estimate_angles:             # the loss is checked by fit_measurements, before the fit
-        shared = (getattr(inp.budget, "angles", None) or {}).get("shared")
-        if shared is None or not len(shared):
-            raise GonioError(f"--estimate-angles: {dataset.name} states no shared angle errors (a dataset.nc whose "
-                             "budget carries the stages' zero offsets, the holder's tilt or the wedge); leave it out")
+    if estimate_angles:             # the inputs stated; the loss is checked by fit_measurements, before the fit
+        check_estimate_angles(inp.budget, "chi2", dataset.name)
     # a bar on a terminal: the candidates of --model auto (or of an open distribution) and their
     # renders, with the time left; one model alone: the time it has taken
     with Steps("fit" if model == "auto" else f"fit {model}", enabled=not quiet) as progress:

@@ -25,7 +25,7 @@ from gonio.core.errors import GonioError
 from gonio.fitting.formats.fitfile import load_fit_file  # noqa: F401  (re-exported: the use cases read fit files)
 
 __all__ = ["FitInput", "as_fit_input", "fit_dataset", "fit_document_of", "fit_measurements", "load_fit_file",
-           "renders_measured",
+           "renders_measured", "check_estimate_angles",
            "parse_options", "resolve_candidates", "model_error"]
 
 
@@ -120,6 +120,20 @@ def _rendered_choice(ranking, dataset_path, seed, meas=None, loss=None, progress
     return rendered_choice(ranking, measured, seed=seed, fallback=fallback, progress=progress)
 
 
+def check_estimate_angles(budget, loss, name=None) -> bool:
+    """Whether ``budget`` states shared angle inputs; GonioError (one line) where the estimate
+    is asked for with a loss other than chi2, or (``name``: the dataset, for an explicit
+    request) where the budget states none. Called before any fit."""
+    shared = (getattr(budget, "angles", None) or {}).get("shared")
+    stated = shared is not None and bool(np.size(shared))
+    if stated and loss != "chi2":
+        raise GonioError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), not {loss}")
+    if name is not None and not stated:
+        raise GonioError(f"--estimate-angles: {name} states no shared angle errors (a dataset.nc whose budget "
+                         "carries the stages' zero offsets, the holder's tilt or the wedge); leave it out")
+    return stated
+
+
 def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, budget=None, dataset_path=None,
                      rng=None, progress=None, estimate_angles=False):
     """Fit (or select) a model on ``meas``.
@@ -158,12 +172,10 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
         loss = default_loss(meas)
     if loss not in LOSSES:
         raise GonioError(f"unknown loss {str(loss)[:40]!r}: choose one of {', '.join(LOSSES)}")
-    shared = (getattr(budget, "angles", None) or {}).get("shared")
-    stated = shared is not None and bool(np.size(shared))
-    if estimate_angles and loss != "chi2" and stated:     # before the fit
-        raise GonioError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), not {loss}")
-    if estimate_angles is None:
-        estimate_angles = stated and loss == "chi2"
+    if estimate_angles:                                     # before the fit
+        check_estimate_angles(budget, loss)
+    elif estimate_angles is None:
+        estimate_angles = check_estimate_angles(budget, "chi2") and loss == "chi2"
     rng = np.random.default_rng(seed) if rng is None else rng
     ranking, note = None, None
     candidates = resolve_candidates(model, options)

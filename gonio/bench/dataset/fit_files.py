@@ -14,8 +14,6 @@ import functools
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 import gonio.models as gm
 from gonio.bench.dataset.reader import open_fit_input
 from gonio.core.errors import GonioError
@@ -23,7 +21,7 @@ from gonio.core.preflight import check_output_dir, writing
 from gonio.fitting import (LOSSES, check_dashboard_address, check_scheduler_address, check_workers, default_loss,
                            fit_batch, write_json_atomic)
 from gonio.fitting.display import inadequate_text, shared_angles_line
-from gonio.fitting.pipeline import fit_document_of, model_error, parse_options
+from gonio.fitting.pipeline import check_estimate_angles, fit_document_of, model_error, parse_options
 
 __all__ = ["fit_files", "check_batch_options", "stems_of"]
 
@@ -80,13 +78,8 @@ def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, wor
             raise GonioError(f"these datasets have different default losses ({', '.join(defaults)}: measured sigma "
                              "or none); give --loss, or fit them in separate batches")
         loss = defaults[0]
-    if estimate_angles:
-        if loss != "chi2":
-            raise GonioError(f"estimating the shared angle errors needs the chi2 loss (the data's own sigma), not {loss}")
-        for d, i in zip(datasets, inputs):
-            if not np.size((getattr(i.budget, "angles", None) or {}).get("shared", [])):
-                raise GonioError(f"--estimate-angles: {d} states no shared angle errors (a dataset.nc whose budget "
-                                 "carries the stages' zero offsets, the holder's tilt or the wedge); leave it out")
+    for d, i in zip(datasets, inputs) if estimate_angles else ():     # before any fit, as gonio fit's
+        check_estimate_angles(i.budget, loss, d)
     extra = {"estimate_angles": True} if estimate_angles else {}
     stems = stems_of(datasets)
     # a local cluster reads the same files: each worker loads its own datasets (a loader per
