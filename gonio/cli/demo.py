@@ -38,7 +38,8 @@ from gonio.core.preflight import check_output_dir
 from gonio.bench.samples import load_sample
 from gonio.core.errors import GonioError
 from gonio.bench.dataset.export import export
-from gonio.cli.fit import fit_dataset, fitted_data, open_budget, print_fit, render_closure, render_previews
+from gonio.cli.fit import fit_dataset, open_budget, print_fit, render_closure, render_previews
+from gonio.fitting.uncertainty.shared_angles import applied
 from gonio.bench import calibrate
 from gonio.bench.plan.plans import load_plan
 from gonio.bench.report import write_report
@@ -185,15 +186,16 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, q
 
     meas = load_dataset(dataset)
     with Steps("fit", enabled=not quiet) as progress:
+        budget = open_budget(dataset, meas)
         result, doc, post = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=seed,
                                         posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset,
-                                        budget=open_budget(dataset, meas), progress=progress)
+                                        budget=budget, progress=progress)
     timings["fit (nlopt + Laplace)"] = doc["optimiser"]["time_s"]
     if post is not None:
         timings["posterior (emcee)"] = post.time_s
     write_json_atomic(out / "fit.json", doc)
 
-    fitted = fitted_data(meas, dataset, out / "fit.json")     # at the directions the estimate gave the data
+    fitted = applied(meas, budget, result)[0]      # the data as fitted: at the shared-angle estimate's directions
     with Steps("fit speed against scipy", enabled=not quiet):
         speed = _speed_vs_error(fitted, result, sample, seed, doc)
     write_json_atomic(out / "speed.json", speed)
