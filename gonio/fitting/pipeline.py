@@ -149,8 +149,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     wedge) estimated with the fit and the data refitted at the geometry they give
     (gonio/fitting/uncertainty/shared_angles.py). False (default): never; True: where the
     budget states them, another loss refused; None: wherever the budget states them and the
-    loss is chi2. Off by default: on a poorly aligned bench (0.3-0.5 deg) alpha's u_c with it
-    is about 1.4x too narrow (docs/performance.md).
+    loss is chi2.
     """
     import gonio.models as gm
     from gonio.fitting.likelihood.aperture import with_instrument_response
@@ -210,6 +209,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
             raise GonioError(str(exc)) from None
     # the instrument's angular response, where the dataset declares its apertures (likelihood/aperture.py)
     chosen = result.model
+    raw = (meas, budget)                # as opened: the shared-angle estimate corrects the response where it moves them
     try:
         result, meas, budget = with_instrument_response(
             meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
@@ -218,7 +218,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
 
             result, meas, budget = with_shared_angles(     # each refit local, from the fit so far
                 meas, budget, result, lambda m, near: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss,
-                                                          start=near.params, n_starts=0))
+                                                          start=near.params, n_starts=0), raw=raw)
     except ValueError as exc:
         raise GonioError(str(exc)) from None
     return result, meas, budget, ranking, note

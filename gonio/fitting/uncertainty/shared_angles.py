@@ -131,25 +131,42 @@ def _at(meas, wi, wo, g):
     return dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None])
 
 
-def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
+#: the most a round may move the inputs (sigma units, Euclidean): a trust region for the
+#: Gauss-Newton step, linearised at a fit that may be far off (an uncorrected 0.5 deg tilt on
+#: a 3 deg lobe); an undamped first step overshot to 10-14 sigma where the truth lay at 3
+ROUND_REACH = 1.0
+
+#: rounds before an estimate that has not settled (steps of 0.05 sigma or more) is not applied
+ROUNDS = 20
+
+
+def with_shared_angles(meas, budget, result, refit, rounds: int = ROUNDS, raw=None):
     """``result`` refitted with the dataset's shared angle inputs estimated (module docstring),
     where the budget states them; otherwise everything unchanged. ``refit(meas, near)`` ->
     FitResult: ``meas`` fitted from ``near`` (the fit so far) by a local search: the geometry
     moves by a fraction of a degree and the optimum as little, where a fresh global search can
     land in another basin (on 12 points, a lobe narrowed to a spike through one moved value).
 
-    Each round: the data at the geometry the inputs so far put them (:func:`_moved`), the
-    model's slope there (the lines and the fit's Jacobian: an input whose slope vanishes at the
-    nominal directions, as a tilt across a lobe measured in its plane, has one once moved), one
-    Gauss-Newton step for the inputs, a refit at the moved geometry; until the inputs move by
-    less than 0.05 sigma.
+    Each round: the data at the geometry the inputs so far put them (:func:`_moved`), corrected
+    for the instrument's angular response there where ``result`` modelled one and ``raw`` gives
+    the data and budget before that correction (the aperture ratio at the moved directions and
+    the fit so far, as the corrected data had it at the nominal ones), the model's slope there
+    (the lines and the fit's Jacobian: an input whose slope vanishes at the nominal directions,
+    as a tilt across a lobe measured in its plane, has one once moved), one Gauss-Newton step for
+    the inputs, at most :data:`ROUND_REACH` sigma long, shortened while the steps turn back on
+    each other (halved each time, to a quarter: the inputs' step and the refit can overshoot
+    each other in turn) and lengthened again (doubled, to the whole) while they go on the same
+    way, then a refit at the moved geometry; until the full step is under 0.05 sigma. An
+    estimate that has not settled within ``rounds``, or that settles where the stated errors
+    make it implausible, is not applied.
 
     Returns (result, meas, budget): the data at the estimated geometry, the budget with the
     inputs' posterior, and the result's ``shared_angles`` (the fit file's record: each input's
-    estimate and posterior 1-sigma in units of its stated 1-sigma, the largest direction change,
-    the largest change of the model's value it makes relative to the value or, where that is
-    within its 1-sigma, to the 1-sigma)."""
-    from gonio.fitting.uncertainty.angle_shifts import shared_moves
+    estimate and posterior 1-sigma in units of its stated 1-sigma, the rounds taken, the largest
+    direction change, the largest change of the model's value it makes relative to the value
+    or, where that is within its 1-sigma, to the 1-sigma)."""
+    from gonio.fitting.likelihood.aperture import aperture_ratio, corrected
+    from gonio.fitting.uncertainty.angle_shifts import moved, shared_moves
     from gonio.fitting.uncertainty.budget import angle_components
 
     angles = getattr(budget, "angles", None) or {}
@@ -162,53 +179,82 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = 3):
     use = meas.use & np.isfinite(meas.brdf) & (meas.brdf_std > 0)
     known = np.einsum("l,lnc->nc", v_mean, V)            # the other inputs' known means, in the data
     first = result                                     # its instrument-response record stays with the refits
+    c = getattr(result, "response_factor", None)
+    if c is None or raw is None:
+        raw = None
+    else:
+        raw, raw_budget = raw
+        apertures = (float(result.response["source_half_deg"]), float(result.response["detector_half_deg"]))
     b = np.zeros(len(shared))
     m, g = meas, np.ones(meas.n_points)
     moves = shared_moves(meas.wi, meas.wo, angles)
     as_without = "; the fit and its budget are as without the estimate"
-    for _ in range(rounds):
-        lines = next(c for c in angle_components(result, m, angles) if c.name == "angle_shared").value
+
+    def refused(reason, **extra):
+        return dataclasses.replace(first, shared_angles={"inputs": int(len(b)), "applied": False, **extra,
+                                                         "reason": reason + as_without}), meas, budget
+
+    step, taken, last, relax = float("inf"), 0, None, 1.0
+    while taken < rounds and step >= 0.05:
+        taken += 1
+        lines = next(k for k in angle_components(result, m, angles) if k.name == "angle_shared").value
         resid = m.brdf - known / g[:, None] - np.asarray(result.model.eval(m.wi, m.wo, result.params), float)
         try:
             b_new, C, scale = profile_inputs(lines, _jacobian(result, m), resid, whiten, use, b, V)
         except (ValueError, np.linalg.LinAlgError) as exc:
-            b_new, C, scale, why = None, None, float("nan"), str(exc)
-        else:
-            why = None if np.all(np.isfinite(b_new)) and np.all(np.isfinite(C)) else \
-                "the shared angle inputs could not be estimated (non-finite lines or slope at the fit)"
-        if why is not None:             # the fit itself stands: the estimate is an addition to it
-            return dataclasses.replace(first, shared_angles={"inputs": int(len(b)), "applied": False,
-                                                             "reason": why + as_without}), meas, budget
-        if float(b_new @ b_new) > plausible_bound(len(b_new)):
-            return dataclasses.replace(first, shared_angles={
-                "inputs": int(len(b_new)), "applied": False, "estimate_sigma": b_new.tolist(), "residual_scale": scale,
-                "reason": f"the inputs' estimate lies {math.sqrt(float(b_new @ b_new)):.1f} sigma from their stated "
-                          f"errors (beyond the 99.9 % chi2 bound {math.sqrt(plausible_bound(len(b_new))):.1f}): the model "
-                          "does not follow the data closely enough to tell an angle error from its own misfit"
-                          + as_without}), meas, budget
-        step, b = float(np.max(np.abs(b_new - b))), b_new
-        m, g = _moved(meas, moves, b)
+            return refused(str(exc))
+        if not (np.all(np.isfinite(b_new)) and np.all(np.isfinite(C))):
+            return refused("the shared angle inputs could not be estimated (non-finite lines or slope at the fit)")
+        move = b_new - b
+        step = float(np.max(np.abs(move)))
+        if step >= 0.05:
+            if last is not None:    # a step that turns back: the alternation overshoots, so take less of each
+                relax = max(0.5 * relax, 0.25) if float(move @ last) < 0.0 else min(2.0 * relax, 1.0)
+            move = relax * move
+            length = float(np.linalg.norm(move))
+            if length > ROUND_REACH:
+                move *= ROUND_REACH / length
+        last, b = move, b + move
+        if float(b @ b) > 4.0 * plausible_bound(len(b)):     # walked far past the bound: no need to go on
+            break
+        if raw is None:
+            m, g = _moved(meas, moves, b)
+        else:                                             # corrected for the response where the data now lie
+            wi, wo, g = moved(meas.wi, meas.wo, moves, b)
+            c = aperture_ratio(result.model, wi, wo, result.params, *apertures)
+            m = _at(corrected(raw, None, c)[0], wi, wo, g)
         try:
             result = refit(m, result)
         except ValueError as exc:       # the fit at the moved geometry refused: the one before it stands
-            return dataclasses.replace(first, shared_angles={
-                "inputs": int(len(b)), "applied": False, "estimate_sigma": b.tolist(), "residual_scale": scale,
-                "reason": f"the refit at the estimated geometry failed ({' '.join(str(exc).split())[:200]})"
-                          + as_without}), meas, budget
-        if step < 0.05:
-            break
+            return refused(f"the refit at the estimated geometry failed ({' '.join(str(exc).split())[:200]})",
+                           estimate_sigma=b.tolist(), residual_scale=scale)
+    if float(b @ b) > plausible_bound(len(b)):
+        return refused(f"the inputs' estimate lies {math.sqrt(float(b @ b)):.1f} sigma from their stated errors "
+                       f"(beyond the 99.9 % chi2 bound {math.sqrt(plausible_bound(len(b))):.1f}): the model does not "
+                       "follow the data closely enough to tell an angle error from its own misfit",
+                       estimate_sigma=b.tolist(), residual_scale=scale)
+    if step >= 0.05:
+        return refused(f"the inputs' estimate had not settled after {taken} rounds (its last full step {step:.2f} sigma)",
+                       estimate_sigma=b.tolist(), residual_scale=scale)
     L = np.linalg.cholesky(C + 1e-12 * np.eye(len(C)))
     f0 = np.asarray(result.model.eval(meas.wi, meas.wo, result.params), float)
     change = np.asarray(result.model.eval(m.wi, m.wo, result.params), float) * g[:, None] - f0
     turn = np.degrees(np.arccos(np.clip(np.minimum(np.sum(m.wi * meas.wi, 1), np.sum(m.wo * meas.wo, 1)), -1.0, 1.0)))
     info = {"inputs": int(len(b)), "applied": True, "estimate_sigma": b.tolist(), "posterior_sigma": np.sqrt(np.diag(C)).tolist(),
-            "residual_scale": scale, "max_direction_change_deg": float(np.max(turn)),
+            "residual_scale": scale, "rounds": taken, "max_direction_change_deg": float(np.max(turn)),
             "max_correction": float(np.max(np.abs(change[use]) / np.maximum(np.abs(meas.brdf[use]), meas.brdf_std[use]))),
-            "method": "Gauss-Newton on the inputs (prior N(0, 1) each) with the fit's own directions projected out, "
-                      "the slopes at the moved directions; the data refitted at the directions and irradiance the "
-                      "estimate gives them"}
-    result = dataclasses.replace(result, shared_angles=info, shared_angles_fix=(m.wi, m.wo, g, L), response=first.response,
-                                 response_factor=first.response_factor)
+            "method": "Gauss-Newton on the inputs (prior N(0, 1) each; steps of at most "
+                      f"{ROUND_REACH:g} sigma) with the fit's own directions projected out, the slopes at the moved "
+                      "directions; the data refitted at the directions and irradiance the estimate gives them"
+                      + (", corrected for the apertures there" if raw is not None else "")}
+    response = first.response
+    if raw is not None:
+        response = {**first.response, "max_correction": float(np.max(np.abs(c - 1.0)[meas.use])),
+                    "method": first.response["method"] + "; again at each round of the shared-angle estimate, "
+                              "at the directions it gave the data"}
+        budget = corrected(raw, raw_budget, c)[1]
+    result = dataclasses.replace(result, shared_angles=info, shared_angles_fix=(m.wi, m.wo, g, L), response=response,
+                                 response_factor=c)
     return result, m, posterior_budget(budget, L)
 
 
