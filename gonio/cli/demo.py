@@ -182,7 +182,8 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, q
         shutil.copyfileobj(src, dst)
     timings["export dataset.nc"] = time.perf_counter() - t
     _step(console, 4, f"fit: {sample['model']} by chi2 with the budget carried into every parameter (u_stat, u_c, "
-                      "U) and the instrument's angular response modelled" + ("; emcee posterior" if posterior else ""))
+                      "U), the instrument's angular response modelled and its shared angle errors estimated"
+                      + ("; emcee posterior" if posterior else ""))
 
     meas = load_dataset(dataset)
     with Steps("fit", enabled=not quiet) as progress:

@@ -101,7 +101,7 @@ def print_selection(doc, console=None) -> None:
 
 
 def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, colour_space="srgb", quiet=False,
-            estimate_angles=False):
+            estimate_angles=None):
     from gonio.fitting import write_json_atomic
 
     from gonio.core.preflight import check_output_file, writing
@@ -120,7 +120,7 @@ def fit_cli(dataset: Path, *, model, options, out: Path, seed, loss, posterior, 
     with Steps("fit" if model == "auto" else f"fit {model}", enabled=not quiet) as progress:
         _, doc, _ = fit_dataset(inp, model=model, options=parse_options(options), seed=seed, loss=loss,
                                 posterior=posterior, dataset_path=dataset, progress=progress,
-                                estimate_angles=bool(estimate_angles))
+                                estimate_angles=estimate_angles)
     with writing(out):
         write_json_atomic(out, doc)
     truth = meas.attrs.get("sample_truth") if isinstance(meas.attrs.get("sample_truth"), dict) else None
@@ -147,7 +147,7 @@ def _wrapped(text: str) -> None:
 
 
 def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None,
-                  quiet=False, estimate_angles=False):
+                  quiet=False, estimate_angles=None):
     """Fit many datasets with one named model on Dask; one fit file per dataset in ``out``
     (`gonio.bench.dataset.fit_files.fit_files`; the warnings on stderr, so the lines on stdout
     stay machine-readable). On a terminal a bar says how long the batch has run (the cluster
@@ -157,7 +157,7 @@ def fit_batch_cli(datasets, *, model, options, out: Path, seed, loss, scheduler,
     with Steps(f"fit {len(datasets)} datasets on Dask", enabled=not quiet):
         fit_files(datasets, model=model, options=options, out=out, seed=seed, loss=loss, scheduler=scheduler,
                   workers=workers, dashboard=dashboard, say=print, warn=lambda line: print(line, file=sys.stderr),
-                  estimate_angles=bool(estimate_angles))
+                  estimate_angles=estimate_angles)
 
 
 def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, preview=False, measured=None,

@@ -235,11 +235,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "or camera (white-balanced camera RGB); dataset.nc only")
     f.add_argument("--posterior", action=argparse.BooleanOptionalAction, default=False,
                    help="sample the posterior with emcee")
-    f.add_argument("--estimate-angles", action=argparse.BooleanOptionalAction, default=False,
+    f.add_argument("--estimate-angles", action=argparse.BooleanOptionalAction, default=None,
                    help="estimate the instrument's shared angle errors (stage zero offsets, holder tilt, wedge) that "
                         "the dataset's budget states, with the fit, and carry their posterior (chi2; dataset.nc). "
-                        "Off by default: on a poorly aligned bench (0.3-0.5 deg) alpha's u_c with it is about 1.4x "
-                        "too narrow")
+                        "Default: wherever the budget states them and the loss is chi2; --estimate-angles: refuse "
+                        "a dataset or loss without them; --no-estimate-angles: never")
     f.add_argument("--batch", action="store_true", help="fit every DATASET on Dask; --out is then a folder")
     f.add_argument("--scene", metavar="SCENE",
                    help="model only what a scene needs: overcast, product-shot, close-up-sun or a Mitsuba scene file "

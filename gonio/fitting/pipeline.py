@@ -135,7 +135,7 @@ def check_estimate_angles(budget, loss, name=None) -> bool:
 
 
 def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, budget=None, dataset_path=None,
-                     rng=None, progress=None, estimate_angles=False):
+                     rng=None, progress=None, estimate_angles=None):
     """Fit (or select) a model on ``meas``.
 
     Returns ``(result, meas, budget, ranking, note)``: the FitResult; the Measurements and
@@ -147,9 +147,8 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     ``progress(done, total, label)`` from the model selection's fits and renders (None: silent).
     ``estimate_angles``: the budget's shared angle inputs (stage zero offsets, holder tilt,
     wedge) estimated with the fit and the data refitted at the geometry they give
-    (gonio/fitting/uncertainty/shared_angles.py). False (default): never; True: where the
-    budget states them, another loss refused; None: wherever the budget states them and the
-    loss is chi2.
+    (gonio/fitting/uncertainty/shared_angles.py). None (default): wherever the budget states
+    them and the loss is chi2; True: the same, another loss refused; False: never.
     """
     import gonio.models as gm
     from gonio.fitting.likelihood.aperture import with_instrument_response
@@ -225,7 +224,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
-                posterior_budget_s=None, dataset_path=None, budget=None, progress=None, estimate_angles=False):
+                posterior_budget_s=None, dataset_path=None, budget=None, progress=None, estimate_angles=None):
     """Fit (or select) a model; return (FitResult, fit document, Posterior or None).
 
     ``budget``: the dataset's uncertainty budget (:func:`gonio.fitting.load_budget`; None:

@@ -328,23 +328,22 @@ def test_an_estimate_that_cannot_be_made_leaves_the_fit_and_says_why(uncalibrate
 
 
 @pytest.mark.slow
-def test_the_estimate_is_off_by_default_and_none_means_where_it_can(uncalibrated):
-    """Off by default (alpha's u_c with it is 1.4x narrow on a poorly aligned bench); True asks
-    for it (another loss refused, above); None: wherever the budget states shared inputs and the
-    loss is chi2, another loss going without it. ``gonio fit``: --estimate-angles /
-    --no-estimate-angles, neither meaning off."""
+def test_the_estimate_is_on_by_default_where_it_can_be_made(uncalibrated):
+    """None (the default): wherever the budget states shared inputs and the loss is chi2,
+    another loss going without it; True asks for it (another loss refused, above); False never.
+    ``gonio fit``: --estimate-angles / --no-estimate-angles, neither meaning the default."""
     from gonio.bench.dataset.reader import open_fit_input
     from gonio.cli.main import build_parser
     from gonio.fitting.pipeline import fit_measurements
 
     inp = open_fit_input(uncalibrated, seed=11)
     kw = dict(model="roughplastic", options={"distribution": "ggx"}, seed=11, budget=inp.budget)
-    assert fit_measurements(inp.meas, **kw)[0].shared_angles is None
-    assert fit_measurements(inp.meas, estimate_angles=None, **kw)[0].shared_angles["applied"] is True
-    assert fit_measurements(inp.meas, estimate_angles=None, loss="log", **kw)[0].shared_angles is None
+    assert fit_measurements(inp.meas, **kw)[0].shared_angles["applied"] is True
+    assert fit_measurements(inp.meas, estimate_angles=False, **kw)[0].shared_angles is None
+    assert fit_measurements(inp.meas, loss="log", **kw)[0].shared_angles is None
     parse = build_parser().parse_args
     assert [parse(["fit", "d.nc", "--out", "f.json", *a]).estimate_angles for a in ([], ["--estimate-angles"], ["--no-estimate-angles"])] \
-        == [False, True, False]
+        == [None, True, False]
 
 
 def test_a_scene_fit_refuses_the_estimate_in_one_line():

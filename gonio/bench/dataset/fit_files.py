@@ -60,12 +60,12 @@ def stems_of(datasets) -> list[str]:
 
 def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, workers, dashboard=None,
               say: Callable[[str], None] = print, warn: Callable[[str], None] = print,
-              estimate_angles: bool = False) -> list[tuple[str, dict]]:
+              estimate_angles: bool | None = None) -> list[tuple[str, dict]]:
     """Fit ``datasets`` (paths) with ``model`` on Dask and write ``out/STEM.fit.json`` for each;
     ``say`` gets a line per fit and the summary, ``warn`` the fits that miss their data and
-    the shared-angle estimates not applied. ``estimate_angles``: as ``gonio fit``'s (every
-    dataset must state the shared angle inputs, the loss must be chi2; both checked before
-    any fit). Returns ``[(stem, fit document)]`` in the order of ``datasets``."""
+    the shared-angle estimates not applied. ``estimate_angles``: as ``gonio fit``'s (None:
+    wherever a dataset states the shared angle inputs and the loss is chi2; True: every dataset
+    must state them and the loss must be chi2, both checked before any fit; False: never). Returns ``[(stem, fit document)]`` in the order of ``datasets``."""
     datasets = [Path(d) for d in datasets]
     check_batch_options(model=model, options=options, loss=loss, scheduler=scheduler, workers=workers,
                         dashboard=dashboard)
@@ -78,9 +78,9 @@ def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, wor
             raise GonioError(f"these datasets have different default losses ({', '.join(defaults)}: measured sigma "
                              "or none); give --loss, or fit them in separate batches")
         loss = defaults[0]
-    for d, i in zip(datasets, inputs) if estimate_angles else ():     # before any fit, as gonio fit's
+    for d, i in zip(datasets, inputs) if estimate_angles is True else ():     # before any fit, as gonio fit's
         check_estimate_angles(i.budget, loss, d)
-    extra = {"estimate_angles": True} if estimate_angles else {}
+    extra = {} if estimate_angles is None else {"estimate_angles": estimate_angles}
     stems = stems_of(datasets)
     # a local cluster reads the same files: each worker loads its own datasets (a loader per
     # file, called where it is fitted) instead of receiving them over the cluster's TLS (16

@@ -95,7 +95,7 @@ def _fit_one(meas, model_spec, i, rng_seed, fit_kwargs):
     if set(fit_kwargs) <= {"loss", "estimate_angles"}:
         return fit_measurements(inp, model=name, options=options, seed=rng_seed, rng=rng,
                                 loss=fit_kwargs.get("loss", "chi2"),
-                                estimate_angles=fit_kwargs.get("estimate_angles", False))[0]
+                                estimate_angles=fit_kwargs.get("estimate_angles"))[0]
     from gonio.fitting.optimise.mle import fit
 
     return fit(inp.meas, gm.get(name, **options), rng=rng, **fit_kwargs)
