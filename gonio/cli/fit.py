@@ -190,16 +190,21 @@ def render_cli(fit_path: Path, dataset: Path, out_dir: Path, variant=None, previ
 
 
 def fitted_data(meas, dataset, fit_path):
-    """``meas`` (``dataset`` as opened) at the directions the fit file's shared-angle estimate
-    gave the data (gonio.bench.report.fitdoc.as_fitted; a fit file that cannot be read is left to
-    its reader's refusal); a note on the terminal where the estimate does not fit the dataset."""
+    """``meas`` (``dataset`` as opened) as the fit file's fit saw it: at the directions its
+    shared-angle estimate gave the data, corrected for the apertures where it modelled them
+    (gonio.bench.report.fitdoc.as_fitted; a fit file that cannot be read is left to its reader's
+    refusal); a note on the terminal where the estimate does not fit the dataset."""
     from gonio.bench.report.fitdoc import as_fitted
+    from gonio.fitting import load_fit
 
     try:
-        record = json.loads(Path(fit_path).read_text(encoding="utf-8")).get("shared_angles")
-    except (OSError, ValueError, AttributeError):
+        loaded = load_fit(fit_path)
+        ir = loaded.document.get("instrument_response")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return meas
-    meas, note = as_fitted(meas, dataset, record)
+    response = (loaded.model, loaded.params, ir.get("source_half_deg"), ir.get("detector_half_deg")) \
+        if isinstance(ir, dict) else None
+    meas, note = as_fitted(meas, dataset, loaded.document.get("shared_angles"), response)
     if note:
         _wrapped(note)
     return meas

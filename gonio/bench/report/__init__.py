@@ -511,9 +511,11 @@ def build_page(folder, found: dict, root: Folder, *, approver=None, role=None, i
     fitted = meas           # the data as the fit saw them: at its shared-angle estimate's directions
     if found["fit"] is not None:
         fit, model, params = _load_fit(root, found["fit"])
-        sa = fit.sub("shared_angles")
+        sa, ir = fit.sub("shared_angles"), fit.sub("instrument_response")      # corrected as the fit was
         fitted, note = as_fitted(meas, root.check(found["dataset"], "dataset"), None if sa is None else
-                                 {"applied": sa.flag("applied"), "estimate_sigma": sa.numbers("estimate_sigma")})
+                                 {"applied": sa.flag("applied"), "estimate_sigma": sa.numbers("estimate_sigma")},
+                                 None if ir is None else (model, params, ir.num("source_half_deg"),
+                                                          ir.num("detector_half_deg")))
         ctx["notes"] += [note] if note else []
         truth = meas.attrs.get("sample_truth")
         truth = truth if isinstance(truth, dict) else None

@@ -60,18 +60,35 @@ def energy_text(energy: dict) -> str:
     return f"{state} (max albedo {energy['max_albedo']:.4f})" if energy.get("max_albedo") is not None else state
 
 
-def as_fitted(meas, dataset_path, record):
+def as_fitted(meas, dataset_path, record, response=None):
     """``meas`` (the dataset at ``dataset_path`` as opened) at the directions and irradiance the
     fit file's ``shared_angles`` ``record`` gave it (gonio.fitting.uncertainty.shared_angles
-    .as_estimated): the data the fit's parameters were fitted to. Returns (Measurements, None),
-    or (``meas`` as it is, a note) where the record does not fit the dataset."""
+    .as_estimated) and, with ``response`` (model, params, the fit file's ``instrument_response``
+    source and detector half-angles in deg), divided by c = <f_r>/f_r there as the fit divided
+    them (gonio/fitting/likelihood/aperture.py; c taken again at the fitted parameters): the data
+    the fit's parameters were fitted to. Returns (Measurements, None), or (``meas`` as far as it
+    could be taken, a note) where the record or the half-angles do not fit."""
     from gonio.bench.dataset.reader import open_budget
     from gonio.core.errors import GonioError
+    from gonio.fitting.likelihood.aperture import aperture_ratio, corrected
     from gonio.fitting.uncertainty.shared_angles import as_estimated
 
-    if not isinstance(record, dict) or not record.get("applied"):
-        return meas, None
+    note = None
+    if isinstance(record, dict) and record.get("applied"):
+        try:
+            meas = as_estimated(meas, getattr(open_budget(Path(dataset_path), meas), "angles", None), record)
+        except (ValueError, GonioError) as exc:
+            note = f"The data are drawn at their nominal directions: {' '.join(str(exc).split())[:200]}."
+    if response is None:
+        return meas, note
+    model, params, *half = response
     try:
-        return as_estimated(meas, getattr(open_budget(Path(dataset_path), meas), "angles", None), record), None
-    except (ValueError, GonioError) as exc:
-        return meas, f"The data are drawn at their nominal directions: {' '.join(str(exc).split())[:200]}."
+        src, det = (float(h or 0.0) for h in half)
+    except (TypeError, ValueError):
+        src = det = float("nan")
+    if not (0.0 <= src <= 20.0 and 0.0 <= det <= 20.0):
+        return meas, " ".join(filter(None, [note, f"The data are drawn without the apertures' correction: the fit "
+                                                  f"file's half-angles {half!r:.60} are not in [0, 20] deg."]))
+    if src > 0.0 or det > 0.0:
+        meas = corrected(meas, None, aperture_ratio(model, meas.wi, meas.wo, params, src, det))[0]
+    return meas, note
