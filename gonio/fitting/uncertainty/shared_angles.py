@@ -179,7 +179,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = ROUNDS, raw=No
     use = meas.use & np.isfinite(meas.brdf) & (meas.brdf_std > 0)
     known = np.einsum("l,lnc->nc", v_mean, V)            # the other inputs' known means, in the data
     first = result                                     # its instrument-response record stays with the refits
-    c = getattr(result, "response_factor", None)
+    c = c_before = getattr(result, "response_factor", None)
     if c is None or raw is None:
         raw = None
     else:
@@ -221,7 +221,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = ROUNDS, raw=No
             m, g = _moved(meas, moves, b)
         else:                                             # corrected for the response where the data now lie
             wi, wo, g = moved(meas.wi, meas.wo, moves, b)
-            c = aperture_ratio(result.model, wi, wo, result.params, *apertures)
+            c_before, c = c, aperture_ratio(result.model, wi, wo, result.params, *apertures)
             m = _at(corrected(raw, None, c)[0], wi, wo, g)
         try:
             result = refit(m, result)
@@ -250,6 +250,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = ROUNDS, raw=No
     response = first.response
     if raw is not None:
         response = {**first.response, "max_correction": float(np.max(np.abs(c - 1.0)[meas.use])),
+                    "last_change": float(np.max(np.abs(c - c_before)[meas.use])),
                     "method": first.response["method"] + "; again at each round of the shared-angle estimate, "
                               "at the directions it gave the data"}
         budget = corrected(raw, raw_budget, c)[1]
