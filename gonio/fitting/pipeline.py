@@ -209,18 +209,37 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     # the instrument's angular response, where the dataset declares its apertures (likelihood/aperture.py)
     chosen = result.model
     raw = (meas, budget)                # as opened: the shared-angle estimate corrects the response where it moves them
+    refits = []                         # the fit's time is all of it: the refits below count too
+
+    def refit(m, near=None):
+        r = fit(m, chosen, rng=np.random.default_rng(seed), loss=loss,
+                **({} if near is None else {"start": near.params, "n_starts": 0}))
+        refits.append(r)
+        return r
+
+    first = result
     try:
-        result, meas, budget = with_instrument_response(
-            meas, budget, result, lambda m: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss))
+        result, meas, budget = with_instrument_response(meas, budget, result, refit)
         if estimate_angles:             # a no-op where the budget states no shared angle inputs
             from gonio.fitting.uncertainty.shared_angles import with_shared_angles
 
-            result, meas, budget = with_shared_angles(     # each refit local, from the fit so far
-                meas, budget, result, lambda m, near: fit(m, chosen, rng=np.random.default_rng(seed), loss=loss,
-                                                          start=near.params, n_starts=0), raw=raw)
+            # each refit local, from the fit so far
+            result, meas, budget = with_shared_angles(meas, budget, result, refit, raw=raw)
     except ValueError as exc:
         raise GonioError(str(exc)) from None
-    return result, meas, budget, ranking, note
+    return _with_time_of(result, [first, *refits]), meas, budget, ranking, note
+
+
+def _with_time_of(result, fits):
+    """``result`` with the time, evaluations and CPU seconds of all ``fits`` (the fit and the
+    refits the angular response and the shared-angle estimate made: the fit file's optimiser
+    time is what the fit took, not its last refit's)."""
+    if len(fits) < 2:
+        return result
+    cpu = [f.cpu_s for f in fits]
+    return dataclasses.replace(result, time_s=float(sum(f.time_s for f in fits)),
+                               n_evals=int(sum(f.n_evals for f in fits)),
+                               cpu_s=None if any(c is None for c in cpu) else float(sum(cpu)))
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,
