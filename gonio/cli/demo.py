@@ -40,6 +40,7 @@ from gonio.core.errors import GonioError
 from gonio.bench.dataset.export import export
 from gonio.cli.fit import fit_dataset, open_budget, print_fit, render_closure, render_previews
 from gonio.fitting.likelihood.aperture import corrected
+from gonio.fitting.display import shared_angles_line
 from gonio.fitting.uncertainty.shared_angles import applied
 from gonio.bench import calibrate
 from gonio.bench.plan.plans import load_plan
@@ -183,7 +184,7 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, q
         shutil.copyfileobj(src, dst)
     timings["export dataset.nc"] = time.perf_counter() - t
     _step(console, 4, f"fit: {sample['model']} by chi2 with the budget carried into every parameter (u_stat, u_c, "
-                      "U), the instrument's angular response modelled and its shared angle errors estimated"
+                      "U), the instrument's angular response modelled and its shared angle errors estimated with it"
                       + ("; emcee posterior" if posterior else ""))
 
     meas = load_dataset(dataset)
@@ -192,6 +193,8 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, q
         result, doc, post = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=seed,
                                         posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset,
                                         budget=budget, progress=progress)
+    if shared_angles_line(doc):             # estimated, or why not: as `gonio fit` says it
+        console.print(shared_angles_line(doc), highlight=False)
     timings["fit (nlopt + Laplace)"] = doc["optimiser"]["time_s"]
     if post is not None:
         timings["posterior (emcee)"] = post.time_s

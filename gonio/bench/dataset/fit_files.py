@@ -65,7 +65,8 @@ def fit_files(datasets, *, model, options, out: Path, seed, loss, scheduler, wor
     ``say`` gets a line per fit and the summary, ``warn`` the fits that miss their data and
     the shared-angle estimates not applied. ``estimate_angles``: as ``gonio fit``'s (None:
     wherever a dataset states the shared angle inputs and the loss is chi2; True: every dataset
-    must state them and the loss must be chi2, both checked before any fit; False: never). Returns ``[(stem, fit document)]`` in the order of ``datasets``."""
+    must state them and the loss must be chi2, both checked before any fit; False: never).
+    Returns ``[(stem, fit document)]`` in the order of ``datasets``."""
     datasets = [Path(d) for d in datasets]
     check_batch_options(model=model, options=options, loss=loss, scheduler=scheduler, workers=workers,
                         dashboard=dashboard)

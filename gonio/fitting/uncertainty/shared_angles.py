@@ -234,8 +234,8 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = ROUNDS, raw=No
                        "follow the data closely enough to tell an angle error from its own misfit",
                        estimate_sigma=b.tolist(), residual_scale=scale)
     if step >= 0.05:
-        return refused(f"the inputs' estimate had not settled after {taken} rounds (its last full step {step:.2f} sigma)",
-                       estimate_sigma=b.tolist(), residual_scale=scale)
+        return refused(f"the inputs' estimate had not settled after {taken} rounds "
+                       f"(its last full step {step:.2f} sigma)", estimate_sigma=b.tolist(), residual_scale=scale)
     L = np.linalg.cholesky(C + 1e-12 * np.eye(len(C)))
     f0 = np.asarray(result.model.eval(meas.wi, meas.wo, result.params), float)
     change = np.asarray(result.model.eval(m.wi, m.wo, result.params), float) * g[:, None] - f0
