@@ -108,6 +108,13 @@ def test_a_capture_fit_estimates_records_and_carries_the_inputs(uncalibrated):
     with pytest.raises(ValueError, match="made on"):
         applied(inp.meas.subset(np.arange(3)), inp.budget, result)
     np.testing.assert_array_equal(b2.angles["shared"], budget.angles["shared"])
+    # the budget's lines are in f_r's units: over the wedge's irradiance change, as the values are
+    g = result.shared_angles_fix[2]
+    assert np.any(g != 1.0)
+    nominal = corrected(inp.meas, inp.budget, result.response_factor)[1].components
+    for fitted, rebuilt, k in zip(budget.components, b2.components, nominal):
+        np.testing.assert_array_equal(fitted.value, np.asarray(k.value, float) / g[:, None])
+        np.testing.assert_array_equal(rebuilt.value, fitted.value)
     doc = fit_document_of(result, inp, seed=11, dataset_path=uncalibrated)
     assert doc["shared_angles"] == info
     plain = fit_dataset(inp, estimate_angles=False, **kw)[1]

@@ -131,6 +131,13 @@ def _at(meas, wi, wo, g):
     return dataclasses.replace(meas, wi=wi, wo=wo, brdf=meas.brdf / g[:, None], brdf_std=meas.brdf_std / g[:, None])
 
 
+def _budget_at(budget, g):
+    """``budget`` with its components (values in f_r's units, (N, C) or (K, N, C)) over the
+    irradiance change ``g`` (N,), as :func:`_at` divides the values they describe."""
+    return dataclasses.replace(budget, components=[
+        dataclasses.replace(k, value=np.asarray(k.value, float) / g.reshape((-1, 1))) for k in budget.components])
+
+
 #: the most a round may move the inputs (sigma units, Euclidean): a trust region for the
 #: Gauss-Newton step, linearised at a fit that may be far off (an uncorrected 0.5 deg tilt on
 #: a 3 deg lobe); an undamped first step overshot to 10-14 sigma where the truth lay at 3
@@ -256,7 +263,7 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = ROUNDS, raw=No
         budget = corrected(raw, raw_budget, c)[1]
     result = dataclasses.replace(result, shared_angles=info, shared_angles_fix=(m.wi, m.wo, g, L), response=response,
                                  response_factor=c)
-    return result, m, posterior_budget(budget, L)
+    return result, m, posterior_budget(_budget_at(budget, g), L)
 
 
 def posterior_budget(budget, L):
@@ -279,7 +286,7 @@ def applied(meas, budget, result):
     wi, wo, g, L = fix
     if np.shape(wi) != meas.wi.shape:
         raise ValueError(f"the shared-angle estimate was made on {len(wi)} points, this dataset has {meas.n_points}")
-    return _at(meas, wi, wo, g), posterior_budget(budget, L)
+    return _at(meas, wi, wo, g), posterior_budget(_budget_at(budget, g), L)
 
 
 def as_estimated(meas, angles, record):
