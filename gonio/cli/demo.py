@@ -40,7 +40,6 @@ from gonio.core.errors import GonioError
 from gonio.bench.dataset.export import export
 from gonio.cli.fit import fit_dataset, open_budget, print_fit, render_closure, render_previews
 from gonio.fitting.likelihood.aperture import corrected
-from gonio.fitting.display import shared_angles_line
 from gonio.fitting.uncertainty.shared_angles import applied
 from gonio.bench import calibrate
 from gonio.bench.plan.plans import load_plan
@@ -193,8 +192,6 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, q
         result, doc, post = fit_dataset(meas, model=sample["model"], options=sample["options"], seed=seed,
                                         posterior=posterior, posterior_budget_s=30.0, dataset_path=dataset,
                                         budget=budget, progress=progress)
-    if shared_angles_line(doc):             # estimated, or why not: as `gonio fit` says it
-        console.print(shared_angles_line(doc), highlight=False)
     timings["fit (nlopt + Laplace)"] = doc["optimiser"]["time_s"]
     if post is not None:
         timings["posterior (emcee)"] = post.time_s
