@@ -7,6 +7,7 @@ import gonio.models as gm
 from gonio.fitting import fit
 from gonio.fitting.likelihood.discrepancy import fit_discrepancy
 
+from _runs import recording
 from _simdata import simulate
 
 
@@ -17,12 +18,7 @@ def test_a_discrepancy_fits_cpu_seconds_are_all_its_refits():
     truth = {"reflectance": np.array([0.5, 0.3, 0.2])}
     meas = simulate(model, truth, np.random.default_rng(3), n=60)
     inner = []
-
-    def counted(*a, **k):
-        inner.append(fit(*a, **k))
-        return inner[-1]
-
-    res = fit_discrepancy(meas, model, counted, rng=np.random.default_rng(0))
+    res = fit_discrepancy(meas, model, recording(fit, inner), rng=np.random.default_rng(0))
     assert len(inner) >= 2 and all(r.cpu_s is not None for r in inner)
     assert res.n_evals == sum(r.n_evals for r in inner)
     assert res.time_s >= sum(r.time_s for r in inner)
