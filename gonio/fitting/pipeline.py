@@ -233,13 +233,15 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
 def _with_time_of(result, fits):
     """``result`` with the time, evaluations and CPU seconds of all ``fits`` (the fit and the
     refits the angular response and the shared-angle estimate made: the fit file's optimiser
-    time is what the fit took, not its last refit's)."""
+    time is what the fit took, not its last refit's), its method saying so."""
     if len(fits) < 2:
         return result
     cpu = [f.cpu_s for f in fits]
     return dataclasses.replace(result, time_s=float(sum(f.time_s for f in fits)),
                                n_evals=int(sum(f.n_evals for f in fits)),
-                               cpu_s=None if any(c is None for c in cpu) else float(sum(cpu)))
+                               cpu_s=None if any(c is None for c in cpu) else float(sum(cpu)),
+                               method=f"{result.method}; evaluations and time over the fit and its {len(fits) - 1} "
+                                      "refits (angular response, shared angle errors)")
 
 
 def fit_dataset(meas, *, model="auto", options=None, seed=0, loss=None, posterior=False,

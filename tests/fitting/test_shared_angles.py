@@ -597,3 +597,4 @@ def test_the_fit_files_time_is_the_whole_fits_not_its_last_refits(uncalibrated, 
     assert result.shared_angles["applied"] is True and len(made) >= 2 + result.shared_angles["rounds"]
     assert_counts_every_run(result, made)
     assert result.n_evals > made[-1].n_evals
+    assert result.method.endswith(f"over the fit and its {len(made) - 1} refits (angular response, shared angle errors)")
