@@ -39,8 +39,7 @@ from gonio.bench.samples import load_sample
 from gonio.core.errors import GonioError
 from gonio.bench.dataset.export import export
 from gonio.cli.fit import fit_dataset, open_budget, print_fit, render_closure, render_previews
-from gonio.fitting.likelihood.aperture import corrected
-from gonio.fitting.uncertainty.shared_angles import applied
+from gonio.fitting.pipeline import data_as_fitted
 from gonio.bench import calibrate
 from gonio.bench.plan.plans import load_plan
 from gonio.bench.report import write_report
@@ -197,9 +196,7 @@ def _run_stages(out, session, sample, plan_obj, seed, posterior, console=None, q
         timings["posterior (emcee)"] = post.time_s
     write_json_atomic(out / "fit.json", doc)
 
-    # the data as fitted: corrected for the apertures (the fit's own c), at the shared-angle estimate's directions
-    as_opened = (meas, budget) if result.response_factor is None else corrected(meas, budget, result.response_factor)
-    fitted = applied(*as_opened, result)[0]
+    fitted = data_as_fitted(meas, budget, result)[0]       # the apertures' c, the shared-angle estimate's geometry
     with Steps("fit speed against scipy", enabled=not quiet):
         speed = _speed_vs_error(fitted, result, sample, seed, doc)
     write_json_atomic(out / "speed.json", speed)

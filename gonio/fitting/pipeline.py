@@ -24,8 +24,8 @@ import numpy as np
 from gonio.core.errors import GonioError
 from gonio.fitting.formats.fitfile import load_fit_file  # noqa: F401  (re-exported: the use cases read fit files)
 
-__all__ = ["FitInput", "as_fit_input", "fit_dataset", "fit_document_of", "fit_measurements", "load_fit_file",
-           "renders_measured", "check_estimate_angles",
+__all__ = ["FitInput", "as_fit_input", "data_as_fitted", "fit_dataset", "fit_document_of", "fit_measurements",
+           "load_fit_file", "renders_measured", "check_estimate_angles",
            "parse_options", "resolve_candidates", "model_error"]
 
 
@@ -291,16 +291,21 @@ def fit_document_of(result, data, *, seed=None, posterior=None, ranking=None, da
     :func:`gonio.fitting.formats.fitfile.fit_document`. ``fitted`` True: ``data`` is already
     what :func:`fit_measurements` returned."""
     from gonio.fitting.formats.fitfile import fit_document
-    from gonio.fitting.likelihood.aperture import corrected
 
     inp = as_fit_input(data)
-    meas, budget = inp.meas, inp.budget
-    factor = getattr(result, "response_factor", None)
-    if factor is not None and not fitted:
-        meas, budget = corrected(meas, budget, factor)
-    if not fitted:
-        from gonio.fitting.uncertainty.shared_angles import applied
-
-        meas, budget = applied(meas, budget, result)
+    meas, budget = (inp.meas, inp.budget) if fitted else data_as_fitted(inp.meas, inp.budget, result)
     return fit_document(result, meas, seed=seed, posterior=posterior, ranking=ranking, dataset_path=dataset_path,
                         budget=budget)
+
+
+def data_as_fitted(meas, budget, result):
+    """``(meas, budget)`` of the dataset as opened, as ``result``'s fit saw them: divided by its
+    angular response's c (``response_factor``), at the geometry and irradiance its shared-angle
+    estimate gave them (:func:`gonio.fitting.uncertainty.shared_angles.applied`)."""
+    from gonio.fitting.likelihood.aperture import corrected
+    from gonio.fitting.uncertainty.shared_angles import applied
+
+    factor = getattr(result, "response_factor", None)
+    if factor is not None:
+        meas, budget = corrected(meas, budget, factor)
+    return applied(meas, budget, result)
