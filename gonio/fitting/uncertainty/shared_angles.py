@@ -224,12 +224,10 @@ def with_shared_angles(meas, budget, result, refit, rounds: int = ROUNDS, raw=No
         last, b = move, b + move
         if float(b @ b) > 4.0 * plausible_bound(len(b)):     # walked far past the bound: no need to go on
             break
-        if raw is None:
-            m, g = _moved(meas, moves, b)
-        else:                                             # corrected for the response where the data now lie
-            wi, wo, g = moved(meas.wi, meas.wo, moves, b)
+        wi, wo, g = moved(meas.wi, meas.wo, moves, b)
+        if raw is not None:                               # the response corrected where the data now lie
             c_before, c = c, aperture_ratio(result.model, wi, wo, result.params, *apertures)
-            m = _at(corrected(raw, None, c)[0], wi, wo, g)
+        m = _at(meas if raw is None else corrected(raw, None, c)[0], wi, wo, g)
         try:
             result = refit(m, result)
         except ValueError as exc:       # the fit at the moved geometry refused: the one before it stands
