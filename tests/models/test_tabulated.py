@@ -43,6 +43,9 @@ def realistic_params(model, rng):
         p[f"fresnel_{j}"] = rng.uniform(0, 1, 3)
     if model.options["body"] == "table":    # drawn last: the draws above stay those of body="lambert"
         p.update({f"body_{j}": math.exp(rng.uniform(-1.0, 0.5)) for j in range(1, tab.N_BODY)})
+    if model.options["sheen"] == "ggx":     # a sheen lobe from narrow to wide, amplitudes up to 0.5
+        p["sheen_alpha"] = math.exp(rng.uniform(math.log(0.05), 0.0))
+        p.update({f"sheen_{j}": rng.uniform(0, 0.5, 3) for j in range(4)})
     return model.validate(p)
 
 
@@ -101,12 +104,14 @@ def test_g1_bounds_for_any_table():
 # -- the BRDF -------------------------------------------------------------------------------
 
 
-BODIES = ("lambert", "table")
+#: option sets: the Lambertian and the table body, and the table body with the sheen lobe
+BODIES = ({"body": "lambert"}, {"body": "table"}, {"body": "table", "sheen": "ggx"})
+BODY_IDS = ("lambert", "table", "table-sheen")
 
 
-@pytest.mark.parametrize("body", BODIES)
+@pytest.mark.parametrize("body", BODIES, ids=BODY_IDS)
 def test_reciprocity_and_positivity(body):
-    m = gm.get("tabulated", body=body)
+    m = gm.get("tabulated", **body)
     rng = np.random.default_rng(11)
     wi, wo = random_hemisphere(rng, 5000), random_hemisphere(rng, 5000)
     for _ in range(6):
@@ -206,7 +211,7 @@ def test_start_replaces_defaults_and_is_validated():
 mi = pytest.importorskip("mitsuba")
 
 
-@pytest.mark.parametrize("body", BODIES)
+@pytest.mark.parametrize("body", BODIES, ids=BODY_IDS)
 def test_mitsuba_eval_matches_at_float32(body):
     """gonio_tabulated's bsdf.eval equals the model at 1e-5 relative plus the float32
     allowance of tests/models/test_mitsuba_agreement.py (same comparison, 4 realistic
@@ -216,7 +221,7 @@ def test_mitsuba_eval_matches_at_float32(body):
     sys.path.insert(0, str(Path(__file__).parent))
     import test_mitsuba_agreement as agreement
 
-    m = gm.get("tabulated", body=body)
+    m = gm.get("tabulated", **body)
     rng = np.random.default_rng(16)
     from gonio.models.mitsuba import eval_cos, mitsuba_variant
 
@@ -239,7 +244,7 @@ def test_mitsuba_eval_matches_at_float32(body):
     assert worst <= 0.0, worst
 
 
-@pytest.mark.parametrize("body", BODIES)
+@pytest.mark.parametrize("body", BODIES, ids=BODY_IDS)
 def test_mitsuba_sampling_is_unbiased(body):
     """E[bsdf.sample's weight] = the directional albedo (the sampling's pdf is the density it
     draws from): 2e5 samples per view, |z| < 4.5 per channel and view (false alarm 7e-6 each,
@@ -247,7 +252,7 @@ def test_mitsuba_sampling_is_unbiased(body):
     from gonio.models.mitsuba import interaction, mitsuba_variant
 
     mitsuba_variant()
-    m = gm.get("tabulated", body=body)
+    m = gm.get("tabulated", **body)
     rng = np.random.default_rng(21)
     p = realistic_params(m, rng)
     p["diffuse_reflectance"] = np.array([0.05, 0.1, 0.02])
@@ -263,7 +268,7 @@ def test_mitsuba_sampling_is_unbiased(body):
         assert np.all(np.abs(z) < 4.5), (th, z)
 
 
-@pytest.mark.parametrize("body", BODIES)
+@pytest.mark.parametrize("body", BODIES, ids=BODY_IDS)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_host_jacobian_matches_central_differences(seed, body):
     """``jacobian_reference``, the exact derivatives the fit uses instead of differencing 42
@@ -272,7 +277,7 @@ def test_host_jacobian_matches_central_differences(seed, body):
     of the pairs near the specular peak. A column may differ only at pairs whose table segment
     the step crosses (a kink of the piecewise-linear tables): at most 1 in 1000 pairs."""
     rng = np.random.default_rng(seed)
-    model = gm.get("tabulated", body=body)
+    model = gm.get("tabulated", **body)
     p = realistic_params(model, rng)
     n = 1200
     wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
@@ -298,7 +303,7 @@ def test_host_jacobian_matches_central_differences(seed, body):
             assert off.mean() <= 1e-3, (q.name, c, off.mean())
 
 
-@pytest.mark.parametrize("body", BODIES)
+@pytest.mark.parametrize("body", BODIES, ids=BODY_IDS)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_chain_rule_jacobian_matches_reference(seed, body):
     """``jacobian_host`` (the chain rule through the tables, what the fit calls) against the
@@ -307,7 +312,7 @@ def test_chain_rule_jacobian_matches_reference(seed, body):
     pairs near the peak and degenerate ones (wo = -wi, below the horizon, grazing, normal, not
     finite: f = 0 and J = 0 there, as ``eval``)."""
     rng = np.random.default_rng(seed)
-    model = gm.get("tabulated", body=body)
+    model = gm.get("tabulated", **body)
     p = realistic_params(model, rng)
     n = 900
     wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
@@ -333,7 +338,7 @@ def test_chain_rule_jacobian_matches_reference(seed, body):
     np.testing.assert_allclose(f1, model.eval_reference(wi, wo, p), rtol=1e-13, atol=0.0)
 
 
-@pytest.mark.parametrize("body", BODIES)
+@pytest.mark.parametrize("body", BODIES, ids=BODY_IDS)
 def test_chain_rule_jacobian_reuses_its_direction_parts(body, monkeypatch):
     """A fit asks for ``jacobian_host`` at the same directions every iteration: what depends on
     the directions alone is computed once (counted), and the results are the same, bit for bit,
@@ -343,7 +348,7 @@ def test_chain_rule_jacobian_reuses_its_direction_parts(body, monkeypatch):
     import gonio.models.catalogue.tabulated_jacobian as tj
 
     rng = np.random.default_rng(4)
-    model = gm.get("tabulated", body=body)
+    model = gm.get("tabulated", **body)
     wi, wo = random_hemisphere(rng, 700), random_hemisphere(rng, 700)
     p, q = realistic_params(model, rng), realistic_params(model, rng)
     calls, real = [], tj._pair_parts

@@ -87,6 +87,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from gonio.models.base import CHANNELS, Model, Parameter, register
+from gonio.models.catalogue import tabulated_sheen
 from gonio.models.structure import Structure
 from gonio.core.geometry import half_vector
 
@@ -274,7 +275,8 @@ def tables(p):
     body = np.ones((1, N_BODY))      # g = 1: the Lambertian body
     if "body_1" in p:
         body[0, 1:] = [p[f"body_{j}"] for j in range(1, N_BODY)]
-    return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, width=width, rho=rho, body=body)
+    sheen = p if "sheen_alpha" in p else None      # option sheen="ggx": its parameters (tabulated_sheen)
+    return SimpleNamespace(ln_d=ln_d, ln_z=ln_z, g1=g1, fresnel=fresnel, width=width, rho=rho, body=body, sheen=sheen)
 
 
 def body_index(cos_theta):
@@ -324,7 +326,7 @@ class Tabulated(Model):
 
     name = "tabulated"
     lambert_smooth = "diffuse_reflectance"   # albedo: the body rho, the lobe on the compiled kernel
-    OPTIONS = {"body": ("lambert", "table")}
+    OPTIONS = {"body": ("lambert", "table"), "sheen": ("none", "ggx")}
     energy_conserving = False
     #: not a ``--model auto`` candidate: it fits well only from a data-driven start
     #: (``fit_tabulated``), not from declared defaults (module notes)
@@ -333,12 +335,14 @@ class Tabulated(Model):
     #: the vectorised ones (llvm_ad_rgb) only (gonio.fitting.render reads this)
     mitsuba_scalar = False
     #: ``model.eval`` stays on the numpy reference at every size: the compiled kernel
-    #: (values only, :func:`_jit_kernel`) serves the fit's resident evaluations
+    #: (values only, :func:`gonio.models.catalogue.tabulated_kernel.kernel`) serves the fit's resident evaluations
     compiled_min_pairs = 1 << 62
 
     @property
     def structure(self):
-        return Structure(kernel=_jit_kernel, kernel_inputs=_jit_inputs, derivatives=False)
+        from gonio.models.catalogue import tabulated_kernel
+
+        return Structure(kernel=tabulated_kernel.kernel, kernel_inputs=tabulated_kernel.inputs, derivatives=False)
 
     #: the default NDF: GGX with this alpha; the default Fresnel: Schlick's with F0 = 0.04
     DEFAULT_ALPHA = 0.15
@@ -384,6 +388,8 @@ class Tabulated(Model):
             deg = math.degrees(BODY_MAX) * j / (N_BODY - 1)
             pars.append(Parameter(f"body_{j}", self._default(f"body_{j}", 1.0), *BODY, "1",
                                   f"body factor g at theta = {deg:.1f} deg (1 at the normal)"))
+        if self.options["sheen"] == "ggx":
+            pars.extend(tabulated_sheen.parameters(self._default, N_FRESNEL))
         return tuple(pars)
 
     # -- evaluation -----------------------------------------------------------------------
@@ -408,7 +414,10 @@ class Tabulated(Model):
         G = _interp(t.g1, g_index(_polar(wi))) * _interp(t.g1, g_index(_polar(wo)))
         F = _interp(t.fresnel, s_f)
         den = np.where(ok, 4.0 * ci * co, 1.0)
-        return np.where(ok[:, None], F * D * G / den[:, None], 0.0)
+        lobe = np.where(ok[:, None], F * D * G / den[:, None], 0.0)
+        if t.sheen is not None:
+            lobe = lobe + tabulated_sheen.value(t.sheen, ci, co, wh[:, 2], s_f, ok, _interp)
+        return lobe
 
     def jacobian_reference(self, wi, wo, params):
         """(f_r, {parameter: d f_r / d parameter (N, 3)}) in numpy, exact for the piecewise
@@ -478,12 +487,20 @@ class Tabulated(Model):
                     col = np.zeros((n, CHANNELS))
                     col[:, c] = dq[:, c, :] @ basis / p[f"ndf_tilt_{name}_{kk}"]
                     J[f"ndf_tilt_{name}_{kk}"] = col
+            if t.sheen is not None:
+                hats = [(np.where(i_f == j, 1.0 - t_f, 0.0) + np.where(i_f + 1 == j, t_f, 0.0))[:, None]
+                        for j in range(N_FRESNEL)]
+                S, JS = tabulated_sheen.columns(p, ci, co, wh[:, 2], ok, hats, _interp, s_f)
+                f = f + S
+                J.update(JS)
         return f, J
 
     def affine_colours(self) -> tuple:
-        """f_r = rho g(i) g(o) / pi + F(theta_d) D G1 G1 / (4 cos cos), F interpolated between
-        its knots: affine in rho and the Fresnel knots jointly (tests/fitting/test_affine_declared.py)."""
-        return ("diffuse_reflectance",) + tuple(f"fresnel_{j}" for j in range(N_FRESNEL))
+        """f_r = rho g(i) g(o) / pi + F(theta_d) D G1 G1 / (4 cos cos) (+ the sheen A(theta_d) S), F
+        and A interpolated between their knots: affine in rho, the Fresnel knots and the sheen's
+        amplitudes jointly (tests/fitting/test_affine_declared.py)."""
+        sheen = tuple(f"sheen_{j}" for j in range(tabulated_sheen.N_SHEEN)) if self.options["sheen"] == "ggx" else ()
+        return ("diffuse_reflectance",) + tuple(f"fresnel_{j}" for j in range(N_FRESNEL)) + sheen
 
     def jacobian_host(self, wi, wo, params):
         """:meth:`jacobian_reference`'s (f_r, J) by the chain rule through the tables, what the
@@ -525,72 +542,3 @@ class Tabulated(Model):
             else:
                 d[par.name] = float(p[par.name])
         return d
-
-
-# -- compiled kernel (values only) -------------------------------------------------------------
-
-
-def _jit_inputs(model, p, P, F, grad, dtables):
-    """The kernel's tables, built by :func:`tables` in numpy (float64) and cast to F:
-    ``P["_tab"]`` = (ln D - ln Z (C K), G1 (C N_G), Fresnel (C N_FRESNEL), width (N_FRESNEL),
-    body factor (N_BODY))."""
-    t = tables(p)
-    P["_tab"] = tuple(F(np.ascontiguousarray(a).ravel()) for a in (t.ln_d - t.ln_z[:, None], t.g1, t.fresnel, t.width,
-                                                                    t.body))
-
-
-def _jit_kernel(model, k, wi, wo, P, grad):
-    """:meth:`Tabulated._lobe` and the body in Dr.Jit: the same fractional indices and linear
-    interpolation (``dr.gather``) into the tables of :func:`_jit_inputs`; polar angles by
-    atan2(|xy|, z) as :func:`_polar`. Values only (``structure.derivatives = False``: the
-    parameters act through tables built in numpy; the fit differences them)."""
-    if grad:
-        raise NotImplementedError("tabulated's kernel gives values only")
-    dr, U, active = k.dr, k.U, k.active
-    F = k.F
-    ln_d, g1, fresnel, width, body_table = P["_tab"]
-
-    def lerp(table, n, s, c):  # s: float64 fractional indices (a float32 one loses 128 * 6e-8 near the end)
-        i = dr.clip(U(dr.floor(s)), 0, n - 2)
-        t = F(dr.clip(s - type(s)(i), 0.0, 1.0))
-        return dr.gather(F, table, c * n + i) * (1.0 - t) + dr.gather(F, table, c * n + i + 1) * t
-
-    def polar(x, y, z):
-        return dr.atan2(dr.sqrt(x * x + y * y), z)
-
-    half_pi = 0.5 * math.pi
-    ci, co = wi.z, wo.z
-    # the table indices from float64 geometry whatever F is (as the Mitsuba plugin: float32's
-    # atan2 is off by a few ulp, which the steep ln D table turns into 3e-4 relative; measured)
-    F64 = dr.float64_array_t(F)
-    vi = [F64(v) for v in (wi.x, wi.y, wi.z)]
-    vo = [F64(v) for v in (wo.x, wo.y, wo.z)]
-    h = [a + b for a, b in zip(vi, vo)]
-    h2 = h[0] * h[0] + h[1] * h[1] + h[2] * h[2]
-    valid = h2 > 1e-300
-    inv = dr.rsqrt(dr.select(valid, h2, 1.0))
-    cd = 0.5 * sum((a + b) * c for a, b, c in zip(vi, vo, h)) * inv
-    ok = active & valid & (h[2] > 0) & (cd > 0)
-    s_f = (N_FRESNEL - 1) * dr.clip(1.0 - cd, 0.0, 1.0)
-    w = lerp(width, N_FRESNEL, s_f, 0)
-    s_h = (N_KNOTS - 1) * dr.sqrt(dr.clip(polar(*h) / F64(w), 0.0, half_pi) / half_pi)
-    s_i = (N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar(*vi) / half_pi, 0.0, 1.0)))
-    s_o = (N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar(*vo) / half_pi, 0.0, 1.0)))
-    den = 4.0 * dr.select(ok, ci * co, 1.0) * w * w
-    body = dr.select(active, 1.0 / math.pi + k.zero, 0.0)
-    rho = P["diffuse_reflectance"]
-    table = model.options["body"] == "table"
-    if table:       # g_c(theta_i) g_c(theta_o), :func:`body_index`
-        b_i, b_o = ((N_BODY - 1) * dr.minimum(dr.acos(dr.clip(v[2], -1.0, 1.0)) / BODY_MAX, 1.0) for v in (vi, vo))
-    f = []
-    for c in range(CHANNELS):
-        if table:
-            body_c = dr.select(active & (ci > 0) & (co > 0), body * lerp(body_table, N_BODY, b_i, 0)
-                               * lerp(body_table, N_BODY, b_o, 0), 0.0)
-        else:
-            body_c = body
-        D = dr.exp(lerp(ln_d, N_KNOTS, s_h, c))
-        G = lerp(g1, N_G, s_i, c) * lerp(g1, N_G, s_o, c)
-        Fc = lerp(fresnel, N_FRESNEL, s_f, c)
-        f.append(rho[c] * body_c + dr.select(ok, Fc * D * G / den, 0.0))
-    return f, {}

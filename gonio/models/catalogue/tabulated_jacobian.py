@@ -97,6 +97,13 @@ def jacobian(model, wi, wo, params):
             if j >= 1:
                 np.multiply(lw, hat, out=J[f"width_{j}"])
         _ndf_columns(tab, t, p, out, names, (g.g_parts, ih, th_t), Fr * D_over, Gi, Go, lobe)
+        if t.sheen is not None:     # option sheen="ggx": an added lobe (tabulated_sheen)
+            from gonio.models.catalogue import tabulated_sheen
+
+            S, JS = tabulated_sheen.columns(p, ci, co, g.cos_h, ok, g.fresnel_hats, tab._interp, s_f)
+            f = f + S
+            for name, col in JS.items():
+                J[name][:] = col
     return f, J
 
 
@@ -106,6 +113,7 @@ class _Pairs(NamedTuple):
     ok: np.ndarray
     s_f: np.ndarray
     th: np.ndarray
+    cos_h: np.ndarray
     gi: np.ndarray
     go: np.ndarray
     body: np.ndarray
@@ -154,7 +162,7 @@ def _pair_parts(tab, wi, wo, sides, table) -> _Pairs:
         hats = tuple(np.where(i_f == j, 1.0 - t_f, np.where(i_f + 1 == j, t_f, 0.0))[:, None]
                      for j in range(tab.N_FRESNEL))
         g_parts = tab._lerp_parts(tab.N_G, gi) + tab._lerp_parts(tab.N_G, go)
-    return _Pairs(np.array(ci), np.array(co), ok, s_f, th, gi, go, body, s_bi, s_bo, body_hats, hats, g_parts)
+    return _Pairs(np.array(ci), np.array(co), ok, s_f, th, wh[:, 2], gi, go, body, s_bi, s_bo, body_hats, hats, g_parts)
 
 
 def _ndf_columns(tab, t, p, out, names, where, FD, Gi, Go, lobe):

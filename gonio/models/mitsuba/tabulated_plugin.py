@@ -5,13 +5,15 @@ the model's tables from the plugin's properties with the numpy code of
 :func:`gonio.models.catalogue.tabulated.tables` (ln D knots, the normalisation, the Smith G1
 table derived from D, the Fresnel knots); ``eval`` interpolates them exactly as the numpy model
 does (the same fractional indices, ``dr.gather``), in float32, polar angles by ``atan2(|xy|, z)``.
-With the ``body_j`` properties (option ``body="table"``) the body is rho g(theta_i) g(theta_o) / pi.
+With the ``body_j`` properties (option ``body="table"``) the body is rho g(theta_i) g(theta_o) / pi;
+with ``sheen_alpha`` (option ``sheen="ggx"``) the sheen lobe of
+:mod:`gonio.models.catalogue.tabulated_sheen` is added, in its stable form.
 
 Sampling: a mixture of cosine-weighted directions and reflections about microfacet normals m
 drawn from the channels' mean D (normalised, so ``D cos(theta_m)`` is a density of m), piecewise
 constant on :data:`SAMPLING_BINS` rings of the warped theta grid (uniform in solid angle within
 a ring); pdf(wo) = q p_m(h) / (4 wo . h) + (1 - q) cos(theta_o) / pi, q the mean Fresnel
-factor's share of (mean F + mean rho), clipped to [Q_MIN, Q_MAX]. ``pdf`` is evaluated from the
+factor's share of (mean F + mean rho + mean sheen amplitude), clipped to [Q_MIN, Q_MAX]. ``pdf`` is evaluated from the
 same rings, so it is exactly the density ``sample`` draws from.
 """
 
@@ -32,7 +34,7 @@ Q_MIN, Q_MAX = 0.2, 0.9
 def make_bsdf(mi, dr, base, tab):
     """The BSDF class for the active variant, derived from gonio's Python BSDF ``base``;
     ``tab`` is the model's module (:mod:`gonio.models.catalogue.tabulated`, passed in: no import cycle)."""
-    models = {"lambert": tab.Tabulated(), "table": tab.Tabulated(body="table")}
+    models = {(b, s): tab.Tabulated(body=b, sheen=s) for b in ("lambert", "table") for s in ("none", "ggx")}
 
     def lerp(table, n, s, c):
         """Channel ``c`` of a flattened (C, n) table at fractional indices ``s``."""
@@ -56,7 +58,7 @@ def make_bsdf(mi, dr, base, tab):
         def __init__(self, props):
             base.__init__(self, props)
             params = {}
-            model = models["table" if "body_1" in props else "lambert"]
+            model = models[("table" if "body_1" in props else "lambert", "ggx" if "sheen_alpha" in props else "none")]
             for par in model.parameters:
                 params[par.name] = ([float(props[f"{par.name}_{c}"]) for c in "rgb"] if par.per_channel
                                     else float(props[par.name]))
@@ -68,7 +70,12 @@ def make_bsdf(mi, dr, base, tab):
             self.width = mi.Float(np.ascontiguousarray(t.width, dtype=np.float32).ravel())
             self.body = mi.Float(np.ascontiguousarray(t.body, dtype=np.float32).ravel())
             self.table = model.options["body"] == "table"
-            dr.make_opaque(self.rho, self.ln_d, self.g1, self.fresnel, self.width, self.body)
+            self.sheen = t.sheen is not None
+            amp = tab.tabulated_sheen.amplitudes(t.sheen) if self.sheen else np.zeros((CHANNELS, tab.N_FRESNEL))
+            self.sheen_amp = mi.Float(np.ascontiguousarray(amp, dtype=np.float32).ravel())
+            self.sheen_a2 = mi.Float(float(t.sheen["sheen_alpha"]) ** 2 if self.sheen else 0.0)
+            dr.make_opaque(self.rho, self.ln_d, self.g1, self.fresnel, self.width, self.body, self.sheen_amp,
+                           self.sheen_a2)
             # importance sampling (module notes): the channels' mean D on SAMPLING_BINS rings
             edges = 0.5 * math.pi * (np.linspace(0.0, 1.0, SAMPLING_BINS + 1)) ** 2
             cos_e = np.cos(edges)
@@ -82,7 +89,8 @@ def make_bsdf(mi, dr, base, tab):
             self.cos_lo = mi.Float(cos_e[1:].astype(np.float32))
             self.cos_hi = mi.Float(cos_e[:-1].astype(np.float32))
             spec = float(np.mean(t.fresnel))
-            self.q = mi.Float(float(np.clip(spec / max(spec + float(np.mean(t.rho)), 1e-12), Q_MIN, Q_MAX)))
+            rest = float(np.mean(t.rho)) + float(np.mean(amp))      # sampled by the cosine-weighted part
+            self.q = mi.Float(float(np.clip(spec / max(spec + rest, 1e-12), Q_MIN, Q_MAX)))
             dr.make_opaque(self.density, self.cos_lo, self.cos_hi, self.q)
 
         def _pdf_m(self, m):
@@ -141,6 +149,14 @@ def make_bsdf(mi, dr, base, tab):
             s_o = mi.Float((tab.N_G - 1) * (1.0 - dr.sqrt(dr.clip(1.0 - polar64(ox, oy, oz) / half_pi, 0.0, 1.0))))
             den = 4.0 * dr.select(up, ci * co, 1.0) * w * w
             lobe, body = [], []
+            if self.sheen:      # tabulated_sheen.shape: D / ((ci + q_i)(co + q_o)), GGX of sheen_alpha
+                a2 = self.sheen_a2
+                ch = mi.Float(dr.clip(hz / dr.select(up64, hn, 1.0), 0.0, 1.0))
+                u = a2 * ch * ch + (1.0 - ch * ch)
+                ci_, co_ = dr.select(up, ci, 1.0), dr.select(up, co, 1.0)
+                qi = dr.sqrt(ci_ * ci_ + a2 * (1.0 - ci_ * ci_))
+                qo = dr.sqrt(co_ * co_ + a2 * (1.0 - co_ * co_))
+                unit = a2 / (math.pi * u * u) / ((ci_ + qi) * (co_ + qo))
             b_i, b_o = (mi.Float((tab.N_BODY - 1) * dr.minimum(dr.acos(dr.clip(z, -1.0, 1.0)) / tab.BODY_MAX, 1.0))
                         for z in (iz, oz))
             for c in range(CHANNELS):
@@ -149,7 +165,10 @@ def make_bsdf(mi, dr, base, tab):
                 D = dr.exp(lerp(self.ln_d, tab.N_KNOTS, s_h, c))
                 G = lerp(self.g1, tab.N_G, s_i, c) * lerp(self.g1, tab.N_G, s_o, c)
                 F = lerp(self.fresnel, tab.N_FRESNEL, s_f, c)
-                lobe.append(dr.select(up, F * D * G / den, 0.0))
+                value = F * D * G / den
+                if self.sheen:
+                    value = value + lerp(self.sheen_amp, tab.N_FRESNEL, s_f, c) * unit
+                lobe.append(dr.select(up, value, 0.0))
             return self.rho * mi.Color3f(*body) + mi.Color3f(*lobe)
 
         def to_string(self):
