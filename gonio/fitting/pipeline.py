@@ -201,7 +201,7 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
             elif model == "tabulated":      # data-driven NDF: started from the data, not from defaults
                 from gonio.fitting.optimise.tabulated_start import fit_tabulated
 
-                result = fit_tabulated(meas, rng=rng, loss=loss, **candidates[0][1])     # its option: body
+                result = fit_tabulated(meas, rng=rng, loss=loss, **candidates[0][1])     # its options: body, sheen
             else:
                 result = fit(meas, gm.get(model, **candidates[0][1]), rng=rng, loss=loss)
         except ValueError as exc:

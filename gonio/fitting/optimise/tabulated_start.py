@@ -185,11 +185,11 @@ def data_start(meas, model=None) -> dict:
     return model.validate(out)
 
 
-def fit_tabulated(meas, *, rng, loss="log", rounds=ROUNDS_FIT, body="lambert", start=None, **kwargs):
-    """``tabulated`` (option ``body``) fitted to ``meas`` by :func:`gonio.fitting.fit`, starting from
+def fit_tabulated(meas, *, rng, loss="log", rounds=ROUNDS_FIT, body="lambert", sheen="none", start=None, **kwargs):
+    """``tabulated`` (options ``body``, ``sheen``) fitted to ``meas`` by :func:`gonio.fitting.fit`, starting from
     ``start`` (a parameter dict; default :func:`data_start`; parameters it lacks start at their
-    defaults: ``body="table"`` from the plain fit's parameters starts at g = 1, that fit
-    itself) (the model instance carries it as its defaults), parameters the data
+    defaults: ``body="table"`` from the plain fit's parameters starts at g = 1, ``sheen="ggx"``
+    with no sheen, that fit itself) (the model instance carries it as its defaults), parameters the data
     do not see held there (:func:`unseen`). While gonio's Levenberg-Marquardt stops at its
     iteration cap (60) still improving, the fit is run again from its own result, the
     global stage skipped (``n_starts=0``), at most ``rounds`` times in all, until the
@@ -206,7 +206,8 @@ def fit_tabulated(meas, *, rng, loss="log", rounds=ROUNDS_FIT, body="lambert", s
     t0, c0 = time.perf_counter(), time.process_time()
     covariance = kwargs.pop("covariance", True)
     kwargs["covariance"] = False
-    model = tab.Tabulated(start=data_start(meas, tab.Tabulated(body=body)) if start is None else start, body=body)
+    model = tab.Tabulated(start=data_start(meas, tab.Tabulated(body=body)) if start is None else start, body=body,
+                          sheen=sheen)
     fixed = dict(kwargs.pop("fixed", None) or {})
     fixed.update(unseen(meas, model, loss, exclude=fixed))
     res = fit(meas, model, loss=loss, rng=rng, fixed=fixed or None, **kwargs)
@@ -214,7 +215,7 @@ def fit_tabulated(meas, *, rng, loss="log", rounds=ROUNDS_FIT, body="lambert", s
     for _ in range(rounds - 1):
         if res.converged:
             break
-        model = tab.Tabulated(start=res.params, body=body)
+        model = tab.Tabulated(start=res.params, body=body, sheen=sheen)
         nxt = fit(meas, model, loss=loss, rng=rng, fixed=fixed or None, **kwargs)
         gain = res.objective - nxt.objective
         if gain >= 0:
