@@ -1,5 +1,7 @@
 """The instrument's angular response in the forward model (issue 15; gonio/fitting/likelihood/aperture.py)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -71,6 +73,24 @@ def test_the_response_removes_the_bias_of_a_narrow_lobe(convolved):
     info = res.response
     assert info["source_half_deg"] == 0.5 and 0.01 < info["max_correction"] < 0.5 and info["last_change"] < 0.05
     assert m2.attrs["aperture_corrected"] and np.all(m2.brdf_std > 0)
+
+
+def test_the_corrected_data_keep_every_other_field(convolved):
+    """``corrected`` divides f_r, sigma and the budget's components by c and keeps the rest: the
+    solid-angle weights and the clusters the cluster-robust sandwich sums over (it dropped the
+    clusters before)."""
+    from gonio.fitting.likelihood.aperture import corrected
+
+    _, meas = convolved
+    n = meas.n_points
+    meas = dataclasses.replace(meas, weight=np.linspace(0.5, 1.5, n), cluster=np.arange(n) // 3)
+    c = np.full(meas.brdf.shape, 1.25)
+    m2, _ = corrected(meas, None, c)
+    np.testing.assert_array_equal(m2.cluster, meas.cluster)
+    np.testing.assert_array_equal(m2.weight, meas.weight)
+    np.testing.assert_allclose(m2.brdf * 1.25, meas.brdf, rtol=1e-15)
+    np.testing.assert_allclose(m2.brdf_std * 1.25, meas.brdf_std, rtol=1e-15)
+    assert m2.attrs["aperture_corrected"] and "aperture_corrected" not in meas.attrs
 
 
 @pytest.mark.parametrize("bad", [-0.1, float("nan"), 45.0])

@@ -137,9 +137,10 @@ def aperture_ratio(model, wi, wo, params, source_half_deg: float, detector_half_
 
 
 def corrected(meas, budget, c: np.ndarray):
-    """``meas`` and ``budget`` with every value (f_r, sigma, the components) divided by ``c``."""
-    m = Measurements(meas.wi, meas.wo, meas.brdf / c, meas.brdf_std / c, meas.use,
-                     {**meas.attrs, "aperture_corrected": True}, meas.channels, meas.weight)
+    """``meas`` and ``budget`` with every value (f_r, sigma, the components) divided by ``c``; every
+    other field of ``meas`` (weights, clusters) as it was."""
+    m = dataclasses.replace(meas, brdf=meas.brdf / c, brdf_std=meas.brdf_std / c,
+                            attrs={**meas.attrs, "aperture_corrected": True})
     if budget is None:
         return m, None
     comps = [dataclasses.replace(k, value=k.value / c) for k in budget.components]
