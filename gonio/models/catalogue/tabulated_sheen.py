@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from gonio.models.base import Parameter
+from gonio.models.base import CHANNELS, Parameter
 
 __all__ = ["ALPHA_BOUNDS", "N_SHEEN", "parameters", "amplitudes", "shape", "value", "columns"]
 
@@ -52,9 +52,9 @@ def parameters(default, n_fresnel):
     return tuple(out)
 
 
-def amplitudes(p, channels=3) -> np.ndarray:
+def amplitudes(p) -> np.ndarray:
     """The amplitude table (C, N_SHEEN + 1): the knots and 0 at theta_d = 90 deg."""
-    a = np.zeros((channels, N_SHEEN + 1))
+    a = np.zeros((CHANNELS, N_SHEEN + 1))
     for j in range(N_SHEEN):
         a[:, j] = p[f"sheen_{j}"]
     return a
