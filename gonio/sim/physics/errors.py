@@ -125,9 +125,12 @@ class ReferenceErrors:
 
 @dataclass(frozen=True)
 class LinearityErrors:
-    """Integral non-linearity of the detector: relative compression at full scale."""
+    """Integral non-linearity of the detector: relative compression at full scale. ``gamma`` is
+    the bound; ``drawn``: each instrument's own gamma is drawn uniformly in [0, gamma] (as the
+    budget states it), else every instrument sits at the bound."""
 
     gamma: float = 0.0
+    drawn: bool = False
 
 
 _TERMS = {"stages": StageErrors, "alignment": AlignmentErrors, "aperture": ApertureErrors,
@@ -152,11 +155,13 @@ class ErrorModel:
         return self != replace(ErrorModel(), preset=self.preset)
 
     def to_dict(self) -> dict:
-        """Plain tables (TOML-ready): ``preset`` and one table per term."""
+        """Plain tables (TOML-ready): ``preset`` and one table per term (``linearity.drawn`` only
+        where true: the tables of files written before it existed stay equal)."""
         out = {"preset": self.preset}
         for name in _TERMS:
             d = asdict(getattr(self, name))
-            out[name] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+            out[name] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()
+                         if not (name == "linearity" and k == "drawn" and v is False)}
         return out
 
     def draw(self, seed: int, rho_rel_std: float = 0.0) -> ErrorState:
@@ -167,9 +172,11 @@ class ErrorModel:
         wedge = rng.standard_normal(2) * self.alignment.wedge_deg
         n_rho = rng.standard_normal()
         rho_factor = 1.0 + rho_rel_std * n_rho if self.reference.draw_certificate else 1.0
+        lin = self.linearity        # drawn last: the draws above stay those of a bound gamma
+        gamma = lin.gamma * float(rng.random()) if lin.drawn else lin.gamma
         return ErrorState(model=self, seed=int(seed), zero_deg=tuple(float(v) for v in z),
                           tilt_deg=tuple(float(v) for v in tilt), wedge_deg=tuple(float(v) for v in wedge),
-                          rho_factor=float(rho_factor))
+                          rho_factor=float(rho_factor), gamma=float(gamma))
 
 
 PRESETS = {
@@ -323,11 +330,18 @@ class ErrorState:
     tilt_deg: tuple
     wedge_deg: tuple
     rho_factor: float
+    #: the detector's integral non-linearity (None: the model's bound)
+    gamma: float | None = None
 
     def to_dict(self) -> dict:
         """The truth as plain tables (for tests and the coverage study)."""
         return {"seed": self.seed, "zero_deg": list(self.zero_deg), "tilt_deg": list(self.tilt_deg),
-                "wedge_deg": list(self.wedge_deg), "rho_factor": self.rho_factor}
+                "wedge_deg": list(self.wedge_deg), "rho_factor": self.rho_factor, "gamma": self.linearity_gamma}
+
+    @property
+    def linearity_gamma(self) -> float:
+        """This instrument's non-linearity: drawn (``LinearityErrors.drawn``) or the bound."""
+        return self.model.linearity.gamma if self.gamma is None else self.gamma
 
     # ----------------------------------------------------------------- stages
     def axis_error_deg(self, i: int, moves: int, last_dir: int) -> float:
@@ -413,7 +427,7 @@ class ErrorState:
 
     def nonlinear(self, raw: np.ndarray, black: int, white: int) -> np.ndarray:
         """Apply the integral non-linearity to a raw frame (uint16 in, uint16 out)."""
-        g = self.model.linearity.gamma
+        g = self.linearity_gamma
         if not g:
             return raw
         s = np.maximum(raw.astype(np.float64) - black, 0.0)
