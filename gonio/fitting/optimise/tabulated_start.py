@@ -38,6 +38,7 @@ import numpy as np
 import gonio.models as gm
 from gonio.core.channels import CHANNELS
 from gonio.models import tabulated as tab
+from gonio.models.catalogue import tabulated_sheen
 from gonio.core.geometry import half_vector
 
 __all__ = ["data_start", "fit_tabulated", "unseen", "ROUNDS", "WEAK"]
@@ -255,8 +256,11 @@ def unseen(meas, model, loss="log", weak=WEAK, exclude=()):
     col = np.sqrt(np.einsum("ij,ij->j", J, J))
     per = {p.name: p.per_channel for p in model.parameters}
     start = model.defaults()
+    # the sheen's roughness acts through its amplitudes: at a start without sheen (all 0) its
+    # column is 0 whatever the data, so it is not judged there
+    off = {"sheen_alpha"} if "sheen_alpha" in start and not np.any(tabulated_sheen.amplitudes(start)) else set()
     out = {}
     for name, c in zip(space.names, col):
-        if not per.get(name, True) and c < weak * np.median(col):
+        if not per.get(name, True) and c < weak * np.median(col) and name not in off:
             out[name] = start[name]
     return out
