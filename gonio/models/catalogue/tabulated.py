@@ -513,8 +513,11 @@ class Tabulated(Model):
         """Node placement for :func:`gonio.models.physics.albedo.albedo`'s lobe quadrature: the GGX
         width with the same median microfacet inclination under D cos(theta) dm (for GGX
         that CDF is tan^2 / (alpha^2 + tan^2), median at tan(theta) = alpha), narrowest
-        channel."""
+        channel; with the main lobe off (every Fresnel knot 0), the sheen's own GGX width."""
         t = tables(p)
+        if t.sheen is not None and not np.any(t.fresnel):
+            a = float(t.sheen["sheen_alpha"])
+            return SimpleNamespace(alpha_u=a, alpha_v=a)
         edges = 0.5 * math.pi * np.linspace(0.0, 1.0, 2049) ** 2
         cos_e = np.cos(edges)
         mid = knot_index(0.5 * (edges[:-1] + edges[1:]))
@@ -523,6 +526,20 @@ class Tabulated(Model):
         median = edges[1:][np.argmax(cdf >= 0.5, axis=0)]
         alpha = float(np.clip(np.tan(median.min()), 1e-3, 1.0))
         return SimpleNamespace(alpha_u=alpha, alpha_v=alpha)
+
+    def albedo(self, wo, params, **quadrature):
+        """:meth:`Model.albedo`; with a sheen that is on, the main lobe and body (the sheen off) plus
+        the sheen alone (rho and F 0), each integrated on nodes of its own width
+        (:meth:`_lobe_distribution`): one set of nodes for a narrow main lobe misses a wide sheen."""
+        p = self.validate(params)
+        if self.options["sheen"] != "ggx" or not np.any(tabulated_sheen.amplitudes(p)) or not np.any(tables(p).fresnel):
+            return super().albedo(wo, p, **quadrature)
+        main = super().albedo(wo, {**p, **{f"sheen_{j}": 0.0 for j in range(tabulated_sheen.N_SHEEN)}}, **quadrature)
+        off = {"diffuse_reflectance": 0.0, **{f"fresnel_{j}": 0.0 for j in range(N_FRESNEL)}}
+        sheen = super().albedo(wo, {**p, **off}, **quadrature)
+        if quadrature.get("return_error"):
+            return main[0] + sheen[0], main[1] + sheen[1]
+        return main + sheen
 
     # -- Mitsuba ----------------------------------------------------------------------------
     def to_mitsuba(self, params):
