@@ -151,8 +151,8 @@ def make_bsdf(mi, dr, base, tab):
             lobe, body = [], []
             if self.sheen:      # tabulated_sheen.shape: D / ((ci + q_i)(co + q_o)), GGX of sheen_alpha
                 a2 = self.sheen_a2
-                ch = mi.Float(dr.clip(hz / dr.select(up64, hn, 1.0), 0.0, 1.0))
-                u = a2 * ch * ch + (1.0 - ch * ch)
+                r2 = dr.select(up64, hn * hn, 1.0)     # u in float64: sin^2 from |h_xy|^2, not 1 - cos^2
+                u = mi.Float(dr.select(up64, F64(a2) * dr.minimum(hz * hz / r2, 1.0) + (hx * hx + hy * hy) / r2, 1.0))
                 ci_, co_ = dr.select(up, ci, 1.0), dr.select(up, co, 1.0)
                 qi = dr.sqrt(ci_ * ci_ + a2 * (1.0 - ci_ * ci_))
                 qo = dr.sqrt(co_ * co_ + a2 * (1.0 - co_ * co_))
