@@ -253,6 +253,21 @@ def test_compiled_kernel_with_sheen_at_float32(body):
                                    rtol=1e-10, atol=0)
 
 
+def test_sheen_albedo_bounded_by_its_largest_amplitude():
+    """The sheen alone (rho, F 0): a normalised GGX D with its own Smith G1 per direction, so its
+    albedo is at most max A_c (tabulated_sheen's docstring) up to the quadrature error, from
+    its narrowest (alpha 0.05: 0.997 of A at normal view, measured) to its widest."""
+    m = gm.get("tabulated", sheen="ggx")
+    th = np.radians([0.0, 30.0, 60.0, 80.0, 89.0])
+    wo = np.stack([np.sin(th), 0.0 * th, np.cos(th)], 1)
+    off = {"diffuse_reflectance": 0.0, **{f"fresnel_{j}": 0.0 for j in range(tab.N_FRESNEL)}}
+    for alpha in (0.05, 0.2, 1.0):
+        p = m.validate({**off, "sheen_alpha": alpha, **{f"sheen_{j}": [1.0, 0.5, 0.25] for j in range(4)}})
+        a = m.albedo(wo, p)
+        assert np.all(a <= np.array([1.0, 0.5, 0.25]) + QUADRATURE_ERROR), (alpha, a)
+        assert a[0, 0] > (0.99 if alpha == 0.05 else 0.25), (alpha, a)
+
+
 def test_start_replaces_defaults_and_is_validated():
     m0 = gm.get("tabulated")
     p = realistic_params(m0, np.random.default_rng(0))
