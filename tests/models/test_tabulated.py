@@ -346,6 +346,34 @@ def test_mitsuba_sampling_is_unbiased(body):
         assert np.all(np.abs(z) < 4.5), (th, z)
 
 
+def test_mitsuba_sampling_draws_a_narrow_sheen_itself():
+    """A narrow sheen (alpha 0.1, amplitude 0.5, a faint main lobe and body) is sampled through
+    its own GGX normals, not only through the cosine-weighted part: bsdf.sample's weights are
+    unbiased (|z| < 4.5 per view, false alarm 7e-6 each) and their relative spread is below 1
+    at 30, 60 and 80 deg (measured 0.55 / 0.63 / 0.89; with the cosine part alone, as before
+    the sheen had a part of its own, 1.55 / 1.82 / 1.96: 5-8x the variance)."""
+    from gonio.models.mitsuba import interaction, mitsuba_variant
+
+    mitsuba_variant()
+    m = gm.get("tabulated", sheen="ggx")
+    p = m.defaults()
+    p["diffuse_reflectance"] = np.full(3, 0.05)
+    p.update({f"fresnel_{j}": np.full(3, 0.02) for j in range(tab.N_FRESNEL)})
+    p.update({"sheen_alpha": 0.1, **{f"sheen_{j}": np.full(3, 0.5) for j in range(4)}})
+    bsdf = mi.load_dict(m.to_mitsuba(m.validate(p)))
+    rng = np.random.default_rng(1)
+    n = 200_000
+    for th in (0.5, 1.05, 1.4):
+        wo = np.tile([math.sin(th), 0.0, math.cos(th)], (n, 1))
+        si, _ = interaction(wo, wo)
+        _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(rng.random(n).astype(np.float32)),
+                           mi.Point2f(rng.random((2, n)).astype(np.float32)))
+        w = np.asarray(w, dtype=np.float64).reshape(3, n)[1]
+        a = m.albedo(wo[:1], p, tol=1e-5)[0][1]
+        assert abs(w.mean() - a) < 4.5 * w.std() / math.sqrt(n), (th, w.mean(), a)
+        assert w.std() / w.mean() < 1.0, (th, w.std() / w.mean())
+
+
 @pytest.mark.parametrize("body", BODIES, ids=BODY_IDS)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_host_jacobian_matches_central_differences(seed, body):

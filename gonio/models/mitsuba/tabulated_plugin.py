@@ -13,8 +13,11 @@ Sampling: a mixture of cosine-weighted directions and reflections about microfac
 drawn from the channels' mean D (normalised, so ``D cos(theta_m)`` is a density of m), piecewise
 constant on :data:`SAMPLING_BINS` rings of the warped theta grid (uniform in solid angle within
 a ring); pdf(wo) = q p_m(h) / (4 wo . h) + (1 - q) cos(theta_o) / pi, q the mean Fresnel
-factor's share of (mean F + mean rho + mean sheen amplitude), clipped to [Q_MIN, Q_MAX]. ``pdf`` is evaluated from the
-same rings, so it is exactly the density ``sample`` draws from.
+factor's share of (mean F + mean rho + mean sheen amplitude), clipped to [Q_MIN, Q_MAX]. With the
+sheen, a third part draws m from its GGX D cos(theta_m) (Walter et al. 2007, eqs. 35 and 36): its
+share of the rest is the sheen's share of (mean rho + mean sheen amplitude), at most
+SHEEN_MAX. ``pdf`` is evaluated from the same densities, so it is exactly the density
+``sample`` draws from.
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ from gonio.core.channels import CHANNELS
 SAMPLING_BINS = 1024
 #: bounds of the probability of sampling the lobe (the rest: cosine-weighted)
 Q_MIN, Q_MAX = 0.2, 0.9
+#: the most of the non-lobe share that samples the sheen (the rest: cosine-weighted, which
+#: covers every direction)
+SHEEN_MAX = 0.5
 
 
 def make_bsdf(mi, dr, base, tab):
@@ -90,8 +96,11 @@ def make_bsdf(mi, dr, base, tab):
             self.cos_hi = mi.Float(cos_e[:-1].astype(np.float32))
             spec = float(np.mean(t.fresnel))
             rest = float(np.mean(t.rho)) + float(np.mean(amp))      # sampled by the cosine-weighted part
-            self.q = mi.Float(float(np.clip(spec / max(spec + rest, 1e-12), Q_MIN, Q_MAX)))
-            dr.make_opaque(self.density, self.cos_lo, self.cos_hi, self.q)
+            q = float(np.clip(spec / max(spec + rest, 1e-12), Q_MIN, Q_MAX))
+            share = float(np.mean(amp)) / max(rest, 1e-12) if self.sheen else 0.0
+            self.q = mi.Float(q)
+            self.q_sheen = mi.Float((1.0 - q) * min(share, SHEEN_MAX))
+            dr.make_opaque(self.density, self.cos_lo, self.cos_hi, self.q, self.q_sheen)
 
         def _pdf_m(self, m):
             """pdf of the sampled microfacet normal m per steradian (piecewise constant)."""
@@ -105,7 +114,14 @@ def make_bsdf(mi, dr, base, tab):
             dh = dr.dot(wo, h)
             p_spec = dr.select(dh > 0, self._pdf_m(h) / (4.0 * dr.select(dh > 0, dh, 1.0)), 0.0)
             p_cos = mi.warp.square_to_cosine_hemisphere_pdf(wo)
-            return dr.select(ok, self.q * p_spec + (1.0 - self.q) * p_cos, 0.0)
+            p = self.q * p_spec + (1.0 - self.q - self.q_sheen) * p_cos
+            if self.sheen:      # GGX D(h) cos(theta_h) / (4 wo . h)
+                a2 = self.sheen_a2
+                ch2 = dr.clip(h.z, 0.0, 1.0) ** 2
+                u = a2 * ch2 + (1.0 - ch2)
+                p_sheen = a2 / (math.pi * u * u) * dr.clip(h.z, 0.0, 1.0) / (4.0 * dr.select(dh > 0, dh, 1.0))
+                p = p + self.q_sheen * dr.select(dh > 0, p_sheen, 0.0)
+            return dr.select(ok, p, 0.0)
 
         def sample(self, ctx, si, sample1, sample2, active=True):
             spec = sample1 < self.q
@@ -118,6 +134,13 @@ def make_bsdf(mi, dr, base, tab):
             w_spec = 2.0 * dr.dot(si.wi, m) * m - si.wi
             bs = mi.BSDFSample3f()
             bs.wo = dr.select(spec, w_spec, mi.warp.square_to_cosine_hemisphere(sample2))
+            if self.sheen:      # the sheen's GGX normals: tan^2(theta_m) = a^2 v / (1 - v)
+                sheen = ~spec & (sample1 < self.q + self.q_sheen)
+                v = dr.clip(sample2.x, 0.0, 1.0 - 1e-7)
+                cos_s = dr.rsqrt(1.0 + self.sheen_a2 * v / (1.0 - v))
+                sin_s = dr.sqrt(dr.maximum(0.0, 1.0 - cos_s * cos_s))
+                m_s = mi.Vector3f(sin_s * dr.cos(phi), sin_s * dr.sin(phi), cos_s)
+                bs.wo = dr.select(sheen, 2.0 * dr.dot(si.wi, m_s) * m_s - si.wi, bs.wo)
             bs.pdf = self.pdf(ctx, si, bs.wo, active)
             bs.eta = 1.0
             bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
