@@ -247,7 +247,8 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_F
     p = metrics(peer_model.eval(wi, wo, space.to_params(x_peer)), f_meas, wi)
     t_alone = _alone_time(meas, model, seed=seed, loss=loss)
     label = model.name + (f"-{model.options['distribution']}" if model.options.get("distribution") else "") + (
-        "-body" if model.options.get("body") == "table" else "") + ("-ring" if model.options.get("ring") == "table" else "")
+        "-body" if model.options.get("body") == "table" else "") + ("-ring" if model.options.get("ring") == "table" else "") + (
+        "-sheen" if model.options.get("sheen") == "ggx" else "")
     cpu = best.cpu_s if best.cpu_s is not None else float("nan")
     de_g = de_p = floor = float("nan")
     if render:
