@@ -8,10 +8,14 @@ printed: Ngan and log error against the truth on perf real's dense grid, the pro
 pixel CIEDE2000 against the truth (auto's check), the objective and the time. Needs
 ../shared/data/rgl. Run: ``python tests/bench/sheen_simulated.py``.
 """
-import sys, time, dataclasses
+from __future__ import annotations
+
+import dataclasses
+import time
+
 import numpy as np
+
 import gonio.models as gm
-from gonio.fitting.measurements import Measurements
 from gonio.fitting.realdata import rgl_samples
 from gonio.fitting.optimise.tabulated_start import fit_tabulated
 from gonio.fitting.selection.by_pixels import PixelCheck
