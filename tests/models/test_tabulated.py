@@ -327,7 +327,7 @@ def test_mitsuba_sampling_is_unbiased(body):
     """E[bsdf.sample's weight] = the directional albedo (the sampling's pdf is the density it
     draws from): 2e5 samples per view, |z| < 4.5 per channel and view (false alarm 7e-6 each,
     9 checks: 6e-5 in all)."""
-    from gonio.models.mitsuba import interaction, mitsuba_variant
+    from gonio.models.mitsuba import mitsuba_variant
 
     mitsuba_variant()
     m = gm.get("tabulated", **body)
@@ -337,13 +337,20 @@ def test_mitsuba_sampling_is_unbiased(body):
     bsdf = mi.load_dict(m.to_mitsuba(p))
     n = 200_000
     for th in (0.2, 0.8, 1.3):
-        wo = np.tile([math.sin(th), 0.0, math.cos(th)], (n, 1))
-        si, _ = interaction(wo, wo)
-        _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(rng.random(n).astype(np.float32)),
-                           mi.Point2f(rng.random((2, n)).astype(np.float32)))
-        w = np.asarray(w, dtype=np.float64).reshape(3, n)
+        wo, w = _sample_weights(bsdf, th, n, rng)
         z = (w.mean(axis=1) - m.albedo(wo[:1], p, tol=1e-5)[0]) / (w.std(axis=1) / math.sqrt(n))
         assert np.all(np.abs(z) < 4.5), (th, z)
+
+
+def _sample_weights(bsdf, th, n, rng):
+    """``n`` of bsdf.sample's weights (3, n) at the view theta_o = ``th`` (rad, phi 0), and that view."""
+    from gonio.models.mitsuba import interaction
+
+    wo = np.tile([math.sin(th), 0.0, math.cos(th)], (n, 1))
+    si, _ = interaction(wo, wo)
+    _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(rng.random(n).astype(np.float32)),
+                       mi.Point2f(rng.random((2, n)).astype(np.float32)))
+    return wo, np.asarray(w, dtype=np.float64).reshape(3, n)
 
 
 def test_mitsuba_sampling_draws_a_narrow_sheen_itself():
@@ -352,7 +359,7 @@ def test_mitsuba_sampling_draws_a_narrow_sheen_itself():
     unbiased (|z| < 4.5 per view, false alarm 7e-6 each) and their relative spread is below 1
     at 30, 60 and 80 deg (measured 0.55 / 0.63 / 0.89; with the cosine part alone, as before
     the sheen had a part of its own, 1.55 / 1.82 / 1.96: 5-8x the variance)."""
-    from gonio.models.mitsuba import interaction, mitsuba_variant
+    from gonio.models.mitsuba import mitsuba_variant
 
     mitsuba_variant()
     m = gm.get("tabulated", sheen="ggx")
@@ -364,11 +371,8 @@ def test_mitsuba_sampling_draws_a_narrow_sheen_itself():
     rng = np.random.default_rng(1)
     n = 200_000
     for th in (0.5, 1.05, 1.4):
-        wo = np.tile([math.sin(th), 0.0, math.cos(th)], (n, 1))
-        si, _ = interaction(wo, wo)
-        _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(rng.random(n).astype(np.float32)),
-                           mi.Point2f(rng.random((2, n)).astype(np.float32)))
-        w = np.asarray(w, dtype=np.float64).reshape(3, n)[1]
+        wo, w = _sample_weights(bsdf, th, n, rng)
+        w = w[1]
         a = m.albedo(wo[:1], p, tol=1e-5)[0][1]
         assert abs(w.mean() - a) < 4.5 * w.std() / math.sqrt(n), (th, w.mean(), a)
         assert w.std() / w.mean() < 1.0, (th, w.std() / w.mean())
