@@ -467,11 +467,12 @@ class Tabulated(Model):
                 hi, ho = (_interp(np.eye(N_BODY)[j:j + 1], s)[:, 0:1] for s in (s_bi, s_bo))
                 J[f"body_{j}"] = t.rho[None, :] * body * (hi * go_b + gi_b * ho)
             i_f, t_f = _lerp_parts(N_FRESNEL, s_f)
-            for j in range(N_FRESNEL):
-                hat = np.where(i_f == j, 1.0 - t_f, 0.0) + np.where(i_f + 1 == j, t_f, 0.0)
-                J[f"fresnel_{j}"] = (D_over * Gi * Go) * hat[:, None]
+            hats = [(np.where(i_f == j, 1.0 - t_f, 0.0) + np.where(i_f + 1 == j, t_f, 0.0))[:, None]
+                    for j in range(N_FRESNEL)]                                   # the Fresnel knots' weights
+            for j, hat in enumerate(hats):
+                J[f"fresnel_{j}"] = (D_over * Gi * Go) * hat
                 if j >= 1:                                                       # w moves theta_h / w and the w^-2
-                    J[f"width_{j}"] = lobe * (slope * ds_dw[:, None] - 2.0 / w[:, None]) * hat[:, None]
+                    J[f"width_{j}"] = lobe * (slope * ds_dw[:, None] - 2.0 / w[:, None]) * hat
             dlnz, dg1 = table_derivatives(t.ln_d)
             dGi = np.stack([_interp(dg1[c].T, gi) for c in range(CHANNELS)], axis=1)   # (N, C, K)
             dGo = np.stack([_interp(dg1[c].T, go) for c in range(CHANNELS)], axis=1)
@@ -487,9 +488,7 @@ class Tabulated(Model):
                     col = np.zeros((n, CHANNELS))
                     col[:, c] = dq[:, c, :] @ basis / p[f"ndf_tilt_{name}_{kk}"]
                     J[f"ndf_tilt_{name}_{kk}"] = col
-            if t.sheen is not None:
-                hats = [(np.where(i_f == j, 1.0 - t_f, 0.0) + np.where(i_f + 1 == j, t_f, 0.0))[:, None]
-                        for j in range(N_FRESNEL)]
+            if t.sheen is not None:     # the sheen's amplitudes sit on the same knots
                 S, JS = tabulated_sheen.columns(p, ci, co, wh[:, 2], ok, hats, _interp, s_f)
                 f = f + S
                 J.update(JS)
