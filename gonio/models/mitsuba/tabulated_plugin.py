@@ -2,23 +2,20 @@
 
 Registered by :func:`gonio.models.mitsuba.plugins.ensure_registered`. The constructor rebuilds
 the model's tables from the plugin's properties with the numpy code of
-:func:`gonio.models.catalogue.tabulated.tables` (ln D knots, the normalisation, the Smith G1
-table derived from D, the Fresnel knots); ``eval`` interpolates them exactly as the numpy model
-does (the same fractional indices, ``dr.gather``), in float32, polar angles by ``atan2(|xy|, z)``.
-With the ``body_j`` properties (option ``body="table"``) the body is rho g(theta_i) g(theta_o) / pi;
-with ``sheen_alpha`` (option ``sheen="ggx"``) the sheen lobe of
-:mod:`gonio.models.catalogue.tabulated_sheen` is added, in its stable form.
-
-Sampling: a mixture of cosine-weighted directions and reflections about microfacet normals m
-drawn from the channels' mean D (normalised, so ``D cos(theta_m)`` is a density of m), piecewise
-constant on :data:`SAMPLING_BINS` rings of the warped theta grid (uniform in solid angle within
-a ring); pdf(wo) = q p_m(h) / (4 wo . h) + (1 - q) cos(theta_o) / pi, q the mean Fresnel
-factor's share of (mean F + mean rho + mean sheen amplitude), clipped to [Q_MIN, Q_MAX]. With the
-sheen, a third part draws m from its GGX D cos(theta_m) (Walter et al. 2007, eqs. 35 and 36): its
-share of the rest is the sheen's share of (mean rho + mean sheen amplitude), at most
-SHEEN_MAX. ``pdf`` is evaluated from the same densities, so it is exactly the density
-``sample`` draws from.
+:func:`gonio.models.catalogue.tabulated.tables`; ``eval`` interpolates them exactly as the numpy
+model does (the same fractional indices, ``dr.gather``), in float32, with the table body
+(``body_j``) and the sheen lobe (``sheen_alpha``) where the properties give them. ``sample``
+draws from a mixture of the lobe's normals, cosine-weighted directions and the sheen's normals,
+and ``pdf`` is exactly that mixture's density (the notes below).
 """
+
+# Sampling: reflections about microfacet normals m drawn from the channels' mean D (normalised,
+# so D cos(theta_m) is a density of m), piecewise constant on SAMPLING_BINS rings of the warped
+# theta grid (uniform in solid angle within a ring); pdf(wo) = q p_m(h) / (4 wo . h) + (1 - q)
+# cos(theta_o) / pi, q the mean Fresnel factor's share of (mean F + mean rho + mean sheen
+# amplitude), clipped to [Q_MIN, Q_MAX]. With the sheen, a third part draws m from its GGX
+# D cos(theta_m) (Walter et al. 2007, eqs. 35 and 36); its share of the rest is the sheen's share
+# of (mean rho + mean sheen amplitude), at most SHEEN_MAX.
 
 from __future__ import annotations
 
