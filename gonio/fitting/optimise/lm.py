@@ -10,15 +10,18 @@ References
 ----------
 Marquardt, D. W. (1963). An algorithm for least-squares estimation of nonlinear parameters.
 J. SIAM 11(2), 431-441.
-Nocedal, J., Wright, S. J. (2006). Numerical Optimization, 2nd ed., ch. 10.
+Nocedal, J., Wright, S. J. (2006). Numerical Optimization, 2nd ed., ch. 10 and sec. 16.7.
 """
 
 # Why Gauss-Newton: near the optimum J^T J is the Hessian up to terms of the order of the
 # residuals, and Gauss-Newton converges in a handful of iterations where SLSQP or MMA, which
 # build curvature from gradients alone, need tens. The compiled kernels give jac in one call.
 # Bounds: a coordinate at a face whose gradient pushes outward is frozen for that step; a
-# coordinate that would cross a face goes 0.99 of the way to it (each coordinate on its own,
-# so the step's direction can change; Coleman & Li 1996 scale the whole step instead), and no
+# coordinate that would cross a face goes 0.99 of the way to it and the others' step is
+# solved again with it held there (_box_step; Coleman & Li 1996 scale the whole step
+# instead). Clipping that coordinate alone and keeping the others' step, solved as if it had
+# crossed, made a step that failed until the damping shortened it: near a face every
+# iteration then moved little (docs/performance.md, gonio.fitting.optimise.lm). No
 # coordinate moves more than a quarter of the box in one step. Damping: lambda divided by 5
 # on success and multiplied by 8 on failure or on a step longer than that.
 # Coleman, T. F., Li, Y. (1996). An interior trust region approach for nonlinear minimization
@@ -61,6 +64,9 @@ def forward_jacobian(fun, u, r0, h=1e-6):
 MAX_STEP = 0.25
 #: Fraction of the way to a face of the box that a step crossing it goes (see _inside).
 TO_FACE = 0.99
+#: rounds of :func:`_box_step`: coordinates held at the faces they would cross, the rest solved
+#: again (each round can only add coordinates: P rounds at most would be exact)
+HOLD_ROUNDS = 3
 
 
 def _inside(u, step):
@@ -74,6 +80,28 @@ def _inside(u, step):
     t = np.where(t < 0.0, u * (1.0 - TO_FACE), t)
     t = np.where(t > 1.0, 1.0 - (1.0 - u) * (1.0 - TO_FACE), t)
     return np.clip(t, 0.0, 1.0)
+
+
+def _box_step(M, g, u):
+    """The damped Gauss-Newton step ``-M^-1 g`` from ``u`` (the free coordinates), kept in the
+    unit box: a coordinate that would cross a face is held ``TO_FACE`` of the way to it and
+    the other coordinates' step is solved again with it held there (the subspace minimisation
+    of a gradient-projection step, Nocedal & Wright 2006 sec. 16.7), up to
+    :data:`HOLD_ROUNDS` times; :func:`_inside` takes what still crosses."""
+    s = np.linalg.solve(M, -g)
+    held = np.zeros(g.size, dtype=bool)
+    for _ in range(HOLD_ROUNDS):
+        t = u + s
+        cross = ((t < 0.0) | (t > 1.0)) & ~held
+        if not np.any(cross):
+            break
+        s[cross] = np.where(t[cross] < 0.0, -u[cross], 1.0 - u[cross]) * TO_FACE
+        held |= cross
+        rest = ~held
+        if not np.any(rest):
+            break
+        s[rest] = np.linalg.solve(M[np.ix_(rest, rest)], -(g[rest] + M[np.ix_(rest, held)] @ s[held]))
+    return s
 
 
 def _value(fun, cost_fn, u):
@@ -95,7 +123,7 @@ def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget, cost
     c_new = np.inf
     while lam < 1e12:
         try:
-            step_f = np.linalg.solve(Af + lam * np.diag(d), -gf)
+            step_f = _box_step(Af + lam * np.diag(d), gf, u[free])
         except np.linalg.LinAlgError:
             lam *= 8.0
             continue
