@@ -47,7 +47,12 @@ SCREEN_FTOL = 1e-7
 #: (to 0.01) and CIEDE2000 (to 0.001) on cardboard and vch_golden_yellow, 0.02-0.2 s CPU a fit
 #: where the exact quadrature of every new (alpha, eta) took 0.24-0.6 s; the refit is exact
 SCREEN_EXACT_TABLES = False
-#: fit rounds of the tabulated body's screening fit (it starts from the plain fit's optimum)
+#: fit rounds of the tabulated body's screening fit (it starts from the plain fit's optimum). The
+#: body table is fitted first with the plain fit's NDF held, then with everything free: from the
+#: plain optimum with all free at once, the new freedom's first steps can trade the lobe for a
+#: flat, bright one (acrylic_felt_white: every NDF knot at its bound, albedo 1.1-2.5, rendered
+#: CIEDE2000 6.6), a basin the staged fit does not enter (0.88); cardboard's lands where the
+#: one-stage fit does (docs/performance.md, gonio.fitting.optimise.lm)
 BODY_ROUNDS = 1
 #: threads of Dr.Jit's pool while the choice fits (module notes); ``GONIO_THREADS`` overrides
 CHOICE_THREADS = 1
@@ -159,7 +164,10 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
         kw = dict(loss=loss, n_starts=0, n_local=1, covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)
         with choice_threads():
             plain = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 16]), **kw)
+            lobe = {k: v for k, v in plain.params.items() if k.startswith("ndf")}     # held while the body adapts
             body = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 17]), body="table", start=plain.params,
+                                 rounds=BODY_ROUNDS, fixed=lobe, **kw)
+            body = fit_tabulated(sub, rng=np.random.default_rng([int(seed), 18]), body="table", start=body.params,
                                  rounds=BODY_ROUNDS, **kw)
         try:
             (de_p, noise_p), (de_b, noise_b) = (check.delta_e(r.model, r.params) for r in (plain, body))
