@@ -55,3 +55,49 @@ def test_salvage_keeps_only_events_that_pass(tmp_path):
     ok = {"time": 2.0, "kind": "p_ref", "text": "0.1", "checksum": event_checksum(2.0, "p_ref", "0.1")}
     assert _event_ok(ok) and _event_ok({**ok, "checksum": None})
     assert not _event_ok({**ok, "text": "0.2"}) and not _event_ok({**ok, "checksum": b"\xff"})
+
+
+def test_a_checksum_that_no_longer_decodes_is_a_damaged_row_not_a_traceback(tmp_path):
+    """A flipped high bit leaves the stored checksum text invalid UTF-8: SQLite's text decoding
+    raised OperationalError out of `gonio verify` (the long journal corpus, bit 0x80)."""
+    j = _journal(tmp_path)
+    j.db.execute("UPDATE events SET checksum = CAST(X'6565ff31' AS TEXT) WHERE kind = 'p_ref'")
+    j.db.commit()
+    good, bad = j.checked_events()
+    assert [k for _, k, _ in good] == ["rgb_cam"] and len(bad) == 1
+    j.close()
+
+
+def test_a_damaged_event_is_rebuilt_not_whole(tmp_path):
+    """Export refuses a session whose event row fails its checksum and points to
+    `--rebuild-journal`; the rebuild then ran into "whole and consistent; nothing to rebuild"
+    (it checked the points only): a dead end. Now it rebuilds, keeps every point, and drops the
+    damaged event."""
+    from gonio.bench.dataset.export import to_dataset
+    from gonio.bench.samples import load_sample
+    from gonio.bench.session import integrity
+    from gonio.bench.session.salvage import _EVENTS_KEPT
+    from gonio.bench.session.verify import verify_session
+    from gonio.cli.capture import capture_sim
+
+    folder = tmp_path / "session"
+    capture_sim(folder, sample=load_sample(None), plan="quick", seed=1, progress=False)
+    with Journal(folder / "journal.sqlite") as j:
+        n = len(j.points())
+        kinds = [k for _, k, _ in j.events()]
+        j.db.execute("UPDATE events SET text = text || ' ' WHERE id = (SELECT min(id) FROM events)")
+        j.db.commit()
+    assert not verify_session(folder).ok
+    with pytest.raises(SessionError, match="event row\\(s\\) are damaged") as exc:
+        to_dataset(folder)
+    assert "\n" not in str(exc.value)
+    text, doc, why = integrity.load_session(folder)
+    line = integrity.rebuild_journal(folder, text, doc, why)
+    assert line.startswith(f"rebuilt the journal: {n} point(s) recovered")
+    with Journal(folder / "journal.sqlite") as j:
+        assert len(j.points()) == n
+        after = [k for _, k, _ in j.events()]
+    # the damaged one left out; the rest as a rebuild keeps them (the kinds export and resume read)
+    assert after[:-1] == [k for k in kinds[1:] if k in _EVENTS_KEPT] and after[-1] == "rebuild"
+    assert verify_session(folder).ok
+    assert to_dataset(folder).sizes["point"] == n

@@ -65,6 +65,7 @@ def _case(original, tmp_path, at, bit):
     try:                                  # what export and resume read: refused, or exactly what was measured
         with integrity.open_journal(folder, text, doc, why, write=False) as j:
             got = j.points()
+            j.events()                    # export reads the events too (instrument time, open beam)
         assert got == [rows[k] for k in sorted(rows)], f"byte {at}: a damaged journal read as whole"
         refused = False
     except SessionError as exc:

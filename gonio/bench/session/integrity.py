@@ -372,13 +372,15 @@ def rebuild_journal(folder: Path, data: bytes, doc: Mapping[str, Any] | None, wh
     plan = check_doc(doc, folder)
     if state == "ok":
         try:
-            open_journal(folder, data, doc, why, plan=plan).close()
+            with open_journal(folder, data, doc, why, plan=plan) as j:
+                events_damaged = bool(j.checked_events()[1])       # export and resume read them too
         except SessionError as exc:
             if "--rebuild-journal" not in str(exc):
                 raise
         else:
-            raise SessionError(f"{path} is whole and consistent; nothing to rebuild: resume without "
-                               "--rebuild-journal")
+            if not events_damaged:
+                raise SessionError(f"{path} is whole and consistent; nothing to rebuild: resume without "
+                                   "--rebuild-journal")
     n = len(plan)
     old = salvage(path, n)
     _same_session(folder, old["session"], data, doc)

@@ -101,7 +101,8 @@ _REAL = frozenset(range(1, 9)) | {13}           # the REAL columns of POINT_COLU
 _TEXT = (9, 10, 12)                             # the TEXT columns (JSON)
 # the stored values, text as bytes: a damaged row never fails inside SQLite's UTF-8 decoding
 _SELECT_POINTS = ("SELECT " + ", ".join(f"CAST({c} AS BLOB)" if k in _TEXT else c for k, c in enumerate(POINT_COLUMNS))
-                  + ", checksum FROM points")
+                  + ", CAST(checksum AS BLOB) FROM points")
+_SELECT_UNCHECKED = _SELECT_POINTS.replace(", CAST(checksum AS BLOB) FROM", ", NULL FROM")     # before checksums
 
 
 def point_checksum(values) -> str:
@@ -351,7 +352,7 @@ class Journal:
         decoded, by plan index), ``{index: why}`` of those whose row fails its checksum or does
         not decode, and how many rows carry no checksum (journalled before checksums).
         `sqlite3.DatabaseError` where SQLite cannot read the table."""
-        sql = _SELECT_POINTS if self._has_checksums() else _SELECT_POINTS.replace(", checksum FROM", ", NULL FROM")
+        sql = _SELECT_POINTS if self._has_checksums() else _SELECT_UNCHECKED
         rows, damaged, unchecked = [], {}, 0
         for r in self.db.execute(sql + " ORDER BY idx"):
             row, why = decode_point(r[:-1], r[-1])
@@ -399,7 +400,7 @@ class Journal:
         before checksums) as ``(time, kind, text)``, and the ids of those that fail it or do not
         decode."""
         sql = ("SELECT id, time, CAST(kind AS BLOB), CAST(text AS BLOB), "
-               + ("checksum" if self._events_checked() else "NULL") + " FROM events ORDER BY id")
+               + ("CAST(checksum AS BLOB)" if self._events_checked() else "NULL") + " FROM events ORDER BY id")
         good, bad = [], []
         for rid, when, kind, text, digest in self.db.execute(sql):
             try:
