@@ -76,12 +76,12 @@ def test_a_damaged_event_is_rebuilt_not_whole(tmp_path):
     from gonio.bench.dataset.export import to_dataset
     from gonio.bench.samples import load_sample
     from gonio.bench.session import integrity
-    from gonio.bench.session.salvage import _EVENTS_KEPT
     from gonio.bench.session.verify import verify_session
     from gonio.cli.capture import capture_sim
 
     folder = tmp_path / "session"
     capture_sim(folder, sample=load_sample(None), plan="quick", seed=1, progress=False)
+    before = to_dataset(folder)
     with Journal(folder / "journal.sqlite") as j:
         n = len(j.points())
         kinds = [k for _, k, _ in j.events()]
@@ -97,7 +97,9 @@ def test_a_damaged_event_is_rebuilt_not_whole(tmp_path):
     with Journal(folder / "journal.sqlite") as j:
         assert len(j.points()) == n
         after = [k for _, k, _ in j.events()]
-    # the damaged one left out; the rest as a rebuild keeps them (the kinds export and resume read)
-    assert after[:-1] == [k for k in kinds[1:] if k in _EVENTS_KEPT] and after[-1] == "rebuild"
+    # the damaged one left out, every other one kept (export reads the instrument time, the open
+    # beam, ... from them: a rebuild that kept three kinds changed instrument_time_s silently)
+    assert after == kinds[1:] + ["rebuild"]
     assert verify_session(folder).ok
-    assert to_dataset(folder).sizes["point"] == n
+    ds = to_dataset(folder)
+    assert ds.sizes["point"] == n and ds.attrs["instrument_time_s"] == before.attrs["instrument_time_s"]

@@ -25,7 +25,6 @@ from gonio.bench.session.journal import POINT_COLUMNS, decode_point, event_check
 
 __all__ = ["salvage"]
 
-_EVENTS_KEPT = ("p_ref", "rgb_cam", "no_flat")
 
 
 def _event_ok(e) -> bool:
@@ -109,7 +108,7 @@ def _sqlite_pass(path: Path, n: int, pts: _Points, out: dict) -> set:
         cal, ok = rows("SELECT * FROM calibration")
         out["calibration"] = cal if ok else None
         events, ok = rows("SELECT * FROM events ORDER BY id")
-        out["events"] = [e for e in events if e.get("kind") in _EVENTS_KEPT and _event_ok(e)] if ok else None
+        out["events"] = [e for e in events if _event_ok(e)] if ok else None      # every kind: export reads many
         for r in rows("SELECT idx, row FROM superseded")[0]:
             try:
                 superseded.add((int(r["idx"]), float(json.loads(r["row"])["finished"])))
@@ -174,7 +173,7 @@ def _page_pass(path: Path, n: int, pts: _Points, out: dict, superseded: set) -> 
             try:
                 e = {"id": c.rowid, "time": float(v[1]), "kind": _text(v[2]), "text": _text(v[3]),
                      "checksum": _text(v[4]) if len(v) == 5 and v[4] is not None else None}
-                if e["kind"] in _EVENTS_KEPT and _event_ok(e):
+                if _event_ok(e):
                     events.setdefault(c.rowid, e)
             except UnicodeDecodeError:
                 pass
