@@ -53,23 +53,3 @@ def test_a_step_never_leaves_the_box():
     levenberg_marquardt(fun, np.full(J.shape[1], 0.5), jac=lambda u, r: J, max_iter=60)
     seen = np.array(seen)
     assert np.all(seen >= 0.0) and np.all(seen <= 1.0)
-
-
-def test_random_bounded_problems_reach_the_bounded_optimum():
-    """120 random coupled problems (3-8 parameters, the unconstrained optimum anywhere in
-    [-1, 2]^p, random interior starts), against scipy's BVLS: every run ends at its cost.
-    Holding every coordinate the step carries out (not only those the gradient pushes out)
-    stopped 24 of 300 early as "converged" at a coordinate held on a face its gradient pulled
-    away from; the clipped step left 160 of 300 above it."""
-    worse = []
-    for seed in range(120):
-        rng = np.random.default_rng(seed)
-        p = 3 + seed % 6
-        J = 0.95 * rng.normal(size=(40, 1)) + 0.3 * rng.normal(size=(40, p))
-        b = J @ rng.uniform(-1.0, 2.0, p) + 0.01 * rng.normal(size=40)
-        ref = lsq_linear(J, b, bounds=(0.0, 1.0), method="bvls", tol=1e-14)
-        lm = levenberg_marquardt(lambda u: J @ u - b, rng.uniform(0.05, 0.95, p), jac=lambda u, r: J, max_iter=60)
-        ref_cost = float(np.sum((J @ ref.x - b) ** 2))
-        if lm.cost > ref_cost * (1 + 1e-4) + 1e-9:
-            worse.append((seed, lm.message, lm.cost, ref_cost))
-    assert not worse, worse[:5]

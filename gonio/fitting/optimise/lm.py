@@ -65,7 +65,7 @@ MAX_STEP = 0.25
 #: Fraction of the way to a face of the box that a step crossing it goes (see _inside).
 TO_FACE = 0.99
 #: rounds of :func:`_box_step`: coordinates held at the faces they would cross, the rest solved
-#: again (a round only adds held coordinates, never releases one)
+#: again (a round only adds held coordinates, never releases one: docs/performance.md)
 HOLD_ROUNDS = 3
 
 
@@ -84,17 +84,15 @@ def _inside(u, step):
 
 def _box_step(M, g, u):
     """The damped Gauss-Newton step ``-M^-1 g`` from ``u`` (the free coordinates), kept in the
-    unit box: a coordinate that would cross a face the gradient pushes it through is held
-    ``TO_FACE`` of the way to it and the other coordinates' step is solved again with it held
-    there (the subspace minimisation of a gradient-projection step, Nocedal & Wright 2006 sec.
-    16.7), up to :data:`HOLD_ROUNDS` times; :func:`_inside` takes what still crosses (a
-    coordinate the coupling, not its gradient, carries out: held, it could stay at its face
-    for good)."""
+    unit box: a coordinate that would cross a face is held ``TO_FACE`` of the way to it and
+    the other coordinates' step is solved again with it held there (the subspace minimisation
+    of a gradient-projection step, Nocedal & Wright 2006 sec. 16.7), up to
+    :data:`HOLD_ROUNDS` times; :func:`_inside` takes what still crosses."""
     s = np.linalg.solve(M, -g)
     held = np.zeros(g.size, dtype=bool)
     for _ in range(HOLD_ROUNDS):
         t = u + s
-        cross = (((t < 0.0) & (g > 0.0)) | ((t > 1.0) & (g < 0.0))) & ~held     # pushed out by the gradient
+        cross = ((t < 0.0) | (t > 1.0)) & ~held
         if not np.any(cross):
             break
         s[cross] = np.where(t[cross] < 0.0, -u[cross], 1.0 - u[cross]) * TO_FACE
@@ -139,9 +137,6 @@ def _damped_step(fun, u, r, cost, J, Af, gf, free, lam, ftol, atol, budget, cost
             # |r|^2 - |r + J s|^2 = -(2 g.s + s^T A s): P x P work, and no cancellation
             s = (u_new - u)[free]
             pred = -float(2.0 * gf @ s + s @ Af @ s)
-            if pred <= 0.0:             # the model itself says the step (held or cut at faces) does not descend
-                lam *= 8.0
-                continue
             if pred <= ftol * cost + atol:
                 return "predicted", u_new, r_new, c_new, lam
         try:
