@@ -373,7 +373,10 @@ def rebuild_journal(folder: Path, data: bytes, doc: Mapping[str, Any] | None, wh
     if state == "ok":
         try:
             with open_journal(folder, data, doc, why, plan=plan) as j:
-                events_damaged = bool(j.checked_events()[1])       # export and resume read them too
+                try:
+                    events_damaged = bool(j.checked_events()[1])   # export and resume read them too
+                except sqlite3.DatabaseError:
+                    events_damaged = True
         except SessionError as exc:
             if "--rebuild-journal" not in str(exc):
                 raise
