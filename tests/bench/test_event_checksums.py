@@ -103,3 +103,15 @@ def test_a_damaged_event_is_rebuilt_not_whole(tmp_path):
     assert verify_session(folder).ok
     ds = to_dataset(folder)
     assert ds.sizes["point"] == n and ds.attrs["instrument_time_s"] == before.attrs["instrument_time_s"]
+
+
+def test_salvage_refuses_an_event_a_flipped_type_byte_left_without_time_or_text():
+    """A row journalled before checksums has none, so only its form can be checked: a NULL or
+    non-finite time, or a kind or text that is not text, is damage (the long journal corpus:
+    a rebuild that kept every event kind then failed on float(None))."""
+    from gonio.bench.session.salvage import _event_ok
+
+    ok = {"time": 2.0, "kind": "p_ref", "text": "0.1", "checksum": None}
+    assert _event_ok(ok)
+    for bad in ({"time": None}, {"time": float("nan")}, {"time": True}, {"kind": None}, {"text": 3.0}):
+        assert not _event_ok({**ok, **bad}), bad

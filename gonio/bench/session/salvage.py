@@ -14,6 +14,7 @@ linger in freed pages and in the -wal) the latest is kept, never one the journal
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import sqlite3
 import tempfile
@@ -28,8 +29,13 @@ __all__ = ["salvage"]
 
 
 def _event_ok(e) -> bool:
-    """An event row passes its checksum, or has none (journalled before checksums)."""
+    """An event row is well formed (a finite time, text kind and text) and passes its checksum,
+    or has none (journalled before checksums)."""
     digest = e.get("checksum")
+    when = e.get("time")
+    if isinstance(when, bool) or not isinstance(when, (int, float)) or not math.isfinite(when) \
+            or not all(isinstance(e.get(k), (str, bytes)) for k in ("kind", "text")):
+        return False          # a flipped type byte reads a column as NULL or a number
     try:
         return digest is None or event_checksum(e["time"], e["kind"], e["text"]) == (
             bytes(digest).decode("ascii") if isinstance(digest, (bytes, bytearray)) else digest)
