@@ -16,7 +16,8 @@ from gonio.models.physics.albedo import albedo
 from gonio.models.registry import _REGISTRY, get, names, register  # noqa: F401  (re-exported)
 from gonio.models.structure import Structure
 
-__all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs", "eval_dtype"]
+__all__ = ["Parameter", "Model", "register", "get", "names", "CHANNELS", "eval_inputs", "eval_dtype",
+           "weighted_sample"]
 
 #: Points per block in :meth:`Model.eval` (bounds temporaries: ~10 MB per array).
 _BLOCK = 1 << 16
@@ -318,6 +319,18 @@ class Model:
     def to_mitsuba(self, params):
         """Dict for ``mitsuba.load_dict`` rendering exactly this model."""
         raise NotImplementedError
+
+
+def weighted_sample(meas, n=3000):
+    """For a model's ``data_start``: ``(wi, wo, y, w, use)`` of at most ``n`` of ``meas``'s
+    samples, evenly picked; ``w`` = 1 / sigma where a value is used (finite, sigma > 0), else 0,
+    and ``y`` = f w (0 where unused): a least-squares fit of ``g`` is ``sum((g w - y)^2)``."""
+    pick = np.unique(np.linspace(0, meas.n_points - 1, min(meas.n_points, int(n))).astype(int))
+    wi, wo = np.asarray(meas.wi, float)[pick], np.asarray(meas.wo, float)[pick]
+    f, sd, use = (np.asarray(x)[pick] for x in (meas.brdf, meas.brdf_std, meas.use))
+    use = use & np.isfinite(f) & np.isfinite(sd) & (sd > 0.0)
+    w = np.where(use, 1.0 / np.where(use, sd, 1.0), 0.0)
+    return wi, wo, np.where(use, f, 0.0) * w, w, use
 
 
 def rgb(value):

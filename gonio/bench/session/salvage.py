@@ -27,7 +27,6 @@ from gonio.bench.session.journal import POINT_COLUMNS, decode_point, event_check
 __all__ = ["salvage"]
 
 
-
 def _event_ok(e) -> bool:
     """An event row is well formed (a finite time, text kind and text) and passes its checksum,
     or has none (journalled before checksums)."""

@@ -19,7 +19,7 @@ import functools
 
 import numpy as np
 
-from gonio.models.base import Parameter, register
+from gonio.models.base import Parameter, register, weighted_sample
 from gonio.models.catalogue.flake_memo import geometry, memo, values
 from gonio.models.catalogue.flakepaint import FlakePaint, _make_bsdf, half_vector_lobe
 
@@ -224,12 +224,7 @@ class GratingPaint(FlakePaint):
         if self.table:
             return self.start_from(self._layer.data_start(meas))
         p = self.validate({})
-        pick = np.unique(np.linspace(0, meas.n_points - 1, min(meas.n_points, 3000)).astype(int))
-        wi, wo = np.asarray(meas.wi, float)[pick], np.asarray(meas.wo, float)[pick]
-        f, sd, use = (np.asarray(x)[pick] for x in (meas.brdf, meas.brdf_std, meas.use))
-        use = use & np.isfinite(f) & (sd > 0.0)
-        w = np.where(use, 1.0 / np.where(use, sd, 1.0), 0.0)                 # (N, 3); unused: weight 0
-        y = np.where(use, f, 0.0) * w
+        wi, wo, y, w, _ = weighted_sample(meas)                              # w (N, 3): unused weight 0
         base, coat, haze, _ = self._terms(wi, wo, p)
         lobes = [half_vector_lobe(self.options["distribution"], a, p["flake_exponent"], wi, wo)[:, 0] for a in LOBES]
         L = np.column_stack([base[:, 0], coat[:, 0], haze[:, 0]] + lobes)

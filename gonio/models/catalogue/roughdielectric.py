@@ -24,7 +24,7 @@ import numpy as np
 
 from gonio.core.channels import CHANNELS
 from gonio.core.sides import Side
-from gonio.models.base import Model, Parameter, register
+from gonio.models.base import Model, Parameter, register, weighted_sample
 from gonio.models.physics.fresnel import fresnel_dielectric
 from gonio.models.physics.microfacet import MicrofacetDistribution, smith_g1_xyz
 from gonio.models.structure import Structure
@@ -146,16 +146,11 @@ class RoughDielectric(Model):
         transmitted pairs' refraction half-vector on the normal (wi_xy + eta wo_xy = 0: Snell's
         law; Walter et al. 2007 eq. 16). A narrow transmitted lobe is a needle in (alpha, eta):
         the stratified starts missed it on half the seeds of an anti-glare film (alpha 0.06)."""
-        pick = np.unique(np.linspace(0, meas.n_points - 1, min(meas.n_points, 3000)).astype(int))
-        wi, wo = np.asarray(meas.wi, float)[pick], np.asarray(meas.wo, float)[pick]
-        f, sd, use = (np.asarray(x)[pick] for x in (meas.brdf, meas.brdf_std, meas.use))
-        use = use & np.isfinite(f) & np.isfinite(sd) & (sd > 0.0)
+        wi, wo, y, w, use = weighted_sample(meas)
         through = (wo[:, 2] < 0.0) & use.any(axis=1)
         if np.count_nonzero(through) < 3:
             return None
-        w = np.where(use, 1.0 / np.where(use, sd, 1.0), 0.0)
-        y = np.where(use, f, 0.0) * w
-        bright = np.where(through, np.where(use, f, 0.0).max(axis=1), -np.inf)
+        bright = np.where(through, np.where(use, y / np.where(use, w, 1.0), 0.0).max(axis=1), -np.inf)
         top = np.argsort(-bright)[:START_PEAKS]
         top = top[np.isfinite(bright[top])]
         oxy, ixy = wo[top, :2], wi[top, :2]
