@@ -41,3 +41,24 @@ def test_no_transmitted_value_no_data_start():
     assert m.data_start(refl) is None
     s = m.data_start(meas)
     assert s is not None and 1.3 < s["int_ior"] < 1.7      # the grid's cell about the truth
+
+
+def test_a_held_index_is_the_grid_s_only_index():
+    """``fit(fixed=...)``: the start reads alpha at the held index, not at the grid's best
+    cell (another index), and the fit then finds alpha with the index held."""
+    from gonio.models.catalogue.roughdielectric import START_ALPHAS, rough_dielectric_f
+    from gonio.models.base import weighted_sample
+
+    m, meas = _film(np.random.default_rng(0))
+    s = m.data_start(meas, fixed={"int_ior": 1.3})
+    assert s["int_ior"] == 1.3
+    wi, wo, y, w, _ = weighted_sample(meas)
+    with np.errstate(all="ignore"):
+        costs = [np.sum((rough_dielectric_f("beckmann", a, 1.3, wi, wo)[:, None] * w - y) ** 2) for a in START_ALPHAS]
+    assert s["alpha"] == START_ALPHAS[int(np.nanargmin(costs))]
+    assert m.data_start(meas, fixed={"alpha": 0.2})["alpha"] == 0.2
+    for seed in range(3):
+        m, meas = _film(np.random.default_rng(seed))
+        res = fit(meas, m, rng=np.random.default_rng(seed), fixed={"int_ior": 1.5})
+        assert res.params["int_ior"] == 1.5
+        assert res.params["alpha"] == pytest.approx(TRUTH["alpha"], rel=0.03)

@@ -224,6 +224,9 @@ def test_data_start_reads_the_period_from_the_rings(period):
     ring = table.data_start(meas)                   # the same rings at its knots
     want = rings(RING_KNOTS, start["grating_period"], start["grating_width"]) * start["grating_reflectance"]
     np.testing.assert_allclose(np.stack([ring[f"ring_{k}"] for k in range(RING_KNOTS.size)]), want, rtol=1e-12)
+    # ``fit(fixed=...)``: a held period is the grid's only one, its width still read from the data
+    held = model.data_start(meas, fixed={"grating_period": 0.85})
+    assert held["grating_period"] == 0.85 and held["grating_width"] in gm.catalogue.gratingpaint.WIDTHS
 
 
 def _two_orders(period):

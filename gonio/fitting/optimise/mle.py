@@ -308,7 +308,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         first start, refined like them, the global stage's starts beside it. For a nested
         model started from the simpler one's fit (:func:`gonio.fitting.select` does this for
         a model that declares ``start_from``). A model with a declared affine structure is
-        then fitted by the general problem. None: the model's ``data_start(meas)`` where it
+        then fitted by the general problem. None: the model's ``data_start(meas, fixed)`` where it
         has one (gratingpaint's period profiled), refined alone unless ``n_starts`` is given.
     covariance : bool
         False: the ``log`` and ``cosine`` losses skip their sandwich covariance
@@ -331,7 +331,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
     kw = dict(loss=loss, fixed=fixed, n_local=n_local, maxeval=maxeval, enforce_energy=enforce_energy,
               use_fast=use_fast, covariance=covariance, ftol=ftol)
     if start is None and hasattr(model, "data_start"):     # a start the model reads from the data (its
-        start = model.data_start(meas)                      # multimodal parameters profiled) replaces
+        start = model.data_start(meas, fixed=fixed)         # multimodal parameters profiled) replaces
         if start is not None:                               # the global stage unless starts are asked for
             start = {k: v for k, v in start.items() if k not in (fixed or {})}
             n_starts = 0 if n_starts is None else n_starts

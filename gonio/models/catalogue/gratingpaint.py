@@ -210,20 +210,22 @@ class GratingPaint(FlakePaint):
         J["flake_exponent"] = J["flake_exponent"] - logcc * g * rho
         return f + g * rho, J
 
-    def data_start(self, meas):
+    def data_start(self, meas, fixed=None):
         """A start read from the data (``gonio.fitting.optimise.mle`` asks): the period and width
         of :data:`PERIODS` x :data:`WIDTHS` whose rings, beside the declared defaults' lobes (and
         half-vector lobes of spreads :data:`LOBES`), fit the colours best by non-negative least
         squares, each value weighted by 1 / sigma (at most 3000 samples, evenly picked; through
         the Gram matrix); the table's: those rings at its knots (:meth:`start_from`); None for
-        other than RGB."""
+        other than RGB. ``fixed``: the fit's held parameters (a held period or width is the
+        grid's only value; held declared defaults enter the terms)."""
         from scipy.optimize import nnls
 
         if meas.brdf.shape[1] != 3:
             return None
         if self.table:
-            return self.start_from(self._layer.data_start(meas))
-        p = self.validate({})
+            return self.start_from(self._layer.data_start(meas, fixed=fixed))
+        fixed = dict(fixed or {})
+        p = self.validate({k: v for k, v in fixed.items() if k in self.defaults()})
         wi, wo, y, w, _ = weighted_sample(meas)                              # w (N, 3): unused weight 0
         base, coat, haze, _ = self._terms(wi, wo, p)
         lobes = [half_vector_lobe(self.options["distribution"], a, p["flake_exponent"], wi, wo)[:, 0] for a in LOBES]
@@ -231,8 +233,10 @@ class GratingPaint(FlakePaint):
         Lw = L[:, None, :] * w[:, :, None]                                     # (N, 3, K)
         q, shape, _ = self._q_shape(wi, wo, p)
         best = (np.inf, None)
-        for period in PERIODS:
-            for width in WIDTHS:
+        periods = [float(fixed["grating_period"])] if "grating_period" in fixed else PERIODS
+        widths = [float(fixed["grating_width"])] if "grating_width" in fixed else WIDTHS
+        for period in periods:
+            for width in widths:
                 r = rings(q, period, width) * shape * w                        # (N, 3)
                 cost, colour = 0.0, []
                 for c in range(3):

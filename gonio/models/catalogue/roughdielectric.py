@@ -137,7 +137,7 @@ class RoughDielectric(Model):
             Parameter("int_ior", 1.5, 0.25, 4.0, "1", "relative index of refraction n_interior / n_exterior"),
         )
 
-    def data_start(self, meas):
+    def data_start(self, meas, fixed=None):
         """A start read from the data (:func:`gonio.fitting.optimise.mle.fit` asks) where it holds
         transmitted values (``wo`` below the surface; None otherwise, and the global stage
         starts the fit): the (alpha, int_ior) of least chi2 (each value over its sigma, at most
@@ -145,7 +145,8 @@ class RoughDielectric(Model):
         :data:`START_IORS` with the index that puts each of the :data:`START_PEAKS` brightest
         transmitted pairs' refraction half-vector on the normal (wi_xy + eta wo_xy = 0: Snell's
         law; Walter et al. 2007 eq. 16). A narrow transmitted lobe is a needle in (alpha, eta):
-        the stratified starts missed it on half the seeds of an anti-glare film (alpha 0.06)."""
+        the stratified starts missed it on half the seeds of an anti-glare film (alpha 0.06).
+        ``fixed``: the fit's held parameters; a held alpha or int_ior is the grid's only value."""
         wi, wo, y, w, use = weighted_sample(meas)
         through = (wo[:, 2] < 0.0) & use.any(axis=1)
         if np.count_nonzero(through) < 3:
@@ -158,8 +159,14 @@ class RoughDielectric(Model):
         snell = -np.sum(ixy * oxy, axis=1) / np.where(den > 1e-6, den, np.nan)
         lo, hi = next((q.lower, q.upper) for q in self.parameters if q.name == "int_ior")
         etas = np.concatenate([START_IORS, snell[np.isfinite(snell) & (snell >= lo) & (snell <= hi) & (snell != 1.0)]])
+        alphas = START_ALPHAS
+        fixed = dict(fixed or {})
+        if "int_ior" in fixed:
+            etas = np.array([float(fixed["int_ior"])])
+        if "alpha" in fixed:
+            alphas = np.array([float(fixed["alpha"])])
         best, start = np.inf, None
-        for a in START_ALPHAS:
+        for a in alphas:
             for e in etas:
                 with np.errstate(all="ignore"):
                     g = rough_dielectric_f(self.options["distribution"], a, e, wi, wo)[:, None]
