@@ -63,7 +63,8 @@ def _add_session_options(parser) -> None:
 # --------------------------------------------------------------------------- parser
 LOSS_HELP = ("chi2 (the data's Gaussian noise; default for dataset.nc), robust (pseudo-Huber on chi2's residuals), "
              "cosine (Ngan 2005 cosine-weighted L2), log (Loew 2012 ln(1 + f cos) residuals, sandwich covariance; "
-             "default for RGL .bsdf and MERL .binary files, which carry no uncertainty), discrepancy (chi2 with a "
+             "default for RGL .bsdf and MERL .binary files, which carry no uncertainty), luminance (the error relative "
+             "to the pair's measured luminance, cos-weighted: colour as a render weighs it), discrepancy (chi2 with a "
              "relative and absolute model-discrepancy variance fitted with the model; experimental); every loss "
              "weights each sample by its solid angle")
 EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_STOPPED = 0, 1, 2, 3

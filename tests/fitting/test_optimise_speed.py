@@ -199,7 +199,7 @@ def test_residual_function_equals_residuals_bit_for_bit():
     f = model.eval(meas.wi, meas.wo, {**truth, "alpha": 0.13})
     for weighted in (False, True):
         meas.weight = np.random.default_rng(9).uniform(0.2, 3.0, meas.n_points) if weighted else None
-        for loss in ("chi2", "robust", "cosine", "log", "discrepancy"):
+        for loss in _loss.LOSSES:
             fn = _loss.residual_function(loss, meas)
             assert np.array_equal(fn(f), _loss.residuals(loss, f, meas)), (loss, weighted)
     meas.use[::5, 0] = False

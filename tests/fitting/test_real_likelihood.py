@@ -136,6 +136,8 @@ def test_bench_real_gonio_beats_the_peer(tmp_path):
     # rendered against the measured file with matched seeds: at most 1 CIEDE2000 (issue 16;
     # measured 0.88, noise floor 0.33 at 64 px, 256 spp)
     assert r["de00_noise"] < 0.5 and r["gonio_de00"] <= 1.0
+    # at 16x the samples the noise's upward bias shrinks (measured 0.71 -> 0.49, 2026-12-05)
+    assert r["gonio_de00_converged"] < r["gonio_de00"] - 0.1
     # matte by ASTM D523 (60 deg gloss below 10 GU; 2.78 GU measured 2026-12-05), so its limit is 1
     assert r["gloss_60"] < 10 and r["de00_limit"] == 1
     with open(tmp_path / "real.csv") as fh:

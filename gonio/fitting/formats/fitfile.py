@@ -308,7 +308,7 @@ def model_adequacy(result, test: dict | None = None):
     if result.loss == "discrepancy":
         return False, 1.0, (f"{_said(test, chi2_dof)} against the fitted discrepancy variance: "
                             "the intervals include the model discrepancy but the fit is still poor")
-    if result.loss in ("log", "cosine"):
+    if result.loss in ("log", "cosine", "luminance"):
         return False, 1.0, (f"{_said(test, chi2_dof)} against the nominal sigma: the model misses "
                             f"the data; the intervals are the sandwich covariance of the {result.loss} residuals, "
                             "which includes the model's discrepancy (not inflated again)")

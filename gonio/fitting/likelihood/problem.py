@@ -34,7 +34,7 @@ FAST_MIN_POINTS = 500
 #: colodur_napoli_4f (7592 pairs, 12 parameters): an iteration's Jacobian and J^T J from the
 #: N x P Jacobian cost several kernel outputs handed to numpy and the products there; the
 #: reduced sums hand back 91 numbers.
-NORMAL_LOSSES = ("chi2", "cosine", "log")
+NORMAL_LOSSES = ("chi2", "cosine", "luminance", "log")
 #: Up to this many points a Levenberg-Marquardt trial step is costed by the normal-equation
 #: kernel itself, not the cheaper sum of squares: an accepted step (most of them) then
 #: brings the next step's normal equations with it, one kernel call per iteration instead
@@ -175,12 +175,14 @@ def _fast_agrees(model) -> bool:
 def _residual_weight(loss, meas, cos_i):
     """d residual / d f_r of the loss, for its weighted linear least squares (the affine
     parameters: variable projection, or a start's albedos): 1 / sigma (chi2, robust), cos
-    theta_i (cosine), and for the log loss its first-order expansion about the measured
-    value, ln(1 + f c) - ln(1 + y c) ~ c (f - y) / (1 + y c)."""
+    theta_i (cosine), the luminance loss's weight, and for the log loss its first-order
+    expansion about the measured value, ln(1 + f c) - ln(1 + y c) ~ c (f - y) / (1 + y c)."""
     if loss in ("chi2", "robust"):
         return 1.0 / meas.brdf_std
     if loss == "log":
         return cos_i / (1.0 + np.maximum(meas.brdf * cos_i, -0.999))
+    if loss in _loss.WEIGHTED_L2:
+        return np.broadcast_to(_loss.fixed_weight(loss, meas), cos_i.shape)
     return cos_i
 
 
@@ -196,7 +198,7 @@ class _Problem:
         self.weight = _residual_weight(loss, meas, cos_i) * _loss.value_weight(meas)
         self.linear = []
         self.linear = _linear_groups(self) if linear is None else linear
-        self.varpro = bool(self.linear) and loss in ("chi2", "cosine")
+        self.varpro = bool(self.linear) and loss in ("chi2",) + _loss.WEIGHTED_L2
         if (evaluator is None and use_fast is not False and not self.eval.fast and not self.varpro
                 and loss in NORMAL_LOSSES):
             # the problem's shape decides (see FAST_MIN_POINTS): steps from the compiled

@@ -47,7 +47,7 @@ __all__ = ["AffineFit", "AffineKernel", "applicable", "single_threaded_blas"]
 
 def applicable(meas, model, space, loss, enforce_energy, use_fast) -> bool:
     """True when :func:`fit_affine` can serve this fit."""
-    if use_fast is False or enforce_energy or loss not in ("chi2", "cosine"):
+    if use_fast is False or enforce_energy or loss not in ("chi2", "cosine", "luminance"):
         return False
     if meas.n_channels != 3 or space.fixed:
         return False
@@ -172,7 +172,7 @@ class AffineFit:
     def __init__(self, meas, model, space, loss, score_rows=3000):
         self.meas, self.model, self.space, self.loss = meas, model, space, loss
         self.cos_i = np.broadcast_to(np.clip(meas.wi[:, 2:3], 0.0, 1.0), meas.brdf.shape)
-        weight = (1.0 / meas.brdf_std if loss == "chi2" else self.cos_i) * _loss.value_weight(meas)
+        weight = (1.0 / meas.brdf_std if loss == "chi2" else np.broadcast_to(_loss.fixed_weight(loss, meas), meas.brdf.shape)) * _loss.value_weight(meas)
         self.kern = kern = AffineKernel(meas, model, space, weight)
         stride = max(1, int(np.ceil(meas.n_points / score_rows)))
         self.scorer = kern if stride == 1 else AffineKernel(meas, model, space, weight, slice(None, None, stride))

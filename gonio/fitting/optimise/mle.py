@@ -286,7 +286,7 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         The data (f_r in sr^-1 with 1-sigma).
     model
         A gonio model (``gonio.models.get(...)``).
-    loss : {"chi2", "robust", "cosine", "log", "discrepancy"}
+    loss : {"chi2", "robust", "cosine", "log", "luminance", "discrepancy"}
         See :mod:`gonio.fitting.likelihood.loss`. ``chi2`` gives a calibrated covariance when the model
         holds; ``discrepancy`` fits a model-discrepancy variance with the model
         (:mod:`gonio.fitting.likelihood.discrepancy`), for real materials.
@@ -398,7 +398,7 @@ LM_FTOL = 1e-10
 
 #: losses without a noise model: their covariance is the sandwich of their own residuals
 #: (:func:`gonio.fitting.optimise.result.sandwich`), not the chi^2 Fisher matrix
-ROBUST_COV = ("log", "cosine")
+ROBUST_COV = ("log",) + _loss.WEIGHTED_L2
 
 
 def _robust(loss: str, meas) -> bool:

@@ -3,7 +3,9 @@
 Every candidate (and the data-driven ``tabulated`` model where none renders well enough, and
 its tabulated body where that renders closer by more than the noise) is
 fitted to a seeded random subsample of :data:`SCREEN_POINTS` samples, one local refinement
-each (:func:`screen`); the ranking by BIC is the subsample's. The choice is
+each (:func:`screen`); the ranking by BIC is the subsample's. The chosen family's refinement,
+where it declares one (gratingpaint's ring table; a matte tabulated fit's sheen, fitted with
+the luminance loss), replaces it where it renders closer by more than the noise. The choice is
 :func:`gonio.fitting.selection.by_pixels.pixel_choice`'s: the simplest proper candidate that
 renders, in the default scene's own pixels, within half a just-noticeable difference of the
 closest one. Only the chosen candidate is then fitted to every sample, started from its
@@ -26,6 +28,7 @@ screened fit (:func:`refit`), so choosing costs the screen, one scene's pairs an
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import threading
 import time
@@ -118,18 +121,24 @@ def refit(meas, result, *, rng, loss):
 
 
 def _refined(chosen, sub, check, note, *, seed, loss):
-    """The chosen family's nested refinement (``model.refinement()``: gratingpaint's ring
-    table), fitted to ``sub`` from the chosen fit; (it, note, its ranking row) where its
-    pixels are closer by more than both rows' noise (the tabulated body's rule), else
-    (``chosen``, ``note``, None)."""
+    """The chosen family's nested refinement (``model.refinement(params)``: gratingpaint's ring
+    table, a matte tabulated fit's sheen), fitted to ``sub`` from the chosen fit with the
+    chosen model's ``REFINEMENT_LOSS`` (``loss`` where it declares none); (it, note, its
+    ranking row) where its pixels are closer by more than both rows' noise (the tabulated
+    body's rule), else (``chosen``, ``note``, None)."""
     from gonio.fitting.selection.by_data import Ranked
 
     make = getattr(chosen.model, "refinement", None)
-    model = make() if make is not None else None
+    try:
+        model = make(chosen.params) if make is not None else None
+    except (ValueError, FloatingPointError):    # its gate cannot read the fit (not finite where it looks)
+        model = None
     if model is None:
         return chosen, note, None
+    from gonio.fitting.likelihood import loss as _loss
     from gonio.fitting.optimise.mle import fit
 
+    rank_loss, loss = loss, getattr(chosen.model, "REFINEMENT_LOSS", None) or loss
     r = fit(sub, model, rng=np.random.default_rng([int(seed), 353]), loss=loss, start=model.start_from(chosen.params),
             n_starts=0, n_local=1, covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)
     try:
@@ -138,9 +147,13 @@ def _refined(chosen, sub, check, note, *, seed, loss):
         return chosen, note, None
     if de_c - de_r <= noise_c + noise_r:
         return chosen, note, None
-    row = Ranked(model.name, dict(model.options), r.space.size, r.chi2, r.bic, 0.0, False, r, r.loss,
-                 r.neg2_loglik, de_r, noise_r)
-    return r, f"{note}; refined to {model.name} {model.options} (pixels {de_c:.2f} -> {de_r:.2f})", row
+    # its row's -2 ln L and BIC under the ranking's loss, as every other row's (a profiled scale of
+    # another loss is in other units: not comparable)
+    ranked = r if loss == rank_loss else dataclasses.replace(
+        r, loss=rank_loss, objective=_loss.objective(rank_loss, _loss.residuals(rank_loss, model.eval(sub.wi, sub.wo, r.params), sub)))
+    row = Ranked(model.name, dict(model.options), r.space.size, r.chi2, ranked.bic, 0.0, False, r, rank_loss,
+                 ranked.neg2_loglik, de_r, noise_r)
+    return r, f"{note}; refined to {model.name} {model.options}, {loss} loss (pixels {de_c:.2f} -> {de_r:.2f})", row
 
 
 def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=SCREEN_POINTS, candidates=None,
@@ -193,7 +206,7 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
         progress(0, None, f"fitting {chosen.model.name} to all {meas.n_points} samples")
     t1 = time.perf_counter()
     with choice_threads() if meas.n_points <= ONE_THREAD_POINTS else contextlib.nullcontext():
-        final = refit(meas, chosen, rng=np.random.default_rng([int(seed), 352]), loss=loss)
+        final = refit(meas, chosen, rng=np.random.default_rng([int(seed), 352]), loss=chosen.loss)
     row = next(r for r in ranking if r.chosen)
     row.result, row.options, row.k = final, dict(final.model.options), final.space.size
     with choice_threads():

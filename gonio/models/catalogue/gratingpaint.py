@@ -111,9 +111,10 @@ class GratingPaint(FlakePaint):
     def table(self) -> bool:
         return self.options["ring"] == "table"
 
-    def refinement(self):
+    def refinement(self, params=None):
         """The ring table of the same distribution (``--model auto`` tries it where these
-        spectral rings were chosen: gonio.fitting.selection.auto), None for the table itself."""
+        spectral rings were chosen, ``params`` their fit: gonio.fitting.selection.auto), None
+        for the table itself."""
         return None if self.table else GratingPaint(distribution=self.options["distribution"], ring="table")
 
     def affine_colours(self) -> tuple:

@@ -346,6 +346,45 @@ class Tabulated(Model):
 
     #: the default NDF: GGX with this alpha; the default Fresnel: Schlick's with F0 = 0.04
     DEFAULT_ALPHA = 0.15
+    #: the sheen refinement (:meth:`refinement`) is fitted with this loss: a colour error relative
+    #: to the pair's luminance, as the render weighs colour (gonio.fitting.likelihood.loss)
+    REFINEMENT_LOSS = "luminance"
+    #: the sheen refinement's start (:meth:`start_from`): the sheen's GGX width, its grazing
+    #: amplitude (theta_d 75.5 deg, every channel), and the main lobe's tail handed to it, ln D / D(0)
+    #: at most these from the knot at theta_h 25.6 deg on (module notes)
+    SHEEN_START = (0.37, 0.4)
+    TAIL_KNOT, TAIL_CAP = 8, (0.02, 1e-4, 1e-6, 1e-8, 1e-10, 1e-10, 1e-10, 1e-10)
+
+    def refinement(self, params=None):
+        """The same body with the grazing sheen lobe (``sheen="ggx"``), which ``--model auto``
+        tries on its chosen plain fit ``params`` (gonio.fitting.selection.auto) of a matte
+        surface: 60 deg gloss below ASTM D523's 10 GU, reckoned from the fit. None where the
+        sheen is on already, the fit is glossy (a paint's colour error is not a sheen) or not
+        of three colour channels (the gloss is a luminance)."""
+        from gonio.models.physics.gloss import MATTE_BELOW_GU, specular_gloss
+
+        if self.options["sheen"] == "ggx" or params is None:
+            return None
+        if np.size(self.validate(params)["diffuse_reflectance"]) != CHANNELS:
+            return None
+        if specular_gloss(lambda wi, wo: self.eval(wi, wo, params)) >= MATTE_BELOW_GU:
+            return None
+        return Tabulated(body=self.options["body"], sheen="ggx")
+
+    def start_from(self, plain_params):
+        """The plain fit's parameters as the sheen's start: the sheen at :data:`SHEEN_START`
+        (grazing amplitude only) and the main lobe's tail from :data:`TAIL_KNOT` on capped at
+        :data:`TAIL_CAP`, so the wide part starts on the sheen. From the plain fit's own tail the
+        local fit stays where the main lobe carries it (leaf_maple rendered 1.07 against 0.99;
+        docs/performance.md)."""
+        out = {k: np.array(v, dtype=np.float64) for k, v in plain_params.items() if not k.startswith("sheen")}
+        alpha, grazing = self.SHEEN_START
+        out["sheen_alpha"] = np.array(alpha)
+        for j in range(tabulated_sheen.N_SHEEN):
+            out[f"sheen_{j}"] = np.full(3, grazing if j == tabulated_sheen.N_SHEEN - 1 else 0.0)
+        for k, cap in zip(range(self.TAIL_KNOT, N_KNOTS), self.TAIL_CAP):
+            out[f"ndf_{k}"] = np.minimum(out[f"ndf_{k}"], cap)
+        return self.validate(out)
 
     def __init__(self, start=None, **options):
         """``start``: a parameter dict that replaces the declared defaults (a data-driven

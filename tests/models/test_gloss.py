@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from gonio.perf.real import GLOSS_APERTURE_DEG, MATTE_BELOW_GU, specular_gloss
+from gonio.models.physics.gloss import GLOSS_APERTURE_DEG, MATTE_BELOW_GU, specular_gloss
 
 
 def _lambert(rho):
