@@ -211,8 +211,8 @@ def fit_measurements(meas, *, model="auto", options=None, seed=0, loss=None, bud
     raw = (meas, budget)                # as opened: the shared-angle estimate corrects the response where it moves them
     refits = []                         # the fit's time is all of it: the refits below count too
 
-    def refit(m, near=None):
-        r = fit(m, chosen, rng=np.random.default_rng(seed), loss=loss,
+    def refit(m, near=None):           # with the loss the fit was made with (auto's refinement: its own)
+        r = fit(m, chosen, rng=np.random.default_rng(seed), loss=first.loss,
                 **({} if near is None else {"start": near.params, "n_starts": 0}))
         refits.append(r)
         return r

@@ -44,3 +44,31 @@ def test_leaf_is_refined_with_the_sheen_and_renders_closer_in_a_scene_it_was_not
     assert result.energy["holds"] and result.energy["max_albedo"] <= 1.0
     # not a flat, bright sheen: its grazing amplitude is the one the data see, below 1
     assert np.all(np.asarray(result.params["sheen_3"]) < 1.0)
+
+
+def test_no_refinement_is_tried_where_the_choice_renders_within_the_threshold():
+    """As the fallback: where the chosen fit's pixels are within CIEDE2000 1 already, the scene
+    needs no more, and the refinement's fit (about 1 s) is not run."""
+    from types import SimpleNamespace
+
+    from gonio.fitting.selection.auto import _refined
+
+    asked = []
+
+    class Model:
+        def refinement(self, params):
+            asked.append(params)
+            return None
+
+    class Check:
+        def __init__(self, de):
+            self.de = de
+
+        def delta_e(self, model, params):
+            return self.de, 0.01
+
+    chosen = SimpleNamespace(model=Model(), params={"x": 1.0})
+    assert _refined(chosen, None, Check(0.99), "n", seed=0, loss="log") == (chosen, "n", None)
+    assert asked == []
+    assert _refined(chosen, None, Check(1.01), "n", seed=0, loss="log") == (chosen, "n", None)
+    assert asked == [{"x": 1.0}]

@@ -120,16 +120,20 @@ def refit(meas, result, *, rng, loss):
     return fit(meas, model, rng=rng, loss=loss, fixed=fixed, start=start, n_starts=0, n_local=1)
 
 
-def _refined(chosen, sub, check, note, *, seed, loss):
+def _refined(chosen, sub, check, note, *, seed, loss, threshold=None):
     """The chosen family's nested refinement (``model.refinement(params)``: gratingpaint's ring
     table, a matte tabulated fit's sheen), fitted to ``sub`` from the chosen fit with the
     chosen model's ``REFINEMENT_LOSS`` (``loss`` where it declares none); (it, note, its
     ranking row) where its pixels are closer by more than both rows' noise (the tabulated
-    body's rule), else (``chosen``, ``note``, None)."""
+    body's rule), else (``chosen``, ``note``, None). Not tried where the chosen fit's pixels
+    are within ``threshold`` already (as the fallback: the scene needs no more)."""
     from gonio.fitting.selection.by_data import Ranked
+    from gonio.fitting.selection.by_pixels import THRESHOLD
 
     make = getattr(chosen.model, "refinement", None)
     try:
+        if make is not None and check.delta_e(chosen.model, chosen.params)[0] <= (threshold or THRESHOLD):
+            return chosen, note, None
         model = make(chosen.params) if make is not None else None
     except (ValueError, FloatingPointError):    # its gate cannot read the fit (not finite where it looks)
         model = None

@@ -29,12 +29,14 @@ from gonio.models.mitsuba import select_variant
 
 from gonio.fitting.render.preview import delta_e_2000
 
-__all__ = ["PixelCheck", "degenerate", "pixel_choice", "MIN_ALPHA", "PINNED", "TOLERANCE"]
+__all__ = ["PixelCheck", "degenerate", "pixel_choice", "MIN_ALPHA", "PINNED", "THRESHOLD", "TOLERANCE"]
 
 #: a roughness below this is a lobe narrower than the data's angular resolution (~1 deg)
 MIN_ALPHA = 0.01
 #: chosen: the simplest candidate within this mean CIEDE2000 of the closest one
 TOLERANCE = 0.5
+#: the fallback and a refinement are tried only where no candidate renders within this (a JND)
+THRESHOLD = 1.0
 #: parameters whose box bound is not a material but the optimiser's edge: a conductor's eta and
 #: k, an index of refraction, a roughness, a second lobe's weight (0 or 1: the lobe unused)
 PINNED = ("eta", "k", "int_ior", "alpha", "alpha2", "alpha_u", "alpha_v", "roughness", "weight")
@@ -95,7 +97,7 @@ class PixelCheck:
         return self._scored[key]
 
 
-def pixel_choice(ranking, measured, *, scene="product-shot", size=32, k=16, seed=0, threshold=1.0,
+def pixel_choice(ranking, measured, *, scene="product-shot", size=32, k=16, seed=0, threshold=THRESHOLD,
                  tolerance=TOLERANCE, delta=2.0, variant=None, fallback=None, progress=None):
     """Choose among ``ranking`` (select's rows, every candidate fitted) by their pixels.
     ``measured``: the measured file (or its :class:`PixelCheck`, made once).
