@@ -2,8 +2,8 @@
 
 Its residual is (f_model - f_meas) cos_i / (a + Y cos_i), Y the pair's Rec. 709 luminance and
 a = LUMINANCE_FLOOR times Y cos_i's solid-angle mean: checked against that formula written out
-here, on the used values only, its derivative against differences, the compiled normal
-equations against the residuals' Jacobian, and a fit that recovers a simulated truth through it.
+here, on the used values only, its derivative against differences, and a fit that recovers a
+simulated truth through it (its compiled normal equations: tests/fitting/test_normal_equations.py).
 """
 
 import numpy as np
@@ -11,9 +11,7 @@ import pytest
 
 import gonio.models as gm
 from gonio.fitting.likelihood import loss as _loss
-from gonio.fitting.likelihood.problem import Problem
 from gonio.fitting.optimise.mle import fit
-from gonio.fitting.optimise.space import ParameterSpace
 from _simdata import simulate
 
 TRUTH = {"diffuse_reflectance": np.array([0.4, 0.2, 0.02]), "alpha": 0.15, "int_ior": 1.5}
@@ -60,22 +58,6 @@ def test_y_follows_the_colour_space():
     v = np.array([[0.2, 1.0, 0.3]])
     assert _loss.luminance(v, space="xyz")[0, 0] == 1.0
     assert _loss.luminance(v)[0, 0] == pytest.approx(0.2126 * 0.2 + 0.7152 + 0.0722 * 0.3, rel=1e-12)
-
-
-def test_the_compiled_normal_equations_are_the_residuals_products():
-    """Without variable projection (``linear=[]``) the luminance loss steps from the kernel's
-    normal equations: (J^T r, J^T J) and |r|^2 of the residuals, mask and weights included."""
-    model, meas = _data(seed=6, n=500)
-    meas.use[::7, 2] = False
-    space = ParameterSpace(model, 3)
-    prob = Problem(meas, model, space, "luminance", linear=[])
-    assert prob.normal_available
-    u = space.to_unit(space.from_params(TRUTH)) * 0.9 + 0.04
-    r, D = prob.lm_residuals_u(u), prob.lm_jacobian_u(u)
-    g, A = prob.lm_normal_u(u)
-    assert prob.lm_cost_u(u) == pytest.approx(r @ r, rel=1e-12)
-    np.testing.assert_allclose(g, D.T @ r, rtol=1e-9, atol=1e-12 * np.abs(g).max())
-    np.testing.assert_allclose(A, D.T @ D, rtol=1e-9, atol=1e-12 * np.abs(A).max())
 
 
 def test_derivative_matches_differences():

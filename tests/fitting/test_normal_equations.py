@@ -66,6 +66,29 @@ def test_normal_equations_equal_the_jacobian_products(name, options, log):
             assert abs(A[i, entries.index(("base_color", 1))]) > 1e-6 * A[i, i]
 
 
+def _assert_normal_is_the_products(prob, u):
+    """Problem.lm_normal_u / lm_cost_u (reduced in the kernel) are (J^T r, J^T J) and |r|^2 of
+    lm_residuals_u / lm_jacobian_u at u."""
+    assert prob.normal_available
+    r, D = prob.lm_residuals_u(u), prob.lm_jacobian_u(u)
+    g, A = prob.lm_normal_u(u)
+    assert prob.lm_cost_u(u) == pytest.approx(r @ r, rel=1e-12)
+    np.testing.assert_allclose(g, D.T @ r, rtol=1e-9, atol=1e-12 * np.abs(g).max())
+    np.testing.assert_allclose(A, D.T @ D, rtol=1e-9, atol=1e-12 * np.abs(A).max())
+
+
+def test_luminance_loss_normal_equations_are_the_residuals_products():
+    """The luminance loss (a fixed weight cos_i / (a + Y cos_i) per value) without variable
+    projection (``linear=[]``): the kernel's normal equations, mask and weights included."""
+    model = gm.get("principled")
+    meas = simulate(model, PRINCIPLED, np.random.default_rng(6), n=500)
+    meas.weight = np.random.default_rng(7).uniform(0.5, 2.0, meas.n_points)
+    meas.use[::7, 2] = False
+    space = ParameterSpace(model, 3)
+    prob = Problem(meas, model, space, "luminance", linear=[])
+    _assert_normal_is_the_products(prob, space.to_unit(space.from_params(PRINCIPLED)) * 0.9 + 0.04)
+
+
 def test_log_loss_steps_from_normal_equations_equal_the_jacobian_steps(monkeypatch):
     """The log loss's Problem.lm_normal_u / lm_cost_u (reduced in the kernel) are (J^T r,
     J^T J) and |r|^2 of lm_residuals_u / lm_jacobian_u, mask and solid-angle weights
@@ -77,13 +100,7 @@ def test_log_loss_steps_from_normal_equations_equal_the_jacobian_steps(monkeypat
     meas.use[::7, 2] = False
     space = ParameterSpace(model, 3)
     prob = Problem(meas, model, space, "log")
-    assert prob.normal_available
-    u = space.to_unit(space.from_params(PRINCIPLED)) * 0.9 + 0.04
-    r, D = prob.lm_residuals_u(u), prob.lm_jacobian_u(u)
-    g, A = prob.lm_normal_u(u)
-    assert prob.lm_cost_u(u) == pytest.approx(r @ r, rel=1e-12)
-    np.testing.assert_allclose(g, D.T @ r, rtol=1e-9, atol=1e-12 * np.abs(g).max())
-    np.testing.assert_allclose(A, D.T @ D, rtol=1e-9, atol=1e-12 * np.abs(A).max())
+    _assert_normal_is_the_products(prob, space.to_unit(space.from_params(PRINCIPLED)) * 0.9 + 0.04)
     kw = dict(loss="log", rng=np.random.default_rng(0), n_starts=0, n_local=1, covariance=False)
     res = fit(meas, model, **kw)
     monkeypatch.setattr(Problem, "normal_available", property(lambda self: False))  # the Jacobian path
