@@ -3,13 +3,14 @@
 Every candidate (and the data-driven ``tabulated`` model where none renders well enough, and
 its tabulated body where that renders closer by more than the noise) is
 fitted to a seeded random subsample of :data:`SCREEN_POINTS` samples, one local refinement
-each (:func:`screen`); the ranking by BIC is the subsample's. The chosen family's refinement,
-where it declares one (gratingpaint's ring table; a matte tabulated fit's sheen, fitted with
-the luminance loss), replaces it where it renders closer by more than the noise. The choice is
+each (:func:`screen`); the ranking by BIC is the subsample's. The choice is
 :func:`gonio.fitting.selection.by_pixels.pixel_choice`'s: the simplest proper candidate that
 renders, in the default scene's own pixels, within half a just-noticeable difference of the
-closest one. Only the chosen candidate is then fitted to every sample, started from its
-screened fit (:func:`refit`), so choosing costs the screen, one scene's pairs and one fit.
+closest one. Where that choice does not render within the threshold either, its family's
+refinement, if it declares one (gratingpaint's ring table; a matte tabulated fit's sheen,
+fitted with the luminance loss), takes its place where it renders closer beyond the noise.
+Only the chosen candidate is then fitted to every sample, started from its screened fit
+(:func:`refit`), so choosing costs the screen, one scene's pairs and one fit (or two).
 """
 
 # Why a subsample: the candidates' BIC gaps on measured files are thousands (acrylic_felt_white:
@@ -132,7 +133,8 @@ def _refined(chosen, sub, check, note, *, seed, loss, threshold=None):
 
     make = getattr(chosen.model, "refinement", None)
     try:
-        if make is not None and check.delta_e(chosen.model, chosen.params)[0] <= (threshold or THRESHOLD):
+        if make is not None and check.delta_e(chosen.model, chosen.params)[0] <= (THRESHOLD if threshold is None
+                                                                                   else threshold):
             return chosen, note, None
         model = make(chosen.params) if make is not None else None
     except (ValueError, FloatingPointError):    # its gate cannot read the fit (not finite where it looks)
