@@ -23,8 +23,10 @@ def test_leaf_is_refined_with_the_sheen_and_renders_closer_in_a_scene_it_was_not
     from gonio.perf.real import rendered_delta_e
 
     meas = rgl_samples(LEAF)
-    result, ranking, note = auto_fit(meas, str(LEAF), loss="log", seed=0)
+    said = []
+    result, ranking, note = auto_fit(meas, str(LEAF), loss="log", seed=0, progress=lambda *a: said.append(a[-1]))
     assert result.model.name == "tabulated" and result.model.options["sheen"] == "ggx", note
+    assert any(s.startswith("refining tabulated") for s in said), said       # the terminal says what runs
     assert result.loss == "luminance" and result.converged, note
     body = result.model.options["body"]
     rows = {r.options.get("sheen"): r for r in ranking if r.name == "tabulated" and r.options.get("body") == body}

@@ -121,7 +121,7 @@ def refit(meas, result, *, rng, loss):
     return fit(meas, model, rng=rng, loss=loss, fixed=fixed, start=start, n_starts=0, n_local=1)
 
 
-def _refined(chosen, sub, check, note, *, seed, loss, threshold=None):
+def _refined(chosen, sub, check, note, *, seed, loss, threshold=None, progress=None):
     """The chosen family's nested refinement (``model.refinement(params)``: gratingpaint's ring
     table, a matte tabulated fit's sheen), fitted to ``sub`` from the chosen fit with the
     chosen model's ``REFINEMENT_LOSS`` (``loss`` where it declares none); (it, note, its
@@ -145,6 +145,8 @@ def _refined(chosen, sub, check, note, *, seed, loss, threshold=None):
     from gonio.fitting.optimise.mle import fit
 
     rank_loss, loss = loss, getattr(chosen.model, "REFINEMENT_LOSS", None) or loss
+    if progress is not None:
+        progress(0, None, f"refining {chosen.model.name}: {model.name} {dict(model.options)}, {loss} loss")
     r = fit(sub, model, rng=np.random.default_rng([int(seed), 353]), loss=loss, start=model.start_from(chosen.params),
             n_starts=0, n_local=1, covariance=False, enforce_energy=False, ftol=SCREEN_FTOL)
     try:
@@ -198,7 +200,7 @@ def auto_fit(meas, measured, *, seed=0, loss, rng=None, scene="product-shot", n=
     with choice_threads():      # the pairs are found: the scoring reads no image
         chosen, ranking, note = pixel_choice(ranking, check, fallback=fallback, progress=progress)
     with choice_threads():
-        chosen, note, added = _refined(chosen, sub, check, note, seed=seed, loss=loss)
+        chosen, note, added = _refined(chosen, sub, check, note, seed=seed, loss=loss, progress=progress)
     if added is not None:           # the refinement is a row of its own, with its own BIC
         for r in ranking:
             r.chosen = False
