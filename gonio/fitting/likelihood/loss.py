@@ -21,15 +21,14 @@ that sum r^2 is a solid-angle integral over the hemispheres.
 # residuals with its scale profiled (BIC), intervals from the sandwich covariance
 # (gonio.fitting.optimise.result.sandwich). discrepancy: (rel, abs) are fitted with the model;
 # the residuals here are chi2's on data whose sigma is already s.
-# References:
 # luminance: a fixed weight per value, cos_i / (a + Y cos_i), Y the measured luminance of the
 # pair (of its used values: Rec. 709 weights of its RGB, Y of XYZ, the channels' mean otherwise;
-# at least 0), a = LUMINANCE_FLOOR
-# times Y cos_i's solid-angle mean. CIELAB's chroma and hue scale with the colour's luminance, so
-# a blue channel at 0.005 against a red at 0.05 weighs by its share of the colour, where the log
-# loss (ln(1 + x) ~ x for x << 1) weighs it as an absolute, nearly nothing (docs/performance.md,
-# leaf_maple). Like cosine, a weighted L2 without a noise model: its scale profiled, its
-# covariance the sandwich.
+# at least 0), a = LUMINANCE_FLOOR times Y cos_i's solid-angle mean. CIELAB's chroma and hue
+# scale with the colour's luminance, so a blue channel at 0.005 against a red at 0.05 weighs by
+# its share of the colour, where the log loss (ln(1 + x) ~ x for x << 1) weighs it as an
+# absolute, nearly nothing (docs/performance.md, leaf_maple). Like cosine, a weighted L2 without
+# a noise model: its scale profiled, its covariance the sandwich.
+# References:
 # Ngan, A., Durand, F., Matusik, W. (2005). Experimental analysis of BRDF models. EGSR, sec. 4.
 # Loew, J., Kronander, J., Ynnerman, A., Unger, J. (2012). BRDF models for accurate and
 # efficient rendering of glossy surfaces. ACM TOG 31(1), eq. 11.
