@@ -14,8 +14,10 @@ and their ratios peer / gonio. Definitions and references: the comment below.
 """
 
 # gonio: every candidate screened with the real-data default loss on a subsample of the file's
-# own solid-angle-weighted samples, chosen by the default scene's pixels and BIC, then the
-# chosen one refitted to every sample (gonio.fitting.selection.auto).
+# own solid-angle-weighted samples, chosen by the default scene's pixels and BIC, refined where
+# the choice renders above 1 and its family declares a refinement (a matte tabulated fit's
+# sheen, with the luminance loss), then the chosen one refitted to every sample with its loss
+# (gonio.fitting.selection.auto).
 # peer: scipy.optimize.least_squares (trust-region reflective, 2-point finite differences,
 # bounds), no weights, from the declared defaults and 7 more starts drawn uniformly in the
 # parameter box (8 starts, seeded Generator), the best kept, with gonio's model.eval (the
@@ -271,7 +273,8 @@ def print_table(rows, legend=True, head=True):
         return
     print("g: gonio's chosen fit (--model auto: every candidate screened on a subsample; among the proper ones "
           "whose product-shot pixels are within CIEDE2000 0.5 of the closest, BIC chooses; tabulated is tried where "
-          "none is within 1; the chosen one refitted to all samples); p: scipy least_squares, unweighted "
+          "none is within 1, and refined (a matte tabulated fit's sheen, luminance loss) where that renders "
+          "closer; the chosen one refitted to all samples); p: scipy least_squares, unweighted "
           "log loss, "
           f"{PEER_STARTS} starts, Mitsuba's "
           f"{', '.join(sorted({str(r.get('peer_model', PEER_FAMILY)) for r in rows})) or PEER_FAMILY} evaluated by "
