@@ -30,6 +30,7 @@ from gonio.core.errors import GonioError
 from gonio.core.atomic import atomic_open
 from gonio.core.files import sha256_file
 
+from gonio.fitting.likelihood import loss as _loss
 from gonio.fitting.uncertainty.adequacy import TEST_BUDGET, nominal_test
 from gonio.fitting.uncertainty.budget import budget_from_attrs, propagate
 from gonio.fitting.statement import K_EXPANDED, fit_to_xarray, jsonable as _jsonable, result_document  # noqa: F401
@@ -308,7 +309,7 @@ def model_adequacy(result, test: dict | None = None):
     if result.loss == "discrepancy":
         return False, 1.0, (f"{_said(test, chi2_dof)} against the fitted discrepancy variance: "
                             "the intervals include the model discrepancy but the fit is still poor")
-    if result.loss in ("log", "cosine", "luminance"):
+    if result.loss in _loss.PROFILED:
         return False, 1.0, (f"{_said(test, chi2_dof)} against the nominal sigma: the model misses "
                             f"the data; the intervals are the sandwich covariance of the {result.loss} residuals, "
                             "which includes the model's discrepancy (not inflated again)")

@@ -37,13 +37,16 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LOSSES", "LUMINANCE_FLOOR", "REAL_DEFAULT_LOSS", "WEIGHTED_L2", "fixed_weight", "luminance", "residuals",
+__all__ = ["LOSSES", "LUMINANCE_FLOOR", "PROFILED", "REAL_DEFAULT_LOSS", "WEIGHTED_L2", "fixed_weight", "luminance", "residuals",
            "residual_function", "objective", "objective_weights", "value_weight"]
 
 LOSSES = ("chi2", "robust", "cosine", "log", "luminance", "discrepancy")
 #: losses that are an L2 of (f_model - f_meas) times a fixed weight, without a noise model
 #: (their scale profiled in the likelihood, their covariance the sandwich)
 WEIGHTED_L2 = ("cosine", "luminance")
+#: losses without a noise model: the likelihood of their residuals has its scale profiled (one
+#: parameter more in the BIC) and their covariance is the sandwich of their own residuals
+PROFILED = ("log",) + WEIGHTED_L2
 #: the luminance loss's floor a, as a fraction of Y cos_i's solid-angle mean: below it a pair's
 #: error counts as an absolute one (kappa 0.1-1 rendered leaf_maple within 0.03 of each other)
 LUMINANCE_FLOOR = 0.3

@@ -47,7 +47,7 @@ __all__ = ["AffineFit", "AffineKernel", "applicable", "single_threaded_blas"]
 
 def applicable(meas, model, space, loss, enforce_energy, use_fast) -> bool:
     """True when :func:`fit_affine` can serve this fit."""
-    if use_fast is False or enforce_energy or loss not in ("chi2", "cosine", "luminance"):
+    if use_fast is False or enforce_energy or loss not in ("chi2",) + _loss.WEIGHTED_L2:
         return False
     if meas.n_channels != 3 or space.fixed:
         return False

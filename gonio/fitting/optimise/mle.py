@@ -398,7 +398,7 @@ LM_FTOL = 1e-10
 
 #: losses without a noise model: their covariance is the sandwich of their own residuals
 #: (:func:`gonio.fitting.optimise.result.sandwich`), not the chi^2 Fisher matrix
-ROBUST_COV = ("log",) + _loss.WEIGHTED_L2
+ROBUST_COV = _loss.PROFILED
 
 
 def _robust(loss: str, meas) -> bool:

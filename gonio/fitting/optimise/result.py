@@ -86,13 +86,13 @@ class FitResult:
 
         * ``chi2``: chi^2 (Gaussian noise with the data's sigma);
         * ``robust``: its objective (pseudo-Huber on the sigma-scaled residuals);
-        * ``cosine``, ``log``, ``luminance``: n ln(objective / n), the Gaussian likelihood of the loss's
+        * ``cosine``, ``log``, ``luminance`` (``PROFILED``): n ln(objective / n), the Gaussian likelihood of the loss's
           residuals with their variance profiled out (one more parameter);
         * ``discrepancy``: sum r^2 / s^2 + ln s^2 with s^2 = sigma^2 + (rel f)^2 + abs^2.
         """
         if self.loss == "discrepancy" and self.discrepancy:
             return float(self.discrepancy["neg2_loglik"])
-        if self.loss in ("cosine", "log", "luminance"):
+        if self.loss in _loss.PROFILED:
             return float(self.n_used * np.log(max(self.objective, 1e-300) / self.n_used))
         if self.loss == "robust":
             return float(self.objective)
@@ -102,7 +102,7 @@ class FitResult:
     def k_criterion(self) -> int:
         """Free parameters counted by the BIC: the model's, plus the noise parameters the
         loss estimates (one profiled variance for cosine/log/luminance, rel and abs for discrepancy)."""
-        return self.space.size + {"cosine": 1, "log": 1, "luminance": 1, "discrepancy": 2}.get(self.loss, 0)
+        return self.space.size + (1 if self.loss in _loss.PROFILED else 2 if self.loss == "discrepancy" else 0)
 
     @property
     def bic(self) -> float:

@@ -352,7 +352,7 @@ def birge_against_budget(result, J, drdy, meas, comps, adequate: bool | None = N
 def _loss_sensitivities(result, meas, residuals: bool = False):
     """(J, dr/dy): the loss's residual Jacobian at the optimum (M, P) and dr/dy at the used values
     (M,); with ``residuals`` also the residuals there (M,)."""
-    loss = result.loss if result.loss in ("chi2", "robust", "cosine", "log", "luminance") else "chi2"
+    loss = result.loss if result.loss in ("chi2", "robust") + _loss.PROFILED else "chi2"
     problem = Problem(meas, result.model, result.space, loss)
     J, r = loss_jacobian(problem, result.x, loss)
     drdy = -_loss.residual_derivative(loss, meas.brdf, meas)
