@@ -15,8 +15,8 @@ import contextvars
 import math
 from dataclasses import dataclass
 
-__all__ = ["Channels", "RGB", "CHANNELS", "COLOUR_SPACE_CHANNELS", "colour_space", "spectral", "current",
-           "use", "of_values", "from_attrs"]
+__all__ = ["Channels", "RGB", "CHANNELS", "COLOUR_SPACE_CHANNELS", "LUMINANCE", "SRGB_Y", "colour_space",
+           "spectral", "current", "use", "of_values", "from_attrs"]
 
 
 @dataclass(frozen=True)
@@ -86,6 +86,12 @@ _SPACES = {space: Channels(names, space) for space, names in
 
 #: The channel names of each colour space a dataset may be fitted in.
 COLOUR_SPACE_CHANNELS = {space: c.names for space, c in _SPACES.items()}
+
+#: Y (CIE 1931 luminance) of linear sRGB: the Y row of IEC 61966-2-1's sRGB -> XYZ matrix
+SRGB_Y = (0.2126, 0.7152, 0.0722)
+#: Y of one value of each colour space's three channels: sRGB's row, camera RGB's taken as sRGB's
+#: (its matrix is the dataset's, not known here), Y itself for XYZ
+LUMINANCE = {"srgb": SRGB_Y, "camera": SRGB_Y, "xyz": (0.0, 1.0, 0.0)}
 
 
 def colour_space(name: str) -> Channels:

@@ -18,13 +18,15 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
+from gonio.core.channels import SRGB_Y
+
 
 __all__ = ["alc_batch", "reference_grid", "discrepancy_rel", "TAU_MIN"]
 
 #: the least relative discrepancy assumed, however well the model fits the points so far
 TAU_MIN = 0.02
 #: luminance weights of linear sRGB (IEC 61966-2-1)
-LUM = np.array([0.2126, 0.7152, 0.0722])
+LUM = np.array(SRGB_Y)
 
 
 def reference_grid(theta_max_deg: float = 80.0, n_theta_i: int = 6, n_theta_o: int = 8, n_phi: int = 12):

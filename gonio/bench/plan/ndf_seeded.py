@@ -23,6 +23,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from gonio.core.channels import SRGB_Y
+
 from gonio.bench.plan.adaptive import AdaptivePlan, spread_subset
 from gonio.bench.plan.plans import Plan
 from gonio.bench.plan.strategy import register_strategy
@@ -67,7 +69,7 @@ class NDFSeededPlan(AdaptivePlan):
 
     def _pick(self, x, basis, queue, free, n_new, results, sigma_rel, sigma_floor, cov) -> list[int]:
         p = self.space.to_params(x)
-        lum = np.array([0.2126, 0.7152, 0.0722])
+        lum = np.array(SRGB_Y)
         f = np.asarray(self.model.eval(self.wi[free], self.wo[free], p), dtype=np.float64)
         light = np.clip(f, 0.0, None) @ lum * np.clip(self.wo[free, 2], 0.0, None)
         rel = self._predicted_rel_u(x, free, cov, f)
@@ -85,7 +87,7 @@ class NDFSeededPlan(AdaptivePlan):
         covariance by central differences (0 where it has none)."""
         if cov is None or not np.all(np.isfinite(cov)):
             return np.zeros(len(free))
-        lum = np.array([0.2126, 0.7152, 0.0722])
+        lum = np.array(SRGB_Y)
         lo, hi = self.space.lower, self.space.upper
         J = np.empty((len(free), self.space.size))
         for j in range(self.space.size):

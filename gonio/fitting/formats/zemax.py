@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gonio.core.channels import SRGB_Y
 from gonio.core.errors import GonioError
 from gonio.core.files import text_head
 from gonio.core.preflight import check_input_file
@@ -375,7 +376,7 @@ def zemax_measurements(source, *, rel_std: float = 0.02, floor: float = 1e-4, as
 DEFAULT_AOI = np.arange(0.0, 90.0, 5.0)
 DEFAULT_AZIMUTH = np.arange(0.0, 360.0, 5.0)
 DEFAULT_RADIAL = np.arange(0.0, 181.0, 2.0)
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])   # Y of linear sRGB (IEC 61966-2-1)
+_LUMINANCE = np.array(SRGB_Y)   # Y of linear sRGB (IEC 61966-2-1)
 
 
 def _edges(v_deg: np.ndarray, lo: float, hi: float) -> np.ndarray:

@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gonio.core.channels import LUMINANCE, SRGB_Y
+
 __all__ = ["LOSSES", "LUMINANCE_FLOOR", "PROFILED", "REAL_DEFAULT_LOSS", "WEIGHTED_L2", "fixed_weight", "luminance", "residuals",
            "residual_function", "objective", "objective_weights", "value_weight"]
 
@@ -68,22 +70,15 @@ def value_weight(meas) -> np.ndarray:
     return np.sqrt(meas.relative_weight())[:, None]
 
 
-#: Y of a value's three channels by the space it is in (the dataset's ``attrs["colour"]["space"]``):
-#: Rec. 709's luminance weights for linear sRGB and for camera RGB (no better guess without its
-#: matrix), Y itself for CIE XYZ
-_Y_WEIGHTS = {"xyz": (0.0, 1.0, 0.0)}
-_REC709_Y = (0.2126, 0.7152, 0.0722)
-
-
 def luminance(values, use=None, space="srgb") -> np.ndarray:
     """Y of each row of ``values`` (N, C), shape (N, 1), at least 0: for three channels the
-    luminance weights of ``space`` (:data:`_Y_WEIGHTS`, Rec. 709's otherwise), the channels'
-    mean for other counts; only the values ``use`` marks (and finite ones) count, the weights
+    luminance weights of ``space`` (:data:`gonio.core.channels.LUMINANCE`, sRGB's for a space
+    it does not name), the channels' mean for other counts; only the values ``use`` marks (and finite ones) count, the weights
     renormalised over them (0 where a row has none)."""
     v = np.asarray(values, dtype=np.float64)
     ok = np.isfinite(v) if use is None else (np.asarray(use, bool) & np.isfinite(v))
     n = v.shape[1]
-    w = np.asarray(_Y_WEIGHTS.get(str(space), _REC709_Y) if n == 3 else np.full(n, 1.0 / n), dtype=np.float64)
+    w = np.asarray(LUMINANCE.get(str(space), SRGB_Y) if n == 3 else np.full(n, 1.0 / n), dtype=np.float64)
     num = np.where(ok, v, 0.0) @ w
     den = ok.astype(np.float64) @ w
     y = np.where(den > 0.0, num / np.where(den > 0.0, den, 1.0), 0.0)

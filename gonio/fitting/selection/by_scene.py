@@ -34,6 +34,7 @@ import time
 
 import numpy as np
 
+from gonio.core.channels import SRGB_Y
 from gonio.models.mitsuba import select_variant
 
 from gonio.fitting.selection.scene_fit import SAMPLE_ID
@@ -93,7 +94,7 @@ def scene_samples(measured, preset, *, size=24, rng, k=16, rel_std=0.02, floor=1
         bsdf = mi.load_dict(measured_bsdf_dict(measured, variant))
         f = divide_cos(eval_cos(bsdf, sp.wi, sp.wo, variant), sp.wi, sp.wo)
     std = rel_std * np.maximum(np.abs(f), floor)
-    light = sp.weight @ np.array([0.2126, 0.7152, 0.0722])
+    light = sp.weight @ np.array(SRGB_Y)
     attrs = {"source": f"scene {preset}", "nominal_sigma": True, "rel_std": rel_std, "floor": floor,
              "sampling": f"pairs the {preset} scene asks ({size} px, {k} light samples a pixel, weighted by the light)"}
     return Measurements(sp.wi, sp.wo, f, std, np.ones(f.shape, bool), attrs, weight=light * light.size / light.sum())

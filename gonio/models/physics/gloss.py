@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from gonio.core.channels import SRGB_Y
 from gonio.core.geometry import directions
 
 __all__ = ["GLOSS_APERTURE_DEG", "GLOSS_STANDARD_N", "MATTE_BELOW_GU", "specular_gloss"]
@@ -40,5 +41,5 @@ def specular_gloss(f_r, theta_deg=60.0, aperture_deg=GLOSS_APERTURE_DEG, n=25) -
     f = np.asarray(f_r(wi, wo), float)
     if not np.all(np.isfinite(f)):
         raise ValueError("specular gloss: the BRDF is not finite inside the gloss receptor")
-    refl = float(np.sum(f * (np.cos(tho) * (d_in * d_out / n ** 2))[:, None], axis=0) @ (0.2126, 0.7152, 0.0722))
+    refl = float(np.sum(f * (np.cos(tho) * (d_in * d_out / n ** 2))[:, None], axis=0) @ SRGB_Y)
     return 100.0 * refl / float(fresnel_dielectric(math.cos(math.radians(theta_deg)), GLOSS_STANDARD_N)[0])
