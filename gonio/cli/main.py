@@ -280,13 +280,14 @@ def build_parser() -> argparse.ArgumentParser:
     cv.add_argument("source", help="fit file (JSON) or dataset.nc")
     cv.add_argument("--to", required=True, metavar="FORMAT",
                     choices=["mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "csv", "merl-data", "pabopto",
-                             "zemax", "netcdf", "astm"],
+                             "zemax", "netcdf", "astm", "rgl-bsdf"],
                     help="from a fit: mitsuba-xml (a file a plain Mitsuba 3 loads with mitsuba.load_file and "
                          "<include>: a model without a Mitsuba plugin is written as the closest native BSDF fitted "
                          "to it, its error printed), mitsuba-xml-gonio (gonio's own plugins, exact, for a process "
                          "that imports gonio), mitsuba-dict, "
                          "merl (the model resampled), pabopto (the model on a grid), zemax (Zemax/LightTools "
-                         "tabular BSDF: OUT_brdf.bsdf, and OUT_btdf.bsdf for a model that transmits), netcdf (its "
+                         "tabular BSDF: OUT_brdf.bsdf, and OUT_btdf.bsdf for a model that transmits), rgl-bsdf (a fit "
+                         "of an RGL-EPFL .bsdf file, written on that file's own grid for Mitsuba's measured plugin), netcdf (its "
                          "parameter table, value and uncertainties, as CF-1.8 NetCDF); from a dataset: csv, "
                          "merl-data (measured values binned, the rest no-data), pabopto (measured values); "
                          "pabopto writes one file per incident direction into the --out folder, for Radiance's "

@@ -19,6 +19,7 @@ import numpy as np
 __all__ = [
     "directions",
     "directions_deg",
+    "equal_solid_angle_pairs",
     "angles",
     "angles_deg",
     "finite_directions",
@@ -81,6 +82,18 @@ def directions(theta, phi):
 def directions_deg(theta_deg, phi_deg):
     """Unit vectors (..., 3) from ``theta`` and ``phi`` in degrees."""
     return directions(np.radians(np.asarray(theta_deg, float)), np.radians(np.asarray(phi_deg, float)))
+
+
+def equal_solid_angle_pairs(theta_max_deg=80.0, n_theta_i=12, n_theta_o=24, n_phi_o=48):
+    """(wi, wo) on equal-solid-angle cells of both hemispheres below ``theta_max_deg``:
+    cell centres uniform in cos(theta) and in phi (for isotropic materials: phi_i = 0), so
+    every pair has the same solid-angle weight (2 pi (1 - cos theta_max))^2 / n."""
+    cmax = np.cos(np.radians(theta_max_deg))
+    ci = 1.0 - (1.0 - cmax) * (np.arange(n_theta_i) + 0.5) / n_theta_i
+    co = 1.0 - (1.0 - cmax) * (np.arange(n_theta_o) + 0.5) / n_theta_o
+    po = -np.pi + 2.0 * np.pi * (np.arange(n_phi_o) + 0.5) / n_phi_o
+    TI, TO, PO = np.meshgrid(np.arccos(ci), np.arccos(co), po, indexing="ij")
+    return directions(TI.reshape(-1), np.zeros(TI.size)), directions(TO.reshape(-1), PO.reshape(-1))
 
 
 def angles(w):

@@ -23,7 +23,7 @@ from gonio.fitting.pipeline import load_fit_file
 __all__ = ["convert", "TARGETS"]
 
 #: What ``--to`` accepts.
-TARGETS = ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "pabopto", "zemax", "astm", "csv", "merl-data")
+TARGETS = ("mitsuba-xml", "mitsuba-xml-gonio", "mitsuba-dict", "merl", "pabopto", "zemax", "astm", "rgl-bsdf", "csv", "merl-data")
 
 
 def convert(source: Path, out: Path, to: str, say: Callable[[str], None] = print) -> None:
@@ -119,7 +119,54 @@ def _convert_astm(source, out, say, geometry=None):
     say(f"{table.values.shape[0]} points x {len(wavelengths)} wavelengths on {where}")
 
 
+def _convert_rgl(source, out, say):
+    """``--to rgl-bsdf``: a fit of an RGL-EPFL ``.bsdf`` file written on that file's own grid
+    (:func:`gonio.fitting.formats.rgl_grid.fit_on_rgl_grid`), so Mitsuba's ``measured`` plugin
+    reads and samples it as it does the measurement; how closely it gives the fit is printed."""
+    from gonio.core.files import sha256_file
+    from gonio.fitting.formats.fitfile import versions
+    from gonio.fitting.formats.rgl_grid import fidelity, fit_on_rgl_grid
+
+    if source.suffix.lower() != ".json":
+        raise GonioError(f"--to rgl-bsdf converts a fit file (FIT.json); {source} is not one")
+    try:
+        loaded = load_fit(source)
+    except (ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+    provenance = loaded.document.get("provenance") or {}
+    grid = provenance.get("dataset")
+    if not isinstance(grid, str) or not grid.lower().endswith(".bsdf"):
+        raise GonioError(f"--to rgl-bsdf writes a fit on the grid of the RGL .bsdf file it was fitted to; {source} was "
+                         f"fitted to {grid!r}, not an RGL file")
+    # the path as `gonio fit` was given it: from the folder it ran in, or beside the fit file
+    grid = next((p for p in (Path(grid), source.parent / grid) if p.is_file()), Path(grid))
+    if not grid.is_file():
+        raise GonioError(f"{source} was fitted to {grid}, which is no longer there: --to rgl-bsdf writes on that file's grid")
+    if Path(os.path.abspath(out)) == Path(os.path.abspath(grid)):
+        raise GonioError(f"--out {out} is the RGL file the fit was made from; give another file name")
+    if provenance.get("dataset_sha256") and sha256_file(grid) != provenance["dataset_sha256"]:
+        raise GonioError(f"{grid} has changed since {source} was fitted to it (its SHA-256 differs); refit it")
+    if loaded.wavelengths is not None or loaded.model.n_channels(loaded.params) != 3:
+        raise GonioError(f"{source} is not a three-channel RGB fit: --to rgl-bsdf writes an RGB file")
+    v = versions()
+    text = (f"gonio {v.get('gonio', '?')}: {loaded.model.name} {dict(loaded.model.options) or ''} fitted to {grid.name} "
+            f"(seed {provenance.get('seed')}, loss {(loaded.document.get('goodness') or {}).get('loss', '?')}), written on its grid; "
+            f"mitsuba {v.get('mitsuba', '?')}, numpy {v.get('numpy', '?')}")
+    _make_parent(out)
+    try:
+        summary = fit_on_rgl_grid(loaded.model, loaded.params, grid, out, description=text)
+        ngan = fidelity(loaded.model, loaded.params, out)
+    except ValueError as exc:
+        raise GonioError(f"{source}: {' '.join(str(exc).split())[:300]}") from None
+    say(f"{loaded.model.name} on the grid of {grid.name}: {summary['nodes']} nodes, {summary['below_horizon']} below "
+        f"the horizon (held at their nearest neighbour's value); against the fit itself its Ngan relative L2 is "
+        f"{ngan:.3f} (equal-solid-angle pairs, theta <= 80 deg: the format interpolates between the measured "
+        "incidences, and repeats the last one up to 90 deg, as it does the measurement)")
+
+
 def _convert(source, out, to, say):
+    if to == "rgl-bsdf":
+        return _convert_rgl(source, out, say)
     if to == "astm":
         return _convert_astm(source, out, say)
     if to == "pabopto":
