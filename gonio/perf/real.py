@@ -51,7 +51,7 @@ import numpy as np
 import scipy.optimize
 
 from gonio.core.atomic import atomic_open
-from gonio.core.geometry import directions
+from gonio.core.geometry import equal_solid_angle_pairs
 # the issue's dE00 limit is 1 below MATTE_BELOW_GU (60 deg gloss, ASTM D523), else 2
 from gonio.models.physics.gloss import GLOSS_APERTURE_DEG, GLOSS_STANDARD_N, MATTE_BELOW_GU, specular_gloss  # noqa: F401
 
@@ -79,17 +79,10 @@ N_THETA_I, N_THETA_O, N_PHI_O = 12, 24, 48
 
 
 def dense_grid(theta_max_deg=80.0, n_theta_i=N_THETA_I, n_theta_o=N_THETA_O, n_phi_o=N_PHI_O):
-    """(wi, wo) on equal-solid-angle cells of both hemispheres below ``theta_max_deg``:
-    cell centres uniform in cos(theta) and in phi (isotropic materials: phi_i = 0), so every
-    pair has the same solid-angle weight (2 pi (1 - cos theta_max))^2 / n."""
-    cmax = np.cos(np.radians(theta_max_deg))
-    ci = 1.0 - (1.0 - cmax) * (np.arange(n_theta_i) + 0.5) / n_theta_i
-    co = 1.0 - (1.0 - cmax) * (np.arange(n_theta_o) + 0.5) / n_theta_o
-    po = -np.pi + 2.0 * np.pi * (np.arange(n_phi_o) + 0.5) / n_phi_o
-    TI, TO, PO = np.meshgrid(np.arccos(ci), np.arccos(co), po, indexing="ij")
-    wi = directions(TI.reshape(-1), np.zeros(TI.size))
-    wo = directions(TO.reshape(-1), PO.reshape(-1))
-    return wi, wo
+    """The issue's dense grid: (wi, wo) on equal-solid-angle cells of both hemispheres below
+    ``theta_max_deg`` (:func:`~gonio.core.geometry.equal_solid_angle_pairs`), every pair of
+    the same solid-angle weight."""
+    return equal_solid_angle_pairs(theta_max_deg, n_theta_i, n_theta_o, n_phi_o)
 
 
 def measured_on_grid(path, wi, wo):
@@ -184,6 +177,39 @@ def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_S
     return float(out["delta_e_mean"]), floor
 
 
+def rendered_delta_e_on_grid(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_SPP, wi=None, wo=None):
+    """The model written on the RGL file's own grid (:func:`~gonio.fitting.formats.rgl_grid.fit_on_rgl_grid`)
+    and rendered through Mitsuba's ``measured`` plugin beside the file, with the same seeds:
+    both renders draw the same directions, so the figure carries the values' difference and
+    not the two plugins' sampling noise. Returns ``{"de00", "floor", "fidelity"}``;
+    ``fidelity`` is the written file's Ngan relative L2 against the model itself at
+    (``wi``, ``wo``) (what the grid's interpolation changes; NaN without them)."""
+    import tempfile
+
+    from gonio.fitting.formats.rgl_grid import fidelity as grid_fidelity, fit_on_rgl_grid
+    from gonio.fitting.render.preview import preview
+
+    with tempfile.TemporaryDirectory() as tmp:
+        table = Path(tmp) / "fit_on_grid.bsdf"
+        fit_on_rgl_grid(model, params, path, table, description=f"gonio perf real: {model.name} on {Path(path).name}'s grid")
+        fidelity = float("nan")
+        if wi is not None:
+            fidelity = grid_fidelity(model, params, table, wi, wo)
+        out = preview(_TableModel(table), {}, Path(tmp) / "render", measured=Path(path), size=size, spp=spp, seed=seed)
+    floor = float(np.mean([v["noise_mean"] for v in out["delta_e"].values()]))
+    return {"de00": float(out["delta_e_mean"]), "floor": floor, "fidelity": fidelity}
+
+
+class _TableModel:
+    """What :func:`preview` renders: an RGL file through Mitsuba's ``measured`` plugin."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def to_mitsuba(self, params):
+        return {"type": "measured", "filename": self.path}
+
+
 def _samples(path: Path, seed, open_data):
     """The material's samples as gonio fits them: ``open_data(path)`` where given, else the
     RGL file's, or 5000 seeded samples of a MERL ``.binary``."""
@@ -230,12 +256,16 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_F
         "-sheen" if model.options.get("sheen") == "ggx" else "")
     cpu = best.cpu_s if best.cpu_s is not None else float("nan")
     de_g = de_p = floor = de_conv = float("nan")
+    grid = {"de00": float("nan"), "floor": float("nan"), "fidelity": float("nan")}
     if render:
         de_g, floor = rendered_delta_e(model, best.params, path, seed)
         de_conv, _ = rendered_delta_e(model, best.params, path, seed, spp=CONVERGED_SPP)
         de_p, _ = rendered_delta_e(peer_model, space.to_params(x_peer), path, seed)
+        if path.suffix.lower() == ".bsdf":
+            grid = rendered_delta_e_on_grid(model, best.params, path, seed, wi=wi, wo=wo)
     gloss = specular_gloss(lambda a, b: measured_on_grid(path, a, b))
-    return {"gonio_de00": de_g, "gonio_de00_converged": de_conv, "peer_de00": de_p, "de00_noise": floor, "gloss_60": gloss,
+    return {"gonio_de00": de_g, "gonio_de00_converged": de_conv, "gonio_de00_grid": grid["de00"], "grid_noise": grid["floor"],
+            "grid_fidelity": grid["fidelity"], "peer_de00": de_p, "de00_noise": floor, "gloss_60": gloss,
             "de00_limit": 1.0 if gloss < MATTE_BELOW_GU else 2.0,
             "material": path.stem, "model": label, "peer_model": peer_model.name, "peer_eval": peer_eval, "loss": best.loss, "samples": meas.n_points, "grid_pairs": len(wi),
             "gonio_ngan": g["ngan"], "gonio_log": g["log"], "gonio_time_s": best.time_s,
@@ -253,13 +283,14 @@ COLUMNS = (("material", "<26", "s"), ("model", "<28", "s"), ("loss", "<10", "s")
            ("gonio_time_s", ">9", ".2f"), ("gonio_select_s", ">9", ".1f"), ("alone_s", ">9", ".1f"),
            ("choice_per_fit", ">8", ".1f"), ("peer_time_s", ">9", ".1f"), ("speedup", ">8", ".2f"),
            ("gonio_select_cpu_s", ">9", ".1f"), ("peer_cpu_s", ">9", ".1f"), ("speedup_cpu", ">8", ".2f"),
-           ("gonio_de00", ">8", ".2f"), ("gonio_de00_converged", ">8", ".2f"), ("peer_de00", ">8", ".2f"),
+           ("gonio_de00", ">8", ".2f"), ("gonio_de00_converged", ">8", ".2f"), ("gonio_de00_grid", ">8", ".2f"),
+           ("grid_fidelity", ">8", ".3f"), ("peer_de00", ">8", ".2f"),
            ("de00_noise", ">7", ".2f"), ("gloss_60", ">7", ".1f"), ("de00_limit", ">6", ".0f"))
 HEADS = {"gonio_ngan": "Ngan g", "peer_ngan": "Ngan p", "gonio_log": "log g", "peer_log": "log p",
          "gonio_time_s": "t g s", "peer_time_s": "t p s", "speedup": "p/auto", "gonio_select_cpu_s": "cpu auto",
          "peer_cpu_s": "cpu p s", "speedup_cpu": "cpu p/a", "gonio_select_s": "auto s", "alone_s": "alone s",
          "choice_per_fit": "auto/al",
-         "gonio_de00": "dE g", "gonio_de00_converged": "dE g 4k", "peer_de00": "dE p", "de00_noise": "floor", "gloss_60": "G60", "de00_limit": "lim"}
+         "gonio_de00": "dE g", "gonio_de00_converged": "dE g 4k", "gonio_de00_grid": "dE grid", "grid_fidelity": "grid L2", "peer_de00": "dE p", "de00_noise": "floor", "gloss_60": "G60", "de00_limit": "lim"}
 
 
 def print_table(rows, legend=True, head=True):
@@ -285,7 +316,9 @@ def print_table(rows, legend=True, head=True):
           "the process); metrics on one dense equal-solid-angle grid (theta <= 80 deg); "
           f"dE: mean CIEDE2000 of the preview sphere against the measured file ({RENDER_SIZE} px, {RENDER_SPP} spp, "
           "env and area lights, matched seeds), floor: its Monte Carlo noise, "
-          f"dE g 4k: gonio's at {CONVERGED_SPP} spp (what the {RENDER_SPP}-spp figure's noise adds to it); G60: the file's ASTM D523 60 deg "
+          f"dE g 4k: gonio's at {CONVERGED_SPP} spp (what the {RENDER_SPP}-spp figure's noise adds to it); dE grid: gonio's fit "
+          f"written on the RGL file's own grid and rendered through Mitsuba's measured plugin as the file is ({RENDER_SPP} spp: both "
+          "renders draw the same directions), grid L2: that file's Ngan relative L2 against the fit itself; G60: the file's ASTM D523 60 deg "
           f"specular gloss (GU), lim: the issue's dE limit (1 where G60 < {MATTE_BELOW_GU:g}: matte, else 2)")
 
 
