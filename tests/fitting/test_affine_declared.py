@@ -72,3 +72,36 @@ def test_the_probe_rejects_a_spread_declared_affine(monkeypatch):
     declared = [g["param"] for g in _linear_groups(pr)]
     probed = [g["param"] for g in _linear_groups(pr, probe=True)]
     assert "flake_alpha" in declared and "flake_alpha" not in probed
+
+
+@pytest.mark.parametrize("loss", ["chi2", "luminance"])
+def test_the_projection_per_channel_is_the_projection_off_every_affine_column(loss):
+    """Variable projection's Jacobian (Kaufman 1975) projects each channel's rows off that
+    channel's affine columns only: an affine column of channel c is zero on the other
+    channels' residuals, so the span is block-diagonal and this is the projection off all
+    columns at once. Checked against one QR of the full (residuals x columns) matrix, with
+    some unsaturated data (use False) so that the channels' row sets differ."""
+    from _simdata import simulate
+
+    model = gm.get("tabulated", body="lambert", sheen="ggx")
+    meas = simulate(model, model.validate({}), np.random.default_rng(5), n=400, rel=0.02)
+    meas.use[::9, 1] = False
+    pr = Problem(meas, model, ParameterSpace(model, 3), loss)
+    assert pr.varpro
+    x0 = pr.space.default()
+    v = pr.space.to_unit(x0)[pr.nl_idx]
+    r = pr.reduced_residuals(v, x0)
+    J = pr.kaufman_jacobian(v, r, x0)
+    x = pr.x_of(v, x0)
+    raw = pr.residual_jacobian_x(x, pr.nl_idx, scale=pr.space.dx_du(x)[pr.nl_idx])[1]
+    cols = []
+    for g, B in zip(pr.linear, pr._cols):
+        for c, i in enumerate(g["index"]):
+            if pr.space.lower[i] < x[i] < pr.space.upper[i]:
+                full = np.zeros_like(B)
+                full[:, c] = B[:, c] * pr.weight[:, c]
+                cols.append(full[pr.use])
+    Q, _ = np.linalg.qr(np.stack(cols, axis=1))
+    want = raw - Q @ (Q.T @ raw)
+    assert len(cols) > 6 and np.abs(raw).max() > 0
+    np.testing.assert_allclose(J, want, rtol=0, atol=1e-9 * np.abs(raw).max())
