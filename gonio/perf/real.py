@@ -164,16 +164,17 @@ def _alone_time(meas, model, *, seed, loss):
     return time.perf_counter() - t0
 
 
-def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_SPP):
+def rendered_delta_e(model, params, path, seed=0, size=RENDER_SIZE, spp=RENDER_SPP, noise_floor=True):
     """(mean CIEDE2000 over both lightings, its matched-seed noise floor) of the model
-    against the measured file, rendered with the same seeds (images in a temporary folder)."""
+    against the measured file, rendered with the same seeds (images in a temporary folder);
+    the floor is NaN with ``noise_floor=False`` (half the renders)."""
     import tempfile
 
     from gonio.fitting.render.preview import preview
 
     with tempfile.TemporaryDirectory() as tmp:
-        out = preview(model, params, tmp, measured=Path(path), size=size, spp=spp, seed=seed)
-    floor = float(np.mean([v["noise_mean"] for v in out["delta_e"].values()]))
+        out = preview(model, params, tmp, measured=Path(path), size=size, spp=spp, seed=seed, noise_floor=noise_floor)
+    floor = float(np.mean([v["noise_mean"] for v in out["delta_e"].values()])) if noise_floor else float("nan")
     return float(out["delta_e_mean"]), floor
 
 
@@ -259,7 +260,7 @@ def compare(path, *, seed=0, loss=None, open_data=None, render=True, peer=PEER_F
     grid = {"de00": float("nan"), "floor": float("nan"), "fidelity": float("nan")}
     if render:
         de_g, floor = rendered_delta_e(model, best.params, path, seed)
-        de_conv, _ = rendered_delta_e(model, best.params, path, seed, spp=CONVERGED_SPP)
+        de_conv, _ = rendered_delta_e(model, best.params, path, seed, spp=CONVERGED_SPP, noise_floor=False)
         de_p, _ = rendered_delta_e(peer_model, space.to_params(x_peer), path, seed)
         if path.suffix.lower() == ".bsdf":
             grid = rendered_delta_e_on_grid(model, best.params, path, seed, wi=wi, wo=wo)

@@ -66,6 +66,11 @@ def test_diffuse_vs_glossy_is_clearly_different_and_files_decode(tmp_path):
     side = mpimg.imread(out["side_by_side_png"])
     assert side.ndim == 3 and side.shape[0] > 100
     assert out["time_s"] < 30
+    # without the noise floor: the same seed's images and figures, the noise figures None
+    alone = preview(diffuse, DIFFUSE, tmp_path / "alone", measured=glossy.to_mitsuba(GLOSSY), noise_floor=False, **SMALL)
+    assert alone["delta_e_mean"] == out["delta_e_mean"]
+    assert all(v["noise_mean"] is None and v["noise_p95"] is None for v in alone["delta_e"].values())
+    assert all(v["noise_mean"] > 0 for v in out["delta_e"].values())
 
 
 @pytest.mark.skipif(not RGL.is_file(), reason=f"RGL sample data not found at {RGL}")
