@@ -125,7 +125,7 @@ def _convert_rgl(source, out, say):
     reads and samples it as it does the measurement; how closely it gives the fit is printed."""
     from gonio.core.files import sha256_file
     from gonio.fitting.formats.fitfile import versions
-    from gonio.fitting.formats.rgl_grid import fidelity, fit_on_rgl_grid
+    from gonio.fitting.formats.rgl_grid import fit_on_rgl_grid, grid_error
 
     if source.suffix.lower() != ".json":
         raise GonioError(f"--to rgl-bsdf converts a fit file (FIT.json); {source} is not one")
@@ -133,7 +133,8 @@ def _convert_rgl(source, out, say):
         loaded = load_fit(source)
     except (ValueError, KeyError, json.JSONDecodeError) as exc:
         raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
-    provenance = loaded.document.get("provenance") or {}
+    provenance = loaded.document.get("provenance")
+    provenance = provenance if isinstance(provenance, dict) else {}
     grid = provenance.get("dataset")
     if not isinstance(grid, str) or not grid.lower().endswith(".bsdf"):
         raise GonioError(f"--to rgl-bsdf writes a fit on the grid of the RGL .bsdf file it was fitted to; {source} was "
@@ -142,25 +143,28 @@ def _convert_rgl(source, out, say):
     grid = next((p for p in (Path(grid), source.parent / grid) if p.is_file()), Path(grid))
     if not grid.is_file():
         raise GonioError(f"{source} was fitted to {grid}, which is no longer there: --to rgl-bsdf writes on that file's grid")
-    if Path(os.path.abspath(out)) == Path(os.path.abspath(grid)):
+    if os.path.realpath(out) == os.path.realpath(grid):
         raise GonioError(f"--out {out} is the RGL file the fit was made from; give another file name")
     if provenance.get("dataset_sha256") and sha256_file(grid) != provenance["dataset_sha256"]:
         raise GonioError(f"{grid} has changed since {source} was fitted to it (its SHA-256 differs); refit it")
     if loaded.wavelengths is not None or loaded.model.n_channels(loaded.params) != 3:
         raise GonioError(f"{source} is not a three-channel RGB fit: --to rgl-bsdf writes an RGB file")
     v = versions()
+    goodness = loaded.document.get("goodness")
+    loss = goodness.get("loss", "?") if isinstance(goodness, dict) else "?"
     text = (f"gonio {v.get('gonio', '?')}: {loaded.model.name} {dict(loaded.model.options) or ''} fitted to {grid.name} "
-            f"(seed {provenance.get('seed')}, loss {(loaded.document.get('goodness') or {}).get('loss', '?')}), written on its grid; "
+            f"(seed {provenance.get('seed')}, loss {loss}), written on its grid; "
             f"mitsuba {v.get('mitsuba', '?')}, numpy {v.get('numpy', '?')}")
+    error = []
     _make_parent(out)
-    try:
-        summary = fit_on_rgl_grid(loaded.model, loaded.params, grid, out, description=text)
-        ngan = fidelity(loaded.model, loaded.params, out)
+    try:        # scored on the temporary file: a refusal leaves nothing
+        summary = fit_on_rgl_grid(loaded.model, loaded.params, grid, out, description=text,
+                                  verify=lambda tmp: error.append(grid_error(loaded.model, loaded.params, tmp)))
     except ValueError as exc:
         raise GonioError(f"{source}: {' '.join(str(exc).split())[:300]}") from None
-    say(f"{loaded.model.name} on the grid of {grid.name}: {summary['nodes']} nodes, {summary['below_horizon']} below "
-        f"the horizon (held at their nearest neighbour's value); against the fit itself its Ngan relative L2 is "
-        f"{ngan:.3f} (equal-solid-angle pairs, theta <= 80 deg: the format interpolates between the measured "
+    say(f"{loaded.model.name} on the grid of {grid.name!r}: {summary['nodes']} nodes ({summary['held']} below the "
+        f"horizon, held at their nearest neighbour's value); against the fit itself its Ngan relative L2 is "
+        f"{error[0]:.3f} (equal-solid-angle pairs, theta <= 80 deg: the format interpolates between the measured "
         "incidences, and repeats the last one up to 90 deg, as it does the measurement)")
 
 

@@ -20,13 +20,15 @@ from gonio.fitting.formats import check_rgl_file
 from gonio.fitting.formats.readback import expect, written
 from gonio.models.mitsuba import select_variant
 
-__all__ = ["read_tensor", "tensor_bytes", "write_tensor", "grid_directions", "fit_on_rgl_grid", "fidelity"]
+__all__ = ["read_tensor", "tensor_bytes", "write_tensor", "grid_directions", "fit_on_rgl_grid", "grid_error", "check_grid", "MAX_NODES"]
 
 #: Mitsuba's Struct type codes and the numpy dtypes they hold (little-endian)
 _CODES = {1: "u1", 2: "i1", 3: "<u2", 4: "<i2", 5: "<u4", 6: "<i4", 7: "<u8", 8: "<i8", 9: "<f2", 10: "<f4", 11: "<f8"}
 _DTYPE_CODE = {np.dtype(v).str: k for k, v in _CODES.items()}
 #: field data starts on this boundary (the plugin reads float32 tables in place)
 _ALIGN = 8
+#: the most value nodes (phi_i x theta_i x H x W) gonio writes on: RGL's files have 8 x 32 x 32
+MAX_NODES = 1 << 21
 
 
 def read_tensor(path) -> dict:
@@ -64,9 +66,11 @@ def tensor_bytes(fields: dict) -> bytes:
     return bytes(head) + bytes(body)
 
 
-def write_tensor(path, fields: dict) -> Path:
-    """Write ``fields`` as an RGL ``.bsdf`` tensor file, atomically; read back and compared
-    field by field (name, dtype, shape, every value) before it gets its name."""
+def write_tensor(path, fields: dict, verify=None) -> Path:
+    """Write ``fields`` as an RGL ``.bsdf`` tensor file, atomically: read back and compared
+    field by field (name, dtype, shape, every value; NaN equal to NaN), then ``verify(tmp)``
+    where given (it raises to refuse), before the file gets its name; on any failure nothing
+    is left and an earlier file of that name is as it was."""
     data = tensor_bytes(fields)
     path = Path(path)
 
@@ -76,12 +80,46 @@ def write_tensor(path, fields: dict) -> Path:
     def check(tmps):
         back = read_tensor(tmps[path])
         expect("tensor fields", list(fields), list(back))
-        same = sum(np.asarray(fields[n]).shape == back[n].shape and np.array_equal(np.asarray(fields[n]), back[n])
-                   for n in fields)
-        expect("fields read back equal", len(fields), same)
+        same = 0
+        for n in fields:
+            a = np.asarray(fields[n])
+            same += bool(a.dtype.newbyteorder("<") == back[n].dtype.newbyteorder("<") and a.shape == back[n].shape
+                         and np.array_equal(a, back[n], equal_nan=a.dtype.kind == "f"))
+        expect("fields read back equal (dtype, shape, values)", len(fields), same)
+        if verify is not None:
+            verify(tmps[path])
 
     written({path: write}, check)
     return path
+
+
+def check_grid(fields: dict) -> tuple:
+    """The value table's (P, T, C, H, W) where ``fields`` hold an isotropic RGB RGL grid that
+    Mitsuba's ``measured`` accepts and gonio writes on, else ValueError (one line)."""
+    if "rgb" not in fields:
+        raise ValueError("the RGL file is spectral (spectra, wavelengths); gonio writes RGB values on an RGB file's grid")
+    rgb, vndf, lum = fields["rgb"], fields["vndf"], fields["luminance"]
+    if rgb.ndim != 5 or rgb.shape[2] != 3:
+        raise ValueError(f"the RGL file's value table has shape {rgb.shape}; expected (phi_i, theta_i, 3, H, W)")
+    P, T, C, H, W = rgb.shape
+    if P > 2:
+        raise ValueError(f"the RGL file is anisotropic ({P} phi_i); gonio writes on an isotropic file's grid only")
+    shapes_ok = (fields["phi_i"].shape == (P,) and fields["theta_i"].shape == (T,) and H == W and H >= 2
+                 and vndf.ndim == 4 and vndf.shape[:2] == (P, T) and min(vndf.shape[2:]) >= 2
+                 and lum.shape == (P, T, H, W) and all(fields[k].ndim == 2 and min(fields[k].shape) >= 2 for k in ("ndf", "sigma"))
+                 and fields["jacobian"].dtype == np.uint8 and fields["jacobian"].shape == (1,))
+    if not shapes_ok:
+        raise ValueError("the RGL file's tables do not fit together (shapes of rgb, vndf, luminance, ndf, sigma, "
+                         "theta_i, phi_i, jacobian): Mitsuba's measured plugin would refuse it")
+    if P * T * H * W > MAX_NODES or vndf[0, 0].size > MAX_NODES:
+        raise ValueError(f"the RGL file's grid has {P * T * H * W} value nodes; gonio writes on grids of at most {MAX_NODES}")
+    theta = fields["theta_i"].astype(np.float64)
+    if not (np.all(np.diff(theta) > 0) and theta[0] >= 0.0 and theta[-1] <= np.pi / 2 + 1e-6):
+        raise ValueError("the RGL file's theta_i are not increasing within 0-90 deg")
+    for k in ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance"):
+        if not np.all(np.isfinite(fields[k])):
+            raise ValueError(f"the RGL file's {k} table is not finite")
+    return P, T, C, H, W
 
 
 def grid_directions(fields: dict, variant: str | None = None):
@@ -101,14 +139,16 @@ def grid_directions(fields: dict, variant: str | None = None):
     variant = select_variant(variant)
     if not variant.startswith(("llvm", "cuda")):
         raise ValueError(f"writing on an RGL file's grid needs a vectorised Mitsuba variant, not {variant}")
-    if "rgb" not in fields:
-        raise ValueError("the RGL file is spectral (spectra, wavelengths); gonio writes RGB values on an RGB file's grid")
+    P, T, C, H, W = check_grid(fields)
     phi_i, theta_i = fields["phi_i"].astype(np.float64), fields["theta_i"].astype(np.float64)
-    P, T, C, H, W = fields["rgb"].shape
-    if P > 2:
-        raise ValueError(f"the RGL file is anisotropic ({P} phi_i); gonio writes on an isotropic file's grid only")
-    if C != 3 or H < 2 or W < 2:
-        raise ValueError(f"the RGL file's value table has shape {fields['rgb'].shape}; expected (P, T, 3, H, W)")
+    try:
+        return _directions(mi, variant, fields, phi_i, theta_i, (P, T, C, H, W))
+    except (TypeError, RuntimeError, IndexError) as exc:        # Mitsuba's warps refuse the tables
+        raise ValueError(f"Mitsuba cannot build the RGL file's warps ({' '.join(str(exc).split())[:160]})") from None
+
+
+def _directions(mi, variant, fields, phi_i, theta_i, shape):
+    P, T, C, H, W = shape
     jacobian = bool(np.asarray(fields["jacobian"]).reshape(-1)[0])
     y, x = np.meshgrid(np.arange(H) / (H - 1), np.arange(W) / (W - 1), indexing="ij")
     n = H * W
@@ -143,18 +183,24 @@ def grid_directions(fields: dict, variant: str | None = None):
     return np.concatenate(wis), np.concatenate(wos), np.concatenate(factors), (P, T, C, H, W)
 
 
-def fit_on_rgl_grid(model, params, source, out, *, description: str = "", variant: str | None = None) -> dict:
+def fit_on_rgl_grid(model, params, source, out, *, description: str = "", variant: str | None = None,
+                    verify=None) -> dict:
     """Write ``model`` at ``params`` as an RGL ``.bsdf`` file on ``source``'s grid.
 
     Every value node gets the model's f_r cos(theta_wi) over the plugin's factor at its
-    direction pair (:func:`grid_directions`); a node whose sampled direction lies at or below
-    the horizon gets 0 (the plugin never evaluates there). An incidence slice the source holds
+    direction pair (:func:`grid_directions`); a node with no value of its own (its sampled
+    direction at or below the horizon, where the plugin never evaluates, or a zero factor)
+    takes its nearest neighbour's in the slice. An incidence slice the source holds
     as a copy of the one before (RGL files repeat their last measured incidence at 90 deg) is
     written as the same copy of the fit's, so the file extends the fit beyond the measured
     incidences as the source extends the data. Every other field is the source's, except
     ``description`` (``description``, printable ASCII).
 
-    Returns a summary dict: ``nodes``, ``below_horizon``, ``copied_slices``, ``path``.
+    The file is loaded by Mitsuba's ``measured`` and handed to ``verify(tmp_path)`` (where
+    given; it raises to refuse) before it gets its name: a refusal leaves nothing.
+
+    Returns a summary dict: ``nodes``, ``held`` (the nodes without a value of their own),
+    ``copied_slices``, ``path``.
 
     Raises
     ------
@@ -183,13 +229,21 @@ def fit_on_rgl_grid(model, params, source, out, *, description: str = "", varian
     text = "".join(ch if 32 <= ord(ch) < 127 else " " for ch in str(description)) or "gonio fit"
     fields["description"] = np.frombuffer(text.encode("ascii"), dtype=np.uint8).copy()
     fields["rgb"] = np.ascontiguousarray(table)
-    path = write_tensor(out, fields)
-    return {"path": path, "nodes": int(up.size), "below_horizon": int((~up).sum()), "copied_slices": copied}
+
+    def loads(tmp):
+        from gonio.fitting.formats import RGLBRDF
+
+        RGLBRDF(tmp, variant)
+        if verify is not None:
+            verify(tmp)
+
+    path = write_tensor(out, fields, verify=loads)
+    return {"path": path, "nodes": int(up.size), "held": int((~up).sum()), "copied_slices": copied}
 
 
 
-def fidelity(model, params, path, wi=None, wo=None, variant: str | None = None) -> float:
-    """How closely the RGL file at ``path`` (Mitsuba's ``measured``) gives ``model`` at
+def grid_error(model, params, path, wi=None, wo=None, variant: str | None = None) -> float:
+    """How far the RGL file at ``path`` (Mitsuba's ``measured``) is from ``model`` at
     ``params``: Ngan 2005's cosine-weighted relative L2 of its f_r against the model's at
     (``wi``, ``wo``), by default the equal-solid-angle pairs below 80 deg
     (:func:`~gonio.core.geometry.equal_solid_angle_pairs`). For a fit written on a grid, the
