@@ -162,8 +162,8 @@ def _convert_rgl(source, out, say):
                                   verify=lambda tmp: error.append(grid_error(loaded.model, loaded.params, tmp)))
     except ValueError as exc:
         raise GonioError(f"{source}: {' '.join(str(exc).split())[:300]}") from None
-    say(f"{loaded.model.name} on the grid of {grid.name!r}: {summary['nodes']} nodes ({summary['held']} below the "
-        f"horizon, held at their nearest neighbour's value); against the fit itself its Ngan relative L2 is "
+    say(f"{loaded.model.name} on the grid of {grid.name!r}: {summary['nodes']} nodes ({summary['held']} without a "
+        f"value of their own, below the horizon: held at their nearest neighbour's); against the fit itself its Ngan relative L2 is "
         f"{error[0]:.3f} (equal-solid-angle pairs, theta <= 80 deg: the format interpolates between the measured "
         "incidences, and repeats the last one up to 90 deg, as it does the measurement)")
 

@@ -241,7 +241,6 @@ def fit_on_rgl_grid(model, params, source, out, *, description: str = "", varian
     return {"path": path, "nodes": int(up.size), "held": int((~up).sum()), "copied_slices": copied}
 
 
-
 def grid_error(model, params, path, wi=None, wo=None, variant: str | None = None) -> float:
     """How far the RGL file at ``path`` (Mitsuba's ``measured``) is from ``model`` at
     ``params``: Ngan 2005's cosine-weighted relative L2 of its f_r against the model's at
@@ -259,7 +258,7 @@ def grid_error(model, params, path, wi=None, wo=None, variant: str | None = None
     got = RGLBRDF(path, variant).eval(wi, wo)
     norm = float(np.sum((want * cos_i) ** 2))
     if not np.all(np.isfinite(got)) or not norm > 0.0:
-        raise ValueError(f"{path}: its values or the model's are not finite, or the model is zero on the grid")
+        raise ValueError("the written file's values or the model's are not finite, or the model is zero on the grid")
     return float(np.sqrt(np.sum(((got - want) * cos_i) ** 2) / norm))
 
 
