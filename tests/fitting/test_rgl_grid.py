@@ -143,10 +143,10 @@ def test_the_fit_is_refused_where_it_cannot_be_written(tmp_path):
 @pytest.mark.skipif(not LEAF.is_file(), reason="needs ../shared/data/rgl")
 def test_an_rgl_file_written_on_its_own_grid_is_itself(tmp_path):
     """Every RGL file reads and writes back to the same bytes; leaf_maple's values, written
-    back through its own grid (the plugin's eval as the model), give its table again: median
-    relative difference below 1e-5 and 99 % below 5e-3 (float32 warps) on the measured
-    incidences above 0 deg (at 0 deg the pair's azimuth is undefined), and the copied 90 deg
-    slice stays a copy."""
+    back through its own grid (the plugin's eval as the model), give its table again on the
+    measured incidences above 0 deg (at 0 deg the pair's azimuth is undefined): median
+    relative difference below 1e-5, 99 % below 1e-4 (measured 3e-7 and 9e-6: float32 warps);
+    and the copied 90 deg slice stays a copy."""
     for path in sorted(RGL.glob("*.bsdf")):
         assert tensor_bytes(read_tensor(path)) == path.read_bytes(), path.name
     fields = read_tensor(LEAF)
@@ -167,7 +167,7 @@ def test_an_rgl_file_written_on_its_own_grid_is_itself(tmp_path):
     scale = np.abs(want[measured]).max()
     rel = np.abs(got[measured] - want[measured]).max(axis=1) / (np.abs(want[measured]).max(axis=1) + 1e-3 * scale)
     assert np.median(rel) < 1e-5
-    assert np.percentile(rel, 99) < 5e-3
+    assert np.percentile(rel, 99) < 1e-4
     assert summary["copied_slices"] == [T - 1]
     assert np.array_equal(got[:, T - 1], got[:, T - 2])
 
