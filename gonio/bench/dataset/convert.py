@@ -58,13 +58,19 @@ def _make_parent(out: Path) -> None:
     Path(out).parent.mkdir(parents=True, exist_ok=True)
 
 
+def _read_fit(source):
+    """The fit file at ``source`` (its wavelengths checked as it is read), or one line saying
+    it is not a readable one."""
+    try:
+        return load_fit(source)
+    except (ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+
+
 def _convert_pabopto(source, out, say):
     """``--to pabopto``: a fit's model on a grid, or a dataset's measured values, one file per incidence."""
     if source.suffix.lower() == ".json":
-        try:
-            loaded = load_fit(source)
-        except (ValueError, KeyError, json.JSONDecodeError) as exc:
-            raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+        loaded = _read_fit(source)
         # the fitted channels (R, G, B or X, Y, Z) as the fit file names them
         named = [p.get("channel") for p in loaded.parameters.values() if isinstance(p, dict) and p.get("channel")]
         channels = tuple(dict.fromkeys(named)) or RGB.names
@@ -101,11 +107,8 @@ def _convert_astm(source, out, say, geometry=None):
 
     if source.suffix.lower() != ".json":
         raise GonioError(f"--to astm converts a spectral fit file (FIT.json); {source} is not one")
-    try:
-        loaded = load_fit(source)
-        wavelengths = loaded.wavelengths
-    except (ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+    loaded = _read_fit(source)
+    wavelengths = loaded.wavelengths
     if wavelengths is None:
         raise GonioError(f"{source} is not a spectral fit (no wavelengths): --to astm writes one column per wavelength")
     dataset = (loaded.document.get("provenance") or {}).get("dataset")
@@ -129,10 +132,7 @@ def _convert_rgl(source, out, say):
 
     if source.suffix.lower() != ".json":
         raise GonioError(f"--to rgl-bsdf converts a fit file (FIT.json); {source} is not one")
-    try:
-        loaded = load_fit(source)
-    except (ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise GonioError(f"{source} is not a readable gonio fit file ({exc})") from None
+    loaded = _read_fit(source)
     provenance = loaded.document.get("provenance")
     provenance = provenance if isinstance(provenance, dict) else {}
     grid = provenance.get("dataset")
