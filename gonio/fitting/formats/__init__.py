@@ -359,8 +359,10 @@ def merl_to_measurements(merl, wi=None, wo=None, *, n: int | None = None, rng=No
 # ---------------------------------------------------------------------------------------
 # RGL .bsdf (through Mitsuba's `measured` plugin)
 # ---------------------------------------------------------------------------------------
-#: element sizes of the tensor file's dtype codes (Mitsuba's Struct types: u8 i8 u16 i16 u32 i32 u64 i64 f16 f32 f64)
-_TENSOR_DTYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 8, 8: 8, 9: 2, 10: 4, 11: 8}
+#: the tensor file's dtype codes (Mitsuba's Struct types: u8 i8 u16 i16 u32 i32 u64 i64 f16 f32
+#: f64) as little-endian numpy dtypes, and their element sizes
+_TENSOR_DTYPES = {1: "u1", 2: "i1", 3: "<u2", 4: "<i2", 5: "<u4", 6: "<i4", 7: "<u8", 8: "<i8", 9: "<f2", 10: "<f4", 11: "<f8"}
+_TENSOR_DTYPE_SIZE = {code: np.dtype(d).itemsize for code, d in _TENSOR_DTYPES.items()}
 #: fields Mitsuba's ``measured`` plugin reads (besides rgb, or spectra and wavelengths)
 _RGL_FIELDS = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "description", "jacobian")
 _RGL_MAX_BYTES = 1 << 30

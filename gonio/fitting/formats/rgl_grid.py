@@ -16,14 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gonio.fitting.formats import check_rgl_file
+from gonio.fitting.formats import _TENSOR_DTYPES as _CODES, check_rgl_file
 from gonio.fitting.formats.readback import expect, written
 from gonio.models.mitsuba import select_variant
 
 __all__ = ["read_tensor", "tensor_bytes", "write_tensor", "grid_directions", "fit_on_rgl_grid", "grid_error", "check_grid", "MAX_NODES"]
 
-#: Mitsuba's Struct type codes and the numpy dtypes they hold (little-endian)
-_CODES = {1: "u1", 2: "i1", 3: "<u2", 4: "<i2", 5: "<u4", 6: "<i4", 7: "<u8", 8: "<i8", 9: "<f2", 10: "<f4", 11: "<f8"}
 _DTYPE_CODE = {np.dtype(v).str: k for k, v in _CODES.items()}
 #: field data starts on this boundary (the plugin reads float32 tables in place)
 _ALIGN = 8
