@@ -134,15 +134,18 @@ def register(sub, *, env, seed, parser_class):
                                              "error against the truth (Ngan, log, dE00), and the front")
     ba.add_argument("--plans", default="quick,standard,adaptive",
                     help="plan presets, 'adaptive', 'alc' or 'ndf' (fitted with their design weights; "
-                         "'adaptive-unweighted', 'alc-unweighted' without), separated by commas (default "
-                         "quick,standard,adaptive)")
+                         "'adaptive-unweighted', 'alc-unweighted' without), or 'thinned' (their peer: the dense "
+                         "plan thinned uniformly to the same budget, fitted as the dense grid is), separated by "
+                         "commas (default quick,standard,adaptive)")
     ba.add_argument("--sample", help="the virtual sample: a sample TOML or a measured RGL .bsdf file (default the "
                                      "demo's glossy plastic)")
     ba.add_argument("--model", help="the family fitted (default the sample's own; roughplastic for a measured file; "
                                     "'choose': each plan's data choose among four by cross-validation)")
-    ba.add_argument("--points", type=int, default=24, help="the adaptive plan's budget (default 24)")
+    ba.add_argument("--points", type=int, default=24, help="the adaptive plan's budget (default 24; thinned: about "
+                                                             "as many points)")
     ba.add_argument("--budget-fraction", type=float, help="the sequential plans stop at this fraction of the "
-                                                           "dense plan's instrument time (dense must be in --plans)")
+                                                           "dense plan's instrument time, and thinned keeps as many "
+                                                           "of its points as fit in it (dense must be in --plans)")
     ba.add_argument("--errors", default="typical", help="the simulator's error preset, every plan the same "
                                                          "(default typical; gonio plans lists them)")
     ba.add_argument("--seed", type=seed, default=None, help="seed of the captures and the fits (default 0)")

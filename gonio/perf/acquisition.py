@@ -10,11 +10,14 @@ the fit scored against the truth on :func:`gonio.perf.real.dense_grid` (Ngan and
 :func:`gonio.perf.real.metrics`) and by the preview's rendered CIEDE2000. The front: the plans
 no other plan beats on both instrument time and Ngan error. Over several seeds
 (:func:`run_seeds`), each plan is set against the dense grid of the same seed (:func:`paired`).
+The sequential plans' peer at the same time is :data:`THINNED`: the dense plan thinned uniformly,
+fitted as the dense grid is.
 """
 
 from __future__ import annotations
 
 import csv
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -24,7 +27,7 @@ import numpy as np
 from gonio.core.atomic import atomic_open
 from gonio.core.errors import GonioError
 
-__all__ = ["PLANS", "SEQUENTIAL", "CHOOSE", "front", "paired", "parse_seeds", "run", "run_seeds", "score",
+__all__ = ["PLANS", "SEQUENTIAL", "THINNED", "CHOOSE", "thinned_stride", "front", "paired", "parse_seeds", "run", "run_seeds", "score",
            "strategy_table"]
 
 #: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``alc``
@@ -34,6 +37,10 @@ PLANS = ("quick", "standard", "adaptive")
 #: plan with ``criterion = "alc"``), ``ndf``; each fitted with its design weights
 #: (gonio.bench.plan.design_weights), or without them as ``adaptive-unweighted``, ``alc-unweighted``
 SEQUENTIAL = ("adaptive", "alc", "ndf", "adaptive-unweighted", "alc-unweighted")
+#: the sequential plans' peer: every k-th point of the dense plan (from point seed mod k), fitted
+#: without design weights as the dense grid is (the dense grid's own estimator on a k-th of its
+#: points); k by :func:`thinned_stride` within the budget, or len(dense) // points without one
+THINNED = "thinned"
 #: the suffix of a sequential plan fitted without its design weights
 UNWEIGHTED = "-unweighted"
 #: the adaptive plan's point budget by default
@@ -105,7 +112,7 @@ def strategy_table(plan: str, seed: int, points: int, budget_s: float = 0.0) -> 
 
 
 def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed: int, points: int,
-         settings: dict, budget_s: float = 0.0, estimate_angles: bool = False) -> dict:
+         settings: dict, budget_s: float = 0.0, estimate_angles: bool = False, dense_s: float = 0.0) -> dict:
     import xarray as xr
 
     from gonio.bench.dataset.export import export
@@ -116,9 +123,12 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     sequential = plan in SEQUENTIAL
     strategy = strategy_table(plan, seed, points, budget_s) if sequential else None
     t0 = time.perf_counter()
-    session = folder / plan
-    capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
-                strategy=strategy, settings=settings)
+    if plan == THINNED:
+        session, instrument_s = _thinned(folder, sample, seed, settings, points, budget_s, dense_s)
+    else:
+        session = folder / plan
+        capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
+                    strategy=strategy, settings=settings)
     dataset = export(session)
     with xr.open_dataset(dataset) as ds:
         instrument_s = float(ds.attrs["instrument_time_s"])
@@ -140,6 +150,55 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     row.update(score(result, sample, seed=seed))
     row["wall_s"] = time.perf_counter() - t0
     return row
+
+
+def _thinned(folder: Path, sample: dict, seed: int, settings: dict, points: int, budget_s: float,
+             dense_s: float) -> tuple[Path, float]:
+    """Capture :data:`THINNED` into ``folder``: (its session, its instrument time, s). The captures
+    of strides that ran over ``budget_s`` stay beside it, each named by its stride."""
+    import xarray as xr
+
+    from gonio.bench.dataset.export import export
+    from gonio.bench.plan.plans import load_plan, thin
+    from gonio.bench.session.simulated import capture_sim
+
+    dense = load_plan("dense")
+    done: dict[int, tuple[Path, float]] = {}
+
+    def spent(k: int) -> float:
+        session = folder / f"{THINNED}-{k}"
+        capture_sim(session, sample=sample, plan=thin(dense, k, seed % k), seed=seed, progress=False,
+                    settings=settings)
+        with xr.open_dataset(export(session)) as ds:
+            done[k] = session, float(ds.attrs["instrument_time_s"])
+        return done[k][1]
+
+    if budget_s <= 0:
+        k = max(1, len(dense) // max(1, int(points)))
+        spent(k)
+        return done[k]
+    k = thinned_stride(max(1, math.ceil(dense_s / budget_s - 1e-9)), budget_s, spent, len(dense))
+    if done[k][1] > budget_s:
+        raise GonioError(f"--budget-fraction: {budget_s:.0f} s is less than one point of the dense plan takes "
+                         f"({done[k][1]:.0f} s); give a larger fraction")
+    return done[k]
+
+
+def thinned_stride(start: int, budget_s: float, spent, most: int) -> int:
+    """:data:`THINNED`'s stride: the first among ``start``, the stride ``start``'s time scales to
+    (ceil(start x spent(start) / budget_s)) and each next whole number up to ``most`` whose
+    ``spent(k)`` (the capture's instrument time, s) is at most ``budget_s``; ``most`` where none
+    is. A point's time grows as the points thin out (longer moves between them), and not
+    smoothly (each stride is another tour), so the time is measured, not predicted."""
+    k = min(start, most)
+    s = spent(k)
+    if s > budget_s and k < most:
+        k = min(most, max(k + 1, math.ceil(k * s / budget_s - 1e-9)))
+        s = spent(k)
+    while s > budget_s and k < most:
+        k += 1
+        s = spent(k)
+    return k
 
 
 def _candidates():
@@ -183,9 +242,10 @@ def run(plans=PLANS, sample=None, *, model=None, options=None, seed=0, points=AD
     with tempfile.TemporaryDirectory(prefix="gonio-acq-") as tmp:
         base = Path(folder) if folder is not None else Path(tmp)
         for plan in plans:
-            budget_s = budget_fraction * rows[0]["time_s"] if budget_fraction and plan in SEQUENTIAL else 0.0
+            timed = budget_fraction and (plan in SEQUENTIAL or plan == THINNED)
+            budget_s = budget_fraction * rows[0]["time_s"] if timed else 0.0
             rows.append(_one(plan, sample, model, dict(options or {}), base, seed, points, settings, budget_s,
-                             estimate_angles))
+                             estimate_angles, dense_s=rows[0]["time_s"] if timed else 0.0))
             _print(rows[-1:], head=len(rows) == 1)
     on_front = {id(r) for r in front(rows)}
     print(f"front (no plan both faster and closer): "
@@ -314,7 +374,8 @@ def check_plans(text: str) -> tuple:
     from gonio.bench.plan.plans import PRESETS
 
     names = tuple(p.strip() for p in str(text).split(",") if p.strip())
-    bad = [p for p in names if p not in SEQUENTIAL and p not in PRESETS]
+    bad = [p for p in names if p not in SEQUENTIAL and p not in PRESETS and p != THINNED]
     if not names or bad:
-        raise GonioError(f"--plans {text!r}: give plan presets separated by commas ({', '.join(PRESETS + SEQUENTIAL)})")
+        raise GonioError(f"--plans {text!r}: give plan presets separated by commas "
+                         f"({', '.join(PRESETS + SEQUENTIAL + (THINNED,))})")
     return names

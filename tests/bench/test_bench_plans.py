@@ -122,3 +122,31 @@ def test_dry_run_summary():
     assert d.bound_move_s <= d.ordered_move_s < d.naive_move_s
     assert d.estimated_s > d.ordered_move_s
     assert "points; estimated duration" in d.summary() and "lower bound" in d.summary()
+
+
+def test_thin_keeps_every_kth_point_and_each_scans_share():
+    """thin(dense, 14, 3): the listed points 3, 17, 31, ...; each of dense's three scans (120-point
+    hemispheres at six incidences, the in-plane scans, the isotropic grid) keeps its share of the
+    points within one point, so the thinned plan weighs the hemisphere as dense does."""
+    dense = plans.load_plan("dense")
+    t = plans.thin(dense, 14, 3)
+    assert np.array_equal(t.angles, dense.angles[3::14]) and len(t) == 75
+    hemi = 6 * 120
+    n_hemi = np.sum(np.arange(3, len(dense), 14) < hemi)
+    assert abs(n_hemi - hemi / 14) <= 1 and abs((len(t) - n_hemi) - (len(dense) - hemi) / 14) <= 1
+    assert plans.thin(dense, 1).angles.shape == dense.angles.shape
+    assert t.sides == dense.sides and "thinned 1/14" in t.source
+
+
+@pytest.mark.parametrize("stride, offset, match", [(0, 0, "stride 0"), (2000, 0, "stride 2000"),
+                                                   (14, 14, "offset 14"), (14, -1, "offset -1"),
+                                                   (2.0, 0, "whole number"), (True, 0, "whole number"),
+                                                   (14, "1", "whole number")])
+def test_thin_refuses_what_is_not_a_stride(stride, offset, match):
+    with pytest.raises(ValueError, match=match):
+        plans.thin(plans.load_plan("dense"), stride, offset)
+
+
+def test_thin_refuses_a_spectral_plan():
+    with pytest.raises(ValueError, match="spectral"):
+        plans.thin(plans.load_plan("spectral"), 2)

@@ -150,3 +150,48 @@ def test_a_ratio_that_is_not_finite_is_said_not_averaged():
     assert e["not_finite"] == {"ngan": 1, "log": 1}
     assert all(np.isnan(v) for v in e["ngan"] + e["log"])
     assert set(e["dense_cv"]) == {"ngan", "log"}        # the summary's last line reads both
+
+
+def test_the_thinned_peer_takes_the_first_stride_that_fits_its_budget():
+    """thinned_stride measures each stride's time: from dense / budget (11), to the stride the
+    first capture's time scales to (ceil(11 x 170.7 / 121.5) = 16), then one by one; the times
+    are paper_white seed 16's (not monotone in the stride: each is another tour)."""
+    from gonio.perf.acquisition import THINNED, check_plans, thinned_stride
+
+    times = {11: 170.7, 12: 160.0, 13: 156.8, 14: 150.0, 15: 127.6, 16: 132.0, 17: 120.4, 18: 118.0}
+    asked = []
+
+    def spent(k):
+        asked.append(k)
+        return times[k]
+
+    assert thinned_stride(11, 121.5, spent, 1053) == 17 and asked == [11, 16, 17]
+    asked.clear()
+    assert thinned_stride(11, 200.0, spent, 1053) == 11 and asked == [11]      # fits at once: no search
+    asked.clear()
+    assert thinned_stride(11, 50.0, lambda k: asked.append(k) or 100.0, 14) == 14 and asked == [11, 14]
+    assert check_plans(f"dense,{THINNED}") == ("dense", THINNED)
+
+
+@pytest.mark.long       # a dense capture and the thinned ones: about 60 s
+def test_the_thinned_peer_is_the_dense_plan_thinned_within_the_budget(tmp_path):
+    """The demo's plastic, seed 3, 9.5 % of the dense time: thinned is every k-th dense point from
+    point 3 mod k, within the budget, fitted without design weights as the dense grid is."""
+    import xarray as xr
+
+    from gonio.bench.plan.plans import load_plan
+    from gonio.perf.acquisition import run
+
+    rows = run(("dense", "thinned"), seed=3, folder=tmp_path, budget_fraction=0.095)
+    dense, thinned = rows
+    assert thinned["time_s"] <= 0.095 * dense["time_s"]
+    tried = {}
+    for session in tmp_path.glob("thinned-*"):
+        with xr.open_dataset(session / "dataset.nc") as ds:
+            tried[int(session.name.split("-")[1])] = (float(ds.attrs["instrument_time_s"]), ds.sizes["point"],
+                                                     "design_weight" in ds)
+    k = max(tried)                               # the last stride tried is the one that fitted
+    assert tried[k] == (thinned["time_s"], thinned["points"], False)
+    assert all(t > 0.095 * dense["time_s"] for j, (t, _, _) in tried.items() if j != k)
+    assert min(tried) == 11 and thinned["points"] == len(load_plan("dense").angles[3 % k::k])
+    assert thinned["ngan"] < 0.05          # the sample's own family: the thinned fit is a fit

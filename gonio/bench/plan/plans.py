@@ -54,6 +54,7 @@ __all__ = [
     "hemisphere_grid",
     "isotropic_grid",
     "with_reciprocal",
+    "thin",
     "find_partners",
     "check_plan",
     "require_reachable",
@@ -289,6 +290,25 @@ def with_reciprocal(angles) -> np.ndarray:
             have.add(k)
             out.append(r)
     return np.array(out, float).reshape(-1, 4)
+
+
+def thin(plan: Plan, stride: int, offset: int = 0) -> Plan:
+    """Every ``stride``-th point of ``plan`` as listed, from its ``offset``-th: a uniform thinning
+    that keeps the plan's mix of scans (each scan's share of the points), for a plan of the same
+    kind at about 1/``stride`` of the points. ValueError (one line) for a stride that is not a
+    whole number >= 1 or an offset outside [0, stride)."""
+    for name, v in (("stride", stride), ("offset", offset)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            raise ValueError(f"thin: {name} = {str(v)[:40]!r}: give a whole number")
+    if not 1 <= stride <= len(plan):
+        raise ValueError(f"thin: stride {stride}: give 1 to {len(plan)} (the plan's points)")
+    if not 0 <= offset < stride:
+        raise ValueError(f"thin: offset {offset}: give 0 to {stride - 1}")
+    if plan.wavelength_nm is not None:
+        raise ValueError(f"thin: plan {plan.name!r} is spectral; thin its geometries before the wavelengths")
+    return Plan(f"{plan.name}-thinned-{stride}", plan.angles[offset::stride].copy(),
+                description=f"every {stride}th point of {plan.name} from point {offset}",
+                source=f"{plan.source or plan.name}, thinned 1/{stride} from {offset}", sides=plan.sides)
 
 
 _SCAN_KEYS = {
