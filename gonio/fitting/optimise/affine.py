@@ -161,6 +161,14 @@ def single_threaded_blas():
     return _CONTROLLER.limit(limits=1, user_api="blas")
 
 
+#: the least number of starts the affine problem's global stage scores. A score is one bounded
+#: linear solve per channel, all starts in one kernel call (256 starts: 30-60 ms at 55-1053
+#: points), so the starts can cover the few nonlinear parameters' box densely: on sparse data a
+#: plastic's specular basin can be a few hundredths of the box wide beside a plateau of
+#: invisible coats, and 12 starts found it 3 times in 10 (docs/performance.md, issue 38)
+SCORED = 256
+
+
 class AffineFit:
     """The affine-reduced problem for :func:`gonio.fitting.optimise.mle.refine_starts`.
 
@@ -181,6 +189,7 @@ class AffineFit:
         self.atol = 1e-4 if loss == "chi2" else 0.0
         self.ftol = 1e-10
         self._cache = {}
+        self.handover = None
 
     @property
     def n_evals(self):
@@ -192,11 +201,14 @@ class AffineFit:
         return self.space.from_unit(u)[self.nl]
 
     def starts(self, n_starts, rng):
-        """All starts scored in one kernel call."""
+        """The defaults and at least :data:`SCORED` Latin-hypercube starts (none with ``n_starts``
+        0), all scored in one kernel call."""
         T = self.T
         u_default = self.space.to_unit(self.space.default())[self.nl]
         if n_starts is None:
             n_starts = min(24, 4 + 4 * T)
+        if n_starts > 0:
+            n_starts = max(n_starts, SCORED)
         starts = [u_default] + list(stratified(rng, n_starts if T else 0, T))
         _, costs, _ = self.scorer.solve(np.array([self.theta_of(v) for v in starts]).reshape(len(starts), T))
         return starts, costs.sum(axis=1)
@@ -238,17 +250,31 @@ class AffineFit:
         return (lm.u.copy(), lm.cost, lm.converged, lm.message)
 
     def result(self, best, t0):
-        """The FitResult in the model's own parameters, or None to hand over to the general path."""
+        """The FitResult in the model's own parameters, or None to hand over to the general path;
+        then :attr:`handover` is the best start's parameters (the coefficients clipped to their
+        bounds), for the general path to start from: the basin this stage found, not a new search."""
         v, _, converged, message = best
         theta = self.theta_of(v)
         x = self._parameters(theta)
         if x is None:
+            self.handover = self._clipped(theta)
             return None
         coef, parts, q = self._solution
         J = self._laplace_jacobian(theta, coef, parts, q)
         if not np.all(np.isfinite(J)):
             return None
         return self._assemble(x, J, coef, parts, t0, converged, message)
+
+    def _clipped(self, theta):
+        """x in natural units at theta with each coefficient clipped to its bounds (rho = coef * q);
+        None where that is not finite."""
+        kern, space = self.kern, self.space
+        coef = kern.solve(theta[None, :])[0][0]
+        rho = np.clip(coef * float(kern.exact_q(theta[None, :])[0]), space.lower[kern.lin_idx], space.upper[kern.lin_idx])
+        x = np.empty(space.size)
+        x[kern.lin_idx] = rho
+        x[self.nl] = theta
+        return x if np.all(np.isfinite(x)) else None
 
     def _parameters(self, theta):
         """x in natural units from theta, exactly (rho = coef * q); None on an approximate bound."""
