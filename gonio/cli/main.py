@@ -359,6 +359,23 @@ def main(argv=None) -> int:
         except SignalStop as exc:
             _say(f"gonio: {exc} before it finished; nothing is left half-written")
             return 128 + exc.signum
+        except Exception as exc:         # the stop raised inside what wraps it (a class's __set_name__
+            stop = _stop_in(exc, SignalStop)     # in an import: RuntimeError from it, Python 3.11)
+            if stop is None:
+                raise
+            _say(f"gonio: {stop} before it finished; nothing is left half-written")
+            return 128 + stop.signum
+
+
+def _stop_in(exc: BaseException, kind):
+    """The first ``kind`` in ``exc``'s chain of causes and contexts, or None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, kind):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _main(argv) -> int:

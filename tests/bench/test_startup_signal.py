@@ -30,3 +30,30 @@ def test_sigterm_during_start_up_is_said_and_leaves_nothing(tmp_path, delay):
         return
     left = [f for f in os.listdir(out) if f not in ("raw",)] if out.exists() else []
     assert left == [], left                        # nothing half-written
+
+
+def test_a_stop_wrapped_by_what_it_interrupted_is_said_as_the_stop(monkeypatch, capsys):
+    """SIGTERM inside a class's creation during an import (tifffile's ``cached_property``
+    __set_name__, seen under load) reaches main as RuntimeError from the SignalStop (Python
+    3.11 wraps it): it is said as the stop, exit 128 + 15, one line, no traceback. An error
+    with no stop in its chain is not taken for one."""
+    import gonio.cli.main as cli
+    from gonio.bench.session.signals import SignalStop
+
+    def wrapped(argv):
+        try:
+            raise SignalStop(signal.SIGTERM)
+        except SignalStop as stop:
+            raise RuntimeError("Error calling __set_name__ on 'cached_property' instance 'dims'") from stop
+
+    monkeypatch.setattr(cli, "_main", wrapped)
+    assert cli.main(["plans"]) == 128 + signal.SIGTERM
+    err = capsys.readouterr().err.strip()
+    assert "SIGTERM" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+
+    def plain(argv):
+        raise RuntimeError("not a stop")
+
+    monkeypatch.setattr(cli, "_main", plain)
+    with pytest.raises(RuntimeError, match="not a stop"):
+        cli.main(["plans"])
