@@ -15,7 +15,8 @@ Plans are validated on load (`PlanError`: one line); `check_plan` lists what the
 reach. ``[spectral]`` (`gonio.bench.plan.spectral`): every geometry at every wavelength.
 """
 
-# Generators `in_plane`, `hemisphere_grid`, `isotropic_grid`, `with_reciprocal`. A spectral plan:
+# Generators `in_plane`, `hemisphere_grid`, `isotropic_grid`, `with_reciprocal`; `thin` keeps every
+# k-th point of a plan (the sequential plans' peer in `gonio perf acquisition`). A spectral plan:
 # ``[spectral] from_nm, to_nm, step_nm``, the ``spectral`` preset or ``spectral:STEP``.
 
 # phi may be any finite value (wrapped); phi_i = 0, phi_o = 180 is the specular side of the
