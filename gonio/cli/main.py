@@ -368,13 +368,15 @@ def main(argv=None) -> int:
 
 
 def _stop_in(exc: BaseException, kind):
-    """The first ``kind`` in ``exc``'s chain of causes and contexts, or None."""
+    """The first ``kind`` in ``exc``'s chain of explicit causes (``raise ... from``, as Python
+    wraps an error from ``__set_name__``), or None. Not the implicit contexts: an error raised
+    while a stop was being handled (a clean-up that failed) is that error, not the stop."""
     seen = set()
     while exc is not None and id(exc) not in seen:
         if isinstance(exc, kind):
             return exc
         seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
+        exc = exc.__cause__
     return None
 
 

@@ -174,10 +174,10 @@ def _thinned(folder: Path, sample: dict, seed: int, settings: dict, points: int,
         return done[k][1]
 
     if budget_s <= 0:
-        k = max(1, len(dense) // max(1, int(points)))
+        k = max(1, round(len(dense) / max(1, int(points))))
         spent(k)
         return done[k]
-    k = thinned_stride(max(1, math.ceil(dense_s / budget_s - 1e-9)), budget_s, spent, len(dense))
+    k = thinned_stride(math.ceil(min(dense_s / budget_s, len(dense)) - 1e-9), budget_s, spent, len(dense))
     if done[k][1] > budget_s:
         raise GonioError(f"--budget-fraction: {budget_s:.0f} s is less than one point of the dense plan takes "
                          f"({done[k][1]:.0f} s); give a larger fraction")
@@ -185,20 +185,31 @@ def _thinned(folder: Path, sample: dict, seed: int, settings: dict, points: int,
 
 
 def thinned_stride(start: int, budget_s: float, spent, most: int) -> int:
-    """:data:`THINNED`'s stride: the first among ``start``, the stride ``start``'s time scales to
-    (ceil(start x spent(start) / budget_s)) and each next whole number up to ``most`` whose
-    ``spent(k)`` (the capture's instrument time, s) is at most ``budget_s``; ``most`` where none
-    is. A point's time grows as the points thin out (longer moves between them), and not
-    smoothly (each stride is another tour), so the time is measured, not predicted."""
-    k = min(start, most)
-    s = spent(k)
-    if s > budget_s and k < most:
-        k = min(most, max(k + 1, math.ceil(k * s / budget_s - 1e-9)))
-        s = spent(k)
-    while s > budget_s and k < most:
-        k += 1
-        s = spent(k)
-    return k
+    """:data:`THINNED`'s stride: a k whose ``spent(k)`` (the capture's instrument time, s) is at
+    most ``budget_s`` next to one over it (``start``'s where it fits; ``most`` where nothing does).
+    The search goes up from ``start``, each next k from the line through the last two captures'
+    times against their points (``most / k`` each; the first line through the origin): the stride
+    whose points that line puts at ``budget_s``, at least one more than the last; then it bisects
+    between the largest stride found over the budget and the least found within it. A capture
+    has a fixed cost (its preparation) and a point's time grows as the points thin out (longer
+    moves), not smoothly (each stride is another tour): the time is measured, not predicted once."""
+    k = max(1, min(int(start), most))
+    times = {k: spent(k)}
+    while times[k] > budget_s and k < most:
+        (n0, t0), (n1, t1) = ((0.0, 0.0) if len(times) == 1 else (most / prev, times[prev])), (most / k, times[k])
+        slope = (t1 - t0) / (n1 - n0) if n1 != n0 else 0.0
+        fits = (budget_s - (t1 - slope * n1)) / slope if slope > 0 else 0.0     # the points the line allows
+        prev, k = k, min(most, max(k + 1, math.ceil(min(most / fits if fits >= 1.0 else most, most) - 1e-9)))
+        times[k] = spent(k)
+    if times[k] > budget_s:
+        return k
+    lo = max((j for j, t in times.items() if t > budget_s), default=k)   # over the budget
+    hi = min(j for j, t in times.items() if t <= budget_s and j > lo) if lo < k else k
+    while hi - lo > 1:                                 # the strides the line jumped over
+        mid = (lo + hi) // 2
+        times[mid] = spent(mid)
+        lo, hi = (mid, hi) if times[mid] > budget_s else (lo, mid)
+    return hi
 
 
 def _candidates():

@@ -152,24 +152,35 @@ def test_a_ratio_that_is_not_finite_is_said_not_averaged():
     assert set(e["dense_cv"]) == {"ngan", "log"}        # the summary's last line reads both
 
 
-def test_the_thinned_peer_takes_the_first_stride_that_fits_its_budget():
-    """thinned_stride measures each stride's time: from dense / budget (11), to the stride the
-    first capture's time scales to (ceil(11 x 170.7 / 121.5) = 16), then one by one; the times
-    are paper_white seed 16's (not monotone in the stride: each is another tour)."""
+def test_the_thinned_peer_takes_a_stride_that_fits_its_budget_in_few_captures():
+    """thinned_stride measures each stride's time: from dense / budget (11) up along the line
+    through the last two captures' times against their points (11 -> 16 -> 19), then bisects
+    between the largest stride over the budget (16) and the least within it (19): 17. The times
+    are paper_white seed 16's (not monotone in the stride: each is another tour). With a fixed
+    cost per capture (8 s) near the budget the search takes 13 captures, not one per stride;
+    where not even one point fits it ends at the last stride after three."""
     from gonio.perf.acquisition import THINNED, check_plans, thinned_stride
 
-    times = {11: 170.7, 12: 160.0, 13: 156.8, 14: 150.0, 15: 127.6, 16: 132.0, 17: 120.4, 18: 118.0}
+    times = {11: 170.7, 12: 160.0, 13: 156.8, 14: 150.0, 15: 127.6, 16: 132.0, 17: 120.4, 18: 118.0, 19: 116.0}
     asked = []
 
     def spent(k):
         asked.append(k)
         return times[k]
 
-    assert thinned_stride(11, 121.5, spent, 1053) == 17 and asked == [11, 16, 17]
+    assert thinned_stride(11, 121.5, spent, 1053) == 17 and asked == [11, 16, 19, 17]
     asked.clear()
     assert thinned_stride(11, 200.0, spent, 1053) == 11 and asked == [11]      # fits at once: no search
     asked.clear()
-    assert thinned_stride(11, 50.0, lambda k: asked.append(k) or 100.0, 14) == 14 and asked == [11, 14]
+
+    def fixed_cost(k):                      # 8 s of preparation, then 1.3 s a point, longer as they thin out
+        asked.append(k)
+        return 8.0 + 1.3 * len(range(0, 1053, k)) * (1 + 0.02 * k ** 0.5)
+
+    k = thinned_stride(35, 12.0, fixed_cost, 1053)
+    assert fixed_cost(k) <= 12.0 < fixed_cost(k - 1) and len(asked) <= 15
+    asked.clear()
+    assert thinned_stride(35, 9.5, fixed_cost, 1053) == 1053 and asked == [35, 196, 1053]
     assert check_plans(f"dense,{THINNED}") == ("dense", THINNED)
 
 
@@ -190,8 +201,7 @@ def test_the_thinned_peer_is_the_dense_plan_thinned_within_the_budget(tmp_path):
         with xr.open_dataset(session / "dataset.nc") as ds:
             tried[int(session.name.split("-")[1])] = (float(ds.attrs["instrument_time_s"]), ds.sizes["point"],
                                                      "design_weight" in ds)
-    k = max(tried)                               # the last stride tried is the one that fitted
-    assert tried[k] == (thinned["time_s"], thinned["points"], False)
-    assert all(t > 0.095 * dense["time_s"] for j, (t, _, _) in tried.items() if j != k)
+    k = [j for j, v in tried.items() if v == (thinned["time_s"], thinned["points"], False)][0]
+    assert all(t > 0.095 * dense["time_s"] for j, (t, _, _) in tried.items() if j < k)   # none fewer fitted
     assert min(tried) == 11 and thinned["points"] == len(load_plan("dense").angles[3 % k::k])
     assert thinned["ngan"] < 0.05          # the sample's own family: the thinned fit is a fit

@@ -54,6 +54,16 @@ def test_a_stop_wrapped_by_what_it_interrupted_is_said_as_the_stop(monkeypatch, 
     def plain(argv):
         raise RuntimeError("not a stop")
 
+    def cleanup_failed(argv):               # a clean-up that fails while the stop is handled: its error
+        try:
+            raise SignalStop(signal.SIGTERM)
+        finally:
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(cli, "_main", cleanup_failed)
+    with pytest.raises(OSError, match="No space"):
+        cli.main(["plans"])
+
     monkeypatch.setattr(cli, "_main", plain)
     with pytest.raises(RuntimeError, match="not a stop"):
         cli.main(["plans"])

@@ -49,10 +49,12 @@ def test_global_stage_finds_the_specular_basin():
 @pytest.mark.parametrize("case", ["orennayar", "roughplastic"])
 def test_batched_affine_path_equals_general_path(case):
     """The fast path (batched kernel, coefficient rho / q) and the general path (model.eval,
-    rho directly) find the same optimum and the same Laplace uncertainty. Each local run
-    stops once its predicted decrease of chi2 is below atol = 1e-4, so each end lies within
-    1e-4 of the optimum's chi2: within sqrt(1e-4) = 0.01 sigma in each parameter, and the two
-    within 0.02 sigma of each other (measured 0.005 with the paths' own starts)."""
+    rho directly) find the same optimum and the same Laplace uncertainty. A local run stops
+    once a step's decrease of chi2 is below atol = 1e-4; where that step is (nearly)
+    Gauss-Newton (roughplastic's two runs here: "predicted decrease below tolerance") each end
+    lies within about 1e-4 of the optimum's chi2, within sqrt(1e-4) = 0.01 sigma in each
+    parameter, and the two within 0.02 sigma of each other (measured: roughplastic 0.0065,
+    orennayar 0, each path from its own starts)."""
     from _simdata import simulate
 
     import gonio.models as gm
@@ -68,7 +70,7 @@ def test_batched_affine_path_equals_general_path(case):
     fast = fit(meas, model, rng=np.random.default_rng(0))
     slow = fit(meas, model, rng=np.random.default_rng(0), use_fast=False)
     assert "batched affine kernel" in fast.method and "batched" not in slow.method
-    np.testing.assert_array_less(np.abs(fast.x - slow.x), 0.02 * slow.std)
+    np.testing.assert_array_less(np.abs(fast.x - slow.x), 0.02 * slow.std + 1e-12)
     np.testing.assert_allclose(fast.std, slow.std, rtol=2e-2)
     assert abs(fast.chi2 - slow.chi2) <= 1e-6 * slow.chi2 + 1e-6
 

@@ -296,8 +296,10 @@ def with_reciprocal(angles) -> np.ndarray:
 def thin(plan: Plan, stride: int, offset: int = 0) -> Plan:
     """Every ``stride``-th point of ``plan`` as listed, from its ``offset``-th: a uniform thinning
     that keeps the plan's mix of scans (each scan's share of the points), for a plan of the same
-    kind at about 1/``stride`` of the points. ValueError (one line) for a stride that is not a
-    whole number >= 1 or an offset outside [0, stride)."""
+    kind at about 1/``stride`` of the points. A stride that divides a scan's length per incidence
+    (dense: 120 directions each) takes the same directions at every incidence of that scan.
+    ValueError (one line) for a stride that is not a whole number >= 1 or an offset outside
+    [0, stride)."""
     for name, v in (("stride", stride), ("offset", offset)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
             raise ValueError(f"thin: {name} = {str(v)[:40]!r}: give a whole number")

@@ -250,14 +250,16 @@ class AffineFit:
         return (lm.u.copy(), lm.cost, lm.converged, lm.message)
 
     def result(self, best, t0):
-        """The FitResult in the model's own parameters, or None to hand over to the general path;
-        then :attr:`handover` is the best start's parameters (the coefficients clipped to their
-        bounds), for the general path to start from: the basin this stage found, not a new search."""
+        """The FitResult in the model's own parameters, or None to hand over to the general path
+        (an approximate bound decided a coefficient, or the Laplace Jacobian is not finite); then
+        :attr:`handover` is the best refined point's parameters (the coefficients clipped to their
+        bounds; None where not finite), for the general path to start from: the basin this stage
+        found, not a new search."""
         v, _, converged, message = best
         theta = self.theta_of(v)
+        self.handover = self._clipped(theta)
         x = self._parameters(theta)
         if x is None:
-            self.handover = self._clipped(theta)
             return None
         coef, parts, q = self._solution
         J = self._laplace_jacobian(theta, coef, parts, q)

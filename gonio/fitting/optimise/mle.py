@@ -296,7 +296,11 @@ def fit(meas, model, *, loss: str = "chi2", fixed: dict | None = None, rng=None,
         Draws the global stage's starting points. Required: fits are reproducible.
     n_starts, n_local : int
         Stratified starting points scored (default 4 + 4 d for d parameters searched, at
-        most 24), and how many of the best (in distinct basins) are refined locally.
+        most 24; the affine path, whose scores cost one kernel call for all, scores at least
+        :data:`~gonio.fitting.optimise.affine.SCORED`; 0: the defaults or ``start`` alone),
+        and how many of the best (in distinct basins) are refined locally. Where the affine
+        path hands over to the general one, the general path starts from the affine path's
+        best point in place of the defaults.
     maxeval : int
         Model evaluations per local run.
     enforce_energy : bool, optional
