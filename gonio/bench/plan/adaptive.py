@@ -42,7 +42,7 @@ DEFAULTS: dict[str, Any] = {
     "model": "roughplastic",
     "options": {"distribution": "ggx"},
     "fixed": {},                  # parameters held at a value
-    "n_starts": 4,                # the fit's stratified starts (few: it runs while the stages move)
+    "n_starts": 4,                # the fit's starts, few: it runs while the stages move (the affine path scores 256)
     "seed": 0,                    # the fits' starts draw from Generator([seed, batch])
     "travel": True,               # score = information gain / (overhead_s + travel time)
     "overhead_s": 5.0,            # a point's time before the journal has any; the scores' charge besides the move
