@@ -27,8 +27,8 @@ import numpy as np
 from gonio.core.atomic import atomic_open
 from gonio.core.errors import GonioError
 
-__all__ = ["PLANS", "SEQUENTIAL", "THINNED", "CHOOSE", "thinned_stride", "front", "paired", "parse_seeds", "run", "run_seeds", "score",
-           "strategy_table"]
+__all__ = ["PLANS", "SEQUENTIAL", "THINNED", "CHOOSE", "thinned_stride", "front", "paired", "parse_seeds", "run",
+           "run_seeds", "score", "strategy_table"]
 
 #: plans compared by default (``adaptive``: the sequential design drawing from ``dense``; ``alc``
 #: and ``ndf`` on request)
@@ -39,7 +39,7 @@ PLANS = ("quick", "standard", "adaptive")
 SEQUENTIAL = ("adaptive", "alc", "ndf", "adaptive-unweighted", "alc-unweighted")
 #: the sequential plans' peer: every k-th point of the dense plan (from point seed mod k), fitted
 #: without design weights as the dense grid is (the dense grid's own estimator on a k-th of its
-#: points); k by :func:`thinned_stride` within the budget, or len(dense) // points without one
+#: points); k by :func:`thinned_stride` within the budget, or round(len(dense) / points) without one
 THINNED = "thinned"
 #: the suffix of a sequential plan fitted without its design weights
 UNWEIGHTED = "-unweighted"
@@ -124,7 +124,7 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     strategy = strategy_table(plan, seed, points, budget_s) if sequential else None
     t0 = time.perf_counter()
     if plan == THINNED:
-        session, instrument_s = _thinned(folder, sample, seed, settings, points, budget_s, dense_s)
+        session = _thinned(folder, sample, seed, settings, points, budget_s, dense_s)
     else:
         session = folder / plan
         capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
@@ -153,9 +153,9 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
 
 
 def _thinned(folder: Path, sample: dict, seed: int, settings: dict, points: int, budget_s: float,
-             dense_s: float) -> tuple[Path, float]:
-    """Capture :data:`THINNED` into ``folder``: (its session, its instrument time, s). The captures
-    of strides that ran over ``budget_s`` stay beside it, each named by its stride."""
+             dense_s: float) -> Path:
+    """Capture :data:`THINNED` into ``folder``: its session. The captures of the other strides
+    tried stay beside it, each named by its stride."""
     import xarray as xr
 
     from gonio.bench.dataset.export import export
@@ -176,12 +176,12 @@ def _thinned(folder: Path, sample: dict, seed: int, settings: dict, points: int,
     if budget_s <= 0:
         k = max(1, round(len(dense) / max(1, int(points))))
         spent(k)
-        return done[k]
+        return done[k][0]
     k = thinned_stride(math.ceil(min(dense_s / budget_s, len(dense)) - 1e-9), budget_s, spent, len(dense))
     if done[k][1] > budget_s:
         raise GonioError(f"--budget-fraction: {budget_s:.0f} s is less than one point of the dense plan takes "
                          f"({done[k][1]:.0f} s); give a larger fraction")
-    return done[k]
+    return done[k][0]
 
 
 def thinned_stride(start: int, budget_s: float, spent, most: int) -> int:
