@@ -124,12 +124,12 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
     strategy = strategy_table(plan, seed, points, budget_s) if sequential else None
     t0 = time.perf_counter()
     if plan == THINNED:
-        session = _thinned(folder, sample, seed, settings, points, budget_s, dense_s)
+        dataset = _thinned(folder, sample, seed, settings, points, budget_s, dense_s)
     else:
         session = folder / plan
         capture_sim(session, sample=sample, plan="dense" if sequential else plan, seed=seed, progress=False,
                     strategy=strategy, settings=settings)
-    dataset = export(session)
+        dataset = export(session)
     with xr.open_dataset(dataset) as ds:
         instrument_s = float(ds.attrs["instrument_time_s"])
         n_points = int(ds.sizes.get("point", 0))
@@ -154,8 +154,8 @@ def _one(plan: str, sample: dict, model: str, options: dict, folder: Path, seed:
 
 def _thinned(folder: Path, sample: dict, seed: int, settings: dict, points: int, budget_s: float,
              dense_s: float) -> Path:
-    """Capture :data:`THINNED` into ``folder``: its session. The captures of the other strides
-    tried stay beside it, each named by its stride."""
+    """Capture :data:`THINNED` into ``folder``: its exported dataset. The captures of the other
+    strides tried stay beside it, each named by its stride."""
     import xarray as xr
 
     from gonio.bench.dataset.export import export
@@ -169,8 +169,9 @@ def _thinned(folder: Path, sample: dict, seed: int, settings: dict, points: int,
         session = folder / f"{THINNED}-{k}"
         capture_sim(session, sample=sample, plan=thin(dense, k, seed % k), seed=seed, progress=False,
                     settings=settings)
-        with xr.open_dataset(export(session)) as ds:
-            done[k] = session, float(ds.attrs["instrument_time_s"])
+        dataset = export(session)
+        with xr.open_dataset(dataset) as ds:
+            done[k] = dataset, float(ds.attrs["instrument_time_s"])
         return done[k][1]
 
     if budget_s <= 0:

@@ -257,47 +257,34 @@ class AffineFit:
         found, not a new search."""
         v, _, converged, message = best
         theta = self.theta_of(v)
-        self.handover = self._clipped(theta)
-        x = self._parameters(theta)
-        if x is None:
-            return None
-        coef, parts, q = self._solution
-        J = self._laplace_jacobian(theta, coef, parts, q)
-        if not np.all(np.isfinite(J)):
-            return None
-        return self._assemble(x, J, coef, parts, t0, converged, message)
-
-    def _clipped(self, theta):
-        """x in natural units at theta with each coefficient clipped to its bounds (rho = coef * q);
-        None where that is not finite."""
-        kern, space = self.kern, self.space
-        coef = kern.solve(theta[None, :])[0][0]
-        rho = np.clip(coef * float(kern.exact_q(theta[None, :])[0]), space.lower[kern.lin_idx], space.upper[kern.lin_idx])
-        x = np.empty(space.size)
-        x[kern.lin_idx] = rho
-        x[self.nl] = theta
-        return x if np.all(np.isfinite(x)) else None
+        x, exact = self._parameters(theta)
+        if exact:
+            coef, parts, q = self._solution
+            J = self._laplace_jacobian(theta, coef, parts, q)
+            if np.all(np.isfinite(J)):
+                return self._assemble(x, J, coef, parts, t0, converged, message)
+        self.handover = x if np.all(np.isfinite(x)) else None
+        return None
 
     def _parameters(self, theta):
-        """x in natural units from theta, exactly (rho = coef * q); None on an approximate bound."""
+        """``(x, exact)``: x in natural units from theta (rho = coef * q, clipped to its bounds);
+        ``exact`` False where the approximate upper bound decided a coefficient or the exact rho
+        leaves its bounds: the general path then decides exactly."""
         kern, space, model = self.kern, self.space, self.model
         parts = kern.parts(theta[None, :])
         q_approx = approx_q(model, theta[None, :])
         coef, _, (_, _, _, lo, hi) = kern.solve(theta[None, :], parts, q_approx)
         coef = coef[0]
-        if np.any((coef >= hi[0] * (1.0 - 1e-12)) & (hi[0] > 0)):
-            return None  # resting on the approximate upper bound: the general path decides exactly
+        on_bound = np.any((coef >= hi[0] * (1.0 - 1e-12)) & (hi[0] > 0))
         q = float(kern.exact_q(theta[None, :])[0])
         rho = coef * q
         lin_lo, lin_hi = space.lower[kern.lin_idx], space.upper[kern.lin_idx]
-        if np.any(rho > lin_hi + 1e-12) or np.any(rho < lin_lo - 1e-12):
-            return None
-        rho = np.clip(rho, lin_lo, lin_hi)
+        outside = np.any(rho > lin_hi + 1e-12) or np.any(rho < lin_lo - 1e-12)
         x = np.empty(space.size)
-        x[kern.lin_idx] = rho
+        x[kern.lin_idx] = np.clip(rho, lin_lo, lin_hi)
         x[self.nl] = theta
         self._solution = (coef, parts, q)
-        return x
+        return x, not (on_bound or outside)
 
     def _laplace_jacobian(self, theta, coef, parts, q):
         """The chi^2 Jacobian in natural units at the optimum (theta by central differences,

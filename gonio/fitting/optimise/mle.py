@@ -389,7 +389,7 @@ def _fit(meas, model, *, loss, fixed, rng, n_starts, n_local, maxeval, enforce_e
             if _robust(loss, meas) and covariance:
                 res = robust_covariance(res, meas, Problem(meas, model, space, loss, use_fast=use_fast, linear=[]))
             return res
-        if start is None and affine.handover is not None:     # where the affine stage's best basin lies
+        if affine.handover is not None:     # where the affine stage's best basin lies
             start = space.to_params(affine.handover)
     with single_threaded_blas():  # as for the affine problem: BLAS's threads fight Dr.Jit's (measured 3-5x)
         general = GeneralFit(meas, model, space, loss, use_fast, enforce_energy, maxeval, start)
